@@ -1,0 +1,24 @@
+"""plenocl: volumetric 3-D PIV from a single plenoptic camera, with OpenCL kernels."""
+
+from .camera import PRESETS, Camera
+from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices, get_queue
+from .grid import Grid
+from .particles import random_particles
+from .simulate import Simulator, simulate_image, simulate_white_image
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "PRESETS",
+    "Camera",
+    "DeviceInfo",
+    "Grid",
+    "NoOpenCLError",
+    "Simulator",
+    "create_context",
+    "describe_devices",
+    "get_queue",
+    "random_particles",
+    "simulate_image",
+    "simulate_white_image",
+]

@@ -1,0 +1,317 @@
+"""The unfocused plenoptic camera (DESIGN §2): optics, microlens layout, TOML files.
+
+Units are millimetres. Sensor coordinates have their origin on the optical axis;
+pixel ``(col, row)`` has its centre at ``((col + 0.5) - W/2) * p_px``,
+``((row + 0.5) - H/2) * p_px``. The main lens inverts the image.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .tomlio import read_toml, write_toml
+
+#: Microlens images that fill their pitch less than this (fraction) trigger a warning.
+UNDERFILL_WARN = 0.80
+#: Microlens images wider than their pitch by more than this fraction trigger a warning.
+OVERLAP_WARN = 0.02
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"camera {name} must be a positive finite number, got {value!r}")
+    return value
+
+
+def _count_pair(name: str, value) -> tuple[int, int]:
+    pair = tuple(int(v) for v in value)
+    if len(pair) != 2 or min(pair) <= 0 or any(int(v) != v for v in value):
+        raise ValueError(f"camera {name} must be two positive integers [columns, rows], "
+                         f"got {value!r}")
+    return pair
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """An unfocused plenoptic camera: thin main lens, microlens array, sensor.
+
+    Parameters
+    ----------
+    focal_length_mm, f_number, magnification
+        Main lens focal length, f-number (aperture ``D = f/N``) and ``|M|`` at the
+        nominal focal plane.
+    ml_pitch_mm, ml_focal_length_mm, ml_count
+        Microlens pitch, focal length and ``(columns, rows)``.
+    pixel_pitch_mm, pixels
+        Sensor pixel pitch and ``(columns, rows)``.
+    ml_rotation_deg, ml_offset_mm
+        Physical layout of the array on its plane (rotation about the optical axis,
+        lateral shift). The simulator uses them; calibration measures their effect.
+    microlens_centers
+        Microlens image centres ``(rows, cols, 2)`` as ``(col, row)`` pixels; the ideal
+        centres of the layout when not given. ``NaN`` marks a lens calibration missed.
+    """
+
+    focal_length_mm: float
+    f_number: float
+    magnification: float
+    ml_pitch_mm: float
+    ml_focal_length_mm: float
+    ml_count: tuple[int, int]
+    pixel_pitch_mm: float
+    pixels: tuple[int, int]
+    ml_rotation_deg: float = 0.0
+    ml_offset_mm: tuple[float, float] = (0.0, 0.0)
+    microlens_centers: np.ndarray | None = field(default=None, repr=False)
+    calibrated: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("focal_length_mm", "f_number", "magnification", "ml_pitch_mm",
+                     "ml_focal_length_mm", "pixel_pitch_mm"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        object.__setattr__(self, "ml_count", _count_pair("microlens count", self.ml_count))
+        object.__setattr__(self, "pixels", _count_pair("sensor pixels", self.pixels))
+        rot, off = float(self.ml_rotation_deg), tuple(float(v) for v in self.ml_offset_mm)
+        if not (math.isfinite(rot) and all(map(math.isfinite, off)) and len(off) == 2):
+            raise ValueError("microlens rotation and offset must be finite numbers")
+        object.__setattr__(self, "ml_rotation_deg", rot)
+        object.__setattr__(self, "ml_offset_mm", off)
+        self._check_sensor_covers_array()
+        self._check_fill()
+        object.__setattr__(self, "microlens_centers", self._validated_centers())
+
+    # ---- validation -------------------------------------------------------------
+    def _check_sensor_covers_array(self) -> None:
+        mla = np.array(self.ml_count) * self.ml_pitch_mm
+        sensor = np.array(self.pixels) * self.pixel_pitch_mm
+        if np.any(mla > sensor * (1 + 1e-9)):
+            raise ValueError(
+                f"the microlens array ({mla[0]:.3f} x {mla[1]:.3f} mm) is larger than the "
+                f"sensor ({sensor[0]:.3f} x {sensor[1]:.3f} mm): check the microlens pitch "
+                "and count against the sensor's pixel pitch and pixel count"
+            )
+        if self.pixels_per_microlens < 2:
+            raise ValueError(
+                f"only {self.pixels_per_microlens:.2f} pixels per microlens: a plenoptic "
+                "camera needs several pixels behind each microlens to sample the aperture"
+            )
+
+    def _check_fill(self) -> None:
+        fill = self.microlens_image_fill
+        if fill > 1 + OVERLAP_WARN:
+            warnings.warn(
+                f"microlens images overlap by {100 * (fill - 1):.1f}% of the pitch: the main "
+                f"lens at f/{self.f_number:g} is faster than the microlenses "
+                f"(working f-number {self.working_f_number:.2f} vs "
+                f"{self.ml_focal_length_mm / self.ml_pitch_mm:.2f}); stop it down",
+                stacklevel=3,
+            )
+        elif fill < UNDERFILL_WARN:
+            warnings.warn(
+                f"microlens images fill only {100 * fill:.1f}% of the pitch "
+                f"({100 * (1 - fill):.1f}% underfill): the main lens f-number does not match "
+                "the microlenses and angular resolution is wasted",
+                stacklevel=3,
+            )
+
+    def _validated_centers(self) -> np.ndarray:
+        cols, rows = self.ml_count
+        if self.microlens_centers is None:
+            centers = self.ideal_microlens_centers()
+        else:
+            centers = np.array(self.microlens_centers, dtype=np.float64)
+            if centers.shape != (rows, cols, 2):
+                raise ValueError(
+                    f"microlens_centers must have shape (rows, cols, 2) = {(rows, cols, 2)}, "
+                    f"got {centers.shape}"
+                )
+            if np.isinf(centers).any():
+                raise ValueError("microlens_centers contain Inf; use NaN for missing lenses")
+        centers.flags.writeable = False
+        return centers
+
+    # ---- optics -----------------------------------------------------------------
+    @property
+    def aperture_diameter_mm(self) -> float:
+        """Main-lens aperture diameter ``D = f/N``."""
+        return self.focal_length_mm / self.f_number
+
+    @property
+    def object_distance_mm(self) -> float:
+        """Nominal object distance ``s_o = f (1 + 1/M)``."""
+        return self.focal_length_mm * (1 + 1 / self.magnification)
+
+    @property
+    def image_distance_mm(self) -> float:
+        """Main lens to microlens array, ``s_i = f (1 + M)``."""
+        return self.focal_length_mm * (1 + self.magnification)
+
+    @property
+    def working_f_number(self) -> float:
+        """Image-side f-number ``s_i / D``; matches ``f_ml / p_ml`` in a well-built camera."""
+        return self.image_distance_mm / self.aperture_diameter_mm
+
+    @property
+    def microlens_image_pitch_mm(self) -> float:
+        """Spacing of microlens images on the sensor, ``p_ml (1 + f_ml / s_i)``."""
+        return self.ml_pitch_mm * (1 + self.ml_focal_length_mm / self.image_distance_mm)
+
+    @property
+    def microlens_image_fill(self) -> float:
+        """Diameter of a microlens image of the aperture over the image pitch."""
+        diameter = self.ml_focal_length_mm * self.aperture_diameter_mm / self.image_distance_mm
+        return diameter / self.microlens_image_pitch_mm
+
+    @property
+    def pixels_per_microlens(self) -> float:
+        """Pixels across one microlens image."""
+        return self.microlens_image_pitch_mm / self.pixel_pitch_mm
+
+    @property
+    def sensor_size_mm(self) -> tuple[float, float]:
+        """Sensor ``(width, height)``."""
+        return (self.pixels[0] * self.pixel_pitch_mm, self.pixels[1] * self.pixel_pitch_mm)
+
+    def image_distance_at(self, z_mm) -> np.ndarray:
+        """Image distance ``s_i'`` of object depth ``z`` (+z away from the camera)."""
+        s_o = self.object_distance_mm + np.asarray(z_mm, dtype=np.float64)
+        if np.any(s_o <= self.focal_length_mm) or not np.all(np.isfinite(s_o)):
+            raise ValueError(
+                f"depth z must satisfy z > {self.focal_length_mm - self.object_distance_mm:.3f}"
+                f" mm (an object at or inside the focal length of the main lens forms no "
+                "real image); move the volume away from the camera"
+            )
+        return self.focal_length_mm * s_o / (s_o - self.focal_length_mm)
+
+    def alpha(self, z_mm) -> np.ndarray:
+        """Refocus parameter ``α = s_i'/s_i`` of depth ``z``."""
+        return self.image_distance_at(z_mm) / self.image_distance_mm
+
+    def image_points(self, points_xyz) -> np.ndarray:
+        """Image-space ``(X', Y', s_i')`` of object points ``(N, 3)``."""
+        pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        s_ip = self.image_distance_at(pts[:, 2])
+        scale = -s_ip / (self.object_distance_mm + pts[:, 2])
+        return np.column_stack([pts[:, 0] * scale, pts[:, 1] * scale, s_ip])
+
+    def aperture_u_of_offset(self, offset_mm):
+        """Aperture coordinate seen by a pixel ``offset_mm`` from its microlens image centre."""
+        return -np.asarray(offset_mm) * self.image_distance_mm / self.ml_focal_length_mm
+
+    # ---- microlens layout --------------------------------------------------------
+    def _rotation(self) -> tuple[float, float]:
+        t = math.radians(self.ml_rotation_deg)
+        return math.cos(t), math.sin(t)
+
+    def microlens_positions_mm(self) -> np.ndarray:
+        """Microlens centres on the array plane, ``(rows, cols, 2)`` as ``(x, y)`` mm."""
+        cols, rows = self.ml_count
+        a = (np.arange(cols) - (cols - 1) / 2) * self.ml_pitch_mm
+        b = (np.arange(rows) - (rows - 1) / 2) * self.ml_pitch_mm
+        aa, bb = np.meshgrid(a, b)
+        c, s = self._rotation()
+        x = c * aa - s * bb + self.ml_offset_mm[0]
+        y = s * aa + c * bb + self.ml_offset_mm[1]
+        return np.stack([x, y], axis=-1)
+
+    def ideal_microlens_centers(self) -> np.ndarray:
+        """Microlens image centres ``c_k = x_k (1 + f_ml/s_i)`` as ``(col, row)`` pixels."""
+        ck = self.microlens_positions_mm() * (1 + self.ml_focal_length_mm / self.image_distance_mm)
+        return self.mm_to_px(ck)
+
+    def mm_to_px(self, xy_mm) -> np.ndarray:
+        """Sensor ``(x, y)`` mm to ``(col, row)`` pixel coordinates (pixel centres at .0)."""
+        xy = np.asarray(xy_mm, dtype=np.float64)
+        size = np.array(self.pixels, dtype=np.float64)
+        return xy / self.pixel_pitch_mm + size / 2 - 0.5
+
+    def px_to_mm(self, colrow) -> np.ndarray:
+        """``(col, row)`` pixel coordinates to sensor ``(x, y)`` mm."""
+        cr = np.asarray(colrow, dtype=np.float64)
+        size = np.array(self.pixels, dtype=np.float64)
+        return (cr + 0.5 - size / 2) * self.pixel_pitch_mm
+
+    def with_centers(self, centers: np.ndarray) -> Camera:
+        """A copy with calibrated microlens image centres."""
+        return replace(self, microlens_centers=np.asarray(centers, float), calibrated=True)
+
+    def describe(self) -> str:
+        """A short human-readable summary of the derived optics."""
+        return (
+            f"f={self.focal_length_mm:g} mm f/{self.f_number:g} |M|={self.magnification:g}: "
+            f"s_o={self.object_distance_mm:.2f} mm, s_i={self.image_distance_mm:.2f} mm, "
+            f"D={self.aperture_diameter_mm:.2f} mm; {self.ml_count[0]}x{self.ml_count[1]} "
+            f"microlenses, {self.pixels_per_microlens:.2f} px each, image fill "
+            f"{100 * self.microlens_image_fill:.1f}%"
+        )
+
+    # ---- files ------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """The camera as TOML-ready nested dictionaries (DESIGN §2 keys)."""
+        doc = {
+            "main_lens": {"focal_length_mm": self.focal_length_mm, "f_number": self.f_number,
+                          "magnification": self.magnification},
+            "microlens_array": {"pitch_mm": self.ml_pitch_mm,
+                                "focal_length_mm": self.ml_focal_length_mm,
+                                "count": list(self.ml_count),
+                                "rotation_deg": self.ml_rotation_deg,
+                                "offset_mm": list(self.ml_offset_mm)},
+            "sensor": {"pixel_pitch_mm": self.pixel_pitch_mm, "pixels": list(self.pixels)},
+        }
+        if self.calibrated:
+            c = self.microlens_centers
+            doc["calibration"] = {"centers_col": c[..., 0].tolist(),
+                                  "centers_row": c[..., 1].tolist()}
+        return doc
+
+    @classmethod
+    def from_dict(cls, doc: dict, source: str = "camera") -> Camera:
+        """Build a camera from the nested dictionaries of a camera file."""
+        try:
+            lens, mla, sensor = doc["main_lens"], doc["microlens_array"], doc["sensor"]
+            kwargs = dict(
+                focal_length_mm=lens["focal_length_mm"], f_number=lens["f_number"],
+                magnification=lens["magnification"], ml_pitch_mm=mla["pitch_mm"],
+                ml_focal_length_mm=mla["focal_length_mm"], ml_count=mla["count"],
+                ml_rotation_deg=mla.get("rotation_deg", 0.0),
+                ml_offset_mm=mla.get("offset_mm", (0.0, 0.0)),
+                pixel_pitch_mm=sensor["pixel_pitch_mm"], pixels=sensor["pixels"],
+            )
+        except KeyError as exc:
+            raise ValueError(f"{source} lacks the key {exc.args[0]!r} (see DESIGN §2 for the "
+                             "camera file's sections and keys)") from None
+        cal = doc.get("calibration")
+        if cal:
+            kwargs["microlens_centers"] = np.stack(
+                [np.array(cal["centers_col"], float), np.array(cal["centers_row"], float)], -1)
+            kwargs["calibrated"] = True
+        return cls(**kwargs)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> Camera:
+        """Read a camera file."""
+        return cls.from_dict(read_toml(path), source=str(path))
+
+    def to_toml(self, path: str | Path) -> None:
+        """Write a camera file (atomically); calibrated centres are included."""
+        write_toml(path, self.to_dict())
+
+    # ---- presets ----------------------------------------------------------------
+    @classmethod
+    def paper_16mp(cls) -> Camera:
+        """The paper's experiment: Imperx B4820 (4904 x 3280, 7.4 µm), 289 x 193 lenses."""
+        return cls(50.0, 2.42, 0.66, 0.125, 0.5, (289, 193), 0.0074, (4904, 3280))
+
+    @classmethod
+    def synthetic_850(cls) -> Camera:
+        """The paper's synthetic camera: 850 x 850 px behind 50 x 50 lenses, M = 1, f/2."""
+        return cls(50.0, 2.0, 1.0, 0.125, 0.5, (50, 50), 0.0074, (850, 850))
+
+
+PRESETS = {"paper": Camera.paper_16mp, "synthetic": Camera.synthetic_850}

@@ -1,0 +1,96 @@
+"""File input and output: atomic writes, raw images (TIFF/PNG/NPY), particle lists."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; move it into place only on success.
+
+    A crash or an exception leaves the previous file (or none) and no partial file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix,
+                               dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_tiff(path: str | Path, image: np.ndarray) -> None:
+    """Write an image or image stack as TIFF, atomically."""
+    import tifffile
+
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, np.asarray(image))
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read a raw image (TIFF, PNG or ``.npy``) as a 2-D array, with clear errors."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such image file: {path}")
+    suffix = path.suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        image = tifffile.imread(path)
+    elif suffix == ".npy":
+        image = np.load(path)
+    else:
+        import skimage.io
+
+        image = skimage.io.imread(path)
+    if image.ndim == 3 and image.shape[-1] in (3, 4):
+        raise ValueError(f"{path} is a colour image; plenocl needs the raw monochrome sensor "
+                         "image (one value per pixel)")
+    if image.ndim != 2:
+        raise ValueError(f"{path} holds an array of shape {image.shape}; expected one 2-D image")
+    return image
+
+
+def write_particles(path: str | Path, positions: np.ndarray, intensities: np.ndarray) -> None:
+    """Write particles as CSV with a header ``x_mm,y_mm,z_mm,intensity``, atomically."""
+    data = np.column_stack([np.asarray(positions, float).reshape(-1, 3),
+                            np.asarray(intensities, float).reshape(-1)])
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, data, delimiter=",", header="x_mm,y_mm,z_mm,intensity", comments="",
+                   fmt="%.9g")
+
+
+def read_particles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a particle CSV: columns ``x_mm,y_mm,z_mm`` and optionally ``intensity``.
+
+    Returns positions ``(N, 3)`` and intensities ``(N,)`` (1000 counts each when the
+    file has no intensity column).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such particle file: {path}")
+    try:
+        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as exc:
+        raise ValueError(f"{path}: expected CSV rows 'x_mm,y_mm,z_mm[,intensity]' after one "
+                         f"header line ({exc})") from None
+    if data.shape[1] not in (3, 4) or data.shape[0] == 0:
+        raise ValueError(f"{path}: expected 3 or 4 columns 'x_mm,y_mm,z_mm[,intensity]' and at "
+                         f"least one row, got shape {data.shape}")
+    intens = data[:, 3] if data.shape[1] == 4 else np.full(len(data), 1000.0)
+    return data[:, :3], intens

@@ -1,0 +1,8 @@
+"""Plain NumPy references for every kernel, written for clarity rather than speed.
+
+Tests compare each OpenCL kernel against its twin here.
+"""
+
+from .simulate import random_words, trace_particles, trace_white
+
+__all__ = ["random_words", "trace_particles", "trace_white"]

@@ -1,0 +1,70 @@
+"""Sensor effects applied to a noise-free image: background, shot and read noise,
+gain, bit depth and saturation. Host code with NumPy's seeded generator, so the
+result is the same on every device."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """How a noise-free image (in counts) becomes a recorded one.
+
+    Parameters
+    ----------
+    background
+        Constant background added to every pixel (counts).
+    photon_noise
+        Poisson shot noise on signal plus background.
+    electrons_per_count
+        Gain: photo-electrons per count (shot noise scales as ``sqrt(counts / gain)``).
+    read_noise
+        Gaussian read noise, standard deviation in counts.
+    bit_depth
+        Digitise to unsigned integers of this many bits (``None``: keep float32).
+    saturation
+        Full-scale level in counts; defaults to ``2**bit_depth - 1``.
+    """
+
+    background: float = 0.0
+    photon_noise: bool = False
+    electrons_per_count: float = 1.0
+    read_noise: float = 0.0
+    bit_depth: int | None = None
+    saturation: float | None = None
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.background) or self.background < 0:
+            raise ValueError(f"background must be >= 0 counts, got {self.background}")
+        if not self.electrons_per_count > 0:
+            raise ValueError(f"electrons_per_count must be > 0, got {self.electrons_per_count}")
+        if not np.isfinite(self.read_noise) or self.read_noise < 0:
+            raise ValueError(f"read_noise must be >= 0 counts, got {self.read_noise}")
+        if self.bit_depth is not None and not 1 <= int(self.bit_depth) <= 16:
+            raise ValueError(f"bit_depth must be between 1 and 16, got {self.bit_depth}")
+        if self.saturation is not None and not self.saturation > 0:
+            raise ValueError(f"saturation must be > 0 counts, got {self.saturation}")
+
+    @property
+    def full_scale(self) -> float:
+        """The saturation level in counts (``inf`` for an ideal float sensor)."""
+        if self.saturation is not None:
+            return float(self.saturation)
+        return float(2 ** int(self.bit_depth) - 1) if self.bit_depth else np.inf
+
+    def apply(self, image: np.ndarray, seed: int = 0) -> np.ndarray:
+        """Return the recorded image for the noise-free ``image`` (counts)."""
+        rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5E7508])
+        out = np.asarray(image, dtype=np.float64) + self.background
+        if self.photon_noise:
+            out = rng.poisson(out * self.electrons_per_count) / self.electrons_per_count
+        if self.read_noise > 0:
+            out = out + rng.normal(0.0, self.read_noise, out.shape)
+        out = np.clip(out, 0.0, self.full_scale)
+        if self.bit_depth is None:
+            return out.astype(np.float32)
+        dtype = np.uint8 if int(self.bit_depth) <= 8 else np.uint16
+        return np.rint(out).astype(dtype)

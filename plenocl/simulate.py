@@ -1,0 +1,248 @@
+"""Plenoptic image simulator on OpenCL (DESIGN §8); NumPy twin in ``reference.simulate``.
+
+Rays are traced exactly through the thin main lens and the microlens each ray
+enters. Random numbers are counter-based (a hash of seed, source and ray), so a
+seed gives the same rays on every device. Accumulation is in 64-bit fixed point
+where the device has 64-bit atomics: the image is then bit-for-bit repeatable.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyopencl as cl
+
+from .camera import Camera
+from .device import DeviceLike, device_info, get_queue
+from .program import build_program, fetch_kernels
+from .sensor import SensorModel
+
+#: Rays one work-item traces; the rest of the parallelism is over sources.
+RAYS_PER_ITEM = 128
+#: Work-items per launch; bounds device memory and launch size for any particle count.
+MAX_ITEMS_PER_LAUNCH = 1 << 22
+
+
+def _validate_particles(camera: Camera, positions, intensities) -> tuple[np.ndarray, np.ndarray]:
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions must be an (N, 3) array of (x, y, z) mm, got {pos.shape}")
+    intens = np.broadcast_to(np.asarray(intensities, dtype=np.float64), (len(pos),)).copy()
+    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(intens))):
+        raise ValueError("positions and intensities must be finite (found NaN or Inf)")
+    if np.any(intens < 0):
+        raise ValueError("intensities must be >= 0 (counts per particle)")
+    camera.image_distance_at(pos[:, 2])  # raises for depths that form no real image
+    return pos, intens
+
+
+def _validate_rays(rays: int) -> int:
+    if int(rays) != rays or rays < 1 or rays >= 2**31:
+        raise ValueError(f"rays must be a positive integer below 2**31, got {rays}")
+    return int(rays)
+
+
+def _lens_gain(camera: Camera, gain) -> np.ndarray:
+    cols, rows = camera.ml_count
+    if gain is None:
+        return np.ones(rows * cols, np.float32)
+    g = np.asarray(gain, dtype=np.float32)
+    if g.shape != (rows, cols) or not np.all(np.isfinite(g)) or g.min() < 0 or g.max() > 1:
+        raise ValueError(f"lens_transmission must be a ({rows}, {cols}) array of values in "
+                         "[0, 1] (rows, columns of the microlens array)")
+    return np.ascontiguousarray(g.ravel())
+
+
+class Simulator:
+    """Ray-tracing simulator for one camera on one OpenCL queue.
+
+    Parameters
+    ----------
+    camera
+        The camera; its physical array layout (rotation, offset) is traced.
+    queue
+        An OpenCL queue, context, device or device-name substring (see
+        :func:`plenocl.device.get_queue`); ``None`` picks one.
+    """
+
+    def __init__(self, camera: Camera, queue: DeviceLike = None) -> None:
+        self.camera = camera
+        self.queue = get_queue(queue)
+        self.int64 = device_info(self.queue).int64_atomics
+        opts = ["-DPL_INT64_ATOMICS"] if self.int64 else []
+        program = build_program(self.queue.context, "simulate.cl", opts)
+        self._k = fetch_kernels(program, ["trace_particles", "trace_white"])
+        self._acc = np.int64 if self.int64 else np.float32
+
+    # ---- shared launch plumbing ---------------------------------------------------------
+    def _geometry_args(self) -> list:
+        cam = self.camera
+        t = math.radians(cam.ml_rotation_deg)
+        return [np.float32(cam.ml_pitch_mm), np.float32(math.cos(t)), np.float32(math.sin(t)),
+                np.float32(cam.ml_offset_mm[0]), np.float32(cam.ml_offset_mm[1]),
+                np.int32(cam.ml_count[0]), np.int32(cam.ml_count[1]),
+                np.float32(cam.pixel_pitch_mm), np.int32(cam.pixels[0]),
+                np.int32(cam.pixels[1])]
+
+    def _quanta(self, per_ray: np.ndarray, total: float) -> tuple[np.ndarray, float]:
+        """Per-ray contributions in the accumulator's units, and the scale back to counts."""
+        if not self.int64:
+            return per_ray.astype(np.float32), 1.0
+        scale = 2.0 ** min(40, math.floor(math.log2(2.0**62 / max(total, 1e-30))))
+        return np.rint(per_ray * scale).astype(np.int64), scale
+
+    def _new_image(self) -> cl.Buffer:
+        w, h = self.camera.pixels
+        nbytes = w * h * np.dtype(self._acc).itemsize
+        buf = cl.Buffer(self.queue.context, cl.mem_flags.READ_WRITE, nbytes)
+        cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, self._acc), 0, nbytes)
+        return buf
+
+    def _read_image(self, buf: cl.Buffer, scale: float) -> np.ndarray:
+        w, h = self.camera.pixels
+        acc = np.empty((h, w), self._acc)
+        cl.enqueue_copy(self.queue, acc, buf)
+        return (acc.astype(np.float64) / scale).astype(np.float32)
+
+    @staticmethod
+    def _chunks(n_sources: int, rays: int):
+        blocks = -(-rays // RAYS_PER_ITEM)
+        per_launch = max(1, MAX_ITEMS_PER_LAUNCH // blocks)
+        for start in range(0, n_sources, per_launch):
+            yield start, min(per_launch, n_sources - start), blocks
+
+    # ---- public --------------------------------------------------------------------------
+    def trace(self, positions, intensities, rays_per_particle: int = 1000, seed: int = 0,
+              blur_px: float = 0.0, lens_transmission=None) -> np.ndarray:
+        """Noise-free image (counts, float32) of point particles; see :func:`simulate_image`."""
+        cam = self.camera
+        pos, intens = _validate_particles(cam, positions, intensities)
+        rays = _validate_rays(rays_per_particle)
+        img_pts = np.zeros((len(pos), 4), np.float32)
+        if len(pos):
+            img_pts[:, :3] = cam.image_points(pos)
+        quanta, scale = self._quanta(intens / rays, float(intens.sum()))
+        gain = cl.Buffer(self.queue.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                         hostbuf=_lens_gain(cam, lens_transmission))
+        image = self._new_image()
+        mf = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        for start, n, blocks in self._chunks(len(pos), rays):
+            pts = cl.Buffer(self.queue.context, mf, hostbuf=img_pts[start:start + n])
+            q = cl.Buffer(self.queue.context, mf, hostbuf=quanta[start:start + n])
+            self._k["trace_particles"](
+                self.queue, (blocks, n), None, pts, q, gain, image,
+                np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
+                np.float32(cam.aperture_diameter_mm / 2), np.float32(cam.image_distance_mm),
+                np.float32(cam.ml_focal_length_mm),
+                np.float32(blur_px * cam.pixel_pitch_mm), *self._geometry_args())
+        return self._read_image(image, scale)
+
+    def trace_white(self, stop_f_number: float = 16.0, rays_per_lens: int = 2000,
+                    intensity: float = 1000.0, seed: int = 0, blur_px: float = 0.8,
+                    lens_transmission=None) -> np.ndarray:
+        """Noise-free white image; see :func:`simulate_white_image`."""
+        cam = self.camera
+        rays = _validate_rays(rays_per_lens)
+        if not (np.isfinite(stop_f_number) and stop_f_number >= cam.f_number):
+            raise ValueError(f"stop_f_number must be >= the lens f-number {cam.f_number:g} "
+                             "(the calibration image is taken with the aperture stopped down)")
+        n_lens = cam.ml_count[0] * cam.ml_count[1]
+        quantum, scale = self._quanta(np.array([intensity / rays]), intensity * n_lens)
+        gain = cl.Buffer(self.queue.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                         hostbuf=_lens_gain(cam, lens_transmission))
+        image = self._new_image()
+        for start, n, blocks in self._chunks(n_lens, rays):
+            self._k["trace_white"](
+                self.queue, (blocks, n), None, gain, image, quantum[0],
+                np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
+                np.float32(cam.focal_length_mm / stop_f_number / 2),
+                np.float32(cam.image_distance_mm), np.float32(cam.ml_focal_length_mm),
+                np.float32(blur_px * cam.pixel_pitch_mm), *self._geometry_args())
+        return self._read_image(image, scale)
+
+
+def simulate_image(camera: Camera, positions, intensities, rays_per_particle: int = 1000,
+                   seed: int = 0, *, blur_px: float = 0.0, background: float = 0.0,
+                   photon_noise: bool = False, read_noise: float = 0.0,
+                   electrons_per_count: float = 1.0, bit_depth: int | None = None,
+                   saturation: float | None = None, lens_transmission=None,
+                   queue: DeviceLike = None) -> np.ndarray:
+    """Simulate the raw plenoptic image of point particles.
+
+    Parameters
+    ----------
+    camera
+        The camera (its physical microlens layout is traced).
+    positions
+        ``(N, 3)`` particle positions ``(x, y, z)`` in mm (object space, DESIGN §1).
+    intensities
+        Counts each particle sends through the aperture (scalar or ``(N,)``).
+    rays_per_particle, seed
+        Rays traced per particle, and the seed of the counter-based generator.
+    blur_px
+        Standard deviation (pixels) of a Gaussian particle-image blur (diffraction).
+    background, photon_noise, read_noise, electrons_per_count, bit_depth, saturation
+        Sensor model, see :class:`plenocl.sensor.SensorModel`.
+    lens_transmission
+        Optional ``(rows, cols)`` per-lens transmission in [0, 1] (0: a dead lens).
+    queue
+        OpenCL queue, context, device or device-name substring.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` image: float32 counts, or ``uint8``/``uint16`` when ``bit_depth`` is set.
+        Without losses the noise-free image sums to the intensity of the rays that land.
+    """
+    sensor = SensorModel(background, photon_noise, electrons_per_count, read_noise,
+                         bit_depth, saturation)
+    clean = Simulator(camera, queue).trace(positions, intensities, rays_per_particle, seed,
+                                           blur_px, lens_transmission)
+    return sensor.apply(clean, seed)
+
+
+def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
+                         rays_per_lens: int = 2000, intensity: float = 1000.0, seed: int = 0,
+                         blur_px: float = 0.8, vignetting: float = 0.0, missing=None,
+                         background: float = 0.0, photon_noise: bool = False,
+                         read_noise: float = 0.0, electrons_per_count: float = 1.0,
+                         bit_depth: int | None = None, saturation: float | None = None,
+                         queue: DeviceLike = None) -> np.ndarray:
+    """Simulate a white (calibration) image taken with the main lens stopped down.
+
+    Each microlens images the small stopped-down aperture as a spot centred at
+    ``c_k = x_k (1 + f_ml / s_i)`` (DESIGN §2).
+
+    Parameters
+    ----------
+    stop_f_number
+        The f-number the main lens is stopped down to (spot diameter
+        ``f_ml (f / N_stop) / s_i``).
+    rays_per_lens, intensity
+        Rays traced per microlens and the total counts each lens receives.
+    blur_px
+        Gaussian spot blur in pixels (diffraction at the stopped-down aperture).
+    vignetting
+        Relative intensity loss at the array corner, ``1 - vignetting · r² / r_max²``.
+    missing
+        Optional boolean ``(rows, cols)`` mask of dead or occluded lenses.
+    background, photon_noise, read_noise, electrons_per_count, bit_depth, saturation
+        Sensor model, see :class:`plenocl.sensor.SensorModel`.
+    """
+    if not 0.0 <= vignetting < 1.0:
+        raise ValueError(f"vignetting must be in [0, 1), got {vignetting}")
+    pos = camera.microlens_positions_mm()
+    r2 = (pos ** 2).sum(-1)
+    gain = 1.0 - vignetting * r2 / r2.max() if r2.max() > 0 else np.ones(r2.shape)
+    if missing is not None:
+        missing = np.asarray(missing, bool)
+        if missing.shape != gain.shape:
+            raise ValueError(f"missing must be a boolean mask of shape {gain.shape} "
+                             "(rows, cols of the microlens array)")
+        gain = np.where(missing, 0.0, gain)
+    sensor = SensorModel(background, photon_noise, electrons_per_count, read_noise,
+                         bit_depth, saturation)
+    clean = Simulator(camera, queue).trace_white(stop_f_number, rays_per_lens, intensity, seed,
+                                                 blur_px, gain)
+    return sensor.apply(clean, seed)

@@ -1,0 +1,69 @@
+"""Device selection, capability probing, program building and kernel discovery."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pyopencl as cl
+import pytest
+
+import plenocl
+from plenocl import device
+from plenocl.program import KernelBuildError, build_program, kernel_dir
+
+
+def test_devices_are_listed_with_capabilities():
+    text = plenocl.describe_devices()
+    assert "fp64" in text and "64-bit atomics" in text and "GiB" in text
+    info = device.DeviceInfo.probe(device.all_devices()[0])
+    assert info.global_mem_bytes > 0 and info.opencl_version.startswith("OpenCL")
+
+
+def test_explicit_choice_by_type_and_clear_error_for_no_match():
+    dev = device.all_devices()[0]
+    kind = cl.device_type.to_string(dev.type).split()[0].lower()
+    assert device.create_context(kind).devices[0].type & dev.type
+    with pytest.raises(plenocl.NoOpenCLError, match="no OpenCL device matches"):
+        device.create_context("no-such-device-xyz")
+
+
+def test_queue_passes_through_and_wraps_contexts(queue):
+    assert device.get_queue(queue) is queue
+    assert device.get_queue(queue.context).context == queue.context
+
+
+def test_no_platform_names_the_pocl_extra(monkeypatch):
+    monkeypatch.setattr(cl, "get_platforms", lambda: [])
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    with pytest.raises(plenocl.NoOpenCLError, match=r'pip install "plenocl\[pocl\]"'):
+        device.create_context()
+
+
+def test_memory_check_states_the_need(queue):
+    with pytest.raises(MemoryError, match="GiB of device memory"):
+        device.check_fits(queue, 1 << 50, "a test volume")
+
+
+def test_program_is_built_once_per_context(queue):
+    a = build_program(queue.context, "simulate.cl")
+    assert build_program(queue.context, "simulate.cl") is a
+
+
+def test_build_failure_reports_file_options_and_log(queue):
+    with pytest.raises(KernelBuildError) as err:
+        build_program(queue.context, "simulate.cl", ["-Dpl_hash=syntax error("])
+    text = str(err.value)
+    assert "simulate.cl" in text and "-Dpl_hash" in text and "compiler log" in text
+
+
+def test_kernels_found_from_installed_package_and_from_checkout():
+    assert (kernel_dir() / "simulate.cl").is_file()
+    checkout = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(checkout)}
+    out = subprocess.run([sys.executable, "-c",
+                          "import plenocl.program as p; print(p.kernel_dir())"],
+                         cwd=checkout, env=env, capture_output=True, text=True, check=True)
+    assert Path(out.stdout.strip()) == checkout / "kernels"
