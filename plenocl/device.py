@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+
 import pyopencl as cl
 
 DeviceLike = None | str | cl.Device | cl.Context | cl.CommandQueue
