@@ -3,6 +3,7 @@
 Tests compare each OpenCL kernel against its twin here.
 """
 
+from . import reconstruct
 from .simulate import random_words, trace_particles, trace_white
 
-__all__ = ["random_words", "trace_particles", "trace_white"]
+__all__ = ["reconstruct", "random_words", "trace_particles", "trace_white"]

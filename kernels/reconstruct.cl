@@ -1,0 +1,103 @@
+/* Element-wise steps of the multiplicative solvers (DESIGN §6). NumPy twin:
+ * plenocl/reference/reconstruct.py. Guards: the ratio I / max(P, eps) is clamped,
+ * exponents are clamped, and a non-finite or negative voxel becomes 0, so no NaN or
+ * Inf ever leaves a kernel. Sizes are arguments; one build serves every shape. */
+
+#define PL_EPS 1e-12f
+#define PL_RATIO_MIN 1e-6f
+#define PL_RATIO_MAX 1e6f
+#define PL_EXP_CLAMP 30.0f
+#define PL_VOXEL_MAX 1e30f
+
+inline float pl_clean(float v)
+{
+    return (isfinite(v) && v > 0.0f) ? fmin(v, PL_VOXEL_MAX) : 0.0f;
+}
+
+/* out = I / max(P, eps) (clamped) or its log; pixels at or below threshold are dark (I = 0).
+ * With a block map, pixels outside block `block` get 0 (they do not update). */
+__kernel void ratio(__global const float *img, __global const float *proj,
+                    __global const uchar *block_of, int block, float threshold,
+                    int log_mode, __global float *out, int n)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    if (block >= 0 && (int)block_of[i] != block) { out[i] = 0.0f; return; }
+    float value = img[i] > threshold ? img[i] : 0.0f;
+    float r = clamp(value / fmax(proj[i], PL_EPS), 0.0f, PL_RATIO_MAX);
+    out[i] = log_mode ? log(fmax(r, PL_RATIO_MIN)) : r;
+}
+
+/* Multiplicative EM: E <- E (b / s)^mu with b = W^T r (the arithmetic mean of ratios). */
+__kernel void update_mlem(__global float *vol, __global const float *b,
+                          __global const float *sens, float relax, int n)
+{
+    const int j = get_global_id(0);
+    if (j >= n) return;
+    float s = sens[j], e = vol[j];
+    if (s <= PL_EPS || !(e > 0.0f)) { vol[j] = 0.0f; return; }
+    float f = fmax(b[j], 0.0f) / s;
+    vol[j] = pl_clean(e * (relax == 1.0f ? f : pow(f, relax)));
+}
+
+/* Exponential update: E <- E exp(mu b / s) (SMART, by_sens = 1) or E exp(mu b) (MART
+ * block, the paper's exponent mu w_ij), with b = W^T log r. */
+__kernel void update_exp(__global float *vol, __global const float *b,
+                         __global const float *sens, float relax, int by_sens, int n)
+{
+    const int j = get_global_id(0);
+    if (j >= n) return;
+    float s = sens[j], e = vol[j];
+    if (s <= PL_EPS || !(e > 0.0f)) { vol[j] = 0.0f; return; }
+    float x = relax * b[j] / (by_sens ? s : 1.0f);
+    vol[j] = pl_clean(e * exp(clamp(x, -PL_EXP_CLAMP, PL_EXP_CLAMP)));
+}
+
+/* MLOS first guess: the weighted geometric mean of the pixels a voxel reaches,
+ * E = exp(b / s) with b = W^T log(max(I, floor)). */
+__kernel void mlos(__global float *vol, __global const float *b, __global const float *sens,
+                   int n)
+{
+    const int j = get_global_id(0);
+    if (j >= n) return;
+    float s = sens[j];
+    vol[j] = s > PL_EPS ? pl_clean(exp(clamp(b[j] / s, -80.0f, 80.0f))) : 0.0f;
+}
+
+/* Zero-pixel masking: zero the voxels that send more than `fraction` of their light
+ * onto dark pixels (b = W^T dark, dark = 1 on pixels at or below the threshold). */
+__kernel void mask_dark(__global float *vol, __global const float *b,
+                        __global const float *sens, float fraction, int n)
+{
+    const int j = get_global_id(0);
+    if (j >= n) return;
+    float s = sens[j];
+    if (s <= PL_EPS || b[j] > fraction * s) vol[j] = 0.0f;
+}
+
+/* dark = 1 where I <= threshold, else 0; logimg = log(max(I, floor)). */
+__kernel void prepare_image(__global const float *img, float threshold, float floor_value,
+                            __global float *dark, __global float *logimg, int n)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    float v = img[i];
+    dark[i] = v <= threshold ? 1.0f : 0.0f;
+    logimg[i] = log(fmax(v, floor_value));
+}
+
+/* Partial sums for the host to finish: work-item g sums elements g, g + G, g + 2G, ...
+ * of a (mode 0) or of (a - b)^2 (mode 1), with Kahan compensation. Deterministic. */
+__kernel void partial_sums(__global const float *a, __global const float *b, int mode,
+                           __global float *out, int n)
+{
+    const int g = get_global_id(0), stride = get_global_size(0);
+    float sum = 0.0f, comp = 0.0f;
+    for (int i = g; i < n; i += stride) {
+        float x = mode ? (a[i] - b[i]) * (a[i] - b[i]) : a[i];
+        float y = x - comp, t = sum + y;
+        comp = (t - sum) - y;
+        sum = t;
+    }
+    out[g] = sum;
+}
