@@ -94,3 +94,65 @@ def read_particles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
                          f"least one row, got shape {data.shape}")
     intens = data[:, 3] if data.shape[1] == 4 else np.full(len(data), 1000.0)
     return data[:, :3], intens
+
+
+def save_volume(path: str | Path, vol: np.ndarray, grid=None) -> None:
+    """Save a volume atomically: ``.npy`` (array only), ``.npz`` or ``.h5`` (with the grid).
+
+    ``.h5`` needs h5py (``pip install h5py``).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    meta = {} if grid is None else {"shape": np.array(grid.shape), "x_mm": np.array(grid.x),
+                                    "y_mm": np.array(grid.y), "z_mm": np.array(grid.z)}
+    with atomic_path(path) as tmp:
+        if suffix == ".npy":
+            with tmp.open("wb") as fh:
+                np.save(fh, vol)
+        elif suffix == ".npz":
+            with tmp.open("wb") as fh:
+                np.savez_compressed(fh, volume=vol, **meta)
+        elif suffix in (".h5", ".hdf5"):
+            _save_h5(tmp, vol, meta)
+        else:
+            raise ValueError(f"unknown volume format {suffix!r}: use .npy, .npz or .h5")
+
+
+def _save_h5(tmp: Path, vol: np.ndarray, meta: dict) -> None:
+    try:
+        import h5py
+    except ImportError:
+        raise ImportError("writing .h5 needs h5py: pip install h5py (or use .npz)") from None
+    with h5py.File(tmp, "w") as fh:
+        fh.create_dataset("volume", data=vol, compression="gzip")
+        for key, value in meta.items():
+            fh.attrs[key] = value
+
+
+def load_volume(path: str | Path) -> tuple[np.ndarray, object]:
+    """Load a volume saved by :func:`save_volume`; returns ``(volume, grid or None)``."""
+    from .grid import Grid
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such volume file: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        vol, meta = np.load(path), {}
+    elif suffix == ".npz":
+        with np.load(path) as data:
+            vol, meta = data["volume"], {k: data[k] for k in data.files if k != "volume"}
+    elif suffix in (".h5", ".hdf5"):
+        import h5py
+
+        with h5py.File(path, "r") as fh:
+            vol, meta = fh["volume"][...], dict(fh.attrs)
+    else:
+        raise ValueError(f"unknown volume format {suffix!r}: use .npy, .npz or .h5")
+    if vol.ndim != 3:
+        raise ValueError(f"{path} holds an array of shape {vol.shape}, not a 3-D volume")
+    grid = None
+    if meta:
+        grid = Grid(tuple(int(n) for n in meta["shape"]), tuple(meta["x_mm"]),
+                    tuple(meta["y_mm"]), tuple(meta["z_mm"]))
+    return vol, grid

@@ -106,11 +106,14 @@ def view_blocks(camera, n_per_axis: int) -> np.ndarray:
 class Solver:
     """Device buffers and kernels of a reconstruction with one projector.
 
+    Volumes live on the device as the projector's list of depth slabs; element-wise
+    kernels run slab by slab.
+
     Parameters
     ----------
     projector
         A :class:`plenocl.Projector` (anything with ``queue``, ``camera``, ``grid``,
-        ``forward_array`` and ``back_array`` on ``pyopencl.array.Array``).
+        ``forward_device``, ``back_device`` and ``empty_volume``).
     """
 
     def __init__(self, projector) -> None:
@@ -118,16 +121,20 @@ class Solver:
         self.queue = projector.queue
         program = build_program(self.queue.context, "reconstruct.cl")
         self._k = fetch_kernels(program, _KERNELS)
-        self.n_vox = int(np.prod(projector.grid.shape))
         self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
         ones = cla.empty(self.queue, (projector.camera.pixels[1], projector.camera.pixels[0]),
                          np.float32)
         ones.fill(1.0)
-        self.sens = projector.back_array(ones)
+        self.sens = projector.back_device(ones)
         self._no_blocks = cla.zeros(self.queue, 1, np.uint8)
 
     def _run(self, name: str, n: int, *args) -> None:
         self._k[name](self.queue, (n,), None, *args, np.int32(n))
+
+    def _per_slab(self, name: str, vol, b, *scalars) -> None:
+        """Run a voxel kernel ``name(vol, b, sens, *scalars, n)`` on every slab."""
+        for v, bb, s in zip(vol, b, self.sens):
+            self._run(name, v.size, v.data, bb.data, s.data, *scalars)
 
     def total(self, a, b=None) -> float:
         """``Σ a``, or ``Σ (a - b)²`` when ``b`` is given, reduced on the device."""
@@ -145,54 +152,54 @@ class Solver:
                   np.float32(threshold), np.int32(log_mode), out.data)
         return out
 
+    def _dark_and_log(self, img, threshold: float, floor: float):
+        dark, logimg = cla.empty_like(img), cla.empty_like(img)
+        self._run("prepare_image", self.n_pix, img.data, np.float32(threshold),
+                  np.float32(floor), dark.data, logimg.data)
+        return dark, logimg
+
     def start(self, img, kind: str, threshold: float):
         """First guess: ``"uniform"`` (scaled to the image's total) or ``"mlos"``."""
-        vol = cla.empty(self.queue, self.proj.grid.shape, np.float32)
+        vol = self.proj.empty_volume()
         if kind == "uniform":
-            vol.fill(1.0)
-            total = self.total(self.proj.forward_array(vol))
-            vol.fill(self.total(img) / max(total, 1e-30))
+            for v in vol:
+                v.fill(1.0)
+            total = self.total(self.proj.forward_device(vol))
+            for v in vol:
+                v.fill(self.total(img) / max(total, 1e-30))
         elif kind == "mlos":
-            dark, logimg = cla.empty_like(img), cla.empty_like(img)
-            floor = max(threshold, 1e-6)
-            self._run("prepare_image", self.n_pix, img.data, np.float32(threshold),
-                      np.float32(floor), dark.data, logimg.data)
-            b = self.proj.back_array(logimg)
-            self._run("mlos", self.n_vox, vol.data, b.data, self.sens.data)
+            _, logimg = self._dark_and_log(img, threshold, max(threshold, 1e-6))
+            b = self.proj.back_device(logimg)
+            for v, bb, s in zip(vol, b, self.sens):
+                self._run("mlos", v.size, v.data, bb.data, s.data)
         else:
             raise ValueError(f"start must be 'uniform' or 'mlos', got {kind!r}")
         return vol
 
     def mask(self, vol, img, threshold: float, fraction: float) -> None:
         """Zero the voxels sending more than ``fraction`` of their light to dark pixels."""
-        dark, logimg = cla.empty_like(img), cla.empty_like(img)
-        self._run("prepare_image", self.n_pix, img.data, np.float32(threshold),
-                  np.float32(1e-6), dark.data, logimg.data)
-        b = self.proj.back_array(dark)
-        self._run("mask_dark", self.n_vox, vol.data, b.data, self.sens.data,
-                  np.float32(fraction))
+        dark, _ = self._dark_and_log(img, threshold, 1e-6)
+        self._per_slab("mask_dark", vol, self.proj.back_device(dark), np.float32(fraction))
 
     def step(self, vol, img, method: str, relax: float, threshold: float, blocks=None,
              n_blocks: int = 1) -> float:
-        """One iteration in place; returns the relative residual ``‖P - I‖ / ‖I‖`` before it."""
-        proj = self.proj.forward_array(vol)
+        """One iteration in place; returns ``‖P - I‖`` before it."""
+        proj = self.proj.forward_device(vol)
         resid = self.total(proj, img) ** 0.5
+        mu = np.float32(relax)
         if method == "mlem":
-            b = self.proj.back_array(self.ratio(img, proj, threshold, False))
-            self._run("update_mlem", self.n_vox, vol.data, b.data, self.sens.data,
-                      np.float32(relax))
+            b = self.proj.back_device(self.ratio(img, proj, threshold, False))
+            self._per_slab("update_mlem", vol, b, mu)
         elif method == "smart":
-            b = self.proj.back_array(self.ratio(img, proj, threshold, True))
-            self._run("update_exp", self.n_vox, vol.data, b.data, self.sens.data,
-                      np.float32(relax), np.int32(1))
+            b = self.proj.back_device(self.ratio(img, proj, threshold, True))
+            self._per_slab("update_exp", vol, b, mu, np.int32(1))
         else:
             for blk in range(n_blocks):
                 if blk:
-                    proj = self.proj.forward_array(vol)
-                lr = self.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk)
-                b = self.proj.back_array(lr)
-                self._run("update_exp", self.n_vox, vol.data, b.data, self.sens.data,
-                          np.float32(relax), np.int32(0))
+                    proj = self.proj.forward_device(vol, out=proj)
+                lr = self.ratio(img, proj, threshold, True, blocks,
+                                -1 if blocks is None else blk)
+                self._per_slab("update_exp", vol, self.proj.back_device(lr), mu, np.int32(0))
         return resid
 
 
@@ -210,7 +217,7 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         Raw image ``(rows, cols)`` matching the projector's camera; uint8, uint16 or float;
         finite and non-negative.
     projector
-        A :class:`plenocl.Projector` for the camera and grid.
+        A :class:`plenocl.Projector` for the camera and grid (its queue runs the solver).
     method
         ``"mlem"`` (default), ``"smart"`` or ``"mart"`` (see the module documentation).
     iterations, relax
@@ -269,7 +276,7 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
             info.converged = True
             break
-    out = vol.get() * np.float32(scale)
+    out = projector.volume_to_host(vol) * np.float32(scale)
     info.active_fraction = float(np.count_nonzero(out)) / out.size
     info.seconds = time.perf_counter() - t0
     return (out, info) if return_info else out

@@ -13,18 +13,29 @@ from plenocl.reference import reconstruct as ref
 
 
 class MatrixProjector:
-    """A projector from an explicit matrix W (pixels x voxels), for solver tests."""
+    """A projector from an explicit matrix W (pixels x voxels), for solver tests; it holds
+    volumes as two depth slabs so the per-slab code paths are exercised."""
 
     def __init__(self, W, camera, grid, queue):
         self.W, self.camera, self.grid, self.queue = W, camera, grid, queue
 
-    def forward_array(self, vol):
-        img = (self.W @ vol.get().ravel().astype(np.float64)).astype(np.float32)
+    def empty_volume(self):
+        """Two depth slabs, like a projector that splits the volume."""
+        return [cla.empty(self.queue, (1,) + self.grid.shape[1:], np.float32),
+                cla.empty(self.queue, (self.grid.shape[0] - 1,) + self.grid.shape[1:],
+                          np.float32)]
+
+    def volume_to_host(self, slabs):
+        return np.concatenate([s.get() for s in slabs])
+
+    def forward_device(self, vol, out=None):
+        img = (self.W @ self.volume_to_host(vol).ravel().astype(np.float64)).astype(np.float32)
         return cla.to_device(self.queue, img.reshape(self.camera.pixels[::-1]))
 
-    def back_array(self, img):
+    def back_device(self, img, out=None):
         vol = (self.W.T @ img.get().ravel().astype(np.float64)).astype(np.float32)
-        return cla.to_device(self.queue, vol.reshape(self.grid.shape))
+        vol = vol.reshape(self.grid.shape)
+        return [cla.to_device(self.queue, vol[:1]), cla.to_device(self.queue, vol[1:])]
 
 
 @pytest.fixture(scope="module")
