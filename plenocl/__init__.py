@@ -1,8 +1,10 @@
 """plenocl: volumetric 3-D PIV from a single plenoptic camera, with OpenCL kernels."""
 
+from .calibration import calibrate
 from .camera import PRESETS, Camera
 from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices, get_queue
 from .grid import Grid
+from .lightfield import LightField
 from .particles import random_particles
 from .simulate import Simulator, simulate_image, simulate_white_image
 
@@ -13,8 +15,10 @@ __all__ = [
     "Camera",
     "DeviceInfo",
     "Grid",
+    "LightField",
     "NoOpenCLError",
     "Simulator",
+    "calibrate",
     "create_context",
     "describe_devices",
     "get_queue",

@@ -315,3 +315,11 @@ class Camera:
 
 
 PRESETS = {"paper": Camera.paper_16mp, "synthetic": Camera.synthetic_850}
+
+
+def load_camera(spec: str | Path | None) -> Camera:
+    """A camera from a TOML file, or a preset name (``synthetic``, ``paper``; default
+    ``synthetic``)."""
+    if spec is None or spec in PRESETS:
+        return PRESETS[spec or "synthetic"]()
+    return Camera.from_toml(spec)

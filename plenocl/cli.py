@@ -8,14 +8,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-
-def load_camera(spec: str | None):
-    """A camera from a TOML file, or a preset name (``synthetic``, ``paper``)."""
-    from .camera import PRESETS, Camera
-
-    if spec is None or spec in PRESETS:
-        return PRESETS[spec or "synthetic"]()
-    return Camera.from_toml(spec)
+from .camera import load_camera
+from .cli_calibrate import add_calibrate_parser, add_refocus_parser
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
@@ -89,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("devices", help="list OpenCL platforms and devices").set_defaults(
         func=cmd_devices)
     _add_simulate(sub)
+    add_calibrate_parser(sub)
+    add_refocus_parser(sub)
     _add_demo(sub)
     return parser
 

@@ -39,7 +39,8 @@ def write_tiff(path: str | Path, image: np.ndarray) -> None:
     import tifffile
 
     with atomic_path(path) as tmp:
-        tifffile.imwrite(tmp, np.asarray(image))
+        # minisblack: a stack of 3 or 4 planes is a stack, not an RGB(A) image
+        tifffile.imwrite(tmp, np.asarray(image), photometric="minisblack")
 
 
 def read_image(path: str | Path) -> np.ndarray:

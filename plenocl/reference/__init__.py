@@ -4,6 +4,14 @@ Tests compare each OpenCL kernel against its twin here.
 """
 
 from . import reconstruct
+from .refocus import output_lens_coordinates, refocus_views
 from .simulate import random_words, trace_particles, trace_white
 
-__all__ = ["reconstruct", "random_words", "trace_particles", "trace_white"]
+__all__ = [
+    "output_lens_coordinates",
+    "random_words",
+    "reconstruct",
+    "refocus_views",
+    "trace_particles",
+    "trace_white",
+]

@@ -1,0 +1,146 @@
+"""Reconstruction: run time against error for each method and setting, the matrix-free
+solver against a scipy.sparse implementation of the same method (same run), and the
+time of the paper's full experiment.
+
+    python benchmarks/reconstruct.py [--quick] [--skip-paper] [--repeats 3]
+
+Scene: the paper's synthetic case, the 850 x 850 px camera (50 x 50 microlenses, M = 1,
+f/2) and particles in a 5 mm cube reconstructed on 40^3 voxels (one microlens each).
+Recovery: a peak within 1 voxel laterally and 2 in depth of a true particle. Ghosts:
+the fraction of reconstructed intensity farther than (2, 4) voxels from every particle.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from plenocl import Camera, Grid, get_queue, random_particles
+from plenocl.device import device_info
+from plenocl.metrics import quality_q, recovery, render_particles
+from plenocl.projector import Projector
+from plenocl.reconstruct import reconstruct
+from plenocl.reference import reconstruct as ref
+from plenocl.simulate import simulate_image
+from plenocl.sparse import matrix_bytes, weight_matrix
+
+CUBE = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+SETTINGS = [  # label, method, iterations, relax, options
+    ("MART (paper)", "mart", 15, 0.7, {}),
+    ("SMART", "smart", 30, 1.0, {}),
+    ("SMART mlos+mask", "smart", 30, 1.0, dict(start="mlos", mask_fraction=0.5)),
+    ("MLEM", "mlem", 10, 1.0, {}),
+    ("MLEM", "mlem", 30, 1.0, {}),
+    ("MLEM", "mlem", 60, 1.0, {}),
+    ("MLEM mlos", "mlem", 30, 1.0, dict(start="mlos")),
+    ("MLEM mask 0.5", "mlem", 30, 1.0, dict(mask_fraction=0.5)),
+    ("MLEM mlos+mask 0.5", "mlem", 30, 1.0, dict(start="mlos", mask_fraction=0.5)),
+    ("MLEM early stop 1e-3", "mlem", 100, 1.0, dict(tol=1e-3)),
+]
+
+
+def scene(camera: Camera, n: int, seed: int):
+    """Particles in the 5 mm cube (0.2 mm from its faces) and their noise-free image."""
+    pos, inten = random_particles(((-2.3, 2.3),) * 3, count=n, seed=seed, intensity=1e4)
+    return pos, inten, simulate_image(camera, pos, inten, 20000, seed=seed)
+
+
+def table(queue, counts, settings, repeats: int) -> None:
+    """Recovery, ghosts, Q and median time per setting and particle count."""
+    cam = Camera.synthetic_850()
+    proj = Projector(cam, CUBE, queue)
+    print(f"{'particles':>9s} {'setting':24s} {'it':>4s} {'time s':>7s} {'recov':>6s} "
+          f"{'ghosts':>6s} {'Q':>5s} {'active':>6s}")
+    for n in counts:
+        pos, inten, img = scene(cam, n, seed=n)
+        truth = render_particles(CUBE, pos, inten)
+        for label, method, it, mu, opts in settings:
+            times = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                vol, info = reconstruct(img, proj, method, it, mu, return_info=True, **opts)
+                times.append(time.perf_counter() - t0)
+            rep = recovery(vol, CUBE, pos)
+            print(f"{n:9d} {label:24s} {info.iterations:4d} {statistics.median(times):7.2f} "
+                  f"{rep.fraction:6.2f} {rep.ghost_fraction:6.2f} "
+                  f"{quality_q(vol, truth):5.2f} {info.active_fraction:6.2f}", flush=True)
+
+
+def sparse_comparison(queue, repeats: int) -> None:
+    """The same MLEM (30 iterations) matrix-free on the device and with scipy.sparse CSR."""
+    cam = Camera.synthetic_850()
+    grid = Grid((20, 20, 20), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+    proj = Projector(cam, grid, queue)
+    _, _, img = scene(cam, 20, seed=5)
+    t0 = time.perf_counter()
+    W = weight_matrix(proj)
+    t_build = time.perf_counter() - t0
+    norm = img / img.max()
+
+    def device():
+        return reconstruct(img, proj, "mlem", 30)
+
+    def stored():
+        return ref.mlem(W, norm, 30) * img.max()
+
+    t_dev = statistics.median(_times(device, repeats))
+    t_csr = statistics.median(_times(stored, repeats))
+    agree = np.corrcoef(device().ravel(), stored().ravel())[0, 1]
+    print(f"\nMLEM, 30 iterations, 20^3 voxels, {W.nnz / 1e6:.1f} M non-zeros "
+          f"(CSR {matrix_bytes(W) / 2**20:.0f} MiB, built in {t_build:.1f} s):")
+    print(f"  matrix-free (device) {t_dev:7.2f} s   scipy.sparse CSR {t_csr:7.2f} s   "
+          f"speed-up {t_csr / t_dev:.1f}x   volumes agree: r = {agree:.5f}")
+
+
+def _times(fn, repeats: int) -> list[float]:
+    fn()
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def paper_experiment(queue) -> None:
+    """The paper's full experiment: 16 MP camera, 300 x 200 x 150 voxels, 5 iterations."""
+    cam = Camera.paper_16mp()
+    grid = Grid((150, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5), z=(-10.0, 10.0))
+    pos, inten = random_particles(((-27, 27), (-17, 17), (-9.5, 9.5)), count=5000, seed=3,
+                                  intensity=1e4)
+    img = simulate_image(cam, pos, inten, 2000, seed=3)
+    t0 = time.perf_counter()
+    proj = Projector(cam, grid, queue)
+    t_setup = time.perf_counter() - t0
+    print(f"\npaper's experiment: 16 MP, {grid.shape[::-1]} voxels, 5000 particles; "
+          f"projector set-up {t_setup:.1f} s")
+    for label, method, mu in (("MART, mu = 1 (paper)", "mart", 1.0), ("MLEM (default)", "mlem",
+                                                                       1.0)):
+        t0 = time.perf_counter()
+        _, info = reconstruct(img, proj, method, 5, mu, return_info=True)
+        print(f"  {label:22s} 5 iterations: {time.perf_counter() - t0:7.1f} s "
+              f"(residual {info.residuals[-1]:.3f})", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="20 and 60 particles, fewer rows")
+    parser.add_argument("--skip-paper", action="store_true")
+    parser.add_argument("--repeats", type=int, default=1)
+    args = parser.parse_args()
+    queue = get_queue()
+    info = device_info(queue)
+    print(f"device: {info.name} ({info.platform})\n")
+    counts = (20, 60) if args.quick else (20, 60, 150)
+    settings = SETTINGS[:5] if args.quick else SETTINGS
+    table(queue, counts, settings, args.repeats)
+    sparse_comparison(queue, max(args.repeats, 3))
+    if not args.skip_paper:
+        paper_experiment(queue)
+
+
+if __name__ == "__main__":
+    main()

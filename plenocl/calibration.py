@@ -1,0 +1,632 @@
+"""Microlens image centres from a white image (DESIGN §3, paper §II.A).
+
+A white image is taken with the main lens stopped down: every microlens images the
+small aperture as a spot centred on its image centre ``c_k = x_k (1 + f_ml/s_i)``.
+Calibration finds those spots to sub-pixel accuracy and matches each to its lens
+``(kx, ky)``:
+
+1. **Detect** spots: Gaussian-smoothed local maxima above a threshold relative to the
+   brightest spot nearby (so vignetted, dim edges are kept and dead lenses are not
+   filled with noise).
+2. **Centroid** each spot: background-subtracted (the median of a ring between the
+   spots), Gaussian-windowed and iterated to convergence; a symmetric spot then gives
+   its centre without the bias a fixed box window has toward its own middle.
+3. **Match** the spots to the lattice: pitch and rotation from nearest-neighbour
+   vectors, the sub-pitch shift from the phase of the lattice coordinates, the
+   whole-pitch shift from the extent of the array on the sensor.
+4. **Fit** a global grid model (affine: pitch, rotation, shear, shift; optionally a
+   cubic polynomial for distortion, chosen by an F-test) to the matched centroids,
+   robustly, and use its prediction: one lens's centre then carries the information
+   of all spots instead of its own few noisy photons (``method="centroid"`` keeps the
+   raw centroids, the paper's method).
+
+Shifts of the array of up to half a microlens-image pitch are matched without
+ambiguity; larger ones are resolved by the array's edge when it is visible on the
+sensor. Rotations of a few degrees (any angle within ±45° in principle) are handled.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage, stats
+from scipy.spatial import cKDTree
+
+from .camera import Camera
+
+#: Relative pitch error (measured vs the camera's) above which calibration refuses.
+PITCH_TOLERANCE = 0.10
+#: Fraction of the expected lenses that must show a spot.
+MIN_FOUND_FRACTION = 0.25
+#: Peaks (and centroids) closer than this many pitches are one spot.
+DUPLICATE_RADIUS = 0.25
+#: A spot must reach this fraction of the brightest spot around it.
+RELATIVE_THRESHOLD = 0.25
+#: F-test p-value below which the cubic grid model replaces the affine one.
+DISTORTION_P_VALUE = 1e-3
+#: ... and must move the centres by more than this (px RMS).
+DISTORTION_MIN_PX = 0.05
+#: Width of the Gaussian centroid window: this many spot widths, at least WINDOW_MIN_PX.
+WINDOW_SCALE = 1.5
+WINDOW_MIN_PX = 1.0
+
+
+@dataclass(frozen=True)
+class CenterFit:
+    """Everything calibration measured; :func:`calibrate` keeps only ``centers``.
+
+    Attributes
+    ----------
+    centers
+        ``(rows, cols, 2)`` microlens image centres as ``(col, row)`` pixels, ``NaN``
+        where no spot was found (unless filled from the model).
+    centroids
+        ``(rows, cols, 2)`` raw spot centroids, ``NaN`` where no spot was found.
+    model
+        ``(rows, cols, 2)`` grid-model prediction for every lens.
+    found
+        ``(rows, cols)`` lenses with a matched spot.
+    inlier
+        ``(rows, cols)`` spots used in the model fit (found, not cut by the sensor
+        edge, not an outlier).
+    degree
+        Polynomial degree of the grid model (1: affine, 3: cubic distortion).
+    rotation_deg, pitch_px, shift_px
+        Measured array rotation, image pitch along the array's ``(x, y)`` axes, and
+        shift of the array's centre against the camera's nominal layout.
+    residual_rms_px
+        RMS distance of the inlier centroids from the model (their noise).
+    method
+        ``"fit"`` or ``"centroid"``: where ``centers`` came from.
+    """
+
+    centers: np.ndarray
+    centroids: np.ndarray
+    model: np.ndarray
+    found: np.ndarray
+    inlier: np.ndarray
+    degree: int
+    rotation_deg: float
+    pitch_px: tuple[float, float]
+    shift_px: tuple[float, float]
+    residual_rms_px: float
+    method: str
+
+    @property
+    def n_missing(self) -> int:
+        """Lenses without a spot."""
+        return int((~self.found).sum())
+
+    @property
+    def n_outliers(self) -> int:
+        """Found spots left out of the model fit (outliers or cut by the sensor edge)."""
+        return int((self.found & ~self.inlier).sum())
+
+
+# ---- input checks -------------------------------------------------------------------
+def _validate_image(image, camera: Camera) -> np.ndarray:
+    """The white image as float32, or a ValueError naming the problem and the fix."""
+    img = np.asarray(image)
+    if img.dtype == bool or not (np.issubdtype(img.dtype, np.integer)
+                                 or np.issubdtype(img.dtype, np.floating)):
+        raise ValueError(f"the white image must hold integer or floating-point pixel values, "
+                         f"got dtype {img.dtype}")
+    if img.ndim != 2:
+        raise ValueError(f"the white image must be one 2-D monochrome frame (rows, cols), got "
+                         f"shape {img.shape}; pass a single raw sensor image")
+    w, h = camera.pixels
+    if img.shape != (h, w):
+        hint = (" (it looks transposed: pass image.T)" if img.shape == (w, h) else
+                "; check [sensor] pixels = [columns, rows] in the camera file, and that the "
+                "image was not cropped or binned")
+        raise ValueError(f"the white image is {img.shape[1]} x {img.shape[0]} px (cols x rows) "
+                         f"but the camera has {w} x {h}{hint}")
+    img = img.astype(np.float32)
+    bad = ~np.isfinite(img)
+    if bad.any():
+        raise ValueError(f"the white image has {int(bad.sum())} NaN or Inf pixels; replace them "
+                         "(e.g. by the median of their neighbours) before calibrating")
+    if img.min() < 0:
+        raise ValueError(
+            f"the white image has negative pixel values (down to {img.min():.4g}, "
+            f"{int((img < 0).sum())} pixels): calibration needs the raw, non-negative sensor "
+            "image; if it was dark-frame subtracted, clip it with np.clip(image, 0, None)")
+    if img.max() <= img.min():
+        raise ValueError(f"the white image is blank (every pixel is {img.min():.4g}): take it "
+                         "with the main lens stopped down, imaging a uniform bright target")
+    return img
+
+
+def _pitch_px(camera: Camera) -> float:
+    return camera.microlens_image_pitch_mm / camera.pixel_pitch_mm
+
+
+def _odd(n: float) -> int:
+    n = max(3, int(round(n)))
+    return n if n % 2 else n + 1
+
+
+# ---- 1. detection -------------------------------------------------------------------
+def _local_floor(img: np.ndarray, pitch: float) -> np.ndarray:
+    """Local background: the minimum over one pitch (the gaps between spots), smoothed."""
+    return ndimage.uniform_filter(ndimage.minimum_filter(img, _odd(pitch)), _odd(pitch))
+
+
+def _remove_hot_pixels(img: np.ndarray, pitch: float) -> np.ndarray:
+    """Replace isolated hot pixels by the median of their 3 x 3 neighbourhood.
+
+    A pixel is hot when it exceeds that median by more than three times the median's
+    own height above the background (plus 8 noise) and by twice the height of the
+    brightest median-filtered spots: a spot's peak, even a saturated or sharp one,
+    rises far less above its neighbours, and weaker outliers cannot pass for spots.
+    """
+    med = ndimage.median_filter(img, 3)
+    excess = img - med
+    noise = 1.4826 * float(np.median(np.abs(excess - np.median(excess))))
+    height = np.clip(med - _local_floor(med, pitch), 0, None)
+    spot_peak = float(np.percentile(height, 99.9))  # of the median-filtered spots
+    hot = (excess > 3 * height + 8 * noise) & (excess > 2 * spot_peak)
+    return np.where(hot, med, img) if hot.any() else img
+
+
+def _detect_spots(img: np.ndarray, pitch: float) -> tuple[np.ndarray, np.ndarray]:
+    """Integer ``(col, row)`` positions of spot peaks and their strengths.
+
+    Peaks closer than a third of the expected pitch are resolved, so spots on a finer
+    lattice than the camera predicts are seen (and refused) rather than thinned out.
+    The background is local (the minimum over one pitch, i.e. the gaps between spots,
+    smoothed), so a background gradient or wide spots do not raise the threshold.
+    """
+    smooth = ndimage.gaussian_filter(img, max(1.0, 0.06 * pitch))
+    bg = _local_floor(smooth, pitch)
+    resid = smooth - bg
+    noise = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+    peak = ndimage.maximum_filter(smooth, _odd(0.35 * pitch))
+    nearby = ndimage.maximum_filter(peak - bg, _odd(2.5 * pitch))
+    floor = 0.02 * float(np.percentile(peak - bg, 99.0))
+    thr = bg + np.maximum(np.maximum(8 * noise, floor), RELATIVE_THRESHOLD * nearby)
+    rows, cols = np.nonzero((smooth == peak) & (smooth > thr))
+    pts = np.column_stack([cols, rows])
+    strength = smooth[rows, cols]
+    keep = _suppress_duplicates(pts, strength, DUPLICATE_RADIUS * pitch)
+    return pts[keep], strength[keep]
+
+
+def _suppress_duplicates(pts: np.ndarray, strength: np.ndarray, radius: float) -> np.ndarray:
+    """Mask keeping the strongest of points closer than ``radius`` (one spot's plateau)."""
+    keep = np.ones(len(pts), bool)
+    if len(pts) < 2:
+        return keep
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return keep
+    a, b = pairs[:, 0], pairs[:, 1]
+    weaker = np.where(strength[a] < strength[b], a, b)
+    ties = strength[a] == strength[b]
+    weaker[ties] = np.maximum(a, b)[ties]
+    keep[weaker] = False
+    return keep
+
+
+# ---- 2. centroids -------------------------------------------------------------------
+def _patches(padded: np.ndarray, pad: int, centre: np.ndarray, half: int):
+    """Patches ``(N, 2h+1, 2h+1)`` of the padded image around integer centres."""
+    off = np.arange(-half, half + 1)
+    cols = centre[:, 0, None, None] + off[None, None, :] + pad
+    rows = centre[:, 1, None, None] + off[None, :, None] + pad
+    return padded[rows, cols], off
+
+
+def _local_background(padded, pad, peaks, pitch) -> np.ndarray:
+    """Median of a ring halfway between neighbouring spots, per spot."""
+    half = max(2, int(0.45 * pitch))
+    patch, off = _patches(padded, pad, peaks, half)
+    r = np.hypot(off[None, :], off[:, None])
+    ring = (r >= half - 1.5) & (r <= half + 0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rings at the corners
+        return np.nanmedian(patch[:, ring], axis=1)
+
+
+def _spot_sigma(patch: np.ndarray, off: np.ndarray) -> float:
+    """Median per-axis RMS width (px) of the brightest, box-centroided spots."""
+    w = np.clip(patch, 0, None)
+    total = w.sum((1, 2))
+    bright = (total >= np.percentile(total, 50)) & (total > 0)
+    if not bright.any():
+        return 1.0
+    w, total = w[bright], total[bright]
+    mx = (w * off[None, None, :]).sum((1, 2)) / total
+    my = (w * off[None, :, None]).sum((1, 2)) / total
+    var = ((w * (off[None, None, :] - mx[:, None, None]) ** 2).sum((1, 2))
+           + (w * (off[None, :, None] - my[:, None, None]) ** 2).sum((1, 2))) / (2 * total)
+    return float(np.sqrt(np.median(var)))
+
+
+def _windowed_centroids(img: np.ndarray, peaks: np.ndarray, pitch: float,
+                        iterations: int = 30) -> tuple[np.ndarray, float]:
+    """Iterated Gaussian-windowed centroids ``(N, 2)`` (``NaN``: lost) and the spot width.
+
+    The window is ``WINDOW_SCALE`` spot widths ``σ`` wide (``s``); a windowed centroid
+    of a Gaussian spot moves ``s²/(σ²+s²)`` of the way to its centre, so each step is
+    scaled by the inverse and converges in a step or two.
+    """
+    pad = int(pitch) + 2
+    padded = np.pad(img, pad, mode="constant", constant_values=np.nan)
+    bg = _local_background(padded, pad, peaks, pitch)
+    bg = np.where(np.isfinite(bg), bg, float(np.median(img)))
+    half = max(2, min(int(0.45 * pitch), int(round(0.3 * pitch))))
+    patch, off = _patches(padded, pad, peaks, half)
+    sigma = max(0.5, _spot_sigma(np.nan_to_num(patch - bg[:, None, None]), off))
+    width = max(WINDOW_MIN_PX, WINDOW_SCALE * sigma)
+    half = max(2, min(int(0.45 * pitch), int(math.ceil(4 * width))))
+    c = peaks.astype(np.float64)
+    alive, active = np.ones(len(c), bool), np.arange(len(c))
+    for _ in range(iterations):
+        step, ok = _centroid_step(padded, pad, c[active], bg[active], half, width,
+                                  1.0 + sigma**2 / width**2)
+        c[active] += step
+        alive[active] = ok & (np.abs(c[active] - peaks[active]) <= 0.3 * pitch).all(1)
+        active = active[alive[active] & (np.abs(step) >= 1e-5).any(1)]
+        if len(active) == 0:
+            break
+    c[~alive] = np.nan
+    return c, sigma
+
+
+def _centroid_step(padded, pad, c, bg, half, width, gain) -> tuple[np.ndarray, np.ndarray]:
+    """One Gaussian-windowed centroid update ``(N, 2)`` and which spots still have signal."""
+    base = np.rint(c).astype(np.int64)
+    patch, off = _patches(padded, pad, base, half)
+    signal = np.nan_to_num(patch - bg[:, None, None])
+    dx = base[:, 0, None] + off[None, :] - c[:, 0, None]  # (N, cols of the patch)
+    dy = base[:, 1, None] + off[None, :] - c[:, 1, None]  # (N, rows of the patch)
+    gx, gy = np.exp(-dx**2 / (2 * width**2)), np.exp(-dy**2 / (2 * width**2))
+    rows = np.einsum("nrc,nc->nr", signal, gx)  # the Gaussian window is separable
+    total = (rows * gy).sum(1)
+    moment_x = (np.einsum("nrc,nc->nr", signal, gx * dx) * gy).sum(1)
+    moment_y = (rows * gy * dy).sum(1)
+    ok = total > 0
+    safe = np.where(ok, total, 1.0)[:, None]
+    step = gain * np.stack([moment_x, moment_y], -1) / safe
+    return np.where(ok[:, None], np.clip(step, -1.0, 1.0), 0.0), ok
+
+
+# ---- 3. lattice matching ------------------------------------------------------------
+def _lattice_frame(pts: np.ndarray, pitch_nominal: float) -> tuple[float, float]:
+    """Pitch (px) and rotation (rad) of the spot lattice from nearest-neighbour vectors."""
+    dist, idx = cKDTree(pts).query(pts, k=min(5, len(pts)))
+    rough = float(np.median(dist[:, 1]))
+    vec = pts[idx[:, 1:]] - pts[:, None, :]
+    length = np.hypot(vec[..., 0], vec[..., 1])
+    near = (length > 0.8 * rough) & (length < 1.2 * rough)
+    pitch = float(np.median(length[near]))
+    if abs(pitch / pitch_nominal - 1) > PITCH_TOLERANCE:
+        raise ValueError(
+            f"the spots of the white image are {pitch:.2f} px apart but the camera predicts "
+            f"{pitch_nominal:.2f} px microlens images: check the camera file (microlens pitch, "
+            "pixel pitch, focal lengths, magnification) or whether this is a white image "
+            "taken with the main lens stopped down")
+    theta = np.arctan2(vec[..., 1][near], vec[..., 0][near])
+    return pitch, float(np.angle(np.exp(4j * theta).mean()) / 4)
+
+
+def _match(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Lens indices ``(N, 2)`` as ``(kx, ky)`` (``-1``: off the lattice) and the distance
+    (in pitches) of each spot from its lattice node.
+
+    The lattice is anchored on the spots nearest the array's nominal centre and grown
+    outward, refitting an affine index-to-pixel model at each step, so a small error
+    in the initial pitch or rotation never accumulates across a large array.
+    """
+    cols, rows = camera.ml_count
+    pitch, rot = _lattice_frame(pts, _pitch_px(camera))
+    centre = camera.ideal_microlens_centers().reshape(-1, 2).mean(0)
+    c, s = math.cos(rot), math.sin(rot)
+    lin = pitch * np.array([[c, -s], [s, c]])  # columns: d(px)/d(kx), d(px)/d(ky)
+    model = np.vstack([lin.T, centre - lin @ [(cols - 1) / 2, (rows - 1) / 2]])
+    f = _fractional_index(pts, model)
+    near = np.argsort(np.hypot(*(pts - centre).T))[:100]
+    phase = np.angle(np.exp(2j * np.pi * f[near]).mean(0)) / (2 * np.pi)
+    model[2] += lin @ phase
+    model = _grow_lattice(pts, model, near)
+    f = _fractional_index(pts, model)
+    base = np.rint(f).astype(np.int64)
+    dev = np.abs(f - base).max(1)
+    k = base + _whole_pitch_shift(base, cols, rows)
+    inside = (k[:, 0] >= 0) & (k[:, 0] < cols) & (k[:, 1] >= 0) & (k[:, 1] < rows)
+    k[(dev > 0.3) | ~inside] = -1
+    return k, dev
+
+
+def _grow_lattice(pts: np.ndarray, model: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    """Refit the affine model on spots within a radius (lens units) of the anchor spots,
+    doubling the radius until every spot is included."""
+    radius = 8.0
+    while True:
+        f = _fractional_index(pts, model)
+        idx = np.rint(f)
+        grown = np.abs(f - f[anchor].mean(0)).max(1) <= radius
+        sel = grown & (np.abs(f - idx).max(1) <= 0.3)
+        if sel.sum() >= 3:
+            design = np.column_stack([idx[sel], np.ones(int(sel.sum()))])
+            model, *_ = np.linalg.lstsq(design, pts[sel], rcond=None)
+        if grown.all():
+            return model
+        radius *= 2
+
+
+def _fractional_index(pts: np.ndarray, model: np.ndarray) -> np.ndarray:
+    """Invert the affine model ``px = [kx, ky, 1] @ model`` for fractional indices."""
+    return np.linalg.solve(model[:2].T, (pts - model[2]).T).T
+
+
+def _whole_pitch_shift(base: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    """Shift of the indices that puts the most spots inside the array (smallest wins ties)."""
+    best, best_n = np.zeros(2, np.int64), -1
+    for dx, dy in sorted(((a, b) for a in range(-3, 4) for b in range(-3, 4)),
+                         key=lambda t: t[0] ** 2 + t[1] ** 2):
+        kx, ky = base[:, 0] + dx, base[:, 1] + dy
+        n = int(((kx >= 0) & (kx < cols) & (ky >= 0) & (ky < rows)).sum())
+        if n > best_n:
+            best, best_n = np.array([dx, dy]), n
+    return best
+
+
+# ---- 4. grid model ------------------------------------------------------------------
+def _design(k: np.ndarray, shape: tuple[int, int], degree: int) -> np.ndarray:
+    """Polynomial terms of the normalised lens index, up to total ``degree``."""
+    cols, rows = shape
+    a = (k[:, 0] - (cols - 1) / 2) / max(1.0, (cols - 1) / 2)
+    b = (k[:, 1] - (rows - 1) / 2) / max(1.0, (rows - 1) / 2)
+    terms = [a**i * b**j for n in range(degree + 1) for j in range(n + 1) for i in [n - j]]
+    return np.column_stack(terms)
+
+
+def _robust_fit(k, c, shape, degree, use):
+    """Least-squares polynomial fit with iterative outlier rejection; returns coef, use."""
+    design = _design(k, shape, degree)
+    for _ in range(5):
+        coef, *_ = np.linalg.lstsq(design[use], c[use], rcond=None)
+        resid = np.hypot(*(design @ coef - c).T)
+        sigma = float(np.median(resid[use])) / 1.1774  # Rayleigh median -> sigma
+        new = use & (resid <= max(5 * sigma, 0.02))
+        if np.array_equal(new, use) or new.sum() < design.shape[1] + 2:
+            break
+        use = new
+    return coef, use
+
+
+def _choose_degree(k, c, shape, use, degree) -> int:
+    """Affine unless ``degree`` says otherwise or, for ``"auto"``, a cubic model is both
+    significantly better (F-test) and differs from the affine one by a relevant amount
+    (a sub-pixel-phase bias of the centroids must not pass for distortion)."""
+    if degree != "auto":
+        if degree not in (1, 2, 3):
+            raise ValueError(f"degree must be 1, 2, 3 or 'auto', got {degree!r}")
+        return int(degree)
+    p1, p3 = 2 * _design(k[:1], shape, 1).shape[1], 2 * _design(k[:1], shape, 3).shape[1]
+    common = _robust_fit(k, c, shape, 1, use)[1] & _robust_fit(k, c, shape, 3, use)[1]
+    n = 2 * int(common.sum())
+    if n <= 3 * p3:
+        return 1
+    rss, models = [], []
+    for deg in (1, 3):
+        design = _design(k, shape, deg)
+        coef, *_ = np.linalg.lstsq(design[common], c[common], rcond=None)
+        rss.append(float(((design[common] @ coef - c[common]) ** 2).sum()))
+        models.append(design @ coef)
+    if rss[1] <= 0:
+        return 1
+    f_stat = (rss[0] - rss[1]) / (p3 - p1) / (rss[1] / (n - p3))
+    effect = float(np.sqrt(np.mean(np.sum((models[1] - models[0]) ** 2, axis=1))))
+    significant = stats.f.sf(f_stat, p3 - p1, n - p3) < DISTORTION_P_VALUE
+    return 3 if significant and effect > DISTORTION_MIN_PX else 1
+
+
+# ---- public -------------------------------------------------------------------------
+def find_centers(white_image, camera: Camera, *, method: str = "fit",
+                 degree: int | str = "auto", fill_missing: bool = False) -> CenterFit:
+    """Measure every microlens image centre in a white image.
+
+    Parameters
+    ----------
+    white_image
+        ``(H, W)`` raw white image (8/16-bit integer or float), aperture stopped down.
+    camera
+        The camera (nominal layout); sets the expected pitch and the lens count.
+    method
+        ``"fit"`` (default): the global grid model's prediction for each found lens;
+        ``"centroid"``: each spot's own centroid (the paper's method).
+    degree
+        Grid-model polynomial degree: 1 (affine), 2, 3, or ``"auto"`` (affine unless
+        a cubic distortion term is significant).
+    fill_missing
+        Give lenses without a spot the model's prediction instead of ``NaN``.
+
+    Returns
+    -------
+    CenterFit
+        Centres, raw centroids, the model and the measured layout.
+
+    Raises
+    ------
+    ValueError
+        When the image is not a plausible white image for this camera.
+    """
+    if method not in ("fit", "centroid"):
+        raise ValueError(f"method must be 'fit' or 'centroid', got {method!r}")
+    if degree != "auto" and degree not in (1, 2, 3):
+        raise ValueError(f"degree must be 1, 2, 3 or 'auto', got {degree!r}")
+    pitch = _pitch_px(camera)
+    img = _remove_hot_pixels(_validate_image(white_image, camera), pitch)
+    peaks, strength = _detect_spots(img, pitch)
+    _check_count(len(peaks), camera, "bright spots")
+    cents, sigma = _windowed_centroids(img, peaks, pitch)
+    ok = np.isfinite(cents).all(1)
+    cents, strength = cents[ok], strength[ok]
+    cents = cents[_suppress_duplicates(cents, strength, DUPLICATE_RADIUS * pitch)]
+    _check_count(len(cents), camera, "well-formed spots")
+    k, dev = _match(cents, camera)
+    return _assemble(camera, cents, k, dev, sigma, img.shape, method, degree, fill_missing)
+
+
+def _check_count(n: int, camera: Camera, what: str) -> None:
+    """Refuse an image with far fewer spots than the camera has lenses on the sensor."""
+    nominal = camera.ideal_microlens_centers().reshape(-1, 2)
+    w, h = camera.pixels
+    expected = int(((nominal >= 0).all(1) & (nominal[:, 0] < w) & (nominal[:, 1] < h)).sum())
+    if n < max(4, MIN_FOUND_FRACTION * expected):
+        raise ValueError(
+            f"found only {n} {what} where the camera expects {expected} microlens images: "
+            "this does not look like a white image. Stop the main lens down (e.g. f/16), "
+            "image a uniform bright target, and check the exposure and the camera file")
+
+
+def _lens_grid(camera: Camera, cents: np.ndarray, k: np.ndarray,
+               dev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scatter matched centroids into ``(rows, cols, 2)``; of two spots matched to one
+    lens the one nearer its lattice node wins."""
+    cols, rows = camera.ml_count
+    grid = np.full((rows, cols, 2), np.nan)
+    order = np.argsort(dev, kind="stable")
+    cents, k = cents[order], k[order]
+    ok = k[:, 0] >= 0
+    flat = k[ok, 1] * cols + k[ok, 0]
+    uniq, first = np.unique(flat, return_index=True)
+    grid.reshape(-1, 2)[uniq] = cents[ok][first]
+    return grid, np.isfinite(grid).all(-1)
+
+
+def _assemble(camera, cents, k, dev, sigma, shape, method, degree, fill_missing) -> CenterFit:
+    cols, rows = camera.ml_count
+    grid, found = _lens_grid(camera, cents, k, dev)
+    kk = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), -1).reshape(-1, 2)
+    c = grid.reshape(-1, 2)
+    margin = 3 * sigma + 1
+    h, w = shape
+    use = found.ravel() & (c[:, 0] > margin) & (c[:, 1] > margin)
+    use &= (c[:, 0] < w - 1 - margin) & (c[:, 1] < h - 1 - margin)
+    if use.sum() < 6:
+        use = found.ravel().copy()
+    deg = _choose_degree(kk, c, (cols, rows), use, degree)
+    coef, use = _robust_fit(kk, c, (cols, rows), deg, use)
+    model = (_design(kk, (cols, rows), deg) @ coef).reshape(rows, cols, 2)
+    found = _drop_far_spots(found, grid, model, _pitch_px(camera))
+    grid[~found] = np.nan
+    centers = model.copy() if method == "fit" else grid.copy()
+    if not fill_missing:
+        centers[~found] = np.nan
+    else:
+        centers[~found] = model[~found]
+    resid = np.hypot(*(grid - model).reshape(-1, 2)[use].T)
+    return CenterFit(centers, grid, model, found, use.reshape(rows, cols) & found, deg,
+                     *_layout(model, camera), float(np.sqrt(np.mean(resid**2))), method)
+
+
+def _drop_far_spots(found, grid, model, pitch) -> np.ndarray:
+    """Spots far from the model (a hot pixel, a stray reflection) are not that lens's."""
+    dist = np.hypot(*(grid - model).transpose(2, 0, 1))
+    return found & ~(dist > 0.25 * pitch)
+
+
+def _layout(model: np.ndarray, camera: Camera) -> tuple:
+    """Rotation (deg), pitch along the array axes (px) and shift of the array centre."""
+    ax = np.nanmean(np.diff(model, axis=1), axis=(0, 1))
+    ay = np.nanmean(np.diff(model, axis=0), axis=(0, 1))
+    rot = math.degrees(math.atan2(ax[1] - ay[0], ax[0] + ay[1]))
+    shift = model.reshape(-1, 2).mean(0) - camera.ideal_microlens_centers().reshape(-1, 2).mean(0)
+    return rot, (float(np.hypot(*ax)), float(np.hypot(*ay))), (float(shift[0]), float(shift[1]))
+
+
+def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None = None,
+              method: str = "fit", degree: int | str = "auto",
+              fill_missing: bool = False) -> Camera:
+    """Calibrate the microlens image centres of ``camera`` from a white image.
+
+    Parameters
+    ----------
+    white_image
+        ``(H, W)`` raw white image (8/16-bit integer or float) taken with the main lens
+        stopped down: one small spot per microlens.
+    camera
+        The camera with its nominal layout (rotation and offset may be unknown).
+    diagnostic_png
+        Optional path of a PNG overlaying the found centres on the image (needs
+        matplotlib: ``pip install "plenocl[plot]"``).
+    method, degree, fill_missing
+        See :func:`find_centers`.
+
+    Returns
+    -------
+    Camera
+        A copy with ``microlens_centers`` ``(rows, cols, 2)`` as ``(col, row)`` px and
+        ``calibrated=True``; ``NaN`` marks lenses without a spot (warned about).
+
+    Raises
+    ------
+    ValueError
+        When the image is not a plausible white image for this camera.
+    """
+    fit = find_centers(white_image, camera, method=method, degree=degree,
+                       fill_missing=fill_missing)
+    _warn_about(fit)
+    if diagnostic_png is not None:
+        save_diagnostic(diagnostic_png, white_image, fit)
+    return camera.with_centers(fit.centers)
+
+
+def _warn_about(fit: CenterFit) -> None:
+    total = fit.found.size
+    if fit.n_missing:
+        fate = "use the grid model's prediction" if np.isfinite(fit.centers).all() else \
+            "are NaN (pass fill_missing=True to use the grid model's prediction)"
+        warnings.warn(f"calibration found no spot for {fit.n_missing} of {total} microlenses "
+                      f"(dead, occluded or off the sensor); their centres {fate}", stacklevel=3)
+    if fit.residual_rms_px > 0.25:
+        warnings.warn(f"the spot centroids scatter by {fit.residual_rms_px:.2f} px RMS about the "
+                      f"grid model: the white image is noisy or the array distorted; check the "
+                      "diagnostic image (diagnostic_png=...)", stacklevel=3)
+
+
+def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:
+    """Write a PNG of the white image with the found centres (green) and missing lenses (red).
+
+    Raises
+    ------
+    ImportError
+        When matplotlib is not installed (``pip install "plenocl[plot]"``).
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise ImportError('the diagnostic image needs matplotlib: pip install "plenocl[plot]"'
+                          ) from exc
+    from .io import atomic_path
+
+    img = np.asarray(white_image, dtype=np.float64)
+    h, w = img.shape
+    scale = min(2000.0, max(800.0, max(h, w))) / max(h, w)  # 800-2000 px on the long side
+    fig, ax = plt.subplots(figsize=(w * scale / 100, h * scale / 100 + 0.4), dpi=100)
+    ax.imshow(np.sqrt(img / max(img.max(), 1e-30)), cmap="gray", interpolation="nearest")
+    c = fit.centers[fit.found]
+    ax.plot(c[:, 0], c[:, 1], "x", color="lime", ms=3, mew=0.6, label="centres")
+    miss = fit.model[~fit.found]
+    ax.plot(miss[:, 0], miss[:, 1], "o", mfc="none", color="red", ms=5, mew=0.8,
+            label=f"no spot ({fit.n_missing})")
+    ax.set_title(f"{int(fit.found.sum())} centres, rotation {fit.rotation_deg:.3f}°, "
+                 f"residual {fit.residual_rms_px:.3f} px RMS", fontsize=8)
+    ax.legend(loc="upper right", fontsize=6)
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)

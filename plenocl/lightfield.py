@@ -1,0 +1,426 @@
+"""The light field ``LF(x, y, u, v)`` of a raw plenoptic image, perspective views and
+computational refocusing (DESIGN §2 and §4, paper §II).
+
+Coordinates
+-----------
+* Every pixel behind microlens ``k`` (the lens whose cell, one image pitch square
+  around ``c_k`` on the calibrated lattice, contains it) sits at offset ``d`` (mm) from
+  ``c_k`` and sees the aperture point ``u = -d s_i / f_ml`` (same for ``v``); its
+  spatial coordinate is the lens position on the array plane
+  ``x_k = c_k / (1 + f_ml / s_i)`` (:func:`pixel_coordinates`).
+* :class:`LightField` resamples the image onto one **plaid** ``(u, v)`` grid shared by
+  all lenses (bilinear between the pixels behind the same lens, since the ``(u, v)``
+  of a pixel differs slightly from lens to lens): ``views[iv, iu, ky, kx]``. The
+  default step is one pixel's footprint on the aperture, ``p_px s_i / f_ml``; samples
+  outside the circular aperture, off the sensor or behind a lens calibration missed
+  are ``NaN``.
+
+Refocusing
+----------
+A ray from aperture point ``u`` through the image point ``X'`` meets the array plane
+at ``x = u (1 - 1/α) + X'/α`` with ``α = s_i'/s_i``. The refocused image is sampled at
+the array plane on the microlens lattice: output pixel ``ξ`` (lens-index coordinates;
+``supersample`` pixels per lens) collects, for every plaid sample ``(u, v)``, the light
+field at ``ξ + (1 - 1/α) L⁻¹ (u, v)`` (bilinear between the four nearest lenses;
+``L``: the lattice's lens-index-to-mm map, so a rotated array is handled), i.e.
+``E(ξ) = Σ LF(u (1 - 1/α) + ξ, u) / Σ w`` — the paper's ``x'/α`` written as ``ξ`` so that
+every depth shares one field of view. Together with the bilinear ``(u, v)`` resampling
+this is the paper's 4-D interpolation. ``E`` is the weighted *mean* over the samples
+that exist (radiance-like: the same scale as a view; vignetted or missing samples do
+not darken the image). An object point ``(X, Y, z)`` refocused at its own depth appears
+at ``ξ = X'/α = -(s_i/s_o') X`` on the array plane (the main lens inverts it).
+
+A point at depth ``z`` appears in the perspective view ``(u, v)`` at array-plane
+position ``X'/α + (1 - 1/α) u``: its parallax is ``(1 - 1/α)`` mm per mm of ``u``.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from .camera import Camera
+from .device import DeviceLike, get_queue
+from .program import build_program, fetch_kernels
+
+
+# ---- lattice --------------------------------------------------------------------------
+def _centers(camera: Camera) -> np.ndarray:
+    """The camera's microlens image centres (px), warning when they are not calibrated."""
+    if not camera.calibrated:
+        warnings.warn("the camera is not calibrated: using the nominal microlens centres of "
+                      "its layout; run plenocl.calibrate(white_image, camera) for real data",
+                      stacklevel=3)
+    return np.asarray(camera.microlens_centers, dtype=np.float64)
+
+
+def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
+    """Affine least-squares map from lens index to image-centre pixels.
+
+    Parameters
+    ----------
+    camera
+        The camera (calibrated centres; ``NaN`` entries are ignored).
+    centers
+        Optional ``(rows, cols, 2)`` centres to use instead of the camera's.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(3, 2)`` matrix ``M`` with ``(col, row) = [kx, ky, 1] @ M``.
+    """
+    c = camera.microlens_centers if centers is None else centers
+    c = np.asarray(c, dtype=np.float64)
+    rows, cols = c.shape[:2]
+    ky, kx = np.mgrid[0:rows, 0:cols]
+    ok = np.isfinite(c).all(-1)
+    if ok.sum() < 3:
+        raise ValueError("fewer than 3 microlens centres are known: calibrate the camera "
+                         "with a white image first")
+    design = np.column_stack([kx[ok], ky[ok], np.ones(int(ok.sum()))])
+    model, *_ = np.linalg.lstsq(design, c[ok], rcond=None)
+    return model
+
+
+def _mla_scale(camera: Camera) -> float:
+    """Array-plane mm per sensor mm of a microlens image centre, ``1 / (1 + f_ml/s_i)``."""
+    return 1.0 / (1.0 + camera.ml_focal_length_mm / camera.image_distance_mm)
+
+
+def lens_index_to_mm(camera: Camera) -> np.ndarray:
+    """``(2, 2)`` matrix ``L``: array-plane mm per unit of lens index, columns ``kx, ky``."""
+    model = lens_lattice(camera)
+    return model[:2].T * camera.pixel_pitch_mm * _mla_scale(camera)
+
+
+# ---- per-pixel coordinates ----------------------------------------------------------------
+@dataclass(frozen=True)
+class PixelCoordinates:
+    """The two-plane coordinates of every sensor pixel, ``(H, W)`` arrays.
+
+    Attributes
+    ----------
+    kx, ky
+        Microlens behind which the pixel lies (``-1``: none).
+    x_mm, y_mm
+        That microlens's position on the array plane (mm).
+    u_mm, v_mm
+        Aperture coordinates the pixel sees (mm), ``u = -d s_i / f_ml``.
+    valid
+        The lens has a calibrated centre and ``(u, v)`` lies inside the aperture.
+    """
+
+    kx: np.ndarray
+    ky: np.ndarray
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    u_mm: np.ndarray
+    v_mm: np.ndarray
+    valid: np.ndarray
+
+
+def pixel_coordinates(camera: Camera) -> PixelCoordinates:
+    """Per-pixel ``(x, y, u, v)`` from the calibrated centres and the optics (DESIGN §2).
+
+    Parameters
+    ----------
+    camera
+        A calibrated camera (uncalibrated: the nominal centres, with a warning).
+
+    Returns
+    -------
+    PixelCoordinates
+        Lens index, array-plane position and aperture coordinates of each pixel.
+    """
+    centers = _centers(camera)
+    cols, rows = camera.ml_count
+    w, h = camera.pixels
+    owner = lens_owner(camera, centers)
+    inside = owner >= 0
+    kx, ky = np.where(inside, owner % cols, -1), np.where(inside, owner // cols, -1)
+    pix = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h)), -1)
+    c_px = centers[np.clip(ky, 0, rows - 1), np.clip(kx, 0, cols - 1)]
+    c_mm = camera.px_to_mm(c_px)
+    uv = camera.aperture_u_of_offset(camera.px_to_mm(pix) - c_mm)
+    xy = c_mm * _mla_scale(camera)
+    radius = camera.aperture_diameter_mm / 2
+    valid = inside & np.isfinite(c_px).all(-1) & (np.hypot(uv[..., 0], uv[..., 1]) <= radius)
+    nan = np.where(inside[..., None] & np.isfinite(c_px), 1.0, np.nan)
+    xy, uv = xy * nan, uv * nan
+    return PixelCoordinates(kx, ky, xy[..., 0], xy[..., 1], uv[..., 0], uv[..., 1], valid)
+
+
+def lens_owner(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
+    """Flat index ``ky * cols + kx`` of the microlens each pixel lies behind, ``(H, W)``.
+
+    A pixel belongs to the lens whose lattice cell (the square of one image pitch around
+    its centre on the fitted lattice, so a rotated array is handled) contains it; ``-1``
+    outside the array.
+    """
+    model = lens_lattice(camera, centers)
+    cols, rows = camera.ml_count
+    w, h = camera.pixels
+    inv = np.linalg.inv(model[:2].T)
+    dc, dr = np.arange(w) - model[2, 0], np.arange(h) - model[2, 1]
+    kx = np.rint(inv[0, 0] * dc[None, :] + inv[0, 1] * dr[:, None]).astype(np.int32)
+    ky = np.rint(inv[1, 0] * dc[None, :] + inv[1, 1] * dr[:, None]).astype(np.int32)
+    inside = (kx >= 0) & (kx < cols) & (ky >= 0) & (ky < rows)
+    return np.where(inside, ky * cols + kx, -1).astype(np.int32)
+
+
+def plaid_uv(camera: Camera, step_mm: float | None = None) -> np.ndarray:
+    """Symmetric plaid aperture samples ``(n,)`` mm covering the aperture diameter.
+
+    Parameters
+    ----------
+    camera
+        The camera (aperture diameter, pixel footprint).
+    step_mm
+        Sample spacing on the aperture; default one pixel's footprint ``p_px s_i/f_ml``.
+    """
+    step = pixel_footprint_mm(camera) if step_mm is None else float(step_mm)
+    if not (math.isfinite(step) and step > 0):
+        raise ValueError(f"the (u, v) step must be a positive number of mm, got {step_mm!r}")
+    half = int(math.floor(camera.aperture_diameter_mm / 2 / step + 1e-9))
+    return np.arange(-half, half + 1) * step
+
+
+def pixel_footprint_mm(camera: Camera) -> float:
+    """Width of one pixel's view of the aperture, ``p_px s_i / f_ml`` (mm)."""
+    return camera.pixel_pitch_mm * camera.image_distance_mm / camera.ml_focal_length_mm
+
+
+# ---- the light field ------------------------------------------------------------------
+def _validate_raw(image, camera: Camera) -> np.ndarray:
+    img = np.asarray(image)
+    w, h = camera.pixels
+    if img.ndim != 2 or img.shape != (h, w):
+        raise ValueError(f"the raw image has shape {img.shape} but the camera has {h} rows x "
+                         f"{w} columns; pass one raw frame of this camera (image[row, col])")
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise ValueError(f"the raw image must hold numbers, got dtype {img.dtype}")
+    img = img.astype(np.float32)
+    if not np.all(np.isfinite(img)):
+        raise ValueError("the raw image contains NaN or Inf; replace bad pixels first")
+    return img
+
+
+def resample_light_field(image, camera: Camera, u: np.ndarray, v: np.ndarray,
+                         centers: np.ndarray) -> np.ndarray:
+    """Sample the raw image at every lens's pixel positions of the plaid ``(u, v)`` grid.
+
+    Sample ``(u, v)`` of lens ``k`` lies at ``c_k - (u, v) f_ml / s_i`` on the sensor; it is
+    interpolated bilinearly from the pixels *behind lens k* only (taps on a neighbour's
+    pixels are dropped and the weights renormalised), so the rim of one microlens image
+    never borrows light from the next.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(nv, nu, rows, cols)`` float32; ``NaN`` outside the aperture, off the sensor or
+        where a centre is ``NaN``.
+    """
+    image = np.asarray(image, np.float32)
+    owner = lens_owner(camera, centers)
+    rows, cols = centers.shape[:2]
+    lens_id = np.arange(rows * cols, dtype=np.int32).reshape(rows, cols)
+    scale = camera.ml_focal_length_mm / camera.image_distance_mm / camera.pixel_pitch_mm
+    aperture = np.hypot(u[None, :], v[:, None]) <= camera.aperture_diameter_mm / 2 + 1e-9
+    out = np.full((len(v), len(u), rows, cols), np.nan, np.float32)
+    for iv in range(len(v)):  # one plaid row at a time bounds the memory
+        col = centers[None, ..., 0] - scale * u[:, None, None]
+        row = np.broadcast_to(centers[None, ..., 1] - scale * v[iv], col.shape)
+        out[iv] = _owned_bilinear(image, owner, col, row, lens_id)
+    out[~aperture] = np.nan
+    return out
+
+
+def _owned_bilinear(image, owner, col, row, lens_id) -> np.ndarray:
+    """Bilinear samples at ``(col, row)`` using only the pixels owned by ``lens_id``."""
+    h, w = image.shape
+    known = np.isfinite(col) & np.isfinite(row)
+    col, row = np.where(known, col, -10.0), np.where(known, row, -10.0)
+    c0, r0 = np.floor(col).astype(np.int64), np.floor(row).astype(np.int64)
+    tx, ty = col - c0, row - r0
+    acc = np.zeros(col.shape)
+    wsum = np.zeros(col.shape)
+    for dc, dr, wt in ((0, 0, (1 - tx) * (1 - ty)), (1, 0, tx * (1 - ty)),
+                       (0, 1, (1 - tx) * ty), (1, 1, tx * ty)):
+        ci, ri = c0 + dc, r0 + dr
+        on = (ci >= 0) & (ri >= 0) & (ci < w) & (ri < h)
+        ci, ri = np.clip(ci, 0, w - 1), np.clip(ri, 0, h - 1)
+        ok = on & known & (owner[ri, ci] == lens_id) & (wt > 0)
+        acc += np.where(ok, wt * image[ri, ci], 0.0)
+        wsum += np.where(ok, wt, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(wsum > 0, acc / wsum, np.nan).astype(np.float32)
+
+
+class LightField:
+    """The 4-D light field of one raw plenoptic image on a plaid ``(u, v)`` grid.
+
+    Parameters
+    ----------
+    raw_image
+        ``(H, W)`` raw sensor image (any numeric dtype).
+    camera
+        A calibrated camera (:func:`plenocl.calibrate`); an uncalibrated one uses its
+        nominal centres, with a warning.
+    uv_step_mm
+        Plaid spacing on the aperture (default: one pixel's footprint ``p_px s_i/f_ml``).
+    queue
+        OpenCL queue, context, device or name for refocusing (default: chosen at first use).
+
+    Attributes
+    ----------
+    u, v
+        ``(nu,)``, ``(nv,)`` aperture coordinates (mm) of the plaid samples.
+    views
+        ``(nv, nu, rows, cols)`` float32 samples (``NaN``: none), the sub-aperture views.
+    """
+
+    def __init__(self, raw_image, camera: Camera, *, uv_step_mm: float | None = None,
+                 queue: DeviceLike = None) -> None:
+        self.camera = camera
+        image = _validate_raw(raw_image, camera)
+        self.centers = _centers(camera)
+        self.u = plaid_uv(camera, uv_step_mm)
+        self.v = self.u.copy()
+        self.views = resample_light_field(image, camera, self.u, self.v, self.centers)
+        self._lens_to_mm = lens_index_to_mm(camera)
+        self._queue_arg = queue
+        self._device: dict = {}
+
+    @property
+    def lf(self) -> np.ndarray:
+        """The light field indexed ``[ky, kx, iv, iu]`` (a view of :attr:`views`)."""
+        return self.views.transpose(2, 3, 0, 1)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, cols)`` of microlenses: the size of a view."""
+        return self.views.shape[2], self.views.shape[3]
+
+    def view(self, u_mm: float = 0.0, v_mm: float = 0.0) -> np.ndarray:
+        """The perspective (sub-aperture) view nearest aperture point ``(u, v)`` mm.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(rows, cols)`` float32, one value per microlens (``NaN``: no sample).
+        """
+        radius = self.camera.aperture_diameter_mm / 2
+        if not math.hypot(u_mm, v_mm) <= radius:
+            raise ValueError(f"(u, v) = ({u_mm}, {v_mm}) mm lies outside the aperture of "
+                             f"radius {radius:.3f} mm")
+        iu, iv = np.abs(self.u - u_mm).argmin(), np.abs(self.v - v_mm).argmin()
+        return self.views[iv, iu]
+
+    # ---- refocusing ------------------------------------------------------------------
+    def shifts(self, alpha) -> np.ndarray:
+        """Per-view shifts ``(planes, nv*nu, 2)`` in lens-index units for refocus ``α``.
+
+        ``(1 - 1/α) L⁻¹ (u, v)``: where the ray through aperture sample ``(u, v)`` and
+        output point ``ξ`` meets the array plane, relative to ``ξ``.
+        """
+        alpha = np.atleast_1d(np.asarray(alpha, dtype=np.float64))
+        if not (np.all(np.isfinite(alpha)) and np.all(alpha > 0)):
+            raise ValueError(f"alpha must be positive and finite, got {alpha}")
+        uu, vv = np.meshgrid(self.u, self.v)
+        per_mm = np.linalg.solve(self._lens_to_mm, np.stack([uu.ravel(), vv.ravel()]))
+        return (1.0 - 1.0 / alpha)[:, None, None] * per_mm.T[None]
+
+    def output_lens_coordinates(self, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Lens-index coordinates ``(kx, ky)`` (1-D each) of refocused-image pixel centres."""
+        from .reference.refocus import output_lens_coordinates
+
+        rows, cols = self.shape
+        return output_lens_coordinates(cols, rows, _supersample(supersample))
+
+    def output_positions_mm(self, supersample: int = 1) -> np.ndarray:
+        """Array-plane ``(x, y)`` mm ``(H', W', 2)`` of the refocused-image pixel centres."""
+        kx, ky = self.output_lens_coordinates(supersample)
+        model = lens_lattice(self.camera, self.centers)
+        px = np.stack(np.meshgrid(kx, ky), -1) @ model[:2] + model[2]
+        return self.camera.px_to_mm(px) * _mla_scale(self.camera)
+
+    def refocus(self, alpha: float | None = None, z_mm: float | None = None, *,
+                supersample: int = 1) -> np.ndarray:
+        """The image refocused at ``α = s_i'/s_i`` or at object depth ``z_mm``.
+
+        Parameters
+        ----------
+        alpha, z_mm
+            Exactly one: the refocus parameter, or the depth (mm, +z away from the
+            camera) whose ``α`` is used. ``α = 1`` (``z = 0``) is the nominal focal plane.
+        supersample
+            Output pixels per microlens along each axis.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(rows * S, cols * S)`` float32 on the microlens lattice (see module notes).
+        """
+        if (alpha is None) == (z_mm is None):
+            raise ValueError("give exactly one of alpha= or z_mm=")
+        a = float(self.camera.alpha(z_mm)) if alpha is None else float(alpha)
+        return self._run(self.shifts([a]), supersample)[0]
+
+    def focal_stack(self, z_list, *, supersample: int = 1) -> np.ndarray:
+        """Images refocused at each depth of ``z_list`` (mm), ``(nz, rows * S, cols * S)``."""
+        z = np.atleast_1d(np.asarray(z_list, dtype=np.float64))
+        if z.ndim != 1 or len(z) == 0:
+            raise ValueError("z_list must be a non-empty list of depths in mm")
+        return self._run(self.shifts(self.camera.alpha(z)), supersample)
+
+    def _run(self, shifts: np.ndarray, supersample: int) -> np.ndarray:
+        s = _supersample(supersample)
+        queue, kernel, views, used = self._device_state()
+        shifts = np.ascontiguousarray(shifts[:, used], dtype=np.float32)  # drop empty views
+        rows, cols = self.shape
+        planes, nuv = shifts.shape[:2]
+        out_w, out_h = cols * s, rows * s
+        ctx, mf = queue.context, cl.mem_flags
+        shift_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shifts)
+        out = np.empty((planes, out_h, out_w), np.float32)
+        out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
+        cl.enqueue_fill_buffer(queue, out_buf, np.float32(np.nan), 0, out.nbytes)
+        kernel(queue, (out_w, out_h, planes), None, views, shift_buf, np.int32(nuv),
+               np.int32(cols), np.int32(rows), np.int32(out_w), np.int32(out_h),
+               np.float32(1.0 / s), out_buf)
+        cl.enqueue_copy(queue, out, out_buf)
+        return out
+
+    def _device_state(self):
+        """Queue, kernel, the non-empty views on the device and their indices, made once.
+
+        The device copy is ``(value * valid, valid)`` pairs with a one-lens border of
+        zeros, the layout ``kernels/refocus.cl`` interpolates without branches.
+        """
+        if not self._device:
+            queue = get_queue(self._queue_arg)
+            program = build_program(queue.context, "refocus.cl")
+            flat = self.views.reshape(-1, *self.shape)
+            used = np.flatnonzero(np.isfinite(flat).any(axis=(1, 2)))
+            if len(used) == 0:
+                used = np.arange(1)
+            valid = np.isfinite(flat[used])
+            pairs = np.zeros((len(used), self.shape[0] + 2, self.shape[1] + 2, 2), np.float32)
+            pairs[:, 1:-1, 1:-1, 0] = np.where(valid, flat[used], 0.0)
+            pairs[:, 1:-1, 1:-1, 1] = valid
+            views = cl.Buffer(queue.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                              hostbuf=pairs)
+            self._device = {"queue": queue, "views": views, "used": used,
+                            "kernel": fetch_kernels(program, ["refocus"])["refocus"]}
+        d = self._device
+        return d["queue"], d["kernel"], d["views"], d["used"]
+
+
+def _supersample(value) -> int:
+    if int(value) != value or not 1 <= int(value) <= 16:
+        raise ValueError(f"supersample must be an integer from 1 to 16, got {value!r}")
+    return int(value)

@@ -1,0 +1,73 @@
+"""NumPy reference of the refocusing kernel (``kernels/refocus.cl``), written for clarity.
+
+Shift-and-add over the sub-aperture views with bilinear interpolation between
+microlenses; samples that are ``NaN`` or off the array carry no weight and the sum is
+normalised by the weight that remains (DESIGN §4).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def output_lens_coordinates(nx: int, ny: int, supersample: int = 1
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Lens-index coordinates ``(kx, ky)`` of the output pixel centres, 1-D each.
+
+    Output pixel ``j`` of ``nx * supersample`` sits at ``(j + 0.5) / S - 0.5``: with
+    ``S = 1`` one output pixel per microlens, at its centre.
+    """
+    s = int(supersample)
+    return ((np.arange(nx * s) + 0.5) / s - 0.5, (np.arange(ny * s) + 0.5) / s - 0.5)
+
+
+def refocus_views(views: np.ndarray, shifts: np.ndarray, supersample: int = 1) -> np.ndarray:
+    """Refocus a light field stored as sub-aperture views.
+
+    Parameters
+    ----------
+    views
+        ``(nuv, ny, nx)`` light-field samples: view ``n`` holds plaid sample ``(u_n, v_n)``
+        of every microlens; ``NaN`` where the sample does not exist.
+    shifts
+        ``(planes, nuv, 2)`` shift of each view in lens-index units ``(dkx, dky)``,
+        ``(1 - 1/α) L⁻¹ (u_n, v_n)``.
+    supersample
+        Output pixels per microlens along each axis.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(planes, ny * S, nx * S)`` float64 refocused images (0 where nothing is seen).
+    """
+    views = np.asarray(views, dtype=np.float64)
+    shifts = np.asarray(shifts, dtype=np.float64).reshape(-1, views.shape[0], 2)
+    nuv, ny, nx = views.shape
+    kx, ky = output_lens_coordinates(nx, ny, supersample)
+    out = np.zeros((len(shifts), len(ky), len(kx)))
+    for p, plane_shifts in enumerate(shifts):
+        acc = np.zeros((len(ky), len(kx)))
+        wsum = np.zeros_like(acc)
+        for n in range(nuv):
+            x = kx[None, :] + plane_shifts[n, 0]
+            y = ky[:, None] + plane_shifts[n, 1]
+            _bilinear_accumulate(views[n], x, y, acc, wsum)
+        out[p] = np.divide(acc, wsum, out=np.zeros_like(acc), where=wsum > 0)
+    return out
+
+
+def _bilinear_accumulate(view: np.ndarray, x: np.ndarray, y: np.ndarray,
+                         acc: np.ndarray, wsum: np.ndarray) -> None:
+    """Add the four bilinear taps of ``view`` at ``(x, y)`` that exist to ``acc``/``wsum``."""
+    ny, nx = view.shape
+    x, y = np.broadcast_arrays(x, y)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    tx, ty = x - x0, y - y0
+    for dx, dy, w in ((0, 0, (1 - tx) * (1 - ty)), (1, 0, tx * (1 - ty)),
+                      (0, 1, (1 - tx) * ty), (1, 1, tx * ty)):
+        xi, yi = x0 + dx, y0 + dy
+        inside = (xi >= 0) & (yi >= 0) & (xi < nx) & (yi < ny)
+        value = view[np.clip(yi, 0, ny - 1), np.clip(xi, 0, nx - 1)]
+        ok = inside & np.isfinite(value) & (w > 0)
+        acc += np.where(ok, w * np.where(ok, value, 0.0), 0.0)
+        wsum += np.where(ok, w, 0.0)

@@ -1,0 +1,207 @@
+"""Calibration (DESIGN §3): microlens image centres from simulated white images, matched
+to their lenses, against the simulator's truth; bad input; the CLI."""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+
+import numpy as np
+import pytest
+
+from plenocl import Camera
+from plenocl.calibration import calibrate, find_centers
+from plenocl.cli_calibrate import add_calibrate_parser
+from plenocl.simulate import simulate_image, simulate_white_image
+
+TARGET_RMS_PX = 0.05
+
+
+def _camera(cols=20, rows=16, rotation=0.0, offset=(0.0, 0.0), extra_px=(0, 0)) -> Camera:
+    """A ~17 px-per-lens camera; ``rotation``/``offset`` are the physical (true) layout."""
+    pixels = (int(cols * 16.98) + 1 + extra_px[0], int(rows * 16.98) + 1 + extra_px[1])
+    return Camera(50.0, 2.0, 1.0, 0.125, 0.5, (cols, rows), 0.0074, pixels,
+                  ml_rotation_deg=rotation, ml_offset_mm=offset)
+
+
+def _nominal(cam: Camera) -> Camera:
+    """What the user knows: the same optics with the nominal (unrotated, centred) layout."""
+    return Camera(cam.focal_length_mm, cam.f_number, cam.magnification, cam.ml_pitch_mm,
+                  cam.ml_focal_length_mm, cam.ml_count, cam.pixel_pitch_mm, cam.pixels)
+
+
+def _errors(centres: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Distance (px) of each calibrated centre from the truth, NaN where none."""
+    return np.hypot(*(centres - truth).transpose(2, 0, 1))
+
+
+def _rms(err: np.ndarray) -> float:
+    return float(np.sqrt(np.nanmean(err**2)))
+
+
+def _on_sensor(cam: Camera, margin: float = 0.0) -> np.ndarray:
+    c = cam.ideal_microlens_centers()
+    w, h = cam.pixels
+    return ((c[..., 0] >= margin) & (c[..., 1] >= margin)
+            & (c[..., 0] <= w - 1 - margin) & (c[..., 1] <= h - 1 - margin))
+
+
+CASES = {
+    "clean": (dict(), dict()),
+    "noisy-8bit": (dict(), dict(photon_noise=True, read_noise=3.0, background=5.0, bit_depth=8,
+                                rays_per_lens=1000)),
+    "rotated+2-shifted": (dict(rotation=2.0, offset=(0.04, -0.03)),
+                          dict(photon_noise=True, read_noise=2.0, bit_depth=16)),
+    "rotated-2-shifted": (dict(rotation=-2.0, offset=(-0.05, 0.02)),
+                          dict(photon_noise=True, read_noise=2.0)),
+    "vignetted-dim-edges": (dict(), dict(vignetting=0.7, photon_noise=True, intensity=300.0)),
+    "saturated-8bit": (dict(), dict(intensity=6000.0, bit_depth=8, photon_noise=True)),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_centres_match_the_truth(queue, name):
+    layout, sim = CASES[name]
+    cam = _camera(**layout)
+    white = simulate_white_image(cam, seed=3, queue=queue, **sim)
+    fit = find_centers(white, _nominal(cam))
+    err = _errors(fit.centers, cam.ideal_microlens_centers())
+    # every lens whose spot centre lies on the sensor is found and matched to its index
+    assert fit.found[_on_sensor(cam, margin=1.0)].all()
+    assert np.nanmax(err) < 0.2  # a wrong (kx, ky) would be ~17 px off
+    assert _rms(err) < TARGET_RMS_PX
+    # the raw centroids are matched too, only noisier
+    assert np.nanmedian(_errors(fit.centroids, cam.ideal_microlens_centers())) < 0.2
+    if layout.get("rotation"):
+        assert fit.rotation_deg == pytest.approx(layout["rotation"], abs=0.01)
+
+
+def test_large_rotated_shifted_array(queue):
+    """50 x 50 lenses rotated 2° and shifted ~6 px: matching must not drift across the array."""
+    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (50, 50), 0.0074, (850, 850),
+                 ml_rotation_deg=2.0, ml_offset_mm=(0.045, -0.03))
+    white = simulate_white_image(cam, rays_per_lens=1000, photon_noise=True, seed=1,
+                                 queue=queue)
+    fit = find_centers(white, Camera.synthetic_850())
+    err = _errors(fit.centers, cam.ideal_microlens_centers())
+    assert fit.found[_on_sensor(cam, margin=1.0)].all()
+    assert np.nanmax(err) < 0.1 and _rms(err) < TARGET_RMS_PX
+    shift = (cam.ideal_microlens_centers().reshape(-1, 2).mean(0)
+             - Camera.synthetic_850().ideal_microlens_centers().reshape(-1, 2).mean(0))
+    assert fit.shift_px == pytest.approx(tuple(shift), abs=0.02)  # (6.11, -4.07) px
+    assert fit.rotation_deg == pytest.approx(2.0, abs=0.005)
+
+
+def test_missing_lenses_are_nan_and_counted(queue):
+    cam = _camera()
+    missing = np.zeros(cam.ml_count[::-1], bool)
+    missing[[0, 3, 7, 15], [0, 5, 11, 19]] = True
+    white = simulate_white_image(cam, missing=missing, photon_noise=True, seed=2, queue=queue)
+    with pytest.warns(UserWarning, match="no spot for 4 of 320"):
+        cal = calibrate(white, _nominal(cam))
+    assert cal.calibrated
+    assert np.array_equal(np.isnan(cal.microlens_centers).any(-1), missing)
+    err = _errors(cal.microlens_centers, cam.ideal_microlens_centers())
+    assert _rms(err) < TARGET_RMS_PX
+    filled = find_centers(white, _nominal(cam), fill_missing=True)
+    assert np.isfinite(filled.centers).all()
+    assert _errors(filled.centers, cam.ideal_microlens_centers()).max() < TARGET_RMS_PX
+
+
+def test_hot_pixels_and_background_gradient(queue):
+    cam = _camera()
+    white = simulate_white_image(cam, photon_noise=True, seed=4, queue=queue).astype(float)
+    white += np.linspace(0.0, 40.0, white.shape[1])[None, :]  # stray light
+    rng = np.random.default_rng(1)
+    white.flat[rng.integers(0, white.size, 100)] = 1000.0  # hot pixels
+    fit = find_centers(white, cam)
+    assert fit.found.all()
+    assert _rms(_errors(fit.centers, cam.ideal_microlens_centers())) < TARGET_RMS_PX
+
+
+def test_integer_and_float_inputs_agree(queue):
+    cam = _camera(12, 10)
+    white = simulate_white_image(cam, intensity=200.0, seed=5, queue=queue)
+    ref = find_centers(white, cam).centers
+    for image in (np.clip(np.rint(white), 0, 255).astype(np.uint8),
+                  np.rint(white * 100).astype(np.uint16), white.astype(np.float64)):
+        assert np.abs(find_centers(image, cam).centers - ref).max() < 0.02
+
+
+def test_shift_beyond_half_a_pitch_is_resolved_by_the_array_edge(queue):
+    cam = _camera(12, 10, offset=(0.08, 0.0), extra_px=(60, 40))  # 0.64 pitch, edge visible
+    white = simulate_white_image(cam, seed=6, queue=queue)
+    fit = find_centers(white, _nominal(cam))
+    assert fit.found.all()
+    assert _rms(_errors(fit.centers, cam.ideal_microlens_centers())) < TARGET_RMS_PX
+
+
+def test_centroid_method_keeps_the_raw_centroids(queue):
+    cam = _camera(12, 10)
+    white = simulate_white_image(cam, seed=7, queue=queue)
+    fit = find_centers(white, cam, method="centroid")
+    assert np.array_equal(fit.centers, fit.centroids, equal_nan=True)
+    assert _rms(_errors(fit.centers, cam.ideal_microlens_centers())) < 0.1
+
+
+@pytest.fixture(scope="module")
+def small_white(queue):
+    return simulate_white_image(_camera(12, 10), seed=8, queue=queue)
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda im: im.T, "transposed"),
+    (lambda im: im[:-3], "169 rows|x 167|cols"),
+    (lambda im: np.where(np.arange(im.size).reshape(im.shape) == 77, np.nan, im), "NaN"),
+    (lambda im: im - 5.0, "negative"),
+    (lambda im: np.zeros_like(im), "blank"),
+    (lambda im: np.stack([im, im]), "2-D"),
+    (lambda im: im > 1, "dtype"),
+])
+def test_bad_images_are_rejected(small_white, mutate, message):
+    with pytest.raises(ValueError, match=message):
+        calibrate(mutate(small_white), _camera(12, 10))
+
+
+def test_not_a_white_image_is_rejected(queue):
+    cam = _camera(12, 10)
+    noise = np.random.default_rng(0).uniform(0, 100, cam.pixels[::-1])
+    with pytest.raises(ValueError, match="white image|apart"):
+        calibrate(noise, cam)
+    particles = simulate_image(cam, np.array([[0.1, 0.0, 1.0]]), 1000.0, 5000, queue=queue)
+    with pytest.raises(ValueError, match="found only"):
+        calibrate(particles, cam)
+
+
+def test_pitch_far_from_the_camera_is_rejected(small_white):
+    wrong = Camera(50.0, 2.0, 1.0, 0.15, 0.5, (10, 8), 0.0074, (204, 170))
+    with pytest.raises(ValueError, match="px apart but the camera predicts"):
+        calibrate(small_white, wrong)
+
+
+def test_bad_options(small_white):
+    with pytest.raises(ValueError, match="method"):
+        find_centers(small_white, _camera(12, 10), method="magic")
+    with pytest.raises(ValueError, match="degree"):
+        find_centers(small_white, _camera(12, 10), degree=7)
+
+
+def test_diagnostic_png_and_cli_round_trip(tmp_path, small_white):
+    pytest.importorskip("matplotlib")
+    from plenocl.io import write_tiff
+
+    cam = _camera(12, 10)
+    cam.to_toml(tmp_path / "cam.toml")
+    write_tiff(tmp_path / "white.tif", np.rint(small_white).astype(np.uint16))
+    parser = argparse.ArgumentParser()
+    add_calibrate_parser(parser.add_subparsers())
+    args = parser.parse_args(["calibrate", str(tmp_path / "white.tif"), "--camera",
+                              str(tmp_path / "cam.toml"), "--out", str(tmp_path / "cal.toml"),
+                              "--diagnostic", str(tmp_path / "centres.png")])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a clean white image gives no warning
+        assert args.func(args) == 0
+    assert (tmp_path / "centres.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    cal = Camera.from_toml(tmp_path / "cal.toml")
+    assert cal.calibrated
+    assert _rms(_errors(cal.microlens_centers, cam.ideal_microlens_centers())) < TARGET_RMS_PX

@@ -1,0 +1,200 @@
+"""Light field (DESIGN §2, §4): per-pixel (x, y, u, v), perspective views and their
+parallax, refocusing (kernel against reference, depth of best focus), the CLI."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+
+from plenocl import Camera
+from plenocl.calibration import calibrate
+from plenocl.cli_calibrate import add_refocus_parser
+from plenocl.lightfield import LightField, pixel_coordinates, plaid_uv
+from plenocl.reference.refocus import refocus_views
+from plenocl.simulate import simulate_image, simulate_white_image
+
+ZS = np.arange(-3.0, 3.01, 0.5)
+
+
+def _camera(cols=24, rows=20, **layout) -> Camera:
+    """M = 1, f/2, ~17 px per lens; ideal centres marked calibrated."""
+    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (cols, rows), 0.0074,
+                 (int(cols * 16.98) + 1, int(rows * 16.98) + 1), **layout)
+    return cam.with_centers(cam.ideal_microlens_centers())
+
+
+@pytest.fixture(scope="module")
+def cam() -> Camera:
+    return _camera()
+
+
+def _particle_image(cam, points, queue, rays=20000):
+    pts = np.atleast_2d(points)
+    return simulate_image(cam, pts, 1e5, rays, seed=1, queue=queue)
+
+
+def test_pixel_coordinates_follow_design(cam):
+    pc = pixel_coordinates(cam)
+    kx, ky = 7, 5
+    c = cam.microlens_centers[ky, kx]
+    col, row = int(np.rint(c[0])), int(np.rint(c[1]))
+    assert (pc.kx[row, col], pc.ky[row, col]) == (kx, ky)
+    footprint = cam.pixel_pitch_mm * cam.image_distance_mm / cam.ml_focal_length_mm
+    # u = -d s_i / f_ml, d the pixel's offset from the centre in mm
+    assert pc.u_mm[row, col] == pytest.approx(-(col - c[0]) * footprint, abs=1e-9)
+    assert pc.u_mm[row, col + 3] - pc.u_mm[row, col] == pytest.approx(-3 * footprint)
+    assert pc.v_mm[row + 2, col] - pc.v_mm[row, col] == pytest.approx(-2 * footprint)
+    xk = cam.microlens_positions_mm()[ky, kx]
+    assert (pc.x_mm[row, col], pc.y_mm[row, col]) == pytest.approx(tuple(xk), abs=1e-9)
+    # corners between four lens images see outside the aperture
+    corner = np.rint(cam.microlens_centers[ky, kx] + 8.4).astype(int)
+    assert not pc.valid[corner[1], corner[0]] and pc.valid[row, col]
+
+
+def test_uncalibrated_camera_warns(queue):
+    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170))
+    with pytest.warns(UserWarning, match="not calibrated"):
+        LightField(np.zeros(cam.pixels[::-1]), cam, queue=queue)
+
+
+@pytest.mark.parametrize("z", [-2.0, 0.0, 2.0])
+def test_particle_is_sharpest_at_its_depth(cam, queue, z):
+    img = _particle_image(cam, [0.031, -0.022, z], queue)
+    stack = LightField(img, cam, queue=queue).focal_stack(ZS, supersample=2)
+    flat = stack.reshape(len(ZS), -1)
+    assert ZS[flat.max(1).argmax()] == z  # the peak
+    assert ZS[flat.var(1).argmax()] == z  # the variance
+    assert np.isfinite(stack).all()
+
+
+def test_refocused_particle_lands_where_geometry_puts_it(cam, queue):
+    point = np.array([0.2, -0.15, 1.5])
+    lf = LightField(_particle_image(cam, point, queue), cam, queue=queue)
+    img = lf.refocus(z_mm=point[2], supersample=2)
+    pos = lf.output_positions_mm(supersample=2)
+    w = np.clip(img - 0.2 * img.max(), 0, None)
+    found = (w[..., None] * pos).sum((0, 1)) / w.sum()
+    xp = cam.image_points(point[None])[0]
+    expected = xp[:2] / cam.alpha(point[2])  # ξ = X'/α on the array plane
+    assert found == pytest.approx(expected, abs=0.35 * cam.ml_pitch_mm)
+
+
+def _view_centroid_slopes(lf: LightField, blocks) -> list[float]:
+    """Per block of lenses: slope of the particle's kx centroid over the central-v views."""
+    iv = len(lf.v) // 2
+    slopes = []
+    for rows, cols in blocks:
+        us, ks = [], []
+        for iu, u in enumerate(lf.u):
+            profile = np.nan_to_num(lf.views[iv, iu])[rows][:, cols].sum(0)
+            if profile.sum() > 0:
+                us.append(u)
+                ks.append((profile * cols).sum() / profile.sum())
+        slopes.append(np.polyfit(us, ks, 1)[0])
+    return slopes
+
+
+@pytest.mark.parametrize("z", [-2.0, 2.0])
+def test_perspective_views_show_the_predicted_parallax(cam, queue, z):
+    # a view at aperture u sees the point at array-plane x = X'/α + (1 - 1/α) u
+    expected = (1 - 1 / cam.alpha(z)) / cam.ml_pitch_mm  # lenses per mm of u
+    # one particle in the middle of each of 4 x 2 blocks of lenses, at 8 sub-lens phases
+    # (a view locates a point only to its lens: the phases average the staircase out)
+    xs = np.array([1.125, 0.375, -0.375, -1.125])
+    pts = [[x + cam.ml_pitch_mm * (2 * i + j) / 8, y, z]
+           for j, y in enumerate([0.625, -0.625]) for i, x in enumerate(xs)]
+    lf = LightField(_particle_image(cam, pts, queue), cam, queue=queue)
+    col_bands = np.array_split(np.arange(lf.shape[1]), 4)
+    row_bands = np.array_split(np.arange(lf.shape[0]), 2)
+    slopes = _view_centroid_slopes(lf, [(r, c) for r in row_bands for c in col_bands])
+    assert np.mean(slopes) == pytest.approx(expected, rel=0.03)  # measured: -1.0 %, -1.8 %
+    assert np.all(np.abs(np.array(slopes) / expected - 1) < 0.15)
+
+
+def test_view_is_the_plaid_sample(cam, queue):
+    lf = LightField(_particle_image(cam, [0.0, 0.0, 0.0], queue, rays=2000), cam, queue=queue)
+    assert lf.views.shape == (len(lf.v), len(lf.u), 20, 24)
+    assert np.array_equal(lf.view(lf.u[3], lf.v[5]), lf.views[5, 3], equal_nan=True)
+    assert lf.lf.shape == (20, 24, len(lf.v), len(lf.u))
+    assert np.all(np.isnan(lf.views[0, 0]))  # the corner of the plaid grid is outside
+    with pytest.raises(ValueError, match="outside the aperture"):
+        lf.view(20.0, 0.0)
+    assert np.allclose(plaid_uv(cam), -plaid_uv(cam)[::-1])
+
+
+def test_refocus_at_alpha_one_is_the_mean_over_the_aperture(cam, queue):
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0, 100, cam.pixels[::-1]).astype(np.float32)
+    lf = LightField(img, cam, queue=queue)
+    expected = np.nanmean(lf.views.reshape(-1, *lf.shape), axis=0)
+    np.testing.assert_allclose(lf.refocus(alpha=1.0), expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("supersample", [1, 3])
+def test_kernel_matches_reference_on_awkward_sizes(cam, queue, supersample):
+    rng = np.random.default_rng(7)
+    lf = LightField(np.zeros(cam.pixels[::-1], np.float32), cam, queue=queue)
+    nuv, ny, nx = 7, 13, 17  # odd sizes, not multiples of any work-group size
+    views = rng.uniform(0, 10, (nuv, ny, nx)).astype(np.float32)
+    views[rng.random(views.shape) < 0.1] = np.nan  # missing lenses / outside the aperture
+    views[:, :2, :3] = np.nan  # a dead region: zero output, no NaN
+    lf.views = views.reshape(1, nuv, ny, nx)
+    lf._device = {}
+    shifts = rng.uniform(-2.5, 2.5, (3, nuv, 2))
+    shifts[0] = 0.0
+    got = lf._run(shifts, supersample)
+    ref = refocus_views(views, shifts, supersample)
+    assert got.shape == (3, ny * supersample, nx * supersample)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, ref, rtol=2e-5, atol=1e-5)
+
+
+def test_focal_stack_equals_single_refocus(cam, queue):
+    lf = LightField(_particle_image(cam, [0.1, 0.1, 1.0], queue, rays=4000), cam, queue=queue)
+    stack = lf.focal_stack([-1.0, 1.0])
+    np.testing.assert_allclose(stack[1], lf.refocus(z_mm=1.0), rtol=1e-6)
+    np.testing.assert_allclose(stack[0], lf.refocus(alpha=float(cam.alpha(-1.0))), rtol=1e-6)
+    for bad in (dict(), dict(alpha=1.0, z_mm=0.0)):
+        with pytest.raises(ValueError, match="exactly one"):
+            lf.refocus(**bad)
+    with pytest.raises(ValueError, match="alpha"):
+        lf.refocus(alpha=-1.0)
+    with pytest.raises(ValueError, match="supersample"):
+        lf.refocus(alpha=1.0, supersample=0)
+
+
+def test_bad_raw_image_is_rejected(cam):
+    with pytest.raises(ValueError, match="rows"):
+        LightField(np.zeros((10, 10)), cam)
+    with pytest.raises(ValueError, match="NaN"):
+        LightField(np.full(cam.pixels[::-1], np.nan), cam)
+
+
+def test_calibrated_rotated_camera_end_to_end(queue, tmp_path):
+    """White image of a rotated, shifted array → calibrate → refocus finds the depth."""
+    true = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (24, 20), 0.0074, (409, 341),
+                  ml_rotation_deg=1.5, ml_offset_mm=(0.02, -0.015))
+    nominal = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (24, 20), 0.0074, (409, 341))
+    white = simulate_white_image(true, photon_noise=True, seed=2, queue=queue)
+    cal = calibrate(white, nominal)
+    raw = _particle_image(true, [0.05, 0.03, -1.5], queue)
+    stack = LightField(raw, cal, queue=queue).focal_stack(ZS)
+    assert ZS[stack.reshape(len(ZS), -1).max(1).argmax()] == -1.5
+    # the same through the command line
+    from plenocl.io import write_tiff
+
+    cal.to_toml(tmp_path / "cal.toml")
+    write_tiff(tmp_path / "raw.tif", raw)
+    parser = argparse.ArgumentParser()
+    add_refocus_parser(parser.add_subparsers())
+    args = parser.parse_args(["refocus", str(tmp_path / "raw.tif"), "--camera",
+                              str(tmp_path / "cal.toml"), "--z", "-1.5", "0", "1.5",
+                              "--out", str(tmp_path / "stack.tif")])
+    args.device = queue
+    assert args.func(args) == 0
+    import tifffile
+
+    saved = tifffile.imread(tmp_path / "stack.tif")
+    np.testing.assert_allclose(saved[0], stack[list(ZS).index(-1.5)], rtol=1e-5, atol=1e-6)
