@@ -6,6 +6,8 @@ from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices,
 from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
+from .projector import Projector
+from .reconstruct import reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
 
 __version__ = "0.1.0"
@@ -17,12 +19,14 @@ __all__ = [
     "Grid",
     "LightField",
     "NoOpenCLError",
+    "Projector",
     "Simulator",
     "calibrate",
     "create_context",
     "describe_devices",
     "get_queue",
     "random_particles",
+    "reconstruct",
     "simulate_image",
     "simulate_white_image",
 ]

@@ -1,5 +1,5 @@
-"""The ``plenocl`` command line: ``devices | simulate | demo`` (more stages register here
-as they land: calibrate, refocus, reconstruct, piv, bench)."""
+"""The ``plenocl`` command line: devices | simulate | calibrate | refocus | reconstruct |
+piv | demo | bench."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from pathlib import Path
 
 from .camera import load_camera
 from .cli_calibrate import add_calibrate_parser, add_refocus_parser
+from .cli_volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
@@ -39,15 +40,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    """Run a built-in example end to end."""
-    from .demo import particle_demo
-
-    for line in particle_demo(args.out, count=args.particles, seed=args.seed, queue=args.device):
-        print(line)
-    return 0
-
-
 def _add_simulate(sub) -> None:
     p = sub.add_parser("simulate", help="simulate a raw plenoptic image of particles")
     p.add_argument("--camera", help="camera TOML file or preset (synthetic, paper)")
@@ -63,16 +55,6 @@ def _add_simulate(sub) -> None:
     p.set_defaults(func=cmd_simulate)
 
 
-def _add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="run a built-in example")
-    p.add_argument("name", nargs="?", default="particles", choices=["particles"],
-                   help="which example (default: particles)")
-    p.add_argument("--out", default="plenocl_demo", help="output folder")
-    p.add_argument("--particles", type=int, default=200, help="number of particles")
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=cmd_demo)
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every registered subcommand."""
     parser = argparse.ArgumentParser(prog="plenocl", description=__doc__.split("\n")[0])
@@ -85,7 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     add_calibrate_parser(sub)
     add_refocus_parser(sub)
-    _add_demo(sub)
+    add_reconstruct_parser(sub)
+    add_piv_parser(sub)
+    add_demo_parser(sub)
     return parser
 
 

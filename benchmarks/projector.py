@@ -1,0 +1,198 @@
+"""Projector throughput: matrix-free kernels against stored scipy.sparse CSR products of
+the same weights (same run, medians of repeats), memory of both, the atomic-scatter
+alternatives, and one forward + back projection of the paper's full experiment.
+
+    python benchmarks/projector.py [--repeats 5] [--skip-paper] [--skip-direct]
+
+Weights per second count the non-zeros of the weight matrix processed per second (the
+CSR matrix's ``nnz`` for the stored case; an estimate from sampled voxels for the paper
+grid, whose matrix cannot be stored).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import numpy as np
+import pyopencl.array as cl_array
+
+from plenocl import Camera, Grid, get_queue
+from plenocl.device import device_info
+from plenocl.projector import Projector, i32
+from plenocl.sparse import matrix_bytes, weight_matrix
+
+
+def median_time(fn, repeats: int) -> float:
+    """Median wall time of ``fn()`` over ``repeats`` runs (after one warm-up)."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def projector_bytes(proj: Projector) -> int:
+    """Device memory the projector itself holds: tables and scratch buffers."""
+    bufs = list(proj._d.values()) + list(proj._scratch.values())
+    return sum(b.nbytes for b in bufs)
+
+
+def device_pair(proj: Projector, vol: np.ndarray):
+    """Device-resident forward and back callables (as the solver uses them)."""
+    slabs = proj.volume_to_device(vol)
+    img = proj.empty_image()
+    out = proj.empty_volume()
+
+    def fwd():
+        proj.forward_device(slabs, img)
+        proj.queue.finish()
+
+    def back():
+        proj.back_device(img, out)
+        proj.queue.finish()
+
+    return fwd, back, img, out
+
+
+def back_with_atomic_scatter(proj: Projector, image: cl_array.Array, slabs) -> None:
+    """Back projection with ``back_y`` replaced by its float-atomic scatter twin."""
+    nkx, nky, nkxp = proj._lens_args()
+    _, ny, nx = proj.shape
+    for n, (i0, i1) in enumerate(proj.plan.columns):
+        s0, s1 = proj._sample_range(i0, i1)
+        light = proj._image_to_light(image, i0, i1)
+        for (z0, z1), slab in zip(proj.plan.slabs, slabs, strict=True):
+            for zc in range(z0, z1, proj.plan.zchunk):
+                nzc, nic = min(proj.plan.zchunk, z1 - zc), i1 - i0
+                t_buf = proj._buffer("T", nzc * nic * ny * proj.nkxp)
+                t_buf.fill(0.0)
+                proj._run("back_y_scatter", (proj.nseg, int(nky), s1 - s0), light, t_buf,
+                          proj._d["coef"], proj._d["ij"], i32(ny), nkxp, i32(proj.seg),
+                          i32(zc), i32(nzc), i32(i0), i32(nic), i32(s0), proj._ic)
+                proj._run("back_x", (ny, nzc), t_buf, slab, proj._d["coef"], i32(nx), i32(ny),
+                          nkx, nkxp, i32(z0), i32(zc), i32(i0), i32(nic), proj._ic,
+                          i32(n > 0))
+    proj.queue.finish()
+
+
+def row(label: str, nnz: float, seconds: float, note: str = "") -> None:
+    print(f"  {label:44s} {seconds:9.4f} s {nnz / seconds / 1e6:10.1f} M weights/s  {note}")
+
+
+def stored_comparison(queue, repeats: int, direct: bool) -> None:
+    cam = Camera.synthetic_850()
+    grid = Grid((40, 50, 50), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+    proj = Projector(cam, grid, queue)
+    t0 = time.perf_counter()
+    a = weight_matrix(proj)
+    build = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    vol = rng.random(grid.shape, dtype=np.float32)
+    img_h = rng.random(proj.image_shape, dtype=np.float32)
+    fwd, back, img, out = device_pair(proj, vol)
+    err_f = np.abs(a @ vol.ravel() - proj.forward(vol).ravel()).max() / (a @ vol.ravel()).max()
+    ref_b = a.T @ img_h.ravel()
+    err_b = np.abs(ref_b - proj.back(img_h).ravel()).max() / ref_b.max()
+    print(f"850 x 850 camera (50 x 50 lenses, M = 1, f/2), grid {grid.shape} over 5 mm cubed: "
+          f"{a.nnz:,} non-zeros ({a.nnz / grid.size:.0f} per voxel); CSR built from the "
+          f"footprint kernel in {build:.1f} s")
+    print(f"  kernels vs CSR products: max relative difference forward {err_f:.1e}, "
+          f"back {err_b:.1e}")
+    print(f"  memory: CSR matrix {matrix_bytes(a) / 2**20:.1f} MiB; projector tables + scratch "
+          f"{projector_bytes(proj) / 2**20:.2f} MiB "
+          f"({100 * projector_bytes(proj) / matrix_bytes(a):.2f}% of CSR); volume "
+          f"{grid.nbytes / 2**20:.2f} MiB and image {img.nbytes / 2**20:.2f} MiB either way")
+    x, y = vol.ravel(), img_h.ravel()
+    t_fc, t_bc = median_time(lambda: a @ x, repeats), median_time(lambda: a.T @ y, repeats)
+    t_f, t_b = median_time(fwd, repeats), median_time(back, repeats)
+    t_fh = median_time(lambda: proj.forward(vol), repeats)
+    t_bh = median_time(lambda: proj.back(img_h), repeats)
+    print(f"  medians of {repeats} (forward = A x, back = A^T y):")
+    row("scipy CSR forward (1 thread)", a.nnz, t_fc)
+    row("scipy CSR back (CSR transpose)", a.nnz, t_bc)
+    row("matrix-free forward, device-resident", a.nnz, t_f)
+    row("matrix-free back, device-resident", a.nnz, t_b)
+    row("matrix-free forward, host arrays in/out", a.nnz, t_fh)
+    row("matrix-free back, host arrays in/out", a.nnz, t_bh)
+    print(f"  forward + back: CSR {t_fc + t_bc:.4f} s, matrix-free {t_f + t_b:.4f} s "
+          f"({(t_fc + t_bc) / (t_f + t_b):.1f}x faster)")
+    t_bs = median_time(lambda: back_with_atomic_scatter(proj, img, out), repeats)
+    row("back with atomic-scatter back_y (not kept)", a.nnz, t_bs)
+    if direct:
+        dproj = Projector(cam, grid, queue, method="direct")
+        dfwd, dback, _, _ = device_pair(dproj, vol)
+        row("direct forward: 16 atomic adds/sample/voxel", a.nnz, median_time(dfwd, repeats))
+        row("direct back: 16-product gather per voxel", a.nnz, median_time(dback, repeats))
+
+
+def paper_experiment(queue, repeats: int) -> None:
+    cam = Camera.paper_16mp()
+    grid = Grid((150, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5), z=(-10.0, 10.0))
+    proj = Projector(cam, grid, queue)
+    rng = np.random.default_rng(1)
+    sample = np.column_stack([rng.integers(0, n, 300) for n in grid.shape])
+    nnz = np.mean([len(proj.voxel_weights(*v)[0]) for v in sample]) * grid.size
+    fwd, back, _, _ = device_pair(proj, rng.random(grid.shape, dtype=np.float32))
+    t_f, t_b = median_time(fwd, repeats), median_time(back, repeats)
+    print(f"paper experiment: {cam.pixels[0]} x {cam.pixels[1]} px, {cam.ml_count[0]} x "
+          f"{cam.ml_count[1]} lenses, grid {grid.shape} over 55 x 35 x 20 mm "
+          f"({proj.path} path, {proj.n_samples} aperture samples)")
+    print(f"  estimated non-zeros {nnz:.2e} (CSR would need {nnz * 8 / 2**30:.0f} GiB); "
+          f"projector tables + scratch {projector_bytes(proj) / 2**20:.1f} MiB")
+    print(f"  medians of {repeats}:")
+    row("forward, device-resident", nnz, t_f)
+    row("back, device-resident", nnz, t_b)
+    print(f"  one forward + back: {t_f + t_b:.2f} s")
+
+
+def rotated_array(queue, repeats: int, depth: int) -> None:
+    """The general path: the paper camera with its array rotated by 0.2 degrees.
+
+    Timed on ``depth`` and ``2 depth`` slices of the paper grid and extrapolated linearly
+    to its 150 (the light-field to image stages are a fixed cost per projection).
+    """
+    cam = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (289, 193), 0.0074, (4904, 3280),
+                 ml_rotation_deg=0.2)
+    totals = []
+    for nz in (depth, 2 * depth):
+        grid = Grid((nz, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5),
+                    z=(-10.0, -10.0 + 20.0 * nz / 150))
+        proj = Projector(cam, grid, queue)
+        fwd, back, _, _ = device_pair(proj, np.random.default_rng(2).random(grid.shape,
+                                                                             np.float32))
+        t_f, t_b = median_time(fwd, repeats), median_time(back, repeats)
+        totals.append(t_f + t_b)
+        print(f"rotated array (0.2 deg, {proj.path} path), paper camera, {nz} of the 150 depth "
+              f"slices, medians of {repeats}: forward {t_f:.2f} s, back {t_b:.2f} s")
+    full = totals[0] + (totals[1] - totals[0]) * (150 - depth) / depth
+    print(f"  extrapolated to the full 150-slice grid: about {full:.0f} s per forward + back")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--paper-repeats", type=int, default=3)
+    parser.add_argument("--skip-paper", action="store_true")
+    parser.add_argument("--skip-direct", action="store_true")
+    parser.add_argument("--rotated-depth", type=int, default=10,
+                        help="depth slices for the rotated-array (general path) figure; 0 skips")
+    args = parser.parse_args()
+    queue = get_queue()
+    info = device_info(queue)
+    print(f"device: {info.name} ({info.platform}), {info.compute_units} compute units; "
+          f"load average at start {os.getloadavg()[0]:.2f} (other processes share the CPU)")
+    stored_comparison(queue, args.repeats, not args.skip_direct)
+    if not args.skip_paper:
+        paper_experiment(queue, args.paper_repeats)
+    if args.rotated_depth:
+        rotated_array(queue, args.paper_repeats, args.rotated_depth)
+    print(f"load average at end {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

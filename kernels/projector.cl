@@ -1,0 +1,395 @@
+/* Matrix-free projector of the plenoptic weighting function (paper §III.A, DESIGN §5).
+ * NumPy twin: plenocl/reference/weights.py.
+ *
+ * The weight of pixel p for voxel j is a sum over aperture samples s and lenses k of
+ * S[k, s; j] P[p; k, s]: S holds the bilinear lens weights of step 2 (they depend on the
+ * voxel), P the bilinear pixel weights of step 3 (they depend only on the lens, with its
+ * own calibrated centre, and the sample). Both projections go through the light field
+ * L[ky][s][kx] (rows padded to nkxp, a multiple of the vector width PL_VW):
+ *   forward  image = P (S vol):  fwd_x + fwd_y (separable S) or fwd_gen, then fwd_pix
+ *   back     vol = S^T (P^T img): back_pix, then back_y + back_x or back_gen
+ * With an axis-aligned array S factorises per axis: fwd_x resamples voxel rows onto lens
+ * columns for each aperture column i (T[(iz, i)][iy][kx]); fwd_y resamples those onto
+ * lens rows for each sample (i, j), a few vectorised row updates per output row.
+ * Every kernel is a gather except fwd_pix and fwd_x, race-free scatters (fwd_pix takes
+ * the lenses in cs x cs colour classes whose pixel patches never overlap; fwd_x owns its
+ * output row): results do not depend on the work split or the device's thread count.
+ * Sizes are arguments; PL_VW is a define. Row kernels take `seg`: each work-item updates
+ * `seg` vectors of a row (a whole row on a CPU, so it stays in cache; one element on a
+ * GPU, for coalesced access).
+ *
+ * The direct kernels (voxel_footprint, fwd_direct, back_direct) evaluate the 16 products
+ * per sample per voxel without the factorisation: one voxel's column, and the
+ * unfactorised baseline the benchmark measures. back_y_scatter is the float-atomic
+ * scatter alternative of back_y, kept for the benchmark. */
+#include "projector.h"
+
+/* ---- forward, separable: T[(izl, il)][iy][kx] = sum_ix hat(kx(ix, i) - kx) vol[iz][iy][ix].
+ * One work-item per T row: each voxel of the row splats onto its two lens columns. */
+__kernel void fwd_x(__global const float *restrict vol, __global float *restrict T,
+                    __global const float *restrict coef,
+                    int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
+                    float ic)
+{
+    const int iy = get_global_id(0), q = get_global_id(1);
+    const int izl = q / nic, i = i0 + q - izl * nic;
+    __global const float *c = coef + 16 * (zc0 + izl);
+    const float bu = (float)i - ic;
+    __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
+    __global float *out = T + ((size_t)q * ny + iy) * nkxp;
+    pl_zero(out, nkxp / PL_VW);
+    for (int ix = 0; ix < nx; ++ix) {
+        const float kxf = pl_kx(c, bu, ix);
+        const int kx0 = pl_floori(kxf);
+        const float tx = kxf - (float)kx0, e = row[ix];
+        if (kx0 >= 0 && kx0 < nkx) out[kx0] += (1.0f - tx) * e;
+        if (kx0 + 1 >= 0 && kx0 + 1 < nkx) out[kx0 + 1] += tx * e;
+    }
+}
+
+/* ---- forward, separable:
+ * L[ky][s(i, j)][kx] (+)= sum_iz,iy hat(ky(iy, j) - ky) T[(izl, il)][iy][kx].
+ * One work-item per (segment, ky, aperture column i): it owns the L rows of the column's
+ * samples (kept in cache) and reads each T row once per depth for all of them. */
+__kernel void fwd_y(__global const float *restrict T, __global float *restrict L,
+                    __global const float *restrict coef, __global const int *restrict col_lo,
+                    __global const int *restrict col_off,
+                    int ny, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic, int s0,
+                    int nsc, float ic, int accumulate)
+{
+    const int t = get_global_id(0), ky = get_global_id(1), il = get_global_id(2);
+    const int i = i0 + il, lo = col_lo[i], hi = n - 1 - lo;
+    const size_t off = (size_t)t * seg * PL_VW;
+    __global float *rows = L + ((size_t)ky * nsc + col_off[i] - s0) * nkxp + off;
+    if (!accumulate)
+        for (int j = lo; j <= hi; ++j)
+            pl_zero(rows + (size_t)(j - lo) * nkxp, seg);
+    for (int izl = 0; izl < nzc; ++izl) {
+        __global const float *c = coef + 16 * (zc0 + izl);
+        __global const float *src = T + (size_t)(izl * nic + il) * ny * nkxp + off;
+        for (int j = lo; j <= hi; ++j) {
+            const float bv = (float)j - ic;
+            const int2 r = pl_hat_range(c[13], c[9] * bv + c[5], (float)ky, ny);
+            __global float *out = rows + (size_t)(j - lo) * nkxp;
+            int pending = -1;  /* a row with a positive weight waiting for a partner */
+            float wp = 0.0f;
+            for (int iy = r.x; iy <= r.y + 1; ++iy) {
+                const float w = iy <= r.y ? pl_tent(pl_ky(c, bv, iy) - (float)ky) : 0.0f;
+                if (w <= 0.0f && !(iy > r.y && pending >= 0)) continue;
+                if (pending < 0) {
+                    pending = iy;
+                    wp = w;
+                    continue;
+                }
+                pl_axpy2(out, src + (size_t)pending * nkxp,
+                         src + (size_t)(w > 0.0f ? iy : pending) * nkxp, wp, w, seg);
+                pending = -1;
+            }
+        }
+    }
+}
+
+/* ---- forward, general (rotated array): L[ky][sl][kx] (+)= sum_iz,iy,ix S vol.
+ * One work-item per aperture sample: it owns the sample's light-field plane and splats
+ * every voxel of the chunk onto its four lenses (race-free, in cache). */
+__kernel void fwd_gen(__global const float *restrict vol, __global float *restrict L,
+                      __global const float *restrict coef,
+                      __global const int2 *restrict sample_ij,
+                      int nx, int ny, int nkx, int nky, int nkxp, int zv0, int zc0, int nzc,
+                      int s0, int nsc, float ic, int accumulate)
+{
+    const int sl = get_global_id(0);
+    const int2 ij = sample_ij[s0 + sl];
+    const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
+    __global float *plane = L + (size_t)sl * nkxp;
+    const size_t stride = (size_t)nsc * nkxp;  /* from one lens row to the next */
+    if (!accumulate)
+        for (int ky = 0; ky < nky; ++ky)
+            pl_zero(plane + ky * stride, nkxp / PL_VW);
+    for (int izl = 0; izl < nzc; ++izl) {
+        __global const float *c = coef + 16 * (zc0 + izl);
+        const float2 o = pl_sample_offset(c, bu, bv);
+        __global const float *slice = vol + (size_t)(zc0 + izl - zv0) * ny * nx;
+        for (int iy = 0; iy < ny; ++iy)
+            for (int ix = 0; ix < nx; ++ix) {
+                const float e = slice[(size_t)iy * nx + ix];
+                if (e == 0.0f) continue;  /* sparse volumes: most voxels are zero */
+                const float2 p = pl_lens_coord(c, o, (float)ix, (float)iy);
+                const int kx = pl_floori(p.x), ky = pl_floori(p.y);
+                const float dx = p.x - (float)kx, dy = p.y - (float)ky;
+                const int x0 = pl_mini(pl_maxi(kx, 0), nkx - 1);
+                const int x1 = pl_mini(pl_maxi(kx + 1, 0), nkx - 1);
+                const int y0 = pl_mini(pl_maxi(ky, 0), nky - 1);
+                const int y1 = pl_mini(pl_maxi(ky + 1, 0), nky - 1);
+                const float ex0 = x0 == kx ? (1.0f - dx) * e : 0.0f;
+                const float ex1 = x1 == kx + 1 ? dx * e : 0.0f;
+                const float wy0 = y0 == ky ? 1.0f - dy : 0.0f, wy1 = y1 == ky + 1 ? dy : 0.0f;
+                __global float *r0 = plane + y0 * stride, *r1 = plane + y1 * stride;
+                r0[x0] += wy0 * ex0;
+                r0[x1] += wy0 * ex1;
+                r1[x0] += wy1 * ex0;
+                r1[x1] += wy1 * ex1;
+            }
+    }
+}
+
+/* ---- forward, P: image (+)= scale * L of the lenses of colour class (cx, cy), race-free */
+__kernel void fwd_pix(__global const float *restrict L, __global float *restrict image,
+                      __global const int2 *restrict lens_rnd,
+                      __global const float2 *restrict lens_frac,
+                      __global const int2 *restrict sample_ij,
+                      int width, int height, int nkx, int nky, int nkxp, int cs, int cx, int cy,
+                      int s0, int ns, float ic, float dug, float scale)
+{
+    const int kx = cx + cs * get_global_id(0), ky = cy + cs * get_global_id(1);
+    if (kx >= nkx || ky >= nky) return;
+    const int2 r = lens_rnd[ky * nkx + kx];
+    if (r.x == PL_NO_LENS) return;
+    const float2 f = lens_frac[ky * nkx + kx];
+    __global const float *src = L + (size_t)ky * ns * nkxp + kx;
+    for (int sl = 0; sl < ns; ++sl) {
+        const float val = src[(size_t)sl * nkxp] * scale;
+        if (val == 0.0f) continue;
+        const int2 ij = sample_ij[s0 + sl];
+        const float fc = pl_pixel_frac(f.x, (float)ij.x - ic, dug);
+        const float fr = pl_pixel_frac(f.y, (float)ij.y - ic, dug);
+        const int c0 = pl_floori(fc), r0 = pl_floori(fr);
+        const float tc = fc - (float)c0, tr = fr - (float)r0;
+        const int col = r.x + c0, row = r.y + r0;
+        for (int b = 0; b < 4; ++b) {
+            const int cc = col + (b & 1), rr = row + (b >> 1);
+            if (cc < 0 || cc >= width || rr < 0 || rr >= height) continue;
+            const float wp = ((b & 1) ? tc : 1.0f - tc) * ((b >> 1) ? tr : 1.0f - tr);
+            image[rr * width + cc] += wp * val;
+        }
+    }
+}
+
+/* ---- back, P^T: L[ky][sl][kx] = scale * sum of the 4 pixels of sample s behind lens k */
+__kernel void back_pix(__global const float *restrict image, __global float *restrict L,
+                       __global const int2 *restrict lens_rnd,
+                       __global const float2 *restrict lens_frac,
+                       __global const int2 *restrict sample_ij,
+                       int width, int height, int nkx, int nkxp, int seg, int s0, float ic,
+                       float dug, float scale)
+{
+    const int t = get_global_id(0), ky = get_global_id(1), sl = get_global_id(2);
+    const int2 ij = sample_ij[s0 + sl];
+    const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
+    const int k0 = t * seg * PL_VW;
+    __global float *out = L + ((size_t)ky * get_global_size(2) + sl) * nkxp + k0;
+    for (int m = 0; m < seg * PL_VW; ++m) {
+        const int kx = k0 + m;
+        float acc = 0.0f;
+        const int2 r = kx < nkx ? lens_rnd[ky * nkx + kx] : (int2)(PL_NO_LENS, 0);
+        if (r.x != PL_NO_LENS) {
+            const float2 f = lens_frac[ky * nkx + kx];
+            const float fc = pl_pixel_frac(f.x, bu, dug), fr = pl_pixel_frac(f.y, bv, dug);
+            const int c0 = pl_floori(fc), r0 = pl_floori(fr);
+            const float tc = fc - (float)c0, tr = fr - (float)r0;
+            const int col = r.x + c0, row = r.y + r0;
+            for (int b = 0; b < 4; ++b) {
+                const int cc = col + (b & 1), rr = row + (b >> 1);
+                if (cc < 0 || cc >= width || rr < 0 || rr >= height) continue;
+                const float wp = ((b & 1) ? tc : 1.0f - tc) * ((b >> 1) ? tr : 1.0f - tr);
+                acc += wp * image[rr * width + cc];
+            }
+        }
+        out[m] = acc * scale;
+    }
+}
+
+/* ---- back, separable: T[(izl, il)][iy][kx] = sum_j,ky hat(ky(iy, j) - ky) L[ky][s(i, j)][kx].
+ * One work-item per (segment, iy, aperture column i), for every depth of the chunk: the
+ * L rows it reads (near ky(iy)) stay in cache from one depth to the next. */
+__kernel void back_y(__global const float *restrict L, __global float *restrict T,
+                     __global const float *restrict coef, __global const int *restrict col_lo,
+                     __global const int *restrict col_off,
+                     int ny, int nky, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic,
+                     int s0, int nsc, float ic)
+{
+    const int t = get_global_id(0), iy = get_global_id(1), il = get_global_id(2);
+    const int i = i0 + il, lo = col_lo[i], hi = n - 1 - lo;
+    const size_t off = (size_t)t * seg * PL_VW;
+    __global const float *col = L + (size_t)(col_off[i] - s0) * nkxp + off;
+    for (int izl = 0; izl < nzc; ++izl) {
+        __global const float *c = coef + 16 * (zc0 + izl);
+        __global float *out = T + ((size_t)(izl * nic + il) * ny + iy) * nkxp + off;
+        pl_zero(out, seg);
+        for (int j = lo; j <= hi; ++j) {
+            const float kyf = pl_ky(c, (float)j - ic, iy);
+            const int ky0 = pl_floori(kyf);
+            float w0 = 1.0f - (kyf - (float)ky0), w1 = kyf - (float)ky0;
+            if (ky0 < 0 || ky0 >= nky) w0 = 0.0f;
+            if (ky0 + 1 < 0 || ky0 + 1 >= nky) w1 = 0.0f;
+            if (w0 == 0.0f && w1 == 0.0f) continue;
+            __global const float *src = col + (size_t)(j - lo) * nkxp;
+            const int ka = pl_mini(pl_maxi(ky0, 0), nky - 1);
+            const int kb = pl_mini(pl_maxi(ky0 + 1, 0), nky - 1);
+            pl_axpy2(out, src + (size_t)ka * nsc * nkxp, src + (size_t)kb * nsc * nkxp, w0, w1,
+                     seg);
+        }
+    }
+}
+
+/* ---- back, separable: vol[iz][iy][ix] (+)= sum_i,kx hat(kx(ix, i) - kx) T[(izl, il)][iy][kx].
+ * One work-item per volume row; column-major, branch-free loops over the row. */
+__kernel void back_x(__global const float *restrict T, __global float *restrict vol,
+                     __global const float *restrict coef,
+                     int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
+                     float ic, int accumulate)
+{
+    const int iy = get_global_id(0), izl = get_global_id(1);
+    __global const float *c = coef + 16 * (zc0 + izl);
+    __global float *out = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
+    __global const float *base = T + (size_t)izl * nic * ny * nkxp + (size_t)iy * nkxp;
+    for (int il = 0; il < nic; ++il) {
+        const float bu = (float)(i0 + il) - ic;
+        const int keep = accumulate || il > 0;
+        __global const float *row = base + (size_t)il * ny * nkxp;
+        for (int ix = 0; ix < nx; ++ix) {
+            const float kxf = pl_kx(c, bu, ix);
+            const int kx0 = pl_floori(kxf);
+            const float tx = kxf - (float)kx0;
+            const int k0 = pl_mini(pl_maxi(kx0, 0), nkx - 1);
+            const int k1 = pl_mini(pl_maxi(kx0 + 1, 0), nkx - 1);
+            const float w0 = kx0 == k0 ? 1.0f - tx : 0.0f, w1 = kx0 + 1 == k1 ? tx : 0.0f;
+            const float v = w0 * row[k0] + w1 * row[k1];
+            out[ix] = keep ? out[ix] + v : v;
+        }
+    }
+}
+
+/* ---- back, general: vol[iz][iy][ix] (+)= sum_s,k S L. One work-item per volume row,
+ * sample-major: the light-field rows a sample needs stay in cache along the row. */
+__kernel void back_gen(__global const float *restrict L, __global float *restrict vol,
+                       __global const float *restrict coef,
+                       __global const int2 *restrict sample_ij,
+                       int nx, int ny, int nkx, int nky, int nkxp, int zv0, int zc0, int s0,
+                       int ns, float ic, int accumulate)
+{
+    const int iy = get_global_id(0), izl = get_global_id(1);
+    __global const float *c = coef + 16 * (zc0 + izl);
+    __global float *out = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
+    const size_t stride = (size_t)ns * nkxp;
+    for (int sl = 0; sl < ns; ++sl) {
+        const int2 ij = sample_ij[s0 + sl];
+        const float2 o = pl_sample_offset(c, (float)ij.x - ic, (float)ij.y - ic);
+        const int keep = accumulate || sl > 0;
+        __global const float *ls = L + (size_t)sl * nkxp;
+        for (int ix = 0; ix < nx; ++ix) {
+            const float2 p = pl_lens_coord(c, o, (float)ix, (float)iy);
+            const int kx = pl_floori(p.x), ky = pl_floori(p.y);
+            const float dx = p.x - (float)kx, dy = p.y - (float)ky;
+            const int x0 = pl_mini(pl_maxi(kx, 0), nkx - 1);
+            const int x1 = pl_mini(pl_maxi(kx + 1, 0), nkx - 1);
+            const int y0 = pl_mini(pl_maxi(ky, 0), nky - 1);
+            const int y1 = pl_mini(pl_maxi(ky + 1, 0), nky - 1);
+            const float wx0 = x0 == kx ? 1.0f - dx : 0.0f, wx1 = x1 == kx + 1 ? dx : 0.0f;
+            const float wy0 = y0 == ky ? 1.0f - dy : 0.0f, wy1 = y1 == ky + 1 ? dy : 0.0f;
+            const float v = wy0 * (wx0 * ls[y0 * stride + x0] + wx1 * ls[y0 * stride + x1])
+                            + wy1 * (wx0 * ls[y1 * stride + x0] + wx1 * ls[y1 * stride + x1]);
+            out[ix] = keep ? out[ix] + v : v;
+        }
+    }
+}
+
+/* ---- one voxel's 16 products per aperture sample (voxel_weights, stored matrices) */
+__kernel void voxel_footprint(__global const int4 *restrict voxels, __global int *restrict idx,
+                              __global float *restrict wts, __global const float *restrict coef,
+                              __global const int2 *restrict sample_ij,
+                              __global const int2 *restrict lens_rnd,
+                              __global const float2 *restrict lens_frac,
+                              int nkx, int nky, int width, int height, int ns, float ic,
+                              float dug, float scale)
+{
+    const int s = get_global_id(0), vb = get_global_id(1);
+    const int4 v = voxels[vb];
+    __global const float *c = coef + 16 * v.z;
+    const int2 ij = sample_ij[s];
+    const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
+    const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)v.x, (float)v.y);
+    int id[16];
+    float w[16];
+    pl_sample_products(p, bu, bv, lens_rnd, lens_frac, nkx, nky, width, height, dug, id, w);
+    const size_t base = ((size_t)vb * ns + s) * 16;
+    for (int e = 0; e < 16; ++e) {
+        idx[base + e] = id[e];
+        wts[base + e] = w[e] * scale;
+    }
+}
+
+/* ---- direct (unfactorised) forward: each voxel scatters its 16 x ns products, atomics */
+__kernel void fwd_direct(__global const float *restrict vol, volatile __global float *image,
+                         __global const float *restrict coef,
+                         __global const int2 *restrict sample_ij,
+                         __global const int2 *restrict lens_rnd,
+                         __global const float2 *restrict lens_frac,
+                         int nx, int ny, int nkx, int nky, int width, int height, int zv0,
+                         int ns, float ic, float dug, float scale)
+{
+    const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
+    const float e = vol[((size_t)izl * ny + iy) * nx + ix] * scale;
+    if (e == 0.0f) return;
+    __global const float *c = coef + 16 * (zv0 + izl);
+    for (int s = 0; s < ns; ++s) {
+        const int2 ij = sample_ij[s];
+        const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
+        const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
+        int id[16];
+        float w[16];
+        pl_sample_products(p, bu, bv, lens_rnd, lens_frac, nkx, nky, width, height, dug, id, w);
+        for (int k = 0; k < 16; ++k)
+            if (id[k] >= 0 && w[k] > 0.0f) pl_atomic_addf(image + id[k], w[k] * e);
+    }
+}
+
+/* ---- direct (unfactorised) back: each voxel gathers its 16 x ns products */
+__kernel void back_direct(__global const float *restrict image, __global float *restrict vol,
+                          __global const float *restrict coef,
+                          __global const int2 *restrict sample_ij,
+                          __global const int2 *restrict lens_rnd,
+                          __global const float2 *restrict lens_frac,
+                          int nx, int ny, int nkx, int nky, int width, int height, int zv0,
+                          int ns, float ic, float dug, float scale)
+{
+    const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
+    __global const float *c = coef + 16 * (zv0 + izl);
+    float acc = 0.0f;
+    for (int s = 0; s < ns; ++s) {
+        const int2 ij = sample_ij[s];
+        const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
+        const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
+        int id[16];
+        float w[16];
+        pl_sample_products(p, bu, bv, lens_rnd, lens_frac, nkx, nky, width, height, dug, id, w);
+        for (int k = 0; k < 16; ++k)
+            if (id[k] >= 0) acc += w[k] * image[id[k]];
+    }
+    vol[((size_t)izl * ny + iy) * nx + ix] = acc * scale;
+}
+
+/* ---- benchmark alternative of back_y: scatter each L row segment into T with atomics */
+__kernel void back_y_scatter(__global const float *restrict L, volatile __global float *T,
+                             __global const float *restrict coef,
+                             __global const int2 *restrict sample_ij,
+                             int ny, int nkxp, int seg, int zc0, int nzc, int i0, int nic, int s0,
+                             float ic)
+{
+    const int t = get_global_id(0), ky = get_global_id(1), sl = get_global_id(2);
+    const int2 ij = sample_ij[s0 + sl];
+    const float bv = (float)ij.y - ic;
+    const int k0 = t * seg * PL_VW;
+    __global const float *src = L + ((size_t)ky * get_global_size(2) + sl) * nkxp + k0;
+    for (int izl = 0; izl < nzc; ++izl) {
+        __global const float *c = coef + 16 * (zc0 + izl);
+        const int2 r = pl_hat_range(c[13], c[9] * bv + c[5], (float)ky, ny);
+        volatile __global float *dst = T + (size_t)(izl * nic + ij.x - i0) * ny * nkxp + k0;
+        for (int iy = r.x; iy <= r.y; ++iy) {
+            const float w = pl_tent(pl_ky(c, bv, iy) - (float)ky);
+            if (w > 0.0f)
+                for (int m = 0; m < seg * PL_VW; ++m)
+                    if (src[m] != 0.0f) pl_atomic_addf(dst + (size_t)iy * nkxp + m, w * src[m]);
+        }
+    }
+}

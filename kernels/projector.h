@@ -1,0 +1,166 @@
+/* Helpers of the matrix-free projector (kernels/projector.cl); NumPy twin of the model:
+ * plenocl/reference/weights.py.
+ *
+ * Per-depth coefficients (16 floats per depth, built on the host in float64):
+ *   [0..3]   G: d(kx, ky)/d(ix, iy), fractional lens index per voxel step
+ *   [4..5]   o: lens index of voxel (0, 0) seen through the aperture centre
+ *   [6..9]   H: d(kx, ky)/d(i, j), lens index per aperture-sample step
+ *   [10..13] inverse of G
+ *   [14..15] half-widths (voxels) of the inverse image of a lens's [-1, 1]^2 box
+ * A voxel (ix, iy) seen through aperture sample (i, j) meets the array plane at lens
+ * index G (ix, iy) + o + H (i - c, j - c). With an axis-aligned array the off-diagonal
+ * terms are exactly zero and the general evaluation equals the separable one bit for bit.
+ *
+ * Performance note: PoCL's CPU driver (3.0, distro build) calls its builtins (floor,
+ * fma, fabs, fmax, vload8, ...) as out-of-line functions, spilling vector registers at
+ * each call. Hot code here therefore uses plain arithmetic, vector pointers and the
+ * small inline helpers below. FP contraction is off so that every kernel rounds the
+ * shared expressions identically (forward and back stay exact transposes). */
+#ifndef PLENOCL_PROJECTOR_H
+#define PLENOCL_PROJECTOR_H
+
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef PL_VW
+#define PL_VW 8      /* explicit vector width of row updates (1, 4, 8 or 16) */
+#endif
+#if PL_VW == 16
+typedef float16 pl_vec;
+#elif PL_VW == 8
+typedef float8 pl_vec;
+#elif PL_VW == 4
+typedef float4 pl_vec;
+#else
+typedef float pl_vec;
+#endif
+
+#define PL_NO_LENS (-1073741824)   /* lens_rnd.x of a lens calibration missed (NaN centre) */
+
+inline float pl_abs(float x) { return x < 0.0f ? -x : x; }
+inline int pl_mini(int a, int b) { return a < b ? a : b; }
+inline int pl_maxi(int a, int b) { return a > b ? a : b; }
+
+/* floor and ceil as integers, for |x| < 2^31 */
+inline int pl_floori(float x)
+{
+    const int i = (int)x;
+    return (float)i > x ? i - 1 : i;
+}
+
+inline int pl_ceili(float x)
+{
+    const int i = (int)x;
+    return (float)i < x ? i + 1 : i;
+}
+
+/* Linear-interpolation (hat) weight of a point at signed distance d. */
+inline float pl_tent(float d)
+{
+    const float w = 1.0f - pl_abs(d);
+    return w > 0.0f ? w : 0.0f;
+}
+
+/* Lens index of voxel (0, 0) through aperture sample offsets (bu, bv) = (i - c, j - c). */
+inline float2 pl_sample_offset(__global const float *c, float bu, float bv)
+{
+    return (float2)(c[6] * bu + (c[7] * bv + c[4]), c[8] * bu + (c[9] * bv + c[5]));
+}
+
+/* Fractional lens index (kx, ky) of voxel (fx, fy) given its sample offset o. */
+inline float2 pl_lens_coord(__global const float *c, float2 o, float fx, float fy)
+{
+    return (float2)(c[0] * fx + (c[1] * fy + o.x), c[2] * fx + (c[3] * fy + o.y));
+}
+
+/* Separable path: kx of voxel column ix through aperture column offset bu. */
+inline float pl_kx(__global const float *c, float bu, int ix)
+{
+    return c[0] * (float)ix + (c[6] * bu + c[4]);
+}
+
+/* Separable path: ky of voxel row iy through aperture row offset bv. */
+inline float pl_ky(__global const float *c, float bv, int iy)
+{
+    return c[3] * (float)iy + (c[9] * bv + c[5]);
+}
+
+/* Fractional pixel coordinate, relative to the lens centre's rounded pixel, of the
+ * sample with offset b behind a lens whose centre is `frac` from that pixel:
+ * c_k - u f_ml / s_i in pixels, with dug = du f_ml / (s_i p_px). */
+inline float pl_pixel_frac(float frac, float b, float dug)
+{
+    return frac - b * dug;
+}
+
+/* Inclusive index range [lo, hi] (one wider each side, clamped to [0, n - 1]) of the
+ * integers m with |a m + b - k| < 1, given a_inv = 1/a. */
+inline int2 pl_hat_range(float a_inv, float b, float k, int n)
+{
+    const float e0 = (k - 1.0f - b) * a_inv, e1 = (k + 1.0f - b) * a_inv;
+    const int lo = pl_floori(e0 < e1 ? e0 : e1), hi = pl_ceili(e0 < e1 ? e1 : e0);
+    return (int2)(pl_maxi(lo, 0), pl_mini(hi, n - 1));
+}
+
+/* out[0:n) = out + w0 a + w1 b over n vectors (rows aligned to PL_VW floats). */
+inline void pl_axpy2(__global float *out, __global const float *a, __global const float *b,
+                     float w0, float w1, int n)
+{
+    __global pl_vec *o = (__global pl_vec *)out;
+    __global const pl_vec *va = (__global const pl_vec *)a;
+    __global const pl_vec *vb = (__global const pl_vec *)b;
+    const pl_vec s0 = (pl_vec)(w0), s1 = (pl_vec)(w1);
+    for (int m = 0; m < n; ++m)
+        o[m] = o[m] + s0 * va[m] + s1 * vb[m];
+}
+
+inline void pl_zero(__global float *out, int n)
+{
+    __global pl_vec *o = (__global pl_vec *)out;
+    for (int m = 0; m < n; ++m)
+        o[m] = (pl_vec)(0.0f);
+}
+
+/* Float atomic add by a compare-and-swap loop (the scatter variants only). */
+inline void pl_atomic_addf(volatile __global float *p, float q)
+{
+    volatile __global uint *u = (volatile __global uint *)p;
+    uint old = *u, assumed;
+    do {
+        assumed = old;
+        old = atomic_cmpxchg(u, assumed, as_uint(as_float(assumed) + q));
+    } while (old != assumed);
+}
+
+/* The 16 products (paper §III.A steps 2-3) of one aperture sample of a voxel whose
+ * sample meets the array at fractional lens index p. idx[e] = -1 for lost products. */
+inline void pl_sample_products(float2 p, float bu, float bv,
+                               __global const int2 *lens_rnd, __global const float2 *lens_frac,
+                               int nkx, int nky, int width, int height, float dug,
+                               int *idx, float *w)
+{
+    const int fx = pl_floori(p.x), fy = pl_floori(p.y);
+    const float tx = p.x - (float)fx, ty = p.y - (float)fy;
+    for (int a = 0; a < 4; ++a) {
+        const int kx = fx + (a & 1), ky = fy + (a >> 1);
+        const float wl = ((a & 1) ? tx : 1.0f - tx) * ((a >> 1) ? ty : 1.0f - ty);
+        int2 r = (int2)(PL_NO_LENS, PL_NO_LENS);
+        float2 f = (float2)(0.0f, 0.0f);
+        if (kx >= 0 && kx < nkx && ky >= 0 && ky < nky) {
+            r = lens_rnd[ky * nkx + kx];
+            f = lens_frac[ky * nkx + kx];
+        }
+        const float fc = pl_pixel_frac(f.x, bu, dug), fr = pl_pixel_frac(f.y, bv, dug);
+        const int c0 = pl_floori(fc), r0 = pl_floori(fr);
+        const float tc = fc - (float)c0, tr = fr - (float)r0;
+        for (int b = 0; b < 4; ++b) {
+            const int col = r.x + c0 + (b & 1), row = r.y + r0 + (b >> 1);
+            const float wp = ((b & 1) ? tc : 1.0f - tc) * ((b >> 1) ? tr : 1.0f - tr);
+            const int ok = r.x != PL_NO_LENS && col >= 0 && col < width && row >= 0
+                           && row < height;
+            idx[4 * a + b] = ok ? row * width + col : -1;
+            w[4 * a + b] = ok ? wl * wp : 0.0f;
+        }
+    }
+}
+
+#endif /* PLENOCL_PROJECTOR_H */

@@ -1,0 +1,226 @@
+"""NumPy reference of the weighting function (paper §III.A, DESIGN §5), written for clarity.
+
+A voxel's column of the weight matrix, literally the paper's four steps:
+
+1. sample the main-lens aperture on a plaid ``(u, v)`` grid a little finer than one
+   pixel's footprint on the aperture (``p_px s_i / f_ml``), keeping samples inside the
+   circular aperture;
+2. each sample meets the microlens-array plane at ``x = u (1 - 1/α) + X'/α``; in
+   microlens index units it falls between four microlens centres, which get the
+   bilinear weights ``(1 - t_x)(1 - t_y) … t_x t_y``;
+3. behind each of those microlenses the sample's ``(u, v)`` lands at the sensor point
+   ``c_k - u f_ml / s_i`` (``c_k``: that lens's calibrated image centre), between four
+   pixel centres with bilinear weights ``(1 - t_u)(1 - t_v) … t_u t_v``;
+4. the sixteen products accumulate onto pixels and are normalised so that the voxel's
+   weights over *all* samples sum to one. Products landing off the sensor, on a missing
+   (NaN) microlens or outside the array are lost, so a voxel's weights sum to at most 1.
+
+Microlens index units come from an affine map fitted to the calibrated centres
+(:func:`lens_index_map`). The OpenCL projector (``kernels/projector.cl``) evaluates the
+same model matrix-free; the tests compare the two.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera
+from ..grid import Grid
+
+#: Aperture samples per pixel footprint on the aperture (``p_px s_i / f_ml``), per axis.
+DEFAULT_OVERSAMPLE = 1.25
+#: Lens-index drift (in lenses, across the array) below which the fitted lens map's
+#: rotation/shear terms are dropped and the projector uses its separable fast path.
+DEFAULT_SHEAR_TOL = 1e-3
+
+
+@dataclass(frozen=True)
+class ApertureGrid:
+    """The plaid ``(u, v)`` sampling of the circular main-lens aperture (step 1).
+
+    Sample ``(i, j)`` sits at ``u = (i - c) step``, ``v = (j - c) step`` with
+    ``c = (n - 1)/2``; only samples with ``u² + v² <= radius²`` are kept.
+    """
+
+    step: float
+    n: int
+    radius: float
+
+    @classmethod
+    def for_camera(cls, camera: Camera, oversample: float = DEFAULT_OVERSAMPLE) -> ApertureGrid:
+        """The grid whose step is one pixel's aperture footprint over ``oversample``."""
+        if not (math.isfinite(oversample) and oversample > 0):
+            raise ValueError(f"oversample must be a positive number, got {oversample!r}")
+        footprint = camera.pixel_pitch_mm * camera.image_distance_mm / camera.ml_focal_length_mm
+        step = footprint / oversample
+        radius = camera.aperture_diameter_mm / 2
+        return cls(step=step, n=2 * int(math.floor(radius / step + 1e-9)) + 1, radius=radius)
+
+    @property
+    def center(self) -> float:
+        """Index ``c`` of the optical axis."""
+        return (self.n - 1) / 2
+
+    def coords(self) -> np.ndarray:
+        """Sample coordinates along one axis (mm)."""
+        return (np.arange(self.n) - self.center) * self.step
+
+    def inside(self) -> np.ndarray:
+        """``(n, n)`` mask ``[i, j]`` of the samples inside the aperture circle."""
+        c = self.coords()
+        return c[:, None] ** 2 + c[None, :] ** 2 <= self.radius**2
+
+    def column_ranges(self) -> tuple[np.ndarray, np.ndarray]:
+        """For each ``i``, the inclusive ``j`` range ``[lo, hi]`` inside the aperture."""
+        mask = self.inside()  # a disc: each column's samples are contiguous, centre included
+        lo = np.argmax(mask, axis=1)
+        return lo, self.n - 1 - lo
+
+    def samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """Integer ``(i, j)`` of the in-aperture samples, ``i`` major, ``j`` minor."""
+        i, j = np.nonzero(self.inside())
+        return i, j
+
+
+@dataclass(frozen=True)
+class LensIndexMap:
+    """Affine map from array-plane ``(x, y)`` mm to fractional microlens index ``(kx, ky)``."""
+
+    matrix: np.ndarray  # (2, 2): d(kx, ky) / d(x, y)
+    offset: np.ndarray  # (2,)
+
+    @property
+    def axis_aligned(self) -> bool:
+        """Whether ``kx`` depends on ``x`` only and ``ky`` on ``y`` only."""
+        return self.matrix[0, 1] == 0.0 and self.matrix[1, 0] == 0.0
+
+    def __call__(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional lens indices of array-plane points."""
+        m, o = self.matrix, self.offset
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        return m[0, 0] * x + m[0, 1] * y + o[0], m[1, 0] * x + m[1, 1] * y + o[1]
+
+
+def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL) -> LensIndexMap:
+    """Fit the affine lens layout to the (calibrated) centres and invert it.
+
+    The array-plane position of lens ``k`` is ``x_k = c_k / (1 + f_ml/s_i)`` (DESIGN §2)
+    with ``c_k`` its image centre in sensor mm; NaN centres are ignored. When the fitted
+    rotation/shear moves the lens index by at most ``shear_tol`` lenses across the whole
+    array it is dropped (about the array's centre), so the map becomes axis-aligned.
+    """
+    cols, rows = camera.ml_count
+    ky, kx = np.mgrid[0:rows, 0:cols]
+    pos = camera.px_to_mm(camera.microlens_centers) / (
+        1 + camera.ml_focal_length_mm / camera.image_distance_mm)
+    ok = np.isfinite(pos).all(axis=-1)
+    design = np.column_stack([kx[ok], ky[ok], np.ones(ok.sum())])
+    if ok.sum() < 3 or np.linalg.matrix_rank(design) < 3:
+        raise ValueError("the microlens centres are too few or collinear to fit the array "
+                         "layout; recalibrate with a white image that lights the whole array")
+    fit, *_ = np.linalg.lstsq(design, pos[ok], rcond=None)  # (3, 2): x = [kx ky 1] @ fit
+    forward = fit[:2].T
+    matrix = np.linalg.inv(forward)
+    offset = -matrix @ fit[2]
+    drift_x = abs(matrix[0, 1] / matrix[1, 1]) * rows
+    drift_y = abs(matrix[1, 0] / matrix[0, 0]) * cols
+    if max(drift_x, drift_y) <= shear_tol:
+        centre = pos[ok].mean(axis=0)
+        offset = offset + np.array([matrix[0, 1] * centre[1], matrix[1, 0] * centre[0]])
+        matrix = np.diag(np.diag(matrix))
+    return LensIndexMap(matrix=matrix, offset=offset)
+
+
+def _bilinear_corners(f: np.ndarray):
+    """Lower integer neighbour and fractional distance, as the paper's floor/ceil."""
+    f0 = np.floor(f)
+    return f0.astype(np.int64), f - f0
+
+
+def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
+                  oversample: float = DEFAULT_OVERSAMPLE,
+                  shear_tol: float = DEFAULT_SHEAR_TOL) -> tuple[np.ndarray, np.ndarray]:
+    """One voxel's weights: sorted flat pixel indices (int64) and weights (float64).
+
+    Parameters
+    ----------
+    camera, grid
+        The camera (its ``microlens_centers`` are used) and the voxel grid.
+    iz, iy, ix
+        The voxel, ``vol[iz, iy, ix]``.
+    oversample
+        Aperture samples per pixel footprint on the aperture, per axis.
+    shear_tol
+        See :func:`lens_index_map`.
+
+    Returns
+    -------
+    indices, weights
+        Pixels ``row * W + col`` with a non-zero weight, in increasing order.
+    """
+    centre = [grid.axis_centers("x")[ix], grid.axis_centers("y")[iy], grid.axis_centers("z")[iz]]
+    xp, yp, sip = camera.image_points(centre)[0]
+    alpha = sip / camera.image_distance_mm
+    # Step 1: plaid aperture samples inside the circle.
+    ap = ApertureGrid.for_camera(camera, oversample)
+    i, j = ap.samples()
+    u, v = (i - ap.center) * ap.step, (j - ap.center) * ap.step
+    # Step 2: the array-plane point, in lens index units, and its four lenses.
+    kxf, kyf = lens_index_map(camera, shear_tol)(u * (1 - 1 / alpha) + xp / alpha,
+                                                 v * (1 - 1 / alpha) + yp / alpha)
+    kx0, tx = _bilinear_corners(kxf)
+    ky0, ty = _bilinear_corners(kyf)
+    pix, wts = [], []
+    for dkx in (0, 1):
+        for dky in (0, 1):
+            w_lens = (tx if dkx else 1 - tx) * (ty if dky else 1 - ty)
+            p, w = _lens_to_pixels(camera, kx0 + dkx, ky0 + dky, u, v, w_lens)
+            pix.append(p)
+            wts.append(w)
+    # Step 4: accumulate and normalise by the number of aperture samples.
+    idx, inverse = np.unique(np.concatenate(pix), return_inverse=True)
+    total = np.bincount(inverse, weights=np.concatenate(wts), minlength=len(idx)) / len(u)
+    keep = total > 0
+    return idx[keep], total[keep]
+
+
+def _lens_to_pixels(camera: Camera, kx, ky, u, v, w_lens):
+    """Step 3: pixels and weights of the samples behind lenses ``(kx, ky)``."""
+    cols, rows = camera.ml_count
+    width, height = camera.pixels
+    inside = (kx >= 0) & (kx < cols) & (ky >= 0) & (ky < rows)
+    centre = camera.microlens_centers[np.clip(ky, 0, rows - 1), np.clip(kx, 0, cols - 1)]
+    inside &= np.isfinite(centre).all(axis=-1)
+    g = camera.ml_focal_length_mm / (camera.image_distance_mm * camera.pixel_pitch_mm)
+    c0, tu = _bilinear_corners(np.where(inside, centre[:, 0] - u * g, 0.0))
+    r0, tv = _bilinear_corners(np.where(inside, centre[:, 1] - v * g, 0.0))
+    pix, wts = [], []
+    for dc in (0, 1):
+        for dr in (0, 1):
+            col, row = c0 + dc, r0 + dr
+            w = w_lens * (tu if dc else 1 - tu) * (tv if dr else 1 - tv)
+            ok = inside & (col >= 0) & (col < width) & (row >= 0) & (row < height) & (w > 0)
+            pix.append(row[ok] * width + col[ok])
+            wts.append(w[ok])
+    return np.concatenate(pix), np.concatenate(wts)
+
+
+def weight_matrix(camera: Camera, grid: Grid, oversample: float = DEFAULT_OVERSAMPLE,
+                  shear_tol: float = DEFAULT_SHEAR_TOL) -> np.ndarray:
+    """The dense weight matrix ``(H * W, nz * ny * nx)`` (float64) for tiny cases.
+
+    Column ``j`` is voxel ``j`` of ``vol.ravel()``; ``image.ravel() = A @ vol.ravel()``.
+    """
+    width, height = camera.pixels
+    n_pix = width * height
+    if n_pix * grid.size > 2e8:
+        raise ValueError(f"a dense {n_pix} x {grid.size} matrix is too large; this reference "
+                         "builder is for tiny cameras and grids")
+    a = np.zeros((n_pix, grid.size))
+    for col, (iz, iy, ix) in enumerate(np.ndindex(*grid.shape)):
+        idx, w = voxel_weights(camera, grid, iz, iy, ix, oversample, shear_tol)
+        a[idx, col] = w
+    return a

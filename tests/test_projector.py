@@ -1,0 +1,230 @@
+"""The matrix-free projector against the NumPy weighting function (DESIGN §5)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cl_array
+import pytest
+
+from plenocl import Camera, Grid
+from plenocl.projector import Projector
+from plenocl.reference.simulate import trace_particles
+from plenocl.reference.weights import ApertureGrid, lens_index_map, voxel_weights, weight_matrix
+
+# Voxel centres at z = -4, -2, 0, 2, 4 mm; the outer columns reach the sensor edges.
+GRID = Grid((5, 7, 9), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-5.0, 5.0))
+VOXELS = [(2, 3, 4), (1, 3, 4), (3, 2, 5), (0, 5, 1), (4, 1, 7), (2, 0, 0), (4, 6, 8), (0, 6, 8)]
+
+
+def _perturbed(cam: Camera, seed: int = 3, missing=(2, 3)) -> Camera:
+    """Calibrated centres off the ideal grid by up to ±0.3 px, one lens missing."""
+    rng = np.random.default_rng(seed)
+    centres = cam.microlens_centers + rng.uniform(-0.3, 0.3, cam.microlens_centers.shape)
+    centres[missing] = np.nan
+    return cam.with_centers(centres)
+
+
+@pytest.fixture(scope="module")
+def cameras(small_camera):
+    """Ideal, perturbed (general and snapped separable paths) and rotated cameras."""
+    rotated = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170),
+                     ml_rotation_deg=2.0, ml_offset_mm=(0.01, -0.02))
+    pert = _perturbed(small_camera)
+    return {"ideal": (small_camera, {}), "perturbed": (pert, {}),
+            "perturbed-separable": (pert, {"shear_tol": 0.05}), "rotated": (rotated, {})}
+
+
+@pytest.fixture(scope="module")
+def projectors(cameras, queue):
+    return {name: Projector(cam, GRID, queue, **kw) for name, (cam, kw) in cameras.items()}
+
+
+def _dense(idx, w, n):
+    out = np.zeros(n)
+    out[idx] = w
+    return out
+
+
+def test_paths_selected(projectors):
+    assert projectors["ideal"].path == "separable"
+    assert projectors["perturbed"].path == "general"
+    assert projectors["perturbed-separable"].path == "separable"
+    assert projectors["rotated"].path == "general"
+
+
+@pytest.mark.parametrize("name", ["ideal", "perturbed", "perturbed-separable", "rotated"])
+def test_weights_and_forward_match_reference(name, cameras, projectors):
+    cam, kw = cameras[name]
+    proj = projectors[name]
+    n = cam.pixels[0] * cam.pixels[1]
+    for vox in VOXELS:
+        ref = _dense(*voxel_weights(cam, GRID, *vox, **kw), n)
+        kern = _dense(*proj.voxel_weights(*vox), n)
+        onehot = np.zeros(GRID.shape, np.float32)
+        onehot[vox] = 1.0
+        fwd = proj.forward(onehot).ravel()
+        for got in (kern, fwd):
+            assert np.abs(got - ref).max() <= 1e-5 * ref.max(), (name, vox)
+            np.testing.assert_allclose(got.sum(), ref.sum(), rtol=1e-4)
+        assert np.array_equal(np.flatnonzero(kern > 1e-6 * ref.max()),
+                              np.flatnonzero(ref > 1e-6 * ref.max()))
+
+
+def test_voxel_weights_format(projectors):
+    idx, w = projectors["ideal"].voxel_weights(2, 3, 4)
+    assert idx.dtype == np.int64 and w.dtype == np.float32
+    assert np.all(np.diff(idx) > 0) and np.all(w > 0)
+    assert 500 < len(idx) < 3000
+    with pytest.raises(IndexError, match="voxel indices"):
+        projectors["ideal"].voxel_weights(5, 0, 0)
+
+
+@pytest.mark.parametrize("name", ["ideal", "perturbed", "rotated"])
+def test_adjoint(name, projectors):
+    proj = projectors[name]
+    rng = np.random.default_rng(7)
+    x = rng.standard_normal(GRID.shape).astype(np.float32)
+    y = rng.standard_normal(proj.image_shape).astype(np.float32)
+    lhs = np.dot(proj.forward(x).ravel().astype(np.float64), y.ravel())
+    rhs = np.dot(x.ravel().astype(np.float64), proj.back(y).ravel())
+    scale = np.dot(np.abs(proj.forward(np.abs(x))).ravel(), np.abs(y).ravel())
+    assert abs(lhs - rhs) <= 1e-4 * scale
+
+
+def test_back_is_transpose_of_dense_matrix(small_camera, queue):
+    grid = Grid((3, 2, 3), x=(-0.3, 0.3), y=(-0.2, 0.2), z=(-3.0, 3.0))
+    a = weight_matrix(small_camera, grid)
+    proj = Projector(small_camera, grid, queue)
+    img = np.random.default_rng(1).random(proj.image_shape).astype(np.float32)
+    np.testing.assert_allclose(proj.back(img).ravel(), a.T @ img.ravel(), rtol=2e-5,
+                               atol=1e-6 * np.abs(a.T @ img.ravel()).max())
+
+
+@pytest.mark.parametrize("name", ["ideal", "perturbed"])
+def test_weight_sums(name, cameras, projectors):
+    """1 when all light reaches the sensor, < 1 near the edges or a missing lens, never > 1."""
+    cam, kw = cameras[name]
+    proj = projectors[name]
+    vox = np.array(list(np.ndindex(*GRID.shape)))
+    idx, w = proj.footprint_entries(vox)
+    sums = np.where(idx >= 0, w, 0).astype(np.float64).sum(axis=1)
+    ref = np.array([voxel_weights(cam, GRID, *v, **kw)[1].sum() for v in vox])
+    np.testing.assert_allclose(sums, ref, rtol=1e-5)
+    assert sums.max() <= 1 + 1e-5
+    whole = ref > 1 - 1e-9  # all light on the sensor (checked in double precision)
+    assert whole.sum() >= 10 and (ref < 0.9).any()  # edge voxels lose light
+    np.testing.assert_allclose(sums[whole], 1.0, rtol=1e-5)
+    if name == "perturbed":  # voxel (2, 5, 6) is imaged in focus onto the missing lens
+        assert sums[np.ravel_multi_index((2, 5, 6), GRID.shape)] < 0.5
+
+
+@pytest.mark.parametrize("z", [-3.0, 0.0, 2.0])
+def test_weights_correlate_with_ray_tracing(small_camera, queue, z):
+    """Paper Fig. 8: a voxel's weights against particles spread through the voxel."""
+    vox = small_camera.ml_pitch_mm / small_camera.magnification
+    grid = Grid((1, 1, 1), x=(0.03, 0.03 + vox), y=(-0.04, -0.04 + vox),
+                z=(z - vox / 2, z + vox / 2))
+    idx, w = Projector(small_camera, grid, queue).voxel_weights(0, 0, 0)
+    rng = np.random.default_rng(5)
+    n = 2500
+    pos = np.column_stack([rng.uniform(*grid.x, n), rng.uniform(*grid.y, n),
+                           rng.uniform(*grid.z, n)])
+    sim = trace_particles(small_camera, pos, 1.0, rays_per_particle=400, seed=2).ravel()
+    corr = np.corrcoef(_dense(idx, w, sim.size), sim)[0, 1]
+    assert corr >= 0.99, corr
+
+
+def test_slab_split_matches_single_buffer(small_camera, queue):
+    grid = Grid((16, 40, 60), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-4.0, 4.0))
+    pert = _perturbed(small_camera)
+    rng = np.random.default_rng(2)
+    vol = rng.random(grid.shape).astype(np.float32)
+    img = rng.random((170, 204)).astype(np.float32)
+    for cam, kw in ((small_camera, {}), (pert, {"shear_tol": 0.05}), (pert, {})):
+        whole = Projector(cam, grid, queue, **kw)
+        split = Projector(cam, grid, queue, max_alloc_bytes=150_000, **kw)
+        assert len(whole.plan.slabs) == 1 and len(split.plan.slabs) > 1
+        assert len(split.plan.columns) > 1 and split.plan.zchunk < grid.shape[0]
+        np.testing.assert_allclose(split.forward(vol), whole.forward(vol), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(split.back(img), whole.back(img), rtol=1e-5, atol=1e-6)
+
+
+def test_memory_errors(small_camera, queue):
+    with pytest.raises(MemoryError, match="image needs"):
+        Projector(small_camera, GRID, queue, max_alloc_bytes=100_000)
+    wide = Grid((2, 300, 300), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1.0, 1.0))
+    with pytest.raises(MemoryError, match="depth slice needs 360000 bytes"):
+        Projector(small_camera, wide, queue, max_alloc_bytes=200_000)
+    huge = Grid((100, 20_000, 20_000), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1.0, 1.0))
+    with pytest.raises(MemoryError, match="needs"):  # more than any device holds
+        Projector(small_camera, huge, queue)
+
+
+def test_variants_agree(small_camera, queue):
+    """The GPU-style layout (scalar, one element per work-item) and the direct kernels."""
+    pert = _perturbed(small_camera)
+    rng = np.random.default_rng(4)
+    vol = rng.random(GRID.shape).astype(np.float32)
+    img = rng.random((170, 204)).astype(np.float32)
+    for kw in ({"shear_tol": 0.05}, {}):
+        ref = Projector(pert, GRID, queue, **kw)
+        for other in (Projector(pert, GRID, queue, vector_width=1, segment=1, **kw),
+                      Projector(pert, GRID, queue, method="direct", **kw)):
+            np.testing.assert_allclose(other.forward(vol), ref.forward(vol), rtol=1e-5,
+                                       atol=1e-6)
+            np.testing.assert_allclose(other.back(img), ref.back(img), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["ideal", "rotated"])
+def test_outputs_finite_and_non_negative(name, projectors, queue):
+    proj = projectors[name]
+    rng = np.random.default_rng(9)
+    vol = proj.volume_to_device(rng.random(GRID.shape) ** 4)
+    out = cl_array.empty(queue, proj.image_shape, np.float32).fill(np.nan)
+    img = proj.forward_device(vol, out).get()
+    assert np.isfinite(img).all() and img.min() >= 0 and img.max() > 0
+    back_out = [s.fill(np.nan) for s in proj.empty_volume()]
+    back = proj.volume_to_host(proj.back_device(out, back_out))
+    assert np.isfinite(back).all() and back.min() >= 0 and back.max() > 0
+    np.testing.assert_allclose(back, proj.back(img), rtol=1e-6)
+
+
+def test_bad_inputs(small_camera, queue, projectors):
+    proj = projectors["ideal"]
+    with pytest.raises(ValueError, match=r"expected \(5, 7, 9\)"):
+        proj.forward(np.zeros((5, 9, 7)))
+    with pytest.raises(ValueError, match=r"expected \(170, 204\)"):
+        proj.back(np.zeros((204, 170)))
+    bad = np.zeros(GRID.shape)
+    bad[1, 2, 3] = np.nan
+    with pytest.raises(ValueError, match=r"NaN or Inf.*\(1, 2, 3\)"):
+        proj.forward(bad)
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        proj.back(np.full((170, 204), np.inf))
+    with pytest.raises(TypeError, match="real numbers"):
+        proj.forward(np.zeros(GRID.shape, complex))
+    with pytest.raises(ValueError, match="float32 device array"):
+        proj.forward_device(cl_array.zeros(queue, (5, 7, 8), np.float32))
+    with pytest.raises(ValueError, match="method"):
+        Projector(small_camera, GRID, queue, method="sparse")
+    limit = small_camera.focal_length_mm - small_camera.object_distance_mm  # -50 mm
+    near = Grid((2, 2, 2), x=(-0.5, 0.5), y=(-0.5, 0.5), z=(limit - 1, 0.0))
+    with pytest.raises(ValueError, match="no real image"):
+        Projector(small_camera, near, queue)
+    away = Grid((2, 2, 2), x=(30.0, 40.0), y=(-0.5, 0.5), z=(-1.0, 1.0))
+    with pytest.raises(ValueError, match="outside the camera's field of view"):
+        Projector(small_camera, away, queue)
+
+
+def test_reference_building_blocks(small_camera):
+    ap = ApertureGrid.for_camera(small_camera, 1.25)
+    i, j = ap.samples()
+    u, v = (i - ap.center) * ap.step, (j - ap.center) * ap.step
+    assert np.all(u**2 + v**2 <= ap.radius**2)
+    assert len(i) > 0.9 * np.pi * (ap.radius / ap.step) ** 2
+    lo, hi = ap.column_ranges()
+    assert np.array_equal(np.repeat(np.arange(ap.n), hi - lo + 1), i)
+    m = lens_index_map(small_camera)
+    assert m.axis_aligned
+    kx, ky = m(*small_camera.microlens_positions_mm()[4, 7])
+    np.testing.assert_allclose([kx, ky], [7, 4], atol=1e-9)
