@@ -28,14 +28,16 @@ __kernel void ratio(__global const float *img, __global const float *proj,
     out[i] = log_mode ? log(fmax(r, PL_RATIO_MIN)) : r;
 }
 
-/* Multiplicative EM: E <- E (b / s)^mu with b = W^T r (the arithmetic mean of ratios). */
+/* Multiplicative EM: E <- E (b / s)^mu with b = W^T r (the arithmetic mean of ratios).
+ * Voxels whose sensitivity s (the fraction of their light that reaches the sensor) is
+ * at or below smin are not constrained by the image and stay 0. */
 __kernel void update_mlem(__global float *vol, __global const float *b,
-                          __global const float *sens, float relax, int n)
+                          __global const float *sens, float relax, float smin, int n)
 {
     const int j = get_global_id(0);
     if (j >= n) return;
     float s = sens[j], e = vol[j];
-    if (s <= PL_EPS || !(e > 0.0f)) { vol[j] = 0.0f; return; }
+    if (s <= smin || !(e > 0.0f)) { vol[j] = 0.0f; return; }
     float f = fmax(b[j], 0.0f) / s;
     vol[j] = pl_clean(e * (relax == 1.0f ? f : pow(f, relax)));
 }
@@ -43,12 +45,13 @@ __kernel void update_mlem(__global float *vol, __global const float *b,
 /* Exponential update: E <- E exp(mu b / s) (SMART, by_sens = 1) or E exp(mu b) (MART
  * block, the paper's exponent mu w_ij), with b = W^T log r. */
 __kernel void update_exp(__global float *vol, __global const float *b,
-                         __global const float *sens, float relax, int by_sens, int n)
+                         __global const float *sens, float relax, float smin, int by_sens,
+                         int n)
 {
     const int j = get_global_id(0);
     if (j >= n) return;
     float s = sens[j], e = vol[j];
-    if (s <= PL_EPS || !(e > 0.0f)) { vol[j] = 0.0f; return; }
+    if (s <= smin || !(e > 0.0f)) { vol[j] = 0.0f; return; }
     float x = relax * b[j] / (by_sens ? s : 1.0f);
     vol[j] = pl_clean(e * exp(clamp(x, -PL_EXP_CLAMP, PL_EXP_CLAMP)));
 }
@@ -56,12 +59,12 @@ __kernel void update_exp(__global float *vol, __global const float *b,
 /* MLOS first guess: the weighted geometric mean of the pixels a voxel reaches,
  * E = exp(b / s) with b = W^T log(max(I, floor)). */
 __kernel void mlos(__global float *vol, __global const float *b, __global const float *sens,
-                   int n)
+                   float smin, int n)
 {
     const int j = get_global_id(0);
     if (j >= n) return;
     float s = sens[j];
-    vol[j] = s > PL_EPS ? pl_clean(exp(clamp(b[j] / s, -80.0f, 80.0f))) : 0.0f;
+    vol[j] = s > smin ? pl_clean(exp(clamp(b[j] / s, -80.0f, 80.0f))) : 0.0f;
 }
 
 /* Zero-pixel masking: zero the voxels that send more than `fraction` of their light

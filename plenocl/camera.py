@@ -174,6 +174,13 @@ class Camera:
         return self.microlens_image_pitch_mm / self.pixel_pitch_mm
 
     @property
+    def depth_resolution_mm(self) -> float:
+        """Depth range over which a point's defocus blur on the array stays within one
+        microlens, ``p_ml N_w / M²`` (object space): the camera's depth resolution. Inside
+        it a particle lights a single microlens and its depth is ambiguous."""
+        return self.ml_pitch_mm * self.working_f_number / self.magnification**2
+
+    @property
     def sensor_size_mm(self) -> tuple[float, float]:
         """Sensor ``(width, height)``."""
         return (self.pixels[0] * self.pixel_pitch_mm, self.pixels[1] * self.pixel_pitch_mm)

@@ -32,8 +32,9 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     with iteration_bar(iterations, f"{args.method} {grid.shape}") as bar:
         vol, info = reconstruct(image, proj, args.method, iterations, args.relax,
                                 start=args.start, threshold=threshold or 0.0,
-                                mask_fraction=args.mask_fraction, tol=args.tol, callback=bar,
-                                return_info=True)
+                                mask_fraction=args.mask_fraction,
+                                min_sensitivity=args.min_sensitivity, tol=args.tol,
+                                callback=bar, return_info=True)
     save_volume(args.out, vol, grid)
     print(f"wrote {args.out}: {grid.shape} voxels, {info.iterations} {args.method} iterations "
           f"in {info.seconds:.1f} s, residual {info.residuals[-1] if info.residuals else 0:.3g}")
@@ -77,6 +78,8 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
                    help="dark-pixel threshold (default: 4x the estimated noise)")
     p.add_argument("--mask-fraction", type=float, default=None,
                    help="zero voxels sending more than this fraction of light to dark pixels")
+    p.add_argument("--min-sensitivity", type=float, default=0.5,
+                   help="skip voxels sending no more than this fraction of light to the sensor")
     p.add_argument("--tol", type=float, default=None, help="early-stop tolerance")
     p.set_defaults(func=reconstruct_command)
     return p

@@ -118,16 +118,19 @@ class Grid:
 
     @classmethod
     def for_camera(cls, camera, z: tuple[float, float], voxel_mm: float | None = None,
-                   fraction: float = 1.0) -> Grid:
+                   depth_voxel_mm: float | None = None, fraction: float = 1.0) -> Grid:
         """A grid covering the camera's field of view over depths ``z``.
 
-        The default voxel is one microlens projected into object space (the paper's
-        choice, ``p_ml / M``); ``fraction`` of the field of view is covered.
+        The default lateral voxel is one microlens projected into object space (the
+        paper's choice, ``p_ml / M``); the default depth voxel is half the camera's depth
+        resolution (:attr:`Camera.depth_resolution_mm`), the finest depth sampling the
+        optics support. ``fraction`` of the field of view is covered.
         """
         voxel = voxel_mm or camera.ml_pitch_mm / camera.magnification
+        dvox = depth_voxel_mm or camera.depth_resolution_mm / 2
         w, h = (n * camera.ml_pitch_mm / camera.magnification * fraction
                 for n in camera.ml_count)
         nx, ny = max(1, round(w / voxel)), max(1, round(h / voxel))
-        nz = max(1, round((z[1] - z[0]) / voxel))
+        nz = max(1, round((z[1] - z[0]) / dvox))
         return cls((nz, ny, nx), (-nx * voxel / 2, nx * voxel / 2),
                    (-ny * voxel / 2, ny * voxel / 2), tuple(z))

@@ -130,8 +130,9 @@ class Solver:
         ``forward_device``, ``back_device`` and ``empty_volume``).
     """
 
-    def __init__(self, projector) -> None:
+    def __init__(self, projector, min_sensitivity: float = 0.0) -> None:
         self.proj = projector
+        self.smin = np.float32(max(min_sensitivity, 1e-12))
         self.queue = projector.queue
         program = build_program(self.queue.context, "reconstruct.cl")
         self._k = fetch_kernels(program, _KERNELS)
@@ -185,7 +186,7 @@ class Solver:
             _, logimg = self._dark_and_log(img, threshold, max(threshold, 1e-6))
             b = self.proj.back_device(logimg)
             for v, bb, s in zip(vol, b, self.sens):
-                self._run("mlos", v.size, v.data, bb.data, s.data)
+                self._run("mlos", v.size, v.data, bb.data, s.data, self.smin)
         else:
             raise ValueError(f"start must be 'uniform' or 'mlos', got {kind!r}")
         return vol
@@ -203,24 +204,25 @@ class Solver:
         mu = np.float32(relax)
         if method == "mlem":
             b = self.proj.back_device(self.ratio(img, proj, threshold, False))
-            self._per_slab("update_mlem", vol, b, mu)
+            self._per_slab("update_mlem", vol, b, mu, self.smin)
         elif method == "smart":
             b = self.proj.back_device(self.ratio(img, proj, threshold, True))
-            self._per_slab("update_exp", vol, b, mu, np.int32(1))
+            self._per_slab("update_exp", vol, b, mu, self.smin, np.int32(1))
         else:
             for blk in range(n_blocks):
                 if blk:
                     proj = self.proj.forward_device(vol, out=proj)
                 lr = self.ratio(img, proj, threshold, True, blocks,
                                 -1 if blocks is None else blk)
-                self._per_slab("update_exp", vol, self.proj.back_device(lr), mu, np.int32(0))
+                self._per_slab("update_exp", vol, self.proj.back_device(lr), mu, self.smin,
+                               np.int32(0))
         return resid
 
 
 def reconstruct(image, projector, method: str = "mlem", iterations: int | None = None,
                 relax: float | None = None, *, start: str = "uniform", threshold: float = 0.0,
-                mask_fraction: float | None = None, tol: float | None = None,
-                mart_blocks: int = 2,
+                mask_fraction: float | None = None, min_sensitivity: float = 0.5,
+                tol: float | None = None, mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
                 return_info: bool = False):
     """Reconstruct a particle volume from one raw plenoptic image.
@@ -245,6 +247,10 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
     mask_fraction
         Zero-pixel masking: voxels sending more than this fraction of their light onto
         dark pixels start at zero and stay there (``0``: any dark pixel; ``None``: off).
+    min_sensitivity
+        Voxels that send no more than this fraction of their light to the sensor (at the
+        edges of the field of view) are not reconstructed: the image barely constrains
+        them, and light from particles outside the grid would pile up in them.
     tol
         Stop early when the relative residual changes by less than ``tol``.
     mart_blocks
@@ -265,13 +271,15 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
     iterations = it_default if iterations is None else iterations
     relax = mu_default if relax is None else relax
     _check_options(method, iterations, relax, mask_fraction)
+    if not 0 <= min_sensitivity < 1:
+        raise ValueError(f"min_sensitivity must be in [0, 1), got {min_sensitivity!r}")
     img_np, scale = prepare_image(image, projector.camera)
     info = ReconstructionInfo(method)
     if scale == 0:
         vol = np.zeros(projector.grid.shape, np.float32)
         return (vol, info) if return_info else vol
     thr = float(threshold) / scale
-    solver = Solver(projector)
+    solver = Solver(projector, min_sensitivity)
     img = cla.to_device(solver.queue, img_np)
     vol = solver.start(img, start, thr)
     if mask_fraction is not None:

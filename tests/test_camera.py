@@ -127,8 +127,18 @@ def test_bad_grids_are_rejected(kwargs):
         Grid(**{**base, **kwargs})
 
 
-def test_grid_for_camera_uses_one_microlens_per_voxel():
+def test_grid_for_camera_uses_one_microlens_per_voxel_and_half_the_depth_resolution():
     cam = Camera.synthetic_850()
     g = Grid.for_camera(cam, z=(-2.5, 2.5))
     assert g.spacing[2] == pytest.approx(cam.ml_pitch_mm / cam.magnification)
-    assert g.shape == (40, 50, 50)
+    # p_ml N_w / M² = 0.125 mm x 4 / 1 = 0.5 mm: depth voxels of 0.25 mm
+    assert cam.depth_resolution_mm == pytest.approx(0.5)
+    assert g.shape == (20, 50, 50)
+
+
+def test_depth_resolution_is_where_the_blur_reaches_one_microlens():
+    cam = Camera.paper_16mp()
+    dz = cam.depth_resolution_mm
+    s_ip = cam.image_distance_at(dz / 2)
+    blur = cam.aperture_diameter_mm * abs(s_ip - cam.image_distance_mm) / s_ip
+    assert blur == pytest.approx(cam.ml_pitch_mm / 2, rel=0.05)  # half-range: half a lens

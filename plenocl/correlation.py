@@ -1,0 +1,243 @@
+"""Interrogation-window grids, batched 3-D FFT cross-correlation and sub-voxel peak fits.
+
+All windows of a pass are correlated at once (in memory-bounded batches) with
+``scipy.fft.rfftn`` over the last three axes. Windows are zero-mean and the correlation is
+normalised by ``sqrt(sum a^2 sum b^2)``, so a perfect match peaks at 1. Displacement
+convention: ``vol_b(p) = vol_a(p - d)``, i.e. particles move by ``+d`` from ``a`` to ``b``.
+Arrays are in volume order ``(z, y, x)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+from numpy.lib.stride_tricks import sliding_window_view
+
+#: Upper bound on the float32 correlation planes held at once (bytes).
+BATCH_BYTES = 64 * 2**20
+
+
+@dataclass(frozen=True)
+class WindowGrid:
+    """Regular grid of interrogation windows in a volume, per axis ``(z, y, x)``.
+
+    Window ``k`` along an axis covers voxels ``[offset + k step, offset + k step + size)``
+    and is centred at ``offset + k step + (size - 1) / 2`` (voxel-index units).
+    """
+
+    size: tuple[int, int, int]
+    step: tuple[int, int, int]
+    offset: tuple[int, int, int]
+    count: tuple[int, int, int]
+
+    @property
+    def centres(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Window-centre coordinates ``(z, y, x)``, each 1-D, in voxel-index units."""
+        return tuple(o + s * np.arange(n) + 0.5 * (w - 1)
+                     for o, s, n, w in zip(self.offset, self.step, self.count, self.size))
+
+
+def window_grid(shape: tuple[int, int, int], size: tuple[int, int, int],
+                overlap: float) -> WindowGrid:
+    """Windows of ``size`` overlapping by the fraction ``overlap``, centred in the volume.
+
+    Parameters
+    ----------
+    shape
+        Volume shape ``(nz, ny, nx)``.
+    size
+        Window size ``(wz, wy, wx)``, each no larger than the volume.
+    overlap
+        Fraction in ``[0, 1)``; the step is ``round(size (1 - overlap))``, at least 1.
+
+    Returns
+    -------
+    WindowGrid
+        As many whole windows as fit, the leftover split evenly between both faces.
+    """
+    steps, offsets, counts = [], [], []
+    for n, w in zip(shape, size):
+        step = max(1, int(round(w * (1.0 - overlap))))
+        count = (n - w) // step + 1
+        steps.append(step)
+        counts.append(count)
+        offsets.append((n - w - (count - 1) * step) // 2)
+    return WindowGrid(tuple(size), tuple(steps), tuple(offsets), tuple(counts))
+
+
+def window_fraction(mask: np.ndarray, grid: WindowGrid) -> np.ndarray:
+    """Fraction of ``True`` voxels of ``mask`` inside every window, shaped ``grid.count``."""
+    table = np.zeros(tuple(n + 1 for n in mask.shape))
+    table[1:, 1:, 1:] = mask.cumsum(0).cumsum(1).cumsum(2)
+    lo = [o + s * np.arange(c) for o, s, c in zip(grid.offset, grid.step, grid.count)]
+    hi = [a + w for a, w in zip(lo, grid.size)]
+    total = 0.0
+    for bits in range(8):
+        sel = [hi[a] if bits >> a & 1 else lo[a] for a in range(3)]
+        sign = (-1) ** (3 - bin(bits).count("1"))
+        total = total + sign * table[np.ix_(*sel)]
+    return total / float(np.prod(grid.size))
+
+
+def _window_view(vol: np.ndarray, grid: WindowGrid) -> np.ndarray:
+    """Read-only view ``(nz, ny, nx, wz, wy, wx)`` of all windows of ``grid``."""
+    view = sliding_window_view(vol, grid.size)
+    sel = tuple(slice(o, o + s * (c - 1) + 1, s)
+                for o, s, c in zip(grid.offset, grid.step, grid.count))
+    return view[sel]
+
+
+@dataclass
+class Correlation:
+    """Per-window correlation outcome, every array shaped ``grid.count``."""
+
+    displacement: np.ndarray  # (3, nz, ny, nx) as (dz, dy, dx), voxels
+    peak: np.ndarray          # normalised correlation peak height
+    peak_ratio: np.ndarray    # primary over secondary peak
+    signal: np.ndarray        # bool: both windows had non-zero variance
+
+
+def gaussian_weight(size: tuple[int, int, int], fraction: float) -> np.ndarray:
+    """Separable Gaussian window weight, standard deviation ``fraction * size`` per axis."""
+    axes = [np.exp(-0.5 * ((np.arange(n) - 0.5 * (n - 1)) / (fraction * n)) ** 2) for n in size]
+    return (axes[0][:, None, None] * axes[1][None, :, None] * axes[2]).astype(np.float32)
+
+
+def correlate(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid, *, pad: bool = False,
+              weight: np.ndarray | None = None, workers: int = -1) -> Correlation:
+    """Cross-correlate every window of ``grid`` between two volumes.
+
+    Parameters
+    ----------
+    vol_a, vol_b
+        Volumes of equal shape (float32 recommended).
+    grid
+        Window grid from :func:`window_grid`.
+    pad
+        Zero-pad each window to twice its size (linear, not circular, correlation):
+        for a first pass with unknown, possibly large displacement.
+    weight
+        Optional ``grid.size`` array multiplying both zero-mean windows (e.g.
+        :func:`gaussian_weight`): a smoother spatial filter than the top-hat window, which
+        lets iterative deformation converge on structures of the window's size.
+    workers
+        Threads for ``scipy.fft``.
+
+    Returns
+    -------
+    Correlation
+        Sub-voxel peak displacement, peak height, peak ratio and signal flags.
+    """
+    views = (_window_view(np.asarray(vol_a, np.float32), grid),
+             _window_view(np.asarray(vol_b, np.float32), grid))
+    fft_shape = tuple(2 * w if pad else w for w in grid.size)
+    n = int(np.prod(grid.count))
+    batch = max(1, BATCH_BYTES // (4 * int(np.prod(fft_shape))))
+    disp = np.zeros((3, n))
+    peak, ratio, signal = np.zeros(n), np.zeros(n), np.zeros(n, bool)
+    for start in range(0, n, batch):
+        sel = slice(start, min(start + batch, n))
+        index = np.unravel_index(np.arange(sel.start, sel.stop), grid.count)
+        batch_a = views[0][index]   # fancy indexing: float32 copies, changed in place
+        batch_b = views[1][index]
+        out = _correlate_batch(batch_a, batch_b, fft_shape, weight, workers)
+        disp[:, sel], peak[sel], ratio[sel], signal[sel] = out
+    shape = grid.count
+    return Correlation(disp.reshape((3, *shape)), peak.reshape(shape), ratio.reshape(shape),
+                       signal.reshape(shape))
+
+
+def _prepare_windows(windows: np.ndarray, weight: np.ndarray | None):
+    """Zero-mean, weighted window batch (in place); its energy; which had any variance.
+
+    ``windows`` must be a float32 array this function may overwrite (a gathered copy).
+    """
+    out = windows
+    mean = out.mean(axis=(1, 2, 3), keepdims=True)
+    out -= mean
+    spread = np.einsum("bijk,bijk->b", out, out).astype(np.float64)
+    raw = spread + out[0].size * mean.ravel().astype(np.float64) ** 2   # sum of squares
+    if weight is not None:
+        out *= weight
+    energy = np.einsum("bijk,bijk->b", out, out).astype(np.float64)
+    return out, energy, (spread > 1e-9 * raw) & (energy > 0)
+
+
+def _correlate_batch(wa: np.ndarray, wb: np.ndarray, fft_shape: tuple[int, int, int],
+                     weight: np.ndarray | None, workers: int):
+    """Normalised zero-mean correlation of a batch ``(B, wz, wy, wx)`` and its peak fit."""
+    axes = (1, 2, 3)
+    a, energy_a, signal_a = _prepare_windows(wa, weight)
+    b, energy_b, signal_b = _prepare_windows(wb, weight)
+    signal = signal_a & signal_b
+    fa = scipy.fft.rfftn(a, s=fft_shape, axes=axes, workers=workers)
+    fb = scipy.fft.rfftn(b, s=fft_shape, axes=axes, workers=workers)
+    del a, b
+    np.conjugate(fa, out=fa)
+    fa *= fb
+    del fb
+    corr = scipy.fft.irfftn(fa, s=fft_shape, axes=axes, workers=workers)
+    norm = np.sqrt(np.where(signal, energy_a * energy_b, 1.0)).astype(np.float32)
+    corr /= norm[:, None, None, None]
+    disp, peak, ratio = fit_peaks(corr)
+    disp[:, ~signal] = 0.0
+    return disp, np.where(signal, peak, 0.0), np.where(signal, ratio, 0.0), signal
+
+
+def gaussian_subpixel(c_minus: np.ndarray, c0: np.ndarray, c_plus: np.ndarray) -> np.ndarray:
+    """Three-point Gaussian peak offset in ``[-0.5, 0.5]``; parabolic where a value is <= 0.
+
+    The Gaussian fit needs the logarithm of all three samples; where any is non-positive
+    (or the log-curvature is not negative) the parabolic three-point fit is used instead.
+    """
+    cm, cc, cp = (np.asarray(c, np.float64) for c in (c_minus, c0, c_plus))
+    positive = (cm > 0) & (cc > 0) & (cp > 0)
+    lm, lc, lp = (np.log(np.where(positive, c, 1.0)) for c in (cm, cc, cp))
+    den_g = 2.0 * (lm - 2.0 * lc + lp)
+    den_p = 2.0 * (cm - 2.0 * cc + cp)
+    use_g = positive & (den_g < 0)
+    offset = np.where(use_g, (lm - lp) / np.where(use_g, den_g, -1.0),
+                      np.where(den_p < 0, (cm - cp) / np.where(den_p < 0, den_p, -1.0), 0.0))
+    return np.clip(offset, -0.5, 0.5)
+
+
+def fit_peaks(corr: np.ndarray, exclude: int = 2):
+    """Locate the highest peak of each correlation plane ``(B, pz, py, px)`` (circular).
+
+    Returns
+    -------
+    displacement : numpy.ndarray
+        ``(3, B)`` sub-voxel peak positions ``(dz, dy, dx)``, wrapped to ``[-p/2, p/2)``.
+    peak : numpy.ndarray
+        ``(B,)`` correlation value at the integer peak.
+    ratio : numpy.ndarray
+        ``(B,)`` primary peak over the highest value outside a ``+-exclude`` cube around it
+        (``inf`` where that is not positive).
+    """
+    nb, shape = corr.shape[0], corr.shape[1:]
+    flat = corr.reshape(nb, -1)
+    first = np.argmax(flat, axis=1)
+    rows = np.arange(nb)
+    peak = flat[rows, first].astype(np.float64)
+    centre = np.unravel_index(first, shape)
+    disp = np.empty((3, nb))
+    for axis, (idx, n) in enumerate(zip(centre, shape)):
+        nbr = [list(centre), list(centre)]
+        nbr[0][axis], nbr[1][axis] = (idx - 1) % n, (idx + 1) % n
+        cm = corr[(rows, *nbr[0])]
+        cp = corr[(rows, *nbr[1])]
+        whole = np.where(idx >= (n + 1) // 2, idx - n, idx)
+        disp[axis] = whole + gaussian_subpixel(cm, peak, cp)
+    return disp, peak, _peak_ratio(flat, centre, shape, peak, exclude)
+
+
+def _peak_ratio(flat, centre, shape, peak, exclude: int) -> np.ndarray:
+    """Primary over secondary peak; masks the primary's neighbourhood in ``flat`` in place."""
+    offs = np.arange(-exclude, exclude + 1)
+    rz, ry, rx = ((c[:, None] + offs) % n for c, n in zip(centre, shape))
+    idx = (rz[:, :, None, None] * shape[1] + ry[:, None, :, None]) * shape[2] + rx[:, None, None, :]
+    flat[np.arange(len(peak))[:, None], idx.reshape(len(peak), -1)] = -np.inf
+    second = flat.max(axis=1).astype(np.float64)
+    return np.where(second > 0, peak / np.where(second > 0, second, 1.0), np.inf)

@@ -1,0 +1,187 @@
+"""Writing and reading PIV vector fields: ``.vti`` (ParaView), ``.npz`` and ``.h5``.
+
+Every writer is atomic (a temporary file beside the target, then ``os.replace``), so a
+crash never leaves a half-written field. Stored arrays, all on the vector grid
+``(nz', ny', nx')`` in array order:
+
+- ``displacement``: ``(3, nz', ny', nx')`` as ``(u, v, w)`` in voxels along x, y, z;
+- ``valid``, ``outlier``, ``masked`` (flags) and ``peak_ratio``;
+- ``velocity`` (m/s), ``vorticity`` (1/s) and ``q_criterion`` (1/s^2) when ``dt`` is
+  given; without it ``vorticity`` and ``q_criterion`` are per ``dt`` (and per ``dt^2``);
+- coordinates: ``x``, ``y``, ``z`` (voxel-index units) and ``x_mm``, ``y_mm``, ``z_mm``.
+
+In ``.vti`` files the image origin and spacing are the vector grid's, in mm.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .io import atomic_path
+from .piv import PIVResult, _voxel_size
+
+__all__ = ["field_arrays", "read_npz", "save_field", "write_h5", "write_npz", "write_vti"]
+
+_FLAGS = ("valid", "outlier", "masked")
+
+
+def _geometry(voxel_size_mm, origin_mm, grid):
+    """Voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm."""
+    if grid is not None:
+        spacing = tuple(float(s) for s in grid.spacing)
+        lows = (grid.z[0], grid.y[0], grid.x[0])
+        return spacing, tuple(lo + 0.5 * s for lo, s in zip(lows, spacing))
+    origin = tuple(float(o) for o in np.broadcast_to(np.asarray(origin_mm, float), (3,)))
+    return _voxel_size(voxel_size_mm), origin
+
+
+def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
+                 dt: float | None = None) -> dict[str, np.ndarray]:
+    """All arrays written by :func:`save_field`, keyed by name (see the module notes).
+
+    Parameters
+    ----------
+    result
+        Output of :func:`plenocl.piv3d`.
+    voxel_size_mm
+        Scalar or ``(dz, dy, dx)`` in mm.
+    origin_mm
+        ``(z0, y0, x0)``: the centre of voxel ``(0, 0, 0)`` in mm.
+    dt
+        Time between the volumes (s); adds ``velocity`` and physical units.
+    """
+    size = _voxel_size(voxel_size_mm)
+    x_mm, y_mm, z_mm = result.positions_mm(size, origin_mm)
+    out = {"x": result.x, "y": result.y, "z": result.z, "x_mm": x_mm, "y_mm": y_mm,
+           "z_mm": z_mm, "displacement": np.stack([result.u, result.v, result.w]),
+           "peak_ratio": result.peak_ratio, "voxel_size_mm": np.asarray(size),
+           "origin_mm": np.asarray(origin_mm, float), "window": np.asarray(result.window)}
+    out.update({name: np.asarray(getattr(result, name), bool) for name in _FLAGS})
+    if dt is not None:
+        out["velocity"] = np.stack(result.velocity(size, dt))
+        out["dt"] = np.asarray(float(dt))
+    out["vorticity"] = np.stack(result.vorticity(size, dt))
+    out["q_criterion"] = result.q_criterion(size, dt)
+    return out
+
+
+def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
+               origin_mm=(0.0, 0.0, 0.0), dt: float | None = None, grid=None) -> Path:
+    """Write a PIV result, choosing the format from the extension (.vti, .npz, .h5/.hdf5).
+
+    Parameters
+    ----------
+    path
+        Output file; its suffix selects the format.
+    result
+        Output of :func:`plenocl.piv3d`.
+    voxel_size_mm
+        Scalar or ``(dz, dy, dx)`` in mm.
+    origin_mm
+        ``(z0, y0, x0)``: the centre of voxel ``(0, 0, 0)`` in mm.
+    dt
+        Time between the volumes (s); adds velocity in m/s and vorticity in 1/s.
+    grid
+        Optional :class:`plenocl.Grid` of the volumes; overrides ``voxel_size_mm`` and
+        ``origin_mm`` (its extents are the volume's outer faces).
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    path = Path(path)
+    size, origin = _geometry(voxel_size_mm, origin_mm, grid)
+    writers = {".vti": write_vti, ".npz": write_npz, ".h5": write_h5, ".hdf5": write_h5}
+    writer = writers.get(path.suffix.lower())
+    if writer is None:
+        raise ValueError(f"cannot tell the field format from {path.name!r}: use a .vti "
+                         f"(ParaView), .npz or .h5 file name")
+    writer(path, result, size, origin, dt)
+    return path
+
+
+def write_npz(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
+              dt: float | None = None) -> None:
+    """Write :func:`field_arrays` to a compressed ``.npz``, atomically."""
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+
+
+def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:
+    """Read a field written by :func:`write_npz`.
+
+    Returns
+    -------
+    result : PIVResult
+        The displacement field and flags (per-pass diagnostics are not stored).
+    arrays : dict
+        Every stored array, including ``voxel_size_mm``, ``origin_mm`` and, if written,
+        ``dt`` and ``velocity``.
+    """
+    with np.load(path) as data:
+        arrays = {name: data[name] for name in data.files}
+    missing = {"x", "y", "z", "displacement", "peak_ratio", *_FLAGS} - set(arrays)
+    if missing:
+        raise ValueError(f"{path} is not a plenocl vector field: missing {sorted(missing)}")
+    u, v, w = arrays["displacement"]
+    result = PIVResult(x=arrays["x"], y=arrays["y"], z=arrays["z"], u=u, v=v, w=w,
+                       valid=arrays["valid"], peak_ratio=arrays["peak_ratio"],
+                       outlier=arrays["outlier"], masked=arrays["masked"],
+                       window=tuple(int(s) for s in arrays.get("window", (0, 0, 0))))
+    return result, arrays
+
+
+def _vtk_order(arr: np.ndarray) -> np.ndarray:
+    """``(nz, ny, nx)`` array as the ``(nx, ny, nz)`` view pyevtk writes x-fastest."""
+    arr = np.ascontiguousarray(arr)
+    if arr.dtype == bool:
+        arr = arr.astype(np.uint8)
+    return arr.T
+
+
+def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
+              dt: float | None = None) -> None:
+    """Write a VTK ImageData ``.vti`` file for ParaView (point data on the vector grid)."""
+    try:
+        from pyevtk.hl import imageToVTK
+    except ImportError as exc:  # pragma: no cover - pyevtk is a declared dependency
+        raise ImportError("writing .vti needs pyevtk: pip install pyevtk") from exc
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt)
+    size = _voxel_size(voxel_size_mm)
+    spacing = tuple(float(np.diff(c[:2])[0]) * s if len(c) > 1 else s
+                    for c, s in zip((result.x, result.y, result.z), size[::-1]))
+    origin = tuple(float(arrays[f"{a}_mm"][0]) for a in "xyz")
+    vectors = {"displacement_voxels": "displacement", "velocity_m_per_s": "velocity",
+               "vorticity_per_s" if dt is not None else "vorticity_per_dt": "vorticity"}
+    point = {name: tuple(_vtk_order(c) for c in arrays[key])
+             for name, key in vectors.items() if key in arrays}
+    point["q_criterion_per_s2" if dt is not None else "q_criterion_per_dt2"] = \
+        _vtk_order(arrays["q_criterion"])
+    for name in (*_FLAGS, "peak_ratio"):
+        point[name] = _vtk_order(arrays[name])
+    with atomic_path(path) as tmp:
+        written = imageToVTK(str(tmp.with_suffix("")), origin=origin, spacing=spacing,
+                             pointData=point)  # pyevtk appends ".vti" itself
+        if Path(written) != tmp:
+            os.replace(written, tmp)
+
+
+def write_h5(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
+             dt: float | None = None) -> None:
+    """Write :func:`field_arrays` to HDF5 (one dataset per array), atomically."""
+    try:
+        import h5py
+    except ImportError as exc:
+        raise ImportError("writing .h5 fields needs h5py: pip install h5py "
+                          "(or save as .npz or .vti)") from exc
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as fh:
+        for name, arr in arrays.items():
+            opts = {"compression": "gzip"} if np.ndim(arr) >= 3 else {}
+            fh.create_dataset(name, data=arr, **opts)
+        fh.attrs["layout"] = "arrays (..., nz, ny, nx); displacement (u, v, w) in voxels"

@@ -1,0 +1,364 @@
+"""Multi-pass 3-D PIV with window deformation (WIDIM), and derived flow quantities.
+
+:func:`piv3d` correlates two particle volumes ``vol[iz, iy, ix]`` (DESIGN §7, §9):
+a large zero-padded first pass, then passes with smaller, overlapping windows on volumes
+deformed symmetrically by the current predictor, normalised-median outlier detection and
+replacement after every pass. The result holds window centres in voxel-index units
+(index ``i`` is the centre of voxel ``i``) and displacements in voxels; its methods turn
+them into velocity (m/s), vorticity (1/s) and the Q-criterion (1/s^2).
+
+Building blocks live in :mod:`plenocl.correlation` (windows, FFT correlation, peak fit),
+:mod:`plenocl.deform` (predictor resampling, volume deformation) and
+:mod:`plenocl.validation` (outlier detection and replacement).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .correlation import correlate, gaussian_weight, window_fraction, window_grid
+from .deform import deform, prepare, resample
+from .validation import normalized_median_test, replace_outliers
+
+__all__ = ["PIVResult", "piv3d", "q_criterion", "velocity_gradient", "vorticity"]
+
+Size3 = tuple[int, int, int]
+
+
+@dataclass
+class PIVResult:
+    """A 3-D displacement field on the window-centre grid.
+
+    Attributes
+    ----------
+    x, y, z
+        1-D window-centre coordinates in voxel-index units.
+    u, v, w
+        Displacement (voxels) along x, y, z, shaped ``(nz', ny', nx')``; outliers are
+        replaced, masked vectors are NaN.
+    valid
+        ``True`` where the vector came from its own correlation and passed validation.
+    peak_ratio
+        Primary over secondary correlation peak of the final pass.
+    outlier
+        Flagged by the final normalised median test (then replaced).
+    masked
+        Window excluded by the mask (more than half of it masked).
+    window
+        Final window size ``(wz, wy, wx)``.
+    passes
+        Per-pass diagnostics (window, step, vector count, outliers, seconds).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    valid: np.ndarray
+    peak_ratio: np.ndarray
+    outlier: np.ndarray
+    masked: np.ndarray
+    window: Size3
+    passes: list[dict] = field(default_factory=list)
+
+    @property
+    def shape(self) -> Size3:
+        """Vector-grid shape ``(nz', ny', nx')``."""
+        return self.u.shape
+
+    def velocity(self, voxel_size_mm, dt: float):
+        """Velocity ``(U, V, W)`` in m/s for a voxel size (mm, scalar or ``(dz, dy, dx)``)."""
+        return displacement_to_velocity((self.u, self.v, self.w), voxel_size_mm, dt)
+
+    def positions_mm(self, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)):
+        """Window centres ``(x, y, z)`` in mm; ``origin_mm = (z0, y0, x0)``: voxel 0 centre."""
+        dz, dy, dx = _voxel_size(voxel_size_mm)
+        z0, y0, x0 = (float(o) for o in origin_mm)
+        return x0 + dx * self.x, y0 + dy * self.y, z0 + dz * self.z
+
+    def gradient(self, voxel_size_mm=1.0, dt: float | None = None) -> np.ndarray:
+        """Velocity-gradient tensor ``(3, 3, nz', ny', nx')``, see :func:`velocity_gradient`."""
+        size = _voxel_size(voxel_size_mm)
+        if dt is None:  # displacement gradient (mm per mm, i.e. per dt)
+            comps = [c * s for c, s in zip((self.u, self.v, self.w), size[::-1])]
+        else:           # m/s over m
+            comps = list(self.velocity(size, dt))
+        scale = 1.0 if dt is None else 1e-3
+        x, y, z = self.positions_mm(size)
+        return velocity_gradient(*comps, x * scale, y * scale, z * scale)
+
+    def vorticity(self, voxel_size_mm=1.0, dt: float | None = None):
+        """Vorticity ``(wx, wy, wz)``: 1/s with ``dt``, else per ``dt`` (dimensionless).
+
+        Derivatives are ``np.gradient`` on the physical vector grid (one-sided at the
+        faces); next to masked (NaN) vectors the result is NaN.
+        """
+        return vorticity(self.gradient(voxel_size_mm, dt))
+
+    def q_criterion(self, voxel_size_mm=1.0, dt: float | None = None) -> np.ndarray:
+        """Q-criterion: 1/s^2 with ``dt``, else per ``dt^2``."""
+        return q_criterion(self.gradient(voxel_size_mm, dt))
+
+
+def _voxel_size(voxel_size_mm) -> tuple[float, float, float]:
+    size = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,))
+    if not np.all(np.isfinite(size) & (size > 0)):
+        raise ValueError(f"voxel_size_mm must be positive, a scalar or (dz, dy, dx) in mm, "
+                         f"got {voxel_size_mm!r}")
+    return tuple(float(s) for s in size)
+
+
+def displacement_to_velocity(displacement, voxel_size_mm, dt: float):
+    """Convert ``(u, v, w)`` in voxels to m/s: ``d * voxel_size_mm * 1e-3 / dt``.
+
+    Parameters
+    ----------
+    displacement
+        Sequence ``(u, v, w)`` of arrays in voxels along x, y, z.
+    voxel_size_mm
+        Scalar or ``(dz, dy, dx)`` in mm (array order, as :class:`plenocl.Grid.spacing`).
+    dt
+        Time between the two volumes (s).
+    """
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive time in seconds, got {dt!r}")
+    dz, dy, dx = _voxel_size(voxel_size_mm)
+    return tuple(np.asarray(c) * s * 1e-3 / dt for c, s in zip(displacement, (dx, dy, dz)))
+
+
+def velocity_gradient(u, v, w, x, y, z) -> np.ndarray:
+    """``grad[i, j] = d u_i / d x_j`` (``i, j`` over x, y, z) by ``np.gradient``.
+
+    ``u, v, w`` are shaped ``(nz, ny, nx)``; ``x, y, z`` are the 1-D physical coordinates.
+    Axes with a single node contribute zero derivatives.
+    """
+    grad = np.zeros((3, 3, *np.shape(u)))
+    coords = (np.asarray(z, float), np.asarray(y, float), np.asarray(x, float))
+    for i, comp in enumerate((u, v, w)):
+        for axis, coord in enumerate(coords):
+            if len(coord) > 1:
+                grad[i, 2 - axis] = np.gradient(np.asarray(comp, float), coord, axis=axis)
+    return grad
+
+
+def vorticity(grad: np.ndarray):
+    """Vorticity ``(wx, wy, wz)`` from a velocity-gradient tensor."""
+    return grad[2, 1] - grad[1, 2], grad[0, 2] - grad[2, 0], grad[1, 0] - grad[0, 1]
+
+
+def q_criterion(grad: np.ndarray) -> np.ndarray:
+    """``Q = (|Omega|^2 - |S|^2) / 2 = -(1/2) sum_ij A_ij A_ji`` (Hunt, Wray & Moin 1988)."""
+    return -0.5 * np.einsum("ij...,ji...->...", grad, grad)
+
+
+def _check_volume(name: str, vol) -> np.ndarray:
+    arr = np.asarray(vol)
+    if arr.ndim != 3:
+        raise ValueError(f"{name} must be a 3-D volume vol[iz, iy, ix], got {arr.ndim}-D "
+                         f"shape {arr.shape}")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float32, copy=False)
+    bad = int(np.count_nonzero(~np.isfinite(arr)))
+    if bad:
+        raise ValueError(f"{name} contains {bad} NaN/Inf values; replace them (e.g. "
+                         f"np.nan_to_num) or mask those voxels before calling piv3d")
+    if float(arr.max()) == float(arr.min()):
+        raise ValueError(f"{name} is constant ({float(arr.min())}): it holds no particles to "
+                         f"correlate; check the reconstruction or the file loaded")
+    return arr
+
+
+def _schedule(shape: Size3, windows, overlaps, final_iterations: int):
+    """Validate windows/overlaps; return the list of ``(size, overlap)`` per pass."""
+    windows = list(windows) if isinstance(windows, Sequence) else [windows]
+    if not windows:
+        raise ValueError("windows must list at least one window size, e.g. (48, 32, 24)")
+    if overlaps is None:
+        overlaps = [0.5] * (len(windows) - 1) + [0.75]
+    overlaps = list(overlaps) if isinstance(overlaps, Sequence) else [overlaps] * len(windows)
+    if len(overlaps) != len(windows):
+        raise ValueError(f"overlaps ({len(overlaps)} values) must match windows "
+                         f"({len(windows)} passes) or be a single fraction")
+    if int(final_iterations) != final_iterations or final_iterations < 1:
+        raise ValueError(f"final_iterations must be an integer >= 1, got {final_iterations!r}")
+    passes = []
+    for k, (win, ovl) in enumerate(zip(windows, overlaps), start=1):
+        size = tuple(int(s) for s in np.broadcast_to(np.asarray(win), (3,)))
+        if any(s != t for s, t in zip(size, np.broadcast_to(np.asarray(win), (3,)))) \
+                or min(size) < 8:
+            raise ValueError(f"window of pass {k} must be integers >= 8 voxels (an int or "
+                             f"(wz, wy, wx)), got {win!r}")
+        for axis, s, n in zip("zyx", size, shape):
+            if s > n:
+                first = min(shape) // 8 * 8
+                raise ValueError(f"window {s} of pass {k} is larger than the volume along "
+                                 f"{axis} ({n} voxels); pass smaller windows, e.g. "
+                                 f"windows=({first}, {max(8, first * 2 // 3 // 8 * 8)})")
+        if not (0.0 <= float(ovl) < 1.0):
+            raise ValueError(f"overlap of pass {k} must be a fraction in [0, 1), got {ovl!r}")
+        passes.append((size, float(ovl)))
+    return passes + [passes[-1]] * (int(final_iterations) - 1)
+
+
+@dataclass
+class _Pass:
+    """State carried from one pass to the next."""
+
+    field: np.ndarray          # (3, nz, ny, nx) as (dz, dy, dx)
+    centres: tuple             # (z, y, x) 1-D
+    invalid: np.ndarray
+    outlier: np.ndarray
+    masked: np.ndarray
+    peak_ratio: np.ndarray
+
+
+def piv3d(vol_a, vol_b, *, windows=(48, 32, 24), overlaps=None,
+          final_iterations: int = 3, pad_first: bool = True, weighting: float | None = 0.35,
+          deform_order: int = 3, predictor: str = "cubic", mask=None,
+          median_eps: float = 0.1, median_threshold: float = 2.0,
+          min_peak_ratio: float | None = None, workers: int = -1) -> PIVResult:
+    """Multi-pass 3-D PIV of two particle volumes with symmetric window deformation.
+
+    Parameters
+    ----------
+    vol_a, vol_b
+        Volumes ``vol[iz, iy, ix]`` at ``t`` and ``t + dt`` (same shape, finite, real).
+    windows
+        Window size per pass: ints (cubes) or ``(wz, wy, wx)``; each >= 8 voxels and no
+        larger than the volume.
+    overlaps
+        Overlap fraction per pass (or one for all), in ``[0, 1)``; by default 0.5 for
+        every pass but the last and 0.75 for the last.
+    final_iterations
+        How many times the last pass runs (each re-deforms with the updated predictor).
+    pad_first
+        Zero-pad the first pass to twice the window (linear correlation), so that it
+        finds displacements up to about a quarter of the window without aliasing.
+    weighting
+        Gaussian weight on both windows of the later (deformed) passes, its standard
+        deviation as a fraction of the window size; ``None`` for top-hat windows. The
+        Gaussian's transfer function has no negative lobes, so iterative deformation
+        converges on structures about the window size (a Lamb-Oseen core is resolved
+        2-3x better than with top-hat windows, measured), at a slightly higher random
+        error in noisy volumes.
+    deform_order
+        Interpolation of the volume deformation: 3 cubic B-spline (default), 1 trilinear
+        (about 6x the bias), 5 quintic B-spline (about 2x the deformation time).
+    predictor
+        ``"cubic"`` (natural cubic spline) or ``"linear"`` interpolation of the predictor
+        between vectors; both extrapolate linearly beyond the outermost vectors.
+    mask
+        Optional boolean volume, ``True`` for voxels to exclude (walls, outside the flow).
+        Excluded voxels are zeroed; windows more than half excluded give NaN vectors.
+    median_eps, median_threshold
+        Normalised median test parameters (voxels; dimensionless).
+    min_peak_ratio
+        If given, vectors whose peak ratio is below it are also invalid and replaced.
+    workers
+        Threads for ``scipy.fft`` (``-1``: all cores).
+
+    Returns
+    -------
+    PIVResult
+        Window centres (voxel-index units) and displacements (voxels) of the final pass.
+    """
+    a, b = _check_volume("vol_a", vol_a), _check_volume("vol_b", vol_b)
+    if a.shape != b.shape:
+        raise ValueError(f"vol_a and vol_b must have the same shape, got {a.shape} and "
+                         f"{b.shape}")
+    opts = _Options(deform_order, predictor, median_eps, median_threshold, min_peak_ratio,
+                    workers)
+    _check_options(opts, weighting)
+    schedule = _schedule(a.shape, windows, overlaps, final_iterations)
+    mask = _check_mask(mask, a.shape)
+    if mask is not None:
+        a, b = (np.where(mask, np.float32(0), v) for v in (a, b))
+    coeffs = (prepare(a, deform_order), prepare(b, deform_order))
+    state, log = None, []
+    for k, (size, overlap) in enumerate(schedule):
+        t0 = time.perf_counter()
+        pad = pad_first and k == 0
+        weight = None if pad or weighting is None else gaussian_weight(size, weighting)
+        state = _run_pass(a, b, coeffs, state, size, overlap, mask, pad, weight, opts)
+        log.append({"window": size, "overlap": overlap, "vectors": state.invalid.size,
+                    "outliers": int(state.outlier.sum()), "invalid": int(state.invalid.sum()),
+                    "seconds": time.perf_counter() - t0})
+    return _result(state, schedule[-1][0], log)
+
+
+@dataclass(frozen=True)
+class _Options:
+    """Per-pass settings of :func:`piv3d`."""
+
+    order: int
+    predictor: str
+    eps: float
+    threshold: float
+    min_peak_ratio: float | None
+    workers: int
+
+
+def _check_options(opts: _Options, weighting: float | None) -> None:
+    if opts.order not in (1, 3, 5):
+        raise ValueError(f"deform_order must be 1 (trilinear), 3 (cubic B-spline) or 5 "
+                         f"(quintic B-spline), got {opts.order!r}")
+    if opts.predictor not in ("cubic", "linear"):
+        raise ValueError(f"predictor must be 'cubic' or 'linear', got {opts.predictor!r}")
+    if not (opts.eps > 0 and opts.threshold > 0):
+        raise ValueError(f"median_eps and median_threshold must be positive, got "
+                         f"{opts.eps!r} and {opts.threshold!r}")
+    if weighting is not None and not 0.05 <= weighting <= 10:
+        raise ValueError(f"weighting is a Gaussian width as a fraction of the window "
+                         f"(e.g. 0.35) or None, got {weighting!r}")
+
+
+def _check_mask(mask, shape: Size3) -> np.ndarray | None:
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.shape != shape:
+        raise ValueError(f"mask must have the volumes' shape {shape}, got {m.shape}")
+    if m.dtype != bool:
+        raise TypeError(f"mask must be boolean (True = exclude the voxel), got dtype {m.dtype}")
+    return m
+
+
+def _run_pass(a, b, coeffs, prev: _Pass | None, size: Size3, overlap: float, mask, pad: bool,
+              weight, opts: _Options) -> _Pass:
+    """One correlation pass: deform by the predictor, correlate, validate, replace."""
+    grid = window_grid(a.shape, size, overlap)
+    centres = grid.centres
+    if prev is None:
+        da, db, base = a, b, 0.0
+    else:
+        voxels = tuple(np.arange(n, dtype=float) for n in a.shape)
+        dense = resample(prev.field, prev.centres, voxels, opts.predictor, np.float32)
+        da = deform(coeffs[0], dense, -0.5, opts.order)
+        db = deform(coeffs[1], dense, +0.5, opts.order)
+        base = resample(prev.field, prev.centres, centres, opts.predictor)
+    corr = correlate(da, db, grid, pad=pad, weight=weight, workers=opts.workers)
+    masked = np.zeros(grid.count, bool) if mask is None else window_fraction(mask, grid) > 0.5
+    invalid = ~corr.signal | masked
+    if opts.min_peak_ratio is not None:
+        invalid |= corr.peak_ratio < opts.min_peak_ratio
+    total = base + corr.displacement
+    outlier = normalized_median_test(total, opts.eps, opts.threshold, ignore=invalid)
+    total = replace_outliers(total, outlier | invalid)
+    return _Pass(total, centres, invalid, outlier, masked, corr.peak_ratio)
+
+
+def _result(state: _Pass, window: Size3, log: list[dict]) -> PIVResult:
+    dz, dy, dx = (c.copy() for c in state.field)
+    for comp in (dx, dy, dz):
+        comp[state.masked] = np.nan
+    z, y, x = state.centres
+    return PIVResult(x=x, y=y, z=z, u=dx, v=dy, w=dz, valid=~(state.invalid | state.outlier),
+                     peak_ratio=state.peak_ratio, outlier=state.outlier, masked=state.masked,
+                     window=window, passes=log)

@@ -1,0 +1,97 @@
+"""Reconstruction with the real projector: the paper's synthetic case (20 particles in a
+5 mm cube on the 850 x 850 px camera) and the CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plenocl import Camera, Grid, Projector, random_particles, reconstruct
+from plenocl.cli import main
+from plenocl.io import load_volume, write_tiff
+from plenocl.metrics import quality_q, recovery, render_particles
+from plenocl.reconstruct import subtract_background
+from plenocl.simulate import simulate_image
+
+# the paper's 5 mm cube: one microlens per voxel laterally, half the camera's depth
+# resolution (0.5 mm, Camera.depth_resolution_mm) in depth, as Grid.for_camera chooses
+CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+
+
+@pytest.fixture(scope="module")
+def paper_case(queue):
+    cam = Camera.synthetic_850()
+    pos, inten = random_particles(((-2.3, 2.3),) * 3, count=20, seed=2024, intensity=1e4)
+    img = simulate_image(cam, pos, inten, 20000, seed=7, queue=queue)
+    return cam, Projector(cam, CUBE, queue), pos, inten, img
+
+
+@pytest.mark.parametrize("count, target", [(20, 0.9), (60, 0.8)])
+def test_default_recovers_the_papers_synthetic_particles(paper_case, queue, count, target):
+    """Mean recovery over three scenes (seeds not used anywhere else): >= 90% of 20 and
+    >= 80% of 60 particles, as issue 5 asks; ghosts stay small."""
+    cam, proj = paper_case[0], paper_case[1]
+    assert CUBE.spacing[0] == pytest.approx(cam.depth_resolution_mm / 2)
+    fractions = []
+    for seed in (11, 12, 13):
+        pos, inten = random_particles(((-2.3, 2.3),) * 3, count=count, seed=seed,
+                                      intensity=1e4)
+        img = simulate_image(cam, pos, inten, 20000, seed=seed, queue=queue)
+        vol = reconstruct(img, proj)
+        rep = recovery(vol, CUBE, pos)
+        fractions.append(rep.fraction)
+        assert rep.ghost_fraction < 0.1
+        assert quality_q(vol, render_particles(CUBE, pos, inten)) > 0.4
+    assert np.mean(fractions) >= target and min(fractions) >= target - 0.15
+
+
+def test_papers_mart_runs_finite_and_worse_than_default(paper_case):
+    _, proj, pos, _, img = paper_case
+    vol = reconstruct(img, proj, "mart", 15, 0.7)
+    assert np.all(np.isfinite(vol)) and vol.min() >= 0 and vol.max() > 0
+    assert recovery(vol, CUBE, pos).fraction < recovery(reconstruct(img, proj), CUBE, pos).fraction
+
+
+def test_reconstruction_conserves_the_light_it_explains(paper_case):
+    _, proj, _, _, img = paper_case
+    vol = reconstruct(img, proj, iterations=60)
+    # MLEM preserves total counts: Σ_i (W E)_i equals Σ I over the pixels it explains
+    assert proj.forward(vol).sum() == pytest.approx(img.sum(), rel=0.02)
+
+
+def test_background_subtraction_returns_noise_level():
+    rng = np.random.default_rng(0)
+    img = 20 + rng.normal(0, 3, (200, 200))
+    img[50, 50] = 1000
+    clean, sigma = subtract_background(img)
+    assert sigma == pytest.approx(3.0, rel=0.05) and clean.min() == 0
+    assert clean[50, 50] == pytest.approx(980, abs=1)
+
+
+def test_reconstruct_cli_writes_volume_with_grid(tmp_path, small_camera, queue):
+    pos = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.8]])
+    img = simulate_image(small_camera, pos, 2e4, 5000, seed=1, background=20.0,
+                         photon_noise=True, bit_depth=16, queue=queue)
+    grid = Grid((9, 10, 12), x=(-0.75, 0.75), y=(-0.6, 0.6), z=(-1.5, 1.5))
+    small_camera.to_toml(tmp_path / "cam.toml")
+    grid.to_toml(tmp_path / "grid.toml")
+    write_tiff(tmp_path / "raw.tif", img)
+    rc = main(["reconstruct", str(tmp_path / "raw.tif"), "--camera", str(tmp_path / "cam.toml"),
+               "--grid", str(tmp_path / "grid.toml"), "--out", str(tmp_path / "vol.npz"),
+               "--iterations", "20"])
+    assert rc == 0
+    vol, g = load_volume(tmp_path / "vol.npz")
+    assert g == grid and vol.shape == grid.shape and np.isfinite(vol).all()
+    peak = np.unravel_index(np.argmax(vol), vol.shape)
+    centre = grid.to_index(pos[:1])[0][::-1]
+    assert np.abs(np.array(peak) - centre)[1:].max() <= 1  # brightest voxel at a particle
+
+
+def test_reconstruct_cli_rejects_a_mismatched_image(tmp_path, small_camera, capsys):
+    small_camera.to_toml(tmp_path / "cam.toml")
+    Grid((4, 4, 4), x=(-0.5, 0.5), y=(-0.5, 0.5), z=(-1, 1)).to_toml(tmp_path / "grid.toml")
+    write_tiff(tmp_path / "raw.tif", np.zeros((10, 10), np.uint16))
+    rc = main(["reconstruct", str(tmp_path / "raw.tif"), "--camera", str(tmp_path / "cam.toml"),
+               "--grid", str(tmp_path / "grid.toml"), "--out", str(tmp_path / "v.npz")])
+    assert rc == 2 and "does not match the camera" in capsys.readouterr().err
+    assert not (tmp_path / "v.npz").exists()
