@@ -104,3 +104,15 @@ __kernel void partial_sums(__global const float *a, __global const float *b, int
     }
     out[g] = sum;
 }
+
+/* Per-slice maximum of a slab (one work-item per depth slice): which slices can still
+ * be non-zero. Multiplicative updates never revive a zero voxel, so a zero slice is
+ * skipped by every later projection. */
+__kernel void slice_max(__global const float *vol, int nxy, __global float *out, int nz)
+{
+    const int z = get_global_id(0);
+    if (z >= nz) return;
+    float m = 0.0f;
+    for (int i = 0; i < nxy; ++i) m = fmax(m, vol[(size_t)z * nxy + i]);
+    out[z] = m;
+}

@@ -359,13 +359,15 @@ class Projector:
         return cl_array.empty(self.queue, self.image_shape, np.float32)
 
     # ---- device API -------------------------------------------------------------------
-    def forward_device(self, vol: VolumeLike, out: cl_array.Array | None = None
-                       ) -> cl_array.Array:
+    def forward_device(self, vol: VolumeLike, out: cl_array.Array | None = None,
+                       active: np.ndarray | None = None) -> cl_array.Array:
         """Forward projection of device slabs (or one device volume) into ``out``.
 
         Nothing is copied to the host; operations are enqueued on ``self.queue``.
+        ``active`` (bool per depth slice) skips slices known to be zero.
         """
         slabs = self._as_slabs(vol)
+        active = self._active(active)
         out = self.empty_image() if out is None else out
         _check_device(out, self.image_shape, "out")
         if self.method == "direct":
@@ -373,18 +375,26 @@ class Projector:
             for (z0, _), slab in zip(self.plan.slabs, slabs, strict=True):
                 self._direct("fwd_direct", slab, out, z0)
             return out
-        for n, (i0, i1) in enumerate(self.plan.columns):
-            light = self._fill_light_field(slabs, i0, i1)
-            if n == 0:
-                out.fill(0.0)
+        out.fill(0.0)
+        if not active.any():
+            return out
+        for i0, i1 in self.plan.columns:
+            light = self._fill_light_field(slabs, i0, i1, active)
             self._light_to_image(light, out, i0, i1)
         return out
 
-    def back_device(self, image: cl_array.Array, out: VolumeLike | None = None
-                    ) -> list[cl_array.Array]:
-        """Back projection of a device image into device slabs (returned)."""
+    def back_device(self, image: cl_array.Array, out: VolumeLike | None = None,
+                    active: np.ndarray | None = None) -> list[cl_array.Array]:
+        """Back projection of a device image into device slabs (returned).
+
+        ``active`` (bool per depth slice) computes only those slices; the others are 0.
+        """
         _check_device(image, self.image_shape, "image")
         slabs = self.empty_volume() if out is None else self._as_slabs(out)
+        active = self._active(active)
+        for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
+            for a, b in _runs(~active[z0:z1]):
+                slab[a:b].fill(0.0)
         if self.method == "direct":
             for (z0, _), slab in zip(self.plan.slabs, slabs, strict=True):
                 self._direct("back_direct", image, slab, z0)
@@ -392,8 +402,24 @@ class Projector:
         for n, (i0, i1) in enumerate(self.plan.columns):
             light = self._image_to_light(image, i0, i1)
             for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
-                self._light_to_slab(light, slab, z0, z1, i0, i1, accumulate=n > 0)
+                self._light_to_slab(light, slab, z0, z1, i0, i1, n > 0, active)
         return slabs
+
+    def _active(self, active: np.ndarray | None) -> np.ndarray:
+        """The per-slice activity mask (all slices when ``None``)."""
+        if active is None:
+            return np.ones(self.shape[0], bool)
+        active = np.asarray(active, bool)
+        if active.shape != (self.shape[0],):
+            raise ValueError(f"active must be one bool per depth slice ({self.shape[0]}), "
+                             f"got shape {active.shape}")
+        return active
+
+    def _zchunks(self, z0: int, z1: int, active: np.ndarray):
+        """``(zc, nzc)`` chunks of consecutive active slices in ``[z0, z1)``."""
+        for a, b in _runs(active[z0:z1]):
+            for zc in range(z0 + a, z0 + b, self.plan.zchunk):
+                yield zc, min(self.plan.zchunk, z0 + b - zc)
 
     def _as_slabs(self, vol: VolumeLike) -> list[cl_array.Array]:
         slabs = [vol] if isinstance(vol, cl_array.Array) else list(vol)
@@ -422,16 +448,18 @@ class Projector:
         cols, rows = self.camera.ml_count
         return i32(cols), i32(rows), i32(self.nkxp)
 
-    def _fill_light_field(self, slabs, i0: int, i1: int) -> cl_array.Array:
-        """``L[s] = S vol`` for the samples of aperture columns ``[i0, i1)``."""
+    def _fill_light_field(self, slabs, i0: int, i1: int, active: np.ndarray
+                          ) -> cl_array.Array:
+        """``L[s] = S vol`` for the samples of aperture columns ``[i0, i1)`` (at least one
+        slice is active)."""
         s0, s1 = self._sample_range(i0, i1)
         nky, nic, ic = self.camera.ml_count[1], i1 - i0, self._ic
         _, ny, nx = self.shape
         light = self._buffer("L", (s1 - s0) * nky * self.nkxp)
         first = True
         for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
-            for zc in range(z0, z1, self.plan.zchunk):
-                nzc, acc = min(self.plan.zchunk, z1 - zc), i32(not first)
+            for zc, nzc in self._zchunks(z0, z1, active):
+                acc = i32(not first)
                 nkx, _, nkxp = self._lens_args()
                 first = False
                 if self.path == "general":
@@ -487,14 +515,13 @@ class Projector:
         return light
 
     def _light_to_slab(self, light, slab, z0: int, z1: int, i0: int, i1: int,
-                       accumulate: bool) -> None:
-        """``slab (+)= Sᵀ L`` for aperture columns ``[i0, i1)``."""
+                       accumulate: bool, active: np.ndarray) -> None:
+        """``slab (+)= Sᵀ L`` for aperture columns ``[i0, i1)``, active slices only."""
         s0, s1 = self._sample_range(i0, i1)
         nkx, nky, nkxp = self._lens_args()
         _, ny, nx = self.shape
         nic, ic, acc = i1 - i0, self._ic, i32(accumulate)
-        for zc in range(z0, z1, self.plan.zchunk):
-            nzc = min(self.plan.zchunk, z1 - zc)
+        for zc, nzc in self._zchunks(z0, z1, active):
             if self.path == "general":
                 self._run("back_gen", (ny, nzc), light, slab, self._d["coef"], self._d["ij"],
                           i32(nx), i32(ny), nkx, nky, nkxp, i32(z0), i32(zc), i32(s0),
@@ -559,6 +586,13 @@ class Projector:
 
 
 # ---- checks -----------------------------------------------------------------------------
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[a, b)`` ranges of consecutive ``True`` entries of a 1-D bool array."""
+    edges = np.diff(np.concatenate([[0], np.asarray(mask, np.int8), [0]]))
+    return list(zip(np.nonzero(edges == 1)[0].tolist(), np.nonzero(edges == -1)[0].tolist()))
+
+
+
 def _checked(arr, shape: tuple[int, ...], what: str) -> np.ndarray:
     """``arr`` as C-contiguous float32 with ``shape``, finite, else a clear error."""
     a = np.asarray(arr)

@@ -35,7 +35,7 @@ METHODS = ("mlem", "smart", "mart")
 #: Defaults per method: (iterations, relaxation). MART's are the paper's synthetic case.
 DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
 _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
-            "partial_sums")
+            "partial_sums", "slice_max")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
 
@@ -50,6 +50,7 @@ class ReconstructionInfo:
     converged: bool = False
     seconds: float = 0.0
     active_fraction: float = 1.0
+    active_slices: list[int] = field(default_factory=list)
 
 
 def prepare_image(image, camera) -> tuple[np.ndarray, float]:
@@ -151,6 +152,17 @@ class Solver:
         for v, bb, s in zip(vol, b, self.sens):
             self._run(name, v.size, v.data, bb.data, s.data, *scalars)
 
+    def active_slices(self, vol) -> np.ndarray:
+        """Bool per depth slice: does it hold any non-zero voxel?"""
+        parts = []
+        for v in vol:
+            nz = v.shape[0]
+            out = cla.empty(self.queue, nz, np.float32)
+            self._k["slice_max"](self.queue, (nz,), None, v.data,
+                                 np.int32(v.size // max(nz, 1)), out.data, np.int32(nz))
+            parts.append(out.get() > 0)
+        return np.concatenate(parts)
+
     def total(self, a, b=None) -> float:
         """``Σ a``, or ``Σ (a - b)²`` when ``b`` is given, reduced on the device."""
         out = cla.empty(self.queue, _SUM_ITEMS, np.float32)
@@ -197,24 +209,27 @@ class Solver:
         self._per_slab("mask_dark", vol, self.proj.back_device(dark), np.float32(fraction))
 
     def step(self, vol, img, method: str, relax: float, threshold: float, blocks=None,
-             n_blocks: int = 1) -> float:
-        """One iteration in place; returns ``‖P - I‖`` before it."""
-        proj = self.proj.forward_device(vol)
+             n_blocks: int = 1, active=None) -> float:
+        """One iteration in place; returns ``‖P - I‖`` before it. ``active`` (bool per
+        depth slice) restricts both projections to slices that can be non-zero."""
+        fwd = self.proj.forward_device
+        back = self.proj.back_device
+        proj = fwd(vol, active=active)
         resid = self.total(proj, img) ** 0.5
         mu = np.float32(relax)
         if method == "mlem":
-            b = self.proj.back_device(self.ratio(img, proj, threshold, False))
+            b = back(self.ratio(img, proj, threshold, False), active=active)
             self._per_slab("update_mlem", vol, b, mu, self.smin)
         elif method == "smart":
-            b = self.proj.back_device(self.ratio(img, proj, threshold, True))
+            b = back(self.ratio(img, proj, threshold, True), active=active)
             self._per_slab("update_exp", vol, b, mu, self.smin, np.int32(1))
         else:
             for blk in range(n_blocks):
                 if blk:
-                    proj = self.proj.forward_device(vol, out=proj)
+                    proj = fwd(vol, out=proj, active=active)
                 lr = self.ratio(img, proj, threshold, True, blocks,
                                 -1 if blocks is None else blk)
-                self._per_slab("update_exp", vol, self.proj.back_device(lr), mu, self.smin,
+                self._per_slab("update_exp", vol, back(lr, active=active), mu, self.smin,
                                np.int32(0))
         return resid
 
@@ -222,7 +237,7 @@ class Solver:
 def reconstruct(image, projector, method: str = "mlem", iterations: int | None = None,
                 relax: float | None = None, *, start: str = "uniform", threshold: float = 0.0,
                 mask_fraction: float | None = None, min_sensitivity: float = 0.5,
-                tol: float | None = None, mart_blocks: int = 2,
+                skip_empty: bool = True, tol: float | None = None, mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
                 return_info: bool = False):
     """Reconstruct a particle volume from one raw plenoptic image.
@@ -251,6 +266,10 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         Voxels that send no more than this fraction of their light to the sensor (at the
         edges of the field of view) are not reconstructed: the image barely constrains
         them, and light from particles outside the grid would pile up in them.
+    skip_empty
+        Active-slice compaction: before every iteration, depth slices with no non-zero
+        voxel (after masking, or emptied by the updates) are left out of both
+        projections. Exact: multiplicative updates never revive a zero voxel.
     tol
         Stop early when the relative residual changes by less than ``tol``.
     mart_blocks
@@ -290,7 +309,10 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
     n_blocks = mart_blocks**2 if blocks is not None else 1
     norm = float(np.linalg.norm(img_np))
     for it in range(iterations):
-        resid = solver.step(vol, img, method, relax, thr, blocks, n_blocks) / norm
+        active = solver.active_slices(vol) if skip_empty else None
+        if active is not None:
+            info.active_slices.append(int(active.sum()))
+        resid = solver.step(vol, img, method, relax, thr, blocks, n_blocks, active) / norm
         info.residuals.append(resid)
         info.iterations = it + 1
         if callback is not None and callback(it + 1, resid) is False:

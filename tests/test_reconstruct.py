@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pyopencl.array as cla
 import pytest
 
 from plenocl import Camera, Grid, Projector, random_particles, reconstruct
@@ -95,3 +96,35 @@ def test_reconstruct_cli_rejects_a_mismatched_image(tmp_path, small_camera, caps
                "--grid", str(tmp_path / "grid.toml"), "--out", str(tmp_path / "v.npz")])
     assert rc == 2 and "does not match the camera" in capsys.readouterr().err
     assert not (tmp_path / "v.npz").exists()
+
+
+def test_projections_skip_inactive_slices_exactly(queue, small_camera):
+    grid = Grid((7, 6, 8), x=(-0.5, 0.5), y=(-0.4, 0.4), z=(-1.5, 1.5))
+    proj = Projector(small_camera, grid, queue)
+    rng = np.random.default_rng(3)
+    vol = rng.random(grid.shape).astype(np.float32)
+    active = np.array([False, True, True, False, False, True, False])
+    vol[~active] = 0
+    dev = proj.volume_to_device(vol)
+    np.testing.assert_array_equal(proj.forward_device(dev, active=active).get(),
+                                  proj.forward_device(dev).get())
+    img = cla.to_device(queue, rng.random(proj.image_shape).astype(np.float32))
+    full = proj.volume_to_host(proj.back_device(img))
+    part = proj.volume_to_host(proj.back_device(img, active=active))
+    np.testing.assert_array_equal(part[active], full[active])
+    assert np.all(part[~active] == 0)
+    with pytest.raises(ValueError, match="one bool per depth slice"):
+        proj.forward_device(dev, active=active[:3])
+
+
+def test_skipping_empty_slices_changes_nothing_but_work(paper_case, queue):
+    cam, proj = paper_case[0], paper_case[1]
+    # a light sheet: particles within 1 mm of depth in the 5 mm deep volume
+    pos, inten = random_particles(((-2.3, 2.3), (-2.3, 2.3), (-0.5, 0.5)), count=20, seed=4,
+                                  intensity=1e4)
+    img = simulate_image(cam, pos, inten, 20000, seed=4, queue=queue)
+    kw = dict(iterations=15, mask_fraction=0.5, threshold=1.0, return_info=True)
+    fast, info = reconstruct(img, proj, skip_empty=True, **kw)
+    slow, _ = reconstruct(img, proj, skip_empty=False, **kw)
+    np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-6 * slow.max())
+    assert info.active_slices[-1] < CUBE.shape[0]  # slices really were skipped

@@ -28,11 +28,11 @@ class MatrixProjector:
     def volume_to_host(self, slabs):
         return np.concatenate([s.get() for s in slabs])
 
-    def forward_device(self, vol, out=None):
+    def forward_device(self, vol, out=None, active=None):
         img = (self.W @ self.volume_to_host(vol).ravel().astype(np.float64)).astype(np.float32)
         return cla.to_device(self.queue, img.reshape(self.camera.pixels[::-1]))
 
-    def back_device(self, img, out=None):
+    def back_device(self, img, out=None, active=None):
         vol = (self.W.T @ img.get().ravel().astype(np.float64)).astype(np.float32)
         vol = vol.reshape(self.grid.shape)
         return [cla.to_device(self.queue, vol[:1]), cla.to_device(self.queue, vol[1:])]
