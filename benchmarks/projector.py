@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import time
 
 import numpy as np
@@ -23,17 +22,7 @@ from plenocl import Camera, Grid, get_queue
 from plenocl.device import device_info
 from plenocl.projector import Projector, i32
 from plenocl.sparse import matrix_bytes, weight_matrix
-
-
-def median_time(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` over ``repeats`` runs (after one warm-up)."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from plenocl.timing import median_time
 
 
 def projector_bytes(proj: Projector) -> int:

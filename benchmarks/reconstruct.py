@@ -29,6 +29,7 @@ from plenocl.reconstruct import reconstruct
 from plenocl.reference import reconstruct as ref
 from plenocl.simulate import simulate_image
 from plenocl.sparse import matrix_bytes, weight_matrix
+from plenocl.timing import run_times
 
 CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
@@ -93,7 +94,7 @@ def skipping(queue, repeats: int) -> None:
                             ("mask 0.5 + slices + tol 1e-3", dict(mask_fraction=0.5, tol=1e-3))):
             run = lambda o=opts, im=img: reconstruct(im, proj, "mlem", 30, threshold=1.0,  # noqa: E731
                                                      return_info=True, **o)
-            t = statistics.median(_times(run, repeats))
+            t = statistics.median(run_times(run, repeats))
             vol, info = run()
             base = base or t
             rep = recovery(vol, CUBE, pos)
@@ -119,23 +120,13 @@ def sparse_comparison(queue, repeats: int) -> None:
     def stored():
         return ref.mlem(W, norm, 30) * img.max()
 
-    t_dev = statistics.median(_times(device, repeats))
-    t_csr = statistics.median(_times(stored, repeats))
+    t_dev = statistics.median(run_times(device, repeats))
+    t_csr = statistics.median(run_times(stored, repeats))
     agree = np.corrcoef(device().ravel(), stored().ravel())[0, 1]
     print(f"\nMLEM, 30 iterations, 20^3 voxels, {W.nnz / 1e6:.1f} M non-zeros "
           f"(CSR {matrix_bytes(W) / 2**20:.0f} MiB, built in {t_build:.1f} s):")
     print(f"  matrix-free (device) {t_dev:7.2f} s   scipy.sparse CSR {t_csr:7.2f} s   "
           f"speed-up {t_csr / t_dev:.1f}x   volumes agree: r = {agree:.5f}")
-
-
-def _times(fn, repeats: int) -> list[float]:
-    fn()
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return out
 
 
 def paper_experiment(queue) -> None:

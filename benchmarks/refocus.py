@@ -8,8 +8,6 @@ on the same light field in the same run; medians of repeated runs.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 from scipy import ndimage
@@ -19,17 +17,7 @@ from plenocl.device import device_info
 from plenocl.lightfield import LightField
 from plenocl.reference.refocus import output_lens_coordinates, refocus_views
 from plenocl.simulate import simulate_image
-
-
-def median_time(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` over ``repeats`` runs (after one warm-up)."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from plenocl.timing import median_time
 
 
 def scipy_shift_and_add(views: np.ndarray, shifts: np.ndarray, supersample: int) -> np.ndarray:

@@ -7,8 +7,6 @@
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 
@@ -16,17 +14,7 @@ from plenocl import Camera, get_queue, reference
 from plenocl.device import device_info
 from plenocl.particles import random_particles
 from plenocl.simulate import Simulator
-
-
-def median_time(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` over ``repeats`` runs (after one warm-up)."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from plenocl.timing import median_time
 
 
 def main() -> None:

@@ -42,6 +42,13 @@ inline float pl_uniform(uint word)
     return (float)(word >> 8) * (1.0f / 16777216.0f);
 }
 
+/* floor() as plain arithmetic: PoCL 3 calls its builtin out of line in hot loops. */
+inline int pl_ifloor(float x)
+{
+    int i = (int)x;
+    return i - (x < (float)i);
+}
+
 /* Microlens geometry on the array plane (DESIGN §2), rotation (c, s) and offset. */
 typedef struct {
     float pitch;    /* microlens pitch, mm */
@@ -56,8 +63,8 @@ inline int pl_lens_index(const pl_mla m, float x, float y, int *kx, int *ky)
     float dx = x - m.ox, dy = y - m.oy;
     float a = m.c * dx + m.s * dy;      /* rotate into the array frame */
     float b = -m.s * dx + m.c * dy;
-    int ix = (int)floor(a / m.pitch + 0.5f * (float)m.nx);
-    int iy = (int)floor(b / m.pitch + 0.5f * (float)m.ny);
+    int ix = pl_ifloor(a / m.pitch + 0.5f * (float)m.nx);
+    int iy = pl_ifloor(b / m.pitch + 0.5f * (float)m.ny);
     if (ix < 0 || iy < 0 || ix >= m.nx || iy >= m.ny) return -1;
     *kx = ix;
     *ky = iy;
@@ -75,8 +82,8 @@ inline float2 pl_lens_center(const pl_mla m, int kx, int ky)
 /* Flat pixel index of sensor point (x, y) mm, -1 off the sensor. */
 inline int pl_pixel_index(float x, float y, float pixel_pitch, int width, int height)
 {
-    int col = (int)floor(x / pixel_pitch + 0.5f * (float)width);
-    int row = (int)floor(y / pixel_pitch + 0.5f * (float)height);
+    int col = pl_ifloor(x / pixel_pitch + 0.5f * (float)width);
+    int row = pl_ifloor(y / pixel_pitch + 0.5f * (float)height);
     if (col < 0 || row < 0 || col >= width || row >= height) return -1;
     return row * width + col;
 }

@@ -74,6 +74,8 @@ class Simulator:
         program = build_program(self.queue.context, "simulate.cl", opts)
         self._k = fetch_kernels(program, ["trace_particles", "trace_white"])
         self._acc = np.int64 if self.int64 else np.float32
+        # PoCL on CPUs may run a launch without a local size as one work-group (one thread)
+        self._local = (1, 1) if "CPU" in device_info(self.queue).type.upper() else None
 
     # ---- shared launch plumbing ---------------------------------------------------------
     def _geometry_args(self) -> list:
@@ -131,7 +133,7 @@ class Simulator:
             pts = cl.Buffer(self.queue.context, mf, hostbuf=img_pts[start:start + n])
             q = cl.Buffer(self.queue.context, mf, hostbuf=quanta[start:start + n])
             self._k["trace_particles"](
-                self.queue, (blocks, n), None, pts, q, gain, image,
+                self.queue, (blocks, n), self._local, pts, q, gain, image,
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
                 np.float32(cam.aperture_diameter_mm / 2), np.float32(cam.image_distance_mm),
                 np.float32(cam.ml_focal_length_mm),
@@ -154,7 +156,7 @@ class Simulator:
         image = self._new_image()
         for start, n, blocks in self._chunks(n_lens, rays):
             self._k["trace_white"](
-                self.queue, (blocks, n), None, gain, image, quantum[0],
+                self.queue, (blocks, n), self._local, gain, image, quantum[0],
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
                 np.float32(cam.focal_length_mm / stop_f_number / 2),
                 np.float32(cam.image_distance_mm), np.float32(cam.ml_focal_length_mm),
