@@ -556,8 +556,7 @@ def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None 
     camera
         The camera with its nominal layout (rotation and offset may be unknown).
     diagnostic_png
-        Optional path of a PNG overlaying the found centres on the image (needs
-        matplotlib: ``pip install "plenocl[plot]"``).
+        Optional path of a PNG overlaying the found centres on the image.
     method, degree, fill_missing
         See :func:`find_centers`.
 
@@ -594,21 +593,12 @@ def _warn_about(fit: CenterFit) -> None:
 
 
 def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:
-    """Write a PNG of the white image with the found centres (green) and missing lenses (red).
+    """Write a PNG of the white image with the found centres (green) and missing lenses (red)."""
+    import matplotlib
 
-    Raises
-    ------
-    ImportError
-        When matplotlib is not installed (``pip install "plenocl[plot]"``).
-    """
-    try:
-        import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as exc:
-        raise ImportError('the diagnostic image needs matplotlib: pip install "plenocl[plot]"'
-                          ) from exc
     from .io import atomic_path
 
     img = np.asarray(white_image, dtype=np.float64)

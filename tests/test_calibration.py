@@ -187,7 +187,6 @@ def test_bad_options(small_white):
 
 
 def test_diagnostic_png_and_cli_round_trip(tmp_path, small_white):
-    pytest.importorskip("matplotlib")
     from plenocl.io import write_tiff
 
     cam = _camera(12, 10)
