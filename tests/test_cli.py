@@ -52,3 +52,9 @@ def test_particle_example_runs_small(tmp_path):
                    check=True, capture_output=True)
     img = tifffile.imread(tmp_path / "raw.tif")
     assert img.shape == (850, 850) and (tmp_path / "raw_preview.png").stat().st_size > 0
+
+
+def test_synthetic_reconstruction_example_runs(tmp_path):
+    out = subprocess.run([sys.executable, str(EXAMPLES / "synthetic_reconstruction.py"), "8",
+                          "3"], check=True, capture_output=True, text=True, cwd=tmp_path)
+    assert "paper's MART" in out.stdout and "default (MLEM" in out.stdout
