@@ -17,12 +17,12 @@ inline float pl_clean(float v)
 /* out = I / max(P, eps) (clamped) or its log; pixels at or below threshold are dark (I = 0).
  * With a block map, pixels outside block `block` get 0 (they do not update). */
 __kernel void ratio(__global const float *img, __global const float *proj,
-                    __global const uchar *block_of, int block, float threshold,
+                    __global const int *block_of, int block, float threshold,
                     int log_mode, __global float *out, int n)
 {
     const int i = get_global_id(0);
     if (i >= n) return;
-    if (block >= 0 && (int)block_of[i] != block) { out[i] = 0.0f; return; }
+    if (block >= 0 && block_of[i] != block) { out[i] = 0.0f; return; }
     float value = img[i] > threshold ? img[i] : 0.0f;
     float r = clamp(value / fmax(proj[i], PL_EPS), 0.0f, PL_RATIO_MAX);
     out[i] = log_mode ? log(fmax(r, PL_RATIO_MIN)) : r;

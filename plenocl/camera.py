@@ -23,14 +23,21 @@ OVERLAP_WARN = 0.02
 
 
 def _positive(name: str, value: float) -> float:
-    value = float(value)
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"camera {name} must be a positive finite number, got {value!r}"
+                         ) from None
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"camera {name} must be a positive finite number, got {value!r}")
     return value
 
 
 def _count_pair(name: str, value) -> tuple[int, int]:
-    pair = tuple(int(v) for v in value)
+    try:
+        pair = tuple(int(v) for v in value)
+    except (TypeError, ValueError):
+        pair = ()
     if len(pair) != 2 or min(pair) <= 0 or any(int(v) != v for v in value):
         raise ValueError(f"camera {name} must be two positive integers [columns, rows], "
                          f"got {value!r}")

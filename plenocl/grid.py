@@ -17,7 +17,10 @@ from .tomlio import read_toml, write_toml
 
 
 def _extent(name: str, value) -> tuple[float, float]:
-    lo, hi = (float(v) for v in value)
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        lo, hi = math.nan, math.nan
     if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
         raise ValueError(f"grid extent {name} must be two finite numbers (lo, hi) with lo < hi "
                          f"in mm, got {tuple(value)!r}")

@@ -198,9 +198,12 @@ def _schedule(shape: Size3, windows, overlaps, final_iterations: int):
         for axis, s, n in zip("zyx", size, shape):
             if s > n:
                 first = min(shape) // 8 * 8
+                hint = (f"pass smaller windows, e.g. windows=({first}, "
+                        f"{max(8, first * 2 // 3 // 8 * 8)})" if first >= 8 else
+                        "the volume is smaller than the smallest window (8 voxels): use a "
+                        "larger volume")
                 raise ValueError(f"window {s} of pass {k} is larger than the volume along "
-                                 f"{axis} ({n} voxels); pass smaller windows, e.g. "
-                                 f"windows=({first}, {max(8, first * 2 // 3 // 8 * 8)})")
+                                 f"{axis} ({n} voxels); {hint}")
         if not (0.0 <= float(ovl) < 1.0):
             raise ValueError(f"overlap of pass {k} must be a fraction in [0, 1), got {ovl!r}")
         passes.append((size, float(ovl)))

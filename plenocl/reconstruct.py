@@ -32,6 +32,8 @@ import pyopencl.array as cla
 from .program import build_program, fetch_kernels
 
 METHODS = ("mlem", "smart", "mart")
+#: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
+MAX_MART_BLOCKS = 32
 #: Defaults per method: (iterations, relaxation). MART's are the paper's synthetic case.
 DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
 _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
@@ -53,6 +55,10 @@ class ReconstructionInfo:
     active_slices: list[int] = field(default_factory=list)
 
 
+#: Largest image value accepted: the volume (in image units) must stay finite in float32.
+FLOAT32_LIMIT = 1e30
+
+
 def prepare_image(image, camera) -> tuple[np.ndarray, float]:
     """Validate a raw image against the camera; return it as float32 scaled to max 1,
     and the scale. Integer and float16 input is accepted."""
@@ -63,6 +69,9 @@ def prepare_image(image, camera) -> tuple[np.ndarray, float]:
                          f"{expected} (rows, columns); check the camera file")
     if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
         raise ValueError(f"image must be numeric (uint8, uint16, float), got {img.dtype}")
+    if np.iscomplexobj(img):
+        raise TypeError("image must hold real numbers, not complex; pass the intensity "
+                        "(e.g. np.abs(image) ** 2)")
     img = img.astype(np.float64)
     if not np.all(np.isfinite(img)):
         raise ValueError("image contains NaN or Inf; replace bad pixels (e.g. by 0) first")
@@ -70,6 +79,9 @@ def prepare_image(image, camera) -> tuple[np.ndarray, float]:
         raise ValueError("image has negative pixels; subtract the background with clipping, "
                          "e.g. np.clip(image - background, 0, None)")
     scale = float(img.max())
+    if scale > FLOAT32_LIMIT:
+        raise ValueError(f"image maximum {scale:.3g} is beyond the float32 range plenocl "
+                         f"reconstructs in (up to {FLOAT32_LIMIT:.0e}); rescale the image")
     if scale == 0:
         return img.astype(np.float32), 0.0
     return (img / scale).astype(np.float32), scale
@@ -89,7 +101,13 @@ def subtract_background(image) -> tuple[np.ndarray, float]:
     return np.clip(img - med, 0, None).astype(np.float32), sigma
 
 
-def _check_options(method: str, iterations: int, relax: float, mask_fraction) -> None:
+def _check_options(method: str, iterations: int, relax: float, mask_fraction,
+                   threshold: float = 0.0, mart_blocks: int = 2) -> None:
+    if not np.isfinite(threshold):
+        raise ValueError(f"threshold must be a finite number (image units), got {threshold!r}")
+    if int(mart_blocks) != mart_blocks or not 1 <= mart_blocks <= MAX_MART_BLOCKS:
+        raise ValueError(f"mart_blocks must be an integer from 1 to {MAX_MART_BLOCKS} "
+                         f"(n x n blocks of views), got {mart_blocks!r}")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if int(iterations) != iterations or iterations < 0:
@@ -101,7 +119,7 @@ def _check_options(method: str, iterations: int, relax: float, mask_fraction) ->
 
 
 def view_blocks(camera, n_per_axis: int) -> np.ndarray:
-    """Block id (uint8) of every pixel: interleaved groups of sub-aperture views.
+    """Block id (int32) of every pixel: interleaved groups of sub-aperture views.
 
     A pixel's view is its offset (rounded, in pixels) from the nearest microlens image
     centre; views are grouped by ``(offset_x mod n, offset_y mod n)``.
@@ -115,7 +133,7 @@ def view_blocks(camera, n_per_axis: int) -> np.ndarray:
     pix = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
     _, k = cKDTree(centres).query(pix)
     off = np.rint(pix - centres[k]).astype(int) % n_per_axis
-    return (off[:, 0] + n_per_axis * off[:, 1]).astype(np.uint8).reshape(h, w)
+    return (off[:, 0] + n_per_axis * off[:, 1]).astype(np.int32).reshape(h, w)
 
 
 class Solver:
@@ -142,7 +160,7 @@ class Solver:
                          np.float32)
         ones.fill(1.0)
         self.sens = projector.back_device(ones)
-        self._no_blocks = cla.zeros(self.queue, 1, np.uint8)
+        self._no_blocks = cla.zeros(self.queue, 1, np.int32)
 
     def _run(self, name: str, n: int, *args) -> None:
         self._k[name](self.queue, (n,), None, *args, np.int32(n))
@@ -289,7 +307,7 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
     it_default, mu_default = DEFAULTS.get(method, (0, 1.0))
     iterations = it_default if iterations is None else iterations
     relax = mu_default if relax is None else relax
-    _check_options(method, iterations, relax, mask_fraction)
+    _check_options(method, iterations, relax, mask_fraction, threshold, mart_blocks)
     if not 0 <= min_sensitivity < 1:
         raise ValueError(f"min_sensitivity must be in [0, 1), got {min_sensitivity!r}")
     img_np, scale = prepare_image(image, projector.camera)

@@ -28,13 +28,24 @@ def _validate_particles(camera: Camera, positions, intensities) -> tuple[np.ndar
     pos = np.asarray(positions, dtype=np.float64)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions must be an (N, 3) array of (x, y, z) mm, got {pos.shape}")
-    intens = np.broadcast_to(np.asarray(intensities, dtype=np.float64), (len(pos),)).copy()
+    intens = np.asarray(intensities, dtype=np.float64)
+    if intens.ndim > 1 or intens.size not in (1, len(pos)):
+        raise ValueError(f"intensities must be one number or one per particle ({len(pos)}), "
+                         f"got shape {intens.shape}")
+    intens = np.broadcast_to(intens, (len(pos),)).copy()
     if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(intens))):
         raise ValueError("positions and intensities must be finite (found NaN or Inf)")
     if np.any(intens < 0):
         raise ValueError("intensities must be >= 0 (counts per particle)")
     camera.image_distance_at(pos[:, 2])  # raises for depths that form no real image
     return pos, intens
+
+
+def _validate_common(seed: int, blur_px: float) -> None:
+    if int(seed) != seed or not 0 <= seed < 2**32:
+        raise ValueError(f"seed must be an integer in [0, 2**32), got {seed!r}")
+    if not (np.isfinite(blur_px) and blur_px >= 0):
+        raise ValueError(f"blur_px must be a finite number >= 0 (pixels), got {blur_px!r}")
 
 
 def _validate_rays(rays: int) -> int:
@@ -121,6 +132,7 @@ class Simulator:
         cam = self.camera
         pos, intens = _validate_particles(cam, positions, intensities)
         rays = _validate_rays(rays_per_particle)
+        _validate_common(seed, blur_px)
         img_pts = np.zeros((len(pos), 4), np.float32)
         if len(pos):
             img_pts[:, :3] = cam.image_points(pos)
@@ -146,6 +158,10 @@ class Simulator:
         """Noise-free white image; see :func:`simulate_white_image`."""
         cam = self.camera
         rays = _validate_rays(rays_per_lens)
+        _validate_common(seed, blur_px)
+        if not (np.isfinite(intensity) and intensity >= 0):
+            raise ValueError(f"intensity must be a finite number >= 0 (counts per lens), "
+                             f"got {intensity!r}")
         if not (np.isfinite(stop_f_number) and stop_f_number >= cam.f_number):
             raise ValueError(f"stop_f_number must be >= the lens f-number {cam.f_number:g} "
                              "(the calibration image is taken with the aperture stopped down)")

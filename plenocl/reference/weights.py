@@ -57,7 +57,11 @@ class ApertureGrid:
         footprint = camera.pixel_pitch_mm * camera.image_distance_mm / camera.ml_focal_length_mm
         step = footprint / oversample
         radius = camera.aperture_diameter_mm / 2
-        return cls(step=step, n=2 * int(math.floor(radius / step + 1e-9)) + 1, radius=radius)
+        k = int(math.floor(radius / step + 1e-9))
+        # the outermost columns must hold a sample by the very test inside() applies
+        while k > 0 and ((0 - k) * step) ** 2 > radius**2:
+            k -= 1
+        return cls(step=step, n=2 * k + 1, radius=radius)
 
     @property
     def center(self) -> float:
@@ -76,6 +80,9 @@ class ApertureGrid:
     def column_ranges(self) -> tuple[np.ndarray, np.ndarray]:
         """For each ``i``, the inclusive ``j`` range ``[lo, hi]`` inside the aperture."""
         mask = self.inside()  # a disc: each column's samples are contiguous, centre included
+        if not mask.any(axis=1).all():
+            raise ValueError("aperture grid has a column without samples; build it with "
+                             "ApertureGrid.for_camera")
         lo = np.argmax(mask, axis=1)
         return lo, self.n - 1 - lo
 
