@@ -30,6 +30,7 @@ import scipy
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenocl import flows  # noqa: E402
+from plenocl.bench import piv_flows  # noqa: E402
 from plenocl.piv import piv3d  # noqa: E402
 from plenocl.validation import normalized_median_test  # noqa: E402
 
@@ -46,20 +47,6 @@ def load_openpiv():
               f"pip install openpiv to compare. Running plenocl only.\n")
         return None, None
     return pyprocess3D, getattr(openpiv, "__version__", "?")
-
-
-def make_flows(shape) -> dict:
-    """The benchmark flows in voxel units (fixed, documented parameters)."""
-    nz, ny, nx = shape
-    centre = np.array([(nx - 1) / 2, (ny - 1) / 2, (nz - 1) / 2])
-    axis = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
-    return {
-        "uniform": flows.Uniform((2.31, -1.47, 0.68)),
-        "rotation": flows.SolidBodyRotation(tuple(axis * 3.0 / (0.5 * min(shape))),
-                                            tuple(centre)),
-        "oseen": flows.LambOseen.from_peak_velocity(3.0, 16.0, tuple(centre + [2.3, -1.7, 1.1]),
-                                                    tuple(axis)),
-    }
 
 
 def truth(flow, zc, yc, xc) -> np.ndarray:
@@ -149,7 +136,7 @@ def comparison(p3, shapes, repeats: int, seed: int) -> None:
               "vectors", "us/vector"]
     rows = []
     for shape in shapes:
-        for name, flow in make_flows(shape).items():
+        for name, flow in piv_flows(shape).items():
             pair = flows.volume_pair(shape, flow, seed=seed)
             runs = {"plenocl piv3d": run_plenocl(pair, repeats)}
             if p3 is not None:
@@ -206,7 +193,7 @@ class _ABCFlow:
 def deformation_study(repeats: int, seed: int) -> None:
     """Trilinear vs cubic vs quintic deformation, and the other design choices."""
     shape = (96, 96, 96)
-    cases = make_flows(shape)
+    cases = piv_flows(shape)
     cases["uniform"] = flows.Uniform((1.5, -0.5, 2.5))   # half-voxel parts: worst bias
     pairs = {k: flows.volume_pair(shape, f, seed=seed + 1) for k, f in cases.items()}
     variants = {"cubic B-spline (default)": {}, "trilinear": {"deform_order": 1},

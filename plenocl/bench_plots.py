@@ -6,23 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_path
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> None:
-    """Write ``fig`` as a PNG atomically and close it."""
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, bbox_inches="tight", format="png")
-    _pyplot().close(fig)
+from .plotting import pyplot, save_png
 
 
 def _pareto_panel(ax, xs, ys, front, label: str, colour) -> None:
@@ -64,7 +48,7 @@ def _short(n: float) -> str:
 def plot_recon_pareto(rows: list[dict], path: Path) -> None:
     """Time vs recovery and time vs Q of the reconstruction settings, one colour per
     particle count; front points (``front_recovery``, ``front_q``) highlighted."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     counts = sorted({r["count"] for r in rows})
     colours = plt.cm.viridis(np.linspace(0.1, 0.85, len(counts)))
@@ -81,12 +65,12 @@ def plot_recon_pareto(rows: list[dict], path: Path) -> None:
         ax.set_title(f"time vs {name}")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    _save(fig, path)
+    save_png(fig, path, dpi=100)
 
 
 def plot_piv_pareto(rows: list[dict], path: Path) -> None:
     """Time vs RMS error of the PIV settings, one panel per flow; front highlighted."""
-    plt = _pyplot()
+    plt = pyplot()
     names = list(dict.fromkeys(r["flow"] for r in rows))
     fig, axes = plt.subplots(1, len(names), figsize=(5 * len(names), 4.5), squeeze=False)
     for ax, name in zip(axes[0], names):
@@ -99,7 +83,7 @@ def plot_piv_pareto(rows: list[dict], path: Path) -> None:
         ax.set_ylabel("interior RMS error (voxel)")
         ax.set_title(name)
         ax.grid(True, which="both", alpha=0.3)
-    _save(fig, path)
+    save_png(fig, path, dpi=100)
 
 
 def plot_scaling(data: dict, labels: dict, path: Path) -> None:
@@ -108,7 +92,7 @@ def plot_scaling(data: dict, labels: dict, path: Path) -> None:
     ``data[axis]`` lists points ``{"n", "seconds", "bytes"}``; ``labels[axis]`` is
     ``(what is counted, what memory is measured)``.
     """
-    plt = _pyplot()
+    plt = pyplot()
     cols = min(2, len(data))
     rows = -(-len(data) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(6.2 * cols, 4.4 * rows), squeeze=False)
@@ -127,7 +111,7 @@ def plot_scaling(data: dict, labels: dict, path: Path) -> None:
                  if not ln.get_label().startswith("_")]
         ax.legend(lines, [ln.get_label() for ln in lines], fontsize=7, loc="upper left")
     fig.tight_layout()
-    _save(fig, path)
+    save_png(fig, path, dpi=100)
 
 
 def _fit_series(ax, n: np.ndarray, y: np.ndarray, label: str, colour: str, style: str) -> None:

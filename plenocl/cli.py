@@ -8,6 +8,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from .bench import add_bench_parser
 from .camera import load_camera
 from .cli_calibrate import add_calibrate_parser, add_refocus_parser
 from .cli_volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
@@ -70,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_reconstruct_parser(sub)
     add_piv_parser(sub)
     add_demo_parser(sub)
+    add_bench_parser(sub)
     return parser
 
 

@@ -6,22 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_path
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    _pyplot().close(fig)
+from .plotting import pyplot, save_png
 
 
 def boundary_layer_figures(out: Path, sc, flow, summary: dict) -> None:
@@ -51,7 +36,7 @@ def _vorticity_magnitude(vel: np.ndarray, x, y, z) -> np.ndarray:
 
 def profile_figure(path: Path, depth: np.ndarray, summary: dict, u_inf: float) -> None:
     """The spatially averaged streamwise profile against the truth (paper Fig. 19)."""
-    plt = _pyplot()
+    plt = pyplot()
     prof = summary["profile"]
     fig, ax = plt.subplots(figsize=(5, 4))
     ax.plot(np.array(prof["analytic"]) / u_inf, depth, "k-", label="truth: mean profile")
@@ -62,12 +47,12 @@ def profile_figure(path: Path, depth: np.ndarray, summary: dict, u_inf: float) -
     ax.set_ylabel("wall distance (mm)")
     ax.set_title(f"mean profile: RMS error {100 * summary['mean_profile_rms_error']:.1f}% U∞")
     ax.legend(loc="upper left", fontsize=8)
-    _save(fig, path)
+    save_png(fig, path)
 
 
 def slices_figure(path: Path, meas: np.ndarray, true: np.ndarray, x, y, z, label: str) -> None:
     """Measured and true fields on three depth slices (paper Figs. 16-18)."""
-    plt = _pyplot()
+    plt = pyplot()
     picks = np.unique(np.linspace(0, len(z) - 1, 3).round().astype(int))
     fig, axes = plt.subplots(2, len(picks), figsize=(3.2 * len(picks), 5.6), squeeze=False)
     lo, hi = np.nanmin(true), np.nanmax(true)
@@ -81,14 +66,14 @@ def slices_figure(path: Path, meas: np.ndarray, true: np.ndarray, x, y, z, label
             ax.set_xlabel("x spanwise (mm)", fontsize=8)
             ax.set_ylabel("y streamwise (mm)", fontsize=8)
     fig.colorbar(im, ax=axes, label=label, shrink=0.8)
-    _save(fig, path)
+    save_png(fig, path)
 
 
 def vectors_figure(path: Path, vel: np.ndarray, valid: np.ndarray, x, y, z) -> None:
     """3-D vectors coloured by streamwise velocity with an iso-surface (paper Fig. 14)."""
     from skimage.measure import marching_cubes
 
-    plt = _pyplot()
+    plt = pyplot()
     fig = plt.figure(figsize=(7, 5.5))
     ax = fig.add_subplot(projection="3d")
     zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
@@ -108,4 +93,4 @@ def vectors_figure(path: Path, vel: np.ndarray, valid: np.ndarray, x, y, z) -> N
     ax.set_ylabel("y streamwise (mm)")
     ax.set_zlabel("z depth (mm)")
     ax.set_title(f"velocity vectors; iso-surface V = {level:.2f} m/s")
-    _save(fig, path)
+    save_png(fig, path)
