@@ -7,7 +7,13 @@ import argparse
 import numpy as np
 import pytest
 
-from plenocl.bench import add_bench_parser, loglog_slope, md_table, pareto_front, run_report
+from plenocl.bench import (
+    add_bench_parser,
+    loglog_slope,
+    md_table,
+    pareto_front,
+    run_report,
+)
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SECTIONS = ("## Simulator", "## Projector", "## Reconstruction", "## Skipping", "## PIV",
@@ -75,11 +81,11 @@ def test_bench_parser_and_bad_arguments(tmp_path):
 
 
 def test_piv_section_says_when_openpiv_is_missing(tmp_path, queue, monkeypatch):
-    from plenocl import bench
+    from plenocl.bench import core, piv_section
 
-    monkeypatch.setattr(bench, "load_openpiv", lambda: (None, "ImportError: no openpiv"))
-    run = bench._Run(bench._sizes()["test"], queue, tmp_path, lambda *a: None, 1, 1)
-    text = bench.section_piv(run)
+    monkeypatch.setattr(piv_section, "load_openpiv", lambda: (None, "ImportError: no openpiv"))
+    run = core._Run(core._sizes()["test"], queue, tmp_path, lambda *a: None, 1, 1)
+    text = piv_section.section_piv(run)
     assert "openpiv is **not** importable" in text and "| openpiv" not in text
     assert (tmp_path / "piv_pareto.png").read_bytes().startswith(PNG_MAGIC)
 

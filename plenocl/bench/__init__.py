@@ -1,0 +1,181 @@
+"""The one-command benchmark report: every stage timed against a baseline from the same run.
+
+``plenocl bench --size ci|small|paper --out DIR`` (or :func:`run_report`) runs the stage
+benchmarks and writes ``DIR/report.md`` with PNG plots beside it:
+
+- simulator: rays per second of the OpenCL kernel against the NumPy reference (same rays);
+- projector: matrix-free forward + back against ``scipy.sparse`` CSR products of the same
+  weights, and the memory of both;
+- reconstruction: run time against error (recovery, ghosts, Q) for each method and
+  setting on the paper's synthetic case, with Pareto fronts;
+- skipping: speed-up and error cost of masking, active slices and early stop;
+- PIV: run time against RMS error for window schedules, deformation orders and final
+  iterations (and openpiv's 3-D PIV when it is importable);
+- scaling: time and memory against voxels, pixels, particles and iterations, with fitted
+  log-log slopes, set against the device's memory and the measured throughput.
+
+Sizes: ``ci`` (about 1-2 minutes on 2 CPU cores), ``small`` (10-15 minutes), ``paper``
+(``small`` plus the paper's full 16 MP, 300 x 200 x 150 experiment) and an internal
+``test`` size (a tiny camera; seconds). Times are medians of repeated runs after a
+warm-up of the kernels; the report states the repeat counts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..device import DeviceLike, device_info, get_queue
+from ..io import atomic_path
+from .core import SIZES, _Run, _runs, _sizes, loglog_slope, md_table, pareto_front
+from .piv_section import piv_flows, section_piv
+from .scaling import section_scaling
+from .stages import section_projector, section_reconstruction, section_simulator, section_skipping
+
+__all__ = ["SIZES", "add_bench_parser", "cmd_bench", "loglog_slope", "md_table", "pareto_front",
+           "piv_flows", "run_report"]
+
+
+# ---- the report -----------------------------------------------------------------------
+SECTIONS: tuple[tuple[str, Callable[[_Run], str]], ...] = (
+    ("simulator", section_simulator),
+    ("projector", section_projector),
+    ("reconstruction", section_reconstruction),
+    ("skipping", section_skipping),
+    ("PIV", section_piv),
+    ("scaling", section_scaling),
+)
+
+
+def _machine() -> str:
+    """CPU model and core count, memory, OS."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        mem = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM"
+    except (ValueError, OSError, AttributeError):
+        mem = ""
+    return f"{os.cpu_count()} CPU cores ({model}){mem}, {platform.system()} {platform.release()}"
+
+
+def _load() -> str:
+    return " / ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+
+
+def _header(run: _Run, load_start: str, end: tuple[str, float] | None) -> str:
+    import pyopencl
+    import scipy
+
+    from .. import __version__
+
+    info, dev = device_info(run.queue), run.queue.device
+    status = (f"load average (1 / 5 / 15 min) at end {end[0]}; total {end[1]:.0f} s"
+              if end else "**incomplete: the run is still going (or stopped)**")
+    return (f"# plenocl benchmark report (size `{run.cfg.name}`)\n\n"
+            f"- generated {time.strftime('%Y-%m-%d %H:%M:%S')} by `plenocl bench --size "
+            f"{run.cfg.name}`; plenocl {__version__}, Python {platform.python_version()}, "
+            f"NumPy {np.__version__}, SciPy {scipy.__version__}, PyOpenCL "
+            f"{pyopencl.VERSION_TEXT}\n"
+            f"- device: **{info.name}** (platform {info.platform}, "
+            f"{dev.platform.version.strip()}), {info.type}, {info.compute_units} compute "
+            f"units, {info.global_mem_bytes / 2**30:.1f} GiB global memory\n"
+            f"- machine: {_machine()}; load average (1 / 5 / 15 min) at start {load_start}; "
+            f"{status}\n"
+            f"- repeats: medians of {_runs(run.repeats)} for the simulator, projector and "
+            f"scaling; {_runs(run.heavy)} for reconstruction, skipping and PIV (one warm-up first "
+            "where stated)\n"
+            + (f"- headline: {'; '.join(run.notes)}\n" if run.notes else "") + "\n")
+
+
+def _write_report(path: Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def run_report(size: str, out_dir: str | Path, repeats: int | None = None,
+               queue: DeviceLike = None, log: Callable[..., None] = print) -> Path:
+    """Run the stage benchmarks and write ``report.md`` and PNG plots into ``out_dir``.
+
+    Parameters
+    ----------
+    size
+        ``"ci"`` (about 1-2 minutes on 2 CPU cores), ``"small"`` (10-15 minutes),
+        ``"paper"`` (``small`` plus the paper's 16 MP experiment) or ``"test"`` (a tiny
+        camera, for the test suite).
+    out_dir
+        Folder of the report (created); files are replaced atomically. The report is
+        rewritten after every section, marked incomplete until the end.
+    repeats
+        Runs per timing (the median is reported) for every section; by default per size
+        (``ci``: 3 for cheap stages, 2 for reconstruction, skipping and PIV).
+    queue
+        OpenCL queue, device or name substring (:func:`plenocl.device.get_queue`).
+    log
+        Progress messages (``print`` by default).
+
+    Returns
+    -------
+    pathlib.Path
+        The report's path.
+    """
+    sizes = _sizes()
+    if size not in sizes:
+        raise ValueError(f"size must be one of {SIZES}, got {size!r}")
+    if repeats is not None and repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats!r}")
+    cfg, out = sizes[size], Path(out_dir)
+    run = _Run(cfg, get_queue(queue), out, log, repeats or cfg.repeats,
+               repeats or cfg.heavy_repeats)
+    load_start, t0, parts = _load(), time.perf_counter(), []
+    path = out / "report.md"
+    for title, section in SECTIONS:
+        log(f"bench: {title} ...")
+        t1 = time.perf_counter()
+        parts.append(section(run))
+        log(f"bench: {title} done in {time.perf_counter() - t1:.1f} s")
+        _write_report(path, _header(run, load_start, None) + "\n".join(parts))
+    end = (_load(), time.perf_counter() - t0)
+    _write_report(path, _header(run, load_start, end) + "\n".join(parts))
+    return path
+
+
+# ---- command line -------------------------------------------------------------------
+def cmd_bench(args: argparse.Namespace) -> int:
+    """``plenocl bench``: run the benchmark report and say where it is."""
+    path = run_report(args.size, args.out, args.repeats, queue=getattr(args, "device", None))
+    print(f"benchmark report: {path} (plots beside it)")
+    return 0
+
+
+def add_bench_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``bench`` on the CLI's subparsers (the device comes from ``--device``)."""
+    p = subparsers.add_parser("bench", help="benchmark every stage against a baseline; "
+                                            "write a Markdown report with plots")
+    p.add_argument("--size", choices=SIZES, default="ci",
+                   help="ci: 1-2 min on 2 cores; small: 10-15 min; paper: adds the 16 MP "
+                        "experiment (default: ci)")
+    p.add_argument("--out", default="plenocl_bench", help="output folder (default: "
+                                                          "plenocl_bench)")
+    p.add_argument("--repeats", type=_positive_int, default=None,
+                   help="runs per timing, the median is reported (default: per size)")
+    p.set_defaults(func=cmd_bench)
+    return p
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return value

@@ -1,0 +1,246 @@
+"""Benchmark report: sizes, run state, timing and table helpers."""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+import tracemalloc
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..grid import Grid
+from ..particles import random_particles
+from ..simulate import Simulator
+
+SIZES = ("ci", "small", "paper")
+Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
+#: (label, method, iterations, relax, options) of a reconstruction setting.
+ReconSetting = tuple[str, str, int, float, dict]
+
+
+# ---- configuration ----------------------------------------------------------------------
+_CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+_RECON_CI: tuple[ReconSetting, ...] = (
+    ("MART (paper)", "mart", 15, 0.7, {}),
+    ("SMART", "smart", 30, 1.0, {}),
+    ("MLEM", "mlem", 5, 1.0, {}),
+    ("MLEM", "mlem", 10, 1.0, {}),
+    ("MLEM", "mlem", 30, 1.0, {}),
+    ("MLEM mlos start", "mlem", 10, 1.0, {"start": "mlos"}),
+    ("MLEM mask 0.5", "mlem", 10, 1.0, {"mask_fraction": 0.5}),
+    ("MLEM skip_empty off", "mlem", 10, 1.0, {"skip_empty": False}),
+    ("MLEM tol 1e-3", "mlem", 60, 1.0, {"tol": 1e-3}),
+)
+_RECON_SMALL: tuple[ReconSetting, ...] = (
+    *_RECON_CI[:5],
+    ("MLEM", "mlem", 60, 1.0, {}),
+    ("MLEM mlos start", "mlem", 30, 1.0, {"start": "mlos"}),
+    ("MLEM mask 0.5", "mlem", 30, 1.0, {"mask_fraction": 0.5}),
+    ("MLEM mlos + mask 0.5", "mlem", 30, 1.0, {"start": "mlos", "mask_fraction": 0.5}),
+    ("SMART mlos + mask 0.5", "smart", 30, 1.0, {"start": "mlos", "mask_fraction": 0.5}),
+    ("MLEM skip_empty off", "mlem", 30, 1.0, {"skip_empty": False}),
+    ("MLEM tol 1e-3", "mlem", 100, 1.0, {"tol": 1e-3}),
+)
+_RECON_TEST: tuple[ReconSetting, ...] = (
+    ("MART (paper)", "mart", 3, 0.7, {}),
+    ("SMART", "smart", 3, 1.0, {}),
+    ("MLEM", "mlem", 2, 1.0, {}),
+    ("MLEM", "mlem", 4, 1.0, {}),
+    ("MLEM mlos start", "mlem", 2, 1.0, {"start": "mlos"}),
+    ("MLEM mask 0.5", "mlem", 2, 1.0, {"mask_fraction": 0.5}),
+    ("MLEM skip_empty off", "mlem", 2, 1.0, {"skip_empty": False}),
+    ("MLEM tol 1e-3", "mlem", 6, 1.0, {"tol": 1e-3}),
+)
+_PIV_SETTINGS: tuple[tuple[str, dict], ...] = (
+    ("48-32-24, cubic, 3 final (default)", {}),
+    ("32-24-16", {"windows": (32, 24, 16)}),
+    ("32-16, 1 final", {"windows": (32, 16), "final_iterations": 1}),
+    ("deform_order 1 (trilinear)", {"deform_order": 1}),
+    ("deform_order 5 (quintic)", {"deform_order": 5}),
+    ("final_iterations 1", {"final_iterations": 1}),
+    ("final_iterations 5", {"final_iterations": 5}),
+)
+_PIV_TEST: tuple[tuple[str, dict], ...] = (
+    ("24-16, 1 final", {"windows": (24, 16), "final_iterations": 1}),
+    ("16, deform_order 1", {"windows": (16,), "final_iterations": 2, "deform_order": 1}),
+)
+
+
+@dataclass(frozen=True)
+class BenchSize:
+    """What one report size runs (scenes, settings, repeats)."""
+
+    name: str
+    repeats: int                      # cheap stages: simulator, projector, scaling
+    heavy_repeats: int                # reconstruction, skipping, PIV
+    camera: str                       # "synthetic" (850 x 850) or "tiny" (12 x 12 lenses)
+    grid: Grid                        # the reconstruction grid
+    box: Box                          # where particles are seeded (mm)
+    counts: tuple[int, ...]           # particles of the reconstruction scenes
+    rays: int                         # rays per particle of the reconstruction images
+    recon: tuple[ReconSetting, ...]
+    sim: tuple[int, int, int]         # particles, kernel rays, reference rays per particle
+    csr_grid: tuple[int, int, int]    # grid of the stored-matrix comparison
+    skip_iterations: int
+    skip_particles: int
+    piv_shape: tuple[int, int, int]
+    piv: tuple[tuple[str, dict], ...]
+    openpiv: tuple[tuple[int, int], ...]   # (window, overlap) voxels
+    scale_voxels: tuple[tuple[int, int, int], ...]
+    scale_lenses: tuple[int, ...]          # square arrays of 17 px lenses
+    scale_particles: tuple[int, ...]
+    scale_rays: int
+    scale_iterations: tuple[int, ...]
+    paper: bool = False
+
+
+def _sizes() -> dict[str, BenchSize]:
+    """The report sizes (``test`` is internal: a tiny camera, for the test suite)."""
+    ci = BenchSize(
+        name="ci", repeats=3, heavy_repeats=2, camera="synthetic", grid=_CUBE,
+        box=((-2.3, 2.3),) * 3, counts=(30,), rays=20000, recon=_RECON_CI,
+        sim=(200, 20000, 2000), csr_grid=(10, 20, 20), skip_iterations=20,
+        skip_particles=40, piv_shape=(48, 48, 48), piv=_PIV_SETTINGS, openpiv=((24, 12),),
+        scale_voxels=((8, 16, 16), (16, 32, 32), (32, 64, 64)), scale_lenses=(25, 50, 100),
+        scale_particles=(100, 1000, 10000), scale_rays=500, scale_iterations=(2, 4, 8, 16))
+    small = dataclasses.replace(
+        ci, name="small", repeats=5, heavy_repeats=3, counts=(20, 60, 150),
+        recon=_RECON_SMALL, csr_grid=(20, 40, 40), skip_iterations=30,
+        piv_shape=(96, 96, 96), openpiv=((32, 16), (24, 18)),
+        scale_voxels=((8, 16, 16), (16, 32, 32), (32, 64, 64), (64, 128, 128)),
+        scale_lenses=(25, 50, 100, 200), scale_particles=(100, 1000, 10000, 50000),
+        scale_rays=1000, scale_iterations=(4, 8, 16, 32, 64))
+    test = BenchSize(
+        name="test", repeats=2, heavy_repeats=1, camera="tiny",
+        grid=Grid((6, 10, 10), x=(-0.6, 0.6), y=(-0.6, 0.6), z=(-0.6, 0.6)),
+        box=((-0.5, 0.5),) * 3, counts=(6,), rays=2000, recon=_RECON_TEST,
+        sim=(20, 1000, 200), csr_grid=(3, 6, 6), skip_iterations=4, skip_particles=8,
+        piv_shape=(32, 32, 32), piv=_PIV_TEST, openpiv=((16, 8),),
+        scale_voxels=((3, 6, 6), (6, 12, 12)), scale_lenses=(12, 16),
+        scale_particles=(10, 40), scale_rays=200, scale_iterations=(1, 2, 4))
+    paper = dataclasses.replace(small, name="paper", paper=True)
+    return {"ci": ci, "small": small, "paper": paper, "test": test}
+
+
+def camera_for(name: str, lenses: int | None = None) -> Camera:
+    """The benchmark cameras: ``"synthetic"`` (the paper's 850 x 850 px), ``"tiny"`` (12 x 12
+    lenses) or, with ``lenses``, a square array of that many 17 px lenses (M = 1, f/2)."""
+    if lenses is None:
+        lenses = {"synthetic": 50, "tiny": 12}[name]
+    return Camera(50.0, 2.0, 1.0, 0.125, 0.5, (lenses, lenses), 0.0074, (17 * lenses,) * 2)
+
+
+# ---- run state, timing, tables --------------------------------------------------------
+@dataclass
+class _Run:
+    """The state one report run shares between its sections."""
+
+    cfg: BenchSize
+    queue: object
+    out: Path
+    log: Callable[..., None]
+    repeats: int
+    heavy: int
+    notes: list[str] = field(default_factory=list)
+    csr: tuple[float, float] | None = None  # CSR weights/s (forward + back), bytes per weight
+
+    @property
+    def camera(self) -> Camera:
+        """The camera of the report size's scenes."""
+        return camera_for(self.cfg.camera)
+
+
+def timed(fn: Callable[[], object], repeats: int) -> tuple[object, float]:
+    """The result of the last of ``repeats`` calls of ``fn()`` and their median wall time.
+
+    No warm-up call: callers warm up with a cheaper call of the same setting (one
+    iteration), as these runs are long.
+    """
+    times, out = [], None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return out, statistics.median(times)
+
+
+def host_peak_bytes(fn: Callable[[], object]) -> int:
+    """Peak host memory (bytes, ``tracemalloc``) newly allocated during one call of ``fn()``."""
+    tracemalloc.start()
+    try:
+        fn()
+        return int(tracemalloc.get_traced_memory()[1])
+    finally:
+        tracemalloc.stop()
+
+
+def md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """A GitHub-flavoured Markdown table (cells as given, ``str()``-ed)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def pareto_front(cost, score, higher_is_better: bool = True) -> np.ndarray:
+    """Which points no other point dominates (lower ``cost`` and better ``score``).
+
+    A point is dominated when another costs no more and scores no worse, and is strictly
+    better in one of the two. Points with a non-finite cost or score are never on the
+    front.
+
+    Parameters
+    ----------
+    cost
+        Cost per point (e.g. run time), lower is better.
+    score
+        Quality per point (e.g. recovery, or an error with ``higher_is_better=False``).
+    higher_is_better
+        Whether a larger ``score`` is better.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean mask, ``True`` on the front.
+    """
+    c = np.asarray(cost, float)
+    s = np.asarray(score, float) * (1.0 if higher_is_better else -1.0)
+    ok = np.isfinite(c) & np.isfinite(s)
+    front = np.zeros(c.shape, bool)
+    for i in np.flatnonzero(ok):
+        better = (c < c[i]) | (s > s[i])
+        front[i] = not np.any(ok & (c <= c[i]) & (s >= s[i]) & better)
+    return front
+
+
+def loglog_slope(n, y) -> float:
+    """Least-squares slope of ``log y`` against ``log n`` (NaN with fewer than 2 points)."""
+    n, y = np.asarray(n, float), np.asarray(y, float)
+    ok = (n > 0) & (y > 0) & np.isfinite(y)
+    if ok.sum() < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(n[ok]), np.log(y[ok]), 1)[0])
+
+
+def _reshaped(grid: Grid, shape: tuple[int, int, int]) -> Grid:
+    """The same volume as ``grid`` on ``shape`` voxels."""
+    return Grid(shape, x=grid.x, y=grid.y, z=grid.z)
+
+
+def _runs(n: int) -> str:
+    return "1 run" if n == 1 else f"{n} runs"
+
+
+def _mib(nbytes: float) -> str:
+    return f"{nbytes / 2**20:.2f}"
+
+
+def _scene(run: _Run, count: int, seed: int, box: Box | None = None):
+    """Particles (mm, intensities) in ``box`` and their noise-free raw image."""
+    pos, inten = random_particles(box or run.cfg.box, count=count, seed=seed, intensity=1e4)
+    img = Simulator(run.camera, run.queue).trace(pos, inten, run.cfg.rays, seed=seed)
+    return pos, inten, img
