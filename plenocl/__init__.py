@@ -6,6 +6,7 @@ from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices,
 from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
+from .piv import PIVResult, piv3d
 from .projector import Projector
 from .reconstruct import reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
@@ -19,12 +20,14 @@ __all__ = [
     "Grid",
     "LightField",
     "NoOpenCLError",
+    "PIVResult",
     "Projector",
     "Simulator",
     "calibrate",
     "create_context",
     "describe_devices",
     "get_queue",
+    "piv3d",
     "random_particles",
     "reconstruct",
     "simulate_image",

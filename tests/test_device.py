@@ -67,3 +67,14 @@ def test_kernels_found_from_installed_package_and_from_checkout():
                           "import plenocl.program as p; print(p.kernel_dir())"],
                          cwd=checkout, env=env, capture_output=True, text=True, check=True)
     assert Path(out.stdout.strip()) == checkout / "kernels"
+
+
+def test_design_public_api_names_exist():
+    """DESIGN §9: the names tests and users rely on, at the top level."""
+    for name in ("Camera", "Grid", "simulate_image", "simulate_white_image", "calibrate",
+                 "Projector", "reconstruct", "piv3d"):
+        assert callable(getattr(plenocl, name)), name
+    for method in ("from_toml", "to_toml"):
+        assert callable(getattr(plenocl.Camera, method))
+    for method in ("forward", "back", "voxel_weights"):
+        assert callable(getattr(plenocl.Projector, method))
