@@ -87,6 +87,16 @@ def prepare_image(image, camera) -> tuple[np.ndarray, float]:
     return (img / scale).astype(np.float32), scale
 
 
+def _start_volume(start: np.ndarray, grid) -> np.ndarray:
+    """A user-supplied first guess, checked: the grid's shape, finite, non-negative."""
+    if start.shape != grid.shape:
+        raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
+                         f"{grid.shape} (nz, ny, nx)")
+    if not np.all(np.isfinite(start)) or start.min() < 0:
+        raise ValueError("start volume must be finite and non-negative")
+    return start.astype(np.float32)
+
+
 def subtract_background(image) -> tuple[np.ndarray, float]:
     """Remove a camera's dark level and estimate its noise, robustly.
 
@@ -203,8 +213,11 @@ class Solver:
                   np.float32(floor), dark.data, logimg.data)
         return dark, logimg
 
-    def start(self, img, kind: str, threshold: float):
-        """First guess: ``"uniform"`` (scaled to the image's total) or ``"mlos"``."""
+    def start(self, img, kind, threshold: float, scale: float = 1.0):
+        """First guess: ``"uniform"`` (scaled to the image's total), ``"mlos"``, or a
+        volume array in image units (divided by ``scale``, the image's scaling)."""
+        if isinstance(kind, np.ndarray):
+            return self.proj.volume_to_device(_start_volume(kind, self.proj.grid) / scale)
         vol = self.proj.empty_volume()
         if kind == "uniform":
             for v in vol:
@@ -218,7 +231,7 @@ class Solver:
             for v, bb, s in zip(vol, b, self.sens):
                 self._run("mlos", v.size, v.data, bb.data, s.data, self.smin)
         else:
-            raise ValueError(f"start must be 'uniform' or 'mlos', got {kind!r}")
+            raise ValueError(f"start must be 'uniform', 'mlos' or a volume array, got {kind!r}")
         return vol
 
     def mask(self, vol, img, threshold: float, fraction: float) -> None:
@@ -253,7 +266,7 @@ class Solver:
 
 
 def reconstruct(image, projector, method: str = "mlem", iterations: int | None = None,
-                relax: float | None = None, *, start: str = "uniform", threshold: float = 0.0,
+                relax: float | None = None, *, start="uniform", threshold: float = 0.0,
                 mask_fraction: float | None = None, min_sensitivity: float = 0.5,
                 skip_empty: bool = True, tol: float | None = None, mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
@@ -273,8 +286,10 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         Iterations and relaxation ``0 < μ <= 1``; defaults per method in :data:`DEFAULTS`
         (MART: the paper's 15 at μ = 0.7).
     start
-        ``"uniform"`` (constant, scaled so its projection carries the image's intensity)
-        or ``"mlos"`` (weighted geometric mean of the pixels each voxel reaches).
+        ``"uniform"`` (constant, scaled so its projection carries the image's intensity),
+        ``"mlos"`` (weighted geometric mean of the pixels each voxel reaches), or a volume
+        ``(nz, ny, nx)`` in image units: a previous frame's reconstruction, or an
+        upsampled coarse one (its zero voxels stay zero).
     threshold
         Pixels at or below ``threshold`` (same units as ``image``) count as dark (zero).
     mask_fraction
@@ -318,7 +333,7 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
     thr = float(threshold) / scale
     solver = Solver(projector, min_sensitivity)
     img = cla.to_device(solver.queue, img_np)
-    vol = solver.start(img, start, thr)
+    vol = solver.start(img, start, thr, scale)
     if mask_fraction is not None:
         solver.mask(vol, img, thr, mask_fraction)
     blocks = None

@@ -128,3 +128,17 @@ def test_skipping_empty_slices_changes_nothing_but_work(paper_case, queue):
     slow, _ = reconstruct(img, proj, skip_empty=False, **kw)
     np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-6 * slow.max())
     assert info.active_slices[-1] < CUBE.shape[0]  # slices really were skipped
+
+
+def test_array_start_continues_a_reconstruction(paper_case):
+    """A volume start picks up where a reconstruction stopped: 10 + 10 iterations equal 20
+    (MLEM is a fixed-point iteration), in image units."""
+    _, proj, _, _, img = paper_case
+    ten = reconstruct(img, proj, iterations=10)
+    twenty = reconstruct(img, proj, iterations=20)
+    resumed = reconstruct(img, proj, iterations=10, start=ten)
+    np.testing.assert_allclose(resumed, twenty, rtol=1e-3, atol=1e-4 * twenty.max())
+    with pytest.raises(ValueError, match="expected the grid's"):
+        reconstruct(img, proj, iterations=1, start=ten[:-1])
+    with pytest.raises(ValueError, match="finite and non-negative"):
+        reconstruct(img, proj, iterations=1, start=-ten)
