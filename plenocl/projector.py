@@ -248,6 +248,9 @@ class Projector:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         _check_grid(camera, grid)
         self.camera, self.grid, self.method = camera, grid, method
+        self._options = dict(oversample=oversample, shear_tol=shear_tol, method=method,
+                             max_alloc_bytes=max_alloc_bytes, scratch_bytes=scratch_bytes,
+                             vector_width=vector_width, segment=segment)
         self.queue = get_queue(queue)
         self.aperture = ApertureGrid.for_camera(camera, oversample)
         self.lens_map = lens_index_map(camera, shear_tol)
@@ -565,6 +568,20 @@ class Projector:
                   wts, self._d["coef"], self._d["ij"], self._d["rnd"], self._d["frac"], nkx, nky,
                   *self._pixel_args(), i32(ns), self._ic, self._dug, self._scale)
         return idx.get(), wts.get()
+
+    def cropped(self, box: tuple[slice, slice, slice]) -> Projector:
+        """A projector for the sub-grid ``vol[box]`` (same camera, queue and options).
+
+        Weights depend only on each voxel's centre, so the sub-projector's are exactly the
+        full projector's for those voxels.
+        """
+        (z, y, x), g = box, self.grid
+        dz, dy, dx = g.spacing
+        sub = Grid((z.stop - z.start, y.stop - y.start, x.stop - x.start),
+                   x=(g.x[0] + x.start * dx, g.x[0] + x.stop * dx),
+                   y=(g.y[0] + y.start * dy, g.y[0] + y.stop * dy),
+                   z=(g.z[0] + z.start * dz, g.z[0] + z.stop * dz))
+        return Projector(self.camera, sub, self.queue, **self._options)
 
     def voxel_weights(self, iz: int, iy: int, ix: int) -> tuple[np.ndarray, np.ndarray]:
         """One voxel's column of the weight matrix, computed by a kernel.

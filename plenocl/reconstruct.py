@@ -53,6 +53,7 @@ class ReconstructionInfo:
     seconds: float = 0.0
     active_fraction: float = 1.0
     active_slices: list[int] = field(default_factory=list)
+    cropped_shape: tuple[int, int, int] | None = None
 
 
 #: Largest image value accepted: the volume (in image units) must stay finite in float32.
@@ -95,6 +96,60 @@ def _start_volume(start: np.ndarray, grid) -> np.ndarray:
     if not np.all(np.isfinite(start)) or start.min() < 0:
         raise ValueError("start volume must be finite and non-negative")
     return start.astype(np.float32)
+
+
+#: Crop when the non-zero voxels' bounding box holds at most this fraction of the grid.
+CROP_BELOW = 0.8
+
+
+def _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_blocks,
+             iterations, skip_empty, crop, tol, callback, norm) -> np.ndarray:
+    """The iterations of :func:`reconstruct`; returns the host volume on the full grid."""
+    proj, box = projector, None
+    for it in range(iterations):
+        if crop and it == 1:
+            proj, solver, vol, box = _crop(proj, solver, vol, CROP_BELOW)
+            info.cropped_shape = proj.grid.shape if box else None
+        active = solver.active_slices(vol) if skip_empty else None
+        if active is not None:
+            info.active_slices.append(int(active.sum()))
+        resid = solver.step(vol, img, method, relax, thr, blocks, n_blocks, active) / norm
+        info.residuals.append(resid)
+        info.iterations = it + 1
+        if callback is not None and callback(it + 1, resid) is False:
+            break
+        if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
+            info.converged = True
+            break
+    if box is None:
+        return proj.volume_to_host(vol)
+    full = np.zeros(projector.grid.shape, np.float32)
+    full[box] = proj.volume_to_host(vol)
+    return full
+
+
+def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
+    """The bounding box of a volume's non-zero voxels (``None`` when all are zero)."""
+    nz = np.nonzero(vol)
+    if not len(nz[0]):
+        return None
+    return tuple(slice(int(a.min()), int(a.max()) + 1) for a in nz)
+
+
+def _crop(projector, solver: Solver, vol, crop_below: float):
+    """Continue on the bounding box of the non-zero voxels when it is small enough.
+
+    Returns ``(projector, solver, vol, box)``; ``box`` is ``None`` when nothing changes.
+    """
+    if not hasattr(projector, "cropped"):
+        return projector, solver, vol, None
+    host = projector.volume_to_host(vol)
+    box = nonzero_box(host)
+    if box is None or host[box].size > crop_below * host.size:
+        return projector, solver, vol, None
+    sub = projector.cropped(box)
+    new_solver = Solver(sub, float(solver.smin))
+    return sub, new_solver, sub.volume_to_device(np.ascontiguousarray(host[box])), box
 
 
 def subtract_background(image) -> tuple[np.ndarray, float]:
@@ -268,7 +323,8 @@ class Solver:
 def reconstruct(image, projector, method: str = "mlem", iterations: int | None = None,
                 relax: float | None = None, *, start="uniform", threshold: float = 0.0,
                 mask_fraction: float | None = None, min_sensitivity: float = 0.5,
-                skip_empty: bool = True, tol: float | None = None, mart_blocks: int = 2,
+                skip_empty: bool = True, crop: bool = True, tol: float | None = None,
+                mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
                 return_info: bool = False):
     """Reconstruct a particle volume from one raw plenoptic image.
@@ -303,6 +359,10 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         Active-slice compaction: before every iteration, depth slices with no non-zero
         voxel (after masking, or emptied by the updates) are left out of both
         projections. Exact: multiplicative updates never revive a zero voxel.
+    crop
+        Automatic cropping to the illuminated region: after the first iteration, when the
+        non-zero voxels fill a bounding box of at most 80 % of the grid, the remaining
+        iterations run on that box (exact, like ``skip_empty``; ``info.cropped_shape``).
     tol
         Stop early when the relative residual changes by less than ``tol``.
     mart_blocks
@@ -340,20 +400,10 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
     if method == "mart" and mart_blocks > 1:
         blocks = cla.to_device(solver.queue, view_blocks(projector.camera, mart_blocks))
     n_blocks = mart_blocks**2 if blocks is not None else 1
-    norm = float(np.linalg.norm(img_np))
-    for it in range(iterations):
-        active = solver.active_slices(vol) if skip_empty else None
-        if active is not None:
-            info.active_slices.append(int(active.sum()))
-        resid = solver.step(vol, img, method, relax, thr, blocks, n_blocks, active) / norm
-        info.residuals.append(resid)
-        info.iterations = it + 1
-        if callback is not None and callback(it + 1, resid) is False:
-            break
-        if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
-            info.converged = True
-            break
-    out = projector.volume_to_host(vol) * np.float32(scale)
+    vol = _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_blocks,
+                   iterations, skip_empty, crop, tol, callback,
+                   float(np.linalg.norm(img_np)))
+    out = vol * np.float32(scale)
     info.active_fraction = float(np.count_nonzero(out)) / out.size
     info.seconds = time.perf_counter() - t0
     return (out, info) if return_info else out

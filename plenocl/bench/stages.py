@@ -254,21 +254,26 @@ def _paper_reconstruction(run: _Run) -> str:
 
 
 # ---- skipping -------------------------------------------------------------------------
+_OFF = {"skip_empty": False, "crop": False}
 _SKIP_FEATURES: tuple[tuple[str, dict], ...] = (
-    ("none (baseline)", {"skip_empty": False}),
-    ("active slices", {}),
-    ("masking 0.5", {"skip_empty": False, "mask_fraction": 0.5}),
-    ("masking 0.5 + active slices", {"mask_fraction": 0.5}),
-    ("early stop tol 1e-3", {"skip_empty": False, "tol": 1e-3}),
-    ("all three", {"mask_fraction": 0.5, "tol": 1e-3}),
+    ("none (baseline)", _OFF),
+    ("active slices", {"crop": False}),
+    ("crop to the lit region", {"skip_empty": False}),
+    ("masking 0.5", {**_OFF, "mask_fraction": 0.5}),
+    ("masking 0.5 + active slices", {"crop": False, "mask_fraction": 0.5}),
+    ("early stop tol 1e-3", {**_OFF, "tol": 1e-3}),
+    ("defaults (slices + crop) + tol 1e-3", {"tol": 1e-3}),
 )
 
 
 def _skip_scenes(run: _Run) -> dict[str, Box]:
-    """A light sheet (the middle fifth of the seeded depth) and the full seeded cube."""
+    """A light sheet (the middle fifth of the seeded depth), a lateral quarter (particles
+    in one corner of the field of view) and the full seeded cube."""
     (x, y, (z0, z1)) = run.cfg.box
     mid, half = 0.5 * (z0 + z1), 0.1 * (z1 - z0)
+    corner = ((x[0], 0.5 * (x[0] + x[1])), (0.5 * (y[0] + y[1]), y[1]), (z0, z1))
     return {f"light sheet {2 * half:g} mm deep": (x, y, (mid - half, mid + half)),
+            "lateral quarter": corner,
             f"full cube {z1 - z0:g} mm deep": run.cfg.box}
 
 
