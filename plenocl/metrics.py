@@ -13,8 +13,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
-from scipy.special import erf
 
+from .correlation import gaussian_subpixel
 from .grid import Grid
 
 
@@ -29,42 +29,12 @@ def quality_q(vol: np.ndarray, truth: np.ndarray) -> float:
 
 def render_particles(grid: Grid, positions, intensities=1.0, sigma_vox: float = 0.6
                      ) -> np.ndarray:
-    """The true volume: Gaussian particles integrated over each voxel (erf), float32."""
-    idx = grid.to_index(positions)  # (ix, iy, iz) fractional
-    inten = np.broadcast_to(np.asarray(intensities, float), (len(idx),))
-    vol = np.zeros(grid.shape, np.float64)
-    r = int(np.ceil(3 * sigma_vox)) + 1
-    s = np.sqrt(2) * sigma_vox
-    for p, w in zip(idx, inten):
-        lo = np.floor(p).astype(int) - r + 1
-        axes = [np.arange(lo[k], lo[k] + 2 * r) for k in range(3)]
-        prof = [0.5 * (erf((a + 0.5 - p[k]) / s) - erf((a - 0.5 - p[k]) / s))
-                for k, a in enumerate(axes)]
-        block = w * prof[2][:, None, None] * prof[1][None, :, None] * prof[0][None, None, :]
-        _add_clipped(vol, block, (lo[2], lo[1], lo[0]))
-    return vol.astype(np.float32)
+    """The true volume: Gaussian particles integrated over each voxel (erf), float32; each
+    particle's voxels sum to its intensity (``plenocl.flows.render_particles`` in mm)."""
+    from .flows import render_particles as render_voxels
 
-
-def _add_clipped(vol: np.ndarray, block: np.ndarray, origin) -> None:
-    src, dst = [], []
-    for n, o, b in zip(vol.shape, origin, block.shape):
-        a0, a1 = max(o, 0), min(o + b, n)
-        if a1 <= a0:
-            return
-        dst.append(slice(a0, a1))
-        src.append(slice(a0 - o, a1 - o))
-    vol[tuple(dst)] += block[tuple(src)]
-
-
-def _fit3(m: np.ndarray, c: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Three-point Gaussian sub-voxel offset (parabolic where a value is not positive)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lm, lc, lp = np.log(m), np.log(c), np.log(p)
-        gauss = 0.5 * (lm - lp) / (lm - 2 * lc + lp)
-        para = 0.5 * (m - p) / (m - 2 * c + p)
-    ok = (m > 0) & (p > 0) & np.isfinite(gauss)
-    off = np.where(ok, gauss, np.where(np.isfinite(para), para, 0.0))
-    return np.clip(off, -0.5, 0.5)
+    per_peak = np.asarray(intensities, float) / (2 * np.pi * sigma_vox**2) ** 1.5
+    return render_voxels(grid.shape, grid.to_index(positions), per_peak, sigma_vox)
 
 
 def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int = 1
@@ -93,7 +63,7 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
         centre = (iz + 1, iy + 1, ix + 1)
         minus = pad[tuple(c - s for c, s in zip(centre, step))]
         plus = pad[tuple(c + s for c, s in zip(centre, step))]
-        out[:, k] = pos[k] + _fit3(minus, vals, plus)
+        out[:, k] = pos[k] + gaussian_subpixel(minus, vals, plus)
     order = np.argsort(-vals)
     return out[order], vals[order]
 
