@@ -19,33 +19,11 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from plenocl import Camera, Grid, get_queue
+from plenocl.bench.stages import device_pair, projector_bytes
 from plenocl.device import device_info
 from plenocl.projector import Projector, i32
 from plenocl.sparse import matrix_bytes, weight_matrix
 from plenocl.timing import median_time
-
-
-def projector_bytes(proj: Projector) -> int:
-    """Device memory the projector itself holds: tables and scratch buffers."""
-    bufs = list(proj._d.values()) + list(proj._scratch.values())
-    return sum(b.nbytes for b in bufs)
-
-
-def device_pair(proj: Projector, vol: np.ndarray):
-    """Device-resident forward and back callables (as the solver uses them)."""
-    slabs = proj.volume_to_device(vol)
-    img = proj.empty_image()
-    out = proj.empty_volume()
-
-    def fwd():
-        proj.forward_device(slabs, img)
-        proj.queue.finish()
-
-    def back():
-        proj.back_device(img, out)
-        proj.queue.finish()
-
-    return fwd, back, img, out
 
 
 def back_with_atomic_scatter(proj: Projector, image: cl_array.Array, slabs) -> None:
@@ -83,7 +61,8 @@ def stored_comparison(queue, repeats: int, direct: bool) -> None:
     rng = np.random.default_rng(0)
     vol = rng.random(grid.shape, dtype=np.float32)
     img_h = rng.random(proj.image_shape, dtype=np.float32)
-    fwd, back, img, out = device_pair(proj, vol)
+    fwd, back, _ = device_pair(proj, vol)
+    img, out = proj.forward_device(proj.volume_to_device(vol)), proj.empty_volume()
     err_f = np.abs(a @ vol.ravel() - proj.forward(vol).ravel()).max() / (a @ vol.ravel()).max()
     ref_b = a.T @ img_h.ravel()
     err_b = np.abs(ref_b - proj.back(img_h).ravel()).max() / ref_b.max()
@@ -114,7 +93,7 @@ def stored_comparison(queue, repeats: int, direct: bool) -> None:
     row("back with atomic-scatter back_y (not kept)", a.nnz, t_bs)
     if direct:
         dproj = Projector(cam, grid, queue, method="direct")
-        dfwd, dback, _, _ = device_pair(dproj, vol)
+        dfwd, dback, _ = device_pair(dproj, vol)
         row("direct forward: 16 atomic adds/sample/voxel", a.nnz, median_time(dfwd, repeats))
         row("direct back: 16-product gather per voxel", a.nnz, median_time(dback, repeats))
 
@@ -126,7 +105,7 @@ def paper_experiment(queue, repeats: int) -> None:
     rng = np.random.default_rng(1)
     sample = np.column_stack([rng.integers(0, n, 300) for n in grid.shape])
     nnz = np.mean([len(proj.voxel_weights(*v)[0]) for v in sample]) * grid.size
-    fwd, back, _, _ = device_pair(proj, rng.random(grid.shape, dtype=np.float32))
+    fwd, back, _ = device_pair(proj, rng.random(grid.shape, dtype=np.float32))
     t_f, t_b = median_time(fwd, repeats), median_time(back, repeats)
     print(f"paper experiment: {cam.pixels[0]} x {cam.pixels[1]} px, {cam.ml_count[0]} x "
           f"{cam.ml_count[1]} lenses, grid {grid.shape} over 55 x 35 x 20 mm "
@@ -139,27 +118,23 @@ def paper_experiment(queue, repeats: int) -> None:
     print(f"  one forward + back: {t_f + t_b:.2f} s")
 
 
-def rotated_array(queue, repeats: int, depth: int) -> None:
-    """The general path: the paper camera with its array rotated by 0.2 degrees.
-
-    Timed on ``depth`` and ``2 depth`` slices of the paper grid and extrapolated linearly
-    to its 150 (the light-field to image stages are a fixed cost per projection).
-    """
-    cam = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (289, 193), 0.0074, (4904, 3280),
-                 ml_rotation_deg=0.2)
-    totals = []
-    for nz in (depth, 2 * depth):
-        grid = Grid((nz, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5),
-                    z=(-10.0, -10.0 + 20.0 * nz / 150))
+def rotated_array(queue, repeats: int) -> None:
+    """The general path: the paper experiment with its array rotated by 0.2 degrees,
+    against the same grid with an axis-aligned array (separable path), in the same run."""
+    grid = Grid((150, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5), z=(-10.0, 10.0))
+    vol = np.random.default_rng(2).random(grid.shape, np.float32)
+    totals = {}
+    for rotation in (0.0, 0.2):
+        cam = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (289, 193), 0.0074, (4904, 3280),
+                     ml_rotation_deg=rotation)
         proj = Projector(cam, grid, queue)
-        fwd, back, _, _ = device_pair(proj, np.random.default_rng(2).random(grid.shape,
-                                                                             np.float32))
+        fwd, back, _ = device_pair(proj, vol)
         t_f, t_b = median_time(fwd, repeats), median_time(back, repeats)
-        totals.append(t_f + t_b)
-        print(f"rotated array (0.2 deg, {proj.path} path), paper camera, {nz} of the 150 depth "
-              f"slices, medians of {repeats}: forward {t_f:.2f} s, back {t_b:.2f} s")
-    full = totals[0] + (totals[1] - totals[0]) * (150 - depth) / depth
-    print(f"  extrapolated to the full 150-slice grid: about {full:.0f} s per forward + back")
+        totals[proj.path] = t_f + t_b
+        print(f"array rotated {rotation:g} deg ({proj.path} path), paper experiment, medians of "
+              f"{repeats}: forward {t_f:.2f} s, back {t_b:.2f} s, forward + back {t_f + t_b:.2f} s")
+    print(f"  the general path costs {totals['general'] / totals['separable']:.1f}x the "
+          "separable one")
 
 
 def main() -> None:
@@ -168,8 +143,8 @@ def main() -> None:
     parser.add_argument("--paper-repeats", type=int, default=3)
     parser.add_argument("--skip-paper", action="store_true")
     parser.add_argument("--skip-direct", action="store_true")
-    parser.add_argument("--rotated-depth", type=int, default=10,
-                        help="depth slices for the rotated-array (general path) figure; 0 skips")
+    parser.add_argument("--skip-rotated", action="store_true",
+                        help="skip the rotated-array (general path) figure")
     args = parser.parse_args()
     queue = get_queue()
     info = device_info(queue)
@@ -178,8 +153,8 @@ def main() -> None:
     stored_comparison(queue, args.repeats, not args.skip_direct)
     if not args.skip_paper:
         paper_experiment(queue, args.paper_repeats)
-    if args.rotated_depth:
-        rotated_array(queue, args.paper_repeats, args.rotated_depth)
+    if not args.skip_rotated:
+        rotated_array(queue, args.paper_repeats)
     print(f"load average at end {os.getloadavg()[0]:.2f}")
 
 
