@@ -53,11 +53,12 @@ __kernel void fwd_x(__global const float *restrict vol, __global float *restrict
  * samples (kept in cache) and reads each T row once per depth for all of them. */
 __kernel void fwd_y(__global const float *restrict T, __global float *restrict L,
                     __global const float *restrict coef, __global const int *restrict col_lo,
-                    __global const int *restrict col_off,
+                    __global const int *restrict col_off, __global const uchar *restrict rows_lit,
                     int ny, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic, int s0,
                     int nsc, float ic, int accumulate)
 {
     const int t = get_global_id(0), ky = get_global_id(1), il = get_global_id(2);
+    if (!rows_lit[ky]) return;  /* no listed lens: fwd_pix never reads this row */
     const int i = i0 + il, lo = col_lo[i], hi = n - 1 - lo;
     const size_t off = (size_t)t * seg * PL_VW;
     __global float *rows = L + ((size_t)ky * nsc + col_off[i] - s0) * nkxp + off;
@@ -133,69 +134,60 @@ __kernel void fwd_gen(__global const float *restrict vol, __global float *restri
     }
 }
 
-/* ---- forward, P: image (+)= scale * L of the lenses of colour class (cx, cy), race-free */
+/* ---- forward, P: image (+)= scale * L of the listed lenses lens_ids[id0 + g] of one
+ * colour class (lenses cs apart never share a pixel: race-free). Listing only the lenses
+ * that see light (plenocl/lenses.py) skips the dark ones. */
 __kernel void fwd_pix(__global const float *restrict L, __global float *restrict image,
+                      __global const int *restrict lens_ids, int id0,
                       __global const int2 *restrict lens_rnd,
                       __global const float2 *restrict lens_frac,
                       __global const int2 *restrict sample_ij,
-                      int width, int height, int nkx, int nky, int nkxp, int cs, int cx, int cy,
-                      int s0, int ns, float ic, float dug, float scale)
+                      int width, int height, int nkx, int nkxp, int s0, int ns, float ic,
+                      float dug, float scale)
 {
-    const int kx = cx + cs * get_global_id(0), ky = cy + cs * get_global_id(1);
-    if (kx >= nkx || ky >= nky) return;
-    const int2 r = lens_rnd[ky * nkx + kx];
-    if (r.x == PL_NO_LENS) return;
-    const float2 f = lens_frac[ky * nkx + kx];
+    const int k = lens_ids[id0 + get_global_id(0)];
+    const int ky = k / nkx, kx = k - ky * nkx;
+    const int2 r = lens_rnd[k];
+    const float2 f = lens_frac[k];
     __global const float *src = L + (size_t)ky * ns * nkxp + kx;
     for (int sl = 0; sl < ns; ++sl) {
         const float val = src[(size_t)sl * nkxp] * scale;
         if (val == 0.0f) continue;
         const int2 ij = sample_ij[s0 + sl];
-        const float fc = pl_pixel_frac(f.x, (float)ij.x - ic, dug);
-        const float fr = pl_pixel_frac(f.y, (float)ij.y - ic, dug);
-        const int c0 = pl_floori(fc), r0 = pl_floori(fr);
-        const float tc = fc - (float)c0, tr = fr - (float)r0;
-        const int col = r.x + c0, row = r.y + r0;
-        for (int b = 0; b < 4; ++b) {
-            const int cc = col + (b & 1), rr = row + (b >> 1);
-            if (cc < 0 || cc >= width || rr < 0 || rr >= height) continue;
-            const float wp = ((b & 1) ? tc : 1.0f - tc) * ((b >> 1) ? tr : 1.0f - tr);
-            image[rr * width + cc] += wp * val;
-        }
+        int idx[4];
+        float w[4];
+        pl_pixel_taps(r, f, (float)ij.x - ic, (float)ij.y - ic, dug, width, height, idx, w);
+        for (int b = 0; b < 4; ++b)
+            if (idx[b] >= 0) image[idx[b]] += w[b] * val;
     }
 }
 
-/* ---- back, P^T: L[ky][sl][kx] = scale * sum of the 4 pixels of sample s behind lens k */
+/* ---- back, P^T: L[ky][sl][kx] = scale * sum of the 4 pixels of sample s behind lens k,
+ * for the listed lenses k = lens_ids[g0] and samples [g1 sps, (g1 + 1) sps). The light
+ * field is zeroed first: unlisted lenses (dark, missing, padding) stay 0. */
 __kernel void back_pix(__global const float *restrict image, __global float *restrict L,
+                       __global const int *restrict lens_ids,
                        __global const int2 *restrict lens_rnd,
                        __global const float2 *restrict lens_frac,
                        __global const int2 *restrict sample_ij,
-                       int width, int height, int nkx, int nkxp, int seg, int s0, float ic,
-                       float dug, float scale)
+                       int width, int height, int nkx, int nkxp, int s0, int nsc, int sps,
+                       float ic, float dug, float scale)
 {
-    const int t = get_global_id(0), ky = get_global_id(1), sl = get_global_id(2);
-    const int2 ij = sample_ij[s0 + sl];
-    const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
-    const int k0 = t * seg * PL_VW;
-    __global float *out = L + ((size_t)ky * get_global_size(2) + sl) * nkxp + k0;
-    for (int m = 0; m < seg * PL_VW; ++m) {
-        const int kx = k0 + m;
+    const int k = lens_ids[get_global_id(0)];
+    const int ky = k / nkx, kx = k - ky * nkx;
+    const int sa = get_global_id(1) * sps, sb = pl_mini(sa + sps, nsc);
+    const int2 r = lens_rnd[k];
+    const float2 f = lens_frac[k];
+    __global float *out = L + (size_t)ky * nsc * nkxp + kx;
+    for (int sl = sa; sl < sb; ++sl) {
+        const int2 ij = sample_ij[s0 + sl];
+        int idx[4];
+        float w[4];
+        pl_pixel_taps(r, f, (float)ij.x - ic, (float)ij.y - ic, dug, width, height, idx, w);
         float acc = 0.0f;
-        const int2 r = kx < nkx ? lens_rnd[ky * nkx + kx] : (int2)(PL_NO_LENS, 0);
-        if (r.x != PL_NO_LENS) {
-            const float2 f = lens_frac[ky * nkx + kx];
-            const float fc = pl_pixel_frac(f.x, bu, dug), fr = pl_pixel_frac(f.y, bv, dug);
-            const int c0 = pl_floori(fc), r0 = pl_floori(fr);
-            const float tc = fc - (float)c0, tr = fr - (float)r0;
-            const int col = r.x + c0, row = r.y + r0;
-            for (int b = 0; b < 4; ++b) {
-                const int cc = col + (b & 1), rr = row + (b >> 1);
-                if (cc < 0 || cc >= width || rr < 0 || rr >= height) continue;
-                const float wp = ((b & 1) ? tc : 1.0f - tc) * ((b >> 1) ? tr : 1.0f - tr);
-                acc += wp * image[rr * width + cc];
-            }
-        }
-        out[m] = acc * scale;
+        for (int b = 0; b < 4; ++b)
+            if (idx[b] >= 0) acc += w[b] * image[idx[b]];
+        out[(size_t)sl * nkxp] = acc * scale;
     }
 }
 
@@ -204,7 +196,7 @@ __kernel void back_pix(__global const float *restrict image, __global float *res
  * L rows it reads (near ky(iy)) stay in cache from one depth to the next. */
 __kernel void back_y(__global const float *restrict L, __global float *restrict T,
                      __global const float *restrict coef, __global const int *restrict col_lo,
-                     __global const int *restrict col_off,
+                     __global const int *restrict col_off, __global const uchar *restrict rows_lit,
                      int ny, int nky, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic,
                      int s0, int nsc, float ic)
 {
@@ -226,6 +218,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
             __global const float *src = col + (size_t)(j - lo) * nkxp;
             const int ka = pl_mini(pl_maxi(ky0, 0), nky - 1);
             const int kb = pl_mini(pl_maxi(ky0 + 1, 0), nky - 1);
+            if (!rows_lit[ka] && !rows_lit[kb]) continue;  /* both rows are zero */
             pl_axpy2(out, src + (size_t)ka * nsc * nkxp, src + (size_t)kb * nsc * nkxp, w0, w1,
                      seg);
         }

@@ -131,6 +131,25 @@ inline void pl_atomic_addf(volatile __global float *p, float q)
     } while (old != assumed);
 }
 
+/* The 4 bilinear pixel taps (paper §III.A step 3) of the aperture sample with offsets
+ * (bu, bv) behind a lens whose centre lies at rounded pixel r plus remainder f:
+ * flat pixel indices (-1 off the sensor or for a missing lens) and weights (0 there). */
+inline void pl_pixel_taps(int2 r, float2 f, float bu, float bv, float dug, int width,
+                          int height, int *idx, float *w)
+{
+    const float fc = pl_pixel_frac(f.x, bu, dug), fr = pl_pixel_frac(f.y, bv, dug);
+    const int c0 = pl_floori(fc), r0 = pl_floori(fr);
+    const float tc = fc - (float)c0, tr = fr - (float)r0;
+    for (int b = 0; b < 4; ++b) {
+        const int col = r.x + c0 + (b & 1), row = r.y + r0 + (b >> 1);
+        const float wp = ((b & 1) ? tc : 1.0f - tc) * ((b >> 1) ? tr : 1.0f - tr);
+        const int ok = r.x != PL_NO_LENS && col >= 0 && col < width && row >= 0
+                       && row < height;
+        idx[b] = ok ? row * width + col : -1;
+        w[b] = ok ? wp : 0.0f;
+    }
+}
+
 /* The 16 products (paper §III.A steps 2-3) of one aperture sample of a voxel whose
  * sample meets the array at fractional lens index p. idx[e] = -1 for lost products. */
 inline void pl_sample_products(float2 p, float bu, float bv,
@@ -149,17 +168,9 @@ inline void pl_sample_products(float2 p, float bu, float bv,
             r = lens_rnd[ky * nkx + kx];
             f = lens_frac[ky * nkx + kx];
         }
-        const float fc = pl_pixel_frac(f.x, bu, dug), fr = pl_pixel_frac(f.y, bv, dug);
-        const int c0 = pl_floori(fc), r0 = pl_floori(fr);
-        const float tc = fc - (float)c0, tr = fr - (float)r0;
-        for (int b = 0; b < 4; ++b) {
-            const int col = r.x + c0 + (b & 1), row = r.y + r0 + (b >> 1);
-            const float wp = ((b & 1) ? tc : 1.0f - tc) * ((b >> 1) ? tr : 1.0f - tr);
-            const int ok = r.x != PL_NO_LENS && col >= 0 && col < width && row >= 0
-                           && row < height;
-            idx[4 * a + b] = ok ? row * width + col : -1;
-            w[4 * a + b] = ok ? wl * wp : 0.0f;
-        }
+        pl_pixel_taps(r, f, bu, bv, dug, width, height, idx + 4 * a, w + 4 * a);
+        for (int b = 0; b < 4; ++b)
+            w[4 * a + b] *= wl;
     }
 }
 

@@ -32,6 +32,7 @@ import pyopencl.array as cl_array
 from .camera import Camera
 from .device import DeviceLike, check_fits, device_info, get_queue
 from .grid import Grid
+from .lenses import LensSet, lens_reach, lens_set, lit_lenses
 from .program import build_program, fetch_kernels
 from .reference.weights import (
     DEFAULT_OVERSAMPLE,
@@ -266,6 +267,7 @@ class Projector:
         self.plan = make_plan(grid, camera, self.aperture, self.nkxp, max_alloc, scratch_bytes,
                               method)
         self.colour_stride = colour_stride(camera, self.aperture)
+        self.lens_reach = lens_reach(self.aperture.center, float(self._dug))
         width, height = camera.pixels
         check_fits(self.queue, grid.nbytes + 4 * width * height + self.plan.scratch_bytes
                    + 16 * camera.ml_count[0] * camera.ml_count[1],
@@ -304,6 +306,8 @@ class Projector:
             "frac": cl_array.to_device(q, frac),
         }
         self._scratch: dict[str, cl_array.Array] = {}
+        self._rnd = rnd
+        self.all_lenses = self.lens_set(rnd[:, 0] != _NO_LENS)
 
     def _buffer(self, name: str, n: int) -> cl_array.Array:
         """A scratch buffer of at least ``n`` floats, kept between calls."""
@@ -361,16 +365,47 @@ class Projector:
         """An uninitialised device image."""
         return cl_array.empty(self.queue, self.image_shape, np.float32)
 
+    # ---- dark-microlens skipping ------------------------------------------------------
+    def lit_lenses(self, image: np.ndarray, threshold: float = 0.0) -> np.ndarray:
+        """Bool per lens (flat, row-major): does any pixel it can reach exceed
+        ``threshold``? Missing lenses are never lit (see :mod:`plenocl.lenses`)."""
+        img = np.asarray(image)
+        if img.shape != self.image_shape:
+            raise ValueError(f"image has shape {img.shape}, expected {self.image_shape}")
+        return lit_lenses(img, self._rnd, self.lens_reach, threshold) & (
+            self._rnd[:, 0] != _NO_LENS)
+
+    def lens_set(self, lit: np.ndarray) -> LensSet:
+        """The :class:`plenocl.lenses.LensSet` of the lenses flagged in ``lit`` (for the
+        ``lenses`` argument of :meth:`forward_device` and :meth:`back_device`)."""
+        lit = np.asarray(lit, bool).ravel()
+        if lit.size == self._rnd.shape[0]:
+            lit = lit & (self._rnd[:, 0] != _NO_LENS)
+        return lens_set(self.queue, lit, self.camera.ml_count, self.colour_stride)
+
+    def _lenses(self, lenses: LensSet | None) -> LensSet:
+        if lenses is None:
+            return self.all_lenses
+        if lenses.lit.size != self._rnd.shape[0]:
+            raise ValueError(f"the lens set has {lenses.lit.size} lenses, the camera "
+                             f"{self._rnd.shape[0]}")
+        return lenses
+
     # ---- device API -------------------------------------------------------------------
     def forward_device(self, vol: VolumeLike, out: cl_array.Array | None = None,
-                       active: np.ndarray | None = None) -> cl_array.Array:
+                       active: np.ndarray | None = None, lenses: LensSet | None = None
+                       ) -> cl_array.Array:
         """Forward projection of device slabs (or one device volume) into ``out``.
 
         Nothing is copied to the host; operations are enqueued on ``self.queue``.
-        ``active`` (bool per depth slice) skips slices known to be zero.
+        ``active`` (bool per depth slice) skips slices known to be zero. ``lenses`` (a
+        :meth:`lens_set`) projects onto those microlenses only: the image is exact at
+        every pixel they alone can reach (all lit pixels, for :meth:`lit_lenses`) and 0
+        behind the others.
         """
         slabs = self._as_slabs(vol)
         active = self._active(active)
+        lenses = self._lenses(lenses)
         out = self.empty_image() if out is None else out
         _check_device(out, self.image_shape, "out")
         if self.method == "direct":
@@ -379,22 +414,27 @@ class Projector:
                 self._direct("fwd_direct", slab, out, z0)
             return out
         out.fill(0.0)
-        if not active.any():
+        if not active.any() or not lenses.count:
             return out
         for i0, i1 in self.plan.columns:
-            light = self._fill_light_field(slabs, i0, i1, active)
-            self._light_to_image(light, out, i0, i1)
+            light = self._fill_light_field(slabs, i0, i1, active, lenses)
+            self._light_to_image(light, out, i0, i1, lenses)
         return out
 
     def back_device(self, image: cl_array.Array, out: VolumeLike | None = None,
-                    active: np.ndarray | None = None) -> list[cl_array.Array]:
+                    active: np.ndarray | None = None, lenses: LensSet | None = None
+                    ) -> list[cl_array.Array]:
         """Back projection of a device image into device slabs (returned).
 
         ``active`` (bool per depth slice) computes only those slices; the others are 0.
+        ``lenses`` (a :meth:`lens_set`) reads only the pixels of those microlenses: exact
+        for an image that is zero behind every other lens (a ratio image of the lit
+        lenses).
         """
         _check_device(image, self.image_shape, "image")
         slabs = self.empty_volume() if out is None else self._as_slabs(out)
         active = self._active(active)
+        lenses = self._lenses(lenses)
         for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
             for a, b in _runs(~active[z0:z1]):
                 slab[a:b].fill(0.0)
@@ -403,9 +443,9 @@ class Projector:
                 self._direct("back_direct", image, slab, z0)
             return slabs
         for n, (i0, i1) in enumerate(self.plan.columns):
-            light = self._image_to_light(image, i0, i1)
+            light = self._image_to_light(image, i0, i1, lenses)
             for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
-                self._light_to_slab(light, slab, z0, z1, i0, i1, n > 0, active)
+                self._light_to_slab(light, slab, z0, z1, i0, i1, n > 0, active, lenses)
         return slabs
 
     def _active(self, active: np.ndarray | None) -> np.ndarray:
@@ -451,8 +491,8 @@ class Projector:
         cols, rows = self.camera.ml_count
         return i32(cols), i32(rows), i32(self.nkxp)
 
-    def _fill_light_field(self, slabs, i0: int, i1: int, active: np.ndarray
-                          ) -> cl_array.Array:
+    def _fill_light_field(self, slabs, i0: int, i1: int, active: np.ndarray,
+                          lenses: LensSet) -> cl_array.Array:
         """``L[s] = S vol`` for the samples of aperture columns ``[i0, i1)`` (at least one
         slice is active)."""
         s0, s1 = self._sample_range(i0, i1)
@@ -474,23 +514,21 @@ class Projector:
                 self._run("fwd_x", (ny, nzc * nic), slab, t_buf, self._d["coef"], i32(nx),
                           i32(ny), nkx, nkxp, i32(z0), i32(zc), i32(i0), i32(nic), ic)
                 self._run("fwd_y", (self.nseg, nky, nic), t_buf, light, self._d["coef"],
-                          self._d["col_lo"], self._d["col_off"], i32(ny), nkxp, i32(self.seg),
-                          i32(self.aperture.n), i32(zc), i32(nzc), i32(i0), i32(nic), i32(s0),
-                          i32(s1 - s0), ic, acc)
+                          self._d["col_lo"], self._d["col_off"], lenses.rows, i32(ny), nkxp,
+                          i32(self.seg), i32(self.aperture.n), i32(zc), i32(nzc), i32(i0),
+                          i32(nic), i32(s0), i32(s1 - s0), ic, acc)
         return light
 
-    def _light_to_image(self, light: cl_array.Array, out: cl_array.Array, i0: int, i1: int
-                        ) -> None:
-        """``image += P L``, one race-free colour class of lenses at a time."""
+    def _light_to_image(self, light: cl_array.Array, out: cl_array.Array, i0: int, i1: int,
+                        lenses: LensSet) -> None:
+        """``image += P L`` for the listed lenses, one race-free colour class at a time."""
         s0, s1 = self._sample_range(i0, i1)
-        (cols, rows), cs = self.camera.ml_count, self.colour_stride
-        for cy in range(cs):
-            for cx in range(cs):
-                gsize = (-(-(cols - cx) // cs), -(-(rows - cy) // cs))
-                self._run("fwd_pix", gsize, light, out, self._d["rnd"], self._d["frac"],
-                          self._d["ij"], *self._pixel_args(), *self._lens_args(), i32(cs),
-                          i32(cx), i32(cy), i32(s0), i32(s1 - s0), self._ic, self._dug,
-                          self._scale)
+        nkx, _, nkxp = self._lens_args()
+        for a, b in zip(lenses.offsets[:-1], lenses.offsets[1:], strict=True):
+            if b > a:
+                self._run("fwd_pix", (b - a,), light, out, lenses.ids, i32(a), self._d["rnd"],
+                          self._d["frac"], self._d["ij"], *self._pixel_args(), nkx, nkxp,
+                          i32(s0), i32(s1 - s0), self._ic, self._dug, self._scale)
 
     def _pixel_args(self) -> tuple:
         width, height = self.camera.pixels
@@ -507,18 +545,25 @@ class Projector:
         return f32(self.aperture.step * cam.ml_focal_length_mm
                    / (cam.image_distance_mm * cam.pixel_pitch_mm))
 
-    def _image_to_light(self, image: cl_array.Array, i0: int, i1: int) -> cl_array.Array:
-        """``L = Pᵀ image`` for the samples of aperture columns ``[i0, i1)``."""
+    def _image_to_light(self, image: cl_array.Array, i0: int, i1: int, lenses: LensSet
+                        ) -> cl_array.Array:
+        """``L = Pᵀ image`` for the samples of aperture columns ``[i0, i1)`` (0 at the
+        unlisted lenses)."""
         s0, s1 = self._sample_range(i0, i1)
-        nky = self.camera.ml_count[1]
-        light = self._buffer("L", (s1 - s0) * nky * self.nkxp)
-        self._run("back_pix", (self.nseg, nky, s1 - s0), image, light, self._d["rnd"],
-                  self._d["frac"], self._d["ij"], *self._pixel_args(), i32(self.camera.ml_count[0]),
-                  i32(self.nkxp), i32(self.seg), i32(s0), self._ic, self._dug, self._scale)
+        nkx, nky, nkxp = self._lens_args()
+        n = (s1 - s0) * nky * self.nkxp
+        light = self._buffer("L", n)
+        light[:n].fill(0.0)
+        if lenses.count:
+            sps = (s1 - s0) if self._cpu else 1  # samples per work-item
+            self._run("back_pix", (lenses.count, -(-(s1 - s0) // sps)), image, light,
+                      lenses.ids, self._d["rnd"], self._d["frac"], self._d["ij"],
+                      *self._pixel_args(), nkx, nkxp, i32(s0), i32(s1 - s0), i32(sps),
+                      self._ic, self._dug, self._scale)
         return light
 
     def _light_to_slab(self, light, slab, z0: int, z1: int, i0: int, i1: int,
-                       accumulate: bool, active: np.ndarray) -> None:
+                       accumulate: bool, active: np.ndarray, lenses: LensSet) -> None:
         """``slab (+)= Sᵀ L`` for aperture columns ``[i0, i1)``, active slices only."""
         s0, s1 = self._sample_range(i0, i1)
         nkx, nky, nkxp = self._lens_args()
@@ -532,9 +577,9 @@ class Projector:
                 continue
             t_buf = self._buffer("T", nzc * nic * ny * self.nkxp)
             self._run("back_y", (self.nseg, ny, nic), light, t_buf, self._d["coef"],
-                      self._d["col_lo"], self._d["col_off"], i32(ny), nky, nkxp, i32(self.seg),
-                      i32(self.aperture.n), i32(zc), i32(nzc), i32(i0), i32(nic), i32(s0),
-                      i32(s1 - s0), ic)
+                      self._d["col_lo"], self._d["col_off"], lenses.rows, i32(ny), nky, nkxp,
+                      i32(self.seg), i32(self.aperture.n), i32(zc), i32(nzc), i32(i0), i32(nic),
+                      i32(s0), i32(s1 - s0), ic)
             self._run("back_x", (ny, nzc), t_buf, slab, self._d["coef"], i32(nx), i32(ny), nkx,
                       nkxp, i32(z0), i32(zc), i32(i0), i32(nic), ic, acc)
 

@@ -22,6 +22,7 @@ stop, progress callback.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -54,6 +55,7 @@ class ReconstructionInfo:
     active_fraction: float = 1.0
     active_slices: list[int] = field(default_factory=list)
     cropped_shape: tuple[int, int, int] | None = None
+    lit_lens_fraction: float = 1.0
 
 
 #: Largest image value accepted: the volume (in image units) must stay finite in float32.
@@ -148,7 +150,7 @@ def _crop(projector, solver: Solver, vol, crop_below: float):
     if box is None or host[box].size > crop_below * host.size:
         return projector, solver, vol, None
     sub = projector.cropped(box)
-    new_solver = Solver(sub, float(solver.smin))
+    new_solver = Solver(sub, float(solver.smin), solver.lit)
     return sub, new_solver, sub.volume_to_device(np.ascontiguousarray(host[box])), box
 
 
@@ -212,10 +214,21 @@ class Solver:
     projector
         A :class:`plenocl.Projector` (anything with ``queue``, ``camera``, ``grid``,
         ``forward_device``, ``back_device`` and ``empty_volume``).
+    min_sensitivity
+        Voxels with a sensitivity at or below it stay 0.
+    lit
+        Bool per microlens (see :meth:`plenocl.Projector.lit_lenses`): the iterations
+        project onto and from these lenses only (dark-microlens skipping). ``None``, or a
+        projector without lens sets: every lens.
     """
 
-    def __init__(self, projector, min_sensitivity: float = 0.0) -> None:
+    def __init__(self, projector, min_sensitivity: float = 0.0,
+                 lit: np.ndarray | None = None) -> None:
         self.proj = projector
+        self.lit = lit
+        self.lenses = None
+        if lit is not None and hasattr(projector, "lens_set"):
+            self.lenses = projector.lens_set(lit)
         self.smin = np.float32(max(min_sensitivity, 1e-12))
         self.queue = projector.queue
         program = build_program(self.queue.context, "reconstruct.cl")
@@ -296,10 +309,17 @@ class Solver:
 
     def step(self, vol, img, method: str, relax: float, threshold: float, blocks=None,
              n_blocks: int = 1, active=None) -> float:
-        """One iteration in place; returns ``‖P - I‖`` before it. ``active`` (bool per
-        depth slice) restricts both projections to slices that can be non-zero."""
-        fwd = self.proj.forward_device
-        back = self.proj.back_device
+        """One iteration in place; returns ``‖P - I‖`` before it (over the pixels of the
+        lit lenses when the solver skips dark ones). ``active`` (bool per depth slice)
+        restricts both projections to slices that can be non-zero."""
+        fwd, back = self.proj.forward_device, self.proj.back_device
+        if self.lenses is not None:
+            # A ratio never depends on the projection at a dark pixel, and MLEM's ratio is
+            # 0 there; the log ratio of SMART and MART is not, so their back projection
+            # reads every lens.
+            fwd = functools.partial(fwd, lenses=self.lenses)
+            if method == "mlem":
+                back = functools.partial(back, lenses=self.lenses)
         proj = fwd(vol, active=active)
         resid = self.total(proj, img) ** 0.5
         mu = np.float32(relax)
@@ -323,7 +343,8 @@ class Solver:
 def reconstruct(image, projector, method: str = "mlem", iterations: int | None = None,
                 relax: float | None = None, *, start="uniform", threshold: float = 0.0,
                 mask_fraction: float | None = None, min_sensitivity: float = 0.5,
-                skip_empty: bool = True, crop: bool = True, tol: float | None = None,
+                skip_empty: bool = True, crop: bool = True, skip_dark: bool = True,
+                tol: float | None = None,
                 mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
                 return_info: bool = False):
@@ -363,6 +384,13 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         Automatic cropping to the illuminated region: after the first iteration, when the
         non-zero voxels fill a bounding box of at most 80 % of the grid, the remaining
         iterations run on that box (exact, like ``skip_empty``; ``info.cropped_shape``).
+    skip_dark
+        Dark-microlens skipping: the iterations project only onto the microlenses that
+        see a pixel above ``threshold`` (``info.lit_lens_fraction``), and MLEM
+        back-projects only from them. Exact: no ratio depends on the projection at a
+        dark pixel, and MLEM's ratio is 0 there (the log ratios of SMART and MART are
+        not, so they back-project from every lens). The residuals are then taken over
+        the lit lenses' pixels.
     tol
         Stop early when the relative residual changes by less than ``tol``.
     mart_blocks
@@ -391,7 +419,11 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         vol = np.zeros(projector.grid.shape, np.float32)
         return (vol, info) if return_info else vol
     thr = float(threshold) / scale
-    solver = Solver(projector, min_sensitivity)
+    lit = None
+    if skip_dark and hasattr(projector, "lit_lenses"):
+        lit = projector.lit_lenses(img_np, thr)
+        info.lit_lens_fraction = float(lit.mean())
+    solver = Solver(projector, min_sensitivity, lit)
     img = cla.to_device(solver.queue, img_np)
     vol = solver.start(img, start, thr, scale)
     if mask_fraction is not None:

@@ -215,6 +215,30 @@ def _lens_to_pixels(camera: Camera, kx, ky, u, v, w_lens):
     return np.concatenate(pix), np.concatenate(wts)
 
 
+def lens_pixels(camera: Camera, kx: int, ky: int,
+                oversample: float = DEFAULT_OVERSAMPLE) -> np.ndarray:
+    """Flat pixel indices (sorted int64) that lens ``(kx, ky)``'s aperture samples reach
+    with a positive weight (step 3 for every sample, lens weight 1)."""
+    ap = ApertureGrid.for_camera(camera, oversample)
+    i, j = ap.samples()
+    u, v = (i - ap.center) * ap.step, (j - ap.center) * ap.step
+    k = np.ones(len(u), np.int64)
+    pix, _ = _lens_to_pixels(camera, kx * k, ky * k, u, v, np.ones(len(u)))
+    return np.unique(pix)
+
+
+def lit_lenses(camera: Camera, image: np.ndarray, threshold: float = 0.0,
+               oversample: float = DEFAULT_OVERSAMPLE) -> np.ndarray:
+    """Bool per lens (flat, row-major): does a pixel it reaches exceed ``threshold``?
+
+    The exact set; :meth:`plenocl.Projector.lit_lenses` returns a superset of it.
+    """
+    cols, rows = camera.ml_count
+    flat = np.asarray(image).ravel() > threshold
+    return np.array([flat[lens_pixels(camera, kx, ky, oversample)].any()
+                     for ky in range(rows) for kx in range(cols)], bool)
+
+
 def weight_matrix(camera: Camera, grid: Grid, oversample: float = DEFAULT_OVERSAMPLE,
                   shear_tol: float = DEFAULT_SHEAR_TOL) -> np.ndarray:
     """The dense weight matrix ``(H * W, nz * ny * nx)`` (float64) for tiny cases.
