@@ -76,25 +76,29 @@ def table(queue, grid: Grid, counts, settings, repeats: int) -> None:
 
 
 def skipping(queue, repeats: int) -> None:
-    """Speed-up of each skipping feature (active slices, cropping to the lit region,
-    masking, early stop) and its effect on error, on a light sheet (particles within 1 mm
-    of depth), a lateral quarter of the field and the full cube."""
+    """Speed-up of each skipping feature (active slices, cropping to the lit region, dark
+    microlenses, masking, early stop) and its effect on error, on a light sheet (particles
+    within 1 mm of depth), a lateral quarter of the field and the full cube."""
     cam = Camera.synthetic_850()
     proj = Projector(cam, CUBE, queue)
     print(f"\nskipping (MLEM 30 iterations, {CUBE.shape} voxels; medians of {repeats}):")
     print(f"{'scene':18s} {'setting':30s} {'time s':>7s} {'speed-up':>8s} {'recov':>6s} "
-          f"{'ghosts':>6s} {'slices':>6s}")
+          f"{'ghosts':>6s} {'slices':>6s} {'lit':>5s}")
     for scene_name, box in (("sheet 1 mm deep", ((-2.3, 2.3), (-2.3, 2.3), (-0.5, 0.5))),
                             ("lateral quarter", ((-2.3, 0.0), (0.0, 2.3), (-2.3, 2.3))),
                             ("full 5 mm cube", ((-2.3, 2.3),) * 3)):
         pos, inten = random_particles(box, count=40, seed=9, intensity=1e4)
         img = simulate_image(cam, pos, inten, 20000, seed=9)
         base = None
-        for label, opts in (("none", dict(skip_empty=False, crop=False)),
-                            ("active slices", dict(crop=False)),
-                            ("crop to the lit region", dict(skip_empty=False)),
-                            ("mask 0.5", dict(skip_empty=False, crop=False, mask_fraction=0.5)),
-                            ("mask 0.5 + slices", dict(mask_fraction=0.5, crop=False)),
+        off = dict(skip_empty=False, crop=False, skip_dark=False)
+        for label, opts in (("none", off),
+                            ("active slices", {**off, "skip_empty": True}),
+                            ("crop to the lit region", {**off, "crop": True}),
+                            ("dark microlenses", {**off, "skip_dark": True}),
+                            ("mask 0.5", {**off, "mask_fraction": 0.5}),
+                            ("mask 0.5 + slices", {**off, "skip_empty": True,
+                                                   "mask_fraction": 0.5}),
+                            ("defaults", {}),
                             ("defaults + tol 1e-3", dict(tol=1e-3))):
             run = lambda o=opts, im=img: reconstruct(im, proj, "mlem", 30, threshold=1.0,  # noqa: E731
                                                      return_info=True, **o)
@@ -104,7 +108,8 @@ def skipping(queue, repeats: int) -> None:
             rep = recovery(vol, CUBE, pos)
             slices = info.active_slices[-1] if info.active_slices else CUBE.shape[0]
             print(f"{scene_name:18s} {label:30s} {t:7.2f} {base / t:7.2f}x {rep.fraction:6.2f} "
-                  f"{rep.ghost_fraction:6.3f} {slices:6d}", flush=True)
+                  f"{rep.ghost_fraction:6.3f} {slices:6d} {info.lit_lens_fraction:5.2f}",
+                  flush=True)
 
 
 def seed_study(queue, seeds: int = 20, counts=(20, 60)) -> None:
