@@ -15,11 +15,25 @@ from .cli_volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
-    """List OpenCL platforms and devices."""
-    from .device import describe_devices
+    """List OpenCL platforms and devices; with ``--agree``, compare them (exit 1 when a
+    stage differs by more than its tolerance)."""
+    from .device import all_devices, describe_devices
 
     print(describe_devices())
-    return 0
+    if not args.agree:
+        return 0
+    from .agreement import agreement, agreement_table
+
+    devices = all_devices()
+    if len(devices) < 2:
+        print("\nonly one OpenCL device: nothing to compare (with PoCL alone, "
+              "POCL_DEVICES='pthread basic' gives two)")
+        return 0
+    rows = agreement(log=lambda m: print(m, flush=True))
+    print("\n" + agreement_table(rows, devices[0].name.strip()))
+    bad = [r for r in rows if not r.ok]
+    print(f"\n{len(rows) - len(bad)} of {len(rows)} comparisons within tolerance")
+    return 1 if bad else 0
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -63,8 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="OpenCL device name or type substring (default: PYOPENCL_CTX, "
                              "else a GPU, else a CPU)")
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("devices", help="list OpenCL platforms and devices").set_defaults(
-        func=cmd_devices)
+    dev = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    dev.add_argument("--agree", action="store_true",
+                     help="run the same small workloads on every device and compare them "
+                          "with the first (stated tolerances; exit 1 beyond them)")
+    dev.set_defaults(func=cmd_devices)
     _add_simulate(sub)
     add_calibrate_parser(sub)
     add_refocus_parser(sub)

@@ -17,7 +17,7 @@ from plenocl.bench import (
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SECTIONS = ("## Simulator", "## Projector", "## Reconstruction", "## Skipping", "## PIV",
-            "## Scaling")
+            "## Scaling", "## Cross-device agreement")
 PLOTS = ("recon_pareto.png", "piv_pareto.png", "scaling.png")
 
 
@@ -37,6 +37,7 @@ def test_report_regenerates_from_one_call(tmp_path, queue):
         assert f"]({name})" in text
     assert not list(path.parent.glob(".*part*"))  # atomic writes leave no temporaries
     assert any("scaling" in m for m in messages)
+    assert "dark microlenses" in text and "lit lenses" in text
 
 
 def test_pareto_front_excludes_dominated_points():

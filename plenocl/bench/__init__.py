@@ -8,11 +8,14 @@ benchmarks and writes ``DIR/report.md`` with PNG plots beside it:
   weights, and the memory of both;
 - reconstruction: run time against error (recovery, ghosts, Q) for each method and
   setting on the paper's synthetic case, with Pareto fronts;
-- skipping: speed-up and error cost of masking, active slices and early stop;
+- skipping: speed-up and error cost of active slices, cropping, dark microlenses, masking
+  and early stop;
 - PIV: run time against RMS error for window schedules, deformation orders and final
   iterations (and openpiv's 3-D PIV when it is importable);
 - scaling: time and memory against voxels, pixels, particles and iterations, with fitted
-  log-log slopes, set against the device's memory and the measured throughput.
+  log-log slopes, set against the device's memory and the measured throughput;
+- cross-device agreement: the same small workloads on every visible OpenCL device,
+  against stated tolerances (:mod:`plenocl.agreement`).
 
 Sizes: ``ci`` (about 1-2 minutes on 2 CPU cores), ``small`` (10-15 minutes), ``paper``
 (``small`` plus the paper's full 16 MP, 300 x 200 x 150 experiment) and an internal
@@ -34,6 +37,7 @@ import numpy as np
 from ..device import DeviceLike, device_info, get_queue
 from ..io import atomic_path
 from .core import SIZES, _Run, _runs, _sizes, loglog_slope, md_table, pareto_front
+from .devices import section_devices
 from .piv_section import piv_flows, section_piv
 from .scaling import section_scaling
 from .stages import section_projector, section_reconstruction, section_simulator, section_skipping
@@ -50,6 +54,7 @@ SECTIONS: tuple[tuple[str, Callable[[_Run], str]], ...] = (
     ("skipping", section_skipping),
     ("PIV", section_piv),
     ("scaling", section_scaling),
+    ("cross-device", section_devices),
 )
 
 

@@ -1,0 +1,57 @@
+"""Cross-device agreement (plenocl.agreement, ``plenocl devices --agree``)."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+from plenocl.agreement import TOLERANCES, _difference, agreement, agreement_table
+
+
+def test_differences_detect_changes():
+    rng = np.random.default_rng(0)
+    a = rng.random((20, 30)).astype(np.float32)
+    for stage, (_, tol) in TOLERANCES.items():
+        assert _difference(stage, a, a.copy()) == 0.0
+        b = a.copy()
+        b[3:8, 4:10] += 0.05 * a.max()  # a change well beyond float32 rounding
+        assert _difference(stage, a, b) > tol, stage
+        c = a.copy()
+        c[0, 0] = np.nan  # a NaN (no sample) on one device only
+        assert _difference(stage, a, c) == float("inf")
+
+
+def test_two_queues_on_one_device_agree(queue):
+    """Two contexts on the same device: the machinery compares real results (all five
+    stages produce non-trivial output) and finds them equal."""
+    other = cl.CommandQueue(cl.Context([queue.device]))
+    rows = agreement([queue, other])
+    assert [r.stage for r in rows] == list(TOLERANCES)
+    assert all(r.ok and r.difference == 0.0 for r in rows)
+    table = agreement_table(rows, "dev")
+    assert table.count("\n| ") == len(rows) + 1 and "NO" not in table
+
+
+def _is_pocl(queue) -> bool:
+    return "Portable Computing Language" in queue.device.platform.name
+
+
+def test_pocl_pthread_and_basic_drivers_agree(queue, tmp_path):
+    """PoCL's threaded and serial drivers as two devices: every stage within tolerance
+    (a GPU, where present, joins the comparison)."""
+    if not _is_pocl(queue):
+        pytest.skip("POCL_DEVICES selects PoCL drivers; this platform is not PoCL")
+    env = {**os.environ, "POCL_DEVICES": "pthread basic"}
+    env.pop("PYOPENCL_CTX", None)
+    out = subprocess.run([sys.executable, "-m", "plenocl", "devices", "--agree"], env=env,
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "basic" in out.stdout and "pthread" in out.stdout
+    done = re.search(r"(\d+) of (\d+) comparisons within tolerance", out.stdout)
+    assert done and done.group(1) == done.group(2) and int(done.group(2)) >= len(TOLERANCES)
