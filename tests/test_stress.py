@@ -503,6 +503,13 @@ def _piv(a=lambda v: v, b=lambda v: v, **kw):
     return lambda c: piv3d(a(c["vol"]), b(c["vol"]), **kw)
 
 
+def _foreign_lens_set(c):
+    """A lens set made for a 3 x 3-lens camera, passed to the 4 x 4-lens projector."""
+    from plenocl.lenses import lens_set
+    foreign = lens_set(c["queue"], np.ones(9, bool), (3, 3), 2)
+    c["proj"].forward_device(c["proj"].volume_to_device(c["vol"][:3, :4, :4]), lenses=foreign)
+
+
 def _cal(image):
     return lambda c: calibrate(image(c), c["cam"])
 
@@ -622,6 +629,12 @@ INVALID = [
      r"image has shape \(70, 71\), expected \(70, 70\)"),
     ("projector-voxel-index", lambda c: c["proj"].voxel_weights(3, 0, 0), IndexError,
      "voxel indices must lie in the grid"),
+    ("projector-lit-lenses-shape", lambda c: c["proj"].lit_lenses(np.ones((70, 71))),
+     ValueError, r"image has shape \(70, 71\), expected \(70, 70\)"),
+    ("projector-lens-set-size", lambda c: c["proj"].lens_set(np.ones(5, bool)), ValueError,
+     "lit must hold one flag per microlens"),
+    ("projector-lens-set-foreign", _foreign_lens_set, ValueError,
+     "the lens set has 9 lenses, the camera 16"),
     # reconstruct
     ("reconstruct-image-shape", _rec(lambda i: i[:, :-1]), ValueError,
      "does not match the camera's sensor"),
