@@ -109,8 +109,8 @@ def _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_bl
     """The iterations of :func:`reconstruct`; returns the host volume on the full grid."""
     proj, box = projector, None
     for it in range(iterations):
-        if crop and it == 1:
-            proj, solver, vol, box = _crop(proj, solver, vol, CROP_BELOW)
+        if crop and it >= 1:
+            proj, solver, vol, box = _crop(proj, solver, vol, box, CROP_BELOW)
             info.cropped_shape = proj.grid.shape if box else None
         active = solver.active_slices(vol) if skip_empty else None
         if active is not None:
@@ -132,26 +132,35 @@ def _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_bl
 
 def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
     """The bounding box of a volume's non-zero voxels (``None`` when all are zero)."""
-    nz = np.nonzero(vol)
-    if not len(nz[0]):
-        return None
-    return tuple(slice(int(a.min()), int(a.max()) + 1) for a in nz)
+    nonzero = vol != 0
+    box = []
+    for axis in range(vol.ndim):
+        hit = np.flatnonzero(nonzero.any(axis=tuple(a for a in range(vol.ndim) if a != axis)))
+        if not len(hit):
+            return None
+        box.append(slice(int(hit[0]), int(hit[-1]) + 1))
+    return tuple(box)
 
 
-def _crop(projector, solver: Solver, vol, crop_below: float):
-    """Continue on the bounding box of the non-zero voxels when it is small enough.
+def _crop(projector, solver: Solver, vol, box, crop_below: float):
+    """Continue on the bounding box of the non-zero voxels when it holds at most
+    ``crop_below`` of the current (possibly already cropped) grid.
 
-    Returns ``(projector, solver, vol, box)``; ``box`` is ``None`` when nothing changes.
+    ``box`` is the current grid's place in the full grid (``None``: the full grid).
+    Returns ``(projector, solver, vol, box)``, unchanged when nothing is cropped.
     """
     if not hasattr(projector, "cropped"):
-        return projector, solver, vol, None
+        return projector, solver, vol, box
     host = projector.volume_to_host(vol)
-    box = nonzero_box(host)
-    if box is None or host[box].size > crop_below * host.size:
-        return projector, solver, vol, None
-    sub = projector.cropped(box)
-    new_solver = Solver(sub, float(solver.smin), solver.lit)
-    return sub, new_solver, sub.volume_to_device(np.ascontiguousarray(host[box])), box
+    local = nonzero_box(host)
+    if local is None or host[local].size > crop_below * host.size:
+        return projector, solver, vol, box
+    sub = projector.cropped(local)
+    new_vol = sub.volume_to_device(np.ascontiguousarray(host[local]))
+    if box is not None:  # compose with the earlier crop, in full-grid indices
+        local = tuple(slice(b.start + s.start, b.start + s.stop)
+                      for b, s in zip(box, local, strict=True))
+    return sub, Solver(sub, float(solver.smin), solver.lit), new_vol, local
 
 
 def subtract_background(image) -> tuple[np.ndarray, float]:
@@ -381,9 +390,10 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         voxel (after masking, or emptied by the updates) are left out of both
         projections. Exact: multiplicative updates never revive a zero voxel.
     crop
-        Automatic cropping to the illuminated region: after the first iteration, when the
-        non-zero voxels fill a bounding box of at most 80 % of the grid, the remaining
-        iterations run on that box (exact, like ``skip_empty``; ``info.cropped_shape``).
+        Automatic cropping to the illuminated region: after every iteration, when
+        the non-zero voxels fill a bounding box of at most 80 % of the current grid, the
+        remaining iterations run on that box (active-voxel compaction between iterations;
+        exact, like ``skip_empty``; ``info.cropped_shape``).
     skip_dark
         Dark-microlens skipping: the iterations project only onto the microlenses that
         see a pixel above ``threshold`` (``info.lit_lens_fraction``), and MLEM

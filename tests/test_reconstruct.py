@@ -156,3 +156,20 @@ def test_cropping_to_the_illuminated_region_is_exact(paper_case, queue):
     assert info.cropped_shape is not None
     assert np.prod(info.cropped_shape) < 0.8 * CUBE.size
     np.testing.assert_allclose(fast, slow, rtol=1e-4, atol=1e-5 * slow.max())
+
+
+def test_cropping_again_between_iterations(paper_case, queue):
+    """SMART empties more voxels as it goes: the grid is cropped again later (active-voxel
+    compaction between iterations), with the same result as without cropping."""
+    cam, proj = paper_case[0], paper_case[1]
+    pos, inten = random_particles(((-2.3, 0.0), (0.0, 2.3), (-2.3, 2.3)), count=40, seed=9,
+                                  intensity=1e4)
+    img = simulate_image(cam, pos, inten, 20000, seed=9, queue=queue)
+    kw = dict(method="smart", threshold=1.0, return_info=True)
+    _, early = reconstruct(img, proj, iterations=2, **kw)
+    fast, late = reconstruct(img, proj, iterations=14, **kw)
+    slow = reconstruct(img, proj, iterations=14, crop=False, method="smart", threshold=1.0)
+    assert late.cropped_shape is not None
+    assert np.prod(late.cropped_shape) < 0.8 * np.prod(early.cropped_shape or CUBE.shape)
+    assert fast.max() > 0
+    np.testing.assert_allclose(fast, slow, rtol=1e-4, atol=1e-4 * slow.max())
