@@ -105,14 +105,21 @@ __kernel void partial_sums(__global const float *a, __global const float *b, int
     out[g] = sum;
 }
 
-/* Per-slice maximum of a slab (one work-item per depth slice): which slices can still
- * be non-zero. Multiplicative updates never revive a zero voxel, so a zero slice is
- * skipped by every later projection. */
-__kernel void slice_max(__global const float *vol, int nxy, __global float *out, int nz)
+/* First and last non-zero voxel of every volume row (one work-item per (z, y) row of a
+ * slab; (nx, -1) for an empty row). From them the host gets the depth slices that can
+ * still be non-zero and the bounding box of the non-zero voxels without copying the
+ * volume: multiplicative updates never revive a zero voxel, so what is zero stays out of
+ * every later projection. */
+__kernel void row_extent(__global const float *vol, int nx, __global int2 *out, int nrows)
 {
-    const int z = get_global_id(0);
-    if (z >= nz) return;
-    float m = 0.0f;
-    for (int i = 0; i < nxy; ++i) m = fmax(m, vol[(size_t)z * nxy + i]);
-    out[z] = m;
+    const int r = get_global_id(0);
+    if (r >= nrows) return;
+    __global const float *row = vol + (size_t)r * nx;
+    int first = nx, last = -1;
+    for (int i = 0; i < nx; ++i)
+        if (row[i] != 0.0f) {
+            first = first < nx ? first : i;
+            last = i;
+        }
+    out[r] = (int2)(first, last);
 }

@@ -38,7 +38,7 @@ MAX_MART_BLOCKS = 32
 #: Defaults per method: (iterations, relaxation). MART's are the paper's synthetic case.
 DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
 _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
-            "partial_sums", "slice_max")
+            "partial_sums", "row_extent")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
 
@@ -109,10 +109,11 @@ def _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_bl
     """The iterations of :func:`reconstruct`; returns the host volume on the full grid."""
     proj, box = projector, None
     for it in range(iterations):
+        extent = solver.row_extent(vol) if skip_empty or (crop and it >= 1) else None
         if crop and it >= 1:
-            proj, solver, vol, box = _crop(proj, solver, vol, box, CROP_BELOW)
+            proj, solver, vol, box, extent = _crop(proj, solver, vol, box, extent, CROP_BELOW)
             info.cropped_shape = proj.grid.shape if box else None
-        active = solver.active_slices(vol) if skip_empty else None
+        active = (extent[..., 1] >= 0).any(axis=1) if skip_empty else None
         if active is not None:
             info.active_slices.append(int(active.sum()))
         resid = solver.step(vol, img, method, relax, thr, blocks, n_blocks, active) / norm
@@ -130,6 +131,17 @@ def _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_bl
     return full
 
 
+def extent_box(extent: np.ndarray) -> tuple[slice, slice, slice] | None:
+    """The bounding box of the non-zero voxels from :meth:`Solver.row_extent` (``None``
+    when all are zero); :func:`nonzero_box` is its NumPy twin."""
+    lit = extent[..., 1] >= 0
+    if not lit.any():
+        return None
+    z, y = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
+    x0, x1 = int(extent[..., 0][lit].min()), int(extent[..., 1][lit].max())
+    return slice(int(z[0]), int(z[-1]) + 1), slice(int(y[0]), int(y[-1]) + 1), slice(x0, x1 + 1)
+
+
 def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
     """The bounding box of a volume's non-zero voxels (``None`` when all are zero)."""
     nonzero = vol != 0
@@ -142,25 +154,27 @@ def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
     return tuple(box)
 
 
-def _crop(projector, solver: Solver, vol, box, crop_below: float):
+def _crop(projector, solver: Solver, vol, box, extent: np.ndarray, crop_below: float):
     """Continue on the bounding box of the non-zero voxels when it holds at most
     ``crop_below`` of the current (possibly already cropped) grid.
 
-    ``box`` is the current grid's place in the full grid (``None``: the full grid).
-    Returns ``(projector, solver, vol, box)``, unchanged when nothing is cropped.
+    ``box`` is the current grid's place in the full grid (``None``: the full grid) and
+    ``extent`` the current volume's :meth:`Solver.row_extent`. Returns ``(projector,
+    solver, vol, box, extent)``, unchanged when nothing is cropped.
     """
-    if not hasattr(projector, "cropped"):
-        return projector, solver, vol, box
-    host = projector.volume_to_host(vol)
-    local = nonzero_box(host)
-    if local is None or host[local].size > crop_below * host.size:
-        return projector, solver, vol, box
+    local = extent_box(extent)
+    size = int(np.prod(projector.grid.shape))
+    if (not hasattr(projector, "cropped") or local is None
+            or np.prod([s.stop - s.start for s in local]) > crop_below * size):
+        return projector, solver, vol, box, extent
     sub = projector.cropped(local)
-    new_vol = sub.volume_to_device(np.ascontiguousarray(host[local]))
+    host = np.ascontiguousarray(projector.volume_to_host(vol)[local])
+    new_solver = Solver(sub, float(solver.smin), solver.lit)
+    new_vol = sub.volume_to_device(host)
     if box is not None:  # compose with the earlier crop, in full-grid indices
         local = tuple(slice(b.start + s.start, b.start + s.stop)
                       for b, s in zip(box, local, strict=True))
-    return sub, Solver(sub, float(solver.smin), solver.lit), new_vol, local
+    return sub, new_solver, new_vol, local, new_solver.row_extent(new_vol)
 
 
 def subtract_background(image) -> tuple[np.ndarray, float]:
@@ -257,15 +271,16 @@ class Solver:
         for v, bb, s in zip(vol, b, self.sens):
             self._run(name, v.size, v.data, bb.data, s.data, *scalars)
 
-    def active_slices(self, vol) -> np.ndarray:
-        """Bool per depth slice: does it hold any non-zero voxel?"""
+    def row_extent(self, vol) -> np.ndarray:
+        """First and last non-zero ``x`` of every row ``(nz, ny, 2)`` int32, computed on
+        the device (``(nx, -1)`` for an empty row)."""
         parts = []
         for v in vol:
-            nz = v.shape[0]
-            out = cla.empty(self.queue, nz, np.float32)
-            self._k["slice_max"](self.queue, (nz,), None, v.data,
-                                 np.int32(v.size // max(nz, 1)), out.data, np.int32(nz))
-            parts.append(out.get() > 0)
+            nz, ny, nx = v.shape
+            out = cla.empty(self.queue, (nz, ny, 2), np.int32)
+            self._k["row_extent"](self.queue, (nz * ny,), None, v.data, np.int32(nx),
+                                  out.data, np.int32(nz * ny))
+            parts.append(out.get())
         return np.concatenate(parts)
 
     def total(self, a, b=None) -> float:

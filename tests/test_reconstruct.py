@@ -11,7 +11,7 @@ from plenocl import Camera, Grid, Projector, random_particles, reconstruct
 from plenocl.cli import main
 from plenocl.io import load_volume, write_tiff
 from plenocl.metrics import quality_q, recovery, render_particles
-from plenocl.reconstruct import subtract_background
+from plenocl.reconstruct import Solver, extent_box, nonzero_box, subtract_background
 from plenocl.simulate import simulate_image
 
 # the paper's 5 mm cube: one microlens per voxel laterally, half the camera's depth
@@ -173,3 +173,18 @@ def test_cropping_again_between_iterations(paper_case, queue):
     assert np.prod(late.cropped_shape) < 0.8 * np.prod(early.cropped_shape or CUBE.shape)
     assert fast.max() > 0
     np.testing.assert_allclose(fast, slow, rtol=1e-4, atol=1e-4 * slow.max())
+
+
+def test_device_extent_gives_the_numpy_box(small_camera, queue):
+    """Rows' first/last non-zero voxels, found on the device slab by slab, give the same
+    bounding box and non-zero slices as the NumPy twin, at every density."""
+    grid = Grid((5, 150, 251), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1.5, 1.5))
+    proj = Projector(small_camera, grid, queue, max_alloc_bytes=2 * 4 * 150 * 251)
+    assert len(proj.plan.slabs) > 1
+    solver = Solver(proj)
+    rng = np.random.default_rng(3)
+    for density in (0.0, 1e-5, 1e-3, 0.05, 1.0):
+        vol = (rng.random(grid.shape) * (rng.random(grid.shape) < density)).astype(np.float32)
+        extent = solver.row_extent(proj.volume_to_device(vol))
+        assert extent_box(extent) == nonzero_box(vol), density
+        np.testing.assert_array_equal((extent[..., 1] >= 0).any(axis=1), vol.any(axis=(1, 2)))
