@@ -89,14 +89,18 @@ __kernel void prepare_image(__global const float *img, float threshold, float fl
     logimg[i] = log(fmax(v, floor_value));
 }
 
-/* Partial sums for the host to finish: work-item g sums elements g, g + G, g + 2G, ...
- * of a (mode 0) or of (a - b)^2 (mode 1), with Kahan compensation. Deterministic. */
+/* Partial sums for the host to finish, of a (mode 0) or of (a - b)^2 (mode 1), with
+ * Kahan compensation; deterministic. Work-item g sums elements g, g + G, g + 2G, ...
+ * (chunk = 0: coalesced, for GPUs) or the contiguous run [g chunk, (g + 1) chunk)
+ * (chunk > 0: one cache line after the other, for CPUs). */
 __kernel void partial_sums(__global const float *a, __global const float *b, int mode,
-                           __global float *out, int n)
+                           int chunk, __global float *out, int n)
 {
-    const int g = get_global_id(0), stride = get_global_size(0);
+    const int g = get_global_id(0);
+    const int start = chunk ? g * chunk : g, step = chunk ? 1 : (int)get_global_size(0);
+    const int end = chunk ? min(start + chunk, n) : n;
     float sum = 0.0f, comp = 0.0f;
-    for (int i = g; i < n; i += stride) {
+    for (int i = start; i < end; i += step) {
         float x = mode ? (a[i] - b[i]) * (a[i] - b[i]) : a[i];
         float y = x - comp, t = sum + y;
         comp = (t - sum) - y;

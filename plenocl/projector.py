@@ -306,6 +306,7 @@ class Projector:
             "frac": cl_array.to_device(q, frac),
         }
         self._scratch: dict[str, cl_array.Array] = {}
+        self._sensitivity: list[cl_array.Array] | None = None
         self._rnd = rnd
         self.all_lenses = self.lens_set(rnd[:, 0] != _NO_LENS)
 
@@ -364,6 +365,17 @@ class Projector:
     def empty_image(self) -> cl_array.Array:
         """An uninitialised device image."""
         return cl_array.empty(self.queue, self.image_shape, np.float32)
+
+    def sensitivity(self) -> list[cl_array.Array]:
+        """``Aᵀ 1`` as device slabs: the fraction of each voxel's light that reaches the
+        sensor. Computed on the first call and kept (one volume of device memory), so
+        that reconstructing many images with one projector back-projects it once. The
+        slabs are shared: do not write to them."""
+        if self._sensitivity is None:
+            ones = self.empty_image()
+            ones.fill(1.0)
+            self._sensitivity = self.back_device(ones)
+        return self._sensitivity
 
     # ---- dark-microlens skipping ------------------------------------------------------
     def lit_lenses(self, image: np.ndarray, threshold: float = 0.0) -> np.ndarray:

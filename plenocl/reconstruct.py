@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
 
 from .program import build_program, fetch_kernels
@@ -254,13 +255,17 @@ class Solver:
             self.lenses = projector.lens_set(lit)
         self.smin = np.float32(max(min_sensitivity, 1e-12))
         self.queue = projector.queue
+        self._cpu = bool(self.queue.device.type & cl.device_type.CPU)
         program = build_program(self.queue.context, "reconstruct.cl")
         self._k = fetch_kernels(program, _KERNELS)
         self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
-        ones = cla.empty(self.queue, (projector.camera.pixels[1], projector.camera.pixels[0]),
-                         np.float32)
-        ones.fill(1.0)
-        self.sens = projector.back_device(ones)
+        if hasattr(projector, "sensitivity"):
+            self.sens = projector.sensitivity()  # computed once per projector
+        else:
+            ones = cla.empty(self.queue, (projector.camera.pixels[1],
+                                          projector.camera.pixels[0]), np.float32)
+            ones.fill(1.0)
+            self.sens = projector.back_device(ones)
         self._no_blocks = cla.zeros(self.queue, 1, np.int32)
 
     def _run(self, name: str, n: int, *args) -> None:
@@ -286,9 +291,10 @@ class Solver:
     def total(self, a, b=None) -> float:
         """``Σ a``, or ``Σ (a - b)²`` when ``b`` is given, reduced on the device."""
         out = cla.empty(self.queue, _SUM_ITEMS, np.float32)
-        self._k["partial_sums"](self.queue, (_SUM_ITEMS,), None, a.data,
-                                (a if b is None else b).data, np.int32(b is not None),
-                                out.data, np.int32(a.size))
+        chunk = -(-a.size // _SUM_ITEMS) if self._cpu else 0
+        self._k["partial_sums"](self.queue, (_SUM_ITEMS,), (1,) if self._cpu else None,
+                                a.data, (a if b is None else b).data, np.int32(b is not None),
+                                np.int32(chunk), out.data, np.int32(a.size))
         return float(out.get().astype(np.float64).sum())
 
     def ratio(self, img, proj, threshold: float, log_mode: bool, blocks=None, block=-1):
@@ -312,9 +318,8 @@ class Solver:
             return self.proj.volume_to_device(_start_volume(kind, self.proj.grid) / scale)
         vol = self.proj.empty_volume()
         if kind == "uniform":
-            for v in vol:
-                v.fill(1.0)
-            total = self.total(self.proj.forward_device(vol))
+            # the projection of a volume of ones carries 1ᵀ A 1 = Σ sensitivity
+            total = sum(self.total(s) for s in self.sens)
             for v in vol:
                 v.fill(self.total(img) / max(total, 1e-30))
         elif kind == "mlos":

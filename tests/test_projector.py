@@ -228,3 +228,20 @@ def test_reference_building_blocks(small_camera):
     assert m.axis_aligned
     kx, ky = m(*small_camera.microlens_positions_mm()[4, 7])
     np.testing.assert_allclose([kx, ky], [7, 4], atol=1e-9)
+
+
+def test_sensitivity_is_computed_once_and_kept(small_camera, queue):
+    from plenocl.reconstruct import reconstruct
+    proj = Projector(small_camera, GRID, queue)
+    sens = proj.sensitivity()
+    assert proj.sensitivity() is sens
+    ones = np.ones(proj.image_shape, np.float32)
+    host = proj.volume_to_host(sens)
+    np.testing.assert_array_equal(host, proj.back(ones))
+    # Σ sensitivity = 1ᵀ A 1 = Σ of the projection of ones (the uniform start's scale)
+    total = proj.forward(np.ones(GRID.shape, np.float32)).astype(np.float64).sum()
+    assert host.astype(np.float64).sum() == pytest.approx(total, rel=1e-5)
+    img = proj.forward(np.random.default_rng(0).random(GRID.shape).astype(np.float32))
+    first = reconstruct(img, proj, iterations=3)
+    np.testing.assert_array_equal(reconstruct(img, proj, iterations=3), first)
+    np.testing.assert_array_equal(proj.volume_to_host(sens), host)  # solvers only read it
