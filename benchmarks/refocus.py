@@ -10,40 +10,14 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from scipy import ndimage
 
 from plenocl import Camera, get_queue
+from plenocl.bench.lightfield_section import scipy_shift_and_add
 from plenocl.device import device_info
 from plenocl.lightfield import LightField
-from plenocl.reference.refocus import output_lens_coordinates, refocus_views
+from plenocl.reference.refocus import refocus_views
 from plenocl.simulate import simulate_image
 from plenocl.timing import median_time
-
-
-def scipy_shift_and_add(views: np.ndarray, shifts: np.ndarray, supersample: int) -> np.ndarray:
-    """Per plane and view: interpolate value and validity at the shifted output grid, add.
-
-    Interpolating ``value * valid`` and ``valid`` separately and dividing gives the same
-    weighted mean over existing samples as the kernel.
-    """
-    nuv, ny, nx = views.shape
-    kx, ky = output_lens_coordinates(nx, ny, supersample)
-    grid_y, grid_x = np.meshgrid(ky, kx, indexing="ij")
-    valid = np.isfinite(views)
-    filled = np.where(valid, views, 0.0).astype(np.float32)
-    out = np.zeros((len(shifts), len(ky), len(kx)), np.float32)
-    for p, plane in enumerate(shifts):
-        acc = np.zeros(grid_x.shape, np.float32)
-        wsum = np.zeros(grid_x.shape, np.float32)
-        for n in range(nuv):
-            if not valid[n].any():
-                continue
-            coords = np.stack([grid_y + plane[n, 1], grid_x + plane[n, 0]])
-            acc += ndimage.map_coordinates(filled[n], coords, order=1, mode="grid-constant")
-            wsum += ndimage.map_coordinates(valid[n].astype(np.float32), coords, order=1,
-                                            mode="grid-constant")
-        out[p] = np.divide(acc, wsum, out=np.zeros_like(acc), where=wsum > 1e-6)
-    return out
 
 
 def main() -> None:

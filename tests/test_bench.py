@@ -17,8 +17,9 @@ from plenocl.bench import (
 )
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-SECTIONS = ("## Simulator", "## Projector", "## Reconstruction", "## Skipping", "## PIV",
-            "## Scaling", "## Cross-device agreement")
+SECTIONS = ("## Simulator", "## Calibration", "## Refocusing", "## Projector",
+            "## Reconstruction", "## Skipping", "## PIV", "## Scaling",
+            "## Cross-device agreement")
 PLOTS = ("recon_pareto.png", "piv_pareto.png", "scaling.png")
 
 

@@ -4,6 +4,9 @@
 benchmarks and writes ``DIR/report.md`` with PNG plots beside it:
 
 - simulator: rays per second of the OpenCL kernel against the NumPy reference (same rays);
+- calibration: centre error against time for the paper's box centroid, a windowed
+  centroid and the grid-model fit, on clean, noisy, rotated and vignetted white images;
+- refocusing: a focal stack by the kernel against SciPy shift-and-add;
 - projector: matrix-free forward + back against ``scipy.sparse`` CSR products of the same
   weights, and the memory of both;
 - reconstruction: run time against error (recovery, ghosts, Q) for each method and
@@ -38,6 +41,7 @@ from ..device import DeviceLike, device_info, get_queue
 from ..io import atomic_path
 from .core import SIZES, _Run, _runs, _sizes, loglog_slope, md_table, pareto_front
 from .devices import section_devices
+from .lightfield_section import section_calibration, section_refocus
 from .piv_section import piv_flows, section_piv
 from .scaling import section_scaling
 from .stages import section_projector, section_reconstruction, section_simulator, section_skipping
@@ -49,6 +53,8 @@ __all__ = ["SIZES", "add_bench_parser", "cmd_bench", "loglog_slope", "md_table",
 # ---- the report -----------------------------------------------------------------------
 SECTIONS: tuple[tuple[str, Callable[[_Run], str]], ...] = (
     ("simulator", section_simulator),
+    ("calibration", section_calibration),
+    ("refocusing", section_refocus),
     ("projector", section_projector),
     ("reconstruction", section_reconstruction),
     ("skipping", section_skipping),
