@@ -57,11 +57,11 @@ def lit_lenses(image: np.ndarray, centres: np.ndarray, reach: int,
     """
     lit_px = np.asarray(image) > threshold
     h, w = lit_px.shape
+    if h * w >= 2**31:
+        raise ValueError(f"a {w} x {h} image is beyond the 2^31 pixels lit_lenses counts")
     table = np.zeros((h + 1, w + 1), np.int32)  # summed-area table of lit pixels
     np.cumsum(lit_px, axis=1, dtype=np.int32, out=table[1:, 1:])  # rows first: contiguous
     np.cumsum(table[1:, 1:], axis=0, out=table[1:, 1:])
-    if h * w >= 2**31:
-        raise ValueError(f"a {w} x {h} image is beyond the 2^31 pixels lit_lenses counts")
     c = np.asarray(centres, np.int64)
     x0, x1 = np.clip(c[:, 0] - reach, 0, w), np.clip(c[:, 0] + reach + 1, 0, w)
     y0, y1 = np.clip(c[:, 1] - reach, 0, h), np.clip(c[:, 1] + reach + 1, 0, h)

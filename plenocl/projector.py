@@ -308,7 +308,8 @@ class Projector:
         self._scratch: dict[str, cl_array.Array] = {}
         self._sensitivity: list[cl_array.Array] | None = None
         self._rnd = rnd
-        self.all_lenses = self.lens_set(rnd[:, 0] != _NO_LENS)
+        self._present = rnd[:, 0] != _NO_LENS  # lenses with a centre
+        self.all_lenses = self.lens_set(self._present)
 
     def _buffer(self, name: str, n: int) -> cl_array.Array:
         """A scratch buffer of at least ``n`` floats, kept between calls."""
@@ -384,15 +385,14 @@ class Projector:
         img = np.asarray(image)
         if img.shape != self.image_shape:
             raise ValueError(f"image has shape {img.shape}, expected {self.image_shape}")
-        return lit_lenses(img, self._rnd, self.lens_reach, threshold) & (
-            self._rnd[:, 0] != _NO_LENS)
+        return lit_lenses(img, self._rnd, self.lens_reach, threshold) & self._present
 
     def lens_set(self, lit: np.ndarray) -> LensSet:
         """The :class:`plenocl.lenses.LensSet` of the lenses flagged in ``lit`` (for the
         ``lenses`` argument of :meth:`forward_device` and :meth:`back_device`)."""
         lit = np.asarray(lit, bool).ravel()
         if lit.size == self._rnd.shape[0]:
-            lit = lit & (self._rnd[:, 0] != _NO_LENS)
+            lit = lit & self._present
         return lens_set(self.queue, lit, self.camera.ml_count, self.colour_stride)
 
     def _lenses(self, lenses: LensSet | None) -> LensSet:
@@ -629,8 +629,10 @@ class Projector:
     def cropped(self, box: tuple[slice, slice, slice]) -> Projector:
         """A projector for the sub-grid ``vol[box]`` (same camera, queue and options).
 
-        Weights depend only on each voxel's centre, so the sub-projector's are exactly the
-        full projector's for those voxels.
+        Weights depend only on each voxel's centre, so the sub-projector's are the full
+        projector's for those voxels (up to float32 rounding of the recomputed tables).
+        A sensitivity already computed here is cropped and kept by the sub-projector
+        instead of being back-projected again.
         """
         (z, y, x), g = box, self.grid
         dz, dy, dx = g.spacing
@@ -638,7 +640,11 @@ class Projector:
                    x=(g.x[0] + x.start * dx, g.x[0] + x.stop * dx),
                    y=(g.y[0] + y.start * dy, g.y[0] + y.stop * dy),
                    z=(g.z[0] + z.start * dz, g.z[0] + z.stop * dz))
-        return Projector(self.camera, sub, self.queue, **self._options)
+        out = Projector(self.camera, sub, self.queue, **self._options)
+        if self._sensitivity is not None:
+            host = np.ascontiguousarray(self.volume_to_host(self._sensitivity)[box])
+            out._sensitivity = out.volume_to_device(host)
+        return out
 
     def voxel_weights(self, iz: int, iy: int, ix: int) -> tuple[np.ndarray, np.ndarray]:
         """One voxel's column of the weight matrix, computed by a kernel.

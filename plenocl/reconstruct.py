@@ -373,8 +373,7 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
                 relax: float | None = None, *, start="uniform", threshold: float = 0.0,
                 mask_fraction: float | None = None, min_sensitivity: float = 0.5,
                 skip_empty: bool = True, crop: bool = True, skip_dark: bool = True,
-                tol: float | None = None,
-                mart_blocks: int = 2,
+                tol: float | None = None, mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
                 return_info: bool = False):
     """Reconstruct a particle volume from one raw plenoptic image.
@@ -413,7 +412,7 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         Automatic cropping to the illuminated region: after every iteration, when
         the non-zero voxels fill a bounding box of at most 80 % of the current grid, the
         remaining iterations run on that box (active-voxel compaction between iterations;
-        exact, like ``skip_empty``; ``info.cropped_shape``).
+        exact up to float32 rounding; ``info.cropped_shape``).
     skip_dark
         Dark-microlens skipping: the iterations project only onto the microlenses that
         see a pixel above ``threshold`` (``info.lit_lens_fraction``), and MLEM

@@ -247,6 +247,20 @@ def test_sensitivity_is_computed_once_and_kept(small_camera, queue):
     np.testing.assert_array_equal(proj.volume_to_host(sens), host)  # solvers only read it
 
 
+def test_cropped_projector_keeps_the_cropped_sensitivity(small_camera, queue):
+    """A sub-projector crops its parent's sensitivity instead of back-projecting again;
+    it matches the sub-grid's own back projection of ones to float32 rounding."""
+    proj = Projector(small_camera, GRID, queue)
+    box = (slice(1, 4), slice(2, 6), slice(3, 8))
+    fresh = proj.cropped(box).sensitivity()  # parent's not yet computed: back-projected
+    full = proj.volume_to_host(proj.sensitivity())
+    sub = proj.cropped(box)
+    kept = sub.volume_to_host(sub.sensitivity())
+    np.testing.assert_array_equal(kept, full[box])
+    np.testing.assert_allclose(kept, sub.volume_to_host(fresh), rtol=1e-5,
+                               atol=1e-6 * full.max())
+
+
 def _benchmark_module(name: str):
     """A script of ``benchmarks/`` loaded as a module (its ``main()`` is not run)."""
     import importlib.util
