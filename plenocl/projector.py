@@ -382,9 +382,9 @@ class Projector:
     def lit_lenses(self, image: np.ndarray, threshold: float = 0.0) -> np.ndarray:
         """Bool per lens (flat, row-major): does any pixel it can reach exceed
         ``threshold``? Missing lenses are never lit (see :mod:`plenocl.lenses`)."""
-        img = np.asarray(image)
-        if img.shape != self.image_shape:
-            raise ValueError(f"image has shape {img.shape}, expected {self.image_shape}")
+        img = _checked(image, self.image_shape, "image")
+        if not np.isfinite(threshold):
+            raise ValueError(f"threshold must be a finite number, got {threshold}")
         return lit_lenses(img, self._rnd, self.lens_reach, threshold) & self._present
 
     def lens_set(self, lit: np.ndarray) -> LensSet:
@@ -635,6 +635,10 @@ class Projector:
         instead of being back-projected again.
         """
         (z, y, x), g = box, self.grid
+        if not all(0 <= s.start < s.stop <= n and s.step in (None, 1)
+                   for s, n in zip(box, g.shape, strict=True)):
+            raise ValueError(f"box must be a non-empty, unit-step sub-box of the grid "
+                             f"{g.shape} (slices z, y, x), got {box}")
         dz, dy, dx = g.spacing
         sub = Grid((z.stop - z.start, y.stop - y.start, x.stop - x.start),
                    x=(g.x[0] + x.start * dx, g.x[0] + x.stop * dx),
