@@ -16,35 +16,13 @@ import os
 import time
 
 import numpy as np
-import pyopencl.array as cl_array
 
 from plenocl import Camera, Grid, get_queue
 from plenocl.bench.stages import device_pair, projector_bytes
 from plenocl.device import device_info
-from plenocl.projector import Projector, i32
+from plenocl.projector import Projector
 from plenocl.sparse import matrix_bytes, weight_matrix
 from plenocl.timing import median_time
-
-
-def back_with_atomic_scatter(proj: Projector, image: cl_array.Array, slabs) -> None:
-    """Back projection with ``back_y`` replaced by its float-atomic scatter twin."""
-    nkx, nky, nkxp = proj._lens_args()
-    _, ny, nx = proj.shape
-    for n, (i0, i1) in enumerate(proj.plan.columns):
-        s0, s1 = proj._sample_range(i0, i1)
-        light = proj._image_to_light(image, i0, i1, proj.all_lenses)
-        for (z0, z1), slab in zip(proj.plan.slabs, slabs, strict=True):
-            for zc in range(z0, z1, proj.plan.zchunk):
-                nzc, nic = min(proj.plan.zchunk, z1 - zc), i1 - i0
-                t_buf = proj._buffer("T", nzc * nic * ny * proj.nkxp)
-                t_buf.fill(0.0)
-                proj._run("back_y_scatter", (proj.nseg, int(nky), s1 - s0), light, t_buf,
-                          proj._d["coef"], proj._d["ij"], i32(ny), nkxp, i32(proj.seg),
-                          i32(zc), i32(nzc), i32(i0), i32(nic), i32(s0), proj._ic)
-                proj._run("back_x", (ny, nzc), t_buf, slab, proj._d["coef"], i32(nx), i32(ny),
-                          nkx, nkxp, i32(z0), i32(zc), i32(i0), i32(nic), proj._ic,
-                          i32(n > 0))
-    proj.queue.finish()
 
 
 def row(label: str, nnz: float, seconds: float, note: str = "") -> None:
@@ -89,10 +67,11 @@ def stored_comparison(queue, repeats: int, direct: bool) -> None:
     row("matrix-free back, host arrays in/out", a.nnz, t_bh)
     print(f"  forward + back: CSR {t_fc + t_bc:.4f} s, matrix-free {t_f + t_b:.4f} s "
           f"({(t_fc + t_bc) / (t_f + t_b):.1f}x faster)")
-    t_bs = median_time(lambda: back_with_atomic_scatter(proj, img, out), repeats)
+    atomic = Projector(cam, grid, queue, back="atomic")
+    t_bs = median_time(lambda: (atomic.back_device(img, out), queue.finish()), repeats)
     ref_s = proj.volume_to_host(proj.back_device(img))
-    err_s = np.abs(proj.volume_to_host(out) - ref_s).max() / ref_s.max()
-    row("back with atomic-scatter back_y (not kept)", a.nnz, t_bs,
+    err_s = np.abs(atomic.volume_to_host(out) - ref_s).max() / ref_s.max()
+    row('back="atomic": atomic-scatter back_y', a.nnz, t_bs,
         f"(vs gather: max relative difference {err_s:.1e})")
     if direct:
         dproj = Projector(cam, grid, queue, method="direct")

@@ -160,6 +160,11 @@ def get_queue(queue: DeviceLike = None, profiling: bool = False) -> cl.CommandQu
     return cl.CommandQueue(ctx, properties=props)
 
 
+def is_cpu(device: cl.Device) -> bool:
+    """Whether ``device`` is a CPU: the one test plenocl uses to pick CPU code paths."""
+    return bool(device.type & cl.device_type.CPU)
+
+
 def device_info(queue: cl.CommandQueue) -> DeviceInfo:
     """Capabilities of the device behind ``queue``."""
     return DeviceInfo.probe(queue.device)

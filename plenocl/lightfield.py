@@ -41,11 +41,12 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-import pyopencl as cl
+import pyopencl.array as cl_array
 
 from .camera import Camera
 from .device import DeviceLike, get_queue
-from .program import build_program, fetch_kernels
+from .program import KernelSet
+from .weighting import array_plane_scale, lattice_fit
 
 
 # ---- lattice --------------------------------------------------------------------------
@@ -59,7 +60,8 @@ def _centers(camera: Camera) -> np.ndarray:
 
 
 def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
-    """Affine least-squares map from lens index to image-centre pixels.
+    """Affine least-squares map from lens index to image-centre pixels
+    (:func:`plenocl.weighting.lattice_fit` of the camera's or the given centres).
 
     Parameters
     ----------
@@ -73,28 +75,13 @@ def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarra
     numpy.ndarray
         ``(3, 2)`` matrix ``M`` with ``(col, row) = [kx, ky, 1] @ M``.
     """
-    c = camera.microlens_centers if centers is None else centers
-    c = np.asarray(c, dtype=np.float64)
-    rows, cols = c.shape[:2]
-    ky, kx = np.mgrid[0:rows, 0:cols]
-    ok = np.isfinite(c).all(-1)
-    if ok.sum() < 3:
-        raise ValueError("fewer than 3 microlens centres are known: calibrate the camera "
-                         "with a white image first")
-    design = np.column_stack([kx[ok], ky[ok], np.ones(int(ok.sum()))])
-    model, *_ = np.linalg.lstsq(design, c[ok], rcond=None)
-    return model
-
-
-def _mla_scale(camera: Camera) -> float:
-    """Array-plane mm per sensor mm of a microlens image centre, ``1 / (1 + f_ml/s_i)``."""
-    return 1.0 / (1.0 + camera.ml_focal_length_mm / camera.image_distance_mm)
+    return lattice_fit(camera.microlens_centers if centers is None else centers)
 
 
 def lens_index_to_mm(camera: Camera) -> np.ndarray:
     """``(2, 2)`` matrix ``L``: array-plane mm per unit of lens index, columns ``kx, ky``."""
     model = lens_lattice(camera)
-    return model[:2].T * camera.pixel_pitch_mm * _mla_scale(camera)
+    return model[:2].T * camera.pixel_pitch_mm * array_plane_scale(camera)
 
 
 # ---- per-pixel coordinates ----------------------------------------------------------------
@@ -146,7 +133,7 @@ def pixel_coordinates(camera: Camera) -> PixelCoordinates:
     c_px = centers[np.clip(ky, 0, rows - 1), np.clip(kx, 0, cols - 1)]
     c_mm = camera.px_to_mm(c_px)
     uv = camera.aperture_u_of_offset(camera.px_to_mm(pix) - c_mm)
-    xy = c_mm * _mla_scale(camera)
+    xy = c_mm * array_plane_scale(camera)
     radius = camera.aperture_diameter_mm / 2
     valid = inside & np.isfinite(c_px).all(-1) & (np.hypot(uv[..., 0], uv[..., 1]) <= radius)
     nan = np.where(inside[..., None] & np.isfinite(c_px), 1.0, np.nan)
@@ -293,7 +280,20 @@ class LightField:
         self.views = resample_light_field(image, camera, self.u, self.v, self.centers)
         self._lens_to_mm = lens_index_to_mm(camera)
         self._queue_arg = queue
-        self._device: dict = {}
+
+    @property
+    def views(self) -> np.ndarray:
+        """``(nv, nu, rows, cols)`` float32 sub-aperture views (``NaN``: no sample)."""
+        return self._views
+
+    @views.setter
+    def views(self, value: np.ndarray) -> None:
+        """Replace the views (e.g. after editing them); the device copy is made anew."""
+        value = np.asarray(value, dtype=np.float32)
+        if value.ndim != 4:
+            raise ValueError(f"views must be (nv, nu, rows, cols), got shape {value.shape}")
+        self._views = value
+        self._device = {}
 
     @property
     def lf(self) -> np.ndarray:
@@ -336,8 +336,6 @@ class LightField:
 
     def output_lens_coordinates(self, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Lens-index coordinates ``(kx, ky)`` (1-D each) of refocused-image pixel centres."""
-        from .reference.refocus import output_lens_coordinates
-
         rows, cols = self.shape
         return output_lens_coordinates(cols, rows, _supersample(supersample))
 
@@ -346,7 +344,7 @@ class LightField:
         kx, ky = self.output_lens_coordinates(supersample)
         model = lens_lattice(self.camera, self.centers)
         px = np.stack(np.meshgrid(kx, ky), -1) @ model[:2] + model[2]
-        return self.camera.px_to_mm(px) * _mla_scale(self.camera)
+        return self.camera.px_to_mm(px) * array_plane_scale(self.camera)
 
     def refocus(self, alpha: float | None = None, z_mm: float | None = None, *,
                 supersample: int = 1) -> np.ndarray:
@@ -368,42 +366,54 @@ class LightField:
         if (alpha is None) == (z_mm is None):
             raise ValueError("give exactly one of alpha= or z_mm=")
         a = float(self.camera.alpha(z_mm)) if alpha is None else float(alpha)
-        return self._run(self.shifts([a]), supersample)[0]
+        return self.shift_and_add(self.shifts([a]), supersample)[0]
 
     def focal_stack(self, z_list, *, supersample: int = 1) -> np.ndarray:
         """Images refocused at each depth of ``z_list`` (mm), ``(nz, rows * S, cols * S)``."""
         z = np.atleast_1d(np.asarray(z_list, dtype=np.float64))
         if z.ndim != 1 or len(z) == 0:
             raise ValueError("z_list must be a non-empty list of depths in mm")
-        return self._run(self.shifts(self.camera.alpha(z)), supersample)
+        return self.shift_and_add(self.shifts(self.camera.alpha(z)), supersample)
 
-    def _run(self, shifts: np.ndarray, supersample: int) -> np.ndarray:
+    def shift_and_add(self, shifts: np.ndarray, supersample: int = 1) -> np.ndarray:
+        """Refocused images for explicit per-view shifts, computed by the refocus kernel.
+
+        Parameters
+        ----------
+        shifts
+            ``(planes, nv * nu, 2)`` shifts in lens-index units of each view (flattened
+            ``[iv, iu]``), as :meth:`shifts` returns them.
+        supersample
+            Output pixels per microlens along each axis.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(planes, rows * S, cols * S)`` float32: per output pixel, the weighted mean
+            of the views' bilinear samples that exist.
+        """
         s = _supersample(supersample)
-        queue, kernel, views, used = self._device_state()
-        shifts = np.ascontiguousarray(shifts[:, used], dtype=np.float32)  # drop empty views
+        k, views, used = self._device_state()
+        shifts = np.ascontiguousarray(np.asarray(shifts)[:, used], dtype=np.float32)
         rows, cols = self.shape
         planes, nuv = shifts.shape[:2]
         out_w, out_h = cols * s, rows * s
-        ctx, mf = queue.context, cl.mem_flags
-        shift_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shifts)
-        out = np.empty((planes, out_h, out_w), np.float32)
-        out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
-        cl.enqueue_fill_buffer(queue, out_buf, np.float32(np.nan), 0, out.nbytes)
-        kernel(queue, (out_w, out_h, planes), None, views, shift_buf, np.int32(nuv),
-               np.int32(cols), np.int32(rows), np.int32(out_w), np.int32(out_h),
-               np.float32(1.0 / s), out_buf)
-        cl.enqueue_copy(queue, out, out_buf)
-        return out
+        out = k.array((planes, out_h, out_w))
+        out.fill(np.float32(np.nan))
+        k.launch("refocus", (out_w, out_h, planes), views, k.to_device(shifts), np.int32(nuv),
+                 np.int32(cols), np.int32(rows), np.int32(out_w), np.int32(out_h),
+                 np.float32(1.0 / s), out)
+        return out.get()
 
-    def _device_state(self):
-        """Queue, kernel, the non-empty views on the device and their indices, made once.
+    def _device_state(self) -> tuple[KernelSet, cl_array.Array, np.ndarray]:
+        """The refocus kernel, the non-empty views on the device and their indices, made
+        once.
 
         The device copy is ``(value * valid, valid)`` pairs with a one-lens border of
         zeros, the layout ``kernels/refocus.cl`` interpolates without branches.
         """
         if not self._device:
-            queue = get_queue(self._queue_arg)
-            program = build_program(queue.context, "refocus.cl")
+            kernels = KernelSet(get_queue(self._queue_arg), "refocus.cl", ["refocus"])
             flat = self.views.reshape(-1, *self.shape)
             used = np.flatnonzero(np.isfinite(flat).any(axis=(1, 2)))
             if len(used) == 0:
@@ -412,12 +422,20 @@ class LightField:
             pairs = np.zeros((len(used), self.shape[0] + 2, self.shape[1] + 2, 2), np.float32)
             pairs[:, 1:-1, 1:-1, 0] = np.where(valid, flat[used], 0.0)
             pairs[:, 1:-1, 1:-1, 1] = valid
-            views = cl.Buffer(queue.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                              hostbuf=pairs)
-            self._device = {"queue": queue, "views": views, "used": used,
-                            "kernel": fetch_kernels(program, ["refocus"])["refocus"]}
+            self._device = {"kernels": kernels, "views": kernels.to_device(pairs), "used": used}
         d = self._device
-        return d["queue"], d["kernel"], d["views"], d["used"]
+        return d["kernels"], d["views"], d["used"]
+
+
+def output_lens_coordinates(nx: int, ny: int, supersample: int = 1
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Lens-index coordinates ``(kx, ky)`` of the output pixel centres, 1-D each.
+
+    Output pixel ``j`` of ``nx * supersample`` sits at ``(j + 0.5) / S - 0.5``: with
+    ``S = 1`` one output pixel per microlens, at its centre.
+    """
+    s = int(supersample)
+    return ((np.arange(nx * s) + 0.5) / s - 0.5, (np.arange(ny * s) + 0.5) / s - 0.5)
 
 
 def _supersample(value) -> int:

@@ -1,10 +1,15 @@
-"""Find, build and cache the OpenCL programs in ``kernels/``.
+"""Find, build and cache the OpenCL programs in ``kernels/``, and launch their kernels.
 
 Sources are real ``.cl`` files. They are found next to the package in an installed
 wheel (``plenocl/kernels``) and in the top-level ``kernels/`` folder of a source
 checkout. The folder is always passed as ``-I`` so kernels use ``#include``.
 Each program is built once per (context, file, options) and each kernel fetched
 once with ``cl.Kernel``.
+
+:class:`KernelSet` is the one kernel-launch layer of plenocl: the kernels of one
+program bound to a queue. It unwraps ``pyopencl.array.Array`` arguments (the one
+buffer type of the package), knows whether the device is a CPU and applies the CPU
+work-group rule there (see :meth:`KernelSet.launch`).
 """
 
 from __future__ import annotations
@@ -13,7 +18,11 @@ import weakref
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import pyopencl as cl
+import pyopencl.array as cl_array
+
+from .device import is_cpu
 
 
 class KernelBuildError(RuntimeError):
@@ -66,3 +75,58 @@ def build_program(
 def fetch_kernels(program: cl.Program, names: Sequence[str]) -> dict[str, cl.Kernel]:
     """Fetch each named kernel once (``cl.Kernel(prg, name)``)."""
     return {name: cl.Kernel(program, name) for name in names}
+
+
+class KernelSet:
+    """The kernels of ``kernels/<filename>`` built for ``queue``'s context and bound to it.
+
+    Parameters
+    ----------
+    queue
+        The command queue every launch is enqueued on.
+    filename, names, options
+        The source file, the kernels to fetch (each once) and the build options
+        (``-D`` defines of a variant).
+    looping
+        Kernels whose work-items each run a long loop (a light-field row, a block of
+        rays, a chunk of a reduction). On a CPU they get work-groups of one item, so
+        that PoCL spreads the items over all cores instead of running a group as one
+        thread; element-wise kernels keep the driver's choice.
+
+    Attributes
+    ----------
+    queue : pyopencl.CommandQueue
+    is_cpu : bool
+        Whether the device is a CPU (probed once).
+    """
+
+    def __init__(self, queue: cl.CommandQueue, filename: str, names: Sequence[str],
+                 options: Sequence[str] = (), looping: Sequence[str] = ()) -> None:
+        unknown = set(looping) - set(names)
+        if unknown:
+            raise ValueError(f"looping kernels {sorted(unknown)} are not among {list(names)}")
+        self.queue = queue
+        self.is_cpu = is_cpu(queue.device)
+        self._kernels = fetch_kernels(build_program(queue.context, filename, options), names)
+        self._looping = frozenset(looping)
+
+    def launch(self, name: str, global_size: Sequence[int], *args,
+               local_size: Sequence[int] | None = None) -> cl.Event:
+        """Enqueue kernel ``name`` over ``global_size`` with ``args``; return its event.
+
+        ``pyopencl.array.Array`` arguments are passed as their buffers; NumPy scalars as
+        they are. Without ``local_size``, a :attr:`looping` kernel on a CPU runs in
+        work-groups of one item; every other launch lets the driver choose.
+        """
+        if local_size is None and self.is_cpu and name in self._looping:
+            local_size = (1,) * len(global_size)
+        args = [a.data if isinstance(a, cl_array.Array) else a for a in args]
+        return self._kernels[name](self.queue, tuple(global_size), local_size, *args)
+
+    def array(self, shape, dtype=np.float32) -> cl_array.Array:
+        """An uninitialised device array on this queue."""
+        return cl_array.empty(self.queue, shape, dtype)
+
+    def to_device(self, host: np.ndarray) -> cl_array.Array:
+        """A device copy of a host array on this queue."""
+        return cl_array.to_device(self.queue, np.ascontiguousarray(host))

@@ -16,8 +16,12 @@ Methods (all multiplicative, non-negative, on the device):
 
 ``s_j = Σ_i w_ij`` is the fraction of a voxel's light that reaches the sensor. The
 image is scaled to a maximum of 1 inside the solver (dynamic range) and the volume
-scaled back. Options: MLOS first guess, pixel threshold, zero-pixel masking, early
-stop, progress callback.
+scaled back. Options (:class:`ReconstructionSettings`, validated once): MLOS first
+guess, pixel threshold, zero-pixel masking, active slices, cropping, dark-microlens
+skipping, early stop; a progress callback.
+
+The solver needs of a projector only the operator contract
+(:class:`plenocl.operator.ProjectionOperator`).
 """
 
 from __future__ import annotations
@@ -28,10 +32,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
-from .program import build_program, fetch_kernels
+from .operator import ProjectionOperator
+from .program import KernelSet
 
 METHODS = ("mlem", "smart", "mart")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
@@ -42,6 +46,10 @@ _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_
             "partial_sums", "row_extent")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
+#: Largest image value accepted: the volume (in image units) must stay finite in float32.
+FLOAT32_LIMIT = 1e30
+#: Crop when the non-zero voxels' bounding box holds at most this fraction of the grid.
+CROP_BELOW = 0.8
 
 
 @dataclass
@@ -59,8 +67,55 @@ class ReconstructionInfo:
     lit_lens_fraction: float = 1.0
 
 
-#: Largest image value accepted: the volume (in image units) must stay finite in float32.
-FLOAT32_LIMIT = 1e30
+@dataclass(frozen=True)
+class ReconstructionSettings:
+    """Every option of a reconstruction, validated once (see :func:`reconstruct` for
+    their meaning). ``iterations`` and ``relax`` left at ``None`` take the method's
+    defaults (:data:`DEFAULTS`); the stored object holds the resolved values."""
+
+    method: str = "mlem"
+    iterations: int | None = None
+    relax: float | None = None
+    start: str | np.ndarray = field(default="uniform", compare=False)
+    threshold: float = 0.0
+    mask_fraction: float | None = None
+    min_sensitivity: float = 0.5
+    skip_empty: bool = True
+    crop: bool = True
+    skip_dark: bool = True
+    tol: float | None = None
+    mart_blocks: int = 2
+
+    def __post_init__(self) -> None:
+        it_default, mu_default = DEFAULTS.get(self.method, (0, 1.0))
+        if self.iterations is None:
+            object.__setattr__(self, "iterations", it_default)
+        if self.relax is None:
+            object.__setattr__(self, "relax", mu_default)
+        _check_options(self)
+
+    @property
+    def n_blocks(self) -> int:
+        """Update blocks per iteration: MART's ``mart_blocks²`` views, else 1."""
+        return self.mart_blocks**2 if self.method == "mart" and self.mart_blocks > 1 else 1
+
+
+def _check_options(s: ReconstructionSettings) -> None:
+    if not np.isfinite(s.threshold):
+        raise ValueError(f"threshold must be a finite number (image units), got {s.threshold!r}")
+    if int(s.mart_blocks) != s.mart_blocks or not 1 <= s.mart_blocks <= MAX_MART_BLOCKS:
+        raise ValueError(f"mart_blocks must be an integer from 1 to {MAX_MART_BLOCKS} "
+                         f"(n x n blocks of views), got {s.mart_blocks!r}")
+    if s.method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {s.method!r}")
+    if int(s.iterations) != s.iterations or s.iterations < 0:
+        raise ValueError(f"iterations must be a non-negative integer, got {s.iterations!r}")
+    if not (np.isfinite(s.relax) and 0 < s.relax <= 1):
+        raise ValueError(f"relax (μ) must satisfy 0 < μ <= 1, got {s.relax!r}")
+    if s.mask_fraction is not None and not 0 <= s.mask_fraction <= 1:
+        raise ValueError(f"mask_fraction must be in [0, 1] or None, got {s.mask_fraction!r}")
+    if not 0 <= s.min_sensitivity < 1:
+        raise ValueError(f"min_sensitivity must be in [0, 1), got {s.min_sensitivity!r}")
 
 
 def prepare_image(image, camera) -> tuple[np.ndarray, float]:
@@ -91,6 +146,20 @@ def prepare_image(image, camera) -> tuple[np.ndarray, float]:
     return (img / scale).astype(np.float32), scale
 
 
+def subtract_background(image) -> tuple[np.ndarray, float]:
+    """Remove a camera's dark level and estimate its noise, robustly.
+
+    At PIV seeding densities most pixels see no particle, so the median is the
+    background and the median absolute deviation the noise. Returns the float32 image
+    ``max(I - median, 0)`` and the noise standard deviation (a sensible ``threshold`` for
+    :func:`reconstruct` is 3 to 5 times it).
+    """
+    img = np.asarray(image, dtype=np.float64)
+    med = float(np.median(img))
+    sigma = 1.4826 * float(np.median(np.abs(img - med)))
+    return np.clip(img - med, 0, None).astype(np.float32), sigma
+
+
 def _start_volume(start: np.ndarray, grid) -> np.ndarray:
     """A user-supplied first guess, checked: the grid's shape, finite, non-negative."""
     if start.shape != grid.shape:
@@ -99,37 +168,6 @@ def _start_volume(start: np.ndarray, grid) -> np.ndarray:
     if not np.all(np.isfinite(start)) or start.min() < 0:
         raise ValueError("start volume must be finite and non-negative")
     return start.astype(np.float32)
-
-
-#: Crop when the non-zero voxels' bounding box holds at most this fraction of the grid.
-CROP_BELOW = 0.8
-
-
-def _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_blocks,
-             iterations, skip_empty, crop, tol, callback, norm) -> np.ndarray:
-    """The iterations of :func:`reconstruct`; returns the host volume on the full grid."""
-    proj, box = projector, None
-    for it in range(iterations):
-        extent = solver.row_extent(vol) if skip_empty or (crop and it >= 1) else None
-        if crop and it >= 1:
-            proj, solver, vol, box, extent = _crop(proj, solver, vol, box, extent, CROP_BELOW)
-            info.cropped_shape = proj.grid.shape if box else None
-        active = (extent[..., 1] >= 0).any(axis=1) if skip_empty else None
-        if active is not None:
-            info.active_slices.append(int(active.sum()))
-        resid = solver.step(vol, img, method, relax, thr, blocks, n_blocks, active) / norm
-        info.residuals.append(resid)
-        info.iterations = it + 1
-        if callback is not None and callback(it + 1, resid) is False:
-            break
-        if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
-            info.converged = True
-            break
-    if box is None:
-        return proj.volume_to_host(vol)
-    full = np.zeros(projector.grid.shape, np.float32)
-    full[box] = proj.volume_to_host(vol)
-    return full
 
 
 def extent_box(extent: np.ndarray) -> tuple[slice, slice, slice] | None:
@@ -155,60 +193,6 @@ def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
     return tuple(box)
 
 
-def _crop(projector, solver: Solver, vol, box, extent: np.ndarray, crop_below: float):
-    """Continue on the bounding box of the non-zero voxels when it holds at most
-    ``crop_below`` of the current (possibly already cropped) grid.
-
-    ``box`` is the current grid's place in the full grid (``None``: the full grid) and
-    ``extent`` the current volume's :meth:`Solver.row_extent`. Returns ``(projector,
-    solver, vol, box, extent)``, unchanged when nothing is cropped.
-    """
-    local = extent_box(extent)
-    size = int(np.prod(projector.grid.shape))
-    if (not hasattr(projector, "cropped") or local is None
-            or np.prod([s.stop - s.start for s in local]) > crop_below * size):
-        return projector, solver, vol, box, extent
-    sub = projector.cropped(local)
-    host = np.ascontiguousarray(projector.volume_to_host(vol)[local])
-    new_solver = Solver(sub, float(solver.smin), solver.lit)
-    new_vol = sub.volume_to_device(host)
-    if box is not None:  # compose with the earlier crop, in full-grid indices
-        local = tuple(slice(b.start + s.start, b.start + s.stop)
-                      for b, s in zip(box, local, strict=True))
-    return sub, new_solver, new_vol, local, new_solver.row_extent(new_vol)
-
-
-def subtract_background(image) -> tuple[np.ndarray, float]:
-    """Remove a camera's dark level and estimate its noise, robustly.
-
-    At PIV seeding densities most pixels see no particle, so the median is the
-    background and the median absolute deviation the noise. Returns the float32 image
-    ``max(I - median, 0)`` and the noise standard deviation (a sensible ``threshold`` for
-    :func:`reconstruct` is 3 to 5 times it).
-    """
-    img = np.asarray(image, dtype=np.float64)
-    med = float(np.median(img))
-    sigma = 1.4826 * float(np.median(np.abs(img - med)))
-    return np.clip(img - med, 0, None).astype(np.float32), sigma
-
-
-def _check_options(method: str, iterations: int, relax: float, mask_fraction,
-                   threshold: float = 0.0, mart_blocks: int = 2) -> None:
-    if not np.isfinite(threshold):
-        raise ValueError(f"threshold must be a finite number (image units), got {threshold!r}")
-    if int(mart_blocks) != mart_blocks or not 1 <= mart_blocks <= MAX_MART_BLOCKS:
-        raise ValueError(f"mart_blocks must be an integer from 1 to {MAX_MART_BLOCKS} "
-                         f"(n x n blocks of views), got {mart_blocks!r}")
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if int(iterations) != iterations or iterations < 0:
-        raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
-    if not (np.isfinite(relax) and 0 < relax <= 1):
-        raise ValueError(f"relax (μ) must satisfy 0 < μ <= 1, got {relax!r}")
-    if mask_fraction is not None and not 0 <= mask_fraction <= 1:
-        raise ValueError(f"mask_fraction must be in [0, 1] or None, got {mask_fraction!r}")
-
-
 def view_blocks(camera, n_per_axis: int) -> np.ndarray:
     """Block id (int32) of every pixel: interleaved groups of sub-aperture views.
 
@@ -231,50 +215,43 @@ class Solver:
     """Device buffers and kernels of a reconstruction with one projector.
 
     Volumes live on the device as the projector's list of depth slabs; element-wise
-    kernels run slab by slab.
+    kernels run slab by slab. A solver can crop itself to the illuminated part of its
+    grid (:meth:`crop`); it then remembers where its grid sits in the full one.
 
     Parameters
     ----------
     projector
-        A :class:`plenocl.Projector` (anything with ``queue``, ``camera``, ``grid``,
-        ``forward_device``, ``back_device`` and ``empty_volume``).
+        Any :class:`plenocl.operator.ProjectionOperator` (a :class:`plenocl.Projector`).
     min_sensitivity
         Voxels with a sensitivity at or below it stay 0.
     lit
         Bool per microlens (see :meth:`plenocl.Projector.lit_lenses`): the iterations
-        project onto and from these lenses only (dark-microlens skipping). ``None``, or a
-        projector without lens sets: every lens.
+        project onto and from these lenses only (dark-microlens skipping); ``None``:
+        every lens.
+    box
+        Where the projector's grid sits in the full grid (``None``: it is the full grid).
     """
 
-    def __init__(self, projector, min_sensitivity: float = 0.0,
-                 lit: np.ndarray | None = None) -> None:
-        self.proj = projector
-        self.lit = lit
-        self.lenses = None
-        if lit is not None and hasattr(projector, "lens_set"):
-            self.lenses = projector.lens_set(lit)
+    def __init__(self, projector: ProjectionOperator, min_sensitivity: float = 0.0,
+                 lit: np.ndarray | None = None,
+                 box: tuple[slice, slice, slice] | None = None) -> None:
+        self.proj, self.lit, self.box = projector, lit, box
+        self.lenses = None if lit is None else projector.lens_set(lit)
         self.smin = np.float32(max(min_sensitivity, 1e-12))
         self.queue = projector.queue
-        self._cpu = bool(self.queue.device.type & cl.device_type.CPU)
-        program = build_program(self.queue.context, "reconstruct.cl")
-        self._k = fetch_kernels(program, _KERNELS)
+        self._k = KernelSet(self.queue, "reconstruct.cl", _KERNELS, looping=["partial_sums"])
         self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
-        if hasattr(projector, "sensitivity"):
-            self.sens = projector.sensitivity()  # computed once per projector
-        else:
-            ones = cla.empty(self.queue, (projector.camera.pixels[1],
-                                          projector.camera.pixels[0]), np.float32)
-            ones.fill(1.0)
-            self.sens = projector.back_device(ones)
+        self.sens = projector.sensitivity()  # computed once per projector
         self._no_blocks = cla.zeros(self.queue, 1, np.int32)
 
     def _run(self, name: str, n: int, *args) -> None:
-        self._k[name](self.queue, (n,), None, *args, np.int32(n))
+        """An element-wise kernel over ``n`` items (``n`` is its last argument)."""
+        self._k.launch(name, (n,), *args, np.int32(n))
 
-    def _per_slab(self, name: str, vol, b, *scalars) -> None:
+    def update_voxels(self, name: str, vol, b, *scalars) -> None:
         """Run a voxel kernel ``name(vol, b, sens, *scalars, n)`` on every slab."""
         for v, bb, s in zip(vol, b, self.sens):
-            self._run(name, v.size, v.data, bb.data, s.data, *scalars)
+            self._run(name, v.size, v, bb, s, *scalars)
 
     def row_extent(self, vol) -> np.ndarray:
         """First and last non-zero ``x`` of every row ``(nz, ny, 2)`` int32, computed on
@@ -282,33 +259,31 @@ class Solver:
         parts = []
         for v in vol:
             nz, ny, nx = v.shape
-            out = cla.empty(self.queue, (nz, ny, 2), np.int32)
-            self._k["row_extent"](self.queue, (nz * ny,), None, v.data, np.int32(nx),
-                                  out.data, np.int32(nz * ny))
+            out = self._k.array((nz, ny, 2), np.int32)
+            self._k.launch("row_extent", (nz * ny,), v, np.int32(nx), out, np.int32(nz * ny))
             parts.append(out.get())
         return np.concatenate(parts)
 
     def total(self, a, b=None) -> float:
         """``Σ a``, or ``Σ (a - b)²`` when ``b`` is given, reduced on the device."""
-        out = cla.empty(self.queue, _SUM_ITEMS, np.float32)
-        chunk = -(-a.size // _SUM_ITEMS) if self._cpu else 0
-        self._k["partial_sums"](self.queue, (_SUM_ITEMS,), (1,) if self._cpu else None,
-                                a.data, (a if b is None else b).data, np.int32(b is not None),
-                                np.int32(chunk), out.data, np.int32(a.size))
+        out = self._k.array(_SUM_ITEMS)
+        chunk = -(-a.size // _SUM_ITEMS) if self._k.is_cpu else 0
+        self._k.launch("partial_sums", (_SUM_ITEMS,), a, a if b is None else b,
+                       np.int32(b is not None), np.int32(chunk), out, np.int32(a.size))
         return float(out.get().astype(np.float64).sum())
 
     def ratio(self, img, proj, threshold: float, log_mode: bool, blocks=None, block=-1):
         """``I / max(P, eps)`` (or its log) on the device, restricted to one block."""
         out = cla.empty_like(img)
         block_of = blocks if blocks is not None else self._no_blocks
-        self._run("ratio", self.n_pix, img.data, proj.data, block_of.data, np.int32(block),
-                  np.float32(threshold), np.int32(log_mode), out.data)
+        self._run("ratio", self.n_pix, img, proj, block_of, np.int32(block),
+                  np.float32(threshold), np.int32(log_mode), out)
         return out
 
     def _dark_and_log(self, img, threshold: float, floor: float):
         dark, logimg = cla.empty_like(img), cla.empty_like(img)
-        self._run("prepare_image", self.n_pix, img.data, np.float32(threshold),
-                  np.float32(floor), dark.data, logimg.data)
+        self._run("prepare_image", self.n_pix, img, np.float32(threshold), np.float32(floor),
+                  dark, logimg)
         return dark, logimg
 
     def start(self, img, kind, threshold: float, scale: float = 1.0):
@@ -324,9 +299,7 @@ class Solver:
                 v.fill(self.total(img) / max(total, 1e-30))
         elif kind == "mlos":
             _, logimg = self._dark_and_log(img, threshold, max(threshold, 1e-6))
-            b = self.proj.back_device(logimg)
-            for v, bb, s in zip(vol, b, self.sens):
-                self._run("mlos", v.size, v.data, bb.data, s.data, self.smin)
+            self.update_voxels("mlos", vol, self.proj.back_device(logimg), self.smin)
         else:
             raise ValueError(f"start must be 'uniform', 'mlos' or a volume array, got {kind!r}")
         return vol
@@ -334,46 +307,120 @@ class Solver:
     def mask(self, vol, img, threshold: float, fraction: float) -> None:
         """Zero the voxels sending more than ``fraction`` of their light to dark pixels."""
         dark, _ = self._dark_and_log(img, threshold, 1e-6)
-        self._per_slab("mask_dark", vol, self.proj.back_device(dark), np.float32(fraction))
+        self.update_voxels("mask_dark", vol, self.proj.back_device(dark), np.float32(fraction))
 
-    def step(self, vol, img, method: str, relax: float, threshold: float, blocks=None,
-             n_blocks: int = 1, active=None) -> float:
-        """One iteration in place; returns ``‖P - I‖`` before it (over the pixels of the
-        lit lenses when the solver skips dark ones). ``active`` (bool per depth slice)
-        restricts both projections to slices that can be non-zero."""
+    def projections(self, log_ratio: bool):
+        """The forward and back projections of an iteration: onto the lit lenses only
+        when the solver skips dark ones, and back from them too unless the ratio is a log
+        (a log ratio is not 0 at a dark pixel, so it is back-projected from every lens)."""
         fwd, back = self.proj.forward_device, self.proj.back_device
         if self.lenses is not None:
-            # A ratio never depends on the projection at a dark pixel, and MLEM's ratio is
-            # 0 there; the log ratio of SMART and MART is not, so their back projection
-            # reads every lens.
             fwd = functools.partial(fwd, lenses=self.lenses)
-            if method == "mlem":
+            if not log_ratio:
                 back = functools.partial(back, lenses=self.lenses)
-        proj = fwd(vol, active=active)
-        resid = self.total(proj, img) ** 0.5
-        mu = np.float32(relax)
-        if method == "mlem":
-            b = back(self.ratio(img, proj, threshold, False), active=active)
-            self._per_slab("update_mlem", vol, b, mu, self.smin)
-        elif method == "smart":
-            b = back(self.ratio(img, proj, threshold, True), active=active)
-            self._per_slab("update_exp", vol, b, mu, self.smin, np.int32(1))
-        else:
-            for blk in range(n_blocks):
-                if blk:
-                    proj = fwd(vol, out=proj, active=active)
-                lr = self.ratio(img, proj, threshold, True, blocks,
-                                -1 if blocks is None else blk)
-                self._per_slab("update_exp", vol, back(lr, active=active), mu, self.smin,
-                               np.int32(0))
-        return resid
+        return fwd, back
+
+    def crop(self, vol, extent: np.ndarray, below: float = CROP_BELOW):
+        """Continue on the bounding box of the non-zero voxels when it holds at most
+        ``below`` of the current grid.
+
+        ``extent`` is ``vol``'s :meth:`row_extent`. Returns ``(solver, vol, extent)``: a
+        solver on the cropped projector (with :attr:`box` in full-grid indices) and the
+        volume and extent on it, or ``self`` and the inputs when nothing is cropped.
+        """
+        local = extent_box(extent)
+        size = int(np.prod(self.proj.grid.shape))
+        if local is None or np.prod([s.stop - s.start for s in local]) > below * size:
+            return self, vol, extent
+        host = np.ascontiguousarray(self.proj.volume_to_host(vol)[local])
+        box = local if self.box is None else tuple(
+            slice(b.start + s.start, b.start + s.stop) for b, s in zip(self.box, local))
+        sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box)
+        new_vol = sub.proj.volume_to_device(host)
+        return sub, new_vol, sub.row_extent(new_vol)
+
+    def volume_to_host(self, vol, full_shape: tuple[int, int, int]) -> np.ndarray:
+        """The host volume on the full grid of shape ``full_shape`` (0 outside :attr:`box`)."""
+        if self.box is None:
+            return self.proj.volume_to_host(vol)
+        full = np.zeros(full_shape, np.float32)
+        full[self.box] = self.proj.volume_to_host(vol)
+        return full
 
 
-def reconstruct(image, projector, method: str = "mlem", iterations: int | None = None,
-                relax: float | None = None, *, start="uniform", threshold: float = 0.0,
-                mask_fraction: float | None = None, min_sensitivity: float = 0.5,
-                skip_empty: bool = True, crop: bool = True, skip_dark: bool = True,
-                tol: float | None = None, mart_blocks: int = 2,
+# ---- one iteration per method ---------------------------------------------------------
+def update_mlem(solver: Solver, vol, img, active, relax: float, threshold: float,
+                blocks=None, n_blocks: int = 1) -> float:
+    """MLEM: ``E ← E (Aᵀ r / s)^μ``; returns ``‖P - I‖`` before the update."""
+    fwd, back = solver.projections(log_ratio=False)
+    proj = fwd(vol, active=active)
+    resid = solver.total(proj, img) ** 0.5
+    b = back(solver.ratio(img, proj, threshold, False), active=active)
+    solver.update_voxels("update_mlem", vol, b, np.float32(relax), solver.smin)
+    return resid
+
+
+def update_smart(solver: Solver, vol, img, active, relax: float, threshold: float,
+                 blocks=None, n_blocks: int = 1) -> float:
+    """SMART: ``E ← E exp(μ Aᵀ log r / s)``; returns ``‖P - I‖`` before the update."""
+    fwd, back = solver.projections(log_ratio=True)
+    proj = fwd(vol, active=active)
+    resid = solver.total(proj, img) ** 0.5
+    b = back(solver.ratio(img, proj, threshold, True), active=active)
+    solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin, np.int32(1))
+    return resid
+
+
+def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float,
+                blocks=None, n_blocks: int = 1) -> float:
+    """Block MART: one multiplicative update per block of views, each with a fresh
+    projection; returns ``‖P - I‖`` before the first block."""
+    fwd, back = solver.projections(log_ratio=True)
+    proj = fwd(vol, active=active)
+    resid = solver.total(proj, img) ** 0.5
+    for blk in range(n_blocks):
+        if blk:
+            proj = fwd(vol, out=proj, active=active)
+        lr = solver.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk)
+        solver.update_voxels("update_exp", vol, back(lr, active=active), np.float32(relax),
+                         solver.smin, np.int32(0))
+    return resid
+
+
+#: The update of each method, chosen once per reconstruction.
+UPDATES = {"mlem": update_mlem, "smart": update_smart, "mart": update_mart}
+
+
+def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
+             info: ReconstructionInfo, step: Callable, callback, norm: float) -> np.ndarray:
+    """The iterations of :func:`reconstruct`; returns the host volume on the full grid."""
+    full_shape = solver.proj.grid.shape
+    for it in range(settings.iterations):
+        cropping = settings.crop and it >= 1
+        extent = solver.row_extent(vol) if settings.skip_empty or cropping else None
+        if cropping:
+            solver, vol, extent = solver.crop(vol, extent)
+            info.cropped_shape = solver.proj.grid.shape if solver.box else None
+        active = (extent[..., 1] >= 0).any(axis=1) if settings.skip_empty else None
+        if active is not None:
+            info.active_slices.append(int(active.sum()))
+        resid = step(solver, vol, img, active) / norm
+        info.residuals.append(resid)
+        info.iterations = it + 1
+        if callback is not None and callback(it + 1, resid) is False:
+            break
+        tol = settings.tol
+        if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
+            info.converged = True
+            break
+    return solver.volume_to_host(vol, full_shape)
+
+
+def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
+                iterations: int | None = None, relax: float | None = None, *,
+                start="uniform", threshold: float = 0.0, mask_fraction: float | None = None,
+                min_sensitivity: float = 0.5, skip_empty: bool = True, crop: bool = True,
+                skip_dark: bool = True, tol: float | None = None, mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
                 return_info: bool = False):
     """Reconstruct a particle volume from one raw plenoptic image.
@@ -384,7 +431,8 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
         Raw image ``(rows, cols)`` matching the projector's camera; uint8, uint16 or float;
         finite and non-negative.
     projector
-        A :class:`plenocl.Projector` for the camera and grid (its queue runs the solver).
+        A :class:`plenocl.Projector` for the camera and grid (its queue runs the solver),
+        or any :class:`plenocl.operator.ProjectionOperator`.
     method
         ``"mlem"`` (default), ``"smart"`` or ``"mart"`` (see the module documentation).
     iterations, relax
@@ -435,36 +483,42 @@ def reconstruct(image, projector, method: str = "mlem", iterations: int | None =
     numpy.ndarray
         float32 volume ``(nz, ny, nx)`` in the image's intensity units; never NaN or Inf.
     """
+    settings = ReconstructionSettings(
+        method=method, iterations=iterations, relax=relax, start=start, threshold=threshold,
+        mask_fraction=mask_fraction, min_sensitivity=min_sensitivity, skip_empty=skip_empty,
+        crop=crop, skip_dark=skip_dark, tol=tol, mart_blocks=mart_blocks)
+    vol, info = run_reconstruction(image, projector, settings, callback)
+    return (vol, info) if return_info else vol
+
+
+def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
+                       callback: Callable[[int, float], bool | None] | None = None
+                       ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
+    returns the volume and its :class:`ReconstructionInfo`."""
     t0 = time.perf_counter()
-    it_default, mu_default = DEFAULTS.get(method, (0, 1.0))
-    iterations = it_default if iterations is None else iterations
-    relax = mu_default if relax is None else relax
-    _check_options(method, iterations, relax, mask_fraction, threshold, mart_blocks)
-    if not 0 <= min_sensitivity < 1:
-        raise ValueError(f"min_sensitivity must be in [0, 1), got {min_sensitivity!r}")
     img_np, scale = prepare_image(image, projector.camera)
-    info = ReconstructionInfo(method)
+    info = ReconstructionInfo(settings.method)
     if scale == 0:
-        vol = np.zeros(projector.grid.shape, np.float32)
-        return (vol, info) if return_info else vol
-    thr = float(threshold) / scale
+        return np.zeros(projector.grid.shape, np.float32), info
+    thr = float(settings.threshold) / scale
     lit = None
-    if skip_dark and hasattr(projector, "lit_lenses"):
+    if settings.skip_dark:
         lit = projector.lit_lenses(img_np, thr)
         info.lit_lens_fraction = float(lit.mean())
-    solver = Solver(projector, min_sensitivity, lit)
+    solver = Solver(projector, settings.min_sensitivity, lit)
     img = cla.to_device(solver.queue, img_np)
-    vol = solver.start(img, start, thr, scale)
-    if mask_fraction is not None:
-        solver.mask(vol, img, thr, mask_fraction)
+    vol = solver.start(img, settings.start, thr, scale)
+    if settings.mask_fraction is not None:
+        solver.mask(vol, img, thr, settings.mask_fraction)
     blocks = None
-    if method == "mart" and mart_blocks > 1:
-        blocks = cla.to_device(solver.queue, view_blocks(projector.camera, mart_blocks))
-    n_blocks = mart_blocks**2 if blocks is not None else 1
-    vol = _iterate(solver, projector, vol, img, info, method, relax, thr, blocks, n_blocks,
-                   iterations, skip_empty, crop, tol, callback,
+    if settings.n_blocks > 1:
+        blocks = cla.to_device(solver.queue, view_blocks(projector.camera, settings.mart_blocks))
+    step = functools.partial(UPDATES[settings.method], relax=settings.relax, threshold=thr,
+                             blocks=blocks, n_blocks=settings.n_blocks)
+    vol = _iterate(solver, vol, img, settings, info, step, callback,
                    float(np.linalg.norm(img_np)))
     out = vol * np.float32(scale)
     info.active_fraction = float(np.count_nonzero(out)) / out.size
     info.seconds = time.perf_counter() - t0
-    return (out, info) if return_info else out
+    return out, info

@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pyopencl as cl
+import pyopencl.array as cl_array
 
 from .camera import Camera
 from .device import DeviceLike, device_info, get_queue
-from .program import build_program, fetch_kernels
+from .program import KernelSet
 from .sensor import SensorModel
 
 #: Rays one work-item traces; the rest of the parallelism is over sources.
@@ -82,11 +82,11 @@ class Simulator:
         self.queue = get_queue(queue)
         self.int64 = device_info(self.queue).int64_atomics
         opts = ["-DPL_INT64_ATOMICS"] if self.int64 else []
-        program = build_program(self.queue.context, "simulate.cl", opts)
-        self._k = fetch_kernels(program, ["trace_particles", "trace_white"])
+        # each work-item traces a block of rays: on a CPU, one item per work-group, or PoCL
+        # may run the whole launch as one work-group (one thread)
+        kernels = ["trace_particles", "trace_white"]
+        self._k = KernelSet(self.queue, "simulate.cl", kernels, opts, looping=kernels)
         self._acc = np.int64 if self.int64 else np.float32
-        # PoCL on CPUs may run a launch without a local size as one work-group (one thread)
-        self._local = (1, 1) if "CPU" in device_info(self.queue).type.upper() else None
 
     # ---- shared launch plumbing ---------------------------------------------------------
     def _geometry_args(self) -> list:
@@ -105,18 +105,13 @@ class Simulator:
         scale = 2.0 ** min(40, math.floor(math.log2(2.0**62 / max(total, 1e-30))))
         return np.rint(per_ray * scale).astype(np.int64), scale
 
-    def _new_image(self) -> cl.Buffer:
+    def _new_image(self) -> cl_array.Array:
         w, h = self.camera.pixels
-        nbytes = w * h * np.dtype(self._acc).itemsize
-        buf = cl.Buffer(self.queue.context, cl.mem_flags.READ_WRITE, nbytes)
-        cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, self._acc), 0, nbytes)
-        return buf
+        return cl_array.zeros(self.queue, (h, w), self._acc)
 
-    def _read_image(self, buf: cl.Buffer, scale: float) -> np.ndarray:
-        w, h = self.camera.pixels
-        acc = np.empty((h, w), self._acc)
-        cl.enqueue_copy(self.queue, acc, buf)
-        return (acc.astype(np.float64) / scale).astype(np.float32)
+    @staticmethod
+    def _read_image(image: cl_array.Array, scale: float) -> np.ndarray:
+        return (image.get().astype(np.float64) / scale).astype(np.float32)
 
     @staticmethod
     def _chunks(n_sources: int, rays: int):
@@ -137,15 +132,13 @@ class Simulator:
         if len(pos):
             img_pts[:, :3] = cam.image_points(pos)
         quanta, scale = self._quanta(intens / rays, float(intens.sum()))
-        gain = cl.Buffer(self.queue.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                         hostbuf=_lens_gain(cam, lens_transmission))
+        gain = self._k.to_device(_lens_gain(cam, lens_transmission))
         image = self._new_image()
-        mf = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         for start, n, blocks in self._chunks(len(pos), rays):
-            pts = cl.Buffer(self.queue.context, mf, hostbuf=img_pts[start:start + n])
-            q = cl.Buffer(self.queue.context, mf, hostbuf=quanta[start:start + n])
-            self._k["trace_particles"](
-                self.queue, (blocks, n), self._local, pts, q, gain, image,
+            pts = self._k.to_device(img_pts[start:start + n])
+            q = self._k.to_device(quanta[start:start + n])
+            self._k.launch(
+                "trace_particles", (blocks, n), pts, q, gain, image,
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
                 np.float32(cam.aperture_diameter_mm / 2), np.float32(cam.image_distance_mm),
                 np.float32(cam.ml_focal_length_mm),
@@ -167,12 +160,11 @@ class Simulator:
                              "(the calibration image is taken with the aperture stopped down)")
         n_lens = cam.ml_count[0] * cam.ml_count[1]
         quantum, scale = self._quanta(np.array([intensity / rays]), intensity * n_lens)
-        gain = cl.Buffer(self.queue.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                         hostbuf=_lens_gain(cam, lens_transmission))
+        gain = self._k.to_device(_lens_gain(cam, lens_transmission))
         image = self._new_image()
         for start, n, blocks in self._chunks(n_lens, rays):
-            self._k["trace_white"](
-                self.queue, (blocks, n), self._local, gain, image, quantum[0],
+            self._k.launch(
+                "trace_white", (blocks, n), gain, image, quantum[0],
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
                 np.float32(cam.focal_length_mm / stop_f_number / 2),
                 np.float32(cam.image_distance_mm), np.float32(cam.ml_focal_length_mm),

@@ -7,12 +7,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pyopencl as cl
 import pytest
 
 import plenocl
 from plenocl import device
-from plenocl.program import KernelBuildError, build_program, kernel_dir
+from plenocl.program import KernelBuildError, KernelSet, build_program, kernel_dir
 
 
 def test_devices_are_listed_with_capabilities():
@@ -78,3 +79,21 @@ def test_design_public_api_names_exist():
         assert callable(getattr(plenocl.Camera, method))
     for method in ("forward", "back", "voxel_weights"):
         assert callable(getattr(plenocl.Projector, method))
+
+
+def test_kernel_set_launches_with_arrays_and_the_cpu_rule(queue):
+    """The launch layer unwraps device arrays, fetches each kernel once and runs it; the
+    row extents it returns are the NumPy ones, on an awkward size."""
+    ks = KernelSet(queue, "reconstruct.cl", ["row_extent", "partial_sums"],
+                   looping=["partial_sums"])
+    assert ks.is_cpu == bool(queue.device.type & cl.device_type.CPU)
+    vol = np.zeros((3, 5, 7), np.float32)
+    vol[1, 2, 3:6] = 1.0
+    vol[2, 4, 0] = 2.0
+    out = ks.array((3, 5, 2), np.int32)
+    ks.launch("row_extent", (15,), ks.to_device(vol), np.int32(7), out, np.int32(15))
+    ext = out.get()
+    assert tuple(ext[1, 2]) == (3, 5) and tuple(ext[2, 4]) == (0, 0)
+    assert tuple(ext[0, 0]) == (7, -1)
+    with pytest.raises(ValueError, match="not among"):
+        KernelSet(queue, "reconstruct.cl", ["row_extent"], looping=["ratio"])

@@ -261,27 +261,15 @@ def test_cropped_projector_keeps_the_cropped_sensitivity(small_camera, queue):
                                atol=1e-6 * full.max())
 
 
-def _benchmark_module(name: str):
-    """A script of ``benchmarks/`` loaded as a module (its ``main()`` is not run)."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize("name", ["ideal", "perturbed-separable"])
-def test_atomic_scatter_back_twin_matches_the_gather(name, projectors):
-    """``back_y_scatter`` (benchmarks/projector.py times it against ``back_y``) computes
-    the same back projection: float atomics change only the summation order."""
+def test_atomic_scatter_back_twin_matches_the_gather(name, cameras, projectors):
+    """``back="atomic"`` (``back_y_scatter``, timed against ``back_y`` in
+    benchmarks/projector.py) computes the same back projection: float atomics change only
+    the summation order."""
     proj = projectors[name]
-    bench = _benchmark_module("projector")
+    cam, kw = cameras[name]
+    atomic = Projector(cam, proj.grid, proj.queue, back="atomic", **kw)
+    assert atomic.path == "separable"
     image = np.random.default_rng(5).random(proj.image_shape, dtype=np.float32)
-    img = cl_array.to_device(proj.queue, image)
-    out = proj.empty_volume()
-    bench.back_with_atomic_scatter(proj, img, out)
     ref = proj.back(image)
-    assert np.abs(proj.volume_to_host(out) - ref).max() <= 1e-5 * ref.max()
+    assert np.abs(atomic.back(image) - ref).max() <= 1e-5 * ref.max()

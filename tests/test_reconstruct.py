@@ -188,3 +188,19 @@ def test_device_extent_gives_the_numpy_box(small_camera, queue):
         extent = solver.row_extent(proj.volume_to_device(vol))
         assert extent_box(extent) == nonzero_box(vol), density
         np.testing.assert_array_equal((extent[..., 1] >= 0).any(axis=1), vol.any(axis=(1, 2)))
+
+
+def test_settings_are_validated_once_and_resolve_method_defaults():
+    from plenocl.reconstruct import DEFAULTS, ReconstructionSettings
+
+    mart = ReconstructionSettings(method="mart")
+    assert (mart.iterations, mart.relax) == DEFAULTS["mart"]
+    assert mart.n_blocks == mart.mart_blocks**2
+    assert ReconstructionSettings().n_blocks == 1
+    assert ReconstructionSettings(iterations=3).iterations == 3
+    with pytest.raises(ValueError, match="method must be one of"):
+        ReconstructionSettings(method="art")
+    with pytest.raises(ValueError, match="min_sensitivity"):
+        ReconstructionSettings(min_sensitivity=1.0)
+    with pytest.raises(AttributeError):
+        mart.iterations = 2  # frozen: one object describes one reconstruction

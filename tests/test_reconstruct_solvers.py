@@ -7,35 +7,69 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from plenocl import Camera, Grid
+from plenocl import Camera, Grid, Projector
+from plenocl.operator import ProjectionOperator
 from plenocl.reconstruct import reconstruct, view_blocks
 from plenocl.reference import reconstruct as ref
 
 
 class MatrixProjector:
     """A projector from an explicit matrix W (pixels x voxels), for solver tests; it holds
-    volumes as two depth slabs so the per-slab code paths are exercised."""
+    volumes as two depth slabs so the per-slab code paths are exercised. It implements
+    the whole operator contract (plenocl.operator.ProjectionOperator): every lens counts as
+    lit and lens sets are ignored (skipping dark lenses is exact), and a crop keeps the
+    columns of W of the sub-box."""
 
     def __init__(self, W, camera, grid, queue):
         self.W, self.camera, self.grid, self.queue = W, camera, grid, queue
+        self._sens = None
 
     def empty_volume(self):
         """Two depth slabs, like a projector that splits the volume."""
-        return [cla.empty(self.queue, (1,) + self.grid.shape[1:], np.float32),
-                cla.empty(self.queue, (self.grid.shape[0] - 1,) + self.grid.shape[1:],
-                          np.float32)]
+        nz, ny, nx = self.grid.shape
+        return [cla.empty(self.queue, (1, ny, nx), np.float32),
+                cla.empty(self.queue, (nz - 1, ny, nx), np.float32)]
 
     def volume_to_host(self, slabs):
         return np.concatenate([s.get() for s in slabs])
 
-    def forward_device(self, vol, out=None, active=None):
+    def volume_to_device(self, vol):
+        vol = np.ascontiguousarray(vol, dtype=np.float32)
+        return [cla.to_device(self.queue, vol[:1]), cla.to_device(self.queue, vol[1:])]
+
+    def forward_device(self, vol, out=None, active=None, lenses=None):
         img = (self.W @ self.volume_to_host(vol).ravel().astype(np.float64)).astype(np.float32)
         return cla.to_device(self.queue, img.reshape(self.camera.pixels[::-1]))
 
-    def back_device(self, img, out=None, active=None):
+    def back_device(self, img, out=None, active=None, lenses=None):
         vol = (self.W.T @ img.get().ravel().astype(np.float64)).astype(np.float32)
-        vol = vol.reshape(self.grid.shape)
-        return [cla.to_device(self.queue, vol[:1]), cla.to_device(self.queue, vol[1:])]
+        return self.volume_to_device(vol.reshape(self.grid.shape))
+
+    def sensitivity(self):
+        if self._sens is None:
+            self._sens = self.back_device(cla.to_device(
+                self.queue, np.ones(self.camera.pixels[::-1], np.float32)))
+        return self._sens
+
+    def lit_lenses(self, image, threshold=0.0):
+        return np.ones(self.camera.ml_count[0] * self.camera.ml_count[1], bool)
+
+    def lens_set(self, lit):
+        return None
+
+    def cropped(self, box):
+        cols = np.arange(self.grid.size).reshape(self.grid.shape)[box].ravel()
+        shape = tuple(s.stop - s.start for s in box)
+        sub = Grid(shape, x=(0, shape[2]), y=(0, shape[1]), z=(0, shape[0]))
+        return MatrixProjector(self.W[:, cols], self.camera, sub, self.queue)
+
+
+def test_both_projectors_implement_the_operator_contract(tiny, queue):
+    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (3, 3), 0.0074, (51, 51))
+    assert isinstance(tiny[0], ProjectionOperator)
+    assert isinstance(Projector(cam, Grid((3, 4, 5), x=(-0.2, 0.2), y=(-0.2, 0.2),
+                                          z=(-1, 1)), queue), ProjectionOperator)
+    assert not isinstance(object(), ProjectionOperator)
 
 
 @pytest.fixture(scope="module")

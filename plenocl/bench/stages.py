@@ -62,8 +62,7 @@ def section_simulator(run: _Run) -> str:
 # ---- projector ----------------------------------------------------------------------
 def projector_bytes(proj: Projector) -> int:
     """Device bytes the projector holds itself: weight tables and scratch buffers."""
-    bufs = list(getattr(proj, "_d", {}).values()) + list(getattr(proj, "_scratch", {}).values())
-    return int(sum(b.nbytes for b in bufs))
+    return proj.device_bytes()
 
 
 def device_pair(proj: Projector, vol: np.ndarray):

@@ -9,16 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..lightfield import output_lens_coordinates
 
-def output_lens_coordinates(nx: int, ny: int, supersample: int = 1
-                            ) -> tuple[np.ndarray, np.ndarray]:
-    """Lens-index coordinates ``(kx, ky)`` of the output pixel centres, 1-D each.
-
-    Output pixel ``j`` of ``nx * supersample`` sits at ``(j + 0.5) / S - 0.5``: with
-    ``S = 1`` one output pixel per microlens, at its centre.
-    """
-    s = int(supersample)
-    return ((np.arange(nx * s) + 0.5) / s - 0.5, (np.arange(ny * s) + 0.5) / s - 0.5)
+__all__ = ["output_lens_coordinates", "refocus_views"]
 
 
 def refocus_views(views: np.ndarray, shifts: np.ndarray, supersample: int = 1) -> np.ndarray:

@@ -16,130 +16,21 @@ A voxel's column of the weight matrix, literally the paper's four steps:
    (NaN) microlens or outside the array are lost, so a voxel's weights sum to at most 1.
 
 Microlens index units come from an affine map fitted to the calibrated centres
-(:func:`lens_index_map`). The OpenCL projector (``kernels/projector.cl``) evaluates the
-same model matrix-free; the tests compare the two.
+(:func:`plenocl.weighting.lens_index_map`); the aperture sampling and that map are shared
+definitions, imported from :mod:`plenocl.weighting`. The OpenCL projector
+(``kernels/projector.cl``) evaluates the same model matrix-free; the tests compare the two.
 """
 
 from __future__ import annotations
-
-import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..camera import Camera
 from ..grid import Grid
+from ..weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL, ApertureGrid, lens_index_map
 
-#: Aperture samples per pixel footprint on the aperture (``p_px s_i / f_ml``), per axis.
-DEFAULT_OVERSAMPLE = 1.25
-#: Lens-index drift (in lenses, across the array) below which the fitted lens map's
-#: rotation/shear terms are dropped and the projector uses its separable fast path.
-DEFAULT_SHEAR_TOL = 1e-3
-
-
-@dataclass(frozen=True)
-class ApertureGrid:
-    """The plaid ``(u, v)`` sampling of the circular main-lens aperture (step 1).
-
-    Sample ``(i, j)`` sits at ``u = (i - c) step``, ``v = (j - c) step`` with
-    ``c = (n - 1)/2``; only samples with ``u² + v² <= radius²`` are kept.
-    """
-
-    step: float
-    n: int
-    radius: float
-
-    @classmethod
-    def for_camera(cls, camera: Camera, oversample: float = DEFAULT_OVERSAMPLE) -> ApertureGrid:
-        """The grid whose step is one pixel's aperture footprint over ``oversample``."""
-        if not (math.isfinite(oversample) and oversample > 0):
-            raise ValueError(f"oversample must be a positive number, got {oversample!r}")
-        footprint = camera.pixel_pitch_mm * camera.image_distance_mm / camera.ml_focal_length_mm
-        step = footprint / oversample
-        radius = camera.aperture_diameter_mm / 2
-        k = int(math.floor(radius / step + 1e-9))
-        # the outermost columns must hold a sample by the very test inside() applies
-        while k > 0 and ((0 - k) * step) ** 2 > radius**2:
-            k -= 1
-        return cls(step=step, n=2 * k + 1, radius=radius)
-
-    @property
-    def center(self) -> float:
-        """Index ``c`` of the optical axis."""
-        return (self.n - 1) / 2
-
-    def coords(self) -> np.ndarray:
-        """Sample coordinates along one axis (mm)."""
-        return (np.arange(self.n) - self.center) * self.step
-
-    def inside(self) -> np.ndarray:
-        """``(n, n)`` mask ``[i, j]`` of the samples inside the aperture circle."""
-        c = self.coords()
-        return c[:, None] ** 2 + c[None, :] ** 2 <= self.radius**2
-
-    def column_ranges(self) -> tuple[np.ndarray, np.ndarray]:
-        """For each ``i``, the inclusive ``j`` range ``[lo, hi]`` inside the aperture."""
-        mask = self.inside()  # a disc: each column's samples are contiguous, centre included
-        if not mask.any(axis=1).all():
-            raise ValueError("aperture grid has a column without samples; build it with "
-                             "ApertureGrid.for_camera")
-        lo = np.argmax(mask, axis=1)
-        return lo, self.n - 1 - lo
-
-    def samples(self) -> tuple[np.ndarray, np.ndarray]:
-        """Integer ``(i, j)`` of the in-aperture samples, ``i`` major, ``j`` minor."""
-        i, j = np.nonzero(self.inside())
-        return i, j
-
-
-@dataclass(frozen=True)
-class LensIndexMap:
-    """Affine map from array-plane ``(x, y)`` mm to fractional microlens index ``(kx, ky)``."""
-
-    matrix: np.ndarray  # (2, 2): d(kx, ky) / d(x, y)
-    offset: np.ndarray  # (2,)
-
-    @property
-    def axis_aligned(self) -> bool:
-        """Whether ``kx`` depends on ``x`` only and ``ky`` on ``y`` only."""
-        return self.matrix[0, 1] == 0.0 and self.matrix[1, 0] == 0.0
-
-    def __call__(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Fractional lens indices of array-plane points."""
-        m, o = self.matrix, self.offset
-        x, y = np.asarray(x, float), np.asarray(y, float)
-        return m[0, 0] * x + m[0, 1] * y + o[0], m[1, 0] * x + m[1, 1] * y + o[1]
-
-
-def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL) -> LensIndexMap:
-    """Fit the affine lens layout to the (calibrated) centres and invert it.
-
-    The array-plane position of lens ``k`` is ``x_k = c_k / (1 + f_ml/s_i)`` (DESIGN §2)
-    with ``c_k`` its image centre in sensor mm; NaN centres are ignored. When the fitted
-    rotation/shear moves the lens index by at most ``shear_tol`` lenses across the whole
-    array it is dropped (about the array's centre), so the map becomes axis-aligned.
-    """
-    cols, rows = camera.ml_count
-    ky, kx = np.mgrid[0:rows, 0:cols]
-    pos = camera.px_to_mm(camera.microlens_centers) / (
-        1 + camera.ml_focal_length_mm / camera.image_distance_mm)
-    ok = np.isfinite(pos).all(axis=-1)
-    design = np.column_stack([kx[ok], ky[ok], np.ones(ok.sum())])
-    if ok.sum() < 3 or np.linalg.matrix_rank(design) < 3:
-        raise ValueError("the microlens centres are too few or collinear to fit the array "
-                         "layout; recalibrate with a white image that lights the whole array")
-    fit, *_ = np.linalg.lstsq(design, pos[ok], rcond=None)  # (3, 2): x = [kx ky 1] @ fit
-    forward = fit[:2].T
-    matrix = np.linalg.inv(forward)
-    offset = -matrix @ fit[2]
-    drift_x = abs(matrix[0, 1] / matrix[1, 1]) * rows
-    drift_y = abs(matrix[1, 0] / matrix[0, 0]) * cols
-    if max(drift_x, drift_y) <= shear_tol:
-        centre = pos[ok].mean(axis=0)
-        offset = offset + np.array([matrix[0, 1] * centre[1], matrix[1, 0] * centre[0]])
-        matrix = np.diag(np.diag(matrix))
-    return LensIndexMap(matrix=matrix, offset=offset)
-
+__all__ = ["DEFAULT_OVERSAMPLE", "DEFAULT_SHEAR_TOL", "ApertureGrid", "lens_index_map",
+           "lens_pixels", "lit_lenses", "voxel_weights", "weight_matrix"]
 
 def _bilinear_corners(f: np.ndarray):
     """Lower integer neighbour and fractional distance, as the paper's floor/ceil."""

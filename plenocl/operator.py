@@ -1,0 +1,75 @@
+"""What a reconstruction needs of a projector: the operator contract.
+
+:class:`ProjectionOperator` states it as a :class:`typing.Protocol`. :class:`plenocl.Projector`
+implements it matrix-free on the device; the solver tests implement it with an explicit
+weight matrix. The solver depends on this contract only, never on a concrete projector.
+
+Volumes on the device are lists of depth slabs (``pyopencl.array.Array``, float32,
+C-contiguous, ``(z1 - z0, ny, nx)`` each); images are one device array ``(H, W)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cl_array
+
+from .camera import Camera
+from .grid import Grid
+
+Slabs = list[cl_array.Array]
+
+
+@runtime_checkable
+class ProjectionOperator(Protocol):
+    """A linear map ``A`` from voxels to pixels with its exact transpose, on one queue.
+
+    Attributes
+    ----------
+    queue, camera, grid
+        Where it runs and what it maps between.
+
+    Notes
+    -----
+    ``lenses`` arguments take what :meth:`lens_set` returns (``None``: every lens); an
+    operator may ignore them when it always projects onto every lens, since skipping a
+    dark lens is exact. ``active`` (bool per depth slice, ``None``: all) marks the slices
+    that can be non-zero; the others may be skipped and come out 0 in a back projection.
+    """
+
+    queue: cl.CommandQueue
+    camera: Camera
+    grid: Grid
+
+    def forward_device(self, vol: Slabs, out: cl_array.Array | None = None,
+                       active: np.ndarray | None = None, lenses: Any = None
+                       ) -> cl_array.Array:
+        """``A vol`` into ``out`` (a new image when ``None``)."""
+
+    def back_device(self, image: cl_array.Array, out: Slabs | None = None,
+                    active: np.ndarray | None = None, lenses: Any = None) -> Slabs:
+        """``Aᵀ image`` into ``out`` (new slabs when ``None``)."""
+
+    def empty_volume(self) -> Slabs:
+        """Uninitialised device slabs of the grid."""
+
+    def volume_to_device(self, vol: np.ndarray) -> Slabs:
+        """A checked float32 device copy of a host volume."""
+
+    def volume_to_host(self, slabs: Slabs) -> np.ndarray:
+        """The host volume of device slabs."""
+
+    def sensitivity(self) -> Slabs:
+        """``Aᵀ 1``, computed once and kept; callers must not write to it."""
+
+    def lit_lenses(self, image: np.ndarray, threshold: float = 0.0) -> np.ndarray:
+        """Bool per microlens: could it see a pixel of ``image`` above ``threshold``?"""
+
+    def lens_set(self, lit: np.ndarray) -> Any:
+        """The lenses flagged in ``lit``, in the form ``lenses`` arguments take."""
+
+    def cropped(self, box: tuple[slice, slice, slice]) -> ProjectionOperator:
+        """The same operator restricted to the sub-grid ``vol[box]`` (keeps a computed
+        sensitivity, cropped)."""
