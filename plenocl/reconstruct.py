@@ -349,26 +349,31 @@ class Solver:
 
 
 # ---- one iteration per method ---------------------------------------------------------
+def _simultaneous(solver: Solver, vol, img, active, relax: float, threshold: float,
+                  log_ratio: bool) -> float:
+    """One simultaneous update from one forward and one back projection; returns
+    ``‖P - I‖`` before it."""
+    fwd, back = solver.projections(log_ratio)
+    proj = fwd(vol, active=active)
+    resid = solver.total(proj, img) ** 0.5
+    b = back(solver.ratio(img, proj, threshold, log_ratio), active=active)
+    if log_ratio:
+        solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin, np.int32(1))
+    else:
+        solver.update_voxels("update_mlem", vol, b, np.float32(relax), solver.smin)
+    return resid
+
+
 def update_mlem(solver: Solver, vol, img, active, relax: float, threshold: float,
                 blocks=None, n_blocks: int = 1) -> float:
     """MLEM: ``E ← E (Aᵀ r / s)^μ``; returns ``‖P - I‖`` before the update."""
-    fwd, back = solver.projections(log_ratio=False)
-    proj = fwd(vol, active=active)
-    resid = solver.total(proj, img) ** 0.5
-    b = back(solver.ratio(img, proj, threshold, False), active=active)
-    solver.update_voxels("update_mlem", vol, b, np.float32(relax), solver.smin)
-    return resid
+    return _simultaneous(solver, vol, img, active, relax, threshold, log_ratio=False)
 
 
 def update_smart(solver: Solver, vol, img, active, relax: float, threshold: float,
                  blocks=None, n_blocks: int = 1) -> float:
     """SMART: ``E ← E exp(μ Aᵀ log r / s)``; returns ``‖P - I‖`` before the update."""
-    fwd, back = solver.projections(log_ratio=True)
-    proj = fwd(vol, active=active)
-    resid = solver.total(proj, img) ** 0.5
-    b = back(solver.ratio(img, proj, threshold, True), active=active)
-    solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin, np.int32(1))
-    return resid
+    return _simultaneous(solver, vol, img, active, relax, threshold, log_ratio=True)
 
 
 def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float,
