@@ -46,7 +46,7 @@ import pyopencl.array as cl_array
 from .camera import Camera
 from .device import DeviceLike, get_queue
 from .program import KernelSet
-from .weighting import array_plane_scale, lattice_fit
+from .weighting import array_plane_scale, lattice_cells, lattice_fit
 
 
 # ---- lattice --------------------------------------------------------------------------
@@ -148,13 +148,8 @@ def lens_owner(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
     its centre on the fitted lattice, so a rotated array is handled) contains it; ``-1``
     outside the array.
     """
-    model = lens_lattice(camera, centers)
     cols, rows = camera.ml_count
-    w, h = camera.pixels
-    inv = np.linalg.inv(model[:2].T)
-    dc, dr = np.arange(w) - model[2, 0], np.arange(h) - model[2, 1]
-    kx = np.rint(inv[0, 0] * dc[None, :] + inv[0, 1] * dr[:, None]).astype(np.int32)
-    ky = np.rint(inv[1, 0] * dc[None, :] + inv[1, 1] * dr[:, None]).astype(np.int32)
+    kx, ky = lattice_cells(lens_lattice(camera, centers), *camera.pixels)
     inside = (kx >= 0) & (kx < cols) & (ky >= 0) & (ky < rows)
     return np.where(inside, ky * cols + kx, -1).astype(np.int32)
 

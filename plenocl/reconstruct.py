@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -36,6 +37,7 @@ import pyopencl.array as cla
 
 from .operator import ProjectionOperator
 from .program import KernelSet
+from .weighting import lattice_cells, lattice_fit
 
 METHODS = ("mlem", "smart", "mart")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
@@ -196,19 +198,41 @@ def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
 def view_blocks(camera, n_per_axis: int) -> np.ndarray:
     """Block id (int32) of every pixel: interleaved groups of sub-aperture views.
 
-    A pixel's view is its offset (rounded, in pixels) from the nearest microlens image
-    centre; views are grouped by ``(offset_x mod n, offset_y mod n)``.
+    A pixel's view is its offset (rounded, in pixels) from the image centre of the
+    microlens it lies behind: the lens of its lattice cell (:func:`lattice_cells`; beyond
+    the array, the nearest edge lens; a lens without a calibrated centre counts at its
+    fitted lattice position). Views are grouped by ``(offset_x mod n, offset_y mod n)``.
+    Vectorised over the sensor from the lattice fit; the NumPy reference
+    (:func:`plenocl.reference.reconstruct.view_blocks`) searches the nearest centre per
+    pixel instead, and agrees except at cell borders of perturbed arrays.
     """
-    from scipy.spatial import cKDTree
-
+    cols, rows = camera.ml_count
     w, h = camera.pixels
-    centres = camera.microlens_centers.reshape(-1, 2)
-    centres = centres[np.all(np.isfinite(centres), axis=1)]
-    rows, cols = np.mgrid[0:h, 0:w]
-    pix = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
-    _, k = cKDTree(centres).query(pix)
-    off = np.rint(pix - centres[k]).astype(int) % n_per_axis
-    return (off[:, 0] + n_per_axis * off[:, 1]).astype(np.int32).reshape(h, w)
+    model = lattice_fit(camera.microlens_centers)
+    kx, ky = lattice_cells(model, w, h)
+    np.clip(kx, 0, cols - 1, out=kx)
+    np.clip(ky, 0, rows - 1, out=ky)
+    centres = np.asarray(camera.microlens_centers, dtype=np.float64)
+    kxs, kys = np.meshgrid(np.arange(cols), np.arange(rows))
+    fitted = np.stack([kxs, kys, np.ones((rows, cols))], -1) @ model
+    centres = np.where(np.isfinite(centres), centres, fitted)
+    off_x = np.rint(np.arange(w)[None, :] - centres[..., 0][ky, kx]).astype(np.int64) % n_per_axis
+    off_y = np.rint(np.arange(h)[:, None] - centres[..., 1][ky, kx]).astype(np.int64) % n_per_axis
+    return (off_x + n_per_axis * off_y).astype(np.int32)
+
+
+#: MART's device block ids per projector and block count, made once (a projector
+#: reconstructing many images sets them up once).
+_BLOCKS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def device_view_blocks(projector: ProjectionOperator, n_per_axis: int) -> cla.Array:
+    """:func:`view_blocks` of the projector's camera on its queue, cached per projector."""
+    per_projector = _BLOCKS.setdefault(projector, {})
+    if n_per_axis not in per_projector:
+        per_projector[n_per_axis] = cla.to_device(projector.queue,
+                                                  view_blocks(projector.camera, n_per_axis))
+    return per_projector[n_per_axis]
 
 
 class Solver:
@@ -516,9 +540,7 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     vol = solver.start(img, settings.start, thr, scale)
     if settings.mask_fraction is not None:
         solver.mask(vol, img, thr, settings.mask_fraction)
-    blocks = None
-    if settings.n_blocks > 1:
-        blocks = cla.to_device(solver.queue, view_blocks(projector.camera, settings.mart_blocks))
+    blocks = device_view_blocks(projector, settings.mart_blocks) if settings.n_blocks > 1 else None
     step = functools.partial(UPDATES[settings.method], relax=settings.relax, threshold=thr,
                              blocks=blocks, n_blocks=settings.n_blocks)
     vol = _iterate(solver, vol, img, settings, info, step, callback,

@@ -7,6 +7,7 @@ What a voxel's weight on a pixel depends on, apart from the kernels that sum it:
 * :func:`lattice_fit`: the one affine least-squares fit of the microlens lattice to the
   calibrated centres (``[kx, ky, 1] @ M = centre``), used by the lens index map, the lens
   colouring and the light field;
+* :func:`lattice_cells`: the lattice cell (microlens) each pixel lies in;
 * :class:`LensIndexMap` / :func:`lens_index_map`: array-plane millimetres to fractional
   microlens index (step 2);
 * :func:`depth_coefficients`: per-depth affine coefficients of step 2 for a voxel grid,
@@ -137,6 +138,21 @@ def lattice_residual(centres: np.ndarray, model: np.ndarray) -> float:
     fitted = np.stack([kx, ky, np.ones_like(kx)], -1) @ model
     ok = np.isfinite(c).all(axis=-1)
     return float(np.abs(fitted[ok] - c[ok]).max())
+
+
+def lattice_cells(model: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lens index ``(kx, ky)``, ``(H, W)`` int32 each, of the lattice cell holding each pixel.
+
+    The cell of lens ``k`` is the parallelogram of one lattice step around its fitted
+    centre (``model``: :func:`lattice_fit` in pixels), so a rotated or sheared array is
+    handled; indices outside ``[0, cols) x [0, rows)`` mean the pixel lies beyond the
+    array. Vectorised over the sensor: no search per pixel.
+    """
+    inv = np.linalg.inv(model[:2].T)
+    dc, dr = np.arange(width) - model[2, 0], np.arange(height) - model[2, 1]
+    kx = np.rint(inv[0, 0] * dc[None, :] + inv[0, 1] * dr[:, None]).astype(np.int32)
+    ky = np.rint(inv[1, 0] * dc[None, :] + inv[1, 1] * dr[:, None]).astype(np.int32)
+    return kx, ky
 
 
 @dataclass(frozen=True)

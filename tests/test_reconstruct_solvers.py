@@ -184,3 +184,39 @@ def test_bad_images_are_rejected(tiny, bad, message):
     proj, _, _ = tiny
     with pytest.raises(ValueError, match=message):
         reconstruct(bad, proj, iterations=1)
+
+
+@pytest.mark.parametrize("rotation, jitter", [(0.0, 0.0), (2.0, 0.0), (0.3, 0.2)])
+def test_view_blocks_from_the_lattice_match_the_nearest_centre(small_camera, rotation, jitter):
+    """MART's blocks from the lens lattice are the reference's nearest-centre blocks at
+    every pixel whose nearest centre is clearly nearer than the next one (ties at cell
+    borders may go either way)."""
+    from scipy.spatial import cKDTree
+
+    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170),
+                 ml_rotation_deg=rotation)
+    if jitter:
+        rng = np.random.default_rng(1)
+        cam = cam.with_centers(cam.microlens_centers
+                               + rng.uniform(-jitter, jitter, cam.microlens_centers.shape))
+    for n in (2, 3):
+        got, ref_blocks = view_blocks(cam, n), ref.view_blocks(cam, n)
+        h, w = got.shape
+        rows, cols = np.mgrid[0:h, 0:w]
+        pix = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
+        d, _ = cKDTree(cam.microlens_centers.reshape(-1, 2)).query(pix, k=2)
+        clear = (d[:, 1] - d[:, 0] > 2 * jitter + 1e-6).reshape(h, w)
+        # rounding the offset is ambiguous at half pixels too
+        assert clear.mean() > 0.9
+        agree = got[clear] == ref_blocks[clear]
+        assert agree.mean() > 0.995, (n, agree.mean())
+
+
+def test_mart_blocks_are_set_up_once_per_projector(tiny):
+    from plenocl.reconstruct import device_view_blocks
+
+    proj = tiny[0]
+    first = device_view_blocks(proj, 2)
+    assert device_view_blocks(proj, 2) is first
+    np.testing.assert_array_equal(first.get(), view_blocks(proj.camera, 2))
+    assert device_view_blocks(proj, 3) is not first

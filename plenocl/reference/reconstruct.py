@@ -84,3 +84,18 @@ def _start(W, img: np.ndarray, start) -> np.ndarray:
         return np.asarray(start, np.float64).ravel().copy()
     total = float(np.asarray(W.sum()).ravel()[0]) if hasattr(W, "sum") else float(W.sum())
     return np.full(W.shape[1], img.sum() / max(total, EPS))
+
+
+def view_blocks(camera, n_per_axis: int) -> np.ndarray:
+    """MART's block id per pixel, literally: the offset (rounded, in pixels) from the
+    nearest calibrated microlens image centre, ``(offset_x mod n) + n (offset_y mod n)``."""
+    from scipy.spatial import cKDTree
+
+    w, h = camera.pixels
+    centres = camera.microlens_centers.reshape(-1, 2)
+    centres = centres[np.all(np.isfinite(centres), axis=1)]
+    rows, cols = np.mgrid[0:h, 0:w]
+    pix = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
+    _, k = cKDTree(centres).query(pix)
+    off = np.rint(pix - centres[k]).astype(int) % n_per_axis
+    return (off[:, 0] + n_per_axis * off[:, 1]).astype(np.int32).reshape(h, w)
