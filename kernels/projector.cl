@@ -141,9 +141,8 @@ __kernel void fwd_pix(__global const float *restrict L, __global float *restrict
                       __global const int *restrict lens_ids, int id0,
                       __global const int2 *restrict lens_rnd,
                       __global const float2 *restrict lens_frac,
-                      __global const int2 *restrict sample_ij,
-                      int width, int height, int nkx, int nkxp, int s0, int ns, float ic,
-                      float dug, float scale)
+                      __global const float2 *restrict sample_px,
+                      int width, int height, int nkx, int nkxp, int s0, int ns, float scale)
 {
     const int k = lens_ids[id0 + get_global_id(0)];
     const int ky = k / nkx, kx = k - ky * nkx;
@@ -153,10 +152,9 @@ __kernel void fwd_pix(__global const float *restrict L, __global float *restrict
     for (int sl = 0; sl < ns; ++sl) {
         const float val = src[(size_t)sl * nkxp] * scale;
         if (val == 0.0f) continue;
-        const int2 ij = sample_ij[s0 + sl];
         int idx[4];
         float w[4];
-        pl_pixel_taps(r, f, (float)ij.x - ic, (float)ij.y - ic, dug, width, height, idx, w);
+        pl_pixel_taps(r, f, sample_px[s0 + sl], width, height, idx, w);
         for (int b = 0; b < 4; ++b)
             if (idx[b] >= 0) image[idx[b]] += w[b] * val;
     }
@@ -169,9 +167,9 @@ __kernel void back_pix(__global const float *restrict image, __global float *res
                        __global const int *restrict lens_ids,
                        __global const int2 *restrict lens_rnd,
                        __global const float2 *restrict lens_frac,
-                       __global const int2 *restrict sample_ij,
+                       __global const float2 *restrict sample_px,
                        int width, int height, int nkx, int nkxp, int s0, int nsc, int sps,
-                       float ic, float dug, float scale)
+                       float scale)
 {
     const int k = lens_ids[get_global_id(0)];
     const int ky = k / nkx, kx = k - ky * nkx;
@@ -180,10 +178,9 @@ __kernel void back_pix(__global const float *restrict image, __global float *res
     const float2 f = lens_frac[k];
     __global float *out = L + (size_t)ky * nsc * nkxp + kx;
     for (int sl = sa; sl < sb; ++sl) {
-        const int2 ij = sample_ij[s0 + sl];
         int idx[4];
         float w[4];
-        pl_pixel_taps(r, f, (float)ij.x - ic, (float)ij.y - ic, dug, width, height, idx, w);
+        pl_pixel_taps(r, f, sample_px[s0 + sl], width, height, idx, w);
         float acc = 0.0f;
         for (int b = 0; b < 4; ++b)
             if (idx[b] >= 0) acc += w[b] * image[idx[b]];
@@ -291,10 +288,11 @@ __kernel void back_gen(__global const float *restrict L, __global float *restric
 __kernel void voxel_footprint(__global const int4 *restrict voxels, __global int *restrict idx,
                               __global float *restrict wts, __global const float *restrict coef,
                               __global const int2 *restrict sample_ij,
+                              __global const float2 *restrict sample_px,
                               __global const int2 *restrict lens_rnd,
                               __global const float2 *restrict lens_frac,
                               int nkx, int nky, int width, int height, int ns, float ic,
-                              float dug, float scale)
+                              float scale)
 {
     const int s = get_global_id(0), vb = get_global_id(1);
     const int4 v = voxels[vb];
@@ -304,7 +302,7 @@ __kernel void voxel_footprint(__global const int4 *restrict voxels, __global int
     const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)v.x, (float)v.y);
     int id[16];
     float w[16];
-    pl_sample_products(p, bu, bv, lens_rnd, lens_frac, nkx, nky, width, height, dug, id, w);
+    pl_sample_products(p, sample_px[s], lens_rnd, lens_frac, nkx, nky, width, height, id, w);
     const size_t base = ((size_t)vb * ns + s) * 16;
     for (int e = 0; e < 16; ++e) {
         idx[base + e] = id[e];
@@ -316,10 +314,11 @@ __kernel void voxel_footprint(__global const int4 *restrict voxels, __global int
 __kernel void fwd_direct(__global const float *restrict vol, volatile __global float *image,
                          __global const float *restrict coef,
                          __global const int2 *restrict sample_ij,
+                         __global const float2 *restrict sample_px,
                          __global const int2 *restrict lens_rnd,
                          __global const float2 *restrict lens_frac,
                          int nx, int ny, int nkx, int nky, int width, int height, int zv0,
-                         int ns, float ic, float dug, float scale)
+                         int ns, float ic, float scale)
 {
     const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
     const float e = vol[((size_t)izl * ny + iy) * nx + ix] * scale;
@@ -331,7 +330,7 @@ __kernel void fwd_direct(__global const float *restrict vol, volatile __global f
         const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
         int id[16];
         float w[16];
-        pl_sample_products(p, bu, bv, lens_rnd, lens_frac, nkx, nky, width, height, dug, id, w);
+        pl_sample_products(p, sample_px[s], lens_rnd, lens_frac, nkx, nky, width, height, id, w);
         for (int k = 0; k < 16; ++k)
             if (id[k] >= 0 && w[k] > 0.0f) pl_atomic_addf(image + id[k], w[k] * e);
     }
@@ -341,10 +340,11 @@ __kernel void fwd_direct(__global const float *restrict vol, volatile __global f
 __kernel void back_direct(__global const float *restrict image, __global float *restrict vol,
                           __global const float *restrict coef,
                           __global const int2 *restrict sample_ij,
+                          __global const float2 *restrict sample_px,
                           __global const int2 *restrict lens_rnd,
                           __global const float2 *restrict lens_frac,
                           int nx, int ny, int nkx, int nky, int width, int height, int zv0,
-                          int ns, float ic, float dug, float scale)
+                          int ns, float ic, float scale)
 {
     const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
     __global const float *c = coef + 16 * (zv0 + izl);
@@ -355,7 +355,7 @@ __kernel void back_direct(__global const float *restrict image, __global float *
         const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
         int id[16];
         float w[16];
-        pl_sample_products(p, bu, bv, lens_rnd, lens_frac, nkx, nky, width, height, dug, id, w);
+        pl_sample_products(p, sample_px[s], lens_rnd, lens_frac, nkx, nky, width, height, id, w);
         for (int k = 0; k < 16; ++k)
             if (id[k] >= 0) acc += w[k] * image[id[k]];
     }

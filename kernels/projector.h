@@ -84,14 +84,6 @@ inline float pl_ky(__global const float *c, float bv, int iy)
     return c[3] * (float)iy + (c[9] * bv + c[5]);
 }
 
-/* Fractional pixel coordinate, relative to the lens centre's rounded pixel, of the
- * sample with offset b behind a lens whose centre is `frac` from that pixel:
- * c_k - u f_ml / s_i in pixels, with dug = du f_ml / (s_i p_px). */
-inline float pl_pixel_frac(float frac, float b, float dug)
-{
-    return frac - b * dug;
-}
-
 /* Inclusive index range [lo, hi] (one wider each side, clamped to [0, n - 1]) of the
  * integers m with |a m + b - k| < 1, given a_inv = 1/a. */
 inline int2 pl_hat_range(float a_inv, float b, float k, int n)
@@ -131,13 +123,15 @@ inline void pl_atomic_addf(volatile __global float *p, float q)
     } while (old != assumed);
 }
 
-/* The 4 bilinear pixel taps (paper §III.A step 3) of the aperture sample with offsets
- * (bu, bv) behind a lens whose centre lies at rounded pixel r plus remainder f:
+/* The 4 bilinear pixel taps (paper §III.A step 3) of an aperture sample that lands d
+ * pixels from the image centre of a lens (c_k - u f_ml / s_i: d = -(u, v) f_ml/(s_i p_px),
+ * one float2 per sample from the host, rotated into the sensor's axes when the
+ * reconstruction frame is rotated) whose centre lies at rounded pixel r plus remainder f:
  * flat pixel indices (-1 off the sensor or for a missing lens) and weights (0 there). */
-inline void pl_pixel_taps(int2 r, float2 f, float bu, float bv, float dug, int width,
-                          int height, int *idx, float *w)
+inline void pl_pixel_taps(int2 r, float2 f, float2 d, int width, int height, int *idx,
+                          float *w)
 {
-    const float fc = pl_pixel_frac(f.x, bu, dug), fr = pl_pixel_frac(f.y, bv, dug);
+    const float fc = f.x + d.x, fr = f.y + d.y;
     const int c0 = pl_floori(fc), r0 = pl_floori(fr);
     const float tc = fc - (float)c0, tr = fr - (float)r0;
     for (int b = 0; b < 4; ++b) {
@@ -152,10 +146,9 @@ inline void pl_pixel_taps(int2 r, float2 f, float bu, float bv, float dug, int w
 
 /* The 16 products (paper §III.A steps 2-3) of one aperture sample of a voxel whose
  * sample meets the array at fractional lens index p. idx[e] = -1 for lost products. */
-inline void pl_sample_products(float2 p, float bu, float bv,
+inline void pl_sample_products(float2 p, float2 d,
                                __global const int2 *lens_rnd, __global const float2 *lens_frac,
-                               int nkx, int nky, int width, int height, float dug,
-                               int *idx, float *w)
+                               int nkx, int nky, int width, int height, int *idx, float *w)
 {
     const int fx = pl_floori(p.x), fy = pl_floori(p.y);
     const float tx = p.x - (float)fx, ty = p.y - (float)fy;
@@ -168,7 +161,7 @@ inline void pl_sample_products(float2 p, float bu, float bv,
             r = lens_rnd[ky * nkx + kx];
             f = lens_frac[ky * nkx + kx];
         }
-        pl_pixel_taps(r, f, bu, bv, dug, width, height, idx + 4 * a, w + 4 * a);
+        pl_pixel_taps(r, f, d, width, height, idx + 4 * a, w + 4 * a);
         for (int b = 0; b < 4; ++b)
             w[4 * a + b] *= wl;
     }

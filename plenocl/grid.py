@@ -3,6 +3,14 @@
 Extents are the outer faces of the volume in millimetres, so a grid with
 ``shape=(nz, ny, nx)`` and ``x=(x0, x1)`` has voxels ``dx = (x1 - x0) / nx`` wide with
 centres at ``x0 + (ix + 0.5) dx``. Volumes are indexed ``vol[iz, iy, ix]``.
+
+A grid may be rotated about the optical axis (``rotation_deg``): its ``x``/``y`` extents
+and axes are then those of a frame turned counter-clockwise by that angle, and a point's
+object-space coordinates are ``(x, y) = R (x_g, y_g)``. A frame that follows the
+microlens rows makes the projector separable for a rotated array
+(:meth:`Grid.for_camera`). Methods that take or return points (:meth:`centers`,
+:meth:`to_index`, :meth:`contains`) use object-space coordinates; :meth:`to_world`
+turns grid-frame vectors (a velocity field) into object-space ones.
 """
 
 from __future__ import annotations
@@ -13,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
 from .tomlio import read_toml, write_toml
 
 
@@ -38,12 +47,16 @@ class Grid:
     x, y, z
         ``(lo, hi)`` extents of the volume's outer faces in mm; +z points away from the
         camera, the origin is on the optical axis at the nominal focal plane.
+    rotation_deg
+        Rotation of the grid's lateral axes about the optical axis (counter-clockwise,
+        degrees); ``x`` and ``y`` are extents along the rotated axes.
     """
 
     shape: tuple[int, int, int]
     x: tuple[float, float]
     y: tuple[float, float]
     z: tuple[float, float]
+    rotation_deg: float = 0.0
 
     def __post_init__(self) -> None:
         shape = tuple(self.shape)
@@ -53,6 +66,33 @@ class Grid:
         object.__setattr__(self, "shape", tuple(int(n) for n in shape))
         for name in "xyz":
             object.__setattr__(self, name, _extent(name, getattr(self, name)))
+        rot = self.rotation_deg
+        if not (isinstance(rot, (int, float)) and math.isfinite(rot) and abs(rot) <= 45):
+            raise ValueError(f"grid rotation_deg must be a finite angle within ±45 degrees, "
+                             f"got {rot!r}")
+        object.__setattr__(self, "rotation_deg", float(rot))
+
+    def _rotation(self) -> np.ndarray:
+        t = math.radians(self.rotation_deg)
+        return np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+
+    def to_world(self, vx, vy) -> tuple[np.ndarray, np.ndarray]:
+        """Object-space ``x``, ``y`` components of vectors given along the grid's axes
+        (``R (vx, vy)``; unchanged for an unrotated grid)."""
+        vx, vy = np.asarray(vx, dtype=np.float64), np.asarray(vy, dtype=np.float64)
+        if not self.rotation_deg:
+            return vx, vy
+        r = self._rotation()
+        return r[0, 0] * vx + r[0, 1] * vy, r[1, 0] * vx + r[1, 1] * vy
+
+    def to_frame(self, points_xyz) -> np.ndarray:
+        """Points ``(N, 3)`` from object space into the grid's frame (``Rᵀ (x, y)``, z)."""
+        pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        if not self.rotation_deg:
+            return pts
+        out = pts.copy()
+        out[:, :2] = pts[:, :2] @ self._rotation()
+        return out
 
     @property
     def spacing(self) -> tuple[float, float, float]:
@@ -78,21 +118,24 @@ class Grid:
         return lo + (np.arange(n) + 0.5) * (hi - lo) / n
 
     def centers(self) -> np.ndarray:
-        """All voxel centres ``(N, 3)`` as ``(x, y, z)`` in C order of ``vol[iz, iy, ix]``."""
+        """All voxel centres ``(N, 3)`` as object-space ``(x, y, z)`` in C order of
+        ``vol[iz, iy, ix]``."""
         zz, yy, xx = np.meshgrid(self.axis_centers("z"), self.axis_centers("y"),
                                  self.axis_centers("x"), indexing="ij")
-        return np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+        wx, wy = self.to_world(xx.ravel(), yy.ravel())
+        return np.column_stack([wx, wy, zz.ravel()])
 
     def to_index(self, points_xyz) -> np.ndarray:
-        """Fractional voxel indices ``(ix, iy, iz)`` of points ``(N, 3)``; centres are integers."""
-        pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        """Fractional voxel indices ``(ix, iy, iz)`` of object-space points ``(N, 3)``;
+        centres are integers."""
+        pts = self.to_frame(points_xyz)
         dz, dy, dx = self.spacing
         lo = np.array([self.x[0], self.y[0], self.z[0]])
         return (pts - lo) / np.array([dx, dy, dz]) - 0.5
 
     def contains(self, points_xyz) -> np.ndarray:
-        """Whether each point lies inside the volume."""
-        pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        """Whether each object-space point lies inside the volume."""
+        pts = self.to_frame(points_xyz)
         inside = np.ones(len(pts), bool)
         for k, name in enumerate("xyz"):
             lo, hi = getattr(self, name)
@@ -101,16 +144,21 @@ class Grid:
 
     def to_dict(self) -> dict:
         """The grid as a TOML-ready dictionary."""
-        return {"grid": {"shape": list(self.shape), "x_mm": list(self.x),
-                         "y_mm": list(self.y), "z_mm": list(self.z)}}
+        grid = {"shape": list(self.shape), "x_mm": list(self.x), "y_mm": list(self.y),
+                "z_mm": list(self.z)}
+        if self.rotation_deg:
+            grid["rotation_deg"] = self.rotation_deg
+        return {"grid": grid}
 
     @classmethod
     def from_toml(cls, path: str | Path) -> Grid:
-        """Read a grid file (section ``[grid]`` with ``shape``, ``x_mm``, ``y_mm``, ``z_mm``)."""
+        """Read a grid file (section ``[grid]`` with ``shape``, ``x_mm``, ``y_mm``, ``z_mm``
+        and optionally ``rotation_deg``)."""
         doc = read_toml(path)
         try:
             g = doc["grid"]
-            return cls(tuple(g["shape"]), tuple(g["x_mm"]), tuple(g["y_mm"]), tuple(g["z_mm"]))
+            return cls(tuple(g["shape"]), tuple(g["x_mm"]), tuple(g["y_mm"]), tuple(g["z_mm"]),
+                       g.get("rotation_deg", 0.0))
         except KeyError as exc:
             raise ValueError(f"{path}: the [grid] section needs shape, x_mm, y_mm and z_mm "
                              f"(missing {exc.args[0]!r})") from None
@@ -121,13 +169,18 @@ class Grid:
 
     @classmethod
     def for_camera(cls, camera, z: tuple[float, float], voxel_mm: float | None = None,
-                   depth_voxel_mm: float | None = None, fraction: float = 1.0) -> Grid:
+                   depth_voxel_mm: float | None = None, fraction: float = 1.0,
+                   rotation_deg: float | None = None) -> Grid:
         """A grid covering the camera's field of view over depths ``z``.
 
         The default lateral voxel is one microlens projected into object space (the
         paper's choice, ``p_ml / M``); the default depth voxel is half the camera's depth
         resolution (:attr:`Camera.depth_resolution_mm`), the finest depth sampling the
-        optics support. ``fraction`` of the field of view is covered.
+        optics support. ``fraction`` of the field of view is covered. By default
+        (``rotation_deg=None``) the grid's lateral axes follow the microlens rows and
+        columns of the (calibrated) array, so that a rotated array projects on the fast
+        separable path; an array aligned with the sensor to within 0.001 lens across it
+        keeps the sensor's axes.
         """
         voxel = voxel_mm or camera.ml_pitch_mm / camera.magnification
         dvox = depth_voxel_mm or camera.depth_resolution_mm / 2
@@ -135,5 +188,7 @@ class Grid:
                 for n in camera.ml_count)
         nx, ny = max(1, round(w / voxel)), max(1, round(h / voxel))
         nz = max(1, round((z[1] - z[0]) / dvox))
+        if rotation_deg is None:
+            rotation_deg = separable_rotation_deg(camera.microlens_centers, DEFAULT_SHEAR_TOL)
         return cls((nz, ny, nx), (-nx * voxel / 2, nx * voxel / 2),
-                   (-ny * voxel / 2, ny * voxel / 2), tuple(z))
+                   (-ny * voxel / 2, ny * voxel / 2), tuple(z), rotation_deg)

@@ -25,14 +25,15 @@ import pyopencl as cl
 import pyopencl.array as cl_array
 
 
-def lens_reach(aperture_center: float, dug: float) -> int:
+def lens_reach(max_offset_px: float) -> int:
     """Half-width in pixels of the patch around a lens's rounded centre holding every
     pixel its aperture samples touch (bilinear taps included, one pixel of margin).
 
-    Sample offsets ``b`` reach ``|b| <= aperture_center`` and land ``-b dug`` pixels from
-    the centre, whose rounding remainder is at most half a pixel.
+    Samples land at most ``max_offset_px`` pixels (per axis) from the lens's image centre
+    (:meth:`plenocl.weighting.ApertureGrid.pixel_offsets`), whose rounding remainder is
+    at most half a pixel.
     """
-    return int(np.floor(0.5 + aperture_center * dug)) + 2
+    return int(np.floor(0.5 + max_offset_px)) + 2
 
 
 def lit_lenses(image: np.ndarray, centres: np.ndarray, reach: int,

@@ -45,8 +45,9 @@ import pyopencl.array as cl_array
 
 from .camera import Camera
 from .device import DeviceLike, get_queue
+from .lattice import lattice_cells, lattice_fit
 from .program import KernelSet
-from .weighting import array_plane_scale, lattice_cells, lattice_fit
+from .weighting import array_plane_scale
 
 
 # ---- lattice --------------------------------------------------------------------------

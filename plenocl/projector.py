@@ -125,8 +125,8 @@ class Projector:
                              scratch_bytes=scratch_bytes, vector_width=vector_width,
                              segment=segment)
         self.queue = get_queue(queue)
-        self.aperture = ApertureGrid.for_camera(camera, oversample)
-        self.lens_map = lens_index_map(camera, shear_tol)
+        self.aperture = ApertureGrid.for_camera(camera, oversample, grid.rotation_deg)
+        self.lens_map = lens_index_map(camera, shear_tol, grid.rotation_deg)
         self.path = "separable" if self.lens_map.axis_aligned else "general"
         self.coef = depth_coefficients(camera, grid, self.lens_map, self.aperture)
         check_field_of_view(camera, grid, self.coef, self.aperture)
@@ -139,7 +139,8 @@ class Projector:
         self.plan = make_plan(grid, camera, self.aperture, self.nkxp, max_alloc, scratch_bytes,
                               method)
         self.colour_stride = colour_stride(camera, self.aperture)
-        self.lens_reach = lens_reach(self.aperture.center, float(self._dug))
+        self._pixel_offsets = self.aperture.pixel_offsets(camera)
+        self.lens_reach = lens_reach(float(np.abs(self._pixel_offsets).max()))
         width, height = camera.pixels
         check_fits(self.queue, grid.nbytes + 4 * width * height + self.plan.scratch_bytes
                    + 16 * camera.ml_count[0] * camera.ml_count[1],
@@ -172,6 +173,7 @@ class Projector:
         self._d = {
             "coef": cl_array.to_device(q, self.coef.astype(np.float32)),
             "ij": cl_array.to_device(q, np.column_stack([i, j]).astype(np.int32)),
+            "px": cl_array.to_device(q, self._pixel_offsets),
             "col_lo": cl_array.to_device(q, lo.astype(np.int32)),
             "col_off": cl_array.to_device(q, self._columns.offset.astype(np.int32)),
             "rnd": cl_array.to_device(q, rnd),
@@ -377,11 +379,6 @@ class Projector:
     def _ic(self) -> np.float32:
         return f32(self.aperture.center)
 
-    @property
-    def _dug(self) -> np.float32:
-        """Sensor pixels per aperture-sample step behind a lens, ``du f_ml / (s_i p_px)``."""
-        return f32(self.aperture.pixels_per_step(self.camera))
-
     def volume_to_light(self, slabs: Sequence[cl_array.Array], i0: int, i1: int,
                         active: np.ndarray | None = None, lenses: LensSet | None = None
                         ) -> cl_array.Array:
@@ -432,9 +429,9 @@ class Projector:
         for a, b in zip(lenses.offsets[:-1], lenses.offsets[1:], strict=True):
             if b > a:
                 self._k.launch("fwd_pix", (b - a,), light, out, lenses.ids, i32(a),
-                               self._d["rnd"], self._d["frac"], self._d["ij"],
+                               self._d["rnd"], self._d["frac"], self._d["px"],
                                *self._pixel_args(), nkx, nkxp, i32(s0), i32(s1 - s0),
-                               self._ic, self._dug, self._scale)
+                               self._scale)
 
     def image_to_light(self, image: cl_array.Array, i0: int, i1: int,
                        lenses: LensSet | None = None) -> cl_array.Array:
@@ -449,9 +446,9 @@ class Projector:
         if lenses.count:
             sps = (s1 - s0) if self._k.is_cpu else 1  # samples per work-item
             self._k.launch("back_pix", (lenses.count, -(-(s1 - s0) // sps)), image, light,
-                           lenses.ids, self._d["rnd"], self._d["frac"], self._d["ij"],
+                           lenses.ids, self._d["rnd"], self._d["frac"], self._d["px"],
                            *self._pixel_args(), nkx, nkxp, i32(s0), i32(s1 - s0), i32(sps),
-                           self._ic, self._dug, self._scale)
+                           self._scale)
         return light
 
     def light_to_volume(self, light: cl_array.Array, slab: cl_array.Array, z0: int, z1: int,
@@ -501,9 +498,9 @@ class Projector:
         nkx, nky, _ = self._lens_args()
         depth = (src if name == "fwd_direct" else dst).shape[0]
         self._k.launch(name, (self.shape[2], self.shape[1], depth), src, dst, self._d["coef"],
-                       self._d["ij"], self._d["rnd"], self._d["frac"], *self._grid_args(), nkx,
-                       nky, *self._pixel_args(), i32(z0), i32(self.n_samples), self._ic,
-                       self._dug, self._scale)
+                       self._d["ij"], self._d["px"], self._d["rnd"], self._d["frac"],
+                       *self._grid_args(), nkx, nky, *self._pixel_args(), i32(z0),
+                       i32(self.n_samples), self._ic, self._scale)
 
     def footprint_entries(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw products of voxels ``(N, 3)`` as ``(iz, iy, ix)``: pixel indices and weights.
@@ -522,8 +519,9 @@ class Projector:
         idx = cl_array.empty(self.queue, (len(vox), ns * 16), np.int32)
         wts = cl_array.empty(self.queue, (len(vox), ns * 16), np.float32)
         self._k.launch("voxel_footprint", (ns, len(vox)), self._k.to_device(packed), idx, wts,
-                       self._d["coef"], self._d["ij"], self._d["rnd"], self._d["frac"], nkx, nky,
-                       *self._pixel_args(), i32(ns), self._ic, self._dug, self._scale)
+                       self._d["coef"], self._d["ij"], self._d["px"], self._d["rnd"],
+                       self._d["frac"], nkx, nky, *self._pixel_args(), i32(ns), self._ic,
+                       self._scale)
         return idx.get(), wts.get()
 
     def cropped(self, box: tuple[slice, slice, slice]) -> Projector:
@@ -543,7 +541,7 @@ class Projector:
         sub = Grid((z.stop - z.start, y.stop - y.start, x.stop - x.start),
                    x=(g.x[0] + x.start * dx, g.x[0] + x.stop * dx),
                    y=(g.y[0] + y.start * dy, g.y[0] + y.stop * dy),
-                   z=(g.z[0] + z.start * dz, g.z[0] + z.stop * dz))
+                   z=(g.z[0] + z.start * dz, g.z[0] + z.stop * dz), rotation_deg=g.rotation_deg)
         out = Projector(self.camera, sub, self.queue, **self._options)
         if self._sensitivity is not None:
             out.use_sensitivity(np.ascontiguousarray(self.volume_to_host(self._sensitivity)[box]))

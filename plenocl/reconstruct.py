@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyopencl.array as cla
 
+from .lattice import lattice_cells, lattice_fit
 from .operator import ProjectionOperator
 from .program import KernelSet
-from .weighting import lattice_cells, lattice_fit
 
 METHODS = ("mlem", "smart", "mart")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)

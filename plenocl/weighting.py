@@ -4,10 +4,6 @@ What a voxel's weight on a pixel depends on, apart from the kernels that sum it:
 
 * :class:`ApertureGrid`: the plaid ``(u, v)`` sampling of the circular main-lens aperture
   (step 1 of the paper's weighting function);
-* :func:`lattice_fit`: the one affine least-squares fit of the microlens lattice to the
-  calibrated centres (``[kx, ky, 1] @ M = centre``), used by the lens index map, the lens
-  colouring and the light field;
-* :func:`lattice_cells`: the lattice cell (microlens) each pixel lies in;
 * :class:`LensIndexMap` / :func:`lens_index_map`: array-plane millimetres to fractional
   microlens index (step 2);
 * :func:`depth_coefficients`: per-depth affine coefficients of step 2 for a voxel grid,
@@ -31,12 +27,13 @@ import numpy as np
 
 from .camera import Camera
 from .grid import Grid
+from .lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
 
 #: Aperture samples per pixel footprint on the aperture (``p_px s_i / f_ml``), per axis.
 DEFAULT_OVERSAMPLE = 1.25
-#: Lens-index drift (in lenses, across the array) below which the fitted lens map's
-#: rotation/shear terms are dropped and the projector uses its separable fast path.
-DEFAULT_SHEAR_TOL = 1e-3
+__all__ = ["DEFAULT_OVERSAMPLE", "DEFAULT_SHEAR_TOL", "NO_LENS", "ApertureGrid", "LensIndexMap",
+           "array_plane_scale", "check_depth_range", "check_field_of_view", "colour_stride",
+           "depth_coefficients", "lens_index_map", "lens_tables"]
 #: Rounded-centre marker of a lens without a calibrated centre (PL_NO_LENS in projector.h).
 NO_LENS = -(1 << 30)
 
@@ -45,16 +42,22 @@ NO_LENS = -(1 << 30)
 class ApertureGrid:
     """The plaid ``(u, v)`` sampling of the circular main-lens aperture (step 1).
 
-    Sample ``(i, j)`` sits at ``u = (i - c) step``, ``v = (j - c) step`` with
-    ``c = (n - 1)/2``; only samples with ``u² + v² <= radius²`` are kept.
+    Sample ``(i, j)`` sits at ``(u, v) = R (i - c, j - c) step`` with ``c = (n - 1)/2``
+    and ``R`` the rotation of the reconstruction frame (``rotation_deg``, the grid's; 0:
+    the sensor's axes); only samples inside the aperture circle, ``|(i - c, j - c)| step
+    <= radius``, are kept. In the frame's own coordinates the samples are the plain plaid
+    grid ``(i - c, j - c) step``: a frame that follows the microlens rows samples the
+    aperture along them too.
     """
 
     step: float
     n: int
     radius: float
+    rotation_deg: float = 0.0
 
     @classmethod
-    def for_camera(cls, camera: Camera, oversample: float = DEFAULT_OVERSAMPLE) -> ApertureGrid:
+    def for_camera(cls, camera: Camera, oversample: float = DEFAULT_OVERSAMPLE,
+                   rotation_deg: float = 0.0) -> ApertureGrid:
         """The grid whose step is one pixel's aperture footprint over ``oversample``."""
         if not (math.isfinite(oversample) and oversample > 0):
             raise ValueError(f"oversample must be a positive number, got {oversample!r}")
@@ -65,7 +68,7 @@ class ApertureGrid:
         # the outermost columns must hold a sample by the very test inside() applies
         while k > 0 and ((0 - k) * step) ** 2 > radius**2:
             k -= 1
-        return cls(step=step, n=2 * k + 1, radius=radius)
+        return cls(step=step, n=2 * k + 1, radius=radius, rotation_deg=float(rotation_deg))
 
     @property
     def center(self) -> float:
@@ -73,7 +76,7 @@ class ApertureGrid:
         return (self.n - 1) / 2
 
     def coords(self) -> np.ndarray:
-        """Sample coordinates along one axis (mm)."""
+        """Sample coordinates along one frame axis (mm)."""
         return (np.arange(self.n) - self.center) * self.step
 
     def inside(self) -> np.ndarray:
@@ -95,64 +98,31 @@ class ApertureGrid:
         i, j = np.nonzero(self.inside())
         return i, j
 
+    def sensor_uv(self) -> np.ndarray:
+        """``(n_samples, 2)`` aperture coordinates ``(u, v)`` mm of the samples on the
+        sensor's axes, ``R (i - c, j - c) step``."""
+        i, j = self.samples()
+        frame = np.column_stack([i - self.center, j - self.center]) * self.step
+        return frame @ rotation_matrix(self.rotation_deg).T
+
     def pixels_per_step(self, camera: Camera) -> float:
         """Sensor pixels per sample step behind a microlens, ``step f_ml / (s_i p_px)``."""
         return self.step * camera.ml_focal_length_mm / (
             camera.image_distance_mm * camera.pixel_pitch_mm)
 
+    def pixel_offsets(self, camera: Camera) -> np.ndarray:
+        """``(n_samples, 2)`` float32: where each sample lands behind a microlens, in
+        pixels ``(col, row)`` from the lens's image centre, ``-(u, v) f_ml / (s_i p_px)``.
 
-# ---- the microlens lattice --------------------------------------------------------------
-def lattice_fit(centres: np.ndarray) -> np.ndarray:
-    """Affine least-squares fit of a lens lattice: ``(3, 2)`` ``M`` with
-    ``centre(kx, ky) = [kx, ky, 1] @ M``.
-
-    Parameters
-    ----------
-    centres
-        ``(rows, cols, 2)`` positions of the lenses ``[ky, kx]`` in any length unit;
-        ``NaN`` entries (missing lenses) are ignored.
-
-    Raises
-    ------
-    ValueError
-        When fewer than 3 non-collinear centres are known.
-    """
-    c = np.asarray(centres, dtype=np.float64)
-    rows, cols = c.shape[:2]
-    ky, kx = np.mgrid[0:rows, 0:cols]
-    ok = np.isfinite(c).all(axis=-1)
-    design = np.column_stack([kx[ok], ky[ok], np.ones(int(ok.sum()))])
-    if ok.sum() < 3 or np.linalg.matrix_rank(design) < 3:
-        raise ValueError(f"only {int(ok.sum())} microlens centres are known, or they are "
-                         "collinear: too few to fit the array layout; calibrate the camera "
-                         "with a white image that lights the whole array")
-    model, *_ = np.linalg.lstsq(design, c[ok], rcond=None)
-    return model
-
-
-def lattice_residual(centres: np.ndarray, model: np.ndarray) -> float:
-    """Largest distance of a known centre from the fitted lattice (same units)."""
-    c = np.asarray(centres, dtype=np.float64)
-    rows, cols = c.shape[:2]
-    ky, kx = np.mgrid[0:rows, 0:cols]
-    fitted = np.stack([kx, ky, np.ones_like(kx)], -1) @ model
-    ok = np.isfinite(c).all(axis=-1)
-    return float(np.abs(fitted[ok] - c[ok]).max())
-
-
-def lattice_cells(model: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lens index ``(kx, ky)``, ``(H, W)`` int32 each, of the lattice cell holding each pixel.
-
-    The cell of lens ``k`` is the parallelogram of one lattice step around its fitted
-    centre (``model``: :func:`lattice_fit` in pixels), so a rotated or sheared array is
-    handled; indices outside ``[0, cols) x [0, rows)`` mean the pixel lies beyond the
-    array. Vectorised over the sensor: no search per pixel.
-    """
-    inv = np.linalg.inv(model[:2].T)
-    dc, dr = np.arange(width) - model[2, 0], np.arange(height) - model[2, 1]
-    kx = np.rint(inv[0, 0] * dc[None, :] + inv[0, 1] * dr[:, None]).astype(np.int32)
-    ky = np.rint(inv[1, 0] * dc[None, :] + inv[1, 1] * dr[:, None]).astype(np.int32)
-    return kx, ky
+        Rounded as the kernels used to compute it (``-(b * dug)`` in float32) when the
+        frame is the sensor's, so that table and arithmetic agree bit for bit.
+        """
+        i, j = self.samples()
+        b = np.column_stack([i - self.center, j - self.center])
+        if self.rotation_deg:
+            b = b @ rotation_matrix(self.rotation_deg).T
+        dug = np.float32(self.pixels_per_step(camera))
+        return -(b.astype(np.float32) * dug)
 
 
 @dataclass(frozen=True)
@@ -179,17 +149,24 @@ def array_plane_scale(camera: Camera) -> float:
     return 1.0 / (1.0 + camera.ml_focal_length_mm / camera.image_distance_mm)
 
 
-def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL) -> LensIndexMap:
+def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
+                   rotation_deg: float = 0.0) -> LensIndexMap:
     """Fit the affine lens layout to the (calibrated) centres and invert it.
 
     The array-plane position of lens ``k`` is ``x_k = c_k / (1 + f_ml/s_i)``
     (docs/design.md §2) with ``c_k`` its image centre in sensor mm; NaN centres are
-    ignored. When the fitted rotation/shear moves the lens index by at most ``shear_tol``
-    lenses across the whole array it is dropped (about the array's centre), so the map
-    becomes axis-aligned.
+    ignored. The map takes array-plane points in the coordinates of a frame rotated by
+    ``rotation_deg`` about the optical axis (the reconstruction grid's). When the fitted
+    layout, seen from that frame, drifts by at most ``shear_tol`` lenses across the whole
+    array, its rotation/shear terms are dropped (about the array's centre) and the map is
+    axis-aligned: the separable projector path applies. A frame that follows the lens
+    rows (:func:`plenocl.lattice.separable_rotation_deg`) makes a rotated array
+    axis-aligned this way.
     """
     cols, rows = camera.ml_count
     pos = camera.px_to_mm(camera.microlens_centers) * array_plane_scale(camera)
+    if rotation_deg:
+        pos = pos @ rotation_matrix(rotation_deg)  # world -> frame: Rᵀ x, as row vectors
     fit = lattice_fit(pos)
     matrix = np.linalg.inv(fit[:2].T)
     offset = -matrix @ fit[2]
@@ -249,7 +226,7 @@ def colour_stride(camera: Camera, aperture: ApertureGrid, limit: int = 8) -> int
     """
     fit = lattice_fit(camera.microlens_centers)
     dev = lattice_residual(camera.microlens_centers, fit)
-    reach = aperture.center * aperture.pixels_per_step(camera) + 1.0
+    reach = float(np.abs(aperture.pixel_offsets(camera)).max()) + 1.0
     steps = [(a, b) for a in range(-2, 3) for b in range(-2, 3) if (a, b) != (0, 0)]
     for cs in range(2, limit + 1):
         sep = min(np.abs(fit[:2].T @ (cs * np.array(s))).max() for s in steps)

@@ -6,12 +6,11 @@ import numpy as np
 import pytest
 
 from plenocl import Camera, Grid
+from plenocl.lattice import lattice_fit, lattice_residual
 from plenocl.plan import SampleColumns, column_chunks, depth_chunks, make_plan, runs
 from plenocl.weighting import (
     ApertureGrid,
     depth_coefficients,
-    lattice_fit,
-    lattice_residual,
     lens_index_map,
 )
 

@@ -59,16 +59,20 @@ def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
     indices, weights
         Pixels ``row * W + col`` with a non-zero weight, in increasing order.
     """
+    # Everything lateral below is in the grid's frame (rotated by grid.rotation_deg about
+    # the optical axis); the main lens maps x -> X' isotropically, so the image point of
+    # a frame point is in the frame too. Only step 3 needs the sensor's axes.
     centre = [grid.axis_centers("x")[ix], grid.axis_centers("y")[iy], grid.axis_centers("z")[iz]]
     xp, yp, sip = camera.image_points(centre)[0]
     alpha = sip / camera.image_distance_mm
-    # Step 1: plaid aperture samples inside the circle.
-    ap = ApertureGrid.for_camera(camera, oversample)
+    # Step 1: plaid aperture samples inside the circle, along the frame's axes.
+    ap = ApertureGrid.for_camera(camera, oversample, grid.rotation_deg)
     i, j = ap.samples()
     u, v = (i - ap.center) * ap.step, (j - ap.center) * ap.step
     # Step 2: the array-plane point, in lens index units, and its four lenses.
-    kxf, kyf = lens_index_map(camera, shear_tol)(u * (1 - 1 / alpha) + xp / alpha,
-                                                 v * (1 - 1 / alpha) + yp / alpha)
+    lens_map = lens_index_map(camera, shear_tol, grid.rotation_deg)
+    kxf, kyf = lens_map(u * (1 - 1 / alpha) + xp / alpha, v * (1 - 1 / alpha) + yp / alpha)
+    u, v = ap.sensor_uv().T  # the same samples on the sensor's axes
     kx0, tx = _bilinear_corners(kxf)
     ky0, ty = _bilinear_corners(kyf)
     pix, wts = [], []
