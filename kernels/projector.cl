@@ -90,9 +90,11 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
     }
 }
 
-/* ---- forward, general (rotated array): L[ky][sl][kx] (+)= sum_iz,iy,ix S vol.
- * One work-item per aperture sample: it owns the sample's light-field plane and splats
- * every voxel of the chunk onto its four lenses (race-free, in cache). */
+/* ---- forward, general (a sheared array, or a grid not in the lens rows' frame):
+ * L[ky][sl][kx] (+)= sum_iz,iy,ix S vol. One work-item per aperture sample: it owns the
+ * sample's light-field plane and splats every non-zero voxel of the chunk onto its four
+ * lenses (race-free, in cache). A CPU runs a few hundred such items well; a GPU needs
+ * more parallelism and runs fwd_gen_gather instead. */
 __kernel void fwd_gen(__global const float *restrict vol, __global float *restrict L,
                       __global const float *restrict coef,
                       __global const int2 *restrict sample_ij,
@@ -132,6 +134,49 @@ __kernel void fwd_gen(__global const float *restrict vol, __global float *restri
                 r1[x1] += wy1 * ex1;
             }
     }
+}
+
+/* ---- forward, general, as a gather (GPUs): L[ky][sl][kx] (+)= sum_iz,iy,ix S vol.
+ * One work-item per light-field element (lens kx, ky; sample sl): it visits the voxels of
+ * the inverse image of its lens's [-1, 1]^2 box (coef[10..15]) depth by depth and sums
+ * them in the voxel order fwd_gen uses, with the same weight expressions, so both give
+ * the same light field bit for bit. Fully parallel, no atomics; it reads every voxel of
+ * the box where fwd_gen skips zero voxels, so CPUs keep fwd_gen. */
+__kernel void fwd_gen_gather(__global const float *restrict vol, __global float *restrict L,
+                             __global const float *restrict coef,
+                             __global const int2 *restrict sample_ij,
+                             int nx, int ny, int nkx, int nky, int nkxp, int zv0, int zc0,
+                             int nzc, int s0, int nsc, float ic, int accumulate)
+{
+    const int kx = get_global_id(0), ky = get_global_id(1), sl = get_global_id(2);
+    if (kx >= nkx) return;
+    const int2 ij = sample_ij[s0 + sl];
+    const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
+    __global float *out = L + ((size_t)ky * nsc + sl) * nkxp + kx;
+    float acc = accumulate ? *out : 0.0f;
+    for (int izl = 0; izl < nzc; ++izl) {
+        __global const float *c = coef + 16 * (zc0 + izl);
+        const float2 o = pl_sample_offset(c, bu, bv);
+        const float rx = (float)kx - o.x, ry = (float)ky - o.y;
+        const float fx = c[10] * rx + c[11] * ry, fy = c[12] * rx + c[13] * ry;
+        const int xa = pl_maxi(pl_floori(fx - c[14] - 1e-3f), 0);
+        const int xb = pl_mini(pl_ceili(fx + c[14] + 1e-3f), nx - 1);
+        const int ya = pl_maxi(pl_floori(fy - c[15] - 1e-3f), 0);
+        const int yb = pl_mini(pl_ceili(fy + c[15] + 1e-3f), ny - 1);
+        __global const float *slice = vol + (size_t)(zc0 + izl - zv0) * ny * nx;
+        for (int iy = ya; iy <= yb; ++iy)
+            for (int ix = xa; ix <= xb; ++ix) {
+                const float e = slice[(size_t)iy * nx + ix];
+                if (e == 0.0f) continue;
+                const float2 p = pl_lens_coord(c, o, (float)ix, (float)iy);
+                const int fkx = pl_floori(p.x), fky = pl_floori(p.y);
+                const float dx = p.x - (float)fkx, dy = p.y - (float)fky;
+                const float ex = kx == fkx ? (1.0f - dx) * e : (kx == fkx + 1 ? dx * e : 0.0f);
+                const float wy = ky == fky ? 1.0f - dy : (ky == fky + 1 ? dy : 0.0f);
+                if (ex != 0.0f && wy != 0.0f) acc += wy * ex;
+            }
+    }
+    *out = acc;
 }
 
 /* ---- forward, P: image (+)= scale * L of the listed lenses lens_ids[id0 + g] of one
