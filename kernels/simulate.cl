@@ -4,7 +4,10 @@
  * Work layout: global id 0 = block of rays, global id 1 = source (particle or lens)
  * within the current chunk. A source's rays are numbered 0..rays-1 and each ray's
  * random words depend only on (seed, source, ray, k), so the image does not depend
- * on the device or on how the work is split. */
+ * on the device or on how the work is split. A lens may sit off its lattice node by
+ * lens_shift (mm on the array plane; manufacturing errors): its optical centre and its
+ * lit cell move with it, while the cell boundaries a particle's ray is sorted by stay on
+ * the lattice (the shifts are a small fraction of a pitch). */
 #include "common.h"
 
 inline float2 pl_blur(uint key, float sigma_mm)
@@ -23,7 +26,8 @@ inline int pl_transmitted(__global const float *gain, int k, uint key)
 /* Rays of point particles. img_pts[p] = (X', Y', s_i', unused) in image space. */
 __kernel void trace_particles(
     __global const float4 *img_pts, __global const pl_acc_t *quantum,
-    __global const float *lens_gain, volatile __global pl_acc_t *image,
+    __global const float *lens_gain, __global const float2 *lens_shift,
+    volatile __global pl_acc_t *image,
     uint seed, uint src_offset, uint rays, uint rays_per_item,
     float aperture_radius, float s_i, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
@@ -47,7 +51,7 @@ __kernel void trace_particles(
         int kx, ky;
         int k = pl_lens_index(m, x, y, &kx, &ky);
         if (k < 0 || !pl_transmitted(lens_gain, k, key)) continue;
-        float2 c = pl_lens_center(m, kx, ky);
+        float2 c = pl_lens_center(m, kx, ky) + lens_shift[k];
         float2 s = c + f_ml * (float2)(ip.x - u, ip.y - v) / ip.z;
         if (blur_mm > 0.0f) s += pl_blur(key, blur_mm);
         int idx = pl_pixel_index(s.x, s.y, px_pitch, width, height);
@@ -58,7 +62,8 @@ __kernel void trace_particles(
 /* Rays of a white calibration image: uniform light over each microlens, from a
  * stopped-down aperture of radius stop_radius. Source = lens index ky * nx + kx. */
 __kernel void trace_white(
-    __global const float *lens_gain, volatile __global pl_acc_t *image, pl_acc_t quantum,
+    __global const float *lens_gain, __global const float2 *lens_shift,
+    volatile __global pl_acc_t *image, pl_acc_t quantum,
     uint seed, uint src_offset, uint rays, uint rays_per_item,
     float stop_radius, float s_i, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
@@ -68,7 +73,7 @@ __kernel void trace_white(
     const uint src = src_offset + get_global_id(1);
     if (src >= (uint)(nx * ny)) return;
     const int kx = (int)(src % (uint)nx), ky = (int)(src / (uint)nx);
-    const float2 c = pl_lens_center(m, kx, ky);
+    const float2 c = pl_lens_center(m, kx, ky) + lens_shift[src];
     const uint r0 = get_global_id(0) * rays_per_item;
     const uint r1 = min(r0 + rays_per_item, rays);
     const uint skey = pl_source_key(seed, src);

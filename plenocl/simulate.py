@@ -54,6 +54,22 @@ def _validate_rays(rays: int) -> int:
     return int(rays)
 
 
+def _lens_shift(camera: Camera, shift) -> np.ndarray:
+    """Per-lens displacement ``(rows * cols, 2)`` float32 mm on the array plane, checked."""
+    cols, rows = camera.ml_count
+    if shift is None:
+        return np.zeros((rows * cols, 2), np.float32)
+    d = np.asarray(shift, dtype=np.float64)
+    if d.shape != (rows, cols, 2) or not np.all(np.isfinite(d)):
+        raise ValueError(f"lens_shift_mm must be a finite ({rows}, {cols}, 2) array of (x, y) "
+                         "displacements in mm (rows, columns of the microlens array)")
+    if np.abs(d).max() > 0.25 * camera.ml_pitch_mm:
+        raise ValueError(f"lens_shift_mm moves a lens by {np.abs(d).max():.4g} mm, more than a "
+                         f"quarter of the {camera.ml_pitch_mm} mm pitch; the simulator models "
+                         "small manufacturing errors only")
+    return np.ascontiguousarray(d.reshape(-1, 2), dtype=np.float32)
+
+
 def _lens_gain(camera: Camera, gain) -> np.ndarray:
     cols, rows = camera.ml_count
     if gain is None:
@@ -122,7 +138,7 @@ class Simulator:
 
     # ---- public --------------------------------------------------------------------------
     def trace(self, positions, intensities, rays_per_particle: int = 1000, seed: int = 0,
-              blur_px: float = 0.0, lens_transmission=None) -> np.ndarray:
+              blur_px: float = 0.0, lens_transmission=None, lens_shift_mm=None) -> np.ndarray:
         """Noise-free image (counts, float32) of point particles; see :func:`simulate_image`."""
         cam = self.camera
         pos, intens = _validate_particles(cam, positions, intensities)
@@ -133,12 +149,13 @@ class Simulator:
             img_pts[:, :3] = cam.image_points(pos)
         quanta, scale = self._quanta(intens / rays, float(intens.sum()))
         gain = self._k.to_device(_lens_gain(cam, lens_transmission))
+        shift = self._k.to_device(_lens_shift(cam, lens_shift_mm))
         image = self._new_image()
         for start, n, blocks in self._chunks(len(pos), rays):
             pts = self._k.to_device(img_pts[start:start + n])
             q = self._k.to_device(quanta[start:start + n])
             self._k.launch(
-                "trace_particles", (blocks, n), pts, q, gain, image,
+                "trace_particles", (blocks, n), pts, q, gain, shift, image,
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
                 np.float32(cam.aperture_diameter_mm / 2), np.float32(cam.image_distance_mm),
                 np.float32(cam.ml_focal_length_mm),
@@ -147,7 +164,7 @@ class Simulator:
 
     def trace_white(self, stop_f_number: float = 16.0, rays_per_lens: int = 2000,
                     intensity: float = 1000.0, seed: int = 0, blur_px: float = 0.8,
-                    lens_transmission=None) -> np.ndarray:
+                    lens_transmission=None, lens_shift_mm=None) -> np.ndarray:
         """Noise-free white image; see :func:`simulate_white_image`."""
         cam = self.camera
         rays = _validate_rays(rays_per_lens)
@@ -161,10 +178,11 @@ class Simulator:
         n_lens = cam.ml_count[0] * cam.ml_count[1]
         quantum, scale = self._quanta(np.array([intensity / rays]), intensity * n_lens)
         gain = self._k.to_device(_lens_gain(cam, lens_transmission))
+        shift = self._k.to_device(_lens_shift(cam, lens_shift_mm))
         image = self._new_image()
         for start, n, blocks in self._chunks(n_lens, rays):
             self._k.launch(
-                "trace_white", (blocks, n), gain, image, quantum[0],
+                "trace_white", (blocks, n), gain, shift, image, quantum[0],
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
                 np.float32(cam.focal_length_mm / stop_f_number / 2),
                 np.float32(cam.image_distance_mm), np.float32(cam.ml_focal_length_mm),
@@ -177,7 +195,7 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
                    photon_noise: bool = False, read_noise: float = 0.0,
                    electrons_per_count: float = 1.0, bit_depth: int | None = None,
                    saturation: float | None = None, lens_transmission=None,
-                   queue: DeviceLike = None) -> np.ndarray:
+                   lens_shift_mm=None, queue: DeviceLike = None) -> np.ndarray:
     """Simulate the raw plenoptic image of point particles.
 
     Parameters
@@ -196,6 +214,10 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
         Sensor model, see :class:`plenocl.sensor.SensorModel`.
     lens_transmission
         Optional ``(rows, cols)`` per-lens transmission in [0, 1] (0: a dead lens).
+    lens_shift_mm
+        Optional ``(rows, cols, 2)`` displacement of each lens from its lattice node on
+        the array plane (mm; manufacturing errors, at most a quarter pitch). A displaced
+        lens's image centre moves by ``(1 + f_ml/s_i)`` times its shift.
     queue
         OpenCL queue, context, device or device-name substring.
 
@@ -208,7 +230,7 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
     sensor = SensorModel(background, photon_noise, electrons_per_count, read_noise,
                          bit_depth, saturation)
     clean = Simulator(camera, queue).trace(positions, intensities, rays_per_particle, seed,
-                                           blur_px, lens_transmission)
+                                           blur_px, lens_transmission, lens_shift_mm)
     return sensor.apply(clean, seed)
 
 
@@ -218,7 +240,7 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
                          background: float = 0.0, photon_noise: bool = False,
                          read_noise: float = 0.0, electrons_per_count: float = 1.0,
                          bit_depth: int | None = None, saturation: float | None = None,
-                         queue: DeviceLike = None) -> np.ndarray:
+                         lens_shift_mm=None, queue: DeviceLike = None) -> np.ndarray:
     """Simulate a white (calibration) image taken with the main lens stopped down.
 
     Each microlens images the small stopped-down aperture as a spot centred at
@@ -239,6 +261,10 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
         Optional boolean ``(rows, cols)`` mask of dead or occluded lenses.
     background, photon_noise, read_noise, electrons_per_count, bit_depth, saturation
         Sensor model, see :class:`plenocl.sensor.SensorModel`.
+    lens_shift_mm
+        Optional per-lens displacement from the lattice, as for :func:`simulate_image`:
+        the true image centres are then ``camera.ideal_microlens_centers()`` plus
+        :func:`centre_shift_px` of it.
     """
     if not 0.0 <= vignetting < 1.0:
         raise ValueError(f"vignetting must be in [0, 1), got {vignetting}")
@@ -254,5 +280,12 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
     sensor = SensorModel(background, photon_noise, electrons_per_count, read_noise,
                          bit_depth, saturation)
     clean = Simulator(camera, queue).trace_white(stop_f_number, rays_per_lens, intensity, seed,
-                                                 blur_px, gain)
+                                                 blur_px, gain, lens_shift_mm)
     return sensor.apply(clean, seed)
+
+
+def centre_shift_px(camera: Camera, lens_shift_mm) -> np.ndarray:
+    """How far (pixels, ``(col, row)``) each microlens image centre moves when its lens
+    is displaced by ``lens_shift_mm`` on the array plane: ``(1 + f_ml/s_i) / p_px`` times."""
+    d = np.asarray(lens_shift_mm, dtype=np.float64)
+    return d * (1 + camera.ml_focal_length_mm / camera.image_distance_mm) / camera.pixel_pitch_mm

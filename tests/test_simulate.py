@@ -184,3 +184,33 @@ def test_bad_simulation_input_is_rejected(queue, small_camera, bad, message):
 def test_white_image_rejects_open_aperture(queue, small_camera):
     with pytest.raises(ValueError, match="stopped down"):
         simulate_white_image(small_camera, stop_f_number=1.0, queue=queue)
+
+
+def test_displaced_lenses_move_their_spots_and_images(queue, small_camera):
+    """A lens off its lattice node (manufacturing error): the kernel traces the same rays
+    as the reference, and the white spot's centroid moves by (1 + f_ml/s_i) times the
+    shift, to within the centroid's own noise."""
+    from plenocl.simulate import centre_shift_px
+
+    rng = np.random.default_rng(6)
+    shift = rng.uniform(-0.002, 0.002, (10, 12, 2))  # mm: about ±0.3 px of image centre
+    white = Simulator(small_camera, queue).trace_white(16.0, 4000, 1000.0, 5, 0.8, None, shift)
+    ref = reference.trace_white(small_camera, 16.0, 4000, 5, 1000.0, 0.8, None, shift)
+    assert _corr(white, ref) > 0.9999
+    truth = small_camera.ideal_microlens_centers() + centre_shift_px(small_camera, shift)
+    err = []
+    for ky in range(1, 9):
+        for kx in range(1, 11):
+            c, r = np.rint(truth[ky, kx]).astype(int)
+            win = white[r - 5:r + 6, c - 5:c + 6]
+            rr, cc = np.mgrid[r - 5:r + 6, c - 5:c + 6]
+            err.append([(win * cc).sum() / win.sum() - truth[ky, kx, 0],
+                        (win * rr).sum() / win.sum() - truth[ky, kx, 1]])
+    assert np.sqrt(np.mean(np.square(err))) < 0.03  # the shifts themselves are ~0.15 px RMS
+    pos = np.array([[0.1, 0.05, 0.0], [-0.3, 0.2, 1.5]])
+    a = Simulator(small_camera, queue).trace(pos, 1000.0, 5001, seed=2, lens_shift_mm=shift)
+    b = reference.trace_particles(small_camera, pos, 1000.0, 5001, seed=2, lens_shift_mm=shift)
+    assert _corr(a, b) > 0.9999
+    with pytest.raises(ValueError, match="quarter"):
+        simulate_white_image(small_camera, lens_shift_mm=np.full((10, 12, 2), 0.05),
+                             queue=queue)

@@ -75,8 +75,15 @@ def _transmitted(seed, src, ray, kx, ky, inside, transmission):
     return inside & ((t >= 1.0) | (_uniform(random_words(seed, src, ray, 2)) < t))
 
 
+def _centres(cam: Camera, lens_shift_mm) -> np.ndarray:
+    """Physical lens centres ``(rows, cols, 2)`` mm: lattice nodes plus any displacement."""
+    pos = cam.microlens_positions_mm()
+    return pos if lens_shift_mm is None else pos + np.asarray(lens_shift_mm, float)
+
+
 def trace_particles(cam: Camera, positions, intensities, rays_per_particle: int, seed: int,
-                    blur_px: float = 0.0, lens_transmission=None) -> np.ndarray:
+                    blur_px: float = 0.0, lens_transmission=None,
+                    lens_shift_mm=None) -> np.ndarray:
     """Noise-free raw image of point particles, traced ray by ray (DESIGN §2, §8).
 
     Each ray leaves the particle, crosses a uniformly sampled point ``(u, v)`` of the
@@ -95,7 +102,7 @@ def trace_particles(cam: Camera, positions, intensities, rays_per_particle: int,
     y = v + (yp - v) * cam.image_distance_mm / sip
     kx, ky, inside = _lens_lookup(cam, x, y)
     keep = _transmitted(seed, src, ray, kx, ky, inside, lens_transmission)
-    centres = cam.microlens_positions_mm()[ky, kx]
+    centres = _centres(cam, lens_shift_mm)[ky, kx]
     sx = centres[..., 0] + cam.ml_focal_length_mm * (xp - u) / sip
     sy = centres[..., 1] + cam.ml_focal_length_mm * (yp - v) / sip
     if blur_px > 0:
@@ -105,8 +112,8 @@ def trace_particles(cam: Camera, positions, intensities, rays_per_particle: int,
 
 
 def trace_white(cam: Camera, stop_f_number: float, rays_per_lens: int, seed: int,
-                intensity: float = 1.0, blur_px: float = 0.0, lens_transmission=None
-                ) -> np.ndarray:
+                intensity: float = 1.0, blur_px: float = 0.0, lens_transmission=None,
+                lens_shift_mm=None) -> np.ndarray:
     """Noise-free white (calibration) image with the aperture stopped down.
 
     A uniform white field lights every point of each microlens; rays come from a
@@ -117,7 +124,7 @@ def trace_white(cam: Camera, stop_f_number: float, rays_per_lens: int, seed: int
     nx, ny = cam.ml_count
     src, ray = np.meshgrid(np.arange(nx * ny), np.arange(rays_per_lens), indexing="ij")
     kx, ky = src % nx, src // nx
-    centres = cam.microlens_positions_mm()[ky, kx]
+    centres = _centres(cam, lens_shift_mm)[ky, kx]
     a = (_uniform(random_words(seed, src, ray, 5)) - 0.5) * cam.ml_pitch_mm
     b = (_uniform(random_words(seed, src, ray, 6)) - 0.5) * cam.ml_pitch_mm
     c, s = np.cos(np.radians(cam.ml_rotation_deg)), np.sin(np.radians(cam.ml_rotation_deg))
