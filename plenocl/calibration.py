@@ -16,9 +16,20 @@ Calibration finds those spots to sub-pixel accuracy and matches each to its lens
    whole-pitch shift from the extent of the array on the sensor.
 4. **Fit** a global grid model (affine: pitch, rotation, shear, shift; optionally a
    cubic polynomial for distortion, chosen by an F-test) to the matched centroids,
-   robustly, and use its prediction: one lens's centre then carries the information
-   of all spots instead of its own few noisy photons (``method="centroid"`` keeps the
-   raw centroids, the paper's method).
+   robustly. Its prediction carries the information of all spots instead of one
+   lens's few noisy photons, but a real array's lenses also sit off any lattice by
+   manufacturing errors of a fraction of a pixel.
+5. **Combine** the model and each lens's own centroid by their uncertainties
+   (``method="combined"``, the default): each centroid's noise is measured from the
+   image itself (the two checkerboard halves of a spot's pixels see independent noise),
+   the lenses' true scatter about the lattice is what the centroids scatter beyond that
+   noise, and each centre moves from the model toward its centroid by
+   ``τ² / (τ² + σ_k²)``. ``method="fit"`` keeps the model only, ``method="centroid"``
+   the raw centroids (the paper's method).
+
+White images are taken as they come: negative pixels (read noise after a dark frame is
+subtracted) are used as they are, the background is estimated locally (gradients,
+stray light), hot pixels are removed, dim vignetted edges and saturated spots are kept.
 
 Shifts of the array of up to half a microlens-image pitch are matched without
 ambiguity; larger ones are resolved by the array's edge when it is visible on the
@@ -46,6 +57,10 @@ MIN_FOUND_FRACTION = 0.25
 DUPLICATE_RADIUS = 0.25
 #: A spot must reach this fraction of the brightest spot around it.
 RELATIVE_THRESHOLD = 0.25
+#: Where the centres come from: grid model, raw centroid, or both weighted by uncertainty.
+METHODS = ("combined", "fit", "centroid")
+#: Negative pixels below this fraction of the spot peak warn (over-subtracted dark frame).
+NEGATIVE_WARN = 0.1
 #: F-test p-value below which the cubic grid model replaces the affine one.
 DISTORTION_P_VALUE = 1e-3
 #: ... and must move the centres by more than this (px RMS).
@@ -79,9 +94,16 @@ class CenterFit:
         Measured array rotation, image pitch along the array's ``(x, y)`` axes, and
         shift of the array's centre against the camera's nominal layout.
     residual_rms_px
-        RMS distance of the inlier centroids from the model (their noise).
+        RMS distance of the inlier centroids from the model (their noise and the lenses'
+        true offsets from the lattice).
     method
-        ``"fit"`` or ``"centroid"``: where ``centers`` came from.
+        ``"combined"``, ``"fit"`` or ``"centroid"``: where ``centers`` came from.
+    noise_px
+        ``(rows, cols)`` estimated centroid noise per axis (px), from the two
+        checkerboard halves of each spot's pixels.
+    lattice_scatter_px
+        Estimated RMS per axis (px) of the lenses' true offsets from the grid model
+        (manufacturing errors), the centroid noise taken out.
     """
 
     centers: np.ndarray
@@ -95,6 +117,8 @@ class CenterFit:
     shift_px: tuple[float, float]
     residual_rms_px: float
     method: str
+    noise_px: np.ndarray
+    lattice_scatter_px: float
 
     @property
     def n_missing(self) -> int:
@@ -130,15 +154,26 @@ def _validate_image(image, camera: Camera) -> np.ndarray:
     if bad.any():
         raise ValueError(f"the white image has {int(bad.sum())} NaN or Inf pixels; replace them "
                          "(e.g. by the median of their neighbours) before calibrating")
-    if img.min() < 0:
-        raise ValueError(
-            f"the white image has negative pixel values (down to {img.min():.4g}, "
-            f"{int((img < 0).sum())} pixels): calibration needs the raw, non-negative sensor "
-            "image; if it was dark-frame subtracted, clip it with np.clip(image, 0, None)")
     if img.max() <= img.min():
         raise ValueError(f"the white image is blank (every pixel is {img.min():.4g}): take it "
                          "with the main lens stopped down, imaging a uniform bright target")
+    _warn_if_very_negative(img)
     return img
+
+
+def _warn_if_very_negative(img: np.ndarray) -> None:
+    """Negative pixels are normal after a dark frame is subtracted (read noise around 0):
+    the background is estimated locally, so they are used as they are. Only values below
+    NEGATIVE_WARN of the spot peak suggest an over-subtracted dark frame, and warn."""
+    low = float(img.min())
+    if low >= 0:
+        return
+    peak = float(np.percentile(img, 99.9)) - float(np.median(img))
+    if peak > 0 and -low > NEGATIVE_WARN * peak:
+        warnings.warn(f"the white image has pixels down to {low:.4g}, {-low / peak:.0%} of the "
+                      f"spot peak ({int((img < 0).sum())} negative pixels): was the dark frame "
+                      "over-subtracted? Calibration goes on (the background is estimated "
+                      "locally)", stacklevel=4)
 
 
 def _pitch_px(camera: Camera) -> float:
@@ -248,8 +283,9 @@ def _spot_sigma(patch: np.ndarray, off: np.ndarray) -> float:
 
 
 def _windowed_centroids(img: np.ndarray, peaks: np.ndarray, pitch: float,
-                        iterations: int = 30) -> tuple[np.ndarray, float]:
-    """Iterated Gaussian-windowed centroids ``(N, 2)`` (``NaN``: lost) and the spot width.
+                        iterations: int = 30) -> tuple[np.ndarray, float, np.ndarray]:
+    """Iterated Gaussian-windowed centroids ``(N, 2)`` (``NaN``: lost), the spot width,
+    and each spot's split difference (:func:`_split_difference`, its noise).
 
     The window is ``WINDOW_SCALE`` spot widths ``σ`` wide (``s``); a windowed centroid
     of a Gaussian spot moves ``s²/(σ²+s²)`` of the way to its centre, so each step is
@@ -275,14 +311,39 @@ def _windowed_centroids(img: np.ndarray, peaks: np.ndarray, pitch: float,
         if len(active) == 0:
             break
     c[~alive] = np.nan
-    return c, sigma
+    gain = 1.0 + sigma**2 / width**2
+    return c, sigma, _split_difference(padded, pad, c, bg, half, width, gain)
 
 
-def _centroid_step(padded, pad, c, bg, half, width, gain) -> tuple[np.ndarray, np.ndarray]:
-    """One Gaussian-windowed centroid update ``(N, 2)`` and which spots still have signal."""
+def _split_difference(padded, pad, c, bg, half, width, gain) -> np.ndarray:
+    """Each spot's centroid from the pixels with even ``col + row`` minus that from the
+    odd ones, ``(N, 2)`` (``NaN`` for lost spots).
+
+    The two checkerboard halves see independent noise, so the difference measures a
+    spot's centroid noise from the image alone: each half has twice the variance of the
+    whole, so ``E[d²] = 4 σ²`` per axis. A spot wider than about 0.7 px is sampled finely
+    enough on either half that the difference carries no bias of its own.
+    """
+    lost = ~np.isfinite(c).all(1)
+    at = np.where(lost[:, None], 0.0, c)
+    steps = [_centroid_step(padded, pad, at, bg, half, width, gain, parity)[0]
+             for parity in (0, 1)]
+    diff = steps[0] - steps[1]
+    diff[lost] = np.nan
+    return diff
+
+
+def _centroid_step(padded, pad, c, bg, half, width, gain,
+                   parity: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One Gaussian-windowed centroid update ``(N, 2)`` and which spots still have signal
+    (from the pixels whose ``col + row`` has ``parity`` only, when given)."""
     base = np.rint(c).astype(np.int64)
     patch, off = _patches(padded, pad, base, half)
     signal = np.nan_to_num(patch - bg[:, None, None])
+    if parity is not None:
+        odd = (base[:, 0, None, None] + base[:, 1, None, None]
+               + off[None, None, :] + off[None, :, None]) % 2
+        signal = np.where(odd == parity, signal, 0.0)
     dx = base[:, 0, None] + off[None, :] - c[:, 0, None]  # (N, cols of the patch)
     dy = base[:, 1, None] + off[None, :] - c[:, 1, None]  # (N, rows of the patch)
     gx, gy = np.exp(-dx**2 / (2 * width**2)), np.exp(-dy**2 / (2 * width**2))
@@ -337,10 +398,29 @@ def _match(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     f = _fractional_index(pts, model)
     base = np.rint(f).astype(np.int64)
     dev = np.abs(f - base).max(1)
+    _check_lens_count(base[dev <= 0.3], camera)
     k = base + _whole_pitch_shift(base, cols, rows)
     inside = (k[:, 0] >= 0) & (k[:, 0] < cols) & (k[:, 1] >= 0) & (k[:, 1] < rows)
     k[(dev > 0.3) | ~inside] = -1
     return k, dev
+
+
+def _check_lens_count(base: np.ndarray, camera: Camera) -> None:
+    """Refuse a white image whose spot lattice spans more lenses than the camera file
+    has along an axis (a wrong ``[microlens_array] count``), naming both counts.
+
+    Isolated stray spots do not count: an axis's extent is taken between the 0.2 % and
+    99.8 % quantiles of the spots' lattice indices."""
+    cols, rows = camera.ml_count
+    if len(base) < 10:
+        return
+    lo, hi = np.percentile(base, [0.2, 99.8], axis=0)
+    seen = np.rint(hi - lo).astype(int) + 1
+    if seen[0] > cols + 1 or seen[1] > rows + 1:
+        raise ValueError(
+            f"the white image shows about {seen[0]} x {seen[1]} microlens images (columns x "
+            f"rows) but the camera file has {cols} x {rows} microlenses: correct "
+            "[microlens_array] count = [columns, rows] in the camera file")
 
 
 def _grow_lattice(pts: np.ndarray, model: np.ndarray, anchor: np.ndarray) -> np.ndarray:
@@ -429,7 +509,7 @@ def _choose_degree(k, c, shape, use, degree) -> int:
 
 
 # ---- public -------------------------------------------------------------------------
-def find_centers(white_image, camera: Camera, *, method: str = "fit",
+def find_centers(white_image, camera: Camera, *, method: str = "combined",
                  degree: int | str = "auto", fill_missing: bool = False) -> CenterFit:
     """Measure every microlens image centre in a white image.
 
@@ -440,8 +520,10 @@ def find_centers(white_image, camera: Camera, *, method: str = "fit",
     camera
         The camera (nominal layout); sets the expected pitch and the lens count.
     method
-        ``"fit"`` (default): the global grid model's prediction for each found lens;
-        ``"centroid"``: each spot's own centroid (the paper's method).
+        ``"combined"`` (default): the grid model's prediction and the lens's own centroid
+        weighted by their uncertainties (a lens that really sits off the lattice keeps its
+        offset, noise is smoothed); ``"fit"``: the global grid model's prediction for
+        each found lens; ``"centroid"``: each spot's own centroid (the paper's method).
     degree
         Grid-model polynomial degree: 1 (affine), 2, 3, or ``"auto"`` (affine unless
         a cubic distortion term is significant).
@@ -458,21 +540,23 @@ def find_centers(white_image, camera: Camera, *, method: str = "fit",
     ValueError
         When the image is not a plausible white image for this camera.
     """
-    if method not in ("fit", "centroid"):
-        raise ValueError(f"method must be 'fit' or 'centroid', got {method!r}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if degree != "auto" and degree not in (1, 2, 3):
         raise ValueError(f"degree must be 1, 2, 3 or 'auto', got {degree!r}")
     pitch = _pitch_px(camera)
     img = _remove_hot_pixels(_validate_image(white_image, camera), pitch)
     peaks, strength = _detect_spots(img, pitch)
     _check_count(len(peaks), camera, "bright spots")
-    cents, sigma = _windowed_centroids(img, peaks, pitch)
+    cents, sigma, split = _windowed_centroids(img, peaks, pitch)
     ok = np.isfinite(cents).all(1)
-    cents, strength = cents[ok], strength[ok]
-    cents = cents[_suppress_duplicates(cents, strength, DUPLICATE_RADIUS * pitch)]
+    cents, strength, split = cents[ok], strength[ok], split[ok]
+    keep = _suppress_duplicates(cents, strength, DUPLICATE_RADIUS * pitch)
+    cents, split = cents[keep], split[keep]
     _check_count(len(cents), camera, "well-formed spots")
     k, dev = _match(cents, camera)
-    return _assemble(camera, cents, k, dev, sigma, img.shape, method, degree, fill_missing)
+    return _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
+                     fill_missing)
 
 
 def _check_count(n: int, camera: Camera, what: str) -> None:
@@ -487,24 +571,26 @@ def _check_count(n: int, camera: Camera, what: str) -> None:
             "image a uniform bright target, and check the exposure and the camera file")
 
 
-def _lens_grid(camera: Camera, cents: np.ndarray, k: np.ndarray,
-               dev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Scatter matched centroids into ``(rows, cols, 2)``; of two spots matched to one
-    lens the one nearer its lattice node wins."""
+def _lens_grid(camera: Camera, per_spot: np.ndarray, k: np.ndarray,
+               dev: np.ndarray) -> np.ndarray:
+    """Scatter per-spot values ``(N, 2)`` into ``(rows, cols, 2)`` (``NaN``: no spot); of
+    two spots matched to one lens the one nearer its lattice node wins."""
     cols, rows = camera.ml_count
     grid = np.full((rows, cols, 2), np.nan)
     order = np.argsort(dev, kind="stable")
-    cents, k = cents[order], k[order]
+    per_spot, k = per_spot[order], k[order]
     ok = k[:, 0] >= 0
     flat = k[ok, 1] * cols + k[ok, 0]
     uniq, first = np.unique(flat, return_index=True)
-    grid.reshape(-1, 2)[uniq] = cents[ok][first]
-    return grid, np.isfinite(grid).all(-1)
+    grid.reshape(-1, 2)[uniq] = per_spot[ok][first]
+    return grid
 
 
-def _assemble(camera, cents, k, dev, sigma, shape, method, degree, fill_missing) -> CenterFit:
+def _assemble(camera, cents, split, k, dev, sigma, shape, method, degree,
+              fill_missing) -> CenterFit:
     cols, rows = camera.ml_count
-    grid, found = _lens_grid(camera, cents, k, dev)
+    grid = _lens_grid(camera, cents, k, dev)
+    found = np.isfinite(grid).all(-1)
     kk = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), -1).reshape(-1, 2)
     c = grid.reshape(-1, 2)
     margin = 3 * sigma + 1
@@ -514,18 +600,50 @@ def _assemble(camera, cents, k, dev, sigma, shape, method, degree, fill_missing)
     if use.sum() < 6:
         use = found.ravel().copy()
     deg = _choose_degree(kk, c, (cols, rows), use, degree)
+    candidates = use.reshape(rows, cols)
     coef, use = _robust_fit(kk, c, (cols, rows), deg, use)
     model = (_design(kk, (cols, rows), deg) @ coef).reshape(rows, cols, 2)
     found = _drop_far_spots(found, grid, model, _pitch_px(camera))
     grid[~found] = np.nan
-    centers = model.copy() if method == "fit" else grid.copy()
-    if not fill_missing:
-        centers[~found] = np.nan
-    else:
-        centers[~found] = model[~found]
+    inlier = use.reshape(rows, cols) & found
+    outlier = candidates & ~inlier  # far from the model: a blemish, not the lens's place
+    noise = _centroid_noise(_lens_grid(camera, split, k, dev), found)
+    scatter = _lattice_scatter(grid, model, noise, inlier)
+    combined = _combine(model, grid, noise, scatter, found & ~outlier)
+    centers = {"fit": model, "centroid": grid, "combined": combined}[method].copy()
+    centers[~found] = model[~found] if fill_missing else np.nan
     resid = np.hypot(*(grid - model).reshape(-1, 2)[use].T)
-    return CenterFit(centers, grid, model, found, use.reshape(rows, cols) & found, deg,
-                     *_layout(model, camera), float(np.sqrt(np.mean(resid**2))), method)
+    return CenterFit(centers, grid, model, found, inlier, deg, *_layout(model, camera),
+                     float(np.sqrt(np.mean(resid**2))), method, noise, scatter)
+
+
+def _centroid_noise(split: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """Per-lens centroid noise (px, per axis), ``(rows, cols)``: the split differences
+    (``E|d|² = 8 σ²`` over both axes) averaged over each lens's 5 x 5 neighbourhood, so
+    that it follows vignetting and exposure across the array without one spot's luck."""
+    d2 = np.where(found, np.nansum(split**2, axis=-1), 0.0)
+    n = ndimage.uniform_filter(found.astype(float), 5, mode="nearest")
+    mean = ndimage.uniform_filter(d2, 5, mode="nearest") / np.maximum(n, 1e-12)
+    return np.sqrt(mean / 8.0)
+
+
+def _lattice_scatter(grid, model, noise, inlier) -> float:
+    """RMS (px, per axis) of the lenses' true offsets from the grid model: the centroids'
+    scatter about the model with their noise taken out (0 when noise explains it all)."""
+    if not inlier.any():
+        return 0.0
+    resid2 = ((grid - model)[inlier] ** 2).sum(-1) / 2
+    return float(np.sqrt(max(float(np.mean(resid2) - np.mean(noise[inlier] ** 2)), 0.0)))
+
+
+def _combine(model, grid, noise, scatter: float, trusted) -> np.ndarray:
+    """Each lens's centre from the grid model and its own centroid, weighted by their
+    uncertainties: ``model + w (centroid - model)`` with ``w = τ² / (τ² + σ_k²)`` (τ: the
+    lenses' true scatter about the lattice, σ_k: the centroid's noise). Lenses that
+    really sit off the lattice keep their offset; noise-level scatter is smoothed away.
+    Only ``trusted`` spots move (not the fit's outliers: a blemish or a stray spot)."""
+    w = scatter**2 / np.maximum(scatter**2 + noise**2, 1e-30)
+    return model + np.where(trusted, w, 0.0)[..., None] * np.nan_to_num(grid - model)
 
 
 def _drop_far_spots(found, grid, model, pitch) -> np.ndarray:
@@ -544,7 +662,7 @@ def _layout(model: np.ndarray, camera: Camera) -> tuple:
 
 
 def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None = None,
-              method: str = "fit", degree: int | str = "auto",
+              method: str = "combined", degree: int | str = "auto",
               fill_missing: bool = False) -> Camera:
     """Calibrate the microlens image centres of ``camera`` from a white image.
 
