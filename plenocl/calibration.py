@@ -711,7 +711,10 @@ def _warn_about(fit: CenterFit) -> None:
 
 
 def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:
-    """Write a PNG of the white image with the found centres (green) and missing lenses (red)."""
+    """Write a PNG: the white image with the found centres (green) and missing lenses
+    (red), and the residual map, each lens's centroid offset from the grid model (px),
+    colour for its size and an arrow for its direction, with the estimated centroid
+    noise and lattice scatter in the title."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -721,20 +724,47 @@ def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:
 
     img = np.asarray(white_image, dtype=np.float64)
     h, w = img.shape
-    scale = min(2000.0, max(800.0, max(h, w))) / max(h, w)  # 800-2000 px on the long side
-    fig, ax = plt.subplots(figsize=(w * scale / 100, h * scale / 100 + 0.4), dpi=100)
-    ax.imshow(np.sqrt(img / max(img.max(), 1e-30)), cmap="gray", interpolation="nearest")
+    fig, (ax, res) = plt.subplots(1, 2, figsize=(13, 6.5 * h / w + 0.9), dpi=130)
+    ax.imshow(np.sqrt(np.clip(img, 0, None) / max(img.max(), 1e-30)), cmap="gray",
+              interpolation="nearest")
     c = fit.centers[fit.found]
     ax.plot(c[:, 0], c[:, 1], "x", color="lime", ms=3, mew=0.6, label="centres")
     miss = fit.model[~fit.found]
     ax.plot(miss[:, 0], miss[:, 1], "o", mfc="none", color="red", ms=5, mew=0.8,
             label=f"no spot ({fit.n_missing})")
-    ax.set_title(f"{int(fit.found.sum())} centres, rotation {fit.rotation_deg:.3f}°, "
-                 f"residual {fit.residual_rms_px:.3f} px RMS", fontsize=8)
-    ax.legend(loc="upper right", fontsize=6)
+    ax.set_title(f"{int(fit.found.sum())} centres, rotation {fit.rotation_deg:.3f}°", fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
+    ax.set_xlabel("column (px)")
+    ax.set_ylabel("row (px)")
+    _residual_panel(fig, res, fit)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
+
+
+def _residual_panel(fig, ax, fit: CenterFit) -> None:
+    """Each lens's centroid minus the grid model, on the lens grid (rows x columns)."""
+    offset = np.where(fit.found[..., None], fit.centroids - fit.model, np.nan)
+    size = np.hypot(offset[..., 0], offset[..., 1])
+    top = max(float(np.nanpercentile(size, 99)) if np.isfinite(size).any() else 0.0, 1e-3)
+    im = ax.imshow(size, cmap="viridis", vmin=0, vmax=top, interpolation="nearest")
+    rows, cols = size.shape
+    if rows * cols <= 4000:  # arrows stay readable up to ~60 x 60 lenses
+        ky, kx = np.mgrid[0:rows, 0:cols]
+        ax.quiver(kx, ky, offset[..., 0], -offset[..., 1], color="white", angles="xy",
+                  scale_units="xy", scale=top / 0.45, width=0.003)
+    out = fit.found & ~fit.inlier
+    ax.plot(*np.nonzero(out.T), "s", mfc="none", color="orange", ms=4, mew=0.6,
+            label=f"left out of the fit ({int(out.sum())})")
+    if out.any():
+        ax.legend(loc="upper right", fontsize=7)
+    ax.set_xlabel("lens column kx")
+    ax.set_ylabel("lens row ky")
+    ax.set_title(f"centroid - grid model: {fit.residual_rms_px:.3f} px RMS (centres: "
+                 f"{fit.method})\ncentroid noise {float(np.median(fit.noise_px)):.3f} px, "
+                 f"lenses' scatter about the lattice {fit.lattice_scatter_px:.3f} px (per axis)",
+                 fontsize=8)
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, label="offset (px)")
