@@ -514,6 +514,12 @@ def _cal(image):
     return lambda c: calibrate(image(c), c["cam"])
 
 
+def _cal_wrong_count(c):
+    """The tiny camera's white image (4 x 4 lenses) with a camera file saying 2 x 2."""
+    white = simulate_white_image(c["cam"], queue=c["queue"])
+    calibrate(white, Camera(**{**TINY, "ml_count": (2, 2)}))
+
+
 def _with_nan(a):
     a = a.astype(np.float64)
     a.flat[5] = np.nan
@@ -579,6 +585,9 @@ INVALID = [
     ("grid-extent-empty", _grid(y=(1, 1)), ValueError, "grid extent y must be two finite"),
     ("grid-extent-nan", _grid(z=(-1, NAN)), ValueError, "grid extent z must be two finite"),
     ("grid-extent-three-values", _grid(x=(-1, 0, 1)), ValueError, "grid extent x"),
+    ("grid-rotation-nan", _grid(rotation_deg=NAN), ValueError,
+     "grid rotation_deg must be a finite angle"),
+    ("grid-rotation-beyond-45", _grid(rotation_deg=60.0), ValueError, "within ±45 degrees"),
     # simulate_image / simulate_white_image
     ("simulate-positions-not-n-by-3", _sim(positions=((0.0, 0.0),)), ValueError,
      r"positions must be an \(N, 3\) array"),
@@ -609,12 +618,17 @@ INVALID = [
     ("white-missing-shape", _white(missing=np.zeros((3, 3), bool)), ValueError,
      "missing must be a boolean mask of shape"),
     ("white-intensity-negative", _white(intensity=-5.0), ValueError, "intensity"),
+    ("white-lens-shift-shape", _white(lens_shift_mm=np.zeros((3, 3, 2))), ValueError,
+     r"lens_shift_mm must be a finite \(4, 4, 2\) array"),
+    ("white-lens-shift-too-large", _white(lens_shift_mm=np.full((4, 4, 2), 0.04)), ValueError,
+     "more than a quarter of the"),
     # Projector
     ("projector-depth-not-imageable", _proj(z=(-60.0, 1.0)), ValueError,
      "where the main lens forms no real image"),
     ("projector-outside-field-of-view", _proj(x=(10.0, 11.0)), ValueError,
      "entirely outside the camera's field of view"),
     ("projector-method", _proj(method="sparse"), ValueError, "method must be one of"),
+    ("projector-back-mode", _proj(back="scatter"), ValueError, "back must be one of"),
     ("projector-oversample-zero", _proj(oversample=0), ValueError,
      "oversample must be a positive number"),
     ("projector-buffer-too-large", _proj(max_alloc_bytes=1000), MemoryError,
@@ -705,8 +719,8 @@ INVALID = [
      ValueError, r"looks transposed: pass image\.T"),
     ("calibrate-nan", _cal(lambda c: np.full((70, 70), np.nan)), ValueError,
      "NaN or Inf pixels"),
-    ("calibrate-negative", _cal(lambda c: -np.ones((70, 70))), ValueError,
-     "negative pixel values"),
+    ("calibrate-lens-count", _cal_wrong_count, ValueError,
+     r"shows about 4 x 4 microlens images .* the camera file has 2 x 2"),
     ("calibrate-colour", _cal(lambda c: np.ones((70, 70, 3))), ValueError,
      "one 2-D monochrome frame"),
     # io
