@@ -1,27 +1,36 @@
-/* Matrix-free projector of the plenoptic weighting function (paper §III.A, DESIGN §5).
- * NumPy twin: plenocl/reference/weights.py.
+/* Matrix-free projector of the plenoptic weighting function (paper §III.A, docs/design.md
+ * §5). NumPy twin: plenocl/reference/weights.py.
  *
  * The weight of pixel p for voxel j is a sum over aperture samples s and lenses k of
  * S[k, s; j] P[p; k, s]: S holds the bilinear lens weights of step 2 (they depend on the
  * voxel), P the bilinear pixel weights of step 3 (they depend only on the lens, with its
- * own calibrated centre, and the sample). Both projections go through the light field
+ * own calibrated centre, and the sample: the host's sample_px table gives where each
+ * sample lands behind a lens). Both projections go through the light field
  * L[ky][s][kx] (rows padded to nkxp, a multiple of the vector width PL_VW):
- *   forward  image = P (S vol):  fwd_x + fwd_y (separable S) or fwd_gen, then fwd_pix
- *   back     vol = S^T (P^T img): back_pix, then back_y + back_x or back_gen
- * With an axis-aligned array S factorises per axis: fwd_x resamples voxel rows onto lens
- * columns for each aperture column i (T[(iz, i)][iy][kx]); fwd_y resamples those onto
- * lens rows for each sample (i, j), a few vectorised row updates per output row.
- * Every kernel is a gather except fwd_pix and fwd_x, race-free scatters (fwd_pix takes
- * the lenses in cs x cs colour classes whose pixel patches never overlap; fwd_x owns its
- * output row): results do not depend on the work split or the device's thread count.
+ *   forward  image = P (S vol):  fwd_x + fwd_y (separable S) or fwd_gen / fwd_gen_gather,
+ *                                then fwd_pix
+ *   back     vol = S^T (P^T img): back_pix, then back_y (or back_y_scatter) + back_x,
+ *                                or back_gen
+ * In the grid's frame (docs/design.md §5: a frame that follows the lens rows) S
+ * factorises per axis: fwd_x resamples voxel rows onto lens columns for each aperture
+ * column i (T[(iz, i)][iy][kx]); fwd_y resamples those onto lens rows for each sample
+ * (i, j), a few vectorised row updates per output row.
+ *
+ * Parallel structure (each kernel's own comment gives its work-item): every kernel is a
+ * gather over thousands of independent outputs, or a race-free scatter that owns its
+ * output (fwd_x: a T row; fwd_gen: a sample's plane; fwd_pix: one colour class of lenses
+ * cs apart, whose pixel patches never overlap), so results do not depend on the work
+ * split or the device's thread count. Two kernels use float atomics and are not the
+ * default: back_y_scatter (Projector(back="atomic"), a scatter of each light-field row)
+ * and fwd_direct (the unfactorised benchmark baseline). fwd_gen has one work-item per
+ * aperture sample, enough for a CPU; GPUs run fwd_gen_gather, one per light-field element.
  * Sizes are arguments; PL_VW is a define. Row kernels take `seg`: each work-item updates
  * `seg` vectors of a row (a whole row on a CPU, so it stays in cache; one element on a
  * GPU, for coalesced access).
  *
  * The direct kernels (voxel_footprint, fwd_direct, back_direct) evaluate the 16 products
  * per sample per voxel without the factorisation: one voxel's column, and the
- * unfactorised baseline the benchmark measures. back_y_scatter is the float-atomic
- * scatter alternative of back_y, kept for the benchmark. */
+ * unfactorised baseline the benchmark measures. */
 #include "projector.h"
 
 /* ---- forward, separable: T[(izl, il)][iy][kx] = sum_ix hat(kx(ix, i) - kx) vol[iz][iy][ix].
@@ -407,7 +416,9 @@ __kernel void back_direct(__global const float *restrict image, __global float *
     vol[((size_t)izl * ny + iy) * nx + ix] = acc * scale;
 }
 
-/* ---- benchmark alternative of back_y: scatter each L row segment into T with atomics */
+/* ---- back, separable, atomic (Projector(back="atomic")): T (+)= scatter of each L row
+ * segment with float atomic adds. One work-item per (segment, ky, sample); T is zeroed
+ * first. The order of the adds varies from run to run (last-bit differences). */
 __kernel void back_y_scatter(__global const float *restrict L, volatile __global float *T,
                              __global const float *restrict coef,
                              __global const int2 *restrict sample_ij,

@@ -1,7 +1,13 @@
-/* Element-wise steps of the multiplicative solvers (DESIGN §6). NumPy twin:
+/* Element-wise steps of the multiplicative solvers (docs/design.md §6). NumPy twin:
  * plenocl/reference/reconstruct.py. Guards: the ratio I / max(P, eps) is clamped,
  * exponents are clamped, and a non-finite or negative voxel becomes 0, so no NaN or
- * Inf ever leaves a kernel. Sizes are arguments; one build serves every shape. */
+ * Inf ever leaves a kernel. Sizes are arguments; one build serves every shape.
+ *
+ * Parallel structure: one work-item per pixel (ratio, prepare_image) or per voxel
+ * (update_*, mlos, mask_dark); partial_sums is the first level of a deterministic
+ * two-level reduction (1024 work-items, each a strided or contiguous run; the host adds
+ * their partial sums in double precision); row_extent has one work-item per volume row.
+ * No atomics anywhere. */
 
 #define PL_EPS 1e-12f
 #define PL_RATIO_MIN 1e-6f
