@@ -22,8 +22,8 @@ import numpy as np
 from plenocl import Camera, Grid, get_queue, random_particles
 from plenocl.device import device_info
 from plenocl.metrics import quality_q, recovery, render_particles
-from plenocl.projector import Projector
-from plenocl.reconstruct import DEFAULTS, METHODS, reconstruct
+from plenocl.projection import Projector
+from plenocl.reconstruction import DEFAULTS, METHODS, reconstruct
 from plenocl.simulate import simulate_image
 
 GRID = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))

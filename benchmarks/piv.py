@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from plenocl import flows  # noqa: E402
 from plenocl.bench import piv_flows  # noqa: E402
 from plenocl.piv import piv3d  # noqa: E402
-from plenocl.validation import normalized_median_test  # noqa: E402
+from plenocl.piv.validation import normalized_median_test  # noqa: E402
 
 MARGIN = 16
 

@@ -18,11 +18,11 @@ import time
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue
+from plenocl.bench.sparse import matrix_bytes, weight_matrix
 from plenocl.bench.stages import device_pair, projector_bytes
+from plenocl.bench.timing import median_time
 from plenocl.device import device_info
-from plenocl.projector import Projector
-from plenocl.sparse import matrix_bytes, weight_matrix
-from plenocl.timing import median_time
+from plenocl.projection import Projector
 
 
 def row(label: str, nnz: float, seconds: float, note: str = "") -> None:

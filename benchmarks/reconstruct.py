@@ -23,14 +23,14 @@ import time
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue, random_particles
+from plenocl.bench.sparse import matrix_bytes, weight_matrix
+from plenocl.bench.timing import run_times
 from plenocl.device import device_info
 from plenocl.metrics import quality_q, recovery, render_particles
-from plenocl.projector import Projector
-from plenocl.reconstruct import METHODS, reconstruct
+from plenocl.projection import Projector
+from plenocl.reconstruction import METHODS, reconstruct
 from plenocl.reference import reconstruct as ref
 from plenocl.simulate import simulate_image
-from plenocl.sparse import matrix_bytes, weight_matrix
-from plenocl.timing import run_times
 
 CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))

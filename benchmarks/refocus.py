@@ -13,11 +13,11 @@ import numpy as np
 
 from plenocl import Camera, get_queue
 from plenocl.bench.lightfield_section import scipy_shift_and_add
+from plenocl.bench.timing import median_time
 from plenocl.device import device_info
 from plenocl.lightfield import LightField
 from plenocl.reference.refocus import refocus_views
 from plenocl.simulate import simulate_image
-from plenocl.timing import median_time
 
 
 def main() -> None:

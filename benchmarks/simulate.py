@@ -11,10 +11,10 @@ import argparse
 import numpy as np
 
 from plenocl import Camera, get_queue, reference
+from plenocl.bench.timing import median_time
 from plenocl.device import device_info
 from plenocl.particles import random_particles
 from plenocl.simulate import Simulator
-from plenocl.timing import median_time
 
 
 def main() -> None:

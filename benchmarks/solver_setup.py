@@ -20,8 +20,9 @@ import time
 import numpy as np
 
 from plenocl import Camera, Grid, Projector, get_queue, random_particles, simulate_image
+from plenocl.bench.timing import median_time
 from plenocl.device import device_info
-from plenocl.reconstruct import reconstruct
+from plenocl.reconstruction import reconstruct
 
 
 def paper_scene(rotation: float, queue):
@@ -65,17 +66,11 @@ def main() -> None:
     first, warm = {}, {}
     for method in ("mlem", "mart"):
         first[method], proj = timed_first(cam, grid, image, queue, method, 1, args.repeats)
-        t3 = []
-        for _ in range(args.repeats):  # the same (warm) projector: per-iteration cost
-            t0 = time.perf_counter()
-            reconstruct(image, proj, method, iterations=3)
-            t3.append(time.perf_counter() - t0)
-        t1 = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            reconstruct(image, proj, method, iterations=1)
-            t1.append(time.perf_counter() - t0)
-        warm[method] = (statistics.median(t3) - statistics.median(t1)) / 2
+        # the same (warm) projector: the cost of each further iteration
+        t3, t1 = (median_time(lambda n=n, p=proj, m=method: reconstruct(image, p, m,
+                                                                        iterations=n),
+                              args.repeats, warmup=False) for n in (3, 1))
+        warm[method] = (t3 - t1) / 2
         print(f"  {method.upper():4s} ({proj.path} path): 1 iteration with set-up "
               f"{first[method]:.2f} s; each further iteration {warm[method]:.2f} s")
     print(f"  MART / MLEM: first iteration with set-up {first['mart'] / first['mlem']:.2f}x, "

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import sys
 
-from plenocl.boundary_layer import run_boundary_layer
+from plenocl.demo.boundary_layer import run_boundary_layer
 
 
 def main(size: str = "small", out_dir: str = "boundary_layer_demo") -> None:

@@ -7,8 +7,8 @@ from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
 from .piv import PIVResult, piv3d
-from .projector import Projector
-from .reconstruct import reconstruct
+from .projection import Projector
+from .reconstruction import reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
 
 __version__ = "0.1.0"

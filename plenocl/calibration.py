@@ -691,13 +691,15 @@ def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None 
     """
     fit = find_centers(white_image, camera, method=method, degree=degree,
                        fill_missing=fill_missing)
-    _warn_about(fit)
+    warn_about(fit)
     if diagnostic_png is not None:
         save_diagnostic(diagnostic_png, white_image, fit)
     return camera.with_centers(fit.centers)
 
 
-def _warn_about(fit: CenterFit) -> None:
+def warn_about(fit: CenterFit) -> None:
+    """Warn about missing lenses and a noisy or distorted fit (what :func:`calibrate` and
+    ``plenocl calibrate`` say besides the centres)."""
     total = fit.found.size
     if fit.n_missing:
         fate = "use the grid model's prediction" if np.isfinite(fit.centers).all() else \
@@ -720,7 +722,7 @@ def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io import atomic_path
+    from .io.atomic import atomic_path
 
     img = np.asarray(white_image, dtype=np.float64)
     h, w = img.shape

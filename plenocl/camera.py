@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .tomlio import read_toml, write_toml
+from .io.toml import read_toml, write_toml
 
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80

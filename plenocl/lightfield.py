@@ -47,7 +47,7 @@ from .camera import Camera
 from .device import DeviceLike, get_queue
 from .lattice import lattice_cells, lattice_fit
 from .program import KernelSet
-from .weighting import array_plane_scale
+from .projection.weighting import array_plane_scale
 
 
 # ---- lattice --------------------------------------------------------------------------
@@ -62,7 +62,7 @@ def _centers(camera: Camera) -> np.ndarray:
 
 def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
     """Affine least-squares map from lens index to image-centre pixels
-    (:func:`plenocl.weighting.lattice_fit` of the camera's or the given centres).
+    (:func:`plenocl.lattice.lattice_fit` of the camera's or the given centres).
 
     Parameters
     ----------

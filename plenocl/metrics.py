@@ -14,8 +14,8 @@ from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from .correlation import gaussian_subpixel
 from .grid import Grid
+from .piv.correlation import gaussian_subpixel
 
 
 def quality_q(vol: np.ndarray, truth: np.ndarray) -> float:

@@ -1,4 +1,4 @@
-"""Cross-device agreement (plenocl.agreement, ``plenocl devices --agree``)."""
+"""Cross-device agreement (plenocl.bench.agreement, ``plenocl devices --agree``)."""
 
 from __future__ import annotations
 
@@ -11,20 +11,20 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from plenocl.agreement import TOLERANCES, _difference, agreement, agreement_table
+from plenocl.bench.agreement import TOLERANCES, agreement, agreement_table, stage_difference
 
 
 def test_differences_detect_changes():
     rng = np.random.default_rng(0)
     a = rng.random((20, 30)).astype(np.float32)
     for stage, (_, tol) in TOLERANCES.items():
-        assert _difference(stage, a, a.copy()) == 0.0
+        assert stage_difference(stage, a, a.copy()) == 0.0
         b = a.copy()
         b[3:8, 4:10] += 0.05 * a.max()  # a change well beyond float32 rounding
-        assert _difference(stage, a, b) > tol, stage
+        assert stage_difference(stage, a, b) > tol, stage
         c = a.copy()
         c[0, 0] = np.nan  # a NaN (no sample) on one device only
-        assert _difference(stage, a, c) == float("inf")
+        assert stage_difference(stage, a, c) == float("inf")
 
 
 def test_two_queues_on_one_device_agree(queue):

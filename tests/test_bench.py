@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from plenocl.bench import (
-    add_bench_parser,
     loglog_slope,
     md_table,
     pareto_front,
     run_report,
 )
+from plenocl.cli.bench import add_bench_parser, cmd_bench
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SECTIONS = ("## Simulator", "## Calibration", "## Refocusing", "## Projector",
@@ -89,15 +89,13 @@ def test_piv_section_says_when_openpiv_is_missing(tmp_path, queue, monkeypatch):
     from plenocl.bench import core, piv_section
 
     monkeypatch.setattr(piv_section, "load_openpiv", lambda: (None, "ImportError: no openpiv"))
-    run = core._Run(core._sizes()["test"], queue, tmp_path, lambda *a: None, 1, 1)
+    run = core.BenchRun(core.bench_sizes()["test"], queue, tmp_path, lambda *a: None, 1, 1)
     text = piv_section.section_piv(run)
     assert "openpiv is **not** importable" in text and "| openpiv" not in text
     assert (tmp_path / "piv_pareto.png").read_bytes().startswith(PNG_MAGIC)
 
 
 def test_bench_command_prints_where_the_report_is(tmp_path, capsys):
-    from plenocl.bench import cmd_bench
-
     args = argparse.Namespace(size="test", out=str(tmp_path), repeats=1, device=None)
     assert cmd_bench(args) == 0
     assert str(tmp_path / "report.md") in capsys.readouterr().out

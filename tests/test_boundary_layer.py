@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from plenocl.cli import main
+from plenocl.cli.main import main
 
 
 @pytest.fixture(scope="module")

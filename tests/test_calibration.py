@@ -11,7 +11,7 @@ import pytest
 
 from plenocl import Camera
 from plenocl.calibration import calibrate, find_centers
-from plenocl.cli_calibrate import add_calibrate_parser
+from plenocl.cli.calibrate import add_calibrate_parser
 from plenocl.simulate import simulate_image, simulate_white_image
 
 TARGET_RMS_PX = 0.05

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from plenocl.cli import main
+from plenocl.cli.main import main
 from plenocl.io import read_particles, write_particles
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

@@ -1,4 +1,4 @@
-"""Dark-microlens skipping (plenocl.lenses): lit lenses cover the exact set, projections
+"""Dark-microlens skipping (plenocl.projection.lenses): lit lenses cover the exact set, projections
 restricted to them are exact where they must be, and reconstructions do not change."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import pyopencl.array as cla
 import pytest
 
 from plenocl import Camera, Grid
-from plenocl.projector import Projector
-from plenocl.reconstruct import reconstruct
+from plenocl.projection import Projector
+from plenocl.reconstruction import reconstruct
 from plenocl.reference.weights import lit_lenses as exact_lit_lenses
 from plenocl.simulate import simulate_image
 

@@ -10,7 +10,7 @@ import pytest
 
 from plenocl import Camera
 from plenocl.calibration import calibrate
-from plenocl.cli_calibrate import add_refocus_parser
+from plenocl.cli.calibrate import add_refocus_parser
 from plenocl.lightfield import LightField, pixel_coordinates, plaid_uv
 from plenocl.reference.refocus import refocus_views
 from plenocl.simulate import simulate_image, simulate_white_image

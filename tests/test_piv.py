@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plenocl import fieldio, flows
-from plenocl.correlation import correlate, fit_peaks, window_fraction, window_grid
-from plenocl.deform import resample
+from plenocl import flows
+from plenocl.io import fields as fieldio
 from plenocl.piv import PIVResult, piv3d
-from plenocl.validation import normalized_median_test, replace_outliers
+from plenocl.piv.correlation import correlate, fit_peaks, window_fraction, window_grid
+from plenocl.piv.deform import resample
+from plenocl.piv.validation import normalized_median_test, replace_outliers
 
 CASES = [((70, 90, 80), 20251), ((64, 72, 66), 777)]   # (nz, ny, nx), seed
 LIMITS = {"uniform": 0.05, "rotation": 0.10, "oseen": 0.15}

@@ -7,8 +7,8 @@ import pytest
 
 from plenocl import Camera, Grid
 from plenocl.lattice import lattice_fit, lattice_residual
-from plenocl.plan import SampleColumns, column_chunks, depth_chunks, make_plan, runs
-from plenocl.weighting import (
+from plenocl.projection.plan import SampleColumns, column_chunks, depth_chunks, make_plan, runs
+from plenocl.projection.weighting import (
     ApertureGrid,
     depth_coefficients,
     lens_index_map,

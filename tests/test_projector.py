@@ -7,7 +7,7 @@ import pyopencl.array as cl_array
 import pytest
 
 from plenocl import Camera, Grid
-from plenocl.projector import Projector
+from plenocl.projection import Projector
 from plenocl.reference.simulate import trace_particles
 from plenocl.reference.weights import ApertureGrid, lens_index_map, voxel_weights, weight_matrix
 
@@ -231,7 +231,7 @@ def test_reference_building_blocks(small_camera):
 
 
 def test_sensitivity_is_computed_once_and_kept(small_camera, queue):
-    from plenocl.reconstruct import reconstruct
+    from plenocl.reconstruction import reconstruct
     proj = Projector(small_camera, GRID, queue)
     sens = proj.sensitivity()
     assert proj.sensitivity() is sens

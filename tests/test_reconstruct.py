@@ -8,10 +8,10 @@ import pyopencl.array as cla
 import pytest
 
 from plenocl import Camera, Grid, Projector, random_particles, reconstruct
-from plenocl.cli import main
+from plenocl.cli.main import main
 from plenocl.io import load_volume, write_tiff
 from plenocl.metrics import quality_q, recovery, render_particles
-from plenocl.reconstruct import Solver, extent_box, nonzero_box, subtract_background
+from plenocl.reconstruction import Solver, extent_box, nonzero_box, subtract_background
 from plenocl.simulate import simulate_image
 
 # the paper's 5 mm cube: one microlens per voxel laterally, half the camera's depth
@@ -191,7 +191,7 @@ def test_device_extent_gives_the_numpy_box(small_camera, queue):
 
 
 def test_settings_are_validated_once_and_resolve_method_defaults():
-    from plenocl.reconstruct import DEFAULTS, ReconstructionSettings
+    from plenocl.reconstruction import DEFAULTS, ReconstructionSettings
 
     mart = ReconstructionSettings(method="mart")
     assert (mart.iterations, mart.relax) == DEFAULTS["mart"]

@@ -8,17 +8,17 @@ import pyopencl.array as cla
 import pytest
 
 from plenocl import Camera, Grid, Projector
-from plenocl.operator import ProjectionOperator
-from plenocl.reconstruct import reconstruct, view_blocks
+from plenocl.reconstruction import reconstruct, view_blocks
+from plenocl.reconstruction.operator import ProjectionOperator
 from plenocl.reference import reconstruct as ref
 
 
 class MatrixProjector:
     """A projector from an explicit matrix W (pixels x voxels), for solver tests; it holds
     volumes as two depth slabs so the per-slab code paths are exercised. It implements
-    the whole operator contract (plenocl.operator.ProjectionOperator): every lens counts as
-    lit and lens sets are ignored (skipping dark lenses is exact), and a crop keeps the
-    columns of W of the sub-box."""
+    the whole operator contract (plenocl.reconstruction.ProjectionOperator): every lens
+    counts as lit and lens sets are ignored (skipping dark lenses is exact), and a crop
+    keeps the columns of W of the sub-box."""
 
     def __init__(self, W, camera, grid, queue):
         self.W, self.camera, self.grid, self.queue = W, camera, grid, queue
@@ -213,7 +213,7 @@ def test_view_blocks_from_the_lattice_match_the_nearest_centre(small_camera, rot
 
 
 def test_mart_blocks_are_set_up_once_per_projector(tiny):
-    from plenocl.reconstruct import device_view_blocks
+    from plenocl.reconstruction import device_view_blocks
 
     proj = tiny[0]
     first = device_view_blocks(proj, 2)

@@ -10,7 +10,7 @@ import pytest
 from plenocl import Camera, Grid, Projector, simulate_image
 from plenocl.lattice import lattice_rotation_deg, separable_rotation_deg
 from plenocl.metrics import recovery
-from plenocl.reconstruct import reconstruct
+from plenocl.reconstruction import reconstruct
 from plenocl.reference.simulate import trace_particles
 from plenocl.reference.weights import voxel_weights
 

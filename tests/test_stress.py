@@ -28,7 +28,7 @@ from plenocl import (
 )
 from plenocl.io import load_volume, read_image, read_particles
 from plenocl.piv import piv3d
-from plenocl.reconstruct import METHODS, view_blocks
+from plenocl.reconstruction import METHODS, view_blocks
 from plenocl.reference.weights import ApertureGrid, voxel_weights, weight_matrix
 
 
@@ -505,7 +505,7 @@ def _piv(a=lambda v: v, b=lambda v: v, **kw):
 
 def _foreign_lens_set(c):
     """A lens set made for a 3 x 3-lens camera, passed to the 4 x 4-lens projector."""
-    from plenocl.lenses import lens_set
+    from plenocl.projection.lenses import lens_set
     foreign = lens_set(c["queue"], np.ones(9, bool), (3, 3), 2)
     c["proj"].forward_device(c["proj"].volume_to_device(c["vol"][:3, :4, :4]), lenses=foreign)
 

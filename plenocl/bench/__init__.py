@@ -18,7 +18,7 @@ benchmarks and writes ``DIR/report.md`` with PNG plots beside it:
 - scaling: time and memory against voxels, pixels, particles and iterations, with fitted
   log-log slopes, set against the device's memory and the measured throughput;
 - cross-device agreement: the same small workloads on every visible OpenCL device,
-  against stated tolerances (:mod:`plenocl.agreement`).
+  against stated tolerances (:mod:`plenocl.bench.agreement`).
 
 Sizes: ``ci`` (about 1-2 minutes on 2 CPU cores), ``small`` (10-15 minutes), ``paper``
 (``small`` plus the paper's full 16 MP, 300 x 200 x 150 experiment) and an internal
@@ -28,7 +28,6 @@ warm-up of the kernels; the report states the repeat counts.
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import time
@@ -38,20 +37,19 @@ from pathlib import Path
 import numpy as np
 
 from ..device import DeviceLike, device_info, get_queue
-from ..io import atomic_path
-from .core import SIZES, _Run, _runs, _sizes, loglog_slope, md_table, pareto_front
+from ..io.atomic import atomic_path
+from .core import SIZES, BenchRun, bench_sizes, loglog_slope, md_table, pareto_front, repeats_text
 from .devices import section_devices
 from .lightfield_section import section_calibration, section_refocus
 from .piv_section import piv_flows, section_piv
 from .scaling import section_scaling
 from .stages import section_projector, section_reconstruction, section_simulator, section_skipping
 
-__all__ = ["SIZES", "add_bench_parser", "cmd_bench", "loglog_slope", "md_table", "pareto_front",
-           "piv_flows", "run_report"]
+__all__ = ["SIZES", "loglog_slope", "md_table", "pareto_front", "piv_flows", "run_report"]
 
 
 # ---- the report -----------------------------------------------------------------------
-SECTIONS: tuple[tuple[str, Callable[[_Run], str]], ...] = (
+SECTIONS: tuple[tuple[str, Callable[[BenchRun], str]], ...] = (
     ("simulator", section_simulator),
     ("calibration", section_calibration),
     ("refocusing", section_refocus),
@@ -85,7 +83,7 @@ def _load() -> str:
     return " / ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
 
 
-def _header(run: _Run, load_start: str, end: tuple[str, float] | None) -> str:
+def _header(run: BenchRun, load_start: str, end: tuple[str, float] | None) -> str:
     import pyopencl
     import scipy
 
@@ -104,9 +102,9 @@ def _header(run: _Run, load_start: str, end: tuple[str, float] | None) -> str:
             f"units, {info.global_mem_bytes / 2**30:.1f} GiB global memory\n"
             f"- machine: {_machine()}; load average (1 / 5 / 15 min) at start {load_start}; "
             f"{status}\n"
-            f"- repeats: medians of {_runs(run.repeats)} for the simulator, projector and "
-            f"scaling; {_runs(run.heavy)} for reconstruction, skipping and PIV (one warm-up first "
-            "where stated)\n"
+            f"- repeats: medians of {repeats_text(run.repeats)} for the simulator, projector "
+            f"and scaling; {repeats_text(run.heavy)} for reconstruction, skipping and PIV (one "
+            "warm-up first where stated)\n"
             + (f"- headline: {'; '.join(run.notes)}\n" if run.notes else "") + "\n")
 
 
@@ -141,13 +139,13 @@ def run_report(size: str, out_dir: str | Path, repeats: int | None = None,
     pathlib.Path
         The report's path.
     """
-    sizes = _sizes()
+    sizes = bench_sizes()
     if size not in sizes:
         raise ValueError(f"size must be one of {SIZES}, got {size!r}")
     if repeats is not None and repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats!r}")
     cfg, out = sizes[size], Path(out_dir)
-    run = _Run(cfg, get_queue(queue), out, log, repeats or cfg.repeats,
+    run = BenchRun(cfg, get_queue(queue), out, log, repeats or cfg.repeats,
                repeats or cfg.heavy_repeats)
     load_start, t0, parts = _load(), time.perf_counter(), []
     path = out / "report.md"
@@ -160,33 +158,3 @@ def run_report(size: str, out_dir: str | Path, repeats: int | None = None,
     end = (_load(), time.perf_counter() - t0)
     _write_report(path, _header(run, load_start, end) + "\n".join(parts))
     return path
-
-
-# ---- command line -------------------------------------------------------------------
-def cmd_bench(args: argparse.Namespace) -> int:
-    """``plenocl bench``: run the benchmark report and say where it is."""
-    path = run_report(args.size, args.out, args.repeats, queue=getattr(args, "device", None))
-    print(f"benchmark report: {path} (plots beside it)")
-    return 0
-
-
-def add_bench_parser(subparsers) -> argparse.ArgumentParser:
-    """Register ``bench`` on the CLI's subparsers (the device comes from ``--device``)."""
-    p = subparsers.add_parser("bench", help="benchmark every stage against a baseline; "
-                                            "write a Markdown report with plots")
-    p.add_argument("--size", choices=SIZES, default="ci",
-                   help="ci: 1-2 min on 2 cores; small: 10-15 min; paper: adds the 16 MP "
-                        "experiment (default: ci)")
-    p.add_argument("--out", default="plenocl_bench", help="output folder (default: "
-                                                          "plenocl_bench)")
-    p.add_argument("--repeats", type=_positive_int, default=None,
-                   help="runs per timing, the median is reported (default: per size)")
-    p.set_defaults(func=cmd_bench)
-    return p
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value

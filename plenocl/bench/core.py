@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import statistics
-import time
 import tracemalloc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -24,7 +22,7 @@ ReconSetting = tuple[str, str, int, float, dict]
 
 
 # ---- configuration ----------------------------------------------------------------------
-_CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+BENCH_CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 _RECON_CI: tuple[ReconSetting, ...] = (
     ("MART (paper)", "mart", 15, 0.7, {}),
     ("SMART", "smart", 30, 1.0, {}),
@@ -99,10 +97,10 @@ class BenchSize:
     paper: bool = False
 
 
-def _sizes() -> dict[str, BenchSize]:
+def bench_sizes() -> dict[str, BenchSize]:
     """The report sizes (``test`` is internal: a tiny camera, for the test suite)."""
     ci = BenchSize(
-        name="ci", repeats=3, heavy_repeats=2, camera="synthetic", grid=_CUBE,
+        name="ci", repeats=3, heavy_repeats=2, camera="synthetic", grid=BENCH_CUBE,
         box=((-2.3, 2.3),) * 3, counts=(30,), rays=20000, recon=_RECON_CI,
         sim=(200, 20000, 2000), csr_grid=(10, 20, 20), skip_iterations=20,
         skip_particles=40, piv_shape=(48, 48, 48), piv=_PIV_SETTINGS, openpiv=((24, 12),),
@@ -137,7 +135,7 @@ def camera_for(name: str, lenses: int | None = None) -> Camera:
 
 # ---- run state, timing, tables --------------------------------------------------------
 @dataclass
-class _Run:
+class BenchRun:
     """The state one report run shares between its sections."""
 
     cfg: BenchSize
@@ -153,20 +151,6 @@ class _Run:
     def camera(self) -> Camera:
         """The camera of the report size's scenes."""
         return camera_for(self.cfg.camera)
-
-
-def timed(fn: Callable[[], object], repeats: int) -> tuple[object, float]:
-    """The result of the last of ``repeats`` calls of ``fn()`` and their median wall time.
-
-    No warm-up call: callers warm up with a cheaper call of the same setting (one
-    iteration), as these runs are long.
-    """
-    times, out = [], None
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return out, statistics.median(times)
 
 
 def host_peak_bytes(fn: Callable[[], object]) -> int:
@@ -226,20 +210,22 @@ def loglog_slope(n, y) -> float:
     return float(np.polyfit(np.log(n[ok]), np.log(y[ok]), 1)[0])
 
 
-def _reshaped(grid: Grid, shape: tuple[int, int, int]) -> Grid:
+def reshaped(grid: Grid, shape: tuple[int, int, int]) -> Grid:
     """The same volume as ``grid`` on ``shape`` voxels."""
     return Grid(shape, x=grid.x, y=grid.y, z=grid.z)
 
 
-def _runs(n: int) -> str:
+def repeats_text(n: int) -> str:
+    """``"1 run"`` or ``"n runs"``, for the report's text."""
     return "1 run" if n == 1 else f"{n} runs"
 
 
-def _mib(nbytes: float) -> str:
+def mib(nbytes: float) -> str:
+    """Bytes as MiB with two decimals, for the report's tables."""
     return f"{nbytes / 2**20:.2f}"
 
 
-def _scene(run: _Run, count: int, seed: int, box: Box | None = None):
+def bench_scene(run: BenchRun, count: int, seed: int, box: Box | None = None):
     """Particles (mm, intensities) in ``box`` and their noise-free raw image."""
     pos, inten = random_particles(box or run.cfg.box, count=count, seed=seed, intensity=1e4)
     img = Simulator(run.camera, run.queue).trace(pos, inten, run.cfg.rays, seed=seed)

@@ -1,4 +1,4 @@
-"""Report section: cross-device agreement (:mod:`plenocl.agreement`)."""
+"""Report section: cross-device agreement (:mod:`plenocl.bench.agreement`)."""
 
 from __future__ import annotations
 
@@ -6,21 +6,21 @@ import os
 import subprocess
 import sys
 
-from ..agreement import TOLERANCES, agreement, agreement_table
 from ..device import all_devices, get_queue
-from .core import _Run
+from .agreement import TOLERANCES, agreement, agreement_table
+from .core import BenchRun
 
 #: PoCL's threaded and serial CPU drivers, as two devices of a child process.
 POCL_PAIR = "pthread basic"
 
 
-def section_devices(run: _Run) -> str:
+def section_devices(run: BenchRun) -> str:
     """Every stage on every visible OpenCL device against the report's device; with PoCL
     alone, its two CPU drivers compared in a child process."""
     others = [d for d in all_devices() if d != run.queue.device]
     head = ("## Cross-device agreement\n\nThe simulator, projector, refocusing and MLEM "
             "(20 iterations) on a 12 x 10-lens camera, run on each device and compared with "
-            "the first. Tolerances (see `plenocl/agreement.py` for why): "
+            "the first. Tolerances (see `plenocl/bench/agreement.py` for why): "
             + ", ".join(f"{s} {t:.0e}" for s, (_, t) in TOLERANCES.items()) + ".\n\n")
     if others:
         rows = agreement([run.queue, *(get_queue(d) for d in others)], log=run.log)
@@ -33,7 +33,7 @@ def section_devices(run: _Run) -> str:
     return head + _pocl_pair(run)
 
 
-def _pocl_pair(run: _Run) -> str:
+def _pocl_pair(run: BenchRun) -> str:
     """``plenocl devices --agree`` in a child process that sees PoCL's two CPU drivers."""
     env = {**os.environ, "POCL_DEVICES": POCL_PAIR}
     env.pop("PYOPENCL_CTX", None)

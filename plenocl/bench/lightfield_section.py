@@ -14,8 +14,8 @@ from ..camera import Camera
 from ..lightfield import LightField
 from ..reference.refocus import output_lens_coordinates
 from ..simulate import simulate_image, simulate_white_image
-from ..timing import median_time
-from .core import _Run, _runs, md_table, timed
+from .core import BenchRun, md_table, repeats_text
+from .timing import median_time, timed
 
 #: White-image cases: (true layout of the array, simulation options).
 CALIBRATION_CASES = {
@@ -64,7 +64,7 @@ def white_case(base: Camera, layout: dict, sim: dict, seed: int, queue):
         true.ideal_microlens_centers()
 
 
-def section_calibration(run: _Run) -> str:
+def section_calibration(run: BenchRun) -> str:
     """Centre RMS error against time: box centroid (the paper's), windowed centroid, fit."""
     base, rows = run.camera, []
     half = max(1, int(0.4 * base.pixels_per_microlens))
@@ -87,7 +87,7 @@ def section_calibration(run: _Run) -> str:
             f"{base.pixels[0]} x {base.pixels[1]} px camera ({base.ml_count[0]} x "
             f"{base.ml_count[1]} lenses) from the simulator; the calibration sees only the "
             "nominal camera. Error: 2-D RMS distance (px) of the found centres from the "
-            f"truth. Time: median of {_runs(run.repeats)} of `find_centers` (detection, "
+            f"truth. Time: median of {repeats_text(run.repeats)} of `find_centers` (detection, "
             "matching, centroids and, for the fit, the grid model); the box centroid adds "
             "its own pass to the windowed-centroid run whose spots it reuses.\n\n"
             + md_table(["white image", "method", "time s", "RMS error px", "lenses found"],
@@ -120,7 +120,7 @@ def scipy_shift_and_add(views: np.ndarray, shifts: np.ndarray, supersample: int)
     return out
 
 
-def section_refocus(run: _Run, planes: int = 9) -> str:
+def section_refocus(run: BenchRun, planes: int = 9) -> str:
     """Focal-stack time of the kernel against SciPy shift-and-add on the same light field."""
     cam = run.camera.with_centers(run.camera.ideal_microlens_centers())
     rng = np.random.default_rng(0)
@@ -143,7 +143,7 @@ def section_refocus(run: _Run, planes: int = 9) -> str:
     return (f"## Refocusing\n\nA focal stack of {planes} planes (z from {-half[2]:g} to "
             f"{half[2]:g} mm) of 200 particles on the {cam.pixels[0]} x {cam.pixels[1]} px "
             f"camera, {lf.shape[1]} x {lf.shape[0]} output pixels; medians of "
-            f"{_runs(run.repeats)}. Light-field resampling (host, once per image): "
+            f"{repeats_text(run.repeats)}. Light-field resampling (host, once per image): "
             f"{t_build:.3f} s. Kernel against SciPy: max difference {diff:.1e} of the peak "
             "(the same weighted shift-and-add).\n\n"
             + md_table(["path", "median s", "planes/s", "speed-up"], rows))

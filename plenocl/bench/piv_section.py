@@ -7,8 +7,9 @@ import os
 import numpy as np
 
 from .. import flows
-from ..piv import piv3d
-from .core import _Run, _runs, md_table, pareto_front, timed
+from ..piv.multipass import piv3d
+from .core import BenchRun, md_table, pareto_front, repeats_text
+from .timing import timed
 
 
 # ---- PIV ----------------------------------------------------------------------------
@@ -70,7 +71,7 @@ def _openpiv_run(p3, pair, ws: int, ov: int, repeats: int):
     return np.stack([w, -u, v]), tuple(centres), seconds
 
 
-def _piv_flow_rows(run: _Run, p3, name: str, flow) -> list[dict]:
+def _piv_flow_rows(run: BenchRun, p3, name: str, flow) -> list[dict]:
     shape = run.cfg.piv_shape
     pair = flows.volume_pair(shape, flow, seed=2718)
     rows = []
@@ -103,7 +104,7 @@ def _piv_table(rows: list[dict]) -> list[list]:
     return table
 
 
-def section_piv(run: _Run) -> str:
+def section_piv(run: BenchRun) -> str:
     """PIV run time against RMS error per setting and flow; openpiv in the same run."""
     from .plots import plot_piv_pareto
 
@@ -122,7 +123,7 @@ def section_piv(run: _Run) -> str:
             "`plenocl.flows.volume_pair` (Gaussian particles, σ 1 voxel, 0.004 per voxel, "
             "seed 2718); displacements up to about 3 voxels. Error: RMS of the vector error "
             "(voxels) over window centres at least min(16, n/4) voxels from the faces, "
-            f"against the mid-time displacement. Medians of {_runs(run.heavy)}. {about}. "
+            f"against the mid-time displacement. Medians of {repeats_text(run.heavy)}. {about}. "
             "front (*): on the Pareto front of time vs RMS error for that flow; the plot "
             "numbers points by the # column.\n\n"
             + md_table(["#", "flow", "setting", "time s", "RMS error (voxel)", "vectors",

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..plotting import pyplot, save_png
+from ..io.plotting import pyplot, save_png
 
 
 def _pareto_panel(ax, xs, ys, front, label: str, colour) -> None:

@@ -7,30 +7,30 @@ import numpy as np
 from ..device import device_info
 from ..grid import Grid
 from ..particles import random_particles
-from ..projector import Projector
-from ..reconstruct import reconstruct
+from ..projection.projector import Projector
+from ..reconstruction import reconstruct
 from ..simulate import Simulator
-from ..timing import median_time
 from .core import (
-    _mib,
-    _reshaped,
-    _Run,
-    _runs,
-    _scene,
+    BenchRun,
+    bench_scene,
     camera_for,
     host_peak_bytes,
     loglog_slope,
     md_table,
+    mib,
+    repeats_text,
+    reshaped,
 )
 from .stages import device_pair, estimated_weights
+from .timing import median_time
 
 
 # ---- scaling ------------------------------------------------------------------------
-def _scale_voxels(run: _Run) -> list[dict]:
+def _scale_voxels(run: BenchRun) -> list[dict]:
     """Forward + back time and device buffers against the number of voxels."""
     points = []
     for shape in run.cfg.scale_voxels:
-        proj = Projector(run.camera, _reshaped(run.cfg.grid, shape), run.queue)
+        proj = Projector(run.camera, reshaped(run.cfg.grid, shape), run.queue)
         vol = np.random.default_rng(0).random(shape, dtype=np.float32)
         fwd, back, nbytes = device_pair(proj, vol)
         t = median_time(lambda f=fwd, b=back: (f(), b()), run.repeats)
@@ -41,7 +41,7 @@ def _scale_voxels(run: _Run) -> list[dict]:
     return points
 
 
-def _scale_pixels(run: _Run) -> list[dict]:
+def _scale_pixels(run: BenchRun) -> list[dict]:
     """Forward + back time and device buffers against the sensor's pixels (fixed grid)."""
     h = 0.3 * min(run.cfg.scale_lenses) * 0.125
     grid = Grid((8, 16, 16), x=(-h, h), y=(-h, h), z=(-h, h))
@@ -58,7 +58,7 @@ def _scale_pixels(run: _Run) -> list[dict]:
     return points
 
 
-def _scale_particles(run: _Run) -> list[dict]:
+def _scale_particles(run: BenchRun) -> list[dict]:
     """Simulator time and host peak memory against the number of particles."""
     sim, rays, points = Simulator(run.camera, run.queue), run.cfg.scale_rays, []
     for n in run.cfg.scale_particles:
@@ -70,10 +70,10 @@ def _scale_particles(run: _Run) -> list[dict]:
     return points
 
 
-def _scale_iterations(run: _Run) -> list[dict]:
+def _scale_iterations(run: BenchRun) -> list[dict]:
     """MLEM time and host peak memory against the number of iterations."""
     proj = Projector(run.camera, run.cfg.grid, run.queue)
-    _, _, img = _scene(run, run.cfg.counts[0], seed=5)
+    _, _, img = bench_scene(run, run.cfg.counts[0], seed=5)
     reconstruct(img, proj, "mlem", 1)  # warm-up
     points = []
     for it in run.cfg.scale_iterations:
@@ -99,7 +99,7 @@ def _scaling_rows(data: dict) -> tuple[list, list]:
     for axis, what, memory, _ in _SCALING:
         pts = data[axis]
         for p in pts:
-            rows.append([what, f"{p['n']:,}", f"{p['seconds']:.4f}", _mib(p["bytes"]), memory,
+            rows.append([what, f"{p['n']:,}", f"{p['seconds']:.4f}", mib(p["bytes"]), memory,
                          p["rate"]])
         n = [p["n"] for p in pts]
         fits.append([axis, f"{loglog_slope(n, [p['seconds'] for p in pts]):.2f}",
@@ -107,7 +107,7 @@ def _scaling_rows(data: dict) -> tuple[list, list]:
     return rows, fits
 
 
-def _limits(run: _Run, data: dict) -> str:
+def _limits(run: BenchRun, data: dict) -> str:
     """The measured figures set against the device's memory and throughput."""
     info = device_info(run.queue)
     big = data["voxels"][-1]
@@ -120,8 +120,8 @@ def _limits(run: _Run, data: dict) -> str:
     return (f"\n**Against the machine's limits.** Device global memory "
             f"{info.global_mem_bytes / 2**30:.1f} GiB (largest buffer "
             f"{info.max_alloc_bytes / 2**30:.1f} GiB; larger volumes are split into slabs). "
-            f"A forward + back at {big['n']:,} voxels used {_mib(big['bytes'])} MiB: 8 bytes "
-            f"per voxel (volume in and out) and {_mib(fixed)} MiB of image, tables and "
+            f"A forward + back at {big['n']:,} voxels used {mib(big['bytes'])} MiB: 8 bytes "
+            f"per voxel (volume in and out) and {mib(fixed)} MiB of image, tables and "
             "scratch (bounded). The solver keeps about three volumes (estimate, sensitivity, "
             "one back projection: 12 bytes per voxel) and a few images, so about "
             f"{fits:.2e} voxels fit this device with this camera ({fits / 9e6:.1f}x the "
@@ -136,7 +136,7 @@ def _limits(run: _Run, data: dict) -> str:
             "these sizes.\n")
 
 
-def _csr_at(run: _Run, point: dict) -> str:
+def _csr_at(run: BenchRun, point: dict) -> str:
     """scipy CSR extrapolated to a scaling point at the rate measured in the projector
     section (empty when that section did not run)."""
     if run.csr is None:
@@ -148,7 +148,7 @@ def _csr_at(run: _Run, point: dict) -> str:
             "measurement)")
 
 
-def section_scaling(run: _Run) -> str:
+def section_scaling(run: BenchRun) -> str:
     """Time and memory against voxels, pixels, particles and iterations; fitted slopes."""
     from .plots import plot_scaling
 
@@ -158,7 +158,7 @@ def section_scaling(run: _Run) -> str:
         run.log(f"  scaling: {axis} done")
     rows, fits = _scaling_rows(data)
     plot_scaling(data, {a: (w, m) for a, w, m, _ in _SCALING}, run.out / "scaling.png")
-    return (f"## Scaling\n\nMedians of {_runs(run.repeats)} after a warm-up. Memory: the "
+    return (f"## Scaling\n\nMedians of {repeats_text(run.repeats)} after a warm-up. Memory: the "
             "device buffers a forward + back uses (volume in and out, image, tables, "
             "scratch), or the host memory newly allocated during one call (tracemalloc "
             "peak).\n\n" + md_table(["size axis", "n", "time s", "memory MiB", "memory",

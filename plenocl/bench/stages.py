@@ -10,28 +10,27 @@ from ..camera import Camera
 from ..grid import Grid
 from ..metrics import quality_q, recovery, render_particles
 from ..particles import random_particles
-from ..projector import Projector
-from ..reconstruct import reconstruct
+from ..projection.projector import Projector
+from ..reconstruction import reconstruct
 from ..reference.simulate import trace_particles
 from ..simulate import Simulator
-from ..sparse import matrix_bytes, weight_matrix
-from ..timing import median_time
 from .core import (
+    BenchRun,
     Box,
     ReconSetting,
-    _mib,
-    _reshaped,
-    _Run,
-    _runs,
-    _scene,
+    bench_scene,
     md_table,
+    mib,
     pareto_front,
-    timed,
+    repeats_text,
+    reshaped,
 )
+from .sparse import matrix_bytes, weight_matrix
+from .timing import median_time, timed
 
 
 # ---- simulator ----------------------------------------------------------------------
-def section_simulator(run: _Run) -> str:
+def section_simulator(run: BenchRun) -> str:
     """Rays per second of the kernel against the NumPy reference tracing the same rays."""
     n, rays, ref_rays = run.cfg.sim
     cam, sim = run.camera, Simulator(run.camera, run.queue)
@@ -50,8 +49,8 @@ def section_simulator(run: _Run) -> str:
     run.notes.append(f"simulator: {n * rays / t_dev / 1e6:.1f} M rays/s, {t_ref / t_same:.1f}x "
                      "the NumPy reference at equal work")
     return (f"## Simulator\n\nCamera {cam.pixels[0]} x {cam.pixels[1]} px, {cam.ml_count[0]} x "
-            f"{cam.ml_count[1]} lenses; {n} particles. Medians of {_runs(run.repeats)} after a "
-            "warm-up; each run includes the image buffer fill and read-back.\n\n"
+            f"{cam.ml_count[1]} lenses; {n} particles. Medians of {repeats_text(run.repeats)} "
+            "after a warm-up; each run includes the image buffer fill and read-back.\n\n"
             + md_table(["path", "rays", "median s", "M rays/s"], rows)
             + f"\nSpeed-up at equal work (kernel vs reference): **{t_ref / t_same:.1f}x**; "
             f"kernel rays/s at {rays} rays per particle vs reference rays/s: "
@@ -90,7 +89,7 @@ def estimated_weights(proj: Projector, samples: int = 48, seed: int = 0) -> floa
     return float(np.mean([len(proj.voxel_weights(*v)[0]) for v in vox]) * proj.grid.size)
 
 
-def _csr_rows(run: _Run, proj: Projector, a, vol, img_h) -> tuple[list[list], float]:
+def _csr_rows(run: BenchRun, proj: Projector, a, vol, img_h) -> tuple[list[list], float]:
     """Table rows of CSR against the matrix-free path, and the device-resident speed-up."""
     fwd, back, dev_bytes = device_pair(proj, vol)
     x, y, r = vol.ravel(), img_h.ravel(), run.repeats
@@ -99,9 +98,9 @@ def _csr_rows(run: _Run, proj: Projector, a, vol, img_h) -> tuple[list[list], fl
     t_h = median_time(lambda: (proj.forward(vol), proj.back(img_h)), r)
     rate, speedup = a.nnz / 1e6, (t_fc + t_bc) / (t_f + t_b)
     rows = [["scipy.sparse CSR (A x, Aᵀ y)", f"{t_fc:.4f}", f"{t_bc:.4f}", f"{t_fc + t_bc:.4f}",
-             f"{2 * rate / (t_fc + t_bc):.0f}", _mib(matrix_bytes(a)), "1.0x"],
+             f"{2 * rate / (t_fc + t_bc):.0f}", mib(matrix_bytes(a)), "1.0x"],
             ["matrix-free, device-resident", f"{t_f:.4f}", f"{t_b:.4f}", f"{t_f + t_b:.4f}",
-             f"{2 * rate / (t_f + t_b):.0f}", _mib(dev_bytes), f"**{speedup:.1f}x**"],
+             f"{2 * rate / (t_f + t_b):.0f}", mib(dev_bytes), f"**{speedup:.1f}x**"],
             ["matrix-free, host arrays in/out", "", "", f"{t_h:.4f}", f"{2 * rate / t_h:.0f}",
              "", f"{(t_fc + t_bc) / t_h:.1f}x"]]
     run.csr = (2 * a.nnz / (t_fc + t_bc), matrix_bytes(a) / a.nnz)
@@ -116,9 +115,9 @@ _CSR_WINS = ("\nCSR wins on a grid this small: the matrix-free path has fixed pe
              "stores a 32 000-voxel matrix).\n")
 
 
-def section_projector(run: _Run) -> str:
+def section_projector(run: BenchRun) -> str:
     """Matrix-free forward + back against CSR products of the same weights; memory."""
-    grid = _reshaped(run.cfg.grid, run.cfg.csr_grid)
+    grid = reshaped(run.cfg.grid, run.cfg.csr_grid)
     proj = Projector(run.camera, grid, run.queue)
     t0 = time.perf_counter()
     a = weight_matrix(proj)
@@ -132,7 +131,7 @@ def section_projector(run: _Run) -> str:
     return (f"## Projector\n\nGrid {grid.shape} (z, y, x) over the scene's volume, "
             f"{a.nnz:,} weights ({a.nnz / grid.size:.0f} per voxel); the CSR matrix was built "
             f"from the footprint kernel in {build:.1f} s (not counted). Medians of "
-            f"{_runs(run.repeats)}; weights/s counts both products. Memory: the CSR matrix "
+            f"{repeats_text(run.repeats)}; weights/s counts both products. Memory: the CSR matrix "
             "against every device buffer the matrix-free path uses (volume in and out, "
             "image, tables, scratch). Kernel vs CSR forward: max relative difference "
             f"{err:.1e}.\n\n" + md_table(["path", "forward s", "back s", "forward + back s",
@@ -147,7 +146,7 @@ def paper_grid() -> tuple[Camera, Grid]:
                                      z=(-10.0, 10.0))
 
 
-def _paper_projector(run: _Run) -> str:
+def _paper_projector(run: BenchRun) -> str:
     cam, grid = paper_grid()
     proj = Projector(cam, grid, run.queue)
     nnz = estimated_weights(proj, 300, seed=1)
@@ -159,11 +158,11 @@ def _paper_projector(run: _Run) -> str:
             f"{nnz * 8 / 2**30:.0f} GiB (not measurable here), the matrix-free path "
             f"{dev_bytes / 2**30:.2f} GiB of device buffers. Forward {t_f:.2f} s + back "
             f"{t_b:.2f} s = **{t_f + t_b:.2f} s** ({2 * nnz / (t_f + t_b) / 1e9:.2f} G "
-            f"weights/s; medians of {_runs(run.heavy)}).\n")
+            f"weights/s; medians of {repeats_text(run.heavy)}).\n")
 
 
 # ---- reconstruction -------------------------------------------------------------------
-def _recon_row(run: _Run, proj: Projector, scene, setting: ReconSetting, truth) -> dict:
+def _recon_row(run: BenchRun, proj: Projector, scene, setting: ReconSetting, truth) -> dict:
     """Median time and errors of one reconstruction setting on one scene."""
     label, method, iterations, relax, opts = setting
     pos, _, img = scene
@@ -198,14 +197,14 @@ def _recon_table(rows: list[dict]) -> str:
                      "recovery", "ghosts", "Q", "active slices", "front"], out)
 
 
-def section_reconstruction(run: _Run) -> str:
+def section_reconstruction(run: BenchRun) -> str:
     """Run time against recovery, ghosts and Q for each method and setting; Pareto plot."""
     from .plots import plot_recon_pareto
 
     grid, rows = run.cfg.grid, []
     proj = Projector(run.camera, grid, run.queue)
     for count in run.cfg.counts:
-        scene = _scene(run, count, seed=count)
+        scene = bench_scene(run, count, seed=count)
         truth = render_particles(grid, scene[0], scene[1])
         for setting in run.cfg.recon:
             rows.append({"count": count, **_recon_row(run, proj, scene, setting, truth)})
@@ -218,8 +217,8 @@ def section_reconstruction(run: _Run) -> str:
             f"{cam.pixels[0]} x {cam.pixels[1]} px camera, particles uniform in "
             f"{_box_text(run.cfg.box)}, noise-free images of {run.cfg.rays} rays per particle, "
             f"grid {grid.shape} (z, y, x) over x {grid.x}, y {grid.y}, z {grid.z} mm. Time: "
-            f"median of {_runs(run.heavy)} of `reconstruct()` (after a 1-iteration warm-up of "
-            "the same setting), image in, "
+            f"median of {repeats_text(run.heavy)} of `reconstruct()` (after a 1-iteration "
+            "warm-up of the same setting), image in, "
             "volume out. Recovery: a peak within 1 voxel laterally and 2 in depth of a true "
             "particle; ghosts: fraction of the intensity farther than (2, 4) voxels from every "
             "particle; Q against the particles rendered as Gaussians (σ 0.6 voxel). "
@@ -233,7 +232,7 @@ def _box_text(box: Box) -> str:
     return " x ".join(f"[{a:g}, {b:g}]" for a, b in box) + " mm"
 
 
-def _paper_reconstruction(run: _Run) -> str:
+def _paper_reconstruction(run: BenchRun) -> str:
     cam, grid = paper_grid()
     pos, inten = random_particles(((-27, 27), (-17, 17), (-9.5, 9.5)), count=5000, seed=3,
                                   intensity=1e4)
@@ -250,7 +249,7 @@ def _paper_reconstruction(run: _Run) -> str:
                      f"{info.lit_lens_fraction:.2f}"])
         run.log(f"  paper experiment {label}: {t:.1f} s")
     return (f"\nThe paper's experiment (16 MP, grid (150, 200, 300), 5000 particles in "
-            f"54 x 34 x 19 mm, 2000 rays each; medians of {_runs(run.heavy)}, no warm-up; "
+            f"54 x 34 x 19 mm, 2000 rays each; medians of {repeats_text(run.heavy)}, no warm-up; "
             "'no skipping': every slice and microlens projected, no cropping):\n\n"
             + md_table(["method", "iterations", "time s", "recovery", "ghosts", "lit lenses"],
                        rows))
@@ -271,7 +270,7 @@ _SKIP_FEATURES: tuple[tuple[str, dict], ...] = (
 )
 
 
-def _skip_scenes(run: _Run) -> dict[str, Box]:
+def _skip_scenes(run: BenchRun) -> dict[str, Box]:
     """A light sheet (the middle fifth of the seeded depth), a lateral quarter (particles
     in one corner of the field of view) and the full seeded cube."""
     (x, y, (z0, z1)) = run.cfg.box
@@ -282,8 +281,8 @@ def _skip_scenes(run: _Run) -> dict[str, Box]:
             f"full cube {z1 - z0:g} mm deep": run.cfg.box}
 
 
-def _skip_rows(run: _Run, proj: Projector, name: str, box: Box) -> list[list]:
-    pos, inten, img = _scene(run, run.cfg.skip_particles, seed=9, box=box)
+def _skip_rows(run: BenchRun, proj: Projector, name: str, box: Box) -> list[list]:
+    pos, inten, img = bench_scene(run, run.cfg.skip_particles, seed=9, box=box)
     truth, rows, base = render_particles(proj.grid, pos, inten), [], None
     for label, opts in _SKIP_FEATURES:
         reconstruct(img, proj, "mlem", 1, threshold=1.0, **opts)  # warm-up
@@ -300,7 +299,7 @@ def _skip_rows(run: _Run, proj: Projector, name: str, box: Box) -> list[list]:
     return rows
 
 
-def section_skipping(run: _Run) -> str:
+def section_skipping(run: BenchRun) -> str:
     """Speed-up and error cost of masking, active slices and early stop, per scene."""
     proj = Projector(run.camera, run.cfg.grid, run.queue)
     rows = []
@@ -313,7 +312,7 @@ def section_skipping(run: _Run) -> str:
             "the relative residual changes by less than 1e-3), "
             f"{run.cfg.skip_particles} particles, grid {run.cfg.grid.shape}, pixels at or "
             "below 1 count dark; medians of "
-            f"{_runs(run.heavy)} after a 1-iteration warm-up. Speed-up and Δ against the "
+            f"{repeats_text(run.heavy)} after a 1-iteration warm-up. Speed-up and Δ against the "
             "baseline of the same scene "
             "(no masking, every slice and microlens projected, all iterations). Active "
             "slices and dark-microlens skipping are exact (the volumes are bit-identical, "

@@ -16,8 +16,8 @@ A voxel's column of the weight matrix, literally the paper's four steps:
    (NaN) microlens or outside the array are lost, so a voxel's weights sum to at most 1.
 
 Microlens index units come from an affine map fitted to the calibrated centres
-(:func:`plenocl.weighting.lens_index_map`); the aperture sampling and that map are shared
-definitions, imported from :mod:`plenocl.weighting`. The OpenCL projector
+(:func:`plenocl.projection.weighting.lens_index_map`); the aperture sampling and that map are shared
+definitions, imported from :mod:`plenocl.projection.weighting`. The OpenCL projector
 (``kernels/projector.cl``) evaluates the same model matrix-free; the tests compare the two.
 """
 
@@ -27,7 +27,12 @@ import numpy as np
 
 from ..camera import Camera
 from ..grid import Grid
-from ..weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL, ApertureGrid, lens_index_map
+from ..projection.weighting import (
+    DEFAULT_OVERSAMPLE,
+    DEFAULT_SHEAR_TOL,
+    ApertureGrid,
+    lens_index_map,
+)
 
 __all__ = ["DEFAULT_OVERSAMPLE", "DEFAULT_SHEAR_TOL", "ApertureGrid", "lens_index_map",
            "lens_pixels", "lit_lenses", "voxel_weights", "weight_matrix"]

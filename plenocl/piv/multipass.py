@@ -7,9 +7,9 @@ replacement after every pass. The result holds window centres in voxel-index uni
 (index ``i`` is the centre of voxel ``i``) and displacements in voxels; its methods turn
 them into velocity (m/s), vorticity (1/s) and the Q-criterion (1/s^2).
 
-Building blocks live in :mod:`plenocl.correlation` (windows, FFT correlation, peak fit),
-:mod:`plenocl.deform` (predictor resampling, volume deformation) and
-:mod:`plenocl.validation` (outlier detection and replacement).
+Building blocks live in :mod:`plenocl.piv.correlation` (windows, FFT correlation, peak fit),
+:mod:`plenocl.piv.deform` (predictor resampling, volume deformation) and
+:mod:`plenocl.piv.validation` (outlier detection and replacement).
 """
 
 from __future__ import annotations
@@ -78,13 +78,13 @@ class PIVResult:
 
     def positions_mm(self, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)):
         """Window centres ``(x, y, z)`` in mm; ``origin_mm = (z0, y0, x0)``: voxel 0 centre."""
-        dz, dy, dx = _voxel_size(voxel_size_mm)
+        dz, dy, dx = voxel_size(voxel_size_mm)
         z0, y0, x0 = (float(o) for o in origin_mm)
         return x0 + dx * self.x, y0 + dy * self.y, z0 + dz * self.z
 
     def gradient(self, voxel_size_mm=1.0, dt: float | None = None) -> np.ndarray:
         """Velocity-gradient tensor ``(3, 3, nz', ny', nx')``, see :func:`velocity_gradient`."""
-        size = _voxel_size(voxel_size_mm)
+        size = voxel_size(voxel_size_mm)
         if dt is None:  # displacement gradient (mm per mm, i.e. per dt)
             comps = [c * s for c, s in zip((self.u, self.v, self.w), size[::-1])]
         else:           # m/s over m
@@ -106,7 +106,8 @@ class PIVResult:
         return q_criterion(self.gradient(voxel_size_mm, dt))
 
 
-def _voxel_size(voxel_size_mm) -> tuple[float, float, float]:
+def voxel_size(voxel_size_mm) -> tuple[float, float, float]:
+    """A voxel size as ``(dz, dy, dx)`` mm from a scalar or a triple, checked positive."""
     size = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,))
     if not np.all(np.isfinite(size) & (size > 0)):
         raise ValueError(f"voxel_size_mm must be positive, a scalar or (dz, dy, dx) in mm, "
@@ -128,7 +129,7 @@ def displacement_to_velocity(displacement, voxel_size_mm, dt: float):
     """
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive time in seconds, got {dt!r}")
-    dz, dy, dx = _voxel_size(voxel_size_mm)
+    dz, dy, dx = voxel_size(voxel_size_mm)
     return tuple(np.asarray(c) * s * 1e-3 / dt for c, s in zip(displacement, (dx, dy, dz)))
 
 

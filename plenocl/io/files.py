@@ -1,37 +1,13 @@
-"""File input and output: atomic writes, raw images (TIFF/PNG/NPY), particle lists."""
+"""File input and output: raw images (TIFF/PNG/NPY), particle lists, volumes; every write
+is atomic (:func:`plenocl.io.atomic.atomic_path`)."""
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-
-@contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; move it into place only on success.
-
-    A crash or an exception leaves the previous file (or none) and no partial file.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix,
-                               dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
-    try:
-        yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+from .atomic import atomic_path
 
 
 def write_tiff(path: str | Path, image: np.ndarray) -> None:
@@ -132,7 +108,7 @@ def _save_h5(tmp: Path, vol: np.ndarray, meta: dict) -> None:
 
 def load_volume(path: str | Path) -> tuple[np.ndarray, object]:
     """Load a volume saved by :func:`save_volume`; returns ``(volume, grid or None)``."""
-    from .grid import Grid
+    from ..grid import Grid
 
     path = Path(path)
     if not path.is_file():

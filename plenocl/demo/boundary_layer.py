@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibration import calibrate
-from .camera import Camera
-from .flows import TurbulentBoundaryLayer, centred_displacement, displace
-from .grid import Grid
-from .io import load_volume, read_image, read_particles, save_volume, write_particles, write_tiff
-from .metrics import recovery
-from .particles import particles_per_microlens, random_particles
+from ..calibration import calibrate
+from ..camera import Camera
+from ..flows import TurbulentBoundaryLayer, centred_displacement, displace
+from ..grid import Grid
+from ..io.files import load_volume, read_image, read_particles, save_volume, write_particles, write_tiff
+from ..metrics import recovery
+from ..particles import particles_per_microlens, random_particles
 from .stages import StageRunner, write_json
 
 U_INF = 4.57          # free-stream velocity, m/s (the paper's 15 ft/s)
@@ -135,7 +135,8 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
         from .figures import boundary_layer_figures
 
         run.run("figures", ["fig_profile.png"],
-                lambda: boundary_layer_figures(run.out, sc, flow, summary))
+                lambda: boundary_layer_figures(run.out, measured_and_true(run.out, sc, flow),
+                                               sc.z_wall, summary, U_INF))
     summary["seconds"] = run.timings
     write_json(run.path("summary.json"), summary)
     return summary
@@ -155,7 +156,7 @@ def _sensor(seed: int) -> dict:
 
 
 def _stage_calibration(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
-    from .simulate import simulate_white_image
+    from ..simulate import simulate_white_image
 
     kw = _sensor(seed + 101)
     white = simulate_white_image(sc.physical_camera, intensity=3e4, vignetting=0.3,
@@ -169,7 +170,7 @@ def _stage_calibration(run: StageRunner, sc: Scenario, seed: int, queue) -> None
 
 
 def _stage_images(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
-    from .simulate import simulate_image
+    from ..simulate import simulate_image
 
     for tag, offset in (("a", 1), ("b", 2)):
         pos, inten = read_particles(run.path(f"particles_{tag}.csv"))
@@ -180,8 +181,8 @@ def _stage_images(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
 
 def _reconstruct_file(run, sc, proj, tag: str, method: str, iterations: int, relax: float,
                       suffix: str = "") -> None:
-    from .progress import iteration_bar
-    from .reconstruct import reconstruct, subtract_background
+    from ..io.progress import iteration_bar
+    from ..reconstruction import reconstruct, subtract_background
 
     img, noise = subtract_background(read_image(run.path(f"raw_{tag}.tif")))
     with iteration_bar(iterations, f"{method} {tag}") as bar:
@@ -191,7 +192,7 @@ def _reconstruct_file(run, sc, proj, tag: str, method: str, iterations: int, rel
 
 
 def _stage_reconstruction(run, sc, cam, method, iterations, queue) -> None:
-    from .projector import Projector
+    from ..projection.projector import Projector
 
     proj = Projector(cam, sc.grid, queue)
     for tag in ("a", "b"):
@@ -200,14 +201,14 @@ def _stage_reconstruction(run, sc, cam, method, iterations, queue) -> None:
 
 def _stage_mart(run, sc, cam, queue) -> None:
     """The paper's solver for comparison: 5 MART iterations at μ = 1 (first exposure)."""
-    from .projector import Projector
+    from ..projection.projector import Projector
 
     _reconstruct_file(run, sc, Projector(cam, sc.grid, queue), "a", "mart", 5, 1.0, "_mart")
 
 
 def _stage_piv(run: StageRunner, sc: Scenario) -> None:
-    from .fieldio import save_field
-    from .piv import piv3d
+    from ..io.fields import save_field
+    from ..piv.multipass import piv3d
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
     vol_b, _ = load_volume(run.path("vol_b.npz"))
@@ -219,7 +220,7 @@ def _stage_piv(run: StageRunner, sc: Scenario) -> None:
 def measured_and_true(out: Path, sc: Scenario, flow: CameraFrameFlow):
     """Measured and true velocity (m/s, camera frame, ``(3, nz', ny', nx')``), the valid
     mask and the window-centre coordinates (mm)."""
-    from .fieldio import read_npz
+    from ..io.fields import read_npz
 
     res, _ = read_npz(Path(out) / "field.npz")
     dz, dy, dx = sc.grid.spacing

@@ -30,7 +30,7 @@ def lens_reach(max_offset_px: float) -> int:
     pixel its aperture samples touch (bilinear taps included, one pixel of margin).
 
     Samples land at most ``max_offset_px`` pixels (per axis) from the lens's image centre
-    (:meth:`plenocl.weighting.ApertureGrid.pixel_offsets`), whose rounding remainder is
+    (:meth:`plenocl.projection.weighting.ApertureGrid.pixel_offsets`), whose rounding remainder is
     at most half a pixel.
     """
     return int(np.floor(0.5 + max_offset_px)) + 2

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .device import DeviceLike
-from .io import atomic_path, write_particles, write_tiff
-from .particles import particles_per_microlens, random_particles
-from .simulate import simulate_image
+from ..camera import Camera
+from ..device import DeviceLike
+from ..io.files import atomic_path, write_particles, write_tiff
+from ..particles import particles_per_microlens, random_particles
+from ..simulate import simulate_image
 
 
 def save_preview_png(path: str | Path, image: np.ndarray, percentile: float = 99.9) -> None:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import tomli_w
 
-from .io import atomic_path
+from .atomic import atomic_path
 
 if sys.version_info >= (3, 11):
     import tomllib

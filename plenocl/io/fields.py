@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_path
-from .piv import PIVResult, _voxel_size
+from ..piv.multipass import PIVResult, voxel_size
+from .atomic import atomic_path
 
 __all__ = ["field_arrays", "read_npz", "save_field", "write_h5", "write_npz", "write_vti"]
 
@@ -35,7 +35,7 @@ def _geometry(voxel_size_mm, origin_mm, grid):
         lows = (grid.z[0], grid.y[0], grid.x[0])
         return spacing, tuple(lo + 0.5 * s for lo, s in zip(lows, spacing))
     origin = tuple(float(o) for o in np.broadcast_to(np.asarray(origin_mm, float), (3,)))
-    return _voxel_size(voxel_size_mm), origin
+    return voxel_size(voxel_size_mm), origin
 
 
 def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
@@ -53,7 +53,7 @@ def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)
     dt
         Time between the volumes (s); adds ``velocity`` and physical units.
     """
-    size = _voxel_size(voxel_size_mm)
+    size = voxel_size(voxel_size_mm)
     x_mm, y_mm, z_mm = result.positions_mm(size, origin_mm)
     out = {"x": result.x, "y": result.y, "z": result.z, "x_mm": x_mm, "y_mm": y_mm,
            "z_mm": z_mm, "displacement": np.stack([result.u, result.v, result.w]),
@@ -152,7 +152,7 @@ def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0
     except ImportError as exc:  # pragma: no cover - pyevtk is a declared dependency
         raise ImportError("writing .vti needs pyevtk: pip install pyevtk") from exc
     arrays = field_arrays(result, voxel_size_mm, origin_mm, dt)
-    size = _voxel_size(voxel_size_mm)
+    size = voxel_size(voxel_size_mm)
     spacing = tuple(float(np.diff(c[:2])[0]) * s if len(c) > 1 else s
                     for c, s in zip((result.x, result.y, result.z), size[::-1]))
     origin = tuple(float(arrays[f"{a}_mm"][0]) for a in "xyz")

@@ -6,18 +6,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .plotting import pyplot, save_png
+from ..io.plotting import pyplot, save_png
 
 
-def boundary_layer_figures(out: Path, sc, flow, summary: dict) -> None:
+def boundary_layer_figures(out: Path, fields, z_wall: float, summary: dict,
+                           u_inf: float) -> None:
     """Write ``fig_profile.png``, ``fig_streamwise.png``, ``fig_vorticity.png`` and
-    ``fig_vectors3d.png`` into ``out``."""
-    from .boundary_layer import U_INF, measured_and_true
+    ``fig_vectors3d.png`` into ``out``.
 
+    ``fields`` is ``(measured, true, valid, (x, y, z))`` as
+    :func:`plenocl.demo.boundary_layer.measured_and_true` returns it; ``z_wall`` the wall's
+    depth (mm) and ``u_inf`` the free-stream velocity (m/s)."""
     out = Path(out)
-    meas, true, valid, (x, y, z) = measured_and_true(out, sc, flow)
-    depth = sc.z_wall - z  # wall distance, mm
-    profile_figure(out / "fig_profile.png", depth, summary, U_INF)
+    meas, true, valid, (x, y, z) = fields
+    depth = z_wall - z  # wall distance, mm
+    profile_figure(out / "fig_profile.png", depth, summary, u_inf)
     slices_figure(out / "fig_streamwise.png", meas[1], true[1], x, y, z, "streamwise V (m/s)")
     vort_m, vort_t = (_vorticity_magnitude(f, x, y, z) for f in (meas, true))
     slices_figure(out / "fig_vorticity.png", vort_m, vort_t, x, y, z, "|vorticity| (1/s)")

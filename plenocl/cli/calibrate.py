@@ -14,8 +14,8 @@ import argparse
 
 import numpy as np
 
-from .camera import load_camera
-from .io import write_tiff
+from ..camera import load_camera
+from ..io.files import write_tiff
 
 
 def calibrate_command(args: argparse.Namespace) -> int:
@@ -32,14 +32,14 @@ def calibrate_command(args: argparse.Namespace) -> int:
     int
         0 on success (errors raise ``ValueError``/``FileNotFoundError``).
     """
-    from .calibration import _warn_about, find_centers, save_diagnostic
-    from .io import read_image
+    from ..calibration import find_centers, save_diagnostic, warn_about
+    from ..io.files import read_image
 
     camera = load_camera(args.camera)
     white = read_image(args.white)
     fit = find_centers(white, camera, method=getattr(args, "method", "fit"),
                        fill_missing=getattr(args, "fill_missing", False))
-    _warn_about(fit)
+    warn_about(fit)
     calibrated = camera.with_centers(fit.centers)
     calibrated.to_toml(args.out)
     found, total = int(fit.found.sum()), fit.found.size
@@ -67,8 +67,8 @@ def refocus_command(args: argparse.Namespace) -> int:
     int
         0 on success.
     """
-    from .io import read_image
-    from .lightfield import LightField
+    from ..io.files import read_image
+    from ..lightfield import LightField
 
     camera = load_camera(args.camera)
     raw = read_image(args.raw)

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import Camera
-from .grid import Grid
-from .lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
+from ..camera import Camera
+from ..grid import Grid
+from ..lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
 
 #: Aperture samples per pixel footprint on the aperture (``p_px s_i / f_ml``), per axis.
 DEFAULT_OVERSAMPLE = 1.25

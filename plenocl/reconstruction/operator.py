@@ -16,8 +16,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from .camera import Camera
-from .grid import Grid
+from ..camera import Camera
+from ..grid import Grid
 
 Slabs = list[cl_array.Array]
 

@@ -8,21 +8,21 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from ..camera import load_camera
 from .bench import add_bench_parser
-from .camera import load_camera
-from .cli_calibrate import add_calibrate_parser, add_refocus_parser
-from .cli_volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
+from .calibrate import add_calibrate_parser, add_refocus_parser
+from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
     """List OpenCL platforms and devices; with ``--agree``, compare them (exit 1 when a
     stage differs by more than its tolerance)."""
-    from .device import all_devices, describe_devices
+    from ..device import all_devices, describe_devices
 
     print(describe_devices())
     if not args.agree:
         return 0
-    from .agreement import agreement, agreement_table
+    from ..bench.agreement import agreement, agreement_table
 
     devices = all_devices()
     if len(devices) < 2:
@@ -38,8 +38,8 @@ def cmd_devices(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Simulate the raw image of the particles in a CSV file; write a 16-bit TIFF."""
-    from .io import read_particles, write_particles, write_tiff
-    from .simulate import simulate_image
+    from ..io.files import read_particles, write_particles, write_tiff
+    from ..simulate import simulate_image
 
     cam = load_camera(args.camera)
     positions, intensities = read_particles(args.particles)

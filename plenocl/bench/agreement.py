@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from .camera import Camera
-from .device import all_devices, device_info, get_queue
-from .grid import Grid
+from ..camera import Camera
+from ..device import all_devices, device_info, get_queue
+from ..grid import Grid
 
 #: stage -> (description of the difference, tolerance)
 TOLERANCES: dict[str, tuple[str, float]] = {
@@ -84,10 +84,10 @@ def stage_outputs(queue: cl.CommandQueue, mlem_image: np.ndarray | None = None
                   ) -> dict[str, np.ndarray]:
     """Each stage's result on ``queue`` (MLEM reconstructs ``mlem_image`` when given,
     else this device's simulated image)."""
-    from .lightfield import LightField
-    from .projector import Projector
-    from .reconstruct import reconstruct
-    from .simulate import simulate_image
+    from ..lightfield import LightField
+    from ..projection.projector import Projector
+    from ..reconstruction import reconstruct
+    from ..simulate import simulate_image
 
     camera, grid, positions, volume, image = _workload()
     sim = simulate_image(camera, positions, 1e4, 4000, seed=5, queue=queue)
@@ -99,7 +99,9 @@ def stage_outputs(queue: cl.CommandQueue, mlem_image: np.ndarray | None = None
             "refocus": refocused, "mlem": reconstruct(target, proj, "mlem", 20)}
 
 
-def _difference(stage: str, a: np.ndarray, b: np.ndarray) -> float:
+def stage_difference(stage: str, a: np.ndarray, b: np.ndarray) -> float:
+    """The difference of one stage's outputs on two devices, in the units its tolerance
+    (:data:`TOLERANCES`) is stated in."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     ok = np.isfinite(a) & np.isfinite(b)
     if not np.array_equal(ok, np.isfinite(a) | np.isfinite(b)):
@@ -133,7 +135,7 @@ def agreement(queues: Sequence[cl.CommandQueue] | None = None,
             log(f"running the stages on {name}")
         other = stage_outputs(queue, mlem_image=first["simulate"])
         for stage, (_, tol) in TOLERANCES.items():
-            rows.append(Agreement(name, stage, _difference(stage, first[stage], other[stage]),
+            rows.append(Agreement(name, stage, stage_difference(stage, first[stage], other[stage]),
                                   tol))
     return rows
 

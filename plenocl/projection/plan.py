@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import Camera
-from .grid import Grid
+from ..camera import Camera
+from ..grid import Grid
 from .weighting import ApertureGrid
 
 

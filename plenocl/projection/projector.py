@@ -16,10 +16,10 @@ through a light-field buffer ``L[ky, s, kx]``:
 
 Memory is the volume, the image and scratch buffers bounded by ``scratch_bytes``
 (light field and per-axis intermediates, processed in chunks of aperture columns and
-depth slices; :mod:`plenocl.plan`). A volume larger than the device's largest allocation
-is held as depth slabs. The tables the kernels read come from :mod:`plenocl.weighting`;
+depth slices; :mod:`plenocl.projection.plan`). A volume larger than the device's largest allocation
+is held as depth slabs. The tables the kernels read come from :mod:`plenocl.projection.weighting`;
 ``kernels/projector.cl`` holds the kernels and :mod:`plenocl.reference.weights` the plain
-NumPy model. The projector implements :class:`plenocl.operator.ProjectionOperator`.
+NumPy model. The projector implements :class:`plenocl.reconstruction.operator.ProjectionOperator`.
 """
 
 from __future__ import annotations
@@ -29,12 +29,12 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl.array as cl_array
 
-from .camera import Camera
-from .device import DeviceLike, check_fits, device_info, get_queue, is_cpu
-from .grid import Grid
+from ..camera import Camera
+from ..device import DeviceLike, check_fits, device_info, get_queue, is_cpu
+from ..grid import Grid
+from ..program import KernelSet
 from .lenses import LensSet, lens_reach, lens_set, lit_lenses
 from .plan import SampleColumns, depth_chunks, make_plan, runs
-from .program import KernelSet
 from .weighting import (
     DEFAULT_OVERSAMPLE,
     DEFAULT_SHEAR_TOL,
@@ -77,7 +77,7 @@ class Projector:
         tracing) at a cost that grows with its square.
     shear_tol
         Rotation of the fitted lens layout, in lenses across the array, below which the
-        separable fast path is used (see :func:`plenocl.weighting.lens_index_map`).
+        separable fast path is used (see :func:`plenocl.projection.weighting.lens_index_map`).
     method
         ``"factorised"`` (default) or ``"direct"`` (16 products per sample per voxel,
         forward by atomic scatter; the unfactorised baseline for benchmarks).
@@ -269,14 +269,14 @@ class Projector:
     # ---- dark-microlens skipping ------------------------------------------------------
     def lit_lenses(self, image: np.ndarray, threshold: float = 0.0) -> np.ndarray:
         """Bool per lens (flat, row-major): does any pixel it can reach exceed
-        ``threshold``? Missing lenses are never lit (see :mod:`plenocl.lenses`)."""
+        ``threshold``? Missing lenses are never lit (see :mod:`plenocl.projection.lenses`)."""
         img = _checked(image, self.image_shape, "image")
         if not np.isfinite(threshold):
             raise ValueError(f"threshold must be a finite number, got {threshold}")
         return lit_lenses(img, self._rnd, self.lens_reach, threshold) & self._present
 
     def lens_set(self, lit: np.ndarray) -> LensSet:
-        """The :class:`plenocl.lenses.LensSet` of the lenses flagged in ``lit`` (for the
+        """The :class:`plenocl.projection.lenses.LensSet` of the lenses flagged in ``lit`` (for the
         ``lenses`` argument of :meth:`forward_device` and :meth:`back_device`)."""
         lit = np.asarray(lit, bool).ravel()
         if lit.size == self._rnd.shape[0]:

@@ -10,16 +10,16 @@ from __future__ import annotations
 
 import argparse
 
-from .camera import load_camera
+from ..camera import load_camera
 
 
 def reconstruct_command(args: argparse.Namespace) -> int:
     """Reconstruct a volume from one raw image, with a progress display."""
-    from .grid import Grid
-    from .io import read_image, save_volume
-    from .progress import iteration_bar
-    from .projector import Projector
-    from .reconstruct import DEFAULTS, reconstruct, subtract_background
+    from ..grid import Grid
+    from ..io.files import read_image, save_volume
+    from ..io.progress import iteration_bar
+    from ..projection.projector import Projector
+    from ..reconstruction import DEFAULTS, reconstruct, subtract_background
 
     camera, grid = load_camera(args.camera), Grid.from_toml(args.grid)
     image = read_image(args.raw)
@@ -43,10 +43,10 @@ def reconstruct_command(args: argparse.Namespace) -> int:
 
 def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
-    from .fieldio import save_field
-    from .grid import Grid
-    from .io import load_volume
-    from .piv import piv3d
+    from ..grid import Grid
+    from ..io.fields import save_field
+    from ..io.files import load_volume
+    from ..piv.multipass import piv3d
 
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, _ = load_volume(args.vol_b)
@@ -102,12 +102,12 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
 def demo_command(args: argparse.Namespace) -> int:
     """Run a built-in example."""
     if args.name == "particles":
-        from .demo import particle_demo
+        from ..demo.particles import particle_demo
 
         for line in particle_demo(args.out, count=200, seed=args.seed, queue=args.device):
             print(line)
         return 0
-    from .boundary_layer import run_boundary_layer
+    from ..demo.boundary_layer import run_boundary_layer
 
     s = run_boundary_layer(args.size, args.out, queue=args.device, seed=args.seed)
     rec = s["recovery"]["default_mlem"]

@@ -1,0 +1,20 @@
+"""3-D PIV: multi-pass FFT cross-correlation with window deformation (docs/design.md §7).
+
+- :mod:`.correlation`: windows, batched FFT correlation, sub-voxel peak fit;
+- :mod:`.deform`: predictor resampling and volume deformation;
+- :mod:`.validation`: outlier detection and replacement;
+- :mod:`.multipass`: :func:`piv3d` and :class:`PIVResult` (velocities, gradients).
+"""
+
+from .multipass import (
+    PIVResult,
+    displacement_to_velocity,
+    piv3d,
+    q_criterion,
+    velocity_gradient,
+    vorticity,
+    voxel_size,
+)
+
+__all__ = ["PIVResult", "displacement_to_velocity", "piv3d", "q_criterion",
+           "velocity_gradient", "voxel_size", "vorticity"]

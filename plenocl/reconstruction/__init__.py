@@ -1,0 +1,29 @@
+"""Reconstruction of particle volumes from plenoptic images (docs/design.md §6).
+
+- :mod:`.settings`: :class:`ReconstructionSettings` (every option, validated once) and
+  :class:`ReconstructionInfo` (what a run did);
+- :mod:`.images`: the raw image's checks and scaling, background subtraction;
+- :mod:`.operator`: the contract a projector fulfils for the solver;
+- :mod:`.solver`: the device buffers and kernels (:class:`Solver`) and one update per
+  method;
+- :mod:`.blocks`: MART's view blocks from the lens lattice;
+- :mod:`.reconstruct`: :func:`reconstruct`, the iterations.
+"""
+
+from .blocks import device_view_blocks, view_blocks
+from .images import FLOAT32_LIMIT, prepare_image, subtract_background
+from .operator import ProjectionOperator
+from .reconstruct import reconstruct, run_reconstruction
+from .settings import (
+    DEFAULTS,
+    MAX_MART_BLOCKS,
+    METHODS,
+    ReconstructionInfo,
+    ReconstructionSettings,
+)
+from .solver import CROP_BELOW, UPDATES, Solver, extent_box, nonzero_box
+
+__all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "METHODS", "UPDATES",
+           "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings", "Solver",
+           "device_view_blocks", "extent_box", "nonzero_box", "prepare_image", "reconstruct",
+           "run_reconstruction", "subtract_background", "view_blocks"]

@@ -1,0 +1,171 @@
+"""Reconstruction of a particle volume from one plenoptic image (DESIGN §6).
+
+Methods (all multiplicative, non-negative, on the device):
+
+``"mlem"`` (default)
+    Multiplicative EM, ``E ← E (Wᵀ r / s)^μ``: each voxel moves by the arithmetic mean of
+    the ratios ``r = I / P`` of the pixels it reaches. It keeps in-focus particles,
+    which light a single microlens, where geometric-mean updates lose them.
+``"smart"``
+    Simultaneous MART, ``E ← E exp(μ Wᵀ log r / s)``: the geometric mean.
+``"mart"``
+    The paper's MART, ``E_j ← E_j Π_i r_i^(μ w_ij)``, in block-sequential order: pixels
+    are grouped by sub-aperture view (``mart_blocks`` interleaved groups of the pixel's
+    offset behind its microlens), and each block updates the volume with a fresh
+    projection. One block per pixel is the sequential original.
+
+``s_j = Σ_i w_ij`` is the fraction of a voxel's light that reaches the sensor. The
+image is scaled to a maximum of 1 inside the solver (dynamic range) and the volume
+scaled back. Options (:class:`ReconstructionSettings`, validated once): MLOS first
+guess, pixel threshold, zero-pixel masking, active slices, cropping, dark-microlens
+skipping, early stop; a progress callback.
+
+The solver needs of a projector only the operator contract
+(:class:`plenocl.reconstruction.operator.ProjectionOperator`).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pyopencl.array as cla
+
+from .blocks import device_view_blocks
+from .images import prepare_image
+from .operator import ProjectionOperator
+from .settings import ReconstructionInfo, ReconstructionSettings
+from .solver import UPDATES, Solver
+
+
+def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
+             info: ReconstructionInfo, step: Callable, callback, norm: float) -> np.ndarray:
+    """The iterations of :func:`reconstruct`; returns the host volume on the full grid."""
+    full_shape = solver.proj.grid.shape
+    for it in range(settings.iterations):
+        cropping = settings.crop and it >= 1
+        extent = solver.row_extent(vol) if settings.skip_empty or cropping else None
+        if cropping:
+            solver, vol, extent = solver.crop(vol, extent)
+            info.cropped_shape = solver.proj.grid.shape if solver.box else None
+        active = (extent[..., 1] >= 0).any(axis=1) if settings.skip_empty else None
+        if active is not None:
+            info.active_slices.append(int(active.sum()))
+        resid = step(solver, vol, img, active) / norm
+        info.residuals.append(resid)
+        info.iterations = it + 1
+        if callback is not None and callback(it + 1, resid) is False:
+            break
+        tol = settings.tol
+        if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
+            info.converged = True
+            break
+    return solver.volume_to_host(vol, full_shape)
+
+
+def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
+                iterations: int | None = None, relax: float | None = None, *,
+                start="uniform", threshold: float = 0.0, mask_fraction: float | None = None,
+                min_sensitivity: float = 0.5, skip_empty: bool = True, crop: bool = True,
+                skip_dark: bool = True, tol: float | None = None, mart_blocks: int = 2,
+                callback: Callable[[int, float], bool | None] | None = None,
+                return_info: bool = False):
+    """Reconstruct a particle volume from one raw plenoptic image.
+
+    Parameters
+    ----------
+    image
+        Raw image ``(rows, cols)`` matching the projector's camera; uint8, uint16 or float;
+        finite and non-negative.
+    projector
+        A :class:`plenocl.Projector` for the camera and grid (its queue runs the solver),
+        or any :class:`plenocl.reconstruction.operator.ProjectionOperator`.
+    method
+        ``"mlem"`` (default), ``"smart"`` or ``"mart"`` (see the module documentation).
+    iterations, relax
+        Iterations and relaxation ``0 < μ <= 1``; defaults per method in :data:`DEFAULTS`
+        (MART: the paper's 15 at μ = 0.7).
+    start
+        ``"uniform"`` (constant, scaled so its projection carries the image's intensity),
+        ``"mlos"`` (weighted geometric mean of the pixels each voxel reaches), or a volume
+        ``(nz, ny, nx)`` in image units: a previous frame's reconstruction, or an
+        upsampled coarse one (its zero voxels stay zero).
+    threshold
+        Pixels at or below ``threshold`` (same units as ``image``) count as dark (zero).
+    mask_fraction
+        Zero-pixel masking: voxels sending more than this fraction of their light onto
+        dark pixels start at zero and stay there (``0``: any dark pixel; ``None``: off).
+    min_sensitivity
+        Voxels that send no more than this fraction of their light to the sensor (at the
+        edges of the field of view) are not reconstructed: the image barely constrains
+        them, and light from particles outside the grid would pile up in them.
+    skip_empty
+        Active-slice compaction: before every iteration, depth slices with no non-zero
+        voxel (after masking, or emptied by the updates) are left out of both
+        projections. Exact: multiplicative updates never revive a zero voxel.
+    crop
+        Automatic cropping to the illuminated region: after every iteration, when
+        the non-zero voxels fill a bounding box of at most 80 % of the current grid, the
+        remaining iterations run on that box (active-voxel compaction between iterations;
+        exact up to float32 rounding; ``info.cropped_shape``).
+    skip_dark
+        Dark-microlens skipping: the iterations project only onto the microlenses that
+        see a pixel above ``threshold`` (``info.lit_lens_fraction``), and MLEM
+        back-projects only from them. Exact: no ratio depends on the projection at a
+        dark pixel, and MLEM's ratio is 0 there (the log ratios of SMART and MART are
+        not, so they back-project from every lens). The residuals are then taken over
+        the lit lenses' pixels.
+    tol
+        Stop early when the relative residual changes by less than ``tol``.
+    mart_blocks
+        MART only: ``n`` gives ``n²`` interleaved blocks of sub-aperture views.
+    callback
+        Called as ``callback(iteration, residual)`` after each iteration; returning
+        ``False`` stops the reconstruction.
+    return_info
+        Also return a :class:`ReconstructionInfo`.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 volume ``(nz, ny, nx)`` in the image's intensity units; never NaN or Inf.
+    """
+    settings = ReconstructionSettings(
+        method=method, iterations=iterations, relax=relax, start=start, threshold=threshold,
+        mask_fraction=mask_fraction, min_sensitivity=min_sensitivity, skip_empty=skip_empty,
+        crop=crop, skip_dark=skip_dark, tol=tol, mart_blocks=mart_blocks)
+    vol, info = run_reconstruction(image, projector, settings, callback)
+    return (vol, info) if return_info else vol
+
+
+def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
+                       callback: Callable[[int, float], bool | None] | None = None
+                       ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
+    returns the volume and its :class:`ReconstructionInfo`."""
+    t0 = time.perf_counter()
+    img_np, scale = prepare_image(image, projector.camera)
+    info = ReconstructionInfo(settings.method)
+    if scale == 0:
+        return np.zeros(projector.grid.shape, np.float32), info
+    thr = float(settings.threshold) / scale
+    lit = None
+    if settings.skip_dark:
+        lit = projector.lit_lenses(img_np, thr)
+        info.lit_lens_fraction = float(lit.mean())
+    solver = Solver(projector, settings.min_sensitivity, lit)
+    img = cla.to_device(solver.queue, img_np)
+    vol = solver.start(img, settings.start, thr, scale)
+    if settings.mask_fraction is not None:
+        solver.mask(vol, img, thr, settings.mask_fraction)
+    blocks = device_view_blocks(projector, settings.mart_blocks) if settings.n_blocks > 1 else None
+    step = functools.partial(UPDATES[settings.method], relax=settings.relax, threshold=thr,
+                             blocks=blocks, n_blocks=settings.n_blocks)
+    vol = _iterate(solver, vol, img, settings, info, step, callback,
+                   float(np.linalg.norm(img_np)))
+    out = vol * np.float32(scale)
+    info.active_fraction = float(np.count_nonzero(out)) / out.size
+    info.seconds = time.perf_counter() - t0
+    return out, info

@@ -1,0 +1,79 @@
+"""Every option of a reconstruction as one validated object, and what a run reports."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+METHODS = ("mlem", "smart", "mart")
+#: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
+MAX_MART_BLOCKS = 32
+#: Defaults per method: (iterations, relaxation). MART's are the paper's synthetic case.
+DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
+
+
+@dataclass
+class ReconstructionInfo:
+    """What a reconstruction did: iterations, residual history, time, masking."""
+
+    method: str
+    iterations: int = 0
+    residuals: list[float] = field(default_factory=list)
+    converged: bool = False
+    seconds: float = 0.0
+    active_fraction: float = 1.0
+    active_slices: list[int] = field(default_factory=list)
+    cropped_shape: tuple[int, int, int] | None = None
+    lit_lens_fraction: float = 1.0
+
+
+@dataclass(frozen=True)
+class ReconstructionSettings:
+    """Every option of a reconstruction, validated once (see :func:`reconstruct` for
+    their meaning). ``iterations`` and ``relax`` left at ``None`` take the method's
+    defaults (:data:`DEFAULTS`); the stored object holds the resolved values."""
+
+    method: str = "mlem"
+    iterations: int | None = None
+    relax: float | None = None
+    start: str | np.ndarray = field(default="uniform", compare=False)
+    threshold: float = 0.0
+    mask_fraction: float | None = None
+    min_sensitivity: float = 0.5
+    skip_empty: bool = True
+    crop: bool = True
+    skip_dark: bool = True
+    tol: float | None = None
+    mart_blocks: int = 2
+
+    def __post_init__(self) -> None:
+        it_default, mu_default = DEFAULTS.get(self.method, (0, 1.0))
+        if self.iterations is None:
+            object.__setattr__(self, "iterations", it_default)
+        if self.relax is None:
+            object.__setattr__(self, "relax", mu_default)
+        _check_options(self)
+
+    @property
+    def n_blocks(self) -> int:
+        """Update blocks per iteration: MART's ``mart_blocks²`` views, else 1."""
+        return self.mart_blocks**2 if self.method == "mart" and self.mart_blocks > 1 else 1
+
+
+def _check_options(s: ReconstructionSettings) -> None:
+    if not np.isfinite(s.threshold):
+        raise ValueError(f"threshold must be a finite number (image units), got {s.threshold!r}")
+    if int(s.mart_blocks) != s.mart_blocks or not 1 <= s.mart_blocks <= MAX_MART_BLOCKS:
+        raise ValueError(f"mart_blocks must be an integer from 1 to {MAX_MART_BLOCKS} "
+                         f"(n x n blocks of views), got {s.mart_blocks!r}")
+    if s.method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {s.method!r}")
+    if int(s.iterations) != s.iterations or s.iterations < 0:
+        raise ValueError(f"iterations must be a non-negative integer, got {s.iterations!r}")
+    if not (np.isfinite(s.relax) and 0 < s.relax <= 1):
+        raise ValueError(f"relax (μ) must satisfy 0 < μ <= 1, got {s.relax!r}")
+    if s.mask_fraction is not None and not 0 <= s.mask_fraction <= 1:
+        raise ValueError(f"mask_fraction must be in [0, 1] or None, got {s.mask_fraction!r}")
+    if not 0 <= s.min_sensitivity < 1:
+        raise ValueError(f"min_sensitivity must be in [0, 1), got {s.min_sensitivity!r}")

@@ -1,0 +1,242 @@
+"""The device side of a reconstruction: :class:`Solver` (buffers, element-wise kernels,
+starts, masking, cropping) and one update function per method (:data:`UPDATES`).
+
+The solver needs of a projector only the operator contract
+(:class:`plenocl.reconstruction.operator.ProjectionOperator`).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..program import KernelSet
+from .operator import ProjectionOperator
+
+_KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
+            "partial_sums", "row_extent")
+#: Work-items of the partial-sum reduction (the host adds their results in float64).
+_SUM_ITEMS = 1024
+#: Crop when the non-zero voxels' bounding box holds at most this fraction of the grid.
+CROP_BELOW = 0.8
+
+
+def _start_volume(start: np.ndarray, grid) -> np.ndarray:
+    """A user-supplied first guess, checked: the grid's shape, finite, non-negative."""
+    if start.shape != grid.shape:
+        raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
+                         f"{grid.shape} (nz, ny, nx)")
+    if not np.all(np.isfinite(start)) or start.min() < 0:
+        raise ValueError("start volume must be finite and non-negative")
+    return start.astype(np.float32)
+
+
+def extent_box(extent: np.ndarray) -> tuple[slice, slice, slice] | None:
+    """The bounding box of the non-zero voxels from :meth:`Solver.row_extent` (``None``
+    when all are zero); :func:`nonzero_box` is its NumPy twin."""
+    lit = extent[..., 1] >= 0
+    if not lit.any():
+        return None
+    z, y = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
+    x0, x1 = int(extent[..., 0][lit].min()), int(extent[..., 1][lit].max())
+    return slice(int(z[0]), int(z[-1]) + 1), slice(int(y[0]), int(y[-1]) + 1), slice(x0, x1 + 1)
+
+
+def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
+    """The bounding box of a volume's non-zero voxels (``None`` when all are zero)."""
+    nonzero = vol != 0
+    box = []
+    for axis in range(vol.ndim):
+        hit = np.flatnonzero(nonzero.any(axis=tuple(a for a in range(vol.ndim) if a != axis)))
+        if not len(hit):
+            return None
+        box.append(slice(int(hit[0]), int(hit[-1]) + 1))
+    return tuple(box)
+
+
+class Solver:
+    """Device buffers and kernels of a reconstruction with one projector.
+
+    Volumes live on the device as the projector's list of depth slabs; element-wise
+    kernels run slab by slab. A solver can crop itself to the illuminated part of its
+    grid (:meth:`crop`); it then remembers where its grid sits in the full one.
+
+    Parameters
+    ----------
+    projector
+        Any :class:`plenocl.reconstruction.operator.ProjectionOperator`
+        (a :class:`plenocl.Projector`).
+    min_sensitivity
+        Voxels with a sensitivity at or below it stay 0.
+    lit
+        Bool per microlens (see :meth:`plenocl.Projector.lit_lenses`): the iterations
+        project onto and from these lenses only (dark-microlens skipping); ``None``:
+        every lens.
+    box
+        Where the projector's grid sits in the full grid (``None``: it is the full grid).
+    """
+
+    def __init__(self, projector: ProjectionOperator, min_sensitivity: float = 0.0,
+                 lit: np.ndarray | None = None,
+                 box: tuple[slice, slice, slice] | None = None) -> None:
+        self.proj, self.lit, self.box = projector, lit, box
+        self.lenses = None if lit is None else projector.lens_set(lit)
+        self.smin = np.float32(max(min_sensitivity, 1e-12))
+        self.queue = projector.queue
+        self._k = KernelSet(self.queue, "reconstruct.cl", _KERNELS, looping=["partial_sums"])
+        self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
+        self.sens = projector.sensitivity()  # computed once per projector
+        self._no_blocks = cla.zeros(self.queue, 1, np.int32)
+
+    def _run(self, name: str, n: int, *args) -> None:
+        """An element-wise kernel over ``n`` items (``n`` is its last argument)."""
+        self._k.launch(name, (n,), *args, np.int32(n))
+
+    def update_voxels(self, name: str, vol, b, *scalars) -> None:
+        """Run a voxel kernel ``name(vol, b, sens, *scalars, n)`` on every slab."""
+        for v, bb, s in zip(vol, b, self.sens):
+            self._run(name, v.size, v, bb, s, *scalars)
+
+    def row_extent(self, vol) -> np.ndarray:
+        """First and last non-zero ``x`` of every row ``(nz, ny, 2)`` int32, computed on
+        the device (``(nx, -1)`` for an empty row)."""
+        parts = []
+        for v in vol:
+            nz, ny, nx = v.shape
+            out = self._k.array((nz, ny, 2), np.int32)
+            self._k.launch("row_extent", (nz * ny,), v, np.int32(nx), out, np.int32(nz * ny))
+            parts.append(out.get())
+        return np.concatenate(parts)
+
+    def total(self, a, b=None) -> float:
+        """``Σ a``, or ``Σ (a - b)²`` when ``b`` is given, reduced on the device."""
+        out = self._k.array(_SUM_ITEMS)
+        chunk = -(-a.size // _SUM_ITEMS) if self._k.is_cpu else 0
+        self._k.launch("partial_sums", (_SUM_ITEMS,), a, a if b is None else b,
+                       np.int32(b is not None), np.int32(chunk), out, np.int32(a.size))
+        return float(out.get().astype(np.float64).sum())
+
+    def ratio(self, img, proj, threshold: float, log_mode: bool, blocks=None, block=-1):
+        """``I / max(P, eps)`` (or its log) on the device, restricted to one block."""
+        out = cla.empty_like(img)
+        block_of = blocks if blocks is not None else self._no_blocks
+        self._run("ratio", self.n_pix, img, proj, block_of, np.int32(block),
+                  np.float32(threshold), np.int32(log_mode), out)
+        return out
+
+    def _dark_and_log(self, img, threshold: float, floor: float):
+        dark, logimg = cla.empty_like(img), cla.empty_like(img)
+        self._run("prepare_image", self.n_pix, img, np.float32(threshold), np.float32(floor),
+                  dark, logimg)
+        return dark, logimg
+
+    def start(self, img, kind, threshold: float, scale: float = 1.0):
+        """First guess: ``"uniform"`` (scaled to the image's total), ``"mlos"``, or a
+        volume array in image units (divided by ``scale``, the image's scaling)."""
+        if isinstance(kind, np.ndarray):
+            return self.proj.volume_to_device(_start_volume(kind, self.proj.grid) / scale)
+        vol = self.proj.empty_volume()
+        if kind == "uniform":
+            # the projection of a volume of ones carries 1ᵀ A 1 = Σ sensitivity
+            total = sum(self.total(s) for s in self.sens)
+            for v in vol:
+                v.fill(self.total(img) / max(total, 1e-30))
+        elif kind == "mlos":
+            _, logimg = self._dark_and_log(img, threshold, max(threshold, 1e-6))
+            self.update_voxels("mlos", vol, self.proj.back_device(logimg), self.smin)
+        else:
+            raise ValueError(f"start must be 'uniform', 'mlos' or a volume array, got {kind!r}")
+        return vol
+
+    def mask(self, vol, img, threshold: float, fraction: float) -> None:
+        """Zero the voxels sending more than ``fraction`` of their light to dark pixels."""
+        dark, _ = self._dark_and_log(img, threshold, 1e-6)
+        self.update_voxels("mask_dark", vol, self.proj.back_device(dark), np.float32(fraction))
+
+    def projections(self, log_ratio: bool):
+        """The forward and back projections of an iteration: onto the lit lenses only
+        when the solver skips dark ones, and back from them too unless the ratio is a log
+        (a log ratio is not 0 at a dark pixel, so it is back-projected from every lens)."""
+        fwd, back = self.proj.forward_device, self.proj.back_device
+        if self.lenses is not None:
+            fwd = functools.partial(fwd, lenses=self.lenses)
+            if not log_ratio:
+                back = functools.partial(back, lenses=self.lenses)
+        return fwd, back
+
+    def crop(self, vol, extent: np.ndarray, below: float = CROP_BELOW):
+        """Continue on the bounding box of the non-zero voxels when it holds at most
+        ``below`` of the current grid.
+
+        ``extent`` is ``vol``'s :meth:`row_extent`. Returns ``(solver, vol, extent)``: a
+        solver on the cropped projector (with :attr:`box` in full-grid indices) and the
+        volume and extent on it, or ``self`` and the inputs when nothing is cropped.
+        """
+        local = extent_box(extent)
+        size = int(np.prod(self.proj.grid.shape))
+        if local is None or np.prod([s.stop - s.start for s in local]) > below * size:
+            return self, vol, extent
+        host = np.ascontiguousarray(self.proj.volume_to_host(vol)[local])
+        box = local if self.box is None else tuple(
+            slice(b.start + s.start, b.start + s.stop) for b, s in zip(self.box, local))
+        sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box)
+        new_vol = sub.proj.volume_to_device(host)
+        return sub, new_vol, sub.row_extent(new_vol)
+
+    def volume_to_host(self, vol, full_shape: tuple[int, int, int]) -> np.ndarray:
+        """The host volume on the full grid of shape ``full_shape`` (0 outside :attr:`box`)."""
+        if self.box is None:
+            return self.proj.volume_to_host(vol)
+        full = np.zeros(full_shape, np.float32)
+        full[self.box] = self.proj.volume_to_host(vol)
+        return full
+
+
+# ---- one iteration per method ---------------------------------------------------------
+def _simultaneous(solver: Solver, vol, img, active, relax: float, threshold: float,
+                  log_ratio: bool) -> float:
+    """One simultaneous update from one forward and one back projection; returns
+    ``‖P - I‖`` before it."""
+    fwd, back = solver.projections(log_ratio)
+    proj = fwd(vol, active=active)
+    resid = solver.total(proj, img) ** 0.5
+    b = back(solver.ratio(img, proj, threshold, log_ratio), active=active)
+    if log_ratio:
+        solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin, np.int32(1))
+    else:
+        solver.update_voxels("update_mlem", vol, b, np.float32(relax), solver.smin)
+    return resid
+
+
+def update_mlem(solver: Solver, vol, img, active, relax: float, threshold: float,
+                blocks=None, n_blocks: int = 1) -> float:
+    """MLEM: ``E ← E (Aᵀ r / s)^μ``; returns ``‖P - I‖`` before the update."""
+    return _simultaneous(solver, vol, img, active, relax, threshold, log_ratio=False)
+
+
+def update_smart(solver: Solver, vol, img, active, relax: float, threshold: float,
+                 blocks=None, n_blocks: int = 1) -> float:
+    """SMART: ``E ← E exp(μ Aᵀ log r / s)``; returns ``‖P - I‖`` before the update."""
+    return _simultaneous(solver, vol, img, active, relax, threshold, log_ratio=True)
+
+
+def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float,
+                blocks=None, n_blocks: int = 1) -> float:
+    """Block MART: one multiplicative update per block of views, each with a fresh
+    projection; returns ``‖P - I‖`` before the first block."""
+    fwd, back = solver.projections(log_ratio=True)
+    proj = fwd(vol, active=active)
+    resid = solver.total(proj, img) ** 0.5
+    for blk in range(n_blocks):
+        if blk:
+            proj = fwd(vol, out=proj, active=active)
+        lr = solver.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk)
+        solver.update_voxels("update_exp", vol, back(lr, active=active), np.float32(relax),
+                         solver.smin, np.int32(0))
+    return resid
+
+
+#: The update of each method, chosen once per reconstruction.
+UPDATES = {"mlem": update_mlem, "smart": update_smart, "mart": update_mart}
