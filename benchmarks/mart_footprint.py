@@ -4,7 +4,7 @@ the weighting function's voxel footprint against a point particle's image.
     python benchmarks/mart_footprint.py
 
 1. For voxels at several depths of the paper's synthetic case: the pixels the voxel's
-   model footprint touches (DESIGN §5: bilinear over 4 microlenses and 4 pixels), the
+   model footprint touches (docs/design.md §5: bilinear over 4 microlenses and 4 pixels), the
    pixels a point particle at the voxel's centre lights (200,000 rays), and the fraction
    of the voxel's model weight on pixels that particle leaves dark. A dark pixel's ratio
    is 0 (clamped to 1e-6, log -13.8), so a geometric-mean update multiplies the voxel

@@ -1,5 +1,5 @@
 /* Shared helpers for plenocl kernels: counter-based random numbers, the microlens
- * lookup of DESIGN §2, and deterministic image accumulation.
+ * lookup of docs/design.md §2, and deterministic image accumulation.
  * Every function here has a NumPy twin in plenocl/reference/ (same integer maths). */
 #ifndef PLENOCL_COMMON_H
 #define PLENOCL_COMMON_H
@@ -49,7 +49,7 @@ inline int pl_ifloor(float x)
     return i - (x < (float)i);
 }
 
-/* Microlens geometry on the array plane (DESIGN §2), rotation (c, s) and offset. */
+/* Microlens geometry on the array plane (docs/design.md §2), rotation (c, s) and offset. */
 typedef struct {
     float pitch;    /* microlens pitch, mm */
     float c, s;     /* cos, sin of the array rotation */

@@ -1,4 +1,4 @@
-/* Computational refocusing by shift-and-add over the sub-aperture views (DESIGN §4,
+/* Computational refocusing by shift-and-add over the sub-aperture views (docs/design.md §4,
  * paper §II.B). NumPy twin: plenocl/reference/refocus.py (refocus_views).
  *
  * The light field arrives as views with a one-lens border: views[n, ky + 1, kx + 1] =

@@ -1,4 +1,4 @@
-/* Plenoptic image simulator (DESIGN §2, §8): rays traced exactly through the thin
+/* Plenoptic image simulator (docs/design.md §2, §8): rays traced exactly through the thin
  * main lens and the microlens each one enters. NumPy twin: plenocl/reference/simulate.py.
  *
  * Work layout: global id 0 = block of rays, global id 1 = source (particle or lens)

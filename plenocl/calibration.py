@@ -1,4 +1,4 @@
-"""Microlens image centres from a white image (DESIGN §3, paper §II.A).
+"""Microlens image centres from a white image (docs/design.md §3, paper §II.A).
 
 A white image is taken with the main lens stopped down: every microlens images the
 small aperture as a spot centred on its image centre ``c_k = x_k (1 + f_ml/s_i)``.
@@ -722,7 +722,7 @@ def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io.atomic import atomic_path
+    from .atomic import atomic_path
 
     img = np.asarray(white_image, dtype=np.float64)
     h, w = img.shape

@@ -1,4 +1,4 @@
-"""The unfocused plenoptic camera (DESIGN §2): optics, microlens layout, TOML files.
+"""The unfocused plenoptic camera (docs/design.md §2): optics, microlens layout, TOML files.
 
 Units are millimetres. Sensor coordinates have their origin on the optical axis;
 pixel ``(col, row)`` has its centre at ``((col + 0.5) - W/2) * p_px``,
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.toml import read_toml, write_toml
+from .tomlfile import read_toml, write_toml
 
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80
@@ -267,7 +267,7 @@ class Camera:
 
     # ---- files ------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """The camera as TOML-ready nested dictionaries (DESIGN §2 keys)."""
+        """The camera as TOML-ready nested dictionaries (docs/design.md §2 keys)."""
         doc = {
             "main_lens": {"focal_length_mm": self.focal_length_mm, "f_number": self.f_number,
                           "magnification": self.magnification},
@@ -298,8 +298,8 @@ class Camera:
                 pixel_pitch_mm=sensor["pixel_pitch_mm"], pixels=sensor["pixels"],
             )
         except KeyError as exc:
-            raise ValueError(f"{source} lacks the key {exc.args[0]!r} (see DESIGN §2 for the "
-                             "camera file's sections and keys)") from None
+            raise ValueError(f"{source} lacks the key {exc.args[0]!r} (see docs/design.md §2 "
+                             "for the camera file's sections and keys)") from None
         cal = doc.get("calibration")
         if cal:
             kwargs["microlens_centers"] = np.stack(

@@ -1,7 +1,7 @@
 """Synthetic flows with known truth, particle displacement and volume-pair rendering.
 
 A *flow* is any callable mapping positions ``(N, 3)`` as ``(x, y, z)`` to velocities
-``(N, 3)`` in consistent units (DESIGN §1, §8). The flows here are steady: uniform,
+``(N, 3)`` in consistent units (docs/design.md §1, §8). The flows here are steady: uniform,
 solid-body rotation, a Lamb-Oseen vortex and a turbulent boundary layer (a Musker mean
 profile with a Coles wake plus divergence-free vortical eddies).
 

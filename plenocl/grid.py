@@ -1,4 +1,4 @@
-"""The reconstruction volume: shape, extents, voxel size and centres (DESIGN §9).
+"""The reconstruction volume: shape, extents, voxel size and centres (docs/design.md §9).
 
 Extents are the outer faces of the volume in millimetres, so a grid with
 ``shape=(nz, ny, nx)`` and ``x=(x0, x1)`` has voxels ``dx = (x1 - x0) / nx`` wide with
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.toml import read_toml, write_toml
 from .lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
+from .tomlfile import read_toml, write_toml
 
 
 def _extent(name: str, value) -> tuple[float, float]:

@@ -1,5 +1,5 @@
 """The light field ``LF(x, y, u, v)`` of a raw plenoptic image, perspective views and
-computational refocusing (DESIGN §2 and §4, paper §II).
+computational refocusing (docs/design.md §2 and §4, paper §II).
 
 Coordinates
 -----------
@@ -112,7 +112,7 @@ class PixelCoordinates:
 
 
 def pixel_coordinates(camera: Camera) -> PixelCoordinates:
-    """Per-pixel ``(x, y, u, v)`` from the calibrated centres and the optics (DESIGN §2).
+    """Per-pixel ``(x, y, u, v)`` from the calibrated centres and the optics (docs/design.md §2).
 
     Parameters
     ----------

@@ -1,5 +1,5 @@
 """Reconstruction quality: Elsinga's Q, particle recovery, ghost intensity, and
-sub-voxel particle positions from a volume (DESIGN §6).
+sub-voxel particle positions from a volume (docs/design.md §6).
 
 Distances are measured in voxels, with separate lateral (x, y) and depth (z)
 tolerances because reconstructed particles are elongated along the line of sight.

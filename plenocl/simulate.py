@@ -1,4 +1,4 @@
-"""Plenoptic image simulator on OpenCL (DESIGN §8); NumPy twin in ``reference.simulate``.
+"""Plenoptic image simulator on OpenCL (docs/design.md §8); NumPy twin in ``reference.simulate``.
 
 Rays are traced exactly through the thin main lens and the microlens each ray
 enters. Random numbers are counter-based (a hash of seed, source and ray), so a
@@ -203,7 +203,7 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
     camera
         The camera (its physical microlens layout is traced).
     positions
-        ``(N, 3)`` particle positions ``(x, y, z)`` in mm (object space, DESIGN §1).
+        ``(N, 3)`` particle positions ``(x, y, z)`` in mm (object space, docs/design.md §1).
     intensities
         Counts each particle sends through the aperture (scalar or ``(N,)``).
     rays_per_particle, seed
@@ -244,7 +244,7 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
     """Simulate a white (calibration) image taken with the main lens stopped down.
 
     Each microlens images the small stopped-down aperture as a spot centred at
-    ``c_k = x_k (1 + f_ml / s_i)`` (DESIGN §2).
+    ``c_k = x_k (1 + f_ml / s_i)`` (docs/design.md §2).
 
     Parameters
     ----------

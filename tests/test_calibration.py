@@ -1,4 +1,4 @@
-"""Calibration (DESIGN §3): microlens image centres from simulated white images, matched
+"""Calibration (docs/design.md §3): microlens image centres from simulated white images, matched
 to their lenses, against the simulator's truth; bad input; the CLI."""
 
 from __future__ import annotations

@@ -71,7 +71,7 @@ def test_kernels_found_from_installed_package_and_from_checkout():
 
 
 def test_design_public_api_names_exist():
-    """DESIGN §9: the names tests and users rely on, at the top level."""
+    """docs/design.md §9: the names tests and users rely on, at the top level."""
     for name in ("Camera", "Grid", "simulate_image", "simulate_white_image", "calibrate",
                  "Projector", "reconstruct", "piv3d"):
         assert callable(getattr(plenocl, name)), name

@@ -1,4 +1,4 @@
-"""Light field (DESIGN §2, §4): per-pixel (x, y, u, v), perspective views and their
+"""Light field (docs/design.md §2, §4): per-pixel (x, y, u, v), perspective views and their
 parallax, refocusing (kernel against reference, depth of best focus), the CLI."""
 
 from __future__ import annotations

@@ -101,7 +101,7 @@ def test_large_displacement_found_by_padded_first_pass():
 
 
 def test_cubic_deformation_beats_trilinear():
-    """Trilinear deformation biases sub-voxel shifts (DESIGN §7); cubic B-splines do not."""
+    """Trilinear deformation biases sub-voxel shifts (docs/design.md §7); cubic B-splines do not."""
     shape = (64, 64, 64)
     flow = flows.Uniform((1.5, -0.5, 2.5))   # half-voxel parts: the worst case
     pair = flows.volume_pair(shape, flow, seed=404)

@@ -1,4 +1,4 @@
-"""The matrix-free projector against the NumPy weighting function (DESIGN §5)."""
+"""The matrix-free projector against the NumPy weighting function (docs/design.md §5)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Solver kernels and loop against the NumPy references, on an explicit weight matrix
-(a matrix-backed projector), plus the stability guards of DESIGN §6."""
+(a matrix-backed projector), plus the stability guards of docs/design.md §6."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The OpenCL ray-tracing simulator against its reference, an independent ray trace,
-and the geometry of DESIGN §2."""
+and the geometry of docs/design.md §2."""
 
 from __future__ import annotations
 

@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..device import DeviceLike, device_info, get_queue
-from ..io.atomic import atomic_path
 from .core import SIZES, BenchRun, bench_sizes, loglog_slope, md_table, pareto_front, repeats_text
 from .devices import section_devices
 from .lightfield_section import section_calibration, section_refocus

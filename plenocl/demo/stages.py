@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from ..io.atomic import atomic_path
+from ..atomic import atomic_path
 
 
 def write_json(path: str | Path, doc: dict) -> None:

@@ -1,15 +1,15 @@
 """Files: raw images, particle lists, volumes, vector fields, TOML; all written atomically.
 
-- :mod:`.atomic`: atomic writes; :mod:`.toml`: camera and grid files;
+- atomic writes (:mod:`plenocl.atomic`) and TOML files (:mod:`plenocl.tomlfile`), re-exported;
 - :mod:`.files`: images (TIFF/PNG/NPY), particle CSVs, volumes (NPZ/NPY/HDF5);
 - :mod:`.fields`: PIV fields (VTK ``.vti``, ``.npz``, ``.h5``);
 - :mod:`.plotting`, :mod:`.progress`: figures and progress bars for the user.
 """
 
-from .atomic import atomic_path
+from ..atomic import atomic_path
+from ..tomlfile import read_toml, write_toml
 from .fields import read_npz, save_field
 from .files import load_volume, read_image, read_particles, save_volume, write_particles, write_tiff
-from .toml import read_toml, write_toml  # noqa: I001 (before .files: grid imports .toml)
 
 __all__ = ["atomic_path", "load_volume", "read_image", "read_npz", "read_particles",
            "read_toml", "save_field", "save_volume", "write_particles", "write_tiff",

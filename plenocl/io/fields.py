@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..piv.multipass import PIVResult, voxel_size
-from .atomic import atomic_path
 
 __all__ = ["field_arrays", "read_npz", "save_field", "write_h5", "write_npz", "write_vti"]
 

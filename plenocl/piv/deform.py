@@ -4,7 +4,7 @@ The predictor lives on a regular grid of window centres. It is resampled separab
 (tensor-product natural cubic spline, or linear) onto any tensor grid of points - the
 voxels of the volume or the window centres of the next pass - and *linearly
 extrapolated* beyond the outermost centres: clamping there makes multi-pass iteration
-diverge in a velocity gradient (DESIGN §7). A linear predictor cannot follow curvature
+diverge in a velocity gradient (docs/design.md §7). A linear predictor cannot follow curvature
 between vectors and stalls the iteration in a vortex (about 2x the error of the cubic
 one on a Lamb-Oseen core, measured). Volumes are deformed symmetrically,
 ``a'(p) = a(p - d(p)/2)`` and ``b'(p) = b(p + d(p)/2)``, by cubic B-spline interpolation

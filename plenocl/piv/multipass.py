@@ -1,6 +1,6 @@
 """Multi-pass 3-D PIV with window deformation (WIDIM), and derived flow quantities.
 
-:func:`piv3d` correlates two particle volumes ``vol[iz, iy, ix]`` (DESIGN §7, §9):
+:func:`piv3d` correlates two particle volumes ``vol[iz, iy, ix]`` (docs/design.md §7, §9):
 a large zero-padded first pass, then passes with smaller, overlapping windows on volumes
 deformed symmetrically by the current predictor, normalised-median outlier detection and
 replacement after every pass. The result holds window centres in voxel-index units

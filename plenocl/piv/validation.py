@@ -5,7 +5,7 @@ of its 26 neighbours and the median ``r_m`` of their residuals ``|U_i - U_m|`` g
 normalised residual ``r* = |U_0 - U_m| / (r_m + eps)`` per component; a vector is an
 outlier where ``sqrt(sum of r*^2)`` over the components exceeds the threshold. The field is
 padded by odd reflection (``2 U_0 - U_1``) so vectors along the faces are tested against
-a linear continuation rather than against nothing (DESIGN §7). Arrays are
+a linear continuation rather than against nothing (docs/design.md §7). Arrays are
 ``(C, nz, ny, nx)``.
 """
 

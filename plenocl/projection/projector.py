@@ -1,6 +1,6 @@
 """Matrix-free forward and back projection with the plenoptic weighting function.
 
-The weight matrix of DESIGN §5 (paper §III.A) is never stored. A voxel's weight on a
+The weight matrix of docs/design.md §5 (paper §III.A) is never stored. A voxel's weight on a
 pixel is a sum over aperture samples ``s`` and microlenses ``k`` of two bilinear
 factors: ``S[k, s; voxel]`` (step 2, where the sample meets the array plane, in lens
 index units) and ``P[pixel; k, s]`` (step 3, where that sample lands behind lens ``k``,

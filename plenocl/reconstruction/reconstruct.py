@@ -1,4 +1,4 @@
-"""Reconstruction of a particle volume from one plenoptic image (DESIGN §6).
+"""Reconstruction of a particle volume from one plenoptic image (docs/design.md §6).
 
 Methods (all multiplicative, non-negative, on the device):
 

@@ -2,7 +2,7 @@
 
 Shift-and-add over the sub-aperture views with bilinear interpolation between
 microlenses; samples that are ``NaN`` or off the array carry no weight and the sum is
-normalised by the weight that remains (DESIGN §4).
+normalised by the weight that remains (docs/design.md §4).
 """
 
 from __future__ import annotations

@@ -84,7 +84,7 @@ def _centres(cam: Camera, lens_shift_mm) -> np.ndarray:
 def trace_particles(cam: Camera, positions, intensities, rays_per_particle: int, seed: int,
                     blur_px: float = 0.0, lens_transmission=None,
                     lens_shift_mm=None) -> np.ndarray:
-    """Noise-free raw image of point particles, traced ray by ray (DESIGN §2, §8).
+    """Noise-free raw image of point particles, traced ray by ray (docs/design.md §2, §8).
 
     Each ray leaves the particle, crosses a uniformly sampled point ``(u, v)`` of the
     circular aperture, passes the image point ``X'`` and meets the array plane at

@@ -1,4 +1,4 @@
-"""NumPy reference of the weighting function (paper §III.A, DESIGN §5), written for clarity.
+"""NumPy reference of the weighting function (paper §III.A, docs/design.md §5), written for clarity.
 
 A voxel's column of the weight matrix, literally the paper's four steps:
 
