@@ -16,6 +16,6 @@ def queue():
 @pytest.fixture(scope="session")
 def small_camera():
     """A small, fast plenoptic camera: 12 x 10 lenses of ~17 px, M = 1, f/2 (matched)."""
-    from plenocl import Camera
+    from helpers import lens_camera
 
-    return Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170))
+    return lens_camera(12, 10)

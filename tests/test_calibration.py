@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
+from helpers import lens_camera
 
 from plenocl import Camera
 from plenocl.calibration import calibrate, find_centers
@@ -20,8 +21,7 @@ TARGET_RMS_PX = 0.05
 def _camera(cols=20, rows=16, rotation=0.0, offset=(0.0, 0.0), extra_px=(0, 0)) -> Camera:
     """A ~17 px-per-lens camera; ``rotation``/``offset`` are the physical (true) layout."""
     pixels = (int(cols * 16.98) + 1 + extra_px[0], int(rows * 16.98) + 1 + extra_px[1])
-    return Camera(50.0, 2.0, 1.0, 0.125, 0.5, (cols, rows), 0.0074, pixels,
-                  ml_rotation_deg=rotation, ml_offset_mm=offset)
+    return lens_camera(cols, rows, pixels, ml_rotation_deg=rotation, ml_offset_mm=offset)
 
 
 def _nominal(cam: Camera) -> Camera:
@@ -78,8 +78,7 @@ def test_centres_match_the_truth(queue, name):
 
 def test_large_rotated_shifted_array(queue):
     """50 x 50 lenses rotated 2° and shifted ~6 px: matching must not drift across the array."""
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (50, 50), 0.0074, (850, 850),
-                 ml_rotation_deg=2.0, ml_offset_mm=(0.045, -0.03))
+    cam = lens_camera(50, 50, ml_rotation_deg=2.0, ml_offset_mm=(0.045, -0.03))
     white = simulate_white_image(cam, rays_per_lens=1000, photon_noise=True, seed=1,
                                  queue=queue)
     fit = find_centers(white, Camera.synthetic_850())
@@ -173,7 +172,7 @@ def test_not_a_white_image_is_rejected(queue):
 
 
 def test_pitch_far_from_the_camera_is_rejected(small_white):
-    wrong = Camera(50.0, 2.0, 1.0, 0.15, 0.5, (10, 8), 0.0074, (204, 170))
+    wrong = lens_camera(10, 8, (204, 170), ml_pitch_mm=0.15)
     with pytest.raises(ValueError, match="px apart but the camera predicts"):
         calibrate(small_white, wrong)
 

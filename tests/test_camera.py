@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import lens_camera
 
 from plenocl import Camera, Grid
 
@@ -49,7 +50,7 @@ def test_presets_match_the_paper(preset):
 
 
 def test_toml_round_trip_with_calibrated_centres(tmp_path):
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170), ml_rotation_deg=0.5)
+    cam = lens_camera(ml_rotation_deg=0.5)
     rng = np.random.default_rng(1)
     centres = cam.ideal_microlens_centers() + rng.normal(0, 0.2, (10, 12, 2))
     centres[3, 4] = np.nan

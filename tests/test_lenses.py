@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 import pytest
+from helpers import ROTATED, lens_camera
 
-from plenocl import Camera, Grid
+from plenocl import Grid
 from plenocl.projection import Projector
 from plenocl.reconstruction import reconstruct
 from plenocl.reference.weights import lit_lenses as exact_lit_lenses
@@ -23,8 +24,7 @@ def cameras(small_camera):
     centres = small_camera.microlens_centers + rng.uniform(-0.3, 0.3,
                                                            small_camera.microlens_centers.shape)
     centres[4, 6] = np.nan
-    rotated = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170),
-                     ml_rotation_deg=2.0, ml_offset_mm=(0.01, -0.02))
+    rotated = lens_camera(**ROTATED)
     return {"ideal": small_camera, "missing": small_camera.with_centers(centres),
             "rotated": rotated}
 

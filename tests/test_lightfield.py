@@ -7,6 +7,7 @@ import argparse
 
 import numpy as np
 import pytest
+from helpers import lens_camera
 
 from plenocl import Camera
 from plenocl.calibration import calibrate
@@ -20,8 +21,7 @@ ZS = np.arange(-3.0, 3.01, 0.5)
 
 def _camera(cols=24, rows=20, **layout) -> Camera:
     """M = 1, f/2, ~17 px per lens; ideal centres marked calibrated."""
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (cols, rows), 0.0074,
-                 (int(cols * 16.98) + 1, int(rows * 16.98) + 1), **layout)
+    cam = lens_camera(cols, rows, (int(cols * 16.98) + 1, int(rows * 16.98) + 1), **layout)
     return cam.with_centers(cam.ideal_microlens_centers())
 
 
@@ -54,7 +54,7 @@ def test_pixel_coordinates_follow_design(cam):
 
 
 def test_uncalibrated_camera_warns(queue):
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170))
+    cam = lens_camera(12, 10)
     with pytest.warns(UserWarning, match="not calibrated"):
         LightField(np.zeros(cam.pixels[::-1]), cam, queue=queue)
 
@@ -173,9 +173,9 @@ def test_bad_raw_image_is_rejected(cam):
 
 def test_calibrated_rotated_camera_end_to_end(queue, tmp_path):
     """White image of a rotated, shifted array → calibrate → refocus finds the depth."""
-    true = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (24, 20), 0.0074, (409, 341),
-                  ml_rotation_deg=1.5, ml_offset_mm=(0.02, -0.015))
-    nominal = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (24, 20), 0.0074, (409, 341))
+    true = lens_camera(24, 20, pixels=(409, 341), ml_rotation_deg=1.5,
+                       ml_offset_mm=(0.02, -0.015))
+    nominal = lens_camera(24, 20, pixels=(409, 341))
     white = simulate_white_image(true, photon_noise=True, seed=2, queue=queue)
     cal = calibrate(white, nominal)
     raw = _particle_image(true, [0.05, 0.03, -1.5], queue)

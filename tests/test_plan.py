@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import lens_camera
 
-from plenocl import Camera, Grid
+from plenocl import Grid
 from plenocl.lattice import lattice_fit, lattice_residual
 from plenocl.projection.plan import SampleColumns, column_chunks, depth_chunks, make_plan, runs
 from plenocl.projection.weighting import (
@@ -90,8 +91,7 @@ def test_one_lattice_fit_recovers_an_affine_layout():
 
 def test_lens_index_map_inverts_the_layout(small_camera):
     """Each lens's own array-plane position maps back to its integer index."""
-    rotated = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170),
-                     ml_rotation_deg=1.0)
+    rotated = lens_camera(ml_rotation_deg=1.0)
     for cam in (small_camera, rotated):
         lmap = lens_index_map(cam)
         pos = cam.px_to_mm(cam.microlens_centers) / (

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cl_array
 import pytest
+from helpers import ROTATED, assert_adjoint, assert_close_to_peak, lens_camera
 
 from plenocl import Camera, Grid
 from plenocl.projection import Projector
@@ -27,8 +28,7 @@ def _perturbed(cam: Camera, seed: int = 3, missing=(2, 3)) -> Camera:
 @pytest.fixture(scope="module")
 def cameras(small_camera):
     """Ideal, perturbed (general and snapped separable paths) and rotated cameras."""
-    rotated = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170),
-                     ml_rotation_deg=2.0, ml_offset_mm=(0.01, -0.02))
+    rotated = lens_camera(**ROTATED)
     pert = _perturbed(small_camera)
     return {"ideal": (small_camera, {}), "perturbed": (pert, {}),
             "perturbed-separable": (pert, {"shear_tol": 0.05}), "rotated": (rotated, {})}
@@ -64,7 +64,7 @@ def test_weights_and_forward_match_reference(name, cameras, projectors):
         onehot[vox] = 1.0
         fwd = proj.forward(onehot).ravel()
         for got in (kern, fwd):
-            assert np.abs(got - ref).max() <= 1e-5 * ref.max(), (name, vox)
+            assert_close_to_peak(got, ref, 1e-5, (name, vox))
             np.testing.assert_allclose(got.sum(), ref.sum(), rtol=1e-4)
         assert np.array_equal(np.flatnonzero(kern > 1e-6 * ref.max()),
                               np.flatnonzero(ref > 1e-6 * ref.max()))
@@ -81,14 +81,7 @@ def test_voxel_weights_format(projectors):
 
 @pytest.mark.parametrize("name", ["ideal", "perturbed", "rotated"])
 def test_adjoint(name, projectors):
-    proj = projectors[name]
-    rng = np.random.default_rng(7)
-    x = rng.standard_normal(GRID.shape).astype(np.float32)
-    y = rng.standard_normal(proj.image_shape).astype(np.float32)
-    lhs = np.dot(proj.forward(x).ravel().astype(np.float64), y.ravel())
-    rhs = np.dot(x.ravel().astype(np.float64), proj.back(y).ravel())
-    scale = np.dot(np.abs(proj.forward(np.abs(x))).ravel(), np.abs(y).ravel())
-    assert abs(lhs - rhs) <= 1e-4 * scale
+    assert_adjoint(projectors[name])
 
 
 def test_back_is_transpose_of_dense_matrix(small_camera, queue):
@@ -272,7 +265,7 @@ def test_atomic_scatter_back_twin_matches_the_gather(name, cameras, projectors):
     assert atomic.path == "separable"
     image = np.random.default_rng(5).random(proj.image_shape, dtype=np.float32)
     ref = proj.back(image)
-    assert np.abs(atomic.back(image) - ref).max() <= 1e-5 * ref.max()
+    assert_close_to_peak(atomic.back(image), ref, 1e-5, name)
 
 
 @pytest.mark.parametrize("name", ["perturbed", "rotated"])

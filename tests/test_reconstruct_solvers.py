@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 import pytest
+from helpers import lens_camera
 
-from plenocl import Camera, Grid, Projector
+from plenocl import Grid, Projector
 from plenocl.reconstruction import reconstruct, view_blocks
 from plenocl.reconstruction.operator import ProjectionOperator
 from plenocl.reference import reconstruct as ref
@@ -65,7 +66,7 @@ class MatrixProjector:
 
 
 def test_both_projectors_implement_the_operator_contract(tiny, queue):
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (3, 3), 0.0074, (51, 51))
+    cam = lens_camera(3, 3)
     assert isinstance(tiny[0], ProjectionOperator)
     assert isinstance(Projector(cam, Grid((3, 4, 5), x=(-0.2, 0.2), y=(-0.2, 0.2),
                                           z=(-1, 1)), queue), ProjectionOperator)
@@ -76,7 +77,7 @@ def test_both_projectors_implement_the_operator_contract(tiny, queue):
 def tiny(queue):
     """A 3 x 3-lens camera (51 x 51 px) and a 3 x 4 x 5 grid with a random sparse,
     column-normalised W, and an image made from a sparse true volume."""
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (3, 3), 0.0074, (51, 51))
+    cam = lens_camera(3, 3)
     grid = Grid((3, 4, 5), x=(-0.2, 0.2), y=(-0.2, 0.2), z=(-1, 1))
     rng = np.random.default_rng(0)
     W = rng.random((51 * 51, 60)) * (rng.random((51 * 51, 60)) < 0.05)
@@ -193,8 +194,7 @@ def test_view_blocks_from_the_lattice_match_the_nearest_centre(small_camera, rot
     borders may go either way)."""
     from scipy.spatial import cKDTree
 
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170),
-                 ml_rotation_deg=rotation)
+    cam = lens_camera(ml_rotation_deg=rotation)
     if jitter:
         rng = np.random.default_rng(1)
         cam = cam.with_centers(cam.microlens_centers

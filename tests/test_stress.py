@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 import pyopencl.array as cla
 import pytest
+from helpers import ROTATED, lens_camera
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -345,7 +346,7 @@ def test_thousand_iterations_stay_bounded(queue, method, mart_blocks):
     same bound is an observed property, asserted all the same. Measured max E / bound:
     0.18 (MLEM), 5e-4 (SMART, MART). MART runs with one block to keep CI time short.
     """
-    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (3, 3), 0.0125, (31, 31))
+    cam = lens_camera(3, 3, pixels=(31, 31), pixel_pitch_mm=0.0125)
     proj = Projector(cam, Grid((2, 3, 3), x=(-0.15, 0.15), y=(-0.15, 0.15), z=(-1.0, 1.0)),
                      queue)
     rng = np.random.default_rng(5)
@@ -388,8 +389,7 @@ def dense_case(request, small_camera, queue):
     the array rotated by 2 degrees (general kernels)."""
     cam = small_camera
     if request.param == "general":
-        cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (12, 10), 0.0074, (204, 170),
-                     ml_rotation_deg=2.0, ml_offset_mm=(0.01, -0.02))
+        cam = lens_camera(**ROTATED)
     grid = Grid((4, 5, 5), x=(-0.3, 0.3), y=(-0.25, 0.25), z=(-3.0, 3.0))
     proj = Projector(cam, grid, queue)
     assert proj.path == request.param

@@ -1,0 +1,47 @@
+"""Shared test helpers: the test cameras and the checks many tests make."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from plenocl import Camera
+
+#: The test cameras' optics: M = 1, f/2 main lens (f = 50 mm), 0.125 mm microlenses with
+#: f = 0.5 mm (matched to f/2), 7.4 µm pixels: about 17 pixels per microlens.
+OPTICS = dict(focal_length_mm=50.0, f_number=2.0, magnification=1.0, ml_pitch_mm=0.125,
+              ml_focal_length_mm=0.5, pixel_pitch_mm=0.0074)
+
+
+def lens_camera(cols: int = 12, rows: int = 10, pixels: tuple[int, int] | None = None,
+                **changes) -> Camera:
+    """A test camera of ``cols x rows`` microlenses on ``17 cols x 17 rows`` pixels (or
+    ``pixels``), with :data:`OPTICS` and any field of :class:`plenocl.Camera` changed by
+    keyword (``ml_rotation_deg=2.0``, ``ml_offset_mm=...``, ``pixel_pitch_mm=...``)."""
+    fields = {**OPTICS, "ml_count": (cols, rows),
+              "pixels": pixels or (17 * cols, 17 * rows), **changes}
+    return Camera(**fields)
+
+
+#: The rotated camera of the projector tests: the 12 x 10 camera's array turned by 2
+#: degrees and moved off the axis (general projector path on a sensor-axis grid).
+ROTATED = dict(ml_rotation_deg=2.0, ml_offset_mm=(0.01, -0.02))
+
+
+def assert_close_to_peak(actual, expected, rtol: float, what: object = "") -> None:
+    """``max |actual - expected| <= rtol max |expected|``: float32 kernels against float64
+    references, relative to the signal's peak."""
+    actual, expected = np.asarray(actual, np.float64), np.asarray(expected, np.float64)
+    err, peak = np.abs(actual - expected).max(), np.abs(expected).max()
+    assert err <= rtol * peak, f"{what}: max difference {err:.3g} > {rtol:g} x peak {peak:.3g}"
+
+
+def assert_adjoint(proj, seed: int = 7, rtol: float = 1e-4) -> None:
+    """``<A x, y> = <x, Aᵀ y>`` for random ``x``, ``y``, within ``rtol`` of the sum of the
+    absolute terms ``<A |x|, |y|>``."""
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal(proj.grid.shape).astype(np.float32)
+    y = rng.standard_normal(proj.image_shape).astype(np.float32)
+    lhs = np.dot(proj.forward(x).ravel().astype(np.float64), y.ravel())
+    rhs = np.dot(x.ravel().astype(np.float64), proj.back(y).ravel())
+    scale = np.dot(np.abs(proj.forward(np.abs(x))).ravel(), np.abs(y).ravel())
+    assert abs(lhs - rhs) <= rtol * scale, (lhs, rhs, scale)
