@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue
-from plenocl.bench.sparse import matrix_bytes, weight_matrix
-from plenocl.bench.stages import device_pair, projector_bytes
+from plenocl.bench.sparse import matrix_bytes
+from plenocl.bench.stages import csr_case, device_pair, projector_bytes
 from plenocl.bench.timing import median_time
 from plenocl.device import device_info
 from plenocl.projection import Projector
@@ -33,12 +32,7 @@ def stored_comparison(queue, repeats: int, direct: bool) -> None:
     cam = Camera.synthetic_850()
     grid = Grid((40, 50, 50), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
     proj = Projector(cam, grid, queue)
-    t0 = time.perf_counter()
-    a = weight_matrix(proj)
-    build = time.perf_counter() - t0
-    rng = np.random.default_rng(0)
-    vol = rng.random(grid.shape, dtype=np.float32)
-    img_h = rng.random(proj.image_shape, dtype=np.float32)
+    a, build, vol, img_h = csr_case(proj)
     fwd, back, _ = device_pair(proj, vol)
     img, out = proj.forward_device(proj.volume_to_device(vol)), proj.empty_volume()
     err_f = np.abs(a @ vol.ravel() - proj.forward(vol).ravel()).max() / (a @ vol.ravel()).max()

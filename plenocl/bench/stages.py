@@ -115,16 +115,22 @@ _CSR_WINS = ("\nCSR wins on a grid this small: the matrix-free path has fixed pe
              "stores a 32 000-voxel matrix).\n")
 
 
-def section_projector(run: BenchRun) -> str:
-    """Matrix-free forward + back against CSR products of the same weights; memory."""
-    grid = reshaped(run.cfg.grid, run.cfg.csr_grid)
-    proj = Projector(run.camera, grid, run.queue)
+def csr_case(proj: Projector):
+    """The stored-matrix baseline of a projector: its CSR weight matrix, the seconds it
+    took to build, and a random volume and image (seed 0) to project."""
     t0 = time.perf_counter()
     a = weight_matrix(proj)
     build = time.perf_counter() - t0
     rng = np.random.default_rng(0)
-    vol = rng.random(grid.shape, dtype=np.float32)
-    img_h = rng.random(proj.image_shape, dtype=np.float32)
+    vol = rng.random(proj.grid.shape, dtype=np.float32)
+    return a, build, vol, rng.random(proj.image_shape, dtype=np.float32)
+
+
+def section_projector(run: BenchRun) -> str:
+    """Matrix-free forward + back against CSR products of the same weights; memory."""
+    grid = reshaped(run.cfg.grid, run.cfg.csr_grid)
+    proj = Projector(run.camera, grid, run.queue)
+    a, build, vol, img_h = csr_case(proj)
     ref = a @ vol.ravel()
     err = np.abs(ref - proj.forward(vol).ravel()).max() / ref.max()
     rows, speedup = _csr_rows(run, proj, a, vol, img_h)

@@ -40,18 +40,8 @@ def _geometry(voxel_size_mm, origin_mm, grid):
 
 def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
                  dt: float | None = None) -> dict[str, np.ndarray]:
-    """All arrays written by :func:`save_field`, keyed by name (see the module notes).
-
-    Parameters
-    ----------
-    result
-        Output of :func:`plenocl.piv3d`.
-    voxel_size_mm
-        Scalar or ``(dz, dy, dx)`` in mm.
-    origin_mm
-        ``(z0, y0, x0)``: the centre of voxel ``(0, 0, 0)`` in mm.
-    dt
-        Time between the volumes (s); adds ``velocity`` and physical units.
+    """All arrays written by :func:`save_field`, keyed by name (see the module notes);
+    the parameters are :func:`save_field`'s (``dt`` adds ``velocity`` and physical units).
     """
     size = voxel_size(voxel_size_mm)
     x_mm, y_mm, z_mm = result.positions_mm(size, origin_mm)
