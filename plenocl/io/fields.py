@@ -10,6 +10,10 @@ crash never leaves a half-written field. Stored arrays, all on the vector grid
   given; without it ``vorticity`` and ``q_criterion`` are per ``dt`` (and per ``dt^2``);
 - coordinates: ``x``, ``y``, ``z`` (voxel-index units) and ``x_mm``, ``y_mm``, ``z_mm``.
 
+On a rotated grid (``rotation_deg``, stored too) the vector grid and ``displacement``
+follow the grid's axes, while ``velocity`` and ``vorticity`` are given in object space
+(the user's frame): their ``x``, ``y`` components are turned by the grid's rotation.
+
 In ``.vti`` files the image origin and spacing are the vector grid's, in mm.
 """
 
@@ -21,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
+from ..lattice import rotation_matrix
 from ..piv.multipass import PIVResult, voxel_size
 
 __all__ = ["field_arrays", "read_npz", "save_field", "write_h5", "write_npz", "write_vti"]
@@ -39,7 +44,7 @@ def _geometry(voxel_size_mm, origin_mm, grid):
 
 
 def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-                 dt: float | None = None) -> dict[str, np.ndarray]:
+                 dt: float | None = None, rotation_deg: float = 0.0) -> dict[str, np.ndarray]:
     """All arrays written by :func:`save_field`, keyed by name (see the module notes);
     the parameters are :func:`save_field`'s (``dt`` adds ``velocity`` and physical units).
     """
@@ -51,11 +56,22 @@ def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)
            "origin_mm": np.asarray(origin_mm, float), "window": np.asarray(result.window)}
     out.update({name: np.asarray(getattr(result, name), bool) for name in _FLAGS})
     if dt is not None:
-        out["velocity"] = np.stack(result.velocity(size, dt))
+        out["velocity"] = _to_object_space(result.velocity(size, dt), rotation_deg)
         out["dt"] = np.asarray(float(dt))
-    out["vorticity"] = np.stack(result.vorticity(size, dt))
+    out["vorticity"] = _to_object_space(result.vorticity(size, dt), rotation_deg)
     out["q_criterion"] = result.q_criterion(size, dt)
+    out["rotation_deg"] = np.asarray(float(rotation_deg))
     return out
+
+
+def _to_object_space(components, rotation_deg: float) -> np.ndarray:
+    """``(x, y, z)`` vector components along a grid turned by ``rotation_deg`` about the
+    optical axis, as object-space components ``(3, ...)``."""
+    cx, cy, cz = (np.asarray(c, np.float64) for c in components)
+    if rotation_deg:
+        r = rotation_matrix(rotation_deg)
+        cx, cy = r[0, 0] * cx + r[0, 1] * cy, r[1, 0] * cx + r[1, 1] * cy
+    return np.stack([cx, cy, cz])
 
 
 def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
@@ -76,7 +92,8 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
         Time between the volumes (s); adds velocity in m/s and vorticity in 1/s.
     grid
         Optional :class:`plenocl.Grid` of the volumes; overrides ``voxel_size_mm`` and
-        ``origin_mm`` (its extents are the volume's outer faces).
+        ``origin_mm`` (its extents are the volume's outer faces); on a rotated grid the
+        velocity and vorticity are written in object space (see the module notes).
 
     Returns
     -------
@@ -90,14 +107,14 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
     if writer is None:
         raise ValueError(f"cannot tell the field format from {path.name!r}: use a .vti "
                          f"(ParaView), .npz or .h5 file name")
-    writer(path, result, size, origin, dt)
+    writer(path, result, size, origin, dt, 0.0 if grid is None else grid.rotation_deg)
     return path
 
 
 def write_npz(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-              dt: float | None = None) -> None:
+              dt: float | None = None, rotation_deg: float = 0.0) -> None:
     """Write :func:`field_arrays` to a compressed ``.npz``, atomically."""
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt)
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
 
@@ -135,13 +152,13 @@ def _vtk_order(arr: np.ndarray) -> np.ndarray:
 
 
 def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-              dt: float | None = None) -> None:
+              dt: float | None = None, rotation_deg: float = 0.0) -> None:
     """Write a VTK ImageData ``.vti`` file for ParaView (point data on the vector grid)."""
     try:
         from pyevtk.hl import imageToVTK
     except ImportError as exc:  # pragma: no cover - pyevtk is a declared dependency
         raise ImportError("writing .vti needs pyevtk: pip install pyevtk") from exc
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt)
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
     size = voxel_size(voxel_size_mm)
     spacing = tuple(float(np.diff(c[:2])[0]) * s if len(c) > 1 else s
                     for c, s in zip((result.x, result.y, result.z), size[::-1]))
@@ -162,14 +179,14 @@ def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0
 
 
 def write_h5(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-             dt: float | None = None) -> None:
+             dt: float | None = None, rotation_deg: float = 0.0) -> None:
     """Write :func:`field_arrays` to HDF5 (one dataset per array), atomically."""
     try:
         import h5py
     except ImportError as exc:
         raise ImportError("writing .h5 fields needs h5py: pip install h5py "
                           "(or save as .npz or .vti)") from exc
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt)
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as fh:
         for name, arr in arrays.items():
             opts = {"compression": "gzip"} if np.ndim(arr) >= 3 else {}
