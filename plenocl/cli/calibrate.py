@@ -14,6 +14,7 @@ import argparse
 
 import numpy as np
 
+from ..calibration import METHODS
 from ..camera import load_camera
 from ..io.files import write_tiff
 
@@ -37,7 +38,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
 
     camera = load_camera(args.camera)
     white = read_image(args.white)
-    fit = find_centers(white, camera, method=getattr(args, "method", "fit"),
+    fit = find_centers(white, camera, method=getattr(args, "method", "combined"),
                        fill_missing=getattr(args, "fill_missing", False))
     warn_about(fit)
     calibrated = camera.with_centers(fit.centers)
@@ -89,9 +90,12 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
                    "paper) with the nominal optics")
     p.add_argument("--out", required=True, help="calibrated camera TOML to write")
     p.add_argument("--diagnostic", default=None,
-                   help="PNG overlaying the found centres (needs matplotlib)")
-    p.add_argument("--method", choices=["fit", "centroid"], default="fit",
-                   help="grid-model prediction (default) or raw centroids")
+                   help="PNG of the found centres and the residual map (each lens's centroid "
+                        "against the grid model)")
+    p.add_argument("--method", choices=list(METHODS), default="combined",
+                   help="combined: grid model and each lens's centroid weighted by their "
+                        "uncertainties (default); fit: grid model only; centroid: raw "
+                        "centroids (the paper's)")
     p.add_argument("--fill-missing", action="store_true",
                    help="give lenses without a spot the grid model's centre instead of NaN")
     p.set_defaults(func=calibrate_command)
