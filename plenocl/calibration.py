@@ -398,28 +398,33 @@ def _match(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     f = _fractional_index(pts, model)
     base = np.rint(f).astype(np.int64)
     dev = np.abs(f - base).max(1)
-    _check_lens_count(base[dev <= 0.3], camera)
+    _check_lens_count(base[dev <= 0.3], pts[dev <= 0.3], camera, pitch)
     k = base + _whole_pitch_shift(base, cols, rows)
     inside = (k[:, 0] >= 0) & (k[:, 0] < cols) & (k[:, 1] >= 0) & (k[:, 1] < rows)
     k[(dev > 0.3) | ~inside] = -1
     return k, dev
 
 
-def _check_lens_count(base: np.ndarray, camera: Camera) -> None:
-    """Refuse a white image whose spot lattice spans more lenses than the camera file
-    has along an axis (a wrong ``[microlens_array] count``), naming both counts.
+def _check_lens_count(base: np.ndarray, pts: np.ndarray, camera: Camera,
+                      pitch: float) -> None:
+    """Refuse a white image whose spot lattice does not match the camera file's lens
+    count (a wrong ``[microlens_array] count``), naming both counts: it spans more lenses
+    along an axis, or clearly fewer while both of its ends lie well inside the sensor (so
+    the array's own edge, not the sensor's, ends it).
 
     Isolated stray spots do not count: an axis's extent is taken between the 0.2 % and
     99.8 % quantiles of the spots' lattice indices."""
-    cols, rows = camera.ml_count
     if len(base) < 10:
         return
+    count = np.array(camera.ml_count)
     lo, hi = np.percentile(base, [0.2, 99.8], axis=0)
     seen = np.rint(hi - lo).astype(int) + 1
-    if seen[0] > cols + 1 or seen[1] > rows + 1:
+    size = np.array(camera.pixels, float)
+    inside = ((pts.min(axis=0) > 2 * pitch) & (pts.max(axis=0) < size - 1 - 2 * pitch))
+    if (seen > count + 1).any() or ((seen < count - 1) & inside).any():
         raise ValueError(
             f"the white image shows about {seen[0]} x {seen[1]} microlens images (columns x "
-            f"rows) but the camera file has {cols} x {rows} microlenses: correct "
+            f"rows) but the camera file has {count[0]} x {count[1]} microlenses: correct "
             "[microlens_array] count = [columns, rows] in the camera file")
 
 

@@ -323,3 +323,13 @@ def test_realistic_white_images(queue, name):
     assert fit.found[inner].all()
     assert _rms(err[inner]) < target, _rms(err[inner])
     assert np.nanmax(err) < 0.5  # no lens matched to a wrong index anywhere
+
+
+def test_camera_file_with_too_many_lenses_is_refused_naming_both_counts(queue):
+    """A 20 x 16 array whose edges lie well inside a larger sensor, and a camera file
+    saying 24 x 18: the array's own edge shows the count is wrong."""
+    true = lens_camera(20, 16, pixels=(24 * 17, 18 * 17))
+    white = simulate_white_image(true, photon_noise=True, seed=16, queue=queue)
+    wrong = lens_camera(24, 18)
+    with pytest.raises(ValueError, match=r"about 20 x 16 .* has 24 x 18 microlenses"):
+        find_centers(white, wrong)
