@@ -455,3 +455,25 @@ def test_boundary_layer_profile_is_recovered():
     profile = res.u.mean(axis=(0, 2))        # the paper's spatially averaged profile
     expect = truth(res, tbl)[0].mean(axis=(0, 2))
     assert np.abs(profile - expect).max() < 0.05
+
+
+def test_default_windows_fit_the_volume():
+    """No windows given: 48, 32, 24 cut per axis to what the volume holds (the README's
+    20-deep grids), a larger first window for a large expected displacement, and a clear
+    error for a volume thinner than 8 voxels."""
+    from plenocl.piv import auto_windows
+
+    assert auto_windows((20, 40, 40)) == ((16, 40, 40), (16, 32, 32), (16, 24, 24))
+    assert auto_windows((150, 200, 300)) == ((48, 48, 48), (32, 32, 32), (24, 24, 24))
+    assert auto_windows((150, 200, 300), max_displacement=15)[0] == (64, 64, 64)
+    with pytest.raises(ValueError, match="no 8-voxel window"):
+        auto_windows((5, 40, 40))
+    rng = np.random.default_rng(0)
+    vol = np.zeros((20, 40, 40), np.float32)
+    vol[rng.integers(0, 20, 300), rng.integers(0, 40, 300), rng.integers(0, 40, 300)] = 1.0
+    from scipy import ndimage
+
+    vol = ndimage.gaussian_filter(vol, 1.0)
+    res = piv3d(vol, np.roll(vol, 2, axis=2))
+    assert res.window == (16, 24, 24)
+    assert np.nanmedian(res.u[res.valid]) == pytest.approx(2.0, abs=0.05)

@@ -46,7 +46,7 @@ def piv_command(args: argparse.Namespace) -> int:
     from ..grid import Grid
     from ..io.fields import save_field
     from ..io.files import load_volume
-    from ..piv.multipass import piv3d
+    from ..piv import auto_windows, piv3d
 
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, _ = load_volume(args.vol_b)
@@ -54,7 +54,9 @@ def piv_command(args: argparse.Namespace) -> int:
     if grid is None:
         raise ValueError("the volumes carry no grid (.npy): give --grid grid.toml so that "
                          "displacements become millimetres and metres per second")
-    res = piv3d(vol_a, vol_b, windows=tuple(args.windows))
+    windows = tuple(args.windows) if args.windows else auto_windows(vol_a.shape)
+    print(f"windows per pass (z, y, x voxels): {', '.join(str(w) for w in windows)}")
+    res = piv3d(vol_a, vol_b, windows=windows)
     save_field(args.out, res, dt=args.dt, grid=grid)
     print(f"wrote {args.out}: {res.u.size} vectors ({100 * res.valid.mean():.1f}% valid), "
           f"final window {res.window}")
@@ -93,8 +95,9 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--dt", type=float, required=True, help="time between exposures (s)")
     p.add_argument("--grid", default=None, help="grid TOML (default: stored in the .npz)")
     p.add_argument("--out", required=True, help="output field: .vti (ParaView), .npz or .h5")
-    p.add_argument("--windows", type=int, nargs="+", default=[48, 32, 24],
-                   help="window size per pass (voxels)")
+    p.add_argument("--windows", type=int, nargs="+", default=None,
+                   help="window size per pass (voxels; default: 48 32 24, each cut per axis "
+                        "to what the volume holds)")
     p.set_defaults(func=piv_command)
     return p
 

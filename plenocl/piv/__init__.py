@@ -7,7 +7,9 @@
 """
 
 from .multipass import (
+    DEFAULT_WINDOWS,
     PIVResult,
+    auto_windows,
     displacement_to_velocity,
     piv3d,
     q_criterion,
@@ -16,5 +18,5 @@ from .multipass import (
     voxel_size,
 )
 
-__all__ = ["PIVResult", "displacement_to_velocity", "piv3d", "q_criterion",
-           "velocity_gradient", "voxel_size", "vorticity"]
+__all__ = ["DEFAULT_WINDOWS", "PIVResult", "auto_windows", "displacement_to_velocity", "piv3d",
+           "q_criterion", "velocity_gradient", "voxel_size", "vorticity"]

@@ -223,7 +223,36 @@ class _Pass:
     peak_ratio: np.ndarray
 
 
-def piv3d(vol_a, vol_b, *, windows=(48, 32, 24), overlaps=None,
+#: The window schedule :func:`piv3d` starts from when none is given; each window is cut
+#: per axis to the largest multiple of 8 voxels the volume holds (:func:`auto_windows`).
+DEFAULT_WINDOWS = (48, 32, 24)
+
+
+def auto_windows(shape, max_displacement: float | None = None) -> tuple[tuple[int, ...], ...]:
+    """The default window schedule for a volume of ``shape``: :data:`DEFAULT_WINDOWS`,
+    each cut per axis to the largest multiple of 8 voxels that fits (``(wz, wy, wx)``
+    windows for flat volumes). With ``max_displacement`` (voxels, the largest expected),
+    the first window is at least 4 times it where the volume allows, since a zero-padded
+    first pass finds displacements up to about a quarter of its window.
+
+    Raises
+    ------
+    ValueError
+        When an axis holds fewer than 8 voxels (no window fits).
+    """
+    shape = tuple(int(n) for n in shape)
+    if min(shape) < 8:
+        raise ValueError(f"a volume of shape {shape} holds no 8-voxel window along every axis: "
+                         "reconstruct on a grid of at least 8 voxels per axis")
+    fit = [n // 8 * 8 for n in shape]
+    first = DEFAULT_WINDOWS[0]
+    if max_displacement is not None:
+        first = max(first, int(np.ceil(4 * float(max_displacement) / 8)) * 8)
+    schedule = (first, *DEFAULT_WINDOWS[1:])
+    return tuple(tuple(min(w, f) for f in fit) for w in schedule)
+
+
+def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
           final_iterations: int = 3, pad_first: bool = True, weighting: float | None = 0.35,
           deform_order: int = 3, predictor: str = "cubic", mask=None,
           median_eps: float = 0.1, median_threshold: float = 2.0,
@@ -236,7 +265,9 @@ def piv3d(vol_a, vol_b, *, windows=(48, 32, 24), overlaps=None,
         Volumes ``vol[iz, iy, ix]`` at ``t`` and ``t + dt`` (same shape, finite, real).
     windows
         Window size per pass: ints (cubes) or ``(wz, wy, wx)``; each >= 8 voxels and no
-        larger than the volume.
+        larger than the volume. By default :func:`auto_windows` of the volume's shape
+        (48, 32, 24, each cut to what the volume holds per axis); the windows used are in
+        ``result.log``.
     overlaps
         Overlap fraction per pass (or one for all), in ``[0, 1)``; by default 0.5 for
         every pass but the last and 0.75 for the last.
@@ -280,6 +311,7 @@ def piv3d(vol_a, vol_b, *, windows=(48, 32, 24), overlaps=None,
     opts = _Options(deform_order, predictor, median_eps, median_threshold, min_peak_ratio,
                     workers)
     _check_options(opts, weighting)
+    windows = auto_windows(a.shape) if windows is None else windows
     schedule = _schedule(a.shape, windows, overlaps, final_iterations)
     mask = _check_mask(mask, a.shape)
     if mask is not None:
