@@ -177,14 +177,30 @@ def test_bad_options_are_rejected(tiny, kwargs, message):
         reconstruct(image, proj, **{"iterations": 1, **kwargs})
 
 
-@pytest.mark.parametrize("bad, message", [
-    (np.zeros((50, 51)), "does not match"), (np.full((51, 51), np.nan), "NaN"),
-    (-np.ones((51, 51)), "negative"),
+@pytest.mark.parametrize("bad, message, kw", [
+    (np.zeros((50, 51)), "does not match", {}),
+    (np.full((51, 51), np.nan), r"NaN or Inf pixel\(s\), the first at row 0, column 0", {}),
+    (-np.ones((51, 51)), "negative", dict(background=None)),
+    (np.ones((51, 51)), "background must be", dict(background="mean")),
 ])
-def test_bad_images_are_rejected(tiny, bad, message):
+def test_bad_images_are_rejected(tiny, bad, message, kw):
     proj, _, _ = tiny
     with pytest.raises(ValueError, match=message):
-        reconstruct(bad, proj, iterations=1)
+        reconstruct(bad, proj, iterations=1, **kw)
+
+
+def test_the_median_background_and_noise_threshold_are_the_default(tiny):
+    """A dark level with read noise (negative pixels after dark subtraction) reconstructs
+    as the clean image does, by default; an image without light warns."""
+    proj, _, image = tiny
+    clean = reconstruct(image, proj, "mlem", iterations=10)
+    rng = np.random.default_rng(2)
+    noisy = image + 0.002 * image.max() * rng.standard_normal(image.shape) - 5e-4
+    assert noisy.min() < 0
+    got = reconstruct(noisy, proj, "mlem", iterations=10)
+    assert np.corrcoef(got.ravel(), clean.ravel())[0, 1] > 0.99
+    with pytest.warns(UserWarning, match="no light above its background"):
+        assert not reconstruct(np.full(image.shape, 7.0), proj, iterations=3).any()
 
 
 @pytest.mark.parametrize("rotation, jitter", [(0.0, 0.0), (2.0, 0.0), (0.3, 0.2)])

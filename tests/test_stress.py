@@ -352,8 +352,9 @@ def test_thousand_iterations_stay_bounded(queue, method, mart_blocks):
     rng = np.random.default_rng(5)
     image = rng.random(proj.image_shape)
     image[rng.integers(31, size=3), rng.integers(31, size=3)] = 1e4
+    # the inconsistent image as it is (no background removed: it is not a camera frame)
     vol, info = reconstruct(image, proj, method, 1000, 1.0 if method != "mart" else 0.7,
-                            mart_blocks=mart_blocks, return_info=True)
+                            mart_blocks=mart_blocks, background=None, return_info=True)
     assert info.iterations == 1000
     assert np.isfinite(vol).all() and vol.min() >= 0 and vol.max() > 0
     assert np.isfinite(info.residuals).all()
@@ -666,7 +667,10 @@ INVALID = [
     ("reconstruct-image-nan", _rec(_with_nan), ValueError, "NaN or Inf"),
     ("reconstruct-image-inf", _rec(lambda i: np.full(i.shape, np.inf)), ValueError,
      "NaN or Inf"),
-    ("reconstruct-image-negative", _rec(lambda i: i - 1.0), ValueError, "negative pixels"),
+    ("reconstruct-image-negative", _rec(lambda i: i - 1.0, background=None), ValueError,
+     "negative pixels"),
+    ("reconstruct-background", _rec(background="mean"), ValueError,
+     "background must be 'median' or None"),
     ("reconstruct-image-bool", _rec(lambda i: i > 0), ValueError, "image must be numeric"),
     ("reconstruct-relax-zero", _rec(relax=0.0), ValueError, "relax"),
     ("reconstruct-relax-above-one", _rec(relax=1.5), ValueError, "relax"),

@@ -19,20 +19,17 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     from ..io.files import read_image, save_volume
     from ..io.progress import iteration_bar
     from ..projection.projector import Projector
-    from ..reconstruction import DEFAULTS, reconstruct, subtract_background
+    from ..reconstruction import DEFAULTS, reconstruct
 
     camera, grid = load_camera(args.camera), Grid.from_toml(args.grid)
     image = read_image(args.raw)
-    threshold = args.threshold
-    if args.background == "auto":
-        image, noise = subtract_background(image)
-        threshold = 4 * noise if threshold is None else threshold
-    iterations = args.iterations or DEFAULTS[args.method][0]
+    iterations = DEFAULTS[args.method][0] if args.iterations is None else args.iterations
     proj = Projector(camera, grid, args.device)
     with iteration_bar(iterations, f"{args.method} {grid.shape}") as bar:
         vol, info = reconstruct(image, proj, args.method, iterations, args.relax,
-                                start=args.start, threshold=threshold or 0.0,
-                                mask_fraction=args.mask_fraction,
+                                start=args.start,
+                                background="median" if args.background == "auto" else None,
+                                threshold=args.threshold, mask_fraction=args.mask_fraction,
                                 min_sensitivity=args.min_sensitivity, tol=args.tol,
                                 callback=bar, return_info=True)
     save_volume(args.out, vol, grid)
@@ -71,11 +68,13 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--grid", required=True, help="grid TOML ([grid] shape, x_mm, y_mm, z_mm)")
     p.add_argument("--out", required=True, help="output volume: .npz (with grid), .npy or .h5")
     p.add_argument("--method", default="mlem", choices=["mlem", "smart", "mart"])
-    p.add_argument("--iterations", type=int, default=None, help="default: per method")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="default: per method (mlem and smart 30, mart 15); 0 returns the start")
     p.add_argument("--relax", type=float, default=None, help="relaxation 0 < mu <= 1")
     p.add_argument("--start", default="uniform", choices=["uniform", "mlos"])
     p.add_argument("--background", default="auto", choices=["auto", "none"],
-                   help="subtract the median background (default) or use the image as is")
+                   help="subtract the median background (default, as plenocl.reconstruct "
+                        "does) or use the image as is")
     p.add_argument("--threshold", type=float, default=None,
                    help="dark-pixel threshold (default: 4x the estimated noise)")
     p.add_argument("--mask-fraction", type=float, default=None,

@@ -182,12 +182,12 @@ def _stage_images(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
 def _reconstruct_file(run, sc, proj, tag: str, method: str, iterations: int, relax: float,
                       suffix: str = "") -> None:
     from ..io.progress import iteration_bar
-    from ..reconstruction import reconstruct, subtract_background
+    from ..reconstruction import reconstruct
 
-    img, noise = subtract_background(read_image(run.path(f"raw_{tag}.tif")))
+    img = read_image(run.path(f"raw_{tag}.tif"))
     with iteration_bar(iterations, f"{method} {tag}") as bar:
-        vol = reconstruct(img, proj, method, iterations, relax, threshold=4 * noise,
-                          callback=bar)
+        # the default preprocessing, as the API and the CLI: median background, 4 sigma
+        vol = reconstruct(img, proj, method, iterations, relax, callback=bar)
     save_volume(run.path(f"vol_{tag}{suffix}.npz"), vol, sc.grid)
 
 

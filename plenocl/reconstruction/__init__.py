@@ -11,7 +11,7 @@
 """
 
 from .blocks import device_view_blocks, view_blocks
-from .images import FLOAT32_LIMIT, prepare_image, subtract_background
+from .images import FLOAT32_LIMIT, NOISE_SIGMAS, prepare_image, preprocess, subtract_background
 from .operator import ProjectionOperator
 from .reconstruct import reconstruct, run_reconstruction
 from .settings import (
@@ -23,7 +23,8 @@ from .settings import (
 )
 from .solver import CROP_BELOW, UPDATES, Solver, extent_box, nonzero_box
 
-__all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "METHODS", "UPDATES",
+__all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "METHODS",
+           "NOISE_SIGMAS", "UPDATES", "preprocess",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings", "Solver",
            "device_view_blocks", "extent_box", "nonzero_box", "prepare_image", "reconstruct",
            "run_reconstruction", "subtract_background", "view_blocks"]

@@ -8,9 +8,17 @@ import numpy as np
 FLOAT32_LIMIT = 1e30
 
 
-def prepare_image(image, camera) -> tuple[np.ndarray, float]:
-    """Validate a raw image against the camera; return it as float32 scaled to max 1,
-    and the scale. Integer and float16 input is accepted."""
+#: With the median background removed, pixels count as light above this many noise
+#: standard deviations (the default ``threshold``).
+NOISE_SIGMAS = 4.0
+#: How the background is handled: subtract the median (and threshold at the noise), or
+#: take the image as it is.
+BACKGROUNDS = ("median", None)
+
+
+def check_image(image, camera) -> np.ndarray:
+    """A raw image as float64, checked against the camera: its shape, numeric, real and
+    finite (the first bad pixel is named)."""
     img = np.asarray(image)
     expected = (camera.pixels[1], camera.pixels[0])
     if img.shape != expected:
@@ -22,18 +30,63 @@ def prepare_image(image, camera) -> tuple[np.ndarray, float]:
         raise TypeError("image must hold real numbers, not complex; pass the intensity "
                         "(e.g. np.abs(image) ** 2)")
     img = img.astype(np.float64)
-    if not np.all(np.isfinite(img)):
-        raise ValueError("image contains NaN or Inf; replace bad pixels (e.g. by 0) first")
-    if img.min() < 0:
-        raise ValueError("image has negative pixels; subtract the background with clipping, "
-                         "e.g. np.clip(image - background, 0, None)")
+    bad = ~np.isfinite(img)
+    if bad.any():
+        row, col = (int(v) for v in np.argwhere(bad)[0])
+        raise ValueError(f"image contains {int(bad.sum())} NaN or Inf pixel(s), the first at "
+                         f"row {row}, column {col}; replace bad pixels (e.g. by 0 or the "
+                         "median of their neighbours) first")
+    return img
+
+
+def preprocess(image, camera, background: str | None = "median",
+               threshold: float | None = None) -> tuple[np.ndarray, float, float]:
+    """The one preprocessing of the API and the command line.
+
+    Parameters
+    ----------
+    image, camera
+        The raw image and its camera (:func:`check_image`).
+    background
+        ``"median"``: subtract the median (the camera's dark level at PIV seeding, where
+        most pixels see no particle), clipping at 0; ``None``: use the image as it is
+        (it must then be non-negative).
+    threshold
+        Pixels at or below it (image units, after the background) are dark. ``None``:
+        :data:`NOISE_SIGMAS` times the noise (median absolute deviation) with the median
+        background, else 0.
+
+    Returns
+    -------
+    image, scale, threshold
+        The float32 image scaled to a maximum of 1, the scale (0 for an image without
+        light) and the threshold in the scaled units.
+    """
+    img = check_image(image, camera)
+    if background == "median":
+        img, noise = _without_median(img)
+        thr = NOISE_SIGMAS * noise if threshold is None else float(threshold)
+    elif background is None:
+        if img.min() < 0:
+            raise ValueError("image has negative pixels; use background='median' (the "
+                             "default) or clip, e.g. np.clip(image - background, 0, None)")
+        thr = 0.0 if threshold is None else float(threshold)
+    else:
+        raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     scale = float(img.max())
     if scale > FLOAT32_LIMIT:
         raise ValueError(f"image maximum {scale:.3g} is beyond the float32 range plenocl "
                          f"reconstructs in (up to {FLOAT32_LIMIT:.0e}); rescale the image")
     if scale == 0:
-        return img.astype(np.float32), 0.0
-    return (img / scale).astype(np.float32), scale
+        return img.astype(np.float32), 0.0, thr
+    return (img / scale).astype(np.float32), scale, thr / scale
+
+
+def prepare_image(image, camera) -> tuple[np.ndarray, float]:
+    """A non-negative raw image as it is (no background removed), checked and scaled to a
+    maximum of 1; returns it and the scale (:func:`preprocess` with ``background=None``)."""
+    img, scale, _ = preprocess(image, camera, None, 0.0)
+    return img, scale
 
 
 def subtract_background(image) -> tuple[np.ndarray, float]:
@@ -44,7 +97,12 @@ def subtract_background(image) -> tuple[np.ndarray, float]:
     ``max(I - median, 0)`` and the noise standard deviation (a sensible ``threshold`` for
     :func:`reconstruct` is 3 to 5 times it).
     """
-    img = np.asarray(image, dtype=np.float64)
+    img, sigma = _without_median(np.asarray(image, dtype=np.float64))
+    return img.astype(np.float32), sigma
+
+
+def _without_median(img: np.ndarray) -> tuple[np.ndarray, float]:
+    """``max(I - median, 0)`` in float64 and the noise ``1.4826 MAD``."""
     med = float(np.median(img))
     sigma = 1.4826 * float(np.median(np.abs(img - med)))
-    return np.clip(img - med, 0, None).astype(np.float32), sigma
+    return np.clip(img - med, 0, None), sigma

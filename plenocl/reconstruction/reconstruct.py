@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import functools
 import time
+import warnings
 from collections.abc import Callable
 
 import numpy as np
 import pyopencl.array as cla
 
 from .blocks import device_view_blocks
-from .images import prepare_image
+from .images import preprocess
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
@@ -67,7 +68,8 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
 
 def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
                 iterations: int | None = None, relax: float | None = None, *,
-                start="uniform", threshold: float = 0.0, mask_fraction: float | None = None,
+                start="uniform", background: str | None = "median",
+                threshold: float | None = None, mask_fraction: float | None = None,
                 min_sensitivity: float = 0.5, skip_empty: bool = True, crop: bool = True,
                 skip_dark: bool = True, tol: float | None = None, mart_blocks: int = 2,
                 callback: Callable[[int, float], bool | None] | None = None,
@@ -92,8 +94,13 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
         ``"mlos"`` (weighted geometric mean of the pixels each voxel reaches), or a volume
         ``(nz, ny, nx)`` in image units: a previous frame's reconstruction, or an
         upsampled coarse one (its zero voxels stay zero).
+    background
+        ``"median"`` (default): subtract the image's median (the camera's dark level) and
+        clip at 0, as ``plenocl reconstruct`` does; ``None``: use the image as it is.
     threshold
-        Pixels at or below ``threshold`` (same units as ``image``) count as dark (zero).
+        Pixels at or below ``threshold`` (same units as ``image``, after the background)
+        count as dark (zero). ``None``: 4 times the noise (the median absolute deviation)
+        with the median background, else 0.
     mask_fraction
         Zero-pixel masking: voxels sending more than this fraction of their light onto
         dark pixels start at zero and stay there (``0``: any dark pixel; ``None``: off).
@@ -133,7 +140,8 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
         float32 volume ``(nz, ny, nx)`` in the image's intensity units; never NaN or Inf.
     """
     settings = ReconstructionSettings(
-        method=method, iterations=iterations, relax=relax, start=start, threshold=threshold,
+        method=method, iterations=iterations, relax=relax, start=start,
+        background=background, threshold=threshold,
         mask_fraction=mask_fraction, min_sensitivity=min_sensitivity, skip_empty=skip_empty,
         crop=crop, skip_dark=skip_dark, tol=tol, mart_blocks=mart_blocks)
     vol, info = run_reconstruction(image, projector, settings, callback)
@@ -146,11 +154,13 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
     returns the volume and its :class:`ReconstructionInfo`."""
     t0 = time.perf_counter()
-    img_np, scale = prepare_image(image, projector.camera)
+    img_np, scale, thr = preprocess(image, projector.camera, settings.background,
+                                    settings.threshold)
     info = ReconstructionInfo(settings.method)
     if scale == 0:
+        warnings.warn("the image holds no light above its background: the volume is empty "
+                      "(check the exposure, the file, or background=None)", stacklevel=3)
         return np.zeros(projector.grid.shape, np.float32), info
-    thr = float(settings.threshold) / scale
     lit = None
     if settings.skip_dark:
         lit = projector.lit_lenses(img_np, thr)

@@ -38,7 +38,8 @@ class ReconstructionSettings:
     iterations: int | None = None
     relax: float | None = None
     start: str | np.ndarray = field(default="uniform", compare=False)
-    threshold: float = 0.0
+    threshold: float | None = None
+    background: str | None = "median"
     mask_fraction: float | None = None
     min_sensitivity: float = 0.5
     skip_empty: bool = True
@@ -62,8 +63,11 @@ class ReconstructionSettings:
 
 
 def _check_options(s: ReconstructionSettings) -> None:
-    if not np.isfinite(s.threshold):
-        raise ValueError(f"threshold must be a finite number (image units), got {s.threshold!r}")
+    if s.threshold is not None and not np.isfinite(s.threshold):
+        raise ValueError(f"threshold must be a finite number (image units) or None (from the "
+                         f"noise), got {s.threshold!r}")
+    if s.background not in ("median", None):
+        raise ValueError(f"background must be 'median' or None, got {s.background!r}")
     if int(s.mart_blocks) != s.mart_blocks or not 1 <= s.mart_blocks <= MAX_MART_BLOCKS:
         raise ValueError(f"mart_blocks must be an integer from 1 to {MAX_MART_BLOCKS} "
                          f"(n x n blocks of views), got {s.mart_blocks!r}")
