@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -48,3 +49,35 @@ def test_a_missing_output_reruns_only_its_stage(demo_dir, capsys):
     out = capsys.readouterr().out
     assert "[reconstruction] done earlier" in out and "[piv] ..." in out
     assert (demo_dir / "field.vti").is_file()
+
+
+def _readme_blocks(language: str) -> list[str]:
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    return re.findall(rf"```{language}\n(.*?)```", text, flags=re.S)
+
+
+def test_readme_python_blocks_run_as_written(demo_dir, tmp_path, monkeypatch):
+    """Every Python block of the README runs after its first command (the demo), reading
+    the files the demo wrote (here from the test's demo folder, linked as ``demo``)."""
+    (tmp_path / "demo").symlink_to(demo_dir, target_is_directory=True)
+    monkeypatch.chdir(tmp_path)
+    blocks = _readme_blocks("python")
+    assert blocks
+    for block in blocks:
+        namespace: dict = {}
+        exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102
+    assert namespace["res"].valid.mean() > 0.5
+
+
+def test_readme_toml_blocks_are_valid_files(tmp_path):
+    """The README's camera and grid files load as written."""
+    from plenocl import Camera, Grid
+
+    loaded = []
+    for k, block in enumerate(_readme_blocks("toml")):
+        path = tmp_path / f"block{k}.toml"
+        path.write_text(block)
+        loaded.append(Grid.from_toml(path) if "[grid]" in block else Camera.from_toml(path))
+    assert {type(x).__name__ for x in loaded} == {"Camera", "Grid"}
