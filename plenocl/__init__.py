@@ -1,5 +1,6 @@
 """plenocl: volumetric 3-D PIV from a single plenoptic camera, with OpenCL kernels."""
 
+from . import flows, metrics
 from .calibration import calibrate
 from .camera import PRESETS, Camera
 from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices, get_queue
@@ -26,7 +27,9 @@ __all__ = [
     "calibrate",
     "create_context",
     "describe_devices",
+    "flows",
     "get_queue",
+    "metrics",
     "piv3d",
     "random_particles",
     "reconstruct",

@@ -714,7 +714,8 @@ def warn_about(fit: CenterFit) -> None:
     if fit.residual_rms_px > 0.25:
         warnings.warn(f"the spot centroids scatter by {fit.residual_rms_px:.2f} px RMS about the "
                       f"grid model: the white image is noisy or the array distorted; check the "
-                      "diagnostic image (diagnostic_png=...)", stacklevel=3)
+                      "diagnostic image (plenocl calibrate --diagnostic FILE.png, or "
+                      "calibrate(..., diagnostic_png=...))", stacklevel=3)
 
 
 def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:

@@ -336,4 +336,7 @@ def load_camera(spec: str | Path | None) -> Camera:
     ``synthetic``)."""
     if spec is None or spec in PRESETS:
         return PRESETS[spec or "synthetic"]()
+    if not Path(spec).is_file():
+        raise FileNotFoundError(f"no camera file {spec!s} and no preset of that name; give a "
+                                f"camera TOML file or one of the presets {sorted(PRESETS)}")
     return Camera.from_toml(spec)

@@ -9,6 +9,7 @@ where the device has 64-bit atomics: the image is then bit-for-bit repeatable.
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pyopencl.array as cl_array
@@ -231,7 +232,31 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
                          bit_depth, saturation)
     clean = Simulator(camera, queue).trace(positions, intensities, rays_per_particle, seed,
                                            blur_px, lens_transmission, lens_shift_mm)
+    _warn_if_unusable(camera, clean, float(np.sum(intensities)) if np.size(intensities) else 0)
     return sensor.apply(clean, seed)
+
+
+#: A simulated particle image whose brightest pixel stays below this many counts warns:
+#: reconstructions of such images lose most particles.
+DIM_IMAGE_COUNTS = 50.0
+
+
+def _warn_if_unusable(camera: Camera, clean: np.ndarray, light: float) -> None:
+    """Warn about an image without light (particles outside the field of view) or one
+    too dim to reconstruct well."""
+    if light <= 0:
+        return
+    peak = float(clean.max())
+    if peak == 0:
+        half = np.array(camera.ml_count) * camera.ml_pitch_mm / camera.magnification / 2
+        warnings.warn("no light of the particles reached the sensor: they lie outside the "
+                      f"field of view (about x in ±{half[0]:.2f}, y in ±{half[1]:.2f} mm at "
+                      "z = 0)", stacklevel=3)
+    elif peak < DIM_IMAGE_COUNTS:
+        warnings.warn(f"the image peaks at {peak:.1f} counts: too dim to reconstruct well "
+                      "(most particles are lost below about 50); raise the intensities "
+                      "(counts each particle sends through the aperture, e.g. 2e4)",
+                      stacklevel=3)
 
 
 def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import tifffile
 
 from plenocl.cli.main import main
@@ -58,3 +59,63 @@ def test_synthetic_reconstruction_example_runs(tmp_path):
     out = subprocess.run([sys.executable, str(EXAMPLES / "synthetic_reconstruction.py"), "8",
                           "3"], check=True, capture_output=True, text=True, cwd=tmp_path)
     assert "paper's MART" in out.stdout and "default (MLEM" in out.stdout
+
+
+def test_cli_rounds_out(tmp_path, capsys):
+    """--version, --device after the subcommand, defaults in the help, presets listed for
+    a misspelt camera, an empty image file named, a particle CSV without its header,
+    volumes of different grids refused, a rotated grid kept by the volume file."""
+    import numpy as np
+
+    from plenocl import Grid
+    from plenocl.cli.main import build_parser, main
+    from plenocl.io import load_volume, read_particles, save_volume
+
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0 and "plenocl 0." in capsys.readouterr().out
+    args = build_parser().parse_args(["piv", "a.npz", "b.npz", "--dt", "1e-4", "--out", "f.vti",
+                                      "--device", "pthread"])
+    assert args.device == "pthread"
+    assert build_parser().parse_args(["--device", "cpu", "devices"]).device == "cpu"
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    assert "(default: 2000)" in capsys.readouterr().out
+    empty = tmp_path / "raw.tif"
+    empty.write_bytes(b"")
+    assert main(["reconstruct", str(empty), "--camera", "synthtic", "--grid", "g.toml",
+                 "--out", str(tmp_path / "v.npz")]) == 2
+    assert "presets ['paper', 'synthetic']" in capsys.readouterr().err
+    from plenocl.io import read_image
+
+    with pytest.raises(ValueError, match="raw.tif is empty"):
+        read_image(empty)
+    csv = tmp_path / "p.csv"
+    csv.write_text("0.1,0.2,0.3\n0.4,0.5,0.6\n")
+    with pytest.raises(ValueError, match="is a particle, not the header"):
+        read_particles(csv)
+    g1 = Grid((8, 8, 8), (-1, 1), (-1, 1), (-1, 1), rotation_deg=0.3)
+    g2 = Grid((8, 8, 8), (-1, 1), (-1, 1), (-2, 2))
+    vol = np.random.default_rng(0).random((8, 8, 8)).astype(np.float32)
+    save_volume(tmp_path / "a.npz", vol, g1)
+    save_volume(tmp_path / "b.npz", vol, g2)
+    assert load_volume(tmp_path / "a.npz")[1] == g1
+    assert main(["piv", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--dt", "1e-4",
+                 "--out", str(tmp_path / "f.npz")]) == 2
+    assert "different grids" in capsys.readouterr().err
+
+
+def test_likely_mistakes_warn_in_the_library(queue):
+    """Particles outside the field of view, an image too dim to reconstruct, a grid
+    reaching well beyond the field of view."""
+    from plenocl import Camera, Grid, Projector, reconstruct, simulate_image
+
+    cam = Camera.synthetic_850()
+    with pytest.warns(UserWarning, match="outside the field of view"):
+        simulate_image(cam, np.array([[40.0, 0.0, 0.0]]), 1e4, 200, queue=queue)
+    with pytest.warns(UserWarning, match="too dim"):
+        simulate_image(cam, np.array([[0.1, 0.0, 0.0]]), 1000.0, 2000, queue=queue)
+    img = simulate_image(cam, np.array([[0.1, 0.2, 0.3]]), 2e4, 2000, queue=queue)
+    wide = Grid((8, 40, 40), x=(-6.0, 6.0), y=(-6.0, 6.0), z=(-1.0, 1.0))
+    with pytest.warns(UserWarning, match="beyond the camera's field of view"):
+        reconstruct(img, Projector(cam, wide, queue), iterations=1)

@@ -477,3 +477,12 @@ def test_default_windows_fit_the_volume():
     res = piv3d(vol, np.roll(vol, 2, axis=2))
     assert res.window == (16, 24, 24)
     assert np.nanmedian(res.u[res.valid]) == pytest.approx(2.0, abs=0.05)
+
+
+def test_likely_mistakes_warn(small_result):
+    """dt typed in microseconds and windows that grow from pass to pass."""
+    with pytest.warns(UserWarning, match="dt = 175 s .* 175e-6"):
+        small_result.velocity(0.1, 175)
+    vol = np.random.default_rng(1).random((24, 24, 24)).astype(np.float32)
+    with pytest.warns(UserWarning, match="larger than pass 1's"):
+        piv3d(vol, vol, windows=(16, 24), final_iterations=1)

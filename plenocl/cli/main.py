@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -62,7 +63,8 @@ def _add_simulate(sub) -> None:
                    help="CSV with header x_mm,y_mm,z_mm[,intensity]")
     p.add_argument("--out", required=True, help="output 16-bit TIFF")
     p.add_argument("--rays", type=int, default=2000, help="rays per particle")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the ray sampling (the same seed gives the same image)")
     p.add_argument("--blur", type=float, default=0.0, help="particle-image blur (px)")
     p.add_argument("--background", type=float, default=0.0, help="background (counts)")
     p.add_argument("--photon-noise", action="store_true", help="add Poisson shot noise")
@@ -70,13 +72,46 @@ def _add_simulate(sub) -> None:
     p.set_defaults(func=cmd_simulate)
 
 
+DEVICE_HELP = ("OpenCL device name or type substring (default: PYOPENCL_CTX, else a GPU, "
+               "else a CPU)")
+
+
+class _DefaultsHelp(argparse.HelpFormatter):
+    """Help that states each option's default, unless it is none or already stated."""
+
+    def _get_help_string(self, action) -> str:
+        text = action.help or ""
+        if ("default" not in text and action.default not in (None, False, argparse.SUPPRESS)
+                and action.option_strings):
+            text += " (default: %(default)s)"
+        return text
+
+
+class _Subcommands:
+    """The subparsers, each made with the defaults shown in its help and ``--device``
+    accepted after the subcommand as well as before it."""
+
+    def __init__(self, action, common: argparse.ArgumentParser) -> None:
+        self._action, self._common = action, common
+
+    def add_parser(self, name: str, **kw) -> argparse.ArgumentParser:
+        kw.setdefault("formatter_class", _DefaultsHelp)
+        kw["parents"] = [*kw.get("parents", []), self._common]
+        kw.setdefault("description", kw.get("help"))
+        return self._action.add_parser(name, **kw)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every registered subcommand."""
-    parser = argparse.ArgumentParser(prog="plenocl", description=__doc__.split("\n")[0])
-    parser.add_argument("--device", default=None,
-                        help="OpenCL device name or type substring (default: PYOPENCL_CTX, "
-                             "else a GPU, else a CPU)")
-    sub = parser.add_subparsers(dest="command", required=True)
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(prog="plenocl", description=" ".join(__doc__.split()),
+                                     formatter_class=_DefaultsHelp)
+    parser.add_argument("--version", action="version", version=f"plenocl {__version__}")
+    parser.add_argument("--device", default=None, help=DEVICE_HELP)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--device", default=argparse.SUPPRESS, help=DEVICE_HELP)
+    sub = _Subcommands(parser.add_subparsers(dest="command", required=True), common)
     dev = sub.add_parser("devices", help="list OpenCL platforms and devices")
     dev.add_argument("--agree", action="store_true",
                      help="run the same small workloads on every device and compare them "
@@ -93,10 +128,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``plenocl`` and ``python -m plenocl``."""
+    """Entry point of ``plenocl`` and ``python -m plenocl``: errors print one line and
+    exit 2, Ctrl-C exits 130, warnings print once each as ``plenocl CMD: warning: ...``."""
     args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, MemoryError, RuntimeError) as exc:
-        print(f"plenocl {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        warnings.showwarning = _warning_printer(args.command)
+        try:
+            return int(args.func(args) or 0)
+        except (ValueError, FileNotFoundError, MemoryError, RuntimeError) as exc:
+            print(f"plenocl {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"plenocl {args.command}: interrupted; finished outputs are kept, "
+                  "unfinished ones were not written", file=sys.stderr)
+            return 130
+
+
+def _warning_printer(command: str):
+    """A ``warnings.showwarning`` that prints each message once, without a source line."""
+    seen: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message)
+        if text not in seen:
+            seen.add(text)
+            print(f"plenocl {command}: warning: {text}", file=sys.stderr)
+
+    return show

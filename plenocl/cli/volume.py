@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import argparse
+import warnings
 
 from ..camera import load_camera
 
@@ -22,6 +23,10 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     from ..reconstruction import DEFAULTS, reconstruct
 
     camera, grid = load_camera(args.camera), Grid.from_toml(args.grid)
+    if not camera.calibrated:
+        warnings.warn(f"the camera {args.camera} has no [calibration]: the nominal microlens "
+                      "centres are used; calibrate real cameras first (plenocl calibrate)",
+                      stacklevel=2)
     image = read_image(args.raw)
     iterations = DEFAULTS[args.method][0] if args.iterations is None else args.iterations
     proj = Projector(camera, grid, args.device)
@@ -46,7 +51,10 @@ def piv_command(args: argparse.Namespace) -> int:
     from ..piv import auto_windows, piv3d
 
     vol_a, grid_a = load_volume(args.vol_a)
-    vol_b, _ = load_volume(args.vol_b)
+    vol_b, grid_b = load_volume(args.vol_b)
+    if grid_a is not None and grid_b is not None and grid_a != grid_b:
+        raise ValueError(f"{args.vol_a} and {args.vol_b} were reconstructed on different "
+                         f"grids ({grid_a} and {grid_b}); reconstruct both images on one grid")
     grid = Grid.from_toml(args.grid) if args.grid else grid_a
     if grid is None:
         raise ValueError("the volumes carry no grid (.npy): give --grid grid.toml so that "
@@ -67,11 +75,14 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--camera", required=True, help="calibrated camera TOML (or a preset name)")
     p.add_argument("--grid", required=True, help="grid TOML ([grid] shape, x_mm, y_mm, z_mm)")
     p.add_argument("--out", required=True, help="output volume: .npz (with grid), .npy or .h5")
-    p.add_argument("--method", default="mlem", choices=["mlem", "smart", "mart"])
+    p.add_argument("--method", default="mlem", choices=["mlem", "smart", "mart"],
+                   help="mlem: multiplicative EM, keeps in-focus particles; smart: "
+                        "simultaneous MART; mart: the paper's block MART")
     p.add_argument("--iterations", type=int, default=None,
                    help="default: per method (mlem and smart 30, mart 15); 0 returns the start")
     p.add_argument("--relax", type=float, default=None, help="relaxation 0 < mu <= 1")
-    p.add_argument("--start", default="uniform", choices=["uniform", "mlos"])
+    p.add_argument("--start", default="uniform", choices=["uniform", "mlos"],
+                   help="first guess: a uniform volume carrying the image's light, or MLOS")
     p.add_argument("--background", default="auto", choices=["auto", "none"],
                    help="subtract the median background (default, as plenocl.reconstruct "
                         "does) or use the image as is")

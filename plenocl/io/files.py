@@ -19,22 +19,32 @@ def write_tiff(path: str | Path, image: np.ndarray) -> None:
         tifffile.imwrite(tmp, np.asarray(image), photometric="minisblack")
 
 
+def _read_any(path: Path) -> np.ndarray:
+    suffix = path.suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        return tifffile.imread(path)
+    if suffix == ".npy":
+        return np.load(path)
+    import skimage.io
+
+    return skimage.io.imread(path)
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """Read a raw image (TIFF, PNG or ``.npy``) as a 2-D array, with clear errors."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such image file: {path}")
-    suffix = path.suffix.lower()
-    if suffix in (".tif", ".tiff"):
-        import tifffile
-
-        image = tifffile.imread(path)
-    elif suffix == ".npy":
-        image = np.load(path)
-    else:
-        import skimage.io
-
-        image = skimage.io.imread(path)
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path} is empty (0 bytes): the file was not written completely; "
+                         "copy or export it again")
+    try:
+        image = _read_any(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"cannot read {path} as an image ({exc}); plenocl reads TIFF, PNG "
+                         "and .npy files") from None
     if image.ndim == 3 and image.shape[-1] in (3, 4):
         raise ValueError(f"{path} is a colour image; plenocl needs the raw monochrome sensor "
                          "image (one value per pixel)")
@@ -61,6 +71,7 @@ def read_particles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such particle file: {path}")
+    _check_particle_header(path)
     try:
         data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as exc:
@@ -73,6 +84,20 @@ def read_particles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return data[:, :3], intens
 
 
+def _check_particle_header(path: Path) -> None:
+    """The first line must be the header, not a particle (it would be skipped silently)."""
+    with path.open(encoding="utf-8", errors="replace") as fh:
+        first = fh.readline().strip()
+    try:
+        [float(v) for v in first.split(",") if v.strip()]
+    except ValueError:
+        return  # words: a header
+    if first:
+        raise ValueError(f"{path}: the first line {first!r} is a particle, not the header "
+                         "'x_mm,y_mm,z_mm[,intensity]'; add the header line so that no "
+                         "particle is lost")
+
+
 def save_volume(path: str | Path, vol: np.ndarray, grid=None) -> None:
     """Save a volume atomically: ``.npy`` (array only), ``.npz`` or ``.h5`` (with the grid).
 
@@ -81,7 +106,8 @@ def save_volume(path: str | Path, vol: np.ndarray, grid=None) -> None:
     path = Path(path)
     suffix = path.suffix.lower()
     meta = {} if grid is None else {"shape": np.array(grid.shape), "x_mm": np.array(grid.x),
-                                    "y_mm": np.array(grid.y), "z_mm": np.array(grid.z)}
+                                    "y_mm": np.array(grid.y), "z_mm": np.array(grid.z),
+                                    "rotation_deg": np.array(grid.rotation_deg)}
     with atomic_path(path) as tmp:
         if suffix == ".npy":
             with tmp.open("wb") as fh:
@@ -101,7 +127,9 @@ def _save_h5(tmp: Path, vol: np.ndarray, meta: dict) -> None:
     except ImportError:
         raise ImportError("writing .h5 needs h5py: pip install h5py (or use .npz)") from None
     with h5py.File(tmp, "w") as fh:
-        fh.create_dataset("volume", data=vol, compression="gzip")
+        data = fh.create_dataset("volume", data=vol, compression="gzip")
+        data.attrs["axes"] = "z, y, x (vol[iz, iy, ix])"
+        data.attrs["units"] = "reconstructed intensity (image counts)"
         for key, value in meta.items():
             fh.attrs[key] = value
 
@@ -131,5 +159,6 @@ def load_volume(path: str | Path) -> tuple[np.ndarray, object]:
     grid = None
     if meta:
         grid = Grid(tuple(int(n) for n in meta["shape"]), tuple(meta["x_mm"]),
-                    tuple(meta["y_mm"]), tuple(meta["z_mm"]))
+                    tuple(meta["y_mm"]), tuple(meta["z_mm"]),
+                    float(meta.get("rotation_deg", 0.0)))
     return vol, grid

@@ -15,6 +15,7 @@ Building blocks live in :mod:`plenocl.piv.correlation` (windows, FFT correlation
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -129,6 +130,10 @@ def displacement_to_velocity(displacement, voxel_size_mm, dt: float):
     """
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive time in seconds, got {dt!r}")
+    if dt > 1.0:
+        warnings.warn(f"dt = {dt:g} s between the exposures is unusually long for PIV "
+                      "(microseconds to milliseconds): dt is in seconds, e.g. 175 µs is "
+                      "175e-6", stacklevel=3)
     dz, dy, dx = voxel_size(voxel_size_mm)
     return tuple(np.asarray(c) * s * 1e-3 / dt for c, s in zip(displacement, (dx, dy, dz)))
 
@@ -205,6 +210,10 @@ def _schedule(shape: Size3, windows, overlaps, final_iterations: int):
                         "larger volume")
                 raise ValueError(f"window {s} of pass {k} is larger than the volume along "
                                  f"{axis} ({n} voxels); {hint}")
+        if passes and any(a > b for a, b in zip(size, passes[-1][0])):
+            warnings.warn(f"the window of pass {k} {size} is larger than pass {k - 1}'s "
+                          f"{passes[-1][0]}: multi-pass PIV refines, so windows should "
+                          "shrink (or stay) from pass to pass", stacklevel=4)
         if not (0.0 <= float(ovl) < 1.0):
             raise ValueError(f"overlap of pass {k} must be a fraction in [0, 1), got {ovl!r}")
         passes.append((size, float(ovl)))

@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import time
 import warnings
+import weakref
 from collections.abc import Callable
 
 import numpy as np
@@ -64,6 +65,26 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
             info.converged = True
             break
     return solver.volume_to_host(vol, full_shape)
+
+
+#: Warn when more than this fraction of the grid's voxels send too little light to the
+#: sensor to be reconstructed (the grid reaches beyond the field of view).
+OUTSIDE_WARN = 0.25
+_WARNED: weakref.WeakSet = weakref.WeakSet()
+
+
+def _warn_if_outside(projector, solver: Solver, min_sensitivity: float) -> None:
+    """Once per projector: warn when much of the grid lies outside the field of view."""
+    if projector in _WARNED:
+        return
+    _WARNED.add(projector)
+    dark = sum(int((s.get() <= solver.smin).sum()) for s in solver.sens)
+    fraction = dark / projector.grid.size
+    if fraction > OUTSIDE_WARN:
+        warnings.warn(f"{fraction:.0%} of the grid's voxels send no more than "
+                      f"{min_sensitivity:g} of their light to the sensor and are not "
+                      "reconstructed: the grid reaches beyond the camera's field of view; "
+                      "shrink it (Grid.for_camera fits the field of view)", stacklevel=4)
 
 
 def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
@@ -166,6 +187,7 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
         lit = projector.lit_lenses(img_np, thr)
         info.lit_lens_fraction = float(lit.mean())
     solver = Solver(projector, settings.min_sensitivity, lit)
+    _warn_if_outside(projector, solver, settings.min_sensitivity)
     img = cla.to_device(solver.queue, img_np)
     vol = solver.start(img, settings.start, thr, scale)
     if settings.mask_fraction is not None:
