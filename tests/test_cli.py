@@ -119,3 +119,32 @@ def test_likely_mistakes_warn_in_the_library(queue):
     wide = Grid((8, 40, 40), x=(-6.0, 6.0), y=(-6.0, 6.0), z=(-1.0, 1.0))
     with pytest.warns(UserWarning, match="beyond the camera's field of view"):
         reconstruct(img, Projector(cam, wide, queue), iterations=1)
+
+
+def test_a_whole_experiment_from_the_command_line(tmp_path, capsys):
+    """white image -> calibrate -> grid -> displaced pair -> reconstruct -> piv, all from
+    the command line: the field moves the way the particles were moved."""
+    from plenocl import random_particles
+    from plenocl.io import read_npz, write_particles
+
+    d = tmp_path
+    assert main(["white", "--out", str(d / "white.tif"), "--photon-noise"]) == 0
+    assert main(["calibrate", str(d / "white.tif"), "--camera", "synthetic",
+                 "--out", str(d / "cam.toml")]) == 0
+    assert main(["grid", "--camera", str(d / "cam.toml"), "--z", "-2", "2",
+                 "--fraction", "0.6", "--out", str(d / "grid.toml")]) == 0
+    pos, inten = random_particles(((-1.6, 1.6), (-1.6, 1.6), (-1.8, 1.8)), count=300,
+                                  seed=2, intensity=3e4)
+    write_particles(d / "p.csv", pos, inten)
+    # 0.25 m/s for 1 ms: 0.25 mm, two voxels of 0.125 mm along x
+    assert main(["simulate", "--particles", str(d / "p.csv"), "--velocity", "0.25", "0", "0",
+                 "--dt", "1e-3", "--rays", "3000", "--out", str(d / "raw.tif")]) == 0
+    for tag in "ab":
+        assert main(["reconstruct", str(d / f"raw_{tag}.tif"), "--camera", str(d / "cam.toml"),
+                     "--grid", str(d / "grid.toml"), "--out", str(d / f"vol_{tag}.npz")]) == 0
+    assert main(["piv", str(d / "vol_a.npz"), str(d / "vol_b.npz"), "--dt", "1e-3",
+                 "--out", str(d / "field.npz")]) == 0
+    res, arrays = read_npz(d / "field.npz")
+    u = arrays["velocity"][0][res.valid]
+    assert np.median(u) == pytest.approx(0.25, rel=0.1)
+    assert "windows per pass" in capsys.readouterr().out

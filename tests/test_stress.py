@@ -458,6 +458,8 @@ def ctx(tiny, queue, tmp_path_factory):
     cam, proj, img = tiny
     d = tmp_path_factory.mktemp("bad_inputs")
     (d / "two_columns.csv").write_text("x_mm,y_mm\n1,2\n3,4\n")
+    (d / "no_header.csv").write_text("0.1,0.2,0.3\n0.4,0.5,0.6\n")
+    (d / "empty.tif").write_bytes(b"")
     (d / "five_columns.csv").write_text("a,b,c,d,e\n1,2,3,4,5\n")
     (d / "header_only.csv").write_text("x_mm,y_mm,z_mm\n")
     (d / "text.csv").write_text("x_mm,y_mm,z_mm\na,b,c\n")
@@ -740,6 +742,9 @@ INVALID = [
      "at least one row"),
     ("read-particles-text", _file(read_particles, "text.csv"), ValueError,
      "expected CSV rows 'x_mm,y_mm,z_mm"),
+    ("read-particles-no-header", _file(read_particles, "no_header.csv"), ValueError,
+     "is a particle, not the header"),
+    ("read-image-empty", _file(read_image, "empty.tif"), ValueError, r"empty \(0 bytes\)"),
     ("read-image-missing", _file(read_image, "nope.tif"), FileNotFoundError,
      "no such image file"),
     ("read-image-colour", _file(read_image, "colour.npy"), ValueError, "is a colour image"),

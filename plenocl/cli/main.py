@@ -1,5 +1,5 @@
 """The ``plenocl`` command line: devices | simulate | calibrate | refocus | reconstruct |
-piv | demo | bench."""
+piv | demo | bench (and white, grid)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,10 @@ import argparse
 import sys
 import warnings
 from collections.abc import Sequence
-from pathlib import Path
 
-from ..camera import load_camera
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser, add_refocus_parser
+from .simulate import add_simulate_parsers
 from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 
 
@@ -35,41 +34,6 @@ def cmd_devices(args: argparse.Namespace) -> int:
     bad = [r for r in rows if not r.ok]
     print(f"\n{len(rows) - len(bad)} of {len(rows)} comparisons within tolerance")
     return 1 if bad else 0
-
-
-def cmd_simulate(args: argparse.Namespace) -> int:
-    """Simulate the raw image of the particles in a CSV file; write a 16-bit TIFF."""
-    from ..io.files import read_particles, write_particles, write_tiff
-    from ..simulate import simulate_image
-
-    cam = load_camera(args.camera)
-    positions, intensities = read_particles(args.particles)
-    image = simulate_image(cam, positions, intensities, args.rays, args.seed,
-                           blur_px=args.blur, background=args.background,
-                           photon_noise=args.photon_noise, read_noise=args.read_noise,
-                           bit_depth=16, queue=args.device)
-    out = Path(args.out)
-    truth = out.with_name(out.stem + "_particles.csv")
-    write_tiff(out, image)
-    write_particles(truth, positions, intensities)
-    print(f"wrote {out} ({image.shape[1]} x {image.shape[0]} px, max {image.max()}) and {truth}")
-    return 0
-
-
-def _add_simulate(sub) -> None:
-    p = sub.add_parser("simulate", help="simulate a raw plenoptic image of particles")
-    p.add_argument("--camera", help="camera TOML file or preset (synthetic, paper)")
-    p.add_argument("--particles", required=True,
-                   help="CSV with header x_mm,y_mm,z_mm[,intensity]")
-    p.add_argument("--out", required=True, help="output 16-bit TIFF")
-    p.add_argument("--rays", type=int, default=2000, help="rays per particle")
-    p.add_argument("--seed", type=int, default=0,
-                   help="seed of the ray sampling (the same seed gives the same image)")
-    p.add_argument("--blur", type=float, default=0.0, help="particle-image blur (px)")
-    p.add_argument("--background", type=float, default=0.0, help="background (counts)")
-    p.add_argument("--photon-noise", action="store_true", help="add Poisson shot noise")
-    p.add_argument("--read-noise", type=float, default=0.0, help="read noise (counts)")
-    p.set_defaults(func=cmd_simulate)
 
 
 DEVICE_HELP = ("OpenCL device name or type substring (default: PYOPENCL_CTX, else a GPU, "
@@ -117,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run the same small workloads on every device and compare them "
                           "with the first (stated tolerances; exit 1 beyond them)")
     dev.set_defaults(func=cmd_devices)
-    _add_simulate(sub)
+    add_simulate_parsers(sub)
     add_calibrate_parser(sub)
     add_refocus_parser(sub)
     add_reconstruct_parser(sub)

@@ -1,0 +1,130 @@
+"""``plenocl simulate``, ``plenocl white`` and ``plenocl grid``: synthetic raw images,
+displaced pairs, white images and grid files from the command line.
+
+::
+
+    plenocl simulate --camera cam.toml --particles p.csv --out raw.tif
+    plenocl simulate --camera cam.toml --particles p.csv --velocity 4.5 0 0 --dt 175e-6 \
+        --out raw.tif                                 # raw_a.tif and raw_b.tif
+    plenocl white --camera cam.toml --out white.tif
+    plenocl grid --camera cam_cal.toml --z -2 2 --out grid.toml
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..camera import load_camera
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Simulate the raw image of the particles in a CSV file (16-bit TIFF); with a flow,
+    the pair of images ``dt`` apart, the particles at ``-dt/2`` and ``+dt/2``."""
+    from ..flows import SolidBodyRotation, Uniform, displace
+    from ..io.files import read_particles, write_particles
+
+    cam = load_camera(args.camera)
+    positions, intensities = read_particles(args.particles)
+    out = Path(args.out)
+    if args.velocity is None and args.omega is None:
+        _simulate_one(args, cam, out, positions, intensities)
+        write_particles(out.with_name(out.stem + "_particles.csv"), positions, intensities)
+        return 0
+    if args.dt is None or not args.dt > 0:
+        raise ValueError("a displaced pair needs --dt, the time between the exposures (s)")
+    flow = (Uniform(tuple(1e3 * v for v in args.velocity)) if args.omega is None
+            else SolidBodyRotation(tuple(args.omega)))  # mm/s; rad/s
+    for tag, sign in (("a", -0.5), ("b", 0.5)):
+        moved = displace(positions, flow, sign * args.dt)
+        path = out.with_name(f"{out.stem}_{tag}{out.suffix}")
+        _simulate_one(args, cam, path, moved, intensities)
+        write_particles(path.with_name(path.stem + "_particles.csv"), moved, intensities)
+    return 0
+
+
+def _simulate_one(args, cam, out: Path, positions, intensities) -> None:
+    from ..io.files import write_tiff
+    from ..simulate import simulate_image
+
+    image = simulate_image(cam, positions, intensities, args.rays, args.seed,
+                           blur_px=args.blur, background=args.background,
+                           photon_noise=args.photon_noise, read_noise=args.read_noise,
+                           bit_depth=16, queue=args.device)
+    write_tiff(out, image)
+    print(f"wrote {out} ({image.shape[1]} x {image.shape[0]} px, max {image.max()})")
+
+
+def cmd_white(args: argparse.Namespace) -> int:
+    """Simulate a white (calibration) image of the camera's physical array."""
+    from ..io.files import write_tiff
+    from ..simulate import simulate_white_image
+
+    cam = load_camera(args.camera)
+    image = simulate_white_image(cam, stop_f_number=args.stop_f_number,
+                                 intensity=args.intensity, seed=args.seed,
+                                 photon_noise=args.photon_noise, read_noise=args.read_noise,
+                                 bit_depth=16, queue=args.device)
+    write_tiff(args.out, image)
+    print(f"wrote {args.out} ({image.shape[1]} x {image.shape[0]} px, max {image.max()})")
+    return 0
+
+
+def cmd_grid(args: argparse.Namespace) -> int:
+    """Write the grid that fits the camera's field of view (Grid.for_camera)."""
+    from ..grid import Grid
+
+    grid = Grid.for_camera(load_camera(args.camera), tuple(args.z), voxel_mm=args.voxel_mm,
+                           depth_voxel_mm=args.depth_voxel_mm, fraction=args.fraction)
+    grid.to_toml(args.out)
+    dz, dy, dx = grid.spacing
+    print(f"wrote {args.out}: {grid.shape} voxels (z, y, x) of {dx:.4g} x {dy:.4g} x "
+          f"{dz:.4g} mm, rotated {grid.rotation_deg:.4f} deg")
+    return 0
+
+
+def _camera_and_noise(p, sensor_noise: bool = True) -> None:
+    p.add_argument("--camera", default=None,
+                   help="camera TOML file or preset (synthetic, paper); default synthetic")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the ray sampling (the same seed gives the same image)")
+    if sensor_noise:
+        p.add_argument("--photon-noise", action="store_true", help="add Poisson shot noise")
+        p.add_argument("--read-noise", type=float, default=0.0, help="read noise (counts)")
+
+
+def add_simulate_parsers(sub) -> None:
+    """Register ``simulate``, ``white`` and ``grid``."""
+    p = sub.add_parser("simulate", help="simulate a raw plenoptic image of particles, or a "
+                                        "displaced pair")
+    _camera_and_noise(p)
+    p.add_argument("--particles", required=True,
+                   help="CSV with header x_mm,y_mm,z_mm[,intensity] (counts per particle)")
+    p.add_argument("--out", required=True, help="output 16-bit TIFF (a pair: OUT_a, OUT_b)")
+    p.add_argument("--rays", type=int, default=2000, help="rays per particle")
+    p.add_argument("--blur", type=float, default=0.0, help="particle-image blur (px)")
+    p.add_argument("--background", type=float, default=0.0, help="background (counts)")
+    p.add_argument("--velocity", type=float, nargs=3, default=None, metavar=("U", "V", "W"),
+                   help="a pair moved by a uniform flow (m/s)")
+    p.add_argument("--omega", type=float, nargs=3, default=None, metavar=("WX", "WY", "WZ"),
+                   help="a pair moved by a solid-body rotation about the origin (rad/s)")
+    p.add_argument("--dt", type=float, default=None, help="time between the pair (s)")
+    p.set_defaults(func=cmd_simulate)
+    w = sub.add_parser("white", help="simulate a white (calibration) image")
+    _camera_and_noise(w)
+    w.add_argument("--out", required=True, help="output 16-bit TIFF")
+    w.add_argument("--stop-f-number", type=float, default=16.0,
+                   help="f-number the main lens is stopped down to")
+    w.add_argument("--intensity", type=float, default=10000.0, help="counts per microlens")
+    w.set_defaults(func=cmd_white)
+    g = sub.add_parser("grid", help="write a grid file fitting the camera's field of view")
+    g.add_argument("--camera", default=None, help="(calibrated) camera TOML file or preset")
+    g.add_argument("--z", type=float, nargs=2, required=True, metavar=("Z0", "Z1"),
+                   help="depth range (mm, +z away from the camera)")
+    g.add_argument("--out", required=True, help="grid TOML to write")
+    g.add_argument("--voxel-mm", type=float, default=None,
+                   help="lateral voxel (default: one microlens in object space)")
+    g.add_argument("--depth-voxel-mm", type=float, default=None,
+                   help="depth voxel (default: half the camera's depth resolution)")
+    g.add_argument("--fraction", type=float, default=1.0, help="fraction of the field of view")
+    g.set_defaults(func=cmd_grid)
