@@ -197,3 +197,7 @@ def test_calibrated_rotated_camera_end_to_end(queue, tmp_path):
 
     saved = tifffile.imread(tmp_path / "stack.tif")
     np.testing.assert_allclose(saved[0], stack[list(ZS).index(-1.5)], rtol=1e-5, atol=1e-6)
+    from plenocl.io.files import read_tiff_metadata
+
+    meta = read_tiff_metadata(tmp_path / "stack.tif")  # each page's depth is recorded
+    assert meta["z_mm"] == [-1.5, 0.0, 1.5] and len(meta["alpha"]) == 3

@@ -405,12 +405,31 @@ def test_rotated_grid_fields_are_written_in_object_space(tmp_path: Path, small_r
         np.testing.assert_allclose(np.linalg.norm(b, axis=0), np.linalg.norm(a, axis=0))
 
 
+def test_fields_describe_themselves(tmp_path: Path, small_result):
+    """Units and axis order travel with the arrays; the vector grid's origin and spacing
+    are stored as the .vti file gives them, (x, y, z)."""
+    import json
+
+    from plenocl import Grid
+
+    grid = Grid(shape=(60, 50, 70), x=(-7.0, 7.0), y=(-5.0, 5.0), z=(10.0, 16.0))
+    _, arrays = fieldio.read_npz(fieldio.save_field(tmp_path / "m.npz", small_result,
+                                                    grid=grid, dt=1e-3))
+    meta = json.loads(str(arrays["metadata"]))
+    assert meta["units"]["velocity"] == "m s-1" and meta["units"]["x_mm"] == "mm"
+    assert "(x, y, z) of the vector grid" in meta["axes"]
+    assert arrays["vector_origin_mm"][0] == pytest.approx(arrays["x_mm"][0])
+    assert arrays["vector_origin_mm"][2] == pytest.approx(arrays["z_mm"][0])
+    assert arrays["vector_spacing_mm"][1] == pytest.approx(np.diff(arrays["y_mm"][:2])[0])
+
+
 def test_save_h5(tmp_path: Path, small_result):
     import h5py
     fieldio.save_field(tmp_path / "f.h5", small_result)
     with h5py.File(tmp_path / "f.h5") as fh:
         assert np.array_equal(fh["displacement"][0], small_result.u)
         assert "velocity" not in fh and "vorticity" in fh
+        assert fh["displacement"].attrs["units"] == "voxel" and "z slowest" in fh.attrs["axes"]
 
 
 def test_failed_write_keeps_the_old_file(tmp_path: Path, small_result, monkeypatch):

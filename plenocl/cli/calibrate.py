@@ -75,7 +75,11 @@ def refocus_command(args: argparse.Namespace) -> int:
     raw = read_image(args.raw)
     lf = LightField(raw, camera, queue=getattr(args, "device", None))
     stack = lf.focal_stack(args.z, supersample=getattr(args, "supersample", 1))
-    write_tiff(args.out, np.asarray(stack, np.float32))
+    s = getattr(args, "supersample", 1)
+    write_tiff(args.out, np.asarray(stack, np.float32),
+               {"z_mm": [float(z) for z in args.z], "alpha": [float(a) for a in
+                                                               camera.alpha(args.z)],
+                "supersample": s, "axes": "page = depth; rows, columns on the microlens lattice"})
     zs = ", ".join(f"{z:g}" for z in args.z)
     print(f"wrote {args.out}: {len(args.z)} planes of {stack.shape[2]} x {stack.shape[1]} px "
           f"(microlens lattice x {getattr(args, 'supersample', 1)}) at z = {zs} mm")

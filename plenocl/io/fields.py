@@ -19,6 +19,7 @@ In ``.vti`` files the image origin and spacing are the vector grid's, in mm.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -55,13 +56,38 @@ def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)
            "peak_ratio": result.peak_ratio, "voxel_size_mm": np.asarray(size),
            "origin_mm": np.asarray(origin_mm, float), "window": np.asarray(result.window)}
     out.update({name: np.asarray(getattr(result, name), bool) for name in _FLAGS})
+    out["vector_origin_mm"] = np.array([float(c[0]) for c in (x_mm, y_mm, z_mm)])
+    out["vector_spacing_mm"] = np.array([float(np.diff(c[:2])[0]) if len(c) > 1 else 0.0
+                                         for c in (x_mm, y_mm, z_mm)])
     if dt is not None:
         out["velocity"] = _to_object_space(result.velocity(size, dt), rotation_deg)
         out["dt"] = np.asarray(float(dt))
     out["vorticity"] = _to_object_space(result.vorticity(size, dt), rotation_deg)
     out["q_criterion"] = result.q_criterion(size, dt)
     out["rotation_deg"] = np.asarray(float(rotation_deg))
+    out["metadata"] = np.asarray(json.dumps({"units": field_units(dt is not None),
+                                             "axes": AXES}))
     return out
+
+
+#: Axis order and meaning of the stored arrays (also in every file's metadata).
+AXES = ("arrays (..., nz, ny, nx) on the vector grid, z slowest; vector components "
+        "(x, y, z); voxel_size_mm and origin_mm are (z, y, x) of the voxel grid (origin: "
+        "the centre of voxel 0); vector_origin_mm and vector_spacing_mm are (x, y, z) of "
+        "the vector grid, as in the .vti file")
+
+
+def field_units(with_dt: bool) -> dict[str, str]:
+    """Units of each stored array (``with_dt``: velocities in m/s, else per ``dt``)."""
+    units = {"x": "voxel", "y": "voxel", "z": "voxel", "x_mm": "mm", "y_mm": "mm",
+             "z_mm": "mm", "displacement": "voxel", "peak_ratio": "1",
+             "voxel_size_mm": "mm", "origin_mm": "mm", "vector_origin_mm": "mm",
+             "vector_spacing_mm": "mm", "rotation_deg": "degree", "window": "voxel"}
+    if with_dt:
+        units.update(velocity="m s-1", vorticity="s-1", q_criterion="s-2", dt="s")
+    else:
+        units.update(vorticity="1 (per dt)", q_criterion="1 (per dt^2)")
+    return units
 
 
 def _to_object_space(components, rotation_deg: float) -> np.ndarray:
@@ -188,7 +214,14 @@ def write_h5(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.
                           "(or save as .npz or .vti)") from exc
     arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as fh:
+        units = field_units(dt is not None)
         for name, arr in arrays.items():
+            if np.asarray(arr).dtype.kind == "U":  # text: a file attribute
+                fh.attrs[name] = str(arr)
+                continue
             opts = {"compression": "gzip"} if np.ndim(arr) >= 3 else {}
-            fh.create_dataset(name, data=arr, **opts)
+            data = fh.create_dataset(name, data=arr, **opts)
+            if name in units:
+                data.attrs["units"] = units[name]
+        fh.attrs["axes"] = AXES
         fh.attrs["layout"] = "arrays (..., nz, ny, nx); displacement (u, v, w) in voxels"

@@ -3,6 +3,7 @@ is atomic (:func:`plenocl.atomic.atomic_path`)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +11,29 @@ import numpy as np
 from ..atomic import atomic_path
 
 
-def write_tiff(path: str | Path, image: np.ndarray) -> None:
-    """Write an image or image stack as TIFF, atomically."""
+def write_tiff(path: str | Path, image: np.ndarray, metadata: dict | None = None) -> None:
+    """Write an image or image stack as TIFF, atomically; ``metadata`` (JSON-able, e.g.
+    each page's depth) goes into the file's image description as JSON."""
     import tifffile
 
+    description = None if metadata is None else json.dumps(metadata)
     with atomic_path(path) as tmp:
         # minisblack: a stack of 3 or 4 planes is a stack, not an RGB(A) image
-        tifffile.imwrite(tmp, np.asarray(image), photometric="minisblack")
+        tifffile.imwrite(tmp, np.asarray(image), photometric="minisblack",
+                         description=description, metadata=None)
+
+
+def read_tiff_metadata(path: str | Path) -> dict:
+    """The JSON metadata :func:`write_tiff` stored (``{}`` when there is none)."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        text = tif.pages[0].description or ""
+    try:
+        meta = json.loads(text)
+    except ValueError:
+        return {}
+    return meta if isinstance(meta, dict) else {}
 
 
 def _read_any(path: Path) -> np.ndarray:
