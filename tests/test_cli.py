@@ -148,3 +148,37 @@ def test_a_whole_experiment_from_the_command_line(tmp_path, capsys):
     u = arrays["velocity"][0][res.valid]
     assert np.median(u) == pytest.approx(0.25, rel=0.1)
     assert "windows per pass" in capsys.readouterr().out
+
+
+def test_ctrl_c_exits_130_with_one_line_and_warnings_print_once(tmp_path, capsys,
+                                                                monkeypatch, small_camera):
+    """Ctrl-C: status 130 and one line; an uncalibrated camera warns once, as one line;
+    --iterations 0 runs no iteration."""
+    from plenocl import Grid
+    from plenocl.io import write_tiff
+
+    small_camera.to_toml(tmp_path / "cam.toml")
+    Grid((4, 10, 12), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1, 1)).to_toml(tmp_path / "g.toml")
+    write_tiff(tmp_path / "raw.tif", np.ones(small_camera.pixels[::-1], np.uint16))
+    args = ["reconstruct", str(tmp_path / "raw.tif"), "--camera", str(tmp_path / "cam.toml"),
+            "--grid", str(tmp_path / "g.toml"), "--out", str(tmp_path / "v.npz"),
+            "--iterations", "0"]
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    assert captured.err.count("has no [calibration]") == 1
+    assert "plenocl reconstruct: warning: " in captured.err and ".py:" not in captured.err
+    assert " 0 mlem iterations" in captured.out
+
+    def interrupted(_args):
+        raise KeyboardInterrupt
+
+    import importlib
+
+    cli_main = importlib.import_module("plenocl.cli.main")
+    parsed = cli_main.build_parser().parse_args(args)
+    parsed.func = interrupted
+    monkeypatch.setattr(cli_main, "build_parser",
+                        lambda: type("P", (), {"parse_args": lambda self, a: parsed})())
+    assert main(args) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "interrupted" in err[0]

@@ -239,8 +239,10 @@ def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
     meas, true, valid, (_, _, z) = measured_and_true(run.out, sc, flow)
     err = np.sqrt(np.sum((meas - true) ** 2, axis=0))
     prof_meas = np.array([np.mean(meas[1, k][valid[k]]) for k in range(len(z))])
+    prof_spread = np.array([np.std(meas[1, k][valid[k]]) for k in range(len(z))])
     prof_true = np.array([np.mean(true[1, k][valid[k]]) for k in range(len(z))])
     analytic = flow.mean_streamwise(z) / 1e3
+    z_dense = np.linspace(sc.z_wall, float(z.min()), 60)  # from the wall up
     pos_a, _ = read_particles(run.path("particles_a.csv"))
     inside = pos_a[sc.grid.contains(pos_a)]
     rec = {}
@@ -258,6 +260,9 @@ def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
         "component_rms_error": {c: float(np.sqrt(np.mean((meas[i] - true[i])[valid] ** 2))
                                          / U_INF) for i, c in enumerate("xyz")},
         "recovery": rec,
-        "profile": {"z_mm": z.tolist(), "measured": prof_meas.tolist(),
+        "profile_dense": {"wall_distance_mm": (sc.z_wall - z_dense).tolist(),
+                          "analytic": (flow.mean_streamwise(z_dense) / 1e3).tolist()},
+        "profile": {"z_mm": z.tolist(), "wall_distance_mm": (sc.z_wall - z).tolist(),
+                    "measured": prof_meas.tolist(), "measured_std": prof_spread.tolist(),
                     "truth_at_vectors": prof_true.tolist(), "analytic": analytic.tolist()},
     }

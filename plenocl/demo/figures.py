@@ -21,9 +21,10 @@ def boundary_layer_figures(out: Path, fields, z_wall: float, summary: dict,
     meas, true, valid, (x, y, z) = fields
     depth = z_wall - z  # wall distance, mm
     profile_figure(out / "fig_profile.png", depth, summary, u_inf)
-    slices_figure(out / "fig_streamwise.png", meas[1], true[1], x, y, z, "streamwise V (m/s)")
+    slices_figure(out / "fig_streamwise.png", meas[1], true[1], x, y, depth,
+                  "streamwise V (m/s)")
     vort_m, vort_t = (_vorticity_magnitude(f, x, y, z) for f in (meas, true))
-    slices_figure(out / "fig_vorticity.png", vort_m, vort_t, x, y, z, "|vorticity| (1/s)")
+    slices_figure(out / "fig_vorticity.png", vort_m, vort_t, x, y, depth, "|vorticity| (1/s)")
     vectors_figure(out / "fig_vectors3d.png", meas, valid, x, y, z)
 
 
@@ -38,62 +39,102 @@ def _vorticity_magnitude(vel: np.ndarray, x, y, z) -> np.ndarray:
 
 
 def profile_figure(path: Path, depth: np.ndarray, summary: dict, u_inf: float) -> None:
-    """The spatially averaged streamwise profile against the truth (paper Fig. 19)."""
+    """The spatially averaged streamwise profile against the truth (paper Fig. 19): wall
+    distance upward from the marked wall, error bars the spread over each plane."""
     plt = pyplot()
     prof = summary["profile"]
-    fig, ax = plt.subplots(figsize=(5, 4))
-    ax.plot(np.array(prof["analytic"]) / u_inf, depth, "k-", label="truth: mean profile")
-    ax.plot(np.array(prof["truth_at_vectors"]) / u_inf, depth, "b--",
-            label="truth at the vectors")
-    ax.plot(np.array(prof["measured"]) / u_inf, depth, "ro", label="plenocl")
-    ax.set_xlabel("U / U∞")
-    ax.set_ylabel("wall distance (mm)")
-    ax.set_title(f"mean profile: RMS error {100 * summary['mean_profile_rms_error']:.1f}% U∞")
-    ax.legend(loc="upper left", fontsize=8)
+    fig, ax = plt.subplots(figsize=(5.2, 4.4), constrained_layout=True)
+    dense = summary.get("profile_dense", {"analytic": prof["analytic"],
+                                          "wall_distance_mm": list(depth)})
+    ax.plot(np.array(dense["analytic"]) / u_inf, dense["wall_distance_mm"], "k-", lw=1.2,
+            label="Musker mean profile (the flow's mean)")
+    ax.plot(np.array(prof["truth_at_vectors"]) / u_inf, depth, "b--", lw=1.0,
+            label="truth averaged at the vectors (with eddies)")
+    spread = np.array(prof.get("measured_std", np.zeros(len(depth)))) / u_inf
+    ax.errorbar(np.array(prof["measured"]) / u_inf, depth, xerr=spread, fmt="o", color="r",
+                ms=5, capsize=3, label="plenocl: plane mean ± spread over the plane")
+    ax.axhline(0.0, color="0.3", lw=2)
+    ax.fill_between([0, 1.2], -0.04 * max(depth), 0.0, color="0.8", hatch="///", lw=0)
+    ax.set_xlim(0.0, 1.15)
+    ax.set_ylim(-0.04 * max(depth), 1.08 * max(depth))
+    ax.text(0.02, 0.01 * max(depth), "wall", fontsize=8, va="bottom")
+    ax.set_xlabel("streamwise velocity U / U∞")
+    ax.set_ylabel("wall distance y_w (mm)")
+    ax.set_title(f"mean profile: RMS error {100 * summary['mean_profile_rms_error']:.1f}% "
+                 "of U∞", fontsize=10)
+    ax.legend(loc="upper left", fontsize=7, frameon=False)
     save_png(fig, path)
 
 
-def slices_figure(path: Path, meas: np.ndarray, true: np.ndarray, x, y, z, label: str) -> None:
-    """Measured and true fields on three depth slices (paper Figs. 16-18)."""
+def _shared_limits(*fields: np.ndarray) -> tuple[float, float]:
+    """A colour range both fields share, from their 1st to 99th percentiles (no
+    saturation by a few outliers)."""
+    both = np.concatenate([np.ravel(f)[np.isfinite(np.ravel(f))] for f in fields])
+    lo, hi = np.percentile(both, [1, 99]) if both.size else (0.0, 1.0)
+    return float(lo), float(hi if hi > lo else lo + 1e-12)
+
+
+def slices_figure(path: Path, meas: np.ndarray, true: np.ndarray, x, y, depth,
+                  label: str) -> None:
+    """Measured and true fields side by side on three planes parallel to the wall (paper
+    Figs. 16-18), one shared colour scale."""
     plt = pyplot()
-    picks = np.unique(np.linspace(0, len(z) - 1, 3).round().astype(int))
-    fig, axes = plt.subplots(2, len(picks), figsize=(3.2 * len(picks), 5.6), squeeze=False)
-    lo, hi = np.nanmin(true), np.nanmax(true)
+    picks = np.unique(np.linspace(0, len(depth) - 1, 3).round().astype(int))
+    fig, axes = plt.subplots(len(picks), 2, figsize=(6.4, 2.6 * len(picks) + 0.6),
+                             squeeze=False, constrained_layout=True, sharex=True, sharey=True)
+    lo, hi = _shared_limits(meas, true)
     ext = (x[0], x[-1], y[0], y[-1])
-    for col, k in enumerate(picks):
-        for row, (field, name) in enumerate(((meas, "plenocl"), (true, "truth"))):
+    for row, k in enumerate(picks):
+        for col, (field, name) in enumerate(((meas, "plenocl"), (true, "truth"))):
             ax = axes[row, col]
             im = ax.imshow(field[k], origin="lower", extent=ext, vmin=lo, vmax=hi,
                            cmap="viridis", aspect="equal")
-            ax.set_title(f"{name}, z = {z[k]:.1f} mm", fontsize=9)
-            ax.set_xlabel("x spanwise (mm)", fontsize=8)
-            ax.set_ylabel("y streamwise (mm)", fontsize=8)
-    fig.colorbar(im, ax=axes, label=label, shrink=0.8)
+            ax.set_title(f"{name}, wall distance {depth[k]:.2f} mm", fontsize=8)
+            if row == len(picks) - 1:
+                ax.set_xlabel("x spanwise (mm)", fontsize=8)
+            if col == 0:
+                ax.set_ylabel("y streamwise (mm)", fontsize=8)
+            ax.tick_params(labelsize=7)
+    fig.colorbar(im, ax=axes, label=label, shrink=0.9)
     save_png(fig, path)
 
 
 def vectors_figure(path: Path, vel: np.ndarray, valid: np.ndarray, x, y, z) -> None:
-    """3-D vectors coloured by streamwise velocity with an iso-surface (paper Fig. 14)."""
-    from skimage.measure import marching_cubes
-
+    """3-D velocity fluctuations about the mean profile (the plane mean of each wall
+    distance removed), coloured by the streamwise fluctuation, with a colour bar and a
+    reference arrow (paper Fig. 14)."""
     plt = pyplot()
-    fig = plt.figure(figsize=(7, 5.5))
+    fluct = vel.copy()
+    for k in range(vel.shape[1]):
+        plane = valid[k]
+        if plane.any():
+            fluct[:, k] -= np.array([np.mean(vel[c, k][plane]) for c in range(3)])[:, None, None]
+    fig = plt.figure(figsize=(7.5, 5.8))
     ax = fig.add_subplot(projection="3d")
     zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
-    step = max(1, max(vel.shape[1:]) // 12)
+    step = max(1, max(vel.shape[1:]) // 6)
     sl = (slice(None, None, step),) * 3
     keep = valid[sl]
-    ax.quiver(xx[sl][keep], yy[sl][keep], zz[sl][keep], vel[0][sl][keep], vel[1][sl][keep],
-              vel[2][sl][keep], length=0.4 * (x[-1] - x[0]) / max(len(x), 1) / 2,
-              normalize=False, color="k", linewidth=0.5)
-    v = np.nan_to_num(vel[1], nan=float(np.nanmean(vel[1])))
-    level = float(np.percentile(v, 30))
-    if v.min() < level < v.max() and min(v.shape) >= 2:
-        verts, faces, _, _ = marching_cubes(v, level)
-        pts = [np.interp(verts[:, i], np.arange(len(a)), a) for i, a in enumerate((z, y, x))]
-        ax.plot_trisurf(pts[2], pts[1], faces, pts[0], color="tab:orange", alpha=0.35)
-    ax.set_xlabel("x spanwise (mm)")
-    ax.set_ylabel("y streamwise (mm)")
-    ax.set_zlabel("z depth (mm)")
-    ax.set_title(f"velocity vectors; iso-surface V = {level:.2f} m/s")
+    comps = [f[sl][keep] for f in fluct]
+    ref = float(np.percentile(np.sqrt(sum(c**2 for c in comps)), 90)) or 1.0
+    scale = 0.8 * step * float(np.diff(x[:2])[0]) / ref  # mm per m/s: the 90th percentile
+    lim = float(np.percentile(np.abs(comps[1]), 98)) or 1.0
+    norm = plt.Normalize(-lim, lim)
+    colours = plt.get_cmap("coolwarm")(norm(comps[1]))
+    colours = np.concatenate([colours, np.repeat(colours, 2, axis=0)])  # shaft + 2 head lines
+    ax.quiver(xx[sl][keep], yy[sl][keep], zz[sl][keep], *(c * scale for c in comps),
+              colors=colours, linewidth=0.8, arrow_length_ratio=0.3)
+    x0, y0, z0 = x[0], y[0], z[-1]
+    ax.quiver([x0], [y0], [z0], [ref * scale], [0], [0], color="k", linewidth=1.5)
+    ax.text(x0, y0, z0, f"  {ref:.2f} m/s", fontsize=8)
+    mappable = plt.cm.ScalarMappable(norm=norm, cmap="coolwarm")
+    fig.colorbar(mappable, ax=ax, shrink=0.6, pad=0.1,
+                 label="streamwise fluctuation v' (m/s)")
+    ax.set_xlabel("x spanwise (mm)", labelpad=6)
+    ax.set_ylabel("y streamwise (mm)", labelpad=6)
+    ax.set_zlabel("z depth (mm; wall at the far face)", labelpad=6)
+    ax.tick_params(labelsize=7)
+    which = "every vector" if step == 1 else f"one vector in {step} per axis"
+    ax.set_title(f"velocity fluctuations about the mean profile ({which}; arrows to "
+                 f"scale, reference {ref:.2f} m/s)", fontsize=9)
     save_png(fig, path)
