@@ -7,6 +7,7 @@ from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices,
 from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
+from .pipeline import PairResult, process_pair
 from .piv import PIVResult, piv3d
 from .projection import Projector
 from .reconstruction import reconstruct
@@ -22,6 +23,7 @@ __all__ = [
     "LightField",
     "NoOpenCLError",
     "PIVResult",
+    "PairResult",
     "Projector",
     "Simulator",
     "calibrate",
@@ -31,6 +33,7 @@ __all__ = [
     "get_queue",
     "metrics",
     "piv3d",
+    "process_pair",
     "random_particles",
     "reconstruct",
     "simulate_image",

@@ -204,3 +204,26 @@ def test_settings_are_validated_once_and_resolve_method_defaults():
         ReconstructionSettings(min_sensitivity=1.0)
     with pytest.raises(AttributeError):
         mart.iterations = 2  # frozen: one object describes one reconstruction
+
+
+def test_process_pair_runs_the_default_chain(queue):
+    """A displaced pair of simulated raw images (with a dark level and noise) through
+    plenocl.process_pair: both volumes, the field, stage times; the field moves the way
+    the particles moved."""
+    import plenocl
+    from plenocl import Camera, random_particles, simulate_image
+
+    cam = Camera.synthetic_850()
+    grid = Grid.for_camera(cam, z=(-2.0, 2.0), fraction=0.6)
+    pos, inten = random_particles(((-1.6, 1.6), (-1.6, 1.6), (-1.8, 1.8)), count=300,
+                                  seed=4, intensity=3e4)
+    shift = np.array([2 * grid.spacing[2], 0.0, 0.0])  # two voxels along x
+    kw = dict(rays_per_particle=3000, background=20.0, read_noise=2.0, queue=queue)
+    raw_a = simulate_image(cam, pos - shift / 2, inten, seed=1, **kw)
+    raw_b = simulate_image(cam, pos + shift / 2, inten, seed=2, **kw)
+    pair = plenocl.process_pair(raw_a, raw_b, Projector(cam, grid, queue))
+    assert pair.vol_a.shape == pair.vol_b.shape == grid.shape
+    assert set(pair.seconds) == {"reconstruct_a", "reconstruct_b", "piv"}
+    assert pair.info_a.iterations == 30
+    u = pair.piv.u[pair.piv.valid]
+    assert np.median(u) == pytest.approx(2.0, abs=0.15)

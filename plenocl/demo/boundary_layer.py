@@ -18,7 +18,14 @@ from ..calibration import calibrate
 from ..camera import Camera
 from ..flows import TurbulentBoundaryLayer, centred_displacement, displace
 from ..grid import Grid
-from ..io.files import load_volume, read_image, read_particles, save_volume, write_particles, write_tiff
+from ..io.files import (
+    load_volume,
+    read_image,
+    read_particles,
+    save_volume,
+    write_particles,
+    write_tiff,
+)
 from ..metrics import recovery
 from ..particles import particles_per_microlens, random_particles
 from .stages import StageRunner, write_json
