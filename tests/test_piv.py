@@ -505,3 +505,21 @@ def test_likely_mistakes_warn(small_result):
     vol = np.random.default_rng(1).random((24, 24, 24)).astype(np.float32)
     with pytest.warns(UserWarning, match="larger than pass 1's"):
         piv3d(vol, vol, windows=(16, 24), final_iterations=1)
+
+
+def test_default_windows_hold_enough_particles():
+    """Sparse volumes get larger final windows (about 10 particles each); the count comes
+    from the volume's peaks."""
+    from plenocl.piv import MIN_PARTICLES_PER_WINDOW, auto_windows, count_particles
+
+    shape = (150, 66, 95)
+    sparse = auto_windows(shape, particles=250)
+    final = sparse[-1]
+    assert 250 * np.prod(final) / np.prod(shape) >= MIN_PARTICLES_PER_WINDOW
+    assert all(a >= b for a, b in zip(sparse[0], final))
+    assert auto_windows(shape, particles=20000) == auto_windows(shape)
+    vol = np.zeros((40, 40, 40), np.float32)
+    rng = np.random.default_rng(3)
+    vol[2::4, 2::4, 2::4] = rng.uniform(0.5, 1.0, (10, 10, 10))  # separated peaks
+    vol[2::4, 2::4, 2::4][rng.random((10, 10, 10)) < 0.5] = 0.0
+    assert count_particles(vol) == int((vol > 0).sum())

@@ -8,8 +8,10 @@
 
 from .multipass import (
     DEFAULT_WINDOWS,
+    MIN_PARTICLES_PER_WINDOW,
     PIVResult,
     auto_windows,
+    count_particles,
     displacement_to_velocity,
     piv3d,
     q_criterion,
@@ -18,5 +20,6 @@ from .multipass import (
     voxel_size,
 )
 
-__all__ = ["DEFAULT_WINDOWS", "PIVResult", "auto_windows", "displacement_to_velocity", "piv3d",
+__all__ = ["DEFAULT_WINDOWS", "MIN_PARTICLES_PER_WINDOW", "PIVResult", "auto_windows",
+           "count_particles", "displacement_to_velocity", "piv3d",
            "q_criterion", "velocity_gradient", "voxel_size", "vorticity"]

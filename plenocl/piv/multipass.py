@@ -20,6 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from .correlation import correlate, gaussian_weight, window_fraction, window_grid
 from .deform import deform, prepare, resample
@@ -237,12 +238,31 @@ class _Pass:
 DEFAULT_WINDOWS = (48, 32, 24)
 
 
-def auto_windows(shape, max_displacement: float | None = None) -> tuple[tuple[int, ...], ...]:
+#: The fewest particles a final window should hold on average: below about 10 the
+#: correlation peak is noise (measured on reconstructed volumes at the paper's optics,
+#: ``benchmarks/accuracy.py``: 4.5 particles per 24-voxel window gave 3.5 voxels of depth
+#: error, 11 per 32-voxel window 2.9, 36 per 48-voxel window 2.1).
+MIN_PARTICLES_PER_WINDOW = 10
+
+
+def auto_windows(shape, max_displacement: float | None = None,
+                 particles: int | None = None) -> tuple[tuple[int, ...], ...]:
     """The default window schedule for a volume of ``shape``: :data:`DEFAULT_WINDOWS`,
     each cut per axis to the largest multiple of 8 voxels that fits (``(wz, wy, wx)``
-    windows for flat volumes). With ``max_displacement`` (voxels, the largest expected),
-    the first window is at least 4 times it where the volume allows, since a zero-padded
-    first pass finds displacements up to about a quarter of its window.
+    windows for flat volumes).
+
+    Parameters
+    ----------
+    shape
+        The volume's ``(nz, ny, nx)``.
+    max_displacement
+        The largest expected displacement (voxels): the first window is at least 4 times
+        it where the volume allows, since a zero-padded first pass finds displacements up
+        to about a quarter of its window.
+    particles
+        How many particles the volume holds: the final window grows (in steps of 8
+        voxels) until it holds :data:`MIN_PARTICLES_PER_WINDOW` on average, and the
+        passes before it are larger by half.
 
     Raises
     ------
@@ -254,11 +274,26 @@ def auto_windows(shape, max_displacement: float | None = None) -> tuple[tuple[in
         raise ValueError(f"a volume of shape {shape} holds no 8-voxel window along every axis: "
                          "reconstruct on a grid of at least 8 voxels per axis")
     fit = [n // 8 * 8 for n in shape]
-    first = DEFAULT_WINDOWS[0]
+    schedule = list(DEFAULT_WINDOWS)
+    if particles:
+        need = MIN_PARTICLES_PER_WINDOW * float(np.prod(shape)) / particles
+        final = max(DEFAULT_WINDOWS[-1], int(np.ceil(need ** (1 / 3) / 8)) * 8)
+        if final > DEFAULT_WINDOWS[-1]:
+            schedule = [max(DEFAULT_WINDOWS[0], (final * 3 // 2 + 7) // 8 * 8), final]
     if max_displacement is not None:
-        first = max(first, int(np.ceil(4 * float(max_displacement) / 8)) * 8)
-    schedule = (first, *DEFAULT_WINDOWS[1:])
+        schedule[0] = max(schedule[0], int(np.ceil(4 * float(max_displacement) / 8)) * 8)
     return tuple(tuple(min(w, f) for f in fit) for w in schedule)
+
+
+def count_particles(vol: np.ndarray, threshold: float = 0.1) -> int:
+    """Local maxima above ``threshold`` of the volume's maximum: about the particles (and
+    ghosts) a reconstructed volume holds."""
+    v = np.asarray(vol, np.float32)
+    top = float(v.max()) if v.size else 0.0
+    if top <= 0:
+        return 0
+    peaks = (v == ndimage.maximum_filter(v, size=3, mode="constant")) & (v > threshold * top)
+    return int(peaks.sum())
 
 
 def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
@@ -274,9 +309,10 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
         Volumes ``vol[iz, iy, ix]`` at ``t`` and ``t + dt`` (same shape, finite, real).
     windows
         Window size per pass: ints (cubes) or ``(wz, wy, wx)``; each >= 8 voxels and no
-        larger than the volume. By default :func:`auto_windows` of the volume's shape
-        (48, 32, 24, each cut to what the volume holds per axis); the windows used are in
-        ``result.log``.
+        larger than the volume. By default :func:`auto_windows` of the volume's shape and
+        of the particles ``vol_a`` holds (48, 32, 24, cut to what the volume holds per
+        axis, larger where fewer than 10 particles would fall in a 24-voxel window); the
+        windows used are in ``result.log``.
     overlaps
         Overlap fraction per pass (or one for all), in ``[0, 1)``; by default 0.5 for
         every pass but the last and 0.75 for the last.
@@ -320,7 +356,8 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
     opts = _Options(deform_order, predictor, median_eps, median_threshold, min_peak_ratio,
                     workers)
     _check_options(opts, weighting)
-    windows = auto_windows(a.shape) if windows is None else windows
+    if windows is None:
+        windows = auto_windows(a.shape, particles=count_particles(a))
     schedule = _schedule(a.shape, windows, overlaps, final_iterations)
     mask = _check_mask(mask, a.shape)
     if mask is not None:
