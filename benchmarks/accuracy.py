@@ -15,8 +15,10 @@ For each seeding (particles per microlens), in the same run:
 - **windows**: PIV on volumes rendered from the true particles (Gaussian blobs of
   1 voxel): what the interrogation windows themselves cannot resolve;
 - **reconstruction**: PIV on volumes reconstructed from the raw images with
-  ``plenocl.process_pair`` defaults (MLEM 30 iterations, median background, fitted
-  windows): what the user gets;
+  ``plenocl.process_pair`` defaults (MLEM 30 iterations, median background, windows
+  fitted to the volume and its particle count): what the user gets;
+- **48-32-24**: the same reconstructed volumes with the fixed schedule the default
+  replaced (the baseline of the window choice);
 - reconstruction quality: Q against the true-rendered volume, particles recovered, ghost
   intensity fraction.
 
@@ -86,8 +88,10 @@ def one_seeding(cam: Camera, grid: Grid, proj: Projector, ppm: float, seed: int,
     t_true = time.perf_counter() - t0
     pair = process_pair(raw_a, raw_b, proj)
     rec = errors(pair.piv, grid)
+    fixed = errors(piv3d(pair.vol_a, pair.vol_b, windows=(48, 32, 24)), grid)
     rep = recovery(pair.vol_a, grid, pa)
     return {"ppm": ppm, "particles": count, "windows": windows, "reconstruction": rec,
+            "fixed": fixed, "final_window": pair.piv.window,
             "Q": quality_q(pair.vol_a, true_a), "recovered": rep.fraction,
             "ghosts": rep.ghost_fraction, "seconds": {**pair.seconds, "piv_true": t_true}}
 
@@ -96,12 +100,14 @@ def print_rows(rows: list[dict], grid: Grid) -> None:
     dz = grid.spacing[0]
     print(f"{'ppm':>5s} {'n':>5s} | {'windows only: lat':>17s} {'depth':>6s} | "
           f"{'reconstructed: lat':>18s} {'depth':>6s} {'(mm)':>6s} {'focus':>6s} "
-          f"{'near':>6s} {'far':>6s} {'valid':>6s} | {'Q':>5s} {'recov':>6s} {'ghosts':>6s}")
+          f"{'near':>6s} {'far':>6s} {'valid':>6s} {'final window':>13s} | "
+          f"{'48-32-24: lat':>13s} {'depth':>6s} | {'Q':>5s} {'recov':>6s} {'ghosts':>6s}")
     for r in rows:
-        w, e = r["windows"], r["reconstruction"]
+        w, e, f = r["windows"], r["reconstruction"], r["fixed"]
         print(f"{r['ppm']:5.2f} {r['particles']:5d} | {w['lateral']:17.3f} {w['depth']:6.3f} | "
               f"{e['lateral']:18.3f} {e['depth']:6.2f} {e['depth'] * dz:6.3f} "
-              f"{e['in focus']:6.2f} {e['near']:6.2f} {e['far']:6.2f} {e['valid']:6.0%} | "
+              f"{e['in focus']:6.2f} {e['near']:6.2f} {e['far']:6.2f} {e['valid']:6.0%} "
+              f"{str(r['final_window']):>13s} | {f['lateral']:13.3f} {f['depth']:6.2f} | "
               f"{r['Q']:5.2f} {r['recovered']:6.0%} {r['ghosts']:6.0%}")
     print("bias of the reconstructed field (voxels, x y z):",
           "; ".join(f"{r['ppm']:.2f}: " + " ".join(f"{b:+.2f}" for b in r["reconstruction"]
