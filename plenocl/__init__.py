@@ -1,6 +1,7 @@
 """plenocl: volumetric 3-D PIV from a single plenoptic camera, with OpenCL kernels."""
 
 from . import flows, metrics
+from .batch import run
 from .calibration import calibrate
 from .camera import PRESETS, Camera
 from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices, get_queue
@@ -36,6 +37,7 @@ __all__ = [
     "process_pair",
     "random_particles",
     "reconstruct",
+    "run",
     "simulate_image",
     "simulate_white_image",
 ]

@@ -1,5 +1,5 @@
 """The ``plenocl`` command line: devices | simulate | calibrate | refocus | reconstruct |
-piv | demo | bench (and white, grid)."""
+piv | run | demo | bench (and white, grid)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
+from .batch import add_run_parser
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser, add_refocus_parser
 from .simulate import add_simulate_parsers
@@ -86,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_refocus_parser(sub)
     add_reconstruct_parser(sub)
     add_piv_parser(sub)
+    add_run_parser(sub)
     add_demo_parser(sub)
     add_bench_parser(sub)
     return parser

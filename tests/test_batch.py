@@ -1,0 +1,89 @@
+"""A configured, resumable batch of image pairs (plenocl run experiment.toml)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import plenocl
+from plenocl import Camera, random_particles, simulate_image
+from plenocl.batch import load_experiment
+from plenocl.cli.main import main
+from plenocl.io import read_npz, write_tiff
+from plenocl.tomlfile import read_toml
+
+EXPERIMENT = """
+[camera]
+preset = "synthetic"
+[grid]
+z_mm = [-2.0, 2.0]
+fraction = 0.6
+[images]
+folder = "raw"
+pattern = "frame_*.tif"
+pairing = "sequence"
+dt_s = 1e-3
+[reconstruction]
+iterations = 20
+[output]
+folder = "results"
+"""
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory, queue):
+    """Three pairs moved 0.25 mm along x (0.25 m/s over 1 ms), the last one's second
+    image corrupt."""
+    d = tmp_path_factory.mktemp("exp")
+    (d / "raw").mkdir()
+    cam = Camera.synthetic_850()
+    pos, inten = random_particles(((-1.6, 1.6), (-1.6, 1.6), (-1.8, 1.8)), count=300,
+                                  seed=5, intensity=3e4)
+    shift = np.array([0.25, 0.0, 0.0])
+    for k in range(3):
+        for j, sign in enumerate((-0.5, 0.5)):
+            img = simulate_image(cam, pos + sign * shift, inten, 3000, seed=10 * k + j,
+                                 read_noise=2.0, bit_depth=16, queue=queue)
+            write_tiff(d / "raw" / f"frame_{2 * k + j:03d}.tif", img)
+    (d / "raw" / "frame_005.tif").write_bytes(b"not a tiff")
+    (d / "experiment.toml").write_text(EXPERIMENT)
+    return d
+
+
+def test_run_processes_pairs_skips_finished_ones_and_reports_failures(experiment, capsys):
+    assert main(["run", str(experiment / "experiment.toml")]) == 1  # one pair failed
+    out = experiment / "results"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["processed"] == [0, 1] and list(summary["failed"]) == ["2"]
+    assert "frame_005.tif" in summary["failed"]["2"]
+    res, arrays = read_npz(out / "pairs" / "pair_00000.npz")
+    assert np.median(arrays["velocity"][0][res.valid]) == pytest.approx(0.25, rel=0.1)
+    used = read_toml(out / "experiment_used.toml")
+    assert used["run"]["plenocl_version"] == plenocl.__version__
+    assert used["reconstruction"]["iterations"] == 20 and used["images"]["dt_s"] == 1e-3
+    # a rerun redoes nothing that was finished
+    summary2 = plenocl.run(experiment / "experiment.toml")
+    assert summary2.skipped == [0, 1] and summary2.processed == [] and 2 in summary2.failed
+
+
+@pytest.mark.parametrize("change, message", [
+    ("[camera]\npreset = 'synthetic'\nlens = 3\n", r"unknown key\(s\) \['lens'\] in \[camera\]"),
+    ("[cameras]\n", r"unknown section\(s\) \['cameras'\]"),
+    ("[camera]\n", "exactly one of file or preset"),
+])
+def test_bad_experiment_files_are_refused_before_any_work(tmp_path, change, message):
+    base = EXPERIMENT.replace('[camera]\npreset = "synthetic"\n', "")
+    (tmp_path / "e.toml").write_text(change + base)
+    with pytest.raises(ValueError, match=message):
+        load_experiment(tmp_path / "e.toml")
+
+
+def test_bad_values_are_named(tmp_path):
+    for old, new, message in (('dt_s = 1e-3', 'dt_s = -1', "dt_s must be"),
+                              ('pairing = "sequence"', 'pairing = "odd"', "pairing must"),
+                              ("iterations = 20", "iterations = -2", "iterations")):
+        (tmp_path / "e.toml").write_text(EXPERIMENT.replace(old, new))
+        with pytest.raises(ValueError, match=message):
+            load_experiment(tmp_path / "e.toml")
