@@ -48,7 +48,7 @@ def piv_command(args: argparse.Namespace) -> int:
     from ..grid import Grid
     from ..io.fields import save_field
     from ..io.files import load_volume
-    from ..piv import auto_windows, count_particles, piv3d
+    from ..piv import piv3d
 
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, grid_b = load_volume(args.vol_b)
@@ -59,10 +59,9 @@ def piv_command(args: argparse.Namespace) -> int:
     if grid is None:
         raise ValueError("the volumes carry no grid (.npy): give --grid grid.toml so that "
                          "displacements become millimetres and metres per second")
-    windows = (tuple(args.windows) if args.windows
-               else auto_windows(vol_a.shape, particles=count_particles(vol_a)))
-    print(f"windows per pass (z, y, x voxels): {', '.join(str(w) for w in windows)}")
-    res = piv3d(vol_a, vol_b, windows=windows)
+    res = piv3d(vol_a, vol_b, windows=tuple(args.windows) if args.windows else None)
+    used = ", ".join(str(w) for w in dict.fromkeys(p["window"] for p in res.passes))
+    print(f"windows per pass (z, y, x voxels): {used}")
     save_field(args.out, res, dt=args.dt, grid=grid)
     print(f"wrote {args.out}: {res.u.size} vectors ({100 * res.valid.mean():.1f}% valid), "
           f"final window {res.window}")

@@ -57,8 +57,9 @@ def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)
            "origin_mm": np.asarray(origin_mm, float), "window": np.asarray(result.window)}
     out.update({name: np.asarray(getattr(result, name), bool) for name in _FLAGS})
     out["vector_origin_mm"] = np.array([float(c[0]) for c in (x_mm, y_mm, z_mm)])
-    out["vector_spacing_mm"] = np.array([float(np.diff(c[:2])[0]) if len(c) > 1 else 0.0
-                                         for c in (x_mm, y_mm, z_mm)])
+    # a single vector along an axis gets the voxel size as its spacing
+    out["vector_spacing_mm"] = np.array([float(np.diff(c[:2])[0]) if len(c) > 1 else v
+                                         for c, v in zip((x_mm, y_mm, z_mm), size[::-1])])
     if dt is not None:
         out["velocity"] = _to_object_space(result.velocity(size, dt), rotation_deg)
         out["dt"] = np.asarray(float(dt))
@@ -185,10 +186,8 @@ def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0
     except ImportError as exc:  # pragma: no cover - pyevtk is a declared dependency
         raise ImportError("writing .vti needs pyevtk: pip install pyevtk") from exc
     arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
-    size = voxel_size(voxel_size_mm)
-    spacing = tuple(float(np.diff(c[:2])[0]) * s if len(c) > 1 else s
-                    for c, s in zip((result.x, result.y, result.z), size[::-1]))
-    origin = tuple(float(arrays[f"{a}_mm"][0]) for a in "xyz")
+    spacing = tuple(float(v) for v in arrays["vector_spacing_mm"])
+    origin = tuple(float(v) for v in arrays["vector_origin_mm"])
     vectors = {"displacement_voxels": "displacement", "velocity_m_per_s": "velocity",
                "vorticity_per_s" if dt is not None else "vorticity_per_dt": "vorticity"}
     point = {name: tuple(_vtk_order(c) for c in arrays[key])

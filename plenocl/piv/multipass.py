@@ -312,7 +312,7 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
         larger than the volume. By default :func:`auto_windows` of the volume's shape and
         of the particles ``vol_a`` holds (48, 32, 24, cut to what the volume holds per
         axis, larger where fewer than 10 particles would fall in a 24-voxel window); the
-        windows used are in ``result.log``.
+        windows used are in ``result.passes``.
     overlaps
         Overlap fraction per pass (or one for all), in ``[0, 1)``; by default 0.5 for
         every pass but the last and 0.75 for the last.
