@@ -64,7 +64,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         4 noise deviations of it dark, as :func:`plenocl.reconstruct`.
     piv_options
         Keyword arguments of :func:`plenocl.piv3d` (by default the windows are fitted to
-        the volume's shape).
+        the volume's shape, and the volumes are deformed on the projector's device).
 
     Returns
     -------
@@ -78,6 +78,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         out[tag] = run_reconstruction(raw, projector, settings)
         seconds[f"reconstruct_{tag}"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = piv3d(out["a"][0], out["b"][0], **(piv_options or {}))
+    options = {"queue": projector.queue, **(piv_options or {})}
+    res = piv3d(out["a"][0], out["b"][0], **options)
     seconds["piv"] = time.perf_counter() - t0
     return PairResult(out["a"][0], out["b"][0], res, out["a"][1], out["b"][1], seconds)

@@ -1,7 +1,7 @@
 """Interrogation-window grids, batched 3-D FFT cross-correlation and sub-voxel peak fits.
 
-All windows of a pass are correlated at once (in memory-bounded batches) with
-``scipy.fft.rfftn`` over the last three axes. Windows are zero-mean and the correlation is
+All windows of a pass are correlated at once (in memory-bounded batches) with real-to-complex
+FFTs over the last three axes (:mod:`plenocl.piv.fft`: FFTW, or SciPy's pocketfft). Windows are zero-mean and the correlation is
 normalised by ``sqrt(sum a^2 sum b^2)``, so a perfect match peaks at 1. Displacement
 convention: ``vol_b(p) = vol_a(p - d)``, i.e. particles move by ``+d`` from ``a`` to ``b``.
 Arrays are in volume order ``(z, y, x)``.
@@ -12,8 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 from numpy.lib.stride_tricks import sliding_window_view
+
+from .fft import CorrelationFFT
 
 #: Upper bound on the float32 correlation planes held at once (bytes).
 BATCH_BYTES = 64 * 2**20
@@ -81,6 +82,13 @@ def window_fraction(mask: np.ndarray, grid: WindowGrid) -> np.ndarray:
     return total / float(np.prod(grid.size))
 
 
+def padded_size(window: int) -> int:
+    """FFT length of a zero-padded window: the window plus half of it (rounded up to an
+    even length), enough for linear correlation of displacements up to half the window at
+    about 40 % of the cost of doubling it."""
+    return window + (window + 3) // 4 * 2
+
+
 def _window_view(vol: np.ndarray, grid: WindowGrid) -> np.ndarray:
     """Read-only view ``(nz, ny, nx, wz, wy, wx)`` of all windows of ``grid``."""
     view = sliding_window_view(vol, grid.size)
@@ -106,7 +114,8 @@ def gaussian_weight(size: tuple[int, int, int], fraction: float) -> np.ndarray:
 
 
 def correlate(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid, *, pad: bool = False,
-              weight: np.ndarray | None = None, workers: int = -1) -> Correlation:
+              weight: np.ndarray | None = None, workers: int = -1,
+              backend: str | None = None) -> Correlation:
     """Cross-correlate every window of ``grid`` between two volumes.
 
     Parameters
@@ -116,70 +125,86 @@ def correlate(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid, *, pad: bo
     grid
         Window grid from :func:`window_grid`.
     pad
-        Zero-pad each window to twice its size (linear, not circular, correlation):
-        for a first pass with unknown, possibly large displacement.
+        Zero-pad each window by half its size (:func:`padded_size`), so that the
+        correlation is linear, not circular, for displacements up to half the window:
+        for a first pass with unknown, possibly large displacement (it finds up to about
+        a quarter of the window reliably).
     weight
         Optional ``grid.size`` array multiplying both zero-mean windows (e.g.
         :func:`gaussian_weight`): a smoother spatial filter than the top-hat window, which
         lets iterative deformation converge on structures of the window's size.
     workers
-        Threads for ``scipy.fft``.
+        FFT threads (``-1``: all cores).
+    backend
+        ``"fftw"`` or ``"scipy"`` (:class:`plenocl.piv.fft.CorrelationFFT`; by default
+        FFTW where pyfftw is installed).
 
     Returns
     -------
     Correlation
         Sub-voxel peak displacement, peak height, peak ratio and signal flags.
     """
-    views = (_window_view(np.asarray(vol_a, np.float32), grid),
-             _window_view(np.asarray(vol_b, np.float32), grid))
-    fft_shape = tuple(2 * w if pad else w for w in grid.size)
+    vols = (np.asarray(vol_a, np.float32), np.asarray(vol_b, np.float32))
+    fft_shape = tuple(padded_size(w) if pad else w for w in grid.size)
     n = int(np.prod(grid.count))
-    batch = max(1, BATCH_BYTES // (4 * int(np.prod(fft_shape))))
+    batch = max(1, min(n, BATCH_BYTES // (4 * int(np.prod(fft_shape)))))
+    fft = CorrelationFFT(batch, grid.size, fft_shape, workers, backend)
     disp = np.zeros((3, n))
     peak, ratio, signal = np.zeros(n), np.zeros(n), np.zeros(n, bool)
+    corners = [o + s * np.arange(c) for o, s, c in zip(grid.offset, grid.step, grid.count)]
     for start in range(0, n, batch):
         sel = slice(start, min(start + batch, n))
         index = np.unravel_index(np.arange(sel.start, sel.stop), grid.count)
-        batch_a = views[0][index]   # fancy indexing: float32 copies, changed in place
-        batch_b = views[1][index]
-        out = _correlate_batch(batch_a, batch_b, fft_shape, weight, workers)
+        lows = np.column_stack([c[i] for c, i in zip(corners, index)])
+        prepared = [_gather(vol, lows, fft.windows(k, len(lows)), weight)
+                    for k, vol in enumerate(vols)]
+        out = _fit_batch(fft.correlate(len(lows)), fft.scale, *prepared)
         disp[:, sel], peak[sel], ratio[sel], signal[sel] = out
     shape = grid.count
     return Correlation(disp.reshape((3, *shape)), peak.reshape(shape), ratio.reshape(shape),
                        signal.reshape(shape))
 
 
-def _prepare_windows(windows: np.ndarray, weight: np.ndarray | None):
-    """Zero-mean, weighted window batch (in place); its energy; which had any variance.
+#: Windows gathered and prepared together: small enough that a chunk stays in cache
+#: between the copy, the mean, the weighting and the energy sums.
+CHUNK = 16
 
-    ``windows`` must be a float32 array this function may overwrite (a gathered copy).
+
+def _gather(vol: np.ndarray, lows: np.ndarray, out: np.ndarray, weight):
+    """Copy the windows whose low corners are ``lows`` ``(B, 3)`` into ``out``
+    ``(B, wz, wy, wx)`` and prepare them (:func:`_prepare_windows`), a chunk at a time.
+
+    Returns
+    -------
+    energy, signal
+        Each window's energy after preparation and whether it had any variance.
     """
-    out = windows
-    mean = out.mean(axis=(1, 2, 3), keepdims=True)
-    out -= mean
-    spread = np.einsum("bijk,bijk->b", out, out).astype(np.float64)
-    raw = spread + out[0].size * mean.ravel().astype(np.float64) ** 2   # sum of squares
+    wz, wy, wx = out.shape[1:]
+    for i, (z, y, x) in enumerate(lows):
+        out[i] = vol[z:z + wz, y:y + wy, x:x + wx]
+    parts = [_prepare_windows(out[c:c + CHUNK], weight) for c in range(0, len(lows), CHUNK)]
+    return tuple(np.concatenate(p) for p in zip(*parts))
+
+
+def _prepare_windows(windows: np.ndarray, weight: np.ndarray | None):
+    """Make a window batch zero-mean and weighted, in place; return its energy and which
+    windows had any variance."""
+    mean = windows.mean(axis=(1, 2, 3), keepdims=True)
+    windows -= mean
+    spread = np.einsum("bijk,bijk->b", windows, windows).astype(np.float64)
+    raw = spread + windows[0].size * mean.ravel().astype(np.float64) ** 2  # sum of squares
     if weight is not None:
-        out *= weight
-    energy = np.einsum("bijk,bijk->b", out, out).astype(np.float64)
-    return out, energy, (spread > 1e-9 * raw) & (energy > 0)
+        windows *= weight
+    energy = np.einsum("bijk,bijk->b", windows, windows).astype(np.float64)
+    return energy, (spread > 1e-9 * raw) & (energy > 0)
 
 
-def _correlate_batch(wa: np.ndarray, wb: np.ndarray, fft_shape: tuple[int, int, int],
-                     weight: np.ndarray | None, workers: int):
-    """Normalised zero-mean correlation of a batch ``(B, wz, wy, wx)`` and its peak fit."""
-    axes = (1, 2, 3)
-    a, energy_a, signal_a = _prepare_windows(wa, weight)
-    b, energy_b, signal_b = _prepare_windows(wb, weight)
+def _fit_batch(corr: np.ndarray, scale: float, prepared_a, prepared_b):
+    """Normalise a batch's correlation planes ``(B, pz, py, px)`` (which carry the factor
+    ``scale``) and fit their peaks."""
+    (energy_a, signal_a), (energy_b, signal_b) = prepared_a, prepared_b
     signal = signal_a & signal_b
-    fa = scipy.fft.rfftn(a, s=fft_shape, axes=axes, workers=workers)
-    fb = scipy.fft.rfftn(b, s=fft_shape, axes=axes, workers=workers)
-    del a, b
-    np.conjugate(fa, out=fa)
-    fa *= fb
-    del fb
-    corr = scipy.fft.irfftn(fa, s=fft_shape, axes=axes, workers=workers)
-    norm = np.sqrt(np.where(signal, energy_a * energy_b, 1.0)).astype(np.float32)
+    norm = (scale * np.sqrt(np.where(signal, energy_a * energy_b, 1.0))).astype(np.float32)
     corr /= norm[:, None, None, None]
     disp, peak, ratio = fit_peaks(corr)
     disp[:, ~signal] = 0.0

@@ -1,0 +1,87 @@
+"""The two ways :func:`plenocl.piv3d` deforms volumes: on the host
+(:func:`plenocl.piv.deform.deform`, SciPy ``map_coordinates``, the reference) or on an
+OpenCL device (``kernels/deform.cl``, one work-item per voxel).
+
+Both take a volume once (:meth:`prepare`: zero margin, B-spline filter) and then sample it
+at ``p + factor * d(p)`` for a dense predictor ``d`` as often as the passes need.
+Deformation is most of a deformed pass's time on a CPU with SciPy (single-threaded); the
+kernel spreads it over every core of a CPU and over a GPU.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..device import DeviceLike, check_fits, get_queue
+from ..program import KernelSet
+from .deform import MARGIN, deform, prepare
+
+
+class HostDeformer:
+    """Deformation with SciPy (:func:`plenocl.piv.deform.deform`), any order 1, 3, 5."""
+
+    def __init__(self, order: int) -> None:
+        self.order = order
+
+    def prepare(self, vol: np.ndarray) -> np.ndarray:
+        """The padded (and for orders 3, 5 spline-filtered) volume."""
+        return prepare(vol, self.order)
+
+    def field(self, displacement: np.ndarray) -> np.ndarray:
+        """A dense predictor ``(3, nz, ny, nx)`` ready for :meth:`__call__` (itself)."""
+        return displacement
+
+    def __call__(self, prepared: np.ndarray, displacement: np.ndarray,
+                 factor: float) -> np.ndarray:
+        """``vol(p + factor * displacement(p))`` for every voxel, float32."""
+        return deform(prepared, displacement, factor, self.order)
+
+
+class DeviceDeformer:
+    """Deformation by ``kernels/deform.cl`` on an OpenCL device (orders 1 and 3).
+
+    Parameters
+    ----------
+    queue
+        Device to run on (:func:`plenocl.get_queue` rules).
+    order
+        1 (trilinear) or 3 (cubic B-spline), as :func:`plenocl.piv.deform.deform`.
+    """
+
+    def __init__(self, queue: DeviceLike, order: int) -> None:
+        if order not in (1, 3):
+            raise ValueError(f"device deformation supports deform_order 1 and 3, got {order}; "
+                             "use queue=None for the quintic B-spline (host)")
+        self.order = order
+        self.kernels = KernelSet(get_queue(queue), "deform.cl", ["deform"],
+                                 options=[f"-DORDER={order}"])
+
+    def prepare(self, vol: np.ndarray):
+        """The padded, filtered volume (host :func:`~plenocl.piv.deform.prepare`), on the
+        device."""
+        coeffs = prepare(vol, self.order)
+        check_fits(self.kernels.queue, 4 * (2 * coeffs.size + 4 * np.asarray(vol).size),
+                   "PIV volume deformation")
+        return self.kernels.to_device(coeffs)
+
+    def field(self, displacement: np.ndarray):
+        """A dense predictor ``(3, nz, ny, nx)`` copied to the device once, for both
+        volumes of a pass."""
+        return self.kernels.to_device(np.asarray(displacement, np.float32))
+
+    def __call__(self, prepared, displacement, factor: float) -> np.ndarray:
+        """``vol(p + factor * displacement(p))`` for every voxel, float32, on the device;
+        ``displacement`` from :meth:`field`."""
+        shape = displacement.shape[1:]
+        out = self.kernels.array(shape)
+        pz, py, px = prepared.shape
+        self.kernels.launch("deform", shape[::-1], prepared, np.int32(pz), np.int32(py),
+                            np.int32(px), displacement, np.int32(MARGIN), np.float32(factor), out)
+        return out.get()
+
+
+def make_deformer(order: int, queue: DeviceLike | bool = None):
+    """The host deformer (``queue`` None or False) or the device one."""
+    if queue is None or queue is False:
+        return HostDeformer(order)
+    return DeviceDeformer(None if queue is True else queue, order)

@@ -1,0 +1,79 @@
+"""The fast PIV paths against their references: the deformation kernel
+(``kernels/deform.cl``) against SciPy's ``map_coordinates``, FFTW against SciPy's
+pocketfft, and ``piv3d`` on a device against ``piv3d`` on the host."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plenocl import flows
+from plenocl.piv import piv3d
+from plenocl.piv import fft as pivfft
+from plenocl.piv.correlation import correlate, padded_size, window_grid
+from plenocl.piv.deformers import DeviceDeformer, HostDeformer
+
+
+@pytest.mark.parametrize("order", [1, 3])
+@pytest.mark.parametrize("shape", [(13, 17, 21), (9, 30, 11)])
+def test_deform_kernel_matches_scipy(queue, order, shape):
+    rng = np.random.default_rng(sum(shape) + order)
+    vol = rng.random(shape).astype(np.float32)
+    # smooth enough to be a predictor, large enough that samples leave the volume
+    disp = rng.normal(0.0, 2.5, (3, *shape)).astype(np.float32)
+    host, device = HostDeformer(order), DeviceDeformer(queue, order)
+    for factor in (-0.5, 0.5):
+        want = host(host.prepare(vol), host.field(disp), factor)
+        got = device(device.prepare(vol), device.field(disp), factor)
+        np.testing.assert_allclose(got, want, atol=2e-5 * float(np.abs(want).max()))
+    assert np.count_nonzero(want == 0) < want.size  # the test samples real data
+
+
+def test_device_deformer_refuses_the_quintic_spline(queue):
+    with pytest.raises(ValueError, match="queue=None"):
+        DeviceDeformer(queue, 5)
+
+
+@pytest.mark.skipif(pivfft.pyfftw is None, reason="pyfftw is not installed")
+@pytest.mark.parametrize("window, fft_shape, count", [((8, 12, 10), (8, 12, 10), 5),
+                                                      ((8, 8, 8), (12, 12, 12), 7)])
+def test_fftw_correlation_matches_scipy(window, fft_shape, count):
+    rng = np.random.default_rng(3)
+    data = rng.random((2, count, *window)).astype(np.float32)
+    planes = []
+    for backend in ("fftw", "scipy"):
+        fft = pivfft.CorrelationFFT(9, window, fft_shape, 2, backend)
+        for k in range(2):
+            fft.windows(k, count)[...] = data[k]
+        planes.append(fft.correlate(count) / fft.scale)
+    np.testing.assert_allclose(planes[0], planes[1], atol=2e-5 * float(planes[1].max()))
+    # the definition: c(s) = sum_p a(p) b(p + s), circular over the FFT shape
+    a = np.zeros(fft_shape, np.float32)
+    b = np.zeros(fft_shape, np.float32)
+    a[:window[0], :window[1], :window[2]] = data[0, 0]
+    b[:window[0], :window[1], :window[2]] = data[1, 0]
+    s = (1, 2, 3)
+    want = float(np.sum(a * np.roll(b, [-k for k in s], axis=(0, 1, 2))))
+    assert planes[1][0][s] == pytest.approx(want, rel=1e-4)
+
+
+def test_padded_first_pass_is_linear_up_to_half_the_window():
+    assert [padded_size(w) for w in (8, 24, 32, 48)] == [12, 36, 48, 72]
+    shift = (0.0, 5.0, -7.0)   # (x, y, z): z by -7 voxels, more than a quarter of 24
+    pair = flows.volume_pair((24, 24, 64), flows.Uniform(shift), density=0.01, seed=4)
+    grid = window_grid((24, 24, 64), (24, 24, 32), 0.5)
+    corr = correlate(pair.vol_a, pair.vol_b, grid, pad=True)
+    dz, dy, dx = (np.median(c) for c in corr.displacement)
+    # found, not aliased; an undeformed window loses pairs, which biases it towards 0
+    assert (dx, dy, dz) == pytest.approx(shift, abs=0.3)
+
+
+def test_piv_on_a_device_equals_piv_on_the_host(queue):
+    flow = flows.Uniform((1.3, -0.7, 0.4))
+    pair = flows.volume_pair((40, 48, 56), flow, density=0.004, seed=5)
+    host = piv3d(pair.vol_a, pair.vol_b, windows=(32, 16))
+    device = piv3d(pair.vol_a, pair.vol_b, windows=(32, 16), queue=queue)
+    for comp in "uvw":
+        np.testing.assert_allclose(getattr(device, comp), getattr(host, comp), atol=1e-4)
+    assert np.array_equal(device.valid, host.valid)
+    assert abs(float(np.median(host.u)) - 1.3) < 0.05
