@@ -87,3 +87,59 @@ def test_bad_values_are_named(tmp_path):
         (tmp_path / "e.toml").write_text(EXPERIMENT.replace(old, new))
         with pytest.raises(ValueError, match=message):
             load_experiment(tmp_path / "e.toml")
+
+
+def test_dask_workers_give_the_serial_fields_and_a_store_xarray_reads(experiment, tmp_path):
+    serial = plenocl.run(experiment / "experiment.toml", tmp_path / "serial", progress=False)
+    dask = plenocl.run(experiment / "experiment.toml", tmp_path / "dask", workers=2,
+                       progress=False)
+    assert dask.processed == serial.processed == [0, 1]
+    assert list(dask.failed) == list(serial.failed) == [2]
+    for k in (0, 1):
+        name = f"pairs/pair_{k:05d}.npz"
+        _, want = read_npz(tmp_path / "serial" / name)
+        _, got = read_npz(tmp_path / "dask" / name)
+        for key in ("displacement", "velocity", "valid", "peak_ratio"):
+            assert np.array_equal(got[key], want[key]), key
+    xr = pytest.importorskip("xarray")
+    ds = xr.open_zarr(tmp_path / "dask" / "timeseries.zarr")
+    assert ds.u.dims == ("time", "z", "y", "x") and ds.sizes["time"] == 2
+    assert ds.x.attrs["units"] == "mm" and ds.u.attrs["units"] == "m/s"
+    assert list(ds.pair.values) == [0, 1]
+    _, first = read_npz(tmp_path / "dask" / "pairs" / "pair_00000.npz")
+    np.testing.assert_allclose(ds.x.values, first["x_mm"])
+    u = ds.u.values
+    valid = ds.valid.values
+    mean = np.where(valid.sum(0) > 0, np.nansum(np.where(valid, u, 0), 0)
+                    / np.maximum(valid.sum(0), 1), np.nan)
+    np.testing.assert_allclose(ds.u_mean.values, mean, rtol=1e-5, equal_nan=True)
+    assert float(np.nanmedian(ds.u_mean.values)) == pytest.approx(0.25, rel=0.1)
+
+
+def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_store(
+        experiment, tmp_path, monkeypatch):
+    out = tmp_path / "r"
+    calls = []
+    from plenocl.batch import worker
+
+    real = worker.PairProcessor.__call__
+
+    def stop_after_first(self, task):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(task.index)
+        return real(self, task)
+
+    monkeypatch.setattr(worker.PairProcessor, "__call__", stop_after_first)
+    first = plenocl.run(experiment / "experiment.toml", out, progress=False)
+    assert first.interrupted and first.processed == [0]
+    xr = pytest.importorskip("xarray")
+    assert xr.open_zarr(out / "timeseries.zarr").sizes["time"] == 1
+    monkeypatch.setattr(worker.PairProcessor, "__call__", real)
+    messages = []
+    second = plenocl.run(experiment / "experiment.toml", out, progress=False,
+                         log=messages.append)
+    assert second.skipped == [0] and second.processed == [1]
+    assert any("already done" in m and "skipped" in m for m in messages)
+    assert xr.open_zarr(out / "timeseries.zarr").sizes["time"] == 2
+    assert not (out / "timeseries.zarr.partial").exists()

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from plenocl import flows
-from plenocl.piv import piv3d
 from plenocl.piv import fft as pivfft
+from plenocl.piv import piv3d
 from plenocl.piv.correlation import correlate, padded_size, window_grid
 from plenocl.piv.deformers import DeviceDeformer, HostDeformer
 

@@ -6,10 +6,14 @@ import argparse
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """Process every pair of an experiment file; exit 1 when a pair failed."""
+    """Process every pair of an experiment file; exit 1 when a pair failed, 130 when
+    interrupted (the finished pairs are kept and gathered)."""
     from ..batch import run
 
-    summary = run(args.experiment, args.out, queue=args.device)
+    summary = run(args.experiment, args.out, queue=args.device, workers=args.workers,
+                  scheduler=args.scheduler, progress=not args.no_progress)
+    if summary.interrupted:
+        return 130
     return 1 if summary.failed else 0
 
 
@@ -20,5 +24,12 @@ def add_run_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("experiment", help="experiment TOML (camera, grid, images, dt, settings)")
     p.add_argument("--out", default=None,
                    help="output folder (default: [output] folder of the experiment file)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None,
+                       help="process pairs on a local Dask cluster of N worker processes")
+    where.add_argument("--scheduler", default=None,
+                       help="address of a running Dask scheduler (e.g. tcp://host:8786) to "
+                            "process pairs on")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_command)
     return p

@@ -23,3 +23,24 @@ def iteration_bar(total: int, desc: str, enabled: bool = True):
         yield callback
     finally:
         bar.close()
+
+
+@contextmanager
+def pair_bar(total: int, enabled: bool = True):
+    """A progress bar over the pairs of a batch: pairs done, pairs per second (tqdm's
+    rate) and the time left; yields a function to call with ``failed=`` per pair."""
+    bar = tqdm(total=total, desc="pairs", unit="pair", disable=not enabled or total == 0,
+               smoothing=0.1)
+    failures = 0
+
+    def advance(failed: bool = False) -> None:
+        nonlocal failures
+        failures += int(failed)
+        if failures:
+            bar.set_postfix(failed=failures)
+        bar.update(1)
+
+    try:
+        yield advance
+    finally:
+        bar.close()

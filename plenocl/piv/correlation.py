@@ -1,9 +1,10 @@
 """Interrogation-window grids, batched 3-D FFT cross-correlation and sub-voxel peak fits.
 
-All windows of a pass are correlated at once (in memory-bounded batches) with real-to-complex
-FFTs over the last three axes (:mod:`plenocl.piv.fft`: FFTW, or SciPy's pocketfft). Windows are zero-mean and the correlation is
-normalised by ``sqrt(sum a^2 sum b^2)``, so a perfect match peaks at 1. Displacement
-convention: ``vol_b(p) = vol_a(p - d)``, i.e. particles move by ``+d`` from ``a`` to ``b``.
+All windows of a pass are correlated at once (in memory-bounded batches) with
+real-to-complex FFTs over the last three axes (:mod:`plenocl.piv.fft`: FFTW, or SciPy's
+pocketfft). Windows are zero-mean and the correlation is normalised by
+``sqrt(sum a^2 sum b^2)``, so a perfect match peaks at 1. Displacement convention:
+``vol_b(p) = vol_a(p - d)``, i.e. particles move by ``+d`` from ``a`` to ``b``.
 Arrays are in volume order ``(z, y, x)``.
 """
 

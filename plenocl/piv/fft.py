@@ -26,7 +26,10 @@ BACKENDS = ("fftw", "scipy")
 
 
 def thread_count(workers: int) -> int:
-    """Threads for ``workers`` (``-1``: every core this process may use)."""
+    """Threads for ``workers`` (``-1``: the ``PLENOCL_THREADS`` variable, which a batch
+    run sets for its worker processes, else every core this process may use)."""
+    if (workers is None or workers < 1) and os.environ.get("PLENOCL_THREADS"):
+        return max(1, int(os.environ["PLENOCL_THREADS"]))
     if workers is None or workers < 1:
         try:
             return len(os.sched_getaffinity(0))

@@ -1,0 +1,14 @@
+"""A configured, resumable batch of image pairs: ``plenocl run experiment.toml``.
+
+- :mod:`.config`: the experiment file, its checks, the image pairs;
+- :mod:`.worker`: one pair from file paths to a written field (:class:`PairProcessor`);
+- :mod:`.cluster`: the pairs on a Dask cluster (worker plugin, local cluster);
+- :mod:`.run`: :func:`run`: order, resume, progress, Ctrl-C, the time series, summary.
+"""
+
+from .config import Experiment, image_pairs, load_experiment
+from .run import RunSummary, run
+from .worker import PairOutcome, PairProcessor, PairTask
+
+__all__ = ["Experiment", "PairOutcome", "PairProcessor", "PairTask", "RunSummary",
+           "image_pairs", "load_experiment", "run"]

@@ -1,0 +1,79 @@
+"""Pairs of a batch on a Dask cluster (``dask.distributed``).
+
+``plenocl run --workers N`` starts a local cluster of N single-threaded worker processes
+(spawned, so safe wherever ``fork`` is not); ``--scheduler ADDRESS`` uses an existing
+cluster (e.g. one started by ``dask-jobqueue`` on SLURM, docs/batch.md). Every worker
+gets the :class:`PlenoclWorker` plugin, which makes one
+:class:`~plenocl.batch.worker.PairProcessor` (OpenCL context, projector, compiled
+kernels) per worker; tasks carry :class:`~plenocl.batch.worker.PairTask` file paths and
+return small :class:`~plenocl.batch.worker.PairOutcome` records, never contexts or
+volumes. Each worker picks its device from the run's ``device`` argument, else its own
+``PLENOCL_DEVICE`` or ``PYOPENCL_CTX`` variable (one GPU per worker: give each worker
+its own), else the default device.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+
+from distributed import Client, LocalCluster, WorkerPlugin, as_completed, get_worker
+
+from ..piv.fft import thread_count
+from .worker import PairOutcome, PairProcessor, PairTask
+
+PLUGIN = "plenocl"
+
+
+class PlenoclWorker(WorkerPlugin):
+    """Worker plugin: one :class:`PairProcessor` per worker, made when it joins."""
+
+    name = PLUGIN
+
+    def __init__(self, run_folder: str, device: str | None = None) -> None:
+        self.run_folder, self.device = str(run_folder), device
+        self.processor: PairProcessor | None = None
+
+    def setup(self, worker) -> None:
+        """Make the worker's processor (its OpenCL context comes with the first pair)."""
+        device = self.device or os.environ.get("PLENOCL_DEVICE") or None
+        self.processor = PairProcessor(self.run_folder, device)
+
+
+def process_on_worker(task: PairTask) -> PairOutcome:
+    """The Dask task: one pair through this worker's processor."""
+    return get_worker().plugins[PLUGIN].processor(task)
+
+
+@contextmanager
+def dask_client(workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
+    """A client of an existing scheduler, or of a local cluster of ``workers`` processes
+    that share this machine's cores (closed on exit)."""
+    if scheduler:
+        with Client(scheduler) as client:
+            yield client
+        return
+    if not workers or workers < 1:
+        raise ValueError(f"workers must be a positive number of processes, got {workers!r}")
+    threads = str(max(1, thread_count(-1) // workers))
+    env = {"PLENOCL_THREADS": threads, "POCL_MAX_PTHREAD_COUNT": threads,
+           "POCL_CPU_MAX_CU_COUNT": threads, "OMP_NUM_THREADS": threads}
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None, env=env) as cluster, Client(cluster) as client:
+        yield client
+
+
+def run_on_dask(client: Client, tasks: Sequence[PairTask], run_folder, device,
+                on_done: Callable[[PairOutcome], None]) -> None:
+    """Process ``tasks`` on the cluster, calling ``on_done`` as each pair finishes.
+
+    Interrupted (Ctrl-C), it cancels the pairs not yet done; those done are written.
+    """
+    client.register_plugin(PlenoclWorker(str(run_folder), device), name=PLUGIN)
+    futures = client.map(process_on_worker, list(tasks), pure=False)
+    try:
+        for future in as_completed(futures):
+            on_done(future.result())
+    finally:
+        client.cancel(futures)

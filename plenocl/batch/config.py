@@ -1,0 +1,129 @@
+"""The experiment file of ``plenocl run``: its sections, their checks, the image pairs.
+
+The file names the camera (a calibrated camera file or a preset, calibrated from a white
+image first if one is given), the grid, the images and how they pair, ``dt``, the
+reconstruction and PIV settings and the outputs. Every key is checked before any work
+starts: an unknown section or key, or a bad value, is an error naming it.
+
+Example::
+
+    [camera]
+    file = "camera_calibrated.toml"     # or preset = "synthetic"; with white = "white.tif"
+                                         # the camera is calibrated from that image first
+    [grid]
+    z_mm = [-2.0, 2.0]                   # Grid.for_camera; or file = "grid.toml"
+    [images]
+    folder = "raw"
+    pattern = "frame_*.tif"              # sorted by name
+    pairing = "sequence"                 # 1+2, 3+4, ...; "sliding": 1+2, 2+3, ...;
+                                         # "ab": files with a_suffix / b_suffix
+    dt_s = 175e-6                        # between the two exposures of a pair
+    pair_interval_s = 0.01               # between successive pairs: the time axis
+    [reconstruction]
+    method = "mlem"
+    iterations = 30
+    [piv]
+    windows = [48, 32, 24]               # optional: fitted to the volume by default
+    [output]
+    folder = "results"
+    vti = false                          # also a ParaView .vti per pair
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..tomlfile import read_toml
+
+#: Keys each section of an experiment file may hold, with their defaults (None: required
+#: or optional without default).
+SECTIONS = {
+    "camera": {"file": None, "preset": None, "white": None},
+    "grid": {"file": None, "z_mm": None, "voxel_mm": None, "depth_voxel_mm": None,
+             "fraction": 1.0},
+    "images": {"folder": ".", "pattern": "*.tif", "pairing": "sequence", "a_suffix": "_a",
+               "b_suffix": "_b", "dt_s": None, "pair_interval_s": None},
+    "reconstruction": {"method": "mlem", "iterations": None, "relax": None,
+                       "background": "median", "threshold": None},
+    "piv": {"windows": None},
+    "output": {"folder": "results", "vti": False},
+}
+PAIRINGS = ("sequence", "sliding", "ab")
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A validated experiment file: every section's values with defaults filled in, and
+    the folder relative paths are resolved against."""
+
+    sections: dict = field(compare=False)
+    base: Path = Path(".")
+
+    def __getitem__(self, section: str) -> dict:
+        return self.sections[section]
+
+
+def load_experiment(path: str | Path) -> Experiment:
+    """Read and check an experiment file; every unknown or bad key is an error naming it."""
+    path = Path(path)
+    doc = read_toml(path)
+    unknown = set(doc) - set(SECTIONS)
+    if unknown:
+        raise ValueError(f"{path}: unknown section(s) {sorted(unknown)}; the sections are "
+                         f"{list(SECTIONS)}")
+    sections = {}
+    for name, defaults in SECTIONS.items():
+        given = doc.get(name, {})
+        bad = set(given) - set(defaults)
+        if bad:
+            raise ValueError(f"{path}: unknown key(s) {sorted(bad)} in [{name}]; it takes "
+                             f"{list(defaults)}")
+        sections[name] = {**defaults, **given}
+    _check(sections, path)
+    return Experiment(sections, path.parent)
+
+
+def _check(s: dict, path: Path) -> None:
+    cam = [k for k in ("file", "preset") if s["camera"][k]]
+    if len(cam) != 1:
+        raise ValueError(f"{path}: [camera] needs exactly one of file or preset (the "
+                         f"camera, calibrated from `white` if given), got {cam or 'none'}")
+    if bool(s["grid"]["file"]) == bool(s["grid"]["z_mm"]):
+        raise ValueError(f"{path}: [grid] needs exactly one of file or z_mm")
+    if s["images"]["pairing"] not in PAIRINGS:
+        raise ValueError(f"{path}: [images] pairing must be one of {PAIRINGS}, got "
+                         f"{s['images']['pairing']!r}")
+    dt = s["images"]["dt_s"]
+    if not (isinstance(dt, (int, float)) and dt > 0):
+        raise ValueError(f"{path}: [images] dt_s must be the time between the exposures in "
+                         f"seconds (e.g. 175e-6), got {dt!r}")
+    interval = s["images"]["pair_interval_s"]
+    if interval is not None and not (isinstance(interval, (int, float)) and interval > 0):
+        raise ValueError(f"{path}: [images] pair_interval_s must be the time between "
+                         f"successive pairs in seconds, got {interval!r}")
+    from ..reconstruction import ReconstructionSettings
+
+    ReconstructionSettings(**s["reconstruction"])  # raises on a bad value, naming it
+    if not isinstance(s["output"]["vti"], bool):
+        raise ValueError(f"{path}: [output] vti must be true or false, got "
+                         f"{s['output']['vti']!r}")
+
+
+def image_pairs(exp: Experiment) -> list[tuple[Path, Path]]:
+    """The image pairs of the experiment, in order."""
+    img = exp["images"]
+    folder = exp.base / img["folder"]
+    files = sorted(folder.glob(img["pattern"]))
+    if img["pairing"] == "ab":
+        a = [f for f in files if f.stem.endswith(img["a_suffix"])]
+        pairs = [(f, f.with_name(f.stem[: -len(img["a_suffix"])] + img["b_suffix"] + f.suffix))
+                 for f in a]
+    elif img["pairing"] == "sliding":
+        pairs = list(zip(files[:-1], files[1:]))
+    else:
+        pairs = list(zip(files[0::2], files[1::2]))
+    if not pairs:
+        raise ValueError(f"no image pairs in {folder} matching {img['pattern']!r} "
+                         f"(pairing {img['pairing']!r})")
+    return pairs

@@ -1,0 +1,204 @@
+"""``plenocl run experiment.toml``: every pair of an experiment, resumable, on this
+machine or a Dask cluster (docs/batch.md).
+
+The run checks the experiment file, calibrates the camera if a white image is given, and
+writes the configuration used (``experiment_used.toml``, ``camera_used.toml``,
+``grid_used.toml``) before any pair. Each pair's vector field goes atomically to
+``OUT/pairs/pair_NNNNN.npz`` (and ``.vti`` on request): a rerun skips the pairs already
+there and says so; a pair that fails (unreadable, wrong size, NaN) is logged with its
+reason and the run goes on. At the end, and after Ctrl-C, the finished pairs are gathered
+into ``OUT/timeseries.zarr`` with the ensemble mean and RMS fluctuation
+(:mod:`plenocl.io.timeseries`), and ``summary.json`` reports pairs processed, skipped and
+failed, seconds per pair and the stage split.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from ..atomic import atomic_path
+from ..io.progress import pair_bar
+from ..io.timeseries import write_timeseries
+from ..tomlfile import write_toml
+from .config import Experiment, image_pairs, load_experiment
+from .worker import PairOutcome, PairProcessor, PairTask
+
+
+@dataclass
+class RunSummary:
+    """What :func:`run` did (also written to ``summary.json``)."""
+
+    pairs: int = 0
+    processed: list[int] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
+    failed: dict[int, str] = field(default_factory=dict)
+    seconds_per_pair: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    wall_seconds: float = 0.0
+    workers: int = 1
+    interrupted: bool = False
+    store: str | None = None
+
+
+def run(config: str | Path, out: str | Path | None = None, queue=None, log=print, *,
+        workers: int | None = None, scheduler: str | None = None,
+        progress: bool = True) -> RunSummary:
+    """Process every image pair of an experiment file (see the module notes).
+
+    Parameters
+    ----------
+    config
+        The experiment file (:mod:`plenocl.batch.config`).
+    out
+        Output folder (default: the file's ``[output] folder``).
+    queue
+        OpenCL device (:func:`plenocl.get_queue` rules); with a cluster, a device name
+        each worker looks up (or None: each worker's ``PLENOCL_DEVICE``/``PYOPENCL_CTX``).
+    log
+        Where messages go.
+    workers
+        Process the pairs on a local Dask cluster of this many worker processes.
+    scheduler
+        Address of an existing Dask scheduler to process the pairs on instead.
+    progress
+        Show a progress bar (pairs done, pairs/s, time left).
+
+    Returns
+    -------
+    RunSummary
+        Pairs processed, skipped (already written) and failed (with the reason).
+    """
+    exp = load_experiment(config)
+    out = Path(out) if out is not None else exp.base / exp["output"]["folder"]
+    pairs = image_pairs(exp)
+    if (workers or scheduler) and not (queue is None or isinstance(queue, str)):
+        raise ValueError("with --workers or --scheduler the device must be a name each "
+                         "worker looks up (e.g. 'cpu' or 'NVIDIA'), not an OpenCL object")
+    camera = _camera(exp, queue, log)
+    _write_used_config(exp, out, camera, _grid(exp, camera))
+    summary = RunSummary(pairs=len(pairs), workers=workers or (0 if scheduler else 1))
+    tasks = _tasks(pairs, out, summary, log)
+    t0 = time.perf_counter()
+    with pair_bar(len(tasks), progress) as advance:
+        def done(outcome: PairOutcome) -> None:
+            _record(outcome, pairs, summary, log)
+            advance(outcome.error is not None)
+
+        try:
+            _process(tasks, out, queue, workers, scheduler, done)
+        except KeyboardInterrupt:
+            summary.interrupted = True
+            log("interrupted: the pairs finished so far are kept; run again to go on")
+    summary.wall_seconds = time.perf_counter() - t0
+    _finish(summary, exp, out, log)
+    return summary
+
+
+def _tasks(pairs, out: Path, summary: RunSummary, log) -> list[PairTask]:
+    """The pairs still to do; those whose field exists are skipped, and said so."""
+    tasks = []
+    for k, (path_a, path_b) in enumerate(pairs):
+        target = out / "pairs" / f"pair_{k:05d}.npz"
+        if target.is_file():
+            summary.skipped.append(k)
+        else:
+            tasks.append(PairTask(k, str(path_a), str(path_b), str(target)))
+    if summary.skipped:
+        log(f"{len(summary.skipped)} of {len(pairs)} pair(s) already done in "
+            f"{out / 'pairs'}: skipped")
+    (out / "pairs").mkdir(parents=True, exist_ok=True)
+    return tasks
+
+
+def _process(tasks, out: Path, queue, workers, scheduler, done) -> None:
+    """Run the tasks serially in this process, or on a Dask cluster."""
+    if not tasks:
+        return
+    if workers or scheduler:
+        from .cluster import dask_client, run_on_dask
+
+        with dask_client(workers, scheduler) as client:
+            run_on_dask(client, tasks, out, queue, done)
+        return
+    processor = PairProcessor(out, queue)
+    for task in tasks:
+        done(processor(task))
+
+
+def _record(outcome: PairOutcome, pairs, summary: RunSummary, log) -> None:
+    if outcome.error is not None:
+        summary.failed[outcome.index] = outcome.error
+        log(f"pair {outcome.index}: failed, skipped: {outcome.error}")
+        return
+    summary.processed.append(outcome.index)
+    for key, value in outcome.seconds.items():
+        summary.stage_seconds[key] = summary.stage_seconds.get(key, 0.0) + value
+
+
+def _camera(exp: Experiment, queue, log):
+    from ..camera import load_camera
+
+    cam = exp["camera"]
+    camera = load_camera(exp.base / cam["file"] if cam["file"] else cam["preset"])
+    if not cam["white"]:
+        return camera
+    from ..calibration import calibrate
+    from ..io.files import read_image
+
+    log(f"calibrating from {cam['white']}")
+    return calibrate(read_image(exp.base / cam["white"]), camera)
+
+
+def _grid(exp: Experiment, camera):
+    from ..grid import Grid
+
+    g = exp["grid"]
+    if g["file"]:
+        return Grid.from_toml(exp.base / g["file"])
+    return Grid.for_camera(camera, tuple(g["z_mm"]), voxel_mm=g["voxel_mm"],
+                           depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
+
+
+def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
+    """The configuration used, the camera and the grid, beside the results: a rerun
+    refuses to mix pairs of another grid into the folder."""
+    from .. import __version__
+
+    out.mkdir(parents=True, exist_ok=True)
+    grid_file = out / "grid_used.toml"
+    if grid_file.is_file() and any((out / "pairs").glob("pair_*.npz")):
+        from ..grid import Grid
+
+        if Grid.from_toml(grid_file) != grid:
+            raise ValueError(f"{out} holds pairs of another grid ({grid_file}); write this "
+                             f"run to another folder (--out) or remove the old results")
+    used = {name: {k: v for k, v in values.items() if v is not None}
+            for name, values in exp.sections.items()}
+    used["run"] = {"plenocl_version": __version__,
+                   "grid_shape": list(grid.shape), "grid_rotation_deg": grid.rotation_deg}
+    write_toml(out / "experiment_used.toml", used)
+    camera.to_toml(out / "camera_used.toml")
+    grid.to_toml(grid_file)
+
+
+def _finish(summary: RunSummary, exp: Experiment, out: Path, log) -> None:
+    """Gather every finished pair into the store; write ``summary.json``."""
+    done = len(summary.processed)
+    summary.processed.sort()
+    summary.seconds_per_pair = (summary.wall_seconds / done) if done else 0.0
+    interval = exp["images"]["pair_interval_s"]
+    fields = [(int(p.stem.split("_")[1]), p) for p in sorted((out / "pairs").glob("pair_*.npz"))]
+    if fields:
+        store = write_timeseries(out / "timeseries.zarr",
+                                 [(k, k * interval if interval else float(k), p)
+                                  for k, p in fields], "s" if interval else "pair")
+        summary.store = str(store)
+    with atomic_path(out / "summary.json") as tmp:
+        tmp.write_text(json.dumps(asdict(summary), indent=2))
+    log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
+        f"{len(summary.skipped)} already done, {len(summary.failed)} failed"
+        + (f": {summary.failed}" if summary.failed else "")
+        + (f"; {len(fields)} in {out / 'timeseries.zarr'}" if fields else ""))

@@ -1,0 +1,105 @@
+"""One pair of a batch, from file paths to a written vector field: the unit of work of
+:func:`plenocl.batch.run`, the same in a serial run and on a Dask worker.
+
+A :class:`PairProcessor` is made once per process (per Dask worker: by the worker plugin
+of :mod:`plenocl.batch.cluster`) from the run folder alone: the camera and grid the run
+wrote there, and the experiment file. It builds its OpenCL context and projector on the
+first pair and reuses them (sensitivity and compiled kernels included) for every other.
+Tasks carry only a :class:`PairTask` (file paths), never contexts or volumes.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..camera import load_camera
+from ..device import DeviceLike
+from ..grid import Grid
+from ..io.fields import save_field
+from ..io.files import read_image
+from ..pipeline import process_pair
+from ..reconstruction import ReconstructionSettings
+from ..tomlfile import read_toml
+
+#: The exceptions a bad pair raises (unreadable, wrong size, NaN, ...): logged, skipped.
+PAIR_ERRORS = (ValueError, OSError, TypeError)
+
+
+@dataclass(frozen=True)
+class PairTask:
+    """One pair to process: its index, its two images and the field file to write."""
+
+    index: int
+    image_a: str
+    image_b: str
+    target: str
+
+
+@dataclass
+class PairOutcome:
+    """What became of a :class:`PairTask`: ``error`` is None when the field was written."""
+
+    index: int
+    seconds: dict
+    error: str | None = None
+
+
+class PairProcessor:
+    """Processes pairs of one run; see the module notes.
+
+    Parameters
+    ----------
+    run_folder
+        The run's output folder, holding ``experiment_used.toml``, ``camera_used.toml``
+        and ``grid_used.toml`` (written by :func:`plenocl.batch.run` before any pair).
+    device
+        OpenCL device of this process (:func:`plenocl.get_queue` rules: by default
+        ``PYOPENCL_CTX``, else a GPU, else a CPU).
+    """
+
+    def __init__(self, run_folder: str | Path, device: DeviceLike = None) -> None:
+        folder = Path(run_folder)
+        used = read_toml(folder / "experiment_used.toml")   # checked when the run began
+        self.settings = ReconstructionSettings(**used["reconstruction"])
+        windows = used.get("piv", {}).get("windows")
+        self.piv_options = {} if windows is None else {"windows": tuple(windows)}
+        self.dt = float(used["images"]["dt_s"])
+        self.vti = bool(used["output"].get("vti", False))
+        self.camera = load_camera(folder / "camera_used.toml")
+        self.grid = Grid.from_toml(folder / "grid_used.toml")
+        self.device = device
+        self._projector = None
+
+    @property
+    def projector(self):
+        """The projector of every pair, made on first use."""
+        if self._projector is None:
+            from ..projection import Projector
+
+            self._projector = Projector(self.camera, self.grid, self.device)
+        return self._projector
+
+    def __call__(self, task: PairTask) -> PairOutcome:
+        """Process one pair and write its field atomically; a bad pair's error is
+        returned, not raised, so that the run goes on."""
+        t0 = time.perf_counter()
+        try:
+            raw_a, raw_b = read_image(task.image_a), read_image(task.image_b)
+            seconds = {"read": time.perf_counter() - t0}
+            seconds.update(self._process(raw_a, raw_b, Path(task.target)))
+        except PAIR_ERRORS as exc:
+            name = f"{Path(task.image_a).name} + {Path(task.image_b).name}"
+            return PairOutcome(task.index, {}, f"{name}: {exc}")
+        return PairOutcome(task.index, seconds)
+
+    def _process(self, raw_a, raw_b, target: Path) -> dict:
+        pair = process_pair(raw_a, raw_b, self.projector, settings=self.settings,
+                            piv_options=self.piv_options)
+        t0 = time.perf_counter()
+        if self.vti:
+            save_field(target.with_suffix(".vti"), pair.piv, dt=self.dt, grid=self.grid)
+        # the .npz last: its presence marks the pair done
+        save_field(target, pair.piv, dt=self.dt, grid=self.grid)
+        return {**pair.seconds, "write": time.perf_counter() - t0}

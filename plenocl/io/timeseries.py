@@ -1,0 +1,158 @@
+"""The time series of a batch run as one chunked Zarr store, readable by xarray.
+
+:func:`write_timeseries` gathers per-pair vector fields (``.npz`` files of
+:func:`plenocl.io.fields.write_npz`) into ``timeseries.zarr``:
+
+- coordinates ``time`` (s, or pair numbers where the pair interval is unknown), ``z``,
+  ``y``, ``x`` (mm, the vector grid's centres) and ``pair`` (the pair's index in the run);
+- per pair ``u``, ``v``, ``w`` (m/s), ``valid`` and ``outlier`` flags and ``peak_ratio``,
+  shaped ``(time, z, y, x)``, one chunk per pair;
+- the ensemble over the run, shaped ``(z, y, x)``: ``u_mean``, ``v_mean``, ``w_mean``
+  and the RMS fluctuations ``u_rms``, ``v_rms``, ``w_rms`` over the valid vectors, with
+  ``valid_count``.
+
+``xarray.open_zarr("timeseries.zarr")`` reads it with those names and units. The store
+is written beside its final place and moved there when complete, so a run stopped
+midway leaves the previous store (or none), never half of one.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .fields import read_npz
+
+COMPONENTS = ("u", "v", "w")
+
+
+def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]],
+                     time_units: str = "s") -> Path:
+    """Write the store (see the module notes) from ``(pair index, time, .npz path)``.
+
+    Parameters
+    ----------
+    path
+        The store to write (a folder, ``*.zarr``); an existing one is replaced.
+    fields
+        One entry per pair, in time order; every field on the same vector grid, with
+        velocities (written with ``dt``).
+    time_units
+        Units of the times (``"s"``, or ``"pair"`` when they are pair numbers).
+
+    Returns
+    -------
+    pathlib.Path
+        The store.
+    """
+    import zarr
+
+    if not fields:
+        raise ValueError("no vector fields to gather into a time series")
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    group = zarr.open_group(partial, mode="w")
+    first = read_npz(fields[0][2])[1]
+    _coordinates(group, first, fields, time_units)
+    stats = _Ensemble(first["velocity"].shape[1:])
+    arrays = _per_pair_arrays(group, len(fields), stats.shape)
+    for k, (_, _, npz) in enumerate(fields):
+        _, data = read_npz(npz)
+        _check_grid(data, first, npz)
+        for comp, values in zip(COMPONENTS, data["velocity"]):
+            arrays[comp][k] = values
+        for name in ("valid", "outlier", "peak_ratio"):
+            arrays[name][k] = data[name]
+        stats.add(data["velocity"], data["valid"])
+    stats.write(group)
+    group.attrs.update({"title": "plenocl time series", "source": "plenocl run"})
+    zarr.consolidate_metadata(partial)   # one read opens the whole store
+    _replace(partial, path)
+    return path
+
+
+def _coordinates(group, first: dict, fields, time_units: str) -> None:
+    """The ``time``, ``pair``, ``z``, ``y``, ``x`` coordinate arrays."""
+    times = np.array([t for _, t, _ in fields], float)
+    group.create_array("time", data=times, dimension_names=["time"],
+                       attributes={"units": time_units, "long_name": "time of the pair"})
+    group.create_array("pair", data=np.array([k for k, _, _ in fields], np.int64),
+                       dimension_names=["time"],
+                       attributes={"long_name": "index of the pair in the run"})
+    for axis in ("z", "y", "x"):
+        group.create_array(axis, data=np.asarray(first[f"{axis}_mm"], float),
+                           dimension_names=[axis],
+                           attributes={"units": "mm", "long_name": f"{axis} of the vector"})
+    group.attrs["coordinates"] = "pair"
+
+
+def _per_pair_arrays(group, count: int, shape) -> dict:
+    dims = ["time", "z", "y", "x"]
+    chunks = (1, *shape)
+    out = {}
+    for comp in COMPONENTS:
+        out[comp] = group.create_array(comp, shape=(count, *shape), chunks=chunks,
+                                       dtype="f4", fill_value=np.nan, dimension_names=dims,
+                                       attributes={"units": "m/s", "coordinates": "pair"})
+    for name, dtype in (("valid", "bool"), ("outlier", "bool"), ("peak_ratio", "f4")):
+        out[name] = group.create_array(name, shape=(count, *shape), chunks=chunks,
+                                       dtype=dtype, dimension_names=dims,
+                                       attributes={"coordinates": "pair"})
+    return out
+
+
+def _check_grid(data: dict, first: dict, npz: Path) -> None:
+    if data["velocity"].shape != first["velocity"].shape:
+        raise ValueError(f"{npz} holds a {data['velocity'].shape[1:]} vector grid, the "
+                         f"others {first['velocity'].shape[1:]}: one run, one grid")
+
+
+class _Ensemble:
+    """Running mean and RMS fluctuation of the valid vectors at every grid point."""
+
+    def __init__(self, shape) -> None:
+        self.shape = tuple(shape)
+        self.count = np.zeros(self.shape, np.int64)
+        self.total = np.zeros((3, *self.shape))
+        self.squares = np.zeros((3, *self.shape))
+
+    def add(self, velocity: np.ndarray, valid: np.ndarray) -> None:
+        values = np.where(valid, np.nan_to_num(velocity.astype(float)), 0.0)
+        self.count += valid
+        self.total += values
+        self.squares += values**2
+
+    def write(self, group) -> None:
+        n = np.maximum(self.count, 1)
+        mean = self.total / n
+        var = (self.squares - n * mean**2) / np.maximum(self.count - 1, 1)
+        rms = np.sqrt(np.maximum(var, 0.0))
+        mean[:, self.count == 0] = np.nan
+        rms[:, self.count < 2] = np.nan
+        dims = ["z", "y", "x"]
+        for k, comp in enumerate(COMPONENTS):
+            group.create_array(f"{comp}_mean", data=mean[k].astype(np.float32),
+                               dimension_names=dims, attributes={
+                                   "units": "m/s", "long_name": f"ensemble mean of {comp} "
+                                   "over the valid vectors"})
+            group.create_array(f"{comp}_rms", data=rms[k].astype(np.float32),
+                               dimension_names=dims, attributes={
+                                   "units": "m/s", "long_name": f"RMS fluctuation of {comp} "
+                                   "over the valid vectors"})
+        group.create_array("valid_count", data=self.count, dimension_names=dims,
+                           attributes={"long_name": "valid vectors in the ensemble"})
+
+
+def _replace(partial: Path, path: Path) -> None:
+    """Move the finished store into place, replacing an older one."""
+    old = path.with_name(path.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if path.exists():
+        os.replace(path, old)
+    os.replace(partial, path)
+    shutil.rmtree(old, ignore_errors=True)
