@@ -143,3 +143,18 @@ def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_sto
     assert any("already done" in m and "skipped" in m for m in messages)
     assert xr.open_zarr(out / "timeseries.zarr").sizes["time"] == 2
     assert not (out / "timeseries.zarr.partial").exists()
+
+
+def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
+    from plenocl.demo.time_series import run_time_series
+
+    s = run_time_series(tmp_path, pairs=2, queue=queue, log=lambda m: None)
+    assert s["processed"] == 2 and not s["failed"]
+    assert len(list((tmp_path / "raw").glob("frame_*.tif"))) == 4
+    assert load_experiment(tmp_path / "experiment.toml")["images"]["pair_interval_s"] > 0
+    # the small demo measures the boundary layer to within about 10 % of U∞ per component
+    assert max(s["rms_error"].values()) < 0.15 and s["valid_fraction"] > 0.8
+    assert set(s["stage_seconds_per_pair"]) >= {"read", "reconstruct_a", "reconstruct_b",
+                                                "piv", "write"}
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["ensemble_mean_rms_error"] == s["ensemble_mean_rms_error"]

@@ -120,6 +120,8 @@ def demo_command(args: argparse.Namespace) -> int:
         for line in particle_demo(args.out, count=200, seed=args.seed, queue=args.device):
             print(line)
         return 0
+    if args.name == "time-series":
+        return _time_series(args)
     from ..demo.boundary_layer import run_boundary_layer
 
     s = run_boundary_layer(args.size, args.out, queue=args.device, seed=args.seed)
@@ -132,17 +134,36 @@ def demo_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def _time_series(args: argparse.Namespace) -> int:
+    from ..demo.time_series import run_time_series
+
+    s = run_time_series(args.out, pairs=args.pairs, queue=args.device, seed=args.seed,
+                        workers=args.workers)
+    err = s.get("rms_error", {})
+    print(f"time series: {s['processed']} of {s['pairs']} pairs, "
+          f"{s['seconds_per_pair']:.1f} s per pair; velocity RMS error per pair "
+          + ", ".join(f"{c} {100 * v:.1f}%" for c, v in err.items()) + " of U∞, ensemble "
+          "mean " + ", ".join(f"{c} {100 * v:.1f}%" for c, v in
+                              s.get("ensemble_mean_rms_error", {}).items())
+          + f"; {args.out}/experiment.toml, results in {args.out}/results/")
+    return 1 if s["failed"] else 0
+
+
 def add_demo_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``demo``."""
     p = subparsers.add_parser("demo", help="run a built-in example end to end")
     p.add_argument("name", nargs="?", default="boundary-layer",
-                   choices=["boundary-layer", "particles"],
+                   choices=["boundary-layer", "particles", "time-series"],
                    help="boundary-layer (default): the paper's experiment on synthetic data; "
-                        "particles: simulate one raw image")
+                        "particles: simulate one raw image; time-series: raw pairs and "
+                        "their experiment.toml, processed by plenocl run")
     p.add_argument("--size", default="small", choices=["small", "paper"],
                    help="small: 850 x 850 px camera, minutes on 2 cores; paper: 16 MP, "
                         "300 x 200 x 150 voxels")
     p.add_argument("--out", default="plenocl_demo", help="output folder (resumable)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pairs", type=int, default=6, help="time-series: pairs to write")
+    p.add_argument("--workers", type=int, default=None,
+                   help="time-series: process on a local Dask cluster of N workers")
     p.set_defaults(func=demo_command)
     return p

@@ -103,7 +103,7 @@ class CameraFrameFlow:
         return self.flow.mean_velocity(self.z_wall - np.asarray(z, float))
 
 
-def _seed(sc: Scenario, flow: CameraFrameFlow, seed: int):
+def seed_particles(sc: Scenario, flow: CameraFrameFlow, seed: int):
     """Particles at mid-time filling the volume (plus the distance they travel), then
     moved back and forth by half the exposure interval."""
     g, cam = sc.grid, sc.camera
@@ -141,8 +141,9 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     if figures:
         from .figures import boundary_layer_figures
 
+        field = run.out / "field.npz"
         run.run("figures", ["fig_profile.png"],
-                lambda: boundary_layer_figures(run.out, measured_and_true(run.out, sc, flow),
+                lambda: boundary_layer_figures(run.out, measured_and_true(field, sc, flow),
                                                sc.z_wall, summary, U_INF))
     summary["seconds"] = run.timings
     write_json(run.path("summary.json"), summary)
@@ -150,14 +151,15 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
 
 
 def _stage_particles(run: StageRunner, sc: Scenario, flow, seed: int) -> None:
-    pos_a, pos_b, inten = _seed(sc, flow, seed)
+    pos_a, pos_b, inten = seed_particles(sc, flow, seed)
     write_particles(run.path("particles_a.csv"), pos_a, inten)
     write_particles(run.path("particles_b.csv"), pos_b, inten)
     run.log(f"  {len(inten)} particles, "
             f"{particles_per_microlens(len(inten), sc.camera):.3f} per microlens")
 
 
-def _sensor(seed: int) -> dict:
+def sensor_options(seed: int) -> dict:
+    """The simulated sensor of the demo (blur, background, photon and read noise, 16 bit)."""
     return dict(blur_px=0.5, background=20.0, photon_noise=True, read_noise=3.0, bit_depth=16,
                 seed=seed)
 
@@ -165,7 +167,7 @@ def _sensor(seed: int) -> dict:
 def _stage_calibration(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
     from ..simulate import simulate_white_image
 
-    kw = _sensor(seed + 101)
+    kw = sensor_options(seed + 101)
     white = simulate_white_image(sc.physical_camera, intensity=3e4, vignetting=0.3,
                                  queue=queue, **{k: v for k, v in kw.items() if k != "blur_px"})
     write_tiff(run.path("white.tif"), white)
@@ -181,7 +183,7 @@ def _stage_images(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
 
     for tag, offset in (("a", 1), ("b", 2)):
         pos, inten = read_particles(run.path(f"particles_{tag}.csv"))
-        kw = _sensor(seed + offset)
+        kw = sensor_options(seed + offset)
         img = simulate_image(sc.physical_camera, pos, inten, sc.rays, queue=queue, **kw)
         write_tiff(run.path(f"raw_{tag}.tif"), img)
 
@@ -224,12 +226,12 @@ def _stage_piv(run: StageRunner, sc: Scenario) -> None:
         save_field(run.path(name), res, dt=DT, grid=sc.grid)
 
 
-def measured_and_true(out: Path, sc: Scenario, flow: CameraFrameFlow):
-    """Measured and true velocity (m/s, camera frame, ``(3, nz', ny', nx')``), the valid
-    mask and the window-centre coordinates (mm)."""
+def measured_and_true(field: Path, sc: Scenario, flow: CameraFrameFlow):
+    """Measured and true velocity (m/s, camera frame, ``(3, nz', ny', nx')``) of a field
+    file (``.npz``), the valid mask and the window-centre coordinates (mm)."""
     from ..io.fields import read_npz
 
-    res, _ = read_npz(Path(out) / "field.npz")
+    res, _ = read_npz(field)
     dz, dy, dx = sc.grid.spacing
     origin = (sc.grid.z[0] + dz / 2, sc.grid.y[0] + dy / 2, sc.grid.x[0] + dx / 2)
     x, y, z = res.positions_mm(sc.grid.spacing, origin)
@@ -243,7 +245,7 @@ def measured_and_true(out: Path, sc: Scenario, flow: CameraFrameFlow):
 
 def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
     """Errors against the truth, as fractions of ``U∞``, and the reconstruction's recovery."""
-    meas, true, valid, (_, _, z) = measured_and_true(run.out, sc, flow)
+    meas, true, valid, (_, _, z) = measured_and_true(run.out / "field.npz", sc, flow)
     err = np.sqrt(np.sum((meas - true) ** 2, axis=0))
     prof_meas = np.array([np.mean(meas[1, k][valid[k]]) for k in range(len(z))])
     prof_spread = np.array([np.std(meas[1, k][valid[k]]) for k in range(len(z))])

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -71,7 +72,9 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
         stats.add(data["velocity"], data["valid"])
     stats.write(group)
     group.attrs.update({"title": "plenocl time series", "source": "plenocl run"})
-    zarr.consolidate_metadata(partial)   # one read opens the whole store
+    with warnings.catch_warnings():  # zarr: "not part of the Zarr 3 specification" (yet)
+        warnings.filterwarnings("ignore", message="Consolidated metadata")
+        zarr.consolidate_metadata(partial)   # one read opens the whole store
     _replace(partial, path)
     return path
 
