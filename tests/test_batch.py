@@ -72,9 +72,11 @@ def test_run_processes_pairs_skips_finished_ones_and_reports_failures(experiment
     ("[camera]\npreset = 'synthetic'\nlens = 3\n", r"unknown key\(s\) \['lens'\] in \[camera\]"),
     ("[cameras]\n", r"unknown section\(s\) \['cameras'\]"),
     ("[camera]\n", "exactly one of file or preset"),
+    ("[output]\nvti = 'yes'\n[camera]\npreset = 'synthetic'\n", "vti must be true or false"),
 ])
 def test_bad_experiment_files_are_refused_before_any_work(tmp_path, change, message):
-    base = EXPERIMENT.replace('[camera]\npreset = "synthetic"\n', "")
+    base = EXPERIMENT.replace('[camera]\npreset = "synthetic"\n', "").replace(
+        '[output]\nfolder = "results"\n', "")
     (tmp_path / "e.toml").write_text(change + base)
     with pytest.raises(ValueError, match=message):
         load_experiment(tmp_path / "e.toml")
@@ -158,3 +160,20 @@ def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
                                                 "piv", "write"}
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["ensemble_mean_rms_error"] == s["ensemble_mean_rms_error"]
+
+
+def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(experiment,
+                                                                           tmp_path, queue):
+    out = tmp_path / "g"
+    (out / "pairs").mkdir(parents=True)
+    (out / "pairs" / "pair_00000.npz").write_bytes(b"")
+    plenocl.Grid((8, 8, 8), x=(-1, 1), y=(-1, 1), z=(-1, 1)).to_toml(out / "grid_used.toml")
+    with pytest.raises(ValueError, match="holds pairs of another grid"):
+        plenocl.run(experiment / "experiment.toml", out, progress=False)
+    with pytest.raises(ValueError, match="must be a name each worker looks up"):
+        plenocl.run(experiment / "experiment.toml", tmp_path / "w", queue=queue, workers=2)
+    bad = (experiment / "experiment.toml").read_text().replace("dt_s = 1e-3",
+                                                                "dt_s = 1e-3\npair_interval_s = -1")
+    (tmp_path / "bad.toml").write_text(bad)
+    with pytest.raises(ValueError, match="pair_interval_s must be the time between"):
+        load_experiment(tmp_path / "bad.toml")

@@ -37,7 +37,8 @@ PAIR_INTERVAL = 0.1
 
 
 def run_time_series(out_dir: str | Path, pairs: int = 6, queue=None, seed: int = 0,
-                    workers: int | None = None, log: Callable[[str], None] = print) -> dict:
+                    workers: int | None = None, log: Callable[[str], None] = print,
+                    progress: bool = True) -> dict:
     """Write the experiment (skipped where its files exist), run it, measure it.
 
     Returns
@@ -54,7 +55,7 @@ def run_time_series(out_dir: str | Path, pairs: int = 6, queue=None, seed: int =
     flow = CameraFrameFlow(sc, seed)
     write_experiment(out, sc, flow, pairs, seed, queue, log)
     summary = run(out / "experiment.toml", out / "results", queue=queue, log=log,
-                  workers=workers)
+                  workers=workers, progress=progress)
     doc = {"pairs": pairs, "processed": len(summary.processed) + len(summary.skipped),
            "failed": summary.failed, "seconds_per_pair": summary.seconds_per_pair,
            "stage_seconds_per_pair": {k: v / max(1, len(summary.processed))

@@ -302,7 +302,7 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
           deform_order: int = 3, predictor: str = "cubic", mask=None,
           median_eps: float = 0.1, median_threshold: float = 2.0,
           min_peak_ratio: float | None = None, workers: int = -1,
-          queue=None) -> PIVResult:
+          queue=None, fft: str | None = None) -> PIVResult:
     """Multi-pass 3-D PIV of two particle volumes with symmetric window deformation.
 
     Parameters
@@ -350,6 +350,8 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
         one) to deform the volumes on (``kernels/deform.cl``); ``None`` deforms them on the
         host with SciPy. Both give the same volumes to float32 rounding; the device is
         several times faster even on a CPU (all cores instead of one).
+    fft
+        ``"fftw"`` (default where pyfftw is installed) or ``"scipy"`` (the reference).
 
     Returns
     -------
@@ -361,7 +363,7 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
         raise ValueError(f"vol_a and vol_b must have the same shape, got {a.shape} and "
                          f"{b.shape}")
     opts = _Options(deform_order, predictor, median_eps, median_threshold, min_peak_ratio,
-                    workers)
+                    workers, fft)
     _check_options(opts, weighting)
     if windows is None:
         windows = auto_windows(a.shape, particles=count_particles(a))
@@ -394,6 +396,7 @@ class _Options:
     threshold: float
     min_peak_ratio: float | None
     workers: int
+    fft: str | None = None
 
 
 def _check_options(opts: _Options, weighting: float | None) -> None:
@@ -436,7 +439,8 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
         da = deformer(coeff_a, dense, -0.5)
         db = deformer(coeff_b, dense, +0.5)
         base = resample(prev.field, prev.centres, centres, opts.predictor)
-    corr = correlate(da, db, grid, pad=pad, weight=weight, workers=opts.workers)
+    corr = correlate(da, db, grid, pad=pad, weight=weight, workers=opts.workers,
+                     backend=opts.fft)
     masked = np.zeros(grid.count, bool) if mask is None else window_fraction(mask, grid) > 0.5
     invalid = ~corr.signal | masked
     if opts.min_peak_ratio is not None:
