@@ -84,7 +84,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     t0 = time.perf_counter()
     with pair_bar(len(tasks), progress) as advance:
         def done(outcome: PairOutcome) -> None:
-            _record(outcome, pairs, summary, log)
+            _record(outcome, summary, log)
             advance(outcome.error is not None)
 
         try:
@@ -128,7 +128,7 @@ def _process(tasks, out: Path, queue, workers, scheduler, done) -> None:
         done(processor(task))
 
 
-def _record(outcome: PairOutcome, pairs, summary: RunSummary, log) -> None:
+def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:
     if outcome.error is not None:
         summary.failed[outcome.index] = outcome.error
         log(f"pair {outcome.index}: failed, skipped: {outcome.error}")

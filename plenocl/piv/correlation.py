@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from .fft import CorrelationFFT
 
@@ -88,14 +87,6 @@ def padded_size(window: int) -> int:
     even length), enough for linear correlation of displacements up to half the window at
     about 40 % of the cost of doubling it."""
     return window + (window + 3) // 4 * 2
-
-
-def _window_view(vol: np.ndarray, grid: WindowGrid) -> np.ndarray:
-    """Read-only view ``(nz, ny, nx, wz, wy, wx)`` of all windows of ``grid``."""
-    view = sliding_window_view(vol, grid.size)
-    sel = tuple(slice(o, o + s * (c - 1) + 1, s)
-                for o, s, c in zip(grid.offset, grid.step, grid.count))
-    return view[sel]
 
 
 @dataclass
