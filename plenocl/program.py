@@ -66,10 +66,25 @@ def build_program(
     except (cl.RuntimeError, cl.LogicError) as exc:
         raise KernelBuildError(
             f"building {folder / filename} failed\n  options: {' '.join(opts)}\n"
-            f"  compiler log:\n{exc}"
+            f"  compiler log:\n{exc}{build_hint(str(exc))}"
         ) from exc
     programs[key] = program
     return program
+
+
+#: What a compiler log says when PoCL's LLVM does not know the CPU it runs on.
+UNKNOWN_CPU = "unknown target CPU"
+
+
+def build_hint(log: str) -> str:
+    """A fix for the build failures a user can mend without touching plenocl."""
+    if UNKNOWN_CPU not in log:
+        return ""
+    return ("\n  hint: this PoCL's LLVM does not know this processor (e.g. the PoCL 3.0 wheel "
+            "from PyPI, LLVM 14, on an AMD Zen 5 CPU) and so cannot compile any kernel. "
+            "Install a PoCL built with a newer LLVM (Debian/Ubuntu: apt install "
+            "pocl-opencl-icd; conda: conda install -c conda-forge pocl) and choose it with "
+            "PYOPENCL_CTX or --device (`plenocl devices` lists them); docs/errors.md")
 
 
 def fetch_kernels(program: cl.Program, names: Sequence[str]) -> dict[str, cl.Kernel]:

@@ -13,7 +13,13 @@ import pytest
 
 import plenocl
 from plenocl import device
-from plenocl.program import KernelBuildError, KernelSet, build_program, kernel_dir
+from plenocl.program import (
+    KernelBuildError,
+    KernelSet,
+    build_hint,
+    build_program,
+    kernel_dir,
+)
 
 
 def test_devices_are_listed_with_capabilities():
@@ -58,6 +64,13 @@ def test_build_failure_reports_file_options_and_log(queue):
         build_program(queue.context, "simulate.cl", ["-Dpl_hash=syntax error("])
     text = str(err.value)
     assert "simulate.cl" in text and "-Dpl_hash" in text and "compiler log" in text
+
+
+def test_unknown_cpu_build_failure_names_the_fix():
+    log = "error: unknown target CPU 'generic'\nDevice pthread-AMD EPYC failed to build"
+    hint = build_hint(log)
+    assert "pocl-opencl-icd" in hint and "PYOPENCL_CTX" in hint
+    assert build_hint("error: use of undeclared identifier 'x'") == ""
 
 
 def test_kernels_found_from_installed_package_and_from_checkout():
