@@ -42,6 +42,7 @@ import pyopencl as cl
 from ..camera import Camera
 from ..device import all_devices, device_info, get_queue
 from ..grid import Grid
+from ..program import KernelBuildError, build_hint
 
 #: stage -> (description of the difference, tolerance)
 TOLERANCES: dict[str, tuple[str, float]] = {
@@ -125,19 +126,37 @@ def agreement(queues: Sequence[cl.CommandQueue] | None = None,
         One row per stage and device after the first; empty with a single device.
     """
     queues = list(queues) if queues is not None else [get_queue(d) for d in all_devices()]
-    if not queues:
+    outputs = []  # (name, stage outputs) of the devices that build kernels
+    for queue in queues:
+        image = outputs[0][1]["simulate"] if outputs else None
+        out = _outputs_or_skip(queue, image, log)
+        if out is not None:
+            outputs.append((device_info(queue).name, out))
+    if not outputs:
         return []
-    names = [device_info(q).name for q in queues]
-    first = stage_outputs(queues[0])
+    first = outputs[0][1]
     rows = []
-    for name, queue in zip(names[1:], queues[1:], strict=True):
-        if log:
-            log(f"running the stages on {name}")
-        other = stage_outputs(queue, mlem_image=first["simulate"])
+    for name, other in outputs[1:]:
         for stage, (_, tol) in TOLERANCES.items():
             rows.append(Agreement(name, stage, stage_difference(stage, first[stage], other[stage]),
                                   tol))
     return rows
+
+
+def _outputs_or_skip(queue: cl.CommandQueue, mlem_image: np.ndarray | None,
+                     log: Callable[[str], None] | None):
+    """The stage outputs on ``queue``, or ``None`` (said in ``log``) for a device whose
+    driver cannot build kernels at all (e.g. PoCL's LLVM not knowing the CPU): such a
+    device is unusable, not in disagreement."""
+    name = device_info(queue).name
+    if log:
+        log(f"running the stages on {name}")
+    try:
+        return stage_outputs(queue, mlem_image=mlem_image)
+    except KernelBuildError as exc:
+        if log:
+            log(f"skipped {name}: its driver cannot build kernels{build_hint(str(exc))}")
+        return None
 
 
 def agreement_table(rows: Sequence[Agreement], reference: str) -> str:
