@@ -101,12 +101,19 @@ def test_dask_workers_give_the_serial_fields_and_a_store_xarray_reads(experiment
         name = f"pairs/pair_{k:05d}.npz"
         _, want = read_npz(tmp_path / "serial" / name)
         _, got = read_npz(tmp_path / "dask" / name)
-        for key in ("displacement", "velocity", "valid", "peak_ratio"):
-            assert np.array_equal(got[key], want[key]), key
+        for key in ("displacement", "velocity", "valid", "peak_ratio",
+                    "velocity_uncertainty"):
+            assert np.array_equal(got[key], want[key], equal_nan=True), key
     xr = pytest.importorskip("xarray")
     ds = xr.open_zarr(tmp_path / "dask" / "timeseries.zarr")
     assert ds.u.dims == ("time", "z", "y", "x") and ds.sizes["time"] == 2
     assert ds.x.attrs["units"] == "mm" and ds.u.attrs["units"] == "m/s"
+    assert ds.u_sigma.dims == ds.u.dims and ds.w_sigma.attrs["units"] == "m/s"
+    sigma = ds.u_sigma.values[ds.valid.values]
+    assert np.isfinite(sigma).mean() > 0.9 and np.all(sigma[np.isfinite(sigma)] >= 0)
+    np.testing.assert_array_equal(ds.v_sigma.values[0],
+                                  read_npz(tmp_path / "dask" / "pairs" / "pair_00000.npz")[1]
+                                  ["velocity_uncertainty"][1].astype(np.float32))
     assert list(ds.pair.values) == [0, 1]
     _, first = read_npz(tmp_path / "dask" / "pairs" / "pair_00000.npz")
     np.testing.assert_allclose(ds.x.values, first["x_mm"])

@@ -319,6 +319,10 @@ def small_result() -> PIVResult:
     res = _rotation_result(0.02)
     res.valid[1, 2, 3] = False
     res.outlier[1, 2, 3] = True
+    rng = np.random.default_rng(1)
+    for comp, scale in (("u", 0.05), ("v", 0.04), ("w", 0.2)):
+        setattr(res, f"sigma_{comp}", np.where(res.valid, scale * rng.random(res.shape),
+                                               np.nan))
     return res
 
 
@@ -326,8 +330,15 @@ def test_save_npz_round_trip(tmp_path: Path, small_result):
     path = fieldio.save_field(tmp_path / "f.npz", small_result, voxel_size_mm=(0.1, 0.05, 0.05),
                               origin_mm=(1.0, 2.0, 3.0), dt=2e-4)
     back, arrays = fieldio.read_npz(path)
-    for name in ("x", "y", "z", "u", "v", "w", "valid", "outlier", "masked", "peak_ratio"):
-        assert np.array_equal(getattr(back, name), getattr(small_result, name))
+    for name in ("x", "y", "z", "u", "v", "w", "valid", "outlier", "masked", "peak_ratio",
+                 "sigma_u", "sigma_v", "sigma_w"):
+        assert np.array_equal(getattr(back, name), getattr(small_result, name),
+                              equal_nan=True), name
+    sigma = np.stack([small_result.sigma_u, small_result.sigma_v, small_result.sigma_w])
+    assert np.isfinite(sigma[:, small_result.valid]).mean() > 0.9
+    assert np.isnan(sigma[:, ~small_result.valid]).all()
+    np.testing.assert_allclose(arrays["velocity_uncertainty"][0],
+                               small_result.sigma_u * 0.05 * 1e-3 / 2e-4)
     assert np.allclose(arrays["velocity"], np.stack(small_result.velocity((0.1, .05, .05), 2e-4)))
     assert np.allclose(arrays["vorticity"][2], 2 * 0.02 / 2e-4)
     assert arrays["dt"] == 2e-4 and np.allclose(arrays["x_mm"], 3.0 + 0.05 * small_result.x)
@@ -368,6 +379,9 @@ def test_save_vti_layout_is_x_fastest_in_mm(tmp_path: Path, small_result):
     assert ncomp == 3
     assert np.allclose(disp.reshape((*res.shape, 3)), np.stack([res.u, res.v, res.w], -1))
     assert "velocity_m_per_s" in arrays and "vorticity_per_s" in arrays
+    sigma, ncomp = arrays["displacement_uncertainty_voxels"]
+    assert ncomp == 3 and "velocity_uncertainty_m_per_s" in arrays
+    np.testing.assert_array_equal(sigma.reshape((*res.shape, 3))[..., 2], res.sigma_w)
     assert [p.name for p in tmp_path.iterdir()] == ["f.vti"]
 
 
@@ -403,6 +417,9 @@ def test_rotated_grid_fields_are_written_in_object_space(tmp_path: Path, small_r
         np.testing.assert_allclose(b[1], s * a[0] + c * a[1], atol=1e-12)
         np.testing.assert_allclose(b[2], a[2])
         np.testing.assert_allclose(np.linalg.norm(b, axis=0), np.linalg.norm(a, axis=0))
+    a, b = flat["velocity_uncertainty"], turned["velocity_uncertainty"]   # independent errors
+    np.testing.assert_allclose(b[0], np.hypot(c * a[0], s * a[1]))
+    np.testing.assert_allclose(b[2], a[2])
 
 
 def test_fields_describe_themselves(tmp_path: Path, small_result):
@@ -430,6 +447,8 @@ def test_save_h5(tmp_path: Path, small_result):
         assert np.array_equal(fh["displacement"][0], small_result.u)
         assert "velocity" not in fh and "vorticity" in fh
         assert fh["displacement"].attrs["units"] == "voxel" and "z slowest" in fh.attrs["axes"]
+        assert fh["displacement_uncertainty"].attrs["units"] == "voxel"
+        np.testing.assert_array_equal(fh["displacement_uncertainty"][1], small_result.sigma_v)
 
 
 def test_failed_write_keeps_the_old_file(tmp_path: Path, small_result, monkeypatch):

@@ -138,9 +138,9 @@ def _time_series(args: argparse.Namespace) -> int:
     from ..demo.time_series import run_time_series
 
     s = run_time_series(args.out, pairs=args.pairs, queue=args.device, seed=args.seed,
-                        workers=args.workers)
+                        workers=args.workers, size=args.size)
     err = s.get("rms_error", {})
-    print(f"time series: {s['processed']} of {s['pairs']} pairs, "
+    print(f"time series ({args.size}): {s['processed']} of {s['pairs']} pairs, "
           f"{s['seconds_per_pair']:.1f} s per pair; velocity RMS error per pair "
           + ", ".join(f"{c} {100 * v:.1f}%" for c, v in err.items()) + " of U∞, ensemble "
           "mean " + ", ".join(f"{c} {100 * v:.1f}%" for c, v in

@@ -32,14 +32,21 @@ from .boundary_layer import (
 )
 from .stages import write_json
 
+#: The camera preset of each scenario (``plenocl.camera.PRESETS``).
+PRESET = {"small": "synthetic", "paper": "paper"}
+
 #: Time between successive pairs (s): a 10 Hz double-pulsed laser.
 PAIR_INTERVAL = 0.1
 
 
 def run_time_series(out_dir: str | Path, pairs: int = 6, queue=None, seed: int = 0,
                     workers: int | None = None, log: Callable[[str], None] = print,
-                    progress: bool = True) -> dict:
+                    progress: bool = True, size: str = "small") -> dict:
     """Write the experiment (skipped where its files exist), run it, measure it.
+
+    ``size``: ``"small"`` (850 x 850 px camera, seconds per pair) or ``"paper"`` (the
+    16 MP camera and 300 x 200 x 150 voxel grid of the paper, minutes per pair on 2
+    cores).
 
     Returns
     -------
@@ -51,7 +58,7 @@ def run_time_series(out_dir: str | Path, pairs: int = 6, queue=None, seed: int =
     if pairs < 2:
         raise ValueError(f"a time series needs at least 2 pairs, got {pairs}")
     out = Path(out_dir)
-    sc = scenario("small")
+    sc = scenario(size)
     flow = CameraFrameFlow(sc, seed)
     write_experiment(out, sc, flow, pairs, seed, queue, log)
     summary = run(out / "experiment.toml", out / "results", queue=queue, log=log,
@@ -85,7 +92,7 @@ def write_experiment(out: Path, sc, flow, pairs: int, seed: int, queue, log) -> 
         log(f"pair {k}: {len(inten)} particles imaged")
     sc.grid.to_toml(out / "grid.toml")
     write_toml(out / "experiment.toml", {
-        "camera": {"preset": "synthetic", "white": "white.tif"},
+        "camera": {"preset": PRESET[sc.size], "white": "white.tif"},
         "grid": {"file": "grid.toml"},
         "images": {"folder": "raw", "pattern": "frame_*.tif", "pairing": "sequence",
                    "dt_s": DT, "pair_interval_s": PAIR_INTERVAL},

@@ -5,6 +5,9 @@ crash never leaves a half-written field. Stored arrays, all on the vector grid
 ``(nz', ny', nx')`` in array order:
 
 - ``displacement``: ``(3, nz', ny', nx')`` as ``(u, v, w)`` in voxels along x, y, z;
+- ``displacement_uncertainty``: ``(3, nz', ny', nx')``, the standard uncertainty of
+  ``(u, v, w)`` in voxels (NaN for invalid or replaced vectors; see
+  :attr:`plenocl.PIVResult.sigma_u`), and ``velocity_uncertainty`` in m/s with ``dt``;
 - ``valid``, ``outlier``, ``masked`` (flags) and ``peak_ratio``;
 - ``velocity`` (m/s), ``vorticity`` (1/s) and ``q_criterion`` (1/s^2) when ``dt`` is
   given; without it ``vorticity`` and ``q_criterion`` are per ``dt`` (and per ``dt^2``);
@@ -60,8 +63,12 @@ def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)
     # a single vector along an axis gets the voxel size as its spacing
     out["vector_spacing_mm"] = np.array([float(np.diff(c[:2])[0]) if len(c) > 1 else v
                                          for c, v in zip((x_mm, y_mm, z_mm), size[::-1])])
+    sigma = uncertainty(result)
+    out["displacement_uncertainty"] = sigma
     if dt is not None:
         out["velocity"] = _to_object_space(result.velocity(size, dt), rotation_deg)
+        out["velocity_uncertainty"] = _spread_to_object_space(
+            result.velocity_uncertainty(size, dt), rotation_deg)
         out["dt"] = np.asarray(float(dt))
     out["vorticity"] = _to_object_space(result.vorticity(size, dt), rotation_deg)
     out["q_criterion"] = result.q_criterion(size, dt)
@@ -82,13 +89,33 @@ def field_units(with_dt: bool) -> dict[str, str]:
     """Units of each stored array (``with_dt``: velocities in m/s, else per ``dt``)."""
     units = {"x": "voxel", "y": "voxel", "z": "voxel", "x_mm": "mm", "y_mm": "mm",
              "z_mm": "mm", "displacement": "voxel", "peak_ratio": "1",
+             "displacement_uncertainty": "voxel",
              "voxel_size_mm": "mm", "origin_mm": "mm", "vector_origin_mm": "mm",
              "vector_spacing_mm": "mm", "rotation_deg": "degree", "window": "voxel"}
     if with_dt:
-        units.update(velocity="m s-1", vorticity="s-1", q_criterion="s-2", dt="s")
+        units.update(velocity="m s-1", velocity_uncertainty="m s-1", vorticity="s-1",
+                     q_criterion="s-2", dt="s")
     else:
         units.update(vorticity="1 (per dt)", q_criterion="1 (per dt^2)")
     return units
+
+
+def uncertainty(result: PIVResult) -> np.ndarray:
+    """``(3, ...)`` standard uncertainty of ``(u, v, w)`` in voxels; all NaN for a result
+    without one (read from an older file)."""
+    if result.sigma_u is None:
+        return np.full((3, *result.shape), np.nan)
+    return np.stack([result.sigma_u, result.sigma_v, result.sigma_w])
+
+
+def _spread_to_object_space(sigmas, rotation_deg: float) -> np.ndarray:
+    """Standard uncertainties along a turned grid's axes as object-space ones (the
+    components' errors taken as independent)."""
+    sx, sy, sz = (np.asarray(c, np.float64) for c in sigmas)
+    if rotation_deg:
+        r = rotation_matrix(rotation_deg)
+        sx, sy = (np.hypot(r[0, 0] * sx, r[0, 1] * sy), np.hypot(r[1, 0] * sx, r[1, 1] * sy))
+    return np.stack([sx, sy, sz])
 
 
 def _to_object_space(components, rotation_deg: float) -> np.ndarray:
@@ -163,10 +190,12 @@ def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:
     if missing:
         raise ValueError(f"{path} is not a plenocl vector field: missing {sorted(missing)}")
     u, v, w = arrays["displacement"]
+    sigma = arrays.get("displacement_uncertainty", (None, None, None))
     result = PIVResult(x=arrays["x"], y=arrays["y"], z=arrays["z"], u=u, v=v, w=w,
                        valid=arrays["valid"], peak_ratio=arrays["peak_ratio"],
                        outlier=arrays["outlier"], masked=arrays["masked"],
-                       window=tuple(int(s) for s in arrays.get("window", (0, 0, 0))))
+                       window=tuple(int(s) for s in arrays.get("window", (0, 0, 0))),
+                       sigma_u=sigma[0], sigma_v=sigma[1], sigma_w=sigma[2])
     return result, arrays
 
 
@@ -189,6 +218,8 @@ def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0
     spacing = tuple(float(v) for v in arrays["vector_spacing_mm"])
     origin = tuple(float(v) for v in arrays["vector_origin_mm"])
     vectors = {"displacement_voxels": "displacement", "velocity_m_per_s": "velocity",
+               "displacement_uncertainty_voxels": "displacement_uncertainty",
+               "velocity_uncertainty_m_per_s": "velocity_uncertainty",
                "vorticity_per_s" if dt is not None else "vorticity_per_dt": "vorticity"}
     point = {name: tuple(_vtk_order(c) for c in arrays[key])
              for name, key in vectors.items() if key in arrays}

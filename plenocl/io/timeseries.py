@@ -5,8 +5,9 @@
 
 - coordinates ``time`` (s, or pair numbers where the pair interval is unknown), ``z``,
   ``y``, ``x`` (mm, the vector grid's centres) and ``pair`` (the pair's index in the run);
-- per pair ``u``, ``v``, ``w`` (m/s), ``valid`` and ``outlier`` flags and ``peak_ratio``,
-  shaped ``(time, z, y, x)``, one chunk per pair;
+- per pair ``u``, ``v``, ``w`` (m/s), their standard uncertainties ``u_sigma``,
+  ``v_sigma``, ``w_sigma`` (m/s, NaN where unknown), ``valid`` and ``outlier`` flags and
+  ``peak_ratio``, shaped ``(time, z, y, x)``, one chunk per pair;
 - the ensemble over the run, shaped ``(z, y, x)``: ``u_mean``, ``v_mean``, ``w_mean``
   and the RMS fluctuations ``u_rms``, ``v_rms``, ``w_rms`` over the valid vectors, with
   ``valid_count``.
@@ -67,6 +68,9 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
         _check_grid(data, first, npz)
         for comp, values in zip(COMPONENTS, data["velocity"]):
             arrays[comp][k] = values
+        sigma = data.get("velocity_uncertainty")
+        for comp, values in zip(COMPONENTS, sigma if sigma is not None else [np.nan] * 3):
+            arrays[f"{comp}_sigma"][k] = values
         for name in ("valid", "outlier", "peak_ratio"):
             arrays[name][k] = data[name]
         stats.add(data["velocity"], data["valid"])
@@ -102,6 +106,11 @@ def _per_pair_arrays(group, count: int, shape) -> dict:
         out[comp] = group.create_array(comp, shape=(count, *shape), chunks=chunks,
                                        dtype="f4", fill_value=np.nan, dimension_names=dims,
                                        attributes={"units": "m/s", "coordinates": "pair"})
+        out[f"{comp}_sigma"] = group.create_array(
+            f"{comp}_sigma", shape=(count, *shape), chunks=chunks, dtype="f4",
+            fill_value=np.nan, dimension_names=dims,
+            attributes={"units": "m/s", "coordinates": "pair",
+                        "long_name": f"standard uncertainty of {comp}"})
     for name, dtype in (("valid", "bool"), ("outlier", "bool"), ("peak_ratio", "f4")):
         out[name] = group.create_array(name, shape=(count, *shape), chunks=chunks,
                                        dtype=dtype, dimension_names=dims,

@@ -25,6 +25,7 @@ from scipy import ndimage
 from .correlation import correlate, gaussian_weight, window_fraction, window_grid
 from .deform import resample
 from .deformers import make_deformer
+from .direct import correlate_deformed, deformed_uncertainty
 from .validation import normalized_median_test, replace_outliers
 
 __all__ = ["PIVResult", "piv3d", "q_criterion", "velocity_gradient", "vorticity"]
@@ -46,7 +47,9 @@ class PIVResult:
     valid
         ``True`` where the vector came from its own correlation and passed validation.
     peak_ratio
-        Primary over secondary correlation peak of the final pass.
+        Primary over secondary correlation peak of the final pass, where that pass
+        correlated by FFT; NaN where it correlated directly at the lags around zero
+        (``correlation="auto"``, the default, unless ``min_peak_ratio`` is given).
     outlier
         Flagged by the final normalised median test (then replaced).
     masked
@@ -55,6 +58,12 @@ class PIVResult:
         Final window size ``(wz, wy, wx)``.
     passes
         Per-pass diagnostics (window, step, vector count, outliers, seconds).
+    sigma_u, sigma_v, sigma_w
+        Standard uncertainty (voxels) of each valid vector's components, from the
+        statistics of the final pass's correlation on the deformed volumes
+        (:func:`plenocl.piv.direct.correlation_uncertainty`); NaN for invalid, replaced
+        or masked vectors and after a single (undeformed) pass. ``None`` in results
+        read from files written before it existed.
     """
 
     x: np.ndarray
@@ -69,6 +78,9 @@ class PIVResult:
     masked: np.ndarray
     window: Size3
     passes: list[dict] = field(default_factory=list)
+    sigma_u: np.ndarray | None = None
+    sigma_v: np.ndarray | None = None
+    sigma_w: np.ndarray | None = None
 
     @property
     def shape(self) -> Size3:
@@ -78,6 +90,12 @@ class PIVResult:
     def velocity(self, voxel_size_mm, dt: float):
         """Velocity ``(U, V, W)`` in m/s for a voxel size (mm, scalar or ``(dz, dy, dx)``)."""
         return displacement_to_velocity((self.u, self.v, self.w), voxel_size_mm, dt)
+
+    def velocity_uncertainty(self, voxel_size_mm, dt: float):
+        """Standard uncertainty of ``(U, V, W)`` in m/s (NaN where unknown)."""
+        sigmas = [np.full(self.shape, np.nan) if s is None else s
+                  for s in (self.sigma_u, self.sigma_v, self.sigma_w)]
+        return displacement_to_velocity(sigmas, voxel_size_mm, dt)
 
     def positions_mm(self, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)):
         """Window centres ``(x, y, z)`` in mm; ``origin_mm = (z0, y0, x0)``: voxel 0 centre."""
@@ -232,6 +250,7 @@ class _Pass:
     outlier: np.ndarray
     masked: np.ndarray
     peak_ratio: np.ndarray
+    sigma: np.ndarray | None = None  # (3, nz, ny, nx) as (dz, dy, dx), final pass only
 
 
 #: The window schedule :func:`piv3d` starts from when none is given; each window is cut
@@ -302,7 +321,7 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
           deform_order: int = 3, predictor: str = "cubic", mask=None,
           median_eps: float = 0.1, median_threshold: float = 2.0,
           min_peak_ratio: float | None = None, workers: int = -1,
-          queue=None, fft: str | None = None) -> PIVResult:
+          queue=None, fft: str | None = None, correlation: str = "auto") -> PIVResult:
     """Multi-pass 3-D PIV of two particle volumes with symmetric window deformation.
 
     Parameters
@@ -321,8 +340,9 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
     final_iterations
         How many times the last pass runs (each re-deforms with the updated predictor).
     pad_first
-        Zero-pad the first pass to twice the window (linear correlation), so that it
-        finds displacements up to about a quarter of the window without aliasing.
+        Zero-pad the first pass by at least a third of the window (linear correlation,
+        :func:`plenocl.piv.correlation.padded_size`), so that it finds displacements up
+        to about a quarter of the window without aliasing.
     weighting
         Gaussian weight on both windows of the later (deformed) passes, its standard
         deviation as a fraction of the window size; ``None`` for top-hat windows. The
@@ -352,6 +372,14 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
         several times faster even on a CPU (all cores instead of one).
     fft
         ``"fftw"`` (default where pyfftw is installed) or ``"scipy"`` (the reference).
+    correlation
+        ``"auto"`` (default): the deformed passes correlate each window directly at the
+        27 lags around zero (:mod:`plenocl.piv.direct`: linear, not circular, with the
+        Gaussian weight centred between the two windows; about 3x faster than the FFT
+        and more accurate for sub-voxel residuals), and by FFT only the windows whose
+        residual exceeds a voxel. The first pass, top-hat windows (``weighting=None``)
+        and, when ``min_peak_ratio`` is given, the final iteration (which then needs the
+        secondary peak) use the FFT. ``"fft"``: every pass by FFT.
 
     Returns
     -------
@@ -363,7 +391,7 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
         raise ValueError(f"vol_a and vol_b must have the same shape, got {a.shape} and "
                          f"{b.shape}")
     opts = _Options(deform_order, predictor, median_eps, median_threshold, min_peak_ratio,
-                    workers, fft)
+                    workers, fft, weighting, correlation)
     _check_options(opts, weighting)
     if windows is None:
         windows = auto_windows(a.shape, particles=count_particles(a))
@@ -378,9 +406,13 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
         t0 = time.perf_counter()
         pad = pad_first and k == 0
         weight = None if pad or weighting is None else gaussian_weight(size, weighting)
+        final = k == len(schedule) - 1
+        direct = (opts.correlation == "auto" and k > 0 and weighting is not None
+                  and not (final and opts.min_peak_ratio is not None))
         state = _run_pass(a, b, (deformer, *coeffs), state, size, overlap, mask, pad, weight,
-                          opts)
+                          opts, direct, final)
         log.append({"window": size, "overlap": overlap, "vectors": state.invalid.size,
+                    "correlation": "direct" if direct else "fft",
                     "outliers": int(state.outlier.sum()), "invalid": int(state.invalid.sum()),
                     "seconds": time.perf_counter() - t0})
     return _result(state, schedule[-1][0], log)
@@ -397,9 +429,14 @@ class _Options:
     min_peak_ratio: float | None
     workers: int
     fft: str | None = None
+    weighting: float | None = None
+    correlation: str = "auto"
 
 
 def _check_options(opts: _Options, weighting: float | None) -> None:
+    if opts.correlation not in ("auto", "fft"):
+        raise ValueError(f"correlation must be 'auto' (direct for the intermediate "
+                         f"deformed passes) or 'fft', got {opts.correlation!r}")
     if opts.order not in (1, 3, 5):
         raise ValueError(f"deform_order must be 1 (trilinear), 3 (cubic B-spline) or 5 "
                          f"(quintic B-spline), got {opts.order!r}")
@@ -425,7 +462,7 @@ def _check_mask(mask, shape: Size3) -> np.ndarray | None:
 
 
 def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, mask, pad: bool,
-              weight, opts: _Options) -> _Pass:
+              weight, opts: _Options, direct: bool = False, final: bool = False) -> _Pass:
     """One correlation pass: deform by the predictor, correlate, validate, replace."""
     grid = window_grid(a.shape, size, overlap)
     centres = grid.centres
@@ -439,8 +476,8 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
         da = deformer(coeff_a, dense, -0.5)
         db = deformer(coeff_b, dense, +0.5)
         base = resample(prev.field, prev.centres, centres, opts.predictor)
-    corr = correlate(da, db, grid, pad=pad, weight=weight, workers=opts.workers,
-                     backend=opts.fft)
+    corr = _correlate_pass(da, db, grid, pad, weight, opts, direct,
+                           uncertainty=final and prev is not None)
     masked = np.zeros(grid.count, bool) if mask is None else window_fraction(mask, grid) > 0.5
     invalid = ~corr.signal | masked
     if opts.min_peak_ratio is not None:
@@ -448,14 +485,31 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
     total = base + corr.displacement
     outlier = normalized_median_test(total, opts.eps, opts.threshold, ignore=invalid)
     total = replace_outliers(total, outlier | invalid)
-    return _Pass(total, centres, invalid, outlier, masked, corr.peak_ratio)
+    return _Pass(total, centres, invalid, outlier, masked, corr.peak_ratio, corr.sigma)
+
+
+def _correlate_pass(da, db, grid, pad: bool, weight, opts: _Options, direct: bool,
+                    uncertainty: bool):
+    """Correlate one pass directly or by FFT; with ``uncertainty`` (the final pass on
+    deformed volumes) also estimate each vector's uncertainty."""
+    fft_options = {"workers": opts.workers, "backend": opts.fft}
+    if direct:
+        return correlate_deformed(da, db, grid, opts.weighting, uncertainty, **fft_options)
+    corr = correlate(da, db, grid, pad=pad, weight=weight, **fft_options)
+    if uncertainty:
+        corr.sigma = deformed_uncertainty(da, db, grid, opts.weighting)
+    return corr
 
 
 def _result(state: _Pass, window: Size3, log: list[dict]) -> PIVResult:
     dz, dy, dx = (c.copy() for c in state.field)
     for comp in (dx, dy, dz):
         comp[state.masked] = np.nan
+    valid = ~(state.invalid | state.outlier)
+    sigma = (np.full((3, *valid.shape), np.nan) if state.sigma is None
+             else np.where(valid, state.sigma, np.nan))
     z, y, x = state.centres
-    return PIVResult(x=x, y=y, z=z, u=dx, v=dy, w=dz, valid=~(state.invalid | state.outlier),
+    return PIVResult(x=x, y=y, z=z, u=dx, v=dy, w=dz, valid=valid,
                      peak_ratio=state.peak_ratio, outlier=state.outlier, masked=state.masked,
-                     window=window, passes=log)
+                     window=window, passes=log, sigma_u=sigma[2], sigma_v=sigma[1],
+                     sigma_w=sigma[0])

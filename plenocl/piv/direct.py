@@ -1,0 +1,391 @@
+"""Direct (non-FFT) correlation of every window at the 27 lags around zero.
+
+After the first pass the volumes are deformed by the predictor, so the residual
+displacement of most windows is below one voxel and only the lags ``s`` in
+``{-1, 0, 1}^3`` are needed to locate and fit the peak. For a window with low corner
+``L`` and weight ``W`` (separable: ``W(q) = wz(qz) wy(qy) wx(qx)``) the normalised
+correlation at lag ``s`` is the weighted Pearson coefficient
+
+    r(s) = cov(s) / sqrt(Ea Eb(s)),
+    cov(s) = S[a b_s] - S[a] S[b_s] / S[1],  Ea = S[a^2] - S[a]^2 / S[1], ...
+
+with ``S[f] = sum_q W(q) f(L + q)`` and ``b_s(p) = b(p + s)`` (``b`` continued by its
+edge values outside the volume). Every ``S`` is a separable filter evaluated only at the
+window corners: three matrix products per axis order, independent of the overlap, so a
+pass costs about 30 sweeps over the volume instead of one 3-D FFT per window. The
+correlation is linear (no wrap-around) and uses the window's weighted mean.
+
+:func:`correlate_direct` returns the 27 coefficients per window; :func:`fit_direct`
+locates the peak and fits it per axis with the same three-point Gaussian as the FFT path
+(:func:`plenocl.piv.correlation.gaussian_subpixel`). Windows whose peak is not at the
+centre lag need the FFT (their residual exceeds one voxel); ``piv3d`` re-correlates those.
+The plain per-window twin is :func:`plenocl.reference.direct.correlate_windows`.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .correlation import (
+    Correlation,
+    WindowGrid,
+    correlate,
+    gaussian_subpixel,
+    gaussian_weight,
+)
+
+#: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order; index 13 is zero.
+LAGS = np.array(list(itertools.product((-1, 0, 1), repeat=3)))
+CENTRE = 13
+
+
+def margin(size: int, weighting: float | None) -> int:
+    """Voxels the weight reaches beyond each face of a window of ``size``: far enough
+    that the Gaussian (standard deviation ``weighting * size / sqrt 2``) has fallen to
+    about 1 % (three standard deviations), so that shifting it by half a voxel either
+    way treats both directions alike; none for top-hat windows."""
+    if weighting is None:
+        return 0
+    return max(0, int(np.ceil(3.0 * weighting * size / np.sqrt(2.0) - 0.5 * size)))
+
+
+def axis_taps(size: int, weighting: float | None, centre_shift: float = 0.0) -> np.ndarray:
+    """Weight along one axis of a window of ``size`` voxels and its :func:`margin` on both
+    sides: the square of the FFT path's Gaussian (which weights both windows, so their
+    product carries it twice), centred ``centre_shift`` voxels off the window's centre;
+    ones over the window for top-hat windows."""
+    if weighting is None:
+        return np.ones(size)
+    m = margin(size, weighting)
+    q = np.arange(size + 2 * m) - m - 0.5 * (size - 1) - centre_shift
+    return np.exp(-(q / (weighting * size)) ** 2)
+
+
+def _corner_matrix(n: int, corners: np.ndarray, taps: np.ndarray) -> np.ndarray:
+    """``(n, len(corners))`` matrix: column ``k`` holds ``taps`` from row ``corners[k]``."""
+    m = np.zeros((n, len(corners)), np.float32)
+    for k, c in enumerate(corners):
+        m[c:c + len(taps), k] = taps
+    return m
+
+
+class WindowSums:
+    """Weighted window sums at every window corner of a grid, for the lags in
+    ``{-1, 0, 1}`` per axis, of volumes padded with zeros (:meth:`pad`).
+
+    The weight of lag ``s`` sits at the midpoint between the two windows compared,
+    ``W(q + s/2)`` for the first window's voxel ``q``, so that neither volume is
+    favoured: ``first`` sums ``sum_q W(q + s/2) f(L + q)`` and ``second`` sums
+    ``sum_q W(q - s/2) f(L + s + q)``, the second window's voxels seen from its own
+    corner ``L + s``. With the Gaussian reaching its :func:`margin` beyond the window, the
+    two sums of a volume with itself at lags ``+s`` and ``-s`` are equal, so a pair of
+    identical windows gives exactly zero displacement, as the FFT's circular correlation
+    does.
+
+    Parameters
+    ----------
+    shape
+        The unpadded volume's shape.
+    grid
+        Window grid.
+    weighting
+        Gaussian width as a fraction of the window, or ``None`` (top hat).
+    power
+        Raise the weights to this power (2 for sums of squared contributions).
+    """
+
+    def __init__(self, shape: tuple[int, int, int], grid: WindowGrid,
+                 weighting: float | None, power: int = 1) -> None:
+        self.grid, self.shape = grid, tuple(shape)
+        self.margins = tuple(margin(w, weighting) for w in grid.size)
+        corners = [o + s * np.arange(c) for o, s, c in zip(grid.offset, grid.step, grid.count)]
+        lags = (-1, 0, 1)
+        padded = [n + 2 * m + 2 for n, m in zip(shape, self.margins)]
+        self._first = [[_corner_matrix(n, c + 1, axis_taps(w, weighting, -0.5 * s) ** power)
+                        for s in lags] for n, c, w in zip(padded, corners, grid.size)]
+        self._second = [[_corner_matrix(n, c + 1 + s, axis_taps(w, weighting, -0.5 * s) ** power)
+                         for s in lags] for n, c, w in zip(padded, corners, grid.size)]
+        per_axis = [np.array([(axis_taps(w, weighting, -0.5 * s) ** power).sum()
+                              for s in lags]) for w in grid.size]
+        #: ``sum_q W(q + s/2)`` per lag of :data:`LAGS`.
+        self.weight_sums = np.array([per_axis[0][i] * per_axis[1][j] * per_axis[2][k]
+                                     for i, j, k in LAGS + 1])
+
+    def pad(self, vol: np.ndarray) -> np.ndarray:
+        """``vol`` with ``margin + 1`` voxels of zeros on every face (float32)."""
+        return np.pad(np.asarray(vol, np.float32), [(m + 1, m + 1) for m in self.margins])
+
+    def inner(self, padded: np.ndarray) -> np.ndarray:
+        """The view of a padded volume holding the unpadded voxels."""
+        return padded[tuple(slice(m + 1, m + 1 + n) for m, n in zip(self.margins, self.shape))]
+
+    def shifted(self, padded: np.ndarray, shift) -> np.ndarray:
+        """The view of a padded volume at the unpadded voxels shifted by ``shift``."""
+        return padded[tuple(slice(m + 1 + s, m + 1 + s + n)
+                            for m, n, s in zip(self.margins, self.shape, shift))]
+
+    def first(self, padded: np.ndarray) -> np.ndarray:
+        """``sum_q W(q + s/2) f(L + q)`` for every lag: ``(27, *count)``."""
+        return self._lagged(padded, self._first)
+
+    def second(self, padded: np.ndarray) -> np.ndarray:
+        """``sum_q W(q - s/2) f(L + s + q)`` for every lag: ``(27, *count)``."""
+        return self._lagged(padded, self._second)
+
+    def product(self, vol: np.ndarray, shift) -> np.ndarray:
+        """``sum_q W(q + s/2) f(L + q)`` for one lag ``shift`` of an unpadded volume (zero
+        outside, as a product with a padded volume is)."""
+        rows = [slice(m + 1, m + 1 + n) for m, n in zip(self.margins, self.shape)]
+        mz, my, mx = (axis[s + 1][r] for axis, s, r in zip(self._first, shift, rows))
+        return self._apply(np.asarray(vol, np.float32), mz, my, mx)
+
+    def _lagged(self, padded: np.ndarray, axes) -> np.ndarray:
+        mz, my, mx = (np.concatenate(axis, axis=1) for axis in axes)
+        out = self._apply(padded, mz, my, mx)  # (3 cz, 3 cy, 3 cx)
+        cz, cy, cx = self.grid.count
+        out = out.reshape(3, cz, 3, cy, 3, cx).transpose(0, 2, 4, 1, 3, 5)
+        return out.reshape(27, cz, cy, cx)
+
+    @staticmethod
+    def _apply(vol: np.ndarray, mz, my, mx) -> np.ndarray:
+        nz, ny, nx = vol.shape
+        rows = vol.reshape(nz * ny, nx) @ mx                       # (nz ny, cx)
+        planes = np.matmul(my.T, rows.reshape(nz, ny, -1))         # (nz, cy, cx)
+        return np.tensordot(mz, planes, axes=([0], [0]))           # (cz, cy, cx)
+
+
+@dataclass
+class DirectCorrelation:
+    """What :func:`correlate_direct` measured, per window (arrays shaped ``grid.count``
+    after the first axis)."""
+
+    r: np.ndarray          # (27, ...) weighted Pearson coefficients at LAGS
+    norm: np.ndarray       # (27, ...) their normalisers sqrt(var_a var_b), r = cov / norm
+    mean_a: np.ndarray     # weighted means of the two windows at lag zero
+    mean_b: np.ndarray
+    signal: np.ndarray     # bool: both windows had variance
+
+
+def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                     weighting: float | None) -> DirectCorrelation:
+    """Normalised correlation of every window of ``grid`` at the 27 :data:`LAGS`.
+
+    Parameters
+    ----------
+    vol_a, vol_b
+        Volumes of equal shape, ``vol_b(p) ~ vol_a(p - d)`` for a small ``d``.
+    grid
+        Window grid (:func:`plenocl.piv.correlation.window_grid`).
+    weighting
+        Gaussian width as a fraction of the window (as ``piv3d``), or ``None``.
+
+    Returns
+    -------
+    DirectCorrelation
+        ``r[k]``, the weighted Pearson coefficient at lag ``LAGS[k]``, and its parts.
+    """
+    sums = WindowSums(np.shape(vol_a), grid, weighting)
+    a, b = sums.pad(vol_a), sums.pad(vol_b)
+    n = sums.weight_sums.reshape(27, 1, 1, 1)
+    s_a, s_b = sums.first(a), sums.second(b)
+    raw_a = sums.first(a * a)
+    var_a = raw_a - s_a * s_a / n
+    var_b = sums.second(b * b) - s_b * s_b / n
+    cov = np.empty_like(s_b)
+    inner = sums.inner(a)
+    for k, shift in enumerate(LAGS):
+        cov[k] = sums.product(inner * sums.shifted(b, shift), shift) - s_a[k] * s_b[k] / n[k]
+    scale = np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0)
+    signal = ((var_a[CENTRE] > 1e-9 * raw_a[CENTRE])
+              & (var_b[CENTRE] > 1e-9 * np.maximum(raw_a[CENTRE], 1e-30)))
+    norm = np.sqrt(scale)
+    r = np.where(scale > 0, cov / np.where(scale > 0, norm, 1.0), 0.0)
+    return DirectCorrelation(r.astype(np.float64), norm.astype(np.float64),
+                             s_a[CENTRE] / n[CENTRE], s_b[CENTRE] / n[CENTRE], signal)
+
+
+def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                            weighting: float | None, corr: DirectCorrelation) -> np.ndarray:
+    """Standard uncertainty of each window's sub-voxel displacement from the statistics
+    of its correlation (Wieneke 2015, *Meas. Sci. Technol.* 26 074002), per axis.
+
+    On volumes deformed to a residual below a voxel, the fitted offset along an axis ``e``
+    comes from the asymmetry ``C(+e) - C(-e)`` of the correlation. With the weight at
+    the midpoint of each voxel pair, that asymmetry is a sum over pairs ``(i, i + e)`` of
+
+        dc_i = W(i + e/2) [a'(i) b'(i + e) - a'(i + e) b'(i)],
+
+    ``a'``, ``b'`` the windows less their weighted means: zero for every pair where the
+    two volumes match, so its spread measures their mismatch (noise, ghosts, unresolved
+    motion). The asymmetry's standard deviation is estimated from that spread,
+    ``s^2 = sum_i dc_i^2 - (sum_i dc_i)^2 / N``, and carried through the three-point
+    Gaussian fit of the normalised coefficients: ``sigma = |fit(r- - ds, r0, r+ + ds) -
+    fit(r- + ds, r0, r+ - ds)| / 2`` with ``ds = s / 2`` over each lag's normaliser.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(3, *grid.count)`` as ``(dz, dy, dx)`` in voxels; NaN without signal.
+    """
+    shape = np.shape(vol_a)
+    sums = WindowSums(shape, grid, weighting)
+    squares = WindowSums(shape, grid, weighting, power=2)
+    a, b = sums.pad(vol_a), sums.pad(vol_b)
+    count = float(np.prod([w + 2 * m for w, m in zip(grid.size, sums.margins)]))
+    cube = corr.r.reshape(3, 3, 3, *corr.r.shape[1:])
+    norm = corr.norm.reshape(cube.shape)
+    sigma = np.full((3, *grid.count), np.nan)
+    for axis in range(3):
+        unit = tuple(int(u) for u in np.eye(3, dtype=int)[axis])
+        a0, a1 = sums.inner(a), sums.shifted(a, unit)
+        b0, b1 = sums.inner(b), sums.shifted(b, unit)
+        total, spread = _asymmetry(a0 * b1 - a1 * b0, a0 - a1, b1 - b0, corr, unit,
+                                   sums, squares)
+        factor = correlated_sum_factor(a0, b0, a1, b1, grid.size)
+        half = 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
+        lo, hi = [1, 1, 1], [1, 1, 1]
+        lo[axis], hi[axis] = 0, 2
+        lo, hi = tuple(lo), tuple(hi)
+        d_lo, d_hi = half / np.maximum(norm[lo], 1e-30), half / np.maximum(norm[hi], 1e-30)
+        up = gaussian_subpixel(cube[lo] - d_lo, cube[1, 1, 1], cube[hi] + d_hi)
+        down = gaussian_subpixel(cube[lo] + d_lo, cube[1, 1, 1], cube[hi] - d_hi)
+        sigma[axis] = np.where(corr.signal, 0.5 * np.abs(up - down), np.nan)
+    return sigma
+
+
+#: The longest lag (voxels) over which neighbouring contributions are taken as correlated.
+MAX_CORRELATION_LAG = 8
+
+
+def correlated_sum_factor(a0, b0, a1, b1, size) -> float:
+    """How much larger the variance of a sum of the contributions ``dc_i`` is than the sum
+    of their variances, because neighbouring voxels share a particle image: the sum of
+    the contributions' autocorrelation coefficients over the lags where it stays
+    positive, ``prod_axes (1 + 2 sum_l rho(l))`` (one value for the whole volume, from
+    the contributions with each voxel's local mean, over a window-sized box, removed).
+
+    ``a0``, ``b0`` are the volumes, ``a1``, ``b1`` the same moved by one voxel along the
+    displacement axis considered.
+    """
+    box = tuple(int(w) for w in size)
+    mean_a, mean_b = (ndimage.uniform_filter(v, box, mode="constant") for v in (a0, b0))
+    mean_a1, mean_b1 = (ndimage.uniform_filter(v, box, mode="constant") for v in (a1, b1))
+    field = (a0 - mean_a) * (b1 - mean_b1) - (a1 - mean_a1) * (b0 - mean_b)
+    energy = float(np.vdot(field, field))
+    if energy <= 0:
+        return 1.0
+    factor = 1.0
+    for axis in range(3):
+        total = 1.0
+        for lag in range(1, min(MAX_CORRELATION_LAG, field.shape[axis] - 1) + 1):
+            head = [slice(None)] * 3
+            tail = [slice(None)] * 3
+            head[axis], tail[axis] = slice(lag, None), slice(None, -lag)
+            rho = float(np.vdot(field[tuple(head)], field[tuple(tail)])) / energy
+            if rho <= 0:
+                break
+            total += 2.0 * rho
+        factor *= total
+    return factor
+
+
+def _asymmetry(cross, diff_a, diff_b, corr: DirectCorrelation, unit, sums, squares):
+    """``sum_i dc_i`` and ``sum_i dc_i^2`` per window, for ``dc_i = W (X - mb Da - ma Db)``
+    with ``X = a(i) b(i+e) - a(i+e) b(i)``, ``Da = a(i) - a(i+e)``, ``Db = b(i+e) - b(i)``
+    and the windows' weighted means ``ma``, ``mb``."""
+    ma, mb = corr.mean_a, corr.mean_b
+    total = (sums.product(cross, unit) - mb * sums.product(diff_a, unit)
+             - ma * sums.product(diff_b, unit))
+    terms = ((cross * cross, 1.0), (diff_a * diff_a, mb * mb), (diff_b * diff_b, ma * ma),
+             (cross * diff_a, -2 * mb), (cross * diff_b, -2 * ma),
+             (diff_a * diff_b, 2 * ma * mb))
+    spread = sum(factor * squares.product(field, unit) for field, factor in terms)
+    return total, spread
+
+
+def fit_direct(r: np.ndarray):
+    """Peak of the 27 coefficients per window and its sub-voxel position.
+
+    Returns
+    -------
+    displacement : numpy.ndarray
+        ``(3, *count)`` ``(dz, dy, dx)`` in voxels, within ``[-0.5, 0.5]`` per axis where
+        the peak is at the centre lag.
+    peak : numpy.ndarray
+        The coefficient at lag zero.
+    centred : numpy.ndarray
+        Bool: the highest coefficient is at lag zero (else the window needs the FFT).
+    """
+    cube = r.reshape(3, 3, 3, *r.shape[1:])
+    centre = cube[1, 1, 1]
+    centred = np.argmax(r, axis=0) == CENTRE
+    disp = np.stack([gaussian_subpixel(cube[0, 1, 1], centre, cube[2, 1, 1]),
+                     gaussian_subpixel(cube[1, 0, 1], centre, cube[1, 2, 1]),
+                     gaussian_subpixel(cube[1, 1, 0], centre, cube[1, 1, 2])])
+    return disp, centre, centred
+
+
+#: A window whose correlation at lag zero is below this fraction of the pass's median is
+#: re-correlated by FFT: its match is doubtful (a region without matching particles, a
+#: wall, a block of noise), and the FFT's full plane lets the peak ratio and the outlier
+#: test judge it as in an FFT pass. Uncorrelated particle volumes give coefficients
+#: below 0.1; reconstructed pairs at the paper's optics a median of 0.6, 1 % below 0.37.
+WEAK_PEAK = 0.5
+
+
+def weak_peaks(peak: np.ndarray, signal: np.ndarray) -> np.ndarray:
+    """Windows whose peak coefficient is below :data:`WEAK_PEAK` of the median."""
+    if not signal.any():
+        return np.zeros_like(signal)
+    return signal & (peak < WEAK_PEAK * float(np.median(peak[signal])))
+
+
+def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                       weighting: float | None, uncertainty: bool = False,
+                       **fft_options) -> Correlation:
+    """Correlate deformed volumes directly at the 27 lags, and by FFT
+    (:func:`plenocl.piv.correlation.correlate`, with ``fft_options``) only the windows
+    whose peak lies beyond one voxel or is weak (:func:`weak_peaks`).
+
+    Parameters
+    ----------
+    uncertainty
+        Also estimate each window's uncertainty (:func:`correlation_uncertainty`).
+
+    Returns
+    -------
+    Correlation
+        As the FFT path's, but for the peak ratio, NaN where the direct correlation
+        decided (it sees no secondary peak); ``sigma`` with ``uncertainty``.
+    """
+    direct = correlate_direct(vol_a, vol_b, grid, weighting)
+    sigma = (correlation_uncertainty(vol_a, vol_b, grid, weighting, direct)
+             if uncertainty else None)
+    signal = direct.signal
+    disp, peak, centred = fit_direct(direct.r)
+    ratio = np.full(grid.count, np.nan)
+    far = signal & (~centred | weak_peaks(peak, signal))
+    if far.any():
+        weight = None if weighting is None else gaussian_weight(grid.size, weighting)
+        wide = correlate(vol_a, vol_b, grid, weight=weight, select=far, **fft_options)
+        disp[:, far], peak[far], ratio[far] = (wide.displacement[:, far], wide.peak[far],
+                                               wide.peak_ratio[far])
+        signal = signal & (centred | wide.signal)
+    disp[:, ~signal] = 0.0
+    if sigma is not None:
+        sigma[:, far | ~signal] = np.nan  # the statistics hold at the centre lag only
+    return Correlation(disp, np.where(signal, peak, 0.0), ratio, signal, sigma)
+
+
+def deformed_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                         weighting: float | None) -> np.ndarray:
+    """:func:`correlation_uncertainty` on its own (for a pass correlated by FFT):
+    ``(3, *grid.count)`` voxels, NaN where the residual exceeds a voxel."""
+    direct = correlate_direct(vol_a, vol_b, grid, weighting)
+    sigma = correlation_uncertainty(vol_a, vol_b, grid, weighting, direct)
+    sigma[:, ~fit_direct(direct.r)[2]] = np.nan
+    return sigma

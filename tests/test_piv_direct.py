@@ -1,0 +1,105 @@
+"""Direct correlation of deformed passes (``plenocl.piv.direct``) against its plain twin,
+its symmetry, its sub-voxel accuracy against the FFT path, and its use in ``piv3d``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plenocl import flows
+from plenocl.piv import piv3d
+from plenocl.piv.correlation import correlate, gaussian_weight, window_grid
+from plenocl.piv.direct import LAGS, correlate_direct, correlation_uncertainty, fit_direct
+from plenocl.reference.direct import correlate_windows
+
+
+@pytest.mark.parametrize("weighting", [0.35, 0.2, None])
+@pytest.mark.parametrize("shape,size,overlap", [((13, 17, 22), (8, 9, 10), 0.5),
+                                                 ((11, 25, 9), (9, 8, 8), 0.75)])
+def test_direct_correlation_matches_its_twin(shape, size, overlap, weighting):
+    rng = np.random.default_rng(sum(shape))
+    a, b = (rng.random(shape).astype(np.float32) for _ in range(2))
+    grid = window_grid(shape, size, overlap)
+    got = correlate_direct(a, b, grid, weighting).r
+    want = correlate_windows(a, b, grid, weighting)
+    assert got.shape == (27, *grid.count)
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    assert np.all(np.abs(got) <= 1 + 1e-5)  # a Pearson coefficient
+
+
+def test_identical_windows_give_zero_displacement():
+    """The weight sits between the two windows and reaches past the window, so a volume
+    against itself correlates symmetrically: lag +s equals lag -s, the fit gives 0, as
+    the FFT's circular autocorrelation does."""
+    pair = flows.volume_pair((40, 48, 56), flows.Uniform((0, 0, 0)), density=0.002,
+                             sigma=1.5, seed=2)
+    grid = window_grid(pair.vol_a.shape, (24, 24, 24), 0.5)
+    corr = correlate_direct(pair.vol_a, pair.vol_a, grid, 0.35)
+    mirrored = corr.r[::-1]  # LAGS reversed is -LAGS
+    assert np.array_equal(LAGS[::-1], -LAGS)
+    np.testing.assert_allclose(corr.r, mirrored, atol=2e-3)   # zeros beyond the faces
+    disp, peak, centred = fit_direct(corr.r)
+    assert centred.all() and np.allclose(peak, 1.0, atol=1e-5)
+    assert np.abs(disp).max() < 0.01
+
+
+@pytest.mark.parametrize("shift", [(0.31, -0.27, 0.18), (0.45, 0.1, -0.4)])
+def test_direct_sub_voxel_fit_beats_the_undeformed_fft(shift):
+    """Rendered particles moved by less than a voxel: the direct fit is within 0.05 voxel
+    RMS and no worse than the FFT of the same windows (circular, so edge pairs are lost)."""
+    pair = flows.volume_pair((48, 64, 64), flows.Uniform(shift), density=0.0015, sigma=1.5,
+                             seed=3, noise=0.02)
+    grid = window_grid(pair.vol_a.shape, (24, 24, 24), 0.5)
+    disp, _, centred = fit_direct(correlate_direct(pair.vol_a, pair.vol_b, grid, 0.35).r)
+    fft = correlate(pair.vol_a, pair.vol_b, grid, weight=gaussian_weight((24,) * 3, 0.35))
+    truth = np.array(shift[::-1])[:, None, None, None]   # (dz, dy, dx)
+    rms_direct = np.sqrt(np.mean((disp - truth) ** 2, axis=(1, 2, 3)))
+    rms_fft = np.sqrt(np.mean((fft.displacement - truth) ** 2, axis=(1, 2, 3)))
+    assert centred.mean() > 0.9
+    assert np.all(rms_direct < 0.05), rms_direct
+    assert rms_direct.mean() <= rms_fft.mean() + 0.005, (rms_direct, rms_fft)
+
+
+def test_piv3d_direct_passes_equal_the_fft_passes_in_accuracy(queue):
+    shift = (2.31, -1.47, 0.68)
+    pair = flows.volume_pair((48, 64, 80), flows.Uniform(shift), density=0.002, sigma=1.5,
+                             seed=1, noise=0.02)
+    results = {mode: piv3d(pair.vol_a, pair.vol_b, windows=(32, 24), queue=queue,
+                           correlation=mode) for mode in ("fft", "auto")}
+    assert [p["correlation"] for p in results["auto"].passes] == ["fft", "direct", "direct",
+                                                                  "direct"]
+    assert {p["correlation"] for p in results["fft"].passes} == {"fft"}
+    errors = {}
+    for mode, res in results.items():
+        errors[mode] = np.array([np.sqrt(np.mean((c - s) ** 2))
+                                 for c, s in zip((res.u, res.v, res.w), shift)])
+        assert res.valid.mean() > 0.95
+    assert np.all(errors["auto"] < 0.05) and errors["auto"].mean() <= errors["fft"].mean() + 0.005
+    auto = results["auto"]
+    assert np.all(np.isnan(auto.peak_ratio))        # no secondary peak in 27 lags
+    assert not np.isnan(results["fft"].peak_ratio).any()
+    ratio = piv3d(pair.vol_a, pair.vol_b, windows=(32, 24), queue=queue, min_peak_ratio=1.2)
+    assert ratio.passes[-1]["correlation"] == "fft" and not np.isnan(ratio.peak_ratio).any()
+    top_hat = piv3d(pair.vol_a, pair.vol_b, windows=(32, 24), queue=queue, weighting=None)
+    assert {p["correlation"] for p in top_hat.passes} == {"fft"}
+    with pytest.raises(ValueError, match="correlation must be"):
+        piv3d(pair.vol_a, pair.vol_b, correlation="direct-ish")
+
+
+def test_uncertainty_grows_with_noise_and_is_nan_where_invalid():
+    shift = (0.2, -0.1, 0.3)
+    sigmas = []
+    for noise in (0.02, 0.3):
+        pair = flows.volume_pair((40, 48, 48), flows.Uniform(shift), density=0.002,
+                                 sigma=1.5, seed=6, noise=noise)
+        grid = window_grid(pair.vol_a.shape, (24, 24, 24), 0.5)
+        corr = correlate_direct(pair.vol_a, pair.vol_b, grid, 0.35)
+        sigma = correlation_uncertainty(pair.vol_a, pair.vol_b, grid, 0.35, corr)
+        assert sigma.shape == (3, *grid.count) and np.all(sigma[:, corr.signal] >= 0)
+        sigmas.append(np.nanmedian(sigma))
+    assert sigmas[1] > 2 * sigmas[0]
+    flat = np.zeros((40, 48, 48), np.float32)
+    grid = window_grid(flat.shape, (24, 24, 24), 0.5)
+    corr = correlate_direct(flat, flat, grid, 0.35)
+    assert not corr.signal.any()
+    assert np.isnan(correlation_uncertainty(flat, flat, grid, 0.35, corr)).all()
