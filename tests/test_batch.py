@@ -73,6 +73,8 @@ def test_run_processes_pairs_skips_finished_ones_and_reports_failures(experiment
     ("[cameras]\n", r"unknown section\(s\) \['cameras'\]"),
     ("[camera]\n", "exactly one of file or preset"),
     ("[output]\nvti = 'yes'\n[camera]\npreset = 'synthetic'\n", "vti must be true or false"),
+    ("[piv]\nensemble = 1\n[camera]\npreset = 'synthetic'\n",
+     r"\[piv\] ensemble must be true or false"),
 ])
 def test_bad_experiment_files_are_refused_before_any_work(tmp_path, change, message):
     base = EXPERIMENT.replace('[camera]\npreset = "synthetic"\n', "").replace(
@@ -167,6 +169,14 @@ def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
                                                 "piv", "write"}
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["ensemble_mean_rms_error"] == s["ensemble_mean_rms_error"]
+    # the demo keeps the volumes and correlates the pairs as one ensemble too
+    assert len(list((tmp_path / "results" / "pairs").glob("volumes_*.npz"))) == 2
+    assert max(s["ensemble_correlation_rms_error"].values()) < 0.15
+    xr = pytest.importorskip("xarray")
+    ds = xr.open_zarr(tmp_path / "results" / "timeseries.zarr")
+    assert ds.u_ensemble.dims == ("z", "y", "x") and ds.u_ensemble.attrs["units"] == "m/s"
+    _, ens = read_npz(tmp_path / "results" / "ensemble.npz")
+    np.testing.assert_allclose(ds.u_ensemble.values, ens["velocity"][0], rtol=1e-6)
 
 
 def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(experiment,

@@ -20,7 +20,7 @@ from contextlib import contextmanager
 
 from distributed import Client, LocalCluster, WorkerPlugin, as_completed, get_worker
 
-from ..piv.fft import thread_count
+from ..threads import thread_count
 from .worker import PairOutcome, PairProcessor, PairTask
 
 PLUGIN = "plenocl"

@@ -24,6 +24,8 @@ Example::
     iterations = 30
     [piv]
     windows = [48, 32, 24]               # optional: fitted to the volume by default
+    ensemble = false                     # also the ensemble-correlation mean field (keeps
+                                         # each pair's volumes beside its field)
     [output]
     folder = "results"
     vti = false                          # also a ParaView .vti per pair
@@ -46,7 +48,7 @@ SECTIONS = {
                "b_suffix": "_b", "dt_s": None, "pair_interval_s": None},
     "reconstruction": {"method": "mlem", "iterations": None, "relax": None,
                        "background": "median", "threshold": None},
-    "piv": {"windows": None},
+    "piv": {"windows": None, "ensemble": False},
     "output": {"folder": "results", "vti": False},
 }
 PAIRINGS = ("sequence", "sliding", "ab")
@@ -105,9 +107,10 @@ def _check(s: dict, path: Path) -> None:
     from ..reconstruction import ReconstructionSettings
 
     ReconstructionSettings(**s["reconstruction"])  # raises on a bad value, naming it
-    if not isinstance(s["output"]["vti"], bool):
-        raise ValueError(f"{path}: [output] vti must be true or false, got "
-                         f"{s['output']['vti']!r}")
+    for section, key in (("output", "vti"), ("piv", "ensemble")):
+        if not isinstance(s[section][key], bool):
+            raise ValueError(f"{path}: [{section}] {key} must be true or false, got "
+                             f"{s[section][key]!r}")
 
 
 def image_pairs(exp: Experiment) -> list[tuple[Path, Path]]:

@@ -24,6 +24,7 @@ from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..tomlfile import write_toml
 from .config import Experiment, image_pairs, load_experiment
+from .layout import finished_pairs, pair_file
 from .worker import PairOutcome, PairProcessor, PairTask
 
 
@@ -41,6 +42,7 @@ class RunSummary:
     workers: int = 1
     interrupted: bool = False
     store: str | None = None
+    ensemble: str | None = None
 
 
 def run(config: str | Path, out: str | Path | None = None, queue=None, log=print, *,
@@ -93,7 +95,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
             summary.interrupted = True
             log("interrupted: the pairs finished so far are kept; run again to go on")
     summary.wall_seconds = time.perf_counter() - t0
-    _finish(summary, exp, out, log)
+    _finish(summary, exp, out, queue, log)
     return summary
 
 
@@ -101,7 +103,7 @@ def _tasks(pairs, out: Path, summary: RunSummary, log) -> list[PairTask]:
     """The pairs still to do; those whose field exists are skipped, and said so."""
     tasks = []
     for k, (path_a, path_b) in enumerate(pairs):
-        target = out / "pairs" / f"pair_{k:05d}.npz"
+        target = pair_file(out, k)
         if target.is_file():
             summary.skipped.append(k)
         else:
@@ -169,7 +171,7 @@ def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     grid_file = out / "grid_used.toml"
-    if grid_file.is_file() and any((out / "pairs").glob("pair_*.npz")):
+    if grid_file.is_file() and finished_pairs(out):
         from ..grid import Grid
 
         if Grid.from_toml(grid_file) != grid:
@@ -184,17 +186,26 @@ def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
     grid.to_toml(grid_file)
 
 
-def _finish(summary: RunSummary, exp: Experiment, out: Path, log) -> None:
-    """Gather every finished pair into the store; write ``summary.json``."""
+def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:
+    """The ensemble correlation if asked for (not after Ctrl-C); gather every finished
+    pair into the store; write ``summary.json``."""
     done = len(summary.processed)
     summary.processed.sort()
     summary.seconds_per_pair = (summary.wall_seconds / done) if done else 0.0
     interval = exp["images"]["pair_interval_s"]
-    fields = [(int(p.stem.split("_")[1]), p) for p in sorted((out / "pairs").glob("pair_*.npz"))]
+    fields = finished_pairs(out)
+    ensemble = None
+    if fields and exp["piv"]["ensemble"] and not summary.interrupted:
+        from .ensemble import ensemble_field
+
+        ensemble = ensemble_field(out, exp["images"]["dt_s"], queue, exp["output"]["vti"],
+                                  log)
+        summary.ensemble = None if ensemble is None else str(ensemble)
     if fields:
         store = write_timeseries(out / "timeseries.zarr",
                                  [(k, k * interval if interval else float(k), p)
-                                  for k, p in fields], "s" if interval else "pair")
+                                  for k, p in fields], "s" if interval else "pair",
+                                 ensemble=ensemble)
         summary.store = str(store)
     with atomic_path(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(asdict(summary), indent=2))

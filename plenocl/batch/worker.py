@@ -18,10 +18,11 @@ from ..camera import load_camera
 from ..device import DeviceLike
 from ..grid import Grid
 from ..io.fields import save_field
-from ..io.files import read_image
+from ..io.files import read_image, write_volumes
 from ..pipeline import process_pair
 from ..reconstruction import ReconstructionSettings
 from ..tomlfile import read_toml
+from .layout import volume_file
 
 #: The exceptions a bad pair raises (unreadable, wrong size, NaN, ...): logged, skipped.
 PAIR_ERRORS = (ValueError, OSError, TypeError)
@@ -67,6 +68,7 @@ class PairProcessor:
         self.piv_options = {} if windows is None else {"windows": tuple(windows)}
         self.dt = float(used["images"]["dt_s"])
         self.vti = bool(used["output"].get("vti", False))
+        self.keep_volumes = bool(used.get("piv", {}).get("ensemble", False))
         self.camera = load_camera(folder / "camera_used.toml")
         self.grid = Grid.from_toml(folder / "grid_used.toml")
         self.device = device
@@ -98,6 +100,8 @@ class PairProcessor:
         pair = process_pair(raw_a, raw_b, self.projector, settings=self.settings,
                             piv_options=self.piv_options)
         t0 = time.perf_counter()
+        if self.keep_volumes:  # for the ensemble correlation at the end of the run
+            write_volumes(volume_file(target), pair.vol_a, pair.vol_b)
         if self.vti:
             save_field(target.with_suffix(".vti"), pair.piv, dt=self.dt, grid=self.grid)
         # the .npz last: its presence marks the pair done

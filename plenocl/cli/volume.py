@@ -145,6 +145,9 @@ def _time_series(args: argparse.Namespace) -> int:
           + ", ".join(f"{c} {100 * v:.1f}%" for c, v in err.items()) + " of U∞, ensemble "
           "mean " + ", ".join(f"{c} {100 * v:.1f}%" for c, v in
                               s.get("ensemble_mean_rms_error", {}).items())
+          + ", ensemble correlation " + ", ".join(
+              f"{c} {100 * v:.1f}%" for c, v in
+              s.get("ensemble_correlation_rms_error", {}).items())
           + f"; {args.out}/experiment.toml, results in {args.out}/results/")
     return 1 if s["failed"] else 0
 

@@ -179,3 +179,17 @@ def load_volume(path: str | Path) -> tuple[np.ndarray, object]:
                     tuple(meta["y_mm"]), tuple(meta["z_mm"]),
                     float(meta.get("rotation_deg", 0.0)))
     return vol, grid
+
+
+def write_volumes(path: str | Path, vol_a: np.ndarray, vol_b: np.ndarray) -> None:
+    """Save a pair's two volumes to one compressed ``.npz`` (``vol_a``, ``vol_b``),
+    atomically."""
+    with atomic_path(Path(path)) as tmp, tmp.open("wb") as fh:
+        np.savez_compressed(fh, vol_a=np.asarray(vol_a, np.float32),
+                            vol_b=np.asarray(vol_b, np.float32))
+
+
+def read_volumes(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The two volumes written by :func:`write_volumes`."""
+    with np.load(path) as data:
+        return data["vol_a"], data["vol_b"]

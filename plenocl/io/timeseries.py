@@ -10,7 +10,8 @@
   ``peak_ratio``, shaped ``(time, z, y, x)``, one chunk per pair;
 - the ensemble over the run, shaped ``(z, y, x)``: ``u_mean``, ``v_mean``, ``w_mean``
   and the RMS fluctuations ``u_rms``, ``v_rms``, ``w_rms`` over the valid vectors, with
-  ``valid_count``.
+  ``valid_count``; with an ensemble correlation (``[piv] ensemble``), its mean field
+  ``u_ensemble``, ``v_ensemble``, ``w_ensemble`` and ``valid_ensemble``.
 
 ``xarray.open_zarr("timeseries.zarr")`` reads it with those names and units. The store
 is written beside its final place and moved there when complete, so a run stopped
@@ -33,7 +34,7 @@ COMPONENTS = ("u", "v", "w")
 
 
 def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]],
-                     time_units: str = "s") -> Path:
+                     time_units: str = "s", ensemble: str | Path | None = None) -> Path:
     """Write the store (see the module notes) from ``(pair index, time, .npz path)``.
 
     Parameters
@@ -45,6 +46,9 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
         velocities (written with ``dt``).
     time_units
         Units of the times (``"s"``, or ``"pair"`` when they are pair numbers).
+    ensemble
+        Optional ensemble-correlation field (``.npz``, same grid): stored as
+        ``u_ensemble``, ``v_ensemble``, ``w_ensemble`` and ``valid_ensemble``.
 
     Returns
     -------
@@ -64,7 +68,7 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     stats = _Ensemble(first["velocity"].shape[1:])
     arrays = _per_pair_arrays(group, len(fields), stats.shape)
     for k, (_, _, npz) in enumerate(fields):
-        _, data = read_npz(npz)
+        data = first if k == 0 else read_npz(npz)[1]
         _check_grid(data, first, npz)
         for comp, values in zip(COMPONENTS, data["velocity"]):
             arrays[comp][k] = values
@@ -75,6 +79,8 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
             arrays[name][k] = data[name]
         stats.add(data["velocity"], data["valid"])
     stats.write(group)
+    if ensemble is not None:
+        _write_ensemble(group, read_npz(ensemble)[1], first, Path(ensemble))
     group.attrs.update({"title": "plenocl time series", "source": "plenocl run"})
     with warnings.catch_warnings():  # zarr: "not part of the Zarr 3 specification" (yet)
         warnings.filterwarnings("ignore", message="Consolidated metadata")
@@ -116,6 +122,19 @@ def _per_pair_arrays(group, count: int, shape) -> dict:
                                        dtype=dtype, dimension_names=dims,
                                        attributes={"coordinates": "pair"})
     return out
+
+
+def _write_ensemble(group, data: dict, first: dict, npz: Path) -> None:
+    """The ensemble-correlation mean field, ``(z, y, x)``."""
+    _check_grid(data, first, npz)
+    dims = ["z", "y", "x"]
+    for comp, values in zip(COMPONENTS, data["velocity"]):
+        group.create_array(f"{comp}_ensemble", data=values.astype(np.float32),
+                           dimension_names=dims,
+                           attributes={"units": "m/s", "long_name":
+                                       f"{comp} of the ensemble correlation"})
+    group.create_array("valid_ensemble", data=np.asarray(data["valid"], bool),
+                       dimension_names=dims)
 
 
 def _check_grid(data: dict, first: dict, npz: Path) -> None:

@@ -164,10 +164,17 @@ class DirectCorrelation:
     after the first axis)."""
 
     r: np.ndarray          # (27, ...) weighted Pearson coefficients at LAGS
-    norm: np.ndarray       # (27, ...) their normalisers sqrt(var_a var_b), r = cov / norm
+    cov: np.ndarray        # (27, ...) the weighted covariances, r = cov / norm
+    var_a: np.ndarray      # (27, ...) the windows' weighted variances (sums, not means)
+    var_b: np.ndarray
     mean_a: np.ndarray     # weighted means of the two windows at lag zero
     mean_b: np.ndarray
     signal: np.ndarray     # bool: both windows had variance
+
+    @property
+    def norm(self) -> np.ndarray:
+        """``sqrt(var_a var_b)``, the normaliser of each coefficient."""
+        return np.sqrt(np.maximum(self.var_a, 0.0) * np.maximum(self.var_b, 0.0))
 
 
 def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
@@ -202,9 +209,9 @@ def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     scale = np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0)
     signal = ((var_a[CENTRE] > 1e-9 * raw_a[CENTRE])
               & (var_b[CENTRE] > 1e-9 * np.maximum(raw_a[CENTRE], 1e-30)))
-    norm = np.sqrt(scale)
-    r = np.where(scale > 0, cov / np.where(scale > 0, norm, 1.0), 0.0)
-    return DirectCorrelation(r.astype(np.float64), norm.astype(np.float64),
+    r = np.where(scale > 0, cov / np.sqrt(np.where(scale > 0, scale, 1.0)), 0.0)
+    return DirectCorrelation(r.astype(np.float64), *(v.astype(np.float64) for v in
+                                                     (cov, var_a, var_b)),
                              s_a[CENTRE] / n[CENTRE], s_b[CENTRE] / n[CENTRE], signal)
 
 

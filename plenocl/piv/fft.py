@@ -11,11 +11,12 @@ against. On 2 CPU cores FFTW is about 2x SciPy for 32-voxel windows (measured in
 
 from __future__ import annotations
 
-import os
 import threading
 
 import numpy as np
 import scipy.fft
+
+from ..threads import thread_count
 
 try:  # wheels exist for the common platforms; SciPy's pocketfft otherwise
     import pyfftw
@@ -23,19 +24,6 @@ except ImportError:  # pragma: no cover - depends on the installation
     pyfftw = None
 
 BACKENDS = ("fftw", "scipy")
-
-
-def thread_count(workers: int) -> int:
-    """Threads for ``workers`` (``-1``: the ``PLENOCL_THREADS`` variable, which a batch
-    run sets for its worker processes, else every core this process may use)."""
-    if (workers is None or workers < 1) and os.environ.get("PLENOCL_THREADS"):
-        return max(1, int(os.environ["PLENOCL_THREADS"]))
-    if workers is None or workers < 1:
-        try:
-            return len(os.sched_getaffinity(0))
-        except AttributeError:  # macOS, Windows
-            return os.cpu_count() or 1
-    return int(workers)
 
 
 class CorrelationFFT:
