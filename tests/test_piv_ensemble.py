@@ -15,10 +15,10 @@ SHIFT = (1.3, -0.6, 0.4)   # (x, y, z) voxels
 
 @pytest.fixture(scope="module")
 def sparse_pairs():
-    """Eight pairs with about 4 particles per 24-voxel window and noise: each pair's own
-    correlation peak is weak."""
-    return [flows.volume_pair((48, 56, 64), flows.Uniform(SHIFT), density=0.0003, sigma=1.5,
-                              seed=20 + k, noise=0.08) for k in range(8)]
+    """Eight pairs with about 2 particles per 24-voxel window and noise: each pair's own
+    correlation peak is weak (0.6 voxel RMS error per pair)."""
+    return [flows.volume_pair((48, 56, 64), flows.Uniform(SHIFT), density=0.00015,
+                              sigma=1.5, seed=20 + k, noise=0.1) for k in range(8)]
 
 
 def test_ensemble_correlation_beats_averaged_vectors(sparse_pairs, queue):
@@ -29,9 +29,9 @@ def test_ensemble_correlation_beats_averaged_vectors(sparse_pairs, queue):
     predictor.u, predictor.v, predictor.w = mean["u"], mean["v"], mean["w"]
     ens = ensemble_piv(lambda: ((p.vol_a, p.vol_b) for p in sparse_pairs), predictor,
                        queue=queue)
-    assert ens.shape == fields[0].shape and ens.valid.mean() > 0.95
+    assert ens.shape == fields[0].shape and ens.valid.mean() > 0.9
     ens_err = np.sqrt(np.mean([(getattr(ens, c) - s) ** 2 for c, s in zip("uvw", SHIFT)]))
-    assert ens_err < 0.1 and ens_err < 0.7 * avg_err, (ens_err, avg_err)
+    assert ens_err < 0.2 and ens_err < 0.85 * avg_err, (ens_err, avg_err)
     assert np.isnan(ens.peak_ratio).all() and np.isnan(ens.sigma_u).all()
 
 

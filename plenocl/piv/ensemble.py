@@ -68,15 +68,16 @@ def ensemble_piv(pairs: PairSource, predictor: PIVResult, *, window=None,
     centres = (predictor.z, predictor.y, predictor.x)
     deformer = make_deformer(deform_order, queue)
     result = None
-    for _ in range(iterations):
-        result = _ensemble_pass(pairs, field, centres, window, overlap, weighting, deformer)
+    for k in range(iterations):
+        result = _ensemble_pass(pairs, field, centres, window, overlap, weighting, deformer,
+                                final=k == iterations - 1)
         field = np.stack([result.w, result.v, result.u])
         centres = (result.z, result.y, result.x)
     return result
 
 
 def _ensemble_pass(pairs: PairSource, field, centres, window, overlap, weighting,
-                   deformer) -> PIVResult:
+                   deformer, final: bool) -> PIVResult:
     """One pass: deform every pair by ``field``, sum the window sums, fit."""
     totals, grid, base, count = None, None, None, 0
     for vol_a, vol_b in pairs():
@@ -95,11 +96,13 @@ def _ensemble_pass(pairs: PairSource, field, centres, window, overlap, weighting
         count += 1
     if count == 0:
         raise ValueError("the ensemble holds no volume pairs")
-    return _fit_ensemble(totals, grid, base)
+    return _fit_ensemble(totals, grid, base, final)
 
 
-def _fit_ensemble(totals, grid, base) -> PIVResult:
-    """Coefficients of the summed sums, their peaks, the median test."""
+def _fit_ensemble(totals, grid, base, final: bool) -> PIVResult:
+    """Coefficients of the summed sums, their peaks, the median test. A window whose
+    peak is off the centre lag moves by that lag (whole voxels) for the next pass; after
+    the last pass it is invalid and replaced from its neighbours."""
     cov, var_a, var_b = totals
     scale = np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0)
     r = np.where(scale > 0, cov / np.sqrt(np.where(scale > 0, scale, 1.0)), 0.0)
@@ -110,7 +113,7 @@ def _fit_ensemble(totals, grid, base) -> PIVResult:
     total = base + disp
     outlier = normalized_median_test(total, ignore=~signal)
     invalid = ~signal | ~centred
-    total = replace_outliers(total, outlier | invalid)
+    total = replace_outliers(total, outlier | ~signal | (~centred if final else False))
     z, y, x = grid.centres
     nan = np.full(grid.count, np.nan)
     return PIVResult(x=x, y=y, z=z, u=total[2], v=total[1], w=total[0],
