@@ -177,6 +177,13 @@ def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
     assert ds.u_ensemble.dims == ("z", "y", "x") and ds.u_ensemble.attrs["units"] == "m/s"
     _, ens = read_npz(tmp_path / "results" / "ensemble.npz")
     np.testing.assert_allclose(ds.u_ensemble.values, ens["velocity"][0], rtol=1e-6)
+    # a rerun that adds no pair keeps the ensemble as it is
+    made = (tmp_path / "results" / "ensemble.npz").stat().st_mtime_ns
+    said = []
+    again = plenocl.run(tmp_path / "experiment.toml", log=said.append, progress=False)
+    assert again.skipped == [0, 1] and again.ensemble.endswith("ensemble.npz")
+    assert (tmp_path / "results" / "ensemble.npz").stat().st_mtime_ns == made
+    assert any("no new pair" in m for m in said)
 
 
 def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(experiment,

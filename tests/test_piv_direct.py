@@ -103,3 +103,23 @@ def test_uncertainty_grows_with_noise_and_is_nan_where_invalid():
     corr = correlate_direct(flat, flat, grid, 0.35)
     assert not corr.signal.any()
     assert np.isnan(correlation_uncertainty(flat, flat, grid, 0.35, corr)).all()
+
+
+def test_direct_sums_do_not_depend_on_the_thread_count(monkeypatch):
+    """A serial run (all cores) and Dask workers (fewer threads each) must give the same
+    fields bit for bit: each window sum is computed by one thread with one BLAS thread."""
+    from threadpoolctl import threadpool_limits
+
+    pair = flows.volume_pair((32, 48, 48), flows.Uniform((0.3, -0.2, 0.1)), density=0.004,
+                             sigma=1.5, seed=8, noise=0.05)
+    grid = window_grid(pair.vol_a.shape, (16, 16, 16), 0.75)
+    results = []
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("PLENOCL_THREADS", threads)
+        with threadpool_limits(int(threads), user_api="blas"):
+            corr = correlate_direct(pair.vol_a, pair.vol_b, grid, 0.35)
+            sigma = correlation_uncertainty(pair.vol_a, pair.vol_b, grid, 0.35, corr)
+        results.append((corr.r, sigma))
+    for r, sigma in results[1:]:
+        assert np.array_equal(r, results[0][0])
+        assert np.array_equal(sigma, results[0][1], equal_nan=True)

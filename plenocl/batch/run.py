@@ -186,6 +186,18 @@ def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
     grid.to_toml(grid_file)
 
 
+def _ensemble(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> Path | None:
+    """The run's ensemble correlation; kept as it is when no pair was added since it was
+    made (a rerun that only skips finished pairs redoes nothing)."""
+    made = out / "ensemble.npz"
+    if not summary.processed and made.is_file():
+        log(f"ensemble correlation: no new pair, {made} kept")
+        return made
+    from .ensemble import ensemble_field
+
+    return ensemble_field(out, exp["images"]["dt_s"], queue, exp["output"]["vti"], log)
+
+
 def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:
     """The ensemble correlation if asked for (not after Ctrl-C); gather every finished
     pair into the store; write ``summary.json``."""
@@ -196,10 +208,7 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
     fields = finished_pairs(out)
     ensemble = None
     if fields and exp["piv"]["ensemble"] and not summary.interrupted:
-        from .ensemble import ensemble_field
-
-        ensemble = ensemble_field(out, exp["images"]["dt_s"], queue, exp["output"]["vti"],
-                                  log)
+        ensemble = _ensemble(summary, exp, out, queue, log)
         summary.ensemble = None if ensemble is None else str(ensemble)
     if fields:
         store = write_timeseries(out / "timeseries.zarr",

@@ -25,11 +25,14 @@ The plain per-window twin is :func:`plenocl.reference.direct.correlate_windows`.
 from __future__ import annotations
 
 import itertools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from threadpoolctl import threadpool_limits
 
+from ..threads import thread_count
 from .correlation import (
     Correlation,
     WindowGrid,
@@ -41,6 +44,16 @@ from .correlation import (
 #: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order; index 13 is zero.
 LAGS = np.array(list(itertools.product((-1, 0, 1), repeat=3)))
 CENTRE = 13
+
+
+def parallel_sums(function, items) -> list:
+    """``function`` over ``items`` on :func:`plenocl.threads.thread_count` threads, each
+    with a single-threaded BLAS: every window sum is then computed by one thread in one
+    order, so the results do not depend on the number of threads (a serial run and Dask
+    workers with fewer threads each give the same fields, bit for bit), while the sums
+    still share the cores."""
+    with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(thread_count()) as pool:
+        return list(pool.map(function, items))
 
 
 def margin(size: int, weighting: float | None) -> int:
@@ -198,14 +211,14 @@ def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     sums = WindowSums(np.shape(vol_a), grid, weighting)
     a, b = sums.pad(vol_a), sums.pad(vol_b)
     n = sums.weight_sums.reshape(27, 1, 1, 1)
-    s_a, s_b = sums.first(a), sums.second(b)
-    raw_a = sums.first(a * a)
-    var_a = raw_a - s_a * s_a / n
-    var_b = sums.second(b * b) - s_b * s_b / n
-    cov = np.empty_like(s_b)
     inner = sums.inner(a)
-    for k, shift in enumerate(LAGS):
-        cov[k] = sums.product(inner * sums.shifted(b, shift), shift) - s_a[k] * s_b[k] / n[k]
+    jobs = [lambda: sums.first(a), lambda: sums.second(b), lambda: sums.first(a * a),
+            lambda: sums.second(b * b)]
+    jobs += [lambda lag=lag: sums.product(inner * sums.shifted(b, lag), lag) for lag in LAGS]
+    s_a, s_b, raw_a, raw_b, *products = parallel_sums(lambda job: job(), jobs)
+    var_a = raw_a - s_a * s_a / n
+    var_b = raw_b - s_b * s_b / n
+    cov = np.stack(products) - s_a * s_b / n
     scale = np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0)
     signal = ((var_a[CENTRE] > 1e-9 * raw_a[CENTRE])
               & (var_b[CENTRE] > 1e-9 * np.maximum(raw_a[CENTRE], 1e-30)))
@@ -246,14 +259,17 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
     cube = corr.r.reshape(3, 3, 3, *corr.r.shape[1:])
     norm = corr.norm.reshape(cube.shape)
     sigma = np.full((3, *grid.count), np.nan)
-    for axis in range(3):
+
+    def spread_of(axis: int):
         unit = tuple(int(u) for u in np.eye(3, dtype=int)[axis])
         a0, a1 = sums.inner(a), sums.shifted(a, unit)
         b0, b1 = sums.inner(b), sums.shifted(b, unit)
         total, spread = _asymmetry(a0 * b1 - a1 * b0, a0 - a1, b1 - b0, corr, unit,
                                    sums, squares)
         factor = correlated_sum_factor(a0, b0, a1, b1, grid.size)
-        half = 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
+        return 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
+
+    for axis, half in enumerate(parallel_sums(spread_of, range(3))):
         lo, hi = [1, 1, 1], [1, 1, 1]
         lo[axis], hi[axis] = 0, 2
         lo, hi = tuple(lo), tuple(hi)
