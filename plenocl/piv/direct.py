@@ -259,6 +259,9 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
     cube = corr.r.reshape(3, 3, 3, *corr.r.shape[1:])
     norm = corr.norm.reshape(cube.shape)
     sigma = np.full((3, *grid.count), np.nan)
+    box = tuple(int(w) for w in grid.size)
+    local = parallel_sums(lambda v: ndimage.uniform_filter(v, box, mode="constant"), (a, b))
+    detrended = [v - m for v, m in zip((a, b), local)]   # less each voxel's local mean
 
     def spread_of(axis: int):
         unit = tuple(int(u) for u in np.eye(3, dtype=int)[axis])
@@ -266,7 +269,10 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
         b0, b1 = sums.inner(b), sums.shifted(b, unit)
         total, spread = _asymmetry(a0 * b1 - a1 * b0, a0 - a1, b1 - b0, corr, unit,
                                    sums, squares)
-        factor = correlated_sum_factor(a0, b0, a1, b1, grid.size)
+        da, db = detrended
+        field = (sums.inner(da) * sums.shifted(db, unit)
+                 - sums.shifted(da, unit) * sums.inner(db))
+        factor = correlated_sum_factor(field)
         return 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
 
     for axis, half in enumerate(parallel_sums(spread_of, range(3))):
@@ -284,20 +290,15 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
 MAX_CORRELATION_LAG = 8
 
 
-def correlated_sum_factor(a0, b0, a1, b1, size) -> float:
+def correlated_sum_factor(field: np.ndarray) -> float:
     """How much larger the variance of a sum of the contributions ``dc_i`` is than the sum
     of their variances, because neighbouring voxels share a particle image: the sum of
     the contributions' autocorrelation coefficients over the lags where it stays
-    positive, ``prod_axes (1 + 2 sum_l rho(l))`` (one value for the whole volume, from
-    the contributions with each voxel's local mean, over a window-sized box, removed).
+    positive, ``prod_axes (1 + 2 sum_l rho(l))``, one value for the whole volume.
 
-    ``a0``, ``b0`` are the volumes, ``a1``, ``b1`` the same moved by one voxel along the
-    displacement axis considered.
+    ``field`` holds every voxel's contribution, ``a'(i) b'(i+e) - a'(i+e) b'(i)`` with
+    ``a'``, ``b'`` the volumes less their local (window-sized box) means.
     """
-    box = tuple(int(w) for w in size)
-    mean_a, mean_b = (ndimage.uniform_filter(v, box, mode="constant") for v in (a0, b0))
-    mean_a1, mean_b1 = (ndimage.uniform_filter(v, box, mode="constant") for v in (a1, b1))
-    field = (a0 - mean_a) * (b1 - mean_b1) - (a1 - mean_a1) * (b0 - mean_b)
     energy = float(np.vdot(field, field))
     if energy <= 0:
         return 1.0
