@@ -3,23 +3,28 @@
 After the first pass the volumes are deformed by the predictor, so the residual
 displacement of most windows is below one voxel and only the lags ``s`` in
 ``{-1, 0, 1}^3`` are needed to locate and fit the peak. For a window with low corner
-``L`` and weight ``W`` (separable: ``W(q) = wz(qz) wy(qy) wx(qx)``) the normalised
-correlation at lag ``s`` is the weighted Pearson coefficient
+``L`` the normalised correlation at lag ``s`` is the weighted Pearson coefficient
 
-    r(s) = cov(s) / sqrt(Ea Eb(s)),
-    cov(s) = S[a b_s] - S[a] S[b_s] / S[1],  Ea = S[a^2] - S[a]^2 / S[1], ...
+    r(s) = cov(s) / sqrt(var_a(s) var_b(s)),
+    cov(s) = S_s[a(L + q) b(L + q + s)] - S_s[a(L + q)] S_s[b(L + q + s)] / S_s[1],
 
-with ``S[f] = sum_q W(q) f(L + q)`` and ``b_s(p) = b(p + s)`` (``b`` continued by its
-edge values outside the volume). Every ``S`` is a separable filter evaluated only at the
-window corners: three matrix products per axis order, independent of the overlap, so a
-pass costs about 30 sweeps over the volume instead of one 3-D FFT per window. The
-correlation is linear (no wrap-around) and uses the window's weighted mean.
+with ``S_s[f] = sum_q W(q + s/2) f(q)``: a separable Gaussian weight (the square of the
+FFT path's, which weights both windows) centred between the two windows compared and
+reaching three standard deviations, beyond the window itself (:func:`margin`); both
+volumes are zero outside. A volume against itself is then exactly symmetric in ``s``, as
+the FFT's circular autocorrelation is, which keeps iterative deformation from drifting.
+Every ``S`` is a separable filter evaluated only at the window corners: three matrix
+products (:class:`WindowSums`), independent of the overlap, about 30 sweeps over the
+volume per pass instead of one 3-D FFT per window. They run on the host with BLAS, each
+sum on one thread (:func:`parallel_sums`), so the results do not depend on the thread
+count.
 
 :func:`correlate_direct` returns the 27 coefficients per window; :func:`fit_direct`
 locates the peak and fits it per axis with the same three-point Gaussian as the FFT path
-(:func:`plenocl.piv.correlation.gaussian_subpixel`). Windows whose peak is not at the
-centre lag need the FFT (their residual exceeds one voxel); ``piv3d`` re-correlates those.
-The plain per-window twin is :func:`plenocl.reference.direct.correlate_windows`.
+(:func:`plenocl.piv.correlation.gaussian_subpixel`); :func:`correlate_deformed` sends
+windows whose peak is off the centre lag or weak to the FFT;
+:func:`correlation_uncertainty` estimates each vector's uncertainty. The plain
+per-window twin is :func:`plenocl.reference.direct.correlate_windows`.
 """
 
 from __future__ import annotations
@@ -201,7 +206,9 @@ def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     grid
         Window grid (:func:`plenocl.piv.correlation.window_grid`).
     weighting
-        Gaussian width as a fraction of the window (as ``piv3d``), or ``None``.
+        Gaussian width as a fraction of the window (as ``piv3d``), or ``None`` for a
+        top hat over the window (not symmetric between ``+s`` and ``-s`` for a volume
+        against itself: ``piv3d`` correlates top-hat windows by FFT).
 
     Returns
     -------
@@ -242,7 +249,9 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
     ``a'``, ``b'`` the windows less their weighted means: zero for every pair where the
     two volumes match, so its spread measures their mismatch (noise, ghosts, unresolved
     motion). The asymmetry's standard deviation is estimated from that spread,
-    ``s^2 = sum_i dc_i^2 - (sum_i dc_i)^2 / N``, and carried through the three-point
+    ``s^2 = k (sum_i dc_i^2 - (sum_i dc_i)^2 / N)`` with ``k`` the factor by which
+    neighbouring contributions are correlated (:func:`correlated_sum_factor`: they share
+    particle images, so they are not independent), and carried through the three-point
     Gaussian fit of the normalised coefficients: ``sigma = |fit(r- - ds, r0, r+ + ds) -
     fit(r- + ds, r0, r+ - ds)| / 2`` with ``ds = s / 2`` over each lag's normaliser.
 
