@@ -24,10 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from accuracy import SHIFT_VOX, VOXEL_MM, setup  # noqa: E402
 
 from plenocl import (  # noqa: E402
     Projector,
@@ -35,8 +32,9 @@ from plenocl import (  # noqa: E402
     get_queue,
     piv3d,
     process_pair,
-    random_particles,  # noqa: E402
+    random_particles,
 )
+from plenocl.bench.accuracy_section import SHIFT_VOX, VOXEL_MM, paper_optics  # noqa: E402
 from plenocl.simulate import simulate_image  # noqa: E402
 
 RENDERED = [  # (density per voxel, particle sigma, noise, windows)
@@ -70,7 +68,7 @@ def rendered_rows(queue, cases) -> list[str]:
 
 
 def reconstructed_rows(queue, seedings) -> list[str]:
-    cam, grid = setup((96, 64))
+    cam, grid = paper_optics((96, 64))
     proj = Projector(cam, grid, queue)
     shift_mm = SHIFT_VOX * np.array(VOXEL_MM)
     box = tuple((lo + 0.3, hi - 0.3) for lo, hi in (grid.x, grid.y, grid.z))

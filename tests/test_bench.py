@@ -18,7 +18,7 @@ from plenocl.cli.bench import add_bench_parser, cmd_bench
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SECTIONS = ("## Simulator", "## Calibration", "## Refocusing", "## Projector",
-            "## Reconstruction", "## Skipping", "## PIV", "## Scaling",
+            "## Reconstruction", "## Skipping", "## PIV", "## Accuracy", "## Scaling",
             "## Cross-device agreement")
 PLOTS = ("recon_pareto.png", "piv_pareto.png", "scaling.png")
 
@@ -40,6 +40,10 @@ def test_report_regenerates_from_one_call(tmp_path, queue):
     assert not list(path.parent.glob(".*part*"))  # atomic writes leave no temporaries
     assert any("scaling" in m for m in messages)
     assert "dark microlenses" in text and "lit lenses" in text
+    budget = text.split("## Accuracy")[1].split("## ")[0]
+    row = [c.strip() for c in budget.strip().splitlines()[-1].strip("|").split("|")]
+    windows_only, reconstructed = float(row[2]), float(row[4])   # lateral RMS, voxels
+    assert windows_only < 0.1 and reconstructed > windows_only   # the reconstruction limits
     if "Portable Computing Language" in queue.device.platform.name:  # its two drivers
         assert re.search(r"(\d+) of \1 comparisons within tolerance", text)
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..device import DeviceLike, device_info, get_queue
+from .accuracy_section import section_accuracy
 from .core import SIZES, BenchRun, bench_sizes, loglog_slope, md_table, pareto_front, repeats_text
 from .devices import section_devices
 from .lightfield_section import section_calibration, section_refocus
@@ -57,6 +58,7 @@ SECTIONS: tuple[tuple[str, Callable[[BenchRun], str]], ...] = (
     ("reconstruction", section_reconstruction),
     ("skipping", section_skipping),
     ("PIV", section_piv),
+    ("accuracy", section_accuracy),
     ("scaling", section_scaling),
     ("cross-device", section_devices),
 )

@@ -55,7 +55,8 @@ _RECON_TEST: tuple[ReconSetting, ...] = (
     ("MLEM tol 1e-3", "mlem", 6, 1.0, {"tol": 1e-3}),
 )
 _PIV_SETTINGS: tuple[tuple[str, dict], ...] = (
-    ("48-32-24, cubic, 3 final (default)", {}),
+    ("48-32-24, cubic, 3 final, deformed passes direct (default)", {}),
+    ("every pass by FFT (the reference)", {"correlation": "fft"}),
     ("32-24-16", {"windows": (32, 24, 16)}),
     ("32-16, 1 final", {"windows": (32, 16), "final_iterations": 1}),
     ("deform_order 1 (trilinear)", {"deform_order": 1}),
@@ -65,6 +66,8 @@ _PIV_SETTINGS: tuple[tuple[str, dict], ...] = (
 )
 _PIV_TEST: tuple[tuple[str, dict], ...] = (
     ("24-16, 1 final", {"windows": (24, 16), "final_iterations": 1}),
+    ("24-16, 1 final, by FFT", {"windows": (24, 16), "final_iterations": 1,
+                                "correlation": "fft"}),
     ("16, deform_order 1", {"windows": (16,), "final_iterations": 2, "deform_order": 1}),
 )
 
@@ -95,6 +98,8 @@ class BenchSize:
     scale_rays: int
     scale_iterations: tuple[int, ...]
     paper: bool = False
+    accuracy_lenses: tuple[int, int] = (48, 32)   # the error budget's microlenses
+    accuracy_seeding: tuple[float, ...] = (0.05,)  # particles per microlens
 
 
 def bench_sizes() -> dict[str, BenchSize]:
@@ -112,7 +117,8 @@ def bench_sizes() -> dict[str, BenchSize]:
         piv_shape=(96, 96, 96), openpiv=((32, 16), (24, 18)),
         scale_voxels=((8, 16, 16), (16, 32, 32), (32, 64, 64), (64, 128, 128)),
         scale_lenses=(25, 50, 100, 200), scale_particles=(100, 1000, 10000, 50000),
-        scale_rays=1000, scale_iterations=(4, 8, 16, 32, 64))
+        scale_rays=1000, scale_iterations=(4, 8, 16, 32, 64), accuracy_lenses=(96, 64),
+        accuracy_seeding=(0.02, 0.05, 0.1))
     test = BenchSize(
         name="test", repeats=2, heavy_repeats=1, camera="tiny",
         grid=Grid((6, 10, 10), x=(-0.6, 0.6), y=(-0.6, 0.6), z=(-0.6, 0.6)),
@@ -120,8 +126,10 @@ def bench_sizes() -> dict[str, BenchSize]:
         sim=(20, 1000, 200), csr_grid=(3, 6, 6), skip_iterations=4, skip_particles=8,
         piv_shape=(32, 32, 32), piv=_PIV_TEST, openpiv=((16, 8),),
         scale_voxels=((3, 6, 6), (6, 12, 12)), scale_lenses=(12, 16),
-        scale_particles=(10, 40), scale_rays=200, scale_iterations=(1, 2, 4))
-    paper = dataclasses.replace(small, name="paper", paper=True)
+        scale_particles=(10, 40), scale_rays=200, scale_iterations=(1, 2, 4),
+        accuracy_lenses=(24, 16))
+    paper = dataclasses.replace(small, name="paper", paper=True,
+                                accuracy_seeding=(0.01, 0.02, 0.05, 0.1, 0.2))
     return {"ci": ci, "small": small, "paper": paper, "test": test}
 
 
