@@ -123,12 +123,13 @@ class WindowSums:
         corners = [o + s * np.arange(c) for o, s, c in zip(grid.offset, grid.step, grid.count)]
         lags = (-1, 0, 1)
         padded = [n + 2 * m + 2 for n, m in zip(shape, self.margins)]
-        self._first = [[_corner_matrix(n, c + 1, axis_taps(w, weighting, -0.5 * s) ** power)
-                        for s in lags] for n, c, w in zip(padded, corners, grid.size)]
-        self._second = [[_corner_matrix(n, c + 1 + s, axis_taps(w, weighting, -0.5 * s) ** power)
-                         for s in lags] for n, c, w in zip(padded, corners, grid.size)]
-        per_axis = [np.array([(axis_taps(w, weighting, -0.5 * s) ** power).sum()
-                              for s in lags]) for w in grid.size]
+        # the weight W(q + s/2) per axis and lag, the same for both windows
+        taps = [[axis_taps(w, weighting, -0.5 * s) ** power for s in lags] for w in grid.size]
+        self._first = [[_corner_matrix(n, c + 1, t) for t in axis]
+                       for n, c, axis in zip(padded, corners, taps)]
+        self._second = [[_corner_matrix(n, c + 1 + s, t) for s, t in zip(lags, axis)]
+                        for n, c, axis in zip(padded, corners, taps)]
+        per_axis = [np.array([t.sum() for t in axis]) for axis in taps]
         #: ``sum_q W(q + s/2)`` per lag of :data:`LAGS`.
         self.weight_sums = np.array([per_axis[0][i] * per_axis[1][j] * per_axis[2][k]
                                      for i, j, k in LAGS + 1])
@@ -226,13 +227,18 @@ def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     var_a = raw_a - s_a * s_a / n
     var_b = raw_b - s_b * s_b / n
     cov = np.stack(products) - s_a * s_b / n
-    scale = np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0)
     signal = ((var_a[CENTRE] > 1e-9 * raw_a[CENTRE])
               & (var_b[CENTRE] > 1e-9 * np.maximum(raw_a[CENTRE], 1e-30)))
-    r = np.where(scale > 0, cov / np.sqrt(np.where(scale > 0, scale, 1.0)), 0.0)
-    return DirectCorrelation(r.astype(np.float64), *(v.astype(np.float64) for v in
-                                                     (cov, var_a, var_b)),
+    r = pearson(cov, var_a, var_b).astype(np.float64)
+    return DirectCorrelation(r, *(v.astype(np.float64) for v in (cov, var_a, var_b)),
                              s_a[CENTRE] / n[CENTRE], s_b[CENTRE] / n[CENTRE], signal)
+
+
+def pearson(cov: np.ndarray, var_a: np.ndarray, var_b: np.ndarray) -> np.ndarray:
+    """``cov / sqrt(var_a var_b)``, 0 where either variance is not positive: the
+    coefficients of one pair's window sums, or of sums added over an ensemble."""
+    scale = np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0)
+    return np.where(scale > 0, cov / np.sqrt(np.where(scale > 0, scale, 1.0)), 0.0)
 
 
 def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,

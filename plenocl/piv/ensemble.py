@@ -20,7 +20,7 @@ import numpy as np
 from .correlation import window_grid
 from .deform import resample
 from .deformers import make_deformer
-from .direct import CENTRE, LAGS, correlate_direct, fit_direct
+from .direct import CENTRE, LAGS, correlate_direct, fit_direct, pearson
 from .multipass import PIVResult
 from .validation import normalized_median_test, replace_outliers
 
@@ -104,12 +104,11 @@ def _fit_ensemble(totals, grid, base, final: bool) -> PIVResult:
     peak is off the centre lag moves by that lag (whole voxels) for the next pass; after
     the last pass it is invalid and replaced from its neighbours."""
     cov, var_a, var_b = totals
-    scale = np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0)
-    r = np.where(scale > 0, cov / np.sqrt(np.where(scale > 0, scale, 1.0)), 0.0)
+    r = pearson(cov, var_a, var_b)
     disp, _, centred = fit_direct(r)
     best = np.argmax(r, axis=0)           # off-centre: move by the best lag, refit next pass
     disp = np.where(centred, disp, LAGS[best].transpose(3, 0, 1, 2))
-    signal = scale[CENTRE] > 0
+    signal = (var_a[CENTRE] > 0) & (var_b[CENTRE] > 0)
     total = base + disp
     outlier = normalized_median_test(total, ignore=~signal)
     invalid = ~signal | ~centred

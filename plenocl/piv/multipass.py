@@ -392,7 +392,7 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
                          f"{b.shape}")
     opts = _Options(deform_order, predictor, median_eps, median_threshold, min_peak_ratio,
                     workers, fft, weighting, correlation)
-    _check_options(opts, weighting)
+    _check_options(opts)
     if windows is None:
         windows = auto_windows(a.shape, particles=count_particles(a))
     schedule = _schedule(a.shape, windows, overlaps, final_iterations)
@@ -433,10 +433,11 @@ class _Options:
     correlation: str = "auto"
 
 
-def _check_options(opts: _Options, weighting: float | None) -> None:
+def _check_options(opts: _Options) -> None:
+    weighting = opts.weighting
     if opts.correlation not in ("auto", "fft"):
-        raise ValueError(f"correlation must be 'auto' (direct for the intermediate "
-                         f"deformed passes) or 'fft', got {opts.correlation!r}")
+        raise ValueError(f"correlation must be 'auto' (the deformed passes correlated "
+                         f"directly around zero) or 'fft', got {opts.correlation!r}")
     if opts.order not in (1, 3, 5):
         raise ValueError(f"deform_order must be 1 (trilinear), 3 (cubic B-spline) or 5 "
                          f"(quintic B-spline), got {opts.order!r}")
