@@ -10,9 +10,11 @@ the weighting function's voxel footprint against a point particle's image.
    is 0 (clamped to 1e-6, log -13.8), so a geometric-mean update multiplies the voxel
    by about exp(-13.8 * that fraction) per iteration.
 2. Recovery and Q of MART, SMART and MLEM on the same particles from the simulated
-   image, the simulated image with a 1 px particle blur, and the model's own projection
-   of the particles (rendered as Gaussians): the image the weighting function expects.
-   MLEM on each image is the baseline of the same run.
+   image, the simulated image with a 1 px particle blur (without and with photon noise,
+   a dark level of 20 counts and read noise), and the model's own projection of the
+   particles (rendered as Gaussians): the image the weighting function expects. MART
+   and SMART also with a ratio floor of 0.1 and 0.3 (``ratio_floor``, docs/design.md
+   §6.2) against their literal form; MLEM on each image is the baseline of the same run.
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ from plenocl.reconstruction import DEFAULTS, METHODS, reconstruct
 from plenocl.simulate import simulate_image
 
 GRID = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+#: (method, ratio floor): the literal methods, then MART and SMART with a floor.
+VARIANTS = [(m, None) for m in METHODS] + [(m, f) for m in ("mart", "smart")
+                                            for f in (0.1, 0.3)]
 VOXELS = [(10, 20, 20), (10, 21, 19), (5, 20, 20), (15, 13, 27), (0, 20, 20)]
 
 
@@ -52,14 +57,18 @@ def solvers(proj: Projector, count: int) -> None:
         "simulated (20,000 rays)": simulate_image(proj.camera, pos, inten, 20000, seed=count),
         "simulated, 1 px blur": simulate_image(proj.camera, pos, inten, 20000, seed=count,
                                                blur_px=1.0),
+        "1 px blur, noisy": simulate_image(proj.camera, pos, inten, 20000, seed=count,
+                                           blur_px=1.0, photon_noise=True, background=20.0,
+                                           read_noise=3.0),
         "model's own projection": proj.forward(truth),
     }
     for name, img in images.items():
-        for method in METHODS:
+        for method, floor in VARIANTS:
             it, mu = DEFAULTS[method]
-            vol = reconstruct(img, proj, method, it, mu)
+            vol = reconstruct(img, proj, method, it, mu, ratio_floor=floor)
             rep = recovery(vol, GRID, pos)
-            print(f"{count:9d} {name:24s} {method:6s} {it:4d} {rep.fraction:6.2f} "
+            label = method if floor is None else f"{method} floor {floor:g}"
+            print(f"{count:9d} {name:24s} {label:16s} {it:4d} {rep.fraction:6.2f} "
                   f"{rep.ghost_fraction:6.3f} {quality_q(vol, truth):5.2f}", flush=True)
 
 
@@ -69,7 +78,7 @@ def main() -> None:
     proj = Projector(Camera.synthetic_850(), GRID, queue)
     print(f"850 x 850 px camera, grid {GRID.shape} over a 5 mm cube\n")
     footprints(proj)
-    print(f"\n{'particles':>9s} {'image':24s} {'method':6s} {'it':>4s} {'recov':>6s} "
+    print(f"\n{'particles':>9s} {'image':24s} {'method':16s} {'it':>4s} {'recov':>6s} "
           f"{'ghosts':>6s} {'Q':>5s}")
     for count in (20, 60):
         solvers(proj, count)

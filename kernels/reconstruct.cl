@@ -20,18 +20,20 @@ inline float pl_clean(float v)
     return (isfinite(v) && v > 0.0f) ? fmin(v, PL_VOXEL_MAX) : 0.0f;
 }
 
-/* out = I / max(P, eps) (clamped) or its log; pixels at or below threshold are dark (I = 0).
- * With a block map, pixels outside block `block` get 0 (they do not update). */
+/* out = I / max(P, eps) (clamped) or log(max(ratio, ratio_min)); pixels at or below
+ * threshold are dark (I = 0). ratio_min is PL_RATIO_MIN for the literal SMART/MART (a dark
+ * pixel's log ratio is -13.8) or a larger documented floor (ReconstructionSettings
+ * .ratio_floor). With a block map, pixels outside block `block` get 0 (no update). */
 __kernel void ratio(__global const float *img, __global const float *proj,
                     __global const int *block_of, int block, float threshold,
-                    int log_mode, __global float *out, int n)
+                    int log_mode, float ratio_min, __global float *out, int n)
 {
     const int i = get_global_id(0);
     if (i >= n) return;
     if (block >= 0 && block_of[i] != block) { out[i] = 0.0f; return; }
     float value = img[i] > threshold ? img[i] : 0.0f;
     float r = clamp(value / fmax(proj[i], PL_EPS), 0.0f, PL_RATIO_MAX);
-    out[i] = log_mode ? log(fmax(r, PL_RATIO_MIN)) : r;
+    out[i] = log_mode ? log(fmax(r, fmax(ratio_min, PL_RATIO_MIN))) : r;
 }
 
 /* Multiplicative EM: E <- E (b / s)^mu with b = W^T r (the arithmetic mean of ratios).

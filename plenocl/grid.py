@@ -94,6 +94,15 @@ class Grid:
         out[:, :2] = pts[:, :2] @ self._rotation()
         return out
 
+    def refined(self, factor: int) -> Grid:
+        """The same volume with ``factor x factor`` lateral sub-voxels per voxel: shape
+        ``(nz, ny * factor, nx * factor)``, same extents, depth planes and rotation."""
+        if int(factor) != factor or factor < 1:
+            raise ValueError(f"refinement factor must be a positive integer, got {factor!r}")
+        nz, ny, nx = self.shape
+        return Grid((nz, ny * int(factor), nx * int(factor)), self.x, self.y, self.z,
+                    self.rotation_deg)
+
     @property
     def spacing(self) -> tuple[float, float, float]:
         """Voxel size ``(dz, dy, dx)`` in mm, in array order."""

@@ -107,6 +107,25 @@ def test_block_mart_matches_block_reference_and_approaches_sequential(tiny):
     assert np.corrcoef(vol.ravel(), seq)[0, 1] > 0.99
 
 
+@pytest.mark.parametrize("floor", [0.05, 0.5])
+def test_ratio_floor_matches_the_references(tiny, floor):
+    """SMART and block MART with a ratio floor, kernel against NumPy. The floor changes
+    the result: a dark pixel's log ratio is log(floor), not -13.8, so the voxels seen by
+    dark pixels fall far more slowly than in the literal form."""
+    proj, W, image = tiny
+    top = image.max()
+    vol = reconstruct(image, proj, "smart", iterations=8, relax=0.8, ratio_floor=floor)
+    expected = ref.smart(W, image / top, 8, 0.8, ratio_floor=floor) * top
+    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+    literal = ref.smart(W, image / top, 8, 0.8) * top
+    dark = (W.T @ (image.ravel() <= 0)) > 0
+    assert expected[dark].max() > 1e3 * literal[dark].max()
+    groups = [np.nonzero(view_blocks(proj.camera, 2).ravel() == b)[0] for b in range(4)]
+    vol = reconstruct(image, proj, "mart", iterations=4, relax=0.7, ratio_floor=floor)
+    expected = ref.mart_blocks(W, image / top, groups, 4, 0.7, ratio_floor=floor) * top
+    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+
+
 def test_solvers_converge_to_the_truth_on_a_determined_case(tiny):
     proj, W, image = tiny
     vol = reconstruct(image, proj, "mlem", iterations=300)
@@ -170,6 +189,9 @@ def test_masking_keeps_zero_voxels_zero_and_callback_can_stop(tiny):
     (dict(relax=0.0), "0 < μ <= 1"), (dict(relax=1.5), "0 < μ <= 1"),
     (dict(method="art"), "method must be"), (dict(iterations=-1), "non-negative"),
     (dict(mask_fraction=2.0), "mask_fraction"), (dict(start="random"), "start must be"),
+    (dict(ratio_floor=0.3), "geometric-mean methods"),
+    (dict(method="mart", ratio_floor=1.0), "ratio_floor must be in"),
+    (dict(method="smart", ratio_floor=float("nan")), "ratio_floor must be in"),
 ])
 def test_bad_options_are_rejected(tiny, kwargs, message):
     proj, _, image = tiny

@@ -22,6 +22,8 @@ Example::
     [reconstruction]
     method = "mlem"
     iterations = 30
+    supersample = 3                      # lateral sub-voxels per voxel (1: faster, depth
+                                         # about 3x worse; docs/design.md §6.4)
     [piv]
     windows = [48, 32, 24]               # optional: fitted to the volume by default
     ensemble = false                     # also the ensemble-correlation mean field (keeps
@@ -36,6 +38,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..reconstruction.supersample import PAIR_SUPERSAMPLE
 from ..tomlfile import read_toml
 
 #: Keys each section of an experiment file may hold, with their defaults (None: required
@@ -47,7 +50,8 @@ SECTIONS = {
     "images": {"folder": ".", "pattern": "*.tif", "pairing": "sequence", "a_suffix": "_a",
                "b_suffix": "_b", "dt_s": None, "pair_interval_s": None},
     "reconstruction": {"method": "mlem", "iterations": None, "relax": None,
-                       "background": "median", "threshold": None},
+                       "background": "median", "threshold": None,
+                       "supersample": PAIR_SUPERSAMPLE},
     "piv": {"windows": None, "ensemble": False},
     "output": {"folder": "results", "vti": False},
 }

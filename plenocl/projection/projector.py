@@ -132,6 +132,7 @@ class Projector:
                              scratch_bytes=scratch_bytes, vector_width=vector_width,
                              segment=segment, gather_forward=gather_forward)
         self.queue = get_queue(queue)
+        self._refined: dict[int, Projector] = {}
         self.aperture = ApertureGrid.for_camera(camera, oversample, grid.rotation_deg)
         self.lens_map = lens_index_map(camera, shear_tol, grid.rotation_deg)
         self.path = "separable" if self.lens_map.axis_aligned else "general"
@@ -534,6 +535,17 @@ class Projector:
                        self._d["frac"], nkx, nky, *self._pixel_args(), i32(ns), self._ic,
                        self._scale)
         return idx.get(), wts.get()
+
+    def refined(self, factor: int) -> Projector:
+        """A projector for this grid with ``factor x factor`` lateral sub-voxels per voxel
+        (:meth:`plenocl.Grid.refined`; same camera, queue and options), built once per
+        factor and kept: the supersampled reconstruction's projector."""
+        if factor == 1:
+            return self
+        if factor not in self._refined:
+            self._refined[factor] = Projector(self.camera, self.grid.refined(factor),
+                                              self.queue, **self._options)
+        return self._refined[factor]
 
     def cropped(self, box: tuple[slice, slice, slice]) -> Projector:
         """A projector for the sub-grid ``vol[box]`` (same camera, queue and options).

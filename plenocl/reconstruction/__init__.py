@@ -7,6 +7,7 @@
 - :mod:`.solver`: the device buffers and kernels (:class:`Solver`) and one update per
   method;
 - :mod:`.blocks`: MART's view blocks from the lens lattice;
+- :mod:`.supersample`: lateral sub-voxels (binning back, spreading a start volume);
 - :mod:`.reconstruct`: :func:`reconstruct`, the iterations.
 """
 
@@ -22,9 +23,11 @@ from .settings import (
     ReconstructionSettings,
 )
 from .solver import CROP_BELOW, UPDATES, Solver, extent_box, nonzero_box
+from .supersample import MAX_SUPERSAMPLE, PAIR_SUPERSAMPLE, bin_lateral, spread_lateral
 
-__all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "METHODS",
-           "NOISE_SIGMAS", "UPDATES", "preprocess",
+__all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE",
+           "METHODS", "NOISE_SIGMAS", "PAIR_SUPERSAMPLE", "UPDATES", "bin_lateral",
+           "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings", "Solver",
            "device_view_blocks", "extent_box", "nonzero_box", "prepare_image", "reconstruct",
            "run_reconstruction", "subtract_background", "view_blocks"]

@@ -26,6 +26,7 @@ The solver needs of a projector only the operator contract
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 import warnings
@@ -40,6 +41,7 @@ from .images import preprocess
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
+from .supersample import bin_lateral, spread_lateral
 
 
 def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
@@ -93,6 +95,7 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
                 threshold: float | None = None, mask_fraction: float | None = None,
                 min_sensitivity: float = 0.5, skip_empty: bool = True, crop: bool = True,
                 skip_dark: bool = True, tol: float | None = None, mart_blocks: int = 2,
+                ratio_floor: float | None = None, supersample: int = 1,
                 callback: Callable[[int, float], bool | None] | None = None,
                 return_info: bool = False):
     """Reconstruct a particle volume from one raw plenoptic image.
@@ -149,6 +152,18 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
         Stop early when the relative residual changes by less than ``tol``.
     mart_blocks
         MART only: ``n`` gives ``n²`` interleaved blocks of sub-aperture views.
+    ratio_floor
+        SMART and MART only: the ratios ``I / P`` whose logs update the volume are
+        floored at this value in ``(0, 1)``; ``None`` (default): the literal methods (a
+        floor of 1e-6, so a dark pixel multiplies each voxel it sees by
+        ``exp(-13.8 μ w)``). A floor of 0.1-0.5 keeps in-focus particles whose voxel
+        footprint reaches pixels the particle leaves dark (docs/design.md §6.2).
+    supersample
+        Reconstruct on ``supersample x supersample`` lateral sub-voxels per voxel
+        (:meth:`plenocl.Projector.refined`) and sum them back onto the projector's grid
+        (docs/design.md §6.4): particles are placed within a fraction of a microlens, which
+        fixes their depth (:func:`plenocl.process_pair` uses 3). Time and memory grow about
+        as its square. A volume ``start`` is given on the projector's grid.
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
         ``False`` stops the reconstruction.
@@ -164,9 +179,29 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
         method=method, iterations=iterations, relax=relax, start=start,
         background=background, threshold=threshold,
         mask_fraction=mask_fraction, min_sensitivity=min_sensitivity, skip_empty=skip_empty,
-        crop=crop, skip_dark=skip_dark, tol=tol, mart_blocks=mart_blocks)
+        crop=crop, skip_dark=skip_dark, tol=tol, mart_blocks=mart_blocks,
+        ratio_floor=ratio_floor, supersample=supersample)
     vol, info = run_reconstruction(image, projector, settings, callback)
     return (vol, info) if return_info else vol
+
+
+def _supersampled(image, projector, settings: ReconstructionSettings, callback
+                  ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """The reconstruction on the projector's refined grid, summed back onto its own."""
+    f = settings.supersample
+    if not hasattr(projector, "refined"):
+        raise ValueError(f"supersample={f} needs a projector that can refine its grid "
+                         "(plenocl.Projector.refined); use supersample=1 with this operator")
+    start = settings.start
+    if isinstance(start, np.ndarray):
+        if start.shape != projector.grid.shape:
+            raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
+                             f"{projector.grid.shape} (nz, ny, nx)")
+        start = spread_lateral(start, f)
+    fine = dataclasses.replace(settings, supersample=1, start=start)
+    vol, info = run_reconstruction(image, projector.refined(f), fine, callback)
+    info.supersample = f
+    return bin_lateral(vol, f), info
 
 
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
@@ -174,6 +209,8 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
                        ) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
     returns the volume and its :class:`ReconstructionInfo`."""
+    if settings.supersample > 1:
+        return _supersampled(image, projector, settings, callback)
     t0 = time.perf_counter()
     img_np, scale, thr = preprocess(image, projector.camera, settings.background,
                                     settings.threshold)
@@ -194,7 +231,8 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
         solver.mask(vol, img, thr, settings.mask_fraction)
     blocks = device_view_blocks(projector, settings.mart_blocks) if settings.n_blocks > 1 else None
     step = functools.partial(UPDATES[settings.method], relax=settings.relax, threshold=thr,
-                             blocks=blocks, n_blocks=settings.n_blocks)
+                             blocks=blocks, n_blocks=settings.n_blocks,
+                             ratio_floor=settings.ratio_floor)
     vol = _iterate(solver, vol, img, settings, info, step, callback,
                    float(np.linalg.norm(img_np)))
     out = vol * np.float32(scale)

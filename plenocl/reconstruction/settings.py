@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .supersample import MAX_SUPERSAMPLE
+
 METHODS = ("mlem", "smart", "mart")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
 MAX_MART_BLOCKS = 32
@@ -26,6 +28,7 @@ class ReconstructionInfo:
     active_slices: list[int] = field(default_factory=list)
     cropped_shape: tuple[int, int, int] | None = None
     lit_lens_fraction: float = 1.0
+    supersample: int = 1
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,8 @@ class ReconstructionSettings:
     skip_dark: bool = True
     tol: float | None = None
     mart_blocks: int = 2
+    ratio_floor: float | None = None
+    supersample: int = 1
 
     def __post_init__(self) -> None:
         it_default, mu_default = DEFAULTS.get(self.method, (0, 1.0))
@@ -79,5 +84,16 @@ def _check_options(s: ReconstructionSettings) -> None:
         raise ValueError(f"relax (μ) must satisfy 0 < μ <= 1, got {s.relax!r}")
     if s.mask_fraction is not None and not 0 <= s.mask_fraction <= 1:
         raise ValueError(f"mask_fraction must be in [0, 1] or None, got {s.mask_fraction!r}")
+    if (not isinstance(s.supersample, (int, np.integer)) or isinstance(s.supersample, bool)
+            or not 1 <= s.supersample <= MAX_SUPERSAMPLE):
+        raise ValueError(f"supersample must be an integer from 1 to {MAX_SUPERSAMPLE} (lateral "
+                         f"sub-voxels per voxel and axis), got {s.supersample!r}")
+    if s.ratio_floor is not None:
+        if s.method == "mlem":
+            raise ValueError("ratio_floor applies to the geometric-mean methods ('smart', "
+                             "'mart'); MLEM averages the ratios and needs none")
+        if not (np.isfinite(s.ratio_floor) and 0 < s.ratio_floor < 1):
+            raise ValueError(f"ratio_floor must be in (0, 1) or None (the literal form), got "
+                             f"{s.ratio_floor!r}")
     if not 0 <= s.min_sensitivity < 1:
         raise ValueError(f"min_sensitivity must be in [0, 1), got {s.min_sensitivity!r}")

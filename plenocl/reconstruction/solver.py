@@ -19,6 +19,8 @@ _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_
             "partial_sums", "row_extent")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
+#: The literal methods' ratio floor (kernels/reconstruct.cl PL_RATIO_MIN: log -13.8).
+RATIO_MIN = 1e-6
 #: Crop when the non-zero voxels' bounding box holds at most this fraction of the grid.
 CROP_BELOW = 0.8
 
@@ -118,12 +120,14 @@ class Solver:
                        np.int32(b is not None), np.int32(chunk), out, np.int32(a.size))
         return float(out.get().astype(np.float64).sum())
 
-    def ratio(self, img, proj, threshold: float, log_mode: bool, blocks=None, block=-1):
-        """``I / max(P, eps)`` (or its log) on the device, restricted to one block."""
+    def ratio(self, img, proj, threshold: float, log_mode: bool, blocks=None, block=-1,
+              floor: float = RATIO_MIN):
+        """``I / max(P, eps)`` on the device, or ``log(max(ratio, floor))`` (``log_mode``),
+        restricted to one block."""
         out = cla.empty_like(img)
         block_of = blocks if blocks is not None else self._no_blocks
         self._run("ratio", self.n_pix, img, proj, block_of, np.int32(block),
-                  np.float32(threshold), np.int32(log_mode), out)
+                  np.float32(threshold), np.int32(log_mode), np.float32(floor), out)
         return out
 
     def _dark_and_log(self, img, threshold: float, floor: float):
@@ -196,13 +200,13 @@ class Solver:
 
 # ---- one iteration per method ---------------------------------------------------------
 def _simultaneous(solver: Solver, vol, img, active, relax: float, threshold: float,
-                  log_ratio: bool) -> float:
+                  log_ratio: bool, floor: float = RATIO_MIN) -> float:
     """One simultaneous update from one forward and one back projection; returns
     ``‖P - I‖`` before it."""
     fwd, back = solver.projections(log_ratio)
     proj = fwd(vol, active=active)
     resid = solver.total(proj, img) ** 0.5
-    b = back(solver.ratio(img, proj, threshold, log_ratio), active=active)
+    b = back(solver.ratio(img, proj, threshold, log_ratio, floor=floor), active=active)
     if log_ratio:
         solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin, np.int32(1))
     else:
@@ -211,28 +215,33 @@ def _simultaneous(solver: Solver, vol, img, active, relax: float, threshold: flo
 
 
 def update_mlem(solver: Solver, vol, img, active, relax: float, threshold: float,
-                blocks=None, n_blocks: int = 1) -> float:
+                blocks=None, n_blocks: int = 1, ratio_floor: float | None = None) -> float:
     """MLEM: ``E ← E (Aᵀ r / s)^μ``; returns ``‖P - I‖`` before the update."""
     return _simultaneous(solver, vol, img, active, relax, threshold, log_ratio=False)
 
 
 def update_smart(solver: Solver, vol, img, active, relax: float, threshold: float,
-                 blocks=None, n_blocks: int = 1) -> float:
-    """SMART: ``E ← E exp(μ Aᵀ log r / s)``; returns ``‖P - I‖`` before the update."""
-    return _simultaneous(solver, vol, img, active, relax, threshold, log_ratio=True)
+                 blocks=None, n_blocks: int = 1, ratio_floor: float | None = None) -> float:
+    """SMART: ``E ← E exp(μ Aᵀ log r / s)`` (``r`` floored at ``ratio_floor``); returns
+    ``‖P - I‖`` before the update."""
+    return _simultaneous(solver, vol, img, active, relax, threshold, log_ratio=True,
+                         floor=RATIO_MIN if ratio_floor is None else ratio_floor)
 
 
 def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float,
-                blocks=None, n_blocks: int = 1) -> float:
+                blocks=None, n_blocks: int = 1, ratio_floor: float | None = None) -> float:
     """Block MART: one multiplicative update per block of views, each with a fresh
-    projection; returns ``‖P - I‖`` before the first block."""
+    projection (``r`` floored at ``ratio_floor``); returns ``‖P - I‖`` before the first
+    block."""
+    floor = RATIO_MIN if ratio_floor is None else ratio_floor
     fwd, back = solver.projections(log_ratio=True)
     proj = fwd(vol, active=active)
     resid = solver.total(proj, img) ** 0.5
     for blk in range(n_blocks):
         if blk:
             proj = fwd(vol, out=proj, active=active)
-        lr = solver.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk)
+        lr = solver.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk,
+                          floor)
         solver.update_voxels("update_exp", vol, back(lr, active=active), np.float32(relax),
                          solver.smin, np.int32(0))
     return resid

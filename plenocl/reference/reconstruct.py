@@ -3,7 +3,9 @@ explicit weight matrix ``W`` (pixels x voxels; dense or ``scipy.sparse``).
 
 Written for clarity; they double as the ``scipy.sparse`` baseline in the benchmarks.
 Every update keeps voxels non-negative and finite:
-the ratio ``I / max(P, eps)`` is clamped to ``[RATIO_MIN, RATIO_MAX]``.
+the ratio ``I / max(P, eps)`` is clamped to ``[RATIO_MIN, RATIO_MAX]``; the
+geometric-mean methods take an optional larger floor ``ratio_floor`` under the ratio
+whose log they use.
 """
 
 from __future__ import annotations
@@ -37,13 +39,14 @@ def mlem(W, image, iterations: int, relax: float = 1.0, start=None, threshold: f
     return e
 
 
-def smart(W, image, iterations: int, relax: float = 1.0, start=None, threshold: float = 0.0):
+def smart(W, image, iterations: int, relax: float = 1.0, start=None, threshold: float = 0.0,
+          ratio_floor: float = RATIO_MIN):
     """Simultaneous MART: ``E ← E exp(μ Wᵀ log r / s)``, the geometric mean of the ratios."""
     img = np.asarray(image, np.float64).ravel()
     s = sensitivity(W)
     e = _start(W, img, start)
     for _ in range(iterations):
-        logr = np.log(np.maximum(ratio(img, W @ e, threshold), RATIO_MIN))
+        logr = np.log(np.maximum(ratio(img, W @ e, threshold), max(ratio_floor, RATIO_MIN)))
         expo = np.clip(relax * (W.T @ logr) / np.maximum(s, EPS), -EXP_CLAMP, EXP_CLAMP)
         e = np.where(s > 0, e * np.exp(expo), 0.0)
     return e
@@ -64,14 +67,14 @@ def mart_sequential(W, image, iterations: int, relax: float = 1.0, start=None,
 
 
 def mart_blocks(W, image, blocks: list[np.ndarray], iterations: int, relax: float = 1.0,
-                start=None, threshold: float = 0.0):
+                start=None, threshold: float = 0.0, ratio_floor: float = RATIO_MIN):
     """Block-sequential MART: for each block of pixels ``b``,
     ``E_j ← E_j Π_{i∈b} r_i^(μ w_ij) = E_j exp(μ Σ_{i∈b} w_ij log r_i)``."""
     img = np.asarray(image, np.float64).ravel()
     e = _start(W, img, start)
     for _ in range(iterations):
         for pix in blocks:
-            logr = np.log(np.maximum(ratio(img, W @ e, threshold), RATIO_MIN))
+            logr = np.log(np.maximum(ratio(img, W @ e, threshold), max(ratio_floor, RATIO_MIN)))
             masked = np.zeros_like(logr)
             masked[pix] = logr[pix]
             e = e * np.exp(np.clip(relax * (W.T @ masked), -EXP_CLAMP, EXP_CLAMP))

@@ -13,13 +13,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .piv import PIVResult, piv3d
-from .reconstruction import (
+from ..piv import PIVResult, piv3d
+from ..reconstruction import (
+    PAIR_SUPERSAMPLE,
     ProjectionOperator,
     ReconstructionInfo,
     ReconstructionSettings,
     run_reconstruction,
 )
+from .mte import MTESettings, motion_tracking_enhancement
+
+#: The motion-tracking enhancement :func:`process_pair` applies by default.
+DEFAULT_MTE = MTESettings(cycles=0)
+#: The reconstruction :func:`process_pair` runs by default.
+PAIR_SETTINGS = ReconstructionSettings(supersample=PAIR_SUPERSAMPLE)
 
 
 @dataclass
@@ -35,7 +42,8 @@ class PairResult:
     info_a, info_b
         What each reconstruction did (iterations, residuals, time).
     seconds
-        Wall time per stage: ``reconstruct_a``, ``reconstruct_b``, ``piv``.
+        Wall time per stage: ``reconstruct_a``, ``reconstruct_b``, ``piv`` (the
+        single-frame correlation) and ``mte`` (every cycle, its correlations included).
     """
 
     vol_a: np.ndarray
@@ -48,7 +56,8 @@ class PairResult:
 
 def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
                  settings: ReconstructionSettings | None = None,
-                 piv_options: dict | None = None) -> PairResult:
+                 piv_options: dict | None = None, mte: MTESettings | None = None
+                 ) -> PairResult:
     """Reconstruct two raw images with one projector and correlate the volumes.
 
     Parameters
@@ -60,18 +69,26 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         :class:`plenocl.reconstruction.ProjectionOperator`), reused for both images.
     settings
         Reconstruction options (:class:`plenocl.reconstruction.ReconstructionSettings`);
-        by default MLEM, 30 iterations, the median background removed and pixels within
-        4 noise deviations of it dark, as :func:`plenocl.reconstruct`.
+        by default :data:`PAIR_SETTINGS`: MLEM, 30 iterations, the median background
+        removed and pixels within 4 noise deviations of it dark, as
+        :func:`plenocl.reconstruct`, on 3 x 3 lateral sub-voxels per voxel
+        (``supersample=3``, docs/design.md §6.4: the depth error falls about threefold).
     piv_options
         Keyword arguments of :func:`plenocl.piv3d` (by default the windows are fitted to
         the volume's shape, and the volumes are deformed on the projector's device).
+    mte
+        Motion-tracking enhancement (:class:`plenocl.pipeline.MTESettings`): after the
+        single-frame volumes and their correlation, ``mte.cycles`` times warp each volume
+        onto the other exposure's time, combine, reconstruct again from that guess and
+        correlate. ``None``: the default :data:`DEFAULT_MTE`; ``MTESettings(cycles=0)``:
+        single-frame reconstruction only.
 
     Returns
     -------
     PairResult
         Both volumes, the displacement field, the reconstructions' info and stage times.
     """
-    settings = ReconstructionSettings() if settings is None else settings
+    settings = PAIR_SETTINGS if settings is None else settings
     seconds, out = {}, {}
     for tag, raw in (("a", raw_a), ("b", raw_b)):
         t0 = time.perf_counter()
@@ -79,6 +96,13 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         seconds[f"reconstruct_{tag}"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     options = {"queue": projector.queue, **(piv_options or {})}
-    res = piv3d(out["a"][0], out["b"][0], **options)
+    (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
+    res = piv3d(vol_a, vol_b, **options)
     seconds["piv"] = time.perf_counter() - t0
-    return PairResult(out["a"][0], out["b"][0], res, out["a"][1], out["b"][1], seconds)
+    mte = DEFAULT_MTE if mte is None else mte
+    if mte.cycles:
+        vol_a, vol_b, res, infos, seconds["mte"] = motion_tracking_enhancement(
+            raw_a, raw_b, projector, vol_a, vol_b, res, settings, mte,
+            lambda a, b: piv3d(a, b, **options))
+        info_a, info_b = infos
+    return PairResult(vol_a, vol_b, res, info_a, info_b, seconds)

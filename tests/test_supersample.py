@@ -1,0 +1,106 @@
+"""Lateral supersampling of the reconstruction (docs/design.md §6.4): the refined grid and
+projector, binning back, and the depth it buys on ray-traced particles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import assert_adjoint
+
+from plenocl import Grid, Projector, random_particles, reconstruct
+from plenocl.bench.accuracy_section import paper_optics
+from plenocl.metrics import recovery
+from plenocl.reconstruction import ReconstructionSettings, bin_lateral, spread_lateral
+from plenocl.simulate import simulate_image
+
+
+def test_refined_grid_keeps_the_volume_and_splits_lateral_voxels():
+    g = Grid((5, 4, 6), x=(-1.2, 1.2), y=(-0.8, 0.8), z=(-1, 1), rotation_deg=3.0)
+    f = g.refined(3)
+    assert f.shape == (5, 12, 18) and (f.x, f.y, f.z) == (g.x, g.y, g.z)
+    assert f.rotation_deg == g.rotation_deg
+    assert np.allclose(np.array(f.spacing) * [1, 3, 3], g.spacing)
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="positive integer"):
+            g.refined(bad)
+
+
+def test_binning_undoes_spreading_and_conserves_intensity():
+    rng = np.random.default_rng(1)
+    vol = rng.random((3, 5, 7)).astype(np.float32)
+    assert np.allclose(bin_lateral(spread_lateral(vol, 3), 3), vol, rtol=1e-6)
+    fine = rng.random((3, 10, 14)).astype(np.float32)
+    assert bin_lateral(fine, 2).sum() == pytest.approx(fine.sum(), rel=1e-5)
+    assert bin_lateral(fine, 2)[1, 2, 3] == pytest.approx(fine[1, 4:6, 6:8].sum(), rel=1e-6)
+    with pytest.raises(ValueError, match="does not bin by 3"):
+        bin_lateral(fine, 3)
+
+
+@pytest.fixture(scope="module")
+def optics(queue):
+    """The paper's optics on 24 x 16 lenses (a 150 x 16 x 23 grid of the paper's voxel)."""
+    cam, grid = paper_optics((24, 16))
+    return cam, grid, Projector(cam, grid, queue)
+
+
+def test_the_refined_projector_is_built_once_adjoint_and_sees_the_same_volume(optics):
+    cam, grid, proj = optics
+    fine = proj.refined(2)
+    assert proj.refined(2) is fine and proj.refined(1) is proj
+    assert fine.grid == grid.refined(2)
+    assert_adjoint(fine)
+    # a coarse volume and the same volume spread over sub-voxels make nearly one image
+    vol = np.zeros(grid.shape, np.float32)
+    vol[30, 8, 11], vol[100, 5, 17] = 1.0, 2.0
+    coarse, refined = proj.forward(vol), fine.forward(spread_lateral(vol, 2))
+    assert refined.sum() == pytest.approx(coarse.sum(), rel=0.02)
+    assert np.corrcoef(coarse.ravel(), refined.ravel())[0, 1] > 0.95
+
+
+def test_supersampled_reconstruction_is_the_binned_fine_one(optics, queue):
+    cam, grid, proj = optics
+    pos, inten = random_particles(((-1.3, 1.3), (-0.8, 0.8), (-8, 8)), count=6, seed=3,
+                                  intensity=2e4)
+    img = simulate_image(cam, pos, inten, 4000, seed=1, queue=queue, background=20.0)
+    vol, info = reconstruct(img, proj, iterations=6, supersample=2, return_info=True)
+    fine = reconstruct(img, proj.refined(2), iterations=6)
+    np.testing.assert_array_equal(vol, bin_lateral(fine, 2))
+    assert vol.shape == grid.shape and info.supersample == 2
+    # a start volume is given on the coarse grid and spread over the sub-voxels
+    resumed = reconstruct(img, proj, iterations=3, supersample=2, start=vol)
+    assert resumed.shape == grid.shape and np.isfinite(resumed).all()
+    with pytest.raises(ValueError, match=r"expected the grid's \(150, 16, 23\)"):
+        reconstruct(img, proj, iterations=1, supersample=2, start=spread_lateral(vol, 2))
+
+
+@pytest.mark.parametrize("bad", [0, 5, 1.5, True])
+def test_bad_supersample_factors_are_refused(bad):
+    with pytest.raises(ValueError, match="supersample must be an integer from 1 to 4"):
+        ReconstructionSettings(supersample=bad)
+
+
+def test_an_operator_that_cannot_refine_is_refused(optics):
+    class Plain:  # an operator without refined()
+        grid = optics[1]
+
+    with pytest.raises(ValueError, match="needs a projector that can refine its grid"):
+        reconstruct(np.ones(optics[0].pixels[::-1]), Plain(), supersample=2)
+
+
+def test_sub_voxels_recover_more_ray_traced_particles_and_fewer_ghosts(optics, queue):
+    """At the paper's voxel (about one microlens), 3 x 3 sub-voxels place ray-traced,
+    blurred, noisy particles within 1 voxel laterally and 2 in depth far more often
+    (recovery up by at least 15 points on average) and leave less intensity in ghosts,
+    in every scene."""
+    cam, grid, proj = optics
+    box = tuple((lo + 0.3, hi - 0.3) for lo, hi in (grid.x, grid.y, grid.z))
+    gain = []
+    for seed in (21, 22):
+        pos, inten = random_particles(box, count=20, seed=seed, intensity=2e4)
+        img = simulate_image(cam, pos, inten, 20000, seed=seed, queue=queue, blur_px=0.8,
+                             background=20.0, photon_noise=True, read_noise=3.0)
+        one, three = (recovery(reconstruct(img, proj, supersample=f), grid, pos)
+                      for f in (1, 3))
+        assert three.ghost_fraction < one.ghost_fraction
+        gain.append(three.fraction - one.fraction)
+    assert np.mean(gain) >= 0.15
