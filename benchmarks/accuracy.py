@@ -18,9 +18,13 @@ For each motion, seeding (particles per microlens) and scene, in the same run:
 - **windows only**: PIV on volumes rendered from the true particles (Gaussian blobs of
   1 voxel): what the interrogation windows themselves cannot resolve;
 - **default**: ``plenocl.process_pair`` defaults (MLEM 30 iterations on 3 x 3 lateral
-  sub-voxels per voxel, summed back; windows fitted to the volume): what the user gets;
+  sub-voxels per voxel, summed back; windows fitted to the volume; each window's vector
+  refined by its matched particle pairs): what the user gets;
+- **sub-voxels, correlation only**: the default's volumes correlated without the
+  particle refinement (``process_pair(particles=False)``): what the refinement adds;
 - **before**: the same images reconstructed on the voxels themselves
-  (``supersample=1``, the default until now): the baseline;
+  (``supersample=1``) and correlated, without the refinement: the chain before
+  (the baseline);
 - reconstruction quality: Q against the true-rendered volume, particles recovered, ghost
   intensity fraction, and seconds per pair (both reconstructions and the correlation).
 
@@ -45,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from plenocl import Projector, get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
     ROTATION,
+    ROWS,
     UNIFORM,
     budget_row,
     paper_optics,
@@ -55,17 +60,17 @@ MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 
 def print_rows(rows: list[dict], grid) -> None:
     dz = grid.spacing[0]
-    print(f"{'ppm':>5s} {'n':>5s} | {'windows only: lat':>17s} {'depth':>6s} | {'':8s} "
+    print(f"{'ppm':>5s} {'n':>5s} | {'windows only: lat':>17s} {'depth':>6s} | {'':28s} "
           f"{'lateral':>7s} {'depth':>6s} {'(mm)':>6s} {'focus':>6s} {'near':>6s} "
           f"{'far':>6s} {'valid':>6s} {'bias x y z':>17s} | {'Q':>5s} {'recov':>6s} "
           f"{'ghosts':>6s} {'s/pair':>7s}")
     for r in rows:
         w = r["windows"]
-        for label, name in (("default", "default"), ("baseline", "before")):
+        for label, name in ROWS.items():
             x = r[label]
             e = x["errors"]
             print(f"{r['ppm']:5.2f} {r['particles']:5d} | {w['lateral']:17.3f} "
-                  f"{w['depth']:6.3f} | {name:8s} {e['lateral']:7.3f} {e['depth']:6.2f} "
+                  f"{w['depth']:6.3f} | {name:28s} {e['lateral']:7.3f} {e['depth']:6.2f} "
                   f"{e['depth'] * dz:6.3f} {e['in focus']:6.2f} {e['near']:6.2f} "
                   f"{e['far']:6.2f} {e['valid']:6.0%} "
                   f"{' '.join(f'{b:+.2f}' for b in e['bias']):>17s} | {x['Q']:5.2f} "
@@ -109,7 +114,7 @@ def print_pooled(rows: list[dict]) -> None:
     for ppm in sorted({r["ppm"] for r in rows}):
         sel = [r for r in rows if r["ppm"] == ppm]
         out = []
-        for label in ("default", "baseline"):
+        for label in ROWS:
             lat = np.sqrt(np.mean([r[label]["errors"]["lateral"] ** 2 for r in sel]))
             dep = np.sqrt(np.mean([r[label]["errors"]["depth"] ** 2 for r in sel]))
             out.append(f"{label} lateral {lat:.3f} depth {dep:.2f}")

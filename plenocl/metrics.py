@@ -10,12 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from .grid import Grid
-from .piv.correlation import gaussian_subpixel
+from .piv.peaks import find_particles
 
 
 def quality_q(vol: np.ndarray, truth: np.ndarray) -> float:
@@ -35,37 +34,6 @@ def render_particles(grid: Grid, positions, intensities=1.0, sigma_vox: float = 
 
     per_peak = np.asarray(intensities, float) / (2 * np.pi * sigma_vox**2) ** 1.5
     return render_voxels(grid.shape, grid.to_index(positions), per_peak, sigma_vox)
-
-
-def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int = 1
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Local maxima above ``threshold · max`` with sub-voxel positions.
-
-    Returns fractional voxel indices ``(N, 3)`` as ``(ix, iy, iz)`` and peak values,
-    brightest first. Positions use a three-point Gaussian fit along each axis.
-    """
-    v = np.asarray(vol, np.float32)
-    if v.ndim != 3:
-        raise ValueError(f"expected a 3-D volume, got shape {v.shape}")
-    vmax = float(v.max()) if v.size else 0.0
-    if vmax <= 0:
-        return np.zeros((0, 3)), np.zeros(0)
-    size = 2 * min_separation + 1
-    peaks = (v == ndimage.maximum_filter(v, size=size, mode="constant")) & (v > threshold * vmax)
-    iz, iy, ix = np.nonzero(peaks)
-    vals = v[iz, iy, ix]
-    pad = np.pad(v, 1)
-    pos = [ix, iy, iz]
-    out = np.empty((len(vals), 3))
-    for k, axis in enumerate((2, 1, 0)):
-        step = [0, 0, 0]
-        step[axis] = 1
-        centre = (iz + 1, iy + 1, ix + 1)
-        minus = pad[tuple(c - s for c, s in zip(centre, step))]
-        plus = pad[tuple(c + s for c, s in zip(centre, step))]
-        out[:, k] = pos[k] + gaussian_subpixel(minus, vals, plus)
-    order = np.argsort(-vals)
-    return out[order], vals[order]
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from plenocl.bench import (
     pareto_front,
     run_report,
 )
+from plenocl.bench.accuracy_section import ROWS
 from plenocl.cli.bench import add_bench_parser, cmd_bench
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -41,9 +42,12 @@ def test_report_regenerates_from_one_call(tmp_path, queue):
     assert any("scaling" in m for m in messages)
     assert "dark microlenses" in text and "lit lenses" in text
     budget = text.split("## Accuracy")[1].split("## ")[0]
-    row = [c.strip() for c in budget.strip().splitlines()[-1].strip("|").split("|")]
-    windows_only, reconstructed = float(row[2]), float(row[4])   # lateral RMS, voxels
-    assert windows_only < 0.1 and reconstructed > windows_only   # the reconstruction limits
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")]
+            for line in budget.strip().splitlines() if line.startswith("| 0.")]
+    assert [r[4] for r in rows] == list(ROWS.values())  # default, correlation, before
+    for row in rows:
+        windows_only, reconstructed = float(row[2]), float(row[5])   # lateral RMS, voxels
+        assert windows_only < 0.1 and reconstructed > windows_only  # the reconstruction limits
     if "Portable Computing Language" in queue.device.platform.name:  # its two drivers
         assert re.search(r"(\d+) of \1 comparisons within tolerance", text)
 

@@ -223,7 +223,7 @@ def test_process_pair_runs_the_default_chain(queue):
     raw_b = simulate_image(cam, pos + shift / 2, inten, seed=2, **kw)
     pair = plenocl.process_pair(raw_a, raw_b, Projector(cam, grid, queue))
     assert pair.vol_a.shape == pair.vol_b.shape == grid.shape
-    assert set(pair.seconds) == {"reconstruct_a", "reconstruct_b", "piv"}
+    assert set(pair.seconds) == {"reconstruct_a", "reconstruct_b", "piv", "particles"}
     assert pair.info_a.iterations == 30
     u = pair.piv.u[pair.piv.valid]
     assert np.median(u) == pytest.approx(2.0, abs=0.15)

@@ -4,7 +4,9 @@ At the paper's optics and voxel, for a uniform displacement (or a solid-body rot
 about a lateral axis, :data:`ROTATION`), per seeding density: PIV on volumes rendered
 from the true particles (what the windows cannot resolve), on volumes reconstructed from
 ray-traced raw images with ``process_pair`` defaults (what users get) and with the
-single-frame reconstruction on the voxels themselves (the baseline, same scene), and the
+the sub-voxel volumes correlated without the particle refinement, and the chain before
+(single-frame reconstruction on the voxels themselves, correlation only: the baseline,
+same scene), and the
 reconstructions' quality (Q, particles recovered, ghost intensity). Lateral and depth
 separately, depth also by zone (in focus, near, far). ``benchmarks/accuracy.py`` runs the
 same rows for any seeding and motion from the command line.
@@ -12,6 +14,8 @@ same rows for any seeding and motion from the command line.
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,8 +33,13 @@ from .core import BenchRun, md_table
 
 SHIFT_VOX = np.array([2.3, -1.4, 1.7])  # (x, y, z) voxels
 VOXEL_MM = (0.1833, 0.175, 0.1333)      # (x, y, z): the paper's 300 x 200 x 150 grid
-#: The single-frame reconstruction on the voxels themselves: the default before sub-voxels.
+#: The single-frame reconstruction on the voxels themselves: the default before sub-voxels
+#: (and before the particle refinement).
 BASELINE_SETTINGS = ReconstructionSettings(supersample=1)
+#: The rows of a budget: the default chain, its volumes correlated without the particle
+#: refinement, and the chain before both.
+ROWS = {"default": "default", "correlation": "sub-voxels, correlation only",
+        "baseline": "before (voxels, correlation)"}
 
 
 def paper_optics(lenses: tuple[int, int]) -> tuple[Camera, Grid]:
@@ -147,15 +156,22 @@ def pair_row(pair, scene: BudgetScene, grid: Grid, motion: Motion = UNIFORM) -> 
 def budget_row(cam: Camera, grid: Grid, proj, ppm: float, seed: int, queue,
                rays: int = 2000, motion: Motion = UNIFORM, baseline: bool = True) -> dict:
     """The budget of one seeding density (particles per microlens): windows only,
-    ``process_pair`` defaults, and (``baseline``) the single-frame reconstruction on the
-    voxels themselves (``supersample=1``, the default before 3 x 3 sub-voxels)."""
+    ``process_pair`` defaults, its volumes by correlation alone, and (``baseline``) the
+    chain before (single-frame reconstruction on the voxels themselves, ``supersample=1``,
+    correlation only)."""
     scene = budget_scene(cam, grid, ppm, seed, queue, rays, motion)
     windows = budget_errors(piv3d(scene.true_a, scene.true_b), grid, motion)
     pair = process_pair(scene.raw_a, scene.raw_b, proj)
     row = {"ppm": ppm, "particles": scene.count, "windows": windows, "pair": pair,
            "scene": scene, "default": pair_row(pair, scene, grid, motion)}
+    t0 = time.perf_counter()
+    correlation = piv3d(pair.vol_a, pair.vol_b, queue=proj.queue)
+    seconds = pair.seconds["reconstruct_a"] + pair.seconds["reconstruct_b"]
+    row["correlation"] = pair_row(dataclasses.replace(pair, piv=correlation, seconds={
+        "reconstruct": seconds, "piv": time.perf_counter() - t0}), scene, grid, motion)
     if baseline:
-        before = process_pair(scene.raw_a, scene.raw_b, proj, settings=BASELINE_SETTINGS)
+        before = process_pair(scene.raw_a, scene.raw_b, proj, settings=BASELINE_SETTINGS,
+                              particles=False)
         row["baseline"] = pair_row(before, scene, grid, motion)
     return row
 
@@ -167,14 +183,13 @@ def budget_table(rows: list[dict], grid: Grid) -> str:
     body = []
     for r in rows:
         w = r["windows"]
-        for label in ("default", "baseline"):
+        for label, name in ROWS.items():
             if label not in r:
                 continue
             x = r[label]
             e = x["errors"]
             body.append([f"{r['ppm']:.2f}", r["particles"], f"{w['lateral']:.3f}",
-                         f"{w['depth']:.3f}", "3 x 3 sub-voxels" if label == "default"
-                         else "voxels (before)", f"{e['lateral']:.3f}", f"{e['depth']:.2f}",
+                         f"{w['depth']:.3f}", name, f"{e['lateral']:.3f}", f"{e['depth']:.2f}",
                          f"{e['depth'] * dz:.3f}", f"{e['in focus']:.2f}", f"{e['near']:.2f}",
                          f"{e['far']:.2f}", f"{e['valid']:.0%}", str(x["window"]),
                          " ".join(f"{b:+.2f}" for b in e["bias"]), f"{x['Q']:.2f}",

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..piv import PIVResult, piv3d
+from ..piv.tracking import refine_with_particles
 from ..reconstruction import (
     PAIR_SUPERSAMPLE,
     ProjectionOperator,
@@ -43,7 +44,8 @@ class PairResult:
         What each reconstruction did (iterations, residuals, time).
     seconds
         Wall time per stage: ``reconstruct_a``, ``reconstruct_b``, ``piv`` (the
-        single-frame correlation) and ``mte`` (every cycle, its correlations included).
+        single-frame correlation), ``mte`` (every cycle, its correlations included) and
+        ``particles`` (the particle refinement).
     """
 
     vol_a: np.ndarray
@@ -56,8 +58,8 @@ class PairResult:
 
 def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
                  settings: ReconstructionSettings | None = None,
-                 piv_options: dict | None = None, mte: MTESettings | None = None
-                 ) -> PairResult:
+                 piv_options: dict | None = None, mte: MTESettings | None = None,
+                 particles: bool = True) -> PairResult:
     """Reconstruct two raw images with one projector and correlate the volumes.
 
     Parameters
@@ -82,6 +84,11 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         onto the other exposure's time, combine, reconstruct again from that guess and
         correlate. ``None``: the default :data:`DEFAULT_MTE`; ``MTESettings(cycles=0)``:
         single-frame reconstruction only.
+    particles
+        Refine the correlation's final field with the volumes' particles
+        (:func:`plenocl.piv.tracking.refine_with_particles`, docs/design.md §7.1): each
+        window's displacement becomes the mean of its matched particle pairs, and its
+        uncertainty their standard error. ``False``: the correlation's field.
 
     Returns
     -------
@@ -105,4 +112,8 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
             raw_a, raw_b, projector, vol_a, vol_b, res, settings, mte,
             lambda a, b: piv3d(a, b, **options))
         info_a, info_b = infos
+    if particles:
+        t0 = time.perf_counter()
+        res = refine_with_particles(res, vol_a, vol_b)
+        seconds["particles"] = time.perf_counter() - t0
     return PairResult(vol_a, vol_b, res, info_a, info_b, seconds)

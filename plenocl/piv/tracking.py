@@ -1,0 +1,126 @@
+"""Particle refinement of a correlation field (docs/design.md §7.1): the particles of the
+two reconstructed volumes, matched with the correlation's displacement as predictor,
+averaged per interrogation window.
+
+A reconstructed volume places each particle within about 0.1 voxel laterally, but the
+correlation of whole windows also sees every ghost and the particles' irregular,
+depth-elongated shapes, and it reads the displacement about three times less precisely
+(``benchmarks/accuracy.py``). Here each peak of the first volume (local maxima above
+``threshold`` of the volume's maximum, 3-point Gaussian sub-voxel positions) is sent
+along the predicted displacement and paired with the nearest peak of the second volume
+within ``search`` voxels (x, y, z); only mutual nearest neighbours are kept (a ghost
+rarely has a partner both ways). Each window of the correlation's final grid then takes
+the mean displacement of the pairs whose midpoints lie in it, after leaving out pairs
+farther than ``search`` from the window's median; its uncertainty is the half-width of
+the mean's 68.3 % confidence interval (the standard error times Student's t quantile for
+the pairs it holds: 1.32 for 3 pairs, 1.05 for 11). Windows with fewer than
+``min_pairs`` pairs keep the correlation's vector.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+from scipy.interpolate import RegularGridInterpolator
+from scipy.spatial import cKDTree
+
+from .peaks import find_particles
+
+#: Match tolerance (x, y, z voxels): depth is about three times less certain.
+SEARCH = (1.0, 1.0, 3.0)
+#: The upper quantile of a one-sigma (68.3 %) two-sided interval.
+ONE_SIGMA = 0.8413447460685429
+
+
+@dataclass(frozen=True)
+class ParticlePairs:
+    """Matched particles: midpoints ``(N, 3)`` and displacements ``(N, 3)``, both as
+    ``(x, y, z)`` voxels."""
+
+    midpoints: np.ndarray
+    displacements: np.ndarray
+
+
+def predicted(field, points: np.ndarray) -> np.ndarray:
+    """The displacement ``(N, 3)`` ``(dx, dy, dz)`` of a :class:`PIVResult` at ``points``
+    ``(N, 3)`` ``(x, y, z)``: trilinear between window centres, the nearest value beyond
+    them; masked (NaN) vectors count as 0."""
+    axes = (field.z, field.y, field.x)
+    zyx = np.clip(points[:, ::-1], [a[0] for a in axes], [a[-1] for a in axes])
+    comps = []
+    for c in (field.u, field.v, field.w):
+        comps.append(RegularGridInterpolator(axes, np.nan_to_num(c), bounds_error=False)(zyx))
+    return np.column_stack(comps)
+
+
+def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field, threshold: float = 0.1,
+                    search=SEARCH) -> ParticlePairs:
+    """Mutual nearest-neighbour pairs of the two volumes' peaks along ``field``."""
+    pa, _ = find_particles(vol_a, threshold)
+    pb, _ = find_particles(vol_b, threshold)
+    if not len(pa) or not len(pb):
+        return ParticlePairs(np.zeros((0, 3)), np.zeros((0, 3)))
+    scale = 1.0 / np.asarray(search, float)
+    # the field is the displacement at mid-time: look it up half a step along
+    fwd = pa + predicted(field, pa + predicted(field, pa) / 2)
+    back = pb - predicted(field, pb - predicted(field, pb) / 2)
+    dist_a, to_b = cKDTree(pb * scale).query(fwd * scale, distance_upper_bound=1.0)
+    dist_b, to_a = cKDTree(pa * scale).query(back * scale, distance_upper_bound=1.0)
+    ia = np.flatnonzero(np.isfinite(dist_a))
+    ia = ia[np.isfinite(dist_b[to_b[ia]]) & (to_a[to_b[ia]] == ia)]
+    disp = pb[to_b[ia]] - pa[ia]
+    return ParticlePairs(pa[ia] + disp / 2, disp)
+
+
+def window_means(pairs: ParticlePairs, field, min_pairs: int = 3, search=SEARCH):
+    """Per window of ``field``'s grid: the mean pair displacement ``(3, nz, ny, nx)``
+    (NaN where fewer than ``min_pairs`` pairs remain), its standard error, and the
+    pair counts."""
+    shape = field.u.shape
+    mean, error = np.full((2, 3, *shape), np.nan)
+    count = np.zeros(shape, int)
+    half = np.asarray(field.window[::-1], float) / 2  # (x, y, z)
+    tree = cKDTree(pairs.midpoints / half) if len(pairs.midpoints) else None
+    for k, j, i in np.ndindex(shape):
+        if tree is None:
+            break
+        centre = np.array([field.x[i], field.y[j], field.z[k]]) / half
+        d = pairs.displacements[tree.query_ball_point(centre, 1.0, p=np.inf)]
+        if len(d) < min_pairs:
+            continue
+        d = d[np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1)]
+        count[k, j, i] = len(d)
+        if len(d) >= min_pairs:
+            mean[:, k, j, i] = d.mean(axis=0)
+            error[:, k, j, i] = (d.std(axis=0, ddof=1) / np.sqrt(len(d))
+                                 * stats.t.ppf(ONE_SIGMA, len(d) - 1))
+    return mean, error, count
+
+
+def refine_with_particles(field, vol_a: np.ndarray, vol_b: np.ndarray,
+                          threshold: float = 0.1, min_pairs: int = 3, search=SEARCH):
+    """``field`` with every window that holds at least ``min_pairs`` matched particle
+    pairs replaced by their mean displacement and its standard error (``sigma_*``).
+
+    Vectors that were masked stay masked; windows with too few pairs keep the
+    correlation's vector and uncertainty. The pass log gains an entry with the pairs
+    found and the vectors refined.
+    """
+    pairs = pair_particles(vol_a, vol_b, field, threshold, search)
+    mean, error, count = window_means(pairs, field, min_pairs, search)
+    use = np.isfinite(mean[0]) & ~field.masked
+    comps = {}
+    for n, c in enumerate("uvw"):
+        sigma = getattr(field, f"sigma_{c}")
+        sigma = np.full(field.u.shape, np.nan) if sigma is None else sigma
+        comps[c] = np.where(use, mean[n], getattr(field, c))
+        comps[f"sigma_{c}"] = np.where(use, error[n], sigma)
+    log = {"refinement": "particles", "pairs": len(pairs.midpoints),
+           "vectors": int(use.sum()), "median_pairs": float(np.median(count[use]))
+           if use.any() else 0.0}
+    return dataclasses.replace(field, **comps, valid=field.valid | use,
+                               outlier=field.outlier & ~use,
+                               passes=[*field.passes, log])
