@@ -12,8 +12,10 @@ standard uncertainty covers about 68 %):
    noise levels and windows: the random error the estimate is built for;
 2. MLEM volumes reconstructed from ray-traced raw images at the paper's optics and voxel
    (``benchmarks/accuracy.py``'s camera on 96 x 64 microlenses, 0.8 px blur, photon and
-   read noise; ``process_pair`` defaults), 0.02, 0.05 and 0.1 particles per microlens:
-   what users have.
+   read noise), 0.02, 0.05 and 0.1 particles per microlens: what users have. With
+   ``process_pair`` defaults (3 x 3 sub-voxels; each vector refined by the particle pairs
+   in its window, sigma their standard error) and, on the same scene, the chain before
+   (voxels, correlation only, sigma from correlation statistics).
 """
 
 from __future__ import annotations
@@ -32,10 +34,13 @@ from plenocl import (  # noqa: E402
     get_queue,
     piv3d,
     process_pair,
-    random_particles,
 )
-from plenocl.bench.accuracy_section import SHIFT_VOX, VOXEL_MM, paper_optics  # noqa: E402
-from plenocl.simulate import simulate_image  # noqa: E402
+from plenocl.bench.accuracy_section import (  # noqa: E402
+    BASELINE_SETTINGS,
+    SHIFT_VOX,
+    budget_scene,
+    paper_optics,
+)
 
 RENDERED = [  # (density per voxel, particle sigma, noise, windows)
     (0.0004, 1.5, 0.02, (32, 24)), (0.001, 2.0, 0.1, (32, 24)),
@@ -68,21 +73,19 @@ def rendered_rows(queue, cases) -> list[str]:
 
 
 def reconstructed_rows(queue, seedings) -> list[str]:
+    """Per seeding: ``process_pair`` defaults (sub-voxels, particle refinement: sigma is
+    the pairs' standard error) and the chain before (voxels, correlation only: sigma from
+    correlation statistics), on the same scene."""
     cam, grid = paper_optics((96, 64))
     proj = Projector(cam, grid, queue)
-    shift_mm = SHIFT_VOX * np.array(VOXEL_MM)
-    box = tuple((lo + 0.3, hi - 0.3) for lo, hi in (grid.x, grid.y, grid.z))
     rows = []
     for k, ppm in enumerate(seedings, start=1):
-        count = int(round(ppm * cam.ml_count[0] * cam.ml_count[1]))
-        pos, inten = random_particles(box, count=count, seed=k, intensity=2e4)
-        kw = dict(rays_per_particle=2000, blur_px=0.8, photon_noise=True, background=20.0,
-                  read_noise=3.0, queue=queue)
-        raw = [simulate_image(cam, p, inten, seed=2 * k + j, **kw)
-               for j, p in enumerate((pos - shift_mm / 2, pos + shift_mm / 2))]
-        pair = process_pair(*raw, proj)
-        rows.append(coverage_row(f"reconstructed: {ppm} per microlens, windows "
-                                 f"{pair.piv.window[0]}", pair.piv, SHIFT_VOX))
+        scene = budget_scene(cam, grid, ppm, seed=k, queue=queue)
+        for label, kw in (("default", {}), ("before", dict(settings=BASELINE_SETTINGS,
+                                                              particles=False))):
+            pair = process_pair(scene.raw_a, scene.raw_b, proj, **kw)
+            rows.append(coverage_row(f"reconstructed, {label}: {ppm} per microlens, windows "
+                                     f"{pair.piv.window[0]}", pair.piv, SHIFT_VOX))
     return rows
 
 

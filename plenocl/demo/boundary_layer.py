@@ -28,6 +28,7 @@ from ..io.files import (
 )
 from ..metrics import recovery
 from ..particles import particles_per_microlens, random_particles
+from ..pipeline.pair import PAIR_SETTINGS
 from .stages import StageRunner, write_json
 
 U_INF = 4.57          # free-stream velocity, m/s (the paper's 15 ft/s)
@@ -125,7 +126,8 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     """
     sc = scenario(size)
     flow = CameraFrameFlow(sc, seed)
-    run = StageRunner(out_dir, {**sc.config(), "seed": seed}, log)
+    chain = {"supersample": PAIR_SETTINGS.supersample, "refinement": "particles"}
+    run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: _stage_particles(run, sc, flow, seed))
     run.run("calibration", ["white.tif", "camera_calibrated.toml"],
@@ -189,14 +191,15 @@ def _stage_images(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
 
 
 def _reconstruct_file(run, sc, proj, tag: str, method: str, iterations: int, relax: float,
-                      suffix: str = "") -> None:
+                      suffix: str = "", supersample: int = 1) -> None:
     from ..io.progress import iteration_bar
     from ..reconstruction import reconstruct
 
     img = read_image(run.path(f"raw_{tag}.tif"))
     with iteration_bar(iterations, f"{method} {tag}") as bar:
         # the default preprocessing, as the API and the CLI: median background, 4 sigma
-        vol = reconstruct(img, proj, method, iterations, relax, callback=bar)
+        vol = reconstruct(img, proj, method, iterations, relax, callback=bar,
+                          supersample=supersample)
     save_volume(run.path(f"vol_{tag}{suffix}.npz"), vol, sc.grid)
 
 
@@ -204,8 +207,9 @@ def _stage_reconstruction(run, sc, cam, method, iterations, queue) -> None:
     from ..projection.projector import Projector
 
     proj = Projector(cam, sc.grid, queue)
-    for tag in ("a", "b"):
-        _reconstruct_file(run, sc, proj, tag, method, iterations, 1.0)
+    for tag in ("a", "b"):  # process_pair's reconstruction: 3 x 3 lateral sub-voxels
+        _reconstruct_file(run, sc, proj, tag, method, iterations, 1.0,
+                          supersample=PAIR_SETTINGS.supersample)
 
 
 def _stage_mart(run, sc, cam, queue) -> None:
@@ -218,10 +222,12 @@ def _stage_mart(run, sc, cam, queue) -> None:
 def _stage_piv(run: StageRunner, sc: Scenario) -> None:
     from ..io.fields import save_field
     from ..piv.multipass import piv3d
+    from ..piv.tracking import refine_with_particles
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
     vol_b, _ = load_volume(run.path("vol_b.npz"))
-    res = piv3d(vol_a, vol_b, windows=sc.windows)
+    # process_pair's correlation: the field refined by the volumes' particle pairs
+    res = refine_with_particles(piv3d(vol_a, vol_b, windows=sc.windows), vol_a, vol_b)
     for name in ("field.npz", "field.vti"):
         save_field(run.path(name), res, dt=DT, grid=sc.grid)
 
@@ -241,6 +247,42 @@ def measured_and_true(field: Path, sc: Scenario, flow: CameraFrameFlow):
     true = true.T.reshape((3,) + res.shape)
     meas = np.stack(res.velocity(sc.grid.spacing, DT))
     return meas, true, res.valid & np.all(np.isfinite(meas), 0), (x, y, z)
+
+
+def window_averaged(field: Path, sc: Scenario, flow: CameraFrameFlow, n: int = 3):
+    """The true velocity (m/s, ``(3, nz', ny', nx')``) averaged over each final window:
+    the mean over ``n^3`` points at the centres of equal sub-boxes of the window."""
+    from ..io.fields import read_npz
+
+    res, _ = read_npz(field)
+    _, true, _, (x, y, z) = measured_and_true(field, sc, flow)
+    size = np.asarray(res.window, float) * np.array(sc.grid.spacing)  # (z, y, x) mm
+    offsets = (np.arange(n) + 0.5) / n - 0.5
+    total = np.zeros_like(true)
+    for oz, oy, ox in np.ndindex(n, n, n):
+        zz, yy, xx = np.meshgrid(z + offsets[oz] * size[0], y + offsets[oy] * size[1],
+                                 x + offsets[ox] * size[2], indexing="ij")
+        pts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+        total += (centred_displacement(pts, flow, DT) / 1e3 / DT).T.reshape(true.shape)
+    return total / n**3
+
+
+def lateral_depth_errors(field: Path, sc: Scenario, flow: CameraFrameFlow) -> dict:
+    """RMS errors of the valid vectors, lateral (RMS over x and y) and depth, in voxels
+    and as fractions of ``U∞``, against the truth at the window centres and averaged over
+    each window."""
+    meas, point, valid, _ = measured_and_true(field, sc, flow)
+    dz, dy, dx = sc.grid.spacing
+    to_vox = np.array([dx, dy, dz])[:, None] * 1e-3 / DT  # m/s per voxel of displacement
+    out = {}
+    for label, true in (("point", point), ("window_averaged", window_averaged(field, sc, flow))):
+        err = (meas - true)[:, valid]
+        lat_v, dep_v = np.sqrt(np.mean(err[:2] ** 2)), np.sqrt(np.mean(err[2] ** 2))
+        lat_x = np.sqrt(np.mean((err[:2] / to_vox[:2]) ** 2))
+        out[label] = {"lateral_voxels": float(lat_x),
+                      "depth_voxels": float(np.sqrt(np.mean((err[2] / to_vox[2]) ** 2))),
+                      "lateral_u_inf": float(lat_v / U_INF), "depth_u_inf": float(dep_v / U_INF)}
+    return out
 
 
 def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
@@ -268,6 +310,7 @@ def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
             float(np.sqrt(np.mean((prof_meas - analytic) ** 2)) / U_INF),
         "component_rms_error": {c: float(np.sqrt(np.mean((meas[i] - true[i])[valid] ** 2))
                                          / U_INF) for i, c in enumerate("xyz")},
+        "lateral_depth_error": lateral_depth_errors(run.out / "field.npz", sc, flow),
         "recovery": rec,
         "profile_dense": {"wall_distance_mm": (sc.z_wall - z_dense).tolist(),
                           "analytic": (flow.mean_streamwise(z_dense) / 1e3).tolist()},

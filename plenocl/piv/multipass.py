@@ -64,6 +64,10 @@ class PIVResult:
         (:func:`plenocl.piv.direct.correlation_uncertainty`); NaN for invalid, replaced
         or masked vectors and after a single (undeformed) pass. ``None`` in results
         read from files written before it existed.
+    refinement
+        What refined the field after the correlation (``{}``: nothing): for the particle
+        refinement (:func:`plenocl.piv.tracking.refine_with_particles`) the particle
+        pairs found, the vectors refined and their median pair count.
     """
 
     x: np.ndarray
@@ -81,6 +85,7 @@ class PIVResult:
     sigma_u: np.ndarray | None = None
     sigma_v: np.ndarray | None = None
     sigma_w: np.ndarray | None = None
+    refinement: dict = field(default_factory=dict)
 
     @property
     def shape(self) -> Size3:

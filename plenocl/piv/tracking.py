@@ -106,8 +106,8 @@ def refine_with_particles(field, vol_a: np.ndarray, vol_b: np.ndarray,
     pairs replaced by their mean displacement and its standard error (``sigma_*``).
 
     Vectors that were masked stay masked; windows with too few pairs keep the
-    correlation's vector and uncertainty. The pass log gains an entry with the pairs
-    found and the vectors refined.
+    correlation's vector and uncertainty. ``refinement`` records the pairs found and the
+    vectors refined.
     """
     pairs = pair_particles(vol_a, vol_b, field, threshold, search)
     mean, error, count = window_means(pairs, field, min_pairs, search)
@@ -122,5 +122,4 @@ def refine_with_particles(field, vol_a: np.ndarray, vol_b: np.ndarray,
            "vectors": int(use.sum()), "median_pairs": float(np.median(count[use]))
            if use.any() else 0.0}
     return dataclasses.replace(field, **comps, valid=field.valid | use,
-                               outlier=field.outlier & ~use,
-                               passes=[*field.passes, log])
+                               outlier=field.outlier & ~use, refinement=log)
