@@ -10,11 +10,15 @@ depth-elongated shapes, and it reads the displacement about three times less pre
 along the predicted displacement and paired with the nearest peak of the second volume
 within ``search`` voxels (x, y, z); only mutual nearest neighbours are kept (a ghost
 rarely has a partner both ways). Each window of the correlation's final grid then takes
-the mean displacement of the pairs whose midpoints lie in it, after leaving out pairs
-farther than ``search`` from the window's median; its uncertainty is the half-width of
-the mean's 68.3 % confidence interval (the standard error times Student's t quantile for
-the pairs it holds: 1.32 for 3 pairs, 1.05 for 11). Windows with fewer than
-``min_pairs`` pairs keep the correlation's vector.
+the mean displacement of the pairs whose midpoints lie in it, each first moved to the
+window's centre along the local displacement gradient (a least-squares linear fit to the
+pairs in the window grown to twice its size, where it holds at least
+:data:`GRADIENT_PAIRS`; otherwise none), after leaving out pairs farther than ``search``
+from the window's median. Without that step, a gradient across a sparse window would
+bias its mean by where its few particles happen to lie. The vector's uncertainty is the
+half-width of the mean's 68.3 % confidence interval (the standard error times Student's
+t quantile for the pairs it holds: 1.32 for 3 pairs, 1.05 for 11). Windows with fewer
+than ``min_pairs`` pairs keep the correlation's vector.
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ from .peaks import find_particles
 
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
+#: Fewest pairs in the doubled window for a displacement-gradient fit (12 unknowns).
+GRADIENT_PAIRS = 12
 #: The upper quantile of a one-sigma (68.3 %) two-sided interval.
 ONE_SIGMA = 0.8413447460685429
 
@@ -75,22 +81,40 @@ def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field, threshold: float
     return ParticlePairs(pa[ia] + disp / 2, disp)
 
 
+def local_gradient(pairs: ParticlePairs, near: list[int], centre: np.ndarray,
+                   search=SEARCH) -> np.ndarray:
+    """The displacement gradient ``(3, 3)`` (component, x/y/z) fitted by least squares to
+    the pairs ``near`` (those within ``search`` of their median), or zeros with fewer
+    than :data:`GRADIENT_PAIRS` of them."""
+    d = pairs.displacements[near]
+    keep = np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1) if len(d) else []
+    if np.count_nonzero(keep) < GRADIENT_PAIRS:
+        return np.zeros((3, 3))
+    offsets = pairs.midpoints[near][keep] - centre
+    design = np.column_stack([np.ones(len(offsets)), offsets])
+    coef, *_ = np.linalg.lstsq(design, d[keep], rcond=None)
+    return coef[1:].T
+
+
 def window_means(pairs: ParticlePairs, field, min_pairs: int = 3, search=SEARCH):
-    """Per window of ``field``'s grid: the mean pair displacement ``(3, nz, ny, nx)``
-    (NaN where fewer than ``min_pairs`` pairs remain), its standard error, and the
-    pair counts."""
+    """Per window of ``field``'s grid: the mean pair displacement at the window's centre
+    ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain), its
+    uncertainty, and the pair counts."""
     shape = field.u.shape
     mean, error = np.full((2, 3, *shape), np.nan)
     count = np.zeros(shape, int)
+    if not len(pairs.midpoints):
+        return mean, error, count
     half = np.asarray(field.window[::-1], float) / 2  # (x, y, z)
-    tree = cKDTree(pairs.midpoints / half) if len(pairs.midpoints) else None
+    tree = cKDTree(pairs.midpoints / half)
     for k, j, i in np.ndindex(shape):
-        if tree is None:
-            break
-        centre = np.array([field.x[i], field.y[j], field.z[k]]) / half
-        d = pairs.displacements[tree.query_ball_point(centre, 1.0, p=np.inf)]
-        if len(d) < min_pairs:
+        centre = np.array([field.x[i], field.y[j], field.z[k]])
+        inside = tree.query_ball_point(centre / half, 1.0, p=np.inf)
+        if len(inside) < min_pairs:
             continue
+        grad = local_gradient(pairs, tree.query_ball_point(centre / half, 2.0, p=np.inf),
+                              centre, search)
+        d = pairs.displacements[inside] - (pairs.midpoints[inside] - centre) @ grad.T
         d = d[np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1)]
         count[k, j, i] = len(d)
         if len(d) >= min_pairs:
