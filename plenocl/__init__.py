@@ -8,7 +8,7 @@ from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices,
 from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
-from .pipeline import PairResult, process_pair
+from .pipeline import MTESettings, PairResult, process_pair
 from .piv import PIVResult, piv3d
 from .projection import Projector
 from .reconstruction import reconstruct
@@ -22,6 +22,7 @@ __all__ = [
     "DeviceInfo",
     "Grid",
     "LightField",
+    "MTESettings",
     "NoOpenCLError",
     "PIVResult",
     "PairResult",

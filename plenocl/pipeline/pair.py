@@ -74,7 +74,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         by default :data:`PAIR_SETTINGS`: MLEM, 30 iterations, the median background
         removed and pixels within 4 noise deviations of it dark, as
         :func:`plenocl.reconstruct`, on 3 x 3 lateral sub-voxels per voxel
-        (``supersample=3``, docs/design.md §6.4: the depth error falls about threefold).
+        (``supersample=3``, docs/design.md §6.4: the depth error falls two- to threefold).
     piv_options
         Keyword arguments of :func:`plenocl.piv3d` (by default the windows are fitted to
         the volume's shape, and the volumes are deformed on the projector's device).
