@@ -31,6 +31,7 @@ from scipy import stats
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
+from .multipass import PIVResult
 from .peaks import find_particles
 
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
@@ -50,7 +51,7 @@ class ParticlePairs:
     displacements: np.ndarray
 
 
-def predicted(field, points: np.ndarray) -> np.ndarray:
+def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
     """The displacement ``(N, 3)`` ``(dx, dy, dz)`` of a :class:`PIVResult` at ``points``
     ``(N, 3)`` ``(x, y, z)``: trilinear between window centres, the nearest value beyond
     them; masked (NaN) vectors count as 0."""
@@ -62,8 +63,8 @@ def predicted(field, points: np.ndarray) -> np.ndarray:
     return np.column_stack(comps)
 
 
-def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field, threshold: float = 0.1,
-                    search=SEARCH) -> ParticlePairs:
+def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
+                   threshold: float = 0.1, search=SEARCH) -> ParticlePairs:
     """Mutual nearest-neighbour pairs of the two volumes' peaks along ``field``."""
     pa, _ = find_particles(vol_a, threshold)
     pb, _ = find_particles(vol_b, threshold)
@@ -96,7 +97,7 @@ def local_gradient(pairs: ParticlePairs, near: list[int], centre: np.ndarray,
     return coef[1:].T
 
 
-def window_means(pairs: ParticlePairs, field, min_pairs: int = 3, search=SEARCH):
+def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH):
     """Per window of ``field``'s grid: the mean pair displacement at the window's centre
     ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain), its
     uncertainty, and the pair counts."""
@@ -124,10 +125,12 @@ def window_means(pairs: ParticlePairs, field, min_pairs: int = 3, search=SEARCH)
     return mean, error, count
 
 
-def refine_with_particles(field, vol_a: np.ndarray, vol_b: np.ndarray,
-                          threshold: float = 0.1, min_pairs: int = 3, search=SEARCH):
+def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray,
+                          threshold: float = 0.1, min_pairs: int = 3,
+                          search=SEARCH) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
-    pairs replaced by their mean displacement and its standard error (``sigma_*``).
+    pairs replaced by their mean displacement at the window's centre and its uncertainty
+    (``sigma_*``; see the module documentation).
 
     Vectors that were masked stay masked; windows with too few pairs keep the
     correlation's vector and uncertainty. ``refinement`` records the pairs found and the
