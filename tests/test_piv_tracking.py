@@ -67,6 +67,7 @@ def test_window_means_beat_the_correlation_and_their_sigma_covers_the_error(scen
     refined = refine_with_particles(field, a, b)
     assert refined.refinement["refinement"] == "particles"
     assert refined.refinement["vectors"] >= 0.9 * field.u.size
+    assert refined.valid.mean() >= 0.9
     err = {}
     inside = []
     for name, res in (("corr", field), ("pairs", refined)):
@@ -86,13 +87,17 @@ def test_windows_with_too_few_pairs_keep_the_correlation_and_masked_stay_masked(
     res.u[0, 0, 0] = np.nan
     refined = refine_with_particles(res, sa, sb, min_pairs=3)
     mean, _, count = window_means(pair_particles(sa, sb, res), res, min_pairs=3)
-    keep = count < 3
+    keep = (count < 3) & ~refined.outlier  # the refined field is validated again
     assert keep.any()
     np.testing.assert_array_equal(refined.u[keep], res.u[keep])
-    assert np.isnan(refined.u[0, 0, 0])
+    assert np.isnan(refined.u[0, 0, 0]) and not refined.valid[0, 0, 0]
     empty = refine_with_particles(res, np.zeros_like(sa), sb)
-    np.testing.assert_array_equal(empty.u, res.u)
-    assert empty.refinement["pairs"] == 0
+    same = ~empty.outlier
+    np.testing.assert_array_equal(empty.u[same], res.u[same])
+    assert empty.refinement["pairs"] == 0 and empty.refinement["vectors"] == 0
+    # outliers are replaced, invalid and without sigma
+    assert np.all(np.isnan(refined.sigma_u[refined.outlier]))
+    assert not refined.valid[refined.outlier].any()
 
 
 def test_the_one_sigma_quantile_is_the_normal_one():

@@ -18,7 +18,10 @@ from the window's median. Without that step, a gradient across a sparse window w
 bias its mean by where its few particles happen to lie. The vector's uncertainty is the
 half-width of the mean's 68.3 % confidence interval (the standard error times Student's
 t quantile for the pairs it holds: 1.32 for 3 pairs, 1.05 for 11). Windows with fewer
-than ``min_pairs`` pairs keep the correlation's vector.
+than ``min_pairs`` pairs keep the correlation's vector. The refined field is validated
+like the correlation's last pass (normalised median test, outliers replaced): a cluster
+of failed windows at a face of the volume can survive the correlation's test and the
+refinement, which follows it.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from .multipass import PIVResult
 from .peaks import find_particles
+from .validation import normalized_median_test, replace_outliers
 
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
@@ -133,20 +137,26 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     (``sigma_*``; see the module documentation).
 
     Vectors that were masked stay masked; windows with too few pairs keep the
-    correlation's vector and uncertainty. ``refinement`` records the pairs found and the
-    vectors refined.
+    correlation's vector and uncertainty. The refined field is validated as
+    :func:`plenocl.piv3d` validates its last pass (normalised median test, outliers
+    replaced by their neighbours' median, marked invalid, sigma NaN). ``refinement``
+    records the pairs found, the vectors refined and the outliers.
     """
     pairs = pair_particles(vol_a, vol_b, field, threshold, search)
     mean, error, count = window_means(pairs, field, min_pairs, search)
     use = np.isfinite(mean[0]) & ~field.masked
-    comps = {}
+    vectors = np.stack([np.where(use, mean[n], getattr(field, c))
+                        for n, c in enumerate("uvw")])
+    outlier = normalized_median_test(vectors, ignore=field.masked)
+    vectors = np.where(field.masked, vectors, replace_outliers(vectors, outlier | field.masked))
+    valid = (field.valid | use) & ~outlier & ~field.masked
+    comps = {c: vectors[n] for n, c in enumerate("uvw")}
     for n, c in enumerate("uvw"):
         sigma = getattr(field, f"sigma_{c}")
         sigma = np.full(field.u.shape, np.nan) if sigma is None else sigma
-        comps[c] = np.where(use, mean[n], getattr(field, c))
-        comps[f"sigma_{c}"] = np.where(use, error[n], sigma)
+        comps[f"sigma_{c}"] = np.where(valid, np.where(use, error[n], sigma), np.nan)
     log = {"refinement": "particles", "pairs": len(pairs.midpoints),
-           "vectors": int(use.sum()), "median_pairs": float(np.median(count[use]))
-           if use.any() else 0.0}
-    return dataclasses.replace(field, **comps, valid=field.valid | use,
-                               outlier=field.outlier & ~use, refinement=log)
+           "vectors": int(use.sum()), "outliers": int(outlier.sum()),
+           "median_pairs": float(np.median(count[use])) if use.any() else 0.0}
+    return dataclasses.replace(field, **comps, valid=valid, outlier=outlier,
+                               refinement=log)
