@@ -3,13 +3,13 @@
 At the paper's optics and voxel, for a uniform displacement (or a solid-body rotation
 about a lateral axis, :data:`ROTATION`), per seeding density: PIV on volumes rendered
 from the true particles (what the windows cannot resolve), on volumes reconstructed from
-ray-traced raw images with ``process_pair`` defaults (what users get) and with the
-the sub-voxel volumes correlated without the particle refinement, and the chain before
+ray-traced raw images with ``process_pair`` defaults (what users get), the same
+sub-voxel volumes correlated without the particle refinement, and the chain before
 (single-frame reconstruction on the voxels themselves, correlation only: the baseline,
-same scene), and the
-reconstructions' quality (Q, particles recovered, ghost intensity). Lateral and depth
-separately, depth also by zone (in focus, near, far). ``benchmarks/accuracy.py`` runs the
-same rows for any seeding and motion from the command line.
+same scene), and the reconstructions' quality (Q, particles recovered, ghost
+intensity). Lateral and depth separately, depth also by zone (in focus, near, far).
+``benchmarks/accuracy.py`` runs the same rows for any seeding and motion from the
+command line.
 """
 
 from __future__ import annotations
@@ -77,13 +77,18 @@ class Motion:
         motion is linear in space, so the window average and the point value agree."""
         if not self.angle_rad:
             return tuple(np.full(res.u.shape, s) for s in SHIFT_VOX)
-        dz, dy, dx = grid.spacing
-        zz, yy, xx = np.meshgrid(grid.z[0] + (res.z + 0.5) * dz, grid.y[0] + (res.y + 0.5) * dy,
-                                 grid.x[0] + (res.x + 0.5) * dx, indexing="ij")
-        mid = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
-        pa, pb = self.positions(mid)
-        d = (pb - pa) / np.array([dx, dy, dz])
+        x, y, z = window_centres_mm(res, grid)
+        zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+        pa, pb = self.positions(np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]))
+        d = (pb - pa) / np.array(grid.spacing[::-1])
         return tuple(d[:, k].reshape(res.u.shape) for k in range(3))
+
+
+def window_centres_mm(res, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The window centres ``(x, y, z)`` of ``res`` in the grid's millimetres."""
+    dz, dy, dx = grid.spacing
+    return res.positions_mm(grid.spacing, (grid.z[0] + dz / 2, grid.y[0] + dy / 2,
+                                           grid.x[0] + dx / 2))
 
 
 def _rotate_x(pos: np.ndarray, angle: float) -> np.ndarray:
@@ -105,8 +110,7 @@ def budget_errors(res, grid: Grid, motion: Motion = UNIFORM) -> dict:
     ok = res.valid
     truth = motion.displacement(res, grid)
     err = [getattr(res, c)[ok] - t[ok] for c, t in zip("uvw", truth)]
-    z_mm = np.broadcast_to(grid.z[0] + (res.z[:, None, None] + 0.5) * grid.spacing[0],
-                           res.u.shape)[ok]
+    z_mm = np.broadcast_to(window_centres_mm(res, grid)[2][:, None, None], res.u.shape)[ok]
     out = {"lateral": float(np.sqrt(np.mean(err[0] ** 2 + err[1] ** 2) / 2)),
            "depth": float(np.sqrt(np.mean(err[2] ** 2))), "valid": float(ok.mean()),
            "bias": tuple(float(np.mean(e)) for e in err)}

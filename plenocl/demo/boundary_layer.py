@@ -249,33 +249,30 @@ def measured_and_true(field: Path, sc: Scenario, flow: CameraFrameFlow):
     return meas, true, res.valid & np.all(np.isfinite(meas), 0), (x, y, z)
 
 
-def window_averaged(field: Path, sc: Scenario, flow: CameraFrameFlow, n: int = 3):
-    """The true velocity (m/s, ``(3, nz', ny', nx')``) averaged over each final window:
-    the mean over ``n^3`` points at the centres of equal sub-boxes of the window."""
-    from ..io.fields import read_npz
-
-    res, _ = read_npz(field)
-    _, true, _, (x, y, z) = measured_and_true(field, sc, flow)
-    size = np.asarray(res.window, float) * np.array(sc.grid.spacing)  # (z, y, x) mm
+def window_averaged(window, coords, sc: Scenario, flow: CameraFrameFlow, n: int = 3):
+    """The true velocity (m/s, ``(3, nz', ny', nx')``) averaged over each final window
+    ``window`` (voxels, z y x) centred at ``coords`` (x, y, z mm): the mean over ``n^3``
+    points at the centres of equal sub-boxes of the window."""
+    x, y, z = coords
+    shape = (3, len(z), len(y), len(x))
+    size = np.asarray(window, float) * np.array(sc.grid.spacing)  # (z, y, x) mm
     offsets = (np.arange(n) + 0.5) / n - 0.5
-    total = np.zeros_like(true)
+    total = np.zeros(shape)
     for oz, oy, ox in np.ndindex(n, n, n):
         zz, yy, xx = np.meshgrid(z + offsets[oz] * size[0], y + offsets[oy] * size[1],
                                  x + offsets[ox] * size[2], indexing="ij")
         pts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
-        total += (centred_displacement(pts, flow, DT) / 1e3 / DT).T.reshape(true.shape)
+        total += (centred_displacement(pts, flow, DT) / 1e3 / DT).T.reshape(shape)
     return total / n**3
 
 
-def lateral_depth_errors(field: Path, sc: Scenario, flow: CameraFrameFlow) -> dict:
+def lateral_depth_errors(meas, truths: dict, valid, sc: Scenario) -> dict:
     """RMS errors of the valid vectors, lateral (RMS over x and y) and depth, in voxels
-    and as fractions of ``U∞``, against the truth at the window centres and averaged over
-    each window."""
-    meas, point, valid, _ = measured_and_true(field, sc, flow)
+    and as fractions of ``U∞``, against each truth of ``truths`` (m/s, by label)."""
     dz, dy, dx = sc.grid.spacing
     to_vox = np.array([dx, dy, dz])[:, None] * 1e-3 / DT  # m/s per voxel of displacement
     out = {}
-    for label, true in (("point", point), ("window_averaged", window_averaged(field, sc, flow))):
+    for label, true in truths.items():
         err = (meas - true)[:, valid]
         lat_v, dep_v = np.sqrt(np.mean(err[:2] ** 2)), np.sqrt(np.mean(err[2] ** 2))
         lat_x = np.sqrt(np.mean((err[:2] / to_vox[:2]) ** 2))
@@ -287,7 +284,12 @@ def lateral_depth_errors(field: Path, sc: Scenario, flow: CameraFrameFlow) -> di
 
 def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
     """Errors against the truth, as fractions of ``U∞``, and the reconstruction's recovery."""
-    meas, true, valid, (_, _, z) = measured_and_true(run.out / "field.npz", sc, flow)
+    from ..io.fields import read_npz
+
+    field = run.out / "field.npz"
+    meas, true, valid, coords = measured_and_true(field, sc, flow)
+    z = coords[2]
+    averaged = window_averaged(read_npz(field)[0].window, coords, sc, flow)
     err = np.sqrt(np.sum((meas - true) ** 2, axis=0))
     prof_meas = np.array([np.mean(meas[1, k][valid[k]]) for k in range(len(z))])
     prof_spread = np.array([np.std(meas[1, k][valid[k]]) for k in range(len(z))])
@@ -310,7 +312,8 @@ def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
             float(np.sqrt(np.mean((prof_meas - analytic) ** 2)) / U_INF),
         "component_rms_error": {c: float(np.sqrt(np.mean((meas[i] - true[i])[valid] ** 2))
                                          / U_INF) for i, c in enumerate("xyz")},
-        "lateral_depth_error": lateral_depth_errors(run.out / "field.npz", sc, flow),
+        "lateral_depth_error": lateral_depth_errors(
+            meas, {"point": true, "window_averaged": averaged}, valid, sc),
         "recovery": rec,
         "profile_dense": {"wall_distance_mm": (sc.z_wall - z_dense).tolist(),
                           "analytic": (flow.mean_streamwise(z_dense) / 1e3).tolist()},
