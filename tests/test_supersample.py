@@ -87,6 +87,18 @@ def test_an_operator_that_cannot_refine_is_refused(optics):
         reconstruct(np.ones(optics[0].pixels[::-1]), Plain(), supersample=2)
 
 
+def test_a_refined_grid_that_does_not_fit_names_the_smaller_factor(optics):
+    class TooBig:  # an operator whose refined grid exceeds the device
+        grid = optics[1]
+
+        def refined(self, factor):
+            raise MemoryError("projecting a grid needs 90 GiB of device memory")
+
+    with pytest.raises(MemoryError, match=r"90 GiB.*supersample=3 reconstructs on 9x the "
+                                          r"grid's voxels.*supersample=1"):
+        reconstruct(np.ones(optics[0].pixels[::-1]), TooBig(), supersample=3)
+
+
 def test_sub_voxels_recover_more_ray_traced_particles_and_fewer_ghosts(optics, queue):
     """At the paper's voxel (about one microlens), 3 x 3 sub-voxels place ray-traced,
     blurred, noisy particles within 1 voxel laterally and 2 in depth far more often

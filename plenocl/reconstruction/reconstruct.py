@@ -199,7 +199,13 @@ def _supersampled(image, projector, settings: ReconstructionSettings, callback
                              f"{projector.grid.shape} (nz, ny, nx)")
         start = spread_lateral(start, f)
     fine = dataclasses.replace(settings, supersample=1, start=start)
-    vol, info = run_reconstruction(image, projector.refined(f), fine, callback)
+    try:
+        refined = projector.refined(f)
+    except MemoryError as err:
+        raise MemoryError(f"{err}; supersample={f} reconstructs on {f * f}x the grid's "
+                          f"voxels: a smaller factor (supersample=1 is the grid itself) "
+                          "needs less") from err
+    vol, info = run_reconstruction(image, refined, fine, callback)
     info.supersample = f
     return bin_lateral(vol, f), info
 
