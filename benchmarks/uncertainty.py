@@ -12,10 +12,14 @@ standard uncertainty covers about 68 %):
    noise levels and windows: the random error the estimate is built for;
 2. MLEM volumes reconstructed from ray-traced raw images at the paper's optics and voxel
    (``benchmarks/accuracy.py``'s camera on 96 x 64 microlenses, 0.8 px blur, photon and
-   read noise), 0.02, 0.05 and 0.1 particles per microlens: what users have. With
-   ``process_pair`` defaults (3 x 3 sub-voxels; each vector refined by the particle pairs
-   in its window, sigma their standard error) and, on the same scene, the chain before
-   (voxels, correlation only, sigma from correlation statistics).
+   read noise), 0.02, 0.05 and 0.1 particles per microlens, a uniform displacement and a
+   2-degree rotation about x: what users have. With ``process_pair`` defaults (3 x 3
+   sub-voxels; each vector refined by the particle pairs in its window, sigma their
+   standard error with the focal zone's systematic depth term and the particles' depth
+   position carried through the local gradient, docs/design.md §7.1) and, on the same
+   scene, the chain before (voxels, correlation only, sigma from correlation
+   statistics). The last two rows pool every reconstructed scene: lateral (u and v) and
+   depth.
 """
 
 from __future__ import annotations
@@ -37,7 +41,8 @@ from plenocl import (  # noqa: E402
 )
 from plenocl.bench.accuracy_section import (  # noqa: E402
     BASELINE_SETTINGS,
-    SHIFT_VOX,
+    ROTATION,
+    UNIFORM,
     budget_scene,
     paper_optics,
 )
@@ -48,15 +53,26 @@ RENDERED = [  # (density per voxel, particle sigma, noise, windows)
 ]
 
 
-def coverage_row(label: str, res, shift) -> str:
-    """RMS error, median sigma and coverage per component."""
-    cells = []
-    for comp, s in zip("uvw", shift):
-        err = (getattr(res, comp) - s)[res.valid]
-        sigma = getattr(res, f"sigma_{comp}")[res.valid]
-        known = np.isfinite(sigma)
-        cells.append(f"{np.sqrt(np.mean(err ** 2)):.3f} / {np.median(sigma[known]):.3f} / "
-                     f"{np.mean(np.abs(err[known]) < sigma[known]):.0%}")
+def coverage_cells(errors, sigmas) -> str:
+    """RMS error / median sigma / fraction within one sigma of pooled components."""
+    err, sigma = np.concatenate(errors), np.concatenate(sigmas)
+    known = np.isfinite(sigma)
+    return (f"{np.sqrt(np.mean(err ** 2)):.3f} / {np.median(sigma[known]):.3f} / "
+            f"{np.mean(np.abs(err[known]) < sigma[known]):.0%}")
+
+
+def component_errors(res, truth) -> tuple[list, list]:
+    """Errors and sigmas of the valid vectors, per component ``u, v, w``."""
+    errors = [(getattr(res, c) - t)[res.valid] for c, t in zip("uvw", truth)]
+    sigmas = [getattr(res, f"sigma_{c}")[res.valid] for c in "uvw"]
+    return errors, sigmas
+
+
+def coverage_row(label: str, res, truth) -> str:
+    """Valid fraction, then per component u, v, w, lateral (u and v) and depth."""
+    errors, sigmas = component_errors(res, truth)
+    cells = [coverage_cells([e], [s]) for e, s in zip(errors, sigmas)]
+    cells += [coverage_cells(errors[:2], sigmas[:2]), coverage_cells(errors[2:], sigmas[2:])]
     return f"| {label} | {res.valid.mean():.0%} | " + " | ".join(cells) + " |"
 
 
@@ -67,25 +83,38 @@ def rendered_rows(queue, cases) -> list[str]:
         pair = flows.volume_pair((64, 96, 128), flows.Uniform(shift), density=density,
                                  sigma=sigma, seed=3, noise=noise)
         res = piv3d(pair.vol_a, pair.vol_b, queue=queue, windows=windows)
+        truth = [np.full(res.u.shape, s) for s in shift]
         rows.append(coverage_row(f"rendered: {density} /voxel, sigma {sigma}, noise {noise}, "
-                                 f"windows {windows}", res, shift))
+                                 f"windows {windows}", res, truth))
     return rows
 
 
-def reconstructed_rows(queue, seedings) -> list[str]:
-    """Per seeding: ``process_pair`` defaults (sub-voxels, particle refinement: sigma is
-    the pairs' standard error) and the chain before (voxels, correlation only: sigma from
-    correlation statistics), on the same scene."""
+def reconstructed_rows(queue, seedings, motions) -> list[str]:
+    """Per seeding and motion: ``process_pair`` defaults (sub-voxels, particle
+    refinement: sigma from the pairs and the focal zone) and the chain before (voxels,
+    correlation only: sigma from correlation statistics), on the same scene; then every
+    scene pooled."""
     cam, grid = paper_optics((96, 64))
     proj = Projector(cam, grid, queue)
-    rows = []
+    rows, pooled = [], {"default": ([], []), "before": ([], [])}
     for k, ppm in enumerate(seedings, start=1):
-        scene = budget_scene(cam, grid, ppm, seed=k, queue=queue)
-        for label, kw in (("default", {}), ("before", dict(settings=BASELINE_SETTINGS,
-                                                              particles=False))):
-            pair = process_pair(scene.raw_a, scene.raw_b, proj, **kw)
-            rows.append(coverage_row(f"reconstructed, {label}: {ppm} per microlens, windows "
-                                     f"{pair.piv.window[0]}", pair.piv, SHIFT_VOX))
+        for motion in motions:
+            scene = budget_scene(cam, grid, ppm, seed=k, queue=queue, motion=motion)
+            for label, kw in (("default", {}), ("before", dict(settings=BASELINE_SETTINGS,
+                                                                  particles=False))):
+                res = process_pair(scene.raw_a, scene.raw_b, proj, **kw).piv
+                truth = motion.displacement(res, grid)
+                rows.append(coverage_row(f"reconstructed, {label}: {motion.name}, {ppm} per "
+                                         f"microlens, windows {res.window[0]}", res, truth))
+                for store, new in zip(pooled[label], component_errors(res, truth)):
+                    store.extend(new)
+                print(rows[-1], flush=True)
+    for label, (errors, sigmas) in pooled.items():
+        lateral = [e for n, e in enumerate(errors) if n % 3 < 2]
+        lat_sigma = [s for n, s in enumerate(sigmas) if n % 3 < 2]
+        rows.append(f"| pooled, {label}: every scene above | | | | | "
+                    f"{coverage_cells(lateral, lat_sigma)} | "
+                    f"{coverage_cells(errors[2::3], sigmas[2::3])} |")
     return rows
 
 
@@ -97,11 +126,12 @@ def main() -> None:
     queue = get_queue()
     print(f"device: {queue.device.name.strip()}")
     print("per component: RMS error / median sigma / errors within 1 sigma (voxels)\n")
-    print("| case | valid | u | v | w |\n|---|---|---|---|---|")
+    print("| case | valid | u | v | w | lateral | depth |\n|---|---|---|---|---|---|---|")
     for row in rendered_rows(queue, RENDERED[:2] if args.quick else RENDERED):
         print(row, flush=True)
-    for row in reconstructed_rows(queue, [0.05] if args.quick else [0.02, 0.05, 0.1]):
-        print(row, flush=True)
+    rows = reconstructed_rows(queue, [0.05] if args.quick else [0.02, 0.05, 0.1],
+                              [UNIFORM] if args.quick else [UNIFORM, ROTATION])
+    print("\n".join(rows[-2:]))
 
 
 if __name__ == "__main__":

@@ -142,12 +142,19 @@ def test_a_whole_experiment_from_the_command_line(tmp_path, capsys):
     for tag in "ab":
         assert main(["reconstruct", str(d / f"raw_{tag}.tif"), "--camera", str(d / "cam.toml"),
                      "--grid", str(d / "grid.toml"), "--out", str(d / f"vol_{tag}.npz")]) == 0
+    capsys.readouterr()
     assert main(["piv", str(d / "vol_a.npz"), str(d / "vol_b.npz"), "--dt", "1e-3",
-                 "--out", str(d / "field.npz")]) == 0
+                 "--camera", str(d / "cam.toml"), "--out", str(d / "field.npz")]) == 0
     res, arrays = read_npz(d / "field.npz")
     u = arrays["velocity"][0][res.valid]
     assert np.median(u) == pytest.approx(0.25, rel=0.1)
-    assert "windows per pass" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "windows per pass" in out and "focal-zone" not in out
+    # without the camera the field comes out, and the missing focal-zone term is said
+    assert main(["piv", str(d / "vol_a.npz"), str(d / "vol_b.npz"), "--dt", "1e-3",
+                 "--out", str(d / "plain.npz")]) == 0
+    assert "without --camera the depth uncertainty has no focal-zone term" in (
+        capsys.readouterr().out)
 
 
 def test_ctrl_c_exits_130_with_one_line_and_warnings_print_once(tmp_path, capsys,

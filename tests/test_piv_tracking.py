@@ -10,10 +10,13 @@ from plenocl import Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.piv.tracking import (
     ONE_SIGMA,
+    POSITION_SIGMA,
+    FocalZone,
     ParticlePairs,
     pair_particles,
     predicted,
     refine_with_particles,
+    window_estimate,
     window_means,
 )
 
@@ -109,7 +112,8 @@ def test_the_one_sigma_quantile_is_the_normal_one():
 def test_a_gradient_across_sparse_windows_does_not_bias_their_means(scene):
     """A sheared field sampled by a few pairs per window: moved to each window's centre
     along the fitted local gradient, the pairs' mean is the field at the centre, exactly
-    (noise-free), wherever the pairs happen to lie."""
+    (noise-free), wherever the pairs happen to lie. The uncertainty is then only the
+    particles' depth-position term carried through the gradient's depth column."""
     field = scene[3]
     rng = np.random.default_rng(8)
     mid = rng.uniform([0, 0, 0], [56, 40, 48], (300, 3))
@@ -122,4 +126,63 @@ def test_a_gradient_across_sparse_windows_does_not_bias_their_means(scene):
     ok = np.isfinite(mean[0])
     assert ok.mean() > 0.9 and count[ok].min() >= 3
     np.testing.assert_allclose(mean[:, ok], truth[:, ok], atol=1e-9)
-    assert np.nanmax(error) < 1e-9
+    position = np.abs(grad[:, 2]) * POSITION_SIGMA[2]
+    np.testing.assert_allclose(error[:, ok], position[:, None] * np.ones(ok.sum()), atol=1e-5)
+
+
+def test_the_focal_zone_sits_at_z_0_and_spans_the_cameras_depth_resolution():
+    from plenocl import Camera
+
+    cam = Camera.paper_16mp()
+    grid = Grid((150, 20, 30), x=(-3, 3), y=(-2, 2), z=(-10.0, 10.0))
+    zone = FocalZone.of(cam, grid)
+    assert zone.plane == pytest.approx(74.5)  # voxel 74.5's centre is z = 0
+    assert zone.resolution * grid.spacing[0] == pytest.approx(cam.depth_resolution_mm)
+    r = zone.resolution
+    got = zone.ambiguity(zone.plane + np.array([0.0, -r, r, 2 * r, -3 * r]))
+    np.testing.assert_allclose(got, r / np.sqrt(3) * np.array([1, 0.5, 0.5, 0, 0]), atol=1e-9)
+
+
+def collapsing_window(rng, true_w: float, n_out: int, n_in: int, zone: FocalZone):
+    """A window's pairs: ``n_out`` out of focus measuring ``true_w`` with 1 voxel of
+    noise, ``n_in`` at the focal plane whose depth displacement collapsed to 0."""
+    d = np.zeros((n_out + n_in, 3))
+    d[:n_out, 2] = true_w + rng.normal(0, 1.0, n_out)
+    d[n_out:, 2] = rng.normal(0, 0.3, n_in)
+    d[:, :2] = rng.normal(0, 0.1, (n_out + n_in, 2))
+    depth = np.r_[zone.plane + 2.5 * zone.resolution + np.zeros(n_out),
+                  zone.plane + rng.uniform(-1, 1, n_in)]
+    return d, depth
+
+
+def test_pairs_at_the_focal_plane_are_weighted_down_and_their_bias_is_covered():
+    """Pairs whose depth displacement collapsed at the focal plane pull a plain mean
+    towards 0; weighted by the focal zone's ambiguity the mean follows the pairs that
+    measure depth, and its uncertainty covers what is left. Lateral components are
+    untouched."""
+    zone = FocalZone(plane=50.0, resolution=8.0)
+    rng = np.random.default_rng(4)
+    plain, weighted, covered = [], [], []
+    for _ in range(200):
+        d, depth = collapsing_window(rng, 1.7, n_out=8, n_in=6, zone=zone)
+        mean, sigma = window_estimate(d, depth, np.zeros((3, 3)), zone)
+        flat, flat_sigma = window_estimate(d, depth, np.zeros((3, 3)), None)
+        assert mean[:2] == pytest.approx(flat[:2]) and sigma[:2] == pytest.approx(flat_sigma[:2])
+        plain.append(flat[2] - 1.7)
+        weighted.append(mean[2] - 1.7)
+        covered.append(abs(mean[2] - 1.7) <= sigma[2])
+        assert sigma[2] > flat_sigma[2]
+    assert abs(np.mean(weighted)) < 0.3 * abs(np.mean(plain))
+    assert np.sqrt(np.mean(np.square(weighted))) < np.sqrt(np.mean(np.square(plain)))
+    assert np.mean(covered) >= 0.68
+
+
+def test_a_window_inside_the_focal_zone_reports_the_depth_it_cannot_see():
+    """All pairs at the focal plane: the depth uncertainty is the zone's ambiguity, not
+    the (small) scatter of collapsed pairs."""
+    zone = FocalZone(plane=50.0, resolution=8.0)
+    d, depth = collapsing_window(np.random.default_rng(5), 1.7, n_out=0, n_in=10, zone=zone)
+    _, sigma = window_estimate(d, depth, np.zeros((3, 3)), zone)
+    _, flat_sigma = window_estimate(d, depth, np.zeros((3, 3)), None)
+    assert flat_sigma[2] < 0.3 < 1.7 < sigma[2]
+    assert sigma[2] == pytest.approx(np.mean(zone.ambiguity(depth)), rel=0.05)

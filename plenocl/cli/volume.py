@@ -51,7 +51,7 @@ def piv_command(args: argparse.Namespace) -> int:
     from ..io.fields import save_field
     from ..io.files import load_volume
     from ..piv import piv3d
-    from ..piv.tracking import refine_with_particles
+    from ..piv.tracking import FocalZone, refine_with_particles
 
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, grid_b = load_volume(args.vol_b)
@@ -64,9 +64,12 @@ def piv_command(args: argparse.Namespace) -> int:
                          "displacements become millimetres and metres per second")
     res = piv3d(vol_a, vol_b, windows=tuple(args.windows) if args.windows else None)
     if args.particles:
-        res = refine_with_particles(res, vol_a, vol_b)
+        focus = FocalZone.of(load_camera(args.camera), grid) if args.camera else None
+        res = refine_with_particles(res, vol_a, vol_b, focus=focus)
         log = res.refinement
-        print(f"particle refinement: {log['pairs']} particle pairs, {log['vectors']} vectors")
+        print(f"particle refinement: {log['pairs']} particle pairs, {log['vectors']} vectors"
+              + ("" if focus else "; without --camera the depth uncertainty has no "
+                 "focal-zone term (docs/design.md §7.1)"))
     used = ", ".join(str(w) for w in dict.fromkeys(p["window"] for p in res.passes))
     print(f"windows per pass (z, y, x voxels): {used}")
     save_field(args.out, res, dt=args.dt, grid=grid)
@@ -122,6 +125,11 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--no-particles", dest="particles", action="store_false",
                    help="keep the correlation's field (default: each window's vector refined "
                         "by its matched particle pairs, as process_pair)")
+    p.add_argument("--camera", default=None,
+                   help="camera TOML (or a preset name) the volumes were reconstructed with: "
+                        "pairs near its focal plane, whose depth is not measured, are weighted "
+                        "down and the depth uncertainty gets their systematic term, as in "
+                        "process_pair")
     p.set_defaults(func=piv_command)
     return p
 

@@ -222,12 +222,13 @@ def _stage_mart(run, sc, cam, queue) -> None:
 def _stage_piv(run: StageRunner, sc: Scenario) -> None:
     from ..io.fields import save_field
     from ..piv.multipass import piv3d
-    from ..piv.tracking import refine_with_particles
+    from ..piv.tracking import FocalZone, refine_with_particles
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
     vol_b, _ = load_volume(run.path("vol_b.npz"))
     # process_pair's correlation: the field refined by the volumes' particle pairs
-    res = refine_with_particles(piv3d(vol_a, vol_b, windows=sc.windows), vol_a, vol_b)
+    res = refine_with_particles(piv3d(vol_a, vol_b, windows=sc.windows), vol_a, vol_b,
+                                focus=FocalZone.of(sc.camera, sc.grid))
     for name in ("field.npz", "field.vti"):
         save_field(run.path(name), res, dt=DT, grid=sc.grid)
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..piv import PIVResult, piv3d
-from ..piv.tracking import refine_with_particles
+from ..piv.tracking import FocalZone, refine_with_particles
 from ..reconstruction import (
     PAIR_SUPERSAMPLE,
     ProjectionOperator,
@@ -87,8 +87,10 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
     particles
         Refine the correlation's final field with the volumes' particles
         (:func:`plenocl.piv.tracking.refine_with_particles`, docs/design.md §7.1): each
-        window's displacement becomes the mean of its matched particle pairs, and its
-        uncertainty their standard error. ``False``: the correlation's field.
+        window's displacement becomes the mean of its matched particle pairs (those near
+        the camera's focal plane, whose depth is not measured, weighted down), and its
+        uncertainty their standard error with the focal zone's systematic depth term.
+        ``False``: the correlation's field.
 
     Returns
     -------
@@ -114,6 +116,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         info_a, info_b = infos
     if particles:
         t0 = time.perf_counter()
-        res = refine_with_particles(res, vol_a, vol_b)
+        res = refine_with_particles(res, vol_a, vol_b,
+                                    focus=FocalZone.of(projector.camera, projector.grid))
         seconds["particles"] = time.perf_counter() - t0
     return PairResult(vol_a, vol_b, res, info_a, info_b, seconds)

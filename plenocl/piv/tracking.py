@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import stats
@@ -38,12 +39,20 @@ from .multipass import PIVResult
 from .peaks import find_particles
 from .validation import normalized_median_test, replace_outliers
 
+if TYPE_CHECKING:
+    from ..camera import Camera
+    from ..grid import Grid
+
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
 #: Fewest pairs in the doubled window for a displacement-gradient fit (12 unknowns).
 GRADIENT_PAIRS = 12
 #: The upper quantile of a one-sigma (68.3 %) two-sided interval.
 ONE_SIGMA = 0.8413447460685429
+#: Standard uncertainty (x, y, z voxels) of a reconstructed particle's position that
+#: its pair partner shares: at the paper's optics the reconstruction draws particles
+#: 0.5-1 voxel towards the focal plane (docs/design.md §7.1), laterally it is unbiased.
+POSITION_SIGMA = (0.0, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -101,10 +110,70 @@ def local_gradient(pairs: ParticlePairs, near: list[int], centre: np.ndarray,
     return coef[1:].T
 
 
-def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH):
-    """Per window of ``field``'s grid: the mean pair displacement at the window's centre
-    ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain), its
-    uncertainty, and the pair counts."""
+@dataclass(frozen=True)
+class FocalZone:
+    """Where the camera cannot see depth: the nominal focal plane's depth index
+    ``plane`` and the camera's depth resolution ``resolution`` (both in voxels of the
+    volume; :attr:`plenocl.Camera.depth_resolution_mm`). Within ``resolution`` of the
+    plane a particle's blur stays inside one microlens (docs/design.md §2), so its
+    reconstructed depth, and a pair's depth displacement, is not measured: both
+    exposures' particles are drawn to the same depth (docs/design.md §7.1)."""
+
+    plane: float
+    resolution: float
+
+    @classmethod
+    def of(cls, camera: Camera, grid: Grid) -> FocalZone:
+        """The focal zone of ``camera`` on ``grid`` (depth from ``grid.z``, which puts
+        the nominal focal plane at z = 0)."""
+        dz = grid.spacing[0]
+        return cls(plane=-grid.z[0] / dz - 0.5, resolution=camera.depth_resolution_mm / dz)
+
+    def ambiguity(self, z: np.ndarray) -> np.ndarray:
+        """A pair's systematic depth uncertainty (voxels) at depth index ``z``: the
+        standard deviation of a depth known only within ``±resolution`` (``resolution /
+        sqrt(3)``) at the plane, falling linearly to 0 at twice the resolution, where
+        the blur spans two microlenses and the parallax is read in every case."""
+        reach = np.clip(1.0 - np.abs(np.asarray(z, float) - self.plane)
+                        / (2.0 * self.resolution), 0.0, None)
+        return self.resolution / np.sqrt(3.0) * reach
+
+
+def window_estimate(d: np.ndarray, depth: np.ndarray, grad: np.ndarray,
+                    focus: FocalZone | None) -> tuple[np.ndarray, np.ndarray]:
+    """The displacement ``(3,)`` of one window from its pairs' displacements ``d``
+    ``(n, 3)`` (already moved to the window's centre) at depth indices ``depth``, and
+    its standard uncertainty.
+
+    Each component is the mean of the pairs weighted by ``1 / (s² + a²)``: ``s²`` the
+    pairs' variance about their mean, ``a`` a pair's systematic depth uncertainty in
+    the focal zone (:meth:`FocalZone.ambiguity`; depth only, 0 without ``focus``). The
+    uncertainty adds in quadrature the random part (the weighted mean's standard error
+    times Student's t quantile for the effective number of pairs), the systematic part
+    (the weighted mean of ``a``: the pairs near the focal plane err together), and the
+    particles' reconstructed positions (:data:`POSITION_SIGMA`) carried through the
+    local displacement gradient ``grad`` ``(3, 3)``.
+    """
+    a = np.zeros_like(d)
+    if focus is not None:
+        a[:, 2] = focus.ambiguity(depth)
+    s2 = np.maximum(d.var(axis=0, ddof=1), 1e-12)
+    w = 1.0 / (s2 + a ** 2)
+    total = w.sum(axis=0)
+    mean = (w * d).sum(axis=0) / total
+    n_eff = total ** 2 / (w ** 2).sum(axis=0)
+    random = (np.sqrt(s2 * (w ** 2).sum(axis=0)) / total
+              * stats.t.ppf(ONE_SIGMA, np.maximum(n_eff - 1, 1)))
+    systematic = (w * a).sum(axis=0) / total
+    position = np.sqrt(((grad * np.asarray(POSITION_SIGMA)) ** 2).sum(axis=1))
+    return mean, np.sqrt(random ** 2 + systematic ** 2 + position ** 2)
+
+
+def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH,
+                 focus: FocalZone | None = None):
+    """Per window of ``field``'s grid: the displacement of its pairs at the window's
+    centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
+    :func:`window_estimate`), its uncertainty, and the pair counts."""
     shape = field.u.shape
     mean, error = np.full((2, 3, *shape), np.nan)
     count = np.zeros(shape, int)
@@ -120,18 +189,17 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
         grad = local_gradient(pairs, tree.query_ball_point(centre / half, 2.0, p=np.inf),
                               centre, search)
         d = pairs.displacements[inside] - (pairs.midpoints[inside] - centre) @ grad.T
-        d = d[np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1)]
-        count[k, j, i] = len(d)
-        if len(d) >= min_pairs:
-            mean[:, k, j, i] = d.mean(axis=0)
-            error[:, k, j, i] = (d.std(axis=0, ddof=1) / np.sqrt(len(d))
-                                 * stats.t.ppf(ONE_SIGMA, len(d) - 1))
+        keep = np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1)
+        count[k, j, i] = np.count_nonzero(keep)
+        if count[k, j, i] >= min_pairs:
+            mean[:, k, j, i], error[:, k, j, i] = window_estimate(
+                d[keep], pairs.midpoints[inside][keep, 2], grad, focus)
     return mean, error, count
 
 
 def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray,
                           threshold: float = 0.1, min_pairs: int = 3,
-                          search=SEARCH) -> PIVResult:
+                          search=SEARCH, focus: FocalZone | None = None) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -143,7 +211,7 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     records the pairs found, the vectors refined and the outliers.
     """
     pairs = pair_particles(vol_a, vol_b, field, threshold, search)
-    mean, error, count = window_means(pairs, field, min_pairs, search)
+    mean, error, count = window_means(pairs, field, min_pairs, search, focus)
     use = np.isfinite(mean[0]) & ~field.masked
     vectors = np.stack([np.where(use, mean[n], getattr(field, c))
                         for n, c in enumerate("uvw")])
