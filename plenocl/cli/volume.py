@@ -127,9 +127,8 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
                         "by its matched particle pairs, as process_pair)")
     p.add_argument("--camera", default=None,
                    help="camera TOML (or a preset name) the volumes were reconstructed with: "
-                        "pairs near its focal plane, whose depth is not measured, are weighted "
-                        "down and the depth uncertainty gets their systematic term, as in "
-                        "process_pair")
+                        "the depth uncertainty of pairs near its focal plane, whose depth is "
+                        "not measured, gets their systematic term, as in process_pair")
     p.set_defaults(func=piv_command)
     return p
 

@@ -87,9 +87,9 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
     particles
         Refine the correlation's final field with the volumes' particles
         (:func:`plenocl.piv.tracking.refine_with_particles`, docs/design.md §7.1): each
-        window's displacement becomes the mean of its matched particle pairs (those near
-        the camera's focal plane, whose depth is not measured, weighted down), and its
-        uncertainty their standard error with the focal zone's systematic depth term.
+        window's displacement becomes the mean of its matched particle pairs, and its
+        uncertainty their standard error with the systematic depth term of the pairs
+        near the camera's focal plane, whose depth is not measured.
         ``False``: the correlation's field.
 
     Returns

@@ -145,28 +145,21 @@ def window_estimate(d: np.ndarray, depth: np.ndarray, grad: np.ndarray,
     ``(n, 3)`` (already moved to the window's centre) at depth indices ``depth``, and
     its standard uncertainty.
 
-    Each component is the mean of the pairs weighted by ``1 / (s² + a²)``: ``s²`` the
-    pairs' variance about their mean, ``a`` a pair's systematic depth uncertainty in
-    the focal zone (:meth:`FocalZone.ambiguity`; depth only, 0 without ``focus``). The
-    uncertainty adds in quadrature the random part (the weighted mean's standard error
-    times Student's t quantile for the effective number of pairs), the systematic part
-    (the weighted mean of ``a``: the pairs near the focal plane err together), and the
-    particles' reconstructed positions (:data:`POSITION_SIGMA`) carried through the
-    local displacement gradient ``grad`` ``(3, 3)``.
+    The displacement is the pairs' mean. Its uncertainty adds in quadrature the random
+    part (the standard error times Student's t quantile for ``n`` pairs), the focal
+    zone's systematic depth part (the mean of the pairs' :meth:`FocalZone.ambiguity`:
+    the pairs near the focal plane err together, so it does not shrink with their
+    number; 0 without ``focus``), and the particles' reconstructed positions
+    (:data:`POSITION_SIGMA`) carried through the local displacement gradient ``grad``
+    ``(3, 3)``.
     """
-    a = np.zeros_like(d)
+    n = len(d)
+    random = d.std(axis=0, ddof=1) / np.sqrt(n) * stats.t.ppf(ONE_SIGMA, n - 1)
+    systematic = np.zeros(3)
     if focus is not None:
-        a[:, 2] = focus.ambiguity(depth)
-    s2 = np.maximum(d.var(axis=0, ddof=1), 1e-12)
-    w = 1.0 / (s2 + a ** 2)
-    total = w.sum(axis=0)
-    mean = (w * d).sum(axis=0) / total
-    n_eff = total ** 2 / (w ** 2).sum(axis=0)
-    random = (np.sqrt(s2 * (w ** 2).sum(axis=0)) / total
-              * stats.t.ppf(ONE_SIGMA, np.maximum(n_eff - 1, 1)))
-    systematic = (w * a).sum(axis=0) / total
+        systematic[2] = focus.ambiguity(depth).mean()
     position = np.sqrt(((grad * np.asarray(POSITION_SIGMA)) ** 2).sum(axis=1))
-    return mean, np.sqrt(random ** 2 + systematic ** 2 + position ** 2)
+    return d.mean(axis=0), np.sqrt(random ** 2 + systematic ** 2 + position ** 2)
 
 
 def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH,
