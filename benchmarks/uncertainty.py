@@ -96,7 +96,9 @@ def reconstructed_rows(queue, seedings, motions) -> list[str]:
     scene pooled."""
     cam, grid = paper_optics((96, 64))
     proj = Projector(cam, grid, queue)
-    rows, pooled = [], {"default": ([], []), "before": ([], [])}
+    # per chain: errors and sigmas of every scene, by component u, v, w
+    rows, pooled = [], {label: [[[] for _ in "uvw"] for _ in range(2)]
+                        for label in ("default", "before")}
     for k, ppm in enumerate(seedings, start=1):
         for motion in motions:
             scene = budget_scene(cam, grid, ppm, seed=k, queue=queue, motion=motion)
@@ -107,14 +109,13 @@ def reconstructed_rows(queue, seedings, motions) -> list[str]:
                 rows.append(coverage_row(f"reconstructed, {label}: {motion.name}, {ppm} per "
                                          f"microlens, windows {res.window[0]}", res, truth))
                 for store, new in zip(pooled[label], component_errors(res, truth)):
-                    store.extend(new)
+                    for by_comp, values in zip(store, new):
+                        by_comp.append(values)
                 print(rows[-1], flush=True)
-    for label, (errors, sigmas) in pooled.items():
-        lateral = [e for n, e in enumerate(errors) if n % 3 < 2]
-        lat_sigma = [s for n, s in enumerate(sigmas) if n % 3 < 2]
+    for label, ((err_u, err_v, err_w), (sig_u, sig_v, sig_w)) in pooled.items():
         rows.append(f"| pooled, {label}: every scene above | | | | | "
-                    f"{coverage_cells(lateral, lat_sigma)} | "
-                    f"{coverage_cells(errors[2::3], sigmas[2::3])} |")
+                    f"{coverage_cells(err_u + err_v, sig_u + sig_v)} | "
+                    f"{coverage_cells(err_w, sig_w)} |")
     return rows
 
 

@@ -15,9 +15,12 @@ window's centre along the local displacement gradient (a least-squares linear fi
 pairs in the window grown to twice its size, where it holds at least
 :data:`GRADIENT_PAIRS`; otherwise none), after leaving out pairs farther than ``search``
 from the window's median. Without that step, a gradient across a sparse window would
-bias its mean by where its few particles happen to lie. The vector's uncertainty is the
-half-width of the mean's 68.3 % confidence interval (the standard error times Student's
-t quantile for the pairs it holds: 1.32 for 3 pairs, 1.05 for 11). Windows with fewer
+bias its mean by where its few particles happen to lie. The vector's uncertainty
+(:func:`window_estimate`) adds in quadrature the half-width of the mean's 68.3 %
+confidence interval (the standard error times Student's t quantile for the pairs it
+holds: 1.32 for 3 pairs, 1.05 for 11), the systematic depth error of pairs in the
+camera's focal zone (:class:`FocalZone`), which err together, and the particles'
+reconstructed depth position carried through the local gradient. Windows with fewer
 than ``min_pairs`` pairs keep the correlation's vector. The refined field is validated
 like the correlation's last pass (normalised median test, outliers replaced): a cluster
 of failed windows at a face of the volume can survive the correlation's test and the
@@ -95,13 +98,21 @@ def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
     return ParticlePairs(pa[ia] + disp / 2, disp)
 
 
+def near_median(d: np.ndarray, search=SEARCH) -> np.ndarray:
+    """Which displacements ``d`` ``(n, 3)`` lie within ``search`` (x, y, z voxels) of
+    their median, per component: the pairs a window or a gradient fit keeps."""
+    if not len(d):
+        return np.zeros(0, bool)
+    return np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1)
+
+
 def local_gradient(pairs: ParticlePairs, near: list[int], centre: np.ndarray,
                    search=SEARCH) -> np.ndarray:
     """The displacement gradient ``(3, 3)`` (component, x/y/z) fitted by least squares to
     the pairs ``near`` (those within ``search`` of their median), or zeros with fewer
     than :data:`GRADIENT_PAIRS` of them."""
     d = pairs.displacements[near]
-    keep = np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1) if len(d) else []
+    keep = near_median(d, search)
     if np.count_nonzero(keep) < GRADIENT_PAIRS:
         return np.zeros((3, 3))
     offsets = pairs.midpoints[near][keep] - centre
@@ -182,7 +193,7 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
         grad = local_gradient(pairs, tree.query_ball_point(centre / half, 2.0, p=np.inf),
                               centre, search)
         d = pairs.displacements[inside] - (pairs.midpoints[inside] - centre) @ grad.T
-        keep = np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1)
+        keep = near_median(d, search)
         count[k, j, i] = np.count_nonzero(keep)
         if count[k, j, i] >= min_pairs:
             mean[:, k, j, i], error[:, k, j, i] = window_estimate(
