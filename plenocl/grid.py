@@ -142,6 +142,16 @@ class Grid:
         lo = np.array([self.x[0], self.y[0], self.z[0]])
         return (pts - lo) / np.array([dx, dy, dz]) - 0.5
 
+    def from_index(self, index_xyz) -> np.ndarray:
+        """Object-space points ``(N, 3)`` of fractional voxel indices ``(ix, iy, iz)``
+        (the inverse of :meth:`to_index`)."""
+        idx = np.asarray(index_xyz, dtype=np.float64).reshape(-1, 3)
+        dz, dy, dx = self.spacing
+        lo = np.array([self.x[0], self.y[0], self.z[0]])
+        pts = (idx + 0.5) * np.array([dx, dy, dz]) + lo
+        wx, wy = self.to_world(pts[:, 0], pts[:, 1])
+        return np.column_stack([wx, wy, pts[:, 2]])
+
     def contains(self, points_xyz) -> np.ndarray:
         """Whether each object-space point lies inside the volume."""
         pts = self.to_frame(points_xyz)

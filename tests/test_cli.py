@@ -143,18 +143,26 @@ def test_a_whole_experiment_from_the_command_line(tmp_path, capsys):
         assert main(["reconstruct", str(d / f"raw_{tag}.tif"), "--camera", str(d / "cam.toml"),
                      "--grid", str(d / "grid.toml"), "--out", str(d / f"vol_{tag}.npz")]) == 0
     capsys.readouterr()
+    raws = [str(d / f"raw_{tag}.tif") for tag in "ab"]
     assert main(["piv", str(d / "vol_a.npz"), str(d / "vol_b.npz"), "--dt", "1e-3",
-                 "--camera", str(d / "cam.toml"), "--out", str(d / "field.npz")]) == 0
+                 "--camera", str(d / "cam.toml"), "--raw", *raws,
+                 "--out", str(d / "field.npz")]) == 0
     res, arrays = read_npz(d / "field.npz")
     u = arrays["velocity"][0][res.valid]
     assert np.median(u) == pytest.approx(0.25, rel=0.1)
     out = capsys.readouterr().out
-    assert "windows per pass" in out and "focal-zone" not in out
-    # without the camera the field comes out, and the missing focal-zone term is said
+    assert "windows per pass" in out and "focal-zone" not in out and "--raw" not in out
+    # without the camera the field comes out, and the missing terms are said
     assert main(["piv", str(d / "vol_a.npz"), str(d / "vol_b.npz"), "--dt", "1e-3",
                  "--out", str(d / "plain.npz")]) == 0
-    assert "without --camera the depth uncertainty has no focal-zone term" in (
-        capsys.readouterr().out)
+    out = capsys.readouterr().out
+    assert "without --camera the depth uncertainty has no focal-zone term" in out
+    assert "without --raw the particles are the volumes' peaks" in out
+    # raw images need the camera whose rays they are fitted with
+    assert main(["piv", str(d / "vol_a.npz"), str(d / "vol_b.npz"), "--dt", "1e-3",
+                 "--raw", *raws, "--out", str(d / "no.npz")]) == 2
+    assert "--raw needs --camera" in capsys.readouterr().err
+    assert not (d / "no.npz").exists()
 
 
 def test_ctrl_c_exits_130_with_one_line_and_warnings_print_once(tmp_path, capsys,

@@ -9,6 +9,8 @@ import pytest
 from plenocl import Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.piv.tracking import (
+    FITTED_POSITION_SIGMA,
+    FOCAL_SYSTEMATIC,
     ONE_SIGMA,
     POSITION_SIGMA,
     FocalZone,
@@ -140,7 +142,8 @@ def test_the_focal_zone_sits_at_z_0_and_spans_the_cameras_depth_resolution():
     assert zone.resolution * grid.spacing[0] == pytest.approx(cam.depth_resolution_mm)
     r = zone.resolution
     got = zone.ambiguity(zone.plane + np.array([0.0, -r, r, 2 * r, -3 * r]))
-    np.testing.assert_allclose(got, r / np.sqrt(3) * np.array([1, 0.5, 0.5, 0, 0]), atol=1e-9)
+    np.testing.assert_allclose(got, FOCAL_SYSTEMATIC * r * np.array([1, 0.5, 0.5, 0, 0]),
+                               atol=1e-9)
 
 
 def collapsing_window(rng, true_w: float, n_out: int, n_in: int, zone: FocalZone):
@@ -156,22 +159,22 @@ def collapsing_window(rng, true_w: float, n_out: int, n_in: int, zone: FocalZone
 
 
 def test_the_focal_zones_systematic_term_covers_pairs_that_collapsed():
-    """Pairs whose depth displacement collapsed at the focal plane pull the window's mean
-    towards 0 together, which their scatter does not show; with the focal zone the
-    depth uncertainty covers that error. The mean and the lateral components are
-    untouched."""
+    """Pairs whose depth displacement (0.6 voxel, about the zone's systematic term at
+    the plane) collapsed at the focal plane pull the window's mean towards 0 together,
+    which their scatter does not show; with the focal zone the depth uncertainty covers
+    that error. The mean and the lateral components are untouched."""
     zone = FocalZone(plane=50.0, resolution=8.0)
     rng = np.random.default_rng(4)
     covered, covered_flat = [], []
     for _ in range(200):
-        d, depth = collapsing_window(rng, 1.7, n_out=8, n_in=6, zone=zone)
+        d, depth = collapsing_window(rng, 0.6, n_out=6, n_in=10, zone=zone)
         mean, sigma = window_estimate(d, depth, np.zeros((3, 3)), zone)
         flat, flat_sigma = window_estimate(d, depth, np.zeros((3, 3)), None)
         np.testing.assert_allclose(mean, d.mean(axis=0))
         np.testing.assert_allclose(flat, mean)
         np.testing.assert_allclose(sigma[:2], flat_sigma[:2])
-        covered.append(abs(mean[2] - 1.7) <= sigma[2])
-        covered_flat.append(abs(flat[2] - 1.7) <= flat_sigma[2])
+        covered.append(abs(mean[2] - 0.6) <= sigma[2])
+        covered_flat.append(abs(flat[2] - 0.6) <= flat_sigma[2])
     assert np.mean(covered_flat) < 0.5 <= 0.68 <= np.mean(covered)
 
 
@@ -179,8 +182,24 @@ def test_a_window_inside_the_focal_zone_reports_the_depth_it_cannot_see():
     """All pairs at the focal plane: the depth uncertainty is the zone's ambiguity, not
     the (small) scatter of collapsed pairs."""
     zone = FocalZone(plane=50.0, resolution=8.0)
-    d, depth = collapsing_window(np.random.default_rng(5), 1.7, n_out=0, n_in=10, zone=zone)
+    d, depth = collapsing_window(np.random.default_rng(5), 0.6, n_out=0, n_in=10, zone=zone)
     _, sigma = window_estimate(d, depth, np.zeros((3, 3)), zone)
     _, flat_sigma = window_estimate(d, depth, np.zeros((3, 3)), None)
-    assert flat_sigma[2] < 0.3 < 1.7 < sigma[2]
+    assert flat_sigma[2] < 0.3 < 0.6 < sigma[2]
     assert sigma[2] == pytest.approx(np.mean(zone.ambiguity(depth)), rel=0.05)
+
+
+def test_fitted_particles_carry_the_smaller_position_term(scene):
+    """With a linear gradient and noise-free pairs the uncertainty is the position term
+    alone: the fitted particles' depth position (FITTED_POSITION_SIGMA) through it."""
+    field = scene[3]
+    rng = np.random.default_rng(9)
+    mid = rng.uniform([0, 0, 0], [56, 40, 48], (300, 3))
+    grad = np.array([[0.0, 0.0, 0.05], [0.0, 0.0, -0.02], [0.0, 0.0, 0.0]])
+    disp = SHIFT + (mid - 20.0) @ grad.T
+    _, error, _ = window_means(ParticlePairs(mid, disp), field,
+                               position_sigma=FITTED_POSITION_SIGMA)
+    ok = np.isfinite(error[0])
+    expected = np.abs(grad[:, 2]) * FITTED_POSITION_SIGMA[2]
+    np.testing.assert_allclose(error[:, ok], expected[:, None] * np.ones(ok.sum()), atol=1e-5)
+    assert FITTED_POSITION_SIGMA[2] < POSITION_SIGMA[2]

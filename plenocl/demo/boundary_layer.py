@@ -126,7 +126,8 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     """
     sc = scenario(size)
     flow = CameraFrameFlow(sc, seed)
-    chain = {"supersample": PAIR_SETTINGS.supersample, "refinement": "particles"}
+    chain = {"supersample": PAIR_SETTINGS.supersample,
+             "refinement": "particles fitted to the raw images"}
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: _stage_particles(run, sc, flow, seed))
@@ -138,7 +139,7 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
             lambda: _stage_reconstruction(run, sc, cam, "mlem", sc.iterations, queue))
     run.run("reconstruction_mart", ["vol_a_mart.npz"],
             lambda: _stage_mart(run, sc, cam, queue))
-    run.run("piv", ["field.npz", "field.vti"], lambda: _stage_piv(run, sc))
+    run.run("piv", ["field.npz", "field.vti"], lambda: _stage_piv(run, sc, cam))
     summary = evaluate(run, sc, flow)
     if figures:
         from .figures import boundary_layer_figures
@@ -219,16 +220,21 @@ def _stage_mart(run, sc, cam, queue) -> None:
     _reconstruct_file(run, sc, Projector(cam, sc.grid, queue), "a", "mart", 5, 1.0, "_mart")
 
 
-def _stage_piv(run: StageRunner, sc: Scenario) -> None:
+def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera) -> None:
     from ..io.fields import save_field
+    from ..io.files import read_image
+    from ..piv.imagefit import ImageFit
     from ..piv.multipass import piv3d
     from ..piv.tracking import FocalZone, refine_with_particles
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
     vol_b, _ = load_volume(run.path("vol_b.npz"))
-    # process_pair's correlation: the field refined by the volumes' particle pairs
+    # process_pair's correlation: the field refined by the volumes' particle pairs, each
+    # particle first fitted to its raw image with the calibrated camera
+    raws = [read_image(run.path(f"raw_{tag}.tif")) for tag in "ab"]
     res = refine_with_particles(piv3d(vol_a, vol_b, windows=sc.windows), vol_a, vol_b,
-                                focus=FocalZone.of(sc.camera, sc.grid))
+                                focus=FocalZone.of(sc.camera, sc.grid),
+                                fit=ImageFit(cam, sc.grid, raws))
     for name in ("field.npz", "field.vti"):
         save_field(run.path(name), res, dt=DT, grid=sc.grid)
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..piv import PIVResult, piv3d
+from ..piv.imagefit import ImageFit, ImageFitSettings
 from ..piv.tracking import FocalZone, refine_with_particles
 from ..reconstruction import (
     PAIR_SUPERSAMPLE,
@@ -59,7 +60,8 @@ class PairResult:
 def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
                  settings: ReconstructionSettings | None = None,
                  piv_options: dict | None = None, mte: MTESettings | None = None,
-                 particles: bool = True) -> PairResult:
+                 particles: bool = True,
+                 image_fit: bool | ImageFitSettings = True) -> PairResult:
     """Reconstruct two raw images with one projector and correlate the volumes.
 
     Parameters
@@ -91,6 +93,12 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         uncertainty their standard error with the systematic depth term of the pairs
         near the camera's focal plane, whose depth is not measured.
         ``False``: the correlation's field.
+    image_fit
+        Before pairing, refine each volume's particles against its raw image
+        (:class:`plenocl.piv.imagefit.ImageFit`, docs/design.md §7.2): the depth error
+        of the vectors falls by about a third at the paper's optics. ``True``: with
+        the default :class:`~plenocl.piv.imagefit.ImageFitSettings`; settings: with
+        those; ``False``: the volumes' peaks as they are.
 
     Returns
     -------
@@ -116,7 +124,12 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         info_a, info_b = infos
     if particles:
         t0 = time.perf_counter()
+        fit = None
+        if image_fit is not False:
+            fit = ImageFit(projector.camera, projector.grid, (raw_a, raw_b),
+                           None if image_fit is True else image_fit)
         res = refine_with_particles(res, vol_a, vol_b,
-                                    focus=FocalZone.of(projector.camera, projector.grid))
+                                    focus=FocalZone.of(projector.camera, projector.grid),
+                                    fit=fit)
         seconds["particles"] = time.perf_counter() - t0
     return PairResult(vol_a, vol_b, res, info_a, info_b, seconds)

@@ -3,7 +3,9 @@
 - :mod:`.correlation`: windows, batched FFT correlation, sub-voxel peak fit;
 - :mod:`.deform`: predictor resampling and volume deformation;
 - :mod:`.validation`: outlier detection and replacement;
-- :mod:`.multipass`: :func:`piv3d` and :class:`PIVResult` (velocities, gradients).
+- :mod:`.multipass`: :func:`piv3d` and :class:`PIVResult` (velocities, gradients);
+- :mod:`.tracking`: the refinement by the volumes' matched particle pairs;
+- :mod:`.raybundle`, :mod:`.imagefit`: those particles fitted to the raw images.
 """
 
 from .multipass import (

@@ -45,6 +45,7 @@ from .validation import normalized_median_test, replace_outliers
 if TYPE_CHECKING:
     from ..camera import Camera
     from ..grid import Grid
+    from .imagefit import ImageFit
 
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
@@ -56,6 +57,14 @@ ONE_SIGMA = 0.8413447460685429
 #: its pair partner shares: at the paper's optics the reconstruction draws particles
 #: 0.5-1 voxel towards the focal plane (docs/design.md §7.1), laterally it is unbiased.
 POSITION_SIGMA = (0.0, 0.0, 1.0)
+#: The same for particles fitted to the raw images (docs/design.md §7.2): the draw
+#: towards the focal plane falls to 0-0.35 voxel.
+FITTED_POSITION_SIGMA = (0.0, 0.0, 0.3)
+#: A focal-plane pair's systematic depth uncertainty as a fraction of the camera's depth
+#: resolution (0.75 voxel at the paper's optics): calibrated on reconstructed scenes so that
+#: about 68 % of the depth errors of windows within 2 mm of the focal plane lie within
+#: one sigma (docs/design.md §7.1).
+FOCAL_SYSTEMATIC = 0.087
 
 
 @dataclass(frozen=True)
@@ -80,12 +89,26 @@ def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
 
 
 def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
-                   threshold: float = 0.1, search=SEARCH) -> ParticlePairs:
-    """Mutual nearest-neighbour pairs of the two volumes' peaks along ``field``."""
-    pa, _ = find_particles(vol_a, threshold)
-    pb, _ = find_particles(vol_b, threshold)
+                   threshold: float = 0.1, search=SEARCH,
+                   fit: ImageFit | None = None) -> ParticlePairs:
+    """Mutual nearest-neighbour pairs of the two volumes' peaks along ``field``; with
+    ``fit``, the paired peaks are refined against their raw images and paired again."""
+    pa, va = find_particles(vol_a, threshold)
+    pb, vb = find_particles(vol_b, threshold)
+    ia, ib = mutual_pairs(pa, pb, field, search)
+    if fit is not None and len(ia):
+        pa[ia], pb[ib] = fit.refine(0, pa[ia], va[ia]), fit.refine(1, pb[ib], vb[ib])
+        ia, ib = mutual_pairs(pa, pb, field, search)
+    disp = pb[ib] - pa[ia]
+    return ParticlePairs(pa[ia] + disp / 2, disp)
+
+
+def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into ``pa`` and ``pb`` (voxel positions ``(N, 3)``) of the peaks that are
+    each other's nearest neighbour within ``search`` after moving along ``field``."""
     if not len(pa) or not len(pb):
-        return ParticlePairs(np.zeros((0, 3)), np.zeros((0, 3)))
+        return np.zeros(0, int), np.zeros(0, int)
     scale = 1.0 / np.asarray(search, float)
     # the field is the displacement at mid-time: look it up half a step along
     fwd = pa + predicted(field, pa + predicted(field, pa) / 2)
@@ -94,8 +117,7 @@ def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
     dist_b, to_a = cKDTree(pa * scale).query(back * scale, distance_upper_bound=1.0)
     ia = np.flatnonzero(np.isfinite(dist_a))
     ia = ia[np.isfinite(dist_b[to_b[ia]]) & (to_a[to_b[ia]] == ia)]
-    disp = pb[to_b[ia]] - pa[ia]
-    return ParticlePairs(pa[ia] + disp / 2, disp)
+    return ia, to_b[ia]
 
 
 def near_median(d: np.ndarray, search=SEARCH) -> np.ndarray:
@@ -141,17 +163,18 @@ class FocalZone:
         return cls(plane=-grid.z[0] / dz - 0.5, resolution=camera.depth_resolution_mm / dz)
 
     def ambiguity(self, z: np.ndarray) -> np.ndarray:
-        """A pair's systematic depth uncertainty (voxels) at depth index ``z``: the
-        standard deviation of a depth known only within ``±resolution`` (``resolution /
-        sqrt(3)``) at the plane, falling linearly to 0 at twice the resolution, where
-        the blur spans two microlenses and the parallax is read in every case."""
+        """A pair's systematic depth uncertainty (voxels) at depth index ``z``:
+        :data:`FOCAL_SYSTEMATIC` times the resolution at the plane, falling linearly to
+        0 at twice the resolution, where the blur spans two microlenses and the
+        parallax is read in every case."""
         reach = np.clip(1.0 - np.abs(np.asarray(z, float) - self.plane)
                         / (2.0 * self.resolution), 0.0, None)
-        return self.resolution / np.sqrt(3.0) * reach
+        return FOCAL_SYSTEMATIC * self.resolution * reach
 
 
 def window_estimate(d: np.ndarray, depth: np.ndarray, grad: np.ndarray,
-                    focus: FocalZone | None) -> tuple[np.ndarray, np.ndarray]:
+                    focus: FocalZone | None, position_sigma=POSITION_SIGMA
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """The displacement ``(3,)`` of one window from its pairs' displacements ``d``
     ``(n, 3)`` (already moved to the window's centre) at depth indices ``depth``, and
     its standard uncertainty.
@@ -160,21 +183,22 @@ def window_estimate(d: np.ndarray, depth: np.ndarray, grad: np.ndarray,
     part (the standard error times Student's t quantile for ``n`` pairs), the focal
     zone's systematic depth part (the mean of the pairs' :meth:`FocalZone.ambiguity`:
     the pairs near the focal plane err together, so it does not shrink with their
-    number; 0 without ``focus``), and the particles' reconstructed positions
-    (:data:`POSITION_SIGMA`) carried through the local displacement gradient ``grad``
-    ``(3, 3)``.
+    number; 0 without ``focus``), and the particles' positions (``position_sigma``,
+    x, y, z voxels: :data:`POSITION_SIGMA` as the volume places them,
+    :data:`FITTED_POSITION_SIGMA` fitted to the images) carried through the local
+    displacement gradient ``grad`` ``(3, 3)``.
     """
     n = len(d)
     random = d.std(axis=0, ddof=1) / np.sqrt(n) * stats.t.ppf(ONE_SIGMA, n - 1)
     systematic = np.zeros(3)
     if focus is not None:
         systematic[2] = focus.ambiguity(depth).mean()
-    position = np.sqrt(((grad * np.asarray(POSITION_SIGMA)) ** 2).sum(axis=1))
+    position = np.sqrt(((grad * np.asarray(position_sigma)) ** 2).sum(axis=1))
     return d.mean(axis=0), np.sqrt(random ** 2 + systematic ** 2 + position ** 2)
 
 
 def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH,
-                 focus: FocalZone | None = None):
+                 focus: FocalZone | None = None, position_sigma=POSITION_SIGMA):
     """Per window of ``field``'s grid: the displacement of its pairs at the window's
     centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
     :func:`window_estimate`), its uncertainty, and the pair counts."""
@@ -197,13 +221,14 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
         count[k, j, i] = np.count_nonzero(keep)
         if count[k, j, i] >= min_pairs:
             mean[:, k, j, i], error[:, k, j, i] = window_estimate(
-                d[keep], pairs.midpoints[inside][keep, 2], grad, focus)
+                d[keep], pairs.midpoints[inside][keep, 2], grad, focus, position_sigma)
     return mean, error, count
 
 
 def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray,
                           threshold: float = 0.1, min_pairs: int = 3,
-                          search=SEARCH, focus: FocalZone | None = None) -> PIVResult:
+                          search=SEARCH, focus: FocalZone | None = None,
+                          fit: ImageFit | None = None) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -214,8 +239,9 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     replaced by their neighbours' median, marked invalid, sigma NaN). ``refinement``
     records the pairs found, the vectors refined and the outliers.
     """
-    pairs = pair_particles(vol_a, vol_b, field, threshold, search)
-    mean, error, count = window_means(pairs, field, min_pairs, search, focus)
+    pairs = pair_particles(vol_a, vol_b, field, threshold, search, fit)
+    position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
+    mean, error, count = window_means(pairs, field, min_pairs, search, focus, position)
     use = np.isfinite(mean[0]) & ~field.masked
     vectors = np.stack([np.where(use, mean[n], getattr(field, c))
                         for n, c in enumerate("uvw")])

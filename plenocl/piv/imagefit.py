@@ -1,0 +1,231 @@
+"""Particle positions refined against the raw image (docs/design.md §7.2).
+
+A reconstructed volume places a particle within about 0.1-0.2 voxel laterally but only
+within 1-1.5 voxels in depth at the paper's optics: MLEM spreads a particle's light
+along its depth-elongated footprint and draws it towards the focal plane. The raw image
+holds more: an out-of-focus particle lights a disk of microlenses whose size and the
+spot in each lens give its depth. Here every peak of a volume starts a fit of its
+position and intensity to the raw image, with the camera's exact rays
+(:class:`.raybundle.RayBundle`): Gauss-Newton steps on all particles at once (each one
+against the image minus every other particle's current image), Levenberg-Marquardt
+damped, with the volume's position as a Gaussian prior (:data:`PRIOR_VOXELS`). Where
+the image says little, in the camera's focal zone where a particle lights one lens,
+the prior keeps the volume's position; far from it the image decides. Each pixel's
+noise is the residual's own scatter over the particle's lit pixels (never below the
+camera's noise), so a particle crowded by others or by ghosts leans on its prior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..reconstruction.images import check_image, subtract_background
+from .raybundle import Patches, RayBundle
+
+#: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
+#: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
+PRIOR_VOXELS = (0.15, 0.15, 1.3)
+#: Largest step of one iteration ``(x, y, z)`` voxels.
+MAX_STEP_VOXELS = (0.5, 0.5, 1.0)
+
+
+@dataclass(frozen=True)
+class ImageFitSettings:
+    """Options of the image-space particle fit.
+
+    Attributes
+    ----------
+    rays
+        Aperture samples per particle (:class:`.raybundle.RayBundle`).
+    blur_px
+        The optics' blur on the sensor (Gaussian standard deviation, pixels).
+    iterations
+        Gauss-Newton iterations.
+    damping
+        Levenberg-Marquardt damping (fraction of each normal matrix's diagonal).
+    chunk
+        Particles rendered at once (bounds memory).
+    """
+
+    rays: int = 400
+    blur_px: float = 0.8
+    iterations: int = 8
+    damping: float = 0.1
+    chunk: int = 128
+
+    def __post_init__(self) -> None:
+        for name, low in (("rays", 16), ("iterations", 0), ("chunk", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < low:
+                raise ValueError(f"ImageFitSettings.{name} must be an integer >= {low}, "
+                                 f"got {value!r}")
+        for name in ("blur_px", "damping"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"ImageFitSettings.{name} must be a positive number, "
+                                 f"got {value!r}")
+
+
+@dataclass(frozen=True)
+class FittedParticles:
+    """Fitted positions ``(N, 3)`` object-space mm, intensities ``(N,)`` (image units)
+    and the posterior standard deviation of each position ``(N, 3)`` mm."""
+
+    positions: np.ndarray
+    intensities: np.ndarray
+    sigma: np.ndarray
+
+
+class ImageFit:
+    """The raw images of a pair and the rays of their camera, to refine the peaks of the
+    reconstructed volumes.
+
+    Parameters
+    ----------
+    camera
+        The (calibrated) camera of the images.
+    grid
+        The volumes' grid (voxel indices to mm).
+    images
+        The raw images, one per exposure (``(rows, cols)`` of the camera's sensor).
+    settings
+        :class:`ImageFitSettings`; ``None``: the defaults.
+    """
+
+    def __init__(self, camera, grid, images, settings: ImageFitSettings | None = None):
+        self.settings = ImageFitSettings() if settings is None else settings
+        self.bundle = RayBundle.of(camera, self.settings.rays, self.settings.blur_px)
+        self.grid = grid
+        self.images = []
+        for raw in images:
+            img, noise = subtract_background(check_image(raw, camera))
+            self.images.append((img.astype(np.float64).ravel(), max(noise, 1e-12)))
+
+    def refine(self, index: int, peaks: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """Peaks ``(N, 3)`` fractional voxel indices ``(ix, iy, iz)`` of exposure
+        ``index``'s volume (and their values) refined against its raw image."""
+        if not len(peaks):
+            return np.asarray(peaks, float).reshape(0, 3)
+        fitted = self.fit(index, self.grid.from_index(peaks), np.asarray(values, float))
+        return self.grid.to_index(fitted.positions)
+
+    def fit(self, index: int, positions: np.ndarray, values: np.ndarray) -> FittedParticles:
+        """Fit particles starting at object-space ``positions`` ``(N, 3)`` mm to exposure
+        ``index``'s image (``values`` only set the intensities' scale)."""
+        data, noise = self.images[index]
+        prior = self._prior_mm()
+        p = np.array(positions, dtype=np.float64)
+        intensity = self._start_intensity(data, p)
+        for _ in range(self.settings.iterations):
+            model = self._model_image(p, intensity, data.size)
+            step, intensity_step, sigma = self._step(data, model, noise, p, positions,
+                                                     intensity, prior)
+            p += step
+            intensity = np.maximum(intensity + intensity_step, 0.0)
+        return FittedParticles(p, intensity, sigma)
+
+    def _prior_mm(self) -> np.ndarray:
+        dz, dy, dx = self.grid.spacing
+        return np.asarray(PRIOR_VOXELS) * np.array([dx, dy, dz])
+
+    def _chunks(self, n: int):
+        size = self.settings.chunk
+        return (slice(i, min(i + size, n)) for i in range(0, n, size))
+
+    def _render(self, p: np.ndarray, intensity: np.ndarray, derivatives: bool = True):
+        """Image points, patches, and the particle, sensor pixel and rendered rows of
+        every patch element the particles reach (the rest are zero)."""
+        pts = self.bundle.camera.image_points(p)
+        patches = self.bundle.patches(pts)
+        elements, rows = self.bundle.render(pts, intensity, patches, derivatives)
+        pid, pixel = patches.pixels(self.bundle.camera.pixels[0], elements)
+        return pts, patches, pid, pixel, rows
+
+    def _start_intensity(self, data: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Each particle's intensity by linear least squares against the image alone."""
+        out = np.empty(len(p))
+        for part in self._chunks(len(p)):
+            n = part.stop - part.start
+            _, _, pid, pixel, rows = self._render(p[part], np.ones(n))
+            unit = rows[4]
+            out[part] = np.bincount(pid, unit * data[pixel], minlength=n) / np.maximum(
+                np.bincount(pid, unit**2, minlength=n), 1e-30)
+        return np.maximum(out, 0.0)
+
+    def _model_image(self, p: np.ndarray, intensity: np.ndarray, size: int) -> np.ndarray:
+        """The image of all particles at their current positions (flat)."""
+        model = np.zeros(size)
+        for part in self._chunks(len(p)):
+            _, _, _, pixel, rows = self._render(p[part], intensity[part], derivatives=False)
+            model += np.bincount(pixel, rows[0], minlength=size)
+        return model
+
+    def _step(self, data, model, noise, p, start, intensity, prior):
+        """One damped Gauss-Newton step of every particle (position mm, intensity) and
+        the posterior standard deviation of each position."""
+        n = len(p)
+        steps, sigmas = np.zeros((n, 4)), np.zeros((n, 3))
+        for part in self._chunks(n):
+            pts, patches, pid, pixel, rows = self._render(p[part], intensity[part])
+            normal, rhs = _normal_equations(rows, data[pixel] - model[pixel], pid,
+                                            _to_object(self.bundle.camera, p[part], pts),
+                                            part.stop - part.start)
+            scatter = _residual_noise(rows[0], data[pixel] - model[pixel], pid, patches, noise)
+            normal /= scatter[:, None, None] ** 2
+            rhs /= scatter[:, None] ** 2
+            normal[:, :3, :3] += np.diag(1.0 / prior**2)
+            rhs[:, :3] -= (p[part] - start[part]) / prior**2
+            sigmas[part] = np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal), axis1=1,
+                                                      axis2=2)[:, :3]))
+            steps[part] = _damped_solve(normal, rhs, self.settings.damping)
+        limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
+        return np.clip(steps[:, :3], -limit, limit), steps[:, 3], sigmas
+
+
+def _to_object(camera, p: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``d (X', Y', s_i') / d (x, y, z)`` ``(P, 3, 3)`` by central differences."""
+    h = 1e-4
+    jac = np.empty((len(p), 3, 3))
+    for k in range(3):
+        dp = np.zeros(3)
+        dp[k] = h
+        jac[:, :, k] = (camera.image_points(p + dp) - camera.image_points(p - dp)) / (2 * h)
+    return jac
+
+
+def _normal_equations(rows: np.ndarray, residual: np.ndarray, pid: np.ndarray,
+                      jac: np.ndarray, n: int):
+    """``J^T J`` ``(n, 4, 4)`` and ``J^T r`` ``(n, 4)`` per particle, with the position
+    columns turned from image-point to object coordinates."""
+    cols = [sum(rows[1 + k] * jac[pid, k, j] for k in range(3)) for j in range(3)]
+    cols.append(rows[4])
+    normal, rhs = np.zeros((n, 4, 4)), np.zeros((n, 4))
+    for i in range(4):
+        rhs[:, i] = np.bincount(pid, cols[i] * residual, minlength=n)
+        for j in range(i, 4):
+            normal[:, i, j] = normal[:, j, i] = np.bincount(pid, cols[i] * cols[j], minlength=n)
+    return normal, rhs
+
+
+def _residual_noise(value: np.ndarray, residual: np.ndarray, pid: np.ndarray,
+                    patches: Patches, noise: float) -> np.ndarray:
+    """Per particle: the residual's RMS over its lit pixels (its own image above 1 % of
+    its brightest pixel), at least the camera's ``noise``."""
+    n = len(patches.width)
+    peak = np.zeros(n)
+    np.maximum.at(peak, pid, value)
+    lit = value > 0.01 * peak[pid]
+    count = np.bincount(pid[lit], minlength=n)
+    mean_sq = np.bincount(pid[lit], residual[lit] ** 2, minlength=n) / np.maximum(count, 1)
+    return np.maximum(np.sqrt(mean_sq), noise)
+
+
+def _damped_solve(normal: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
+    """Levenberg-Marquardt steps ``(n, 4)`` for normal matrices ``(n, 4, 4)``."""
+    diag = np.diagonal(normal, axis1=1, axis2=2)
+    scale = np.maximum(diag, 1e-12 * diag.max(initial=1.0) + 1e-300)
+    damped = normal + np.einsum("pi,ij->pij", damping * scale, np.eye(4))
+    damped[:, 3, 3] = np.maximum(damped[:, 3, 3], 1e-300)
+    return np.linalg.solve(damped, rhs[..., None])[..., 0]
