@@ -84,7 +84,7 @@ def test_fit_recovers_out_of_focus_particles():
                             [-8.0, -6.0, -4.0, 4.0, 6.0, 8.0]])
     start = true + np.array([0.3, -0.3, 1.5]) * VOXEL
     fit = ImageFit(CAM, GRID, [noisy_image(true, 3)], ImageFitSettings(rays=400))
-    out = fit.fit(0, start, np.ones(len(start)))
+    out = fit.fit(0, start)
     err = np.abs(out.positions - true) / VOXEL
     assert err[:, 2].max() < 0.4, err
     assert err[:, :2].max() < 0.15, err
@@ -98,7 +98,7 @@ def test_in_focus_particle_keeps_its_prior():
     true = np.array([[0.2, 0.1, 0.0]])
     start = true + np.array([0.0, 0.0, 1.0]) * VOXEL
     fit = ImageFit(CAM, GRID, [noisy_image(true, 4)])
-    out = fit.fit(0, start, np.ones(1))
+    out = fit.fit(0, start)
     assert out.sigma[0, 2] / VOXEL[2] > 0.8
     assert abs(out.positions[0, 2] - start[0, 2]) / VOXEL[2] < 1.5
 
@@ -106,8 +106,11 @@ def test_in_focus_particle_keeps_its_prior():
 def test_dark_image_leaves_peaks_in_place():
     fit = ImageFit(CAM, GRID, [np.full((CAM.pixels[1], CAM.pixels[0]), 20.0)])
     peaks = np.array([[10.2, 8.7, 40.1], [30.0, 20.5, 120.3]])
-    assert np.allclose(fit.refine(0, peaks, np.ones(2)), peaks, atol=1e-6)
-    assert fit.refine(0, np.zeros((0, 3)), np.zeros(0)).shape == (0, 3)
+    assert np.allclose(fit.refine(0, peaks), peaks, atol=1e-6)
+    assert fit.refine(0, np.zeros((0, 3))).shape == (0, 3)
+    still = ImageFit(CAM, GRID, [noisy_image(GRID.from_index(peaks), 2)],
+                     ImageFitSettings(iterations=0))
+    assert np.allclose(still.refine(0, peaks), peaks)  # no iterations: the peaks as given
 
 
 def test_bad_inputs_name_the_problem():

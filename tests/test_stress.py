@@ -29,6 +29,7 @@ from plenocl import (
 )
 from plenocl.io import load_volume, read_image, read_particles
 from plenocl.piv import piv3d
+from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.reconstruction import METHODS, view_blocks
 from plenocl.reference.weights import ApertureGrid, voxel_weights, weight_matrix
 
@@ -723,6 +724,16 @@ INVALID = [
     ("piv-complex", _piv(a=lambda v: v.astype(complex)), TypeError, "must hold real numbers"),
     ("piv-mask-not-bool", _piv(windows=(8,), mask=np.zeros((16, 16, 16))), TypeError,
      "mask must be boolean"),
+    # the particles' fit to the raw images
+    ("imagefit-image-shape", lambda c: ImageFit(c["cam"], c["proj"].grid, [c["img"][:-1]]),
+     ValueError, "does not match the camera's sensor"),
+    ("imagefit-image-nan", lambda c: ImageFit(
+        c["cam"], c["proj"].grid, [np.where(c["img"] > 0, np.nan, c["img"])]),
+     ValueError, "NaN or Inf pixel"),
+    ("imagefit-rays", lambda c: ImageFitSettings(rays=8), ValueError,
+     r"rays must be an integer >= 16"),
+    ("imagefit-blur", lambda c: ImageFitSettings(blur_px=-1.0), ValueError,
+     "blur_px must be a positive number"),
     # calibrate
     ("calibrate-blank", _cal(lambda c: np.zeros((70, 70))), ValueError, "white image is blank"),
     ("calibrate-noise", _cal(lambda c: np.random.default_rng(0).random((70, 70))), ValueError,

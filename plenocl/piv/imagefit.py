@@ -103,24 +103,25 @@ class ImageFit:
             img, noise = subtract_background(check_image(raw, camera))
             self.images.append((img.astype(np.float64).ravel(), max(noise, 1e-12)))
 
-    def refine(self, index: int, peaks: np.ndarray, values: np.ndarray) -> np.ndarray:
+    def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
         """Peaks ``(N, 3)`` fractional voxel indices ``(ix, iy, iz)`` of exposure
-        ``index``'s volume (and their values) refined against its raw image."""
+        ``index``'s volume refined against its raw image."""
         if not len(peaks):
             return np.asarray(peaks, float).reshape(0, 3)
-        fitted = self.fit(index, self.grid.from_index(peaks), np.asarray(values, float))
+        fitted = self.fit(index, self.grid.from_index(peaks))
         return self.grid.to_index(fitted.positions)
 
-    def fit(self, index: int, positions: np.ndarray, values: np.ndarray) -> FittedParticles:
+    def fit(self, index: int, positions: np.ndarray) -> FittedParticles:
         """Fit particles starting at object-space ``positions`` ``(N, 3)`` mm to exposure
-        ``index``'s image (``values`` only set the intensities' scale)."""
+        ``index``'s image; the intensities start from a linear least-squares fit."""
         data, noise = self.images[index]
         prior = self._prior_mm()
-        p = np.array(positions, dtype=np.float64)
+        start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        p, sigma = start.copy(), np.broadcast_to(prior, start.shape).copy()
         intensity = self._start_intensity(data, p)
         for _ in range(self.settings.iterations):
             model = self._model_image(p, intensity, data.size)
-            step, intensity_step, sigma = self._step(data, model, noise, p, positions,
+            step, intensity_step, sigma = self._step(data, model, noise, p, start,
                                                      intensity, prior)
             p += step
             intensity = np.maximum(intensity + intensity_step, 0.0)

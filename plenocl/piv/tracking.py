@@ -58,7 +58,7 @@ ONE_SIGMA = 0.8413447460685429
 #: 0.5-1 voxel towards the focal plane (docs/design.md §7.1), laterally it is unbiased.
 POSITION_SIGMA = (0.0, 0.0, 1.0)
 #: The same for particles fitted to the raw images (docs/design.md §7.2): the draw
-#: towards the focal plane falls to 0-0.35 voxel.
+#: towards the focal plane falls from 0.5-0.9 to below 0.1 voxel beyond 2 mm of the plane.
 FITTED_POSITION_SIGMA = (0.0, 0.0, 0.3)
 #: A focal-plane pair's systematic depth uncertainty as a fraction of the camera's depth
 #: resolution (0.75 voxel at the paper's optics): calibrated on reconstructed scenes so that
@@ -93,11 +93,11 @@ def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
                    fit: ImageFit | None = None) -> ParticlePairs:
     """Mutual nearest-neighbour pairs of the two volumes' peaks along ``field``; with
     ``fit``, the paired peaks are refined against their raw images and paired again."""
-    pa, va = find_particles(vol_a, threshold)
-    pb, vb = find_particles(vol_b, threshold)
+    pa, _ = find_particles(vol_a, threshold)
+    pb, _ = find_particles(vol_b, threshold)
     ia, ib = mutual_pairs(pa, pb, field, search)
     if fit is not None and len(ia):
-        pa[ia], pb[ib] = fit.refine(0, pa[ia], va[ia]), fit.refine(1, pb[ib], vb[ib])
+        pa[ia], pb[ib] = fit.refine(0, pa[ia]), fit.refine(1, pb[ib])
         ia, ib = mutual_pairs(pa, pb, field, search)
     disp = pb[ib] - pa[ia]
     return ParticlePairs(pa[ia] + disp / 2, disp)
