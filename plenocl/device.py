@@ -3,28 +3,52 @@
 A device is chosen explicitly (a :class:`pyopencl.Device`, ``Context`` or
 ``CommandQueue``, or a name/type substring such as ``"gpu"``, ``"cpu"`` or
 ``"NVIDIA"``), else from the ``PYOPENCL_CTX`` environment variable, else by
-default: a GPU if one is present, otherwise a CPU. There is no global "current
-device": every object that runs kernels takes a queue or builds one here.
+default: the first device, in :func:`preference` order (GPUs, then PoCL, then Intel's
+CPU runtime), that builds plenocl's kernels. A device passed over because it cannot
+build them is named in a one-line :class:`DeviceFallbackWarning`. There is no global
+"current device": every object that runs kernels takes a queue or builds one here.
+
+CPU runtimes installed by pip (Intel's, the ``intel`` extra) are registered with the
+OpenCL loader before platforms are first listed (:mod:`plenocl.icd`).
 """
 
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 
 import pyopencl as cl
 
+from .build import probe_build
+from .icd import register_pip_runtimes
+
 DeviceLike = None | str | cl.Device | cl.Context | cl.CommandQueue
 
+# Intel's CPU runtime logs progress on every successful build, which pyopencl turns into
+# a CompilerWarning without content for each of its own element-wise kernels. Hidden;
+# PYOPENCL_COMPILER_OUTPUT=1 still shows every log (as a differently worded warning).
+warnings.filterwarnings("ignore", message="Non-empty compiler output encountered",
+                        category=cl.CompilerWarning)
+
 NO_OPENCL_HELP = (
-    "no OpenCL platform was found on this machine. Install the portable CPU "
-    'implementation with: pip install "plenocl[pocl]"  (or install your GPU vendor\'s '
-    "OpenCL driver)"
+    "no OpenCL platform was found on this machine. Install the CPU runtimes with: "
+    'pip install "plenocl[cpu]"  (or install your GPU vendor\'s OpenCL driver)'
 )
+
+#: CPU platforms by preference; platforms not named come after. ``benchmarks/drivers.py``
+#: found PoCL and Intel's runtime equally fast on plenocl's kernels (README,
+#: "Performance"), so the open one comes first and Intel's runtime serves where PoCL's
+#: wheel cannot compile (AMD Zen 5: its LLVM 14 does not know the CPU).
+CPU_PLATFORMS = ("Portable Computing Language", "Intel(R) OpenCL")
 
 
 class NoOpenCLError(RuntimeError):
     """Raised when no OpenCL platform or no matching device is available."""
+
+
+class DeviceFallbackWarning(UserWarning):
+    """A preferred device was passed over because it cannot build plenocl's kernels."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +83,7 @@ class DeviceInfo:
 
 
 def _platforms() -> list[cl.Platform]:
+    register_pip_runtimes()
     try:
         platforms = cl.get_platforms()
     except cl.Error as exc:  # pyopencl raises LogicError when the ICD finds nothing
@@ -98,10 +123,21 @@ def describe_devices() -> str:
                 f"memory {info.global_mem_bytes / 2**30:.1f} GiB "
                 f"(max buffer {info.max_alloc_bytes / 2**30:.1f} GiB)\n"
                 f"        {info.opencl_version}; fp64 {'yes' if info.fp64 else 'no'}; "
-                f"64-bit atomics {'yes' if info.int64_atomics else 'no'}"
+                f"64-bit atomics {'yes' if info.int64_atomics else 'no'}\n"
+                f"        builds plenocl's kernels: {_build_status(dev)}"
             )
+    lines.append(f"default: {_describe(_default_device())}")
     lines.append("choose one with PYOPENCL_CTX='<platform>:<device>' or device='<name or type>'")
     return "\n".join(lines)
+
+
+def _build_status(device: cl.Device) -> str:
+    problem = build_problem(device)
+    return "yes" if problem is None else f"NO ({problem})"
+
+
+def _describe(device: cl.Device) -> str:
+    return f"{device.name.strip()} on {device.platform.name.strip()}"
 
 
 def _match(devices: list[cl.Device], key: str) -> cl.Device:
@@ -114,15 +150,52 @@ def _match(devices: list[cl.Device], key: str) -> cl.Device:
     raise NoOpenCLError(f"no OpenCL device matches {key!r}; available: {names}")
 
 
+def preference(device: cl.Device) -> tuple[int, int]:
+    """Sort key of the default choice: GPUs first, then CPUs in :data:`CPU_PLATFORMS`
+    order, then anything else."""
+    if device.type & cl.device_type.GPU:
+        return (0, 0)
+    if device.type & cl.device_type.CPU:
+        name = device.platform.name.strip()
+        rank = CPU_PLATFORMS.index(name) if name in CPU_PLATFORMS else len(CPU_PLATFORMS)
+        return (1, rank)
+    return (2, 0)
+
+
+# Whether each device builds plenocl's kernels: None, or why not (probed once a process).
+_BUILDS: dict[cl.Device, str | None] = {}
+
+
+def build_problem(device: cl.Device) -> str | None:
+    """Why ``device`` cannot build plenocl's kernels, or ``None`` when it can (probed
+    once per process by building one kernel)."""
+    if device not in _BUILDS:
+        try:
+            _BUILDS[device] = probe_build(cl.Context([device]))
+        except cl.Error as exc:  # the driver cannot even make a context
+            _BUILDS[device] = f"no context: {exc}"
+    return _BUILDS[device]
+
+
+def devices_by_preference() -> list[cl.Device]:
+    """Every OpenCL device, in the order the default choice tries them."""
+    return sorted(all_devices(), key=preference)
+
+
 def _default_device() -> cl.Device:
-    devices = all_devices()
-    for dev in devices:
-        if dev.type & cl.device_type.GPU:
+    passed = []
+    for dev in devices_by_preference():
+        problem = build_problem(dev)
+        if problem is None:
+            if passed:
+                warnings.warn(f"plenocl uses {_describe(dev)}: " + "; ".join(passed),
+                              DeviceFallbackWarning, stacklevel=4)
             return dev
-    for dev in devices:
-        if dev.type & cl.device_type.CPU:
-            return dev
-    return devices[0]
+        passed.append(f"{_describe(dev)} cannot build its kernels ({problem})")
+    raise NoOpenCLError(
+        "no OpenCL device here builds plenocl's kernels: " + "; ".join(passed)
+        + '. Install a CPU runtime that does with: pip install "plenocl[cpu]" '
+        "(docs/errors.md, 'cannot build its kernels')")
 
 
 def create_context(device: DeviceLike = None) -> cl.Context:
@@ -157,7 +230,11 @@ def get_queue(queue: DeviceLike = None, profiling: bool = False) -> cl.CommandQu
         return queue
     ctx = create_context(queue)
     props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
-    return cl.CommandQueue(ctx, properties=props)
+    new = cl.CommandQueue(ctx, properties=props)
+    # Some drivers (Intel's CPU runtime) invalidate a context once its last handle is
+    # released, although a queue still uses it: the queue holds its context's handle.
+    new.plenocl_context = ctx
+    return new
 
 
 def is_cpu(device: cl.Device) -> bool:

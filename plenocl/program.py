@@ -1,10 +1,7 @@
-"""Find, build and cache the OpenCL programs in ``kernels/``, and launch their kernels.
+"""Launch the OpenCL kernels of ``kernels/``: fetch each once, bind them to a queue.
 
-Sources are real ``.cl`` files. They are found next to the package in an installed
-wheel (``plenocl/kernels``) and in the top-level ``kernels/`` folder of a source
-checkout. The folder is always passed as ``-I`` so kernels use ``#include``.
-Each program is built once per (context, file, options) and each kernel fetched
-once with ``cl.Kernel``.
+Programs are found and built by :mod:`plenocl.build` (once per context, file and
+options); each kernel is fetched once with ``cl.Kernel``.
 
 :class:`KernelSet` is the one kernel-launch layer of plenocl: the kernels of one
 program bound to a queue. It unwraps ``pyopencl.array.Array`` arguments (the one
@@ -14,77 +11,17 @@ work-group rule there (see :meth:`KernelSet.launch`).
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
+from .build import UNKNOWN_CPU, KernelBuildError, build_hint, build_program, kernel_dir
 from .device import is_cpu
 
-
-class KernelBuildError(RuntimeError):
-    """An OpenCL program failed to build; the message carries file, options and log."""
-
-
-def kernel_dir() -> Path:
-    """The folder holding the ``.cl`` sources (installed wheel first, then checkout)."""
-    here = Path(__file__).resolve().parent
-    for candidate in (here / "kernels", here.parent / "kernels"):
-        if (candidate / "common.h").is_file():
-            return candidate
-    raise FileNotFoundError(
-        f"plenocl's OpenCL sources were not found next to {here}; reinstall plenocl"
-    )
-
-
-# Programs per context; an entry goes when its context is garbage collected.
-_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def build_program(
-    context: cl.Context, filename: str, options: Sequence[str] = ()
-) -> cl.Program:
-    """Build ``kernels/<filename>`` for ``context`` once and cache it.
-
-    Raises
-    ------
-    KernelBuildError
-        With the file, the build options and the compiler log.
-    """
-    programs = _CACHE.setdefault(context, {})
-    key = (filename, tuple(options))
-    if key in programs:
-        return programs[key]
-    folder = kernel_dir()
-    source = (folder / filename).read_text()
-    opts = [f"-I{folder}", "-cl-fp32-correctly-rounded-divide-sqrt", *options]
-    try:
-        program = cl.Program(context, source).build(options=opts)
-    except (cl.RuntimeError, cl.LogicError) as exc:
-        raise KernelBuildError(
-            f"building {folder / filename} failed\n  options: {' '.join(opts)}\n"
-            f"  compiler log:\n{exc}{build_hint(str(exc))}"
-        ) from exc
-    programs[key] = program
-    return program
-
-
-#: What a compiler log says when PoCL's LLVM does not know the CPU it runs on.
-UNKNOWN_CPU = "unknown target CPU"
-
-
-def build_hint(log: str) -> str:
-    """A fix for the build failures a user can mend without touching plenocl."""
-    if UNKNOWN_CPU not in log:
-        return ""
-    return ("\n  hint: this PoCL's LLVM does not know this processor (e.g. the PoCL 3.0 wheel "
-            "from PyPI, LLVM 14, on an AMD Zen 5 CPU) and so cannot compile any kernel. "
-            "Install a PoCL built with a newer LLVM (Debian/Ubuntu: apt install "
-            "pocl-opencl-icd; conda: conda install -c conda-forge pocl) and choose it with "
-            "PYOPENCL_CTX or --device (`plenocl devices` lists them); docs/errors.md")
+__all__ = ["UNKNOWN_CPU", "KernelBuildError", "KernelSet", "build_hint", "build_program",
+           "fetch_kernels", "kernel_dir"]
 
 
 def fetch_kernels(program: cl.Program, names: Sequence[str]) -> dict[str, cl.Kernel]:

@@ -42,10 +42,10 @@ def test_queue_passes_through_and_wraps_contexts(queue):
     assert device.get_queue(queue.context).context == queue.context
 
 
-def test_no_platform_names_the_pocl_extra(monkeypatch):
+def test_no_platform_names_the_cpu_extra(monkeypatch):
     monkeypatch.setattr(cl, "get_platforms", lambda: [])
     monkeypatch.delenv("PYOPENCL_CTX", raising=False)
-    with pytest.raises(plenocl.NoOpenCLError, match=r'pip install "plenocl\[pocl\]"'):
+    with pytest.raises(plenocl.NoOpenCLError, match=r'pip install "plenocl\[cpu\]"'):
         device.create_context()
 
 
@@ -69,7 +69,7 @@ def test_build_failure_reports_file_options_and_log(queue):
 def test_unknown_cpu_build_failure_names_the_fix():
     log = "error: unknown target CPU 'generic'\nDevice pthread-AMD EPYC failed to build"
     hint = build_hint(log)
-    assert "pocl-opencl-icd" in hint and "PYOPENCL_CTX" in hint
+    assert "plenocl[cpu]" in hint and "intel-opencl-rt" in hint and "plenocl devices" in hint
     assert build_hint("error: use of undeclared identifier 'x'") == ""
 
 
@@ -110,3 +110,114 @@ def test_kernel_set_launches_with_arrays_and_the_cpu_rule(queue):
     assert tuple(ext[0, 0]) == (7, -1)
     with pytest.raises(ValueError, match="not among"):
         KernelSet(queue, "reconstruct.cl", ["row_extent"], looping=["ratio"])
+
+
+# ---- the default device: preference order, build probe, fallback -------------------------
+class FakePlatform:
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+
+class FakeDevice:
+    """What the default choice reads of a device: type, name, platform name."""
+
+    def __init__(self, name: str, kind: int, platform: str) -> None:
+        self.name, self.type, self.platform = name, kind, FakePlatform(platform)
+
+
+GPU, CPU = cl.device_type.GPU, cl.device_type.CPU
+POCL, INTEL = "Portable Computing Language", "Intel(R) OpenCL"
+
+
+def _fake_devices(monkeypatch, devices, broken):
+    monkeypatch.setattr(device, "all_devices", lambda: list(devices))
+    monkeypatch.setattr(device, "build_problem",
+                        lambda d: "unknown target CPU 'generic'" if d.name in broken else None)
+
+
+def test_preference_puts_gpus_first_then_cpu_runtimes_in_measured_order():
+    devs = [FakeDevice("acc", cl.device_type.ACCELERATOR, "X"), FakeDevice("p", CPU, POCL),
+            FakeDevice("other", CPU, "Some CPU"), FakeDevice("i", CPU, INTEL),
+            FakeDevice("g", GPU, "NVIDIA CUDA")]
+    order = [d.name for d in sorted(devs, key=device.preference)]
+    ranked = [p for p in device.CPU_PLATFORMS if p in (POCL, INTEL)]
+    cpus = ["i" if p == INTEL else "p" for p in ranked]
+    assert order == ["g", *cpus, "other", "acc"]
+
+
+def test_default_passes_over_a_device_that_cannot_build_and_says_so(monkeypatch):
+    first, second = (FakeDevice(n, CPU, p) for n, p in
+                     sorted([("pocl-cpu", POCL), ("intel-cpu", INTEL)],
+                            key=lambda np_: device.CPU_PLATFORMS.index(np_[1])))
+    _fake_devices(monkeypatch, [second, first], broken={first.name})
+    with pytest.warns(device.DeviceFallbackWarning) as record:
+        chosen = device._default_device()
+    assert chosen is second
+    text = str(record[0].message)
+    assert first.name in text and "cannot build" in text and "unknown target CPU" in text
+    assert f"plenocl uses {second.name}" in text and "\n" not in text  # one line
+
+
+def test_default_without_a_building_device_names_every_reason_and_the_fix(monkeypatch):
+    devs = [FakeDevice("a", CPU, POCL), FakeDevice("b", GPU, "G")]
+    _fake_devices(monkeypatch, devs, broken={"a", "b"})
+    with pytest.raises(plenocl.NoOpenCLError) as err:
+        device._default_device()
+    text = str(err.value)
+    assert "a on " in text and "b on " in text and 'pip install "plenocl[cpu]"' in text
+
+
+def test_every_device_is_probed_and_the_default_is_named():
+    text = plenocl.describe_devices()
+    assert text.count("builds plenocl's kernels:") == len(device.all_devices())
+    default = device._default_device()
+    assert f"default: {default.name.strip()} on {default.platform.name.strip()}" in text
+    assert device.build_problem(default) is None
+
+
+def test_queue_keeps_its_context_alive():
+    """Intel's CPU runtime invalidates a context whose last handle is released although
+    a queue still uses it: the queue plenocl makes holds its context."""
+    import gc
+
+    q = device.get_queue(device.all_devices()[0])
+    gc.collect()
+    assert q.context == q.plenocl_context and q.context.devices[0] == q.device
+
+
+def _run(code: str, **env) -> subprocess.CompletedProcess:
+    full = {**os.environ, **env}
+    full.pop("PYOPENCL_CTX", None)
+    return subprocess.run([sys.executable, "-c", code], env=full, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_a_driver_that_cannot_build_is_reported_with_a_real_failure(tmp_path):
+    """PoCL made to fail every build (an invalid option through POCL_EXTRA_BUILD_FLAGS,
+    as its LLVM fails on an unknown CPU) with no other driver: plenocl refuses with the
+    reason and the fix instead of failing later in a kernel build."""
+    code = ("import plenocl\ntry:\n    plenocl.get_queue()\nexcept plenocl.NoOpenCLError "
+            "as e:\n    print('REFUSED', e)")
+    out = _run(code, POCL_EXTRA_BUILD_FLAGS="-plenocl-test-bad-option",
+               OCL_ICD_VENDORS=str(tmp_path), PLENOCL_PIP_RUNTIMES="0")
+    assert "REFUSED" in out.stdout, out.stdout + out.stderr
+    assert "cannot build its kernels" in out.stdout and "plenocl[cpu]" in out.stdout
+
+
+def test_pocl_that_cannot_build_falls_back_to_intels_runtime_with_a_note(tmp_path):
+    """The Zen 5 case as far as this machine can show it: PoCL fails every build, the
+    system's drivers are hidden, and Intel's runtime from the cpu extra takes over with a
+    one-line warning naming both devices; without that runtime plenocl refuses."""
+    code = ("import warnings, plenocl\nwarnings.simplefilter('always')\n"
+            "try:\n    q = plenocl.get_queue()\n    print('USING', q.device.platform.name)\n"
+            "except plenocl.NoOpenCLError as e:\n    print('REFUSED', e)")
+    out = _run(code, POCL_EXTRA_BUILD_FLAGS="-plenocl-test-bad-option",
+               OCL_ICD_VENDORS="", PLENOCL_PIP_RUNTIMES="1")
+    from plenocl.icd import pip_runtime_libraries
+
+    if pip_runtime_libraries():
+        assert "USING Intel(R) OpenCL" in out.stdout, out.stdout + out.stderr
+        note = [line for line in out.stderr.splitlines() if "DeviceFallbackWarning" in line]
+        assert len(note) == 1 and "cannot build its kernels" in note[0], out.stderr
+    else:
+        assert "REFUSED" in out.stdout and "plenocl[cpu]" in out.stdout, out.stdout

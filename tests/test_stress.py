@@ -9,13 +9,14 @@ each, grids of at most 6 x 7 x 7 voxels, a handful of examples per property.
 from __future__ import annotations
 
 import math
+import re
 import warnings
 
 import numpy as np
 import pyopencl.array as cla
 import pytest
 from helpers import ROTATED, lens_camera
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from plenocl import (
@@ -30,7 +31,7 @@ from plenocl import (
 from plenocl.io import load_volume, read_image, read_particles
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
-from plenocl.reconstruction import METHODS, view_blocks
+from plenocl.reconstruction import FLOAT32_LIMIT, METHODS, preprocess, view_blocks
 from plenocl.reference.weights import ApertureGrid, voxel_weights, weight_matrix
 
 
@@ -313,6 +314,9 @@ def tiny_perturbed(tiny, queue):
        mask_fraction=st.sampled_from([None, 0.0, 0.5]), relax=st.floats(0.05, 1.0),
        iterations=st.integers(0, 4), threshold=st.sampled_from([0.0, 0.1, 0.5]),
        mart_blocks=st.integers(1, 3), skip_empty=st.booleans(), perturbed=st.booleans())
+@example(kind="constant", dtype="float32", exponent=30.0, seed=0, start="uniform",
+         mask_fraction=None, relax=1.0, iterations=1, threshold=0.0, mart_blocks=1,
+         skip_empty=False, perturbed=False)  # float32(1e30) = 1.0000000150e30: accepted
 def test_reconstruct_is_finite_and_non_negative(tiny, tiny_perturbed, kind, dtype, exponent,
                                                 seed, start, mask_fraction, relax, iterations,
                                                 threshold, mart_blocks, skip_empty, perturbed):
@@ -806,3 +810,18 @@ def test_mart_view_blocks_distinct_for_one_block_per_pixel(tiny):
     n = 17  # ~17 px behind each lens: one block per sub-aperture view
     blocks = view_blocks(cam, n)
     assert len(np.unique(blocks)) == min(n * n, blocks.size)
+
+
+def test_float32_limit_accepts_float32_1e30_and_names_both_numbers(tiny):
+    """The limit is float32(1e30): a float32 image of 1e30 passes (it was refused because
+    float32(1e30) = 1.0000000150e30 > 1e30), anything above is refused with a message
+    whose two numbers differ."""
+    cam = tiny[1].camera
+    image = np.full(tiny[1].image_shape, 1e30, np.float32)
+    scaled, scale, _ = preprocess(image, cam, None, 0.0)
+    assert scale == float(np.float32(1e30)) == FLOAT32_LIMIT and scaled.max() == 1.0
+    above = image.astype(np.float64) * (1 + 1e-7)
+    with pytest.raises(ValueError, match="largest value") as info:
+        preprocess(above, cam, None, 0.0)
+    shown = [float(x) for x in re.findall(r"\d\.\d+e\+\d+", str(info.value))]
+    assert len(shown) == 2 and shown[0] > shown[1], str(info.value)

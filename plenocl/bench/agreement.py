@@ -40,7 +40,7 @@ import numpy as np
 import pyopencl as cl
 
 from ..camera import Camera
-from ..device import all_devices, device_info, get_queue
+from ..device import device_info, devices_by_preference, get_queue
 from ..grid import Grid
 from ..program import KernelBuildError, build_hint
 
@@ -117,15 +117,15 @@ def stage_difference(stage: str, a: np.ndarray, b: np.ndarray) -> float:
 
 def agreement(queues: Sequence[cl.CommandQueue] | None = None,
               log: Callable[[str], None] | None = None) -> list[Agreement]:
-    """Compare every stage on each of ``queues`` (default: one per OpenCL device) with
-    the first queue's results.
+    """Compare every stage on each of ``queues`` (default: one per OpenCL device, the
+    default device first) with the first queue's results.
 
     Returns
     -------
     list of Agreement
         One row per stage and device after the first; empty with a single device.
     """
-    queues = list(queues) if queues is not None else [get_queue(d) for d in all_devices()]
+    queues = list(queues) if queues is not None else [get_queue(d) for d in devices_by_preference()]
     outputs = []  # (name, stage outputs) of the devices that build kernels
     for queue in queues:
         image = outputs[0][1]["simulate"] if outputs else None

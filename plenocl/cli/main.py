@@ -18,14 +18,14 @@ from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 def cmd_devices(args: argparse.Namespace) -> int:
     """List OpenCL platforms and devices; with ``--agree``, compare them (exit 1 when a
     stage differs by more than its tolerance)."""
-    from ..device import all_devices, describe_devices
+    from ..device import describe_devices, devices_by_preference
 
     print(describe_devices())
     if not args.agree:
         return 0
     from ..bench.agreement import agreement, agreement_table
 
-    devices = all_devices()
+    devices = devices_by_preference()
     if len(devices) < 2:
         print("\nonly one OpenCL device: nothing to compare (with PoCL alone, "
               "POCL_DEVICES='pthread basic' gives two)")

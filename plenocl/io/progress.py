@@ -1,4 +1,8 @@
-"""Progress display for long stages (tqdm), usable as a reconstruction callback."""
+"""Progress display for long stages (tqdm), usable as a reconstruction callback.
+
+Bars are drawn on terminals only: written to a log file or a pipe they would become
+long runs of carriage returns, so there they stay silent (tqdm's ``disable=None``).
+"""
 
 from __future__ import annotations
 
@@ -7,13 +11,18 @@ from contextlib import contextmanager
 from tqdm.auto import tqdm
 
 
+def _disable(enabled: bool) -> bool | None:
+    """tqdm's ``disable``: ``True`` when not wanted, else ``None`` (only on a terminal)."""
+    return None if enabled else True
+
+
 @contextmanager
 def iteration_bar(total: int, desc: str, enabled: bool = True):
     """A progress bar whose ``callback(iteration, residual)`` advances it.
 
     Yields a callback suitable for :func:`plenocl.reconstruct`.
     """
-    bar = tqdm(total=total, desc=desc, unit="it", disable=not enabled, leave=False)
+    bar = tqdm(total=total, desc=desc, unit="it", disable=_disable(enabled), leave=False)
 
     def callback(iteration: int, residual: float) -> None:
         bar.update(iteration - bar.n)
@@ -29,7 +38,7 @@ def iteration_bar(total: int, desc: str, enabled: bool = True):
 def pair_bar(total: int, enabled: bool = True):
     """A progress bar over the pairs of a batch: pairs done, pairs per second (tqdm's
     rate) and the time left; yields a function to call with ``failed=`` per pair."""
-    bar = tqdm(total=total, desc="pairs", unit="pair", disable=not enabled or total == 0,
+    bar = tqdm(total=total, desc="pairs", unit="pair", disable=_disable(enabled and total > 0),
                smoothing=0.1)
     failures = 0
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 #: Largest image value accepted: the volume (in image units) must stay finite in float32.
-FLOAT32_LIMIT = 1e30
+FLOAT32_LIMIT = float(np.float32(1e30))  # 1e30 as float32 (1.0000000150e30): such images pass
 
 
 #: With the median background removed, pixels count as light above this many noise
@@ -75,8 +75,9 @@ def preprocess(image, camera, background: str | None = "median",
         raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     scale = float(img.max())
     if scale > FLOAT32_LIMIT:
-        raise ValueError(f"image maximum {scale:.3g} is beyond the float32 range plenocl "
-                         f"reconstructs in (up to {FLOAT32_LIMIT:.0e}); rescale the image")
+        raise ValueError(f"image maximum {scale:.10g} is above {FLOAT32_LIMIT:.10g}, the "
+                         "largest value plenocl reconstructs in float32; divide the image "
+                         "by a constant (the volume scales with it)")
     if scale == 0:
         return img.astype(np.float32), 0.0, thr
     return (img / scale).astype(np.float32), scale, thr / scale

@@ -1,0 +1,112 @@
+"""Find and build the OpenCL programs in ``kernels/``, once per context.
+
+Sources are real ``.cl`` files. They are found next to the package in an installed
+wheel (``plenocl/kernels``) and in the top-level ``kernels/`` folder of a source
+checkout. The folder is always passed as ``-I`` so kernels use ``#include``. Each
+program is built once per (context, file, options). This module needs no device
+choice, so :mod:`plenocl.device` can use it to check that a device builds kernels.
+"""
+
+from __future__ import annotations
+
+import warnings
+import weakref
+from collections.abc import Sequence
+from pathlib import Path
+
+import pyopencl as cl
+
+
+class KernelBuildError(RuntimeError):
+    """An OpenCL program failed to build; the message carries file, options and log."""
+
+
+def kernel_dir() -> Path:
+    """The folder holding the ``.cl`` sources (installed wheel first, then checkout)."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "kernels", here.parent / "kernels"):
+        if (candidate / "common.h").is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"plenocl's OpenCL sources were not found next to {here}; reinstall plenocl"
+    )
+
+
+# Programs per context; an entry goes when its context is garbage collected.
+_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def build_program(
+    context: cl.Context, filename: str, options: Sequence[str] = ()
+) -> cl.Program:
+    """Build ``kernels/<filename>`` for ``context`` once and cache it.
+
+    Raises
+    ------
+    KernelBuildError
+        With the file, the build options and the compiler log.
+    """
+    programs = _CACHE.setdefault(context, {})
+    key = (filename, tuple(options))
+    if key in programs:
+        return programs[key]
+    folder = kernel_dir()
+    source = (folder / filename).read_text()
+    opts = [f"-I{folder}", "-cl-fp32-correctly-rounded-divide-sqrt", *options]
+    try:
+        program = _compile(context, source, opts)
+    except (cl.RuntimeError, cl.LogicError) as exc:
+        raise KernelBuildError(
+            f"building {folder / filename} failed\n  options: {' '.join(opts)}\n"
+            f"  compiler log:\n{exc}{build_hint(str(exc))}"
+        ) from exc
+    programs[key] = program
+    return program
+
+
+def _compile(context: cl.Context, source: str, options: list[str]) -> cl.Program:
+    """Build through pyopencl's binary cache; without it where that cache fails."""
+    with warnings.catch_warnings():
+        # Some compilers log progress on success (Intel's "Compilation started"):
+        # a build that succeeds has nothing to tell a user.
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        try:
+            return cl.Program(context, source).build(options=options)
+        except KeyError:
+            # pyopencl's cache reads PYOPENCL_CACHE_FAILURE_FATAL unguarded when a build
+            # fails other than by a compile error (Intel's runtime: an invalid option);
+            # building without the cache raises the driver's own error.
+            return cl.Program(context, source).build(options=options, cache_dir=False)
+
+
+#: What a compiler log says when PoCL's LLVM does not know the CPU it runs on.
+UNKNOWN_CPU = "unknown target CPU"
+
+
+def build_hint(log: str) -> str:
+    """A fix for the build failures a user can mend without touching plenocl."""
+    if UNKNOWN_CPU not in log:
+        return ""
+    return ("\n  hint: this PoCL's LLVM does not know this processor (the PoCL 3.0 wheel "
+            "from PyPI, LLVM 14, on an AMD Zen 5 CPU, say) and so cannot compile any "
+            "kernel. Install Intel's CPU runtime with pip, no root needed: "
+            "pip install \"plenocl[cpu]\" (or intel-opencl-rt intel-cmplr-lib-rt), which "
+            "plenocl registers and prefers by itself; or a PoCL built with a newer LLVM "
+            "(apt install pocl-opencl-icd). `plenocl devices` shows which devices build "
+            "plenocl's kernels; docs/errors.md")
+
+
+def probe_build(context: cl.Context) -> str | None:
+    """Build one of plenocl's kernels for ``context``: ``None`` if it builds, else why not.
+
+    The probe is the deformation kernel (small, and built by every PIV run), so a
+    context that passes keeps its program in the cache.
+    """
+    try:
+        build_program(context, "deform.cl", ["-DORDER=1"])
+    except KernelBuildError as exc:
+        log = str(exc).split("compiler log:\n", 1)[-1].split("\n  hint:")[0]
+        lines = [line.strip() for line in log.splitlines() if line.strip()]
+        errors = [line for line in lines if "error" in line.lower()] or lines or ["no log"]
+        return errors[0][:200]
+    return None

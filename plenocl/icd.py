@@ -1,0 +1,113 @@
+"""Make OpenCL CPU runtimes that pip installed visible to the OpenCL loader.
+
+pyopencl's wheels carry their own ICD loader (ocl-icd). It reads the ICD files of
+``/etc/OpenCL/vendors`` (or of the folder ``OCL_ICD_VENDORS`` names) and those next to
+itself, which is how the PoCL wheel registers. Intel's CPU runtime from PyPI
+(``intel-opencl-rt``, the ``intel`` extra) installs its library into the environment but
+its ICD file names the path of the machine it was built on, so the loader never finds it.
+
+:func:`register_pip_runtimes` writes a vendors folder that holds the system's ICD files
+and one naming each pip-installed runtime by its real path, and points
+``OCL_ICD_VENDORS`` at it. It must run before the process first lists OpenCL platforms
+(the loader reads its configuration once); :mod:`plenocl.device` calls it before every
+listing, so plenocl's own entry points need nothing else. A user's own
+``OCL_ICD_VENDORS`` is respected and left alone; ``PLENOCL_PIP_RUNTIMES=0`` turns the
+registration off.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from importlib import metadata
+from pathlib import Path
+
+#: The system's ICD folder, which ``OCL_ICD_VENDORS`` replaces once it is set.
+SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
+
+#: pip distributions that carry an OpenCL runtime library, and that library's file name.
+PIP_RUNTIMES = {"intel-opencl-rt": "libintelocl.so"}
+
+#: Set to ``0`` to keep plenocl from registering pip-installed runtimes.
+SWITCH = "PLENOCL_PIP_RUNTIMES"
+
+_registered: list[Path] | None = None
+
+
+def pip_runtime_libraries() -> list[Path]:
+    """The OpenCL runtime libraries installed by pip into this environment."""
+    found = []
+    for dist_name, lib_name in PIP_RUNTIMES.items():
+        try:
+            dist = metadata.distribution(dist_name)
+        except metadata.PackageNotFoundError:
+            continue
+        for entry in dist.files or ():
+            path = Path(dist.locate_file(entry)).resolve()
+            if entry.name == lib_name and path.is_file():
+                found.append(path)
+    return found
+
+
+def vendor_files(libraries: list[Path], system: Path = SYSTEM_VENDORS) -> dict[str, str]:
+    """The ICD files a vendors folder needs: the system's, then one per library.
+
+    Returns ``{file name: content}``; a library the system already registers (same
+    content) is not listed twice.
+    """
+    files = {}
+    if system.is_dir():
+        for icd in sorted(system.glob("*.icd")):
+            try:
+                files[icd.name] = icd.read_text()
+            except OSError:
+                continue  # an unreadable vendor file: the loader would skip it too
+    known = {content.strip() for content in files.values()}
+    for lib in libraries:
+        if str(lib) not in known:
+            files[f"plenocl-pip-{lib.stem}.icd"] = f"{lib}\n"
+    return files
+
+
+def write_vendors(files: dict[str, str], root: Path | None = None) -> Path:
+    """A vendors folder holding ``files``, named by their content (written once, atomically).
+
+    It lives in a per-user folder of the system's temporary directory; a folder with the
+    same content is reused, so repeated runs and worker processes share one.
+    """
+    digest = hashlib.sha256(repr(sorted(files.items())).encode()).hexdigest()[:16]
+    base = root or Path(tempfile.gettempdir()) / f"plenocl-icd-{os.getuid()}"
+    target = base / digest
+    if target.is_dir():
+        return target
+    base.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=base))
+    for name, content in files.items():
+        (staging / name).write_text(content)
+    try:
+        staging.rename(target)
+    except OSError:  # another process wrote the same folder first
+        for f in staging.iterdir():
+            f.unlink()
+        staging.rmdir()
+    return target
+
+
+def register_pip_runtimes() -> list[Path]:
+    """Point the OpenCL loader at pip-installed runtimes; return the libraries registered.
+
+    Does nothing (returns ``[]``) when ``OCL_ICD_VENDORS`` is already set, when
+    ``PLENOCL_PIP_RUNTIMES=0``, or when no such runtime is installed. Idempotent.
+    """
+    global _registered
+    if _registered is not None:
+        return _registered
+    _registered = []
+    if os.environ.get("OCL_ICD_VENDORS") or os.environ.get(SWITCH, "1") == "0":
+        return _registered
+    libraries = pip_runtime_libraries()
+    if libraries:
+        os.environ["OCL_ICD_VENDORS"] = str(write_vendors(vendor_files(libraries)))
+        _registered = libraries
+    return _registered

@@ -1,0 +1,62 @@
+"""Registration of pip-installed OpenCL runtimes with the loader (plenocl.icd)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from plenocl import icd
+
+
+def test_vendor_files_keep_the_system_drivers_and_add_each_library_once(tmp_path):
+    system = tmp_path / "vendors"
+    system.mkdir()
+    (system / "pocl.icd").write_text("libpocl.so.2\n")
+    (system / "notes.txt").write_text("not an ICD file")
+    lib = tmp_path / "lib" / "libintelocl.so"
+    files = icd.vendor_files([lib], system)
+    assert files == {"pocl.icd": "libpocl.so.2\n", "plenocl-pip-libintelocl.icd": f"{lib}\n"}
+    (system / "intel.icd").write_text(f"{lib}\n")  # the system registers it already
+    assert sorted(icd.vendor_files([lib], system)) == ["intel.icd", "pocl.icd"]
+    assert icd.vendor_files([], tmp_path / "absent") == {}
+
+
+def test_vendors_folder_is_written_once_per_content_and_reused(tmp_path):
+    files = {"a.icd": "/x/liba.so\n", "b.icd": "libb.so\n"}
+    first = icd.write_vendors(files, tmp_path)
+    assert {p.name: p.read_text() for p in first.iterdir()} == files
+    assert icd.write_vendors(dict(reversed(files.items())), tmp_path) == first
+    other = icd.write_vendors({"a.icd": "/y/liba.so\n"}, tmp_path)
+    assert other != first and [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def _platforms_in_child(**env) -> dict:
+    code = ("import json, os, pyopencl as cl\nfrom plenocl import icd\n"
+            "libs = [str(p) for p in icd.register_pip_runtimes()]\n"
+            "print(json.dumps({'libs': libs, 'vendors': os.environ.get('OCL_ICD_VENDORS'), "
+            "'platforms': [p.name.strip() for p in cl.get_platforms()]}))")
+    # this process registered already (OCL_ICD_VENDORS set by plenocl): start clean
+    full = {k: v for k, v in os.environ.items() if k not in ("OCL_ICD_VENDORS", "PYOPENCL_CTX")}
+    out = subprocess.run([sys.executable, "-c", code], env={**full, **env}, capture_output=True,
+                         text=True, timeout=300, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_pip_runtimes_become_platforms_and_a_users_folder_is_respected(tmp_path):
+    """Each pip-installed runtime is registered and listed by the loader; a user's own
+    OCL_ICD_VENDORS (here an empty folder) is left alone, and so nothing is added."""
+    expected = [str(p) for p in icd.pip_runtime_libraries()]
+    mine = _platforms_in_child(OCL_ICD_VENDORS=str(tmp_path))
+    assert mine["libs"] == [] and mine["vendors"] == str(tmp_path)
+    assert "Intel(R) OpenCL" not in mine["platforms"]
+    off = _platforms_in_child(PLENOCL_PIP_RUNTIMES="0")
+    assert off["libs"] == [] and off["vendors"] is None
+    auto = _platforms_in_child()
+    assert auto["libs"] == expected
+    if expected:  # the cpu extra installs Intel's runtime: it must become a platform
+        assert "Intel(R) OpenCL" in auto["platforms"]
+        folder = Path(auto["vendors"])
+        assert any(expected[0] in p.read_text() for p in folder.glob("*.icd"))
