@@ -108,5 +108,6 @@ def probe_build(context: cl.Context) -> str | None:
         log = str(exc).split("compiler log:\n", 1)[-1].split("\n  hint:")[0]
         lines = [line.strip() for line in log.splitlines() if line.strip()]
         errors = [line for line in lines if "error" in line.lower()] or lines or ["no log"]
-        return errors[0][:200]
+        parts = dict.fromkeys(part.strip() for part in errors[0].split(" - "))  # pyopencl
+        return " - ".join(parts)[:200]                          # repeats its message per device
     return None

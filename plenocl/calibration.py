@@ -398,34 +398,77 @@ def _match(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     f = _fractional_index(pts, model)
     base = np.rint(f).astype(np.int64)
     dev = np.abs(f - base).max(1)
-    _check_lens_count(base[dev <= 0.3], pts[dev <= 0.3], camera, pitch)
-    k = base + _whole_pitch_shift(base, cols, rows)
+    k = base + _lens_count_and_shift(base[dev <= 0.3], pts[dev <= 0.3], model, camera,
+                                     pitch)
     inside = (k[:, 0] >= 0) & (k[:, 0] < cols) & (k[:, 1] >= 0) & (k[:, 1] < rows)
     k[(dev > 0.3) | ~inside] = -1
     return k, dev
 
 
-def _check_lens_count(base: np.ndarray, pts: np.ndarray, camera: Camera,
-                      pitch: float) -> None:
-    """Refuse a white image whose spot lattice does not match the camera file's lens
-    count (a wrong ``[microlens_array] count``), naming both counts: it spans more lenses
-    along an axis, or clearly fewer while both of its ends lie well inside the sensor (so
-    the array's own edge, not the sensor's, ends it).
+def _lens_count_and_shift(base: np.ndarray, pts: np.ndarray, model: np.ndarray,
+                          camera: Camera, pitch: float) -> np.ndarray:
+    """Check the camera file's lens count against the white image and return the index
+    shift that makes lens 0 the first lens of the array; refuse a wrong count, naming
+    both counts (``[microlens_array] count``).
 
-    Isolated stray spots do not count: an axis's extent is taken between the 0.2 % and
-    99.8 % quantiles of the spots' lattice indices."""
-    if len(base) < 10:
-        return
+    The rule (docs/design.md §2): the array's lenses are those whose image centre lies
+    on the sensor. Along each axis the first and last lens are the outermost spots seen
+    (between the 0.2 % and 99.8 % quantiles of the spots' lattice indices, so stray
+    spots do not count), corrected at the sensor's edge from the fitted lattice: a spot
+    whose lattice centre lies off the sensor is not a lens of the array, and a lens
+    whose centre lies on the sensor within half a pitch of its edge is one, whether or
+    not its cut image was detected. So an array that fills or overfills the sensor gets
+    one count and one labelling, whatever the image's noise or encoding.
+    """
     count = np.array(camera.ml_count)
-    lo, hi = np.percentile(base, [0.2, 99.8], axis=0)
-    seen = np.rint(hi - lo).astype(int) + 1
+    if len(base) < 10:
+        return _whole_pitch_shift(base, *camera.ml_count)
     size = np.array(camera.pixels, float)
-    inside = ((pts.min(axis=0) > 2 * pitch) & (pts.max(axis=0) < size - 1 - 2 * pitch))
-    if (seen > count + 1).any() or ((seen < count - 1) & inside).any():
+    lo, hi = np.rint(np.percentile(base, [0.2, 99.8], axis=0)).astype(int)
+    first, last = lo.copy(), hi.copy()
+    for axis in (0, 1):
+        other = float(np.median(base[:, 1 - axis]))
+        edge = _EdgeLattice(model, axis, other, size[axis], pitch)
+        first[axis], last[axis] = edge.boundary(lo[axis], -1), edge.boundary(hi[axis], +1)
+    seen = last - first + 1
+    if (seen != count).any():
         raise ValueError(
             f"the white image shows about {seen[0]} x {seen[1]} microlens images (columns x "
-            f"rows) but the camera file has {count[0]} x {count[1]} microlenses: correct "
-            "[microlens_array] count = [columns, rows] in the camera file")
+            f"rows, counting those whose centre lies on the sensor) but the camera file has "
+            f"{count[0]} x {count[1]} microlenses: correct [microlens_array] count = "
+            "[columns, rows] in the camera file")
+    return -first
+
+
+class _EdgeLattice:
+    """Lattice node centres along one axis, on the lattice line through the spots'
+    middle, against the sensor's extent ``[-0.5, size - 0.5]`` along that axis."""
+
+    def __init__(self, model: np.ndarray, axis: int, other: float, size: float,
+                 pitch: float) -> None:
+        self.model, self.axis, self.other = model, axis, other
+        self.size, self.pitch = size, pitch
+
+    def centre(self, k: int) -> float:
+        idx = np.empty(2)
+        idx[self.axis], idx[1 - self.axis] = k, self.other
+        return float((idx @ self.model[:2] + self.model[2])[self.axis])
+
+    def margin(self, k: int) -> float:
+        """Distance of node ``k``'s centre inside the sensor's edge (negative: off it)."""
+        c = self.centre(k)
+        return min(c + 0.5, self.size - 0.5 - c)
+
+    def boundary(self, k: int, side: int) -> int:
+        """The outermost lens index from the outermost spot ``k`` on ``side`` (-1, +1)."""
+        for _ in range(3):  # spots centred off the sensor are not lenses of the array
+            if self.margin(k) >= 0:
+                break
+            k -= side
+        beyond = k + side  # a lens cut by the sensor's edge, detected or not
+        if 0 <= self.margin(beyond) < self.pitch / 2:
+            k = beyond
+        return k
 
 
 def _grow_lattice(pts: np.ndarray, model: np.ndarray, anchor: np.ndarray) -> np.ndarray:

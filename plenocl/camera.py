@@ -95,13 +95,17 @@ class Camera:
 
     # ---- validation -------------------------------------------------------------
     def _check_sensor_covers_array(self) -> None:
+        # the array's lenses are those whose image centre lies on the sensor (design.md
+        # §2): the outermost centres, a pitch inside the array's edges, fit on the sensor
         mla = np.array(self.ml_count) * self.ml_pitch_mm
         sensor = np.array(self.pixels) * self.pixel_pitch_mm
-        if np.any(mla > sensor * (1 + 1e-9)):
+        if np.any(mla - self.ml_pitch_mm > sensor * (1 + 1e-9)):
             raise ValueError(
                 f"the microlens array ({mla[0]:.3f} x {mla[1]:.3f} mm) is larger than the "
-                f"sensor ({sensor[0]:.3f} x {sensor[1]:.3f} mm): check the microlens pitch "
-                "and count against the sensor's pixel pitch and pixel count"
+                f"sensor ({sensor[0]:.3f} x {sensor[1]:.3f} mm) by more than a lens: count "
+                "only the lenses whose image centre lies on the sensor ([microlens_array] "
+                "count), and check the microlens pitch against the sensor's pixel pitch "
+                "and pixel count"
             )
         if self.pixels_per_microlens < 2:
             raise ValueError(
@@ -286,7 +290,9 @@ class Camera:
 
     @classmethod
     def from_dict(cls, doc: dict, source: str = "camera") -> Camera:
-        """Build a camera from the nested dictionaries of a camera file."""
+        """Build a camera from the nested dictionaries of a camera file; an unknown
+        section or key (a misspelt optional one included) is an error naming it."""
+        _check_keys(doc, source)
         try:
             lens, mla, sensor = doc["main_lens"], doc["microlens_array"], doc["sensor"]
             kwargs = dict(
@@ -329,6 +335,31 @@ class Camera:
 
 
 PRESETS = {"paper": Camera.paper_16mp, "synthetic": Camera.synthetic_850}
+
+#: The sections of a camera file and the keys each may hold (docs/design.md §2).
+CAMERA_KEYS = {
+    "main_lens": ("focal_length_mm", "f_number", "magnification"),
+    "microlens_array": ("pitch_mm", "focal_length_mm", "count", "rotation_deg", "offset_mm"),
+    "sensor": ("pixel_pitch_mm", "pixels"),
+    "calibration": ("centers_col", "centers_row"),
+}
+
+
+def _check_keys(doc: dict, source: str) -> None:
+    """Refuse unknown sections and keys by name, as the experiment file does: a misspelt
+    optional key (``rotaton_deg``) would otherwise be ignored and the geometry wrong."""
+    unknown = sorted(set(doc) - set(CAMERA_KEYS))
+    if unknown:
+        raise ValueError(f"{source}: unknown section(s) {unknown}; a camera file has "
+                         f"{list(CAMERA_KEYS)} (docs/design.md §2)")
+    for section, keys in CAMERA_KEYS.items():
+        given = doc.get(section, {})
+        if not isinstance(given, dict):
+            raise ValueError(f"{source}: [{section}] must be a section of keys")
+        bad = sorted(set(given) - set(keys))
+        if bad:
+            raise ValueError(f"{source}: unknown key(s) {bad} in [{section}]; it takes "
+                             f"{list(keys)} (docs/design.md §2)")
 
 
 def load_camera(spec: str | Path | None) -> Camera:

@@ -87,10 +87,18 @@ def test_bad_experiment_files_are_refused_before_any_work(tmp_path, change, mess
 def test_bad_values_are_named(tmp_path):
     for old, new, message in (('dt_s = 1e-3', 'dt_s = -1', "dt_s must be"),
                               ('pairing = "sequence"', 'pairing = "odd"', "pairing must"),
-                              ("iterations = 20", "iterations = -2", "iterations")):
+                              ("iterations = 20", "iterations = -2", "iterations"),
+                              ('dt_s = 1e-3', 'dt_s = 175', r"dt_s = 175 s .*175 µs would be"
+                               r".*force_dt = true"),
+                              ('pairing = "sequence"', 'pairing = "list"', "goes with"),
+                              ('pairing = "sequence"', 'first_frame = -1', "first_frame"),
+                              ('dt_s = 1e-3', 'dt_s = 1e-3\nforce_dt = 1', "force_dt")):
         (tmp_path / "e.toml").write_text(EXPERIMENT.replace(old, new))
         with pytest.raises(ValueError, match=message):
             load_experiment(tmp_path / "e.toml")
+    (tmp_path / "e.toml").write_text(EXPERIMENT.replace("dt_s = 1e-3",
+                                                        "dt_s = 2.5\nforce_dt = true"))
+    assert load_experiment(tmp_path / "e.toml")["images"]["dt_s"] == 2.5  # forced: real
 
 
 def test_dask_workers_give_the_serial_fields_and_a_store_xarray_reads(experiment, tmp_path):
@@ -201,3 +209,85 @@ def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(exper
     (tmp_path / "bad.toml").write_text(bad)
     with pytest.raises(ValueError, match="pair_interval_s must be the time between"):
         load_experiment(tmp_path / "bad.toml")
+
+
+def _copy_experiment(experiment, dest, drop=()):
+    """The fixture's experiment in ``dest`` without the frames numbered in ``drop``."""
+    import shutil
+
+    shutil.copytree(experiment / "raw", dest / "raw")
+    for n in drop:
+        (dest / "raw" / f"frame_{n:03d}.tif").unlink()
+    shutil.copy(experiment / "experiment.toml", dest / "experiment.toml")
+    return dest / "experiment.toml"
+
+
+def test_a_missing_frame_is_reported_and_no_pair_mixes_exposures(experiment, tmp_path):
+    """frame_002 deleted: pair 1 is not made and is named; pair 0 keeps frames 0 + 1 and
+    pair 2 frames 4 + 5 (not 3 + 4); each field, the store and summary.json name their
+    two source files."""
+    exp = _copy_experiment(experiment, tmp_path, drop=[2])
+    said = []
+    s = plenocl.run(exp, log=said.append, progress=False)
+    assert s.processed == [0] and list(s.failed) == [2] and list(s.gaps) == [1]
+    assert "frame_002.tif missing" in s.gaps[1] and "frame_005.tif" in s.failed[2]
+    assert any(m.startswith("pair 1: not made") for m in said)
+    out = tmp_path / "results"
+    saved = json.loads((out / "summary.json").read_text())
+    assert "frame_002.tif" in saved["gaps"]["1"]
+    src = saved["sources"]["0"]
+    assert (src["a"]["name"], src["b"]["name"]) == ("frame_000.tif", "frame_001.tif")
+    assert src["a"]["bytes"] == (tmp_path / "raw" / "frame_000.tif").stat().st_size
+    assert len(src["b"]["sha256"]) == 64
+    xr = pytest.importorskip("xarray")
+    ds = xr.open_zarr(out / "timeseries.zarr")
+    assert list(ds.source_a.values) == ["frame_000.tif"]
+    assert list(ds.source_b_sha256.values) == [src["b"]["sha256"]]
+
+
+def test_a_rerun_refuses_inputs_that_changed_since(experiment, tmp_path):
+    exp = _copy_experiment(experiment, tmp_path, drop=[2, 3, 4, 5])
+    assert plenocl.run(exp, progress=False).processed == [0]
+    frame = tmp_path / "raw" / "frame_001.tif"
+    frame.write_bytes(frame.read_bytes()[:-4] + b"\0\0\0\1")  # same size, new content
+    with pytest.raises(ValueError, match=r"pairs made from other images.*frame_001.tif"):
+        plenocl.run(exp, progress=False)
+    assert plenocl.run(exp, tmp_path / "elsewhere", progress=False).processed == [0]
+
+
+def test_a_sigkilled_run_rerun_equals_an_uninterrupted_one(experiment, tmp_path):
+    """Killed with SIGKILL after its first field, then rerun: every field equals the
+    uninterrupted run's bit for bit, and the half-written files of the kill are gone."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    exp = _copy_experiment(experiment, tmp_path, drop=[4, 5])
+    reference = plenocl.run(exp, tmp_path / "whole", progress=False)
+    assert reference.processed == [0, 1]
+    out = tmp_path / "killed"
+    env = {k: v for k, v in os.environ.items() if k != "PYOPENCL_CTX"}
+    proc = subprocess.Popen([sys.executable, "-m", "plenocl", "run", str(exp), "--out",
+                             str(out)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while not (out / "pairs" / "pair_00000.npz").is_file() and time.monotonic() < deadline:
+        assert proc.poll() is None, "the run ended before it could be killed"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    stale = out / "pairs" / ".pair_00001.npz.kill.part.npz"  # as a kill mid-write leaves
+    stale.write_bytes(b"half")
+    said = []
+    again = plenocl.run(exp, out, progress=False, log=said.append)
+    assert again.processed in ([1], []) and sorted(again.processed + again.skipped) == [0, 1]
+    assert not stale.exists() and any("half-written" in m for m in said)
+    assert not list(out.rglob(".*.part*"))
+    for k in (0, 1):
+        _, want = read_npz(tmp_path / "whole" / "pairs" / f"pair_{k:05d}.npz")
+        _, got = read_npz(out / "pairs" / f"pair_{k:05d}.npz")
+        assert sorted(got) == sorted(want)
+        for key in want:
+            assert np.array_equal(got[key], want[key], equal_nan=want[key].dtype.kind == "f"), key

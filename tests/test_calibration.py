@@ -333,3 +333,50 @@ def test_camera_file_with_too_many_lenses_is_refused_naming_both_counts(queue):
     wrong = lens_camera(24, 18)
     with pytest.raises(ValueError, match=r"about 20 x 16 .* has 24 x 18 microlenses"):
         find_centers(white, wrong)
+
+
+@pytest.mark.parametrize("wrong", [(19, 16), (21, 16), (20, 15), (20, 17)])
+def test_a_lens_count_off_by_one_either_way_is_refused(queue, wrong):
+    """A 20 x 16 array on a larger sensor (its edges visible): a camera file off by a
+    single lens along either axis, either way, is refused (it used to calibrate every
+    lens half a lens off)."""
+    true = lens_camera(20, 16, pixels=(24 * 17, 20 * 17))
+    white = simulate_white_image(true, photon_noise=True, seed=21, queue=queue)
+    bad = lens_camera(*wrong, pixels=true.pixels)
+    with pytest.raises(ValueError, match=r"about 20 x 16 .* has "
+                                         rf"{wrong[0]} x {wrong[1]} microlenses"):
+        find_centers(white, bad)
+
+
+def test_the_sensor_filling_camera_off_by_one_lens_is_refused(queue):
+    """The issue's case: the 850 px camera's 50 x 50 array described as 49 x 49."""
+    cam = Camera.synthetic_850()
+    white = simulate_white_image(cam, seed=22, queue=queue)
+    wrong = Camera(cam.focal_length_mm, cam.f_number, cam.magnification, cam.ml_pitch_mm,
+                   cam.ml_focal_length_mm, (49, 49), cam.pixel_pitch_mm, cam.pixels)
+    with pytest.raises(ValueError, match=r"about 50 x 50 .* has 49 x 49"):
+        find_centers(white, wrong)
+
+
+@pytest.mark.parametrize("encoding", ["float", "uint16", "uint8"])
+def test_an_array_overfilling_the_sensor_has_one_count_and_one_labelling(queue, encoding):
+    """A 16 x 12 array cut by the sensor: 5 px off the left (lens centres 3.5 px inside:
+    lenses of the array, their images cut) and 12 px off the top (the first row's centres
+    3.5 px outside: not lenses). The count is the lenses whose centre lies on the sensor
+    (16 x 11), whatever the encoding, and lens (0, 0) is the same lens."""
+    full = lens_camera(16, 12)
+    white = simulate_white_image(full, photon_noise=True, seed=23, queue=queue)
+    cut = white[12:, 5:]
+    scaled = cut / cut.max()
+    img = {"float": scaled, "uint16": np.rint(scaled * 65535).astype(np.uint16),
+           "uint8": np.rint(scaled * 255).astype(np.uint8)}[encoding]
+    cam = lens_camera(16, 11, pixels=(cut.shape[1], cut.shape[0]))
+    fit = find_centers(img, cam)
+    truth = full.ideal_microlens_centers()[1:] - np.array([5.0, 12.0])
+    err = _errors(fit.centers, truth)
+    assert fit.found[1:-1, 1:-1].all() and np.nanmax(err) < 0.3, np.nanmax(err)
+    for wrong in ((16, 12), (15, 11)):
+        with pytest.raises(ValueError, match=r"about 16 x 11"):
+            find_centers(img, lens_camera(*wrong, pixels=cam.pixels))
+    with pytest.raises(ValueError, match="larger than the sensor .* by more than a lens"):
+        lens_camera(17, 11, pixels=cam.pixels)

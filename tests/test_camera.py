@@ -98,6 +98,22 @@ def test_f_number_mismatch_warns_with_percentage():
         Camera(50.0, 4.0, 1.0, 0.125, 0.5, (50, 50), 0.0074, (850, 850))
 
 
+@pytest.mark.parametrize("edit, message", [
+    (("rotation_deg = 0.0", "rotaton_deg = 0.5"), r"unknown key\(s\) \['rotaton_deg'\] in "
+                                                   r"\[microlens_array\]"),
+    (("[sensor]", "[sensor]\nbit_depth = 12"), r"unknown key\(s\) \['bit_depth'\] in \[sensor\]"),
+    (("[sensor]", "[lens]\nx = 1\n[sensor]"), r"unknown section\(s\) \['lens'\]"),
+])
+def test_unknown_camera_keys_are_refused_by_name(tmp_path, edit, message):
+    """A misspelt optional key used to be ignored silently (the array then 0.5° off)."""
+    Camera.synthetic_850().to_toml(tmp_path / "c.toml")
+    text = (tmp_path / "c.toml").read_text()
+    assert edit[0] in text
+    (tmp_path / "c.toml").write_text(text.replace(edit[0], edit[1], 1))
+    with pytest.raises(ValueError, match=message):
+        Camera.from_toml(tmp_path / "c.toml")
+
+
 def test_missing_key_and_impossible_depth_errors(tmp_path):
     (tmp_path / "bad.toml").write_text("[main_lens]\nfocal_length_mm = 50.0\n")
     with pytest.raises(ValueError, match="lacks the key"):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -197,3 +198,65 @@ def test_ctrl_c_exits_130_with_one_line_and_warnings_print_once(tmp_path, capsys
     assert main(args) == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "interrupted" in err[0]
+
+
+def _volumes(tmp_path, shape=(8, 10, 12)):
+    from plenocl import Grid
+    from plenocl.io.files import save_volume
+
+    grid = Grid(shape, x=(-1.2, 1.2), y=(-1.0, 1.0), z=(-0.8, 0.8))
+    vol = np.random.default_rng(1).random(shape).astype(np.float32)
+    for name in ("a.npz", "b.npz"):
+        save_volume(tmp_path / name, vol, grid)
+    for name in ("a.npy", "b.npy"):
+        np.save(tmp_path / name, vol)
+    grid.to_toml(tmp_path / "grid.toml")
+    return grid
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--dt", "175"], r"--dt = 175 s .* 175 µs would be 0.000175.*--force"),
+    (["--dt", "0"], r"--dt must be the time between the exposures"),
+    (["--dt", "1e-9"], r"outside what PIV uses"),
+])
+def test_piv_refuses_an_implausible_dt_before_any_work(tmp_path, capsys, args, message):
+    _volumes(tmp_path)
+    rc = main(["piv", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), *args, "--out",
+               str(tmp_path / "f.npz")])
+    err = capsys.readouterr().err
+    assert rc == 2 and re.search(message, err), err
+    assert not (tmp_path / "f.npz").exists() and "windows per pass" not in err
+
+
+def test_piv_grids_conflicts_and_gridless_volumes_are_refused(tmp_path, capsys):
+    from plenocl import Grid
+
+    _volumes(tmp_path)
+    Grid((8, 10, 12), x=(-2, 2), y=(-1, 1), z=(-0.8, 0.8)).to_toml(tmp_path / "other.toml")
+    base = ["--dt", "1e-3", "--no-particles", "--out", str(tmp_path / "f.npz")]
+    npz = [str(tmp_path / "a.npz"), str(tmp_path / "b.npz")]
+    npy = [str(tmp_path / "a.npy"), str(tmp_path / "b.npy")]
+    assert main(["piv", *npz, "--grid", str(tmp_path / "other.toml"), *base]) == 2
+    assert "is not the grid the volumes carry" in capsys.readouterr().err
+    assert main(["piv", *npy, *base]) == 2
+    assert "carry no grid (.npy): give --grid" in capsys.readouterr().err
+    Grid((8, 10, 10), x=(-1, 1), y=(-1, 1), z=(-0.8, 0.8)).to_toml(tmp_path / "small.toml")
+    assert main(["piv", *npy, "--grid", str(tmp_path / "small.toml"), *base]) == 2
+    assert "holds (8, 10, 12) voxels but the grid is (8, 10, 10)" in capsys.readouterr().err
+    assert not (tmp_path / "f.npz").exists()
+    # the same grid given again is no conflict
+    assert main(["piv", *npz, "--grid", str(tmp_path / "grid.toml"), *base]) == 0
+
+
+def test_simulate_refuses_a_dt_in_the_wrong_units(tmp_path, capsys):
+    write_particles(tmp_path / "p.csv", np.array([[0.0, 0.0, 0.0]]), np.array([1e4]))
+    out = tmp_path / "raw.tif"
+    common = ["simulate", "--particles", str(tmp_path / "p.csv"), "--out", str(out),
+              "--velocity", "4.57", "0", "0"]
+    assert main([*common, "--dt", "175"]) == 2
+    assert "175 µs would be" in capsys.readouterr().err
+    assert main([*common, "--dt", "0.5"]) == 2  # a plausible dt, but 2.3 m of travel
+    assert "move 2285 mm between the exposures, more than the 6.29 mm field of view" in \
+        capsys.readouterr().err
+    assert not list(tmp_path.glob("raw*.tif"))
+    assert main([*common, "--dt", "0.5", "--force"]) == 0  # the rare real case: forced

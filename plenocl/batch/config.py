@@ -14,10 +14,14 @@ Example::
     z_mm = [-2.0, 2.0]                   # Grid.for_camera; or file = "grid.toml"
     [images]
     folder = "raw"
-    pattern = "frame_*.tif"              # sorted by name
-    pairing = "sequence"                 # 1+2, 3+4, ...; "sliding": 1+2, 2+3, ...;
-                                         # "ab": files with a_suffix / b_suffix
-    dt_s = 175e-6                        # between the two exposures of a pair
+    pattern = "frame_*.tif"
+    pairing = "sequence"                 # by frame number: 0+1, 2+3, ...; "sliding": 0+1,
+                                         # 1+2, ...; "ab": files with a_suffix / b_suffix;
+                                         # "list": pairs = [["a.tif", "b.tif"], ...]
+    first_frame = 0                      # optional: the number pairs count from (default:
+                                         # the lowest found; batch/pairing.py)
+    dt_s = 175e-6                        # between the two exposures of a pair (s; outside
+                                         # 0.1 µs to 1 s refused unless force_dt = true)
     pair_interval_s = 0.01               # between successive pairs: the time axis
     [reconstruction]
     method = "mlem"
@@ -40,6 +44,8 @@ from pathlib import Path
 
 from ..reconstruction.supersample import PAIR_SUPERSAMPLE
 from ..tomlfile import read_toml
+from ..units import check_dt
+from .pairing import PAIRINGS, PairPlan, ab_pairs, listed_pairs, numbered_pairs
 
 #: Keys each section of an experiment file may hold, with their defaults (None: required
 #: or optional without default).
@@ -48,14 +54,14 @@ SECTIONS = {
     "grid": {"file": None, "z_mm": None, "voxel_mm": None, "depth_voxel_mm": None,
              "fraction": 1.0},
     "images": {"folder": ".", "pattern": "*.tif", "pairing": "sequence", "a_suffix": "_a",
-               "b_suffix": "_b", "dt_s": None, "pair_interval_s": None},
+               "b_suffix": "_b", "dt_s": None, "pair_interval_s": None, "pairs": None,
+               "first_frame": None, "force_dt": False},
     "reconstruction": {"method": "mlem", "iterations": None, "relax": None,
                        "background": "median", "threshold": None,
                        "supersample": PAIR_SUPERSAMPLE},
     "piv": {"windows": None, "ensemble": False},
     "output": {"folder": "results", "vti": False},
 }
-PAIRINGS = ("sequence", "sliding", "ab")
 
 
 @dataclass(frozen=True)
@@ -97,13 +103,15 @@ def _check(s: dict, path: Path) -> None:
                          f"camera, calibrated from `white` if given), got {cam or 'none'}")
     if bool(s["grid"]["file"]) == bool(s["grid"]["z_mm"]):
         raise ValueError(f"{path}: [grid] needs exactly one of file or z_mm")
-    if s["images"]["pairing"] not in PAIRINGS:
-        raise ValueError(f"{path}: [images] pairing must be one of {PAIRINGS}, got "
-                         f"{s['images']['pairing']!r}")
+    _check_pairing(s["images"], path)
+    if not isinstance(s["images"]["force_dt"], bool):
+        raise ValueError(f"{path}: [images] force_dt must be true or false")
     dt = s["images"]["dt_s"]
-    if not (isinstance(dt, (int, float)) and dt > 0):
+    if not isinstance(dt, (int, float)) or isinstance(dt, bool):
         raise ValueError(f"{path}: [images] dt_s must be the time between the exposures in "
                          f"seconds (e.g. 175e-6), got {dt!r}")
+    check_dt(dt, f"{path}: [images] dt_s", s["images"]["force_dt"],
+             flag="[images] force_dt = true")
     interval = s["images"]["pair_interval_s"]
     if interval is not None and not (isinstance(interval, (int, float)) and interval > 0):
         raise ValueError(f"{path}: [images] pair_interval_s must be the time between "
@@ -117,20 +125,49 @@ def _check(s: dict, path: Path) -> None:
                              f"{s[section][key]!r}")
 
 
-def image_pairs(exp: Experiment) -> list[tuple[Path, Path]]:
-    """The image pairs of the experiment, in order."""
+def _check_pairing(img: dict, path: Path) -> None:
+    if img["pairing"] not in PAIRINGS:
+        raise ValueError(f"{path}: [images] pairing must be one of {PAIRINGS}, got "
+                         f"{img['pairing']!r}")
+    listed = img["pairs"]
+    if (img["pairing"] == "list") != (listed is not None):
+        raise ValueError(f"{path}: [images] pairs (a list of [a, b] file names) goes with "
+                         f"pairing = \"list\" and only with it; got pairing "
+                         f"{img['pairing']!r} and {'no ' if listed is None else ''}pairs")
+    if listed is not None and not (isinstance(listed, list) and listed and all(
+            isinstance(p, list) and len(p) == 2 and all(isinstance(f, str) for f in p)
+            for p in listed)):
+        raise ValueError(f"{path}: [images] pairs must be a list of [a, b] file names, "
+                         f"e.g. [[\"run1_a.tif\", \"run1_b.tif\"]], got {listed!r}")
+    first = img["first_frame"]
+    if first is not None and not (isinstance(first, int) and not isinstance(first, bool)
+                                  and first >= 0):
+        raise ValueError(f"{path}: [images] first_frame must be a frame number (an integer "
+                         f">= 0), got {first!r}")
+
+
+def image_pairs(exp: Experiment) -> PairPlan:
+    """The image pairs of the experiment, by frame number (:mod:`.pairing`), and its gaps.
+
+    Raises
+    ------
+    ValueError
+        When no pair can be made (naming the folder, pattern and pairing), or when frame
+        names do not give frame numbers.
+    """
     img = exp["images"]
     folder = exp.base / img["folder"]
-    files = sorted(folder.glob(img["pattern"]))
-    if img["pairing"] == "ab":
-        a = [f for f in files if f.stem.endswith(img["a_suffix"])]
-        pairs = [(f, f.with_name(f.stem[: -len(img["a_suffix"])] + img["b_suffix"] + f.suffix))
-                 for f in a]
-    elif img["pairing"] == "sliding":
-        pairs = list(zip(files[:-1], files[1:]))
+    files = sorted(f for f in folder.glob(img["pattern"]) if f.is_file())
+    if img["pairing"] == "list":
+        plan = listed_pairs(img["pairs"], folder)
+    elif not files:
+        plan = PairPlan([])
+    elif img["pairing"] == "ab":
+        plan = ab_pairs(files, img["a_suffix"], img["b_suffix"], img["first_frame"], folder)
     else:
-        pairs = list(zip(files[0::2], files[1::2]))
-    if not pairs:
+        plan = numbered_pairs(files, img["pairing"], img["first_frame"], folder)
+    if not plan.pairs:
         raise ValueError(f"no image pairs in {folder} matching {img['pattern']!r} "
-                         f"(pairing {img['pairing']!r})")
-    return pairs
+                         f"(pairing {img['pairing']!r})"
+                         + (f": {'; '.join(plan.gaps.values())}" if plan.gaps else ""))
+    return plan

@@ -10,21 +10,29 @@ reason and the run goes on. At the end, and after Ctrl-C, the finished pairs are
 into ``OUT/timeseries.zarr`` with the ensemble mean and RMS fluctuation
 (:mod:`plenocl.io.timeseries`), and ``summary.json`` reports pairs processed, skipped and
 failed, seconds per pair and the stage split.
+
+Pairs are made from frame numbers (:mod:`.pairing`): a missing frame is a gap, reported
+by name, never a shift of the later pairs. Each field records its two source files (name,
+size, SHA-256); a rerun whose files differ from those a finished pair was made from
+refuses to mix them. Files a killed run left half-written are removed first.
 """
 
 from __future__ import annotations
 
 import json
 import time
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..atomic import atomic_path
+from ..io.fields import field_metadata
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..tomlfile import write_toml
 from .config import Experiment, image_pairs, load_experiment
-from .layout import finished_pairs, pair_file
+from .layout import finished_pairs, pair_file, remove_partial_files
+from .pairing import ImagePair, PairPlan, changed_since
 from .worker import PairOutcome, PairProcessor, PairTask
 
 
@@ -36,6 +44,9 @@ class RunSummary:
     processed: list[int] = field(default_factory=list)
     skipped: list[int] = field(default_factory=list)
     failed: dict[int, str] = field(default_factory=dict)
+    gaps: dict[int, str] = field(default_factory=dict)
+    unpaired: list[str] = field(default_factory=list)
+    sources: dict[int, dict] = field(default_factory=dict)
     seconds_per_pair: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
     wall_seconds: float = 0.0
@@ -71,18 +82,27 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     Returns
     -------
     RunSummary
-        Pairs processed, skipped (already written) and failed (with the reason).
+        Pairs processed, skipped (already written), failed (with the reason) and left
+        out for a missing frame (``gaps``), and each finished pair's source files.
     """
     exp = load_experiment(config)
     out = Path(out) if out is not None else exp.base / exp["output"]["folder"]
-    pairs = image_pairs(exp)
+    plan = image_pairs(exp)
     if (workers or scheduler) and not (queue is None or isinstance(queue, str)):
         raise ValueError("with --workers or --scheduler the device must be a name each "
                          "worker looks up (e.g. 'cpu' or 'NVIDIA'), not an OpenCL object")
+    for path in remove_partial_files(out) if out.is_dir() else []:
+        log(f"removed {path.name}, left half-written by an interrupted run")
     camera = _camera(exp, queue, log)
-    _write_used_config(exp, out, camera, _grid(exp, camera))
-    summary = RunSummary(pairs=len(pairs), workers=workers or (0 if scheduler else 1))
-    tasks = _tasks(pairs, out, summary, log)
+    grid = _grid(exp, camera)
+    _refuse_other_grid(out, grid)
+    _refuse_changed_inputs(plan, out)
+    _write_used_config(exp, out, camera, grid)
+    summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),
+                         workers=workers or (0 if scheduler else 1),
+                         gaps=dict(plan.gaps), unpaired=list(plan.unpaired))
+    _report_gaps(plan, log)
+    tasks = _tasks(plan.pairs, out, summary, log)
     t0 = time.perf_counter()
     with pair_bar(len(tasks), progress) as advance:
         def done(outcome: PairOutcome) -> None:
@@ -99,15 +119,49 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     return summary
 
 
-def _tasks(pairs, out: Path, summary: RunSummary, log) -> list[PairTask]:
+def _report_gaps(plan: PairPlan, log) -> None:
+    """Say which pairs a missing frame leaves out, and which files belong to no pair."""
+    for k, why in sorted(plan.gaps.items()):
+        log(f"pair {k}: not made, {why}")
+    for why in plan.unpaired:
+        log(f"not in any pair: {why}")
+
+
+def _refuse_changed_inputs(plan: PairPlan, out: Path) -> None:
+    """A finished pair whose source files differ from the plan's refuses the run: its
+    field and the new pairs would mix two sets of inputs."""
+    planned = {p.index: p for p in plan.pairs}
+    changed = []
+    for k, path in finished_pairs(out):
+        pair = planned.get(k)
+        try:
+            recorded = field_metadata(path).get("sources", {})
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            changed.append(f"pair {k}: {path.name} cannot be read ({exc})")
+            continue
+        if pair is None:
+            if recorded:
+                continue  # a frame removed after its pair was made: the field stays valid
+            changed.append(f"pair {k}: {path.name} exists but the images give no pair {k}")
+        elif (why := changed_since(recorded, pair)) is not None:
+            changed.append(f"pair {k}: {why}")
+    if changed:
+        raise ValueError(
+            f"{out} holds pairs made from other images than this run's: "
+            + "; ".join(changed[:5]) + (f"; and {len(changed) - 5} more" if len(changed) > 5
+                                        else "")
+            + ". Write this run to another folder (--out), or remove the old results")
+
+
+def _tasks(pairs: list[ImagePair], out: Path, summary: RunSummary, log) -> list[PairTask]:
     """The pairs still to do; those whose field exists are skipped, and said so."""
     tasks = []
-    for k, (path_a, path_b) in enumerate(pairs):
-        target = pair_file(out, k)
+    for pair in pairs:
+        target = pair_file(out, pair.index)
         if target.is_file():
-            summary.skipped.append(k)
+            summary.skipped.append(pair.index)
         else:
-            tasks.append(PairTask(k, str(path_a), str(path_b), str(target)))
+            tasks.append(PairTask(pair.index, str(pair.a), str(pair.b), str(target)))
     if summary.skipped:
         log(f"{len(summary.skipped)} of {len(pairs)} pair(s) already done in "
             f"{out / 'pairs'}: skipped")
@@ -164,12 +218,8 @@ def _grid(exp: Experiment, camera):
                            depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
 
 
-def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
-    """The configuration used, the camera and the grid, beside the results: a rerun
-    refuses to mix pairs of another grid into the folder."""
-    from .. import __version__
-
-    out.mkdir(parents=True, exist_ok=True)
+def _refuse_other_grid(out: Path, grid) -> None:
+    """A rerun refuses to mix pairs of another grid into the folder."""
     grid_file = out / "grid_used.toml"
     if grid_file.is_file() and finished_pairs(out):
         from ..grid import Grid
@@ -177,6 +227,14 @@ def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
         if Grid.from_toml(grid_file) != grid:
             raise ValueError(f"{out} holds pairs of another grid ({grid_file}); write this "
                              f"run to another folder (--out) or remove the old results")
+
+
+def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
+    """The configuration used, the camera and the grid, beside the results."""
+    from .. import __version__
+
+    out.mkdir(parents=True, exist_ok=True)
+    grid_file = out / "grid_used.toml"
     used = {name: {k: v for k, v in values.items() if v is not None}
             for name, values in exp.sections.items()}
     used["run"] = {"plenocl_version": __version__,
@@ -206,6 +264,7 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
     summary.seconds_per_pair = (summary.wall_seconds / done) if done else 0.0
     interval = exp["images"]["pair_interval_s"]
     fields = finished_pairs(out)
+    summary.sources = {k: field_metadata(path).get("sources", {}) for k, path in fields}
     ensemble = None
     if fields and exp["piv"]["ensemble"] and not summary.interrupted:
         ensemble = _ensemble(summary, exp, out, queue, log)
@@ -221,4 +280,5 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
     log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
         f"{len(summary.skipped)} already done, {len(summary.failed)} failed"
         + (f": {summary.failed}" if summary.failed else "")
+        + (f", {len(summary.gaps)} not made for missing frames" if summary.gaps else "")
         + (f"; {len(fields)} in {out / 'timeseries.zarr'}" if fields else ""))

@@ -22,7 +22,8 @@ from ..io.files import read_image, write_volumes
 from ..pipeline import process_pair
 from ..reconstruction import ReconstructionSettings
 from ..tomlfile import read_toml
-from .layout import volume_file
+from .layout import pair_index, volume_file
+from .pairing import fingerprint
 
 #: The exceptions a bad pair raises (unreadable, wrong size, NaN, ...): logged, skipped.
 PAIR_ERRORS = (ValueError, OSError, TypeError)
@@ -89,14 +90,16 @@ class PairProcessor:
         t0 = time.perf_counter()
         try:
             raw_a, raw_b = read_image(task.image_a), read_image(task.image_b)
+            sources = {"a": fingerprint(Path(task.image_a)),
+                       "b": fingerprint(Path(task.image_b))}
             seconds = {"read": time.perf_counter() - t0}
-            seconds.update(self._process(raw_a, raw_b, Path(task.target)))
+            seconds.update(self._process(raw_a, raw_b, Path(task.target), sources))
         except PAIR_ERRORS as exc:
             name = f"{Path(task.image_a).name} + {Path(task.image_b).name}"
             return PairOutcome(task.index, {}, f"{name}: {exc}")
         return PairOutcome(task.index, seconds)
 
-    def _process(self, raw_a, raw_b, target: Path) -> dict:
+    def _process(self, raw_a, raw_b, target: Path, sources: dict) -> dict:
         pair = process_pair(raw_a, raw_b, self.projector, settings=self.settings,
                             piv_options=self.piv_options)
         t0 = time.perf_counter()
@@ -104,6 +107,7 @@ class PairProcessor:
             write_volumes(volume_file(target), pair.vol_a, pair.vol_b)
         if self.vti:
             save_field(target.with_suffix(".vti"), pair.piv, dt=self.dt, grid=self.grid)
-        # the .npz last: its presence marks the pair done
-        save_field(target, pair.piv, dt=self.dt, grid=self.grid)
+        # the .npz last: its presence marks the pair done; it names the two source files
+        save_field(target, pair.piv, dt=self.dt, grid=self.grid,
+                   metadata={"sources": sources, "pair": pair_index(target)})
         return {**pair.seconds, "write": time.perf_counter() - t0}

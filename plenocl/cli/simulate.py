@@ -15,7 +15,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from ..camera import load_camera
+from ..units import check_displacement, check_dt
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -31,10 +34,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         _simulate_one(args, cam, out, positions, intensities)
         write_particles(out.with_name(out.stem + "_particles.csv"), positions, intensities)
         return 0
-    if args.dt is None or not args.dt > 0:
+    if args.dt is None:
         raise ValueError("a displaced pair needs --dt, the time between the exposures (s)")
+    check_dt(args.dt, "--dt", args.force)
     flow = (Uniform(tuple(1e3 * v for v in args.velocity)) if args.omega is None
             else SolidBodyRotation(tuple(args.omega)))  # mm/s; rad/s
+    moved = displace(positions, flow, args.dt) - positions
+    check_displacement(float(np.abs(moved).max(initial=0.0)),
+                       min(cam.sensor_size_mm) / cam.magnification, args.force)
     for tag, sign in (("a", -0.5), ("b", 0.5)):
         moved = displace(positions, flow, sign * args.dt)
         path = out.with_name(f"{out.stem}_{tag}{out.suffix}")
@@ -109,6 +116,10 @@ def add_simulate_parsers(sub) -> None:
     p.add_argument("--omega", type=float, nargs=3, default=None, metavar=("WX", "WY", "WZ"),
                    help="a pair moved by a solid-body rotation about the origin (rad/s)")
     p.add_argument("--dt", type=float, default=None, help="time between the pair (s)")
+    p.add_argument("--force", action="store_true",
+                   help="accept a dt or displacement outside the plausible range (a dt "
+                        "beyond 0.1 µs to 1 s, particles moving further than the field "
+                        "of view); without it they are refused as a likely unit mistake")
     p.set_defaults(func=cmd_simulate)
     w = sub.add_parser("white", help="simulate a white (calibration) image")
     _camera_and_noise(w)

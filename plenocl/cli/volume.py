@@ -47,24 +47,19 @@ def reconstruct_command(args: argparse.Namespace) -> int:
 
 def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
-    from ..grid import Grid
     from ..io.fields import save_field
     from ..io.files import load_volume
     from ..piv import piv3d
     from ..piv.tracking import FocalZone, refine_with_particles
+    from ..units import check_dt
 
     if args.raw and not args.camera:
         raise ValueError("--raw needs --camera: the particles are fitted to the raw images "
                          "with the camera's rays (give the calibrated camera TOML)")
+    check_dt(args.dt, "--dt", args.force)  # before any work
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, grid_b = load_volume(args.vol_b)
-    if grid_a is not None and grid_b is not None and grid_a != grid_b:
-        raise ValueError(f"{args.vol_a} and {args.vol_b} were reconstructed on different "
-                         f"grids ({grid_a} and {grid_b}); reconstruct both images on one grid")
-    grid = Grid.from_toml(args.grid) if args.grid else grid_a
-    if grid is None:
-        raise ValueError("the volumes carry no grid (.npy): give --grid grid.toml so that "
-                         "displacements become millimetres and metres per second")
+    grid = _volume_grid(args, (grid_a, grid_b), (vol_a.shape, vol_b.shape))
     res = piv3d(vol_a, vol_b, windows=tuple(args.windows) if args.windows else None)
     if args.particles:
         camera = load_camera(args.camera) if args.camera else None
@@ -83,6 +78,35 @@ def piv_command(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {res.u.size} vectors ({100 * res.valid.mean():.1f}% valid), "
           f"final window {res.window}")
     return 0
+
+
+def _volume_grid(args: argparse.Namespace, grids, shapes):
+    """The grid of both volumes: the one they carry, or ``--grid`` for volumes without
+    one (``.npy``); a conflict between them, or with ``--grid``, is refused."""
+    from ..grid import Grid
+
+    names = (args.vol_a, args.vol_b)
+    carried = [g for g in grids if g is not None]
+    if len(carried) == 2 and carried[0] != carried[1]:
+        raise ValueError(f"{names[0]} and {names[1]} were reconstructed on different "
+                         f"grids ({carried[0]} and {carried[1]}); reconstruct both images on "
+                         "one grid")
+    given = Grid.from_toml(args.grid) if args.grid else None
+    if given is not None and carried and given != carried[0]:
+        raise ValueError(f"--grid {args.grid} ({given}) is not the grid the volumes carry "
+                         f"({carried[0]}): leave --grid out to use theirs, or reconstruct "
+                         "on the grid you mean")
+    grid = given or (carried[0] if carried else None)
+    if grid is None:
+        raise ValueError("the volumes carry no grid (.npy): give --grid grid.toml (the grid "
+                         "they were reconstructed on) so that displacements become "
+                         "millimetres and metres per second")
+    for name, shape in zip(names, shapes):
+        if tuple(shape) != tuple(grid.shape):
+            raise ValueError(f"{name} holds {tuple(shape)} voxels but the grid is "
+                             f"{tuple(grid.shape)} (z, y, x): give the grid it was "
+                             "reconstructed on")
+    return grid
 
 
 def _image_fit(raw: list[str] | None, camera, grid):
@@ -134,6 +158,9 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("vol_a", help="first volume (.npz from reconstruct, .npy or .h5)")
     p.add_argument("vol_b", help="second volume")
     p.add_argument("--dt", type=float, required=True, help="time between exposures (s)")
+    p.add_argument("--force", action="store_true",
+                   help="accept a --dt outside 0.1 µs to 1 s (refused by default as a "
+                        "likely unit mistake: --dt is in seconds)")
     p.add_argument("--grid", default=None, help="grid TOML (default: stored in the .npz)")
     p.add_argument("--out", required=True, help="output field: .vti (ParaView), .npz or .h5")
     p.add_argument("--windows", type=int, nargs="+", default=None,

@@ -32,7 +32,8 @@ from ..atomic import atomic_path
 from ..lattice import rotation_matrix
 from ..piv.multipass import PIVResult, voxel_size
 
-__all__ = ["field_arrays", "read_npz", "save_field", "write_h5", "write_npz", "write_vti"]
+__all__ = ["field_arrays", "field_metadata", "read_npz", "save_field", "write_h5", "write_npz",
+           "write_vti"]
 
 _FLAGS = ("valid", "outlier", "masked")
 
@@ -48,9 +49,11 @@ def _geometry(voxel_size_mm, origin_mm, grid):
 
 
 def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-                 dt: float | None = None, rotation_deg: float = 0.0) -> dict[str, np.ndarray]:
+                 dt: float | None = None, rotation_deg: float = 0.0,
+                 metadata: dict | None = None) -> dict[str, np.ndarray]:
     """All arrays written by :func:`save_field`, keyed by name (see the module notes);
-    the parameters are :func:`save_field`'s (``dt`` adds ``velocity`` and physical units).
+    the parameters are :func:`save_field`'s (``dt`` adds ``velocity`` and physical units;
+    ``metadata`` adds JSON-ready entries to the ``metadata`` array).
     """
     size = voxel_size(voxel_size_mm)
     x_mm, y_mm, z_mm = result.positions_mm(size, origin_mm)
@@ -73,7 +76,8 @@ def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)
     out["vorticity"] = _to_object_space(result.vorticity(size, dt), rotation_deg)
     out["q_criterion"] = result.q_criterion(size, dt)
     out["rotation_deg"] = np.asarray(float(rotation_deg))
-    out["metadata"] = np.asarray(json.dumps({"units": field_units(dt is not None),
+    out["metadata"] = np.asarray(json.dumps({**(metadata or {}),
+                                             "units": field_units(dt is not None),
                                              "axes": AXES}))
     return out
 
@@ -129,7 +133,8 @@ def _to_object_space(components, rotation_deg: float) -> np.ndarray:
 
 
 def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
-               origin_mm=(0.0, 0.0, 0.0), dt: float | None = None, grid=None) -> Path:
+               origin_mm=(0.0, 0.0, 0.0), dt: float | None = None, grid=None,
+               metadata: dict | None = None) -> Path:
     """Write a PIV result, choosing the format from the extension (.vti, .npz, .h5/.hdf5).
 
     Parameters
@@ -148,6 +153,9 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
         Optional :class:`plenocl.Grid` of the volumes; overrides ``voxel_size_mm`` and
         ``origin_mm`` (its extents are the volume's outer faces); on a rotated grid the
         velocity and vorticity are written in object space (see the module notes).
+    metadata
+        JSON-ready entries stored with the field (``.npz``, ``.h5``; a batch run records
+        each pair's source files here), read back by :func:`field_metadata`.
 
     Returns
     -------
@@ -161,16 +169,24 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
     if writer is None:
         raise ValueError(f"cannot tell the field format from {path.name!r}: use a .vti "
                          f"(ParaView), .npz or .h5 file name")
-    writer(path, result, size, origin, dt, 0.0 if grid is None else grid.rotation_deg)
+    writer(path, result, size, origin, dt, 0.0 if grid is None else grid.rotation_deg,
+           metadata=metadata)
     return path
 
 
 def write_npz(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-              dt: float | None = None, rotation_deg: float = 0.0) -> None:
+              dt: float | None = None, rotation_deg: float = 0.0,
+              metadata: dict | None = None) -> None:
     """Write :func:`field_arrays` to a compressed ``.npz``, atomically."""
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg, metadata)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
+
+
+def field_metadata(path) -> dict:
+    """The JSON metadata of a field written by :func:`write_npz` (``{}`` without any)."""
+    with np.load(path) as data:
+        return json.loads(str(data["metadata"])) if "metadata" in data.files else {}
 
 
 def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:
@@ -208,8 +224,10 @@ def _vtk_order(arr: np.ndarray) -> np.ndarray:
 
 
 def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-              dt: float | None = None, rotation_deg: float = 0.0) -> None:
-    """Write a VTK ImageData ``.vti`` file for ParaView (point data on the vector grid)."""
+              dt: float | None = None, rotation_deg: float = 0.0,
+              metadata: dict | None = None) -> None:
+    """Write a VTK ImageData ``.vti`` file for ParaView (point data on the vector grid;
+    ``metadata`` is not stored: the ``.npz`` or ``.h5`` beside it holds it)."""
     try:
         from pyevtk.hl import imageToVTK
     except ImportError as exc:  # pragma: no cover - pyevtk is a declared dependency
@@ -235,14 +253,15 @@ def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0
 
 
 def write_h5(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-             dt: float | None = None, rotation_deg: float = 0.0) -> None:
+             dt: float | None = None, rotation_deg: float = 0.0,
+             metadata: dict | None = None) -> None:
     """Write :func:`field_arrays` to HDF5 (one dataset per array), atomically."""
     try:
         import h5py
     except ImportError as exc:
         raise ImportError("writing .h5 fields needs h5py: pip install h5py "
                           "(or save as .npz or .vti)") from exc
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
+    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg, metadata)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as fh:
         units = field_units(dt is not None)
         for name, arr in arrays.items():

@@ -7,7 +7,9 @@
   ``y``, ``x`` (mm, the vector grid's centres) and ``pair`` (the pair's index in the run);
 - per pair ``u``, ``v``, ``w`` (m/s), their standard uncertainties ``u_sigma``,
   ``v_sigma``, ``w_sigma`` (m/s, NaN where unknown), ``valid`` and ``outlier`` flags and
-  ``peak_ratio``, shaped ``(time, z, y, x)``, one chunk per pair;
+  ``peak_ratio``, shaped ``(time, z, y, x)``, one chunk per pair; the two source files of
+  each pair, ``source_a`` and ``source_b`` (file names) and ``source_a_sha256``,
+  ``source_b_sha256`` (empty where a field records none), shaped ``(time,)``;
 - the ensemble over the run, shaped ``(z, y, x)``: ``u_mean``, ``v_mean``, ``w_mean``
   and the RMS fluctuations ``u_rms``, ``v_rms``, ``w_rms`` over the valid vectors, with
   ``valid_count``; with an ensemble correlation (``[piv] ensemble``), its mean field
@@ -20,6 +22,7 @@ midway leaves the previous store (or none), never half of one.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import warnings
@@ -67,6 +70,7 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     _coordinates(group, first, fields, time_units)
     stats = _Ensemble(first["velocity"].shape[1:])
     arrays = _per_pair_arrays(group, len(fields), stats.shape)
+    sources = [("", "", "", "")] * len(fields)
     for k, (_, _, npz) in enumerate(fields):
         data = first if k == 0 else read_npz(npz)[1]
         _check_grid(data, first, npz)
@@ -78,6 +82,8 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
         for name in ("valid", "outlier", "peak_ratio"):
             arrays[name][k] = data[name]
         stats.add(data["velocity"], data["valid"])
+        sources[k] = _sources(data)
+    _write_sources(group, sources)
     stats.write(group)
     if ensemble is not None:
         _write_ensemble(group, read_npz(ensemble)[1], first, Path(ensemble))
@@ -87,6 +93,25 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
         zarr.consolidate_metadata(partial)   # one read opens the whole store
     _replace(partial, path)
     return path
+
+
+def _sources(data: dict) -> tuple[str, str, str, str]:
+    """Names and SHA-256 of a field's two source files, from its metadata."""
+    meta = json.loads(str(data["metadata"])) if "metadata" in data else {}
+    src = meta.get("sources", {})
+    return tuple(src.get(tag, {}).get(key, "") for key in ("name", "sha256") for tag in "ab")
+
+
+def _write_sources(group, sources: list[tuple[str, str, str, str]]) -> None:
+    import zarr
+
+    names = ("source_a", "source_b", "source_a_sha256", "source_b_sha256")
+    for i, name in enumerate(names):
+        arr = group.create_array(name, shape=(len(sources),), dimension_names=["time"],
+                                 dtype=zarr.dtype.VariableLengthUTF8(),
+                                 attributes={"long_name": f"{name.replace('_', ' ')} of "
+                                             "the pair (exposure a or b)"})
+        arr[:] = np.array([s[i] for s in sources], dtype=object)
 
 
 def _coordinates(group, first: dict, fields, time_units: str) -> None:

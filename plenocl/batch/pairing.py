@@ -1,0 +1,190 @@
+"""Which two files make each pair of a run: pairs from frame numbers, never positions.
+
+A camera's frames are numbered (``frame_000.tif``, ``frame_001.tif``, ...). Pairs are
+formed from those numbers, so a missing frame leaves a gap, reported by name, instead
+of shifting every later pair onto the wrong exposures:
+
+- ``sequence``: pair ``k`` is frames ``first + 2k`` and ``first + 2k + 1``;
+- ``sliding``: pair ``k`` is frames ``first + k`` and ``first + k + 1``;
+- ``ab``: pair ``k`` is ``<name>_a`` and ``<name>_b``, ``k`` from ``<name>``'s number
+  (``first`` subtracted) or, without numbers, the position among the sorted names;
+- ``list``: the pairs listed in the experiment file, ``k`` their position.
+
+``first`` is ``[images] first_frame``, by default the lowest frame number found. The
+number of a frame is the last run of digits in its file name (without the extension).
+Each pair's source files are fingerprinted (name, size, modification time, SHA-256), so
+that a rerun can tell whether its inputs changed (:func:`changed_since`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+#: The pairing rules (see the module notes).
+PAIRINGS = ("sequence", "sliding", "ab", "list")
+
+
+@dataclass(frozen=True)
+class ImagePair:
+    """Pair ``index`` of a run and its two image files."""
+
+    index: int
+    a: Path
+    b: Path
+
+
+@dataclass
+class PairPlan:
+    """The pairs of a run, its gaps (``{pair index: why it cannot be made}``), files that
+    belong to no pair, and the first frame number pairs count from."""
+
+    pairs: list[ImagePair]
+    gaps: dict[int, str] = field(default_factory=dict)
+    first_frame: int | None = None
+    unpaired: list[str] = field(default_factory=list)
+
+
+def frame_number(path: Path) -> int | None:
+    """The last run of digits in the file name's stem, or None."""
+    found = re.findall(r"\d+", Path(path).stem)
+    return int(found[-1]) if found else None
+
+
+def numbered_frames(files: list[Path], pairing: str) -> dict[int, Path]:
+    """``{frame number: file}``; a file without a number, or two files with the same
+    number, is an error naming them and the fix."""
+    frames: dict[int, Path] = {}
+    for f in files:
+        n = frame_number(f)
+        if n is None:
+            raise ValueError(f"{f.name} has no frame number: pairing {pairing!r} pairs frames "
+                             "by the number in their names; rename the frames or list the "
+                             "pairs ([images] pairs = [[\"a.tif\", \"b.tif\"], ...])")
+        if n in frames:
+            raise ValueError(f"{frames[n].name} and {f.name} have the same frame number {n}; "
+                             "keep one, or list the pairs ([images] pairs)")
+        frames[n] = f
+    return frames
+
+
+def _by_numbers(frames: dict[int, Path], first: int, step: int, folder: Path,
+                name_of) -> PairPlan:
+    """Pairs ``(first + step k, first + step k + 1)`` up to the highest frame."""
+    plan = PairPlan([], {}, first)
+    last = max(frames)
+    # sequence: a last frame without its partner is reported; sliding: the last frame
+    # simply has no successor
+    count = (last - first) // 2 + 1 if step == 2 else last - first
+    for k in range(count):
+        na, nb = first + step * k, first + step * k + 1
+        fa, fb = frames.get(na), frames.get(nb)
+        if fa is not None and fb is not None:
+            plan.pairs.append(ImagePair(k, fa, fb))
+            continue
+        missing = [name_of(n) for n, f in ((na, fa), (nb, fb)) if f is None]
+        plan.gaps[k] = f"frame {na} + {nb}: {' and '.join(missing)} missing in {folder}"
+    return plan
+
+
+def _name_like(example: Path, number: int) -> str:
+    """The file name frame ``number`` would have, after ``example``'s pattern."""
+    digits = re.findall(r"\d+", example.stem)[-1]
+    start = example.stem.rfind(digits)
+    stem = example.stem[:start] + f"{number:0{len(digits)}d}" + example.stem[start + len(digits):]
+    return stem + example.suffix
+
+
+def numbered_pairs(files: list[Path], pairing: str, first_frame: int | None,
+                   folder: Path) -> PairPlan:
+    """The plan of ``sequence`` or ``sliding`` pairing (see the module notes)."""
+    frames = numbered_frames(files, pairing)
+    first = min(frames) if first_frame is None else int(first_frame)
+    if first > min(frames):
+        frames = {n: f for n, f in frames.items() if n >= first}
+    example = next(iter(frames.values()))
+    return _by_numbers(frames, first, 2 if pairing == "sequence" else 1, folder,
+                       lambda n: _name_like(example, n))
+
+
+def ab_pairs(files: list[Path], a_suffix: str, b_suffix: str, first_frame: int | None,
+             folder: Path) -> PairPlan:
+    """The plan of ``ab`` pairing: each ``<name><a_suffix>`` with ``<name><b_suffix>``."""
+    a_files = sorted(f for f in files if f.stem.endswith(a_suffix))
+    b_names = {f.name for f in files if f.stem.endswith(b_suffix)}
+    numbers = [frame_number(Path(f.stem[: -len(a_suffix)])) for f in a_files]
+    numbered = all(n is not None for n in numbers) and len(set(numbers)) == len(numbers)
+    first = (min(numbers) if first_frame is None else first_frame) if numbered and numbers \
+        else 0
+    plan = PairPlan([], {}, first if numbered else None)
+    for pos, (fa, n) in enumerate(zip(a_files, numbers)):
+        k = n - first if numbered else pos
+        fb = fa.with_name(fa.stem[: -len(a_suffix)] + b_suffix + fa.suffix)
+        if fb.name in b_names:
+            plan.pairs.append(ImagePair(k, fa, fb))
+            b_names.discard(fb.name)
+        else:
+            plan.gaps[k] = f"{fb.name} missing in {folder} (for {fa.name})"
+    for orphan in sorted(b_names):
+        why = f"{orphan} has no {a_suffix} partner in {folder}"
+        n = frame_number(Path(Path(orphan).stem[: -len(b_suffix)]))
+        if numbered and n is not None and n >= first:
+            plan.gaps[n - first] = why
+        else:
+            plan.unpaired.append(why)
+    return plan
+
+
+def listed_pairs(pairs: list, folder: Path) -> PairPlan:
+    """The plan of ``list`` pairing: ``[[a, b], ...]`` relative to ``folder``."""
+    plan = PairPlan([], {})
+    for k, (a, b) in enumerate(pairs):
+        fa, fb = folder / a, folder / b
+        missing = [p.name for p in (fa, fb) if not p.is_file()]
+        if missing:
+            plan.gaps[k] = f"{' and '.join(missing)} missing in {folder}"
+        else:
+            plan.pairs.append(ImagePair(k, fa, fb))
+    return plan
+
+
+# ---- fingerprints: which files made a pair, and whether they changed since ----------------
+def fingerprint(path: Path) -> dict:
+    """Name, size (bytes), modification time (ns) and SHA-256 of a file."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            digest.update(block)
+    stat = path.stat()
+    return {"name": path.name, "bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns,
+            "sha256": digest.hexdigest()}
+
+
+def same_file(recorded: dict, path: Path) -> bool:
+    """Whether ``path`` is the file ``recorded`` describes: name and size, then the
+    modification time, else the SHA-256 (a copied file keeps its content)."""
+    path = Path(path)
+    if not path.is_file() or path.name != recorded.get("name"):
+        return False
+    stat = path.stat()
+    if stat.st_size != recorded.get("bytes"):
+        return False
+    if stat.st_mtime_ns == recorded.get("mtime_ns"):
+        return True
+    return fingerprint(path)["sha256"] == recorded.get("sha256")
+
+
+def changed_since(recorded: dict, pair: ImagePair) -> str | None:
+    """Why ``pair``'s files are not those ``recorded`` (``{"a": .., "b": ..}``), or None."""
+    for tag, path in (("a", pair.a), ("b", pair.b)):
+        rec = recorded.get(tag)
+        if rec is None:
+            return "its field records no source files (written by an older plenocl)"
+        if not same_file(rec, path):
+            return (f"it was made from {rec.get('name')} ({rec.get('bytes')} bytes), now "
+                    f"{path.name} ({path.stat().st_size if path.is_file() else 'missing'}"
+                    f"{' bytes' if path.is_file() else ''}) is exposure {tag}")
+    return None
