@@ -542,3 +542,21 @@ def test_default_windows_hold_enough_particles():
     vol[2::4, 2::4, 2::4] = rng.uniform(0.5, 1.0, (10, 10, 10))  # separated peaks
     vol[2::4, 2::4, 2::4][rng.random((10, 10, 10)) < 0.5] = 0.0
     assert count_particles(vol) == int((vol > 0).sum())
+
+
+def test_a_volume_too_thin_for_three_vector_layers_is_said_with_the_fix():
+    """The README's old path: a 16-voxel-deep volume gives one layer of vectors in
+    depth (no gradient, all-NaN peak ratios) and used to say nothing."""
+    import warnings
+
+    rng = np.random.default_rng(0)
+    a = (rng.random((16, 40, 40)) > 0.995).astype(np.float32)
+    b = np.roll(a, 1, axis=2)
+    with pytest.warns(UserWarning, match=r"give 1 x 3 x 3 vectors .* fewer than 3 along z.*"
+                                         r"depth_voxel_mm"):
+        res = piv3d(a, b)
+    assert res.u.shape[0] == 1
+    deep = np.concatenate([a, np.roll(a, 5, 1), np.roll(a, 9, 2)])  # 48 voxels deep
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        assert piv3d(deep, np.roll(deep, 1, axis=2)).u.shape[0] >= 3

@@ -468,7 +468,7 @@ def ctx(tiny, queue, tmp_path_factory):
     (d / "five_columns.csv").write_text("a,b,c,d,e\n1,2,3,4,5\n")
     (d / "header_only.csv").write_text("x_mm,y_mm,z_mm\n")
     (d / "text.csv").write_text("x_mm,y_mm,z_mm\na,b,c\n")
-    np.save(d / "colour.npy", np.zeros((5, 5, 3)))
+    np.save(d / "colour.npy", np.dstack([np.zeros((5, 5)), np.ones((5, 5)), np.zeros((5, 5))]))
     np.save(d / "stack.npy", np.zeros((5, 5, 5)))
     np.save(d / "line.npy", np.zeros(5))
     (d / "camera_missing_key.toml").write_text("[main_lens]\nfocal_length_mm = 50.0\n")
@@ -770,7 +770,10 @@ INVALID = [
     ("read-image-empty", _file(read_image, "empty.tif"), ValueError, r"empty \(0 bytes\)"),
     ("read-image-missing", _file(read_image, "nope.tif"), FileNotFoundError,
      "no such image file"),
-    ("read-image-colour", _file(read_image, "colour.npy"), ValueError, "is a colour image"),
+    ("read-image-colour", _file(read_image, "colour.npy"), ValueError,
+     "is a colour image with different red, green and blue"),
+    ("read-image-channel", lambda c: read_image(c["dir"] / "colour.npy", channel="red"),
+     ValueError, "channel must be one of"),
     ("read-image-stack", _file(read_image, "stack.npy"), ValueError, "expected one 2-D image"),
     ("load-volume-missing", _file(load_volume, "nope.npy"), FileNotFoundError,
      "no such volume file"),

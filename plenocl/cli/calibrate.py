@@ -37,7 +37,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
     from ..io.files import read_image
 
     camera = load_camera(args.camera)
-    white = read_image(args.white)
+    white = read_image(args.white, args.channel)
     fit = find_centers(white, camera, method=getattr(args, "method", "combined"),
                        fill_missing=getattr(args, "fill_missing", False))
     warn_about(fit)
@@ -72,7 +72,7 @@ def refocus_command(args: argparse.Namespace) -> int:
     from ..lightfield import LightField
 
     camera = load_camera(args.camera)
-    raw = read_image(args.raw)
+    raw = read_image(args.raw, args.channel)
     lf = LightField(raw, camera, queue=getattr(args, "device", None))
     stack = lf.focal_stack(args.z, supersample=getattr(args, "supersample", 1))
     s = getattr(args, "supersample", 1)
@@ -90,6 +90,9 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``calibrate`` on an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("calibrate", help="find the microlens centres in a white image")
     p.add_argument("white", help="white image (TIFF/PNG/NPY) taken with the lens stopped down")
+    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
+                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
+                        "(an image whose planes are identical needs none)")
     p.add_argument("--camera", required=True, help="camera TOML file or preset (synthetic, "
                    "paper) with the nominal optics")
     p.add_argument("--out", required=True, help="calibrated camera TOML to write")
@@ -110,6 +113,9 @@ def add_refocus_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``refocus`` on an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("refocus", help="refocus a raw image at depths (focal stack)")
     p.add_argument("raw", help="raw plenoptic image (TIFF/PNG/NPY)")
+    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
+                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
+                        "(an image whose planes are identical needs none)")
     p.add_argument("--camera", required=True, help="calibrated camera TOML file")
     p.add_argument("--z", type=float, nargs="+", required=True,
                    help="object depths in mm (+z away from the camera)")

@@ -37,8 +37,9 @@ def cmd_devices(args: argparse.Namespace) -> int:
     return 1 if bad else 0
 
 
-DEVICE_HELP = ("OpenCL device name or type substring (default: PYOPENCL_CTX, else a GPU, "
-               "else a CPU)")
+DEVICE_HELP = ("OpenCL device name or type substring (default: PYOPENCL_CTX, else the first "
+               "of a GPU, PoCL, Intel's CPU runtime that builds plenocl's kernels; "
+               "`plenocl devices` shows which)")
 
 
 class _DefaultsHelp(argparse.HelpFormatter):

@@ -28,7 +28,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
         warnings.warn(f"the camera {args.camera} has no [calibration]: the nominal microlens "
                       "centres are used; calibrate real cameras first (plenocl calibrate)",
                       stacklevel=2)
-    image = read_image(args.raw)
+    image = read_image(args.raw, args.channel)
     iterations = DEFAULTS[args.method][0] if args.iterations is None else args.iterations
     proj = Projector(camera, grid, args.device)
     with iteration_bar(iterations, f"{args.method} {grid.shape}") as bar:
@@ -65,7 +65,7 @@ def piv_command(args: argparse.Namespace) -> int:
         camera = load_camera(args.camera) if args.camera else None
         focus = FocalZone.of(camera, grid) if camera else None
         res = refine_with_particles(res, vol_a, vol_b, focus=focus,
-                                    fit=_image_fit(args.raw, camera, grid))
+                                    fit=_image_fit(args.raw, camera, grid, args.channel))
         log = res.refinement
         print(f"particle refinement: {log['pairs']} particle pairs, {log['vectors']} vectors"
               + ("" if focus else "; without --camera the depth uncertainty has no "
@@ -109,20 +109,23 @@ def _volume_grid(args: argparse.Namespace, grids, shapes):
     return grid
 
 
-def _image_fit(raw: list[str] | None, camera, grid):
+def _image_fit(raw: list[str] | None, camera, grid, channel: str | None = None):
     """The image-space particle fit of the raw images ``raw`` (``None`` without them)."""
     if not raw:
         return None
     from ..io.files import read_image
     from ..piv.imagefit import ImageFit
 
-    return ImageFit(camera, grid, [read_image(path) for path in raw])
+    return ImageFit(camera, grid, [read_image(path, channel) for path in raw])
 
 
 def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``reconstruct``."""
     p = subparsers.add_parser("reconstruct", help="reconstruct a particle volume from a raw image")
     p.add_argument("raw", help="raw image (TIFF, PNG or .npy)")
+    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
+                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
+                        "(an image whose planes are identical needs none)")
     p.add_argument("--camera", required=True, help="calibrated camera TOML (or a preset name)")
     p.add_argument("--grid", required=True, help="grid TOML ([grid] shape, x_mm, y_mm, z_mm)")
     p.add_argument("--out", required=True, help="output volume: .npz (with grid), .npy or .h5")
@@ -177,6 +180,9 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
                    help="the raw images the volumes came from (needs --camera): each "
                         "particle is fitted to its raw image before pairing, as in "
                         "process_pair (a third less depth error)")
+    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
+                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
+                        "(an image whose planes are identical needs none)")
     p.set_defaults(func=piv_command)
     return p
 

@@ -36,21 +36,77 @@ def read_tiff_metadata(path: str | Path) -> dict:
     return meta if isinstance(meta, dict) else {}
 
 
+#: What ``channel=`` accepts for a colour image: one plane, or the Rec. 709 luminance.
+CHANNELS = ("r", "g", "b", "luminance")
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def _read_tiff(path: Path) -> np.ndarray:
+    """A TIFF page as stored; a palette (indexed) image through its palette when the
+    palette is grey, refused when it is not (indices are not intensities)."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        data = page.asarray()
+        if page.photometric != tifffile.PHOTOMETRIC.PALETTE:
+            return data
+        cmap = np.asarray(page.colormap)
+    if not (np.array_equal(cmap[0], cmap[1]) and np.array_equal(cmap[0], cmap[2])):
+        raise ValueError(f"{path} is a colour palette (indexed) image: its pixel values are "
+                         "palette indices, not light; export the raw sensor image as "
+                         "monochrome (grey) TIFF")
+    return cmap[0][data]  # a grey palette: the intensities it stands for
+
+
 def _read_any(path: Path) -> np.ndarray:
     suffix = path.suffix.lower()
     if suffix in (".tif", ".tiff"):
-        import tifffile
-
-        return tifffile.imread(path)
+        return _read_tiff(path)
     if suffix == ".npy":
         return np.load(path)
-    import skimage.io
+    import imageio.v3 as iio
 
-    return skimage.io.imread(path)
+    return iio.imread(path)  # a PNG palette comes back through its palette
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read a raw image (TIFF, PNG or ``.npy``) as a 2-D array, with clear errors."""
+def _one_channel(image: np.ndarray, path: Path, channel: str | None) -> np.ndarray:
+    """A colour image as one monochrome image: ``channel`` picks a plane or the
+    luminance; without it, only an image whose colour planes are identical is taken (a
+    grey image stored as colour). Alpha is dropped (:func:`read_alpha` reads it)."""
+    planes = image[..., :3]
+    if channel is None:
+        if all(np.array_equal(planes[..., 0], planes[..., i]) for i in (1, 2)):
+            return planes[..., 0]
+        raise ValueError(f"{path} is a colour image with different red, green and blue "
+                         "values; plenocl needs the raw monochrome sensor image. Choose "
+                         f"what to use: channel= / --channel one of {CHANNELS}")
+    if channel not in CHANNELS:
+        raise ValueError(f"channel must be one of {CHANNELS}, got {channel!r}")
+    if channel == "luminance":
+        return (planes.astype(np.float64) @ _LUMINANCE).astype(np.float32)
+    return planes[..., "rgb".index(channel)]
+
+
+def read_alpha(path: str | Path) -> np.ndarray | None:
+    """The alpha channel of an RGBA image as a mask (``True``: pixel rendered, alpha > 0),
+    or ``None`` for an image without one."""
+    image = _read_any(Path(path))
+    return image[..., 3] > 0 if image.ndim == 3 and image.shape[-1] == 4 else None
+
+
+def read_image(path: str | Path, channel: str | None = None) -> np.ndarray:
+    """Read a raw image (TIFF, PNG or ``.npy``) as a 2-D array, with clear errors.
+
+    Parameters
+    ----------
+    path
+        The file. TIFF in any of the usual codecs (LZW, Deflate, ...); a grey palette is
+        applied, a colour one refused.
+    channel
+        For a colour image: ``"r"``, ``"g"``, ``"b"`` or ``"luminance"`` (Rec. 709).
+        Without it a colour image is read only when its three planes are identical.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such image file: {path}")
@@ -59,12 +115,13 @@ def read_image(path: str | Path) -> np.ndarray:
                          "copy or export it again")
     try:
         image = _read_any(path)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RuntimeError) as exc:
+        if "is a colour palette" in str(exc):
+            raise
         raise ValueError(f"cannot read {path} as an image ({exc}); plenocl reads TIFF, PNG "
                          "and .npy files") from None
     if image.ndim == 3 and image.shape[-1] in (3, 4):
-        raise ValueError(f"{path} is a colour image; plenocl needs the raw monochrome sensor "
-                         "image (one value per pixel)")
+        image = _one_channel(image, path, channel)
     if image.ndim != 2:
         raise ValueError(f"{path} holds an array of shape {image.shape}; expected one 2-D image")
     return image

@@ -420,7 +420,24 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
                     "correlation": "direct" if direct else "fft",
                     "outliers": int(state.outlier.sum()), "invalid": int(state.invalid.sum()),
                     "seconds": time.perf_counter() - t0})
-    return _result(state, schedule[-1][0], log)
+    result = _result(state, schedule[-1][0], log)
+    _warn_if_thin(result, a.shape)
+    return result
+
+
+def _warn_if_thin(result: PIVResult, shape: tuple[int, ...]) -> None:
+    """Fewer than 3 vectors along an axis: no gradient, no vorticity, and the outlier
+    test has no neighbours there; say so with the fix."""
+    counts = result.u.shape
+    thin = [axis for axis, n in zip("zyx", counts) if n < 3]
+    if thin:
+        warnings.warn(
+            f"the final windows {tuple(result.window)} give {counts[0]} x {counts[1]} x "
+            f"{counts[2]} vectors (z, y, x) in a {shape[0]} x {shape[1]} x {shape[2]} voxel "
+            f"volume: fewer than 3 along {', '.join(thin)}, so no gradient or vorticity "
+            "there. Reconstruct a larger volume along that axis (a wider z range, or "
+            "thinner voxels: Grid.for_camera(..., depth_voxel_mm=...), plenocl grid "
+            "--depth-voxel-mm) or give smaller windows (windows=, --windows)", stacklevel=3)
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from .blocks import device_view_blocks
-from .images import preprocess
+from .images import NOISE_SIGMAS, preprocess
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
@@ -210,6 +210,18 @@ def _supersampled(image, projector, settings: ReconstructionSettings, callback
     return bin_lateral(vol, f), info
 
 
+def _warn_all_dark(threshold: float, peak: float, estimated: bool) -> None:
+    """Every pixel is at or below the dark-pixel threshold: the volume will be empty."""
+    why = (f"the default, {NOISE_SIGMAS:g} x the noise estimated from the median absolute "
+           "deviation, fails on a dense image whose median is not its background"
+           if estimated else "the threshold given")
+    warnings.warn(f"the dark-pixel threshold {threshold:.4g} is at or above the image's "
+                  f"brightest pixel {peak:.4g} ({why}): every pixel counts as dark and the "
+                  "volume will be empty. Give a lower threshold (threshold=, --threshold), "
+                  "or subtract a dark frame and use background=None (--background none)",
+                  stacklevel=4)
+
+
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                        callback: Callable[[int, float], bool | None] | None = None
                        ) -> tuple[np.ndarray, ReconstructionInfo]:
@@ -225,6 +237,8 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
         warnings.warn("the image holds no light above its background: the volume is empty "
                       "(check the exposure, the file, or background=None)", stacklevel=3)
         return np.zeros(projector.grid.shape, np.float32), info
+    if thr >= 1.0:
+        _warn_all_dark(thr * scale, scale, settings.threshold is None)
     lit = None
     if settings.skip_dark:
         lit = projector.lit_lenses(img_np, thr)
