@@ -9,11 +9,23 @@
  *
  * Output pixel (i, j) of plane p sits at lens-index coordinates
  *   (kx, ky) = ((j + 0.5) / S - 0.5, (i + 0.5) / S - 0.5)    (S: supersampling)
- * and E = sum_n bilinear(value * valid) / sum_n bilinear(valid) over the four nearest
- * lenses at k + shift[p, n]: samples that do not exist carry no weight; 0 where none
- * does. The host prepares shift[p, n] = (1 - 1/alpha_p) L^-1 (u_n, v_n) in lens-index
- * units. One work-item per output pixel and plane; sizes are arguments.
+ * and E = sum_n B(value * valid) / sum_n B(valid) over the 3 x 3 lenses nearest to
+ * k + shift[p, n], B the quadratic B-spline weights: samples that do not exist carry no
+ * weight; 0 where none does. The quadratic B-spline's second moment is 1/4 lens^2 at
+ * every sub-lens phase (bilinear weights blur by t(1 - t), nothing at t = 0), so every
+ * plane is smoothed alike and the plane the views reach unshifted (alpha = 1) is not
+ * sharper than the others (a focal stack's sharpness is not biased towards z = 0).
+ * The host prepares shift[p, n] = (1 - 1/alpha_p) L^-1 (u_n, v_n) in lens-index units.
+ * One work-item per output pixel and plane; sizes are arguments.
  */
+
+/* Quadratic B-spline weights of the nodes -1, 0, +1 around the nearest node, for an
+ * offset d in [-0.5, 0.5] from it. */
+inline float3 bspline2(const float d)
+{
+    const float a = 0.5f - d, b = 0.5f + d;
+    return (float3)(0.5f * a * a, 0.75f - d * d, 0.5f * b * b);
+}
 
 __kernel void refocus(__global const float2 *views,   /* (nuv, ny + 2, nx + 2) */
                       __global const float2 *shifts,  /* (planes, nuv), lens-index units */
@@ -33,13 +45,21 @@ __kernel void refocus(__global const float2 *views,   /* (nuv, ny + 2, nx + 2) *
     for (int n = 0; n < nuv; ++n) {
         const float2 s = shift[n];
         const float x = kx + s.x, y = ky + s.y;
-        const float fx = floor(x), fy = floor(y);
-        const int x0 = (int)fx, y0 = (int)fy;
-        if (x0 < 0 || y0 < 0 || x0 > nx || y0 > ny) continue;  /* all four taps outside */
-        const float tx = x - fx, ty = y - fy;
-        const __global float2 *v = views + (size_t)n * view_size + (size_t)y0 * pitch + x0;
-        const float2 top = mix(v[0], v[1], tx), bottom = mix(v[pitch], v[pitch + 1], tx);
-        sum += mix(top, bottom, ty);
+        const float cx = floor(x + 0.5f), cy = floor(y + 0.5f);  /* nearest node */
+        const int x0 = (int)cx, y0 = (int)cy;
+        if (x0 < -1 || y0 < -1 || x0 > nx + 2 || y0 > ny + 2) continue;  /* all taps out */
+        const float3 wx = bspline2(x - cx), wy = bspline2(y - cy);
+        const float wxs[3] = {wx.x, wx.y, wx.z}, wys[3] = {wy.x, wy.y, wy.z};
+        const __global float2 *v = views + (size_t)n * view_size;
+        for (int b = 0; b < 3; ++b) {
+            const int yy = y0 + b - 1;
+            if (yy < 0 || yy > ny + 1) continue;
+            for (int a = 0; a < 3; ++a) {
+                const int xx = x0 + a - 1;
+                if (xx < 0 || xx > nx + 1) continue;
+                sum += (wxs[a] * wys[b]) * v[(size_t)yy * pitch + xx];
+            }
+        }
     }
     out[((size_t)p * (size_t)out_h + (size_t)i) * (size_t)out_w + (size_t)j] =
         sum.y > 0.0f ? sum.x / sum.y : 0.0f;

@@ -145,8 +145,9 @@ def _validate_image(image, camera: Camera) -> np.ndarray:
     w, h = camera.pixels
     if img.shape != (h, w):
         hint = (" (it looks transposed: pass image.T)" if img.shape == (w, h) else
-                "; check [sensor] pixels = [columns, rows] in the camera file, and that the "
-                "image was not cropped or binned")
+                "; check [sensor] pixels = [columns, rows] in the camera file, that the "
+                "image was not cropped or binned, or give its region of interest (--crop "
+                "COLUMN ROW WIDTH HEIGHT, Camera.cropped)")
         raise ValueError(f"the white image is {img.shape[1]} x {img.shape[0]} px (cols x rows) "
                          f"but the camera has {w} x {h}{hint}")
     img = img.astype(np.float32)
@@ -731,7 +732,8 @@ def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None 
     camera
         The camera with its nominal layout (rotation and offset may be unknown).
     diagnostic_png
-        Optional path of a PNG overlaying the found centres on the image.
+        Optional path of a PNG overlaying the found centres on the image; written also
+        when calibration fails, then showing what was found (spots, the nominal array).
     method, degree, fill_missing
         See :func:`find_centers`.
 
@@ -746,8 +748,13 @@ def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None 
     ValueError
         When the image is not a plausible white image for this camera.
     """
-    fit = find_centers(white_image, camera, method=method, degree=degree,
-                       fill_missing=fill_missing)
+    try:
+        fit = find_centers(white_image, camera, method=method, degree=degree,
+                           fill_missing=fill_missing)
+    except ValueError as exc:
+        if diagnostic_png is not None:  # what was found: when it helps most
+            save_failure_diagnostic(diagnostic_png, white_image, camera, str(exc))
+        raise
     warn_about(fit)
     if diagnostic_png is not None:
         save_diagnostic(diagnostic_png, white_image, fit)
@@ -760,7 +767,8 @@ def warn_about(fit: CenterFit) -> None:
     total = fit.found.size
     if fit.n_missing:
         fate = "use the grid model's prediction" if np.isfinite(fit.centers).all() else \
-            "are NaN (pass fill_missing=True to use the grid model's prediction)"
+            ("are NaN (fill_missing=True, plenocl calibrate --fill-missing, gives them the "
+             "grid model's prediction)")
         warnings.warn(f"calibration found no spot for {fit.n_missing} of {total} microlenses "
                       f"(dead, occluded or off the sensor); their centres {fate}", stacklevel=3)
     if fit.residual_rms_px > 0.25:
@@ -780,29 +788,89 @@ def save_diagnostic(path: str | Path, white_image, fit: CenterFit) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .atomic import atomic_path
 
     img = np.asarray(white_image, dtype=np.float64)
+    fig, (ax, res) = plt.subplots(1, 2, figsize=(13, 6.8), dpi=130)
+    rows, cols = fit.found.shape
+    c = fit.centers[fit.found]
+    miss = fit.model[~fit.found]
+    half = _zoom_panel(ax, img, np.nanmean(fit.model.reshape(-1, 2), 0),
+                       float(np.mean(fit.pitch_px)))
+    ax.plot(c[:, 0], c[:, 1], "x", color="lime", ms=7, mew=1.0, label="centres")
+    ax.plot(miss[:, 0], miss[:, 1], "o", mfc="none", color="red", ms=9, mew=1.0,
+            label=f"no spot ({fit.n_missing} in all)")
+    ax.set_title(f"central {2 * half} x {2 * half} lenses of {cols} x {rows}: "
+                 f"{int(fit.found.sum())} centres found in all, rotation "
+                 f"{fit.rotation_deg:.3f}°", fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    _residual_panel(fig, res, fit)
+    _save_figure(fig, path)
+
+
+def _zoom_panel(ax, img: np.ndarray, centre, pitch: float, half: int = 6) -> int:
+    """The image around ``centre`` (``half`` lenses each way, so that single spots and
+    crosses stay readable on any array), square-root scaled; returns ``half``."""
     h, w = img.shape
-    fig, (ax, res) = plt.subplots(1, 2, figsize=(13, 6.5 * h / w + 0.9), dpi=130)
+    x0, x1 = max(centre[0] - half * pitch, -0.5), min(centre[0] + half * pitch, w - 0.5)
+    y0, y1 = max(centre[1] - half * pitch, -0.5), min(centre[1] + half * pitch, h - 0.5)
     ax.imshow(np.sqrt(np.clip(img, 0, None) / max(img.max(), 1e-30)), cmap="gray",
               interpolation="nearest")
-    c = fit.centers[fit.found]
-    ax.plot(c[:, 0], c[:, 1], "x", color="lime", ms=3, mew=0.6, label="centres")
-    miss = fit.model[~fit.found]
-    ax.plot(miss[:, 0], miss[:, 1], "o", mfc="none", color="red", ms=5, mew=0.8,
-            label=f"no spot ({fit.n_missing})")
-    ax.set_title(f"{int(fit.found.sum())} centres, rotation {fit.rotation_deg:.3f}°", fontsize=9)
-    ax.legend(loc="upper right", fontsize=7)
-    ax.set_xlim(-0.5, w - 0.5)
-    ax.set_ylim(h - 0.5, -0.5)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y1, y0)
     ax.set_xlabel("column (px)")
     ax.set_ylabel("row (px)")
-    _residual_panel(fig, res, fit)
+    return half
+
+
+def _save_figure(fig, path) -> None:
+    import matplotlib.pyplot as plt
+
+    from .atomic import atomic_path
+
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
+
+
+def save_failure_diagnostic(path: str | Path, white_image, camera: Camera,
+                            message: str) -> None:
+    """Write a PNG of what a calibration that failed saw: the whole image with the bright
+    spots found and the outline of the array the camera file describes, and the centre
+    enlarged with the spots (green) and the camera's nominal centres (red), the reason
+    in the title. It shows a wrong pitch, count, rotation or a white image that is not
+    one at a glance."""
+    import textwrap
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    img = np.asarray(white_image, dtype=np.float64)
+    pitch = _pitch_px(camera)
+    try:
+        peaks = _detect_spots(_remove_hot_pixels(img, pitch), pitch)[0]
+    except (ValueError, IndexError):
+        peaks = np.empty((0, 2))
+    nominal = camera.ideal_microlens_centers().reshape(-1, 2)
+    fig, (whole, zoom) = plt.subplots(1, 2, figsize=(13, 7.2), dpi=110)
+    whole.imshow(np.sqrt(np.clip(img, 0, None) / max(img.max(), 1e-30)), cmap="gray")
+    lo, hi = nominal.min(0) - pitch / 2, nominal.max(0) + pitch / 2
+    whole.plot([lo[0], hi[0], hi[0], lo[0], lo[0]], [lo[1], lo[1], hi[1], hi[1], lo[1]],
+               color="red", lw=1, label="the camera file's array")
+    whole.legend(loc="upper right", fontsize=7)
+    whole.set_title(f"{len(peaks)} bright spots found; the camera file expects "
+                    f"{camera.ml_count[0]} x {camera.ml_count[1]} lenses {pitch:.2f} px "
+                    "apart", fontsize=9)
+    _zoom_panel(zoom, img, np.array(img.shape[::-1]) / 2 - 0.5, pitch)
+    zoom.plot(peaks[:, 0], peaks[:, 1], "+", color="lime", ms=8, label="spots found")
+    zoom.plot(nominal[:, 0], nominal[:, 1], "o", mfc="none", color="red", ms=8,
+              label="nominal centres")
+    zoom.legend(loc="upper right", fontsize=7)
+    fig.suptitle("calibration failed: " + "\n".join(textwrap.wrap(message, 150)),
+                 fontsize=8)
+    _save_figure(fig, path)
 
 
 def _residual_panel(fig, ax, fit: CenterFit) -> None:

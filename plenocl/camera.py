@@ -33,6 +33,18 @@ def _positive(name: str, value: float) -> float:
     return value
 
 
+def _origin(value) -> tuple[int, int]:
+    try:
+        col, row = (int(v) for v in value)
+        ok = all(float(v) == int(v) for v in value) and col >= 0 and row >= 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"sensor crop_origin must be two integers >= 0 [column, row] (the "
+                         f"region of interest's first pixel in the full frame), got {value!r}")
+    return col, row
+
+
 def _count_pair(name: str, value) -> tuple[int, int]:
     try:
         pair = tuple(int(v) for v in value)
@@ -77,6 +89,7 @@ class Camera:
     ml_offset_mm: tuple[float, float] = (0.0, 0.0)
     microlens_centers: np.ndarray | None = field(default=None, repr=False)
     calibrated: bool = False
+    crop_origin: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "f_number", "magnification", "ml_pitch_mm",
@@ -89,6 +102,8 @@ class Camera:
             raise ValueError("microlens rotation and offset must be finite numbers")
         object.__setattr__(self, "ml_rotation_deg", rot)
         object.__setattr__(self, "ml_offset_mm", off)
+        if self.crop_origin is not None:
+            object.__setattr__(self, "crop_origin", _origin(self.crop_origin))
         self._check_sensor_covers_array()
         self._check_fill()
         object.__setattr__(self, "microlens_centers", self._validated_centers())
@@ -259,6 +274,40 @@ class Camera:
         """A copy with calibrated microlens image centres."""
         return replace(self, microlens_centers=np.asarray(centers, float), calibrated=True)
 
+    # ---- region of interest --------------------------------------------------------
+    def cropped(self, origin: tuple[int, int], size: tuple[int, int]) -> Camera:
+        """The camera seen through a region of interest of its frames: ``size`` =
+        ``(columns, rows)`` pixels from ``origin`` = ``(column, row)``; recorded in the
+        camera (``[sensor] crop_origin``) so that full frames read later are cut alike
+        (:meth:`fit_image`). Crop before calibrating: the microlens count is then the
+        lenses whose image centre lies in the region (docs/design.md §3)."""
+        if self.calibrated:
+            raise ValueError("crop before calibrating: the calibrated centres belong to the "
+                             "whole frame (calibrate the cropped white image instead)")
+        ox, oy = _origin(origin)
+        base = self.crop_origin or (0, 0)
+        return replace(self, pixels=tuple(size), crop_origin=(base[0] + ox, base[1] + oy),
+                       microlens_centers=None)
+
+    def fit_image(self, image, name: str = "image") -> np.ndarray:
+        """``image`` as this camera's sensor sees it: as it is when its shape is the
+        sensor's, else cut to the recorded region of interest (``crop_origin``); any
+        other shape is an error naming the fix."""
+        img = np.asarray(image)
+        want = (self.pixels[1], self.pixels[0])
+        if img.shape == want:
+            return img
+        if self.crop_origin is not None and img.ndim == 2:
+            col, row = self.crop_origin
+            if img.shape[0] >= row + want[0] and img.shape[1] >= col + want[1]:
+                return img[row:row + want[0], col:col + want[1]]
+        raise ValueError(
+            f"{name} is {img.shape[-1]} x {img.shape[0]} px (columns x rows) but the camera's "
+            f"sensor is {want[1]} x {want[0]}"
+            + (f" from ({self.crop_origin[0]}, {self.crop_origin[1]})" if self.crop_origin
+               else "") + ": give the region of interest of the frames (--crop COLUMN ROW "
+            "WIDTH HEIGHT, or camera.cropped(origin, size)), or correct [sensor] pixels")
+
     def describe(self) -> str:
         """A short human-readable summary of the derived optics."""
         return (
@@ -282,6 +331,8 @@ class Camera:
                                 "offset_mm": list(self.ml_offset_mm)},
             "sensor": {"pixel_pitch_mm": self.pixel_pitch_mm, "pixels": list(self.pixels)},
         }
+        if self.crop_origin is not None:
+            doc["sensor"]["crop_origin"] = list(self.crop_origin)
         if self.calibrated:
             c = self.microlens_centers
             doc["calibration"] = {"centers_col": c[..., 0].tolist(),
@@ -302,6 +353,7 @@ class Camera:
                 ml_rotation_deg=mla.get("rotation_deg", 0.0),
                 ml_offset_mm=mla.get("offset_mm", (0.0, 0.0)),
                 pixel_pitch_mm=sensor["pixel_pitch_mm"], pixels=sensor["pixels"],
+                crop_origin=sensor.get("crop_origin"),
             )
         except KeyError as exc:
             raise ValueError(f"{source} lacks the key {exc.args[0]!r} (see docs/design.md §2 "
@@ -340,7 +392,7 @@ PRESETS = {"paper": Camera.paper_16mp, "synthetic": Camera.synthetic_850}
 CAMERA_KEYS = {
     "main_lens": ("focal_length_mm", "f_number", "magnification"),
     "microlens_array": ("pitch_mm", "focal_length_mm", "count", "rotation_deg", "offset_mm"),
-    "sensor": ("pixel_pitch_mm", "pixels"),
+    "sensor": ("pixel_pitch_mm", "pixels", "crop_origin"),
     "calibration": ("centers_col", "centers_row"),
 }
 

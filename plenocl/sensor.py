@@ -1,6 +1,7 @@
 """Sensor effects applied to a noise-free image: background, shot and read noise,
 gain, bit depth and saturation. Host code with NumPy's seeded generator, so the
-result is the same on every device."""
+result is the same on every device. And the inverse a real camera needs: a dark frame
+subtracted and a flat field divided out (:func:`correct_frame`)."""
 
 from __future__ import annotations
 
@@ -68,3 +69,40 @@ class SensorModel:
             return out.astype(np.float32)
         dtype = np.uint8 if int(self.bit_depth) <= 8 else np.uint16
         return np.rint(out).astype(dtype)
+
+
+def correct_frame(image, dark=None, flat=None) -> np.ndarray:
+    """A raw frame with the camera's dark frame subtracted and its flat field divided out.
+
+    Parameters
+    ----------
+    image
+        The raw frame ``(rows, cols)``.
+    dark
+        A dark frame (lens capped, same exposure), or ``None``.
+    flat
+        A flat field (a uniformly lit frame, its dark level included), or ``None``: the
+        frame is divided by ``(flat - dark)`` normalised to a mean of 1, so each pixel's
+        gain is evened out. Pixels where it is not positive are refused.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64; negative pixels are kept (noise about a subtracted dark level).
+    """
+    img = np.asarray(image, dtype=np.float64)
+    for name, other in (("dark frame", dark), ("flat field", flat)):
+        if other is not None and np.shape(other) != img.shape:
+            raise ValueError(f"the {name} is {np.shape(other)} (rows, columns) but the image "
+                             f"is {img.shape}: use frames of the same camera and region")
+    dark_f = 0.0 if dark is None else np.asarray(dark, dtype=np.float64)
+    out = img - dark_f
+    if flat is not None:
+        gain = np.asarray(flat, dtype=np.float64) - dark_f
+        if not np.isfinite(gain).all() or (gain <= 0).any():
+            bad = int((~(gain > 0)).sum())
+            raise ValueError(f"the flat field minus the dark frame is not positive at {bad} "
+                             "pixel(s): take the flat field with light on every pixel (and "
+                             "the dark frame at the same exposure)")
+        out = out / (gain / gain.mean())
+    return out

@@ -380,3 +380,72 @@ def test_an_array_overfilling_the_sensor_has_one_count_and_one_labelling(queue, 
             find_centers(img, lens_camera(*wrong, pixels=cam.pixels))
     with pytest.raises(ValueError, match="larger than the sensor .* by more than a lens"):
         lens_camera(17, 11, pixels=cam.pixels)
+
+
+def test_a_failed_calibration_still_writes_its_diagnostic(tmp_path, queue, capsys):
+    """The diagnostic helps most when calibration fails: it is written then too, showing
+    the spots found against the array the camera file describes."""
+    from plenocl.cli.main import main
+
+    cam = _camera(12, 10)
+    white = simulate_white_image(cam, seed=31, queue=queue)
+    np.save(tmp_path / "white.npy", white)
+    wrong = lens_camera(10, 10, pixels=cam.pixels)
+    wrong.to_toml(tmp_path / "wrong.toml")
+    png = tmp_path / "diag.png"
+    rc = main(["calibrate", str(tmp_path / "white.npy"), "--camera", str(tmp_path / "wrong.toml"),
+               "--out", str(tmp_path / "cal.toml"), "--diagnostic", str(png)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "has 10 x 10 microlenses" in err and "wrote" in err
+    assert png.stat().st_size > 10_000 and not (tmp_path / "cal.toml").exists()
+    import imageio.v3 as iio
+
+    assert iio.imread(png).ndim == 3  # a real picture
+
+
+def test_a_region_of_interest_is_recorded_and_frames_are_cut_alike(tmp_path, queue, capsys):
+    """A frame one column wider than the sensor (the issue's 3001 x 3000 case): refused
+    naming --crop; with --crop, calibrated, the crop recorded in the camera file, and a
+    raw frame of the full size refocused through it without --crop."""
+    from plenocl.cli.main import main
+
+    cam = _camera(12, 10)
+    white = simulate_white_image(cam, seed=32, queue=queue)
+    wide = np.hstack([white, np.zeros((white.shape[0], 1), white.dtype)])
+    np.save(tmp_path / "white.npy", wide)
+    _nominal(cam).to_toml(tmp_path / "cam.toml")
+    base = ["calibrate", str(tmp_path / "white.npy"), "--camera", str(tmp_path / "cam.toml"),
+            "--out", str(tmp_path / "cal.toml")]
+    assert main(base) == 2 and "--crop COLUMN ROW WIDTH HEIGHT" in capsys.readouterr().err
+    crop = ["--crop", "0", "0", str(cam.pixels[0]), str(cam.pixels[1])]
+    assert main([*base, *crop]) == 0
+    cal = Camera.from_toml(tmp_path / "cal.toml")
+    assert cal.crop_origin == (0, 0) and cal.pixels == cam.pixels
+    err = _errors(cal.microlens_centers, cam.ideal_microlens_centers())
+    assert np.nanmax(err) < 0.1
+    raw = simulate_image(cam, np.array([[0.1, 0.0, 0.5]]), 2e4, 2000, seed=1, queue=queue)
+    np.save(tmp_path / "raw.npy", np.hstack([raw, np.zeros((raw.shape[0], 1))]))
+    assert main(["refocus", str(tmp_path / "raw.npy"), "--camera", str(tmp_path / "cal.toml"),
+                 "--z", "0.5", "--out", str(tmp_path / "stack.tif")]) == 0
+    assert main(["refocus", str(tmp_path / "raw.npy"), "--camera", str(tmp_path / "cal.toml"),
+                 "--z", "0.5", "--crop", "1", "0", "10", "10", "--out",
+                 str(tmp_path / "s2.tif")]) == 2
+    assert "is not the region the camera was calibrated on" in capsys.readouterr().err
+
+
+def test_dark_frame_and_flat_field_even_out_the_sensor():
+    """frame = dark + gain * signal, flat = dark + gain * level: correcting gives the
+    signal times the mean gain's level, whatever each pixel's gain and dark level."""
+    from plenocl.sensor import correct_frame
+
+    rng = np.random.default_rng(2)
+    dark = rng.uniform(90, 110, (20, 30))
+    gain = rng.uniform(0.7, 1.3, dark.shape)
+    signal = rng.uniform(0, 500, dark.shape)
+    out = correct_frame(dark + gain * signal, dark, dark + gain * 1000.0)
+    np.testing.assert_allclose(out, signal * gain.mean(), rtol=1e-10)
+    np.testing.assert_allclose(correct_frame(dark + signal, dark), signal)
+    with pytest.raises(ValueError, match="flat field minus the dark frame is not positive"):
+        correct_frame(dark, dark, dark)
+    with pytest.raises(ValueError, match="dark frame is .* but the image is"):
+        correct_frame(dark, dark[:, :-1])

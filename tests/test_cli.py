@@ -260,3 +260,45 @@ def test_simulate_refuses_a_dt_in_the_wrong_units(tmp_path, capsys):
         capsys.readouterr().err
     assert not list(tmp_path.glob("raw*.tif"))
     assert main([*common, "--dt", "0.5", "--force"]) == 0  # the rare real case: forced
+
+
+def test_one_meaning_per_option_name(tmp_path, capsys):
+    """--supersample means sub-voxels (reconstruct); refocus's output pixels per lens are
+    --upsample, and the old spelling there is refused naming it. --background takes the
+    API's names (median, none)."""
+    from plenocl import Camera
+
+    Camera.synthetic_850().to_toml(tmp_path / "cam.toml")
+    np.save(tmp_path / "raw.npy", np.zeros((850, 850), np.float32))
+    common = ["refocus", str(tmp_path / "raw.npy"), "--camera", str(tmp_path / "cam.toml"),
+              "--z", "0", "--out", str(tmp_path / "s.tif")]
+    assert main([*common, "--supersample", "2"]) == 2
+    assert "refocus takes --upsample" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tmp_path / "raw.npy"), "--camera", "synthetic", "--grid",
+              "g.toml", "--out", "v.npz", "--background", "auto"])
+    assert "choose from median, none" in capsys.readouterr().err.replace("'", "")
+
+
+def test_grid_command_labels_its_sizes_in_their_order(tmp_path, capsys):
+    assert main(["grid", "--camera", "synthetic", "--z", "-2", "2", "--out",
+                 str(tmp_path / "g.toml")]) == 0
+    out = capsys.readouterr().out
+    from plenocl import Grid
+
+    g = Grid.from_toml(tmp_path / "g.toml")
+    dz, dy, dx = g.spacing
+    assert f"of {dz:.4g} x {dy:.4g} x {dx:.4g} mm (z, y, x)" in out
+    assert "fewer than 3 layers of vectors in depth" in out and "--depth-voxel-mm" in out
+
+
+def test_quiet_and_verbose(tmp_path, capsys):
+    out = ["--camera", "synthetic", "--z", "-2", "2", "--out", str(tmp_path / "g.toml")]
+    assert main(["-q", "grid", *out]) == 0
+    quiet = capsys.readouterr()
+    assert quiet.out == "" and (tmp_path / "g.toml").is_file()
+    assert main(["grid", "-v", *out]) == 0
+    loud = capsys.readouterr()
+    assert "wrote" in loud.out and "OpenCL device" in loud.err
+    with pytest.raises(SystemExit):
+        main(["-q", "-v", "grid", *out])

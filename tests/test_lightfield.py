@@ -125,11 +125,33 @@ def test_view_is_the_plaid_sample(cam, queue):
 
 
 def test_refocus_at_alpha_one_is_the_mean_over_the_aperture(cam, queue):
+    """Unshifted views: each lens's mean over the aperture, smoothed by the quadratic
+    B-spline's weights at zero offset (1/8, 3/4, 1/8 per axis), as every plane is."""
+    from scipy.ndimage import correlate
+
     rng = np.random.default_rng(3)
     img = rng.uniform(0, 100, cam.pixels[::-1]).astype(np.float32)
     lf = LightField(img, cam, queue=queue)
-    expected = np.nanmean(lf.views.reshape(-1, *lf.shape), axis=0)
-    np.testing.assert_allclose(lf.refocus(alpha=1.0), expected, rtol=1e-5)
+    mean = np.nanmean(lf.views.reshape(-1, *lf.shape), axis=0)
+    taps = np.array([0.125, 0.75, 0.125])
+    expected = correlate(mean, np.outer(taps, taps), mode="nearest")
+    np.testing.assert_allclose(lf.refocus(alpha=1.0)[1:-1, 1:-1], expected[1:-1, 1:-1],
+                               rtol=1e-5)
+
+
+@pytest.mark.parametrize("z_true", [0.8, -0.9, 1.3])
+def test_a_focal_stack_finds_known_depths_near_focus_without_a_pull_to_zero(cam, queue,
+                                                                           z_true):
+    """Particles near the focal plane, where the bias was worst: sharpness (peak and
+    variance) peaks within 0.25 mm of the true depth. Bilinear sampling left the z = 0
+    plane alone unsmoothed, and these stacks peaked at exactly 0 for 0.8 and -0.9 mm."""
+    zs = np.round(np.arange(-2.0, 2.01, 0.1), 2)
+    pts = np.array([[x, y, z_true] for x in (-0.8, 0.0, 0.8) for y in (-0.6, 0.6)])
+    img = simulate_image(cam, pts, 1e5, 20000, seed=4, queue=queue)
+    stack = LightField(img, cam, queue=queue).focal_stack(zs)  # one pixel per lens
+    flat = stack.reshape(len(zs), -1)
+    for found in (zs[flat.max(1).argmax()], zs[flat.var(1).argmax()]):
+        assert abs(found - z_true) <= 0.25, (found, z_true)
 
 
 @pytest.mark.parametrize("supersample", [1, 3])

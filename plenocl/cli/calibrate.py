@@ -11,12 +11,14 @@ The device comes from the top-level ``--device`` option (``args.device``) when p
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
 from ..calibration import METHODS
 from ..camera import load_camera
 from ..io.files import write_tiff
+from .frames import add_frame_options, camera_for_frames, read_frame
 
 
 def calibrate_command(args: argparse.Namespace) -> int:
@@ -33,13 +35,19 @@ def calibrate_command(args: argparse.Namespace) -> int:
     int
         0 on success (errors raise ``ValueError``/``FileNotFoundError``).
     """
-    from ..calibration import find_centers, save_diagnostic, warn_about
-    from ..io.files import read_image
+    from ..calibration import find_centers, save_diagnostic, save_failure_diagnostic, warn_about
 
-    camera = load_camera(args.camera)
-    white = read_image(args.white, args.channel)
-    fit = find_centers(white, camera, method=getattr(args, "method", "combined"),
-                       fill_missing=getattr(args, "fill_missing", False))
+    camera = camera_for_frames(args, load_camera(args.camera))
+    white = read_frame(args, args.white, camera)
+    try:
+        fit = find_centers(white, camera, method=getattr(args, "method", "combined"),
+                           fill_missing=getattr(args, "fill_missing", False))
+    except ValueError as exc:
+        if getattr(args, "diagnostic", None):  # when it helps most
+            save_failure_diagnostic(args.diagnostic, white, camera, str(exc))
+            print(f"calibration failed; wrote {args.diagnostic} (what was found)",
+                  file=sys.stderr)
+        raise
     warn_about(fit)
     calibrated = camera.with_centers(fit.centers)
     calibrated.to_toml(args.out)
@@ -61,28 +69,31 @@ def refocus_command(args: argparse.Namespace) -> int:
     ----------
     args
         ``raw`` (image path), ``camera`` (calibrated TOML), ``z`` (list of mm), ``out``
-        (TIFF path), optionally ``supersample`` and ``device``.
+        (TIFF path), optionally ``upsample`` (output pixels per microlens) and
+        ``device``.
 
     Returns
     -------
     int
         0 on success.
     """
-    from ..io.files import read_image
     from ..lightfield import LightField
 
-    camera = load_camera(args.camera)
-    raw = read_image(args.raw, args.channel)
+    if getattr(args, "supersample", None) is not None:
+        raise ValueError("refocus takes --upsample N (output pixels per microlens); "
+                         "--supersample means lateral sub-voxels, in reconstruct")
+    camera = camera_for_frames(args, load_camera(args.camera))
+    raw = read_frame(args, args.raw, camera)
     lf = LightField(raw, camera, queue=getattr(args, "device", None))
-    stack = lf.focal_stack(args.z, supersample=getattr(args, "supersample", 1))
-    s = getattr(args, "supersample", 1)
+    s = getattr(args, "upsample", 1)
+    stack = lf.focal_stack(args.z, supersample=s)
     write_tiff(args.out, np.asarray(stack, np.float32),
                {"z_mm": [float(z) for z in args.z], "alpha": [float(a) for a in
                                                                camera.alpha(args.z)],
-                "supersample": s, "axes": "page = depth; rows, columns on the microlens lattice"})
+                "upsample": s, "axes": "page = depth; rows, columns on the microlens lattice"})
     zs = ", ".join(f"{z:g}" for z in args.z)
     print(f"wrote {args.out}: {len(args.z)} planes of {stack.shape[2]} x {stack.shape[1]} px "
-          f"(microlens lattice x {getattr(args, 'supersample', 1)}) at z = {zs} mm")
+          f"(microlens lattice x {s}) at z = {zs} mm")
     return 0
 
 
@@ -90,9 +101,7 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``calibrate`` on an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("calibrate", help="find the microlens centres in a white image")
     p.add_argument("white", help="white image (TIFF/PNG/NPY) taken with the lens stopped down")
-    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
-                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
-                        "(an image whose planes are identical needs none)")
+    add_frame_options(p)
     p.add_argument("--camera", required=True, help="camera TOML file or preset (synthetic, "
                    "paper) with the nominal optics")
     p.add_argument("--out", required=True, help="calibrated camera TOML to write")
@@ -113,14 +122,13 @@ def add_refocus_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``refocus`` on an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("refocus", help="refocus a raw image at depths (focal stack)")
     p.add_argument("raw", help="raw plenoptic image (TIFF/PNG/NPY)")
-    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
-                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
-                        "(an image whose planes are identical needs none)")
+    add_frame_options(p)
     p.add_argument("--camera", required=True, help="calibrated camera TOML file")
     p.add_argument("--z", type=float, nargs="+", required=True,
                    help="object depths in mm (+z away from the camera)")
     p.add_argument("--out", required=True, help="output TIFF stack (float32, one page per z)")
-    p.add_argument("--supersample", type=int, default=1,
+    p.add_argument("--upsample", type=int, default=1,
                    help="output pixels per microlens along each axis (default 1)")
+    p.add_argument("--supersample", type=int, default=None, help=argparse.SUPPRESS)
     p.set_defaults(func=refocus_command)
     return p

@@ -4,6 +4,8 @@ piv | run | demo | bench (and white, grid)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -77,6 +79,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--device", default=None, help=DEVICE_HELP)
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--device", default=argparse.SUPPRESS, help=DEVICE_HELP)
+    for p in (parser, common):  # before or after the subcommand
+        loud = p.add_mutually_exclusive_group()
+        loud.add_argument("-q", "--quiet", action="store_true",
+                          default=False if p is parser else argparse.SUPPRESS,
+                          help="print errors and warnings only: no progress, no results "
+                               "summary")
+        loud.add_argument("-v", "--verbose", action="store_true",
+                          default=False if p is parser else argparse.SUPPRESS,
+                          help="also say which OpenCL device runs, and repeat each warning "
+                               "where it recurs")
     sub = _Subcommands(parser.add_subparsers(dest="command", required=True), common)
     dev = sub.add_parser("devices", help="list OpenCL platforms and devices")
     dev.add_argument("--agree", action="store_true",
@@ -98,8 +110,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``plenocl`` and ``python -m plenocl``: errors print one line and
     exit 2, Ctrl-C exits 130, warnings print once each as ``plenocl CMD: warning: ...``."""
     args = build_parser().parse_args(argv)
-    with warnings.catch_warnings():
-        warnings.showwarning = _warning_printer(args.command)
+    with warnings.catch_warnings(), _quiet(args.quiet):
+        warnings.showwarning = _warning_printer(args.command, once=not args.verbose)
+        if args.verbose:
+            _say_device(args)
         try:
             return int(args.func(args) or 0)
         except (ValueError, FileNotFoundError, MemoryError, RuntimeError) as exc:
@@ -111,14 +125,45 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 130
 
 
-def _warning_printer(command: str):
-    """A ``warnings.showwarning`` that prints each message once, without a source line."""
+def _warning_printer(command: str, once: bool = True):
+    """A ``warnings.showwarning`` that prints each message once (every time with
+    ``once=False``), without a source line."""
     seen: set[str] = set()
 
     def show(message, category, filename, lineno, file=None, line=None) -> None:
         text = str(message)
-        if text not in seen:
+        if text not in seen or not once:
             seen.add(text)
             print(f"plenocl {command}: warning: {text}", file=sys.stderr)
 
     return show
+
+
+@contextlib.contextmanager
+def _quiet(quiet: bool):
+    """With ``-q``: what commands print to standard output, and progress bars, go
+    nowhere; warnings and errors (standard error) still show."""
+    if not quiet:
+        yield
+        return
+    old = os.environ.get("TQDM_DISABLE")
+    os.environ["TQDM_DISABLE"] = "1"  # tqdm reads it for every bar
+    try:
+        with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
+            yield
+    finally:
+        if old is None:
+            os.environ.pop("TQDM_DISABLE", None)
+        else:
+            os.environ["TQDM_DISABLE"] = old
+
+
+def _say_device(args: argparse.Namespace) -> None:
+    """``-v``: the device the command's default choice gives (or the one named)."""
+    from ..device import create_context
+
+    if args.command in ("devices", "run"):
+        return  # devices lists them all; a run's workers choose their own
+    dev = create_context(args.device).devices[0]
+    print(f"plenocl {args.command}: OpenCL device {dev.name.strip()} on "
+          f"{dev.platform.name.strip()}", file=sys.stderr)

@@ -85,9 +85,17 @@ def cmd_grid(args: argparse.Namespace) -> int:
                            depth_voxel_mm=args.depth_voxel_mm, fraction=args.fraction)
     grid.to_toml(args.out)
     dz, dy, dx = grid.spacing
-    print(f"wrote {args.out}: {grid.shape} voxels (z, y, x) of {dx:.4g} x {dy:.4g} x "
-          f"{dz:.4g} mm, rotated {grid.rotation_deg:.4f} deg")
+    print(f"wrote {args.out}: {grid.shape} voxels of {dz:.4g} x {dy:.4g} x {dx:.4g} mm "
+          f"(z, y, x), rotated {grid.rotation_deg:.4f} deg")
+    if grid.shape[0] < THREE_LAYERS:
+        print(f"note: {grid.shape[0]} voxels deep: PIV's final 24-voxel windows give fewer "
+              f"than 3 layers of vectors in depth (at least {THREE_LAYERS} voxels give 3); "
+              "widen --z or give thinner voxels (--depth-voxel-mm)")
     return 0
+
+
+#: Voxels along an axis for three vectors of 24-voxel windows at 50 % overlap.
+THREE_LAYERS = 48
 
 
 def _camera_and_noise(p, sensor_noise: bool = True) -> None:

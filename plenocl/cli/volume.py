@@ -13,28 +13,30 @@ import warnings
 
 from ..camera import load_camera
 from ..reconstruction.supersample import PAIR_SUPERSAMPLE
+from .frames import add_frame_options, camera_for_frames, read_frame
 
 
 def reconstruct_command(args: argparse.Namespace) -> int:
     """Reconstruct a volume from one raw image, with a progress display."""
     from ..grid import Grid
-    from ..io.files import read_image, save_volume
+    from ..io.files import save_volume
     from ..io.progress import iteration_bar
     from ..projection.projector import Projector
     from ..reconstruction import DEFAULTS, reconstruct
 
-    camera, grid = load_camera(args.camera), Grid.from_toml(args.grid)
+    camera = camera_for_frames(args, load_camera(args.camera))
+    grid = Grid.from_toml(args.grid)
     if not camera.calibrated:
         warnings.warn(f"the camera {args.camera} has no [calibration]: the nominal microlens "
                       "centres are used; calibrate real cameras first (plenocl calibrate)",
                       stacklevel=2)
-    image = read_image(args.raw, args.channel)
+    image = read_frame(args, args.raw, camera)
     iterations = DEFAULTS[args.method][0] if args.iterations is None else args.iterations
     proj = Projector(camera, grid, args.device)
     with iteration_bar(iterations, f"{args.method} {grid.shape}") as bar:
         vol, info = reconstruct(image, proj, args.method, iterations, args.relax,
                                 start=args.start,
-                                background="median" if args.background == "auto" else None,
+                                background="median" if args.background == "median" else None,
                                 threshold=args.threshold, mask_fraction=args.mask_fraction,
                                 min_sensitivity=args.min_sensitivity, tol=args.tol,
                                 supersample=args.supersample, callback=bar,
@@ -116,16 +118,15 @@ def _image_fit(raw: list[str] | None, camera, grid, channel: str | None = None):
     from ..io.files import read_image
     from ..piv.imagefit import ImageFit
 
-    return ImageFit(camera, grid, [read_image(path, channel) for path in raw])
+    return ImageFit(camera, grid, [camera.fit_image(read_image(path, channel), str(path))
+                                   for path in raw])
 
 
 def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``reconstruct``."""
     p = subparsers.add_parser("reconstruct", help="reconstruct a particle volume from a raw image")
     p.add_argument("raw", help="raw image (TIFF, PNG or .npy)")
-    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
-                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
-                        "(an image whose planes are identical needs none)")
+    add_frame_options(p)
     p.add_argument("--camera", required=True, help="calibrated camera TOML (or a preset name)")
     p.add_argument("--grid", required=True, help="grid TOML ([grid] shape, x_mm, y_mm, z_mm)")
     p.add_argument("--out", required=True, help="output volume: .npz (with grid), .npy or .h5")
@@ -137,7 +138,7 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--relax", type=float, default=None, help="relaxation 0 < mu <= 1")
     p.add_argument("--start", default="uniform", choices=["uniform", "mlos"],
                    help="first guess: a uniform volume carrying the image's light, or MLOS")
-    p.add_argument("--background", default="auto", choices=["auto", "none"],
+    p.add_argument("--background", default="median", choices=["median", "none"],
                    help="subtract the median background (default, as plenocl.reconstruct "
                         "does) or use the image as is")
     p.add_argument("--threshold", type=float, default=None,
@@ -181,8 +182,8 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
                         "particle is fitted to its raw image before pairing, as in "
                         "process_pair (a third less depth error)")
     p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
-                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
-                        "(an image whose planes are identical needs none)")
+                   help="for colour raw images (--raw): the plane to use, or the Rec. 709 "
+                        "luminance")
     p.set_defaults(func=piv_command)
     return p
 

@@ -23,7 +23,9 @@ def check_image(image, camera) -> np.ndarray:
     expected = (camera.pixels[1], camera.pixels[0])
     if img.shape != expected:
         raise ValueError(f"image shape {img.shape} does not match the camera's sensor "
-                         f"{expected} (rows, columns); check the camera file")
+                         f"{expected} (rows, columns); check the camera file, or cut the "
+                         "frame to the camera's region of interest (camera.fit_image, "
+                         "--crop)")
     if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
         raise ValueError(f"image must be numeric (uint8, uint16, float), got {img.dtype}")
     if np.iscomplexobj(img):

@@ -1,8 +1,9 @@
 """NumPy reference of the refocusing kernel (``kernels/refocus.cl``), written for clarity.
 
-Shift-and-add over the sub-aperture views with bilinear interpolation between
-microlenses; samples that are ``NaN`` or off the array carry no weight and the sum is
-normalised by the weight that remains (docs/design.md §4).
+Shift-and-add over the sub-aperture views, each sampled between microlenses with the
+quadratic B-spline weights of the 3 x 3 nearest lenses (the same smoothing at every
+sub-lens phase, so no plane is favoured); samples that are ``NaN`` or off the array carry
+no weight and the sum is normalised by the weight that remains (docs/design.md §4).
 """
 
 from __future__ import annotations
@@ -44,23 +45,30 @@ def refocus_views(views: np.ndarray, shifts: np.ndarray, supersample: int = 1) -
         for n in range(nuv):
             x = kx[None, :] + plane_shifts[n, 0]
             y = ky[:, None] + plane_shifts[n, 1]
-            _bilinear_accumulate(views[n], x, y, acc, wsum)
+            _bspline_accumulate(views[n], x, y, acc, wsum)
         out[p] = np.divide(acc, wsum, out=np.zeros_like(acc), where=wsum > 0)
     return out
 
 
-def _bilinear_accumulate(view: np.ndarray, x: np.ndarray, y: np.ndarray,
-                         acc: np.ndarray, wsum: np.ndarray) -> None:
-    """Add the four bilinear taps of ``view`` at ``(x, y)`` that exist to ``acc``/``wsum``."""
+def _bspline_weights(d: np.ndarray) -> list[np.ndarray]:
+    """Quadratic B-spline weights of the nodes -1, 0, +1 around the nearest node, for
+    offsets ``d`` in [-0.5, 0.5] from it."""
+    return [0.5 * (0.5 - d) ** 2, 0.75 - d**2, 0.5 * (0.5 + d) ** 2]
+
+
+def _bspline_accumulate(view: np.ndarray, x: np.ndarray, y: np.ndarray,
+                        acc: np.ndarray, wsum: np.ndarray) -> None:
+    """Add the 3 x 3 quadratic B-spline taps of ``view`` at ``(x, y)`` that exist to
+    ``acc``/``wsum``."""
     ny, nx = view.shape
     x, y = np.broadcast_arrays(x, y)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    tx, ty = x - x0, y - y0
-    for dx, dy, w in ((0, 0, (1 - tx) * (1 - ty)), (1, 0, tx * (1 - ty)),
-                      (0, 1, (1 - tx) * ty), (1, 1, tx * ty)):
-        xi, yi = x0 + dx, y0 + dy
-        inside = (xi >= 0) & (yi >= 0) & (xi < nx) & (yi < ny)
-        value = view[np.clip(yi, 0, ny - 1), np.clip(xi, 0, nx - 1)]
-        ok = inside & np.isfinite(value) & (w > 0)
-        acc += np.where(ok, w * np.where(ok, value, 0.0), 0.0)
-        wsum += np.where(ok, w, 0.0)
+    cx, cy = np.floor(x + 0.5).astype(np.int64), np.floor(y + 0.5).astype(np.int64)
+    wx, wy = _bspline_weights(x - cx), _bspline_weights(y - cy)
+    for b in range(3):
+        for a in range(3):
+            xi, yi, w = cx + a - 1, cy + b - 1, wx[a] * wy[b]
+            inside = (xi >= 0) & (yi >= 0) & (xi < nx) & (yi < ny)
+            value = view[np.clip(yi, 0, ny - 1), np.clip(xi, 0, nx - 1)]
+            ok = inside & np.isfinite(value) & (w > 0)
+            acc += np.where(ok, w * np.where(ok, value, 0.0), 0.0)
+            wsum += np.where(ok, w, 0.0)

@@ -1,0 +1,57 @@
+"""The options of every command that reads camera frames, and reading one with them:
+a colour plane (``--channel``), a dark frame and a flat field (``--dark``, ``--flat``),
+and a region of interest (``--crop``) recorded with the camera."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ..camera import Camera
+from ..io.files import CHANNELS, read_image
+from ..sensor import correct_frame
+
+
+def add_frame_options(p: argparse.ArgumentParser, crop: bool = True) -> None:
+    """Add ``--channel``, ``--dark``, ``--flat`` (and ``--crop``) to a command."""
+    p.add_argument("--channel", default=None, choices=list(CHANNELS),
+                   help="for a colour image: the plane to use, or the Rec. 709 luminance "
+                        "(an image whose planes are identical needs none)")
+    p.add_argument("--dark", default=None,
+                   help="dark frame (lens capped, same exposure) subtracted from each frame")
+    p.add_argument("--flat", default=None,
+                   help="flat field (uniformly lit frame) each frame is divided by, after "
+                        "the dark frame, normalised to a mean of 1")
+    if crop:
+        p.add_argument("--crop", type=int, nargs=4, default=None,
+                       metavar=("COLUMN", "ROW", "WIDTH", "HEIGHT"),
+                       help="region of interest of the frames; recorded in the calibrated "
+                            "camera, so later frames are cut alike without it")
+
+
+def camera_for_frames(args: argparse.Namespace, camera: Camera) -> Camera:
+    """``camera`` through ``--crop``: cropped if not calibrated yet; a calibrated camera
+    keeps its recorded region, and a different ``--crop`` is refused."""
+    crop = getattr(args, "crop", None)
+    if not crop:
+        return camera
+    origin, size = tuple(crop[:2]), tuple(crop[2:])
+    if not camera.calibrated:
+        return camera.cropped(origin, size)
+    if camera.crop_origin == origin and camera.pixels == size:
+        return camera
+    raise ValueError(f"--crop {' '.join(map(str, crop))} is not the region the camera was "
+                     f"calibrated on ({camera.crop_origin or (0, 0)}, {camera.pixels} px): "
+                     "leave --crop out (the camera cuts frames to its region itself)")
+
+
+def read_frame(args: argparse.Namespace, path, camera: Camera) -> np.ndarray:
+    """One frame as ``camera`` sees it: read with ``--channel``, corrected by ``--dark``
+    and ``--flat``, cut to the camera's region of interest."""
+    image = read_image(path, args.channel)
+    dark = read_image(args.dark, args.channel) if getattr(args, "dark", None) else None
+    flat = read_image(args.flat, args.channel) if getattr(args, "flat", None) else None
+    if dark is not None or flat is not None:
+        image = correct_frame(image, dark, flat)
+    return camera.fit_image(image, name=str(path))
