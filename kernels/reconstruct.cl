@@ -23,14 +23,19 @@ inline float pl_clean(float v)
 /* out = I / max(P, eps) (clamped) or log(max(ratio, ratio_min)); pixels at or below
  * threshold are dark (I = 0). ratio_min is PL_RATIO_MIN for the literal SMART/MART (a dark
  * pixel's log ratio is -13.8) or a larger documented floor (ReconstructionSettings
- * .ratio_floor). With a block map, pixels outside block `block` get 0 (no update). */
+ * .ratio_floor). With a block map, pixels outside block `block` get 0 (no update). With
+ * use_observed, a pixel whose observed[i] is 0 holds no data and gets 0 too: it is left
+ * out of the update, and the solver's sensitivity is then A^T observed (MLEM of the
+ * observed pixels alone). */
 __kernel void ratio(__global const float *img, __global const float *proj,
                     __global const int *block_of, int block, float threshold,
-                    int log_mode, float ratio_min, __global float *out, int n)
+                    int log_mode, float ratio_min, __global const float *observed,
+                    int use_observed, __global float *out, int n)
 {
     const int i = get_global_id(0);
     if (i >= n) return;
     if (block >= 0 && block_of[i] != block) { out[i] = 0.0f; return; }
+    if (use_observed && observed[i] == 0.0f) { out[i] = 0.0f; return; }
     float value = img[i] > threshold ? img[i] : 0.0f;
     float r = clamp(value / fmax(proj[i], PL_EPS), 0.0f, PL_RATIO_MAX);
     out[i] = log_mode ? log(fmax(r, fmax(ratio_min, PL_RATIO_MIN))) : r;
@@ -86,14 +91,17 @@ __kernel void mask_dark(__global float *vol, __global const float *b,
     if (s <= PL_EPS || b[j] > fraction * s) vol[j] = 0.0f;
 }
 
-/* dark = 1 where I <= threshold, else 0; logimg = log(max(I, floor)). */
+/* dark = 1 where I <= threshold, else 0 (a pixel without data, use_observed and
+ * observed[i] = 0, is not dark); logimg = log(max(I, floor)). */
 __kernel void prepare_image(__global const float *img, float threshold, float floor_value,
+                            __global const float *observed, int use_observed,
                             __global float *dark, __global float *logimg, int n)
 {
     const int i = get_global_id(0);
     if (i >= n) return;
     float v = img[i];
-    dark[i] = v <= threshold ? 1.0f : 0.0f;
+    const int unseen = use_observed && observed[i] == 0.0f;
+    dark[i] = (v <= threshold && !unseen) ? 1.0f : 0.0f;
     logimg[i] = log(fmax(v, floor_value));
 }
 

@@ -302,8 +302,8 @@ class Camera:
             if img.shape[0] >= row + want[0] and img.shape[1] >= col + want[1]:
                 return img[row:row + want[0], col:col + want[1]]
         raise ValueError(
-            f"{name} is {img.shape[-1]} x {img.shape[0]} px (columns x rows) but the camera's "
-            f"sensor is {want[1]} x {want[0]}"
+            f"{name} is {img.shape[-1]} x {img.shape[0]} px (columns x rows), which does not "
+            f"match the camera's sensor of {want[1]} x {want[0]}"
             + (f" from ({self.crop_origin[0]}, {self.crop_origin[1]})" if self.crop_origin
                else "") + ": give the region of interest of the frames (--crop COLUMN ROW "
             "WIDTH HEIGHT, or camera.cropped(origin, size)), or correct [sensor] pixels")

@@ -291,3 +291,34 @@ def test_a_sigkilled_run_rerun_equals_an_uninterrupted_one(experiment, tmp_path)
         assert sorted(got) == sorted(want)
         for key in want:
             assert np.array_equal(got[key], want[key], equal_nan=want[key].dtype.kind == "f"), key
+
+
+def test_a_run_applies_the_dark_frame_and_flat_field_of_the_experiment(experiment, tmp_path):
+    """Frames recorded through an uneven gain and dark level, with the dark frame and flat
+    field in [images]: the run's field is the one of the clean frames."""
+    from plenocl.io import read_image
+
+    exp = _copy_experiment(experiment, tmp_path, drop=[2, 3, 4, 5])
+    clean = plenocl.run(exp, tmp_path / "clean", progress=False)
+    assert clean.processed == [0]
+    rows, cols = read_image(tmp_path / "raw" / "frame_000.tif").shape
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    dark = (40.0 + 0.02 * xx).astype(np.float32)
+    gain = (0.8 + 0.4 * yy / rows).astype(np.float32)
+    for n in (0, 1):
+        path = tmp_path / "raw" / f"frame_{n:03d}.tif"
+        write_tiff(path, dark + gain * read_image(path).astype(np.float32))
+    write_tiff(tmp_path / "dark.tif", dark)
+    write_tiff(tmp_path / "flat.tif", dark + gain * 1000.0)
+    text = exp.read_text().replace("dt_s = 1e-3", 'dt_s = 1e-3\ndark = "dark.tif"\n'
+                                                  'flat = "flat.tif"')
+    exp.write_text(text)
+    assert plenocl.run(exp, tmp_path / "corrected", progress=False).processed == [0]
+    _, want = read_npz(tmp_path / "clean" / "pairs" / "pair_00000.npz")
+    _, got = read_npz(tmp_path / "corrected" / "pairs" / "pair_00000.npz")
+    ok = want["valid"] & got["valid"]
+    assert ok.mean() > 0.8
+    np.testing.assert_allclose(got["velocity"][:, ok], want["velocity"][:, ok], atol=0.01)
+    exp.write_text(text.replace('flat = "flat.tif"', 'flat = "nope.tif"'))
+    with pytest.raises(ValueError, match=r"\[images\] flat = 'nope.tif': no such file"):
+        load_experiment(exp)

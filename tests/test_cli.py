@@ -302,3 +302,35 @@ def test_quiet_and_verbose(tmp_path, capsys):
     assert "wrote" in loud.out and "OpenCL device" in loud.err
     with pytest.raises(SystemExit):
         main(["-q", "-v", "grid", *out])
+
+
+def test_reconstruct_takes_a_renders_alpha_as_its_pixel_mask(tmp_path, capsys):
+    """An RGBA render whose alpha marks unrendered pixels: --mask alpha leaves them out
+    (their zeros would otherwise be read as dark); an image without alpha is refused."""
+    import imageio.v3 as iio
+
+    from plenocl import Camera, Grid, random_particles, simulate_image
+
+    cam = Camera.synthetic_850()
+    cam.with_centers(cam.ideal_microlens_centers()).to_toml(tmp_path / "cam.toml")
+    Grid((8, 20, 20), x=(-1.2, 1.2), y=(-1.2, 1.2), z=(-1.0, 1.0)).to_toml(tmp_path / "g.toml")
+    pos, inten = random_particles(((-1, 1), (-1, 1), (-0.8, 0.8)), count=10, seed=3,
+                                  intensity=2e4)
+    img = simulate_image(cam, pos, inten, 2000, seed=3)
+    grey = np.clip(img / img.max() * 255, 0, 255).astype(np.uint8)
+    alpha = np.full_like(grey, 255)
+    alpha[::3] = 0  # every third row not rendered
+    grey[alpha == 0] = 0
+    iio.imwrite(tmp_path / "render.png", np.dstack([grey, grey, grey, alpha]))
+    common = ["reconstruct", str(tmp_path / "render.png"), "--camera", str(tmp_path / "cam.toml"),
+              "--grid", str(tmp_path / "g.toml"), "--iterations", "5", "--supersample", "1"]
+    assert main([*common, "--mask", "alpha", "--out", str(tmp_path / "m.npz")]) == 0
+    assert main([*common, "--out", str(tmp_path / "n.npz")]) == 0
+    from plenocl.io import load_volume
+
+    masked, naive = load_volume(tmp_path / "m.npz")[0], load_volume(tmp_path / "n.npz")[0]
+    assert masked.sum() > 1.2 * naive.sum()  # the unrendered rows did not darken it
+    iio.imwrite(tmp_path / "grey.png", grey)
+    common[1] = str(tmp_path / "grey.png")
+    assert main([*common, "--mask", "alpha", "--out", str(tmp_path / "x.npz")]) == 2
+    assert "has no alpha channel" in capsys.readouterr().err

@@ -272,3 +272,25 @@ def test_a_dense_image_whose_threshold_darkens_every_pixel_is_not_silent(queue,
     assert vol.max() == 0
     fixed = reconstruct(image, proj, iterations=2, background=None)
     assert fixed.max() > 0
+
+
+def test_pixels_without_data_masked_do_not_darken_the_volume(queue):
+    """30 % of the pixels hold no data (dead pixels, unrendered samples of a render: 0 in
+    the image). Taken as data they say "dark" and the volume loses 30 % of its light;
+    masked (pixel_mask, e.g. from a render's alpha) it keeps the full image's light and
+    particles."""
+    from plenocl.metrics import recovery as recovered
+
+    cam = Camera.synthetic_850()
+    pos, inten = random_particles(((-2.3, 2.3),) * 3, count=40, seed=12, intensity=2e4)
+    image = simulate_image(cam, pos, inten, 4000, seed=12, queue=queue)
+    proj = Projector(cam, CUBE, queue)
+    full = reconstruct(image, proj, iterations=30)
+    observed = np.random.default_rng(1).random(image.shape) > 0.3
+    blanked = np.where(observed, image, 0)
+    naive = reconstruct(blanked, proj, iterations=30)
+    masked = reconstruct(blanked, proj, iterations=30, pixel_mask=observed)
+    assert masked.sum() == pytest.approx(full.sum(), rel=0.03)
+    assert naive.sum() < 0.8 * full.sum()
+    assert np.corrcoef(masked.ravel(), full.ravel())[0, 1] > 0.99
+    assert recovered(masked, CUBE, pos).fraction >= recovered(full, CUBE, pos).fraction - 0.03

@@ -258,3 +258,25 @@ def test_mart_blocks_are_set_up_once_per_projector(tiny):
     assert device_view_blocks(proj, 2) is first
     np.testing.assert_array_equal(first.get(), view_blocks(proj.camera, 2))
     assert device_view_blocks(proj, 3) is not first
+
+
+@pytest.mark.parametrize("method, fn", [("mlem", ref.mlem), ("smart", ref.smart)])
+def test_pixels_without_data_match_the_reference(tiny, method, fn):
+    """A pixel mask: the kernels' missing-data update (ratio 1) equals the twin's."""
+    proj, W, image = tiny
+    observed = np.random.default_rng(4).random(image.shape) > 0.3
+    vol = reconstruct(image, proj, method, iterations=12, relax=0.8, background=None,
+                      threshold=0.0, pixel_mask=observed)
+    top = image[observed].max()
+    expected = fn(W, np.where(observed, image, 0.0) / top, 12, 0.8, observed=observed) * top
+    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+
+
+def test_a_pixel_mask_is_checked(tiny):
+    proj, _, image = tiny
+    with pytest.raises(ValueError, match="pixel_mask shape"):
+        reconstruct(image, proj, pixel_mask=np.ones((5, 5), bool))
+    with pytest.raises(ValueError, match="leaves no pixel"):
+        reconstruct(image, proj, pixel_mask=np.zeros(image.shape, bool))
+    with pytest.raises(ValueError, match="start='mlos' cannot use a pixel_mask"):
+        reconstruct(image, proj, start="mlos", pixel_mask=np.ones(image.shape, bool))

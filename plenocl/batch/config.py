@@ -20,6 +20,9 @@ Example::
                                          # "list": pairs = [["a.tif", "b.tif"], ...]
     first_frame = 0                      # optional: the number pairs count from (default:
                                          # the lowest found; batch/pairing.py)
+    channel = "g"                        # optional, for colour frames: r, g, b, luminance
+    dark = "dark.tif"                    # optional dark frame, subtracted (white image too)
+    flat = "flat.tif"                    # optional flat field, divided out
     dt_s = 175e-6                        # between the two exposures of a pair (s; outside
                                          # 0.1 µs to 1 s refused unless force_dt = true)
     pair_interval_s = 0.01               # between successive pairs: the time axis
@@ -55,7 +58,8 @@ SECTIONS = {
              "fraction": 1.0},
     "images": {"folder": ".", "pattern": "*.tif", "pairing": "sequence", "a_suffix": "_a",
                "b_suffix": "_b", "dt_s": None, "pair_interval_s": None, "pairs": None,
-               "first_frame": None, "force_dt": False},
+               "first_frame": None, "force_dt": False, "channel": None, "dark": None,
+               "flat": None},
     "reconstruction": {"method": "mlem", "iterations": None, "relax": None,
                        "background": "median", "threshold": None,
                        "supersample": PAIR_SUPERSAMPLE},
@@ -104,6 +108,7 @@ def _check(s: dict, path: Path) -> None:
     if bool(s["grid"]["file"]) == bool(s["grid"]["z_mm"]):
         raise ValueError(f"{path}: [grid] needs exactly one of file or z_mm")
     _check_pairing(s["images"], path)
+    _check_frames(s["images"], path)
     if not isinstance(s["images"]["force_dt"], bool):
         raise ValueError(f"{path}: [images] force_dt must be true or false")
     dt = s["images"]["dt_s"]
@@ -123,6 +128,19 @@ def _check(s: dict, path: Path) -> None:
         if not isinstance(s[section][key], bool):
             raise ValueError(f"{path}: [{section}] {key} must be true or false, got "
                              f"{s[section][key]!r}")
+
+
+def _check_frames(img: dict, path: Path) -> None:
+    from ..io.files import CHANNELS
+
+    if img["channel"] is not None and img["channel"] not in CHANNELS:
+        raise ValueError(f"{path}: [images] channel must be one of {CHANNELS}, got "
+                         f"{img['channel']!r}")
+    for key in ("dark", "flat"):
+        name = img[key]
+        if name is not None and not (path.parent / name).is_file():
+            raise ValueError(f"{path}: [images] {key} = {name!r}: no such file (relative "
+                             "to the experiment file's folder)")
 
 
 def _check_pairing(img: dict, path: Path) -> None:

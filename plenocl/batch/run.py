@@ -203,9 +203,14 @@ def _camera(exp: Experiment, queue, log):
         return camera
     from ..calibration import calibrate
     from ..io.files import read_image
+    from ..sensor import correct_frame
 
     log(f"calibrating from {cam['white']}")
-    return calibrate(read_image(exp.base / cam["white"]), camera)
+    img = exp["images"]
+    white = read_image(exp.base / cam["white"], img["channel"])
+    if img["dark"]:  # a white image is a flat field itself: the dark frame only
+        white = correct_frame(white, read_image(exp.base / img["dark"], img["channel"]))
+    return calibrate(camera.fit_image(white, cam["white"]), camera)
 
 
 def _grid(exp: Experiment, camera):
@@ -237,6 +242,9 @@ def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
     grid_file = out / "grid_used.toml"
     used = {name: {k: v for k, v in values.items() if v is not None}
             for name, values in exp.sections.items()}
+    for key in ("dark", "flat"):  # the workers know the run folder only
+        if key in used["images"]:
+            used["images"][key] = str((exp.base / used["images"][key]).resolve())
     used["run"] = {"plenocl_version": __version__,
                    "grid_shape": list(grid.shape), "grid_rotation_deg": grid.rotation_deg}
     write_toml(out / "experiment_used.toml", used)

@@ -14,6 +14,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..camera import load_camera
 from ..device import DeviceLike
 from ..grid import Grid
@@ -21,6 +23,7 @@ from ..io.fields import save_field
 from ..io.files import read_image, write_volumes
 from ..pipeline import process_pair
 from ..reconstruction import ReconstructionSettings
+from ..sensor import correct_frame
 from ..tomlfile import read_toml
 from .layout import pair_index, volume_file
 from .pairing import fingerprint
@@ -72,6 +75,10 @@ class PairProcessor:
         self.keep_volumes = bool(used.get("piv", {}).get("ensemble", False))
         self.camera = load_camera(folder / "camera_used.toml")
         self.grid = Grid.from_toml(folder / "grid_used.toml")
+        images = used["images"]
+        self.channel = images.get("channel")
+        self.dark, self.flat = (read_image(images[k], self.channel) if images.get(k) else None
+                                for k in ("dark", "flat"))
         self.device = device
         self._projector = None
 
@@ -89,7 +96,7 @@ class PairProcessor:
         returned, not raised, so that the run goes on."""
         t0 = time.perf_counter()
         try:
-            raw_a, raw_b = read_image(task.image_a), read_image(task.image_b)
+            raw_a, raw_b = self.frame(task.image_a), self.frame(task.image_b)
             sources = {"a": fingerprint(Path(task.image_a)),
                        "b": fingerprint(Path(task.image_b))}
             seconds = {"read": time.perf_counter() - t0}
@@ -98,6 +105,14 @@ class PairProcessor:
             name = f"{Path(task.image_a).name} + {Path(task.image_b).name}"
             return PairOutcome(task.index, {}, f"{name}: {exc}")
         return PairOutcome(task.index, seconds)
+
+    def frame(self, path: str) -> np.ndarray:
+        """One raw frame as the camera sees it: its colour channel, the dark frame and
+        flat field of the experiment, the camera's region of interest."""
+        image = read_image(path, self.channel)
+        if self.dark is not None or self.flat is not None:
+            image = correct_frame(image, self.dark, self.flat)
+        return self.camera.fit_image(image, Path(path).name)
 
     def _process(self, raw_a, raw_b, target: Path, sources: dict) -> dict:
         pair = process_pair(raw_a, raw_b, self.projector, settings=self.settings,

@@ -31,6 +31,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
                       "centres are used; calibrate real cameras first (plenocl calibrate)",
                       stacklevel=2)
     image = read_frame(args, args.raw, camera)
+    mask = _pixel_mask(args, camera)
     iterations = DEFAULTS[args.method][0] if args.iterations is None else args.iterations
     proj = Projector(camera, grid, args.device)
     with iteration_bar(iterations, f"{args.method} {grid.shape}") as bar:
@@ -40,11 +41,27 @@ def reconstruct_command(args: argparse.Namespace) -> int:
                                 threshold=args.threshold, mask_fraction=args.mask_fraction,
                                 min_sensitivity=args.min_sensitivity, tol=args.tol,
                                 supersample=args.supersample, callback=bar,
-                                return_info=True)
+                                return_info=True, pixel_mask=mask)
     save_volume(args.out, vol, grid)
     print(f"wrote {args.out}: {grid.shape} voxels, {info.iterations} {args.method} iterations "
           f"in {info.seconds:.1f} s, residual {info.residuals[-1] if info.residuals else 0:.3g}")
     return 0
+
+
+def _pixel_mask(args: argparse.Namespace, camera):
+    """``--mask``: the raw image's alpha (``alpha``) or a mask file, nonzero where the
+    image holds data; ``None`` without it."""
+    if not args.mask:
+        return None
+    from ..io.files import read_alpha, read_image
+
+    if args.mask == "alpha":
+        alpha = read_alpha(args.raw)
+        if alpha is None:
+            raise ValueError(f"--mask alpha: {args.raw} has no alpha channel; give a mask "
+                             "file (nonzero where the image holds data) instead")
+        return camera.fit_image(alpha, f"{args.raw}'s alpha")
+    return camera.fit_image(read_image(args.mask) != 0, args.mask)
 
 
 def piv_command(args: argparse.Namespace) -> int:
@@ -148,6 +165,11 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--min-sensitivity", type=float, default=0.5,
                    help="skip voxels sending no more than this fraction of light to the sensor")
     p.add_argument("--tol", type=float, default=None, help="early-stop tolerance")
+    p.add_argument("--mask", default=None,
+                   help="pixels without data (unrendered, dead): 'alpha' takes the raw "
+                        "image's alpha channel, or a mask image file, nonzero where the "
+                        "image holds data; those pixels are left out instead of read as "
+                        "dark")
     p.add_argument("--supersample", type=int, default=PAIR_SUPERSAMPLE,
                    help="lateral sub-voxels per voxel and axis (default: %(default)s, as "
                         "process_pair and plenocl run; 1 is about 3x faster, with about 3x "

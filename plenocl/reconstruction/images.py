@@ -16,6 +16,23 @@ NOISE_SIGMAS = 4.0
 BACKGROUNDS = ("median", None)
 
 
+def check_pixel_mask(observed, camera) -> np.ndarray | None:
+    """A pixel mask (``True``: the pixel holds data) as a bool array of the sensor's
+    shape, or ``None``; refused when its shape differs or it leaves no pixel."""
+    if observed is None:
+        return None
+    mask = np.asarray(observed)
+    expected = (camera.pixels[1], camera.pixels[0])
+    if mask.shape != expected:
+        raise ValueError(f"pixel_mask shape {mask.shape} does not match the camera's sensor "
+                         f"{expected} (rows, columns)")
+    mask = mask.astype(bool)
+    if not mask.any():
+        raise ValueError("pixel_mask leaves no pixel with data (True marks the pixels the "
+                         "image holds)")
+    return mask
+
+
 def check_image(image, camera) -> np.ndarray:
     """A raw image as float64, checked against the camera: its shape, numeric, real and
     finite (the first bad pixel is named)."""
@@ -42,7 +59,8 @@ def check_image(image, camera) -> np.ndarray:
 
 
 def preprocess(image, camera, background: str | None = "median",
-               threshold: float | None = None) -> tuple[np.ndarray, float, float]:
+               threshold: float | None = None, observed: np.ndarray | None = None
+               ) -> tuple[np.ndarray, float, float]:
     """The one preprocessing of the API and the command line.
 
     Parameters
@@ -57,6 +75,10 @@ def preprocess(image, camera, background: str | None = "median",
         Pixels at or below it (image units, after the background) are dark. ``None``:
         :data:`NOISE_SIGMAS` times the noise (median absolute deviation) with the median
         background, else 0.
+    observed
+        Bool per pixel, ``False`` where the image holds no data: the background, noise
+        and scale come from the other pixels, and these are set to 0 (the solver gives
+        them no weight; :class:`plenocl.reconstruction.Solver`).
 
     Returns
     -------
@@ -65,8 +87,10 @@ def preprocess(image, camera, background: str | None = "median",
         light) and the threshold in the scaled units.
     """
     img = check_image(image, camera)
+    if observed is not None:
+        img = np.where(observed, img, 0.0)  # no data: no light, no statistics
     if background == "median":
-        img, noise = _without_median(img)
+        img, noise = _without_median(img, observed)
         thr = NOISE_SIGMAS * noise if threshold is None else float(threshold)
     elif background is None:
         if img.min() < 0:
@@ -80,6 +104,8 @@ def preprocess(image, camera, background: str | None = "median",
         raise ValueError(f"image maximum {scale:.10g} is above {FLOAT32_LIMIT:.10g}, the "
                          "largest value plenocl reconstructs in float32; divide the image "
                          "by a constant (the volume scales with it)")
+    if observed is not None:
+        img = np.where(observed, img, 0.0)
     if scale == 0:
         return img.astype(np.float32), 0.0, thr
     return (img / scale).astype(np.float32), scale, thr / scale
@@ -104,8 +130,11 @@ def subtract_background(image) -> tuple[np.ndarray, float]:
     return img.astype(np.float32), sigma
 
 
-def _without_median(img: np.ndarray) -> tuple[np.ndarray, float]:
-    """``max(I - median, 0)`` in float64 and the noise ``1.4826 MAD``."""
-    med = float(np.median(img))
-    sigma = 1.4826 * float(np.median(np.abs(img - med)))
+def _without_median(img: np.ndarray, observed: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, float]:
+    """``max(I - median, 0)`` in float64 and the noise ``1.4826 MAD``, both over the
+    ``observed`` pixels (all by default)."""
+    data = img if observed is None else img[observed]
+    med = float(np.median(data))
+    sigma = 1.4826 * float(np.median(np.abs(data - med)))
     return np.clip(img - med, 0, None), sigma

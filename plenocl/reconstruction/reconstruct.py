@@ -37,7 +37,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from .blocks import device_view_blocks
-from .images import NOISE_SIGMAS, preprocess
+from .images import NOISE_SIGMAS, check_pixel_mask, preprocess
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
@@ -97,7 +97,7 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
                 skip_dark: bool = True, tol: float | None = None, mart_blocks: int = 2,
                 ratio_floor: float | None = None, supersample: int = 1,
                 callback: Callable[[int, float], bool | None] | None = None,
-                return_info: bool = False):
+                return_info: bool = False, pixel_mask=None):
     """Reconstruct a particle volume from one raw plenoptic image.
 
     Parameters
@@ -169,6 +169,12 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
         ``False`` stops the reconstruction.
     return_info
         Also return a :class:`ReconstructionInfo`.
+    pixel_mask
+        Bool ``(rows, cols)``, ``False`` where the image holds no data (unrendered rows
+        of a render, its alpha: :func:`plenocl.io.files.read_alpha`; a masked sensor
+        defect): those pixels are left out (the reconstruction of the observed pixels
+        alone), where a 0 in the image would say "dark"; voxels seen mostly by them are
+        not constrained and stay 0. Not with ``start="mlos"``.
 
     Returns
     -------
@@ -181,12 +187,12 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
         mask_fraction=mask_fraction, min_sensitivity=min_sensitivity, skip_empty=skip_empty,
         crop=crop, skip_dark=skip_dark, tol=tol, mart_blocks=mart_blocks,
         ratio_floor=ratio_floor, supersample=supersample)
-    vol, info = run_reconstruction(image, projector, settings, callback)
+    vol, info = run_reconstruction(image, projector, settings, callback, pixel_mask)
     return (vol, info) if return_info else vol
 
 
-def _supersampled(image, projector, settings: ReconstructionSettings, callback
-                  ) -> tuple[np.ndarray, ReconstructionInfo]:
+def _supersampled(image, projector, settings: ReconstructionSettings, callback,
+                  pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
     """The reconstruction on the projector's refined grid, summed back onto its own."""
     f = settings.supersample
     if not hasattr(projector, "refined"):
@@ -205,7 +211,7 @@ def _supersampled(image, projector, settings: ReconstructionSettings, callback
         raise MemoryError(f"{err}; supersample={f} reconstructs on {f * f}x the grid's "
                           f"voxels: a smaller factor (supersample=1 is the grid itself) "
                           "needs less") from err
-    vol, info = run_reconstruction(image, refined, fine, callback)
+    vol, info = run_reconstruction(image, refined, fine, callback, pixel_mask)
     info.supersample = f
     return bin_lateral(vol, f), info
 
@@ -223,15 +229,19 @@ def _warn_all_dark(threshold: float, peak: float, estimated: bool) -> None:
 
 
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
-                       callback: Callable[[int, float], bool | None] | None = None
-                       ) -> tuple[np.ndarray, ReconstructionInfo]:
+                       callback: Callable[[int, float], bool | None] | None = None,
+                       pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
     returns the volume and its :class:`ReconstructionInfo`."""
+    observed = check_pixel_mask(pixel_mask, projector.camera)
+    if observed is not None and isinstance(settings.start, str) and settings.start == "mlos":
+        raise ValueError("start='mlos' cannot use a pixel_mask (its geometric mean needs "
+                         "every pixel): use start='uniform' (the default)")
     if settings.supersample > 1:
-        return _supersampled(image, projector, settings, callback)
+        return _supersampled(image, projector, settings, callback, observed)
     t0 = time.perf_counter()
     img_np, scale, thr = preprocess(image, projector.camera, settings.background,
-                                    settings.threshold)
+                                    settings.threshold, observed)
     info = ReconstructionInfo(settings.method)
     if scale == 0:
         warnings.warn("the image holds no light above its background: the volume is empty "
@@ -240,10 +250,10 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     if thr >= 1.0:
         _warn_all_dark(thr * scale, scale, settings.threshold is None)
     lit = None
-    if settings.skip_dark:
+    if settings.skip_dark:  # lenses without data give no update either: skipped alike
         lit = projector.lit_lenses(img_np, thr)
         info.lit_lens_fraction = float(lit.mean())
-    solver = Solver(projector, settings.min_sensitivity, lit)
+    solver = Solver(projector, settings.min_sensitivity, lit, observed=observed)
     _warn_if_outside(projector, solver, settings.min_sensitivity)
     img = cla.to_device(solver.queue, img_np)
     vol = solver.start(img, settings.start, thr, scale)

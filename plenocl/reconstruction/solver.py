@@ -78,19 +78,32 @@ class Solver:
         every lens.
     box
         Where the projector's grid sits in the full grid (``None``: it is the full grid).
+    observed
+        Bool per pixel ``(rows, cols)``: ``False`` where the image holds no data (an
+        unrendered row, a masked defect): those pixels are left out of the updates and
+        the sensitivity is ``Aᵀ observed`` (MLEM and SMART of the observed pixels alone;
+        a voxel whose light falls mostly on pixels without data is not constrained and
+        stays 0, as below ``min_sensitivity``). ``None``: every pixel is data.
     """
 
     def __init__(self, projector: ProjectionOperator, min_sensitivity: float = 0.0,
                  lit: np.ndarray | None = None,
-                 box: tuple[slice, slice, slice] | None = None) -> None:
+                 box: tuple[slice, slice, slice] | None = None,
+                 observed: np.ndarray | None = None) -> None:
         self.proj, self.lit, self.box = projector, lit, box
+        self.observed = observed
         self.lenses = None if lit is None else projector.lens_set(lit)
         self.smin = np.float32(max(min_sensitivity, 1e-12))
         self.queue = projector.queue
         self._k = KernelSet(self.queue, "reconstruct.cl", _KERNELS, looping=["partial_sums"])
         self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
-        self.sens = projector.sensitivity()  # computed once per projector
         self._no_blocks = cla.zeros(self.queue, 1, np.int32)
+        seen = np.ones(1, np.float32) if observed is None else observed.astype(np.float32)
+        self._observed = cla.to_device(self.queue, np.ascontiguousarray(seen.ravel()))
+        self._use_observed = np.int32(observed is not None)
+        # A^T 1, kept by the projector; with pixels without data, A^T observed
+        self.sens = (projector.sensitivity() if observed is None else
+                     projector.back_device(self._observed.reshape(observed.shape)))
 
     def _run(self, name: str, n: int, *args) -> None:
         """An element-wise kernel over ``n`` items (``n`` is its last argument)."""
@@ -127,13 +140,14 @@ class Solver:
         out = cla.empty_like(img)
         block_of = blocks if blocks is not None else self._no_blocks
         self._run("ratio", self.n_pix, img, proj, block_of, np.int32(block),
-                  np.float32(threshold), np.int32(log_mode), np.float32(floor), out)
+                  np.float32(threshold), np.int32(log_mode), np.float32(floor),
+                  self._observed, self._use_observed, out)
         return out
 
     def _dark_and_log(self, img, threshold: float, floor: float):
         dark, logimg = cla.empty_like(img), cla.empty_like(img)
         self._run("prepare_image", self.n_pix, img, np.float32(threshold), np.float32(floor),
-                  dark, logimg)
+                  self._observed, self._use_observed, dark, logimg)
         return dark, logimg
 
     def start(self, img, kind, threshold: float, scale: float = 1.0):
@@ -185,7 +199,8 @@ class Solver:
         host = np.ascontiguousarray(self.proj.volume_to_host(vol)[local])
         box = local if self.box is None else tuple(
             slice(b.start + s.start, b.start + s.stop) for b, s in zip(self.box, local))
-        sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box)
+        sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box,
+                     self.observed)
         new_vol = sub.proj.volume_to_device(host)
         return sub, new_vol, sub.row_extent(new_vol)
 

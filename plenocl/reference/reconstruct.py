@@ -17,36 +17,49 @@ RATIO_MIN, RATIO_MAX = 1e-6, 1e6
 EXP_CLAMP = 30.0
 
 
-def ratio(image: np.ndarray, proj: np.ndarray, threshold: float = 0.0) -> np.ndarray:
-    """``I / max(P, eps)`` clamped; pixels at or below ``threshold`` count as dark (0)."""
+def ratio(image: np.ndarray, proj: np.ndarray, threshold: float = 0.0,
+          observed: np.ndarray | None = None) -> np.ndarray:
+    """``I / max(P, eps)`` clamped; pixels at or below ``threshold`` count as dark (0);
+    pixels without data (``observed`` False) are ``NaN``: the updates leave them out."""
     img = np.where(image > threshold, image, 0.0)
-    return np.clip(img / np.maximum(proj, EPS), 0.0, RATIO_MAX)
+    r = np.clip(img / np.maximum(proj, EPS), 0.0, RATIO_MAX)
+    return r if observed is None else np.where(observed, r, np.nan)
 
 
-def sensitivity(W) -> np.ndarray:
-    """``s_j = Σ_i w_ij``: the fraction of voxel j's light that reaches the sensor."""
-    return np.asarray(W.sum(axis=0)).ravel()
+def sensitivity(W, observed: np.ndarray | None = None) -> np.ndarray:
+    """``s_j = Σ_i w_ij``: the fraction of voxel j's light that reaches the sensor (its
+    pixels with data, when ``observed`` is given)."""
+    if observed is None:
+        return np.asarray(W.sum(axis=0)).ravel()
+    return np.asarray(W.T @ np.asarray(observed, np.float64)).ravel()
 
 
-def mlem(W, image, iterations: int, relax: float = 1.0, start=None, threshold: float = 0.0):
-    """Multiplicative EM: ``E ← E (Wᵀ r / s)^μ``, the arithmetic mean of the ratios."""
+def mlem(W, image, iterations: int, relax: float = 1.0, start=None, threshold: float = 0.0,
+         observed: np.ndarray | None = None):
+    """Multiplicative EM: ``E ← E (Wᵀ r / s)^μ``, the arithmetic mean of the ratios
+    (``observed``: bool per pixel, False where the image holds no data)."""
     img = np.asarray(image, np.float64).ravel()
-    s = sensitivity(W)
-    e = _start(W, img, start)
+    obs = None if observed is None else np.asarray(observed, bool).ravel()
+    s = sensitivity(W, obs)
+    e = _start(W, img, start, obs)
     for _ in range(iterations):
-        b = W.T @ ratio(img, W @ e, threshold)
+        b = W.T @ np.nan_to_num(ratio(img, W @ e, threshold, obs), nan=0.0)
         e = np.where(s > 0, e * np.power(np.maximum(b, 0) / np.maximum(s, EPS), relax), 0.0)
     return e
 
 
 def smart(W, image, iterations: int, relax: float = 1.0, start=None, threshold: float = 0.0,
-          ratio_floor: float = RATIO_MIN):
-    """Simultaneous MART: ``E ← E exp(μ Wᵀ log r / s)``, the geometric mean of the ratios."""
+          ratio_floor: float = RATIO_MIN, observed: np.ndarray | None = None):
+    """Simultaneous MART: ``E ← E exp(μ Wᵀ log r / s)``, the geometric mean of the ratios
+    (``observed`` as in :func:`mlem`: log r = 0 where the image holds no data)."""
     img = np.asarray(image, np.float64).ravel()
-    s = sensitivity(W)
-    e = _start(W, img, start)
+    obs = None if observed is None else np.asarray(observed, bool).ravel()
+    s = sensitivity(W, obs)
+    e = _start(W, img, start, obs)
     for _ in range(iterations):
-        logr = np.log(np.maximum(ratio(img, W @ e, threshold), max(ratio_floor, RATIO_MIN)))
+        r = ratio(img, W @ e, threshold, obs)
+        logr = np.where(np.isnan(r), 0.0, np.log(np.maximum(np.nan_to_num(r, nan=1.0),
+                                                            max(ratio_floor, RATIO_MIN))))
         expo = np.clip(relax * (W.T @ logr) / np.maximum(s, EPS), -EXP_CLAMP, EXP_CLAMP)
         e = np.where(s > 0, e * np.exp(expo), 0.0)
     return e
@@ -81,11 +94,14 @@ def mart_blocks(W, image, blocks: list[np.ndarray], iterations: int, relax: floa
     return e
 
 
-def _start(W, img: np.ndarray, start) -> np.ndarray:
-    """A uniform start scaled so that the first projection carries the image's intensity."""
+def _start(W, img: np.ndarray, start, observed: np.ndarray | None = None) -> np.ndarray:
+    """A uniform start scaled so that the first projection carries the image's intensity
+    (onto the pixels with data, when ``observed`` is given)."""
     if start is not None:
         return np.asarray(start, np.float64).ravel().copy()
-    total = float(np.asarray(W.sum()).ravel()[0]) if hasattr(W, "sum") else float(W.sum())
+    total = float(sensitivity(W, observed).sum())
+    if observed is not None:
+        img = np.where(observed, img, 0.0)
     return np.full(W.shape[1], img.sum() / max(total, EPS))
 
 
