@@ -78,9 +78,15 @@ def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)
     out["rotation_deg"] = np.asarray(float(rotation_deg))
     out["metadata"] = np.asarray(json.dumps({**(metadata or {}),
                                              "units": field_units(dt is not None),
-                                             "axes": AXES}))
+                                             "axes": AXES, "notes": NOTES}))
     return out
 
+
+#: What a reader of the arrays should know (also in every file's metadata).
+NOTES = {"peak_ratio": "primary over secondary correlation peak of the final pass; NaN "
+                       "where that pass correlated directly at the lags around zero (the "
+                       "default deformed passes), where no second peak is searched; "
+                       "piv3d(min_peak_ratio=...) correlates the final pass by FFT"}
 
 #: Axis order and meaning of the stored arrays (also in every file's metadata).
 AXES = ("arrays (..., nz, ny, nx) on the vector grid, z slowest; vector components "

@@ -209,8 +209,8 @@ def _supersampled(image, projector, settings: ReconstructionSettings, callback,
         refined = projector.refined(f)
     except MemoryError as err:
         raise MemoryError(f"{err}; supersample={f} reconstructs on {f * f}x the grid's "
-                          f"voxels: a smaller factor (supersample=1 is the grid itself) "
-                          "needs less") from err
+                          "voxels: a smaller factor (supersample=1, --supersample 1, is "
+                          "the grid itself) needs less") from err
     vol, info = run_reconstruction(image, refined, fine, callback, pixel_mask)
     info.supersample = f
     return bin_lateral(vol, f), info
@@ -233,7 +233,7 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
                        pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
     returns the volume and its :class:`ReconstructionInfo`."""
-    observed = check_pixel_mask(pixel_mask, projector.camera)
+    observed = None if pixel_mask is None else check_pixel_mask(pixel_mask, projector.camera)
     if observed is not None and isinstance(settings.start, str) and settings.start == "mlos":
         raise ValueError("start='mlos' cannot use a pixel_mask (its geometric mean needs "
                          "every pixel): use start='uniform' (the default)")
@@ -245,7 +245,8 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     info = ReconstructionInfo(settings.method)
     if scale == 0:
         warnings.warn("the image holds no light above its background: the volume is empty "
-                      "(check the exposure, the file, or background=None)", stacklevel=3)
+                      "(check the exposure, the file, or background=None, --background none)",
+                      stacklevel=3)
         return np.zeros(projector.grid.shape, np.float32), info
     if thr >= 1.0:
         _warn_all_dark(thr * scale, scale, settings.threshold is None)
