@@ -6,8 +6,9 @@ itself, which is how the PoCL wheel registers. Intel's CPU runtime from PyPI
 (``intel-opencl-rt``, the ``intel`` extra) installs its library into the environment but
 its ICD file names the path of the machine it was built on, so the loader never finds it.
 
-:func:`register_pip_runtimes` writes a vendors folder that holds the system's ICD files
-and one naming each pip-installed runtime by its real path, and points
+:func:`register_pip_runtimes` writes a vendors folder that holds the ICD files the
+loader would have read (the system's and the environment's own) and one naming each
+pip-installed runtime by its real path, and points
 ``OCL_ICD_VENDORS`` at it. It must run before the process first lists OpenCL platforms
 (the loader reads its configuration once); :mod:`plenocl.device` calls it before every
 listing, so plenocl's own entry points need nothing else. A user's own
@@ -19,12 +20,14 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import tempfile
 from importlib import metadata
 from pathlib import Path
 
-#: The system's ICD folder, which ``OCL_ICD_VENDORS`` replaces once it is set.
-SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
+#: The ICD folders a loader reads by default, which ``OCL_ICD_VENDORS`` replaces once
+#: it is set: the system's, and the environment's own (conda's loader reads that one).
+SYSTEM_VENDORS = (Path("/etc/OpenCL/vendors"), Path(sys.prefix) / "etc" / "OpenCL" / "vendors")
 
 #: pip distributions that carry an OpenCL runtime library, and that library's file name.
 PIP_RUNTIMES = {"intel-opencl-rt": "libintelocl.so"}
@@ -50,19 +53,28 @@ def pip_runtime_libraries() -> list[Path]:
     return found
 
 
-def vendor_files(libraries: list[Path], system: Path = SYSTEM_VENDORS) -> dict[str, str]:
-    """The ICD files a vendors folder needs: the system's, then one per library.
+def vendor_files(libraries: list[Path], folders=SYSTEM_VENDORS) -> dict[str, str]:
+    """The ICD files a vendors folder needs: those of the default ``folders``, then one
+    per library.
 
-    Returns ``{file name: content}``; a library the system already registers (same
-    content) is not listed twice.
+    Returns ``{file name: content}``. A file naming an absolute path that does not exist
+    is left out (Intel's wheel installs one naming its build machine); a library already
+    registered (same content) is not listed twice.
     """
-    files = {}
-    if system.is_dir():
-        for icd in sorted(system.glob("*.icd")):
+    files: dict[str, str] = {}
+    for folder in [Path(f) for f in ([folders] if isinstance(folders, (str, Path))
+                                     else folders)]:
+        for icd in sorted(folder.glob("*.icd")) if folder.is_dir() else []:
             try:
-                files[icd.name] = icd.read_text()
+                content = icd.read_text()
             except OSError:
                 continue  # an unreadable vendor file: the loader would skip it too
+            target = content.strip()
+            if target.startswith("/") and not Path(target).exists():
+                continue
+            if content not in files.values():
+                files[icd.name if icd.name not in files else f"{folder.name}-{icd.name}"] = \
+                    content
     known = {content.strip() for content in files.values()}
     for lib in libraries:
         if str(lib) not in known:

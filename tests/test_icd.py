@@ -17,6 +17,8 @@ def test_vendor_files_keep_the_system_drivers_and_add_each_library_once(tmp_path
     (system / "pocl.icd").write_text("libpocl.so.2\n")
     (system / "notes.txt").write_text("not an ICD file")
     lib = tmp_path / "lib" / "libintelocl.so"
+    lib.parent.mkdir()
+    lib.write_bytes(b"")
     files = icd.vendor_files([lib], system)
     assert files == {"pocl.icd": "libpocl.so.2\n", "plenocl-pip-libintelocl.icd": f"{lib}\n"}
     (system / "intel.icd").write_text(f"{lib}\n")  # the system registers it already
@@ -60,3 +62,20 @@ def test_pip_runtimes_become_platforms_and_a_users_folder_is_respected(tmp_path)
         assert "Intel(R) OpenCL" in auto["platforms"]
         folder = Path(auto["vendors"])
         assert any(expected[0] in p.read_text() for p in folder.glob("*.icd"))
+
+
+def test_the_environments_own_vendors_are_kept_and_dangling_ones_dropped(tmp_path):
+    """A conda-like environment folder of ICD files is kept beside the system's; a file
+    naming a library that does not exist (Intel's wheel ships one naming its build
+    machine) is dropped."""
+    system, env = tmp_path / "etc", tmp_path / "env"
+    system.mkdir()
+    env.mkdir()
+    (system / "pocl.icd").write_text("libpocl.so.2\n")
+    real = tmp_path / "libreal.so"
+    real.write_bytes(b"")
+    (env / "real.icd").write_text(f"{real}\n")
+    (env / "intel-cpu.icd").write_text("/opt/anaconda1anaconda2anaconda3/lib/libintelocl.so\n")
+    (env / "pocl.icd").write_text("libpocl.so.2\n")  # the same driver: once
+    files = icd.vendor_files([], (system, env))
+    assert sorted(files.values()) == sorted(["libpocl.so.2\n", f"{real}\n"])
