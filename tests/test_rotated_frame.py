@@ -131,3 +131,18 @@ def test_reconstruction_in_the_rotated_frame_finds_the_particles(queue):
         found[rotation] = report.recovered
         assert report.position_rms_vox < 1.0
     assert found[2.0] >= found[0.0] >= 5
+
+
+def test_a_grid_across_the_lens_rows_says_it_is_slow_and_the_lens_row_grid_does_not(queue):
+    """Never a silent 12x: a sensor-axis grid on a rotated array warns with the fix (the
+    lens-row frame), and the grid Grid.for_camera gives stays quiet and separable."""
+    import warnings
+
+    cam = lens_camera(12, 10, **ROTATED)
+    sensor_axes = Grid((4, 8, 8), x=(-0.5, 0.5), y=(-0.5, 0.5), z=(-0.5, 0.5))
+    with pytest.warns(UserWarning, match=r"turned \+2\.0000° against this grid's axes.*"
+                                         r"rotation_deg = 2\.0000"):
+        assert Projector(cam, sensor_axes, queue).path == "general"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        assert Projector(cam, Grid.for_camera(cam, (-0.5, 0.5)), queue).path == "separable"
