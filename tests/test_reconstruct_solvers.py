@@ -280,3 +280,21 @@ def test_a_pixel_mask_is_checked(tiny):
         reconstruct(image, proj, pixel_mask=np.zeros(image.shape, bool))
     with pytest.raises(ValueError, match="start='mlos' cannot use a pixel_mask"):
         reconstruct(image, proj, start="mlos", pixel_mask=np.ones(image.shape, bool))
+
+
+def test_pixels_without_data_carry_no_light_after_a_negative_median(tiny):
+    """A frame whose dark level was over-subtracted (median -50): the masked pixels, 0 in
+    the image, stay 0, and the scale is the observed pixels' brightest above the median
+    (20), not the masked pixels' 50 above it."""
+    from plenocl.reconstruction import preprocess
+
+    proj, _, _ = tiny
+    rng = np.random.default_rng(6)
+    shape = proj.camera.pixels[::-1]
+    image = -50.0 + rng.normal(0, 0.5, shape)
+    image[10, 10] = -30.0
+    observed = np.ones(shape, bool)
+    observed[:, :10] = False
+    out, scale, _ = preprocess(image, proj.camera, "median", None, observed)
+    med = np.median(image[observed])
+    assert scale == pytest.approx(-30.0 - med) and np.all(out[~observed] == 0)

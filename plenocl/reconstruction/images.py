@@ -99,13 +99,13 @@ def preprocess(image, camera, background: str | None = "median",
         thr = 0.0 if threshold is None else float(threshold)
     else:
         raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    if observed is not None:  # 0 - a negative median would give them light
+        img = np.where(observed, img, 0.0)
     scale = float(img.max())
     if scale > FLOAT32_LIMIT:
         raise ValueError(f"image maximum {scale:.10g} is above {FLOAT32_LIMIT:.10g}, the "
                          "largest value plenocl reconstructs in float32; divide the image "
                          "by a constant (the volume scales with it)")
-    if observed is not None:
-        img = np.where(observed, img, 0.0)
     if scale == 0:
         return img.astype(np.float32), 0.0, thr
     return (img / scale).astype(np.float32), scale, thr / scale
