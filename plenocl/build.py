@@ -18,7 +18,17 @@ import pyopencl as cl
 
 
 class KernelBuildError(RuntimeError):
-    """An OpenCL program failed to build; the message carries file, options and log."""
+    """An OpenCL program failed to build; the message carries file, options and log.
+
+    Attributes
+    ----------
+    log : str
+        The driver's own error text (the compiler log).
+    """
+
+    def __init__(self, message: str, log: str = "") -> None:
+        super().__init__(message)
+        self.log = log
 
 
 def kernel_dir() -> Path:
@@ -58,7 +68,7 @@ def build_program(
     except (cl.RuntimeError, cl.LogicError) as exc:
         raise KernelBuildError(
             f"building {folder / filename} failed\n  options: {' '.join(opts)}\n"
-            f"  compiler log:\n{exc}{build_hint(str(exc))}"
+            f"  compiler log:\n{exc}{build_hint(str(exc))}", log=str(exc)
         ) from exc
     programs[key] = program
     return program
@@ -100,13 +110,13 @@ def probe_build(context: cl.Context) -> str | None:
     """Build one of plenocl's kernels for ``context``: ``None`` if it builds, else why not.
 
     The probe is the deformation kernel (small, and built by every PIV run), so a
-    context that passes keeps its program in the cache.
+    context that passes and is kept (:func:`plenocl.device.create_context` keeps the
+    default device's) keeps its program in the cache.
     """
     try:
         build_program(context, "deform.cl", ["-DORDER=1"])
     except KernelBuildError as exc:
-        log = str(exc).split("compiler log:\n", 1)[-1].split("\n  hint:")[0]
-        lines = [line.strip() for line in log.splitlines() if line.strip()]
+        lines = [line.strip() for line in exc.log.splitlines() if line.strip()]
         errors = [line for line in lines if "error" in line.lower()] or lines or ["no log"]
         parts = dict.fromkeys(part.strip() for part in errors[0].split(" - "))  # pyopencl
         return " - ".join(parts)[:200]                          # repeats its message per device

@@ -162,19 +162,28 @@ def preference(device: cl.Device) -> tuple[int, int]:
     return (2, 0)
 
 
-# Whether each device builds plenocl's kernels: None, or why not (probed once a process).
-_BUILDS: dict[cl.Device, str | None] = {}
+# Per device, probed once a process: the context its probe built in (kept, so that the
+# default choice reuses it and its built programs), or why it cannot build kernels.
+_PROBED: dict[cl.Device, cl.Context | str] = {}
+
+
+def _probe(device: cl.Device) -> cl.Context | str:
+    if device not in _PROBED:
+        try:
+            ctx = cl.Context([device])
+        except cl.Error as exc:  # the driver cannot even make a context
+            _PROBED[device] = f"no context: {exc}"
+        else:
+            problem = probe_build(ctx)
+            _PROBED[device] = ctx if problem is None else problem
+    return _PROBED[device]
 
 
 def build_problem(device: cl.Device) -> str | None:
     """Why ``device`` cannot build plenocl's kernels, or ``None`` when it can (probed
     once per process by building one kernel)."""
-    if device not in _BUILDS:
-        try:
-            _BUILDS[device] = probe_build(cl.Context([device]))
-        except cl.Error as exc:  # the driver cannot even make a context
-            _BUILDS[device] = f"no context: {exc}"
-    return _BUILDS[device]
+    probed = _probe(device)
+    return probed if isinstance(probed, str) else None
 
 
 def devices_by_preference() -> list[cl.Device]:
@@ -221,7 +230,7 @@ def create_context(device: DeviceLike = None) -> cl.Context:
     if os.environ.get("PYOPENCL_CTX"):
         _platforms()  # a clear error first if nothing is installed
         return cl.create_some_context(interactive=False)
-    return cl.Context([_default_device()])
+    return _probe(_default_device())  # the probe's context, its programs built once
 
 
 def get_queue(queue: DeviceLike = None, profiling: bool = False) -> cl.CommandQueue:

@@ -38,12 +38,11 @@ class ImagePair:
 
 @dataclass
 class PairPlan:
-    """The pairs of a run, its gaps (``{pair index: why it cannot be made}``), files that
-    belong to no pair, and the first frame number pairs count from."""
+    """The pairs of a run, its gaps (``{pair index: why it cannot be made}``) and the
+    files that belong to no pair."""
 
     pairs: list[ImagePair]
     gaps: dict[int, str] = field(default_factory=dict)
-    first_frame: int | None = None
     unpaired: list[str] = field(default_factory=list)
 
 
@@ -73,7 +72,7 @@ def numbered_frames(files: list[Path], pairing: str) -> dict[int, Path]:
 def _by_numbers(frames: dict[int, Path], first: int, step: int, folder: Path,
                 name_of) -> PairPlan:
     """Pairs ``(first + step k, first + step k + 1)`` up to the highest frame."""
-    plan = PairPlan([], {}, first)
+    plan = PairPlan([])
     last = max(frames)
     # sequence: a last frame without its partner is reported; sliding: the last frame
     # simply has no successor
@@ -115,10 +114,11 @@ def ab_pairs(files: list[Path], a_suffix: str, b_suffix: str, first_frame: int |
     a_files = sorted(f for f in files if f.stem.endswith(a_suffix))
     b_names = {f.name for f in files if f.stem.endswith(b_suffix)}
     numbers = [frame_number(Path(f.stem[: -len(a_suffix)])) for f in a_files]
-    numbered = all(n is not None for n in numbers) and len(set(numbers)) == len(numbers)
-    first = (min(numbers) if first_frame is None else first_frame) if numbered and numbers \
-        else 0
-    plan = PairPlan([], {}, first if numbered else None)
+    numbered = None not in numbers and len(set(numbers)) == len(numbers)
+    first = 0
+    if numbered and numbers:
+        first = min(numbers) if first_frame is None else first_frame
+    plan = PairPlan([])
     for pos, (fa, n) in enumerate(zip(a_files, numbers)):
         k = n - first if numbered else pos
         fb = fa.with_name(fa.stem[: -len(a_suffix)] + b_suffix + fa.suffix)
@@ -139,7 +139,7 @@ def ab_pairs(files: list[Path], a_suffix: str, b_suffix: str, first_frame: int |
 
 def listed_pairs(pairs: list, folder: Path) -> PairPlan:
     """The plan of ``list`` pairing: ``[[a, b], ...]`` relative to ``folder``."""
-    plan = PairPlan([], {})
+    plan = PairPlan([])
     for k, (a, b) in enumerate(pairs):
         fa, fb = folder / a, folder / b
         missing = [p.name for p in (fa, fb) if not p.is_file()]

@@ -203,14 +203,13 @@ def _camera(exp: Experiment, queue, log):
         return camera
     from ..calibration import calibrate
     from ..io.files import read_image
-    from ..sensor import correct_frame
+    from ..pipeline.frames import load_frame
 
     log(f"calibrating from {cam['white']}")
     img = exp["images"]
-    white = read_image(exp.base / cam["white"], img["channel"])
-    if img["dark"]:  # a white image is a flat field itself: the dark frame only
-        white = correct_frame(white, read_image(exp.base / img["dark"], img["channel"]))
-    return calibrate(camera.fit_image(white, cam["white"]), camera)
+    dark = read_image(exp.base / img["dark"], img["channel"]) if img["dark"] else None
+    # a white image is a flat field itself: the dark frame only
+    return calibrate(load_frame(exp.base / cam["white"], camera, img["channel"], dark), camera)
 
 
 def _grid(exp: Experiment, camera):

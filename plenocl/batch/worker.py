@@ -22,8 +22,8 @@ from ..grid import Grid
 from ..io.fields import save_field
 from ..io.files import read_image, write_volumes
 from ..pipeline import process_pair
+from ..pipeline.frames import load_frame
 from ..reconstruction import ReconstructionSettings
-from ..sensor import correct_frame
 from ..tomlfile import read_toml
 from .layout import pair_index, volume_file
 from .pairing import fingerprint
@@ -109,10 +109,7 @@ class PairProcessor:
     def frame(self, path: str) -> np.ndarray:
         """One raw frame as the camera sees it: its colour channel, the dark frame and
         flat field of the experiment, the camera's region of interest."""
-        image = read_image(path, self.channel)
-        if self.dark is not None or self.flat is not None:
-            image = correct_frame(image, self.dark, self.flat)
-        return self.camera.fit_image(image, Path(path).name)
+        return load_frame(path, self.camera, self.channel, self.dark, self.flat)
 
     def _process(self, raw_a, raw_b, target: Path, sources: dict) -> dict:
         pair = process_pair(raw_a, raw_b, self.projector, settings=self.settings,

@@ -10,11 +10,11 @@ import numpy as np
 
 from ..camera import Camera
 from ..io.files import CHANNELS, read_image
-from ..sensor import correct_frame
+from ..pipeline.frames import load_frame
 
 
-def add_frame_options(p: argparse.ArgumentParser, crop: bool = True) -> None:
-    """Add ``--channel``, ``--dark``, ``--flat`` (and ``--crop``) to a command."""
+def add_frame_options(p: argparse.ArgumentParser) -> None:
+    """Add ``--channel``, ``--dark``, ``--flat`` and ``--crop`` to a command."""
     p.add_argument("--channel", default=None, choices=list(CHANNELS),
                    help="for a colour image: the plane to use, or the Rec. 709 luminance "
                         "(an image whose planes are identical needs none)")
@@ -23,17 +23,16 @@ def add_frame_options(p: argparse.ArgumentParser, crop: bool = True) -> None:
     p.add_argument("--flat", default=None,
                    help="flat field (uniformly lit frame) each frame is divided by, after "
                         "the dark frame, normalised to a mean of 1")
-    if crop:
-        p.add_argument("--crop", type=int, nargs=4, default=None,
-                       metavar=("COLUMN", "ROW", "WIDTH", "HEIGHT"),
-                       help="region of interest of the frames; recorded in the calibrated "
-                            "camera, so later frames are cut alike without it")
+    p.add_argument("--crop", type=int, nargs=4, default=None,
+                   metavar=("COLUMN", "ROW", "WIDTH", "HEIGHT"),
+                   help="region of interest of the frames; recorded in the calibrated "
+                        "camera, so later frames are cut alike without it")
 
 
 def camera_for_frames(args: argparse.Namespace, camera: Camera) -> Camera:
     """``camera`` through ``--crop``: cropped if not calibrated yet; a calibrated camera
     keeps its recorded region, and a different ``--crop`` is refused."""
-    crop = getattr(args, "crop", None)
+    crop = args.crop
     if not crop:
         return camera
     origin, size = tuple(crop[:2]), tuple(crop[2:])
@@ -49,9 +48,6 @@ def camera_for_frames(args: argparse.Namespace, camera: Camera) -> Camera:
 def read_frame(args: argparse.Namespace, path, camera: Camera) -> np.ndarray:
     """One frame as ``camera`` sees it: read with ``--channel``, corrected by ``--dark``
     and ``--flat``, cut to the camera's region of interest."""
-    image = read_image(path, args.channel)
-    dark = read_image(args.dark, args.channel) if getattr(args, "dark", None) else None
-    flat = read_image(args.flat, args.channel) if getattr(args, "flat", None) else None
-    if dark is not None or flat is not None:
-        image = correct_frame(image, dark, flat)
-    return camera.fit_image(image, name=str(path))
+    dark, flat = (read_image(name, args.channel) if name else None
+                  for name in (args.dark, args.flat))
+    return load_frame(path, camera, args.channel, dark, flat)

@@ -14,6 +14,8 @@ import warnings
 import numpy as np
 
 from ..camera import load_camera
+from ..io.files import CHANNELS
+from ..pipeline.frames import load_frame
 from ..reconstruction.supersample import PAIR_SUPERSAMPLE
 from .frames import add_frame_options, camera_for_frames, read_frame
 
@@ -137,11 +139,9 @@ def _image_fit(raw: list[str] | None, camera, grid, channel: str | None = None):
     """The image-space particle fit of the raw images ``raw`` (``None`` without them)."""
     if not raw:
         return None
-    from ..io.files import read_image
     from ..piv.imagefit import ImageFit
 
-    return ImageFit(camera, grid, [camera.fit_image(read_image(path, channel), str(path))
-                                   for path in raw])
+    return ImageFit(camera, grid, [load_frame(path, camera, channel) for path in raw])
 
 
 def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
@@ -208,7 +208,7 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
                    help="the raw images the volumes came from (needs --camera): each "
                         "particle is fitted to its raw image before pairing, as in "
                         "process_pair (a third less depth error)")
-    p.add_argument("--channel", default=None, choices=["r", "g", "b", "luminance"],
+    p.add_argument("--channel", default=None, choices=list(CHANNELS),
                    help="for colour raw images (--raw): the plane to use, or the Rec. 709 "
                         "luminance")
     p.set_defaults(func=piv_command)

@@ -32,8 +32,8 @@ from ..atomic import atomic_path
 from ..lattice import rotation_matrix
 from ..piv.multipass import PIVResult, voxel_size
 
-__all__ = ["field_arrays", "field_metadata", "read_npz", "save_field", "write_h5", "write_npz",
-           "write_vti"]
+__all__ = ["field_arrays", "field_metadata", "metadata_of", "read_npz", "save_field",
+           "write_h5", "write_npz", "write_vti"]
 
 _FLAGS = ("valid", "outlier", "masked")
 
@@ -189,10 +189,16 @@ def write_npz(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0
         np.savez_compressed(fh, **arrays)
 
 
+def metadata_of(arrays) -> dict:
+    """The JSON ``metadata`` entry of a field's arrays (``{}`` without one)."""
+    return json.loads(str(arrays["metadata"])) if "metadata" in arrays else {}
+
+
 def field_metadata(path) -> dict:
-    """The JSON metadata of a field written by :func:`write_npz` (``{}`` without any)."""
+    """The JSON metadata of a field written by :func:`write_npz` (``{}`` without any),
+    without reading its arrays."""
     with np.load(path) as data:
-        return json.loads(str(data["metadata"])) if "metadata" in data.files else {}
+        return metadata_of(data)
 
 
 def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:

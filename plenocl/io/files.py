@@ -41,33 +41,36 @@ CHANNELS = ("r", "g", "b", "luminance")
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
-def _read_tiff(path: Path) -> np.ndarray:
-    """A TIFF page as stored; a palette (indexed) image through its palette when the
-    palette is grey, refused when it is not (indices are not intensities)."""
+def _read_tiff(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """A TIFF page as stored, and its colour map when it is a palette (indexed) image."""
     import tifffile
 
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
-        data = page.asarray()
-        if page.photometric != tifffile.PHOTOMETRIC.PALETTE:
-            return data
-        cmap = np.asarray(page.colormap)
+        palette = page.photometric == tifffile.PHOTOMETRIC.PALETTE
+        return page.asarray(), np.asarray(page.colormap) if palette else None
+
+
+def _through_palette(data: np.ndarray, cmap: np.ndarray, path: Path) -> np.ndarray:
+    """A palette image as the intensities a grey palette stands for; a colour palette is
+    refused (its indices are not light)."""
     if not (np.array_equal(cmap[0], cmap[1]) and np.array_equal(cmap[0], cmap[2])):
         raise ValueError(f"{path} is a colour palette (indexed) image: its pixel values are "
                          "palette indices, not light; export the raw sensor image as "
                          "monochrome (grey) TIFF")
-    return cmap[0][data]  # a grey palette: the intensities it stands for
+    return cmap[0][data]
 
 
-def _read_any(path: Path) -> np.ndarray:
+def _read_any(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """The stored array, and a TIFF palette's colour map (else ``None``)."""
     suffix = path.suffix.lower()
     if suffix in (".tif", ".tiff"):
         return _read_tiff(path)
     if suffix == ".npy":
-        return np.load(path)
+        return np.load(path), None
     import imageio.v3 as iio
 
-    return iio.imread(path)  # a PNG palette comes back through its palette
+    return iio.imread(path), None  # a PNG palette comes back through its palette
 
 
 def _one_channel(image: np.ndarray, path: Path, channel: str | None) -> np.ndarray:
@@ -91,7 +94,7 @@ def _one_channel(image: np.ndarray, path: Path, channel: str | None) -> np.ndarr
 def read_alpha(path: str | Path) -> np.ndarray | None:
     """The alpha channel of an RGBA image as a mask (``True``: pixel rendered, alpha > 0),
     or ``None`` for an image without one."""
-    image = _read_any(Path(path))
+    image = _read_any(Path(path))[0]
     return image[..., 3] > 0 if image.ndim == 3 and image.shape[-1] == 4 else None
 
 
@@ -114,12 +117,12 @@ def read_image(path: str | Path, channel: str | None = None) -> np.ndarray:
         raise ValueError(f"{path} is empty (0 bytes): the file was not written completely; "
                          "copy or export it again")
     try:
-        image = _read_any(path)
+        image, cmap = _read_any(path)
     except (OSError, ValueError, RuntimeError) as exc:
-        if "is a colour palette" in str(exc):
-            raise
         raise ValueError(f"cannot read {path} as an image ({exc}); plenocl reads TIFF, PNG "
                          "and .npy files") from None
+    if cmap is not None:
+        image = _through_palette(image, cmap, path)
     if image.ndim == 3 and image.shape[-1] in (3, 4):
         image = _one_channel(image, path, channel)
     if image.ndim != 2:

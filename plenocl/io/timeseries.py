@@ -22,7 +22,6 @@ midway leaves the previous store (or none), never half of one.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import warnings
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fields import read_npz
+from .fields import metadata_of, read_npz
 
 COMPONENTS = ("u", "v", "w")
 
@@ -97,8 +96,7 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
 
 def _sources(data: dict) -> tuple[str, str, str, str]:
     """Names and SHA-256 of a field's two source files, from its metadata."""
-    meta = json.loads(str(data["metadata"])) if "metadata" in data else {}
-    src = meta.get("sources", {})
+    src = metadata_of(data).get("sources", {})
     return tuple(src.get(tag, {}).get(key, "") for key in ("name", "sha256") for tag in "ab")
 
 

@@ -24,6 +24,7 @@ NumPy model. The projector implements :class:`plenocl.reconstruction.operator.Pr
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -622,8 +623,6 @@ def _warn_general_path(camera: Camera, grid: Grid) -> None:
     """Say that a grid across a rotated array's lens rows takes the general path, and
     what makes it fast: never a silent slow-down (README, Performance: 12.5x at the
     paper's size for a 0.15° array)."""
-    import warnings
-
     angle = lattice_rotation_deg(camera.microlens_centers)
     warnings.warn(
         f"the microlens array is turned {angle - grid.rotation_deg:+.4f}° against this "

@@ -1,0 +1,24 @@
+"""A camera frame as the chain uses it: one colour plane, the dark frame subtracted and
+the flat field divided out, cut to the camera's region of interest. The one reader of
+raw and white frames for the command line and the batch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..io.files import read_image
+from ..sensor import correct_frame
+
+
+def load_frame(path, camera: Camera, channel: str | None = None,
+               dark: np.ndarray | None = None, flat: np.ndarray | None = None) -> np.ndarray:
+    """Read ``path`` (:func:`plenocl.io.read_image` with ``channel``), correct it with
+    ``dark`` and ``flat`` (:func:`plenocl.sensor.correct_frame`, when given) and cut it
+    to ``camera``'s sensor (:meth:`plenocl.Camera.fit_image`)."""
+    image = read_image(path, channel)
+    if dark is not None or flat is not None:
+        image = correct_frame(image, dark, flat)
+    return camera.fit_image(image, Path(path).name)
