@@ -20,20 +20,26 @@ from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 def cmd_devices(args: argparse.Namespace) -> int:
     """List OpenCL platforms and devices; with ``--agree``, compare them (exit 1 when a
     stage differs by more than its tolerance)."""
-    from ..device import describe_devices, devices_by_preference
+    from ..device import build_problem, describe_devices, devices_by_preference, get_queue
 
     print(describe_devices())
     if not args.agree:
         return 0
     from ..bench.agreement import agreement, agreement_table
 
-    devices = devices_by_preference()
-    if len(devices) < 2:
-        print("\nonly one OpenCL device: nothing to compare (with PoCL alone, "
-              "POCL_DEVICES='pthread basic' gives two)")
+    building = []
+    for dev in devices_by_preference():
+        problem = build_problem(dev)
+        if problem is None:
+            building.append(dev)
+        else:
+            print(f"skipped {dev.name.strip()}: its driver cannot build kernels ({problem})")
+    if len(building) < 2:
+        print(f"\n{len(building)} OpenCL device(s) build plenocl's kernels: nothing to compare "
+              "(with PoCL alone, POCL_DEVICES='pthread basic' gives two)")
         return 0
-    rows = agreement(log=lambda m: print(m, flush=True))
-    print("\n" + agreement_table(rows, devices[0].name.strip()))
+    rows = agreement([get_queue(d) for d in building], log=lambda m: print(m, flush=True))
+    print("\n" + agreement_table(rows, building[0].name.strip()))
     bad = [r for r in rows if not r.ok]
     print(f"\n{len(rows) - len(bad)} of {len(rows)} comparisons within tolerance")
     return 1 if bad else 0
