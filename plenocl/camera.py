@@ -184,9 +184,17 @@ class Camera:
         return self.image_distance_mm / self.aperture_diameter_mm
 
     @property
+    def lens_image_scale(self) -> float:
+        """The imaging relation of the microlens images: a lens at array-plane position
+        ``x_k`` (from the optical axis) images the aperture centred at ``c_k = x_k (1 +
+        f_ml/s_i)`` on the sensor. The one place plenocl computes it
+        (:mod:`plenocl.optics.imaging` builds on it)."""
+        return 1 + self.ml_focal_length_mm / self.image_distance_mm
+
+    @property
     def microlens_image_pitch_mm(self) -> float:
         """Spacing of microlens images on the sensor, ``p_ml (1 + f_ml / s_i)``."""
-        return self.ml_pitch_mm * (1 + self.ml_focal_length_mm / self.image_distance_mm)
+        return self.ml_pitch_mm * self.lens_image_scale
 
     @property
     def microlens_image_fill(self) -> float:
@@ -255,7 +263,7 @@ class Camera:
 
     def ideal_microlens_centers(self) -> np.ndarray:
         """Microlens image centres ``c_k = x_k (1 + f_ml/s_i)`` as ``(col, row)`` pixels."""
-        ck = self.microlens_positions_mm() * (1 + self.ml_focal_length_mm / self.image_distance_mm)
+        ck = self.microlens_positions_mm() * self.lens_image_scale
         return self.mm_to_px(ck)
 
     def mm_to_px(self, xy_mm) -> np.ndarray:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
+from .optics.lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
 from .tomlfile import read_toml, write_toml
 
 

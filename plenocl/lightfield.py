@@ -45,9 +45,11 @@ import pyopencl.array as cl_array
 
 from .camera import Camera
 from .device import DeviceLike, get_queue
-from .lattice import lattice_cells, lattice_fit
+from .optics.imaging import array_plane_positions, array_plane_scale
+from .optics.lattice import lattice_fit
+from .optics.ownership import lens_owner
+from .optics.rawimage import check_image
 from .program import KernelSet
-from .projection.weighting import array_plane_scale
 
 
 # ---- lattice --------------------------------------------------------------------------
@@ -62,7 +64,7 @@ def _centers(camera: Camera) -> np.ndarray:
 
 def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
     """Affine least-squares map from lens index to image-centre pixels
-    (:func:`plenocl.lattice.lattice_fit` of the camera's or the given centres).
+    (:func:`plenocl.optics.lattice.lattice_fit` of the camera's or the given centres).
 
     Parameters
     ----------
@@ -134,25 +136,12 @@ def pixel_coordinates(camera: Camera) -> PixelCoordinates:
     c_px = centers[np.clip(ky, 0, rows - 1), np.clip(kx, 0, cols - 1)]
     c_mm = camera.px_to_mm(c_px)
     uv = camera.aperture_u_of_offset(camera.px_to_mm(pix) - c_mm)
-    xy = c_mm * array_plane_scale(camera)
+    xy = array_plane_positions(camera, c_px)
     radius = camera.aperture_diameter_mm / 2
     valid = inside & np.isfinite(c_px).all(-1) & (np.hypot(uv[..., 0], uv[..., 1]) <= radius)
     nan = np.where(inside[..., None] & np.isfinite(c_px), 1.0, np.nan)
     xy, uv = xy * nan, uv * nan
     return PixelCoordinates(kx, ky, xy[..., 0], xy[..., 1], uv[..., 0], uv[..., 1], valid)
-
-
-def lens_owner(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
-    """Flat index ``ky * cols + kx`` of the microlens each pixel lies behind, ``(H, W)``.
-
-    A pixel belongs to the lens whose lattice cell (the square of one image pitch around
-    its centre on the fitted lattice, so a rotated array is handled) contains it; ``-1``
-    outside the array.
-    """
-    cols, rows = camera.ml_count
-    kx, ky = lattice_cells(lens_lattice(camera, centers), *camera.pixels)
-    inside = (kx >= 0) & (kx < cols) & (ky >= 0) & (ky < rows)
-    return np.where(inside, ky * cols + kx, -1).astype(np.int32)
 
 
 def plaid_uv(camera: Camera, step_mm: float | None = None) -> np.ndarray:
@@ -178,20 +167,6 @@ def pixel_footprint_mm(camera: Camera) -> float:
 
 
 # ---- the light field ------------------------------------------------------------------
-def _validate_raw(image, camera: Camera) -> np.ndarray:
-    img = np.asarray(image)
-    w, h = camera.pixels
-    if img.ndim != 2 or img.shape != (h, w):
-        raise ValueError(f"the raw image has shape {img.shape} but the camera has {h} rows x "
-                         f"{w} columns; pass one raw frame of this camera (image[row, col])")
-    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
-        raise ValueError(f"the raw image must hold numbers, got dtype {img.dtype}")
-    img = img.astype(np.float32)
-    if not np.all(np.isfinite(img)):
-        raise ValueError("the raw image contains NaN or Inf; replace bad pixels first")
-    return img
-
-
 def resample_light_field(image, camera: Camera, u: np.ndarray, v: np.ndarray,
                          centers: np.ndarray) -> np.ndarray:
     """Sample the raw image at every lens's pixel positions of the plaid ``(u, v)`` grid.
@@ -269,7 +244,7 @@ class LightField:
     def __init__(self, raw_image, camera: Camera, *, uv_step_mm: float | None = None,
                  queue: DeviceLike = None) -> None:
         self.camera = camera
-        image = _validate_raw(raw_image, camera)
+        image = check_image(raw_image, camera, np.float32)
         self.centers = _centers(camera)
         self.u = plaid_uv(camera, uv_step_mm)
         self.v = self.u.copy()
@@ -340,7 +315,7 @@ class LightField:
         kx, ky = self.output_lens_coordinates(supersample)
         model = lens_lattice(self.camera, self.centers)
         px = np.stack(np.meshgrid(kx, ky), -1) @ model[:2] + model[2]
-        return self.camera.px_to_mm(px) * array_plane_scale(self.camera)
+        return array_plane_positions(self.camera, px)
 
     def refocus(self, alpha: float | None = None, z_mm: float | None = None, *,
                 supersample: int = 1) -> np.ndarray:

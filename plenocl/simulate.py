@@ -313,4 +313,4 @@ def centre_shift_px(camera: Camera, lens_shift_mm) -> np.ndarray:
     """How far (pixels, ``(col, row)``) each microlens image centre moves when its lens
     is displaced by ``lens_shift_mm`` on the array plane: ``(1 + f_ml/s_i) / p_px`` times."""
     d = np.asarray(lens_shift_mm, dtype=np.float64)
-    return d * (1 + camera.ml_focal_length_mm / camera.image_distance_mm) / camera.pixel_pitch_mm
+    return d * camera.lens_image_scale / camera.pixel_pitch_mm

@@ -1,4 +1,4 @@
-"""Image-space particle fit (plenocl/piv/raybundle.py, plenocl/piv/imagefit.py): the
+"""Image-space particle fit (plenocl/optics/raybundle.py, plenocl/piv/imagefit.py): the
 deterministic ray bundle against the reference ray tracer, its derivatives against
 finite differences, and the fit's recovery of particles from ray-traced images."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from plenocl.bench.accuracy_section import paper_optics
+from plenocl.optics.raybundle import RayBundle, sunflower
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
-from plenocl.piv.raybundle import RayBundle, sunflower
 from plenocl.reference.simulate import trace_particles
 
 CAM, GRID = paper_optics((32, 24))

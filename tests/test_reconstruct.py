@@ -11,7 +11,8 @@ from plenocl import Camera, Grid, Projector, random_particles, reconstruct
 from plenocl.cli.main import main
 from plenocl.io import load_volume, write_tiff
 from plenocl.metrics import quality_q, recovery, render_particles
-from plenocl.reconstruction import Solver, extent_box, nonzero_box, subtract_background
+from plenocl.optics.rawimage import subtract_background
+from plenocl.reconstruction import Solver, extent_box, nonzero_box
 from plenocl.simulate import simulate_image
 
 # the paper's 5 mm cube: one microlens per voxel laterally, half the camera's depth

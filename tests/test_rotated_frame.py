@@ -9,8 +9,8 @@ import pytest
 from helpers import ROTATED, assert_adjoint, assert_close_to_peak, lens_camera
 
 from plenocl import Camera, Grid, Projector, simulate_image
-from plenocl.lattice import lattice_rotation_deg, separable_rotation_deg
 from plenocl.metrics import recovery
+from plenocl.optics.lattice import lattice_rotation_deg, separable_rotation_deg
 from plenocl.reconstruction import reconstruct
 from plenocl.reference.simulate import trace_particles
 from plenocl.reference.weights import voxel_weights

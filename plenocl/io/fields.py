@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from ..lattice import rotation_matrix
+from ..optics.lattice import rotation_matrix
 from ..piv.multipass import PIVResult, voxel_size
 
 __all__ = ["field_arrays", "field_metadata", "metadata_of", "read_npz", "save_field",

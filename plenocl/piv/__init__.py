@@ -5,7 +5,8 @@
 - :mod:`.validation`: outlier detection and replacement;
 - :mod:`.multipass`: :func:`piv3d` and :class:`PIVResult` (velocities, gradients);
 - :mod:`.tracking`: the refinement by the volumes' matched particle pairs;
-- :mod:`.raybundle`, :mod:`.imagefit`: those particles fitted to the raw images.
+- :mod:`.imagefit`: those particles fitted to the raw images (the camera's rays:
+  :mod:`plenocl.optics.raybundle`).
 """
 
 from .multipass import (

@@ -6,13 +6,14 @@ along its depth-elongated footprint and draws it towards the focal plane. The ra
 holds more: an out-of-focus particle lights a disk of microlenses whose size and the
 spot in each lens give its depth. Here every peak of a volume starts a fit of its
 position and intensity to the raw image, with the camera's exact rays
-(:class:`.raybundle.RayBundle`): Gauss-Newton steps on all particles at once (each one
-against the image minus every other particle's current image), Levenberg-Marquardt
-damped, with the volume's position as a Gaussian prior (:data:`PRIOR_VOXELS`). Where
-the image says little, in the camera's focal zone where a particle lights one lens,
-the prior keeps the volume's position; far from it the image decides. Each pixel's
-noise is the residual's own scatter over the particle's lit pixels (never below the
-camera's noise), so a particle crowded by others or by ghosts leans on its prior.
+(:class:`plenocl.optics.raybundle.RayBundle`): Gauss-Newton steps on all particles at
+once (each one against the image minus every other particle's current image),
+Levenberg-Marquardt damped, with the volume's position as a Gaussian prior
+(:data:`PRIOR_VOXELS`). Where the image says little, in the camera's focal zone where
+a particle lights one lens, the prior keeps the volume's position; far from it the
+image decides. Each pixel's noise is the residual's own scatter over the particle's
+lit pixels (never below the camera's noise), so a particle crowded by others or by
+ghosts leans on its prior.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..reconstruction.images import check_image, subtract_background
-from .raybundle import Patches, RayBundle
+from ..optics.rawimage import check_image, subtract_background
+from ..optics.raybundle import Patches, RayBundle
 
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
@@ -38,7 +39,7 @@ class ImageFitSettings:
     Attributes
     ----------
     rays
-        Aperture samples per particle (:class:`.raybundle.RayBundle`).
+        Aperture samples per particle (:class:`plenocl.optics.raybundle.RayBundle`).
     blur_px
         The optics' blur on the sensor (Gaussian standard deviation, pixels).
     iterations

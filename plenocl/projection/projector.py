@@ -33,7 +33,7 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..grid import Grid
-from ..lattice import lattice_rotation_deg
+from ..optics.lattice import lattice_rotation_deg
 from ..program import KernelSet
 from .lenses import LensSet, lens_reach, lens_set, lit_lenses
 from .plan import SampleColumns, depth_chunks, make_plan, runs

@@ -27,12 +27,13 @@ import numpy as np
 
 from ..camera import Camera
 from ..grid import Grid
-from ..lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
+from ..optics.imaging import array_plane_positions
+from ..optics.lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
 
 #: Aperture samples per pixel footprint on the aperture (``p_px s_i / f_ml``), per axis.
 DEFAULT_OVERSAMPLE = 1.25
 __all__ = ["DEFAULT_OVERSAMPLE", "DEFAULT_SHEAR_TOL", "NO_LENS", "ApertureGrid", "LensIndexMap",
-           "array_plane_scale", "check_depth_range", "check_field_of_view", "colour_stride",
+           "check_depth_range", "check_field_of_view", "colour_stride",
            "depth_coefficients", "lens_index_map", "lens_tables"]
 #: Rounded-centre marker of a lens without a calibrated centre (PL_NO_LENS in projector.h).
 NO_LENS = -(1 << 30)
@@ -144,11 +145,6 @@ class LensIndexMap:
         return m[0, 0] * x + m[0, 1] * y + o[0], m[1, 0] * x + m[1, 1] * y + o[1]
 
 
-def array_plane_scale(camera: Camera) -> float:
-    """Array-plane mm per sensor mm of a microlens image centre, ``1 / (1 + f_ml/s_i)``."""
-    return 1.0 / (1.0 + camera.ml_focal_length_mm / camera.image_distance_mm)
-
-
 def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
                    rotation_deg: float = 0.0) -> LensIndexMap:
     """Fit the affine lens layout to the (calibrated) centres and invert it.
@@ -160,11 +156,11 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     layout, seen from that frame, drifts by at most ``shear_tol`` lenses across the whole
     array, its rotation/shear terms are dropped (about the array's centre) and the map is
     axis-aligned: the separable projector path applies. A frame that follows the lens
-    rows (:func:`plenocl.lattice.separable_rotation_deg`) makes a rotated array
+    rows (:func:`plenocl.optics.lattice.separable_rotation_deg`) makes a rotated array
     axis-aligned this way.
     """
     cols, rows = camera.ml_count
-    pos = camera.px_to_mm(camera.microlens_centers) * array_plane_scale(camera)
+    pos = array_plane_positions(camera, camera.microlens_centers)
     if rotation_deg:
         pos = pos @ rotation_matrix(rotation_deg)  # world -> frame: Rᵀ x, as row vectors
     fit = lattice_fit(pos)

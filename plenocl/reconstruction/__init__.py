@@ -2,7 +2,8 @@
 
 - :mod:`.settings`: :class:`ReconstructionSettings` (every option, validated once) and
   :class:`ReconstructionInfo` (what a run did);
-- :mod:`.images`: the raw image's checks and scaling, background subtraction;
+- :mod:`.images`: the raw image's scaling and background (its checks:
+  :mod:`plenocl.optics.rawimage`);
 - :mod:`.operator`: the contract a projector fulfils for the solver;
 - :mod:`.solver`: the device buffers and kernels (:class:`Solver`) and one update per
   method;
@@ -12,7 +13,7 @@
 """
 
 from .blocks import device_view_blocks, view_blocks
-from .images import FLOAT32_LIMIT, NOISE_SIGMAS, prepare_image, preprocess, subtract_background
+from .images import FLOAT32_LIMIT, NOISE_SIGMAS, preprocess, scale_raw_image
 from .operator import ProjectionOperator
 from .reconstruct import reconstruct, run_reconstruction
 from .settings import (
@@ -29,5 +30,5 @@ __all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "MAX_SU
            "METHODS", "NOISE_SIGMAS", "PAIR_SUPERSAMPLE", "UPDATES", "bin_lateral",
            "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings", "Solver",
-           "device_view_blocks", "extent_box", "nonzero_box", "prepare_image", "reconstruct",
-           "run_reconstruction", "subtract_background", "view_blocks"]
+           "device_view_blocks", "extent_box", "nonzero_box", "reconstruct",
+           "run_reconstruction", "scale_raw_image", "view_blocks"]

@@ -7,7 +7,8 @@ import weakref
 import numpy as np
 import pyopencl.array as cla
 
-from ..lattice import lattice_cells, lattice_fit
+from ..optics.lattice import RectangularLattice
+from ..optics.ownership import pixel_lenses
 from .operator import ProjectionOperator
 
 
@@ -15,22 +16,18 @@ def view_blocks(camera, n_per_axis: int) -> np.ndarray:
     """Block id (int32) of every pixel: interleaved groups of sub-aperture views.
 
     A pixel's view is its offset (rounded, in pixels) from the image centre of the
-    microlens it lies behind: the lens of its lattice cell (:func:`lattice_cells`; beyond
-    the array, the nearest edge lens; a lens without a calibrated centre counts at its
-    fitted lattice position). Views are grouped by ``(offset_x mod n, offset_y mod n)``.
+    microlens it lies behind: the lens of its lattice cell
+    (:func:`plenocl.optics.ownership.pixel_lenses`; beyond the array, the nearest edge
+    lens; a lens without a calibrated centre counts at its fitted lattice position).
+    Views are grouped by ``(offset_x mod n, offset_y mod n)``.
     Vectorised over the sensor from the lattice fit; the NumPy reference
     (:func:`plenocl.reference.reconstruct.view_blocks`) searches the nearest centre per
     pixel instead, and agrees except at cell borders of perturbed arrays.
     """
-    cols, rows = camera.ml_count
     w, h = camera.pixels
-    model = lattice_fit(camera.microlens_centers)
-    kx, ky = lattice_cells(model, w, h)
-    np.clip(kx, 0, cols - 1, out=kx)
-    np.clip(ky, 0, rows - 1, out=ky)
+    kx, ky = pixel_lenses(camera, clamp=True)
     centres = np.asarray(camera.microlens_centers, dtype=np.float64)
-    kxs, kys = np.meshgrid(np.arange(cols), np.arange(rows))
-    fitted = np.stack([kxs, kys, np.ones((rows, cols))], -1) @ model
+    fitted = RectangularLattice.fit(centres).positions()
     centres = np.where(np.isfinite(centres), centres, fitted)
     off_x = np.rint(np.arange(w)[None, :] - centres[..., 0][ky, kx]).astype(np.int64) % n_per_axis
     off_y = np.rint(np.arange(h)[:, None] - centres[..., 1][ky, kx]).astype(np.int64) % n_per_axis

@@ -1,8 +1,11 @@
-"""The raw image a reconstruction starts from: checks, scaling, background."""
+"""The raw image a reconstruction starts from: scaling and background (the checks and the
+robust background are the optics model's, :mod:`plenocl.optics.rawimage`)."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from ..optics.rawimage import check_image, median_background
 
 #: Largest image value accepted: the volume (in image units) must stay finite in float32.
 FLOAT32_LIMIT = float(np.float32(1e30))  # 1e30 as float32 (1.0000000150e30): such images pass
@@ -16,48 +19,6 @@ NOISE_SIGMAS = 4.0
 BACKGROUNDS = ("median", None)
 
 
-def check_pixel_mask(observed, camera) -> np.ndarray | None:
-    """A pixel mask (``True``: the pixel holds data) as a bool array of the sensor's
-    shape, or ``None``; refused when its shape differs or it leaves no pixel."""
-    if observed is None:
-        return None
-    mask = np.asarray(observed)
-    expected = (camera.pixels[1], camera.pixels[0])
-    if mask.shape != expected:
-        raise ValueError(f"pixel_mask shape {mask.shape} does not match the camera's sensor "
-                         f"{expected} (rows, columns)")
-    mask = mask.astype(bool)
-    if not mask.any():
-        raise ValueError("pixel_mask leaves no pixel with data (True marks the pixels the "
-                         "image holds)")
-    return mask
-
-
-def check_image(image, camera) -> np.ndarray:
-    """A raw image as float64, checked against the camera: its shape, numeric, real and
-    finite (the first bad pixel is named)."""
-    img = np.asarray(image)
-    expected = (camera.pixels[1], camera.pixels[0])
-    if img.shape != expected:
-        raise ValueError(f"image shape {img.shape} does not match the camera's sensor "
-                         f"{expected} (rows, columns); check the camera file, or cut the "
-                         "frame to the camera's region of interest (camera.fit_image, "
-                         "--crop)")
-    if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
-        raise ValueError(f"image must be numeric (uint8, uint16, float), got {img.dtype}")
-    if np.iscomplexobj(img):
-        raise TypeError("image must hold real numbers, not complex; pass the intensity "
-                        "(e.g. np.abs(image) ** 2)")
-    img = img.astype(np.float64)
-    bad = ~np.isfinite(img)
-    if bad.any():
-        row, col = (int(v) for v in np.argwhere(bad)[0])
-        raise ValueError(f"image contains {int(bad.sum())} NaN or Inf pixel(s), the first at "
-                         f"row {row}, column {col}; replace bad pixels (e.g. by 0 or the "
-                         "median of their neighbours) first")
-    return img
-
-
 def preprocess(image, camera, background: str | None = "median",
                threshold: float | None = None, observed: np.ndarray | None = None
                ) -> tuple[np.ndarray, float, float]:
@@ -66,7 +27,7 @@ def preprocess(image, camera, background: str | None = "median",
     Parameters
     ----------
     image, camera
-        The raw image and its camera (:func:`check_image`).
+        The raw image and its camera (:func:`plenocl.optics.rawimage.check_image`).
     background
         ``"median"``: subtract the median (the camera's dark level at PIV seeding, where
         most pixels see no particle), clipping at 0; ``None``: use the image as it is
@@ -90,7 +51,7 @@ def preprocess(image, camera, background: str | None = "median",
     if observed is not None:
         img = np.where(observed, img, 0.0)  # no data: no light, no statistics
     if background == "median":
-        img, noise = _without_median(img, observed)
+        img, noise = median_background(img, observed)
         thr = NOISE_SIGMAS * noise if threshold is None else float(threshold)
     elif background is None:
         if img.min() < 0:
@@ -111,30 +72,8 @@ def preprocess(image, camera, background: str | None = "median",
     return (img / scale).astype(np.float32), scale, thr / scale
 
 
-def prepare_image(image, camera) -> tuple[np.ndarray, float]:
+def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
     """A non-negative raw image as it is (no background removed), checked and scaled to a
     maximum of 1; returns it and the scale (:func:`preprocess` with ``background=None``)."""
     img, scale, _ = preprocess(image, camera, None, 0.0)
     return img, scale
-
-
-def subtract_background(image) -> tuple[np.ndarray, float]:
-    """Remove a camera's dark level and estimate its noise, robustly.
-
-    At PIV seeding densities most pixels see no particle, so the median is the
-    background and the median absolute deviation the noise. Returns the float32 image
-    ``max(I - median, 0)`` and the noise standard deviation (a sensible ``threshold`` for
-    :func:`reconstruct` is 3 to 5 times it).
-    """
-    img, sigma = _without_median(np.asarray(image, dtype=np.float64))
-    return img.astype(np.float32), sigma
-
-
-def _without_median(img: np.ndarray, observed: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, float]:
-    """``max(I - median, 0)`` in float64 and the noise ``1.4826 MAD``, both over the
-    ``observed`` pixels (all by default)."""
-    data = img if observed is None else img[observed]
-    med = float(np.median(data))
-    sigma = 1.4826 * float(np.median(np.abs(data - med)))
-    return np.clip(img - med, 0, None), sigma

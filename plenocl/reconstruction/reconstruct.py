@@ -36,8 +36,9 @@ from collections.abc import Callable
 import numpy as np
 import pyopencl.array as cla
 
+from ..optics.rawimage import check_pixel_mask
 from .blocks import device_view_blocks
-from .images import NOISE_SIGMAS, check_pixel_mask, preprocess
+from .images import NOISE_SIGMAS, preprocess
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver

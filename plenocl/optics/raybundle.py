@@ -1,6 +1,6 @@
 """A point particle's raw image and its derivatives, traced ray by ray through the camera
 (docs/design.md §7.2): the forward model the image-space particle fit
-(:mod:`.imagefit`) matches to the raw image.
+(:mod:`plenocl.piv.imagefit`) matches to the raw image.
 
 The rays are those of the simulator (docs/design.md §2, §8): from the image point
 ``X' = (X', Y', s_i')`` of the particle through a point ``u`` of the main-lens aperture to
@@ -11,7 +11,7 @@ Gaussian of the optics' blur, and a ray within a ramp of a cell edge is shared b
 the two lenses, so the image is a smooth function of ``X'``: its derivatives are exact
 and a Gauss-Newton fit can follow them. The lenses are the camera's calibrated centres
 (or its ideal ones) and their cells the affine lattice fitted to them
-(:func:`plenocl.lattice.lattice_fit`), as the projector's.
+(:func:`plenocl.optics.lattice.lattice_fit`), as the projector's.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 from scipy.special import erf
 
 from ..camera import Camera
-from ..lattice import lattice_fit
+from .lattice import lattice_fit
 
 #: Golden angle of the sunflower pattern (radians).
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
@@ -104,8 +104,7 @@ class RayBundle:
             raise ValueError(f"blur_px must be a positive number of pixels, got {blur_px!r}")
         centres = camera.microlens_centers
         centres = camera.ideal_microlens_centers() if centres is None else centres
-        scale = 1 + camera.ml_focal_length_mm / camera.image_distance_mm
-        lenses = camera.px_to_mm(centres) / scale
+        lenses = camera.px_to_mm(centres) / camera.lens_image_scale
         fit = lattice_fit(lenses)
         inverse = np.linalg.inv(fit[:2])
         to_lattice = np.vstack([inverse, -fit[2] @ inverse])
@@ -183,7 +182,7 @@ class RayBundle:
         rho = cam.image_distance_mm / s_ip
         radius = cam.aperture_diameter_mm / 2 * np.abs(1 - rho) + cam.ml_pitch_mm
         centre = image_points[:, :2] * rho[:, None]
-        scale = 1 + cam.ml_focal_length_mm / cam.image_distance_mm
+        scale = cam.lens_image_scale
         lo = cam.mm_to_px((centre - radius[:, None]) * scale) - margin
         hi = cam.mm_to_px((centre + radius[:, None]) * scale) + margin
         size = np.array(cam.pixels)

@@ -1,0 +1,25 @@
+"""The camera's optics as a model every stage shares (docs/design.md §2).
+
+- :mod:`.lattice`: the microlens lattice (:class:`LensLattice`, :class:`RectangularLattice`
+  and the affine fit of the calibrated centres);
+- :mod:`.imaging`: the imaging relation ``c_k = x_k (1 + f_ml/s_i)`` between a lens's
+  array-plane position and its image centre on the sensor;
+- :mod:`.ownership`: which lens a sensor pixel lies behind;
+- :mod:`.rawimage`: the raw image's checks against the camera, the pixel mask, the
+  robust background;
+- :mod:`.raybundle`: the camera's exact rays, a point particle's raw image and its
+  derivatives (the image-space particle fit's forward model).
+
+Device-free NumPy; it imports only the camera model.
+"""
+
+from .imaging import array_plane_positions, array_plane_scale
+from .lattice import DEFAULT_SHEAR_TOL, LensLattice, RectangularLattice, lattice_fit
+from .ownership import lens_owner, pixel_lenses
+from .rawimage import check_image, check_pixel_mask, median_background, subtract_background
+from .raybundle import RayBundle
+
+__all__ = ["DEFAULT_SHEAR_TOL", "LensLattice", "RayBundle", "RectangularLattice",
+           "array_plane_positions", "array_plane_scale", "check_image", "check_pixel_mask",
+           "lattice_fit", "lens_owner", "median_background", "pixel_lenses",
+           "subtract_background"]
