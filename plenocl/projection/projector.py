@@ -24,7 +24,6 @@ NumPy model. The projector implements :class:`plenocl.reconstruction.operator.Pr
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -33,22 +32,11 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..grid import Grid
-from ..optics.lattice import lattice_rotation_deg
 from ..program import KernelSet
-from .lenses import LensSet, lens_reach, lens_set, lit_lenses
+from .lenses import LensSet, lens_set, lit_lenses
+from .model import WeightingModel
 from .plan import SampleColumns, depth_chunks, make_plan, runs
-from .weighting import (
-    DEFAULT_OVERSAMPLE,
-    DEFAULT_SHEAR_TOL,
-    NO_LENS,
-    ApertureGrid,
-    check_depth_range,
-    check_field_of_view,
-    colour_stride,
-    depth_coefficients,
-    lens_index_map,
-    lens_tables,
-)
+from .weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL
 
 _KERNELS = ("fwd_x", "fwd_y", "fwd_gen", "fwd_gen_gather", "fwd_pix", "back_pix", "back_y",
             "back_x", "back_gen", "voxel_footprint", "fwd_direct", "back_direct", "back_y_scatter")
@@ -108,9 +96,16 @@ class Projector:
         Explicit vector width of the row kernels (``PL_VW``) and vectors per work-item;
         by default 8 and a whole light-field row on CPUs (the row stays in cache), 1 and 1
         on other devices (coalesced access).
+    model
+        A prebuilt :class:`plenocl.projection.model.WeightingModel` of this camera and
+        grid (its ``oversample`` and ``shear_tol`` then win over the keywords); built
+        here when ``None``.
 
     Attributes
     ----------
+    model
+        The device-free weighting model (:class:`plenocl.projection.model.WeightingModel`):
+        aperture samples, lens map, coefficients, lens tables, colouring.
     path
         ``"separable"`` or ``"general"`` (rotated array): which factorised kernels run.
     plan
@@ -122,26 +117,26 @@ class Projector:
                  method: str = "factorised", back: str = "gather",
                  max_alloc_bytes: int | None = None, scratch_bytes: int | None = None,
                  vector_width: int | None = None, segment: int | None = None,
-                 gather_forward: bool | None = None) -> None:
+                 gather_forward: bool | None = None,
+                 model: WeightingModel | None = None) -> None:
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if back not in BACK_MODES:
             raise ValueError(f"back must be one of {BACK_MODES}, got {back!r}")
-        check_depth_range(camera, grid)
+        if model is None:
+            model = WeightingModel(camera, grid, oversample, shear_tol)
+        elif model.camera is not camera or model.grid != grid:
+            raise ValueError("the weighting model belongs to another camera or grid")
         self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
-        self._options = dict(oversample=oversample, shear_tol=shear_tol, method=method,
-                             back=back, max_alloc_bytes=max_alloc_bytes,
+        self._options = dict(oversample=model.oversample, shear_tol=model.shear_tol,
+                             method=method, back=back, max_alloc_bytes=max_alloc_bytes,
                              scratch_bytes=scratch_bytes, vector_width=vector_width,
                              segment=segment, gather_forward=gather_forward)
         self.queue = get_queue(queue)
         self._refined: dict[int, Projector] = {}
-        self.aperture = ApertureGrid.for_camera(camera, oversample, grid.rotation_deg)
-        self.lens_map = lens_index_map(camera, shear_tol, grid.rotation_deg)
-        self.path = "separable" if self.lens_map.axis_aligned else "general"
-        if self.path == "general":
-            _warn_general_path(camera, grid)
-        self.coef = depth_coefficients(camera, grid, self.lens_map, self.aperture)
-        check_field_of_view(camera, grid, self.coef, self.aperture)
+        self.model = model
+        self.aperture, self.lens_map, self.path = model.aperture, model.lens_map, model.path
+        self.coef = model.coef
         info = device_info(self.queue)
         self._layout(vector_width, segment)
         max_alloc = int(min(max_alloc_bytes or info.max_alloc_bytes, info.max_alloc_bytes))
@@ -150,9 +145,8 @@ class Projector:
                                         SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES))
         self.plan = make_plan(grid, camera, self.aperture, self.nkxp, max_alloc, scratch_bytes,
                               method)
-        self.colour_stride = colour_stride(camera, self.aperture)
-        self._pixel_offsets = self.aperture.pixel_offsets(camera)
-        self.lens_reach = lens_reach(float(np.abs(self._pixel_offsets).max()))
+        self.colour_stride = model.colour_stride
+        self.lens_reach = model.lens_reach
         width, height = camera.pixels
         check_fits(self.queue, grid.nbytes + 4 * width * height + self.plan.scratch_bytes
                    + 16 * camera.ml_count[0] * camera.ml_count[1],
@@ -180,14 +174,14 @@ class Projector:
     def _upload_tables(self) -> None:
         i, j = self.aperture.samples()
         lo, hi = self.aperture.column_ranges()
-        rnd, frac = lens_tables(self.camera)
+        rnd, frac = self.model.lens_tables
         q = self.queue
         self.n_samples = len(i)
         self._columns = SampleColumns.of(self.aperture)
         self._d = {
             "coef": cl_array.to_device(q, self.coef.astype(np.float32)),
             "ij": cl_array.to_device(q, np.column_stack([i, j]).astype(np.int32)),
-            "px": cl_array.to_device(q, self._pixel_offsets),
+            "px": cl_array.to_device(q, self.model.pixel_offsets),
             "col_lo": cl_array.to_device(q, lo.astype(np.int32)),
             "col_off": cl_array.to_device(q, self._columns.offset.astype(np.int32)),
             "rnd": cl_array.to_device(q, rnd),
@@ -196,7 +190,7 @@ class Projector:
         self._scratch: dict[str, cl_array.Array] = {}
         self._sensitivity: list[cl_array.Array] | None = None
         self._rnd = rnd
-        self._present = rnd[:, 0] != NO_LENS  # lenses with a centre
+        self._present = self.model.present  # lenses with a centre
         self.all_lenses = self.lens_set(self._present)
 
     def _buffer(self, name: str, n: int) -> cl_array.Array:
@@ -617,16 +611,3 @@ def _check_device(arr: cl_array.Array, shape: tuple[int, ...], what: str) -> Non
     if arr.shape != tuple(shape) or arr.dtype != np.float32 or not arr.flags.c_contiguous:
         raise ValueError(f"{what} must be a C-contiguous float32 device array of shape "
                          f"{tuple(shape)}, got {arr.dtype} {arr.shape}")
-
-
-def _warn_general_path(camera: Camera, grid: Grid) -> None:
-    """Say that a grid across a rotated array's lens rows takes the general path, and
-    what makes it fast: never a silent slow-down (README, Performance: 12.5x at the
-    paper's size for a 0.15° array)."""
-    angle = lattice_rotation_deg(camera.microlens_centers)
-    warnings.warn(
-        f"the microlens array is turned {angle - grid.rotation_deg:+.4f}° against this "
-        "grid's axes: the projector takes its general path, up to about 12x slower than "
-        "a grid along the lens rows. Grid.for_camera (plenocl grid) gives that frame; "
-        f"a grid file does with rotation_deg = {angle:.4f} (velocities are written in "
-        "object space either way)", stacklevel=3)

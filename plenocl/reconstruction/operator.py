@@ -37,6 +37,10 @@ class ProjectionOperator(Protocol):
     operator may ignore them when it always projects onto every lens, since skipping a
     dark lens is exact. ``active`` (bool per depth slice, ``None``: all) marks the slices
     that can be non-zero; the others may be skipped and come out 0 in a back projection.
+
+    :meth:`refined` is needed only by a supersampled reconstruction (``supersample > 1``);
+    an operator without it reconstructs with ``supersample=1`` and is refused otherwise
+    (:func:`plenocl.reconstruction.reconstruct`).
     """
 
     queue: cl.CommandQueue
@@ -73,3 +77,7 @@ class ProjectionOperator(Protocol):
     def cropped(self, box: tuple[slice, slice, slice]) -> ProjectionOperator:
         """The same operator restricted to the sub-grid ``vol[box]`` (keeps a computed
         sensitivity, cropped)."""
+
+    def refined(self, factor: int) -> ProjectionOperator:
+        """The same operator on the grid with ``factor x factor`` lateral sub-voxels per
+        voxel (:meth:`plenocl.Grid.refined`; ``factor`` 1: itself), kept per factor."""
