@@ -14,7 +14,7 @@
 
 from .blocks import device_view_blocks, view_blocks
 from .images import FLOAT32_LIMIT, NOISE_SIGMAS, preprocess, scale_raw_image
-from .operator import ProjectionOperator
+from .operator import ProjectionOperator, RefinableOperator
 from .reconstruct import reconstruct, run_reconstruction
 from .settings import (
     DEFAULTS,
@@ -29,6 +29,7 @@ from .supersample import MAX_SUPERSAMPLE, PAIR_SUPERSAMPLE, bin_lateral, spread_
 __all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE",
            "METHODS", "NOISE_SIGMAS", "PAIR_SUPERSAMPLE", "UPDATES", "bin_lateral",
            "preprocess", "spread_lateral",
-           "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings", "Solver",
+           "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
+           "RefinableOperator", "Solver",
            "device_view_blocks", "extent_box", "nonzero_box", "reconstruct",
            "run_reconstruction", "scale_raw_image", "view_blocks"]

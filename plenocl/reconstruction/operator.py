@@ -38,9 +38,9 @@ class ProjectionOperator(Protocol):
     dark lens is exact. ``active`` (bool per depth slice, ``None``: all) marks the slices
     that can be non-zero; the others may be skipped and come out 0 in a back projection.
 
-    :meth:`refined` is needed only by a supersampled reconstruction (``supersample > 1``);
-    an operator without it reconstructs with ``supersample=1`` and is refused otherwise
-    (:func:`plenocl.reconstruction.reconstruct`).
+    A supersampled reconstruction (``supersample > 1``) needs more:
+    :class:`RefinableOperator`. An operator without ``refined`` reconstructs with
+    ``supersample=1`` and is refused otherwise.
     """
 
     queue: cl.CommandQueue
@@ -77,6 +77,13 @@ class ProjectionOperator(Protocol):
     def cropped(self, box: tuple[slice, slice, slice]) -> ProjectionOperator:
         """The same operator restricted to the sub-grid ``vol[box]`` (keeps a computed
         sensitivity, cropped)."""
+
+
+@runtime_checkable
+class RefinableOperator(ProjectionOperator, Protocol):
+    """A :class:`ProjectionOperator` that can also refine its grid: what
+    :func:`plenocl.reconstruction.reconstruct` uses with ``supersample > 1``
+    (:class:`plenocl.Projector` is one)."""
 
     def refined(self, factor: int) -> ProjectionOperator:
         """The same operator on the grid with ``factor x factor`` lateral sub-voxels per

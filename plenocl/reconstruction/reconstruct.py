@@ -196,7 +196,7 @@ def _supersampled(image, projector, settings: ReconstructionSettings, callback,
                   pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
     """The reconstruction on the projector's refined grid, summed back onto its own."""
     f = settings.supersample
-    if not hasattr(projector, "refined"):
+    if not hasattr(projector, "refined"):  # a RefinableOperator (see .operator)
         raise ValueError(f"supersample={f} needs a projector that can refine its grid "
                          "(plenocl.Projector.refined); use supersample=1 with this operator")
     start = settings.start
