@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from helpers import lens_camera
 
-from plenocl import Grid
+from plenocl import Grid, Projector
 from plenocl.optics.ownership import lens_owner
 from plenocl.projection.model import WeightingModel
 from plenocl.reference.weights import ApertureGrid, lens_index_map
@@ -64,3 +64,13 @@ def test_every_lens_owns_its_own_centre(small_camera):
     cols = small_camera.ml_count[0]
     rows, ks = np.mgrid[0:centres.shape[0], 0:centres.shape[1]]
     np.testing.assert_array_equal(owner[centres[..., 1], centres[..., 0]], rows * cols + ks)
+
+
+def test_a_projector_takes_a_prebuilt_model(small_camera, queue):
+    model = WeightingModel(small_camera, GRID, oversample=1.0)
+    proj = Projector(small_camera, GRID, queue, model=model)
+    assert proj.model is model and proj.path == model.path
+    assert proj.n_samples == model.n_samples
+    assert proj.refined(2).model.oversample == 1.0
+    with pytest.raises(ValueError, match="another camera or grid"):
+        Projector(small_camera, GRID.refined(2), queue, model=model)

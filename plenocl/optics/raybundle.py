@@ -11,7 +11,7 @@ Gaussian of the optics' blur, and a ray within a ramp of a cell edge is shared b
 the two lenses, so the image is a smooth function of ``X'``: its derivatives are exact
 and a Gauss-Newton fit can follow them. The lenses are the camera's calibrated centres
 (or its ideal ones) and their cells the affine lattice fitted to them
-(:func:`plenocl.optics.lattice.lattice_fit`), as the projector's.
+(:class:`plenocl.optics.lattice.RectangularLattice`), as the projector's.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 from scipy.special import erf
 
 from ..camera import Camera
-from .lattice import lattice_fit
+from .lattice import RectangularLattice
 
 #: Golden angle of the sunflower pattern (radians).
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
@@ -105,7 +105,7 @@ class RayBundle:
         centres = camera.microlens_centers
         centres = camera.ideal_microlens_centers() if centres is None else centres
         lenses = camera.px_to_mm(centres) / camera.lens_image_scale
-        fit = lattice_fit(lenses)
+        fit = RectangularLattice.fit(lenses).model
         inverse = np.linalg.inv(fit[:2])
         to_lattice = np.vstack([inverse, -fit[2] @ inverse])
         aperture = sunflower(int(rays)) * camera.aperture_diameter_mm / 2
