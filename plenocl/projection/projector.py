@@ -17,7 +17,8 @@ through a light-field buffer ``L[ky, s, kx]``:
 Memory is the volume, the image and scratch buffers bounded by ``scratch_bytes``
 (light field and per-axis intermediates, processed in chunks of aperture columns and
 depth slices; :mod:`plenocl.projection.plan`). A volume larger than the device's largest allocation
-is held as depth slabs. The tables the kernels read come from :mod:`plenocl.projection.weighting`;
+is held as depth slabs. The tables the kernels read come from the device-free
+:class:`plenocl.projection.model.WeightingModel` (built on :mod:`plenocl.projection.weighting`);
 ``kernels/projector.cl`` holds the kernels and :mod:`plenocl.reference.weights` the plain
 NumPy model. The projector implements :class:`plenocl.reconstruction.operator.ProjectionOperator`.
 """
@@ -35,7 +36,7 @@ from ..grid import Grid
 from ..program import KernelSet
 from .lenses import LensSet, lens_set, lit_lenses
 from .model import WeightingModel
-from .plan import SampleColumns, depth_chunks, make_plan, runs
+from .plan import Plan, SampleColumns, depth_chunks, make_plan, runs
 from .weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL
 
 _KERNELS = ("fwd_x", "fwd_y", "fwd_gen", "fwd_gen_gather", "fwd_pix", "back_pix", "back_y",
@@ -137,14 +138,8 @@ class Projector:
         self.model = model
         self.aperture, self.lens_map, self.path = model.aperture, model.lens_map, model.path
         self.coef = model.coef
-        info = device_info(self.queue)
         self._layout(vector_width, segment)
-        max_alloc = int(min(max_alloc_bytes or info.max_alloc_bytes, info.max_alloc_bytes))
-        if scratch_bytes is None:
-            scratch_bytes = int(np.clip(max(grid.nbytes, 4 * camera.pixels[0] * camera.pixels[1]),
-                                        SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES))
-        self.plan = make_plan(grid, camera, self.aperture, self.nkxp, max_alloc, scratch_bytes,
-                              method)
+        self.plan = self._make_plan(max_alloc_bytes, scratch_bytes)
         self.colour_stride = model.colour_stride
         self.lens_reach = model.lens_reach
         width, height = camera.pixels
@@ -157,6 +152,17 @@ class Projector:
                             looping=[k for k in _KERNELS if k != "fwd_gen_gather"])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
+
+    def _make_plan(self, max_alloc_bytes: int | None, scratch_bytes: int | None) -> Plan:
+        """The slabs and chunks on this device (:func:`plenocl.projection.plan.make_plan`)."""
+        info = device_info(self.queue)
+        max_alloc = int(min(max_alloc_bytes or info.max_alloc_bytes, info.max_alloc_bytes))
+        if scratch_bytes is None:
+            pixels = self.camera.pixels[0] * self.camera.pixels[1]
+            scratch_bytes = int(np.clip(max(self.grid.nbytes, 4 * pixels),
+                                        SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES))
+        return make_plan(self.grid, self.camera, self.aperture, self.nkxp, max_alloc,
+                         scratch_bytes, self.method)
 
     def _layout(self, vector_width: int | None, segment: int | None) -> None:
         """Vector width, padded row length and row segments for the device type."""
