@@ -48,6 +48,7 @@ from scipy import ndimage, stats
 from scipy.spatial import cKDTree
 
 from .camera import Camera
+from .optics.rawimage import check_image
 
 #: Relative pitch error (measured vs the camera's) above which calibration refuses.
 PITCH_TOLERANCE = 0.10
@@ -133,28 +134,9 @@ class CenterFit:
 
 # ---- input checks -------------------------------------------------------------------
 def _validate_image(image, camera: Camera) -> np.ndarray:
-    """The white image as float32, or a ValueError naming the problem and the fix."""
-    img = np.asarray(image)
-    if img.dtype == bool or not (np.issubdtype(img.dtype, np.integer)
-                                 or np.issubdtype(img.dtype, np.floating)):
-        raise ValueError(f"the white image must hold integer or floating-point pixel values, "
-                         f"got dtype {img.dtype}")
-    if img.ndim != 2:
-        raise ValueError(f"the white image must be one 2-D monochrome frame (rows, cols), got "
-                         f"shape {img.shape}; pass a single raw sensor image")
-    w, h = camera.pixels
-    if img.shape != (h, w):
-        hint = (" (it looks transposed: pass image.T)" if img.shape == (w, h) else
-                "; check [sensor] pixels = [columns, rows] in the camera file, that the "
-                "image was not cropped or binned, or give its region of interest (--crop "
-                "COLUMN ROW WIDTH HEIGHT, Camera.cropped)")
-        raise ValueError(f"the white image is {img.shape[1]} x {img.shape[0]} px (cols x rows) "
-                         f"but the camera has {w} x {h}{hint}")
-    img = img.astype(np.float32)
-    bad = ~np.isfinite(img)
-    if bad.any():
-        raise ValueError(f"the white image has {int(bad.sum())} NaN or Inf pixels; replace them "
-                         "(e.g. by the median of their neighbours) before calibrating")
+    """The white image as float32 (:func:`plenocl.optics.rawimage.check_image`), or a
+    ValueError naming the problem and the fix."""
+    img = check_image(image, camera, np.float32, name="the white image")
     if img.max() <= img.min():
         raise ValueError(f"the white image is blank (every pixel is {img.min():.4g}): take it "
                          "with the main lens stopped down, imaging a uniform bright target")

@@ -1,8 +1,8 @@
 """The raw image as the camera delivers it: checks against the camera, the pixel mask,
 and the robust background (dark level and noise) every stage removes alike.
 
-Used by the reconstruction's preprocessing, the light field and the image-space
-particle fit. Plain NumPy; nothing here touches a device.
+Used by the calibration (the white image), the reconstruction's preprocessing, the
+light field and the image-space particle fit. Plain NumPy; nothing here touches a device.
 """
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ import numpy as np
 
 from ..camera import Camera
 
-__all__ = ["check_image", "check_pixel_mask", "median_background", "subtract_background"]
+__all__ = ["check_image", "check_pixel_mask", "check_shape", "median_background",
+           "subtract_background"]
 
 
 def check_pixel_mask(observed, camera: Camera) -> np.ndarray | None:
@@ -31,29 +32,44 @@ def check_pixel_mask(observed, camera: Camera) -> np.ndarray | None:
     return mask
 
 
-def check_image(image, camera: Camera, dtype=np.float64) -> np.ndarray:
-    """A raw image as ``dtype`` (float64 by default), checked against the camera: its
-    shape, numeric, real and finite in ``dtype`` (the first bad pixel is named)."""
+def check_image(image, camera: Camera, dtype=np.float64, name: str = "image") -> np.ndarray:
+    """A raw image as ``dtype`` (float64 by default), checked against the camera: numeric
+    and real, one 2-D frame of the sensor's shape, finite in ``dtype`` (the first bad
+    pixel is named). ``name`` names the image in the messages (e.g. "the white image").
+    """
     img = np.asarray(image)
-    expected = (camera.pixels[1], camera.pixels[0])
-    if img.shape != expected:
-        raise ValueError(f"image shape {img.shape} does not match the camera's sensor "
-                         f"{expected} (rows, columns); check the camera file, or cut the "
-                         "frame to the camera's region of interest (camera.fit_image, "
-                         "--crop)")
     if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
-        raise ValueError(f"image must be numeric (uint8, uint16, float), got {img.dtype}")
+        raise ValueError(f"{name} must be numeric (uint8, uint16, float), got dtype {img.dtype}")
     if np.iscomplexobj(img):
-        raise TypeError("image must hold real numbers, not complex; pass the intensity "
+        raise TypeError(f"{name} must hold real numbers, not complex; pass the intensity "
                         "(e.g. np.abs(image) ** 2)")
+    if img.ndim != 2:
+        raise ValueError(f"{name} must be one 2-D monochrome frame (rows, columns), got "
+                         f"shape {img.shape}; pass a single raw sensor image")
+    check_shape(img.shape, camera, name)
     img = img.astype(dtype)
     bad = ~np.isfinite(img)
     if bad.any():
         row, col = (int(v) for v in np.argwhere(bad)[0])
-        raise ValueError(f"image contains {int(bad.sum())} NaN or Inf pixel(s), the first at "
-                         f"row {row}, column {col}; replace bad pixels (e.g. by 0 or the "
-                         "median of their neighbours) first")
+        raise ValueError(f"{name} contains {int(bad.sum())} NaN or Inf pixels, the first at "
+                         f"row {row}, column {col}; replace them (e.g. by 0 or the median of "
+                         "their neighbours) first")
     return img
+
+
+def check_shape(shape: tuple[int, ...], camera: Camera, name: str = "image") -> None:
+    """Refuse a 2-D image ``shape`` (rows, columns) other than the camera's sensor,
+    naming the likely fix (a transposed image, the camera file, a region of interest)."""
+    w, h = camera.pixels
+    if tuple(shape) == (h, w):
+        return
+    hint = (" (it looks transposed: pass image.T)" if tuple(shape) == (w, h) else
+            "; check [sensor] pixels = [columns, rows] in the camera file, that the image "
+            "was not cropped or binned, or cut the frame to the camera's region of interest "
+            "(--crop COLUMN ROW WIDTH HEIGHT, camera.fit_image, Camera.cropped)")
+    raise ValueError(f"{name} is {shape[1]} x {shape[0]} px (columns x rows) but the camera "
+                     f"has {w} x {h}: its shape {tuple(shape)} does not match the camera's "
+                     f"sensor{hint}")
 
 
 def subtract_background(image) -> tuple[np.ndarray, float]:
