@@ -51,9 +51,9 @@ def check_image(image, camera: Camera, dtype=np.float64, name: str = "image") ->
     bad = ~np.isfinite(img)
     if bad.any():
         row, col = (int(v) for v in np.argwhere(bad)[0])
-        raise ValueError(f"{name} contains {int(bad.sum())} NaN or Inf pixels, the first at "
-                         f"row {row}, column {col}; replace them (e.g. by 0 or the median of "
-                         "their neighbours) first")
+        raise ValueError(f"{name} contains {int(bad.sum())} NaN or Inf pixel(s), the first at "
+                         f"row {row}, column {col}; replace NaN or Inf pixels (e.g. by 0 or the "
+                         "median of their neighbours) first")
     return img
 
 
