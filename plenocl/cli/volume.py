@@ -16,7 +16,7 @@ import numpy as np
 from ..camera import load_camera
 from ..io.files import CHANNELS
 from ..pipeline.frames import load_frame
-from ..reconstruction.supersample import PAIR_SUPERSAMPLE
+from ..pipeline.settings import PAIR_SUPERSAMPLE
 from .frames import add_frame_options, camera_for_frames, read_frame
 
 
