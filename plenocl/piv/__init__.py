@@ -24,6 +24,6 @@ from .multipass import (
 )
 from .settings import PIVSettings
 
-__all__ = ["DEFAULT_WINDOWS", "MIN_PARTICLES_PER_WINDOW", "PIVResult", "PIVSettings", "auto_windows",
-           "count_particles", "displacement_to_velocity", "piv3d",
+__all__ = ["DEFAULT_WINDOWS", "MIN_PARTICLES_PER_WINDOW", "PIVResult", "PIVSettings",
+           "auto_windows", "count_particles", "displacement_to_velocity", "piv3d",
            "q_criterion", "velocity_gradient", "voxel_size", "vorticity"]
