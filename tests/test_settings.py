@@ -7,8 +7,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from plenocl import MTESettings, PairSettings, PIVSettings, ReconstructionSettings, piv3d
-from plenocl import reconstruct
+from plenocl import (
+    MTESettings,
+    PairSettings,
+    PIVSettings,
+    ReconstructionSettings,
+    piv3d,
+    reconstruct,
+)
 from plenocl.cli.main import build_parser
 from plenocl.pipeline.settings import PAIR_SUPERSAMPLE
 from plenocl.piv.imagefit import ImageFitSettings
