@@ -103,8 +103,8 @@ def reconstructed_rows(queue, seedings, motions, seed: int = 0) -> list[str]:
     for k, ppm in enumerate(seedings, start=1):
         for motion in motions:
             scene = budget_scene(cam, grid, ppm, seed=seed + k, queue=queue, motion=motion)
-            for label, kw in (("default", {}), ("before", dict(settings=BASELINE_SETTINGS,
-                                                                  particles=False))):
+            before = dict(reconstruction=BASELINE_SETTINGS, particles=False)
+            for label, kw in (("default", {}), ("before", before)):
                 res = process_pair(scene.raw_a, scene.raw_b, proj, **kw).piv
                 truth = motion.displacement(res, grid)
                 rows.append(coverage_row(f"reconstructed, {label}: {motion.name}, {ppm} per "

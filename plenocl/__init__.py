@@ -8,10 +8,10 @@ from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices,
 from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
-from .pipeline import MTESettings, PairResult, process_pair
-from .piv import PIVResult, piv3d
+from .pipeline import MTESettings, PairResult, PairSettings, process_pair
+from .piv import PIVResult, PIVSettings, piv3d
 from .projection import Projector
-from .reconstruction import reconstruct
+from .reconstruction import ReconstructionSettings, reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
 
 __version__ = "0.1.0"
@@ -25,8 +25,11 @@ __all__ = [
     "MTESettings",
     "NoOpenCLError",
     "PIVResult",
+    "PIVSettings",
     "PairResult",
+    "PairSettings",
     "Projector",
+    "ReconstructionSettings",
     "Simulator",
     "calibrate",
     "create_context",

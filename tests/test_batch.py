@@ -323,3 +323,36 @@ def test_a_run_applies_the_dark_frame_and_flat_field_of_the_experiment(experimen
     exp.write_text(text.replace('flat = "flat.tif"', 'flat = "nope.tif"'))
     with pytest.raises(ValueError, match=r"\[images\] flat = 'nope.tif': no such file"):
         load_experiment(exp)
+
+
+def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
+        experiment, tmp_path, monkeypatch):
+    """[mte], [particles], [image_fit] and every [reconstruction]/[piv] option reach each
+    pair's process_pair as the run's PairSettings object (no file read back); the run
+    writes them, resolved, into experiment_used.toml for the record."""
+    from plenocl.batch import worker
+    from plenocl.pipeline import MTESettings
+
+    text = (EXPERIMENT.replace("iterations = 20", "iterations = 20\ntol = 0.01")
+            .replace('folder = "raw"', f'folder = "{(experiment / "raw").as_posix()}"')
+            + "[piv]\nwindows = [24]\ncorrelation = 'fft'\n[mte]\ncycles = 1\n"
+            "iterations = 4\n[particles]\nenabled = false\n[image_fit]\nrays = 200\n")
+    (tmp_path / "e.toml").write_text(text)
+    expected = load_experiment(tmp_path / "e.toml").pair
+    assert expected.mte == MTESettings(cycles=1, iterations=4) and not expected.particles
+    assert expected.image_fit.rays == 200 and expected.piv.windows == (24,)
+    assert expected.reconstruction.tol == 0.01 and expected.reconstruction.supersample == 3
+    got = []
+
+    def fake(raw_a, raw_b, projector, settings):
+        got.append(settings)
+        raise ValueError("not processed")
+
+    monkeypatch.setattr(worker, "process_pair", fake)
+    monkeypatch.setattr(worker.PairProcessor, "projector", None)
+    summary = plenocl.run(tmp_path / "e.toml", tmp_path / "out", progress=False,
+                          log=lambda _: None)
+    assert len(summary.failed) == 3 and got and all(s == expected for s in got)
+    used = read_toml(tmp_path / "out" / "experiment_used.toml")
+    assert used["mte"]["cycles"] == 1 and used["particles"]["enabled"] is False
+    assert used["image_fit"]["rays"] == 200 and used["piv"]["correlation"] == "fft"

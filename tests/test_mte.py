@@ -88,10 +88,9 @@ def test_process_pair_with_mte_refines_both_volumes_and_the_field(queue):
     raw_a = simulate_image(cam, pos, inten, seed=1, **kw)
     raw_b = simulate_image(cam, pos + shift_mm, inten, seed=2, **kw)
     settings = ReconstructionSettings(iterations=20, supersample=3)
-    opts = None
-    single = process_pair(raw_a, raw_b, proj, settings=settings, piv_options=opts,
+    single = process_pair(raw_a, raw_b, proj, reconstruction=settings,
                           mte=MTESettings(cycles=0))
-    pair = process_pair(raw_a, raw_b, proj, settings=settings, piv_options=opts,
+    pair = process_pair(raw_a, raw_b, proj, reconstruction=settings,
                         mte=MTESettings(cycles=1, iterations=5))
     assert "mte" in pair.seconds and "mte" not in single.seconds
     assert pair.info_a.iterations == 5 and single.info_a.iterations == 20

@@ -8,7 +8,7 @@
 
 from .config import Experiment, image_pairs, load_experiment
 from .run import RunSummary, run
-from .worker import PairOutcome, PairProcessor, PairTask
+from .worker import PairOutcome, PairProcessor, PairTask, RunSettings
 
-__all__ = ["Experiment", "PairOutcome", "PairProcessor", "PairTask", "RunSummary",
+__all__ = ["Experiment", "PairOutcome", "PairProcessor", "PairTask", "RunSettings", "RunSummary",
            "image_pairs", "load_experiment", "run"]

@@ -3,7 +3,8 @@
 ``plenocl run --workers N`` starts a local cluster of N single-threaded worker processes
 (spawned, so safe wherever ``fork`` is not); ``--scheduler ADDRESS`` uses an existing
 cluster (e.g. one started by ``dask-jobqueue`` on SLURM, docs/batch.md). Every worker
-gets the :class:`PlenoclWorker` plugin, which makes one
+gets the :class:`PlenoclWorker` plugin (pickled with the run's
+:class:`~plenocl.batch.worker.RunSettings`), which makes one
 :class:`~plenocl.batch.worker.PairProcessor` (OpenCL context, projector, compiled
 kernels) per worker; tasks carry :class:`~plenocl.batch.worker.PairTask` file paths and
 return small :class:`~plenocl.batch.worker.PairOutcome` records, never contexts or
@@ -21,7 +22,7 @@ from contextlib import contextmanager
 from distributed import Client, LocalCluster, WorkerPlugin, as_completed, get_worker
 
 from ..threads import thread_count
-from .worker import PairOutcome, PairProcessor, PairTask
+from .worker import PairOutcome, PairProcessor, PairTask, RunSettings
 
 PLUGIN = "plenocl"
 
@@ -31,14 +32,15 @@ class PlenoclWorker(WorkerPlugin):
 
     name = PLUGIN
 
-    def __init__(self, run_folder: str, device: str | None = None) -> None:
-        self.run_folder, self.device = str(run_folder), device
+    def __init__(self, run_folder: str, settings: RunSettings,
+                 device: str | None = None) -> None:
+        self.run_folder, self.settings, self.device = str(run_folder), settings, device
         self.processor: PairProcessor | None = None
 
     def setup(self, worker) -> None:
         """Make the worker's processor (its OpenCL context comes with the first pair)."""
         device = self.device or os.environ.get("PLENOCL_DEVICE") or None
-        self.processor = PairProcessor(self.run_folder, device)
+        self.processor = PairProcessor(self.run_folder, self.settings, device)
 
 
 def process_on_worker(task: PairTask) -> PairOutcome:
@@ -64,13 +66,13 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         yield client
 
 
-def run_on_dask(client: Client, tasks: Sequence[PairTask], run_folder, device,
-                on_done: Callable[[PairOutcome], None]) -> None:
+def run_on_dask(client: Client, tasks: Sequence[PairTask], run_folder, settings: RunSettings,
+                device, on_done: Callable[[PairOutcome], None]) -> None:
     """Process ``tasks`` on the cluster, calling ``on_done`` as each pair finishes.
 
     Interrupted (Ctrl-C), it cancels the pairs not yet done; those done are written.
     """
-    client.register_plugin(PlenoclWorker(str(run_folder), device), name=PLUGIN)
+    client.register_plugin(PlenoclWorker(str(run_folder), settings, device), name=PLUGIN)
     futures = client.map(process_on_worker, list(tasks), pure=False)
     try:
         for future in as_completed(futures):

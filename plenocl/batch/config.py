@@ -26,15 +26,21 @@ Example::
     dt_s = 175e-6                        # between the two exposures of a pair (s; outside
                                          # 0.1 µs to 1 s refused unless force_dt = true)
     pair_interval_s = 0.01               # between successive pairs: the time axis
-    [reconstruction]
+    [reconstruction]                     # every ReconstructionSettings option
     method = "mlem"
     iterations = 30
     supersample = 3                      # lateral sub-voxels per voxel (1: faster, depth
                                          # about 3x worse; docs/design.md §6.4)
-    [piv]
+    [piv]                                # every PIVSettings option, and ensemble
     windows = [48, 32, 24]               # optional: fitted to the volume by default
     ensemble = false                     # also the ensemble-correlation mean field (keeps
                                          # each pair's volumes beside its field)
+    [mte]                                # motion-tracking enhancement (MTESettings)
+    cycles = 0
+    [particles]                          # the particle refinement of the field
+    enabled = true
+    [image_fit]                          # those particles fitted to the raw images first
+    enabled = true                       # and any ImageFitSettings option
     [output]
     folder = "results"
     vti = false                          # also a ParaView .vti per pair
@@ -42,16 +48,17 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..reconstruction.supersample import PAIR_SUPERSAMPLE
+from ..pipeline.settings import PARTS, PairSettings
 from ..tomlfile import read_toml
 from ..units import check_dt
 from .pairing import PAIRINGS, PairPlan, ab_pairs, listed_pairs, numbered_pairs
 
 #: Keys each section of an experiment file may hold, with their defaults (None: required
-#: or optional without default).
+#: or optional without default), besides the pair's settings (:data:`PAIR_SECTIONS`).
 SECTIONS = {
     "camera": {"file": None, "preset": None, "white": None},
     "grid": {"file": None, "z_mm": None, "voxel_mm": None, "depth_voxel_mm": None,
@@ -60,44 +67,59 @@ SECTIONS = {
                "b_suffix": "_b", "dt_s": None, "pair_interval_s": None, "pairs": None,
                "first_frame": None, "force_dt": False, "channel": None, "dark": None,
                "flat": None},
-    "reconstruction": {"method": "mlem", "iterations": None, "relax": None,
-                       "background": "median", "threshold": None,
-                       "supersample": PAIR_SUPERSAMPLE},
-    "piv": {"windows": None, "ensemble": False},
+    "piv": {"ensemble": False},
     "output": {"folder": "results", "vti": False},
 }
 
 
 @dataclass(frozen=True)
 class Experiment:
-    """A validated experiment file: every section's values with defaults filled in, and
-    the folder relative paths are resolved against."""
+    """A validated experiment file: every section's values with defaults filled in, the
+    folder relative paths are resolved against, and each pair's settings."""
 
     sections: dict = field(compare=False)
     base: Path = Path(".")
+    pair: PairSettings = field(default_factory=PairSettings)
 
     def __getitem__(self, section: str) -> dict:
         return self.sections[section]
+
+
+#: The sections that make each pair's :class:`~plenocl.pipeline.PairSettings`.
+PAIR_SECTIONS = PARTS
 
 
 def load_experiment(path: str | Path) -> Experiment:
     """Read and check an experiment file; every unknown or bad key is an error naming it."""
     path = Path(path)
     doc = read_toml(path)
-    unknown = set(doc) - set(SECTIONS)
+    unknown = set(doc) - set(SECTIONS) - set(PAIR_SECTIONS)
     if unknown:
         raise ValueError(f"{path}: unknown section(s) {sorted(unknown)}; the sections are "
-                         f"{list(SECTIONS)}")
+                         f"{list(dict.fromkeys([*SECTIONS, *PAIR_SECTIONS]))}")
+    batch, pair = _split(doc)
     sections = {}
     for name, defaults in SECTIONS.items():
-        given = doc.get(name, {})
+        given = batch.get(name, {})
         bad = set(given) - set(defaults)
         if bad:
             raise ValueError(f"{path}: unknown key(s) {sorted(bad)} in [{name}]; it takes "
                              f"{list(defaults)}")
         sections[name] = {**defaults, **given}
     _check(sections, path)
-    return Experiment(sections, path.parent)
+    return Experiment(sections, path.parent, PairSettings.from_dict(pair, source=str(path)))
+
+
+def _split(doc: dict) -> tuple[dict, dict]:
+    """The file's batch sections and its pair settings' sections (``[piv]`` holds both:
+    ``ensemble`` is the batch's)."""
+    batch = {k: v for k, v in doc.items() if k in SECTIONS and k not in PAIR_SECTIONS}
+    pair = {k: v for k, v in doc.items() if k in PAIR_SECTIONS}
+    piv = pair.get("piv")
+    if isinstance(piv, Mapping):
+        batch["piv"] = {k: v for k, v in piv.items() if k in SECTIONS["piv"]}
+        pair["piv"] = {k: v for k, v in piv.items() if k not in SECTIONS["piv"]}
+    return batch, pair
 
 
 def _check(s: dict, path: Path) -> None:
@@ -121,9 +143,6 @@ def _check(s: dict, path: Path) -> None:
     if interval is not None and not (isinstance(interval, (int, float)) and interval > 0):
         raise ValueError(f"{path}: [images] pair_interval_s must be the time between "
                          f"successive pairs in seconds, got {interval!r}")
-    from ..reconstruction import ReconstructionSettings
-
-    ReconstructionSettings(**s["reconstruction"])  # raises on a bad value, naming it
     for section, key in (("output", "vti"), ("piv", "ensemble")):
         if not isinstance(s[section][key], bool):
             raise ValueError(f"{path}: [{section}] {key} must be true or false, got "

@@ -2,14 +2,15 @@
 machine or a Dask cluster (docs/batch.md).
 
 The run checks the experiment file, calibrates the camera if a white image is given, and
-writes the configuration used (``experiment_used.toml``, ``camera_used.toml``,
-``grid_used.toml``) before any pair. Each pair's vector field goes atomically to
-``OUT/pairs/pair_NNNNN.npz`` (and ``.vti`` on request): a rerun skips the pairs already
-there and says so; a pair that fails (unreadable, wrong size, NaN) is logged with its
-reason and the run goes on. At the end, and after Ctrl-C, the finished pairs are gathered
-into ``OUT/timeseries.zarr`` with the ensemble mean and RMS fluctuation
-(:mod:`plenocl.io.timeseries`), and ``summary.json`` reports pairs processed, skipped and
-failed, seconds per pair and the stage split.
+writes the configuration used (``experiment_used.toml``, a record with every pair setting
+resolved; ``camera_used.toml``, ``grid_used.toml``) before any pair. The pairs' settings
+go to the workers as an object (:class:`~.worker.RunSettings`). Each pair's vector field
+goes atomically to ``OUT/pairs/pair_NNNNN.npz`` (and ``.vti`` on request): a rerun skips
+the pairs already there and says so; a pair that fails (unreadable, wrong size, NaN) is
+logged with its reason and the run goes on. At the end, and after Ctrl-C, the finished
+pairs are gathered into ``OUT/timeseries.zarr`` with the ensemble mean and RMS
+fluctuation (:mod:`plenocl.io.timeseries`), and ``summary.json`` reports pairs processed,
+skipped and failed, seconds per pair and the stage split.
 
 Pairs are made from frame numbers (:mod:`.pairing`): a missing frame is a gap, reported
 by name, never a shift of the later pairs. Each field records its two source files (name,
@@ -33,7 +34,7 @@ from ..tomlfile import write_toml
 from .config import Experiment, image_pairs, load_experiment
 from .layout import finished_pairs, pair_file, remove_partial_files
 from .pairing import ImagePair, PairPlan, changed_since
-from .worker import PairOutcome, PairProcessor, PairTask
+from .worker import PairOutcome, PairProcessor, PairTask, RunSettings
 
 
 @dataclass
@@ -110,7 +111,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
             advance(outcome.error is not None)
 
         try:
-            _process(tasks, out, queue, workers, scheduler, done)
+            _process(tasks, out, _run_settings(exp), queue, workers, scheduler, done)
         except KeyboardInterrupt:
             summary.interrupted = True
             log("interrupted: the pairs finished so far are kept; run again to go on")
@@ -169,7 +170,17 @@ def _tasks(pairs: list[ImagePair], out: Path, summary: RunSummary, log) -> list[
     return tasks
 
 
-def _process(tasks, out: Path, queue, workers, scheduler, done) -> None:
+def _run_settings(exp: Experiment) -> RunSettings:
+    """What every pair of the run shares, from the checked experiment file."""
+    img = exp["images"]
+    dark, flat = (str((exp.base / img[k]).resolve()) if img[k] else None
+                  for k in ("dark", "flat"))
+    return RunSettings(exp.pair, float(img["dt_s"]), bool(exp["output"]["vti"]),
+                       bool(exp["piv"]["ensemble"]), img["channel"], dark, flat)
+
+
+def _process(tasks, out: Path, settings: RunSettings, queue, workers, scheduler,
+             done) -> None:
     """Run the tasks serially in this process, or on a Dask cluster."""
     if not tasks:
         return
@@ -177,9 +188,9 @@ def _process(tasks, out: Path, queue, workers, scheduler, done) -> None:
         from .cluster import dask_client, run_on_dask
 
         with dask_client(workers, scheduler) as client:
-            run_on_dask(client, tasks, out, queue, done)
+            run_on_dask(client, tasks, out, settings, queue, done)
         return
-    processor = PairProcessor(out, queue)
+    processor = PairProcessor(out, settings, queue)
     for task in tasks:
         done(processor(task))
 
@@ -234,14 +245,17 @@ def _refuse_other_grid(out: Path, grid) -> None:
 
 
 def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
-    """The configuration used, the camera and the grid, beside the results."""
+    """The configuration used (a record: the workers get theirs as an object), the
+    camera and the grid, beside the results."""
     from .. import __version__
 
     out.mkdir(parents=True, exist_ok=True)
     grid_file = out / "grid_used.toml"
+    pair = exp.pair.to_dict()
+    pair["piv"].update(exp["piv"])  # ensemble, the batch's
     used = {name: {k: v for k, v in values.items() if v is not None}
-            for name, values in exp.sections.items()}
-    for key in ("dark", "flat"):  # the workers know the run folder only
+            for name, values in {**exp.sections, **pair}.items()}
+    for key in ("dark", "flat"):  # absolute: the record holds wherever it is read
         if key in used["images"]:
             used["images"][key] = str((exp.base / used["images"][key]).resolve())
     used["run"] = {"plenocl_version": __version__,

@@ -2,8 +2,9 @@
 :func:`plenocl.batch.run`, the same in a serial run and on a Dask worker.
 
 A :class:`PairProcessor` is made once per process (per Dask worker: by the worker plugin
-of :mod:`plenocl.batch.cluster`) from the run folder alone: the camera and grid the run
-wrote there, and the experiment file. It builds its OpenCL context and projector on the
+of :mod:`plenocl.batch.cluster`) from the run folder (the camera and grid the run wrote
+there) and the run's :class:`RunSettings`, an object (pickled to each Dask worker; no
+file is read back for it). It builds its OpenCL context and projector on the
 first pair and reuses them (sensitivity and compiled kernels included) for every other.
 Tasks carry only a :class:`PairTask` (file paths), never contexts or volumes.
 """
@@ -21,15 +22,42 @@ from ..device import DeviceLike
 from ..grid import Grid
 from ..io.fields import save_field
 from ..io.files import read_image, write_volumes
-from ..pipeline import process_pair
+from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
-from ..reconstruction import ReconstructionSettings
-from ..tomlfile import read_toml
 from .layout import pair_index, volume_file
 from .pairing import fingerprint
 
 #: The exceptions a bad pair raises (unreadable, wrong size, NaN, ...): logged, skipped.
 PAIR_ERRORS = (ValueError, OSError, TypeError)
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What every pair of a run shares (:func:`plenocl.batch.run` makes it from the
+    experiment file).
+
+    Attributes
+    ----------
+    pair
+        The chain's settings (:class:`plenocl.pipeline.PairSettings`).
+    dt_s
+        Time between the two exposures of a pair (s).
+    vti
+        Also write a ParaView ``.vti`` per pair.
+    keep_volumes
+        Keep each pair's volumes beside its field (for the ensemble correlation).
+    channel, dark, flat
+        The frames' colour channel, and the absolute paths of the dark frame and flat
+        field (``None``: none).
+    """
+
+    pair: PairSettings
+    dt_s: float
+    vti: bool = False
+    keep_volumes: bool = False
+    channel: str | None = None
+    dark: str | None = None
+    flat: str | None = None
 
 
 @dataclass(frozen=True)
@@ -57,28 +85,23 @@ class PairProcessor:
     Parameters
     ----------
     run_folder
-        The run's output folder, holding ``experiment_used.toml``, ``camera_used.toml``
-        and ``grid_used.toml`` (written by :func:`plenocl.batch.run` before any pair).
+        The run's output folder, holding ``camera_used.toml`` and ``grid_used.toml``
+        (written by :func:`plenocl.batch.run` before any pair).
+    settings
+        What every pair of the run shares.
     device
         OpenCL device of this process (:func:`plenocl.get_queue` rules: by default
         ``PYOPENCL_CTX``, else a GPU, else a CPU).
     """
 
-    def __init__(self, run_folder: str | Path, device: DeviceLike = None) -> None:
+    def __init__(self, run_folder: str | Path, settings: RunSettings,
+                 device: DeviceLike = None) -> None:
         folder = Path(run_folder)
-        used = read_toml(folder / "experiment_used.toml")   # checked when the run began
-        self.settings = ReconstructionSettings(**used["reconstruction"])
-        windows = used.get("piv", {}).get("windows")
-        self.piv_options = {} if windows is None else {"windows": tuple(windows)}
-        self.dt = float(used["images"]["dt_s"])
-        self.vti = bool(used["output"].get("vti", False))
-        self.keep_volumes = bool(used.get("piv", {}).get("ensemble", False))
+        self.settings = settings
         self.camera = load_camera(folder / "camera_used.toml")
         self.grid = Grid.from_toml(folder / "grid_used.toml")
-        images = used["images"]
-        self.channel = images.get("channel")
-        self.dark, self.flat = (read_image(images[k], self.channel) if images.get(k) else None
-                                for k in ("dark", "flat"))
+        self.dark, self.flat = (read_image(path, settings.channel) if path else None
+                                for path in (settings.dark, settings.flat))
         self.device = device
         self._projector = None
 
@@ -109,17 +132,17 @@ class PairProcessor:
     def frame(self, path: str) -> np.ndarray:
         """One raw frame as the camera sees it: its colour channel, the dark frame and
         flat field of the experiment, the camera's region of interest."""
-        return load_frame(path, self.camera, self.channel, self.dark, self.flat)
+        return load_frame(path, self.camera, self.settings.channel, self.dark, self.flat)
 
     def _process(self, raw_a, raw_b, target: Path, sources: dict) -> dict:
-        pair = process_pair(raw_a, raw_b, self.projector, settings=self.settings,
-                            piv_options=self.piv_options)
+        run = self.settings
+        pair = process_pair(raw_a, raw_b, self.projector, run.pair)
         t0 = time.perf_counter()
-        if self.keep_volumes:  # for the ensemble correlation at the end of the run
+        if run.keep_volumes:  # for the ensemble correlation at the end of the run
             write_volumes(volume_file(target), pair.vol_a, pair.vol_b)
-        if self.vti:
-            save_field(target.with_suffix(".vti"), pair.piv, dt=self.dt, grid=self.grid)
+        if run.vti:
+            save_field(target.with_suffix(".vti"), pair.piv, dt=run.dt_s, grid=self.grid)
         # the .npz last: its presence marks the pair done; it names the two source files
-        save_field(target, pair.piv, dt=self.dt, grid=self.grid,
+        save_field(target, pair.piv, dt=run.dt_s, grid=self.grid,
                    metadata={"sources": sources, "pair": pair_index(target)})
         return {**pair.seconds, "write": time.perf_counter() - t0}

@@ -184,7 +184,7 @@ def budget_row(cam: Camera, grid: Grid, proj, ppm: float, seed: int, queue,
         "reconstruct": seconds, "piv": pair.seconds["piv"],
         "particles": time.perf_counter() - t0}), scene, grid, motion)
     if baseline:
-        before = process_pair(scene.raw_a, scene.raw_b, proj, settings=BASELINE_SETTINGS,
+        before = process_pair(scene.raw_a, scene.raw_b, proj, reconstruction=BASELINE_SETTINGS,
                               particles=False)
         row["baseline"] = pair_row(before, scene, grid, motion)
     return row

@@ -16,7 +16,7 @@ import numpy as np
 from ..camera import load_camera
 from ..io.files import CHANNELS
 from ..pipeline.frames import load_frame
-from ..reconstruction.supersample import PAIR_SUPERSAMPLE
+from ..pipeline.settings import PAIR_SUPERSAMPLE
 from .frames import add_frame_options, camera_for_frames, read_frame
 
 
@@ -26,7 +26,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     from ..io.files import save_volume
     from ..io.progress import iteration_bar
     from ..projection.projector import Projector
-    from ..reconstruction import DEFAULTS, reconstruct
+    from ..reconstruction import ReconstructionSettings, reconstruct
 
     camera = camera_for_frames(args, load_camera(args.camera))
     grid = Grid.from_toml(args.grid)
@@ -36,15 +36,14 @@ def reconstruct_command(args: argparse.Namespace) -> int:
                       stacklevel=2)
     image = read_frame(args, args.raw, camera)
     mask = _pixel_mask(args, camera)
-    iterations = DEFAULTS[args.method][0] if args.iterations is None else args.iterations
+    settings = ReconstructionSettings(
+        args.method, args.iterations, args.relax, start=args.start,
+        background="median" if args.background == "median" else None,
+        threshold=args.threshold, mask_fraction=args.mask_fraction,
+        min_sensitivity=args.min_sensitivity, tol=args.tol, supersample=args.supersample)
     proj = Projector(camera, grid, args.device)
-    with iteration_bar(iterations, f"{args.method} {grid.shape}") as bar:
-        vol, info = reconstruct(image, proj, args.method, iterations, args.relax,
-                                start=args.start,
-                                background="median" if args.background == "median" else None,
-                                threshold=args.threshold, mask_fraction=args.mask_fraction,
-                                min_sensitivity=args.min_sensitivity, tol=args.tol,
-                                supersample=args.supersample, callback=bar,
+    with iteration_bar(settings.iterations, f"{args.method} {grid.shape}") as bar:
+        vol, info = reconstruct(image, proj, settings=settings, callback=bar,
                                 return_info=True, pixel_mask=mask)
     save_volume(args.out, vol, grid)
     print(f"wrote {args.out}: {grid.shape} voxels, {info.iterations} {args.method} iterations "
@@ -72,7 +71,8 @@ def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
     from ..io.fields import save_field
     from ..io.files import load_volume
-    from ..piv import piv3d
+    from ..pipeline.settings import PairSettings
+    from ..piv import PIVSettings, piv3d
     from ..piv.tracking import FocalZone, refine_with_particles
     from ..units import check_dt
 
@@ -80,15 +80,18 @@ def piv_command(args: argparse.Namespace) -> int:
         raise ValueError("--raw needs --camera: the particles are fitted to the raw images "
                          "with the camera's rays (give the calibrated camera TOML)")
     check_dt(args.dt, "--dt", args.force)  # before any work
+    settings = PairSettings(piv=PIVSettings(windows=tuple(args.windows) if args.windows else None),
+                            particles=args.particles, image_fit=bool(args.raw))
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, grid_b = load_volume(args.vol_b)
     grid = _volume_grid(args, (grid_a, grid_b), (vol_a.shape, vol_b.shape))
-    res = piv3d(vol_a, vol_b, windows=tuple(args.windows) if args.windows else None)
-    if args.particles:
+    res = piv3d(vol_a, vol_b, settings.piv)
+    if settings.particles:
         camera = load_camera(args.camera) if args.camera else None
         focus = FocalZone.of(camera, grid) if camera else None
         res = refine_with_particles(res, vol_a, vol_b, focus=focus,
-                                    fit=_image_fit(args.raw, camera, grid, args.channel))
+                                    fit=_image_fit(args.raw, camera, grid, args.channel,
+                                                   settings.image_fit))
         log = res.refinement
         print(f"particle refinement: {log['pairs']} particle pairs, {log['vectors']} vectors"
               + ("" if focus else "; without --camera the depth uncertainty has no "
@@ -135,13 +138,16 @@ def _volume_grid(args: argparse.Namespace, grids, shapes):
     return grid
 
 
-def _image_fit(raw: list[str] | None, camera, grid, channel: str | None = None):
-    """The image-space particle fit of the raw images ``raw`` (``None`` without them)."""
+def _image_fit(raw: list[str] | None, camera, grid, channel: str | None = None,
+               settings=None):
+    """The image-space particle fit of the raw images ``raw`` with ``settings``
+    (:class:`~plenocl.piv.imagefit.ImageFitSettings`; ``None`` without the images)."""
     if not raw:
         return None
     from ..piv.imagefit import ImageFit
 
-    return ImageFit(camera, grid, [load_frame(path, camera, channel) for path in raw])
+    return ImageFit(camera, grid, [load_frame(path, camera, channel) for path in raw],
+                    settings)
 
 
 def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:

@@ -28,7 +28,9 @@ from ..io.files import (
 )
 from ..metrics import recovery
 from ..particles import particles_per_microlens, random_particles
-from ..pipeline.pair import PAIR_SETTINGS
+from ..pipeline.settings import PairSettings
+from ..piv.settings import PIVSettings
+from ..reconstruction import ReconstructionSettings
 from .stages import StageRunner, write_json
 
 U_INF = 4.57          # free-stream velocity, m/s (the paper's 15 ft/s)
@@ -126,7 +128,8 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     """
     sc = scenario(size)
     flow = CameraFrameFlow(sc, seed)
-    chain = {"supersample": PAIR_SETTINGS.supersample,
+    settings = chain_settings(sc)
+    chain = {"supersample": settings.reconstruction.supersample,
              "refinement": "particles fitted to the raw images"}
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
@@ -136,10 +139,10 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     run.run("images", ["raw_a.tif", "raw_b.tif"], lambda: _stage_images(run, sc, seed, queue))
     cam = Camera.from_toml(run.path("camera_calibrated.toml"))
     run.run("reconstruction", ["vol_a.npz", "vol_b.npz"],
-            lambda: _stage_reconstruction(run, sc, cam, "mlem", sc.iterations, queue))
+            lambda: _stage_reconstruction(run, sc, cam, settings.reconstruction, queue))
     run.run("reconstruction_mart", ["vol_a_mart.npz"],
             lambda: _stage_mart(run, sc, cam, queue))
-    run.run("piv", ["field.npz", "field.vti"], lambda: _stage_piv(run, sc, cam))
+    run.run("piv", ["field.npz", "field.vti"], lambda: _stage_piv(run, sc, cam, settings))
     summary = evaluate(run, sc, flow)
     if figures:
         from .figures import boundary_layer_figures
@@ -191,36 +194,44 @@ def _stage_images(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
         write_tiff(run.path(f"raw_{tag}.tif"), img)
 
 
-def _reconstruct_file(run, sc, proj, tag: str, method: str, iterations: int, relax: float,
-                      suffix: str = "", supersample: int = 1) -> None:
+def chain_settings(sc: Scenario) -> PairSettings:
+    """The demo's chain: :func:`plenocl.process_pair`'s defaults (3 x 3 lateral
+    sub-voxels, particles fitted to the raw images) with the scenario's iterations and
+    windows."""
+    base = PairSettings()
+    return PairSettings(reconstruction=replace(base.reconstruction, iterations=sc.iterations),
+                        piv=PIVSettings(windows=sc.windows))
+
+
+def _reconstruct_file(run, sc, proj, tag: str, settings: ReconstructionSettings,
+                      suffix: str = "") -> None:
     from ..io.progress import iteration_bar
     from ..reconstruction import reconstruct
 
     img = read_image(run.path(f"raw_{tag}.tif"))
-    with iteration_bar(iterations, f"{method} {tag}") as bar:
+    with iteration_bar(settings.iterations, f"{settings.method} {tag}") as bar:
         # the default preprocessing, as the API and the CLI: median background, 4 sigma
-        vol = reconstruct(img, proj, method, iterations, relax, callback=bar,
-                          supersample=supersample)
+        vol = reconstruct(img, proj, settings=settings, callback=bar)
     save_volume(run.path(f"vol_{tag}{suffix}.npz"), vol, sc.grid)
 
 
-def _stage_reconstruction(run, sc, cam, method, iterations, queue) -> None:
+def _stage_reconstruction(run, sc, cam, settings: ReconstructionSettings, queue) -> None:
     from ..projection.projector import Projector
 
     proj = Projector(cam, sc.grid, queue)
     for tag in ("a", "b"):  # process_pair's reconstruction: 3 x 3 lateral sub-voxels
-        _reconstruct_file(run, sc, proj, tag, method, iterations, 1.0,
-                          supersample=PAIR_SETTINGS.supersample)
+        _reconstruct_file(run, sc, proj, tag, settings)
 
 
 def _stage_mart(run, sc, cam, queue) -> None:
     """The paper's solver for comparison: 5 MART iterations at μ = 1 (first exposure)."""
     from ..projection.projector import Projector
 
-    _reconstruct_file(run, sc, Projector(cam, sc.grid, queue), "a", "mart", 5, 1.0, "_mart")
+    _reconstruct_file(run, sc, Projector(cam, sc.grid, queue), "a",
+                      ReconstructionSettings("mart", 5, 1.0), "_mart")
 
 
-def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera) -> None:
+def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettings) -> None:
     from ..io.fields import save_field
     from ..io.files import read_image
     from ..piv.imagefit import ImageFit
@@ -232,9 +243,9 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera) -> None:
     # process_pair's correlation: the field refined by the volumes' particle pairs, each
     # particle first fitted to its raw image with the calibrated camera
     raws = [read_image(run.path(f"raw_{tag}.tif")) for tag in "ab"]
-    res = refine_with_particles(piv3d(vol_a, vol_b, windows=sc.windows), vol_a, vol_b,
+    res = refine_with_particles(piv3d(vol_a, vol_b, settings.piv), vol_a, vol_b,
                                 focus=FocalZone.of(sc.camera, sc.grid),
-                                fit=ImageFit(cam, sc.grid, raws))
+                                fit=ImageFit(cam, sc.grid, raws, settings.image_fit))
     for name in ("field.npz", "field.vti"):
         save_field(run.path(name), res, dt=DT, grid=sc.grid)
 

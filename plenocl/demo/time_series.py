@@ -25,6 +25,7 @@ from .boundary_layer import (
     DT,
     U_INF,
     CameraFrameFlow,
+    chain_settings,
     measured_and_true,
     scenario,
     seed_particles,
@@ -91,13 +92,15 @@ def write_experiment(out: Path, sc, flow, pairs: int, seed: int, queue, log) -> 
             write_tiff(name, img)
         log(f"pair {k}: {len(inten)} particles imaged")
     sc.grid.to_toml(out / "grid.toml")
+    chain = chain_settings(sc)  # the boundary-layer demo's chain, as an experiment file
     write_toml(out / "experiment.toml", {
         "camera": {"preset": PRESET[sc.size], "white": "white.tif"},
         "grid": {"file": "grid.toml"},
         "images": {"folder": "raw", "pattern": "frame_*.tif", "pairing": "sequence",
                    "dt_s": DT, "pair_interval_s": PAIR_INTERVAL},
-        "reconstruction": {"method": "mlem", "iterations": sc.iterations},
-        "piv": {"windows": list(sc.windows), "ensemble": True},
+        "reconstruction": {"method": chain.reconstruction.method,
+                           "iterations": chain.reconstruction.iterations},
+        "piv": {"windows": list(chain.piv.windows), "ensemble": True},
         "output": {"folder": "results"}})
 
 

@@ -34,7 +34,8 @@ class MTESettings:
     Attributes
     ----------
     cycles
-        Warp, combine, re-reconstruct and correlate cycles (0: off).
+        Warp, combine, re-reconstruct and correlate cycles (0, the default: off; one
+        cycle is measured in docs/design.md §6.3).
     iterations
         Reconstruction iterations of each exposure per cycle, from the combined guess.
     combine
@@ -45,7 +46,7 @@ class MTESettings:
         vector spacings (0: none): a wrong vector must not drag particles away.
     """
 
-    cycles: int = 2
+    cycles: int = 0
     iterations: int = 10
     combine: str = "geometric"
     smooth: float = 1.0

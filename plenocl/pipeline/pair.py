@@ -13,22 +13,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..options import with_keywords
 from ..piv import PIVResult, piv3d
-from ..piv.imagefit import ImageFit, ImageFitSettings
+from ..piv.imagefit import ImageFit
 from ..piv.tracking import FocalZone, refine_with_particles
-from ..reconstruction import (
-    PAIR_SUPERSAMPLE,
-    ProjectionOperator,
-    ReconstructionInfo,
-    ReconstructionSettings,
-    run_reconstruction,
-)
-from .mte import MTESettings, motion_tracking_enhancement
-
-#: The motion-tracking enhancement :func:`process_pair` applies by default.
-DEFAULT_MTE = MTESettings(cycles=0)
-#: The reconstruction :func:`process_pair` runs by default.
-PAIR_SETTINGS = ReconstructionSettings(supersample=PAIR_SUPERSAMPLE)
+from ..reconstruction import ProjectionOperator, ReconstructionInfo, run_reconstruction
+from .mte import motion_tracking_enhancement
+from .settings import PairSettings
 
 
 @dataclass
@@ -57,11 +48,8 @@ class PairResult:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
-                 settings: ReconstructionSettings | None = None,
-                 piv_options: dict | None = None, mte: MTESettings | None = None,
-                 particles: bool = True,
-                 image_fit: bool | ImageFitSettings = True) -> PairResult:
+def process_pair(raw_a, raw_b, projector: ProjectionOperator,
+                 settings: PairSettings | None = None, **parts) -> PairResult:
     """Reconstruct two raw images with one projector and correlate the volumes.
 
     Parameters
@@ -72,64 +60,65 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator, *,
         A :class:`plenocl.Projector` (or any
         :class:`plenocl.reconstruction.ProjectionOperator`), reused for both images.
     settings
-        Reconstruction options (:class:`plenocl.reconstruction.ReconstructionSettings`);
-        by default :data:`PAIR_SETTINGS`: MLEM, 30 iterations, the median background
-        removed and pixels within 4 noise deviations of it dark, as
-        :func:`plenocl.reconstruct`, on 3 x 3 lateral sub-voxels per voxel
-        (``supersample=3``, docs/design.md §6.4: the depth error falls two- to threefold).
-    piv_options
-        Keyword arguments of :func:`plenocl.piv3d` (by default the windows are fitted to
-        the volume's shape, and the volumes are deformed on the projector's device).
-    mte
-        Motion-tracking enhancement (:class:`plenocl.pipeline.MTESettings`): after the
-        single-frame volumes and their correlation, ``mte.cycles`` times warp each volume
-        onto the other exposure's time, combine, reconstruct again from that guess and
-        correlate. ``None``: the default :data:`DEFAULT_MTE`; ``MTESettings(cycles=0)``:
-        single-frame reconstruction only.
-    particles
-        Refine the correlation's final field with the volumes' particles
-        (:func:`plenocl.piv.tracking.refine_with_particles`, docs/design.md §7.1): each
-        window's displacement becomes the mean of its matched particle pairs, and its
-        uncertainty their standard error with the systematic depth term of the pairs
-        near the camera's focal plane, whose depth is not measured.
-        ``False``: the correlation's field.
-    image_fit
-        Before pairing, refine each volume's particles against its raw image
-        (:class:`plenocl.piv.imagefit.ImageFit`, docs/design.md §7.2): at the paper's
-        optics the vectors' depth error of uniform displacements falls by 9-56 % and
-        the lateral by 10-58 % (``benchmarks/accuracy.py``), for 2-32 s more per pair
-        on 2 CPU cores. ``True``: with
-        the default :class:`~plenocl.piv.imagefit.ImageFitSettings`; settings: with
-        those; ``False``: the volumes' peaks as they are.
+        Every option of the chain (:class:`plenocl.pipeline.PairSettings`; ``None``: its
+        defaults). Its parts may instead be given as keywords (``reconstruction=``,
+        ``piv=``, ``mte=``, ``particles=``, ``image_fit=``), which build one; keywords
+        that differ from a given ``settings`` are an error. The parts:
+
+        - ``reconstruction``: by default MLEM, 30 iterations, the median background
+          removed and pixels within 4 noise deviations of it dark, as
+          :func:`plenocl.reconstruct`, on 3 x 3 lateral sub-voxels per voxel
+          (``supersample=3``, docs/design.md §6.4: the depth error falls two- to
+          threefold).
+        - ``piv``: :func:`plenocl.piv3d`'s options (by default the windows are fitted to
+          the volume's shape); the volumes are deformed on the projector's device.
+        - ``mte``: motion-tracking enhancement: after the single-frame volumes and their
+          correlation, ``mte.cycles`` times warp each volume onto the other exposure's
+          time, combine, reconstruct again from that guess and correlate (off by
+          default).
+        - ``particles``: refine the correlation's final field with the volumes'
+          particles (:func:`plenocl.piv.tracking.refine_with_particles`,
+          docs/design.md §7.1): each window's displacement becomes the mean of its
+          matched particle pairs, and its uncertainty their standard error with the
+          systematic depth term of the pairs near the camera's focal plane, whose depth
+          is not measured. ``False``: the correlation's field.
+        - ``image_fit``: before pairing, refine each volume's particles against its raw
+          image (:class:`plenocl.piv.imagefit.ImageFit`, docs/design.md §7.2): at the
+          paper's optics the vectors' depth error of uniform displacements falls by
+          9-56 % and the lateral by 10-58 % (``benchmarks/accuracy.py``), for 2-32 s
+          more per pair on 2 CPU cores. ``None`` (or ``False``): the volumes' peaks as
+          they are.
 
     Returns
     -------
     PairResult
         Both volumes, the displacement field, the reconstructions' info and stage times.
     """
-    settings = PAIR_SETTINGS if settings is None else settings
+    settings = with_keywords(PairSettings, settings, parts, "process_pair")
+    rec = settings.reconstruction
     seconds, out = {}, {}
     for tag, raw in (("a", raw_a), ("b", raw_b)):
         t0 = time.perf_counter()
-        out[tag] = run_reconstruction(raw, projector, settings)
+        out[tag] = run_reconstruction(raw, projector, rec)
         seconds[f"reconstruct_{tag}"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    options = {"queue": projector.queue, **(piv_options or {})}
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
-    res = piv3d(vol_a, vol_b, **options)
+
+    def correlate(a, b) -> PIVResult:
+        return piv3d(a, b, settings.piv, queue=projector.queue)
+
+    res = correlate(vol_a, vol_b)
     seconds["piv"] = time.perf_counter() - t0
-    mte = DEFAULT_MTE if mte is None else mte
-    if mte.cycles:
+    if settings.mte.cycles:
         vol_a, vol_b, res, infos, seconds["mte"] = motion_tracking_enhancement(
-            raw_a, raw_b, projector, vol_a, vol_b, res, settings, mte,
-            lambda a, b: piv3d(a, b, **options))
+            raw_a, raw_b, projector, vol_a, vol_b, res, rec, settings.mte, correlate)
         info_a, info_b = infos
-    if particles:
+    if settings.particles:
         t0 = time.perf_counter()
         fit = None
-        if image_fit is not False:
+        if settings.image_fit is not None:
             fit = ImageFit(projector.camera, projector.grid, (raw_a, raw_b),
-                           None if image_fit is True else image_fit)
+                           settings.image_fit)
         res = refine_with_particles(res, vol_a, vol_b,
                                     focus=FocalZone.of(projector.camera, projector.grid),
                                     fit=fit)

@@ -3,6 +3,7 @@
 - :mod:`.correlation`: windows, batched FFT correlation, sub-voxel peak fit;
 - :mod:`.deform`: predictor resampling and volume deformation;
 - :mod:`.validation`: outlier detection and replacement;
+- :mod:`.settings`: :class:`PIVSettings` (every option of :func:`piv3d`, checked once);
 - :mod:`.multipass`: :func:`piv3d` and :class:`PIVResult` (velocities, gradients);
 - :mod:`.tracking`: the refinement by the volumes' matched particle pairs;
 - :mod:`.imagefit`: those particles fitted to the raw images (the camera's rays:
@@ -22,7 +23,8 @@ from .multipass import (
     vorticity,
     voxel_size,
 )
+from .settings import PIVSettings
 
-__all__ = ["DEFAULT_WINDOWS", "MIN_PARTICLES_PER_WINDOW", "PIVResult", "auto_windows",
-           "count_particles", "displacement_to_velocity", "piv3d",
+__all__ = ["DEFAULT_WINDOWS", "MIN_PARTICLES_PER_WINDOW", "PIVResult", "PIVSettings",
+           "auto_windows", "count_particles", "displacement_to_velocity", "piv3d",
            "q_criterion", "velocity_gradient", "voxel_size", "vorticity"]

@@ -22,10 +22,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from ..options import with_keywords
 from .correlation import correlate, gaussian_weight, window_fraction, window_grid
 from .deform import resample
 from .deformers import make_deformer
 from .direct import correlate_deformed, deformed_uncertainty
+from .settings import PIVSettings
 from .validation import normalized_median_test, replace_outliers
 
 __all__ = ["PIVResult", "piv3d", "q_criterion", "velocity_gradient", "vorticity"]
@@ -321,18 +323,18 @@ def count_particles(vol: np.ndarray, threshold: float = 0.1) -> int:
     return int(peaks.sum())
 
 
-def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
-          final_iterations: int = 3, pad_first: bool = True, weighting: float | None = 0.35,
-          deform_order: int = 3, predictor: str = "cubic", mask=None,
-          median_eps: float = 0.1, median_threshold: float = 2.0,
-          min_peak_ratio: float | None = None, workers: int = -1,
-          queue=None, fft: str | None = None, correlation: str = "auto") -> PIVResult:
+def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue=None,
+          **keywords) -> PIVResult:
     """Multi-pass 3-D PIV of two particle volumes with symmetric window deformation.
 
     Parameters
     ----------
     vol_a, vol_b
         Volumes ``vol[iz, iy, ix]`` at ``t`` and ``t + dt`` (same shape, finite, real).
+    settings
+        Every option below but ``mask`` and ``queue`` as one :class:`PIVSettings`
+        (``None``: the defaults). The options may instead be given as keywords, which
+        build one; keywords that differ from a given ``settings`` are an error.
     windows
         Window size per pass: ints (cubes) or ``(wz, wy, wx)``; each >= 8 voxels and no
         larger than the volume. By default :func:`auto_windows` of the volume's shape and
@@ -395,21 +397,20 @@ def piv3d(vol_a, vol_b, *, windows=None, overlaps=None,
     if a.shape != b.shape:
         raise ValueError(f"vol_a and vol_b must have the same shape, got {a.shape} and "
                          f"{b.shape}")
-    opts = _Options(deform_order, predictor, median_eps, median_threshold, min_peak_ratio,
-                    workers, fft, weighting, correlation)
-    _check_options(opts)
+    opts = with_keywords(PIVSettings, settings, keywords, "piv3d")
+    windows, weighting = opts.windows, opts.weighting
     if windows is None:
         windows = auto_windows(a.shape, particles=count_particles(a))
-    schedule = _schedule(a.shape, windows, overlaps, final_iterations)
+    schedule = _schedule(a.shape, windows, opts.overlaps, opts.final_iterations)
     mask = _check_mask(mask, a.shape)
     if mask is not None:
         a, b = (np.where(mask, np.float32(0), v) for v in (a, b))
-    deformer = make_deformer(deform_order, queue)
+    deformer = make_deformer(opts.deform_order, queue)
     coeffs = (deformer.prepare(a), deformer.prepare(b))
     state, log = None, []
     for k, (size, overlap) in enumerate(schedule):
         t0 = time.perf_counter()
-        pad = pad_first and k == 0
+        pad = opts.pad_first and k == 0
         weight = None if pad or weighting is None else gaussian_weight(size, weighting)
         final = k == len(schedule) - 1
         direct = (opts.correlation == "auto" and k > 0 and weighting is not None
@@ -440,39 +441,6 @@ def _warn_if_thin(result: PIVResult, shape: tuple[int, ...]) -> None:
             "--depth-voxel-mm) or give smaller windows (windows=, --windows)", stacklevel=3)
 
 
-@dataclass(frozen=True)
-class _Options:
-    """Per-pass settings of :func:`piv3d`."""
-
-    order: int
-    predictor: str
-    eps: float
-    threshold: float
-    min_peak_ratio: float | None
-    workers: int
-    fft: str | None = None
-    weighting: float | None = None
-    correlation: str = "auto"
-
-
-def _check_options(opts: _Options) -> None:
-    weighting = opts.weighting
-    if opts.correlation not in ("auto", "fft"):
-        raise ValueError(f"correlation must be 'auto' (the deformed passes correlated "
-                         f"directly around zero) or 'fft', got {opts.correlation!r}")
-    if opts.order not in (1, 3, 5):
-        raise ValueError(f"deform_order must be 1 (trilinear), 3 (cubic B-spline) or 5 "
-                         f"(quintic B-spline), got {opts.order!r}")
-    if opts.predictor not in ("cubic", "linear"):
-        raise ValueError(f"predictor must be 'cubic' or 'linear', got {opts.predictor!r}")
-    if not (opts.eps > 0 and opts.threshold > 0):
-        raise ValueError(f"median_eps and median_threshold must be positive, got "
-                         f"{opts.eps!r} and {opts.threshold!r}")
-    if weighting is not None and not 0.05 <= weighting <= 10:
-        raise ValueError(f"weighting is a Gaussian width as a fraction of the window "
-                         f"(e.g. 0.35) or None, got {weighting!r}")
-
-
 def _check_mask(mask, shape: Size3) -> np.ndarray | None:
     if mask is None:
         return None
@@ -485,7 +453,7 @@ def _check_mask(mask, shape: Size3) -> np.ndarray | None:
 
 
 def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, mask, pad: bool,
-              weight, opts: _Options, direct: bool = False, final: bool = False) -> _Pass:
+              weight, opts: PIVSettings, direct: bool = False, final: bool = False) -> _Pass:
     """One correlation pass: deform by the predictor, correlate, validate, replace."""
     grid = window_grid(a.shape, size, overlap)
     centres = grid.centres
@@ -506,12 +474,13 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
     if opts.min_peak_ratio is not None:
         invalid |= corr.peak_ratio < opts.min_peak_ratio
     total = base + corr.displacement
-    outlier = normalized_median_test(total, opts.eps, opts.threshold, ignore=invalid)
+    outlier = normalized_median_test(total, opts.median_eps, opts.median_threshold,
+                                     ignore=invalid)
     total = replace_outliers(total, outlier | invalid)
     return _Pass(total, centres, invalid, outlier, masked, corr.peak_ratio, corr.sigma)
 
 
-def _correlate_pass(da, db, grid, pad: bool, weight, opts: _Options, direct: bool,
+def _correlate_pass(da, db, grid, pad: bool, weight, opts: PIVSettings, direct: bool,
                     uncertainty: bool):
     """Correlate one pass directly or by FFT; with ``uncertainty`` (the final pass on
     deformed volumes) also estimate each vector's uncertainty."""

@@ -24,10 +24,10 @@ from .settings import (
     ReconstructionSettings,
 )
 from .solver import CROP_BELOW, UPDATES, Solver, extent_box, nonzero_box
-from .supersample import MAX_SUPERSAMPLE, PAIR_SUPERSAMPLE, bin_lateral, spread_lateral
+from .supersample import MAX_SUPERSAMPLE, bin_lateral, spread_lateral
 
 __all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE",
-           "METHODS", "NOISE_SIGMAS", "PAIR_SUPERSAMPLE", "UPDATES", "bin_lateral",
+           "METHODS", "NOISE_SIGMAS", "UPDATES", "bin_lateral",
            "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
            "RefinableOperator", "Solver",

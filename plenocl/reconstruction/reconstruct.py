@@ -37,6 +37,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..optics.rawimage import check_pixel_mask
+from ..options import with_keywords
 from .blocks import device_view_blocks
 from .images import NOISE_SIGMAS, preprocess
 from .operator import ProjectionOperator
@@ -90,15 +91,11 @@ def _warn_if_outside(projector, solver: Solver, min_sensitivity: float) -> None:
                       "shrink it (Grid.for_camera fits the field of view)", stacklevel=4)
 
 
-def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
+def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
                 iterations: int | None = None, relax: float | None = None, *,
-                start="uniform", background: str | None = "median",
-                threshold: float | None = None, mask_fraction: float | None = None,
-                min_sensitivity: float = 0.5, skip_empty: bool = True, crop: bool = True,
-                skip_dark: bool = True, tol: float | None = None, mart_blocks: int = 2,
-                ratio_floor: float | None = None, supersample: int = 1,
+                settings: ReconstructionSettings | None = None,
                 callback: Callable[[int, float], bool | None] | None = None,
-                return_info: bool = False, pixel_mask=None):
+                return_info: bool = False, pixel_mask=None, **keywords):
     """Reconstruct a particle volume from one raw plenoptic image.
 
     Parameters
@@ -109,6 +106,11 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
     projector
         A :class:`plenocl.Projector` for the camera and grid (its queue runs the solver),
         or any :class:`plenocl.reconstruction.operator.ProjectionOperator`.
+    settings
+        Every option from ``method`` to ``supersample`` below as one
+        :class:`ReconstructionSettings` (``None``: the defaults). The options may instead
+        be given as arguments and keywords, which build one; values that differ from a
+        given ``settings`` are an error.
     method
         ``"mlem"`` (default), ``"smart"`` or ``"mart"`` (see the module documentation).
     iterations, relax
@@ -182,12 +184,9 @@ def reconstruct(image, projector: ProjectionOperator, method: str = "mlem",
     numpy.ndarray
         float32 volume ``(nz, ny, nx)`` in the image's intensity units; never NaN or Inf.
     """
-    settings = ReconstructionSettings(
-        method=method, iterations=iterations, relax=relax, start=start,
-        background=background, threshold=threshold,
-        mask_fraction=mask_fraction, min_sensitivity=min_sensitivity, skip_empty=skip_empty,
-        crop=crop, skip_dark=skip_dark, tol=tol, mart_blocks=mart_blocks,
-        ratio_floor=ratio_floor, supersample=supersample)
+    given = {"method": method, "iterations": iterations, "relax": relax}
+    keywords.update({k: v for k, v in given.items() if v is not None})
+    settings = with_keywords(ReconstructionSettings, settings, keywords, "reconstruct")
     vol, info = run_reconstruction(image, projector, settings, callback, pixel_mask)
     return (vol, info) if return_info else vol
 

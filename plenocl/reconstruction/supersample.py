@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Sub-voxels per voxel and lateral axis of :func:`plenocl.process_pair`'s reconstruction.
-PAIR_SUPERSAMPLE = 3
 #: Largest accepted factor (memory and time grow as its square).
 MAX_SUPERSAMPLE = 4
 

@@ -1,0 +1,80 @@
+"""What every settings object shares: built from keywords or from a document's table.
+
+The settings classes (``ReconstructionSettings``, ``PIVSettings``, ``MTESettings``,
+``ImageFitSettings``, ``PairSettings``) are frozen dataclasses that check their values
+when made. A function that takes one also takes its fields as keywords
+(:func:`with_keywords`); a file's table becomes one through :func:`from_table`, which
+names an unknown key and the keys allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+
+def field_names(cls) -> list[str]:
+    """The fields of a settings dataclass, in order."""
+    return [f.name for f in dataclasses.fields(cls)]
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(a == b)
+    except (ValueError, TypeError):  # arrays: equal only when they are the same object
+        return a is b
+
+
+def with_keywords(cls, settings, keywords: dict, where: str):
+    """``settings`` (an instance of ``cls`` or ``None``: the defaults) with ``keywords``.
+
+    Raises
+    ------
+    TypeError
+        A keyword that is no field of ``cls``; ``settings`` of another type; or, with
+        ``settings`` given, a keyword whose value differs from the settings' (pass one
+        or the other).
+    """
+    names = field_names(cls)
+    unknown = sorted(set(keywords) - set(names))
+    if unknown:
+        raise TypeError(f"{where}() got unknown keyword(s) {unknown}; the options are "
+                        f"{names}")
+    if settings is None:
+        return cls(**keywords)
+    if not isinstance(settings, cls):
+        raise TypeError(f"{where}(settings=...) takes a {cls.__name__}, got "
+                        f"{type(settings).__name__}")
+    conflict = sorted(k for k, v in keywords.items() if not _same(getattr(settings, k), v))
+    if conflict:
+        raise TypeError(f"{where}() got both settings and keyword(s) {conflict} that differ "
+                        f"from them; pass the options one way (dataclasses.replace(settings, "
+                        f"...) changes a settings object)")
+    return settings
+
+
+def from_table(cls, table, where: str):
+    """A ``cls`` from a document's table (e.g. a TOML section): an unknown key, a table
+    that is none, or a bad value is a ``ValueError`` naming ``where``."""
+    if not isinstance(table, Mapping):
+        raise ValueError(f"{where} must be a table of {cls.__name__} options, got {table!r}")
+    names = field_names(cls)
+    unknown = sorted(set(table) - set(names))
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; it takes {names}")
+    try:
+        return cls(**table)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: {exc}") from exc
+
+
+def to_table(settings, skip: tuple[str, ...] = ()) -> dict:
+    """A settings object's fields as a plain dict (tuples as lists), ``skip`` left out."""
+    return {f.name: _plain(getattr(settings, f.name))
+            for f in dataclasses.fields(settings) if f.name not in skip}
+
+
+def _plain(value):
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value

@@ -1,0 +1,72 @@
+"""Every option of :func:`plenocl.piv3d` as one validated object."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+CORRELATIONS = ("auto", "fft")
+DEFORM_ORDERS = (1, 3, 5)
+PREDICTORS = ("cubic", "linear")
+
+
+@dataclass(frozen=True)
+class PIVSettings:
+    """The options of :func:`plenocl.piv3d` (see there for their meaning), checked once.
+
+    ``windows`` and ``overlaps`` given as lists are stored as tuples; whether the
+    windows fit the volume is checked when the volumes come (:func:`plenocl.piv3d`).
+    """
+
+    windows: tuple | int | None = None
+    overlaps: tuple | float | None = None
+    final_iterations: int = 3
+    pad_first: bool = True
+    weighting: float | None = 0.35
+    deform_order: int = 3
+    predictor: str = "cubic"
+    median_eps: float = 0.1
+    median_threshold: float = 2.0
+    min_peak_ratio: float | None = None
+    workers: int = -1
+    fft: str | None = None
+    correlation: str = "auto"
+
+    def __post_init__(self) -> None:
+        for name in ("windows", "overlaps"):
+            value = getattr(self, name)
+            if isinstance(value, Sequence) and not isinstance(value, str):
+                object.__setattr__(self, name, _frozen(value))
+        _check(self)
+
+
+def _frozen(value):
+    """Lists (a TOML array) as tuples, nested ones too, so that settings hash and compare."""
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        return tuple(_frozen(v) for v in value)
+    return value
+
+
+def _check(s: PIVSettings) -> None:
+    weighting = s.weighting
+    if s.correlation not in CORRELATIONS:
+        raise ValueError(f"correlation must be 'auto' (the deformed passes correlated "
+                         f"directly around zero) or 'fft', got {s.correlation!r}")
+    if s.deform_order not in DEFORM_ORDERS:
+        raise ValueError(f"deform_order must be 1 (trilinear), 3 (cubic B-spline) or 5 "
+                         f"(quintic B-spline), got {s.deform_order!r}")
+    if s.predictor not in PREDICTORS:
+        raise ValueError(f"predictor must be 'cubic' or 'linear', got {s.predictor!r}")
+    if not (s.median_eps > 0 and s.median_threshold > 0):
+        raise ValueError(f"median_eps and median_threshold must be positive, got "
+                         f"{s.median_eps!r} and {s.median_threshold!r}")
+    if weighting is not None and not 0.05 <= weighting <= 10:
+        raise ValueError(f"weighting is a Gaussian width as a fraction of the window "
+                         f"(e.g. 0.35) or None, got {weighting!r}")
+    if s.min_peak_ratio is not None and not np.isfinite(s.min_peak_ratio):
+        raise ValueError(f"min_peak_ratio must be a finite number or None, got "
+                         f"{s.min_peak_ratio!r}")
+    if not isinstance(s.pad_first, (bool, np.bool_)):
+        raise ValueError(f"pad_first must be true or false, got {s.pad_first!r}")

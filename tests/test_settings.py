@@ -1,0 +1,115 @@
+"""One settings object for a pair (PairSettings): its parts, its documents, its defaults."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from plenocl import (
+    MTESettings,
+    PairSettings,
+    PIVSettings,
+    ReconstructionSettings,
+    piv3d,
+    reconstruct,
+)
+from plenocl.cli.main import build_parser
+from plenocl.pipeline.settings import PAIR_SUPERSAMPLE
+from plenocl.piv.imagefit import ImageFitSettings
+from plenocl.tomlfile import read_toml, write_toml
+
+CHANGED = PairSettings(
+    reconstruction=ReconstructionSettings("mart", 12, 0.6, threshold=3.0, ratio_floor=0.2,
+                                          supersample=2, mart_blocks=3),
+    piv=PIVSettings(windows=(32, (24, 16, 16)), overlaps=0.5, weighting=0.5,
+                    correlation="fft", min_peak_ratio=1.3),
+    mte=MTESettings(cycles=1, iterations=4, combine="mean", smooth=0.5),
+    particles=False, image_fit=ImageFitSettings(rays=200, blur_px=1.1))
+
+
+#: Options set to None where their default is not: a dict holds them, a TOML file cannot.
+NONES = PairSettings(reconstruction=ReconstructionSettings(background=None),
+                     piv=PIVSettings(weighting=None), image_fit=None)
+
+
+def test_to_dict_and_from_dict_round_trip_options_set_to_none():
+    assert PairSettings.from_dict(NONES.to_dict()) == NONES
+
+
+@pytest.mark.parametrize("settings", [PairSettings(), CHANGED,
+                                      PairSettings(image_fit=None, particles=True)])
+def test_to_dict_and_from_dict_round_trip(settings, tmp_path):
+    assert PairSettings.from_dict(settings.to_dict()) == settings
+    # through a TOML file (which holds no None: those keys are left out, their defaults)
+    doc = {part: {k: v for k, v in table.items() if v is not None}
+           for part, table in settings.to_dict().items()}
+    write_toml(tmp_path / "s.toml", doc)
+    assert PairSettings.from_dict(read_toml(tmp_path / "s.toml")) == settings
+
+
+def test_switches_and_lists_are_read_as_the_objects_hold_them():
+    doc = {"particles": False, "image_fit": False, "piv": {"windows": [48, [32, 24, 24]]}}
+    got = PairSettings.from_dict(doc)
+    assert got.particles is False and got.image_fit is None
+    assert got.piv.windows == (48, (32, 24, 24))
+    assert PairSettings.from_dict({"image_fit": {"rays": 100}}).image_fit.rays == 100
+    assert PairSettings.from_dict({"image_fit": {"enabled": False}}).image_fit is None
+    assert PairSettings(image_fit=True) == PairSettings()
+
+
+@pytest.mark.parametrize("doc, message", [
+    ({"pivv": {}}, r"e.toml: unknown section\(s\) \['pivv'\]; the pair settings are "
+                   r"\['reconstruction', 'piv', 'mte', 'particles', 'image_fit'\]"),
+    ({"piv": {"window": 3}}, r"\[piv\]: unknown key\(s\) \['window'\]; it takes "
+                             r"\['windows', 'overlaps'"),
+    ({"mte": {"cycle": 1}}, r"\[mte\]: unknown key\(s\) \['cycle'\]; it takes \['cycles'"),
+    ({"image_fit": {"ray": 1}}, r"\[image_fit\]: unknown key\(s\) \['ray'\]; it takes "
+                                r"\['enabled', 'rays'"),
+    ({"particles": {"on": True}}, r"\[particles\]: unknown key\(s\) \['on'\]"),
+    ({"mte": {"cycles": -1}}, r"\[mte\]: MTE cycles must be a non-negative integer"),
+    ({"reconstruction": {"supersample": 9}}, r"\[reconstruction\]: supersample must be"),
+    ({"reconstruction": {"method": "art"}}, r"\[reconstruction\]: method must be"),
+    ({"piv": {"deform_order": 2}}, r"\[piv\]: deform_order must be 1"),
+    ({"image_fit": {"rays": 8}}, r"\[image_fit\]: ImageFitSettings.rays must be"),
+    ({"particles": "yes"}, r"\[particles\] enabled must be true or false"),
+    ({"mte": 3}, r"\[mte\] must be a table"),
+])
+def test_unknown_keys_and_bad_values_are_named(doc, message):
+    with pytest.raises(ValueError, match=message):
+        PairSettings.from_dict(doc, source="e.toml")
+
+
+def test_defaults_agree():
+    """One default per option: the pair's reconstruction on 3 x 3 sub-voxels, MTE off,
+    the particle refinement and the image fit on; an empty document is the defaults, as
+    is the CLI's reconstruction."""
+    pair = PairSettings()
+    assert pair.reconstruction.supersample == PAIR_SUPERSAMPLE == 3
+    assert pair.mte == MTESettings() and MTESettings().cycles == 0
+    assert pair.particles and pair.image_fit == ImageFitSettings()
+    assert pair.piv == PIVSettings()
+    assert PairSettings.from_dict({}) == pair
+    assert PairSettings.from_dict({"reconstruction": {"iterations": 30}}) == pair
+    args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
+                                      "g", "--out", "v.npz"])
+    assert args.supersample == pair.reconstruction.supersample
+
+
+def test_keywords_build_settings_and_conflicts_are_refused():
+    vol = np.random.default_rng(0).random((16, 16, 16)).astype(np.float32)
+    with pytest.raises(TypeError, match=r"both settings and keyword\(s\) \['windows'\]"):
+        piv3d(vol, vol, PIVSettings(windows=(16,)), windows=(8,))
+    with pytest.raises(TypeError, match=r"unknown keyword\(s\) \['window'\]"):
+        piv3d(vol, vol, window=16)
+    with pytest.raises(ValueError, match="deform_order must be"):
+        piv3d(vol, vol, deform_order=2)
+    settings = ReconstructionSettings("smart", 5)
+    with pytest.raises(TypeError, match=r"both settings and keyword\(s\) \['method'\]"):
+        reconstruct(None, None, "mart", settings=settings)
+    with pytest.raises(TypeError, match=r"both settings and keyword\(s\) \['crop'\]"):
+        reconstruct(None, None, settings=settings, crop=False)
+    with pytest.raises(TypeError, match="takes a ReconstructionSettings"):
+        reconstruct(None, None, settings=PIVSettings())
+    assert dataclasses.replace(settings, crop=False).crop is False
