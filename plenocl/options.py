@@ -53,9 +53,14 @@ def with_keywords(cls, settings, keywords: dict, where: str):
     return settings
 
 
+#: How a file writes an option set to ``None`` (TOML has no null): ``weighting = "none"``.
+NONE = "none"
+
+
 def from_table(cls, table, where: str):
     """A ``cls`` from a document's table (e.g. a TOML section): an unknown key, a table
-    that is none, or a bad value is a ``ValueError`` naming ``where``."""
+    that is none, or a bad value is a ``ValueError`` naming ``where``. The string
+    :data:`NONE` stands for ``None`` (no option takes it as a string)."""
     if not isinstance(table, Mapping):
         raise ValueError(f"{where} must be a table of {cls.__name__} options, got {table!r}")
     names = field_names(cls)
@@ -63,18 +68,20 @@ def from_table(cls, table, where: str):
     if unknown:
         raise ValueError(f"{where}: unknown key(s) {unknown}; it takes {names}")
     try:
-        return cls(**table)
+        return cls(**{k: None if v == NONE else v for k, v in table.items()})
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{where}: {exc}") from exc
 
 
-def to_table(settings, skip: tuple[str, ...] = ()) -> dict:
-    """A settings object's fields as a plain dict (tuples as lists), ``skip`` left out."""
-    return {f.name: _plain(getattr(settings, f.name))
+def to_table(settings, skip: tuple[str, ...] = (), none=None) -> dict:
+    """A settings object's fields as a plain dict (tuples as lists), ``skip`` left out;
+    ``None`` values written as ``none`` (:data:`NONE` for a file :func:`from_table`
+    reads back)."""
+    return {f.name: _plain(getattr(settings, f.name), none)
             for f in dataclasses.fields(settings) if f.name not in skip}
 
 
-def _plain(value):
+def _plain(value, none=None):
     if isinstance(value, (tuple, list)):
-        return [_plain(v) for v in value]
-    return value
+        return [_plain(v, none) for v in value]
+    return none if value is None else value

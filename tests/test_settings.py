@@ -16,6 +16,7 @@ from plenocl import (
     reconstruct,
 )
 from plenocl.cli.main import build_parser
+from plenocl.options import NONE
 from plenocl.pipeline.settings import PAIR_SUPERSAMPLE
 from plenocl.piv.imagefit import ImageFitSettings
 from plenocl.tomlfile import read_toml, write_toml
@@ -36,6 +37,16 @@ NONES = PairSettings(reconstruction=ReconstructionSettings(background=None),
 
 def test_to_dict_and_from_dict_round_trip_options_set_to_none():
     assert PairSettings.from_dict(NONES.to_dict()) == NONES
+
+
+def test_options_set_to_none_round_trip_through_a_toml_file(tmp_path):
+    """TOML has no null: ``"none"`` stands for ``None`` (``weighting = "none"``: top-hat
+    windows), so a file can ask for what a dict can."""
+    doc = NONES.to_dict(none=NONE)
+    assert doc["piv"]["weighting"] == "none" and doc["reconstruction"]["background"] == "none"
+    write_toml(tmp_path / "s.toml", doc)
+    got = PairSettings.from_dict(read_toml(tmp_path / "s.toml"))
+    assert got == NONES and got.piv.weighting is None
 
 
 @pytest.mark.parametrize("settings", [PairSettings(), CHANGED,

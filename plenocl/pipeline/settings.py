@@ -65,20 +65,23 @@ class PairSettings:
             raise ValueError(f"PairSettings.particles must be true or false, got "
                              f"{self.particles!r}")
 
-    def to_dict(self) -> dict:
+    def to_dict(self, none=None) -> dict:
         """The settings as nested plain dicts, the shape :meth:`from_dict` reads: one
         table per part, ``particles`` and ``image_fit`` with an ``enabled`` key. A
-        reconstruction that starts from a volume has no such form (ValueError)."""
+        reconstruction that starts from a volume has no such form (ValueError).
+        ``none``: what an option set to ``None`` becomes (``plenocl.options.NONE``,
+        ``"none"``, for a TOML file, which has no null)."""
         start = self.reconstruction.start
         if not isinstance(start, str):
             raise ValueError("PairSettings.to_dict: the reconstruction starts from a volume, "
                              "which a settings document cannot hold")
         fit = self.image_fit
-        return {"reconstruction": to_table(self.reconstruction),
-                "piv": to_table(self.piv), "mte": to_table(self.mte),
+        return {"reconstruction": to_table(self.reconstruction, none=none),
+                "piv": to_table(self.piv, none=none), "mte": to_table(self.mte, none=none),
                 "particles": {"enabled": self.particles},
                 "image_fit": {"enabled": fit is not None,
-                              **to_table(fit if fit is not None else ImageFitSettings())}}
+                              **to_table(fit if fit is not None else ImageFitSettings(),
+                                         none=none)}}
 
     @classmethod
     def from_dict(cls, doc: Mapping, source: str = "settings") -> PairSettings:
