@@ -90,12 +90,11 @@ def pytest_report_header(config: pytest.Config) -> list[str]:
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
     """Repeat the devices left out at the end (the header is hidden under ``-q``)."""
-    if devices_under_test.cache_info().currsize:  # only when a kernel test asked
-        lines = _report_lines()
-        if len(lines) > 1 or "none" in lines[0]:
-            terminalreporter.write_sep("-", "OpenCL devices")
-            for line in lines:
-                terminalreporter.write_line(line)
+    lines = _report_lines()
+    if len(lines) > 1 or "none" in lines[0]:
+        terminalreporter.write_sep("-", "OpenCL devices")
+        for line in lines:
+            terminalreporter.write_line(line)
 
 
 @pytest.fixture(scope="session")
