@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import tolerances as tol
 
 from plenocl import Camera
 
@@ -35,7 +36,7 @@ def assert_close_to_peak(actual, expected, rtol: float, what: object = "") -> No
     assert err <= rtol * peak, f"{what}: max difference {err:.3g} > {rtol:g} x peak {peak:.3g}"
 
 
-def assert_adjoint(proj, seed: int = 7, rtol: float = 1e-4) -> None:
+def assert_adjoint(proj, seed: int = 7, rtol: float = tol.ADJOINT) -> None:
     """``<A x, y> = <x, Aᵀ y>`` for random ``x``, ``y``, within ``rtol`` of the sum of the
     absolute terms ``<A |x|, |y|>``."""
     rng = np.random.default_rng(seed)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import tolerances as tol
 
 from plenocl import Projector, process_pair, random_particles
 from plenocl.bench.accuracy_section import paper_optics
@@ -43,8 +44,8 @@ def test_a_uniform_field_stays_uniform_on_every_voxel_smoothed_or_not():
     for smooth in (0.0, 1.0):
         d = dense_displacement(field(shape, 1.5, -0.5, 2.0), shape, smooth)
         assert d.shape == (3, *shape) and d.dtype == np.float32
-        np.testing.assert_allclose(d[0], 2.0, atol=1e-5)   # dz from w
-        np.testing.assert_allclose(d[2], 1.5, atol=1e-5)   # dx from u
+        np.testing.assert_allclose(d[0], 2.0, atol=tol.UNIFORM_FIELD)   # dz from w
+        np.testing.assert_allclose(d[2], 1.5, atol=tol.UNIFORM_FIELD)   # dx from u
     masked = dense_displacement(field(shape, 1.0, 1.0, 1.0, nan_at=(1, 1, 1)), shape)
     assert np.isfinite(masked).all()  # a masked (NaN) vector counts as 0, never NaN
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import tolerances as tol
 
 from plenocl import flows
 from plenocl.piv import piv3d
@@ -23,8 +24,8 @@ def test_direct_correlation_matches_its_twin(shape, size, overlap, weighting):
     got = correlate_direct(a, b, grid, weighting).r
     want = correlate_windows(a, b, grid, weighting)
     assert got.shape == (27, *grid.count)
-    np.testing.assert_allclose(got, want, atol=2e-5)
-    assert np.all(np.abs(got) <= 1 + 1e-5)  # a Pearson coefficient
+    np.testing.assert_allclose(got, want, atol=tol.PIV_TWIN)
+    assert np.all(np.abs(got) <= 1 + tol.PEARSON)  # a Pearson coefficient
 
 
 def test_identical_windows_give_zero_displacement():
@@ -39,7 +40,7 @@ def test_identical_windows_give_zero_displacement():
     assert np.array_equal(LAGS[::-1], -LAGS)
     np.testing.assert_allclose(corr.r, mirrored, atol=2e-3)   # zeros beyond the faces
     disp, peak, centred = fit_direct(corr.r)
-    assert centred.all() and np.allclose(peak, 1.0, atol=1e-5)
+    assert centred.all() and np.allclose(peak, 1.0, atol=tol.PEARSON)
     assert np.abs(disp).max() < 0.01
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 import pytest
+import tolerances as tol
 from helpers import lens_camera
 
 from plenocl import Grid, Projector
@@ -73,6 +74,11 @@ def test_both_projectors_implement_the_operator_contract(tiny, queue):
     assert not isinstance(object(), ProjectionOperator)
 
 
+def _solver(expected: np.ndarray) -> dict:
+    """A solver against its NumPy twin: :data:`tolerances.SOLVER`, floor of the peak."""
+    return dict(rtol=tol.SOLVER, atol=tol.SOLVER_FLOOR * expected.max())
+
+
 @pytest.fixture(scope="module")
 def tiny(queue):
     """A 3 x 3-lens camera (51 x 51 px) and a 3 x 4 x 5 grid with a random sparse,
@@ -93,7 +99,7 @@ def test_simultaneous_solvers_match_reference(tiny, method, fn):
     proj, W, image = tiny
     vol = reconstruct(image, proj, method, iterations=12, relax=0.8)
     expected = fn(W, image / image.max(), 12, 0.8) * image.max()
-    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+    np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
 
 
 def test_block_mart_matches_block_reference_and_approaches_sequential(tiny):
@@ -102,7 +108,7 @@ def test_block_mart_matches_block_reference_and_approaches_sequential(tiny):
     vol = reconstruct(image, proj, "mart", iterations=5, relax=0.7, mart_blocks=2)
     groups = [np.nonzero(blocks == b)[0] for b in range(4)]
     expected = ref.mart_blocks(W, image / image.max(), groups, 5, 0.7) * image.max()
-    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+    np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
     seq = ref.mart_sequential(W, image / image.max(), 5, 0.7) * image.max()
     assert np.corrcoef(vol.ravel(), seq)[0, 1] > 0.99
 
@@ -116,14 +122,14 @@ def test_ratio_floor_matches_the_references(tiny, floor):
     top = image.max()
     vol = reconstruct(image, proj, "smart", iterations=8, relax=0.8, ratio_floor=floor)
     expected = ref.smart(W, image / top, 8, 0.8, ratio_floor=floor) * top
-    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+    np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
     literal = ref.smart(W, image / top, 8, 0.8) * top
     dark = (W.T @ (image.ravel() <= 0)) > 0
     assert expected[dark].max() > 1e3 * literal[dark].max()
     groups = [np.nonzero(view_blocks(proj.camera, 2).ravel() == b)[0] for b in range(4)]
     vol = reconstruct(image, proj, "mart", iterations=4, relax=0.7, ratio_floor=floor)
     expected = ref.mart_blocks(W, image / top, groups, 4, 0.7, ratio_floor=floor) * top
-    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+    np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
 
 
 def test_solvers_converge_to_the_truth_on_a_determined_case(tiny):
@@ -163,7 +169,7 @@ def test_dynamic_range_scales_linearly(tiny):
     proj, _, image = tiny
     lo = reconstruct(image * 1e-6, proj, "smart", iterations=10)
     hi = reconstruct(image * 1e6, proj, "smart", iterations=10)
-    np.testing.assert_allclose(lo * 1e12, hi, rtol=1e-4, atol=1e-6 * hi.max())
+    np.testing.assert_allclose(lo * 1e12, hi, rtol=tol.ITERATED, atol=1e-6 * hi.max())
 
 
 def test_same_input_same_output(tiny):
@@ -269,7 +275,7 @@ def test_pixels_without_data_match_the_reference(tiny, method, fn):
                       threshold=0.0, pixel_mask=observed)
     top = image[observed].max()
     expected = fn(W, np.where(observed, image, 0.0) / top, 12, 0.8, observed=observed) * top
-    np.testing.assert_allclose(vol.ravel(), expected, rtol=2e-3, atol=1e-5 * expected.max())
+    np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
 
 
 def test_a_pixel_mask_is_checked(tiny):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import tolerances as tol
 from helpers import ROTATED, assert_adjoint, assert_close_to_peak, lens_camera
 
 from plenocl import Camera, Grid, Projector, simulate_image
@@ -60,8 +61,8 @@ def test_rotated_array_in_its_frame_is_separable_and_exact(queue, rotation, jitt
         onehot[vox] = 1.0
         for got in (proj.forward(onehot).ravel(), np.bincount(
                 proj.voxel_weights(*vox)[0], proj.voxel_weights(*vox)[1], minlength=n)):
-            assert_close_to_peak(got, ref, 1e-5, vox)
-            assert got.sum() == pytest.approx(ref.sum(), rel=1e-4)
+            assert_close_to_peak(got, ref, tol.WEIGHTS, vox)
+            assert got.sum() == pytest.approx(ref.sum(), rel=tol.FOOTPRINT_TOTAL)
     assert_adjoint(proj)
 
 
