@@ -13,8 +13,7 @@ from .piv import PIVResult, piv3d
 from .projection import Projector
 from .reconstruction import reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
-
-__version__ = "0.1.0"
+from .version import __version__
 
 __all__ = [
     "PRESETS",
@@ -28,6 +27,7 @@ __all__ = [
     "PairResult",
     "Projector",
     "Simulator",
+    "__version__",
     "calibrate",
     "create_context",
     "describe_devices",

@@ -30,6 +30,7 @@ from ..io.fields import field_metadata
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..tomlfile import write_toml
+from ..version import __version__
 from .config import Experiment, image_pairs, load_experiment
 from .layout import finished_pairs, pair_file, remove_partial_files
 from .pairing import ImagePair, PairPlan, changed_since
@@ -235,8 +236,6 @@ def _refuse_other_grid(out: Path, grid) -> None:
 
 def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
     """The configuration used, the camera and the grid, beside the results."""
-    from .. import __version__
-
     out.mkdir(parents=True, exist_ok=True)
     grid_file = out / "grid_used.toml"
     used = {name: {k: v for k, v in values.items() if v is not None}

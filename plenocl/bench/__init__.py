@@ -38,6 +38,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..device import DeviceLike, device_info, get_queue
+from ..version import __version__
 from .accuracy_section import section_accuracy
 from .core import SIZES, BenchRun, bench_sizes, loglog_slope, md_table, pareto_front, repeats_text
 from .devices import section_devices
@@ -88,8 +89,6 @@ def _load() -> str:
 def _header(run: BenchRun, load_start: str, end: tuple[str, float] | None) -> str:
     import pyopencl
     import scipy
-
-    from .. import __version__
 
     info, dev = device_info(run.queue), run.queue.device
     status = (f"load average (1 / 5 / 15 min) at end {end[0]}; total {end[1]:.0f} s"
