@@ -45,8 +45,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..io.tomlfile import read_toml
 from ..reconstruction.supersample import PAIR_SUPERSAMPLE
-from ..tomlfile import read_toml
 from ..units import check_dt
 from .pairing import PAIRINGS, PairPlan, ab_pairs, listed_pairs, numbered_pairs
 

@@ -19,17 +19,16 @@ refuses to mix them. Files a killed run left half-written are removed first.
 
 from __future__ import annotations
 
-import json
 import time
 import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ..atomic import atomic_path
+from ..io.atomic import write_json
 from ..io.fields import field_metadata
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
-from ..tomlfile import write_toml
+from ..io.tomlfile import write_toml
 from ..version import __version__
 from .config import Experiment, image_pairs, load_experiment
 from .layout import finished_pairs, pair_file, remove_partial_files
@@ -281,8 +280,7 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
                                   for k, p in fields], "s" if interval else "pair",
                                  ensemble=ensemble)
         summary.store = str(store)
-    with atomic_path(out / "summary.json") as tmp:
-        tmp.write_text(json.dumps(asdict(summary), indent=2))
+    write_json(out / "summary.json", asdict(summary))
     log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
         f"{len(summary.skipped)} already done, {len(summary.failed)} failed"
         + (f": {summary.failed}" if summary.failed else "")

@@ -21,10 +21,10 @@ from ..device import DeviceLike
 from ..grid import Grid
 from ..io.fields import save_field
 from ..io.files import read_image, write_volumes
+from ..io.tomlfile import read_toml
 from ..pipeline import process_pair
 from ..pipeline.frames import load_frame
 from ..reconstruction import ReconstructionSettings
-from ..tomlfile import read_toml
 from .layout import pair_index, volume_file
 from .pairing import fingerprint
 

@@ -14,13 +14,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from ..atomic import atomic_path
-
-
-def write_json(path: str | Path, doc: dict) -> None:
-    """Write JSON atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(doc, indent=2, sort_keys=True))
+from ..io.atomic import write_json
 
 
 class StageRunner:
@@ -70,7 +64,7 @@ class StageRunner:
         fn()
         seconds = time.perf_counter() - t0
         self.state["stages"][name] = {"seconds": seconds, "outputs": list(outputs)}
-        write_json(self.state_path, self.state)
+        write_json(self.state_path, self.state, sort_keys=True)
         self.log(f"[{name}] {seconds:.1f} s")
         return seconds
 

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
 from ..lattice import rotation_matrix
 from ..piv.multipass import PIVResult, voxel_size
+from .atomic import atomic_path
 
 __all__ = ["field_arrays", "field_metadata", "metadata_of", "read_npz", "save_field",
            "write_h5", "write_npz", "write_vti"]
