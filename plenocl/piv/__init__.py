@@ -3,23 +3,26 @@
 - :mod:`.correlation`: windows, batched FFT correlation, sub-voxel peak fit;
 - :mod:`.deform`: predictor resampling and volume deformation;
 - :mod:`.validation`: outlier detection and replacement;
-- :mod:`.multipass`: :func:`piv3d` and :class:`PIVResult` (velocities, gradients);
+- :mod:`.multipass`: :func:`piv3d`; its result :class:`plenocl.vectorfield.PIVResult`
+  (velocities, gradients, the arrays written to files) lives in the model layer;
 - :mod:`.tracking`: the refinement by the volumes' matched particle pairs;
 - :mod:`.raybundle`, :mod:`.imagefit`: those particles fitted to the raw images.
 """
 
-from .multipass import (
-    DEFAULT_WINDOWS,
-    MIN_PARTICLES_PER_WINDOW,
+from ..vectorfield import (
     PIVResult,
-    auto_windows,
-    count_particles,
     displacement_to_velocity,
-    piv3d,
     q_criterion,
     velocity_gradient,
     vorticity,
     voxel_size,
+)
+from .multipass import (
+    DEFAULT_WINDOWS,
+    MIN_PARTICLES_PER_WINDOW,
+    auto_windows,
+    count_particles,
+    piv3d,
 )
 
 __all__ = ["DEFAULT_WINDOWS", "MIN_PARTICLES_PER_WINDOW", "PIVResult", "auto_windows",
