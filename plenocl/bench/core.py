@@ -13,7 +13,7 @@ import numpy as np
 from ..camera import Camera
 from ..grid import Grid
 from ..particles import random_particles
-from ..simulate import Simulator
+from ..simulate import Simulator, simulate_image
 
 SIZES = ("ci", "small", "paper")
 Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
@@ -237,4 +237,18 @@ def bench_scene(run: BenchRun, count: int, seed: int, box: Box | None = None):
     """Particles (mm, intensities) in ``box`` and their noise-free raw image."""
     pos, inten = random_particles(box or run.cfg.box, count=count, seed=seed, intensity=1e4)
     img = Simulator(run.camera, run.queue).trace(pos, inten, run.cfg.rays, seed=seed)
+    return pos, inten, img
+
+
+#: Where the scripts' cube scenes place particles: the 5 mm cube, 0.2 mm from its faces.
+CUBE_BOX: Box = ((-2.3, 2.3),) * 3
+
+
+def particle_scene(camera: Camera, count: int, seed: int, box: Box = CUBE_BOX,
+                   blur_px: float = 0.0, queue=None):
+    """Particles (mm, intensities) in ``box`` and their noise-free raw image (20 000 rays
+    per particle), the workload of ``benchmarks/reconstruct.py`` and
+    ``benchmarks/cubic_recovery.py``."""
+    pos, inten = random_particles(box, count=count, seed=seed, intensity=1e4)
+    img = simulate_image(camera, pos, inten, 20000, seed=seed, blur_px=blur_px, queue=queue)
     return pos, inten, img

@@ -30,18 +30,30 @@ def piv_flows(shape: tuple[int, int, int]) -> dict[str, Flow]:
     }
 
 
+def displacement_truth(flow: Flow, centres) -> np.ndarray:
+    """The flow's mid-time displacement ``(3, nz', ny', nx')`` as (u, v, w) at window
+    centres ``(z, y, x)`` (1-D, voxel index)."""
+    zz, yy, xx = np.meshgrid(*centres, indexing="ij")
+    pts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    return centred_displacement(pts, flow, 1.0).T.reshape((3, *zz.shape))
+
+
+def interior(shape, centres, margin: float) -> np.ndarray:
+    """Where the window centres ``(z, y, x)`` lie at least ``margin`` voxels from every
+    face of a volume of ``shape``."""
+    zz, yy, xx = np.meshgrid(*centres, indexing="ij")
+    inside = np.ones(zz.shape, bool)
+    for c, n in zip((zz, yy, xx), shape):
+        inside &= (c >= margin) & (c <= n - 1 - margin)
+    return inside
+
+
 def piv_error(disp: np.ndarray, centres, flow, shape) -> float:
     """Interior RMS vector error (voxels) of ``disp`` ``(3, nz', ny', nx')`` as (u, v, w)
     at window centres ``(z, y, x)``: centres at least ``min(16, n/4)`` voxels from every
     face, against the flow's mid-time displacement."""
-    zz, yy, xx = np.meshgrid(*centres, indexing="ij")
-    pts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
-    truth = centred_displacement(pts, flow, 1.0).T.reshape(disp.shape)
-    margin = min(16, min(shape) // 4)
-    inside = np.ones(zz.shape, bool)
-    for c, n in zip((zz, yy, xx), shape):
-        inside &= (c >= margin) & (c <= n - 1 - margin)
-    err = (disp - truth)[:, inside]
+    inside = interior(shape, centres, min(16, min(shape) // 4))
+    err = (disp - displacement_truth(flow, centres))[:, inside]
     return float(np.sqrt(np.mean(np.sum(err**2, axis=0)))) if err.size else float("nan")
 
 
