@@ -29,6 +29,7 @@ from ..io.fields import field_metadata
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..io.tomlfile import write_toml
+from ..pipeline.resume import pending
 from ..version import __version__
 from .config import Experiment, image_pairs, load_experiment
 from .layout import finished_pairs, pair_file, remove_partial_files
@@ -155,13 +156,9 @@ def _refuse_changed_inputs(plan: PairPlan, out: Path) -> None:
 
 def _tasks(pairs: list[ImagePair], out: Path, summary: RunSummary, log) -> list[PairTask]:
     """The pairs still to do; those whose field exists are skipped, and said so."""
-    tasks = []
-    for pair in pairs:
-        target = pair_file(out, pair.index)
-        if target.is_file():
-            summary.skipped.append(pair.index)
-        else:
-            tasks.append(PairTask(pair.index, str(pair.a), str(pair.b), str(target)))
+    todo, done = pending(pairs, lambda pair: [pair_file(out, pair.index)])
+    summary.skipped.extend(pair.index for pair in done)
+    tasks = [PairTask(p.index, str(p.a), str(p.b), str(pair_file(out, p.index))) for p in todo]
     if summary.skipped:
         log(f"{len(summary.skipped)} of {len(pairs)} pair(s) already done in "
             f"{out / 'pairs'}: skipped")
