@@ -253,7 +253,7 @@ def _ensemble(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> Pa
     if not summary.processed and made.is_file():
         log(f"ensemble correlation: no new pair, {made} kept")
         return made
-    from .ensemble import ensemble_field
+    from .ensemble_field import ensemble_field
 
     return ensemble_field(out, exp["images"]["dt_s"], queue, exp["output"]["vti"], log)
 

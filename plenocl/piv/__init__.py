@@ -1,7 +1,8 @@
 """3-D PIV: multi-pass FFT cross-correlation with window deformation (docs/design.md §7).
 
 - :mod:`.correlation`: windows, batched FFT correlation, sub-voxel peak fit;
-- :mod:`.deform`: predictor resampling and volume deformation;
+- :mod:`.interpolate`: predictor resampling, B-spline volume sampling (the host reference);
+- :mod:`.deformation`: deforming volumes on the host or an OpenCL device (``deform.cl``);
 - :mod:`.validation`: outlier detection and replacement;
 - :mod:`.multipass`: :func:`piv3d`; its result :class:`plenocl.vectorfield.PIVResult`
   (velocities, gradients, the arrays written to files) lives in the model layer;

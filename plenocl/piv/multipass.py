@@ -9,7 +9,7 @@ replacement after every pass. The result holds window centres in voxel-index uni
 vorticity (1/s), the Q-criterion (1/s^2) and the arrays written to files.
 
 Building blocks live in :mod:`plenocl.piv.correlation` (windows, FFT correlation, peak fit),
-:mod:`plenocl.piv.deform` (predictor resampling, volume deformation) and
+:mod:`plenocl.piv.interpolate` (predictor resampling, volume deformation) and
 :mod:`plenocl.piv.validation` (outlier detection and replacement).
 """
 
@@ -25,9 +25,9 @@ from scipy import ndimage
 
 from ..vectorfield import PIVResult, Size3
 from .correlation import correlate, gaussian_weight, window_fraction, window_grid
-from .deform import resample
-from .deformers import make_deformer
+from .deformation import make_deformer
 from .direct import correlate_deformed, deformed_uncertainty
+from .interpolate import resample
 from .validation import normalized_median_test, replace_outliers
 
 __all__ = ["PIVResult", "piv3d"]
