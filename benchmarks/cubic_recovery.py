@@ -17,7 +17,6 @@ reconstruction.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import sys
 from pathlib import Path
@@ -28,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenocl import Camera, Grid, Projector, get_queue  # noqa: E402
 from plenocl.bench.core import particle_scene  # noqa: E402
+from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
 from plenocl.reconstruction import PAIR_SUPERSAMPLE, reconstruct  # noqa: E402
@@ -36,7 +36,7 @@ CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--scenes", type=int, default=6)
     parser.add_argument("--counts", type=int, nargs="+", default=[20, 60])
     args = parser.parse_args()

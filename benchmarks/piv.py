@@ -16,7 +16,6 @@ its "valid" column applies plenocl's normalised median test to its field.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -32,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from plenocl import flows  # noqa: E402
 from plenocl.bench import piv_flows  # noqa: E402
 from plenocl.bench.piv_section import displacement_truth, interior, load_openpiv  # noqa: E402
+from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.piv import piv3d  # noqa: E402
 from plenocl.piv.validation import normalized_median_test  # noqa: E402
@@ -230,7 +230,7 @@ def boundary_layer(seed: int) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="96^3 only, 1 repeat")
     parser.add_argument("--seed", type=int, default=2718)

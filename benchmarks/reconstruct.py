@@ -15,7 +15,6 @@ the fraction of reconstructed intensity farther than (2, 4) voxels from every pa
 
 from __future__ import annotations
 
-import argparse
 import functools
 import statistics
 import time
@@ -24,6 +23,7 @@ import numpy as np
 
 from plenocl import Camera, Grid, get_queue, random_particles
 from plenocl.bench.core import particle_scene
+from plenocl.bench.scripts import script_parser
 from plenocl.bench.sparse import matrix_bytes, weight_matrix
 from plenocl.bench.timing import run_times
 from plenocl.device import device_info
@@ -209,9 +209,8 @@ def paper_experiment(queue) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__, {"paper": None})
     parser.add_argument("--quick", action="store_true", help="20 and 60 particles, fewer rows")
-    parser.add_argument("--skip-paper", action="store_true")
     parser.add_argument("--repeats", type=int, default=1)
     args = parser.parse_args()
     queue = get_queue()
