@@ -37,7 +37,6 @@ far (z > 2 mm). With ``--scenes N`` each seeding runs N scenes and the RMS over 
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from pathlib import Path
@@ -54,6 +53,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
     budget_row,
     paper_optics,
 )
+from plenocl.bench.scripts import script_parser  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 
@@ -78,7 +78,7 @@ def print_rows(rows: list[dict], grid) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--seeding", type=float, nargs="+",
                         default=[0.01, 0.02, 0.05, 0.1, 0.2])
     parser.add_argument("--lenses", type=int, nargs=2, default=[96, 64])

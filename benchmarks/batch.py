@@ -25,7 +25,6 @@ Run from the repository root::
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -39,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenocl import flows, get_queue, piv3d  # noqa: E402
 from plenocl.batch import run  # noqa: E402
+from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.demo.time_series import run_time_series  # noqa: E402
 
@@ -154,12 +154,9 @@ def paper_rows(queue) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__, {"piv": None, "batch": None,
+                                     "paper": "skip the stage split at paper size (minutes)"})
     parser.add_argument("--quick", action="store_true", help="1 repeat")
-    parser.add_argument("--skip-piv", action="store_true")
-    parser.add_argument("--skip-batch", action="store_true")
-    parser.add_argument("--skip-paper", action="store_true",
-                        help="skip the stage split at paper size (minutes)")
     args = parser.parse_args()
     queue = get_queue()
     print(f"device: {queue.device.name.strip()}\n")

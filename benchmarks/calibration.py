@@ -14,7 +14,6 @@ the calibration sees only the nominal camera (no rotation, no offset).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 
@@ -25,6 +24,7 @@ from plenocl.bench.lightfield_section import (
     rms,
     white_case,
 )
+from plenocl.bench.scripts import script_parser
 from plenocl.calibration import find_centers
 
 #: A normally exposed 12-bit white image (peak about 1600 counts), photon and read noise.
@@ -55,7 +55,7 @@ def run_case(base: Camera, layout: dict, sim: dict, seed: int, queue) -> tuple:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--camera", choices=["synthetic", "paper"], default="synthetic")
     parser.add_argument("--seeds", type=int, default=3, help="images per case")
     args = parser.parse_args()

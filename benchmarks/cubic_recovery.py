@@ -17,16 +17,18 @@ reconstruction.
 
 from __future__ import annotations
 
-import argparse
+import functools
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import Camera, Grid, Projector, get_queue, random_particles  # noqa: E402
+from plenocl import Camera, Grid, Projector, get_queue  # noqa: E402
+from plenocl.bench.core import particle_scene  # noqa: E402
+from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
 from plenocl.pipeline.settings import PAIR_SUPERSAMPLE  # noqa: E402
 from plenocl.reconstruction import reconstruct  # noqa: E402
@@ -36,7 +38,7 @@ CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--scenes", type=int, default=6)
     parser.add_argument("--counts", type=int, nargs="+", default=[20, 60])
     args = parser.parse_args()
@@ -50,15 +52,10 @@ def main() -> None:
     for count in args.counts:
         stats = {1: [], PAIR_SUPERSAMPLE: []}
         for k in range(args.scenes):
-            pos, inten = random_particles(((-2.3, 2.3),) * 3, count=count, seed=1000 + k,
-                                          intensity=1e4)
-            img = simulate_image(cam, pos, inten, 20000, seed=1000 + k, blur_px=1.0,
-                                 queue=queue)
+            pos, inten, img = particle_scene(cam, count, 1000 + k, blur_px=1.0, queue=queue)
             truth = render_particles(CUBIC, pos, inten)
             for f in stats:
-                t0 = time.perf_counter()
-                vol = reconstruct(img, proj, supersample=f)
-                t = time.perf_counter() - t0
+                vol, t = timed(functools.partial(reconstruct, img, proj, supersample=f), 1)
                 rep = recovery(vol, CUBIC, pos)
                 stats[f].append((rep.fraction, rep.ghost_fraction, quality_q(vol, truth), t))
         for f, rows in stats.items():

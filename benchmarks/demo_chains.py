@@ -21,7 +21,6 @@ truth of each row).
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenocl import Camera, Projector, get_queue, piv3d, reconstruct  # noqa: E402
+from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.demo.boundary_layer import (  # noqa: E402
     DT,
     CameraFrameFlow,
@@ -64,7 +64,7 @@ def row(label: str, e: dict, seconds: float) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--size", default="paper", choices=["small", "paper"])
     parser.add_argument("--out", default=None, help="demo folder (default: demo_SIZE)")
     args = parser.parse_args()

@@ -19,12 +19,12 @@ the reason. Rows:
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue, random_particles
+from plenocl.bench.scripts import script_parser
 from plenocl.bench.stages import device_pair
 from plenocl.bench.timing import median_time, timed
 from plenocl.demo.boundary_layer import run_boundary_layer
@@ -65,10 +65,8 @@ def demo_row(queue) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = script_parser(__doc__, {"paper": None, "demo": None})
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--skip-paper", action="store_true")
-    ap.add_argument("--skip-demo", action="store_true")
     args = ap.parse_args()
     cpus = [d for d in devices_by_preference() if is_cpu(d)]
     image = None

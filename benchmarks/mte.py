@@ -17,7 +17,6 @@ ghost intensity, and seconds per pair (both reconstructions and every correlatio
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from pathlib import Path
@@ -33,6 +32,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
     budget_scene,
     paper_optics,
 )
+from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.metrics import quality_q, recovery  # noqa: E402
 from plenocl.pipeline import MTESettings, motion_tracking_enhancement, process_pair  # noqa: E402
 from plenocl.pipeline.settings import PAIR_RECONSTRUCTION  # noqa: E402
@@ -90,7 +90,7 @@ def print_rows(rows: list[dict]) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--seeding", type=float, nargs="+", default=[0.02, 0.05, 0.1])
     parser.add_argument("--scenes", type=int, default=1)
     parser.add_argument("--cycles", type=int, default=2)

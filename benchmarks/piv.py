@@ -16,7 +16,6 @@ its "valid" column applies plenocl's normalised median test to its field.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -31,48 +30,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenocl import flows  # noqa: E402
 from plenocl.bench import piv_flows  # noqa: E402
+from plenocl.bench.piv_section import displacement_truth, interior, load_openpiv  # noqa: E402
+from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.piv import piv3d  # noqa: E402
 from plenocl.piv.validation import normalized_median_test  # noqa: E402
 
 MARGIN = 16
 
 
-def load_openpiv():
-    """openpiv's 3-D module, or None with the reason printed."""
-    try:
-        import openpiv
-        from openpiv import pyprocess3D
-    except Exception as exc:   # noqa: BLE001 - any import failure means "not available"
-        print(f"openpiv is not available ({type(exc).__name__}: {exc}); "
-              f"pip install openpiv to compare. Running plenocl only.\n")
+def openpiv_or_none():
+    """openpiv's 3-D module and version, or ``(None, None)`` with the reason printed."""
+    p3, version = load_openpiv()
+    if p3 is None:
+        print(f"openpiv is not available ({version}); pip install openpiv to compare. "
+              f"Running plenocl only.\n")
         return None, None
-    return pyprocess3D, getattr(openpiv, "__version__", "?")
-
-
-def truth(flow, zc, yc, xc) -> np.ndarray:
-    """Mid-time displacement ``(3, nz', ny', nx')`` as (u, v, w) at the window centres."""
-    zz, yy, xx = np.meshgrid(zc, yc, xc, indexing="ij")
-    d = flows.centred_displacement(np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]),
-                                   flow, 1.0)
-    return d.T.reshape((3, *zz.shape))
-
-
-def interior(shape, zc, yc, xc) -> np.ndarray:
-    zz, yy, xx = np.meshgrid(zc, yc, xc, indexing="ij")
-    inside = np.ones(zz.shape, bool)
-    for c, n in zip((zz, yy, xx), shape):
-        inside &= (c >= MARGIN) & (c <= n - 1 - MARGIN)
-    return inside
-
-
-def timed(fn, repeats: int):
-    """Result of the last call and the median wall time over ``repeats`` calls."""
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return out, float(np.median(times))
+    return p3, version
 
 
 def run_plenocl(pair, repeats: int, **kwargs) -> dict:
@@ -101,9 +75,8 @@ def run_openpiv(p3, pair, ws: int, ov: int, repeats: int) -> dict:
 
 
 def score(run: dict, flow, shape) -> dict:
-    zc, yc, xc = run["centres"]
-    err = run["disp"] - truth(flow, zc, yc, xc)
-    inner = interior(shape, zc, yc, xc)
+    err = run["disp"] - displacement_truth(flow, run["centres"])
+    inner = interior(shape, run["centres"], MARGIN)
     e = err[:, inner]
     n = err[0].size
     return {"rms": float(np.sqrt(np.mean(np.sum(e**2, axis=0)))),
@@ -160,7 +133,7 @@ def peak_locking(p3, seed: int) -> None:
     runs = {"plenocl": run_plenocl(pair, 1)}
     if p3 is not None:
         runs["openpiv 24^3 75%"] = run_openpiv(p3, pair, 24, 18, 1)
-    series = {"truth (same vector grid)": truth(flow, *runs["plenocl"]["centres"])}
+    series = {"truth (same vector grid)": displacement_truth(flow, runs["plenocl"]["centres"])}
     series.update({name: run["disp"] for name, run in runs.items()})
     bins = np.linspace(0.0, 1.0, 11)
     rows = []
@@ -246,7 +219,7 @@ def boundary_layer(seed: int) -> None:
     zc, yc, xc = run["centres"]
     profile = run["disp"][0].mean(axis=(0, 2))
     expect = tbl.mean_velocity(yc)
-    true_profile = truth(tbl, zc, yc, xc)[0].mean(axis=(0, 2))
+    true_profile = displacement_truth(tbl, (zc, yc, xc))[0].mean(axis=(0, 2))
     print(f"Turbulent boundary layer 128x96x80 (U_inf 6 voxels, delta 80, Re_tau 1000, "
           f"u'/U_inf 0.07): interior RMS {s['rms']:.4f} voxel, valid {s['valid']:.3f}, "
           f"PIV {s['seconds']:.1f} s, rendering {t_gen:.1f} s")
@@ -257,13 +230,13 @@ def boundary_layer(seed: int) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="96^3 only, 1 repeat")
     parser.add_argument("--seed", type=int, default=2718)
     args = parser.parse_args()
     repeats = 1 if args.quick else args.repeats
-    p3, version = load_openpiv()
+    p3, version = openpiv_or_none()
     print(f"numpy {np.__version__}, scipy {scipy.__version__}, openpiv {version}, "
           f"{os.cpu_count()} CPUs\n")
     if p3 is not None:

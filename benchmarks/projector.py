@@ -11,12 +11,12 @@ grid, whose matrix cannot be stored).
 
 from __future__ import annotations
 
-import argparse
 import os
 
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue
+from plenocl.bench.scripts import script_parser
 from plenocl.bench.sparse import matrix_bytes
 from plenocl.bench.stages import csr_case, device_pair, projector_bytes
 from plenocl.bench.timing import median_time
@@ -124,13 +124,10 @@ def rotated_array(queue, repeats: int, rotation: float = 0.15) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__, {"paper": None, "direct": None,
+                                     "rotated": "skip the rotated-array (general path) figure"})
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--paper-repeats", type=int, default=3)
-    parser.add_argument("--skip-paper", action="store_true")
-    parser.add_argument("--skip-direct", action="store_true")
-    parser.add_argument("--skip-rotated", action="store_true",
-                        help="skip the rotated-array (general path) figure")
     args = parser.parse_args()
     queue = get_queue()
     info = device_info(queue)

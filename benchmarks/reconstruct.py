@@ -15,7 +15,6 @@ the fraction of reconstructed intensity farther than (2, 4) voxels from every pa
 
 from __future__ import annotations
 
-import argparse
 import functools
 import statistics
 import time
@@ -23,6 +22,8 @@ import time
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue, random_particles
+from plenocl.bench.core import particle_scene
+from plenocl.bench.scripts import script_parser
 from plenocl.bench.sparse import matrix_bytes, weight_matrix
 from plenocl.bench.timing import run_times
 from plenocl.device import device_info
@@ -48,12 +49,6 @@ SETTINGS = [  # label, method, iterations, relax, options
 ]
 
 
-def scene(camera: Camera, n: int, seed: int):
-    """Particles in the 5 mm cube (0.2 mm from its faces) and their noise-free image."""
-    pos, inten = random_particles(((-2.3, 2.3),) * 3, count=n, seed=seed, intensity=1e4)
-    return pos, inten, simulate_image(camera, pos, inten, 20000, seed=seed)
-
-
 def table(queue, grid: Grid, counts, settings, repeats: int) -> None:
     """Recovery, ghosts, Q and median time per setting and particle count."""
     cam = Camera.synthetic_850()
@@ -62,7 +57,7 @@ def table(queue, grid: Grid, counts, settings, repeats: int) -> None:
     print(f"{'particles':>9s} {'setting':24s} {'it':>4s} {'time s':>7s} {'recov':>6s} "
           f"{'ghosts':>6s} {'Q':>5s} {'active':>6s}")
     for n in counts:
-        pos, inten, img = scene(cam, n, seed=n)
+        pos, inten, img = particle_scene(cam, n, seed=n)
         truth = render_particles(grid, pos, inten)
         for label, method, it, mu, opts in settings:
             times = []
@@ -104,8 +99,7 @@ def skipping(queue, repeats: int) -> None:
     for scene_name, box in (("sheet 1 mm deep", ((-2.3, 2.3), (-2.3, 2.3), (-0.5, 0.5))),
                             ("lateral quarter", ((-2.3, 0.0), (0.0, 2.3), (-2.3, 2.3))),
                             ("full 5 mm cube", ((-2.3, 2.3),) * 3)):
-        pos, inten = random_particles(box, count=40, seed=9, intensity=1e4)
-        img = simulate_image(cam, pos, inten, 20000, seed=9)
+        pos, inten, img = particle_scene(cam, 40, seed=9, box=box)
         for method in METHODS:
             base = None
             for label, opts in _skip_settings(method):
@@ -130,7 +124,7 @@ def seed_study(queue, seeds: int = 20, counts=(20, 60)) -> None:
     print(f"\nrecovery over {seeds} scenes (mean / worst):")
     print(f"{'particles':>9s} {'grid':12s} {'MLEM 30':>14s} {'MART (paper)':>14s}")
     for n in counts:
-        scenes = [scene(cam, n, seed=5000 + k) for k in range(seeds)]
+        scenes = [particle_scene(cam, n, seed=5000 + k) for k in range(seeds)]
         for name, proj in projs.items():
             rec = {m: [recovery(reconstruct(img, proj, m, it, mu), proj.grid, pos).fraction
                        for pos, _, img in scenes]
@@ -150,7 +144,7 @@ def coarse_to_fine(queue, counts=(20, 60, 150), seeds=3) -> None:
     for n in counts:
         rows: dict[str, list] = {}
         for seed in range(seeds):
-            pos, _, img = scene(cam, n, seed=300 + seed)
+            pos, _, img = particle_scene(cam, n, seed=300 + seed)
             for label, kc, kf in (("fine MLEM 30", 0, 30), ("fine MLEM 10", 0, 10),
                                   ("coarse 20 + fine 10", 20, 10),
                                   ("coarse 10 + fine 5", 10, 5)):
@@ -173,7 +167,7 @@ def sparse_comparison(queue, repeats: int) -> None:
     cam = Camera.synthetic_850()
     grid = CUBE
     proj = Projector(cam, grid, queue)
-    _, _, img = scene(cam, 20, seed=5)
+    _, _, img = particle_scene(cam, 20, seed=5)
     t0 = time.perf_counter()
     W = weight_matrix(proj)
     t_build = time.perf_counter() - t0
@@ -215,9 +209,8 @@ def paper_experiment(queue) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__, {"paper": None})
     parser.add_argument("--quick", action="store_true", help="20 and 60 particles, fewer rows")
-    parser.add_argument("--skip-paper", action="store_true")
     parser.add_argument("--repeats", type=int, default=1)
     args = parser.parse_args()
     queue = get_queue()

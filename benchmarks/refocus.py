@@ -9,12 +9,11 @@ view and output pixel).
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
 from plenocl import Camera, get_queue
 from plenocl.bench.lightfield_section import scipy_shift_and_add
+from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
 from plenocl.device import device_info
 from plenocl.lightfield import LightField
@@ -23,7 +22,7 @@ from plenocl.simulate import simulate_image
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--camera", choices=["synthetic", "paper"], default="synthetic")
     parser.add_argument("--planes", type=int, default=9, help="depths in the focal stack")
     parser.add_argument("--supersample", type=int, default=1)

@@ -10,17 +10,17 @@ paper's full 16 MP, 300 x 200 x 150 experiment.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenocl.bench import SIZES, run_report  # noqa: E402
+from plenocl.bench.scripts import script_parser  # noqa: E402
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--size", choices=SIZES, default="ci")
     parser.add_argument("--out", default="plenocl_bench", help="output folder")
     parser.add_argument("--repeats", type=int, default=None,

@@ -6,11 +6,10 @@
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
 from plenocl import Camera, get_queue, reference
+from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
 from plenocl.device import device_info
 from plenocl.particles import random_particles
@@ -18,7 +17,7 @@ from plenocl.simulate import Simulator
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--particles", type=int, default=200)
     parser.add_argument("--rays", type=int, default=20000)
     parser.add_argument("--ref-rays", type=int, default=2000,

@@ -12,7 +12,6 @@ blur. The array may be rotated (``--rotation``); the grid then follows its lens 
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import time
@@ -20,6 +19,7 @@ import time
 import numpy as np
 
 from plenocl import Camera, Grid, Projector, get_queue, random_particles, simulate_image
+from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
 from plenocl.device import device_info
 from plenocl.reconstruction import reconstruct
@@ -52,7 +52,7 @@ def timed_first(cam, grid, image, queue, method: str, iterations: int, repeats: 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--rotation", type=float, default=0.15)
     args = parser.parse_args()

@@ -25,7 +25,6 @@ standard uncertainty covers about 68 %):
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -47,6 +46,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
     budget_scene,
     paper_optics,
 )
+from plenocl.bench.scripts import script_parser  # noqa: E402
 
 RENDERED = [  # (density per voxel, particle sigma, noise, windows)
     (0.0004, 1.5, 0.02, (32, 24)), (0.001, 2.0, 0.1, (32, 24)),
@@ -121,7 +121,7 @@ def reconstructed_rows(queue, seedings, motions, seed: int = 0) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--quick", action="store_true",
                         help="two rendered cases and one seeding (0.05)")
     parser.add_argument("--seed", type=int, default=0,

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from plenocl.demo.particles import particle_demo
+from plenocl.demo.particle_images import particle_demo
 
 
 def main(out_dir: str = "plenocl_demo", count: int = 200) -> None:

@@ -1,7 +1,7 @@
 /* Volume deformation for multi-pass PIV (docs/design.md §7): every voxel p of the output
  * samples a prepared volume (zero margin MARGIN around it, B-spline coefficients for
  * ORDER 3, the plain values for ORDER 1) at p + factor * d(p), d the dense predictor.
- * NumPy/SciPy twin: plenocl.piv.deform.deform (scipy.ndimage.map_coordinates,
+ * NumPy/SciPy twin: plenocl.piv.interpolate.deform (scipy.ndimage.map_coordinates,
  * mode="constant", prefilter=False).
  *
  * Parallel structure: one work-item per output voxel over a 3-D range (x, y, z); each

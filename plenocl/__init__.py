@@ -13,8 +13,7 @@ from .piv import PIVResult, PIVSettings, piv3d
 from .projection import Projector
 from .reconstruction import ReconstructionSettings, reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
-
-__version__ = "0.1.0"
+from .version import __version__
 
 __all__ = [
     "PRESETS",
@@ -31,6 +30,7 @@ __all__ = [
     "Projector",
     "ReconstructionSettings",
     "Simulator",
+    "__version__",
     "calibrate",
     "create_context",
     "describe_devices",

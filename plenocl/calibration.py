@@ -807,7 +807,7 @@ def _zoom_panel(ax, img: np.ndarray, centre, pitch: float, half: int = 6) -> int
 def _save_figure(fig, path) -> None:
     import matplotlib.pyplot as plt
 
-    from .atomic import atomic_path
+    from .io.atomic import atomic_path
 
     fig.tight_layout()
     with atomic_path(path) as tmp:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .tomlfile import read_toml, write_toml
+from .io.tomlfile import read_toml, write_toml
 
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80

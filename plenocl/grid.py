@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .io.tomlfile import read_toml, write_toml
 from .optics.lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
-from .tomlfile import read_toml, write_toml
 
 
 def _extent(name: str, value) -> tuple[float, float]:

@@ -381,10 +381,10 @@ class LightField:
         once.
 
         The device copy is ``(value * valid, valid)`` pairs with a one-lens border of
-        zeros, the layout ``kernels/refocus.cl`` interpolates without branches.
+        zeros, the layout ``kernels/lightfield.cl`` interpolates without branches.
         """
         if not self._device:
-            kernels = KernelSet(get_queue(self._queue_arg), "refocus.cl", ["refocus"])
+            kernels = KernelSet(get_queue(self._queue_arg), "lightfield.cl", ["refocus"])
             flat = self.views.reshape(-1, *self.shape)
             used = np.flatnonzero(np.isfinite(flat).any(axis=(1, 2)))
             if len(used) == 0:

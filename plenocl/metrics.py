@@ -14,7 +14,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from .grid import Grid
-from .piv.peaks import find_particles
+from .peaks import find_particles
 
 
 def quality_q(vol: np.ndarray, truth: np.ndarray) -> float:

@@ -12,7 +12,7 @@ from plenocl import Camera, random_particles, simulate_image
 from plenocl.batch import load_experiment
 from plenocl.cli.main import main
 from plenocl.io import read_npz, write_tiff
-from plenocl.tomlfile import read_toml
+from plenocl.io.tomlfile import read_toml
 
 EXPERIMENT = """
 [camera]

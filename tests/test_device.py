@@ -97,7 +97,7 @@ def test_design_public_api_names_exist():
 def test_kernel_set_launches_with_arrays_and_the_cpu_rule(queue):
     """The launch layer unwraps device arrays, fetches each kernel once and runs it; the
     row extents it returns are the NumPy ones, on an awkward size."""
-    ks = KernelSet(queue, "reconstruct.cl", ["row_extent", "partial_sums"],
+    ks = KernelSet(queue, "solver.cl", ["row_extent", "partial_sums"],
                    looping=["partial_sums"])
     assert ks.is_cpu == bool(queue.device.type & cl.device_type.CPU)
     vol = np.zeros((3, 5, 7), np.float32)
@@ -109,7 +109,7 @@ def test_kernel_set_launches_with_arrays_and_the_cpu_rule(queue):
     assert tuple(ext[1, 2]) == (3, 5) and tuple(ext[2, 4]) == (0, 0)
     assert tuple(ext[0, 0]) == (7, -1)
     with pytest.raises(ValueError, match="not among"):
-        KernelSet(queue, "reconstruct.cl", ["row_extent"], looping=["ratio"])
+        KernelSet(queue, "solver.cl", ["row_extent"], looping=["ratio"])
 
 
 # ---- the default device: preference order, build probe, fallback -------------------------

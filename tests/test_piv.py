@@ -17,7 +17,7 @@ from plenocl import flows
 from plenocl.io import fields as fieldio
 from plenocl.piv import PIVResult, piv3d
 from plenocl.piv.correlation import correlate, fit_peaks, window_fraction, window_grid
-from plenocl.piv.deform import resample
+from plenocl.piv.interpolate import resample
 from plenocl.piv.validation import normalized_median_test, replace_outliers
 
 CASES = [((70, 90, 80), 20251), ((64, 72, 66), 777)]   # (nz, ny, nx), seed

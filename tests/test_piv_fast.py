@@ -12,7 +12,7 @@ from plenocl import flows
 from plenocl.piv import fft as pivfft
 from plenocl.piv import piv3d
 from plenocl.piv.correlation import correlate, padded_size, window_grid
-from plenocl.piv.deformers import DeviceDeformer, HostDeformer
+from plenocl.piv.deformation import DeviceDeformer, HostDeformer
 
 
 @pytest.mark.parametrize("order", [1, 3])

@@ -52,8 +52,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..io.tomlfile import read_toml
 from ..pipeline.settings import PARTS, PairSettings
-from ..tomlfile import read_toml
 from ..units import check_dt
 from .pairing import PAIRINGS, PairPlan, ab_pairs, listed_pairs, numbered_pairs
 

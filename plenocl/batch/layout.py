@@ -1,9 +1,11 @@
-"""Where a run keeps each pair's files in its output folder (one place for the names)."""
+"""Where a run keeps each pair's files in its output folder (one place for the names);
+a pair is done when its field file exists (:func:`plenocl.pipeline.resume.pending`)."""
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
+
+from ..pipeline import resume
 
 #: The folder of per-pair files inside a run's output folder.
 PAIRS = "pairs"
@@ -26,16 +28,9 @@ def pair_index(field_file: Path) -> int:
 
 
 def remove_partial_files(out: Path) -> list[Path]:
-    """Delete what a killed run left half-written: the atomic writers' temporary files
-    (``.<name>.*.part*``) and a time-series store being written (``*.partial``)."""
-    out = Path(out)
-    left = [*out.glob(".*.part*"), *(out / PAIRS).glob(".*.part*"), *out.glob("*.partial")]
-    for path in left:
-        if path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
-        else:
-            path.unlink(missing_ok=True)
-    return left
+    """Delete what a killed run left half-written in ``out`` and its pairs folder
+    (:func:`plenocl.pipeline.resume.remove_partial_files`)."""
+    return resume.remove_partial_files(Path(out), Path(out) / PAIRS)
 
 
 def finished_pairs(out: Path) -> list[tuple[int, Path]]:

@@ -20,17 +20,18 @@ refuses to mix them. Files a killed run left half-written are removed first.
 
 from __future__ import annotations
 
-import json
 import time
 import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ..atomic import atomic_path
+from ..io.atomic import write_json
 from ..io.fields import field_metadata
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
-from ..tomlfile import write_toml
+from ..io.tomlfile import write_toml
+from ..pipeline.resume import pending
+from ..version import __version__
 from .config import Experiment, image_pairs, load_experiment
 from .layout import finished_pairs, pair_file, remove_partial_files
 from .pairing import ImagePair, PairPlan, changed_since
@@ -156,13 +157,9 @@ def _refuse_changed_inputs(plan: PairPlan, out: Path) -> None:
 
 def _tasks(pairs: list[ImagePair], out: Path, summary: RunSummary, log) -> list[PairTask]:
     """The pairs still to do; those whose field exists are skipped, and said so."""
-    tasks = []
-    for pair in pairs:
-        target = pair_file(out, pair.index)
-        if target.is_file():
-            summary.skipped.append(pair.index)
-        else:
-            tasks.append(PairTask(pair.index, str(pair.a), str(pair.b), str(target)))
+    todo, done = pending(pairs, lambda pair: [pair_file(out, pair.index)])
+    summary.skipped.extend(pair.index for pair in done)
+    tasks = [PairTask(p.index, str(p.a), str(p.b), str(pair_file(out, p.index))) for p in todo]
     if summary.skipped:
         log(f"{len(summary.skipped)} of {len(pairs)} pair(s) already done in "
             f"{out / 'pairs'}: skipped")
@@ -247,8 +244,6 @@ def _refuse_other_grid(out: Path, grid) -> None:
 def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
     """The configuration used (a record: the workers get theirs as an object), the
     camera and the grid, beside the results."""
-    from .. import __version__
-
     out.mkdir(parents=True, exist_ok=True)
     grid_file = out / "grid_used.toml"
     pair = exp.pair.to_dict()
@@ -272,7 +267,7 @@ def _ensemble(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> Pa
     if not summary.processed and made.is_file():
         log(f"ensemble correlation: no new pair, {made} kept")
         return made
-    from .ensemble import ensemble_field
+    from .ensemble_field import ensemble_field
 
     return ensemble_field(out, exp["images"]["dt_s"], queue, exp["output"]["vti"], log)
 
@@ -296,8 +291,7 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
                                   for k, p in fields], "s" if interval else "pair",
                                  ensemble=ensemble)
         summary.store = str(store)
-    with atomic_path(out / "summary.json") as tmp:
-        tmp.write_text(json.dumps(asdict(summary), indent=2))
+    write_json(out / "summary.json", asdict(summary))
     log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
         f"{len(summary.skipped)} already done, {len(summary.failed)} failed"
         + (f": {summary.failed}" if summary.failed else "")

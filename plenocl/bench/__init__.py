@@ -36,8 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
 from ..device import DeviceLike, device_info, get_queue
+from ..io.atomic import write_text
+from ..version import __version__
 from .accuracy_section import section_accuracy
 from .core import SIZES, BenchRun, bench_sizes, loglog_slope, md_table, pareto_front, repeats_text
 from .devices import section_devices
@@ -89,8 +90,6 @@ def _header(run: BenchRun, load_start: str, end: tuple[str, float] | None) -> st
     import pyopencl
     import scipy
 
-    from .. import __version__
-
     info, dev = device_info(run.queue), run.queue.device
     status = (f"load average (1 / 5 / 15 min) at end {end[0]}; total {end[1]:.0f} s"
               if end else "**incomplete: the run is still going (or stopped)**")
@@ -108,11 +107,6 @@ def _header(run: BenchRun, load_start: str, end: tuple[str, float] | None) -> st
             f"and scaling; {repeats_text(run.heavy)} for reconstruction, skipping and PIV (one "
             "warm-up first where stated)\n"
             + (f"- headline: {'; '.join(run.notes)}\n" if run.notes else "") + "\n")
-
-
-def _write_report(path: Path, text: str) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
 
 
 def run_report(size: str, out_dir: str | Path, repeats: int | None = None,
@@ -156,7 +150,7 @@ def run_report(size: str, out_dir: str | Path, repeats: int | None = None,
         t1 = time.perf_counter()
         parts.append(section(run))
         log(f"bench: {title} done in {time.perf_counter() - t1:.1f} s")
-        _write_report(path, _header(run, load_start, None) + "\n".join(parts))
+        write_text(path, _header(run, load_start, None) + "\n".join(parts))
     end = (_load(), time.perf_counter() - t0)
-    _write_report(path, _header(run, load_start, end) + "\n".join(parts))
+    write_text(path, _header(run, load_start, end) + "\n".join(parts))
     return path

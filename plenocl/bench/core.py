@@ -13,7 +13,7 @@ import numpy as np
 from ..camera import Camera
 from ..grid import Grid
 from ..particles import random_particles
-from ..simulate import Simulator
+from ..simulate import Simulator, simulate_image
 
 SIZES = ("ci", "small", "paper")
 Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
@@ -44,16 +44,17 @@ _RECON_SMALL: tuple[ReconSetting, ...] = (
     ("MLEM skip_empty off", "mlem", 30, 1.0, {"skip_empty": False}),
     ("MLEM tol 1e-3", "mlem", 100, 1.0, {"tol": 1e-3}),
 )
-_RECON_TEST: tuple[ReconSetting, ...] = (
-    ("MART (paper)", "mart", 3, 0.7, {}),
-    ("SMART", "smart", 3, 1.0, {}),
-    ("MLEM", "mlem", 2, 1.0, {}),
-    ("MLEM", "mlem", 4, 1.0, {}),
-    ("MLEM mlos start", "mlem", 2, 1.0, {"start": "mlos"}),
-    ("MLEM mask 0.5", "mlem", 2, 1.0, {"mask_fraction": 0.5}),
-    ("MLEM skip_empty off", "mlem", 2, 1.0, {"skip_empty": False}),
-    ("MLEM tol 1e-3", "mlem", 6, 1.0, {"tol": 1e-3}),
-)
+
+
+def _with_iterations(settings, iterations) -> tuple[ReconSetting, ...]:
+    """``settings`` with other iteration counts (the tiny ``test`` size's)."""
+    return tuple((label, method, n, relax, opts)
+                 for (label, method, _, relax, opts), n in zip(settings, iterations, strict=True))
+
+
+#: The ``ci`` settings but MLEM's 30 iterations, each run a few iterations only.
+_RECON_TEST = _with_iterations(_RECON_CI[:4] + _RECON_CI[5:], (3, 3, 2, 4, 2, 2, 2, 6))
+
 _PIV_SETTINGS: tuple[tuple[str, dict], ...] = (
     ("48-32-24, cubic, 3 final, deformed passes direct (default)", {}),
     ("every pass by FFT (the reference)", {"correlation": "fft"}),
@@ -237,4 +238,18 @@ def bench_scene(run: BenchRun, count: int, seed: int, box: Box | None = None):
     """Particles (mm, intensities) in ``box`` and their noise-free raw image."""
     pos, inten = random_particles(box or run.cfg.box, count=count, seed=seed, intensity=1e4)
     img = Simulator(run.camera, run.queue).trace(pos, inten, run.cfg.rays, seed=seed)
+    return pos, inten, img
+
+
+#: Where the scripts' cube scenes place particles: the 5 mm cube, 0.2 mm from its faces.
+CUBE_BOX: Box = ((-2.3, 2.3),) * 3
+
+
+def particle_scene(camera: Camera, count: int, seed: int, box: Box = CUBE_BOX,
+                   blur_px: float = 0.0, queue=None):
+    """Particles (mm, intensities) in ``box`` and their noise-free raw image (20 000 rays
+    per particle), the workload of ``benchmarks/reconstruct.py`` and
+    ``benchmarks/cubic_recovery.py``."""
+    pos, inten = random_particles(box, count=count, seed=seed, intensity=1e4)
+    img = simulate_image(camera, pos, inten, 20000, seed=seed, blur_px=blur_px, queue=queue)
     return pos, inten, img

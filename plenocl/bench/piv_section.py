@@ -6,14 +6,14 @@ import os
 
 import numpy as np
 
-from .. import flows
+from ..flows import Flow, LambOseen, SolidBodyRotation, Uniform, centred_displacement, volume_pair
 from ..piv.multipass import piv3d
 from .core import BenchRun, md_table, pareto_front, repeats_text
 from .timing import timed
 
 
 # ---- PIV ----------------------------------------------------------------------------
-def piv_flows(shape: tuple[int, int, int]) -> dict[str, flows.Flow]:
+def piv_flows(shape: tuple[int, int, int]) -> dict[str, Flow]:
     """Uniform shift, solid-body rotation and a Lamb-Oseen vortex (core radius 16 voxels,
     less in small volumes) in voxel units, about 3 voxels at most, as in
     ``benchmarks/piv.py``."""
@@ -21,27 +21,39 @@ def piv_flows(shape: tuple[int, int, int]) -> dict[str, flows.Flow]:
     centre = np.array([(nx - 1) / 2, (ny - 1) / 2, (nz - 1) / 2])
     axis = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
     return {
-        "uniform": flows.Uniform((2.31, -1.47, 0.68)),
-        "rotation": flows.SolidBodyRotation(tuple(axis * 3.0 / (0.5 * min(shape))),
-                                            tuple(centre)),
-        "oseen": flows.LambOseen.from_peak_velocity(3.0, min(16.0, min(shape) / 3),
-                                                    tuple(centre + [2.3, -1.7, 1.1]),
-                                                    tuple(axis)),
+        "uniform": Uniform((2.31, -1.47, 0.68)),
+        "rotation": SolidBodyRotation(tuple(axis * 3.0 / (0.5 * min(shape))),
+                                      tuple(centre)),
+        "oseen": LambOseen.from_peak_velocity(3.0, min(16.0, min(shape) / 3),
+                                              tuple(centre + [2.3, -1.7, 1.1]),
+                                              tuple(axis)),
     }
+
+
+def displacement_truth(flow: Flow, centres) -> np.ndarray:
+    """The flow's mid-time displacement ``(3, nz', ny', nx')`` as (u, v, w) at window
+    centres ``(z, y, x)`` (1-D, voxel index)."""
+    zz, yy, xx = np.meshgrid(*centres, indexing="ij")
+    pts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    return centred_displacement(pts, flow, 1.0).T.reshape((3, *zz.shape))
+
+
+def interior(shape, centres, margin: float) -> np.ndarray:
+    """Where the window centres ``(z, y, x)`` lie at least ``margin`` voxels from every
+    face of a volume of ``shape``."""
+    zz, yy, xx = np.meshgrid(*centres, indexing="ij")
+    inside = np.ones(zz.shape, bool)
+    for c, n in zip((zz, yy, xx), shape):
+        inside &= (c >= margin) & (c <= n - 1 - margin)
+    return inside
 
 
 def piv_error(disp: np.ndarray, centres, flow, shape) -> float:
     """Interior RMS vector error (voxels) of ``disp`` ``(3, nz', ny', nx')`` as (u, v, w)
     at window centres ``(z, y, x)``: centres at least ``min(16, n/4)`` voxels from every
     face, against the flow's mid-time displacement."""
-    zz, yy, xx = np.meshgrid(*centres, indexing="ij")
-    pts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
-    truth = flows.centred_displacement(pts, flow, 1.0).T.reshape(disp.shape)
-    margin = min(16, min(shape) // 4)
-    inside = np.ones(zz.shape, bool)
-    for c, n in zip((zz, yy, xx), shape):
-        inside &= (c >= margin) & (c <= n - 1 - margin)
-    err = (disp - truth)[:, inside]
+    inside = interior(shape, centres, min(16, min(shape) // 4))
+    err = (disp - displacement_truth(flow, centres))[:, inside]
     return float(np.sqrt(np.mean(np.sum(err**2, axis=0)))) if err.size else float("nan")
 
 
@@ -73,7 +85,7 @@ def _openpiv_run(p3, pair, ws: int, ov: int, repeats: int):
 
 def _piv_flow_rows(run: BenchRun, p3, name: str, flow) -> list[dict]:
     shape = run.cfg.piv_shape
-    pair = flows.volume_pair(shape, flow, seed=2718)
+    pair = volume_pair(shape, flow, seed=2718)
     rows = []
     for label, kwargs in run.cfg.piv:
         res, t = timed(lambda k=kwargs: piv3d(pair.vol_a, pair.vol_b, **k), run.heavy)

@@ -77,7 +77,7 @@ class _Subcommands:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every registered subcommand."""
-    from .. import __version__
+    from ..version import __version__
 
     parser = argparse.ArgumentParser(prog="plenocl", description=" ".join(__doc__.split()),
                                      formatter_class=_DefaultsHelp)

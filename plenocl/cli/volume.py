@@ -224,7 +224,7 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
 def demo_command(args: argparse.Namespace) -> int:
     """Run a built-in example."""
     if args.name == "particles":
-        from ..demo.particles import particle_demo
+        from ..demo.particle_images import particle_demo
 
         for line in particle_demo(args.out, count=200, seed=args.seed, queue=args.device):
             print(line)

@@ -1,3 +1,3 @@
 """The built-in examples: the paper's boundary-layer experiment on synthetic data
-(:mod:`.boundary_layer`, its figures in :mod:`.figures`, resumable stages in
-:mod:`.stages`) and a particle-image demo (:mod:`.particles`)."""
+(:mod:`.boundary_layer`, its figures in :mod:`.figures`; resumable through
+:class:`plenocl.pipeline.resume.StageRunner`) and a particle-image demo (:mod:`.particles`)."""

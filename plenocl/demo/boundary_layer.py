@@ -18,6 +18,7 @@ from ..calibration import calibrate
 from ..camera import Camera
 from ..flows import TurbulentBoundaryLayer, centred_displacement, displace
 from ..grid import Grid
+from ..io.atomic import write_json
 from ..io.files import (
     load_volume,
     read_image,
@@ -31,7 +32,7 @@ from ..particles import particles_per_microlens, random_particles
 from ..pipeline.settings import PairSettings
 from ..piv.settings import PIVSettings
 from ..reconstruction import ReconstructionSettings
-from .stages import StageRunner, write_json
+from ..pipeline.resume import StageRunner
 
 U_INF = 4.57          # free-stream velocity, m/s (the paper's 15 ft/s)
 DT = 175e-6           # time between the two exposures, s
@@ -152,7 +153,7 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
                 lambda: boundary_layer_figures(run.out, _averaged_fields(field, sc, flow),
                                                sc.z_wall, summary, U_INF))
     summary["seconds"] = run.timings
-    write_json(run.path("summary.json"), summary)
+    write_json(run.path("summary.json"), summary, sort_keys=True)
     return summary
 
 

@@ -18,9 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.atomic import write_json
 from ..io.files import write_tiff
+from ..io.tomlfile import write_toml
 from ..simulate import simulate_image, simulate_white_image
-from ..tomlfile import write_toml
 from .boundary_layer import (
     DT,
     U_INF,
@@ -31,7 +32,6 @@ from .boundary_layer import (
     seed_particles,
     sensor_options,
 )
-from .stages import write_json
 
 #: The camera preset of each scenario (``plenocl.camera.PRESETS``).
 PRESET = {"small": "synthetic", "paper": "paper"}
@@ -69,7 +69,7 @@ def run_time_series(out_dir: str | Path, pairs: int = 6, queue=None, seed: int =
            "stage_seconds_per_pair": {k: v / max(1, len(summary.processed))
                                       for k, v in summary.stage_seconds.items()},
            "u_inf_m_s": U_INF, **errors(out / "results", sc, flow)}
-    write_json(out / "summary.json", doc)
+    write_json(out / "summary.json", doc, sort_keys=True)
     return doc
 
 

@@ -1,16 +1,16 @@
 """Files: raw images, particle lists, volumes, vector fields, TOML; all written atomically.
 
-- atomic writes (:mod:`plenocl.atomic`) and TOML files (:mod:`plenocl.tomlfile`), re-exported;
+- atomic writes (:mod:`.atomic`: any file, JSON, text) and TOML files (:mod:`.tomlfile`);
 - :mod:`.files`: images (TIFF/PNG/NPY), particle CSVs, volumes (NPZ/NPY/HDF5);
 - :mod:`.fields`: PIV fields (VTK ``.vti``, ``.npz``, ``.h5``);
 - :mod:`.plotting`, :mod:`.progress`: figures and progress bars for the user.
 """
 
-from ..atomic import atomic_path
-from ..tomlfile import read_toml, write_toml
+from .atomic import atomic_path, write_json, write_text
 from .fields import read_npz, save_field
 from .files import load_volume, read_image, read_particles, save_volume, write_particles, write_tiff
+from .tomlfile import read_toml, write_toml
 
 __all__ = ["atomic_path", "load_volume", "read_image", "read_npz", "read_particles",
-           "read_toml", "save_field", "save_volume", "write_particles", "write_tiff",
-           "write_toml"]
+           "read_toml", "save_field", "save_volume", "write_json", "write_particles",
+           "write_text", "write_tiff", "write_toml"]

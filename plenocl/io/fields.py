@@ -28,14 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
-from ..optics.lattice import rotation_matrix
-from ..piv.multipass import PIVResult, voxel_size
+from ..vectorfield import FLAGS, PIVResult, voxel_size
+from .atomic import atomic_path
 
 __all__ = ["field_arrays", "field_metadata", "metadata_of", "read_npz", "save_field",
            "write_h5", "write_npz", "write_vti"]
-
-_FLAGS = ("valid", "outlier", "masked")
 
 
 def _geometry(voxel_size_mm, origin_mm, grid):
@@ -51,91 +48,14 @@ def _geometry(voxel_size_mm, origin_mm, grid):
 def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
                  dt: float | None = None, rotation_deg: float = 0.0,
                  metadata: dict | None = None) -> dict[str, np.ndarray]:
-    """All arrays written by :func:`save_field`, keyed by name (see the module notes);
-    the parameters are :func:`save_field`'s (``dt`` adds ``velocity`` and physical units;
-    ``metadata`` adds JSON-ready entries to the ``metadata`` array).
+    """All arrays written by :func:`save_field`, keyed by name (see the module notes): the
+    field's own (:meth:`plenocl.PIVResult.arrays`) and a JSON ``metadata`` entry, its
+    :meth:`~plenocl.PIVResult.metadata` with ``metadata``'s entries; the parameters are
+    :func:`save_field`'s.
     """
-    size = voxel_size(voxel_size_mm)
-    x_mm, y_mm, z_mm = result.positions_mm(size, origin_mm)
-    out = {"x": result.x, "y": result.y, "z": result.z, "x_mm": x_mm, "y_mm": y_mm,
-           "z_mm": z_mm, "displacement": np.stack([result.u, result.v, result.w]),
-           "peak_ratio": result.peak_ratio, "voxel_size_mm": np.asarray(size),
-           "origin_mm": np.asarray(origin_mm, float), "window": np.asarray(result.window)}
-    out.update({name: np.asarray(getattr(result, name), bool) for name in _FLAGS})
-    out["vector_origin_mm"] = np.array([float(c[0]) for c in (x_mm, y_mm, z_mm)])
-    # a single vector along an axis gets the voxel size as its spacing
-    out["vector_spacing_mm"] = np.array([float(np.diff(c[:2])[0]) if len(c) > 1 else v
-                                         for c, v in zip((x_mm, y_mm, z_mm), size[::-1])])
-    sigma = uncertainty(result)
-    out["displacement_uncertainty"] = sigma
-    if dt is not None:
-        out["velocity"] = _to_object_space(result.velocity(size, dt), rotation_deg)
-        out["velocity_uncertainty"] = _spread_to_object_space(
-            result.velocity_uncertainty(size, dt), rotation_deg)
-        out["dt"] = np.asarray(float(dt))
-    out["vorticity"] = _to_object_space(result.vorticity(size, dt), rotation_deg)
-    out["q_criterion"] = result.q_criterion(size, dt)
-    out["rotation_deg"] = np.asarray(float(rotation_deg))
-    out["metadata"] = np.asarray(json.dumps({**(metadata or {}),
-                                             "units": field_units(dt is not None),
-                                             "axes": AXES, "notes": NOTES}))
+    out = result.arrays(voxel_size_mm, origin_mm, dt, rotation_deg)
+    out["metadata"] = np.asarray(json.dumps({**(metadata or {}), **result.metadata(dt)}))
     return out
-
-
-#: What a reader of the arrays should know (also in every file's metadata).
-NOTES = {"peak_ratio": "primary over secondary correlation peak of the final pass; NaN "
-                       "where that pass correlated directly at the lags around zero (the "
-                       "default deformed passes), where no second peak is searched; "
-                       "piv3d(min_peak_ratio=...) correlates the final pass by FFT"}
-
-#: Axis order and meaning of the stored arrays (also in every file's metadata).
-AXES = ("arrays (..., nz, ny, nx) on the vector grid, z slowest; vector components "
-        "(x, y, z); voxel_size_mm and origin_mm are (z, y, x) of the voxel grid (origin: "
-        "the centre of voxel 0); vector_origin_mm and vector_spacing_mm are (x, y, z) of "
-        "the vector grid, as in the .vti file")
-
-
-def field_units(with_dt: bool) -> dict[str, str]:
-    """Units of each stored array (``with_dt``: velocities in m/s, else per ``dt``)."""
-    units = {"x": "voxel", "y": "voxel", "z": "voxel", "x_mm": "mm", "y_mm": "mm",
-             "z_mm": "mm", "displacement": "voxel", "peak_ratio": "1",
-             "displacement_uncertainty": "voxel",
-             "voxel_size_mm": "mm", "origin_mm": "mm", "vector_origin_mm": "mm",
-             "vector_spacing_mm": "mm", "rotation_deg": "degree", "window": "voxel"}
-    if with_dt:
-        units.update(velocity="m s-1", velocity_uncertainty="m s-1", vorticity="s-1",
-                     q_criterion="s-2", dt="s")
-    else:
-        units.update(vorticity="1 (per dt)", q_criterion="1 (per dt^2)")
-    return units
-
-
-def uncertainty(result: PIVResult) -> np.ndarray:
-    """``(3, ...)`` standard uncertainty of ``(u, v, w)`` in voxels; all NaN for a result
-    without one (read from an older file)."""
-    if result.sigma_u is None:
-        return np.full((3, *result.shape), np.nan)
-    return np.stack([result.sigma_u, result.sigma_v, result.sigma_w])
-
-
-def _spread_to_object_space(sigmas, rotation_deg: float) -> np.ndarray:
-    """Standard uncertainties along a turned grid's axes as object-space ones (the
-    components' errors taken as independent)."""
-    sx, sy, sz = (np.asarray(c, np.float64) for c in sigmas)
-    if rotation_deg:
-        r = rotation_matrix(rotation_deg)
-        sx, sy = (np.hypot(r[0, 0] * sx, r[0, 1] * sy), np.hypot(r[1, 0] * sx, r[1, 1] * sy))
-    return np.stack([sx, sy, sz])
-
-
-def _to_object_space(components, rotation_deg: float) -> np.ndarray:
-    """``(x, y, z)`` vector components along a grid turned by ``rotation_deg`` about the
-    optical axis, as object-space components ``(3, ...)``."""
-    cx, cy, cz = (np.asarray(c, np.float64) for c in components)
-    if rotation_deg:
-        r = rotation_matrix(rotation_deg)
-        cx, cy = r[0, 0] * cx + r[0, 1] * cy, r[1, 0] * cx + r[1, 1] * cy
-    return np.stack([cx, cy, cz])
 
 
 def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
@@ -214,17 +134,7 @@ def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:
     """
     with np.load(path) as data:
         arrays = {name: data[name] for name in data.files}
-    missing = {"x", "y", "z", "displacement", "peak_ratio", *_FLAGS} - set(arrays)
-    if missing:
-        raise ValueError(f"{path} is not a plenocl vector field: missing {sorted(missing)}")
-    u, v, w = arrays["displacement"]
-    sigma = arrays.get("displacement_uncertainty", (None, None, None))
-    result = PIVResult(x=arrays["x"], y=arrays["y"], z=arrays["z"], u=u, v=v, w=w,
-                       valid=arrays["valid"], peak_ratio=arrays["peak_ratio"],
-                       outlier=arrays["outlier"], masked=arrays["masked"],
-                       window=tuple(int(s) for s in arrays.get("window", (0, 0, 0))),
-                       sigma_u=sigma[0], sigma_v=sigma[1], sigma_w=sigma[2])
-    return result, arrays
+    return PIVResult.from_arrays(arrays, source=str(path)), arrays
 
 
 def _vtk_order(arr: np.ndarray) -> np.ndarray:
@@ -255,7 +165,7 @@ def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0
              for name, key in vectors.items() if key in arrays}
     point["q_criterion_per_s2" if dt is not None else "q_criterion_per_dt2"] = \
         _vtk_order(arrays["q_criterion"])
-    for name in (*_FLAGS, "peak_ratio"):
+    for name in (*FLAGS, "peak_ratio"):
         point[name] = _vtk_order(arrays[name])
     with atomic_path(path) as tmp:
         written = imageToVTK(str(tmp.with_suffix("")), origin=origin, spacing=spacing,
@@ -275,7 +185,8 @@ def write_h5(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.
                           "(or save as .npz or .vti)") from exc
     arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg, metadata)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as fh:
-        units = field_units(dt is not None)
+        meta = result.metadata(dt)
+        units = meta["units"]
         for name, arr in arrays.items():
             if np.asarray(arr).dtype.kind == "U":  # text: a file attribute
                 fh.attrs[name] = str(arr)
@@ -284,5 +195,5 @@ def write_h5(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.
             data = fh.create_dataset(name, data=arr, **opts)
             if name in units:
                 data.attrs["units"] = units[name]
-        fh.attrs["axes"] = AXES
+        fh.attrs["axes"] = meta["axes"]
         fh.attrs["layout"] = "arrays (..., nz, ny, nx); displacement (u, v, w) in voxels"

@@ -1,5 +1,5 @@
 """File input and output: raw images (TIFF/PNG/NPY), particle lists, volumes; every write
-is atomic (:func:`plenocl.atomic.atomic_path`)."""
+is atomic (:func:`plenocl.io.atomic.atomic_path`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from .atomic import atomic_path
 
 
 def write_tiff(path: str | Path, image: np.ndarray, metadata: dict | None = None) -> None:

@@ -20,8 +20,8 @@ import numpy as np
 from scipy import ndimage
 
 from ..piv import PIVResult
-from ..piv.deform import resample
-from ..piv.deformers import make_deformer
+from ..piv.deformation import make_deformer
+from ..piv.interpolate import resample
 from ..reconstruction import ProjectionOperator, ReconstructionSettings, run_reconstruction
 
 COMBINATIONS = ("geometric", "mean", "min")

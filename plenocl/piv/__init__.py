@@ -1,27 +1,31 @@
 """3-D PIV: multi-pass FFT cross-correlation with window deformation (docs/design.md §7).
 
 - :mod:`.correlation`: windows, batched FFT correlation, sub-voxel peak fit;
-- :mod:`.deform`: predictor resampling and volume deformation;
+- :mod:`.interpolate`: predictor resampling, B-spline volume sampling (the host reference);
+- :mod:`.deformation`: deforming volumes on the host or an OpenCL device (``deform.cl``);
 - :mod:`.validation`: outlier detection and replacement;
 - :mod:`.settings`: :class:`PIVSettings` (every option of :func:`piv3d`, checked once);
-- :mod:`.multipass`: :func:`piv3d` and :class:`PIVResult` (velocities, gradients);
+- :mod:`.multipass`: :func:`piv3d`; its result :class:`plenocl.vectorfield.PIVResult`
+  (velocities, gradients, the arrays written to files) lives in the model layer;
 - :mod:`.tracking`: the refinement by the volumes' matched particle pairs;
 - :mod:`.imagefit`: those particles fitted to the raw images (the camera's rays:
   :mod:`plenocl.optics.raybundle`).
 """
 
-from .multipass import (
-    DEFAULT_WINDOWS,
-    MIN_PARTICLES_PER_WINDOW,
+from ..vectorfield import (
     PIVResult,
-    auto_windows,
-    count_particles,
     displacement_to_velocity,
-    piv3d,
     q_criterion,
     velocity_gradient,
     vorticity,
     voxel_size,
+)
+from .multipass import (
+    DEFAULT_WINDOWS,
+    MIN_PARTICLES_PER_WINDOW,
+    auto_windows,
+    count_particles,
+    piv3d,
 )
 from .settings import PIVSettings
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..peaks import gaussian_subpixel
 from .fft import CorrelationFFT
 
 #: Upper bound on the float32 correlation planes held at once (bytes).
@@ -219,23 +220,6 @@ def _fit_batch(corr: np.ndarray, scale: float, prepared_a, prepared_b):
     disp, peak, ratio = fit_peaks(corr)
     disp[:, ~signal] = 0.0
     return disp, np.where(signal, peak, 0.0), np.where(signal, ratio, 0.0), signal
-
-
-def gaussian_subpixel(c_minus: np.ndarray, c0: np.ndarray, c_plus: np.ndarray) -> np.ndarray:
-    """Three-point Gaussian peak offset in ``[-0.5, 0.5]``; parabolic where a value is <= 0.
-
-    The Gaussian fit needs the logarithm of all three samples; where any is non-positive
-    (or the log-curvature is not negative) the parabolic three-point fit is used instead.
-    """
-    cm, cc, cp = (np.asarray(c, np.float64) for c in (c_minus, c0, c_plus))
-    positive = (cm > 0) & (cc > 0) & (cp > 0)
-    lm, lc, lp = (np.log(np.where(positive, c, 1.0)) for c in (cm, cc, cp))
-    den_g = 2.0 * (lm - 2.0 * lc + lp)
-    den_p = 2.0 * (cm - 2.0 * cc + cp)
-    use_g = positive & (den_g < 0)
-    offset = np.where(use_g, (lm - lp) / np.where(use_g, den_g, -1.0),
-                      np.where(den_p < 0, (cm - cp) / np.where(den_p < 0, den_p, -1.0), 0.0))
-    return np.clip(offset, -0.5, 0.5)
 
 
 def fit_peaks(corr: np.ndarray, exclude: int = 2):

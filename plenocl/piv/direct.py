@@ -21,7 +21,7 @@ count.
 
 :func:`correlate_direct` returns the 27 coefficients per window; :func:`fit_direct`
 locates the peak and fits it per axis with the same three-point Gaussian as the FFT path
-(:func:`plenocl.piv.correlation.gaussian_subpixel`); :func:`correlate_deformed` sends
+(:func:`plenocl.peaks.gaussian_subpixel`); :func:`correlate_deformed` sends
 windows whose peak is off the centre lag or weak to the FFT;
 :func:`correlation_uncertainty` estimates each vector's uncertainty. The plain
 per-window twin is :func:`plenocl.reference.direct.correlate_windows`.
@@ -37,14 +37,9 @@ import numpy as np
 from scipy import ndimage
 from threadpoolctl import threadpool_limits
 
+from ..peaks import gaussian_subpixel
 from ..threads import thread_count
-from .correlation import (
-    Correlation,
-    WindowGrid,
-    correlate,
-    gaussian_subpixel,
-    gaussian_weight,
-)
+from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 
 #: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order; index 13 is zero.
 LAGS = np.array(list(itertools.product((-1, 0, 1), repeat=3)))

@@ -17,11 +17,11 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
+from ..vectorfield import PIVResult
 from .correlation import window_grid
-from .deform import resample
-from .deformers import make_deformer
+from .deformation import make_deformer
 from .direct import CENTRE, LAGS, correlate_direct, fit_direct, pearson
-from .multipass import PIVResult
+from .interpolate import resample
 from .validation import normalized_median_test, replace_outliers
 
 #: A zero-argument callable yielding ``(vol_a, vol_b)`` volume pairs, called once per

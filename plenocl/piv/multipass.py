@@ -1,14 +1,15 @@
-"""Multi-pass 3-D PIV with window deformation (WIDIM), and derived flow quantities.
+"""Multi-pass 3-D PIV with window deformation (WIDIM).
 
 :func:`piv3d` correlates two particle volumes ``vol[iz, iy, ix]`` (docs/design.md §7, §9):
 a large zero-padded first pass, then passes with smaller, overlapping windows on volumes
 deformed symmetrically by the current predictor, normalised-median outlier detection and
 replacement after every pass. The result holds window centres in voxel-index units
-(index ``i`` is the centre of voxel ``i``) and displacements in voxels; its methods turn
-them into velocity (m/s), vorticity (1/s) and the Q-criterion (1/s^2).
+(index ``i`` is the centre of voxel ``i``) and displacements in voxels: a
+:class:`plenocl.vectorfield.PIVResult`, whose methods turn them into velocity (m/s),
+vorticity (1/s), the Q-criterion (1/s^2) and the arrays written to files.
 
 Building blocks live in :mod:`plenocl.piv.correlation` (windows, FFT correlation, peak fit),
-:mod:`plenocl.piv.deform` (predictor resampling, volume deformation) and
+:mod:`plenocl.piv.interpolate` (predictor resampling, volume deformation) and
 :mod:`plenocl.piv.validation` (outlier detection and replacement).
 """
 
@@ -17,178 +18,21 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
 from ..options import with_keywords
+from ..vectorfield import PIVResult, Size3
 from .correlation import correlate, gaussian_weight, window_fraction, window_grid
-from .deform import resample
-from .deformers import make_deformer
+from .deformation import make_deformer
 from .direct import correlate_deformed, deformed_uncertainty
+from .interpolate import resample
 from .settings import PIVSettings
 from .validation import normalized_median_test, replace_outliers
 
-__all__ = ["PIVResult", "piv3d", "q_criterion", "velocity_gradient", "vorticity"]
-
-Size3 = tuple[int, int, int]
-
-
-@dataclass
-class PIVResult:
-    """A 3-D displacement field on the window-centre grid.
-
-    Attributes
-    ----------
-    x, y, z
-        1-D window-centre coordinates in voxel-index units.
-    u, v, w
-        Displacement (voxels) along x, y, z, shaped ``(nz', ny', nx')``; outliers are
-        replaced, masked vectors are NaN.
-    valid
-        ``True`` where the vector came from its own correlation and passed validation.
-    peak_ratio
-        Primary over secondary correlation peak of the final pass, where that pass
-        correlated by FFT; NaN where it correlated directly at the lags around zero
-        (``correlation="auto"``, the default, unless ``min_peak_ratio`` is given).
-    outlier
-        Flagged by the final normalised median test (then replaced).
-    masked
-        Window excluded by the mask (more than half of it masked).
-    window
-        Final window size ``(wz, wy, wx)``.
-    passes
-        Per-pass diagnostics (window, step, vector count, outliers, seconds).
-    sigma_u, sigma_v, sigma_w
-        Standard uncertainty (voxels) of each valid vector's components, from the
-        statistics of the final pass's correlation on the deformed volumes
-        (:func:`plenocl.piv.direct.correlation_uncertainty`); NaN for invalid, replaced
-        or masked vectors and after a single (undeformed) pass. ``None`` in results
-        read from files written before it existed.
-    refinement
-        What refined the field after the correlation (``{}``: nothing): for the particle
-        refinement (:func:`plenocl.piv.tracking.refine_with_particles`) the particle
-        pairs found, the vectors refined and their median pair count.
-    """
-
-    x: np.ndarray
-    y: np.ndarray
-    z: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
-    w: np.ndarray
-    valid: np.ndarray
-    peak_ratio: np.ndarray
-    outlier: np.ndarray
-    masked: np.ndarray
-    window: Size3
-    passes: list[dict] = field(default_factory=list)
-    sigma_u: np.ndarray | None = None
-    sigma_v: np.ndarray | None = None
-    sigma_w: np.ndarray | None = None
-    refinement: dict = field(default_factory=dict)
-
-    @property
-    def shape(self) -> Size3:
-        """Vector-grid shape ``(nz', ny', nx')``."""
-        return self.u.shape
-
-    def velocity(self, voxel_size_mm, dt: float):
-        """Velocity ``(U, V, W)`` in m/s for a voxel size (mm, scalar or ``(dz, dy, dx)``)."""
-        return displacement_to_velocity((self.u, self.v, self.w), voxel_size_mm, dt)
-
-    def velocity_uncertainty(self, voxel_size_mm, dt: float):
-        """Standard uncertainty of ``(U, V, W)`` in m/s (NaN where unknown)."""
-        sigmas = [np.full(self.shape, np.nan) if s is None else s
-                  for s in (self.sigma_u, self.sigma_v, self.sigma_w)]
-        return displacement_to_velocity(sigmas, voxel_size_mm, dt)
-
-    def positions_mm(self, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)):
-        """Window centres ``(x, y, z)`` in mm; ``origin_mm = (z0, y0, x0)``: voxel 0 centre."""
-        dz, dy, dx = voxel_size(voxel_size_mm)
-        z0, y0, x0 = (float(o) for o in origin_mm)
-        return x0 + dx * self.x, y0 + dy * self.y, z0 + dz * self.z
-
-    def gradient(self, voxel_size_mm=1.0, dt: float | None = None) -> np.ndarray:
-        """Velocity-gradient tensor ``(3, 3, nz', ny', nx')``, see :func:`velocity_gradient`."""
-        size = voxel_size(voxel_size_mm)
-        if dt is None:  # displacement gradient (mm per mm, i.e. per dt)
-            comps = [c * s for c, s in zip((self.u, self.v, self.w), size[::-1])]
-        else:           # m/s over m
-            comps = list(self.velocity(size, dt))
-        scale = 1.0 if dt is None else 1e-3
-        x, y, z = self.positions_mm(size)
-        return velocity_gradient(*comps, x * scale, y * scale, z * scale)
-
-    def vorticity(self, voxel_size_mm=1.0, dt: float | None = None):
-        """Vorticity ``(wx, wy, wz)``: 1/s with ``dt``, else per ``dt`` (dimensionless).
-
-        Derivatives are ``np.gradient`` on the physical vector grid (one-sided at the
-        faces); next to masked (NaN) vectors the result is NaN.
-        """
-        return vorticity(self.gradient(voxel_size_mm, dt))
-
-    def q_criterion(self, voxel_size_mm=1.0, dt: float | None = None) -> np.ndarray:
-        """Q-criterion: 1/s^2 with ``dt``, else per ``dt^2``."""
-        return q_criterion(self.gradient(voxel_size_mm, dt))
-
-
-def voxel_size(voxel_size_mm) -> tuple[float, float, float]:
-    """A voxel size as ``(dz, dy, dx)`` mm from a scalar or a triple, checked positive."""
-    size = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,))
-    if not np.all(np.isfinite(size) & (size > 0)):
-        raise ValueError(f"voxel_size_mm must be positive, a scalar or (dz, dy, dx) in mm, "
-                         f"got {voxel_size_mm!r}")
-    return tuple(float(s) for s in size)
-
-
-def displacement_to_velocity(displacement, voxel_size_mm, dt: float):
-    """Convert ``(u, v, w)`` in voxels to m/s: ``d * voxel_size_mm * 1e-3 / dt``.
-
-    Parameters
-    ----------
-    displacement
-        Sequence ``(u, v, w)`` of arrays in voxels along x, y, z.
-    voxel_size_mm
-        Scalar or ``(dz, dy, dx)`` in mm (array order, as :class:`plenocl.Grid.spacing`).
-    dt
-        Time between the two volumes (s).
-    """
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive time in seconds, got {dt!r}")
-    if dt > 1.0:
-        warnings.warn(f"dt = {dt:g} s between the exposures is unusually long for PIV "
-                      "(microseconds to milliseconds): dt is in seconds, e.g. 175 µs is "
-                      "175e-6", stacklevel=3)
-    dz, dy, dx = voxel_size(voxel_size_mm)
-    return tuple(np.asarray(c) * s * 1e-3 / dt for c, s in zip(displacement, (dx, dy, dz)))
-
-
-def velocity_gradient(u, v, w, x, y, z) -> np.ndarray:
-    """``grad[i, j] = d u_i / d x_j`` (``i, j`` over x, y, z) by ``np.gradient``.
-
-    ``u, v, w`` are shaped ``(nz, ny, nx)``; ``x, y, z`` are the 1-D physical coordinates.
-    Axes with a single node contribute zero derivatives.
-    """
-    grad = np.zeros((3, 3, *np.shape(u)))
-    coords = (np.asarray(z, float), np.asarray(y, float), np.asarray(x, float))
-    for i, comp in enumerate((u, v, w)):
-        for axis, coord in enumerate(coords):
-            if len(coord) > 1:
-                grad[i, 2 - axis] = np.gradient(np.asarray(comp, float), coord, axis=axis)
-    return grad
-
-
-def vorticity(grad: np.ndarray):
-    """Vorticity ``(wx, wy, wz)`` from a velocity-gradient tensor."""
-    return grad[2, 1] - grad[1, 2], grad[0, 2] - grad[2, 0], grad[1, 0] - grad[0, 1]
-
-
-def q_criterion(grad: np.ndarray) -> np.ndarray:
-    """``Q = (|Omega|^2 - |S|^2) / 2 = -(1/2) sum_ij A_ij A_ji`` (Hunt, Wray & Moin 1988)."""
-    return -0.5 * np.einsum("ij...,ji...->...", grad, grad)
-
+__all__ = ["PIVResult", "piv3d"]
 
 def _check_volume(name: str, vol) -> np.ndarray:
     arr = np.asarray(vol)

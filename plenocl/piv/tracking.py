@@ -38,8 +38,8 @@ from scipy import stats
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
-from .multipass import PIVResult
-from .peaks import find_particles
+from ..peaks import find_particles
+from ..vectorfield import PIVResult
 from .validation import normalized_median_test, replace_outliers
 
 if TYPE_CHECKING:

@@ -19,7 +19,7 @@ _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_
             "partial_sums", "row_extent")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
-#: The literal methods' ratio floor (kernels/reconstruct.cl PL_RATIO_MIN: log -13.8).
+#: The literal methods' ratio floor (kernels/solver.cl PL_RATIO_MIN: log -13.8).
 RATIO_MIN = 1e-6
 #: Crop when the non-zero voxels' bounding box holds at most this fraction of the grid.
 CROP_BELOW = 0.8
@@ -95,7 +95,7 @@ class Solver:
         self.lenses = None if lit is None else projector.lens_set(lit)
         self.smin = np.float32(max(min_sensitivity, 1e-12))
         self.queue = projector.queue
-        self._k = KernelSet(self.queue, "reconstruct.cl", _KERNELS, looping=["partial_sums"])
+        self._k = KernelSet(self.queue, "solver.cl", _KERNELS, looping=["partial_sums"])
         self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
         self._no_blocks = cla.zeros(self.queue, 1, np.int32)
         seen = np.ones(1, np.float32) if observed is None else observed.astype(np.float32)

@@ -1,4 +1,4 @@
-"""NumPy reference of the refocusing kernel (``kernels/refocus.cl``), written for clarity.
+"""NumPy reference of the refocusing kernel (``kernels/lightfield.cl``), written for clarity.
 
 Shift-and-add over the sub-aperture views, each sampled between microlenses with the
 quadratic B-spline weights of the 3 x 3 nearest lenses (the same smoothing at every

@@ -14,7 +14,7 @@ from ..grid import Grid
 from ..io.fields import read_npz, save_field
 from ..io.files import read_volumes
 from ..piv.ensemble import ensemble_piv
-from ..piv.multipass import PIVResult
+from ..vectorfield import PIVResult
 from .layout import finished_pairs, volume_file
 
 

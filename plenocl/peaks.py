@@ -1,12 +1,30 @@
-"""Particles in a reconstructed volume: local maxima with sub-voxel positions (used by
-the reconstruction metrics and by the particle refinement of ``tracking.py``)."""
+"""Peaks with sub-voxel positions: the three-point Gaussian fit (correlation peaks in
+:mod:`plenocl.piv`) and a volume's particles as local maxima (used by the reconstruction
+metrics and by the particle refinement of :mod:`plenocl.piv.tracking`)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
 
-from .correlation import gaussian_subpixel
+__all__ = ["find_particles", "gaussian_subpixel"]
+
+
+def gaussian_subpixel(c_minus: np.ndarray, c0: np.ndarray, c_plus: np.ndarray) -> np.ndarray:
+    """Three-point Gaussian peak offset in ``[-0.5, 0.5]``; parabolic where a value is <= 0.
+
+    The Gaussian fit needs the logarithm of all three samples; where any is non-positive
+    (or the log-curvature is not negative) the parabolic three-point fit is used instead.
+    """
+    cm, cc, cp = (np.asarray(c, np.float64) for c in (c_minus, c0, c_plus))
+    positive = (cm > 0) & (cc > 0) & (cp > 0)
+    lm, lc, lp = (np.log(np.where(positive, c, 1.0)) for c in (cm, cc, cp))
+    den_g = 2.0 * (lm - 2.0 * lc + lp)
+    den_p = 2.0 * (cm - 2.0 * cc + cp)
+    use_g = positive & (den_g < 0)
+    offset = np.where(use_g, (lm - lp) / np.where(use_g, den_g, -1.0),
+                      np.where(den_p < 0, (cm - cp) / np.where(den_p < 0, den_p, -1.0), 0.0))
+    return np.clip(offset, -0.5, 0.5)
 
 
 def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int = 1

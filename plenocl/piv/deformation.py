@@ -1,6 +1,6 @@
 """The two ways :func:`plenocl.piv3d` deforms volumes: on the host
-(:func:`plenocl.piv.deform.deform`, SciPy ``map_coordinates``, the reference) or on an
-OpenCL device (``kernels/deform.cl``, one work-item per voxel).
+(:func:`plenocl.piv.interpolate.deform`, SciPy ``map_coordinates``, the reference) or on
+an OpenCL device (``kernels/deform.cl``, one work-item per voxel).
 
 Both take a volume once (:meth:`prepare`: zero margin, B-spline filter) and then sample it
 at ``p + factor * d(p)`` for a dense predictor ``d`` as often as the passes need.
@@ -14,11 +14,11 @@ import numpy as np
 
 from ..device import DeviceLike, check_fits, get_queue
 from ..program import KernelSet
-from .deform import MARGIN, deform, prepare
+from .interpolate import MARGIN, deform, prepare
 
 
 class HostDeformer:
-    """Deformation with SciPy (:func:`plenocl.piv.deform.deform`), any order 1, 3, 5."""
+    """Deformation with SciPy (:func:`plenocl.piv.interpolate.deform`), any order 1, 3, 5."""
 
     def __init__(self, order: int) -> None:
         self.order = order
@@ -45,7 +45,7 @@ class DeviceDeformer:
     queue
         Device to run on (:func:`plenocl.get_queue` rules).
     order
-        1 (trilinear) or 3 (cubic B-spline), as :func:`plenocl.piv.deform.deform`.
+        1 (trilinear) or 3 (cubic B-spline), as :func:`plenocl.piv.interpolate.deform`.
     """
 
     def __init__(self, queue: DeviceLike, order: int) -> None:
@@ -57,7 +57,7 @@ class DeviceDeformer:
                                  options=[f"-DORDER={order}"])
 
     def prepare(self, vol: np.ndarray):
-        """The padded, filtered volume (host :func:`~plenocl.piv.deform.prepare`), on the
+        """The padded, filtered volume (host :func:`~plenocl.piv.interpolate.prepare`), on the
         device."""
         coeffs = prepare(vol, self.order)
         check_fits(self.kernels.queue, 4 * (2 * coeffs.size + 4 * np.asarray(vol).size),

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path"]
+__all__ = ["atomic_path", "write_json", "write_text"]
 
 
 @contextlib.contextmanager
@@ -32,3 +33,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def write_json(path: str | Path, doc: dict, sort_keys: bool = False) -> None:
+    """Write ``doc`` as indented JSON to ``path`` atomically (keys sorted if asked)."""
+    write_text(path, json.dumps(doc, indent=2, sort_keys=sort_keys))

@@ -1,0 +1,114 @@
+"""Resuming interrupted work: one mechanism for the demos' stages and a batch's pairs.
+
+A piece of work is done when all its output files exist. Every file is written atomically
+(:func:`plenocl.io.atomic_path`), so a killed run leaves no half-written output, only
+temporary files, which :func:`remove_partial_files` deletes before a run goes on.
+
+- :func:`pending`: the items whose outputs are missing (a batch's pairs: a pair is done
+  when its field file exists);
+- :class:`StageRunner`: named stages in an output folder; a stage is done when its entry
+  in ``state.json`` exists, was made with the same configuration, and its outputs exist
+  (the demos).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import TypeVar
+
+from ..io.atomic import write_json
+
+T = TypeVar("T")
+
+
+def outputs_exist(paths: Iterable[str | Path]) -> bool:
+    """Whether every output file is present (work done, as the files are written
+    atomically)."""
+    return all(Path(p).is_file() for p in paths)
+
+
+def pending(items: Iterable[T], outputs: Callable[[T], Sequence[str | Path]]
+            ) -> tuple[list[T], list[T]]:
+    """``(to do, done)``: the items whose ``outputs(item)`` are not all present, and those
+    whose outputs are (skipped when a run resumes)."""
+    todo, done = [], []
+    for item in items:
+        (done if outputs_exist(outputs(item)) else todo).append(item)
+    return todo, done
+
+
+def remove_partial_files(*folders: Path) -> list[Path]:
+    """Delete what a killed run left half-written in ``folders``: the atomic writers'
+    temporary files (``.<name>.*.part*``) and stores being written (``*.partial``)."""
+    left = [path for folder in map(Path, folders)
+            for pattern in (".*.part*", "*.partial") for path in folder.glob(pattern)]
+    for path in left:
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    return left
+
+
+class StageRunner:
+    """Runs named stages in an output folder, skipping those already done.
+
+    Parameters
+    ----------
+    out_dir
+        Output folder (created).
+    config
+        JSON-serialisable configuration; a change invalidates every stage.
+    log
+        Called with progress lines (``print`` by default).
+    """
+
+    def __init__(self, out_dir: str | Path, config: dict,
+                 log: Callable[[str], None] = print) -> None:
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        for path in remove_partial_files(self.out):
+            log(f"removed {path.name}, left half-written by an interrupted run")
+        self.key = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
+        self.log = log
+        self.state_path = self.out / "state.json"
+        self.state = {"config": self.key, "stages": {}}
+        if self.state_path.is_file():
+            old = json.loads(self.state_path.read_text())
+            if old.get("config") == self.key:
+                self.state = old
+            else:
+                self.log("configuration changed: running every stage again")
+
+    def path(self, name: str) -> Path:
+        """A file in the output folder."""
+        return self.out / name
+
+    def done(self, name: str, outputs: Sequence[str]) -> bool:
+        """Whether stage ``name`` finished and its outputs are all present."""
+        return name in self.state["stages"] and outputs_exist(self.path(o) for o in outputs)
+
+    def run(self, name: str, outputs: Sequence[str], fn: Callable[[], None]) -> float:
+        """Run ``fn`` unless the stage is done; returns the stage's (recorded) seconds."""
+        if self.done(name, outputs):
+            seconds = self.state["stages"][name]["seconds"]
+            self.log(f"[{name}] done earlier ({seconds:.1f} s), skipped")
+            return seconds
+        self.log(f"[{name}] ...")
+        t0 = time.perf_counter()
+        fn()
+        seconds = time.perf_counter() - t0
+        self.state["stages"][name] = {"seconds": seconds, "outputs": list(outputs)}
+        write_json(self.state_path, self.state, sort_keys=True)
+        self.log(f"[{name}] {seconds:.1f} s")
+        return seconds
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Seconds per finished stage."""
+        return {k: v["seconds"] for k, v in self.state["stages"].items()}

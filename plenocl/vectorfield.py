@@ -1,0 +1,302 @@
+"""The model of a PIV result: a 3-D displacement field on the window-centre grid
+(:class:`PIVResult`, what :func:`plenocl.piv3d` returns), its derived flow quantities
+(velocity, gradient, vorticity, Q-criterion) and the arrays and metadata a file of it
+holds (:meth:`PIVResult.arrays`, :meth:`PIVResult.metadata`), including the turn of
+vectors on a rotated grid into object space. :mod:`plenocl.io.fields` writes and reads
+those arrays; it knows no PIV algorithm.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .optics.lattice import rotation_matrix
+
+__all__ = ["AXES", "FLAGS", "NOTES", "PIVResult", "Size3", "displacement_to_velocity",
+           "field_units", "q_criterion", "uncertainty", "velocity_gradient", "vorticity",
+           "voxel_size"]
+
+Size3 = tuple[int, int, int]
+
+#: The boolean flags stored with every field.
+FLAGS = ("valid", "outlier", "masked")
+
+#: What a reader of the arrays should know (also in every file's metadata).
+NOTES = {"peak_ratio": "primary over secondary correlation peak of the final pass; NaN "
+                       "where that pass correlated directly at the lags around zero (the "
+                       "default deformed passes), where no second peak is searched; "
+                       "piv3d(min_peak_ratio=...) correlates the final pass by FFT"}
+
+#: Axis order and meaning of the stored arrays (also in every file's metadata).
+AXES = ("arrays (..., nz, ny, nx) on the vector grid, z slowest; vector components "
+        "(x, y, z); voxel_size_mm and origin_mm are (z, y, x) of the voxel grid (origin: "
+        "the centre of voxel 0); vector_origin_mm and vector_spacing_mm are (x, y, z) of "
+        "the vector grid, as in the .vti file")
+
+
+
+@dataclass
+class PIVResult:
+    """A 3-D displacement field on the window-centre grid.
+
+    Attributes
+    ----------
+    x, y, z
+        1-D window-centre coordinates in voxel-index units.
+    u, v, w
+        Displacement (voxels) along x, y, z, shaped ``(nz', ny', nx')``; outliers are
+        replaced, masked vectors are NaN.
+    valid
+        ``True`` where the vector came from its own correlation and passed validation.
+    peak_ratio
+        Primary over secondary correlation peak of the final pass, where that pass
+        correlated by FFT; NaN where it correlated directly at the lags around zero
+        (``correlation="auto"``, the default, unless ``min_peak_ratio`` is given).
+    outlier
+        Flagged by the final normalised median test (then replaced).
+    masked
+        Window excluded by the mask (more than half of it masked).
+    window
+        Final window size ``(wz, wy, wx)``.
+    passes
+        Per-pass diagnostics (window, step, vector count, outliers, seconds).
+    sigma_u, sigma_v, sigma_w
+        Standard uncertainty (voxels) of each valid vector's components, from the
+        statistics of the final pass's correlation on the deformed volumes
+        (:func:`plenocl.piv.direct.correlation_uncertainty`); NaN for invalid, replaced
+        or masked vectors and after a single (undeformed) pass. ``None`` in results
+        read from files written before it existed.
+    refinement
+        What refined the field after the correlation (``{}``: nothing): for the particle
+        refinement (:func:`plenocl.piv.tracking.refine_with_particles`) the particle
+        pairs found, the vectors refined and their median pair count.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    valid: np.ndarray
+    peak_ratio: np.ndarray
+    outlier: np.ndarray
+    masked: np.ndarray
+    window: Size3
+    passes: list[dict] = field(default_factory=list)
+    sigma_u: np.ndarray | None = None
+    sigma_v: np.ndarray | None = None
+    sigma_w: np.ndarray | None = None
+    refinement: dict = field(default_factory=dict)
+
+    @property
+    def shape(self) -> Size3:
+        """Vector-grid shape ``(nz', ny', nx')``."""
+        return self.u.shape
+
+    def velocity(self, voxel_size_mm, dt: float):
+        """Velocity ``(U, V, W)`` in m/s for a voxel size (mm, scalar or ``(dz, dy, dx)``)."""
+        return displacement_to_velocity((self.u, self.v, self.w), voxel_size_mm, dt)
+
+    def velocity_uncertainty(self, voxel_size_mm, dt: float):
+        """Standard uncertainty of ``(U, V, W)`` in m/s (NaN where unknown)."""
+        sigmas = [np.full(self.shape, np.nan) if s is None else s
+                  for s in (self.sigma_u, self.sigma_v, self.sigma_w)]
+        return displacement_to_velocity(sigmas, voxel_size_mm, dt)
+
+    def positions_mm(self, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0)):
+        """Window centres ``(x, y, z)`` in mm; ``origin_mm = (z0, y0, x0)``: voxel 0 centre."""
+        dz, dy, dx = voxel_size(voxel_size_mm)
+        z0, y0, x0 = (float(o) for o in origin_mm)
+        return x0 + dx * self.x, y0 + dy * self.y, z0 + dz * self.z
+
+    def gradient(self, voxel_size_mm=1.0, dt: float | None = None) -> np.ndarray:
+        """Velocity-gradient tensor ``(3, 3, nz', ny', nx')``, see :func:`velocity_gradient`."""
+        size = voxel_size(voxel_size_mm)
+        if dt is None:  # displacement gradient (mm per mm, i.e. per dt)
+            comps = [c * s for c, s in zip((self.u, self.v, self.w), size[::-1])]
+        else:           # m/s over m
+            comps = list(self.velocity(size, dt))
+        scale = 1.0 if dt is None else 1e-3
+        x, y, z = self.positions_mm(size)
+        return velocity_gradient(*comps, x * scale, y * scale, z * scale)
+
+    def vorticity(self, voxel_size_mm=1.0, dt: float | None = None):
+        """Vorticity ``(wx, wy, wz)``: 1/s with ``dt``, else per ``dt`` (dimensionless).
+
+        Derivatives are ``np.gradient`` on the physical vector grid (one-sided at the
+        faces); next to masked (NaN) vectors the result is NaN.
+        """
+        return vorticity(self.gradient(voxel_size_mm, dt))
+
+    def q_criterion(self, voxel_size_mm=1.0, dt: float | None = None) -> np.ndarray:
+        """Q-criterion: 1/s^2 with ``dt``, else per ``dt^2``."""
+        return q_criterion(self.gradient(voxel_size_mm, dt))
+
+    def arrays(self, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0), dt: float | None = None,
+               rotation_deg: float = 0.0) -> dict[str, np.ndarray]:
+        """Every array a field file stores, keyed by name (see :mod:`plenocl.io.fields`).
+
+        Parameters
+        ----------
+        voxel_size_mm
+            Scalar or ``(dz, dy, dx)`` in mm.
+        origin_mm
+            ``(z0, y0, x0)``: the centre of voxel ``(0, 0, 0)`` in mm.
+        dt
+            Time between the volumes (s); adds ``velocity`` and physical units.
+        rotation_deg
+            The grid's rotation about the optical axis: ``velocity`` and ``vorticity``
+            are given in object space (turned by it).
+        """
+        size = voxel_size(voxel_size_mm)
+        out = self._coordinate_arrays(size, origin_mm)
+        out["displacement"] = np.stack([self.u, self.v, self.w])
+        out["peak_ratio"] = self.peak_ratio
+        out.update({name: np.asarray(getattr(self, name), bool) for name in FLAGS})
+        out["displacement_uncertainty"] = uncertainty(self)
+        if dt is not None:
+            out["velocity"] = _to_object_space(self.velocity(size, dt), rotation_deg)
+            out["velocity_uncertainty"] = _spread_to_object_space(
+                self.velocity_uncertainty(size, dt), rotation_deg)
+            out["dt"] = np.asarray(float(dt))
+        out["vorticity"] = _to_object_space(self.vorticity(size, dt), rotation_deg)
+        out["q_criterion"] = self.q_criterion(size, dt)
+        out["rotation_deg"] = np.asarray(float(rotation_deg))
+        return out
+
+    def _coordinate_arrays(self, size, origin_mm) -> dict[str, np.ndarray]:
+        """Window centres (voxel and mm), the voxel and vector grids' geometry, window."""
+        x_mm, y_mm, z_mm = self.positions_mm(size, origin_mm)
+        out = {"x": self.x, "y": self.y, "z": self.z, "x_mm": x_mm, "y_mm": y_mm,
+               "z_mm": z_mm, "voxel_size_mm": np.asarray(size),
+               "origin_mm": np.asarray(origin_mm, float), "window": np.asarray(self.window)}
+        out["vector_origin_mm"] = np.array([float(c[0]) for c in (x_mm, y_mm, z_mm)])
+        # a single vector along an axis gets the voxel size as its spacing
+        out["vector_spacing_mm"] = np.array([float(np.diff(c[:2])[0]) if len(c) > 1 else v
+                                             for c, v in zip((x_mm, y_mm, z_mm), size[::-1])])
+        return out
+
+    @staticmethod
+    def metadata(dt: float | None = None) -> dict:
+        """What a reader of :meth:`arrays` should know: units (velocities in m/s with
+        ``dt``, else per ``dt``), axis order and notes; JSON-ready."""
+        return {"units": field_units(dt is not None), "axes": AXES, "notes": NOTES}
+
+    @classmethod
+    def from_arrays(cls, arrays, source: str = "arrays") -> PIVResult:
+        """The field held by :meth:`arrays`' output (per-pass diagnostics are not stored);
+        ``source`` names it in the error for arrays that are no vector field."""
+        missing = {"x", "y", "z", "displacement", "peak_ratio", *FLAGS} - set(arrays)
+        if missing:
+            raise ValueError(f"{source} is not a plenocl vector field: missing "
+                             f"{sorted(missing)}")
+        u, v, w = arrays["displacement"]
+        sigma = arrays.get("displacement_uncertainty", (None, None, None))
+        return cls(x=arrays["x"], y=arrays["y"], z=arrays["z"], u=u, v=v, w=w,
+                   valid=arrays["valid"], peak_ratio=arrays["peak_ratio"],
+                   outlier=arrays["outlier"], masked=arrays["masked"],
+                   window=tuple(int(s) for s in arrays.get("window", (0, 0, 0))),
+                   sigma_u=sigma[0], sigma_v=sigma[1], sigma_w=sigma[2])
+
+
+def voxel_size(voxel_size_mm) -> tuple[float, float, float]:
+    """A voxel size as ``(dz, dy, dx)`` mm from a scalar or a triple, checked positive."""
+    size = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,))
+    if not np.all(np.isfinite(size) & (size > 0)):
+        raise ValueError(f"voxel_size_mm must be positive, a scalar or (dz, dy, dx) in mm, "
+                         f"got {voxel_size_mm!r}")
+    return tuple(float(s) for s in size)
+
+
+def displacement_to_velocity(displacement, voxel_size_mm, dt: float):
+    """Convert ``(u, v, w)`` in voxels to m/s: ``d * voxel_size_mm * 1e-3 / dt``.
+
+    Parameters
+    ----------
+    displacement
+        Sequence ``(u, v, w)`` of arrays in voxels along x, y, z.
+    voxel_size_mm
+        Scalar or ``(dz, dy, dx)`` in mm (array order, as :class:`plenocl.Grid.spacing`).
+    dt
+        Time between the two volumes (s).
+    """
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive time in seconds, got {dt!r}")
+    if dt > 1.0:
+        warnings.warn(f"dt = {dt:g} s between the exposures is unusually long for PIV "
+                      "(microseconds to milliseconds): dt is in seconds, e.g. 175 µs is "
+                      "175e-6", stacklevel=3)
+    dz, dy, dx = voxel_size(voxel_size_mm)
+    return tuple(np.asarray(c) * s * 1e-3 / dt for c, s in zip(displacement, (dx, dy, dz)))
+
+
+def velocity_gradient(u, v, w, x, y, z) -> np.ndarray:
+    """``grad[i, j] = d u_i / d x_j`` (``i, j`` over x, y, z) by ``np.gradient``.
+
+    ``u, v, w`` are shaped ``(nz, ny, nx)``; ``x, y, z`` are the 1-D physical coordinates.
+    Axes with a single node contribute zero derivatives.
+    """
+    grad = np.zeros((3, 3, *np.shape(u)))
+    coords = (np.asarray(z, float), np.asarray(y, float), np.asarray(x, float))
+    for i, comp in enumerate((u, v, w)):
+        for axis, coord in enumerate(coords):
+            if len(coord) > 1:
+                grad[i, 2 - axis] = np.gradient(np.asarray(comp, float), coord, axis=axis)
+    return grad
+
+
+def vorticity(grad: np.ndarray):
+    """Vorticity ``(wx, wy, wz)`` from a velocity-gradient tensor."""
+    return grad[2, 1] - grad[1, 2], grad[0, 2] - grad[2, 0], grad[1, 0] - grad[0, 1]
+
+
+def q_criterion(grad: np.ndarray) -> np.ndarray:
+    """``Q = (|Omega|^2 - |S|^2) / 2 = -(1/2) sum_ij A_ij A_ji`` (Hunt, Wray & Moin 1988)."""
+    return -0.5 * np.einsum("ij...,ji...->...", grad, grad)
+
+
+def field_units(with_dt: bool) -> dict[str, str]:
+    """Units of each stored array (``with_dt``: velocities in m/s, else per ``dt``)."""
+    units = {"x": "voxel", "y": "voxel", "z": "voxel", "x_mm": "mm", "y_mm": "mm",
+             "z_mm": "mm", "displacement": "voxel", "peak_ratio": "1",
+             "displacement_uncertainty": "voxel",
+             "voxel_size_mm": "mm", "origin_mm": "mm", "vector_origin_mm": "mm",
+             "vector_spacing_mm": "mm", "rotation_deg": "degree", "window": "voxel"}
+    if with_dt:
+        units.update(velocity="m s-1", velocity_uncertainty="m s-1", vorticity="s-1",
+                     q_criterion="s-2", dt="s")
+    else:
+        units.update(vorticity="1 (per dt)", q_criterion="1 (per dt^2)")
+    return units
+
+
+def uncertainty(result: PIVResult) -> np.ndarray:
+    """``(3, ...)`` standard uncertainty of ``(u, v, w)`` in voxels; all NaN for a result
+    without one (read from an older file)."""
+    if result.sigma_u is None:
+        return np.full((3, *result.shape), np.nan)
+    return np.stack([result.sigma_u, result.sigma_v, result.sigma_w])
+
+
+def _spread_to_object_space(sigmas, rotation_deg: float) -> np.ndarray:
+    """Standard uncertainties along a turned grid's axes as object-space ones (the
+    components' errors taken as independent)."""
+    sx, sy, sz = (np.asarray(c, np.float64) for c in sigmas)
+    if rotation_deg:
+        r = rotation_matrix(rotation_deg)
+        sx, sy = (np.hypot(r[0, 0] * sx, r[0, 1] * sy), np.hypot(r[1, 0] * sx, r[1, 1] * sy))
+    return np.stack([sx, sy, sz])
+
+
+def _to_object_space(components, rotation_deg: float) -> np.ndarray:
+    """``(x, y, z)`` vector components along a grid turned by ``rotation_deg`` about the
+    optical axis, as object-space components ``(3, ...)``."""
+    cx, cy, cz = (np.asarray(c, np.float64) for c in components)
+    if rotation_deg:
+        r = rotation_matrix(rotation_deg)
+        cx, cy = r[0, 0] * cx + r[0, 1] * cy, r[1, 0] * cx + r[1, 1] * cy
+    return np.stack([cx, cy, cz])
