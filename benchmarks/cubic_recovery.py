@@ -32,7 +32,6 @@ from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
 from plenocl.pipeline.settings import PAIR_SUPERSAMPLE  # noqa: E402
 from plenocl.reconstruction import reconstruct  # noqa: E402
-from plenocl.simulate import simulate_image  # noqa: E402
 
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 

@@ -331,16 +331,19 @@ def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
     pair's process_pair as the run's PairSettings object (no file read back); the run
     writes them, resolved, into experiment_used.toml for the record."""
     from plenocl.batch import worker
-    from plenocl.pipeline import MTESettings
+    from plenocl.pipeline import MTESettings, PairSettings
+    from plenocl.pipeline.settings import PARTS
 
     text = (EXPERIMENT.replace("iterations = 20", "iterations = 20\ntol = 0.01")
             .replace('folder = "raw"', f'folder = "{(experiment / "raw").as_posix()}"')
-            + "[piv]\nwindows = [24]\ncorrelation = 'fft'\n[mte]\ncycles = 1\n"
+            + "[piv]\nwindows = [24]\ncorrelation = 'fft'\nweighting = 'none'\n"
+            "[mte]\ncycles = 1\n"
             "iterations = 4\n[particles]\nenabled = false\n[image_fit]\nrays = 200\n")
     (tmp_path / "e.toml").write_text(text)
     expected = load_experiment(tmp_path / "e.toml").pair
     assert expected.mte == MTESettings(cycles=1, iterations=4) and not expected.particles
     assert expected.image_fit.rays == 200 and expected.piv.windows == (24,)
+    assert expected.piv.weighting is None  # "none": TOML has no null
     assert expected.reconstruction.tol == 0.01 and expected.reconstruction.supersample == 3
     got = []
 
@@ -356,3 +359,7 @@ def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
     used = read_toml(tmp_path / "out" / "experiment_used.toml")
     assert used["mte"]["cycles"] == 1 and used["particles"]["enabled"] is False
     assert used["image_fit"]["rays"] == 200 and used["piv"]["correlation"] == "fft"
+    # the record, read back, is the settings the workers got (None options included)
+    parts = {part: dict(used[part]) for part in PARTS}
+    parts["piv"].pop("ensemble")
+    assert PairSettings.from_dict(parts) == expected

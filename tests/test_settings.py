@@ -16,10 +16,10 @@ from plenocl import (
     reconstruct,
 )
 from plenocl.cli.main import build_parser
+from plenocl.io.tomlfile import read_toml, write_toml
 from plenocl.options import NONE
 from plenocl.pipeline.settings import PAIR_SUPERSAMPLE
 from plenocl.piv.imagefit import ImageFitSettings
-from plenocl.tomlfile import read_toml, write_toml
 
 CHANGED = PairSettings(
     reconstruction=ReconstructionSettings("mart", 12, 0.6, threshold=3.0, ratio_floor=0.2,

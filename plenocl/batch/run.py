@@ -30,6 +30,7 @@ from ..io.fields import field_metadata
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..io.tomlfile import write_toml
+from ..options import NONE
 from ..pipeline.resume import pending
 from ..version import __version__
 from .config import Experiment, image_pairs, load_experiment
@@ -246,7 +247,7 @@ def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
     camera and the grid, beside the results."""
     out.mkdir(parents=True, exist_ok=True)
     grid_file = out / "grid_used.toml"
-    pair = exp.pair.to_dict()
+    pair = exp.pair.to_dict(none=NONE)  # TOML has no null: "none"
     pair["piv"].update(exp["piv"])  # ensemble, the batch's
     used = {name: {k: v for k, v in values.items() if v is not None}
             for name, values in {**exp.sections, **pair}.items()}

@@ -29,10 +29,10 @@ from ..io.files import (
 )
 from ..metrics import recovery
 from ..particles import particles_per_microlens, random_particles
+from ..pipeline.resume import StageRunner
 from ..pipeline.settings import PairSettings
 from ..piv.settings import PIVSettings
 from ..reconstruction import ReconstructionSettings
-from ..pipeline.resume import StageRunner
 
 U_INF = 4.57          # free-stream velocity, m/s (the paper's 15 ft/s)
 DT = 175e-6           # time between the two exposures, s
