@@ -13,6 +13,7 @@ from .piv import PIVResult, PIVSettings, piv3d
 from .projection import Projector
 from .reconstruction import ReconstructionSettings, reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
+from .vectorfile import read_npz, save_field
 from .version import __version__
 
 __all__ = [
@@ -40,8 +41,10 @@ __all__ = [
     "piv3d",
     "process_pair",
     "random_particles",
+    "read_npz",
     "reconstruct",
     "run",
+    "save_field",
     "simulate_image",
     "simulate_white_image",
 ]

@@ -11,8 +11,9 @@ import plenocl
 from plenocl import Camera, random_particles, simulate_image
 from plenocl.batch import load_experiment
 from plenocl.cli.main import main
-from plenocl.io import read_npz, write_tiff
+from plenocl.io import write_tiff
 from plenocl.io.tomlfile import read_toml
+from plenocl.vectorfile import read_npz
 
 EXPERIMENT = """
 [camera]

@@ -11,10 +11,10 @@ import numpy as np
 
 from ..device import get_queue
 from ..grid import Grid
-from ..io.fields import read_npz, save_field
 from ..io.files import read_volumes
 from ..piv.ensemble import ensemble_piv
 from ..vectorfield import PIVResult
+from ..vectorfile import read_npz, save_field
 from .layout import finished_pairs, volume_file
 
 

@@ -20,10 +20,10 @@ import numpy as np
 from ..camera import load_camera
 from ..device import DeviceLike
 from ..grid import Grid
-from ..io.fields import save_field
 from ..io.files import read_image, write_volumes
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
+from ..vectorfile import save_field
 from .layout import pair_index, volume_file
 from .pairing import fingerprint
 

@@ -69,12 +69,12 @@ def _pixel_mask(args: argparse.Namespace, camera):
 
 def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
-    from ..io.fields import save_field
     from ..io.files import load_volume
     from ..pipeline.settings import PairSettings
     from ..piv import PIVSettings, piv3d
     from ..piv.tracking import FocalZone, refine_with_particles
     from ..units import check_dt
+    from ..vectorfile import save_field
 
     if args.raw and not args.camera:
         raise ValueError("--raw needs --camera: the particles are fitted to the raw images "

@@ -233,11 +233,11 @@ def _stage_mart(run, sc, cam, queue) -> None:
 
 
 def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettings) -> None:
-    from ..io.fields import save_field
     from ..io.files import read_image
     from ..piv.imagefit import ImageFit
     from ..piv.multipass import piv3d
     from ..piv.tracking import FocalZone, refine_with_particles
+    from ..vectorfile import save_field
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
     vol_b, _ = load_volume(run.path("vol_b.npz"))
@@ -254,7 +254,7 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettin
 def measured_and_true(field: Path, sc: Scenario, flow: CameraFrameFlow):
     """Measured and true velocity (m/s, camera frame, ``(3, nz', ny', nx')``) of a field
     file (``.npz``), the valid mask and the window-centre coordinates (mm)."""
-    from ..io.fields import read_npz
+    from ..vectorfile import read_npz
 
     res, _ = read_npz(field)
     dz, dy, dx = sc.grid.spacing
@@ -271,7 +271,7 @@ def measured_and_true(field: Path, sc: Scenario, flow: CameraFrameFlow):
 def _averaged_fields(field: Path, sc: Scenario, flow: CameraFrameFlow):
     """:func:`measured_and_true` with the truth averaged over each final window (what a
     window measures, and what the headline lateral and depth errors compare with)."""
-    from ..io.fields import read_npz
+    from ..vectorfile import read_npz
 
     meas, _, valid, coords = measured_and_true(field, sc, flow)
     return meas, window_averaged(read_npz(field)[0].window, coords, sc, flow), valid, coords
@@ -312,7 +312,7 @@ def lateral_depth_errors(meas, truths: dict, valid, sc: Scenario) -> dict:
 
 def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
     """Errors against the truth, as fractions of ``U∞``, and the reconstruction's recovery."""
-    from ..io.fields import read_npz
+    from ..vectorfile import read_npz
 
     field = run.out / "field.npz"
     meas, true, valid, coords = measured_and_true(field, sc, flow)

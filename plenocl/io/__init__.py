@@ -2,15 +2,16 @@
 
 - atomic writes (:mod:`.atomic`: any file, JSON, text) and TOML files (:mod:`.tomlfile`);
 - :mod:`.files`: images (TIFF/PNG/NPY), particle CSVs, volumes (NPZ/NPY/HDF5);
-- :mod:`.fields`: PIV fields (VTK ``.vti``, ``.npz``, ``.h5``);
+- :mod:`.fields`: PIV fields' arrays (VTK ``.vti``, ``.npz``, ``.h5``; a
+  :class:`plenocl.PIVResult` as a file: :mod:`plenocl.vectorfile`);
 - :mod:`.plotting`, :mod:`.progress`: figures and progress bars for the user.
 """
 
 from .atomic import atomic_path, write_json, write_text
-from .fields import read_npz, save_field
+from .fields import read_field, write_field
 from .files import load_volume, read_image, read_particles, save_volume, write_particles, write_tiff
 from .tomlfile import read_toml, write_toml
 
-__all__ = ["atomic_path", "load_volume", "read_image", "read_npz", "read_particles",
-           "read_toml", "save_field", "save_volume", "write_json", "write_particles",
+__all__ = ["atomic_path", "load_volume", "read_field", "read_image", "read_particles",
+           "read_toml", "save_volume", "write_field", "write_json", "write_particles",
            "write_text", "write_tiff", "write_toml"]

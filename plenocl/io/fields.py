@@ -18,6 +18,10 @@ follow the grid's axes, while ``velocity`` and ``vorticity`` are given in object
 (the user's frame): their ``x``, ``y`` components are turned by the grid's rotation.
 
 In ``.vti`` files the image origin and spacing are the vector grid's, in mm.
+
+This module writes and reads those arrays and a JSON-ready metadata dict; it knows no
+vector-field type. :mod:`plenocl.vectorfile` turns a :class:`plenocl.PIVResult` into
+them (:meth:`plenocl.PIVResult.arrays`) and back.
 """
 
 from __future__ import annotations
@@ -28,85 +32,46 @@ from pathlib import Path
 
 import numpy as np
 
-from ..vectorfield import FLAGS, PIVResult, voxel_size
 from .atomic import atomic_path
 
-__all__ = ["field_arrays", "field_metadata", "metadata_of", "read_npz", "save_field",
-           "write_h5", "write_npz", "write_vti"]
+__all__ = ["FIELD_FORMATS", "check_field_path", "field_metadata", "metadata_of",
+           "read_field", "write_field", "write_h5", "write_npz", "write_vti"]
+
+#: The field file formats by suffix.
+FIELD_FORMATS = {".vti": "VTK ImageData (ParaView)", ".npz": "NumPy", ".h5": "HDF5",
+                 ".hdf5": "HDF5"}
 
 
-def _geometry(voxel_size_mm, origin_mm, grid):
-    """Voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm."""
-    if grid is not None:
-        spacing = tuple(float(s) for s in grid.spacing)
-        lows = (grid.z[0], grid.y[0], grid.x[0])
-        return spacing, tuple(lo + 0.5 * s for lo, s in zip(lows, spacing))
-    origin = tuple(float(o) for o in np.broadcast_to(np.asarray(origin_mm, float), (3,)))
-    return voxel_size(voxel_size_mm), origin
-
-
-def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-                 dt: float | None = None, rotation_deg: float = 0.0,
-                 metadata: dict | None = None) -> dict[str, np.ndarray]:
-    """All arrays written by :func:`save_field`, keyed by name (see the module notes): the
-    field's own (:meth:`plenocl.PIVResult.arrays`) and a JSON ``metadata`` entry, its
-    :meth:`~plenocl.PIVResult.metadata` with ``metadata``'s entries; the parameters are
-    :func:`save_field`'s.
-    """
-    out = result.arrays(voxel_size_mm, origin_mm, dt, rotation_deg)
-    out["metadata"] = np.asarray(json.dumps({**(metadata or {}), **result.metadata(dt)}))
-    return out
-
-
-def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
-               origin_mm=(0.0, 0.0, 0.0), dt: float | None = None, grid=None,
-               metadata: dict | None = None) -> Path:
-    """Write a PIV result, choosing the format from the extension (.vti, .npz, .h5/.hdf5).
-
-    Parameters
-    ----------
-    path
-        Output file; its suffix selects the format.
-    result
-        Output of :func:`plenocl.piv3d`.
-    voxel_size_mm
-        Scalar or ``(dz, dy, dx)`` in mm.
-    origin_mm
-        ``(z0, y0, x0)``: the centre of voxel ``(0, 0, 0)`` in mm.
-    dt
-        Time between the volumes (s); adds velocity in m/s and vorticity in 1/s.
-    grid
-        Optional :class:`plenocl.Grid` of the volumes; overrides ``voxel_size_mm`` and
-        ``origin_mm`` (its extents are the volume's outer faces); on a rotated grid the
-        velocity and vorticity are written in object space (see the module notes).
-    metadata
-        JSON-ready entries stored with the field (``.npz``, ``.h5``; a batch run records
-        each pair's source files here), read back by :func:`field_metadata`.
+def write_field(path: str | Path, arrays: dict[str, np.ndarray],
+                metadata: dict | None = None) -> Path:
+    """Write a vector field's ``arrays`` (the module notes), choosing the format from the
+    extension (.vti, .npz, .h5/.hdf5); ``metadata`` (JSON-ready; ``units`` and ``axes``
+    become HDF5 attributes) is stored with ``.npz`` and ``.h5`` files.
 
     Returns
     -------
     pathlib.Path
         The file written.
     """
-    path = Path(path)
-    size, origin = _geometry(voxel_size_mm, origin_mm, grid)
+    path = check_field_path(path)
     writers = {".vti": write_vti, ".npz": write_npz, ".h5": write_h5, ".hdf5": write_h5}
-    writer = writers.get(path.suffix.lower())
-    if writer is None:
-        raise ValueError(f"cannot tell the field format from {path.name!r}: use a .vti "
-                         f"(ParaView), .npz or .h5 file name")
-    writer(path, result, size, origin, dt, 0.0 if grid is None else grid.rotation_deg,
-           metadata=metadata)
+    writers[path.suffix.lower()](path, arrays, metadata or {})
     return path
 
 
-def write_npz(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-              dt: float | None = None, rotation_deg: float = 0.0,
-              metadata: dict | None = None) -> None:
-    """Write :func:`field_arrays` to a compressed ``.npz``, atomically."""
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg, metadata)
+def check_field_path(path: str | Path) -> Path:
+    """``path`` as a ``Path``, or a ``ValueError`` when its suffix names no field format."""
+    path = Path(path)
+    if path.suffix.lower() not in FIELD_FORMATS:
+        raise ValueError(f"cannot tell the field format from {path.name!r}: use a .vti "
+                         f"(ParaView), .npz or .h5 file name")
+    return path
+
+
+def write_npz(path, arrays: dict[str, np.ndarray], metadata: dict) -> None:
+    """Write ``arrays`` and a JSON ``metadata`` entry to a compressed ``.npz``, atomically."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
+        np.savez_compressed(fh, **arrays, metadata=np.asarray(json.dumps(metadata)))
 
 
 def metadata_of(arrays) -> dict:
@@ -121,20 +86,10 @@ def field_metadata(path) -> dict:
         return metadata_of(data)
 
 
-def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:
-    """Read a field written by :func:`write_npz`.
-
-    Returns
-    -------
-    result : PIVResult
-        The displacement field and flags (per-pass diagnostics are not stored).
-    arrays : dict
-        Every stored array, including ``voxel_size_mm``, ``origin_mm`` and, if written,
-        ``dt`` and ``velocity``.
-    """
+def read_field(path) -> dict[str, np.ndarray]:
+    """Every array of a field written by :func:`write_npz` (``metadata``: its JSON text)."""
     with np.load(path) as data:
-        arrays = {name: data[name] for name in data.files}
-    return PIVResult.from_arrays(arrays, source=str(path)), arrays
+        return {name: data[name] for name in data.files}
 
 
 def _vtk_order(arr: np.ndarray) -> np.ndarray:
@@ -145,55 +100,57 @@ def _vtk_order(arr: np.ndarray) -> np.ndarray:
     return arr.T
 
 
-def write_vti(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-              dt: float | None = None, rotation_deg: float = 0.0,
-              metadata: dict | None = None) -> None:
+def write_vti(path, arrays: dict[str, np.ndarray], metadata: dict | None = None) -> None:
     """Write a VTK ImageData ``.vti`` file for ParaView (point data on the vector grid;
     ``metadata`` is not stored: the ``.npz`` or ``.h5`` beside it holds it)."""
     try:
         from pyevtk.hl import imageToVTK
     except ImportError as exc:  # pragma: no cover - pyevtk is a declared dependency
         raise ImportError("writing .vti needs pyevtk: pip install pyevtk") from exc
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg)
     spacing = tuple(float(v) for v in arrays["vector_spacing_mm"])
     origin = tuple(float(v) for v in arrays["vector_origin_mm"])
-    vectors = {"displacement_voxels": "displacement", "velocity_m_per_s": "velocity",
-               "displacement_uncertainty_voxels": "displacement_uncertainty",
-               "velocity_uncertainty_m_per_s": "velocity_uncertainty",
-               "vorticity_per_s" if dt is not None else "vorticity_per_dt": "vorticity"}
-    point = {name: tuple(_vtk_order(c) for c in arrays[key])
-             for name, key in vectors.items() if key in arrays}
-    point["q_criterion_per_s2" if dt is not None else "q_criterion_per_dt2"] = \
-        _vtk_order(arrays["q_criterion"])
-    for name in (*FLAGS, "peak_ratio"):
-        point[name] = _vtk_order(arrays[name])
     with atomic_path(path) as tmp:
         written = imageToVTK(str(tmp.with_suffix("")), origin=origin, spacing=spacing,
-                             pointData=point)  # pyevtk appends ".vti" itself
+                             pointData=_point_data(arrays))  # pyevtk appends ".vti"
         if Path(written) != tmp:
             os.replace(written, tmp)
 
 
-def write_h5(path, result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
-             dt: float | None = None, rotation_deg: float = 0.0,
-             metadata: dict | None = None) -> None:
-    """Write :func:`field_arrays` to HDF5 (one dataset per array), atomically."""
+def _point_data(arrays: dict[str, np.ndarray]) -> dict:
+    """The ``.vti`` point arrays: vectors as component tuples, Q, the flags (every
+    boolean array) and the peak ratio; per ``dt`` names where no ``dt`` was given."""
+    per = "_per_s" if "dt" in arrays else "_per_dt"
+    vectors = {"displacement_voxels": "displacement", "velocity_m_per_s": "velocity",
+               "displacement_uncertainty_voxels": "displacement_uncertainty",
+               "velocity_uncertainty_m_per_s": "velocity_uncertainty",
+               "vorticity" + per: "vorticity"}
+    point = {name: tuple(_vtk_order(c) for c in arrays[key])
+             for name, key in vectors.items() if key in arrays}
+    point["q_criterion" + per + "2"] = _vtk_order(arrays["q_criterion"])
+    shape = np.shape(arrays["q_criterion"])
+    for name, arr in arrays.items():
+        if np.asarray(arr).dtype == bool and np.shape(arr) == shape:
+            point[name] = _vtk_order(arr)
+    point["peak_ratio"] = _vtk_order(arrays["peak_ratio"])
+    return point
+
+
+def write_h5(path, arrays: dict[str, np.ndarray], metadata: dict) -> None:
+    """Write ``arrays`` to HDF5 (one dataset per array), atomically; ``metadata`` as a
+    JSON file attribute, its ``units`` on the datasets and its ``axes`` on the file."""
     try:
         import h5py
     except ImportError as exc:
         raise ImportError("writing .h5 fields needs h5py: pip install h5py "
                           "(or save as .npz or .vti)") from exc
-    arrays = field_arrays(result, voxel_size_mm, origin_mm, dt, rotation_deg, metadata)
+    units = metadata.get("units", {})
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as fh:
-        meta = result.metadata(dt)
-        units = meta["units"]
         for name, arr in arrays.items():
-            if np.asarray(arr).dtype.kind == "U":  # text: a file attribute
-                fh.attrs[name] = str(arr)
-                continue
             opts = {"compression": "gzip"} if np.ndim(arr) >= 3 else {}
             data = fh.create_dataset(name, data=arr, **opts)
             if name in units:
                 data.attrs["units"] = units[name]
-        fh.attrs["axes"] = meta["axes"]
+        fh.attrs["metadata"] = json.dumps(metadata)
+        if "axes" in metadata:
+            fh.attrs["axes"] = metadata["axes"]
         fh.attrs["layout"] = "arrays (..., nz, ny, nx); displacement (u, v, w) in voxels"

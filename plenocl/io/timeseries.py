@@ -1,7 +1,7 @@
 """The time series of a batch run as one chunked Zarr store, readable by xarray.
 
 :func:`write_timeseries` gathers per-pair vector fields (``.npz`` files of
-:func:`plenocl.io.fields.write_npz`) into ``timeseries.zarr``:
+:func:`plenocl.vectorfile.save_field`) into ``timeseries.zarr``:
 
 - coordinates ``time`` (s, or pair numbers where the pair interval is unknown), ``z``,
   ``y``, ``x`` (mm, the vector grid's centres) and ``pair`` (the pair's index in the run);
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fields import metadata_of, read_npz
+from .fields import metadata_of, read_field
 
 COMPONENTS = ("u", "v", "w")
 
@@ -65,13 +65,13 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     partial = path.with_name(path.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
     group = zarr.open_group(partial, mode="w")
-    first = read_npz(fields[0][2])[1]
+    first = read_field(fields[0][2])
     _coordinates(group, first, fields, time_units)
     stats = _Ensemble(first["velocity"].shape[1:])
     arrays = _per_pair_arrays(group, len(fields), stats.shape)
     sources = [("", "", "", "")] * len(fields)
     for k, (_, _, npz) in enumerate(fields):
-        data = first if k == 0 else read_npz(npz)[1]
+        data = first if k == 0 else read_field(npz)
         _check_grid(data, first, npz)
         for comp, values in zip(COMPONENTS, data["velocity"]):
             arrays[comp][k] = values
@@ -85,7 +85,7 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     _write_sources(group, sources)
     stats.write(group)
     if ensemble is not None:
-        _write_ensemble(group, read_npz(ensemble)[1], first, Path(ensemble))
+        _write_ensemble(group, read_field(ensemble), first, Path(ensemble))
     group.attrs.update({"title": "plenocl time series", "source": "plenocl run"})
     with warnings.catch_warnings():  # zarr: "not part of the Zarr 3 specification" (yet)
         warnings.filterwarnings("ignore", message="Consolidated metadata")
