@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .io.tomlfile import read_toml, write_toml
+from .options import refuse_unknown
 
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80
@@ -408,18 +409,15 @@ CAMERA_KEYS = {
 def _check_keys(doc: dict, source: str) -> None:
     """Refuse unknown sections and keys by name, as the experiment file does: a misspelt
     optional key (``rotaton_deg``) would otherwise be ignored and the geometry wrong."""
-    unknown = sorted(set(doc) - set(CAMERA_KEYS))
-    if unknown:
-        raise ValueError(f"{source}: unknown section(s) {unknown}; a camera file has "
-                         f"{list(CAMERA_KEYS)} (docs/design.md §2)")
+    refuse_unknown(doc, CAMERA_KEYS, lambda bad: f"{source}: unknown section(s) {bad}; a "
+                   f"camera file has {list(CAMERA_KEYS)} (docs/design.md §2)")
     for section, keys in CAMERA_KEYS.items():
         given = doc.get(section, {})
         if not isinstance(given, dict):
             raise ValueError(f"{source}: [{section}] must be a section of keys")
-        bad = sorted(set(given) - set(keys))
-        if bad:
-            raise ValueError(f"{source}: unknown key(s) {bad} in [{section}]; it takes "
-                             f"{list(keys)} (docs/design.md §2)")
+        refuse_unknown(given, keys, lambda bad, section=section, keys=keys:
+                       f"{source}: unknown key(s) {bad} in [{section}]; it takes "
+                       f"{list(keys)} (docs/design.md §2)")
 
 
 def load_camera(spec: str | Path | None) -> Camera:

@@ -10,7 +10,7 @@ names an unknown key and the keys allowed.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 
 def field_names(cls) -> list[str]:
@@ -57,6 +57,14 @@ def with_keywords(cls, settings, keywords: dict, where: str):
 NONE = "none"
 
 
+def refuse_unknown(given, allowed, message: Callable[[list[str]], str]) -> None:
+    """A ``ValueError`` with ``message(unknown)`` when ``given`` holds keys that
+    ``allowed`` does not (sorted, so the message is stable)."""
+    unknown = sorted(set(given) - set(allowed))
+    if unknown:
+        raise ValueError(message(unknown))
+
+
 def from_table(cls, table, where: str):
     """A ``cls`` from a document's table (e.g. a TOML section): an unknown key, a table
     that is none, or a bad value is a ``ValueError`` naming ``where``. The string
@@ -64,9 +72,7 @@ def from_table(cls, table, where: str):
     if not isinstance(table, Mapping):
         raise ValueError(f"{where} must be a table of {cls.__name__} options, got {table!r}")
     names = field_names(cls)
-    unknown = sorted(set(table) - set(names))
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {unknown}; it takes {names}")
+    refuse_unknown(table, names, lambda bad: f"{where}: unknown key(s) {bad}; it takes {names}")
     try:
         return cls(**{k: None if v == NONE else v for k, v in table.items()})
     except (TypeError, ValueError) as exc:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from ..options import field_names, from_table, to_table
+from ..options import field_names, from_table, refuse_unknown, to_table
 from ..piv.imagefit import ImageFitSettings
 from ..piv.settings import PIVSettings
 from ..reconstruction import ReconstructionSettings
@@ -97,10 +97,8 @@ class PairSettings:
         """
         if not isinstance(doc, Mapping):
             raise ValueError(f"{source}: pair settings must be a table, got {doc!r}")
-        unknown = sorted(set(doc) - set(PARTS))
-        if unknown:
-            raise ValueError(f"{source}: unknown section(s) {unknown}; the pair settings "
-                             f"are {list(PARTS)}")
+        refuse_unknown(doc, PARTS, lambda bad: f"{source}: unknown section(s) {bad}; the "
+                       f"pair settings are {list(PARTS)}")
         rec = doc.get("reconstruction", {})
         if isinstance(rec, Mapping):  # the pair's default, not the single step's
             rec = {"supersample": PAIR_SUPERSAMPLE, **rec}

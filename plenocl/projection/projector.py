@@ -56,10 +56,9 @@ class Projector:
 
     Parameters
     ----------
-    camera
-        The camera; its ``microlens_centers`` (calibrated or ideal) are used per lens.
-    grid
-        The reconstruction volume.
+    camera, grid
+        The camera (its calibrated or ideal ``microlens_centers``) and the volume: the
+        :class:`~plenocl.projection.model.WeightingModel` is built from them.
     queue
         A ``pyopencl.CommandQueue`` or anything :func:`plenocl.device.get_queue` accepts.
     oversample
