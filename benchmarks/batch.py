@@ -51,7 +51,7 @@ def piv_rows(repeats: int, queue) -> list[str]:
                              sigma=1.5, seed=1, noise=0.02)
     rows = []
     for label, kw in (("reference: SciPy deform + pocketfft, every pass by FFT",
-                       {"fft": "scipy", "correlation": "fft"}),
+                       {"fft": "scipy", "correlation": "fft", "queue": False}),
                       ("device deform + FFTW, every pass by FFT",
                        {"queue": queue, "correlation": "fft"}),
                       ("default: device deform, deformed passes direct",

@@ -4,6 +4,7 @@ Run from the repository root::
 
     python benchmarks/piv.py              # full run, 3 repeats (several minutes on 2 cores)
     python benchmarks/piv.py --quick      # fewer cases, 1 repeat
+    python benchmarks/piv.py --device-only  # piv3d alone vs inside process_pair
 
 Every case renders a synthetic volume pair (Gaussian particles, sigma 1 voxel, 0.004
 particles/voxel, erf-integrated) with known displacement and runs plenocl's ``piv3d``
@@ -229,13 +230,41 @@ def boundary_layer(seed: int) -> None:
     print()
 
 
+def device_choice(repeats: int, seed: int) -> None:
+    """``piv3d`` on its own (default device, as every stage) against the host deformation
+    it used before without ``queue=`` and the queue ``process_pair`` passes, one pair."""
+    from plenocl.device import get_queue
+
+    shape = (100, 150, 200)
+    pair = flows.volume_pair(shape, flows.Uniform((2.3, -1.4, 0.7)), density=0.001,
+                             sigma=1.5, seed=seed, noise=0.02)
+    piv3d(pair.vol_a[:32, :48, :48], pair.vol_b[:32, :48, :48])  # build the kernel once
+    rows = []
+    for label, kwargs in (("piv3d(a, b): default device (now)", {}),
+                          ("piv3d(a, b, queue=False): host SciPy (before: the default)",
+                           {"queue": False}),
+                          ("piv3d(a, b, queue=projector.queue), as process_pair",
+                           {"queue": get_queue()})):
+        res, seconds = timed(lambda k=kwargs: piv3d(pair.vol_a, pair.vol_b, **k), repeats)
+        err = [float(np.sqrt(np.mean((c - t) ** 2)))
+               for c, t in zip((res.u, res.v, res.w), (2.3, -1.4, 0.7))]
+        rows.append([label, f"{seconds:.2f}", " / ".join(f"{e:.4f}" for e in err)])
+    print_table(f"piv3d's device, {shape[::-1]} voxels (x, y, z), medians of {repeats}",
+                ["call", "seconds", "RMS error u / v / w (voxel)"], rows)
+
+
 def main() -> None:
     parser = script_parser(__doc__)
+    parser.add_argument("--device-only", action="store_true",
+                        help="only piv3d's device choice (default, host, process_pair's)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="96^3 only, 1 repeat")
     parser.add_argument("--seed", type=int, default=2718)
     args = parser.parse_args()
     repeats = 1 if args.quick else args.repeats
+    if args.device_only:
+        device_choice(repeats, args.seed)
+        return
     p3, version = openpiv_or_none()
     print(f"numpy {np.__version__}, scipy {scipy.__version__}, openpiv {version}, "
           f"{os.cpu_count()} CPUs\n")
@@ -243,6 +272,7 @@ def main() -> None:
         check_openpiv_axes(p3)
     shapes = [(96, 96, 96)] if args.quick else [(96, 96, 96), (80, 96, 128)]
     comparison(p3, shapes, repeats, args.seed)
+    device_choice(repeats, args.seed)
     peak_locking(p3, args.seed)
     deformation_study(1 if args.quick else repeats, args.seed)
     if not args.quick:

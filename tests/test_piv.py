@@ -549,6 +549,8 @@ def test_a_volume_too_thin_for_three_vector_layers_is_said_with_the_fix():
     depth (no gradient, all-NaN peak ratios) and used to say nothing."""
     import warnings
 
+    from plenocl.device import DeviceFallbackWarning
+
     rng = np.random.default_rng(0)
     a = (rng.random((16, 40, 40)) > 0.995).astype(np.float32)
     b = np.roll(a, 1, axis=2)
@@ -559,4 +561,5 @@ def test_a_volume_too_thin_for_three_vector_layers_is_said_with_the_fix():
     deep = np.concatenate([a, np.roll(a, 5, 1), np.roll(a, 9, 2)])  # 48 voxels deep
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
+        warnings.simplefilter("ignore", DeviceFallbackWarning)  # which device, not PIV's
         assert piv3d(deep, np.roll(deep, 1, axis=2)).u.shape[0] >= 3

@@ -49,9 +49,9 @@ class DeviceDeformer:
     """
 
     def __init__(self, queue: DeviceLike, order: int) -> None:
-        if order not in (1, 3):
+        if order not in DEVICE_ORDERS:
             raise ValueError(f"device deformation supports deform_order 1 and 3, got {order}; "
-                             "use queue=None for the quintic B-spline (host)")
+                             "use queue=False for the quintic B-spline (host)")
         self.order = order
         self.kernels = KernelSet(get_queue(queue), "deform.cl", ["deform"],
                                  options=[f"-DORDER={order}"])
@@ -80,8 +80,15 @@ class DeviceDeformer:
         return out.get()
 
 
+#: B-spline orders ``kernels/deform.cl`` has (the quintic is host-only).
+DEVICE_ORDERS = (1, 3)
+
+
 def make_deformer(order: int, queue: DeviceLike | bool = None):
-    """The host deformer (``queue`` None or False) or the device one."""
-    if queue is None or queue is False:
+    """The deformer for ``queue``, chosen as every stage chooses its device: ``None``
+    the default device (``PYOPENCL_CTX``, else the preferred one that builds; the host
+    for the quintic B-spline, which has no kernel), ``True`` the same, ``False`` the host
+    (SciPy, the reference), anything else that device."""
+    if queue is False or (queue is None and order not in DEVICE_ORDERS):
         return HostDeformer(order)
     return DeviceDeformer(None if queue is True else queue, order)

@@ -50,7 +50,8 @@ def ensemble_piv(pairs: PairSource, predictor: PIVResult, *, window=None,
     weighting
         Gaussian window weight (a fraction of the window).
     queue
-        OpenCL device for the deformation (``None``: SciPy on the host).
+        OpenCL device for the deformation (``None``: the default device, as
+        :func:`plenocl.piv3d`; ``False``: SciPy on the host).
     deform_order
         Interpolation of the deformation (1 or 3; 5 on the host only).
 

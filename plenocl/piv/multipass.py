@@ -217,10 +217,12 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
     workers
         Threads for the FFTs (``-1``: all cores).
     queue
-        An OpenCL device (a queue, context, device or name, or ``True`` for the default
-        one) to deform the volumes on (``kernels/deform.cl``); ``None`` deforms them on the
-        host with SciPy. Both give the same volumes to float32 rounding; the device is
-        several times faster even on a CPU (all cores instead of one).
+        The OpenCL device to deform the volumes on (``kernels/deform.cl``; a queue,
+        context, device or name): by default the default device, as every stage
+        (``PYOPENCL_CTX``, else the preferred one; the host for ``deform_order=5``, which
+        has no kernel). ``False`` deforms on the host with SciPy, the reference. Both give
+        the same volumes to float32 rounding; the device is several times faster even on
+        a CPU (all cores instead of one).
     fft
         ``"fftw"`` (default where pyfftw is installed) or ``"scipy"`` (the reference).
     correlation
