@@ -3,10 +3,13 @@ the same weights (same run, medians of repeats), memory of both, the atomic-scat
 alternatives, and one forward + back projection of the paper's full experiment.
 
     python benchmarks/projector.py [--repeats 5] [--skip-paper] [--skip-direct]
+                                   [--skip-stored] [--skip-small] [--skip-rotated]
 
 Weights per second count the non-zeros of the weight matrix processed per second (the
 CSR matrix's ``nnz`` for the stored case; an estimate from sampled voxels for the paper
-grid, whose matrix cannot be stored).
+grid, whose matrix cannot be stored). The roofline puts the paper grid's rate beside the
+most a stored matrix could reach at this device's copy bandwidth (8 bytes per weight); the
+small problems show the fixed cost per call.
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def stored_comparison(queue, repeats: int, direct: bool) -> None:
         row("direct back: 16-product gather per voxel", a.nnz, median_time(dback, repeats))
 
 
-def paper_experiment(queue, repeats: int) -> None:
+def paper_experiment(queue, repeats: int) -> dict[str, float]:
     cam = Camera.paper_16mp()
     grid = Grid((150, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5), z=(-10.0, 10.0))
     proj = Projector(cam, grid, queue)
@@ -92,6 +95,49 @@ def paper_experiment(queue, repeats: int) -> None:
     row("forward, device-resident", nnz, t_f)
     row("back, device-resident", nnz, t_b)
     print(f"  one forward + back: {t_f + t_b:.2f} s")
+    return {"paper grid, forward": nnz / t_f, "paper grid, back": nnz / t_b}
+
+
+def memory_bandwidth(queue, repeats: int, nbytes: int = 512 * 2**20) -> float:
+    """Device-to-device copy bandwidth (bytes read + written per second) of ``queue``'s
+    device: the roof a memory-bound product cannot pass."""
+    import pyopencl as cl
+
+    src = cl.Buffer(queue.context, cl.mem_flags.READ_WRITE, nbytes)
+    dst = cl.Buffer(queue.context, cl.mem_flags.READ_WRITE, nbytes)
+    cl.enqueue_fill_buffer(queue, src, np.float32(1.0), 0, nbytes)
+    seconds = median_time(lambda: (cl.enqueue_copy(queue, dst, src), queue.finish()), repeats)
+    return 2 * nbytes / seconds
+
+
+def roofline(queue, repeats: int, rates: dict[str, float]) -> None:
+    """Weight updates per second against the memory roof: a stored matrix (CSR, float32
+    value + int32 column index) streams at least 8 bytes per weight, so this device's
+    copy bandwidth caps any stored product at bandwidth / 8 weights per second."""
+    bandwidth = memory_bandwidth(queue, repeats)
+    roof = bandwidth / 8
+    print(f"roofline: copy bandwidth {bandwidth / 1e9:.1f} GB/s (median of {repeats}, "
+          f"512 MiB device-to-device): a stored matrix can do at most {roof / 1e6:.0f} M "
+          f"weights/s here")
+    for label, rate in rates.items():
+        print(f"  {label:44s} {rate / 1e6:10.1f} M weights/s = {rate / roof:5.2f}x that roof")
+
+
+def small_calls(queue, repeats: int) -> None:
+    """Fixed cost per call: forward + back of small cubic grids on the 850 x 850 camera,
+    device-resident, against the stored CSR products of the same weights."""
+    cam = Camera.synthetic_850()
+    print(f"small problems (850 x 850 camera), medians of {repeats}:")
+    for n in (8, 16, 24):
+        grid = Grid((n, n, n), x=(-1.0, 1.0), y=(-1.0, 1.0), z=(-1.0, 1.0))
+        proj = Projector(cam, grid, queue)
+        a, _, vol, img_h = csr_case(proj)
+        fwd, back, _ = device_pair(proj, vol)
+        x, y = vol.ravel(), img_h.ravel()
+        t_csr = median_time(lambda a=a, x=x, y=y: (a @ x, a.T @ y), repeats)
+        t_mf = median_time(lambda f=fwd, b=back: (f(), b()), repeats)
+        print(f"  {n:2d}^3 voxels, {a.nnz:>10,} weights: matrix-free forward + back "
+              f"{t_mf * 1e3:7.2f} ms, CSR {t_csr * 1e3:7.2f} ms ({t_csr / t_mf:.2f}x)")
 
 
 def rotated_array(queue, repeats: int, rotation: float = 0.15) -> None:
@@ -125,7 +171,9 @@ def rotated_array(queue, repeats: int, rotation: float = 0.15) -> None:
 
 def main() -> None:
     parser = script_parser(__doc__, {"paper": None, "direct": None,
-                                     "rotated": "skip the rotated-array (general path) figure"})
+                                     "rotated": "skip the rotated-array (general path) figure",
+                                     "stored": "skip the stored-matrix (CSR) comparison",
+                                     "small": "skip the per-call cost of small problems"})
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--paper-repeats", type=int, default=3)
     args = parser.parse_args()
@@ -133,9 +181,12 @@ def main() -> None:
     info = device_info(queue)
     print(f"device: {info.name} ({info.platform}), {info.compute_units} compute units; "
           f"load average at start {os.getloadavg()[0]:.2f} (other processes share the CPU)")
-    stored_comparison(queue, args.repeats, not args.skip_direct)
+    if not args.skip_stored:
+        stored_comparison(queue, args.repeats, not args.skip_direct)
+    if not args.skip_small:
+        small_calls(queue, args.repeats)
     if not args.skip_paper:
-        paper_experiment(queue, args.paper_repeats)
+        roofline(queue, args.repeats, paper_experiment(queue, args.paper_repeats))
     if not args.skip_rotated:
         rotated_array(queue, args.paper_repeats)
     print(f"load average at end {os.getloadavg()[0]:.2f}")
