@@ -80,7 +80,7 @@ def main() -> None:
     vol_a, vol_b = (load_volume(out / f"vol_{tag}.npz")[0] for tag in "ab")
     focus = FocalZone.of(sc.camera, sc.grid)
     t0 = time.perf_counter()
-    corr = piv3d(vol_a, vol_b, windows=sc.windows)
+    corr = piv3d(vol_a, vol_b, windows=sc.windows, queue=queue)
     rows, t_corr = {}, time.perf_counter() - t0
     for label, fit in (("**default** (particles fitted to the raw images)",
                         ImageFit(cam, sc.grid, raws)), ("particles not fitted", None)):
@@ -91,7 +91,7 @@ def main() -> None:
     t0 = time.perf_counter()
     proj = Projector(cam, sc.grid, queue)
     before = [reconstruct(raw, proj, "mlem", sc.iterations) for raw in raws]
-    rows["before (voxels, correlation only)"] = (piv3d(*before, windows=sc.windows),
+    rows["before (voxels, correlation only)"] = (piv3d(*before, windows=sc.windows, queue=queue),
                                                  time.perf_counter() - t0)
     print(f"\n{args.size} demo, final window {corr.window} (z, y, x voxels)\n")
     print("| chain | window-averaged truth: lateral / depth voxels (% of U∞) | depth / "

@@ -44,7 +44,7 @@ def with_keywords(cls, settings, keywords: dict, where: str):
         return cls(**keywords)
     if not isinstance(settings, cls):
         raise TypeError(f"{where}(settings=...) takes a {cls.__name__}, got "
-                        f"{type(settings).__name__}")
+                        f"{type(settings).__name__}{_part_hint(cls, settings)}")
     conflict = sorted(k for k, v in keywords.items() if not _same(getattr(settings, k), v))
     if conflict:
         raise TypeError(f"{where}() got both settings and keyword(s) {conflict} that differ "
@@ -63,6 +63,14 @@ def refuse_unknown(given, allowed, message: Callable[[list[str]], str]) -> None:
     unknown = sorted(set(given) - set(allowed))
     if unknown:
         raise ValueError(message(unknown))
+
+
+def _part_hint(cls, settings) -> str:
+    """``"; pass it as part=..."`` when ``settings`` is of the type of one of ``cls``'s
+    fields (a ReconstructionSettings given where a PairSettings is taken)."""
+    name = type(settings).__name__
+    parts = [f.name for f in dataclasses.fields(cls) if name in str(f.type)]
+    return f"; pass it as {parts[0]}=... (a part of the {cls.__name__})" if parts else ""
 
 
 def from_table(cls, table, where: str):

@@ -62,7 +62,7 @@ def test_the_exchange_moves_each_volume_onto_the_other_time(queue, device):
     vol_a = render_particles(grid, p, 1.0, sigma_vox=1.2)
     vol_b = render_particles(grid, p + shift, 1.0, sigma_vox=1.2)
     d = dense_displacement(field(grid.shape, *shift), grid.shape)
-    b_at_a, a_at_b = exchange(vol_a, vol_b, d, queue if device else None)
+    b_at_a, a_at_b = exchange(vol_a, vol_b, d, queue if device else False)
     assert np.corrcoef(b_at_a.ravel(), vol_a.ravel())[0, 1] > 0.99
     assert np.corrcoef(a_at_b.ravel(), vol_b.ravel())[0, 1] > 0.99
     assert b_at_a.min() >= 0 and a_at_b.min() >= 0

@@ -12,7 +12,7 @@ from plenocl import flows
 from plenocl.piv import fft as pivfft
 from plenocl.piv import piv3d
 from plenocl.piv.correlation import correlate, padded_size, window_grid
-from plenocl.piv.deformation import DeviceDeformer, HostDeformer
+from plenocl.piv.deformation import DeviceDeformer, HostDeformer, make_deformer
 
 
 @pytest.mark.parametrize("order", [1, 3])
@@ -33,6 +33,17 @@ def test_deform_kernel_matches_scipy(queue, order, shape):
 def test_device_deformer_refuses_the_quintic_spline(queue):
     with pytest.raises(ValueError, match="queue=False"):
         DeviceDeformer(queue, 5)
+
+
+def test_deformers_follow_the_device_choice(queue):
+    """None and a queue deform on a device (the default one for None), False on the
+    host; the quintic spline, which has no kernel, on the host whatever the queue (so
+    deform_order = 5 works where process_pair passes its projector's queue)."""
+    assert isinstance(make_deformer(3, None), DeviceDeformer)
+    assert make_deformer(3, queue).kernels.queue is queue
+    assert isinstance(make_deformer(3, False), HostDeformer)
+    assert isinstance(make_deformer(5, queue), HostDeformer)
+    assert isinstance(make_deformer(5, None), HostDeformer)
 
 
 @pytest.mark.skipif(pivfft.pyfftw is None, reason="pyfftw is not installed")

@@ -13,6 +13,7 @@ from plenocl import (
     PIVSettings,
     ReconstructionSettings,
     piv3d,
+    process_pair,
     reconstruct,
 )
 from plenocl.cli.main import build_parser
@@ -83,6 +84,9 @@ def test_switches_and_lists_are_read_as_the_objects_hold_them():
     ({"reconstruction": {"supersample": 9}}, r"\[reconstruction\]: supersample must be"),
     ({"reconstruction": {"method": "art"}}, r"\[reconstruction\]: method must be"),
     ({"piv": {"deform_order": 2}}, r"\[piv\]: deform_order must be 1"),
+    ({"piv": {"final_iterations": 1.5}}, r"\[piv\]: final_iterations must be a non-negative"),
+    ({"piv": {"workers": 0}}, r"\[piv\]: workers must be -1 \(all cores\)"),
+    ({"piv": {"fft": "fftpack"}}, r"\[piv\]: fft must be one of \('fftw', 'scipy'\)"),
     ({"image_fit": {"rays": 8}}, r"\[image_fit\]: ImageFitSettings.rays must be"),
     ({"particles": "yes"}, r"\[particles\] enabled must be true or false"),
     ({"mte": 3}, r"\[mte\] must be a table"),
@@ -123,4 +127,8 @@ def test_keywords_build_settings_and_conflicts_are_refused():
         reconstruct(None, None, settings=settings, crop=False)
     with pytest.raises(TypeError, match="takes a ReconstructionSettings"):
         reconstruct(None, None, settings=PIVSettings())
+    # the old call process_pair(..., settings=ReconstructionSettings(...)) says the new one
+    with pytest.raises(TypeError, match=r"takes a PairSettings, got ReconstructionSettings; "
+                                        r"pass it as reconstruction="):
+        process_pair(None, None, None, settings=settings)
     assert dataclasses.replace(settings, crop=False).crop is False

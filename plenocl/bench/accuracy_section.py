@@ -168,7 +168,7 @@ def budget_row(cam: Camera, grid: Grid, proj, ppm: float, seed: int, queue,
     chain before (single-frame reconstruction on the voxels themselves, ``supersample=1``,
     correlation only)."""
     scene = budget_scene(cam, grid, ppm, seed, queue, rays, motion)
-    windows = budget_errors(piv3d(scene.true_a, scene.true_b), grid, motion)
+    windows = budget_errors(piv3d(scene.true_a, scene.true_b, queue=queue), grid, motion)
     pair = process_pair(scene.raw_a, scene.raw_b, proj)
     row = {"ppm": ppm, "particles": scene.count, "windows": windows, "pair": pair,
            "scene": scene, "default": pair_row(pair, scene, grid, motion)}

@@ -85,7 +85,7 @@ def piv_command(args: argparse.Namespace) -> int:
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, grid_b = load_volume(args.vol_b)
     grid = _volume_grid(args, (grid_a, grid_b), (vol_a.shape, vol_b.shape))
-    res = piv3d(vol_a, vol_b, settings.piv)
+    res = piv3d(vol_a, vol_b, settings.piv, queue=args.device)
     if settings.particles:
         camera = load_camera(args.camera) if args.camera else None
         focus = FocalZone.of(camera, grid) if camera else None

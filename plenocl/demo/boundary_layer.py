@@ -143,7 +143,7 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
             lambda: _stage_reconstruction(run, sc, cam, settings.reconstruction, queue))
     run.run("reconstruction_mart", ["vol_a_mart.npz"],
             lambda: _stage_mart(run, sc, cam, queue))
-    run.run("piv", ["field.npz", "field.vti"], lambda: _stage_piv(run, sc, cam, settings))
+    run.run("piv", ["field.npz", "field.vti"], lambda: _stage_piv(run, sc, cam, settings, queue))
     summary = evaluate(run, sc, flow)
     if figures:
         from .figures import boundary_layer_figures
@@ -232,7 +232,8 @@ def _stage_mart(run, sc, cam, queue) -> None:
                       ReconstructionSettings("mart", 5, 1.0), "_mart")
 
 
-def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettings) -> None:
+def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettings,
+               queue) -> None:
     from ..io.files import read_image
     from ..piv.imagefit import ImageFit
     from ..piv.multipass import piv3d
@@ -244,7 +245,7 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettin
     # process_pair's correlation: the field refined by the volumes' particle pairs, each
     # particle first fitted to its raw image with the calibrated camera
     raws = [read_image(run.path(f"raw_{tag}.tif")) for tag in "ab"]
-    res = refine_with_particles(piv3d(vol_a, vol_b, settings.piv), vol_a, vol_b,
+    res = refine_with_particles(piv3d(vol_a, vol_b, settings.piv, queue=queue), vol_a, vol_b,
                                 focus=FocalZone.of(sc.camera, sc.grid),
                                 fit=ImageFit(cam, sc.grid, raws, settings.image_fit))
     for name in ("field.npz", "field.vti"):

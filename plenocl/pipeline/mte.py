@@ -94,7 +94,8 @@ def combine_volumes(own: np.ndarray, other: np.ndarray, how: str) -> np.ndarray:
 def exchange(vol_a: np.ndarray, vol_b: np.ndarray, displacement: np.ndarray, queue=None
              ) -> tuple[np.ndarray, np.ndarray]:
     """``vol_b`` warped back onto the first exposure's time and ``vol_a`` forward onto the
-    second's (cubic B-spline, on ``queue``'s device or with SciPy for ``None``), clipped
+    second's (cubic B-spline, on ``queue``'s device, the default one for ``None``, or with SciPy
+    for ``False``), clipped
     at 0: ``b(p + d(p))`` and ``a(p - d(p))``."""
     deformer = make_deformer(3, queue)
     field = deformer.field(displacement)

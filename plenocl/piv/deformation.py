@@ -86,9 +86,10 @@ DEVICE_ORDERS = (1, 3)
 
 def make_deformer(order: int, queue: DeviceLike | bool = None):
     """The deformer for ``queue``, chosen as every stage chooses its device: ``None``
-    the default device (``PYOPENCL_CTX``, else the preferred one that builds; the host
-    for the quintic B-spline, which has no kernel), ``True`` the same, ``False`` the host
-    (SciPy, the reference), anything else that device."""
-    if queue is False or (queue is None and order not in DEVICE_ORDERS):
+    the default device (``PYOPENCL_CTX``, else the preferred one that builds), ``True``
+    the same, ``False`` the host (SciPy, the reference), anything else that device. The
+    quintic B-spline has no kernel: it is deformed on the host whatever ``queue`` says
+    (so ``deform_order = 5`` works in ``process_pair`` and a batch run too)."""
+    if queue is False or order not in DEVICE_ORDERS:
         return HostDeformer(order)
     return DeviceDeformer(None if queue is True else queue, order)

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .fft import BACKENDS
+
 CORRELATIONS = ("auto", "fft")
 DEFORM_ORDERS = (1, 3, 5)
 PREDICTORS = ("cubic", "linear")
@@ -70,3 +72,22 @@ def _check(s: PIVSettings) -> None:
                          f"{s.min_peak_ratio!r}")
     if not isinstance(s.pad_first, (bool, np.bool_)):
         raise ValueError(f"pad_first must be true or false, got {s.pad_first!r}")
+    _check_counts(s)
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_counts(s: PIVSettings) -> None:
+    """The counts and the FFT backend, checked when the settings are made (a batch's
+    experiment file is refused before any pair, not in every worker)."""
+    if not _is_int(s.final_iterations) or s.final_iterations < 0:
+        raise ValueError(f"final_iterations must be a non-negative integer (extra passes "
+                         f"at the final window), got {s.final_iterations!r}")
+    if not _is_int(s.workers) or not (s.workers == -1 or s.workers >= 1):
+        raise ValueError(f"workers must be -1 (all cores) or a positive integer, got "
+                         f"{s.workers!r}")
+    if s.fft is not None and s.fft not in BACKENDS:
+        raise ValueError(f"fft must be one of {BACKENDS} or None (FFTW where installed), "
+                         f"got {s.fft!r}")
