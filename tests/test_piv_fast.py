@@ -46,6 +46,20 @@ def test_deformers_follow_the_device_choice(queue):
     assert isinstance(make_deformer(5, None), HostDeformer)
 
 
+def test_without_a_device_the_deformer_names_the_host(monkeypatch):
+    """No OpenCL device: the default choice's error also says how to deform on the host."""
+    from plenocl.device import NoOpenCLError
+    from plenocl.piv import deformation
+
+    def none(*args, **kwargs):
+        raise NoOpenCLError("no OpenCL device here builds plenocl's kernels")
+
+    monkeypatch.setattr(deformation, "get_queue", none)
+    with pytest.raises(NoOpenCLError, match=r"queue=False"):
+        make_deformer(3, None)
+    assert isinstance(make_deformer(3, False), HostDeformer)
+
+
 @pytest.mark.skipif(pivfft.pyfftw is None, reason="pyfftw is not installed")
 @pytest.mark.parametrize("window, fft_shape, count", [((8, 12, 10), (8, 12, 10), 5),
                                                       ((8, 8, 8), (12, 12, 12), 7)])

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device import DeviceLike, check_fits, get_queue
+from ..device import DeviceLike, NoOpenCLError, check_fits, get_queue
 from ..program import KernelSet
 from .interpolate import MARGIN, deform, prepare
 
@@ -92,4 +92,10 @@ def make_deformer(order: int, queue: DeviceLike | bool = None):
     (so ``deform_order = 5`` works in ``process_pair`` and a batch run too)."""
     if queue is False or order not in DEVICE_ORDERS:
         return HostDeformer(order)
-    return DeviceDeformer(None if queue is True else queue, order)
+    try:
+        return DeviceDeformer(None if queue is True else queue, order)
+    except NoOpenCLError as exc:
+        if queue not in (None, True):
+            raise
+        raise NoOpenCLError(f"{exc}; or deform the PIV volumes on the host with SciPy "
+                            "(piv3d(..., queue=False), several times slower)") from exc
