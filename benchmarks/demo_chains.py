@@ -38,10 +38,11 @@ from plenocl.demo.boundary_layer import (  # noqa: E402
     scenario,
     window_averaged,
 )
-from plenocl.io import load_volume, read_image  # noqa: E402
+from plenocl.io import read_image  # noqa: E402
 from plenocl.piv.imagefit import ImageFit  # noqa: E402
 from plenocl.piv.tracking import FocalZone, refine_with_particles  # noqa: E402
 from plenocl.vectorfile import save_field  # noqa: E402
+from plenocl.volumefile import load_volume  # noqa: E402
 
 
 def errors(res, path: Path, sc, flow) -> dict:

@@ -15,6 +15,7 @@ from .reconstruction import ReconstructionSettings, reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
 from .vectorfile import read_npz, save_field
 from .version import __version__
+from .volumefile import load_volume, save_volume
 
 __all__ = [
     "PRESETS",
@@ -37,6 +38,7 @@ __all__ = [
     "describe_devices",
     "flows",
     "get_queue",
+    "load_volume",
     "metrics",
     "piv3d",
     "process_pair",
@@ -45,6 +47,7 @@ __all__ = [
     "reconstruct",
     "run",
     "save_field",
+    "save_volume",
     "simulate_image",
     "simulate_white_image",
 ]

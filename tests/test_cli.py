@@ -70,7 +70,8 @@ def test_cli_rounds_out(tmp_path, capsys):
 
     from plenocl import Grid
     from plenocl.cli.main import build_parser, main
-    from plenocl.io import load_volume, read_particles, save_volume
+    from plenocl.io import read_particles
+    from plenocl.volumefile import load_volume, save_volume
 
     with pytest.raises(SystemExit) as done:
         main(["--version"])
@@ -203,7 +204,7 @@ def test_ctrl_c_exits_130_with_one_line_and_warnings_print_once(tmp_path, capsys
 
 def _volumes(tmp_path, shape=(8, 10, 12)):
     from plenocl import Grid
-    from plenocl.io.files import save_volume
+    from plenocl.volumefile import save_volume
 
     grid = Grid(shape, x=(-1.2, 1.2), y=(-1.0, 1.0), z=(-0.8, 0.8))
     vol = np.random.default_rng(1).random(shape).astype(np.float32)
@@ -327,7 +328,7 @@ def test_reconstruct_takes_a_renders_alpha_as_its_pixel_mask(tmp_path, capsys):
               "--grid", str(tmp_path / "g.toml"), "--iterations", "5", "--supersample", "1"]
     assert main([*common, "--mask", "alpha", "--out", str(tmp_path / "m.npz")]) == 0
     assert main([*common, "--out", str(tmp_path / "n.npz")]) == 0
-    from plenocl.io import load_volume
+    from plenocl.volumefile import load_volume
 
     masked, naive = load_volume(tmp_path / "m.npz")[0], load_volume(tmp_path / "n.npz")[0]
     assert masked.sum() > 1.2 * naive.sum()  # the unrendered rows did not darken it

@@ -10,11 +10,12 @@ import tolerances as tol
 
 from plenocl import Camera, Grid, Projector, random_particles, reconstruct
 from plenocl.cli.main import main
-from plenocl.io import load_volume, write_tiff
+from plenocl.io import write_tiff
 from plenocl.metrics import quality_q, recovery, render_particles
 from plenocl.optics.rawimage import subtract_background
 from plenocl.reconstruction import Solver, extent_box, nonzero_box
 from plenocl.simulate import simulate_image
+from plenocl.volumefile import load_volume
 
 # the paper's 5 mm cube: one microlens per voxel laterally, half the camera's depth
 # resolution (0.5 mm, Camera.depth_resolution_mm) in depth, as Grid.for_camera chooses

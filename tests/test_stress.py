@@ -29,11 +29,12 @@ from plenocl import (
     simulate_image,
     simulate_white_image,
 )
-from plenocl.io import load_volume, read_image, read_particles
+from plenocl.io import read_image, read_particles
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.reconstruction import FLOAT32_LIMIT, METHODS, preprocess, view_blocks
 from plenocl.reference.weights import ApertureGrid, voxel_weights, weight_matrix
+from plenocl.volumefile import load_volume
 
 
 def _settings(n: int) -> settings:

@@ -23,10 +23,10 @@ from .frames import add_frame_options, camera_for_frames, read_frame
 def reconstruct_command(args: argparse.Namespace) -> int:
     """Reconstruct a volume from one raw image, with a progress display."""
     from ..grid import Grid
-    from ..io.files import save_volume
     from ..io.progress import iteration_bar
     from ..projection.projector import Projector
     from ..reconstruction import ReconstructionSettings, reconstruct
+    from ..volumefile import save_volume
 
     camera = camera_for_frames(args, load_camera(args.camera))
     grid = Grid.from_toml(args.grid)
@@ -69,12 +69,12 @@ def _pixel_mask(args: argparse.Namespace, camera):
 
 def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
-    from ..io.files import load_volume
     from ..pipeline.settings import PairSettings
     from ..piv import PIVSettings, piv3d
     from ..piv.tracking import FocalZone, refine_with_particles
     from ..units import check_dt
     from ..vectorfile import save_field
+    from ..volumefile import load_volume
 
     if args.raw and not args.camera:
         raise ValueError("--raw needs --camera: the particles are fitted to the raw images "

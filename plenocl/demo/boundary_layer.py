@@ -19,20 +19,14 @@ from ..camera import Camera
 from ..flows import TurbulentBoundaryLayer, centred_displacement, displace
 from ..grid import Grid
 from ..io.atomic import write_json
-from ..io.files import (
-    load_volume,
-    read_image,
-    read_particles,
-    save_volume,
-    write_particles,
-    write_tiff,
-)
+from ..io.files import read_image, read_particles, write_particles, write_tiff
 from ..metrics import recovery
 from ..particles import particles_per_microlens, random_particles
 from ..pipeline.resume import StageRunner
 from ..pipeline.settings import PairSettings
 from ..piv.settings import PIVSettings
 from ..reconstruction import ReconstructionSettings
+from ..volumefile import load_volume, save_volume
 
 U_INF = 4.57          # free-stream velocity, m/s (the paper's 15 ft/s)
 DT = 175e-6           # time between the two exposures, s

@@ -9,9 +9,16 @@
 
 from .atomic import atomic_path, write_json, write_text
 from .fields import read_field, write_field
-from .files import load_volume, read_image, read_particles, save_volume, write_particles, write_tiff
+from .files import (
+    read_image,
+    read_particles,
+    read_volume,
+    write_particles,
+    write_tiff,
+    write_volume,
+)
 from .tomlfile import read_toml, write_toml
 
-__all__ = ["atomic_path", "load_volume", "read_field", "read_image", "read_particles",
-           "read_toml", "save_volume", "write_field", "write_json", "write_particles",
+__all__ = ["atomic_path", "read_field", "read_image", "read_particles", "read_toml",
+           "read_volume", "write_field", "write_json", "write_particles", "write_volume",
            "write_text", "write_tiff", "write_toml"]

@@ -175,16 +175,14 @@ def _check_particle_header(path: Path) -> None:
                          "particle is lost")
 
 
-def save_volume(path: str | Path, vol: np.ndarray, grid=None) -> None:
-    """Save a volume atomically: ``.npy`` (array only), ``.npz`` or ``.h5`` (with the grid).
+def write_volume(path: str | Path, vol: np.ndarray, meta: dict[str, np.ndarray]) -> None:
+    """Write a volume atomically: ``.npy`` (the array alone), ``.npz`` or ``.h5`` (with
+    the arrays of ``meta`` beside it; :mod:`plenocl.volumefile` puts the grid there).
 
     ``.h5`` needs h5py (``pip install h5py``).
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    meta = {} if grid is None else {"shape": np.array(grid.shape), "x_mm": np.array(grid.x),
-                                    "y_mm": np.array(grid.y), "z_mm": np.array(grid.z),
-                                    "rotation_deg": np.array(grid.rotation_deg)}
     with atomic_path(path) as tmp:
         if suffix == ".npy":
             with tmp.open("wb") as fh:
@@ -211,10 +209,8 @@ def _save_h5(tmp: Path, vol: np.ndarray, meta: dict) -> None:
             fh.attrs[key] = value
 
 
-def load_volume(path: str | Path) -> tuple[np.ndarray, object]:
-    """Load a volume saved by :func:`save_volume`; returns ``(volume, grid or None)``."""
-    from ..grid import Grid
-
+def read_volume(path: str | Path) -> tuple[np.ndarray, dict]:
+    """A volume written by :func:`write_volume` and the arrays stored beside it."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such volume file: {path}")
@@ -233,12 +229,7 @@ def load_volume(path: str | Path) -> tuple[np.ndarray, object]:
         raise ValueError(f"unknown volume format {suffix!r}: use .npy, .npz or .h5")
     if vol.ndim != 3:
         raise ValueError(f"{path} holds an array of shape {vol.shape}, not a 3-D volume")
-    grid = None
-    if meta:
-        grid = Grid(tuple(int(n) for n in meta["shape"]), tuple(meta["x_mm"]),
-                    tuple(meta["y_mm"]), tuple(meta["z_mm"]),
-                    float(meta.get("rotation_deg", 0.0)))
-    return vol, grid
+    return vol, meta
 
 
 def write_volumes(path: str | Path, vol_a: np.ndarray, vol_b: np.ndarray) -> None:
