@@ -117,7 +117,7 @@ class WeightingModel:
         (:func:`lens_tables`)."""
         return lens_tables(self.camera)
 
-    @property
+    @cached_property
     def present(self) -> np.ndarray:
         """Bool per lens (flat, row-major): does it have a calibrated centre?"""
         return self.lens_tables[0][:, 0] != NO_LENS

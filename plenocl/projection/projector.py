@@ -37,7 +37,7 @@ from ..program import KernelSet
 from .lenses import LensSet, lens_set, lit_lenses
 from .model import WeightingModel
 from .plan import Plan, SampleColumns, depth_chunks, make_plan, runs
-from .weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL
+from .weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL, ApertureGrid, LensIndexMap
 
 _KERNELS = ("fwd_x", "fwd_y", "fwd_gen", "fwd_gen_gather", "fwd_pix", "back_pix", "back_y",
             "back_x", "back_gen", "voxel_footprint", "fwd_direct", "back_direct", "back_y_scatter")
@@ -135,12 +135,8 @@ class Projector:
         self.queue = get_queue(queue)
         self._refined: dict[int, Projector] = {}
         self.model = model
-        self.aperture, self.lens_map, self.path = model.aperture, model.lens_map, model.path
-        self.coef = model.coef
         self._layout(vector_width, segment)
         self.plan = self._make_plan(max_alloc_bytes, scratch_bytes)
-        self.colour_stride = model.colour_stride
-        self.lens_reach = model.lens_reach
         width, height = camera.pixels
         check_fits(self.queue, grid.nbytes + 4 * width * height + self.plan.scratch_bytes
                    + 16 * camera.ml_count[0] * camera.ml_count[1],
@@ -151,6 +147,37 @@ class Projector:
                             looping=[k for k in _KERNELS if k != "fwd_gen_gather"])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
+
+    # ---- the weighting model's tables, as the model holds them ----------------------------
+    @property
+    def aperture(self) -> ApertureGrid:
+        """The aperture samples (:attr:`WeightingModel.aperture`)."""
+        return self.model.aperture
+
+    @property
+    def lens_map(self) -> LensIndexMap:
+        """Array-plane mm to fractional lens index (:attr:`WeightingModel.lens_map`)."""
+        return self.model.lens_map
+
+    @property
+    def path(self) -> str:
+        """``"separable"`` or ``"general"``: which factorised kernels run."""
+        return self.model.path
+
+    @property
+    def coef(self) -> np.ndarray:
+        """Per-depth coefficients (:attr:`WeightingModel.coef`)."""
+        return self.model.coef
+
+    @property
+    def colour_stride(self) -> int:
+        """Lens stride of the race-free forward scatter."""
+        return self.model.colour_stride
+
+    @property
+    def lens_reach(self) -> int:
+        """Half-width (pixels) of the patch a lens's samples touch."""
+        return self.model.lens_reach
 
     def _make_plan(self, max_alloc_bytes: int | None, scratch_bytes: int | None) -> Plan:
         """The slabs and chunks on this device (:func:`plenocl.projection.plan.make_plan`)."""
@@ -194,9 +221,7 @@ class Projector:
         }
         self._scratch: dict[str, cl_array.Array] = {}
         self._sensitivity: list[cl_array.Array] | None = None
-        self._rnd = rnd
-        self._present = self.model.present  # lenses with a centre
-        self.all_lenses = self.lens_set(self._present)
+        self.all_lenses = self.lens_set(self.model.present)
 
     def _buffer(self, name: str, n: int) -> cl_array.Array:
         """A scratch buffer of at least ``n`` floats, kept between calls."""
@@ -277,22 +302,23 @@ class Projector:
         img = _checked(image, self.image_shape, "image")
         if not np.isfinite(threshold):
             raise ValueError(f"threshold must be a finite number, got {threshold}")
-        return lit_lenses(img, self._rnd, self.lens_reach, threshold) & self._present
+        rnd = self.model.lens_tables[0]
+        return lit_lenses(img, rnd, self.lens_reach, threshold) & self.model.present
 
     def lens_set(self, lit: np.ndarray) -> LensSet:
         """The :class:`plenocl.projection.lenses.LensSet` of the lenses flagged in ``lit`` (for the
         ``lenses`` argument of :meth:`forward_device` and :meth:`back_device`)."""
         lit = np.asarray(lit, bool).ravel()
-        if lit.size == self._rnd.shape[0]:
-            lit = lit & self._present
+        if lit.size == self.model.present.size:
+            lit = lit & self.model.present
         return lens_set(self.queue, lit, self.camera.ml_count, self.colour_stride)
 
     def _lenses(self, lenses: LensSet | None) -> LensSet:
         if lenses is None:
             return self.all_lenses
-        if lenses.lit.size != self._rnd.shape[0]:
+        if lenses.lit.size != self.model.present.size:
             raise ValueError(f"the lens set has {lenses.lit.size} lenses, the camera "
-                             f"{self._rnd.shape[0]}")
+                             f"{self.model.present.size}")
         return lenses
 
     # ---- device API -------------------------------------------------------------------
