@@ -114,10 +114,8 @@ class PairSettings:
 def _enabled(value, where: str, allowed: list[str]) -> bool:
     """A part's on/off switch: ``true``/``false``, or a table's ``enabled`` key."""
     if isinstance(value, Mapping):
-        unknown = sorted(set(value) - {"enabled", *allowed})
-        if unknown:
-            raise ValueError(f"{where}: unknown key(s) {unknown}; it takes "
-                             f"{['enabled', *allowed]}")
+        keys = ["enabled", *allowed]
+        refuse_unknown(value, keys, lambda bad: f"{where}: unknown key(s) {bad}; it takes {keys}")
         value = value.get("enabled", True)
     if not isinstance(value, bool):
         raise ValueError(f"{where} enabled must be true or false, got {value!r}")
