@@ -191,6 +191,19 @@ def devices_by_preference() -> list[cl.Device]:
     return sorted(all_devices(), key=preference)
 
 
+def building_devices() -> tuple[list[cl.Device], list[tuple[cl.Device, str]]]:
+    """The devices that build plenocl's kernels, in preference order, and those that
+    cannot, each with its driver's reason (:func:`build_problem`)."""
+    building, failing = [], []
+    for dev in devices_by_preference():
+        problem = build_problem(dev)
+        if problem is None:
+            building.append(dev)
+        else:
+            failing.append((dev, problem))
+    return building, failing
+
+
 def _default_device() -> cl.Device:
     passed = []
     for dev in devices_by_preference():

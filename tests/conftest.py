@@ -25,23 +25,26 @@ import re
 import pyopencl as cl
 import pytest
 
-from plenocl.device import NoOpenCLError, build_problem, devices_by_preference, get_queue
+from plenocl.device import NoOpenCLError, building_devices, devices_by_preference, get_queue
 
 
 @functools.cache
 def devices_under_test() -> tuple[tuple[cl.Device, ...], tuple[str, ...]]:
     """The devices the kernel tests run on, and one line per device left out (with why)."""
-    found = devices_by_preference()  # registers pip-installed runtimes, errors if none
+    # each branch registers the pip-installed runtimes first, and raises NoOpenCLError
+    # when there is no OpenCL at all
     if os.environ.get("PYOPENCL_TEST"):
         from pyopencl.tools import get_test_platforms_and_devices
 
+        found = devices_by_preference()
         chosen = [d for _, devs in get_test_platforms_and_devices() for d in devs]
         return tuple(d for d in found if d in chosen), ()
     if os.environ.get("PYOPENCL_CTX"):
         return (get_queue().device,), ()
-    left_out = tuple(f"{_describe(d)}: cannot build plenocl's kernels ({build_problem(d)})"
-                     for d in found if build_problem(d) is not None)
-    return tuple(d for d in found if build_problem(d) is None), left_out
+    building, failing = building_devices()
+    left_out = tuple(f"{_describe(d)}: cannot build plenocl's kernels ({problem})"
+                     for d, problem in failing)
+    return tuple(building), left_out
 
 
 def _describe(device: cl.Device) -> str:

@@ -40,9 +40,9 @@ def test_two_queues_on_one_device_agree(queue):
 def _building_devices(env: dict) -> list[str]:
     """The devices that build plenocl's kernels under ``env``, probed independently of
     ``devices --agree`` (one build each, in a fresh process)."""
-    probe = ("from plenocl.device import build_problem, devices_by_preference\n"
-             "for d in devices_by_preference():\n"
-             "    print(d.name.strip() if build_problem(d) is None else '')")
+    probe = ("from plenocl.device import building_devices\n"
+             "for d in building_devices()[0]:\n"
+             "    print(d.name.strip())")
     out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
                          text=True, timeout=300, check=True)
     return [line for line in out.stdout.splitlines() if line]

@@ -20,20 +20,16 @@ from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 def cmd_devices(args: argparse.Namespace) -> int:
     """List OpenCL platforms and devices; with ``--agree``, compare them (exit 1 when a
     stage differs by more than its tolerance)."""
-    from ..device import build_problem, describe_devices, devices_by_preference, get_queue
+    from ..device import building_devices, describe_devices, get_queue
 
     print(describe_devices())
     if not args.agree:
         return 0
     from ..bench.agreement import agreement, agreement_table
 
-    building = []
-    for dev in devices_by_preference():
-        problem = build_problem(dev)
-        if problem is None:
-            building.append(dev)
-        else:
-            print(f"skipped {dev.name.strip()}: its driver cannot build kernels ({problem})")
+    building, failing = building_devices()
+    for dev, problem in failing:
+        print(f"skipped {dev.name.strip()}: its driver cannot build kernels ({problem})")
     if len(building) < 2:
         print(f"\n{len(building)} OpenCL device(s) build plenocl's kernels: nothing to compare "
               "(with PoCL alone, POCL_DEVICES='pthread basic' gives two)")
