@@ -33,9 +33,42 @@
  * unfactorised baseline the benchmark measures. */
 #include "projector.h"
 
-/* ---- forward, separable: T[(izl, il)][iy][kx] = sum_ix hat(kx(ix, i) - kx) vol[iz][iy][ix].
- * One work-item per T row: each voxel of the row splats onto its two lens columns. */
+/* ---- forward, separable, gather form (the default):
+ * T[(izl, il)][iy][kx] = sum_ix hat(kx(ix, i) - kx) vol[iz][iy][ix].
+ * One work-item per T element (kx, iy, (izl, il)): it sums the few voxels of its row
+ * whose lens coordinate lies within one lens of kx (pl_hat_range), with the weights
+ * fwd_x_row and back_x compute, so the transposes stay exact. Consecutive work-items
+ * are consecutive kx of one row: a CPU driver vectorises across them, a GPU coalesces
+ * the writes; no work-item writes another's output. Padding (kx >= nkx) is written 0. */
 __kernel void fwd_x(__global const float *restrict vol, __global float *restrict T,
+                    __global const float *restrict coef,
+                    int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
+                    float ic)
+{
+    const int kx = get_global_id(0), iy = get_global_id(1), q = get_global_id(2);
+    if (kx >= nkxp) return;
+    const int izl = q / nic, i = i0 + q - izl * nic;
+    __global const float *c = coef + 16 * (zc0 + izl);
+    const float bu = (float)i - ic;
+    __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
+    float acc = 0.0f;
+    if (kx < nkx) {
+        const int2 r = pl_hat_range(c[10], c[6] * bu + c[4], (float)kx, nx);
+        for (int ix = r.x; ix <= r.y; ++ix) {
+            const float kxf = pl_kx(c, bu, ix);
+            const int kx0 = pl_floori(kxf);
+            const float tx = kxf - (float)kx0;
+            const float w = kx0 == kx ? 1.0f - tx : (kx0 + 1 == kx ? tx : 0.0f);
+            acc += w * row[ix];
+        }
+    }
+    T[((size_t)q * ny + iy) * nkxp + kx] = acc;
+}
+
+/* ---- forward, separable, row form (the baseline of benchmarks/projector.py):
+ * the same T, one work-item per T row: each voxel of the row splats onto its two lens
+ * columns. */
+__kernel void fwd_x_row(__global const float *restrict vol, __global float *restrict T,
                     __global const float *restrict coef,
                     int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
                     float ic)
@@ -48,9 +81,11 @@ __kernel void fwd_x(__global const float *restrict vol, __global float *restrict
     __global float *out = T + ((size_t)q * ny + iy) * nkxp;
     pl_zero(out, nkxp / PL_VW);
     for (int ix = 0; ix < nx; ++ix) {
+        const float e = row[ix];
+        if (e == 0.0f) continue;  /* sparse volumes: most voxels are zero */
         const float kxf = pl_kx(c, bu, ix);
         const int kx0 = pl_floori(kxf);
-        const float tx = kxf - (float)kx0, e = row[ix];
+        const float tx = kxf - (float)kx0;
         if (kx0 >= 0 && kx0 < nkx) out[kx0] += (1.0f - tx) * e;
         if (kx0 + 1 >= 0 && kx0 + 1 < nkx) out[kx0 + 1] += tx * e;
     }
@@ -278,27 +313,82 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
 
 /* ---- back, separable: vol[iz][iy][ix] (+)= sum_i,kx hat(kx(ix, i) - kx) T[(izl, il)][iy][kx].
  * One work-item per volume row; column-major, branch-free loops over the row. */
+/* Voxel ix's two lens taps in the T row of aperture column offset bu. */
+inline float pl_back_x_tap(__global const float *c, __global const float *row, float bu,
+                           int ix, int nkx)
+{
+    const float kxf = pl_kx(c, bu, ix);
+    const int kx0 = pl_floori(kxf);
+    const float tx = kxf - (float)kx0;
+    const int k0 = pl_mini(pl_maxi(kx0, 0), nkx - 1);
+    const int k1 = pl_mini(pl_maxi(kx0 + 1, 0), nkx - 1);
+    const float w0 = kx0 == k0 ? 1.0f - tx : 0.0f, w1 = kx0 + 1 == k1 ? tx : 0.0f;
+    return w0 * row[k0] + w1 * row[k1];
+}
+
+/* v + the taps of voxel ix in the T rows of every aperture column (base + il * stride),
+ * column by column: the order both back_x forms sum in. */
+inline float pl_back_x_sum(__global const float *c, __global const float *base,
+                           size_t stride, int ix, int nkx, int i0, int nic, float ic, float v)
+{
+    for (int il = 0; il < nic; ++il)
+        v += pl_back_x_tap(c, base + (size_t)il * stride, (float)(i0 + il) - ic, ix, nkx);
+    return v;
+}
+
+/* ---- back, separable: vol[iz][iy][ix] (+)= sum_il,kx hat(kx(ix, i) - kx) T[(izl, il)][iy][kx].
+ * With use_support, voxels whose support value is 0 are skipped (0, or left as they are
+ * when accumulating): a multiplicative update keeps a zero voxel at zero whatever its
+ * back projection, so a sparse volume pays for its non-zero voxels only.
+ * back_x (GPUs): one work-item per voxel (ix, iy, izl), consecutive work-items along a
+ * row (coalesced). back_x_row (CPUs): one work-item per volume row, column by column
+ * (a vectorisable loop along the row, in cache), or with a support voxel by voxel,
+ * skipping the zero ones. Every form sums in the same order. */
 __kernel void back_x(__global const float *restrict T, __global float *restrict vol,
-                     __global const float *restrict coef,
-                     int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
-                     float ic, int accumulate)
+                     __global const float *restrict coef, __global const float *restrict sup,
+                     int use_support, int nx, int ny, int nkx, int nkxp, int zv0, int zc0,
+                     int i0, int nic, float ic, int accumulate)
+{
+    const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
+    if (ix >= nx) return;
+    const size_t at = ((size_t)(zc0 + izl - zv0) * ny + iy) * nx + ix;
+    if (use_support && sup[at] == 0.0f) {
+        if (!accumulate) vol[at] = 0.0f;
+        return;
+    }
+    __global const float *base = T + (size_t)izl * nic * ny * nkxp + (size_t)iy * nkxp;
+    vol[at] = pl_back_x_sum(coef + 16 * (zc0 + izl), base, (size_t)ny * nkxp, ix, nkx, i0,
+                            nic, ic, accumulate ? vol[at] : 0.0f);
+}
+
+__kernel void back_x_row(__global const float *restrict T, __global float *restrict vol,
+                         __global const float *restrict coef, __global const float *restrict sup,
+                         int use_support, int nx, int ny, int nkx, int nkxp, int zv0, int zc0,
+                         int i0, int nic, float ic, int accumulate)
 {
     const int iy = get_global_id(0), izl = get_global_id(1);
     __global const float *c = coef + 16 * (zc0 + izl);
-    __global float *out = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
+    const size_t at = ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
+    __global float *out = vol + at;
+    __global const float *s = sup + at;
     __global const float *base = T + (size_t)izl * nic * ny * nkxp + (size_t)iy * nkxp;
-    for (int il = 0; il < nic; ++il) {
+    if (use_support) {  /* voxel by voxel, skipping the zero ones */
+        for (int ix = 0; ix < nx; ++ix) {
+            if (s[ix] == 0.0f) {
+                if (!accumulate) out[ix] = 0.0f;
+                continue;
+            }
+            out[ix] = pl_back_x_sum(c, base, (size_t)ny * nkxp, ix, nkx, i0, nic, ic,
+                                    accumulate ? out[ix] : 0.0f);
+        }
+        return;
+    }
+    for (int il = 0; il < nic; ++il) {  /* column by column: a vectorisable row loop */
         const float bu = (float)(i0 + il) - ic;
         const int keep = accumulate || il > 0;
         __global const float *row = base + (size_t)il * ny * nkxp;
         for (int ix = 0; ix < nx; ++ix) {
-            const float kxf = pl_kx(c, bu, ix);
-            const int kx0 = pl_floori(kxf);
-            const float tx = kxf - (float)kx0;
-            const int k0 = pl_mini(pl_maxi(kx0, 0), nkx - 1);
-            const int k1 = pl_mini(pl_maxi(kx0 + 1, 0), nkx - 1);
-            const float w0 = kx0 == k0 ? 1.0f - tx : 0.0f, w1 = kx0 + 1 == k1 ? tx : 0.0f;
-            const float v = w0 * row[k0] + w1 * row[k1];
+            const float v = pl_back_x_tap(c, row, bu, ix, nkx);
             out[ix] = keep ? out[ix] + v : v;
         }
     }

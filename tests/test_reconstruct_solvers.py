@@ -43,7 +43,7 @@ class MatrixProjector:
         img = (self.W @ self.volume_to_host(vol).ravel().astype(np.float64)).astype(np.float32)
         return cla.to_device(self.queue, img.reshape(self.camera.pixels[::-1]))
 
-    def back_device(self, img, out=None, active=None, lenses=None):
+    def back_device(self, img, out=None, active=None, lenses=None, support=None):
         vol = (self.W.T @ img.get().ravel().astype(np.float64)).astype(np.float32)
         return self.volume_to_device(vol.reshape(self.grid.shape))
 

@@ -81,6 +81,35 @@ def test_bad_supersample_factors_are_refused(bad):
         ReconstructionSettings(supersample=bad)
 
 
+@pytest.mark.parametrize("bad", [{"coarse_iterations": -1}, {"coarse_iterations": 2.5},
+                                 {"support": 1.0}, {"support": -0.1},
+                                 {"support": float("nan")}])
+def test_bad_coarse_to_fine_options_are_refused(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        ReconstructionSettings(supersample=3, **bad)
+
+
+def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(optics, queue):
+    """The fine iterations start from the coarse volume's support (grown by one voxel,
+    flat) and stay on it; an empty image gives an empty volume."""
+    cam, grid, proj = optics
+    pos, inten = random_particles(((-1.3, 1.3), (-0.8, 0.8), (-8, 8)), count=6, seed=4,
+                                  intensity=2e4)
+    img = simulate_image(cam, pos, inten, 4000, seed=2, queue=queue, background=20.0)
+    coarse = reconstruct(img, proj, iterations=4)
+    vol, info = reconstruct(img, proj, iterations=3, supersample=2, coarse_iterations=4,
+                            support=0.05, return_info=True)
+    from scipy import ndimage
+    grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
+    assert info.support_fraction == pytest.approx(grown.mean())
+    assert not vol[~grown].any() and vol[grown].any()
+    assert vol.sum() == pytest.approx(coarse.sum(), rel=0.1)
+    with pytest.warns(UserWarning, match="no light above its background"):
+        empty = reconstruct(np.full(img.shape, 20.0, np.float32), proj, supersample=2,
+                            coarse_iterations=2)
+    assert not empty.any() and empty.shape == grid.shape
+
+
 def test_an_operator_that_cannot_refine_is_refused(optics):
     class Plain:  # an operator without refined()
         grid = optics[1]
@@ -108,13 +137,20 @@ def test_sub_voxels_recover_more_ray_traced_particles_and_fewer_ghosts(optics, q
     in every scene."""
     cam, grid, proj = optics
     box = tuple((lo + 0.3, hi - 0.3) for lo, hi in (grid.x, grid.y, grid.z))
-    gain = []
+    gain, c2f_gain = [], []
     for seed in (21, 22):
         pos, inten = random_particles(box, count=20, seed=seed, intensity=2e4)
         img = simulate_image(cam, pos, inten, 20000, seed=seed, queue=queue, blur_px=0.8,
                              background=20.0, photon_noise=True, read_noise=3.0)
         one, three = (recovery(reconstruct(img, proj, supersample=f), grid, pos)
                       for f in (1, 3))
+        vol, info = reconstruct(img, proj, supersample=3, iterations=10, coarse_iterations=10,
+                                support=1e-2, return_info=True)
+        c2f = recovery(vol, grid, pos)
         assert three.ghost_fraction < one.ghost_fraction
         gain.append(three.fraction - one.fraction)
-    assert np.mean(gain) >= 0.15
+        c2f_gain.append(c2f.fraction - one.fraction)
+        # the fine iterations never leave the coarse support
+        assert info.coarse_iterations == 10 and 0 < info.support_fraction < 0.5
+        assert np.count_nonzero(vol) <= info.support_fraction * vol.size
+    assert np.mean(gain) >= 0.15 and np.mean(c2f_gain) >= 0.15

@@ -39,8 +39,13 @@ from .model import WeightingModel
 from .plan import Plan, SampleColumns, depth_chunks, make_plan, runs
 from .weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL, ApertureGrid, LensIndexMap
 
-_KERNELS = ("fwd_x", "fwd_y", "fwd_gen", "fwd_gen_gather", "fwd_pix", "back_pix", "back_y",
-            "back_x", "back_gen", "voxel_footprint", "fwd_direct", "back_direct", "back_y_scatter")
+_KERNELS = ("fwd_x", "fwd_x_row", "fwd_y", "fwd_gen", "fwd_gen_gather", "fwd_pix", "back_pix",
+            "back_y", "back_x", "back_x_row", "back_gen", "voxel_footprint", "fwd_direct",
+            "back_direct", "back_y_scatter")
+#: Kernels with one work-item per output element (the driver picks their work-groups).
+_ELEMENTWISE = ("fwd_gen_gather", "fwd_x", "back_x")
+#: Work-items per group that the element kernels' first dimension is rounded up to.
+_ROUND = 16
 METHODS = ("factorised", "direct")
 #: Back projections of the separable path: a deterministic gather, or a float-atomic scatter.
 BACK_MODES = ("gather", "atomic")
@@ -49,6 +54,11 @@ SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES = 2 * 2**20, 32 * 2**20
 
 VolumeLike = cl_array.Array | Sequence[cl_array.Array]
 i32, f32 = np.int32, np.float32
+
+
+def _rounded(n: int) -> int:
+    """``n`` rounded up to a multiple of :data:`_ROUND` (the kernels skip the extra items)."""
+    return -(-n // _ROUND) * _ROUND
 
 
 class Projector:
@@ -87,11 +97,13 @@ class Projector:
         intermediates). By default the larger of the volume and the image, clamped to
         2-32 MiB: larger chunks barely change the speed.
     gather_forward
-        General path only: compute the forward light field by a gather, one work-item per
-        light-field element (``fwd_gen_gather``), instead of one work-item per aperture
-        sample scattering every voxel (``fwd_gen``). Both give the same result bit for
-        bit; by default GPUs gather (thousands of work-items) and CPUs scatter (it skips
-        zero voxels).
+        Run the kernels with one work-item per output element: the general path's
+        forward light field by a gather (``fwd_gen_gather``) instead of one work-item per
+        aperture sample scattering every voxel (``fwd_gen``), and the separable path's
+        lens-column stage one T element (``fwd_x``) and one voxel (``back_x``) per
+        work-item instead of one row (``fwd_x_row``, ``back_x_row``). Both give the same
+        result bit for bit; by default GPUs gather (thousands of work-items, coalesced)
+        and CPUs take the row forms (a row stays in cache; the forward skips zero voxels).
     vector_width, segment
         Explicit vector width of the row kernels (``PL_VW``) and vectors per work-item;
         by default 8 and a whole light-field row on CPUs (the row stays in cache), 1 and 1
@@ -144,7 +156,7 @@ class Projector:
         # every projector kernel but the gathering forward loops over a row, a sample's
         # plane or a lens's samples
         self._k = KernelSet(self.queue, "projector.cl", _KERNELS, [f"-DPL_VW={self.vw}"],
-                            looping=[k for k in _KERNELS if k != "fwd_gen_gather"])
+                            looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
 
@@ -352,17 +364,21 @@ class Projector:
         return out
 
     def back_device(self, image: cl_array.Array, out: VolumeLike | None = None,
-                    active: np.ndarray | None = None, lenses: LensSet | None = None
-                    ) -> list[cl_array.Array]:
+                    active: np.ndarray | None = None, lenses: LensSet | None = None,
+                    support: VolumeLike | None = None) -> list[cl_array.Array]:
         """Back projection of a device image into device slabs (returned).
 
         ``active`` (bool per depth slice) computes only those slices; the others are 0.
         ``lenses`` (a :meth:`lens_set`) reads only the pixels of those microlenses: exact
         for an image that is zero behind every other lens (a ratio image of the lit
-        lenses).
+        lenses). ``support`` (device slabs of the grid, e.g. the volume being updated):
+        its zero voxels may be left out, the result there is 0 (what a multiplicative
+        update needs: a zero voxel stays zero); the separable path skips them, the
+        general and direct paths compute them.
         """
         _check_device(image, self.image_shape, "image")
         slabs = self.empty_volume() if out is None else self._as_slabs(out)
+        sup = [None] * len(slabs) if support is None else self._as_slabs(support)
         active = self._active(active)
         lenses = self._lenses(lenses)
         for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
@@ -374,8 +390,8 @@ class Projector:
             return slabs
         for n, (i0, i1) in enumerate(self.plan.columns):
             light = self.image_to_light(image, i0, i1, lenses)
-            for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
-                self.light_to_volume(light, slab, z0, z1, i0, i1, n > 0, active, lenses)
+            for (z0, z1), slab, s in zip(self.plan.slabs, slabs, sup, strict=True):
+                self.light_to_volume(light, slab, z0, z1, i0, i1, n > 0, active, lenses, s)
         return slabs
 
     def _active(self, active: np.ndarray | None) -> np.ndarray:
@@ -454,8 +470,14 @@ class Projector:
         nkx, nky, nkxp = self._lens_args()
         (nx, ny), nic = self._grid_args(), i1 - i0
         t_buf = self._buffer("T", int(nzc) * nic * int(ny) * self.nkxp)
-        self._k.launch("fwd_x", (int(ny), int(nzc) * nic), slab, t_buf, self._d["coef"], nx, ny,
-                       nkx, nkxp, z0, zc, i32(i0), i32(nic), self._ic)
+        if self.gather_forward:
+            self._k.launch("fwd_x", (_rounded(self.nkxp), int(ny), int(nzc) * nic), slab, t_buf,
+                           self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
+                           self._ic)
+        else:
+            self._k.launch("fwd_x_row", (int(ny), int(nzc) * nic), slab, t_buf,
+                           self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
+                           self._ic)
         self._k.launch("fwd_y", (self.nseg, int(nky), nic), t_buf, light, self._d["coef"],
                        self._d["col_lo"], self._d["col_off"], lenses.rows, ny, nkxp,
                        i32(self.seg), i32(self.aperture.n), zc, nzc, i32(i0), i32(nic),
@@ -494,9 +516,11 @@ class Projector:
 
     def light_to_volume(self, light: cl_array.Array, slab: cl_array.Array, z0: int, z1: int,
                         i0: int, i1: int, accumulate: bool, active: np.ndarray | None = None,
-                        lenses: LensSet | None = None) -> None:
+                        lenses: LensSet | None = None,
+                        support: cl_array.Array | None = None) -> None:
         """``slab (+)= Sᵀ L`` for the slab ``[z0, z1)`` and aperture columns ``[i0, i1)``,
-        active slices only."""
+        active slices only; with ``support`` (a slab like ``slab``), the separable path
+        leaves out its zero voxels (0 there, or unchanged when accumulating)."""
         active, lenses = self._active(active), self._lenses(lenses)
         s0, s1 = self._columns.sample_range(i0, i1)
         nkx, nky, nkxp = self._lens_args()
@@ -510,8 +534,13 @@ class Projector:
                 continue
             t_buf = self._light_to_rows(light, zargs, i0, i1, s0, s1, lenses)
             (nx, ny), nic = self._grid_args(), i1 - i0
-            self._k.launch("back_x", (int(ny), nzc), t_buf, slab, self._d["coef"], nx, ny, nkx,
-                           nkxp, *zargs[:2], i32(i0), i32(nic), self._ic, acc)
+            sup = (i32(0), slab) if support is None else (i32(1), support)
+            xargs = (t_buf, slab, self._d["coef"], sup[1], sup[0], nx, ny, nkx, nkxp,
+                     *zargs[:2], i32(i0), i32(nic), self._ic, acc)
+            if self.gather_forward:
+                self._k.launch("back_x", (_rounded(int(nx)), int(ny), nzc), *xargs)
+            else:
+                self._k.launch("back_x_row", (int(ny), nzc), *xargs)
 
     def _light_to_rows(self, light, zargs, i0: int, i1: int, s0: int, s1: int,
                        lenses: LensSet) -> cl_array.Array:

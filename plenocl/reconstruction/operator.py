@@ -53,8 +53,12 @@ class ProjectionOperator(Protocol):
         """``A vol`` into ``out`` (a new image when ``None``)."""
 
     def back_device(self, image: cl_array.Array, out: Slabs | None = None,
-                    active: np.ndarray | None = None, lenses: Any = None) -> Slabs:
-        """``Aᵀ image`` into ``out`` (new slabs when ``None``)."""
+                    active: np.ndarray | None = None, lenses: Any = None,
+                    support: Slabs | None = None) -> Slabs:
+        """``Aᵀ image`` into ``out`` (new slabs when ``None``); where ``support`` (slabs of
+        the grid) is zero the result may be left out as 0: a multiplicative update keeps a
+        zero voxel at zero, so only the support's voxels need their back projection (an
+        operator may compute them all)."""
 
     def empty_volume(self) -> Slabs:
         """Uninitialised device slabs of the grid."""

@@ -35,6 +35,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pyopencl.array as cla
+from scipy import ndimage
 
 from ..optics.rawimage import check_pixel_mask
 from ..options import with_keywords
@@ -167,6 +168,13 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         (docs/design.md §6.4): particles are placed within a fraction of a microlens, which
         fixes their depth (:func:`plenocl.process_pair` uses 3). Time and memory grow about
         as its square. A volume ``start`` is given on the projector's grid.
+    coarse_iterations, support
+        Coarse-to-fine (``supersample > 1`` only; docs/design.md §6.5): first
+        ``coarse_iterations`` on the voxels themselves; the voxels brighter than
+        ``support`` times the brightest, grown by one voxel, are the support, and the
+        ``iterations`` on the sub-voxels start flat on it and never leave it (the back
+        projection skips the zero voxels). ``0`` (default): the sub-voxels start from
+        ``start`` everywhere. ``info.support_fraction``: the grid's fraction it kept.
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
         ``False`` stops the reconstruction.
@@ -204,7 +212,13 @@ def _supersampled(image, projector, settings: ReconstructionSettings, callback,
             raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
                              f"{projector.grid.shape} (nz, ny, nx)")
         start = spread_lateral(start, f)
-    fine = dataclasses.replace(settings, supersample=1, start=start)
+    support = None
+    if settings.coarse_iterations and isinstance(start, str):
+        start, support, coarse_info = _coarse_support(image, projector, settings, pixel_mask)
+        if not support:  # nothing to refine: the image holds no light (warned)
+            coarse_info.support_fraction = 0.0
+            return np.zeros(projector.grid.shape, np.float32), coarse_info
+    fine = dataclasses.replace(settings, supersample=1, start=start, coarse_iterations=0)
     try:
         refined = projector.refined(f)
     except MemoryError as err:
@@ -213,7 +227,32 @@ def _supersampled(image, projector, settings: ReconstructionSettings, callback,
                           "the grid itself) needs less") from err
     vol, info = run_reconstruction(image, refined, fine, callback, pixel_mask)
     info.supersample = f
+    if support is not None:
+        info.coarse_iterations, info.support_fraction = settings.coarse_iterations, support
     return bin_lateral(vol, f), info
+
+
+def _coarse_support(image, projector, settings: ReconstructionSettings,
+                    pixel_mask=None) -> tuple[np.ndarray, float, ReconstructionInfo]:
+    """The sub-voxel start of a coarse-to-fine reconstruction (docs/design.md §6.5), the
+    fraction of the grid it covers and the coarse run's info.
+
+    ``coarse_iterations`` run on the voxels; the voxels brighter than ``support`` times
+    the brightest one, grown by one voxel in every direction, are the support. Its
+    sub-voxels start flat, at the coarse volume's mean over the support (the coarse
+    intensities carry the voxel basis's depth errors); every other sub-voxel starts at
+    zero and, the updates being multiplicative, stays there.
+    """
+    coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
+                                          iterations=settings.coarse_iterations)
+    coarse, info = run_reconstruction(image, projector, coarse_settings, None, pixel_mask)
+    peak = float(coarse.max())
+    if peak <= 0:
+        return coarse, 0.0, info
+    keep = ndimage.binary_dilation(coarse > settings.support * peak,
+                                   np.ones((3, 3, 3), bool))
+    flat = np.where(keep, np.float32(coarse[keep].mean()), np.float32(0))
+    return spread_lateral(flat, settings.supersample), float(keep.mean()), info
 
 
 def _warn_all_dark(threshold: float, peak: float, estimated: bool) -> None:

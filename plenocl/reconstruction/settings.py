@@ -29,6 +29,8 @@ class ReconstructionInfo:
     cropped_shape: tuple[int, int, int] | None = None
     lit_lens_fraction: float = 1.0
     supersample: int = 1
+    coarse_iterations: int = 0
+    support_fraction: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,8 @@ class ReconstructionSettings:
     mart_blocks: int = 2
     ratio_floor: float | None = None
     supersample: int = 1
+    coarse_iterations: int = 0
+    support: float = 1e-3
 
     def __post_init__(self) -> None:
         it_default, mu_default = DEFAULTS.get(self.method, (0, 1.0))
@@ -88,6 +92,13 @@ def _check_options(s: ReconstructionSettings) -> None:
             or not 1 <= s.supersample <= MAX_SUPERSAMPLE):
         raise ValueError(f"supersample must be an integer from 1 to {MAX_SUPERSAMPLE} (lateral "
                          f"sub-voxels per voxel and axis), got {s.supersample!r}")
+    if (int(s.coarse_iterations) != s.coarse_iterations or s.coarse_iterations < 0
+            or isinstance(s.coarse_iterations, bool)):
+        raise ValueError(f"coarse_iterations must be a non-negative integer, got "
+                         f"{s.coarse_iterations!r}")
+    if not (np.isfinite(s.support) and 0 <= s.support < 1):
+        raise ValueError(f"support must be in [0, 1) (a fraction of the coarse volume's "
+                         f"brightest voxel), got {s.support!r}")
     if s.ratio_floor is not None:
         if s.method == "mlem":
             raise ValueError("ratio_floor applies to the geometric-mean methods ('smart', "

@@ -221,7 +221,8 @@ def _simultaneous(solver: Solver, vol, img, active, relax: float, threshold: flo
     fwd, back = solver.projections(log_ratio)
     proj = fwd(vol, active=active)
     resid = solver.total(proj, img) ** 0.5
-    b = back(solver.ratio(img, proj, threshold, log_ratio, floor=floor), active=active)
+    b = back(solver.ratio(img, proj, threshold, log_ratio, floor=floor), active=active,
+             support=vol)
     if log_ratio:
         solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin, np.int32(1))
     else:
@@ -257,8 +258,8 @@ def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float
             proj = fwd(vol, out=proj, active=active)
         lr = solver.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk,
                           floor)
-        solver.update_voxels("update_exp", vol, back(lr, active=active), np.float32(relax),
-                         solver.smin, np.int32(0))
+        solver.update_voxels("update_exp", vol, back(lr, active=active, support=vol),
+                             np.float32(relax), solver.smin, np.int32(0))
     return resid
 
 
