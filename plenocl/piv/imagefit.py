@@ -18,12 +18,14 @@ ghosts leans on its prior.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
+from ..threads import thread_count
 
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
@@ -112,6 +114,16 @@ class ImageFit:
         fitted = self.fit(index, self.grid.from_index(peaks))
         return self.grid.to_index(fitted.positions)
 
+    def refine_pair(self, peaks_a: np.ndarray, peaks_b: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`refine` of both exposures' peaks, the two fits on two threads where the
+        process may use two cores (NumPy releases the interpreter in its array loops)."""
+        if thread_count() < 2:
+            return self.refine(0, peaks_a), self.refine(1, peaks_b)
+        with ThreadPoolExecutor(2) as pool:
+            b = pool.submit(self.refine, 1, peaks_b)
+            return self.refine(0, peaks_a), b.result()
+
     def fit(self, index: int, positions: np.ndarray) -> FittedParticles:
         """Fit particles starting at object-space ``positions`` ``(N, 3)`` mm to exposure
         ``index``'s image; the intensities start from a linear least-squares fit."""
@@ -121,9 +133,12 @@ class ImageFit:
         p, sigma = start.copy(), np.broadcast_to(prior, start.shape).copy()
         intensity = self._start_intensity(data, p)
         for _ in range(self.settings.iterations):
-            model = self._model_image(p, intensity, data.size)
-            step, intensity_step, sigma = self._step(data, model, noise, p, start,
-                                                     intensity, prior)
+            renders = [self._render(p[part], intensity[part]) for part in self._chunks(len(p))]
+            model = np.zeros(data.size)
+            for _, _, _, pixel, rows in renders:
+                model += np.bincount(pixel, rows[0], minlength=data.size)
+            step, intensity_step, sigma = self._step(data, model, noise, p, start, prior,
+                                                     renders)
             p += step
             intensity = np.maximum(intensity + intensity_step, 0.0)
         return FittedParticles(p, intensity, sigma)
@@ -156,21 +171,14 @@ class ImageFit:
                 np.bincount(pid, unit**2, minlength=n), 1e-30)
         return np.maximum(out, 0.0)
 
-    def _model_image(self, p: np.ndarray, intensity: np.ndarray, size: int) -> np.ndarray:
-        """The image of all particles at their current positions (flat)."""
-        model = np.zeros(size)
-        for part in self._chunks(len(p)):
-            _, _, _, pixel, rows = self._render(p[part], intensity[part], derivatives=False)
-            model += np.bincount(pixel, rows[0], minlength=size)
-        return model
-
-    def _step(self, data, model, noise, p, start, intensity, prior):
+    def _step(self, data, model, noise, p, start, prior, renders):
         """One damped Gauss-Newton step of every particle (position mm, intensity) and
-        the posterior standard deviation of each position."""
+        the posterior standard deviation of each position, from the chunks' ``renders``
+        at ``p`` (:meth:`_render`, with derivatives) and their summed image ``model``."""
         n = len(p)
         steps, sigmas = np.zeros((n, 4)), np.zeros((n, 3))
-        for part in self._chunks(n):
-            pts, patches, pid, pixel, rows = self._render(p[part], intensity[part])
+        for part, (pts, patches, pid, pixel, rows) in zip(self._chunks(n), renders,
+                                                          strict=True):
             normal, rhs = _normal_equations(rows, data[pixel] - model[pixel], pid,
                                             _to_object(self.bundle.camera, p[part], pts),
                                             part.stop - part.start)

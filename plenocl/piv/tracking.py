@@ -97,7 +97,7 @@ def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
     pb, _ = find_particles(vol_b, threshold)
     ia, ib = mutual_pairs(pa, pb, field, search)
     if fit is not None and len(ia):
-        pa[ia], pb[ib] = fit.refine(0, pa[ia]), fit.refine(1, pb[ib])
+        pa[ia], pb[ib] = fit.refine_pair(pa[ia], pb[ib])
         ia, ib = mutual_pairs(pa, pb, field, search)
     disp = pb[ib] - pa[ia]
     return ParticlePairs(pa[ia] + disp / 2, disp)

@@ -372,9 +372,10 @@ class Projector:
         ``lenses`` (a :meth:`lens_set`) reads only the pixels of those microlenses: exact
         for an image that is zero behind every other lens (a ratio image of the lit
         lenses). ``support`` (device slabs of the grid, e.g. the volume being updated):
-        its zero voxels may be left out, the result there is 0 (what a multiplicative
-        update needs: a zero voxel stays zero); the separable path skips them, the
-        general and direct paths compute them.
+        its zero voxels may be left out, the result there is then 0 (what a
+        multiplicative update needs: a zero voxel stays zero); the separable path skips
+        them in the rows where they are the majority, the general and direct paths
+        compute them.
         """
         _check_device(image, self.image_shape, "image")
         slabs = self.empty_volume() if out is None else self._as_slabs(out)
