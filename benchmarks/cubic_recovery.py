@@ -30,10 +30,17 @@ from plenocl.bench.core import particle_scene  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
-from plenocl.pipeline.settings import PAIR_SUPERSAMPLE  # noqa: E402
-from plenocl.reconstruction import reconstruct  # noqa: E402
+from plenocl.reconstruction import ReconstructionSettings, reconstruct  # noqa: E402
 
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
+#: The reconstructions compared (label: settings).
+SETTINGS = {
+    "voxels, 30 it.": ReconstructionSettings(supersample=1),
+    "3 x 3 sub-voxels, 30 it.": ReconstructionSettings(supersample=3, iterations=30,
+                                                       coarse_iterations=0),
+    "coarse-to-fine 10 + 10": ReconstructionSettings(supersample=3, iterations=10,
+                                                     coarse_iterations=10, support=1e-2),
+}
 
 
 def main() -> None:
@@ -49,18 +56,17 @@ def main() -> None:
     print(f"{'particles':>9s} {'reconstruction':26s} {'recovered':>9s} {'min':>5s} "
           f"{'ghosts':>6s} {'Q':>5s} {'s':>5s}")
     for count in args.counts:
-        stats = {1: [], PAIR_SUPERSAMPLE: []}
+        stats = {label: [] for label in SETTINGS}
         for k in range(args.scenes):
             pos, inten, img = particle_scene(cam, count, 1000 + k, blur_px=1.0, queue=queue)
             truth = render_particles(CUBIC, pos, inten)
-            for f in stats:
-                vol, t = timed(functools.partial(reconstruct, img, proj, supersample=f), 1)
+            for label, settings in SETTINGS.items():
+                vol, t = timed(functools.partial(reconstruct, img, proj, settings=settings), 1)
                 rep = recovery(vol, CUBIC, pos)
-                stats[f].append((rep.fraction, rep.ghost_fraction, quality_q(vol, truth), t))
-        for f, rows in stats.items():
+                stats[label].append((rep.fraction, rep.ghost_fraction, quality_q(vol, truth),
+                                     t))
+        for label, rows in stats.items():
             a = np.array(rows)
-            label = (f"{f} x {f} sub-voxels (default)" if f > 1
-                     else "voxels (before)")
             print(f"{count:9d} {label:26s} {a[:, 0].mean():9.1%} {a[:, 0].min():5.0%} "
                   f"{a[:, 1].mean():6.1%} {a[:, 2].mean():5.2f} {np.median(a[:, 3]):5.1f}",
                   flush=True)

@@ -65,29 +65,32 @@ __kernel void fwd_x(__global const float *restrict vol, __global float *restrict
     T[((size_t)q * ny + iy) * nkxp + kx] = acc;
 }
 
-/* ---- forward, separable, row form (the baseline of benchmarks/projector.py):
- * the same T, one work-item per T row: each voxel of the row splats onto its two lens
- * columns. */
+/* ---- forward, separable, row form (CPUs): the same T, one work-item per voxel row
+ * (iy, izl) and every aperture column: each non-zero voxel of the row, read once, splats
+ * onto its two lens columns of each column's T row (the row's T rows stay in cache). */
 __kernel void fwd_x_row(__global const float *restrict vol, __global float *restrict T,
                     __global const float *restrict coef,
                     int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
                     float ic)
 {
-    const int iy = get_global_id(0), q = get_global_id(1);
-    const int izl = q / nic, i = i0 + q - izl * nic;
+    const int iy = get_global_id(0), izl = get_global_id(1);
     __global const float *c = coef + 16 * (zc0 + izl);
-    const float bu = (float)i - ic;
     __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
-    __global float *out = T + ((size_t)q * ny + iy) * nkxp;
-    pl_zero(out, nkxp / PL_VW);
+    __global float *base = T + ((size_t)izl * nic * ny + iy) * nkxp;
+    const size_t stride = (size_t)ny * nkxp;  /* from one column's T row to the next */
+    for (int il = 0; il < nic; ++il)
+        pl_zero(base + il * stride, nkxp / PL_VW);
     for (int ix = 0; ix < nx; ++ix) {
         const float e = row[ix];
         if (e == 0.0f) continue;  /* sparse volumes: most voxels are zero */
-        const float kxf = pl_kx(c, bu, ix);
-        const int kx0 = pl_floori(kxf);
-        const float tx = kxf - (float)kx0;
-        if (kx0 >= 0 && kx0 < nkx) out[kx0] += (1.0f - tx) * e;
-        if (kx0 + 1 >= 0 && kx0 + 1 < nkx) out[kx0 + 1] += tx * e;
+        for (int il = 0; il < nic; ++il) {
+            const float kxf = pl_kx(c, (float)(i0 + il) - ic, ix);
+            const int kx0 = pl_floori(kxf);
+            const float tx = kxf - (float)kx0;
+            __global float *out = base + il * stride;
+            if (kx0 >= 0 && kx0 < nkx) out[kx0] += (1.0f - tx) * e;
+            if (kx0 + 1 >= 0 && kx0 + 1 < nkx) out[kx0 + 1] += tx * e;
+        }
     }
 }
 

@@ -476,7 +476,7 @@ class Projector:
                            self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
                            self._ic)
         else:
-            self._k.launch("fwd_x_row", (int(ny), int(nzc) * nic), slab, t_buf,
+            self._k.launch("fwd_x_row", (int(ny), int(nzc)), slab, t_buf,
                            self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
                            self._ic)
         self._k.launch("fwd_y", (self.nseg, int(nky), nic), t_buf, light, self._d["coef"],
