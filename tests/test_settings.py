@@ -17,10 +17,12 @@ from plenocl import (
     reconstruct,
 )
 from plenocl.cli.main import build_parser
+from plenocl.cli.volume import reconstruction_settings
 from plenocl.io.tomlfile import read_toml, write_toml
 from plenocl.options import NONE
 from plenocl.pipeline.settings import PAIR_SUPERSAMPLE
 from plenocl.piv.imagefit import ImageFitSettings
+from plenocl.reconstruction import DEFAULTS
 
 CHANGED = PairSettings(
     reconstruction=ReconstructionSettings("mart", 12, 0.6, threshold=3.0, ratio_floor=0.2,
@@ -106,10 +108,20 @@ def test_defaults_agree():
     assert pair.particles and pair.image_fit == ImageFitSettings()
     assert pair.piv == PIVSettings()
     assert PairSettings.from_dict({}) == pair
-    assert PairSettings.from_dict({"reconstruction": {"iterations": 30}}) == pair
+    assert PairSettings.from_dict({"reconstruction": {"iterations": 10}}) == pair
+    rec = pair.reconstruction
+    assert (rec.coarse_iterations, rec.support, rec.iterations) == (10, 0.01, 10)
     args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
                                       "g", "--out", "v.npz"])
-    assert args.supersample == pair.reconstruction.supersample
+    assert reconstruction_settings(args) == rec
+    # the voxels themselves, or another method, keep the method's own iterations
+    one = PairSettings.from_dict({"reconstruction": {"supersample": 1}}).reconstruction
+    assert one.iterations == DEFAULTS["mlem"][0] and one.coarse_iterations == 0
+    mart = PairSettings.from_dict({"reconstruction": {"method": "mart"}}).reconstruction
+    assert mart.iterations == DEFAULTS["mart"][0] and mart.coarse_iterations == 10
+    args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
+                                      "g", "--out", "v.npz", "--supersample", "1"])
+    assert reconstruction_settings(args) == one
 
 
 def test_keywords_build_settings_and_conflicts_are_refused():

@@ -16,7 +16,12 @@ import numpy as np
 from ..camera import load_camera
 from ..io.files import CHANNELS
 from ..pipeline.frames import load_frame
-from ..pipeline.settings import PAIR_SUPERSAMPLE
+from ..pipeline.settings import (
+    PAIR_COARSE,
+    PAIR_FINE_ITERATIONS,
+    PAIR_SUPERSAMPLE,
+    pair_reconstruction_table,
+)
 from .frames import add_frame_options, camera_for_frames, read_frame
 
 
@@ -25,7 +30,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     from ..grid import Grid
     from ..io.progress import iteration_bar
     from ..projection.projector import Projector
-    from ..reconstruction import ReconstructionSettings, reconstruct
+    from ..reconstruction import reconstruct
     from ..volumefile import save_volume
 
     camera = camera_for_frames(args, load_camera(args.camera))
@@ -36,11 +41,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
                       stacklevel=2)
     image = read_frame(args, args.raw, camera)
     mask = _pixel_mask(args, camera)
-    settings = ReconstructionSettings(
-        args.method, args.iterations, args.relax, start=args.start,
-        background="median" if args.background == "median" else None,
-        threshold=args.threshold, mask_fraction=args.mask_fraction,
-        min_sensitivity=args.min_sensitivity, tol=args.tol, supersample=args.supersample)
+    settings = reconstruction_settings(args)
     proj = Projector(camera, grid, args.device)
     with iteration_bar(settings.iterations, f"{args.method} {grid.shape}") as bar:
         vol, info = reconstruct(image, proj, settings=settings, callback=bar,
@@ -49,6 +50,22 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {grid.shape} voxels, {info.iterations} {args.method} iterations "
           f"in {info.seconds:.1f} s, residual {info.residuals[-1] if info.residuals else 0:.3g}")
     return 0
+
+
+def reconstruction_settings(args: argparse.Namespace):
+    """The reconstruction the command line asks for: its options over the pair's
+    defaults (:func:`plenocl.pipeline.settings.pair_reconstruction_table`), so that
+    ``plenocl reconstruct`` and ``process_pair`` reconstruct alike."""
+    from ..reconstruction import ReconstructionSettings
+
+    given = dict(method=args.method, iterations=args.iterations, relax=args.relax,
+                 start=args.start, threshold=args.threshold, mask_fraction=args.mask_fraction,
+                 min_sensitivity=args.min_sensitivity, tol=args.tol,
+                 supersample=args.supersample, coarse_iterations=args.coarse_iterations,
+                 support=args.support)
+    table = {k: v for k, v in given.items() if v is not None}
+    table["background"] = "median" if args.background == "median" else None
+    return ReconstructionSettings(**pair_reconstruction_table(table))
 
 
 def _pixel_mask(args: argparse.Namespace, camera):
@@ -162,7 +179,9 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
                    help="mlem: multiplicative EM, keeps in-focus particles; smart: "
                         "simultaneous MART; mart: the paper's block MART")
     p.add_argument("--iterations", type=int, default=None,
-                   help="default: per method (mlem and smart 30, mart 15); 0 returns the start")
+                   help="default: per method (mlem and smart 30, mart 15; mlem on "
+                        f"sub-voxels after coarse iterations {PAIR_FINE_ITERATIONS}); 0 "
+                        "returns the start")
     p.add_argument("--relax", type=float, default=None, help="relaxation 0 < mu <= 1")
     p.add_argument("--start", default="uniform", choices=["uniform", "mlos"],
                    help="first guess: a uniform volume carrying the image's light, or MLOS")
@@ -183,8 +202,17 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
                         "dark")
     p.add_argument("--supersample", type=int, default=PAIR_SUPERSAMPLE,
                    help="lateral sub-voxels per voxel and axis (default: %(default)s, as "
-                        "process_pair and plenocl run; 1 is about 3x faster, with about 3x "
-                        "the depth error)")
+                        "process_pair and plenocl run; 1: the voxels themselves, with "
+                        "about 3x the depth error)")
+    p.add_argument("--coarse-iterations", type=int, default=None,
+                   help="with sub-voxels: iterations on the voxels first, whose support "
+                        "the sub-voxel iterations keep to (default "
+                        f"{PAIR_COARSE['coarse_iterations']}, as process_pair, and then "
+                        f"{PAIR_FINE_ITERATIONS} mlem iterations on the sub-voxels; 0: "
+                        "the sub-voxels from the start)")
+    p.add_argument("--support", type=float, default=None,
+                   help="support threshold of the coarse volume, a fraction of its "
+                        f"brightest voxel (default {PAIR_COARSE['support']:g})")
     p.set_defaults(func=reconstruct_command)
     return p
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from ..options import field_names, from_table, refuse_unknown, to_table
+from ..options import NONE, field_names, from_table, refuse_unknown, to_table
 from ..piv.imagefit import ImageFitSettings
 from ..piv.settings import PIVSettings
 from ..reconstruction import ReconstructionSettings
@@ -15,9 +15,33 @@ from .mte import MTESettings
 
 #: Sub-voxels per voxel and lateral axis of a pair's reconstruction (docs/design.md §6.4).
 PAIR_SUPERSAMPLE = 3
-#: The reconstruction :func:`plenocl.process_pair` runs by default: MLEM, 30 iterations,
-#: the median background removed, on 3 x 3 lateral sub-voxels per voxel.
-PAIR_RECONSTRUCTION = ReconstructionSettings(supersample=PAIR_SUPERSAMPLE)
+#: A pair's coarse-to-fine defaults on sub-voxels (docs/design.md §6.5): MLEM iterations
+#: on the voxels, the support threshold, and MLEM iterations on the sub-voxels after them.
+PAIR_COARSE = {"coarse_iterations": 10, "support": 0.01}
+PAIR_FINE_ITERATIONS = 10
+
+
+def pair_reconstruction_table(table: Mapping) -> dict:
+    """A pair's reconstruction options: ``table`` (an experiment file's
+    ``[reconstruction]``, the command line's options) with the pair's defaults filled in
+    where it is silent: 3 x 3 sub-voxels; on sub-voxels coarse-to-fine
+    (:data:`PAIR_COARSE`) and, for MLEM after coarse iterations,
+    :data:`PAIR_FINE_ITERATIONS` on the sub-voxels. Other methods and the voxels
+    themselves (``supersample = 1``) keep the method's own iteration defaults."""
+    opts = {"supersample": PAIR_SUPERSAMPLE, **table}
+    if not isinstance(opts["supersample"], int) or opts["supersample"] <= 1:
+        return opts
+    opts = {**PAIR_COARSE, **opts}
+    if (opts["coarse_iterations"] and opts.get("method", "mlem") == "mlem"
+            and opts.get("iterations", NONE) in (None, NONE)):
+        opts["iterations"] = PAIR_FINE_ITERATIONS
+    return opts
+
+
+#: The reconstruction :func:`plenocl.process_pair` runs by default: MLEM with the median
+#: background removed, coarse-to-fine: 10 iterations on the voxels, then 10 on 3 x 3
+#: lateral sub-voxels per voxel within the coarse volume's support.
+PAIR_RECONSTRUCTION = ReconstructionSettings(**pair_reconstruction_table({}))
 #: The parts of a pair's settings, as the sections of a document.
 PARTS = ("reconstruction", "piv", "mte", "particles", "image_fit")
 
@@ -100,8 +124,8 @@ class PairSettings:
         refuse_unknown(doc, PARTS, lambda bad: f"{source}: unknown section(s) {bad}; the "
                        f"pair settings are {list(PARTS)}")
         rec = doc.get("reconstruction", {})
-        if isinstance(rec, Mapping):  # the pair's default, not the single step's
-            rec = {"supersample": PAIR_SUPERSAMPLE, **rec}
+        if isinstance(rec, Mapping):  # the pair's defaults, not the single step's
+            rec = pair_reconstruction_table(rec)
         return cls(
             reconstruction=from_table(ReconstructionSettings, rec,
                                       f"{source}: [reconstruction]"),
