@@ -258,7 +258,8 @@ def test_process_pair_runs_the_default_chain(queue):
     pair = plenocl.process_pair(raw_a, raw_b, Projector(cam, grid, queue))
     assert pair.vol_a.shape == pair.vol_b.shape == grid.shape
     assert set(pair.seconds) == {"reconstruct_a", "reconstruct_b", "piv", "particles"}
-    assert pair.info_a.iterations == 30
+    assert (pair.info_a.coarse_iterations, pair.info_a.iterations) == (10, 10)
+    assert 0 < pair.info_a.support_fraction < 1
     u = pair.piv.u[pair.piv.valid]
     assert np.median(u) == pytest.approx(2.0, abs=0.15)
 

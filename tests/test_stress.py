@@ -712,6 +712,8 @@ INVALID = [
      "supersample must be an integer from 1 to 4"),
     ("reconstruct-supersample-start", _rec(supersample=2, start=np.ones((3, 3, 3))), ValueError,
      "expected the grid's"),
+    ("reconstruct-coarse-to-fine", _rec(supersample=2, coarse_iterations=-1), ValueError,
+     "coarse_iterations must be a non-negative integer"),
     ("reconstruct-ratio-floor-mlem", _rec(ratio_floor=0.3), ValueError,
      "geometric-mean methods"),
     ("reconstruct-ratio-floor-range", _rec(method="mart", ratio_floor=1.0), ValueError,

@@ -38,10 +38,15 @@ VOXEL_MM = (0.1833, 0.175, 0.1333)      # (x, y, z): the paper's 300 x 200 x 150
 #: The single-frame reconstruction on the voxels themselves: the default before sub-voxels
 #: (and before the particle refinement).
 BASELINE_SETTINGS = ReconstructionSettings(supersample=1)
-#: The rows of a budget: the default chain, its particles as the volumes place them (not
-#: fitted to the raw images), its volumes correlated without the particle refinement,
-#: and the chain before all three.
-ROWS = {"default": "default", "volume_particles": "particles not fitted to the image",
+#: The default chain's reconstruction before coarse-to-fine (docs/design.md §6.5): 30
+#: MLEM iterations on the sub-voxels from a uniform volume.
+PREVIOUS_SETTINGS = ReconstructionSettings(supersample=3, iterations=30)
+#: The rows of a budget: the default chain, the same chain with the reconstruction before
+#: coarse-to-fine (where asked for), its particles as the volumes place them (not fitted
+#: to the raw images), its volumes correlated without the particle refinement, and the
+#: chain before all of them.
+ROWS = {"default": "default", "previous": "30 sub-voxel iterations",
+        "volume_particles": "particles not fitted to the image",
         "correlation": "sub-voxels, correlation only",
         "baseline": "before (voxels, correlation)"}
 
@@ -162,9 +167,11 @@ def pair_row(pair, scene: BudgetScene, grid: Grid, motion: Motion = UNIFORM) -> 
 
 
 def budget_row(cam: Camera, grid: Grid, proj, ppm: float, seed: int, queue,
-               rays: int = 2000, motion: Motion = UNIFORM, baseline: bool = True) -> dict:
+               rays: int = 2000, motion: Motion = UNIFORM, baseline: bool = True,
+               previous: bool = False) -> dict:
     """The budget of one seeding density (particles per microlens): windows only,
-    ``process_pair`` defaults, its volumes by correlation alone, and (``baseline``) the
+    ``process_pair`` defaults, its volumes by correlation alone, (``previous``) the
+    default chain with :data:`PREVIOUS_SETTINGS`' reconstruction, and (``baseline``) the
     chain before (single-frame reconstruction on the voxels themselves, ``supersample=1``,
     correlation only)."""
     scene = budget_scene(cam, grid, ppm, seed, queue, rays, motion)
@@ -183,6 +190,10 @@ def budget_row(cam: Camera, grid: Grid, proj, ppm: float, seed: int, queue,
     row["volume_particles"] = pair_row(dataclasses.replace(pair, piv=unfitted, seconds={
         "reconstruct": seconds, "piv": pair.seconds["piv"],
         "particles": time.perf_counter() - t0}), scene, grid, motion)
+    if previous:
+        row["previous"] = pair_row(process_pair(scene.raw_a, scene.raw_b, proj,
+                                                reconstruction=PREVIOUS_SETTINGS),
+                                   scene, grid, motion)
     if baseline:
         before = process_pair(scene.raw_a, scene.raw_b, proj, reconstruction=BASELINE_SETTINGS,
                               particles=False)
