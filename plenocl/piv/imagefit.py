@@ -52,9 +52,9 @@ class ImageFitSettings:
         Particles rendered at once (bounds memory).
     """
 
-    rays: int = 400
+    rays: int = 200
     blur_px: float = 0.8
-    iterations: int = 8
+    iterations: int = 4
     damping: float = 0.1
     chunk: int = 128
 
