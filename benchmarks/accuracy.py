@@ -40,7 +40,6 @@ far (z > 2 mm). With ``--scenes N`` each seeding runs N scenes and the RMS over 
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -48,13 +47,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import Projector, get_queue  # noqa: E402
+from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
     ROTATION,
     ROWS,
     UNIFORM,
     budget_row,
-    paper_optics,
+    paper_setup,
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 
@@ -93,12 +92,7 @@ def main() -> None:
                         help="also the chain with 30 MLEM iterations on the sub-voxels")
     args = parser.parse_args()
     queue = get_queue()
-    cam, grid = paper_optics(tuple(args.lenses))
-    proj = Projector(cam, grid, queue)
-    print(f"device: {queue.device.name.strip()}; load average {os.getloadavg()[0]:.2f}")
-    print(f"camera: {cam.describe()}; {cam.pixels[0]} x {cam.pixels[1]} px")
-    print(f"grid {grid.shape} (z, y, x), voxel {grid.spacing[2]:.4f} x {grid.spacing[1]:.4f}"
-          f" x {grid.spacing[0]:.4f} mm")
+    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     for name in args.motion:
         print(f"\n{MOTIONS[name].name}: RMS displacement error (voxels unless stated) over "
               "the valid vectors")

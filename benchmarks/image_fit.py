@@ -23,13 +23,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import Projector, get_queue  # noqa: E402
+from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
     ROTATION,
     UNIFORM,
     budget_errors,
     budget_scene,
-    paper_optics,
+    paper_setup,
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
@@ -48,8 +48,7 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     args = parser.parse_args()
     queue = get_queue()
-    cam, grid = paper_optics(tuple(args.lenses))
-    proj = Projector(cam, grid, queue)
+    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     focus = FocalZone.of(cam, grid)
     results = {v: [] for v in args.variants}
     for k, ppm in enumerate(args.seeding):

@@ -17,7 +17,6 @@ ghost intensity, and seconds per pair (both reconstructions and every correlatio
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -25,12 +24,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import Projector, get_queue, piv3d  # noqa: E402
+from plenocl import get_queue, piv3d  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
     SHIFT_VOX,
     budget_errors,
     budget_scene,
-    paper_optics,
+    paper_setup,
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.metrics import quality_q, recovery  # noqa: E402
@@ -98,11 +97,8 @@ def main() -> None:
     parser.add_argument("--lenses", type=int, nargs=2, default=[96, 64])
     args = parser.parse_args()
     queue = get_queue()
-    cam, grid = paper_optics(tuple(args.lenses))
-    proj = Projector(cam, grid, queue)
-    print(f"device: {queue.device.name.strip()}; load average {os.getloadavg()[0]:.2f}")
-    print(f"grid {grid.shape} (z, y, x) on {args.lenses[0]} x {args.lenses[1]} lenses; "
-          "RMS displacement error in voxels over the valid vectors")
+    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
+    print("RMS displacement error in voxels over the valid vectors")
     for ppm in args.seeding:
         for k in range(args.scenes):
             scene = budget_scene(cam, grid, ppm, seed=100 + k, queue=queue)

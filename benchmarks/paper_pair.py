@@ -16,19 +16,19 @@ the particles the first volume recovered.
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import Projector, get_queue  # noqa: E402
+from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
+    PREVIOUS_SETTINGS,
     ROTATION,
     UNIFORM,
     budget_scene,
     pair_row,
-    paper_optics,
+    paper_setup,
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
@@ -36,11 +36,9 @@ from plenocl.reconstruction import ReconstructionSettings  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 #: The reconstruction settings compared (each with process_pair's other defaults).
-SETTINGS = {
-    "before": ReconstructionSettings(supersample=3),
+SETTINGS = {  # before: 30 MLEM iterations on the sub-voxels from a uniform volume
+    "before": PREVIOUS_SETTINGS,
     "default": None,
-    "c2f": ReconstructionSettings(supersample=3, iterations=10, coarse_iterations=10,
-                                  support=1e-2),
     "voxels": ReconstructionSettings(supersample=1),
 }
 
@@ -54,11 +52,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3)
     args = parser.parse_args()
     queue = get_queue()
-    cam, grid = paper_optics(tuple(args.lenses))
-    proj = Projector(cam, grid, queue)
-    print(f"device: {queue.device.name.strip()}; load average {os.getloadavg()[0]:.2f}")
-    print(f"camera {cam.pixels[0]} x {cam.pixels[1]} px, {cam.ml_count[0]} x "
-          f"{cam.ml_count[1]} lenses; grid {grid.shape} (z, y, x)")
+    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     motion = MOTIONS[args.motion]
     scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion)
     print(f"{scene.count} particles ({args.seeding} per microlens), {motion.name}")

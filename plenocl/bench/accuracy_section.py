@@ -51,6 +51,20 @@ ROWS = {"default": "default", "previous": "30 sub-voxel iterations",
         "baseline": "before (voxels, correlation)"}
 
 
+def paper_setup(lenses: tuple[int, int], queue) -> tuple[Camera, Grid, Projector]:
+    """:func:`paper_optics` on ``lenses`` microlenses with its projector on ``queue``; prints
+    the device, the load, the camera and the grid (a benchmark script's first lines)."""
+    import os
+
+    cam, grid = paper_optics(lenses)
+    proj = Projector(cam, grid, queue)
+    print(f"device: {queue.device.name.strip()}; load average {os.getloadavg()[0]:.2f}")
+    print(f"camera: {cam.describe()}; {cam.pixels[0]} x {cam.pixels[1]} px")
+    print(f"grid {grid.shape} (z, y, x), voxel {grid.spacing[2]:.4f} x {grid.spacing[1]:.4f}"
+          f" x {grid.spacing[0]:.4f} mm")
+    return cam, grid, proj
+
+
 def paper_optics(lenses: tuple[int, int]) -> tuple[Camera, Grid]:
     """The paper's optics (f = 50 mm, f/2.42, |M| = 0.66, 125 µm lenses of f = 500 µm,
     7.4 µm pixels) on ``lenses`` microlenses, and the paper's voxel over 20 mm of depth
