@@ -52,6 +52,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
     ROTATION,
     ROWS,
     UNIFORM,
+    budget_entries,
     budget_row,
     paper_setup,
 )
@@ -66,19 +67,13 @@ def print_rows(rows: list[dict], grid) -> None:
           f"{'lateral':>7s} {'depth':>6s} {'(mm)':>6s} {'focus':>6s} {'near':>6s} "
           f"{'far':>6s} {'valid':>6s} {'bias x y z':>17s} | {'Q':>5s} {'recov':>6s} "
           f"{'ghosts':>6s} {'s/pair':>7s}")
-    for r in rows:
-        w = r["windows"]
-        for label, name in ROWS.items():
-            if label not in r:
-                continue
-            x = r[label]
-            e = x["errors"]
-            print(f"{r['ppm']:5.2f} {r['particles']:5d} | {w['lateral']:17.3f} "
-                  f"{w['depth']:6.3f} | {name:28s} {e['lateral']:7.3f} {e['depth']:6.2f} "
-                  f"{e['depth'] * dz:6.3f} {e['in focus']:6.2f} {e['near']:6.2f} "
-                  f"{e['far']:6.2f} {e['valid']:6.0%} "
-                  f"{' '.join(f'{b:+.2f}' for b in e['bias']):>17s} | {x['Q']:5.2f} "
-                  f"{x['recovered']:6.0%} {x['ghosts']:6.0%} {x['seconds']:7.1f}", flush=True)
+    for r, w, name, x, e in budget_entries(rows):
+        print(f"{r['ppm']:5.2f} {r['particles']:5d} | {w['lateral']:17.3f} "
+              f"{w['depth']:6.3f} | {name:28s} {e['lateral']:7.3f} {e['depth']:6.2f} "
+              f"{e['depth'] * dz:6.3f} {e['in focus']:6.2f} {e['near']:6.2f} "
+              f"{e['far']:6.2f} {e['valid']:6.0%} "
+              f"{' '.join(f'{b:+.2f}' for b in e['bias']):>17s} | {x['Q']:5.2f} "
+              f"{x['recovered']:6.0%} {x['ghosts']:6.0%} {x['seconds']:7.1f}", flush=True)
 
 
 def main() -> None:

@@ -215,24 +215,27 @@ def budget_row(cam: Camera, grid: Grid, proj, ppm: float, seed: int, queue,
     return row
 
 
+def budget_entries(rows: list[dict]):
+    """Each measured chain of each row of :func:`budget_row`, in :data:`ROWS` order:
+    ``(row, windows-only errors, chain name, chain result, chain errors)``."""
+    for r in rows:
+        for label, name in ROWS.items():
+            if label in r:
+                yield r, r["windows"], name, r[label], r[label]["errors"]
+
+
 def budget_table(rows: list[dict], grid: Grid) -> str:
     """The rows of :func:`budget_row` as a Markdown table: each reconstruction (default,
     and the baseline where measured) on a line of its own."""
     dz = grid.spacing[0]
     body = []
-    for r in rows:
-        w = r["windows"]
-        for label, name in ROWS.items():
-            if label not in r:
-                continue
-            x = r[label]
-            e = x["errors"]
-            body.append([f"{r['ppm']:.2f}", r["particles"], f"{w['lateral']:.3f}",
-                         f"{w['depth']:.3f}", name, f"{e['lateral']:.3f}", f"{e['depth']:.2f}",
-                         f"{e['depth'] * dz:.3f}", f"{e['in focus']:.2f}", f"{e['near']:.2f}",
-                         f"{e['far']:.2f}", f"{e['valid']:.0%}", str(x["window"]),
-                         " ".join(f"{b:+.2f}" for b in e["bias"]), f"{x['Q']:.2f}",
-                         f"{x['recovered']:.0%}", f"{x['ghosts']:.0%}", f"{x['seconds']:.1f}"])
+    for r, w, name, x, e in budget_entries(rows):
+        body.append([f"{r['ppm']:.2f}", r["particles"], f"{w['lateral']:.3f}",
+                     f"{w['depth']:.3f}", name, f"{e['lateral']:.3f}", f"{e['depth']:.2f}",
+                     f"{e['depth'] * dz:.3f}", f"{e['in focus']:.2f}", f"{e['near']:.2f}",
+                     f"{e['far']:.2f}", f"{e['valid']:.0%}", str(x["window"]),
+                     " ".join(f"{b:+.2f}" for b in e["bias"]), f"{x['Q']:.2f}",
+                     f"{x['recovered']:.0%}", f"{x['ghosts']:.0%}", f"{x['seconds']:.1f}"])
     return md_table(["ppm", "particles", "windows only: lateral", "depth", "reconstruction",
                      "lateral", "depth", "depth mm", "in focus", "near", "far", "valid",
                      "final window", "bias x y z", "Q", "recovered", "ghosts", "s/pair"], body)
