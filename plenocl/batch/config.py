@@ -28,9 +28,10 @@ Example::
     pair_interval_s = 0.01               # between successive pairs: the time axis
     [reconstruction]                     # every ReconstructionSettings option
     method = "mlem"
-    iterations = 30
-    supersample = 3                      # lateral sub-voxels per voxel (1: faster, depth
-                                         # about 3x worse; docs/design.md §6.4)
+    iterations = 10                      # on the sub-voxels, after
+    coarse_iterations = 10               # iterations on the voxels (docs/design.md §6.5)
+    supersample = 3                      # lateral sub-voxels per voxel (1: the voxels,
+                                         # depth about 3x worse; docs/design.md §6.4)
     [piv]                                # every PIVSettings option, and ensemble
     windows = [48, 32, 24]               # optional: fitted to the volume by default
     ensemble = false                     # also the ensemble-correlation mean field (keeps
