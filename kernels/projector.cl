@@ -33,7 +33,7 @@
  * unfactorised baseline the benchmark measures. */
 #include "projector.h"
 
-/* ---- forward, separable, gather form (the default):
+/* ---- forward, separable, element form (GPUs; CPUs run fwd_x_row below):
  * T[(izl, il)][iy][kx] = sum_ix hat(kx(ix, i) - kx) vol[iz][iy][ix].
  * One work-item per T element (kx, iy, (izl, il)): it sums the few voxels of its row
  * whose lens coordinate lies within one lens of kx (pl_hat_range), with the weights
@@ -314,8 +314,6 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
     }
 }
 
-/* ---- back, separable: vol[iz][iy][ix] (+)= sum_i,kx hat(kx(ix, i) - kx) T[(izl, il)][iy][kx].
- * One work-item per volume row; column-major, branch-free loops over the row. */
 /* Voxel ix's two lens taps in the T row of aperture column offset bu. */
 inline float pl_back_x_tap(__global const float *c, __global const float *row, float bu,
                            int ix, int nkx)

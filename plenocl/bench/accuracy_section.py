@@ -16,6 +16,7 @@ command line.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from dataclasses import dataclass
 
@@ -54,8 +55,6 @@ ROWS = {"default": "default", "previous": "30 sub-voxel iterations",
 def paper_setup(lenses: tuple[int, int], queue) -> tuple[Camera, Grid, Projector]:
     """:func:`paper_optics` on ``lenses`` microlenses with its projector on ``queue``; prints
     the device, the load, the camera and the grid (a benchmark script's first lines)."""
-    import os
-
     cam, grid = paper_optics(lenses)
     proj = Projector(cam, grid, queue)
     print(f"device: {queue.device.name.strip()}; load average {os.getloadavg()[0]:.2f}")

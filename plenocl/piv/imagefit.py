@@ -165,8 +165,8 @@ class ImageFit:
         out = np.empty(len(p))
         for part in self._chunks(len(p)):
             n = part.stop - part.start
-            _, _, pid, pixel, rows = self._render(p[part], np.ones(n))
-            unit = rows[4]
+            _, _, pid, pixel, rows = self._render(p[part], np.ones(n), derivatives=False)
+            unit = rows[0]  # the image of unit intensity: d image / d intensity
             out[part] = np.bincount(pid, unit * data[pixel], minlength=n) / np.maximum(
                 np.bincount(pid, unit**2, minlength=n), 1e-30)
         return np.maximum(out, 0.0)

@@ -153,8 +153,8 @@ class Projector:
         check_fits(self.queue, grid.nbytes + 4 * width * height + self.plan.scratch_bytes
                    + 16 * camera.ml_count[0] * camera.ml_count[1],
                    f"projecting a {grid.shape} grid onto the {width} x {height} sensor")
-        # every projector kernel but the gathering forward loops over a row, a sample's
-        # plane or a lens's samples
+        # every projector kernel but the element ones (_ELEMENTWISE) loops over a row, a
+        # sample's plane or a lens's samples
         self._k = KernelSet(self.queue, "projector.cl", _KERNELS, [f"-DPL_VW={self.vw}"],
                             looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
@@ -471,14 +471,12 @@ class Projector:
         nkx, nky, nkxp = self._lens_args()
         (nx, ny), nic = self._grid_args(), i1 - i0
         t_buf = self._buffer("T", int(nzc) * nic * int(ny) * self.nkxp)
+        xargs = (slab, t_buf, self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
+                 self._ic)
         if self.gather_forward:
-            self._k.launch("fwd_x", (_rounded(self.nkxp), int(ny), int(nzc) * nic), slab, t_buf,
-                           self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
-                           self._ic)
+            self._k.launch("fwd_x", (_rounded(self.nkxp), int(ny), int(nzc) * nic), *xargs)
         else:
-            self._k.launch("fwd_x_row", (int(ny), int(nzc)), slab, t_buf,
-                           self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
-                           self._ic)
+            self._k.launch("fwd_x_row", (int(ny), int(nzc)), *xargs)
         self._k.launch("fwd_y", (self.nseg, int(nky), nic), t_buf, light, self._d["coef"],
                        self._d["col_lo"], self._d["col_off"], lenses.rows, ny, nkxp,
                        i32(self.seg), i32(self.aperture.n), zc, nzc, i32(i0), i32(nic),
