@@ -142,9 +142,11 @@ def small_calls(queue, repeats: int) -> None:
 
 def rotated_array(queue, repeats: int, rotation: float = 0.15) -> None:
     """The paper experiment with its array rotated by ``rotation`` degrees: on a grid in
-    the sensor's axes (general path) and on the grid of Grid.for_camera, whose axes follow
-    the lens rows (separable path); calibrated-like centres (each lens 0.1 px off the
-    lattice) too; against the axis-aligned array on the same grid, in the same run."""
+    the sensor's axes (by default projected through the lens-row frame and resampled; and
+    on the general kernels, ``general="exact"``) and on the grid of Grid.for_camera, whose
+    axes follow the lens rows (separable path); calibrated-like centres (each lens 0.1 px
+    off the lattice) too; against the axis-aligned array on the same grid, in the same
+    run."""
     grid = Grid((150, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5), z=(-10.0, 10.0))
     vol = np.random.default_rng(2).random(grid.shape, np.float32)
     ideal = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (289, 193), 0.0074, (4904, 3280),
@@ -152,15 +154,19 @@ def rotated_array(queue, repeats: int, rotation: float = 0.15) -> None:
     jitter = np.random.default_rng(3).normal(0, 0.1 / np.sqrt(2), ideal.microlens_centers.shape)
     calibrated = ideal.with_centers(ideal.microlens_centers + jitter)
     aligned = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (289, 193), 0.0074, (4904, 3280))
-    cases = [("aligned array", aligned, 0.0),
-             (f"{rotation:g} deg array, sensor-axis grid", ideal, 0.0),
-             (f"{rotation:g} deg array, lens-row grid", ideal, None),
-             (f"{rotation:g} deg, centres 0.1 px off lattice, lens-row grid", calibrated, None)]
+    cases = [("aligned array", aligned, 0.0, "resample"),
+             (f"{rotation:g} deg array, sensor-axis grid", ideal, 0.0, "resample"),
+             (f"{rotation:g} deg array, sensor-axis grid, general kernels", ideal, 0.0, "exact"),
+             (f"{rotation:g} deg array, lens-row grid", ideal, None, "resample"),
+             (f"{rotation:g} deg, centres 0.1 px off lattice, lens-row grid", calibrated, None,
+              "resample"),
+             (f"{rotation:g} deg, centres 0.1 px off lattice, sensor-axis grid", calibrated,
+              0.0, "resample")]
     base = None
-    for label, cam, frame in cases:
+    for label, cam, frame, general in cases:
         rot = (Grid.for_camera(cam, z=(-10, 10)).rotation_deg if frame is None else frame)
         g = Grid(grid.shape, grid.x, grid.y, grid.z, rotation_deg=rot)
-        proj = Projector(cam, g, queue)
+        proj = Projector(cam, g, queue, general=general)
         fwd, back, _ = device_pair(proj, vol)
         t_f, t_b = median_time(fwd, repeats), median_time(back, repeats)
         base = base or t_f + t_b

@@ -16,6 +16,9 @@ from plenocl.reference.weights import ApertureGrid, lens_index_map, voxel_weight
 # Voxel centres at z = -4, -2, 0, 2, 4 mm; the outer columns reach the sensor edges.
 GRID = Grid((5, 7, 9), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-5.0, 5.0))
 VOXELS = [(2, 3, 4), (1, 3, 4), (3, 2, 5), (0, 5, 1), (4, 1, 7), (2, 0, 0), (4, 6, 8), (0, 6, 8)]
+#: The exact weighting function on every path: a grid across the lens rows on the general
+#: kernels (projected through the lens-row frame by default: test_resample.py).
+EXACT = {"general": "exact"}
 #: The same projection computed another way (absolute floor: inputs of order 1).
 RECOMPUTED = dict(rtol=tol.RECOMPUTED, atol=tol.RECOMPUTED_FLOOR)
 
@@ -39,7 +42,10 @@ def cameras(small_camera):
 
 @pytest.fixture(scope="module")
 def projectors(cameras, queue):
-    return {name: Projector(cam, GRID, queue, **kw) for name, (cam, kw) in cameras.items()}
+    """The exact weighting function: a grid across the lens rows on the general kernels
+    (projected through the lens-row frame by default: test_resample.py)."""
+    return {name: Projector(cam, GRID, queue, **EXACT, **kw)
+            for name, (cam, kw) in cameras.items()}
 
 
 def _dense(idx, w, n):
@@ -137,8 +143,8 @@ def test_slab_split_matches_single_buffer(small_camera, queue):
     vol = rng.random(grid.shape).astype(np.float32)
     img = rng.random((170, 204)).astype(np.float32)
     for cam, kw in ((small_camera, {}), (pert, {"shear_tol": 0.05}), (pert, {})):
-        whole = Projector(cam, grid, queue, **kw)
-        split = Projector(cam, grid, queue, max_alloc_bytes=150_000, **kw)
+        whole = Projector(cam, grid, queue, **EXACT, **kw)
+        split = Projector(cam, grid, queue, max_alloc_bytes=150_000, **EXACT, **kw)
         assert len(whole.plan.slabs) == 1 and len(split.plan.slabs) > 1
         assert len(split.plan.columns) > 1 and split.plan.zchunk < grid.shape[0]
         np.testing.assert_allclose(split.forward(vol), whole.forward(vol), **RECOMPUTED)
@@ -163,9 +169,9 @@ def test_variants_agree(small_camera, queue):
     vol = rng.random(GRID.shape).astype(np.float32)
     img = rng.random((170, 204)).astype(np.float32)
     for kw in ({"shear_tol": 0.05}, {}):
-        ref = Projector(pert, GRID, queue, **kw)
-        for other in (Projector(pert, GRID, queue, vector_width=1, segment=1, **kw),
-                      Projector(pert, GRID, queue, method="direct", **kw)):
+        ref = Projector(pert, GRID, queue, **EXACT, **kw)
+        for other in (Projector(pert, GRID, queue, vector_width=1, segment=1, **EXACT, **kw),
+                      Projector(pert, GRID, queue, method="direct", **EXACT, **kw)):
             np.testing.assert_allclose(other.forward(vol), ref.forward(vol), **RECOMPUTED)
             np.testing.assert_allclose(other.back(img), ref.back(img), **RECOMPUTED)
 
@@ -263,7 +269,7 @@ def test_atomic_scatter_back_twin_matches_the_gather(name, cameras, projectors):
     the summation order."""
     proj = projectors[name]
     cam, kw = cameras[name]
-    atomic = Projector(cam, proj.grid, proj.queue, back="atomic", **kw)
+    atomic = Projector(cam, proj.grid, proj.queue, back="atomic", **EXACT, **kw)
     assert atomic.path == "separable"
     image = np.random.default_rng(5).random(proj.image_shape, dtype=np.float32)
     ref = proj.back(image)
@@ -278,7 +284,7 @@ def test_gathering_general_forward_equals_the_scatter_bit_for_bit(name, cameras,
     rng = np.random.default_rng(11)
     vol = rng.standard_normal(GRID.shape).astype(np.float32)
     vol[rng.random(GRID.shape) < 0.5] = 0.0  # sparse, as reconstructions are
-    got = {g: Projector(cam, GRID, queue, gather_forward=g, scratch_bytes=2**14, **kw)
+    got = {g: Projector(cam, GRID, queue, gather_forward=g, scratch_bytes=2**14, **EXACT, **kw)
            for g in (False, True)}
     assert got[True].path == "general" and len(got[True].plan.columns) > 1
     np.testing.assert_array_equal(got[True].forward(vol), got[False].forward(vol))
@@ -293,7 +299,7 @@ def test_separable_element_kernels_equal_the_row_kernels_bit_for_bit(name, camer
     vol = rng.random(GRID.shape, dtype=np.float32)
     vol[rng.random(GRID.shape) < 0.5] = 0.0
     image = rng.random(cam.pixels[::-1], dtype=np.float32)
-    got = {g: Projector(cam, GRID, queue, gather_forward=g, scratch_bytes=2**14, **kw)
+    got = {g: Projector(cam, GRID, queue, gather_forward=g, scratch_bytes=2**14, **EXACT, **kw)
            for g in (False, True)}
     assert got[True].path == "separable" and len(got[True].plan.columns) > 1
     np.testing.assert_array_equal(got[True].forward(vol), got[False].forward(vol))
@@ -308,7 +314,7 @@ def test_back_projection_on_a_support_is_the_full_one_there(name, gather, camera
     it is the full one or 0. The separable path's kernels skip the zero voxels of sparse
     rows (0 there) and compute dense rows whole; the general path computes every voxel."""
     cam, kw = cameras[name]
-    proj = Projector(cam, GRID, queue, gather_forward=gather, scratch_bytes=2**14, **kw)
+    proj = Projector(cam, GRID, queue, gather_forward=gather, scratch_bytes=2**14, **EXACT, **kw)
     rng = np.random.default_rng(13)
     support = rng.random(GRID.shape)
     support[:, :3] = np.where(rng.random((5, 3, 9)) < 0.1, support[:, :3], 0)  # sparse rows

@@ -33,10 +33,12 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..grid import Grid
+from ..optics.lattice import separable_rotation_deg
 from ..program import KernelSet
 from .lenses import LensSet, lens_set, lit_lenses
-from .model import WeightingModel
+from .model import WeightingModel, warn_general_path
 from .plan import Plan, SampleColumns, depth_chunks, make_plan, runs
+from .resample import FrameResampler, frame_grid
 from .weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL, ApertureGrid, LensIndexMap
 
 _KERNELS = ("fwd_x", "fwd_x_row", "fwd_y", "fwd_gen", "fwd_gen_gather", "fwd_pix", "back_pix",
@@ -47,6 +49,9 @@ _ELEMENTWISE = ("fwd_gen_gather", "fwd_x", "back_x")
 #: Work-items per group that the element kernels' first dimension is rounded up to.
 _ROUND = 16
 METHODS = ("factorised", "direct")
+#: How a grid across a rotated array's lens rows is projected: through the lens-row
+#: frame and a bilinear resampling (fast, :mod:`.resample`), or by the general kernels.
+GENERAL_MODES = ("resample", "exact")
 #: Back projections of the separable path: a deterministic gather, or a float-atomic scatter.
 BACK_MODES = ("gather", "atomic")
 #: Bounds of the automatic scratch size (each of the light-field and intermediate buffers).
@@ -129,24 +134,28 @@ class Projector:
                  method: str = "factorised", back: str = "gather",
                  max_alloc_bytes: int | None = None, scratch_bytes: int | None = None,
                  vector_width: int | None = None, segment: int | None = None,
-                 gather_forward: bool | None = None,
+                 gather_forward: bool | None = None, general: str = "resample",
                  model: WeightingModel | None = None) -> None:
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if back not in BACK_MODES:
             raise ValueError(f"back must be one of {BACK_MODES}, got {back!r}")
+        if general not in GENERAL_MODES:
+            raise ValueError(f"general must be one of {GENERAL_MODES}, got {general!r}")
         if model is None:
-            model = WeightingModel(camera, grid, oversample, shear_tol)
+            model = WeightingModel(camera, grid, oversample, shear_tol, warn=False)
         elif model.camera is not camera or model.grid != grid:
             raise ValueError("the weighting model belongs to another camera or grid")
         self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
         self._options = dict(oversample=model.oversample, shear_tol=model.shear_tol,
                              method=method, back=back, max_alloc_bytes=max_alloc_bytes,
                              scratch_bytes=scratch_bytes, vector_width=vector_width,
-                             segment=segment, gather_forward=gather_forward)
+                             segment=segment, gather_forward=gather_forward,
+                             general=general)
         self.queue = get_queue(queue)
         self._refined: dict[int, Projector] = {}
         self.model = model
+        self.frame = self._frame_projector() if model.path == "general" else None
         self._layout(vector_width, segment)
         self.plan = self._make_plan(max_alloc_bytes, scratch_bytes)
         width, height = camera.pixels
@@ -159,6 +168,26 @@ class Projector:
                             looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
+
+    def _frame_projector(self) -> Projector | None:
+        """The lens-row frame's separable projector through which this grid is projected
+        (:mod:`.resample`; ``None``, with the general path's warning, when no frame makes
+        the array separable). ``None`` without a warning when the options ask for the
+        general kernels (``general="exact"``) or the direct method."""
+        opts = self._options
+        if opts["general"] == "exact" or self.method == "direct":
+            return None
+        angle = separable_rotation_deg(self.camera.microlens_centers, opts["shear_tol"])
+        frame = Projector(self.camera, frame_grid(self.grid, angle), self.queue,
+                          **{**opts, "general": "exact"})
+        if frame.path != "separable":
+            warn_general_path(self.camera, self.grid)
+            return None
+        self._resampler = FrameResampler(self.queue, self.grid, frame.grid)
+        self._frame_slabs: dict[str, list[cl_array.Array]] = {}
+        check_fits(self.queue, 3 * frame.grid.nbytes, f"resampling the {self.grid.shape} "
+                   f"grid onto the {frame.grid.shape} grid of the lens rows")
+        return frame
 
     # ---- the weighting model's tables, as the model holds them ----------------------------
     @property
@@ -173,8 +202,9 @@ class Projector:
 
     @property
     def path(self) -> str:
-        """``"separable"`` or ``"general"``: which factorised kernels run."""
-        return self.model.path
+        """``"separable"``, ``"general"`` (a grid across the array's lens rows, general
+        kernels) or ``"resampled"`` (such a grid projected through the lens-row frame)."""
+        return "resampled" if self.frame is not None else self.model.path
 
     @property
     def coef(self) -> np.ndarray:
@@ -259,7 +289,11 @@ class Projector:
     def device_bytes(self) -> int:
         """Device bytes the projector holds itself: weight tables and scratch buffers
         (not the kept sensitivity, nor the caller's volumes and images)."""
-        return int(sum(b.nbytes for b in [*self._d.values(), *self._scratch.values()]))
+        own = sum(b.nbytes for b in [*self._d.values(), *self._scratch.values()])
+        if self.frame is not None:
+            own += self.frame.device_bytes() + sum(
+                s.nbytes for slabs in self._frame_slabs.values() for s in slabs)
+        return int(own)
 
     # ---- host API ---------------------------------------------------------------------
     def forward(self, vol: np.ndarray) -> np.ndarray:
@@ -350,6 +384,8 @@ class Projector:
         lenses = self._lenses(lenses)
         out = self.empty_image() if out is None else out
         _check_device(out, self.image_shape, "out")
+        if self.frame is not None:
+            return self._resampled_forward(slabs, out, active, lenses)
         if self.method == "direct":
             out.fill(0.0)
             for (z0, _), slab in zip(self.plan.slabs, slabs, strict=True):
@@ -385,6 +421,8 @@ class Projector:
         for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
             for a, b in runs(~active[z0:z1]):
                 slab[a:b].fill(0.0)
+        if self.frame is not None:
+            return self._resampled_back(image, slabs, active, lenses, support)
         if self.method == "direct":
             for (z0, _), slab in zip(self.plan.slabs, slabs, strict=True):
                 self._direct("back_direct", image, slab, z0)
@@ -393,6 +431,38 @@ class Projector:
             light = self.image_to_light(image, i0, i1, lenses)
             for (z0, z1), slab, s in zip(self.plan.slabs, slabs, sup, strict=True):
                 self.light_to_volume(light, slab, z0, z1, i0, i1, n > 0, active, lenses, s)
+        return slabs
+
+    # ---- a grid across the lens rows, through the lens-row frame (.resample) -------------
+    def _frame_volume(self, name: str) -> list[cl_array.Array]:
+        """Frame-grid device slabs kept for ``name`` (``"forward"``, ``"support"``,
+        ``"back"``)."""
+        if name not in self._frame_slabs:
+            self._frame_slabs[name] = self.frame.empty_volume()
+        return self._frame_slabs[name]
+
+    def _resampled_forward(self, slabs, out: cl_array.Array, active: np.ndarray,
+                           lenses: LensSet) -> cl_array.Array:
+        """``out = A_frame S vol`` (docs/design.md §5.4)."""
+        frame_vol = self._frame_volume("forward")
+        self._resampler.to_frame(slabs, self.plan.slabs, frame_vol, self.frame.plan.slabs,
+                                 active)
+        return self.frame.forward_device(frame_vol, out, active, lenses)
+
+    def _resampled_back(self, image: cl_array.Array, slabs, active: np.ndarray,
+                        lenses: LensSet, support) -> list[cl_array.Array]:
+        """``slabs = Sᵀ A_frameᵀ image`` on the active planes; a support is resampled onto
+        the frame (its zero frame voxels touch no support voxel, so skipping them there is
+        exact here too)."""
+        own, frame = self.plan.slabs, self.frame.plan.slabs
+        frame_support = None
+        if support is not None:
+            support = self._as_slabs(support)
+            frame_support = self._frame_volume("support")
+            self._resampler.to_frame(support, own, frame_support, frame, active)
+        back = self.frame.back_device(image, self._frame_volume("back"), active, lenses,
+                                      frame_support)
+        self._resampler.from_frame(back, frame, slabs, own, active, support)
         return slabs
 
     def _active(self, active: np.ndarray | None) -> np.ndarray:
@@ -581,6 +651,8 @@ class Projector:
         nz, ny, nx = self.shape
         if ((vox < 0) | (vox >= np.array([nz, ny, nx]))).any():
             raise IndexError(f"voxel indices must lie in the grid of shape {self.shape}")
+        if self.frame is not None:
+            return self._resampled_footprints(vox)
         packed = np.zeros((len(vox), 4), np.int32)
         packed[:, :3] = vox[:, ::-1]
         nkx, nky, _ = self._lens_args()
@@ -592,6 +664,18 @@ class Projector:
                        self._d["frac"], nkx, nky, *self._pixel_args(), i32(ns), self._ic,
                        self._scale)
         return idx.get(), wts.get()
+
+    def _resampled_footprints(self, vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`footprint_entries` of ``A_frame S``: each voxel's frame voxels (its
+        column of ``S``), their products scaled by its weight in them."""
+        ab, w = self._resampler.columns(vox[:, 2], vox[:, 1])
+        n, k = w.shape
+        frame_vox = np.column_stack([np.repeat(vox[:, 0], k), ab[..., 1].ravel(),
+                                     ab[..., 0].ravel()])
+        idx, wts = self.frame.footprint_entries(frame_vox)
+        wts = wts * w.reshape(-1, 1).astype(np.float32)
+        idx = np.where(wts > 0, idx, -1)
+        return idx.reshape(n, -1), np.where(idx >= 0, wts, 0).reshape(n, -1)
 
     def refined(self, factor: int) -> Projector:
         """A projector for this grid with ``factor x factor`` lateral sub-voxels per voxel
