@@ -7,11 +7,18 @@ import numpy as np
 import pytest
 import tolerances as tol
 from helpers import assert_adjoint
+from scipy import ndimage
 
 from plenocl import Grid, Projector, random_particles, reconstruct
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.metrics import recovery
-from plenocl.reconstruction import ReconstructionSettings, bin_lateral, spread_lateral
+from plenocl.reconstruction import (
+    ReconstructionSettings,
+    Solver,
+    bin_lateral,
+    spread_lateral,
+)
+from plenocl.reconstruction.supersample import LateralBinning
 from plenocl.simulate import simulate_image
 
 
@@ -99,7 +106,6 @@ def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(opt
     coarse = reconstruct(img, proj, iterations=4)
     vol, info = reconstruct(img, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, return_info=True)
-    from scipy import ndimage
     grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
     assert info.support_fraction == pytest.approx(grown.mean())
     assert not vol[~grown].any() and vol[grown].any()
@@ -154,3 +160,52 @@ def test_sub_voxels_recover_more_ray_traced_particles_and_fewer_ghosts(optics, q
         assert info.coarse_iterations == 10 and 0 < info.support_fraction < 0.5
         assert np.count_nonzero(vol) <= info.support_fraction * vol.size
     assert np.mean(gain) >= 0.15 and np.mean(c2f_gain) >= 0.15
+
+
+# ---- device binning (kernels/supersample.cl) against bin_lateral ----------------------
+@pytest.mark.parametrize(("factor", "shape"), [(3, (5, 7, 11)), (2, (4, 9, 5)),
+                                               (4, (3, 2, 3))])
+def test_device_binning_is_bin_lateral_on_awkward_sizes(queue, factor, shape):
+    """Odd sizes, several slabs, a scale, and a part whose lateral start and end are not
+    on a block boundary (the rest of the fine grid zero)."""
+    import pyopencl.array as cla
+
+    nz, ny, nx = shape
+    rng = np.random.default_rng(factor)
+    fine = (rng.random((nz, ny * factor, nx * factor)) ** 4).astype(np.float32)
+    fine[fine < 0.2] = 0
+    binning = LateralBinning(queue)
+    slabs = [cla.to_device(queue, np.ascontiguousarray(s)) for s in
+             np.array_split(fine, min(3, nz))]
+    got = binning.to_host(slabs, factor, scale=7.5)
+    np.testing.assert_allclose(got, bin_lateral(fine * np.float32(7.5), factor),
+                               rtol=tol.BINNED, atol=0)
+    ys, xs = slice(1, ny * factor - 1), slice(factor - 1, nx * factor)
+    part = fine[:, ys, xs]
+    full = np.zeros_like(fine)
+    full[:, ys, xs] = part
+    got = binning.to_host([cla.to_device(queue, np.ascontiguousarray(part))], factor,
+                          (1, factor - 1))
+    np.testing.assert_allclose(got, bin_lateral(full, factor), rtol=tol.BINNED, atol=0)
+    with pytest.raises(ValueError, match=r"offset \(0, 5\) must lie in"):
+        binning.to_host(slabs, factor, (0, 5))
+
+
+def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):
+    """A solver cropped to a box that starts and ends inside 3 x 3 blocks, on several
+    depth slabs, bins on the device to the full grid's binned volume."""
+    cam, grid, _ = optics
+    fine = Projector(cam, grid.refined(3), queue, max_alloc_bytes=500_000)
+    box = (slice(20, 97), slice(4, 41), slice(7, 68))
+    sub = Solver(fine.cropped(box), box=box)
+    assert len(sub.proj.plan.slabs) > 1
+    rng = np.random.default_rng(5)
+    host = rng.random(sub.proj.grid.shape).astype(np.float32)
+    full = np.zeros(fine.grid.shape, np.float32)
+    full[box] = host
+    got = sub.binned_to_host(sub.proj.volume_to_device(host), 3, grid.shape, 2.0)
+    np.testing.assert_allclose(got, bin_lateral(full * np.float32(2.0), 3), rtol=tol.BINNED,
+                               atol=0)
+    whole = Solver(fine)
+    got = whole.binned_to_host(fine.volume_to_device(full), 3, grid.shape)
+    np.testing.assert_allclose(got, bin_lateral(full, 3), rtol=tol.BINNED, atol=0)
