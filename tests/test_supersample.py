@@ -18,6 +18,8 @@ from plenocl.reconstruction import (
     bin_lateral,
     spread_lateral,
 )
+from plenocl.reconstruction import images as images_module
+from plenocl.reconstruction.images import prepare_image
 from plenocl.reconstruction.supersample import LateralBinning
 from plenocl.simulate import simulate_image
 
@@ -73,7 +75,8 @@ def test_supersampled_reconstruction_is_the_binned_fine_one(optics, queue):
     img = simulate_image(cam, pos, inten, 4000, seed=1, queue=queue, background=20.0)
     vol, info = reconstruct(img, proj, iterations=6, supersample=2, return_info=True)
     fine = reconstruct(img, proj.refined(2), iterations=6)
-    np.testing.assert_array_equal(vol, bin_lateral(fine, 2))
+    # binned on the device (kernels/supersample.cl) against the NumPy twin
+    np.testing.assert_allclose(vol, bin_lateral(fine, 2), rtol=tol.BINNED, atol=0)
     assert vol.shape == grid.shape and info.supersample == 2
     # a start volume is given on the coarse grid and spread over the sub-voxels
     resumed = reconstruct(img, proj, iterations=3, supersample=2, start=vol)
@@ -209,3 +212,59 @@ def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):
     whole = Solver(fine)
     got = whole.binned_to_host(fine.volume_to_device(full), 3, grid.shape)
     np.testing.assert_allclose(got, bin_lateral(full, 3), rtol=tol.BINNED, atol=0)
+
+
+# ---- coarse-to-fine: the image prepared once -------------------------------------------
+@pytest.fixture(scope="module")
+def scene(optics, queue):
+    """A raw image of six particles on the optics' camera."""
+    cam = optics[0]
+    pos, inten = random_particles(((-1.3, 1.3), (-0.8, 0.8), (-8, 8)), count=6, seed=4,
+                                  intensity=2e4)
+    return simulate_image(cam, pos, inten, 4000, seed=2, queue=queue, background=20.0)
+
+
+def test_the_refined_projector_lights_the_lenses_the_coarse_one_does(optics, scene):
+    """Same camera, same lit lenses: a coarse-to-fine reconstruction computes them once."""
+    cam, grid, proj = optics
+    prepared = prepare_image(scene, proj, ReconstructionSettings())
+    assert 0 < prepared.lit.mean() < 1
+    for f in (2, 3):
+        np.testing.assert_array_equal(proj.refined(f).lit_lenses(prepared.image,
+                                                                  prepared.threshold),
+                                      prepared.lit)
+
+
+def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
+        optics, scene, monkeypatch):
+    """One preprocessing and one lit-lens search for both runs; the fine volume is bit for
+    bit the one of two separate reconstructions (the coarse one, then the fine one from
+    its flat support), binned on the device."""
+    cam, grid, proj = optics
+    coarse = reconstruct(scene, proj, iterations=4)
+    grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
+    flat = np.where(grown, np.float32(coarse[grown].mean()), np.float32(0))
+    fine = reconstruct(scene, proj.refined(2), iterations=3, start=spread_lateral(flat, 2))
+    calls = {"preprocess": 0, "lit_lenses": 0, "fine": []}
+
+    def counted(name, function):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return function(*args, **kwargs)
+        return wrapper
+
+    def binned_to_host(solver, vol, factor, shape, scale=1.0):
+        calls["fine"].append(solver.volume_to_host(vol, fine.shape) * np.float32(scale))
+        return Solver.binned_to_host.__wrapped__(solver, vol, factor, shape, scale)
+
+    binned_to_host.__wrapped__ = Solver.binned_to_host
+    monkeypatch.setattr(images_module, "preprocess", counted("preprocess",
+                                                             images_module.preprocess))
+    monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
+    monkeypatch.setattr(Solver, "binned_to_host", binned_to_host)
+    vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
+                            support=0.05, return_info=True)
+    assert calls["preprocess"] == 1 and calls["lit_lenses"] == 1
+    assert info.cropped_shape is not None  # the fine run cropped itself before binning
+    np.testing.assert_array_equal(calls["fine"][0], fine)
+    np.testing.assert_allclose(vol, bin_lateral(fine, 2), rtol=tol.BINNED, atol=0)
