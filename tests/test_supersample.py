@@ -214,7 +214,7 @@ def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):
     np.testing.assert_allclose(got, bin_lateral(full, 3), rtol=tol.BINNED, atol=0)
 
 
-# ---- coarse-to-fine: the image prepared once -------------------------------------------
+# ---- coarse-to-fine: the image prepared once, the callback over both runs -------------
 @pytest.fixture(scope="module")
 def scene(optics, queue):
     """A raw image of six particles on the optics' camera."""
@@ -268,3 +268,23 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     assert info.cropped_shape is not None  # the fine run cropped itself before binning
     np.testing.assert_array_equal(calls["fine"][0], fine)
     np.testing.assert_allclose(vol, bin_lateral(fine, 2), rtol=tol.BINNED, atol=0)
+
+
+def test_the_callback_counts_the_coarse_iterations_then_the_fine_ones(optics, scene):
+    cam, grid, proj = optics
+    settings = ReconstructionSettings(iterations=2, supersample=2, coarse_iterations=3,
+                                      support=0.05)
+    assert settings.total_iterations == 5
+    assert ReconstructionSettings(iterations=2, coarse_iterations=3).total_iterations == 2
+    seen = []
+    vol, info = reconstruct(scene, proj, settings=settings, return_info=True,
+                            callback=lambda it, resid: seen.append(it))
+    assert seen == [1, 2, 3, 4, 5] and info.iterations == 2
+    # stopped in the coarse run: the coarse volume; in the fine run: the fine one so far
+    for stop, fine_done in ((2, None), (4, 1)):
+        seen.clear()
+        vol, info = reconstruct(scene, proj, settings=settings, return_info=True,
+                                callback=lambda it, resid, s=stop: seen.append(it) or it < s)
+        assert seen == list(range(1, stop + 1)) and vol.shape == grid.shape
+        assert info.supersample == (1 if fine_done is None else 2)
+        assert info.iterations == (stop if fine_done is None else fine_done)

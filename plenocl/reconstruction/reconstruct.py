@@ -178,7 +178,9 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         ``start`` everywhere. ``info.support_fraction``: the grid's fraction it kept.
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
-        ``False`` stops the reconstruction.
+        ``False`` stops the reconstruction. Coarse-to-fine: the coarse iterations come
+        first and the fine ones go on counting (``settings.total_iterations`` in all);
+        stopped during the coarse ones, the coarse volume is returned.
     return_info
         Also return a :class:`ReconstructionInfo`.
     pixel_mask
@@ -224,24 +226,35 @@ def _fine_start(start, grid, factor: int):
     return spread_lateral(start, factor)
 
 
+def _numbered(callback, offset: int):
+    """``callback`` with the iterations numbered from ``offset + 1``: the fine run's
+    iterations continue the coarse run's count."""
+    if callback is None or not offset:
+        return callback
+    return lambda iteration, residual: callback(iteration + offset, residual)
+
+
 def _supersampled(prepared: PreparedImage, projector, refined,
                   settings: ReconstructionSettings, callback
                   ) -> tuple[np.ndarray, ReconstructionInfo]:
     """The reconstruction on the refined grid, summed back onto the projector's on the
-    device; with ``coarse_iterations``, the coarse run on the voxels first
-    (docs/design.md §6.5)."""
+    device; with ``coarse_iterations``, the coarse run on the voxels first (its
+    iterations are the callback's first ones: docs/design.md §6.5)."""
     f = settings.supersample
-    start, support = _fine_start(settings.start, projector.grid, f), None
+    start, support, done = _fine_start(settings.start, projector.grid, f), None, 0
     if settings.coarse_iterations and isinstance(start, str):
         coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                               iterations=settings.coarse_iterations)
-        coarse, coarse_info = _solve(prepared, projector, coarse_settings, None)
+        coarse, coarse_info = _solve(prepared, projector, coarse_settings, callback)
         start, support = _coarse_support(coarse, settings)
         if not support:  # nothing to refine: the image holds no light (warned)
             coarse_info.support_fraction = 0.0
             return np.zeros(projector.grid.shape, np.float32), coarse_info
+        if coarse_info.iterations < coarse_settings.iterations and not coarse_info.converged:
+            return coarse, coarse_info  # the callback stopped the reconstruction
+        done = coarse_info.iterations
     fine = dataclasses.replace(settings, supersample=1, start=start, coarse_iterations=0)
-    vol, info = _solve(prepared, refined, fine, callback, factor=f)
+    vol, info = _solve(prepared, refined, fine, _numbered(callback, done), factor=f)
     info.supersample = f
     if support is not None:
         info.coarse_iterations, info.support_fraction = settings.coarse_iterations, support
