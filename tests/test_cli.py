@@ -336,3 +336,32 @@ def test_reconstruct_takes_a_renders_alpha_as_its_pixel_mask(tmp_path, capsys):
     common[1] = str(tmp_path / "grey.png")
     assert main([*common, "--mask", "alpha", "--out", str(tmp_path / "x.npz")]) == 2
     assert "has no alpha channel" in capsys.readouterr().err
+
+
+def test_reconstructs_progress_bar_counts_the_coarse_and_the_fine_iterations(
+        tmp_path, monkeypatch):
+    """Coarse-to-fine: the bar's total is coarse + fine, and it sees every iteration."""
+    from contextlib import contextmanager
+
+    from plenocl import Camera, Grid, random_particles, simulate_image
+    from plenocl.io import progress, write_tiff
+
+    cam = Camera.synthetic_850()
+    cam.with_centers(cam.ideal_microlens_centers()).to_toml(tmp_path / "cam.toml")
+    Grid((8, 20, 20), x=(-1.2, 1.2), y=(-1.2, 1.2), z=(-1.0, 1.0)).to_toml(tmp_path / "g.toml")
+    pos, inten = random_particles(((-1, 1), (-1, 1), (-0.8, 0.8)), count=10, seed=3,
+                                  intensity=2e4)
+    img = simulate_image(cam, pos, inten, 2000, seed=3, background=20.0)
+    write_tiff(tmp_path / "raw.tif", np.clip(img, 0, 65535).astype(np.uint16))
+    bars = []
+
+    @contextmanager
+    def recording_bar(total, desc, enabled=True):
+        bars.append((total, []))
+        yield lambda iteration, residual: bars[-1][1].append(iteration)
+
+    monkeypatch.setattr(progress, "iteration_bar", recording_bar)
+    assert main(["reconstruct", str(tmp_path / "raw.tif"), "--camera", str(tmp_path / "cam.toml"),
+                 "--grid", str(tmp_path / "g.toml"), "--out", str(tmp_path / "v.npz"),
+                 "--supersample", "2", "--coarse-iterations", "3", "--iterations", "2"]) == 0
+    assert bars == [(5, [1, 2, 3, 4, 5])]

@@ -7,11 +7,20 @@ import numpy as np
 import pytest
 import tolerances as tol
 from helpers import assert_adjoint
+from scipy import ndimage
 
 from plenocl import Grid, Projector, random_particles, reconstruct
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.metrics import recovery
-from plenocl.reconstruction import ReconstructionSettings, bin_lateral, spread_lateral
+from plenocl.reconstruction import (
+    ReconstructionSettings,
+    Solver,
+    bin_lateral,
+    spread_lateral,
+)
+from plenocl.reconstruction import images as images_module
+from plenocl.reconstruction.images import prepare_image
+from plenocl.reconstruction.supersample import LateralBinning
 from plenocl.simulate import simulate_image
 
 
@@ -66,7 +75,8 @@ def test_supersampled_reconstruction_is_the_binned_fine_one(optics, queue):
     img = simulate_image(cam, pos, inten, 4000, seed=1, queue=queue, background=20.0)
     vol, info = reconstruct(img, proj, iterations=6, supersample=2, return_info=True)
     fine = reconstruct(img, proj.refined(2), iterations=6)
-    np.testing.assert_array_equal(vol, bin_lateral(fine, 2))
+    # binned on the device (kernels/supersample.cl) against the NumPy twin
+    np.testing.assert_allclose(vol, bin_lateral(fine, 2), rtol=tol.BINNED, atol=0)
     assert vol.shape == grid.shape and info.supersample == 2
     # a start volume is given on the coarse grid and spread over the sub-voxels
     resumed = reconstruct(img, proj, iterations=3, supersample=2, start=vol)
@@ -99,7 +109,6 @@ def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(opt
     coarse = reconstruct(img, proj, iterations=4)
     vol, info = reconstruct(img, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, return_info=True)
-    from scipy import ndimage
     grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
     assert info.support_fraction == pytest.approx(grown.mean())
     assert not vol[~grown].any() and vol[grown].any()
@@ -154,3 +163,128 @@ def test_sub_voxels_recover_more_ray_traced_particles_and_fewer_ghosts(optics, q
         assert info.coarse_iterations == 10 and 0 < info.support_fraction < 0.5
         assert np.count_nonzero(vol) <= info.support_fraction * vol.size
     assert np.mean(gain) >= 0.15 and np.mean(c2f_gain) >= 0.15
+
+
+# ---- device binning (kernels/supersample.cl) against bin_lateral ----------------------
+@pytest.mark.parametrize(("factor", "shape"), [(3, (5, 7, 11)), (2, (4, 9, 5)),
+                                               (4, (3, 2, 3))])
+def test_device_binning_is_bin_lateral_on_awkward_sizes(queue, factor, shape):
+    """Odd sizes, several slabs, a scale, and a part whose lateral start and end are not
+    on a block boundary (the rest of the fine grid zero)."""
+    import pyopencl.array as cla
+
+    nz, ny, nx = shape
+    rng = np.random.default_rng(factor)
+    fine = (rng.random((nz, ny * factor, nx * factor)) ** 4).astype(np.float32)
+    fine[fine < 0.2] = 0
+    binning = LateralBinning(queue)
+    slabs = [cla.to_device(queue, np.ascontiguousarray(s)) for s in
+             np.array_split(fine, min(3, nz))]
+    got = binning.to_host(slabs, factor, scale=7.5)
+    np.testing.assert_allclose(got, bin_lateral(fine * np.float32(7.5), factor),
+                               rtol=tol.BINNED, atol=0)
+    ys, xs = slice(1, ny * factor - 1), slice(factor - 1, nx * factor)
+    part = fine[:, ys, xs]
+    full = np.zeros_like(fine)
+    full[:, ys, xs] = part
+    got = binning.to_host([cla.to_device(queue, np.ascontiguousarray(part))], factor,
+                          (1, factor - 1))
+    np.testing.assert_allclose(got, bin_lateral(full, factor), rtol=tol.BINNED, atol=0)
+    with pytest.raises(ValueError, match=r"offset \(0, 5\) must lie in"):
+        binning.to_host(slabs, factor, (0, 5))
+
+
+def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):
+    """A solver cropped to a box that starts and ends inside 3 x 3 blocks, on several
+    depth slabs, bins on the device to the full grid's binned volume."""
+    cam, grid, _ = optics
+    fine = Projector(cam, grid.refined(3), queue, max_alloc_bytes=500_000)
+    box = (slice(20, 97), slice(4, 41), slice(7, 68))
+    sub = Solver(fine.cropped(box), box=box)
+    assert len(sub.proj.plan.slabs) > 1
+    rng = np.random.default_rng(5)
+    host = rng.random(sub.proj.grid.shape).astype(np.float32)
+    full = np.zeros(fine.grid.shape, np.float32)
+    full[box] = host
+    got = sub.binned_to_host(sub.proj.volume_to_device(host), 3, grid.shape, 2.0)
+    np.testing.assert_allclose(got, bin_lateral(full * np.float32(2.0), 3), rtol=tol.BINNED,
+                               atol=0)
+    whole = Solver(fine)
+    got = whole.binned_to_host(fine.volume_to_device(full), 3, grid.shape)
+    np.testing.assert_allclose(got, bin_lateral(full, 3), rtol=tol.BINNED, atol=0)
+
+
+# ---- coarse-to-fine: the image prepared once, the callback over both runs -------------
+@pytest.fixture(scope="module")
+def scene(optics, queue):
+    """A raw image of six particles on the optics' camera."""
+    cam = optics[0]
+    pos, inten = random_particles(((-1.3, 1.3), (-0.8, 0.8), (-8, 8)), count=6, seed=4,
+                                  intensity=2e4)
+    return simulate_image(cam, pos, inten, 4000, seed=2, queue=queue, background=20.0)
+
+
+def test_the_refined_projector_lights_the_lenses_the_coarse_one_does(optics, scene):
+    """Same camera, same lit lenses: a coarse-to-fine reconstruction computes them once."""
+    cam, grid, proj = optics
+    prepared = prepare_image(scene, proj, ReconstructionSettings())
+    assert 0 < prepared.lit.mean() < 1
+    for f in (2, 3):
+        np.testing.assert_array_equal(proj.refined(f).lit_lenses(prepared.image,
+                                                                  prepared.threshold),
+                                      prepared.lit)
+
+
+def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
+        optics, scene, monkeypatch):
+    """One preprocessing and one lit-lens search for both runs; the fine volume is bit for
+    bit the one of two separate reconstructions (the coarse one, then the fine one from
+    its flat support), binned on the device."""
+    cam, grid, proj = optics
+    coarse = reconstruct(scene, proj, iterations=4)
+    grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
+    flat = np.where(grown, np.float32(coarse[grown].mean()), np.float32(0))
+    fine = reconstruct(scene, proj.refined(2), iterations=3, start=spread_lateral(flat, 2))
+    calls = {"preprocess": 0, "lit_lenses": 0, "fine": []}
+
+    def counted(name, function):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return function(*args, **kwargs)
+        return wrapper
+
+    def binned_to_host(solver, vol, factor, shape, scale=1.0):
+        calls["fine"].append(solver.volume_to_host(vol, fine.shape) * np.float32(scale))
+        return Solver.binned_to_host.__wrapped__(solver, vol, factor, shape, scale)
+
+    binned_to_host.__wrapped__ = Solver.binned_to_host
+    monkeypatch.setattr(images_module, "preprocess", counted("preprocess",
+                                                             images_module.preprocess))
+    monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
+    monkeypatch.setattr(Solver, "binned_to_host", binned_to_host)
+    vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
+                            support=0.05, return_info=True)
+    assert calls["preprocess"] == 1 and calls["lit_lenses"] == 1
+    assert info.cropped_shape is not None  # the fine run cropped itself before binning
+    np.testing.assert_array_equal(calls["fine"][0], fine)
+    np.testing.assert_allclose(vol, bin_lateral(fine, 2), rtol=tol.BINNED, atol=0)
+
+
+def test_the_callback_counts_the_coarse_iterations_then_the_fine_ones(optics, scene):
+    cam, grid, proj = optics
+    settings = ReconstructionSettings(iterations=2, supersample=2, coarse_iterations=3,
+                                      support=0.05)
+    assert settings.total_iterations == 5
+    assert ReconstructionSettings(iterations=2, coarse_iterations=3).total_iterations == 2
+    seen = []
+    vol, info = reconstruct(scene, proj, settings=settings, return_info=True,
+                            callback=lambda it, resid: seen.append(it))
+    assert seen == [1, 2, 3, 4, 5] and info.iterations == 2
+    # stopped in the coarse run: the coarse volume; in the fine run: the fine one so far
+    for stop, fine_done in ((2, None), (4, 1)):
+        seen.clear()
+        vol, info = reconstruct(scene, proj, settings=settings, return_info=True,
+                                callback=lambda it, resid, s=stop: seen.append(it) or it < s)
+        assert seen == list(range(1, stop + 1)) and vol.shape == grid.shape
+        assert info.supersample == (1 if fine_done is None else 2)
+        assert info.iterations == (stop if fine_done is None else fine_done)

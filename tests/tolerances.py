@@ -91,6 +91,12 @@ RESUMED_FLOOR = 1e-4
 #: 14-15 iterations. Floors (of the peak) differ per test and stay where they are.
 ITERATED = 1e-4
 
+#: The device's lateral binning (``kernels/supersample.cl``) against ``bin_lateral`` of
+#: the scaled volume (``rtol``): at most 16 scaled float32 terms of one sign per voxel.
+#: The kernel adds them in the order NumPy 2.x does (bit for bit then), but that order is
+#: NumPy's choice; in another order the sum moves by at most ~15 x 2^-24 relative.
+BINNED = 1e-6
+
 # --- simulation ------------------------------------------------------------------------
 
 #: The ray-tracing kernel against the NumPy tracer, ray for ray (``rel`` of the image

@@ -43,7 +43,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     mask = _pixel_mask(args, camera)
     settings = reconstruction_settings(args)
     proj = Projector(camera, grid, args.device)
-    with iteration_bar(settings.iterations, f"{args.method} {grid.shape}") as bar:
+    with iteration_bar(settings.total_iterations, f"{args.method} {grid.shape}") as bar:
         vol, info = reconstruct(image, proj, settings=settings, callback=bar,
                                 return_info=True, pixel_mask=mask)
     save_volume(args.out, vol, grid)

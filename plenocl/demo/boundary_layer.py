@@ -204,7 +204,7 @@ def _reconstruct_file(run, sc, proj, tag: str, settings: ReconstructionSettings,
     from ..reconstruction import reconstruct
 
     img = read_image(run.path(f"raw_{tag}.tif"))
-    with iteration_bar(settings.iterations, f"{settings.method} {tag}") as bar:
+    with iteration_bar(settings.total_iterations, f"{settings.method} {tag}") as bar:
         # the default preprocessing, as the API and the CLI: median background, 4 sigma
         vol = reconstruct(img, proj, settings=settings, callback=bar)
     save_volume(run.path(f"vol_{tag}{suffix}.npz"), vol, sc.grid)

@@ -1,11 +1,17 @@
 """The raw image a reconstruction starts from: scaling and background (the checks and the
-robust background are the optics model's, :mod:`plenocl.optics.rawimage`)."""
+robust background are the optics model's, :mod:`plenocl.optics.rawimage`), and the image
+prepared once for every run of a reconstruction (:class:`PreparedImage`)."""
 
 from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..optics.rawimage import check_image, median_background
+from .operator import ProjectionOperator
+from .settings import ReconstructionSettings
 
 #: Largest image value accepted: the volume (in image units) must stay finite in float32.
 FLOAT32_LIMIT = float(np.float32(1e30))  # 1e30 as float32 (1.0000000150e30): such images pass
@@ -77,3 +83,57 @@ def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
     maximum of 1; returns it and the scale (:func:`preprocess` with ``background=None``)."""
     img, scale, _ = preprocess(image, camera, None, 0.0)
     return img, scale
+
+
+@dataclass(frozen=True)
+class PreparedImage:
+    """A raw image as the solver takes it, prepared once per reconstruction and shared by
+    its runs (the coarse and the fine one of a coarse-to-fine reconstruction).
+
+    Attributes
+    ----------
+    image, scale, threshold
+        :func:`preprocess`'s scaled float32 image, scale (0: no light) and threshold.
+    observed
+        Bool per pixel, ``False`` where the image holds no data (``None``: all data).
+    lit
+        Bool per microlens, the lenses that see a pixel above the threshold
+        (:meth:`plenocl.reconstruction.operator.ProjectionOperator.lit_lenses`); ``None``
+        without dark-microlens skipping. A camera's, so a refined operator's are the same.
+    """
+
+    image: np.ndarray
+    scale: float
+    threshold: float
+    observed: np.ndarray | None = None
+    lit: np.ndarray | None = None
+
+
+def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,
+                  observed: np.ndarray | None = None) -> PreparedImage:
+    """:func:`preprocess` with ``settings``' background and threshold, and the lit
+    lenses when ``settings.skip_dark``; warns when the volume will be empty."""
+    img, scale, thr = preprocess(image, projector.camera, settings.background,
+                                 settings.threshold, observed)
+    if scale == 0:
+        warnings.warn("the image holds no light above its background: the volume is empty "
+                      "(check the exposure, the file, or background=None, --background none)",
+                      stacklevel=4)
+        return PreparedImage(img, scale, thr, observed)
+    if thr >= 1.0:
+        _warn_all_dark(thr * scale, scale, settings.threshold is None)
+    # lenses without data give no update either: skipped alike
+    lit = projector.lit_lenses(img, thr) if settings.skip_dark else None
+    return PreparedImage(img, scale, thr, observed, lit)
+
+
+def _warn_all_dark(threshold: float, peak: float, estimated: bool) -> None:
+    """Every pixel is at or below the dark-pixel threshold: the volume will be empty."""
+    why = (f"the default, {NOISE_SIGMAS:g} x the noise estimated from the median absolute "
+           "deviation, fails on a dense image whose median is not its background"
+           if estimated else "the threshold given")
+    warnings.warn(f"the dark-pixel threshold {threshold:.4g} is at or above the image's "
+                  f"brightest pixel {peak:.4g} ({why}): every pixel counts as dark and the "
+                  "volume will be empty. Give a lower threshold (threshold=, --threshold), "
+                  "or subtract a dark frame and use background=None (--background none)",
+                  stacklevel=5)

@@ -91,4 +91,6 @@ class RefinableOperator(ProjectionOperator, Protocol):
 
     def refined(self, factor: int) -> ProjectionOperator:
         """The same operator on the grid with ``factor x factor`` lateral sub-voxels per
-        voxel (:meth:`plenocl.Grid.refined`; ``factor`` 1: itself), kept per factor."""
+        voxel (:meth:`plenocl.Grid.refined`; ``factor`` 1: itself), kept per factor. Same
+        camera: its :meth:`lit_lenses` are this operator's, which a supersampled
+        reconstruction computes once, on this one."""

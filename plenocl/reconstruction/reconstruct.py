@@ -40,17 +40,18 @@ from scipy import ndimage
 from ..optics.rawimage import check_pixel_mask
 from ..options import with_keywords
 from .blocks import device_view_blocks
-from .images import NOISE_SIGMAS, preprocess
+from .images import PreparedImage, prepare_image
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
-from .supersample import bin_lateral, spread_lateral
+from .supersample import spread_lateral
 
 
 def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
-             info: ReconstructionInfo, step: Callable, callback, norm: float) -> np.ndarray:
-    """The iterations of :func:`reconstruct`; returns the host volume on the full grid."""
-    full_shape = solver.proj.grid.shape
+             info: ReconstructionInfo, step: Callable, callback, norm: float
+             ) -> tuple[Solver, list]:
+    """The iterations of :func:`reconstruct`; returns the solver they ended with (cropped
+    or not) and its device volume."""
     for it in range(settings.iterations):
         cropping = settings.crop and it >= 1
         extent = solver.row_extent(vol) if settings.skip_empty or cropping else None
@@ -69,7 +70,7 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
         if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
             info.converged = True
             break
-    return solver.volume_to_host(vol, full_shape)
+    return solver, vol
 
 
 #: Warn when more than this fraction of the grid's voxels send too little light to the
@@ -89,7 +90,7 @@ def _warn_if_outside(projector, solver: Solver, min_sensitivity: float) -> None:
         warnings.warn(f"{fraction:.0%} of the grid's voxels send no more than "
                       f"{min_sensitivity:g} of their light to the sensor and are not "
                       "reconstructed: the grid reaches beyond the camera's field of view; "
-                      "shrink it (Grid.for_camera fits the field of view)", stacklevel=4)
+                      "shrink it (Grid.for_camera fits the field of view)", stacklevel=6)
 
 
 def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
@@ -177,7 +178,9 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         ``start`` everywhere. ``info.support_fraction``: the grid's fraction it kept.
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
-        ``False`` stops the reconstruction.
+        ``False`` stops the reconstruction. Coarse-to-fine: the coarse iterations come
+        first and the fine ones go on counting (``settings.total_iterations`` in all);
+        stopped during the coarse ones, the coarse volume is returned.
     return_info
         Also return a :class:`ReconstructionInfo`.
     pixel_mask
@@ -199,113 +202,145 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
     return (vol, info) if return_info else vol
 
 
-def _supersampled(image, projector, settings: ReconstructionSettings, callback,
-                  pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
-    """The reconstruction on the projector's refined grid, summed back onto its own."""
-    f = settings.supersample
+def _refined(projector, factor: int):
+    """The projector's operator on ``factor x factor`` lateral sub-voxels, refused with a
+    clear error for an operator that cannot refine or a refined grid that does not fit."""
     if not hasattr(projector, "refined"):  # a RefinableOperator (see .operator)
-        raise ValueError(f"supersample={f} needs a projector that can refine its grid "
+        raise ValueError(f"supersample={factor} needs a projector that can refine its grid "
                          "(plenocl.Projector.refined); use supersample=1 with this operator")
-    start = settings.start
-    if isinstance(start, np.ndarray):
-        if start.shape != projector.grid.shape:
-            raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
-                             f"{projector.grid.shape} (nz, ny, nx)")
-        start = spread_lateral(start, f)
-    support = None
+    try:
+        return projector.refined(factor)
+    except MemoryError as err:
+        raise MemoryError(f"{err}; supersample={factor} reconstructs on {factor * factor}x "
+                          "the grid's voxels: a smaller factor (supersample=1, --supersample "
+                          "1, is the grid itself) needs less") from err
+
+
+def _fine_start(start, grid, factor: int):
+    """A start volume given on the grid, spread over its sub-voxels (a name as it is)."""
+    if not isinstance(start, np.ndarray):
+        return start
+    if start.shape != grid.shape:
+        raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
+                         f"{grid.shape} (nz, ny, nx)")
+    return spread_lateral(start, factor)
+
+
+def _numbered(callback, offset: int):
+    """``callback`` with the iterations numbered from ``offset + 1``: the fine run's
+    iterations continue the coarse run's count."""
+    if callback is None or not offset:
+        return callback
+    return lambda iteration, residual: callback(iteration + offset, residual)
+
+
+def _supersampled(prepared: PreparedImage, projector, refined,
+                  settings: ReconstructionSettings, callback
+                  ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """The reconstruction on the refined grid, summed back onto the projector's on the
+    device; with ``coarse_iterations``, the coarse run on the voxels first (its
+    iterations are the callback's first ones: docs/design.md §6.5)."""
+    f = settings.supersample
+    start, support, done = _fine_start(settings.start, projector.grid, f), None, 0
     if settings.coarse_iterations and isinstance(start, str):
-        start, support, coarse_info = _coarse_support(image, projector, settings, pixel_mask)
+        coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
+                                              iterations=settings.coarse_iterations)
+        coarse, coarse_info = _solve(prepared, projector, coarse_settings, callback)
+        start, support = _coarse_support(coarse, settings)
         if not support:  # nothing to refine: the image holds no light (warned)
             coarse_info.support_fraction = 0.0
             return np.zeros(projector.grid.shape, np.float32), coarse_info
+        if coarse_info.iterations < coarse_settings.iterations and not coarse_info.converged:
+            return coarse, coarse_info  # the callback stopped the reconstruction
+        done = coarse_info.iterations
     fine = dataclasses.replace(settings, supersample=1, start=start, coarse_iterations=0)
-    try:
-        refined = projector.refined(f)
-    except MemoryError as err:
-        raise MemoryError(f"{err}; supersample={f} reconstructs on {f * f}x the grid's "
-                          "voxels: a smaller factor (supersample=1, --supersample 1, is "
-                          "the grid itself) needs less") from err
-    vol, info = run_reconstruction(image, refined, fine, callback, pixel_mask)
+    vol, info = _solve(prepared, refined, fine, _numbered(callback, done), factor=f)
     info.supersample = f
     if support is not None:
         info.coarse_iterations, info.support_fraction = settings.coarse_iterations, support
-    return bin_lateral(vol, f), info
+    return vol, info
 
 
-def _coarse_support(image, projector, settings: ReconstructionSettings,
-                    pixel_mask=None) -> tuple[np.ndarray, float, ReconstructionInfo]:
-    """The sub-voxel start of a coarse-to-fine reconstruction (docs/design.md §6.5), the
-    fraction of the grid it covers and the coarse run's info.
+def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
+                    ) -> tuple[np.ndarray | None, float]:
+    """The sub-voxel start of a coarse-to-fine reconstruction (docs/design.md §6.5) from
+    the coarse volume, and the fraction of the grid it covers (``None`` and 0 for an
+    empty volume).
 
-    ``coarse_iterations`` run on the voxels; the voxels brighter than ``support`` times
-    the brightest one, grown by one voxel in every direction, are the support. Its
-    sub-voxels start flat, at the coarse volume's mean over the support (the coarse
-    intensities carry the voxel basis's depth errors); every other sub-voxel starts at
-    zero and, the updates being multiplicative, stays there.
+    The voxels brighter than ``support`` times the brightest one, grown by one voxel in
+    every direction, are the support. Its sub-voxels start flat, at the coarse volume's
+    mean over the support (the coarse intensities carry the voxel basis's depth errors);
+    every other sub-voxel starts at zero and, the updates being multiplicative, stays
+    there.
     """
-    coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
-                                          iterations=settings.coarse_iterations)
-    coarse, info = run_reconstruction(image, projector, coarse_settings, None, pixel_mask)
     peak = float(coarse.max())
     if peak <= 0:
-        return coarse, 0.0, info
+        return None, 0.0
     keep = ndimage.binary_dilation(coarse > settings.support * peak,
                                    np.ones((3, 3, 3), bool))
     flat = np.where(keep, np.float32(coarse[keep].mean()), np.float32(0))
-    return spread_lateral(flat, settings.supersample), float(keep.mean()), info
+    return spread_lateral(flat, settings.supersample), float(keep.mean())
 
 
-def _warn_all_dark(threshold: float, peak: float, estimated: bool) -> None:
-    """Every pixel is at or below the dark-pixel threshold: the volume will be empty."""
-    why = (f"the default, {NOISE_SIGMAS:g} x the noise estimated from the median absolute "
-           "deviation, fails on a dense image whose median is not its background"
-           if estimated else "the threshold given")
-    warnings.warn(f"the dark-pixel threshold {threshold:.4g} is at or above the image's "
-                  f"brightest pixel {peak:.4g} ({why}): every pixel counts as dark and the "
-                  "volume will be empty. Give a lower threshold (threshold=, --threshold), "
-                  "or subtract a dark frame and use background=None (--background none)",
-                  stacklevel=4)
+def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSettings,
+                  info: ReconstructionInfo) -> tuple[Solver, cla.Array, list]:
+    """The solver of one run, the device image and the first guess (masked)."""
+    if prepared.lit is not None:
+        info.lit_lens_fraction = float(prepared.lit.mean())
+    solver = Solver(projector, settings.min_sensitivity, prepared.lit,
+                    observed=prepared.observed)
+    _warn_if_outside(projector, solver, settings.min_sensitivity)
+    img = cla.to_device(solver.queue, prepared.image)
+    vol = solver.start(img, settings.start, prepared.threshold, prepared.scale)
+    if settings.mask_fraction is not None:
+        solver.mask(vol, img, prepared.threshold, settings.mask_fraction)
+    return solver, img, vol
+
+
+def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings, callback,
+           factor: int = 1) -> tuple[np.ndarray, ReconstructionInfo]:
+    """One run of the iterations on the projector's grid; the host volume in image units,
+    summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``."""
+    info = ReconstructionInfo(settings.method)
+    nz, ny, nx = projector.grid.shape
+    shape = (nz, ny // factor, nx // factor)
+    if prepared.scale == 0:  # warned by prepare_image
+        return np.zeros(shape, np.float32), info
+    solver, img, vol = _start_solver(prepared, projector, settings, info)
+    blocks = device_view_blocks(projector, settings.mart_blocks) if settings.n_blocks > 1 else None
+    step = functools.partial(UPDATES[settings.method], relax=settings.relax,
+                             threshold=prepared.threshold, blocks=blocks,
+                             n_blocks=settings.n_blocks, ratio_floor=settings.ratio_floor)
+    solver, vol = _iterate(solver, vol, img, settings, info, step, callback,
+                           float(np.linalg.norm(prepared.image)))
+    if factor == 1:
+        out = solver.volume_to_host(vol, shape) * np.float32(prepared.scale)
+    else:
+        out = solver.binned_to_host(vol, factor, shape, prepared.scale)
+    info.active_fraction = float(np.count_nonzero(out)) / out.size
+    return out, info
 
 
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                        callback: Callable[[int, float], bool | None] | None = None,
                        pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
-    returns the volume and its :class:`ReconstructionInfo`."""
+    returns the volume and its :class:`ReconstructionInfo`.
+
+    The image is prepared once (:func:`plenocl.reconstruction.images.prepare_image`: the
+    background, threshold, scale and lit lenses), also for the two runs of a
+    coarse-to-fine reconstruction; ``info.seconds`` is the whole reconstruction's time.
+    """
     observed = None if pixel_mask is None else check_pixel_mask(pixel_mask, projector.camera)
     if observed is not None and isinstance(settings.start, str) and settings.start == "mlos":
         raise ValueError("start='mlos' cannot use a pixel_mask (its geometric mean needs "
                          "every pixel): use start='uniform' (the default)")
-    if settings.supersample > 1:
-        return _supersampled(image, projector, settings, callback, observed)
+    refined = _refined(projector, settings.supersample) if settings.supersample > 1 else None
     t0 = time.perf_counter()
-    img_np, scale, thr = preprocess(image, projector.camera, settings.background,
-                                    settings.threshold, observed)
-    info = ReconstructionInfo(settings.method)
-    if scale == 0:
-        warnings.warn("the image holds no light above its background: the volume is empty "
-                      "(check the exposure, the file, or background=None, --background none)",
-                      stacklevel=3)
-        return np.zeros(projector.grid.shape, np.float32), info
-    if thr >= 1.0:
-        _warn_all_dark(thr * scale, scale, settings.threshold is None)
-    lit = None
-    if settings.skip_dark:  # lenses without data give no update either: skipped alike
-        lit = projector.lit_lenses(img_np, thr)
-        info.lit_lens_fraction = float(lit.mean())
-    solver = Solver(projector, settings.min_sensitivity, lit, observed=observed)
-    _warn_if_outside(projector, solver, settings.min_sensitivity)
-    img = cla.to_device(solver.queue, img_np)
-    vol = solver.start(img, settings.start, thr, scale)
-    if settings.mask_fraction is not None:
-        solver.mask(vol, img, thr, settings.mask_fraction)
-    blocks = device_view_blocks(projector, settings.mart_blocks) if settings.n_blocks > 1 else None
-    step = functools.partial(UPDATES[settings.method], relax=settings.relax, threshold=thr,
-                             blocks=blocks, n_blocks=settings.n_blocks,
-                             ratio_floor=settings.ratio_floor)
-    vol = _iterate(solver, vol, img, settings, info, step, callback,
-                   float(np.linalg.norm(img_np)))
-    out = vol * np.float32(scale)
-    info.active_fraction = float(np.count_nonzero(out)) / out.size
+    prepared = prepare_image(image, projector, settings, observed)
+    if refined is None:
+        vol, info = _solve(prepared, projector, settings, callback)
+    else:
+        vol, info = _supersampled(prepared, projector, refined, settings, callback)
     info.seconds = time.perf_counter() - t0
-    return out, info
+    return vol, info

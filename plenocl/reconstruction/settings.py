@@ -66,6 +66,14 @@ class ReconstructionSettings:
         _check_options(self)
 
     @property
+    def total_iterations(self) -> int:
+        """The iterations a reconstruction runs at most, as its callback counts them: the
+        coarse ones of a coarse-to-fine reconstruction (``supersample > 1`` from a named
+        start) and then the others (a progress bar's total)."""
+        coarse = self.supersample > 1 and isinstance(self.start, str)
+        return self.iterations + (self.coarse_iterations if coarse else 0)
+
+    @property
     def n_blocks(self) -> int:
         """Update blocks per iteration: MART's ``mart_blocks²`` views, else 1."""
         return self.mart_blocks**2 if self.method == "mart" and self.mart_blocks > 1 else 1

@@ -14,6 +14,7 @@ import pyopencl.array as cla
 
 from ..program import KernelSet
 from .operator import ProjectionOperator
+from .supersample import LateralBinning
 
 _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
             "partial_sums", "row_extent")
@@ -210,6 +211,25 @@ class Solver:
             return self.proj.volume_to_host(vol)
         full = np.zeros(full_shape, np.float32)
         full[self.box] = self.proj.volume_to_host(vol)
+        return full
+
+    def binned_to_host(self, vol, factor: int, shape: tuple[int, int, int],
+                       scale: float = 1.0) -> np.ndarray:
+        """The volume summed over ``factor x factor`` lateral blocks on the device, times
+        ``scale``, as a host volume on the full binned grid of shape ``shape`` (0 outside
+        :attr:`box`): only the binned volume crosses to the host (:class:`LateralBinning`).
+
+        A crop box need not start on a block boundary: the blocks it cuts are summed
+        over the sub-voxels inside it (the others are 0 in the full fine grid).
+        """
+        binning = LateralBinning(self.queue)
+        if self.box is None:
+            return binning.to_host(vol, factor, scale=scale)
+        z, y, x = self.box
+        (y0, oy), (x0, ox) = divmod(y.start, factor), divmod(x.start, factor)
+        part = binning.to_host(vol, factor, (oy, ox), scale)
+        full = np.zeros(shape, np.float32)
+        full[z, y0:y0 + part.shape[1], x0:x0 + part.shape[2]] = part
         return full
 
 

@@ -6,11 +6,18 @@ between two voxel centres can only be drawn as a mixture of two voxels whose lig
 fields differ by a whole lens; the solver then explains the particle's image with light
 at the wrong depth. Sub-voxels place it within a third of a lens, and the depth follows
 (``benchmarks/accuracy.py``).
+
+:func:`bin_lateral` is the NumPy form; :class:`LateralBinning` bins device slabs with
+``kernels/supersample.cl`` (its twin), so that only the binned volume is copied to the host.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+
+from ..program import KernelSet
 
 #: Largest accepted factor (memory and time grow as its square).
 MAX_SUPERSAMPLE = 4
@@ -31,3 +38,46 @@ def spread_lateral(vol: np.ndarray, factor: int) -> np.ndarray:
     inverse of :func:`bin_lateral` for a volume that is flat within each voxel."""
     v = np.asarray(vol, np.float32) / np.float32(factor * factor)
     return np.repeat(np.repeat(v, factor, axis=1), factor, axis=2)
+
+
+class LateralBinning:
+    """:func:`bin_lateral` on the device (``kernels/supersample.cl``): one work-item per
+    output voxel, a gather of its sub-voxels; the sums agree with :func:`bin_lateral` of
+    the scaled volume to float32 rounding (same order of additions).
+
+    Parameters
+    ----------
+    queue
+        The queue of the slabs to bin.
+    """
+
+    def __init__(self, queue: cl.CommandQueue) -> None:
+        self._k = KernelSet(queue, "supersample.cl", ("bin_lateral",))
+
+    def to_host(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
+                scale: float = 1.0) -> np.ndarray:
+        """The binned host volume of device slabs ``(dz, nyf, nxf)``, times ``scale``.
+
+        ``offset`` ``(oy, ox)``, each in ``[0, factor)``: the slabs' lateral start in the
+        fine grid lies that far past a block boundary (a cropped volume); the output then
+        covers every block the slabs touch, ``ceil((o + n) / factor)`` per axis, and the
+        sub-voxels outside the slabs count as zero.
+        """
+        oy, ox = offset
+        if not (0 <= oy < factor and 0 <= ox < factor):
+            raise ValueError(f"offset {offset} must lie in [0, {factor}) per axis")
+        parts = [self._bin(s, factor, oy, ox, scale) for s in slabs]
+        return np.concatenate([p.get() for p in parts], axis=0)
+
+    def _bin(self, slab: cla.Array, factor: int, oy: int, ox: int,
+             scale: float) -> cla.Array:
+        """Launch the kernel on one slab; returns the binned device slab."""
+        nz, nyf, nxf = slab.shape
+        ny, nx = -(-(oy + nyf) // factor), -(-(ox + nxf) // factor)
+        out = self._k.array((nz, ny, nx))
+        i32 = np.int32
+        if out.size:
+            self._k.launch("bin_lateral", (out.size,), slab, i32(nyf), i32(nxf), i32(oy),
+                           i32(ox), i32(factor), np.float32(scale), out, i32(ny), i32(nx),
+                           i32(out.size))
+        return out

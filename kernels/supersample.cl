@@ -1,0 +1,41 @@
+/* Lateral binning of a supersampled reconstruction (docs/design.md §6.4-6.5): each
+ * output voxel is the sum of its factor x factor lateral sub-voxels, times a scale (the
+ * image's scaling), so that only the binned volume crosses to the host. NumPy twin:
+ * plenocl/reconstruction/supersample.py (bin_lateral). Sizes are arguments; one build
+ * serves every shape and factor.
+ *
+ * Parallel structure: one work-item per output voxel of a depth slab, a gather of its
+ * factor x factor sub-voxels; no atomics. The slab may be a cropped part of the fine grid
+ * whose lateral start is not a multiple of the factor: (oy, ox) in [0, factor) is that
+ * start's remainder, and the sub-voxels of a block that fall outside the slab (zero in
+ * the full fine grid) are left out.
+ *
+ * Summation order: each sub-voxel row's sum over dx, then those row sums over dy, each
+ * term scaled and rounded before it is added (FP_CONTRACT off: no fused multiply-add);
+ * NumPy's bin_lateral of the scaled volume adds in that order today (numpy 2.x), but its
+ * order is NumPy's choice, so the two agree to float32 rounding (tests/tolerances.py
+ * BINNED), bit for bit where the orders coincide. */
+
+#pragma OPENCL FP_CONTRACT OFF
+
+__kernel void bin_lateral(__global const float *fine, int nyf, int nxf, int oy, int ox,
+                          int factor, float scale, __global float *out, int ny, int nx,
+                          int n)
+{
+    const int j = get_global_id(0);
+    if (j >= n) return;
+    const int x = j % nx, y = (j / nx) % ny, z = j / (nx * ny);
+    const int y0 = y * factor - oy, x0 = x * factor - ox;
+    __global const float *slice = fine + (size_t)z * nyf * nxf;
+    float sum = 0.0f;
+    for (int dy = max(0, -y0); dy < factor && y0 + dy < nyf; ++dy) {
+        __global const float *row = slice + (size_t)(y0 + dy) * nxf;
+        float row_sum = 0.0f;
+        for (int dx = max(0, -x0); dx < factor && x0 + dx < nxf; ++dx) {
+            const float v = row[x0 + dx] * scale;
+            row_sum += v;
+        }
+        sum += row_sum;
+    }
+    out[j] = sum;
+}
