@@ -1,4 +1,4 @@
-/* Lateral resampling between a user's grid and the lens-row frame (docs/design.md §5.4):
+/* Lateral resampling between a user's grid and the lens-row frame (docs/design.md §5.1):
  * the projector of a grid across a rotated array's lens rows applies A_frame S, where
  * S interpolates the user's volume bilinearly, depth slice by depth slice, at the centres
  * of a frame grid whose axes follow the lens rows (the separable path), and S^T is its

@@ -65,14 +65,14 @@ def test_resampling_kernels_match_the_numpy_twin(queue, max_alloc):
     got = proj.frame.empty_volume()
     for s in got:
         s.fill(0.0)
-    proj._resampler.to_frame(proj.volume_to_device(vol), proj.plan.slabs, got,
+    proj.resampler.to_frame(proj.volume_to_device(vol), proj.plan.slabs, got,
                              proj.frame.plan.slabs, active)
     want = resample_volume(vol, grid, frame) * active[:, None, None]
     np.testing.assert_allclose(proj.frame.volume_to_host(got), want, **RECOMPUTED)
     back = proj.empty_volume()
     for s in back:
         s.fill(0.0)
-    proj._resampler.from_frame(proj.frame.volume_to_device(fvol), proj.frame.plan.slabs, back,
+    proj.resampler.from_frame(proj.frame.volume_to_device(fvol), proj.frame.plan.slabs, back,
                                proj.plan.slabs, active)
     s = resample_matrix(grid, frame)
     want = np.stack([(s.T @ p.ravel()).reshape(grid.shape[1:]) for p in fvol])
@@ -104,7 +104,7 @@ def test_resampled_weights_conserve_light_and_agree_with_the_projection(queue):
     S) sum to at most 1, equal Aᵀ 1 there, and are its one-hot forward projection."""
     proj = _projector(queue)
     raw = np.asarray(resample_matrix(GRID, proj.frame.grid, normalised=False).sum(axis=0))
-    np.testing.assert_allclose(proj._resampler.norm.ravel(), raw.ravel(), rtol=1e-5)
+    np.testing.assert_allclose(proj.resampler.norm.ravel(), raw.ravel(), rtol=1e-5)
     sens = proj.back(np.ones(proj.image_shape, np.float32))
     assert sens.max() <= 1 + tol.CONSERVATION and sens.min() >= 0
     n = proj.image_shape[0] * proj.image_shape[1]
@@ -146,9 +146,12 @@ def test_resampled_projection_follows_the_exact_weighting_function(queue):
     assert proj.cropped((slice(1, 4), slice(2, 8), slice(3, 11))).path == "resampled"
 
 
-def test_particles_on_a_sensor_axis_grid_reconstruct_as_on_the_lens_row_grid(queue):
-    """Particles traced through a 2-degree array: the sensor-axis grid (resampled) finds
-    as many, as well placed, as the lens-row grid of Grid.for_camera."""
+@pytest.mark.parametrize("supersample", [1, 3])
+def test_particles_on_a_sensor_axis_grid_reconstruct_as_on_the_lens_row_grid(queue,
+                                                                             supersample):
+    """Particles traced through a 2-degree array: the sensor-axis grid (resampled every
+    iteration on voxels; reconstructed in the frame and resampled once on sub-voxels)
+    finds as many, as well placed, as the lens-row grid of Grid.for_camera."""
     cam = lens_camera(ml_rotation_deg=2.0, ml_offset_mm=ROTATED["ml_offset_mm"])
     lens_rows = Grid.for_camera(cam, z=(-1.0, 1.0))
     sensor = Grid(lens_rows.shape, lens_rows.x, lens_rows.y, lens_rows.z)
@@ -159,7 +162,8 @@ def test_particles_on_a_sensor_axis_grid_reconstruct_as_on_the_lens_row_grid(que
     found = {}
     for name, grid in (("lens rows", lens_rows), ("sensor", sensor)):
         proj = Projector(cam, grid, queue)
-        report = recovery(reconstruct(img, proj, iterations=30), grid, pos)
+        vol = reconstruct(img, proj, iterations=30, supersample=supersample)
+        report = recovery(vol, grid, pos)
         found[name] = report
         assert report.position_rms_vox < 1.0, name
     assert found["sensor"].recovered >= found["lens rows"].recovered - 1 >= 4

@@ -117,6 +117,16 @@ class Projector:
         A prebuilt :class:`plenocl.projection.model.WeightingModel` of this camera and
         grid (its ``oversample`` and ``shear_tol`` then win over the keywords); built
         here when ``None``.
+    general
+        A grid across a rotated array's lens rows (its axes turned against them, e.g. the
+        sensor's): ``"resample"`` (default) projects it through a separable projector on
+        a grid along the lens rows with a bilinear resampling between the two
+        (:attr:`frame`, :mod:`plenocl.projection.resample`, docs/design.md §5.1; about the
+        speed of the lens-row grid itself); ``"exact"`` evaluates the weighting function
+        per voxel on the general kernels (about 12x slower at the paper's size).
+    frame
+        The lens-row frame's projector to resample through (its grid shares this grid's
+        depth planes and covers it laterally); built when ``None`` and needed.
 
     Attributes
     ----------
@@ -124,7 +134,15 @@ class Projector:
         The device-free weighting model (:class:`plenocl.projection.model.WeightingModel`):
         aperture samples, lens map, coefficients, lens tables, colouring.
     path
-        ``"separable"`` or ``"general"`` (rotated array): which factorised kernels run.
+        ``"separable"``, ``"general"`` (a grid across a rotated array's lens rows on the
+        general kernels) or ``"resampled"`` (through :attr:`frame`).
+    frame
+        The lens-row frame's separable :class:`Projector` of a resampled grid (``None``
+        otherwise); :meth:`volume_to_frame` and :meth:`volume_from_frame` move volumes
+        between the two grids, and a reconstruction runs on it (docs/design.md §5.1).
+    resampler
+        Its :class:`plenocl.projection.resample.FrameResampler` (``S`` and ``Sᵀ`` on device
+        slabs); set with :attr:`frame`.
     plan
         The slabs and chunks (:class:`Plan`).
     """
@@ -135,7 +153,7 @@ class Projector:
                  max_alloc_bytes: int | None = None, scratch_bytes: int | None = None,
                  vector_width: int | None = None, segment: int | None = None,
                  gather_forward: bool | None = None, general: str = "resample",
-                 model: WeightingModel | None = None) -> None:
+                 model: WeightingModel | None = None, frame: Projector | None = None) -> None:
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if back not in BACK_MODES:
@@ -155,7 +173,8 @@ class Projector:
         self.queue = get_queue(queue)
         self._refined: dict[int, Projector] = {}
         self.model = model
-        self.frame = self._frame_projector() if model.path == "general" else None
+        self.resampler: FrameResampler | None = None
+        self.frame = self._frame_projector(frame) if model.path == "general" else None
         self._layout(vector_width, segment)
         self.plan = self._make_plan(max_alloc_bytes, scratch_bytes)
         width, height = camera.pixels
@@ -169,21 +188,23 @@ class Projector:
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
 
-    def _frame_projector(self) -> Projector | None:
+    def _frame_projector(self, frame: Projector | None) -> Projector | None:
         """The lens-row frame's separable projector through which this grid is projected
-        (:mod:`.resample`; ``None``, with the general path's warning, when no frame makes
-        the array separable). ``None`` without a warning when the options ask for the
-        general kernels (``general="exact"``) or the direct method."""
+        (``frame``, or built on :func:`.resample.frame_grid`; ``None``, with the general
+        path's warning, when no frame makes the array separable). ``None`` without a
+        warning when the options ask for the general kernels (``general="exact"``) or the
+        direct method."""
         opts = self._options
         if opts["general"] == "exact" or self.method == "direct":
             return None
-        angle = separable_rotation_deg(self.camera.microlens_centers, opts["shear_tol"])
-        frame = Projector(self.camera, frame_grid(self.grid, angle), self.queue,
-                          **{**opts, "general": "exact"})
+        if frame is None:
+            angle = separable_rotation_deg(self.camera.microlens_centers, opts["shear_tol"])
+            frame = Projector(self.camera, frame_grid(self.grid, angle), self.queue,
+                              **{**opts, "general": "exact"})
         if frame.path != "separable":
             warn_general_path(self.camera, self.grid)
             return None
-        self._resampler = FrameResampler(self.queue, self.grid, frame.grid)
+        self.resampler = FrameResampler(self.queue, self.grid, frame.grid)
         self._frame_slabs: dict[str, list[cl_array.Array]] = {}
         check_fits(self.queue, 3 * frame.grid.nbytes, f"resampling the {self.grid.shape} "
                    f"grid onto the {frame.grid.shape} grid of the lens rows")
@@ -443,9 +464,9 @@ class Projector:
 
     def _resampled_forward(self, slabs, out: cl_array.Array, active: np.ndarray,
                            lenses: LensSet) -> cl_array.Array:
-        """``out = A_frame S vol`` (docs/design.md §5.4)."""
+        """``out = A_frame S vol`` (docs/design.md §5.1)."""
         frame_vol = self._frame_volume("forward")
-        self._resampler.to_frame(slabs, self.plan.slabs, frame_vol, self.frame.plan.slabs,
+        self.resampler.to_frame(slabs, self.plan.slabs, frame_vol, self.frame.plan.slabs,
                                  active)
         return self.frame.forward_device(frame_vol, out, active, lenses)
 
@@ -459,11 +480,35 @@ class Projector:
         if support is not None:
             support = self._as_slabs(support)
             frame_support = self._frame_volume("support")
-            self._resampler.to_frame(support, own, frame_support, frame, active)
+            self.resampler.to_frame(support, own, frame_support, frame, active)
         back = self.frame.back_device(image, self._frame_volume("back"), active, lenses,
                                       frame_support)
-        self._resampler.from_frame(back, frame, slabs, own, active, support)
+        self.resampler.from_frame(back, frame, slabs, own, active, support)
         return slabs
+
+    def volume_to_frame(self, vol: np.ndarray) -> np.ndarray:
+        """``S vol``: a host volume on this grid resampled onto the lens-row frame's grid
+        (:attr:`frame`, a grid across the array's lens rows only; docs/design.md §5.1)."""
+        self._need_frame()
+        out = self.frame.empty_volume()
+        self.resampler.to_frame(self.volume_to_device(vol), self.plan.slabs, out,
+                                 self.frame.plan.slabs, np.ones(self.shape[0], bool))
+        return self.frame.volume_to_host(out)
+
+    def volume_from_frame(self, vol: np.ndarray) -> np.ndarray:
+        """``Sᵀ vol``: a host volume on the lens-row frame's grid resampled onto this one,
+        each voxel the mix of the frame voxels about its centre with its normalised
+        bilinear weights (which sum to 1)."""
+        self._need_frame()
+        out = self.empty_volume()
+        self.resampler.from_frame(self.frame.volume_to_device(vol), self.frame.plan.slabs,
+                                   out, self.plan.slabs, np.ones(self.shape[0], bool))
+        return self.volume_to_host(out)
+
+    def _need_frame(self) -> None:
+        if self.frame is None:
+            raise ValueError(f"this projector's grid is not resampled (path {self.path!r}): "
+                             "only a grid across a rotated array's lens rows has a frame")
 
     def _active(self, active: np.ndarray | None) -> np.ndarray:
         """The per-slice activity mask (all slices when ``None``)."""
@@ -668,7 +713,7 @@ class Projector:
     def _resampled_footprints(self, vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`footprint_entries` of ``A_frame S``: each voxel's frame voxels (its
         column of ``S``), their products scaled by its weight in them."""
-        ab, w = self._resampler.columns(vox[:, 2], vox[:, 1])
+        ab, w = self.resampler.columns(vox[:, 2], vox[:, 1])
         n, k = w.shape
         frame_vox = np.column_stack([np.repeat(vox[:, 0], k), ab[..., 1].ravel(),
                                      ab[..., 0].ravel()])
@@ -680,12 +725,15 @@ class Projector:
     def refined(self, factor: int) -> Projector:
         """A projector for this grid with ``factor x factor`` lateral sub-voxels per voxel
         (:meth:`plenocl.Grid.refined`; same camera, queue and options), built once per
-        factor and kept: the supersampled reconstruction's projector."""
+        factor and kept: the supersampled reconstruction's projector. A resampled grid's
+        refines through its frame's refined grid (``refined(f).frame`` is
+        ``frame.refined(f)``)."""
         if factor == 1:
             return self
         if factor not in self._refined:
+            frame = None if self.frame is None else self.frame.refined(factor)
             self._refined[factor] = Projector(self.camera, self.grid.refined(factor),
-                                              self.queue, **self._options)
+                                              self.queue, **self._options, frame=frame)
         return self._refined[factor]
 
     def cropped(self, box: tuple[slice, slice, slice]) -> Projector:

@@ -1,5 +1,5 @@
 """A user's grid across a rotated array's lens rows, projected through the lens-row frame
-(docs/design.md §5.4).
+(docs/design.md §5.1).
 
 The separable projector path needs a grid whose axes follow the microlens rows
 (:meth:`plenocl.Grid.for_camera` makes one). A grid in other axes (the sensor's, or a

@@ -44,7 +44,7 @@ from .images import PreparedImage, prepare_image
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
-from .supersample import spread_lateral
+from .supersample import bin_lateral, spread_lateral
 
 
 def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
@@ -235,11 +235,12 @@ def _numbered(callback, offset: int):
 
 
 def _supersampled(prepared: PreparedImage, projector, refined,
-                  settings: ReconstructionSettings, callback
+                  settings: ReconstructionSettings, callback, binned: bool = True
                   ) -> tuple[np.ndarray, ReconstructionInfo]:
     """The reconstruction on the refined grid, summed back onto the projector's on the
-    device; with ``coarse_iterations``, the coarse run on the voxels first (its
-    iterations are the callback's first ones: docs/design.md §6.5)."""
+    device (``binned``; else the refined grid's volume); with ``coarse_iterations``, the
+    coarse run on the voxels first (its iterations are the callback's first ones:
+    docs/design.md §6.5; an empty or stopped coarse run returns the coarse grid's)."""
     f = settings.supersample
     start, support, done = _fine_start(settings.start, projector.grid, f), None, 0
     if settings.coarse_iterations and isinstance(start, str):
@@ -254,7 +255,8 @@ def _supersampled(prepared: PreparedImage, projector, refined,
             return coarse, coarse_info  # the callback stopped the reconstruction
         done = coarse_info.iterations
     fine = dataclasses.replace(settings, supersample=1, start=start, coarse_iterations=0)
-    vol, info = _solve(prepared, refined, fine, _numbered(callback, done), factor=f)
+    vol, info = _solve(prepared, refined, fine, _numbered(callback, done),
+                       factor=f if binned else 1)
     info.supersample = f
     if support is not None:
         info.coarse_iterations, info.support_fraction = settings.coarse_iterations, support
@@ -321,6 +323,31 @@ def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings,
     return out, info
 
 
+def _in_frame(image, projector, settings: ReconstructionSettings, callback, observed
+              ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """Sub-voxels on a grid across a rotated array's lens rows (``projector.frame``,
+    docs/design.md §5.1): the iterations run on the lens-row frame's grid and its refined
+    grid, on the separable kernels at their full speed, and the sub-voxels are resampled
+    onto the projector's refined grid once, at the end, before they are summed (the
+    resampling blurs by a fraction of a voxel only); a start volume is resampled onto the
+    frame."""
+    f = settings.supersample
+    fine = _refined(projector, f)
+    start = settings.start
+    if isinstance(start, np.ndarray):
+        start = projector.volume_to_frame(start)
+    t0 = time.perf_counter()
+    vol, info = _run(image, projector.frame, dataclasses.replace(settings, start=start),
+                     callback, observed, binned=False)
+    if vol.shape == fine.frame.grid.shape:
+        vol = bin_lateral(fine.volume_from_frame(vol), f)
+    else:  # an empty or stopped coarse run: the voxels'
+        vol = projector.volume_from_frame(vol)
+    info.active_fraction = float(np.count_nonzero(vol)) / vol.size
+    info.seconds = time.perf_counter() - t0
+    return vol, info
+
+
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                        callback: Callable[[int, float], bool | None] | None = None,
                        pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
@@ -330,17 +357,30 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     The image is prepared once (:func:`plenocl.reconstruction.images.prepare_image`: the
     background, threshold, scale and lit lenses), also for the two runs of a
     coarse-to-fine reconstruction; ``info.seconds`` is the whole reconstruction's time.
+    A projector with a ``frame`` (a resampled grid) reconstructs sub-voxels on it
+    (:func:`_in_frame`) and voxels with its own operator (resampled every iteration: at
+    the voxels' scale a single resampling at the end would blur particles by up to a
+    voxel).
     """
     observed = None if pixel_mask is None else check_pixel_mask(pixel_mask, projector.camera)
     if observed is not None and isinstance(settings.start, str) and settings.start == "mlos":
         raise ValueError("start='mlos' cannot use a pixel_mask (its geometric mean needs "
                          "every pixel): use start='uniform' (the default)")
+    if getattr(projector, "frame", None) is not None and settings.supersample > 1:
+        return _in_frame(image, projector, settings, callback, observed)
+    return _run(image, projector, settings, callback, observed)
+
+
+def _run(image, projector, settings: ReconstructionSettings, callback, observed,
+         binned: bool = True) -> tuple[np.ndarray, ReconstructionInfo]:
+    """The reconstruction on the projector's own grid (sub-voxels summed when
+    ``binned``)."""
     refined = _refined(projector, settings.supersample) if settings.supersample > 1 else None
     t0 = time.perf_counter()
     prepared = prepare_image(image, projector, settings, observed)
     if refined is None:
         vol, info = _solve(prepared, projector, settings, callback)
     else:
-        vol, info = _supersampled(prepared, projector, refined, settings, callback)
+        vol, info = _supersampled(prepared, projector, refined, settings, callback, binned)
     info.seconds = time.perf_counter() - t0
     return vol, info

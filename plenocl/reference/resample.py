@@ -1,7 +1,7 @@
 """NumPy reference of the frame resampling (``kernels/resample.cl``), written for clarity.
 
 Every voxel of the frame grid takes the bilinear interpolation of the user's grid at its
-centre, plane by plane (docs/design.md §5.4): row ``f`` of the matrix holds the weights
+centre, plane by plane (docs/design.md §5.1): row ``f`` of the matrix holds the weights
 of the user's voxels at frame voxel ``f``'s centre; each column is then divided by its
 sum, so that every user voxel spreads its light onto the frame with weights summing to 1.
 """
