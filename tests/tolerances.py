@@ -127,3 +127,17 @@ DISPLACEMENT = 1e-4
 #: A uniform PIV field interpolated to every voxel (``atol``, displacements of order 1):
 #: float32 interpolation weights that sum to 1 within a few ulps.
 UNIFORM_FIELD = 1e-5
+
+# --- image fit: ray bundles ---------------------------------------------------------------
+
+#: The ray-bundle kernel's patch rows (value and derivatives) against the float64 NumPy
+#: renderer, ``atol`` as a fraction of each row's peak. Lattice coordinates (up to ~10^2
+#: lens indices) and sensor positions (~10^3 px) are float32, so a ray lands a few 1e-5
+#: lattice units and ~1e-4 px off; a ray on a pixel edge may take the neighbouring 5 x 5
+#: window (a ~1e-3 change of 1/200 of the light). Measured up to 2.4e-4 (PoCL).
+RAYBUNDLE = 5e-4
+
+#: The image fit's positions rendered on the device against NumPy (voxels, ``abs``): the
+#: float32 rows perturb each Gauss-Newton step by ~1e-5 of itself; small against the fit's
+#: accuracy (0.04 voxel laterally, 0.4-0.6 in depth).
+IMAGEFIT_POSITION_VOXELS = 1e-3

@@ -1,0 +1,108 @@
+"""The image fit's ray bundles rendered on the OpenCL device (docs/design.md §7.2).
+
+:class:`DeviceRayBundle` renders what :meth:`plenocl.optics.raybundle.RayBundle.render`
+renders, the particles' images on their patches and the derivatives by the image point
+and the intensity, with ``kernels/raybundle.cl`` in float32: one work-item per (ray,
+particle) traces the rays and their lens choices, one work-item per patch row gathers
+them. The NumPy :class:`RayBundle` stays the fit's renderer without a queue and the
+kernel's twin in the tests.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pyopencl as cl
+
+from ..optics.raybundle import Patches, RayBundle
+from ..program import KernelSet
+
+i32, i64, f32 = np.int32, np.int64, np.float32
+_KERNELS = ("ray_spots", "render_rows")
+#: Floats per (particle, ray, lens choice) slot (``PL_SLOT`` of the kernel).
+SLOT = 28
+
+
+class DeviceRayBundle:
+    """A :class:`RayBundle` on one queue, rendering as :meth:`RayBundle.render`.
+
+    Parameters
+    ----------
+    bundle
+        The camera's rays (aperture samples, lens centres, lattice, blur).
+    queue
+        The OpenCL queue (the pipeline's projector's).
+
+    Notes
+    -----
+    One render at a time per object (a lock): :meth:`plenocl.piv.imagefit.ImageFit.
+    refine_pair` renders both exposures from two threads.
+    """
+
+    def __init__(self, bundle: RayBundle, queue: cl.CommandQueue) -> None:
+        self.bundle = bundle
+        self.queue = queue
+        self._programs: dict[bool, KernelSet] = {}
+        self._lock = threading.Lock()
+        cam = bundle.camera
+        k = self._kernels(True)
+        self._aperture = k.to_device(bundle.aperture.astype(f32))
+        self._lenses = k.to_device(self._lens_pixels().astype(f32))
+        lattice = tuple(f32(v) for v in bundle.to_lattice.ravel())
+        spacing = cam.aperture_diameter_mm / 2 * np.sqrt(np.pi / bundle.rays) / cam.ml_pitch_mm
+        self._f_px = f32(cam.ml_focal_length_mm / cam.pixel_pitch_mm)
+        self._optics = (*lattice, f32(cam.image_distance_mm), self._f_px, f32(spacing),
+                        f32(bundle.blur_px))
+
+    def _kernels(self, derivatives: bool) -> KernelSet:
+        """The program of one variant (``-DPL_DERIVATIVES``), built on first use."""
+        if derivatives not in self._programs:
+            self._programs[derivatives] = KernelSet(
+                self.queue, "raybundle.cl", _KERNELS, [f"-DPL_DERIVATIVES={int(derivatives)}"],
+                looping=["render_rows"])
+        return self._programs[derivatives]
+
+    def _lens_pixels(self) -> np.ndarray:
+        """``(rows, cols, 2)`` float64: where a ray along the axis through each lens lands on
+        the sensor (``(col, row)`` pixels; NaN for a missing lens)."""
+        cam = self.bundle.camera
+        return cam.mm_to_px(self.bundle.lenses)
+
+    def render(self, image_points: np.ndarray, intensity: np.ndarray, patches: Patches,
+               derivatives: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`RayBundle.render`, on the device.
+
+        Returns the patch elements the light reaches ``(n,)`` (ascending; the rest are
+        zero) and their rows ``(5, n)`` float32: value, d/dX', d/dY', d/ds_i' and d/dI;
+        the value row alone ``(1, n)`` without ``derivatives``.
+        """
+        with self._lock:
+            rows = self._render(np.asarray(image_points, f32), np.asarray(intensity, f32),
+                                patches, bool(derivatives))
+        # d/dI (the unit image) is positive exactly where the light reaches
+        elements = np.flatnonzero(rows[-1] if derivatives else rows[0] != 0)
+        return elements, rows[:, elements]
+
+    def _render(self, points: np.ndarray, intensity: np.ndarray, patches: Patches,
+                derivatives: bool) -> np.ndarray:
+        """Both kernels for one set of particles; the rows on the host."""
+        k = self._kernels(derivatives)
+        n, rays, total = len(points), self.bundle.rays, int(patches.offset[-1])
+        if n == 0 or total == 0:
+            return np.zeros((5 if derivatives else 1, total), f32)
+        out = k.array((5 if derivatives else 1) * total)
+        pts = k.to_device(points)
+        slots = k.array(n * rays * 4 * SLOT)
+        rows, cols = self.bundle.lenses.shape[:2]
+        k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays), self._lenses,
+                 i32(rows), i32(cols), *self._optics, slots)
+        row_pid = np.repeat(np.arange(n, dtype=i32), patches.height)
+        first = np.cumsum(patches.height) - patches.height  # each patch's first item
+        row_local = (np.arange(len(row_pid)) - np.repeat(first, patches.height)).astype(i32)
+        arrays = [k.to_device(a) for a in (
+            intensity, patches.offset.astype(i64), patches.col0.astype(i32),
+            patches.row0.astype(i32), patches.width.astype(i32), row_pid, row_local)]
+        k.launch("render_rows", (len(row_pid),), slots, i32(rays), pts, *arrays,
+                 self._f_px, i64(total), out)
+        return out.get().reshape(-1, total)
