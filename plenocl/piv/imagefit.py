@@ -26,6 +26,7 @@ import numpy as np
 from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
 from ..threads import thread_count
+from .devicebundle import DeviceRayBundle
 
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
@@ -95,11 +96,17 @@ class ImageFit:
         The raw images, one per exposure (``(rows, cols)`` of the camera's sensor).
     settings
         :class:`ImageFitSettings`; ``None``: the defaults.
+    queue
+        An OpenCL queue (the pipeline's projector's): the particles are rendered on its
+        device (:class:`plenocl.piv.devicebundle.DeviceRayBundle`, float32); ``None``:
+        on the host (:class:`RayBundle`, NumPy, float64).
     """
 
-    def __init__(self, camera, grid, images, settings: ImageFitSettings | None = None):
+    def __init__(self, camera, grid, images, settings: ImageFitSettings | None = None,
+                 queue=None):
         self.settings = ImageFitSettings() if settings is None else settings
         self.bundle = RayBundle.of(camera, self.settings.rays, self.settings.blur_px)
+        self.renderer = self.bundle if queue is None else DeviceRayBundle(self.bundle, queue)
         self.grid = grid
         self.images = []
         for raw in images:
@@ -156,7 +163,7 @@ class ImageFit:
         every patch element the particles reach (the rest are zero)."""
         pts = self.bundle.camera.image_points(p)
         patches = self.bundle.patches(pts)
-        elements, rows = self.bundle.render(pts, intensity, patches, derivatives)
+        elements, rows = self.renderer.render(pts, intensity, patches, derivatives)
         pid, pixel = patches.pixels(self.bundle.camera.pixels[0], elements)
         return pts, patches, pid, pixel, rows
 
