@@ -3,14 +3,17 @@ iterations, on the same reconstructed volumes, in the same run.
 
     python benchmarks/image_fit.py [--seeding 0.02 0.05 0.1] [--lenses 96 64]
                                    [--variants default rays200 it4 rays200-it4]
+                                   [--renderers numpy opencl]
 
 Scenes as ``benchmarks/accuracy.py`` (paper optics, ray-traced particles with blur and
 noise, a uniform displacement and a rotation). Each scene is reconstructed and correlated
 once with ``process_pair``'s defaults (``particles=False``); every variant then refines
 the same field with the volumes' particles fitted to the raw images
-(``refine_with_particles`` with an ``ImageFit``). Printed per variant: the lateral and
-depth RMS error (voxels) of the valid vectors, and the seconds of the particle stage
-(both exposures' fits and the pairing), medians over the scenes and the RMS over them.
+(``refine_with_particles`` with an ``ImageFit``), once per renderer: ``numpy`` (the host's
+``RayBundle``, float64) and ``opencl`` (``DeviceRayBundle`` on the queue, float32).
+Printed per variant and renderer: the lateral and depth RMS error (voxels) of the valid
+vectors, and the seconds of the particle stage (both exposures' fits and the pairing),
+medians over the scenes and the RMS over them.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ from plenocl.piv.tracking import FocalZone, refine_with_particles  # noqa: E402
 VARIANTS = {"default": ImageFitSettings(), "rays200": ImageFitSettings(rays=200),
             "it4": ImageFitSettings(iterations=4),
             "rays200-it4": ImageFitSettings(rays=200, iterations=4)}
+#: The fit's renderers: the host's NumPy ``RayBundle`` or the device's kernel on the queue.
+RENDERERS = {"numpy": lambda queue: None, "opencl": lambda queue: queue}
 
 
 def main() -> None:
@@ -46,30 +51,39 @@ def main() -> None:
     parser.add_argument("--seeding", type=float, nargs="+", default=[0.02, 0.05, 0.1])
     parser.add_argument("--lenses", type=int, nargs=2, default=[96, 64])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--renderers", nargs="+", default=list(RENDERERS), choices=RENDERERS)
     args = parser.parse_args()
     queue = get_queue()
     cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     focus = FocalZone.of(cam, grid)
-    results = {v: [] for v in args.variants}
+    runs = [(v, r) for v in args.variants for r in args.renderers]
+    results = {run: [] for run in runs}
     for k, ppm in enumerate(args.seeding):
         for motion in (UNIFORM, ROTATION):
             scene = budget_scene(cam, grid, ppm, 1 + k, queue, motion=motion)
             pair = process_pair(scene.raw_a, scene.raw_b, proj, particles=False)
-            for name in args.variants:
-                fit = ImageFit(cam, grid, (scene.raw_a, scene.raw_b), VARIANTS[name])
+            for name, renderer in runs:
+                fit = ImageFit(cam, grid, (scene.raw_a, scene.raw_b), VARIANTS[name],
+                               queue=RENDERERS[renderer](queue))
                 t0 = time.perf_counter()
                 res = refine_with_particles(pair.piv, pair.vol_a, pair.vol_b, focus=focus,
                                             fit=fit)
                 e = budget_errors(res, grid, motion)
-                results[name].append((e["lateral"], e["depth"], time.perf_counter() - t0))
-                print(f"{ppm:5.2f} {motion.name:17s} {name:12s} lateral {e['lateral']:.3f} "
-                      f"depth {e['depth']:.3f} {results[name][-1][2]:6.1f} s", flush=True)
-    print(f"\n{'variant':12s} {'lateral':>8s} {'depth':>7s} {'s (median)':>10s}  (RMS over "
-          f"{len(args.seeding) * 2} scenes)")
-    for name, rows in results.items():
+                row = (e["lateral"], e["depth"], time.perf_counter() - t0)
+                results[name, renderer].append(row)
+                print(f"{ppm:5.2f} {motion.name:17s} {name:12s} {renderer:7s} lateral "
+                      f"{row[0]:.3f} depth {row[1]:.3f} {row[2]:6.2f} s", flush=True)
+    summary(results, len(args.seeding) * 2)
+
+
+def summary(results: dict, scenes: int) -> None:
+    """Per variant and renderer: RMS lateral and depth errors, median seconds."""
+    print(f"\n{'variant':12s} {'render':7s} {'lateral':>8s} {'depth':>7s} {'s (median)':>10s}"
+          f"  (RMS over {scenes} scenes)")
+    for (name, renderer), rows in results.items():
         a = np.array(rows)
-        print(f"{name:12s} {np.sqrt(np.mean(a[:, 0] ** 2)):8.3f} "
-              f"{np.sqrt(np.mean(a[:, 1] ** 2)):7.3f} {np.median(a[:, 2]):10.1f}")
+        print(f"{name:12s} {renderer:7s} {np.sqrt(np.mean(a[:, 0] ** 2)):8.3f} "
+              f"{np.sqrt(np.mean(a[:, 1] ** 2)):7.3f} {np.median(a[:, 2]):10.2f}")
 
 
 if __name__ == "__main__":

@@ -119,7 +119,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         fit = None
         if settings.image_fit is not None:
             fit = ImageFit(projector.camera, projector.grid, (raw_a, raw_b),
-                           settings.image_fit)
+                           settings.image_fit, queue=projector.queue)
         res = refine_with_particles(res, vol_a, vol_b,
                                     focus=FocalZone.of(projector.camera, projector.grid),
                                     fit=fit)
