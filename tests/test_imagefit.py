@@ -124,3 +124,20 @@ def test_bad_inputs_name_the_problem():
         ImageFitSettings(iterations=-1)
     with pytest.raises(ValueError, match="damping"):
         ImageFitSettings(damping=0.0)
+
+
+def test_per_particle_peaks_match_the_unsorted_form():
+    """The residual noise's per-particle peak by runs of the sorted particle ids equals
+    ``np.maximum.at`` (sorted, unsorted, a particle without elements, none at all)."""
+    from plenocl.piv.imagefit import _peaks
+
+    rng = np.random.default_rng(5)
+    for n in (1, 7, 40):
+        pid = np.sort(rng.integers(0, n, 500))
+        pid = pid[pid != n // 2] if n > 1 else pid
+        value = rng.random(len(pid))
+        for ids in (pid, rng.permutation(pid)):
+            want = np.zeros(n)
+            np.maximum.at(want, ids, value)
+            np.testing.assert_array_equal(_peaks(value, ids, n), want)
+    assert not _peaks(np.zeros(0), np.zeros(0, int), 3).any()

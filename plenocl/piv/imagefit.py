@@ -231,12 +231,26 @@ def _residual_noise(value: np.ndarray, residual: np.ndarray, pid: np.ndarray,
     """Per particle: the residual's RMS over its lit pixels (its own image above 1 % of
     its brightest pixel), at least the camera's ``noise``."""
     n = len(patches.width)
-    peak = np.zeros(n)
-    np.maximum.at(peak, pid, value)
+    peak = _peaks(value, pid, n)
     lit = value > 0.01 * peak[pid]
     count = np.bincount(pid[lit], minlength=n)
     mean_sq = np.bincount(pid[lit], residual[lit] ** 2, minlength=n) / np.maximum(count, 1)
     return np.maximum(np.sqrt(mean_sq), noise)
+
+
+def _peaks(value: np.ndarray, pid: np.ndarray, n: int) -> np.ndarray:
+    """Each particle's largest ``value`` (0 without elements). The elements come in patch
+    order, so ``pid`` is sorted and one ``maximum.reduceat`` over its runs does it
+    (``np.maximum.at``, its unsorted form, was a tenth of the fit's time)."""
+    peak = np.zeros(n)
+    if not len(pid):
+        return peak
+    if np.any(pid[1:] < pid[:-1]):
+        np.maximum.at(peak, pid, value)
+        return peak
+    starts = np.flatnonzero(np.concatenate([[True], pid[1:] != pid[:-1]]))
+    peak[pid[starts]] = np.maximum.reduceat(value, starts)
+    return peak
 
 
 def _damped_solve(normal: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
