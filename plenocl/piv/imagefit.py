@@ -141,9 +141,9 @@ class ImageFit:
         intensity = self._start_intensity(data, p)
         for _ in range(self.settings.iterations):
             renders = [self._render(p[part], intensity[part]) for part in self._chunks(len(p))]
-            model = np.zeros(data.size)
-            for _, _, _, pixel, rows in renders:
-                model += np.bincount(pixel, rows[0], minlength=data.size)
+            # one sensor-sized sum per step (not one per chunk); the same order of additions
+            model = np.bincount(np.concatenate([r[3] for r in renders]),
+                                np.concatenate([r[4][0] for r in renders]), minlength=data.size)
             step, intensity_step, sigma = self._step(data, model, noise, p, start, prior,
                                                      renders)
             p += step
