@@ -193,18 +193,20 @@ def rotated_reconstruction(queue, rotation: float = 0.15) -> None:
     vol = np.zeros(grid.shape, np.float32)
     for z, y, x in zip(*(rng.integers(2, n - 2, 2790) for n in grid.shape)):
         vol[z, y - 1:y + 2, x - 1:x + 2] += 1000.0
-    settings = PAIR_RECONSTRUCTION
+    images = {}  # one per camera: both grids of the rotated array see the same image
+    for cam, frame in ((aligned, 0.0), (turned, rotation)):
+        truth = Projector(cam, Grid(grid.shape, grid.x, grid.y, grid.z, rotation_deg=frame),
+                          queue)
+        noisy = truth.forward(vol) + rng.normal(20, 3, truth.image_shape).astype(np.float32)
+        images[id(cam)] = np.clip(noisy, 0, None)
     base = None
     for label, cam, frame in (("aligned array", aligned, 0.0),
                               (f"{rotation:g} deg array, lens-row grid", turned, rotation),
                               (f"{rotation:g} deg array, sensor-axis grid", turned, 0.0)):
-        g = Grid(grid.shape, grid.x, grid.y, grid.z, rotation_deg=frame)
-        truth = Projector(cam, Grid(grid.shape, grid.x, grid.y, grid.z,
-                                    rotation_deg=rotation if cam is turned else 0.0), queue)
-        image = truth.forward(vol) + rng.normal(20, 3, truth.image_shape).astype(np.float32)
-        proj = Projector(cam, g, queue)
+        proj = Projector(cam, Grid(grid.shape, grid.x, grid.y, grid.z, rotation_deg=frame),
+                         queue)
         t0 = time.perf_counter()
-        run_reconstruction(np.clip(image, 0, None), proj, settings)
+        run_reconstruction(images[id(cam)], proj, PAIR_RECONSTRUCTION)
         seconds = time.perf_counter() - t0
         base = base or seconds
         print(f"{label} ({proj.path} path): pair-default reconstruction {seconds:.1f} s = "

@@ -21,6 +21,7 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..grid import Grid
+from ..optics.lattice import rotation_matrix
 from ..program import KernelSet
 from .plan import runs
 
@@ -34,11 +35,11 @@ def frame_grid(grid: Grid, rotation_deg: float) -> Grid:
     interpolation: same voxel size and depth planes, lateral extents covering ``grid``
     grown by one voxel on every side (snapped to whole voxels about its centre)."""
     _, dy, dx = grid.spacing
-    corners = np.array([[x, y, 0.0] for x in (grid.x[0] - dx, grid.x[1] + dx)
+    corners = np.array([[x, y] for x in (grid.x[0] - dx, grid.x[1] + dx)
                         for y in (grid.y[0] - dy, grid.y[1] + dy)])
-    world = np.column_stack([*grid.to_world(corners[:, 0], corners[:, 1]), corners[:, 2]])
-    turned = Grid((1, 1, 1), (0, 1), (0, 1), (0, 1), rotation_deg).to_frame(world)
-    lo, hi = turned[:, :2].min(axis=0), turned[:, :2].max(axis=0)
+    world = np.column_stack(grid.to_world(corners[:, 0], corners[:, 1]))
+    turned = world @ rotation_matrix(rotation_deg)  # world -> frame: Rᵀ x, as row vectors
+    lo, hi = turned.min(axis=0), turned.max(axis=0)
     centre = (lo + hi) / 2
     nx, ny = (math.ceil((hi[k] - lo[k]) / step - 1e-9) for k, step in enumerate((dx, dy)))
     return Grid((grid.shape[0], ny, nx), (centre[0] - nx * dx / 2, centre[0] + nx * dx / 2),
@@ -90,7 +91,6 @@ class FrameResampler:
         self._inverse = tuple(f32(v) for v in (*inv.ravel(), *(-inv @ t)))
         reach = np.abs(inv).sum(axis=1) * (1 + 1e-6)  # |a - q_a| < reach, rounding spared
         self._reach = (*(f32(r) for r in reach), *(i32(math.ceil(2 * r)) for r in reach))
-        self._norm = self._k.to_device(np.ones(grid.shape[1:], np.float32))
         self.norm = self._column_sums()
         self._norm = self._k.to_device(np.where(self.norm > 0, 1 / self.norm, 0)
                                        .astype(np.float32))
@@ -100,7 +100,8 @@ class FrameResampler:
         unnormalised ``Sᵀ 1`` of one plane, on the device)."""
         ones = self._k.to_device(np.ones((1, *self.frame.shape[1:]), np.float32))
         out = self._k.array((1, *self.grid.shape[1:]))
-        self.from_frame([ones], [(0, 1)], [out], [(0, 1)], np.ones(1, bool))
+        unit = self._k.to_device(np.ones(self.grid.shape[1:], np.float32))
+        self._from_frame([ones], [(0, 1)], [out], [(0, 1)], np.ones(1, bool), None, unit)
         return out.get()[0].astype(np.float64)
 
     def to_frame(self, vol: Slabs, vol_slabs: SlabRanges, out: Slabs, out_slabs: SlabRanges,
@@ -118,21 +119,25 @@ class FrameResampler:
                    ) -> None:
         """``out = Sᵀ frame_vol`` on the active planes (the others are left as they are);
         0 without computing it where ``support`` (slabs like ``out``) is 0."""
+        self._from_frame(frame_vol, frame_slabs, out, out_slabs, active, support, self._norm)
+
+    def _from_frame(self, frame_vol: Slabs, frame_slabs: SlabRanges, out: Slabs,
+                    out_slabs: SlabRanges, active: np.ndarray, support: Slabs | None,
+                    norm: cl_array.Array) -> None:
+        """:meth:`from_frame` with each user voxel's sum scaled by ``norm``."""
         _, uny, unx = self.grid.shape
         _, fny, fnx = self.frame.shape
         for i_f, iu, z0, z1 in _overlaps(frame_slabs, out_slabs, active):
             sup = (out[iu], i32(0)) if support is None else (support[iu], i32(1))
             self._k.launch("from_frame", (unx, uny, z1 - z0), frame_vol[i_f], i32(fnx),
-                           i32(fny), i32(frame_slabs[i_f][0]), out[iu], self._norm, *sup,
-                           i32(unx),
+                           i32(fny), i32(frame_slabs[i_f][0]), out[iu], norm, *sup, i32(unx),
                            i32(uny), i32(out_slabs[iu][0]), i32(z0), *self._forward,
                            *self._inverse, *self._reach)
 
     def columns(self, ix: np.ndarray, iy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The columns of ``S`` (normalised) of the user voxels ``(ix, iy)`` (any depth), on
-        the host:
-        frame voxels ``(N, K, 2)`` as ``(a, b)`` and their weights ``(N, K)`` (``K``
-        candidates per voxel, the unused ones at ``(0, 0)`` with weight 0)."""
+        the host: frame voxels ``(N, K, 2)`` as ``(a, b)`` and their weights ``(N, K)``
+        (``K`` candidates per voxel, the unused ones at ``(0, 0)`` with weight 0)."""
         m = np.array(self._forward[:4], np.float64).reshape(2, 2)
         t = np.array(self._forward[4:], np.float64)
         inv = np.array(self._inverse[:4], np.float64).reshape(2, 2)
