@@ -15,9 +15,11 @@ volumes are zero outside. A volume against itself is then exactly symmetric in `
 the FFT's circular autocorrelation is, which keeps iterative deformation from drifting.
 Every ``S`` is a separable filter evaluated only at the window corners: three matrix
 products (:class:`WindowSums`), independent of the overlap, about 30 sweeps over the
-volume per pass instead of one 3-D FFT per window. They run on the host with BLAS, each
-sum on one thread (:func:`parallel_sums`), so the results do not depend on the thread
-count.
+volume per pass instead of one 3-D FFT per window. :class:`HostSums` runs them on the
+host with BLAS, each sum on one thread (:func:`parallel_sums`), so the results do not
+depend on the thread count; :class:`plenocl.piv.devicesums.DeviceSums` runs the same sums
+on an OpenCL device (``kernels/windowsums.cl``, banded instead of dense, each sum one
+work-item's loop), which ``piv3d`` uses beside its device deformer.
 
 :func:`correlate_direct` returns the 27 coefficients per window; :func:`fit_direct`
 locates the peak and fits it per axis with the same three-point Gaussian as the FFT path
@@ -32,6 +34,7 @@ from __future__ import annotations
 import itertools
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from scipy import ndimage
@@ -86,6 +89,15 @@ def _corner_matrix(n: int, corners: np.ndarray, taps: np.ndarray) -> np.ndarray:
     return m
 
 
+def lag_weight_sums(grid: WindowGrid, weighting: float | None, power: int = 1) -> np.ndarray:
+    """``sum_q W(q + s/2)`` (to ``power``) per lag of :data:`LAGS`: the sum of a window's
+    weights, ``(27,)``."""
+    per_axis = [np.array([(axis_taps(w, weighting, -0.5 * s) ** power).sum()
+                          for s in (-1, 0, 1)]) for w in grid.size]
+    return np.array([per_axis[0][i] * per_axis[1][j] * per_axis[2][k]
+                     for i, j, k in LAGS + 1])
+
+
 class WindowSums:
     """Weighted window sums at every window corner of a grid, for the lags in
     ``{-1, 0, 1}`` per axis, of volumes padded with zeros (:meth:`pad`).
@@ -124,10 +136,8 @@ class WindowSums:
                        for n, c, axis in zip(padded, corners, taps)]
         self._second = [[_corner_matrix(n, c + 1 + s, t) for s, t in zip(lags, axis)]
                         for n, c, axis in zip(padded, corners, taps)]
-        per_axis = [np.array([t.sum() for t in axis]) for axis in taps]
         #: ``sum_q W(q + s/2)`` per lag of :data:`LAGS`.
-        self.weight_sums = np.array([per_axis[0][i] * per_axis[1][j] * per_axis[2][k]
-                                     for i, j, k in LAGS + 1])
+        self.weight_sums = lag_weight_sums(grid, weighting, power)
 
     def pad(self, vol: np.ndarray) -> np.ndarray:
         """``vol`` with ``margin + 1`` voxels of zeros on every face (float32)."""
@@ -191,8 +201,63 @@ class DirectCorrelation:
         return np.sqrt(np.maximum(self.var_a, 0.0) * np.maximum(self.var_b, 0.0))
 
 
+class SumEngine(Protocol):
+    """Where the window sums are computed: :class:`HostSums` (NumPy and BLAS, the
+    reference) or :class:`plenocl.piv.devicesums.DeviceSums` (an OpenCL device)."""
+
+    def correlation_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                         weighting: float | None) -> tuple[np.ndarray, ...]: ...
+
+    def spread_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                    weighting: float | None) -> np.ndarray: ...
+
+
+class HostSums:
+    """The window sums of :func:`correlate_direct` and :func:`correlation_uncertainty` on
+    the host: :class:`WindowSums`' matrix products, one sum per thread
+    (:func:`parallel_sums`). The twin of ``kernels/windowsums.cl``."""
+
+    def correlation_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                         weighting: float | None) -> tuple[np.ndarray, ...]:
+        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(27, *grid.count)`` float32: the
+        first window's sums of ``a`` and ``a^2``, the second's of ``b`` and ``b^2``, and
+        the sums of ``a(q) b(q + s)``, at every lag ``s`` of :data:`LAGS`."""
+        sums = WindowSums(np.shape(vol_a), grid, weighting)
+        a, b = sums.pad(vol_a), sums.pad(vol_b)
+        inner = sums.inner(a)
+        jobs = [lambda: sums.first(a), lambda: sums.second(b), lambda: sums.first(a * a),
+                lambda: sums.second(b * b)]
+        jobs += [lambda lag=lag: sums.product(inner * sums.shifted(b, lag), lag)
+                 for lag in LAGS]
+        s_a, s_b, raw_a, raw_b, *products = parallel_sums(lambda job: job(), jobs)
+        return s_a, s_b, raw_a, raw_b, np.stack(products)
+
+    def spread_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                    weighting: float | None) -> np.ndarray:
+        """``(3, 9, *grid.count)`` float32: per axis ``e``, the sums (weight of lag ``e``)
+        of ``X``, ``Da``, ``Db`` and (squared weight) of ``X^2``, ``Da^2``, ``Db^2``,
+        ``X Da``, ``X Db``, ``Da Db`` (:func:`_asymmetry`)."""
+        shape = np.shape(vol_a)
+        sums = WindowSums(shape, grid, weighting)
+        squares = WindowSums(shape, grid, weighting, power=2)
+        a, b = sums.pad(vol_a), sums.pad(vol_b)
+
+        def axis_sums(axis: int) -> np.ndarray:
+            unit = tuple(int(u) for u in np.eye(3, dtype=int)[axis])
+            a0, a1 = sums.inner(a), sums.shifted(a, unit)
+            b0, b1 = sums.inner(b), sums.shifted(b, unit)
+            cross, diff_a, diff_b = a0 * b1 - a1 * b0, a0 - a1, b1 - b0
+            quadratic = (cross * cross, diff_a * diff_a, diff_b * diff_b, cross * diff_a,
+                         cross * diff_b, diff_a * diff_b)
+            return np.stack([sums.product(f, unit) for f in (cross, diff_a, diff_b)]
+                            + [squares.product(f, unit) for f in quadratic])
+
+        return np.stack(parallel_sums(axis_sums, range(3)))
+
+
 def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
-                     weighting: float | None) -> DirectCorrelation:
+                     weighting: float | None, sums: SumEngine | None = None
+                     ) -> DirectCorrelation:
     """Normalised correlation of every window of ``grid`` at the 27 :data:`LAGS`.
 
     Parameters
@@ -205,23 +270,20 @@ def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
         Gaussian width as a fraction of the window (as ``piv3d``), or ``None`` for a
         top hat over the window (not symmetric between ``+s`` and ``-s`` for a volume
         against itself: ``piv3d`` correlates top-hat windows by FFT).
+    sums
+        Where the window sums run (:class:`SumEngine`); ``None``: :class:`HostSums`.
 
     Returns
     -------
     DirectCorrelation
         ``r[k]``, the weighted Pearson coefficient at lag ``LAGS[k]``, and its parts.
     """
-    sums = WindowSums(np.shape(vol_a), grid, weighting)
-    a, b = sums.pad(vol_a), sums.pad(vol_b)
-    n = sums.weight_sums.reshape(27, 1, 1, 1)
-    inner = sums.inner(a)
-    jobs = [lambda: sums.first(a), lambda: sums.second(b), lambda: sums.first(a * a),
-            lambda: sums.second(b * b)]
-    jobs += [lambda lag=lag: sums.product(inner * sums.shifted(b, lag), lag) for lag in LAGS]
-    s_a, s_b, raw_a, raw_b, *products = parallel_sums(lambda job: job(), jobs)
+    engine = HostSums() if sums is None else sums
+    s_a, s_b, raw_a, raw_b, products = engine.correlation_sums(vol_a, vol_b, grid, weighting)
+    n = lag_weight_sums(grid, weighting).reshape(27, 1, 1, 1)
     var_a = raw_a - s_a * s_a / n
     var_b = raw_b - s_b * s_b / n
-    cov = np.stack(products) - s_a * s_b / n
+    cov = products - s_a * s_b / n
     signal = ((var_a[CENTRE] > 1e-9 * raw_a[CENTRE])
               & (var_b[CENTRE] > 1e-9 * np.maximum(raw_a[CENTRE], 1e-30)))
     r = pearson(cov, var_a, var_b).astype(np.float64)
@@ -237,7 +299,8 @@ def pearson(cov: np.ndarray, var_a: np.ndarray, var_b: np.ndarray) -> np.ndarray
 
 
 def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
-                            weighting: float | None, corr: DirectCorrelation) -> np.ndarray:
+                            weighting: float | None, corr: DirectCorrelation,
+                            sums: SumEngine | None = None) -> np.ndarray:
     """Standard uncertainty of each window's sub-voxel displacement from the statistics
     of its correlation (Wieneke 2015, *Meas. Sci. Technol.* 26 074002), per axis.
 
@@ -256,36 +319,23 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
     Gaussian fit of the normalised coefficients: ``sigma = |fit(r- - ds, r0, r+ + ds) -
     fit(r- + ds, r0, r+ - ds)| / 2`` with ``ds = s / 2`` over each lag's normaliser.
 
+    The window sums run on ``sums`` (:class:`SumEngine`; ``None``: :class:`HostSums`), the
+    factor ``k`` on the host.
+
     Returns
     -------
     numpy.ndarray
         ``(3, *grid.count)`` as ``(dz, dy, dx)`` in voxels; NaN without signal.
     """
-    shape = np.shape(vol_a)
-    sums = WindowSums(shape, grid, weighting)
-    squares = WindowSums(shape, grid, weighting, power=2)
-    a, b = sums.pad(vol_a), sums.pad(vol_b)
-    count = float(np.prod([w + 2 * m for w, m in zip(grid.size, sums.margins)]))
+    raw = (HostSums() if sums is None else sums).spread_sums(vol_a, vol_b, grid, weighting)
+    factors = correlated_factors(vol_a, vol_b, grid, weighting)
+    count = float(np.prod([w + 2 * margin(w, weighting) for w in grid.size]))
     cube = corr.r.reshape(3, 3, 3, *corr.r.shape[1:])
     norm = corr.norm.reshape(cube.shape)
     sigma = np.full((3, *grid.count), np.nan)
-    box = tuple(int(w) for w in grid.size)
-    local = parallel_sums(lambda v: ndimage.uniform_filter(v, box, mode="constant"), (a, b))
-    detrended = [v - m for v, m in zip((a, b), local)]   # less each voxel's local mean
-
-    def spread_of(axis: int):
-        unit = tuple(int(u) for u in np.eye(3, dtype=int)[axis])
-        a0, a1 = sums.inner(a), sums.shifted(a, unit)
-        b0, b1 = sums.inner(b), sums.shifted(b, unit)
-        total, spread = _asymmetry(a0 * b1 - a1 * b0, a0 - a1, b1 - b0, corr, unit,
-                                   sums, squares)
-        da, db = detrended
-        field = (sums.inner(da) * sums.shifted(db, unit)
-                 - sums.shifted(da, unit) * sums.inner(db))
-        factor = correlated_sum_factor(field)
-        return 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
-
-    for axis, half in enumerate(parallel_sums(spread_of, range(3))):
+    for axis, factor in enumerate(factors):
+        total, spread = _asymmetry(raw[axis], corr)
+        half = 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
         lo, hi = [1, 1, 1], [1, 1, 1]
         lo[axis], hi[axis] = 0, 2
         lo, hi = tuple(lo), tuple(hi)
@@ -294,6 +344,25 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
         down = gaussian_subpixel(cube[lo] + d_lo, cube[1, 1, 1], cube[hi] - d_hi)
         sigma[axis] = np.where(corr.signal, 0.5 * np.abs(up - down), np.nan)
     return sigma
+
+
+def correlated_factors(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                       weighting: float | None) -> list[float]:
+    """:func:`correlated_sum_factor` of the contributions along each axis, ``(z, y, x)``,
+    with the volumes less their local (window-sized box) means."""
+    sums = WindowSums(np.shape(vol_a), grid, weighting)
+    a, b = sums.pad(vol_a), sums.pad(vol_b)
+    box = tuple(int(w) for w in grid.size)
+    local = parallel_sums(lambda v: ndimage.uniform_filter(v, box, mode="constant"), (a, b))
+    da, db = (v - m for v, m in zip((a, b), local))   # less each voxel's local mean
+
+    def factor_of(axis: int) -> float:
+        unit = tuple(int(u) for u in np.eye(3, dtype=int)[axis])
+        field = (sums.inner(da) * sums.shifted(db, unit)
+                 - sums.shifted(da, unit) * sums.inner(db))
+        return correlated_sum_factor(field)
+
+    return parallel_sums(factor_of, range(3))
 
 
 #: The longest lag (voxels) over which neighbouring contributions are taken as correlated.
@@ -327,17 +396,15 @@ def correlated_sum_factor(field: np.ndarray) -> float:
     return factor
 
 
-def _asymmetry(cross, diff_a, diff_b, corr: DirectCorrelation, unit, sums, squares):
+def _asymmetry(raw: np.ndarray, corr: DirectCorrelation):
     """``sum_i dc_i`` and ``sum_i dc_i^2`` per window, for ``dc_i = W (X - mb Da - ma Db)``
     with ``X = a(i) b(i+e) - a(i+e) b(i)``, ``Da = a(i) - a(i+e)``, ``Db = b(i+e) - b(i)``
-    and the windows' weighted means ``ma``, ``mb``."""
+    and the windows' weighted means ``ma``, ``mb``, from one axis's nine sums ``raw``
+    (:meth:`HostSums.spread_sums`)."""
     ma, mb = corr.mean_a, corr.mean_b
-    total = (sums.product(cross, unit) - mb * sums.product(diff_a, unit)
-             - ma * sums.product(diff_b, unit))
-    terms = ((cross * cross, 1.0), (diff_a * diff_a, mb * mb), (diff_b * diff_b, ma * ma),
-             (cross * diff_a, -2 * mb), (cross * diff_b, -2 * ma),
-             (diff_a * diff_b, 2 * ma * mb))
-    spread = sum(factor * squares.product(field, unit) for field, factor in terms)
+    total = raw[0] - mb * raw[1] - ma * raw[2]
+    factors = (1.0, mb * mb, ma * ma, -2 * mb, -2 * ma, 2 * ma * mb)
+    spread = sum(factor * part for factor, part in zip(factors, raw[3:]))
     return total, spread
 
 
@@ -380,7 +447,7 @@ def weak_peaks(peak: np.ndarray, signal: np.ndarray) -> np.ndarray:
 
 def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                        weighting: float | None, uncertainty: bool = False,
-                       **fft_options) -> Correlation:
+                       sums: SumEngine | None = None, **fft_options) -> Correlation:
     """Correlate deformed volumes directly at the 27 lags, and by FFT
     (:func:`plenocl.piv.correlation.correlate`, with ``fft_options``) only the windows
     whose peak lies beyond one voxel or is weak (:func:`weak_peaks`).
@@ -389,6 +456,8 @@ def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     ----------
     uncertainty
         Also estimate each window's uncertainty (:func:`correlation_uncertainty`).
+    sums
+        Where the window sums run (:class:`SumEngine`; ``None``: :class:`HostSums`).
 
     Returns
     -------
@@ -396,8 +465,8 @@ def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
         As the FFT path's, but for the peak ratio, NaN where the direct correlation
         decided (it sees no secondary peak); ``sigma`` with ``uncertainty``.
     """
-    direct = correlate_direct(vol_a, vol_b, grid, weighting)
-    sigma = (correlation_uncertainty(vol_a, vol_b, grid, weighting, direct)
+    direct = correlate_direct(vol_a, vol_b, grid, weighting, sums)
+    sigma = (correlation_uncertainty(vol_a, vol_b, grid, weighting, direct, sums)
              if uncertainty else None)
     signal = direct.signal
     disp, peak, centred = fit_direct(direct.r)
@@ -416,10 +485,12 @@ def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
 
 
 def deformed_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
-                         weighting: float | None) -> np.ndarray:
+                         weighting: float | None, sums: SumEngine | None = None
+                         ) -> np.ndarray:
     """:func:`correlation_uncertainty` on its own (for a pass correlated by FFT):
-    ``(3, *grid.count)`` voxels, NaN where the residual exceeds a voxel."""
-    direct = correlate_direct(vol_a, vol_b, grid, weighting)
-    sigma = correlation_uncertainty(vol_a, vol_b, grid, weighting, direct)
+    ``(3, *grid.count)`` voxels, NaN where the residual exceeds a voxel; the window sums
+    on ``sums`` (as :func:`correlate_deformed`)."""
+    direct = correlate_direct(vol_a, vol_b, grid, weighting, sums)
+    sigma = correlation_uncertainty(vol_a, vol_b, grid, weighting, direct, sums)
     sigma[:, ~fit_direct(direct.r)[2]] = np.nan
     return sigma
