@@ -1,0 +1,153 @@
+"""The direct correlation's window sums on an OpenCL device (``kernels/windowsums.cl``).
+
+:class:`DeviceSums` computes what :class:`plenocl.piv.direct.HostSums` computes with three
+matrix products per sum on the host: every weighted window sum of
+:func:`plenocl.piv.direct.correlate_direct` and of
+:func:`plenocl.piv.direct.correlation_uncertainty`, evaluated at the window corners only.
+A row kernel (x) forms the fields (products of the two volumes at the 27 lags,
+differences of neighbours) as it sums them, so no field is ever stored whole; a generic
+axis kernel then sums the y and z axes. Both engines return float32 sums of the same
+shapes, equal to float32 rounding (each kernel sum is one work-item's loop in tap order,
+so the results do not depend on the device's core count either).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cl_array
+
+from ..device import DeviceLike, check_fits, get_queue
+from ..program import KernelSet
+from .correlation import WindowGrid
+from .deformation import DeviceDeformer
+from .direct import axis_taps, margin
+
+#: Sums the row kernels write per row segment (``NPAIR``, ``NSPREAD`` in the kernel).
+PAIR_FIELDS, SPREAD_FIELDS = 39, 27
+
+_KERNELS = ["pair_rows", "spread_rows", "axis_sums"]
+
+
+def tap_table(size: int, weighting: float | None, width: int = 0) -> np.ndarray:
+    """``(6, width)`` float32: the weight of lags -1, 0, 1 along one axis
+    (:func:`plenocl.piv.direct.axis_taps`, the rows of ``WindowSums``) and their squares,
+    zeros beyond the ``size + 2 margin`` taps (``width``, at least that, by default)."""
+    rows = [axis_taps(size, weighting, -0.5 * s) for s in (-1, 0, 1)]
+    table = np.array(rows + [r ** 2 for r in rows], np.float32)
+    return np.pad(table, [(0, 0), (0, max(0, width - table.shape[1]))])
+
+
+def pair_fields() -> tuple[np.ndarray, np.ndarray]:
+    """``(source, tap row, offset)`` of every output of the y and z passes of the
+    correlation sums: ``a``, ``a^2`` (first window), ``b``, ``b^2`` (second window,
+    offset by its lag) at the lags of each axis, then the 27 products at their own lag.
+    The z pass leaves them in :data:`plenocl.piv.direct.LAGS` order, 27 per quantity."""
+    y, z = [], []
+    for q in range(4):
+        second = q >= 2
+        y += [(3 * q + sx, sy, sy - 1 if second else 0) for sy in range(3) for sx in range(3)]
+        z += [(9 * q + j, sz, sz - 1 if second else 0) for sz in range(3) for j in range(9)]
+    y += [(12 + p, (p // 3) % 3, 0) for p in range(27)]
+    z += [(36 + p, p // 9, 0) for p in range(27)]
+    return np.array(y, np.int32), np.array(z, np.int32)
+
+
+def spread_fields() -> tuple[np.ndarray, np.ndarray]:
+    """The same for the uncertainty's 9 fields per axis ``e``: the weight of lag +1 along
+    ``e`` and of lag 0 along the other axes, squared for the last 6 fields."""
+    def rows(axis: int) -> np.ndarray:
+        return np.array([(9 * e + k, (2 if e == axis else 1) + (3 if k >= 3 else 0), 0)
+                         for e in range(3) for k in range(9)], np.int32)
+    return rows(1), rows(0)
+
+
+class DeviceSums:
+    """Window sums of :mod:`plenocl.piv.direct` by ``kernels/windowsums.cl``.
+
+    Parameters
+    ----------
+    queue
+        Device to run on (:func:`plenocl.get_queue` rules); the kernels are built once.
+    """
+
+    def __init__(self, queue: DeviceLike) -> None:
+        self.kernels = KernelSet(get_queue(queue), "windowsums.cl", _KERNELS,
+                                 looping=["pair_rows", "spread_rows"])
+        self._pair = [self.kernels.to_device(f) for f in pair_fields()]
+        self._spread = [self.kernels.to_device(f) for f in spread_fields()]
+
+    def correlation_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                         weighting: float | None) -> tuple[np.ndarray, ...]:
+        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(27, *grid.count)`` float32, as
+        :meth:`plenocl.piv.direct.HostSums.correlation_sums`."""
+        out = self._sums("pair_rows", PAIR_FIELDS, self._pair, vol_a, vol_b, grid, weighting)
+        s_a, raw_a, s_b, raw_b, products = out.reshape(5, 27, *grid.count)
+        return s_a, s_b, raw_a, raw_b, products
+
+    def spread_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                    weighting: float | None) -> np.ndarray:
+        """``(3, 9, *grid.count)`` float32, as
+        :meth:`plenocl.piv.direct.HostSums.spread_sums`."""
+        out = self._sums("spread_rows", SPREAD_FIELDS, self._spread, vol_a, vol_b, grid,
+                         weighting)
+        return out.reshape(3, 9, *grid.count)
+
+    def _sums(self, rows: str, nfields: int, fields, vol_a, vol_b, grid: WindowGrid,
+              weighting: float | None) -> np.ndarray:
+        """The x pass ``rows`` of both volumes, then the y and z passes with ``fields``."""
+        nz, ny, nx = np.shape(vol_a)
+        cz, cy, cx = grid.count
+        mx = margin(grid.size[2], weighting)
+        chunks = -(-(grid.size[2] + 2 * mx) // 8)      # 8-float chunks of the x taps
+        width = nx + 2 * (mx + 1) + 8 * chunks - (grid.size[2] + 2 * mx)
+        check_fits(self.kernels.queue, 4 * (2 * (nz + 2) * (ny + 2) * width
+                                            + nfields * nz * ny * cx
+                                            + fields[0].shape[0] * nz * cy * cx),
+                   "the direct correlation's window sums")
+        a, b = (self._padded(v, mx + 1, width) for v in (vol_a, vol_b))
+        tx = self.kernels.to_device(tap_table(grid.size[2], weighting, 8 * chunks))
+        x = self.kernels.array((nfields, nz, ny, cx))
+        extra = _ints(mx + 1) if rows == "spread_rows" else []
+        self.kernels.launch(rows, (cx, ny, nz), a, b,
+                            *_ints(nz, ny, ny + 2, width, grid.offset[2] + 1, grid.step[2],
+                                   cx, chunks), tx, *extra, x)
+        y = self._axis(x, nz, ny, cx, grid, weighting, 1, fields[0])
+        return self._axis(y, 1, nz, cy * cx, grid, weighting, 0, fields[1]).get()
+
+    def _padded(self, vol: np.ndarray, left: int, width: int):
+        """``vol`` on the device inside zeros: one plane and row on every side in z and y,
+        ``left`` voxels before each row, rows ``width`` long (the row kernels' layout)."""
+        host = np.ascontiguousarray(vol, np.float32)
+        nz, ny, nx = host.shape
+        out = cl_array.zeros(self.kernels.queue, (nz + 2, ny + 2, width), np.float32)
+        cl.enqueue_copy(self.kernels.queue, out.data, host, buffer_origin=(4 * left, 1, 1),
+                        host_origin=(0, 0, 0), region=(4 * nx, ny, nz),
+                        buffer_pitches=(4 * width, 4 * width * (ny + 2)),
+                        host_pitches=(4 * nx, 4 * nx * ny))
+        return out
+
+    def _axis(self, source, outer: int, n: int, inner: int, grid: WindowGrid,
+              weighting: float | None, axis: int, fields):
+        """One y or z pass: ``(len(fields), outer, count, inner)`` on the device."""
+        count, size = grid.count[axis], grid.size[axis]
+        taps = self.kernels.to_device(tap_table(size, weighting))
+        out = self.kernels.array((fields.shape[0], outer, count, inner))
+        self.kernels.launch("axis_sums", (inner, count, outer * fields.shape[0]), source,
+                            *_ints(outer, n, inner, grid.offset[axis], grid.step[axis], count,
+                                   margin(size, weighting), taps.shape[1]), taps, fields, out)
+        return out
+
+
+def _ints(*values: int) -> list[np.int32]:
+    return [np.int32(v) for v in values]
+
+
+def sums_for(deformer) -> DeviceSums | None:
+    """The window sums' engine beside ``deformer``: :class:`DeviceSums` on the queue of a
+    :class:`~plenocl.piv.deformation.DeviceDeformer`, ``None`` (the host,
+    :class:`plenocl.piv.direct.HostSums`) for a host deformer (``queue=False``, or the
+    quintic B-spline)."""
+    if isinstance(deformer, DeviceDeformer):
+        return DeviceSums(deformer.kernels.queue)
+    return None

@@ -1,0 +1,97 @@
+"""The direct correlation's window sums on a device (``kernels/windowsums.cl``,
+:class:`plenocl.piv.devicesums.DeviceSums`) against the host's matrix products
+(:class:`plenocl.piv.direct.HostSums`), on awkward shapes with windows whose weights
+reach past the volume's faces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tolerances as tol
+
+from plenocl import flows
+from plenocl.piv.correlation import window_grid
+from plenocl.piv.deformation import DeviceDeformer, HostDeformer
+from plenocl.piv.devicesums import DeviceSums, sums_for
+from plenocl.piv.direct import (
+    HostSums,
+    correlate_direct,
+    correlation_uncertainty,
+    fit_direct,
+    margin,
+)
+
+#: (shape, window, overlap, weighting): odd sizes, a volume thinner than the x taps, a
+#: step of 1, top-hat windows and weights reaching far past every face.
+CASES = [((13, 17, 22), (8, 9, 10), 0.5, 0.35),
+         ((11, 25, 9), (9, 8, 8), 0.75, 0.8),
+         ((20, 21, 23), (10, 12, 8), 0.5, 0.5),
+         ((12, 10, 31), (9, 9, 11), 0.9, 0.35),
+         ((11, 25, 9), (9, 8, 8), 0.75, None)]
+
+
+def _pair(shape):
+    rng = np.random.default_rng(sum(shape))
+    return tuple(rng.random(shape).astype(np.float32) for _ in range(2))
+
+
+def _close(got, want):
+    """Equal to float32 rounding of sums whose terms are of the peak's order."""
+    assert got.shape == want.shape and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=tol.PIV_TWIN * float(np.abs(want).max()))
+
+
+@pytest.fixture(scope="module")
+def device_sums(queue):
+    return DeviceSums(queue)
+
+
+@pytest.mark.parametrize("shape,size,overlap,weighting", CASES)
+def test_correlation_sums_match_the_host(device_sums, shape, size, overlap, weighting):
+    a, b = _pair(shape)
+    grid = window_grid(shape, size, overlap)
+    if weighting is not None:  # the weights reach past a face: the zeros there count
+        assert any(margin(w, weighting) > o for w, o in zip(size, grid.offset))
+    got = device_sums.correlation_sums(a, b, grid, weighting)
+    want = HostSums().correlation_sums(a, b, grid, weighting)
+    for g, w in zip(got, want):
+        assert g.shape == (27, *grid.count)
+        _close(g, w)
+    s_a, s_b, raw_a, raw_b, products = got
+    assert np.all(raw_a > 0) and np.all(raw_b > 0) and np.all(products > 0)
+
+
+@pytest.mark.parametrize("shape,size,overlap,weighting", CASES)
+def test_spread_sums_match_the_host(device_sums, shape, size, overlap, weighting):
+    a, b = _pair(shape)
+    grid = window_grid(shape, size, overlap)
+    got = device_sums.spread_sums(a, b, grid, weighting)
+    want = HostSums().spread_sums(a, b, grid, weighting)
+    assert got.shape == (3, 9, *grid.count)
+    for axis in range(3):
+        for k in range(9):
+            _close(got[axis, k], want[axis, k])
+    assert np.all(got[:, 3:6] >= 0)  # sums of squares
+
+
+def test_device_correlation_and_uncertainty_equal_the_host(device_sums):
+    pair = flows.volume_pair((27, 34, 41), flows.Uniform((0.3, -0.2, 0.4)), density=0.004,
+                             sigma=1.5, seed=4, noise=0.05)
+    grid = window_grid(pair.vol_a.shape, (12, 12, 12), 0.75)
+    results = []
+    for sums in (None, device_sums):
+        corr = correlate_direct(pair.vol_a, pair.vol_b, grid, 0.35, sums)
+        results.append((corr, correlation_uncertainty(pair.vol_a, pair.vol_b, grid, 0.35,
+                                                      corr, sums)))
+    (host, host_sigma), (dev, dev_sigma) = results
+    np.testing.assert_allclose(dev.r, host.r, atol=tol.PIV_TWIN)
+    assert np.array_equal(dev.signal, host.signal) and host.signal.mean() > 0.9
+    np.testing.assert_allclose(fit_direct(dev.r)[0], fit_direct(host.r)[0], atol=1e-4)
+    assert np.nanmedian(host_sigma) > 0
+    np.testing.assert_allclose(dev_sigma, host_sigma, rtol=1e-3, atol=1e-6)
+
+
+def test_the_sums_run_beside_the_deformer(queue):
+    assert isinstance(sums_for(DeviceDeformer(queue, 3)), DeviceSums)
+    assert sums_for(HostDeformer(3)) is None
+    assert sums_for(HostDeformer(5)) is None
