@@ -3,6 +3,8 @@
 - :mod:`.correlation`: windows, batched FFT correlation, sub-voxel peak fit;
 - :mod:`.interpolate`: predictor resampling, B-spline volume sampling (the host reference);
 - :mod:`.deformation`: deforming volumes on the host or an OpenCL device (``deform.cl``);
+- :mod:`.direct`, :mod:`.devicesums`: the deformed passes' direct correlation, its window
+  sums on the host or the deformer's device (``windowsums.cl``);
 - :mod:`.validation`: outlier detection and replacement;
 - :mod:`.settings`: :class:`PIVSettings` (every option of :func:`piv3d`, checked once);
 - :mod:`.multipass`: :func:`piv3d`; its result :class:`plenocl.vectorfield.PIVResult`

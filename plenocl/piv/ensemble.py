@@ -20,6 +20,7 @@ import numpy as np
 from ..vectorfield import PIVResult
 from .correlation import window_grid
 from .deformation import make_deformer
+from .devicesums import sums_for
 from .direct import CENTRE, LAGS, correlate_direct, fit_direct, pearson
 from .interpolate import resample
 from .validation import normalized_median_test, replace_outliers
@@ -68,18 +69,21 @@ def ensemble_piv(pairs: PairSource, predictor: PIVResult, *, window=None,
     field = np.stack([predictor.w, predictor.v, predictor.u])
     centres = (predictor.z, predictor.y, predictor.x)
     deformer = make_deformer(deform_order, queue)
+    sums = sums_for(deformer)
     result = None
     for k in range(iterations):
-        result = _ensemble_pass(pairs, field, centres, window, overlap, weighting, deformer,
-                                final=k == iterations - 1)
+        result = _ensemble_pass(pairs, field, centres, window, overlap, weighting,
+                                (deformer, sums), final=k == iterations - 1)
         field = np.stack([result.w, result.v, result.u])
         centres = (result.z, result.y, result.x)
     return result
 
 
 def _ensemble_pass(pairs: PairSource, field, centres, window, overlap, weighting,
-                   deformer, final: bool) -> PIVResult:
-    """One pass: deform every pair by ``field``, sum the window sums, fit."""
+                   engines, final: bool) -> PIVResult:
+    """One pass: deform every pair by ``field``, sum the window sums, fit; ``engines`` the
+    deformer and the window sums' engine (:func:`plenocl.piv.devicesums.sums_for`)."""
+    deformer, sums = engines
     totals, grid, base, count = None, None, None, 0
     for vol_a, vol_b in pairs():
         shape = np.shape(vol_a)
@@ -91,7 +95,7 @@ def _ensemble_pass(pairs: PairSource, field, centres, window, overlap, weighting
             base = resample(np.nan_to_num(field), centres, grid.centres)
         da = deformer(deformer.prepare(vol_a), dense, -0.5)
         db = deformer(deformer.prepare(vol_b), dense, +0.5)
-        corr = correlate_direct(da, db, grid, weighting)
+        corr = correlate_direct(da, db, grid, weighting, sums)
         parts = (corr.cov, corr.var_a, corr.var_b)
         totals = parts if totals is None else tuple(t + p for t, p in zip(totals, parts))
         count += 1

@@ -27,6 +27,7 @@ from ..options import with_keywords
 from ..vectorfield import PIVResult, Size3
 from .correlation import correlate, gaussian_weight, window_fraction, window_grid
 from .deformation import make_deformer
+from .devicesums import sums_for
 from .direct import correlate_deformed, deformed_uncertainty
 from .interpolate import resample
 from .settings import PIVSettings
@@ -253,6 +254,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         a, b = (np.where(mask, np.float32(0), v) for v in (a, b))
     deformer = make_deformer(opts.deform_order, queue)
     coeffs = (deformer.prepare(a), deformer.prepare(b))
+    sums = sums_for(deformer)
     state, log = None, []
     for k, (size, overlap) in enumerate(schedule):
         t0 = time.perf_counter()
@@ -262,7 +264,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         direct = (opts.correlation == "auto" and k > 0 and weighting is not None
                   and not (final and opts.min_peak_ratio is not None))
         state = _run_pass(a, b, (deformer, *coeffs), state, size, overlap, mask, pad, weight,
-                          opts, direct, final)
+                          opts, direct, final, sums)
         log.append({"window": size, "overlap": overlap, "vectors": state.invalid.size,
                     "correlation": "direct" if direct else "fft",
                     "outliers": int(state.outlier.sum()), "invalid": int(state.invalid.sum()),
@@ -299,8 +301,10 @@ def _check_mask(mask, shape: Size3) -> np.ndarray | None:
 
 
 def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, mask, pad: bool,
-              weight, opts: PIVSettings, direct: bool = False, final: bool = False) -> _Pass:
-    """One correlation pass: deform by the predictor, correlate, validate, replace."""
+              weight, opts: PIVSettings, direct: bool = False, final: bool = False,
+              sums=None) -> _Pass:
+    """One correlation pass: deform by the predictor, correlate, validate, replace; the
+    direct correlation's window sums on ``sums`` (host for ``None``)."""
     grid = window_grid(a.shape, size, overlap)
     centres = grid.centres
     if prev is None:
@@ -314,7 +318,7 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
         db = deformer(coeff_b, dense, +0.5)
         base = resample(prev.field, prev.centres, centres, opts.predictor)
     corr = _correlate_pass(da, db, grid, pad, weight, opts, direct,
-                           uncertainty=final and prev is not None)
+                           uncertainty=final and prev is not None, sums=sums)
     masked = np.zeros(grid.count, bool) if mask is None else window_fraction(mask, grid) > 0.5
     invalid = ~corr.signal | masked
     if opts.min_peak_ratio is not None:
@@ -327,15 +331,16 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
 
 
 def _correlate_pass(da, db, grid, pad: bool, weight, opts: PIVSettings, direct: bool,
-                    uncertainty: bool):
+                    uncertainty: bool, sums=None):
     """Correlate one pass directly or by FFT; with ``uncertainty`` (the final pass on
     deformed volumes) also estimate each vector's uncertainty."""
     fft_options = {"workers": opts.workers, "backend": opts.fft}
     if direct:
-        return correlate_deformed(da, db, grid, opts.weighting, uncertainty, **fft_options)
+        return correlate_deformed(da, db, grid, opts.weighting, uncertainty, sums,
+                                  **fft_options)
     corr = correlate(da, db, grid, pad=pad, weight=weight, **fft_options)
     if uncertainty:
-        corr.sigma = deformed_uncertainty(da, db, grid, opts.weighting)
+        corr.sigma = deformed_uncertainty(da, db, grid, opts.weighting, sums)
     return corr
 
 
