@@ -5,6 +5,7 @@ Run from the repository root::
     python benchmarks/piv.py              # full run, 3 repeats (several minutes on 2 cores)
     python benchmarks/piv.py --quick      # fewer cases, 1 repeat
     python benchmarks/piv.py --device-only  # piv3d alone vs inside process_pair
+    python benchmarks/piv.py --sums-only  # the direct correlation's sums, host vs device
 
 Every case renders a synthetic volume pair (Gaussian particles, sigma 1 voxel, 0.004
 particles/voxel, erf-integrated) with known displacement and runs plenocl's ``piv3d``
@@ -258,10 +259,65 @@ def device_choice(repeats: int, seed: int) -> None:
                 f"interleaved", ["call", "seconds", "RMS error u / v / w (voxel)"], rows)
 
 
+def window_sums(repeats: int, seed: int) -> None:
+    """The direct correlation's window sums on the host (``HostSums``, BLAS: the path
+    before) and on ``piv3d``'s device (``DeviceSums``, ``kernels/windowsums.cl``), alone
+    on the final pass's grid and inside ``piv3d`` (same device deformation), at the
+    paper's volume size, interleaved in one process."""
+    from plenocl.device import get_queue
+    from plenocl.piv import multipass
+    from plenocl.piv.correlation import window_grid
+    from plenocl.piv.devicesums import DeviceSums
+    from plenocl.piv.direct import HostSums
+
+    shape, queue = (150, 200, 286), get_queue()
+    pair = flows.volume_pair(shape, flows.Uniform((1.7, -1.4, 2.3)), density=3.3e-4,
+                             sigma=1.5, seed=seed, noise=0.02)
+    grid = window_grid(shape, (24, 24, 24), 0.75)
+    engines = {"host (BLAS)": HostSums(), "device": DeviceSums(queue)}
+    calls = {f"{what}, {label}": (lambda e=engine, w=what: getattr(e, w)(
+                 pair.vol_a, pair.vol_b, grid, 0.35))
+             for what in ("correlation_sums", "spread_sums") for label, engine in engines.items()}
+    chosen = {"piv3d, host sums": lambda deformer: None, "piv3d, device sums": multipass.sums_for}
+    original = multipass.sums_for
+    for label, choose in chosen.items():   # piv3d's engine, chosen as sums_for would
+        calls[label] = (lambda c=choose: _piv3d_with(multipass, c, pair, queue))
+    _interleaved(calls, repeats, f"window sums, {shape[::-1]} voxels (x, y, z), grid "
+                 f"{grid.count[::-1]} of 24^3 windows at 75 % (x, y, z), {queue.device.name}")
+    multipass.sums_for = original
+
+
+def _piv3d_with(multipass, choose, pair, queue):
+    """``piv3d`` with the window sums' engine ``choose(deformer)``."""
+    original, multipass.sums_for = multipass.sums_for, choose
+    try:
+        return piv3d(pair.vol_a, pair.vol_b, queue=queue)
+    finally:
+        multipass.sums_for = original
+
+
+def _interleaved(calls: dict, repeats: int, title: str) -> None:
+    """Each call once (warm-up), then ``repeats`` rounds interleaved; medians; the two
+    piv3d results' largest difference."""
+    results = {label: call() for label, call in calls.items()}
+    times = {label: [] for label in calls}
+    for _ in range(max(1, repeats)):
+        for label, call in calls.items():
+            results[label], seconds = timed(call, 1)
+            times[label].append(seconds)
+    rows = [[label, f"{np.median(t):.3f}"] for label, t in times.items()]
+    print_table(f"{title}, medians of {repeats}, interleaved", ["call", "seconds"], rows)
+    host, device = results["piv3d, host sums"], results["piv3d, device sums"]
+    diff = max(float(np.nanmax(np.abs(getattr(host, c) - getattr(device, c)))) for c in "uvw")
+    print(f"piv3d fields, device sums against host sums: max |difference| {diff:.2e} voxel\n")
+
+
 def main() -> None:
     parser = script_parser(__doc__)
     parser.add_argument("--device-only", action="store_true",
                         help="only piv3d's device choice (default, host, process_pair's)")
+    parser.add_argument("--sums-only", action="store_true",
+                        help="only the direct correlation's window sums, host against device")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="96^3 only, 1 repeat")
     parser.add_argument("--seed", type=int, default=2718)
@@ -269,6 +325,9 @@ def main() -> None:
     repeats = 1 if args.quick else args.repeats
     if args.device_only:
         device_choice(repeats, args.seed)
+        return
+    if args.sums_only:
+        window_sums(repeats, args.seed)
         return
     p3, version = openpiv_or_none()
     print(f"numpy {np.__version__}, scipy {scipy.__version__}, openpiv {version}, "
@@ -278,6 +337,7 @@ def main() -> None:
     shapes = [(96, 96, 96)] if args.quick else [(96, 96, 96), (80, 96, 128)]
     comparison(p3, shapes, repeats, args.seed)
     device_choice(repeats, args.seed)
+    window_sums(repeats, args.seed)
     peak_locking(p3, args.seed)
     deformation_study(1 if args.quick else repeats, args.seed)
     if not args.quick:
