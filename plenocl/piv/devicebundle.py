@@ -114,15 +114,15 @@ class DeviceRayBundle:
         k = self._kernels(derivatives)
         n, rays = len(points), self.bundle.rays
         pts = k.to_device(points)
-        slots = k.array(n * rays * 4 * SLOT)
+        slots, keys = k.array(n * rays * 4 * SLOT), k.array(n * rays * 4, i32)
         rows, cols = self.bundle.lenses.shape[:2]
         k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays), self._lenses,
-                 i32(rows), i32(cols), *self._optics, slots)
+                 i32(rows), i32(cols), *self._optics, slots, keys)
         row_pid = np.repeat(np.arange(n, dtype=i32), patches.height)
         first = np.cumsum(patches.height) - patches.height  # each patch's first item
         row_local = (np.arange(len(row_pid)) - np.repeat(first, patches.height)).astype(i32)
         arrays = [k.to_device(a) for a in (
             intensity, patches.offset.astype(i64), patches.col0.astype(i32),
             patches.row0.astype(i32), patches.width.astype(i32), row_pid, row_local)]
-        k.launch("render_rows", (len(row_pid),), slots, i32(rays), pts, *arrays,
+        k.launch("render_rows", (len(row_pid),), slots, keys, i32(rays), pts, *arrays,
                  self._f_px, i64(total), out)
