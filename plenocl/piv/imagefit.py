@@ -27,7 +27,7 @@ from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
 from ..threads import thread_count
 from .devicebundle import DeviceRayBundle
-from .devicesums import DeviceFitSums
+from .fitsums import DeviceFitSums
 
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
@@ -104,7 +104,7 @@ class ImageFit:
     host_sums
         With a ``queue``: sum the normal equations, the model image and the residual on
         the host (NumPy, the rows brought back) instead of on the device
-        (:class:`plenocl.piv.devicesums.DeviceFitSums`, float32); the previous path,
+        (:class:`plenocl.piv.fitsums.DeviceFitSums`, float32); the previous path,
         kept for comparison.
     """
 

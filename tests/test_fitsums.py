@@ -1,4 +1,4 @@
-"""The image fit's sums on the device (kernels/imagefit.cl, plenocl/piv/devicesums.py)
+"""The image fit's sums on the device (kernels/imagefit.cl, plenocl/piv/fitsums.py)
 against their NumPy twins (plenocl/reference/imagefit.py) on awkward patches, and the
 fit with them against the fit summed on the host."""
 
@@ -11,7 +11,7 @@ import tolerances as tol
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.optics.raybundle import Patches, RayBundle
 from plenocl.piv.devicebundle import DeviceRayBundle
-from plenocl.piv.devicesums import DeviceFitSums
+from plenocl.piv.fitsums import DeviceFitSums
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.reference import imagefit as ref
 from plenocl.reference.simulate import trace_particles
