@@ -9,13 +9,15 @@
  *   it near a cell edge and writes one slot per lens choice: the nearest sensor pixel,
  *   the lens share and its derivatives, the landing point's derivatives by s_i' and the
  *   normalised pixel-integrated Gaussian of the blur over the 5 x 5 pixels around it
- *   (per axis, with its derivative). A lens choice that gets no light, lies off the
- *   array or is missing (NaN centre) gets weight 0. Each item writes its own 4 slots.
+ *   (per axis, with its derivative), and its key: the nearest row. A lens choice that
+ *   gets no light, lies off the array or is missing (NaN centre) gets weight 0 and no
+ *   key (PL_NO_KEY). Each item writes its own 4 slots and keys.
  * - render_rows: one work-item per patch row (all particles' rows in one flat range;
  *   the host's table names the particle and the row). It zeroes its row, then gathers
  *   over its particle's 4 x rays slots in ray order, adding the 5 pixels of each slot
  *   whose spread reaches the row: every patch element is written by one item only, in a
- *   fixed order, so the result is deterministic.
+ *   fixed order, so the result is deterministic. It scans the slots' keys (4 bytes a
+ *   slot, cached for all the particle's rows) and reads a slot only near its row.
  * On a GPU both ranges are wide (rays x particles; rows x particles) and the items of one
  * particle read the same slots (cached broadcasts); on a CPU render_rows runs in groups
  * of one item (KernelSet's looping rule). Sizes are arguments: a new particle count or
@@ -26,6 +28,7 @@
 
 #define PL_RAMP_FLOOR 1e-3f /* raybundle.RAMP_FLOOR */
 #define PL_SLOT 28          /* floats per slot, layout below */
+#define PL_NO_KEY (-(1 << 30)) /* the key of a slot without light: no row is near it */
 /* slot: 0 near col, 1 near row, 2 weight, 3-5 d weight / d(X', Y', s_i'),
  * 6 d col / d s_i', 7 d row / d s_i', 8-12 column shares, 13-17 their d / d col,
  * 18-22 row shares, 23-27 their d / d row */
@@ -53,12 +56,15 @@ inline void pl_share(float coord, float ramp, int *n, int *side, float *w, float
 inline float pl_spread(float x, float sigma, __global float *g, __global float *dg)
 {
     float near = rint(x), s2 = M_SQRT2_F * sigma, norm = M_2_SQRTPI_F / (2.0f * s2);
-    float e[6], gs[5], ds[5], total = 0.0f, dtotal = 0.0f;
-    for (int j = 0; j < 6; ++j)
+    float e[6], f[6], g2[6], gs[5], ds[5], total = 0.0f, dtotal = 0.0f;
+    for (int j = 0; j < 6; ++j) {
         e[j] = (near - 2.5f + j - x) / s2;
+        f[j] = erf(e[j]); /* each pixel edge's erf and exp once, shared by its pixels */
+        g2[j] = exp(-e[j] * e[j]);
+    }
     for (int i = 0; i < 5; ++i) {
-        gs[i] = 0.5f * (erf(e[i + 1]) - erf(e[i]));
-        ds[i] = (exp(-e[i] * e[i]) - exp(-e[i + 1] * e[i + 1])) * norm;
+        gs[i] = 0.5f * (f[i + 1] - f[i]);
+        ds[i] = (g2[i] - g2[i + 1]) * norm;
         total += gs[i];
         dtotal += ds[i];
     }
@@ -76,7 +82,7 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
                         int rays, __global const float *lenses, int rows, int cols,
                         float l00, float l01, float l10, float l11, float l20, float l21,
                         float s_i, float f_px, float spacing, float sigma,
-                        __global float *slots)
+                        __global float *slots, __global int *keys)
 {
     int ray = get_global_id(0), p = get_global_id(1);
     float s = points[3 * p + 2], rho = s_i / s;
@@ -98,7 +104,9 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
     float dly[3] = {rho * l01, rho * l11, dsx * l01 + dsy * l11};  /* d ky / d X', Y', s' */
     for (int a = 0; a < 2; ++a) {
         for (int b = 0; b < 2; ++b) {
-            __global float *slot = slots + (((long)p * rays + ray) * 4 + 2 * a + b) * PL_SLOT;
+            long index = ((long)p * rays + ray) * 4 + 2 * a + b;
+            __global float *slot = slots + index * PL_SLOT;
+            keys[index] = PL_NO_KEY;
             int kx = nx + a * sx, ky = ny + b * sy;
             float shx = a ? wx : 1.0f - wx, shy = b ? wy : 1.0f - wy;
             float gx = a ? dwx : -dwx, gy = b ? dwy : -dwy;
@@ -120,6 +128,7 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
             slot[7] = -f_px * ey / (s * s);
             slot[0] = pl_spread(lx + f_px * ex / s, sigma, slot + 8, slot + 13);
             slot[1] = pl_spread(ly + f_px * ey / s, sigma, slot + 18, slot + 23);
+            keys[index] = (int)slot[1];
         }
     }
 }
@@ -127,7 +136,7 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
 /* patches: per particle offset (long), col0, row0, width; row_pid, row_local: the
  * particle and patch row of each work-item; out: PL_DERIVATIVES ? 5 : 1 rows of `total`
  * elements (value, d / d X', Y', s_i', d / d intensity). */
-__kernel void render_rows(__global const float *slots, int rays,
+__kernel void render_rows(__global const float *slots, __global const int *keys, int rays,
                           __global const float *points, __global const float *intensity,
                           __global const long *offset, __global const int *col0,
                           __global const int *row0, __global const int *width,
@@ -148,11 +157,12 @@ __kernel void render_rows(__global const float *slots, int rays,
         for (int c = 0; c < wd; ++c)
             out[k * total + base + c] = 0.0f;
     __global const float *slot = slots + (long)p * rays * 4 * PL_SLOT;
+    __global const int *key = keys + (long)p * rays * 4;
     for (int i = 0; i < 4 * rays; ++i, slot += PL_SLOT) {
-        float w = slot[2];
-        int dr = srow - (int)slot[1];
-        if (!(w > 0.0f) || dr < -2 || dr > 2)
+        int dr = srow - key[i];
+        if (dr < -2 || dr > 2)
             continue;
+        float w = slot[2];
         float gy = slot[20 + dr], dgy = slot[25 + dr];
         int lc0 = (int)slot[0] - 2 - c0;
         for (int c = 0; c < 5; ++c) {

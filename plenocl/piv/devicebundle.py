@@ -87,22 +87,42 @@ class DeviceRayBundle:
     def _render(self, points: np.ndarray, intensity: np.ndarray, patches: Patches,
                 derivatives: bool) -> np.ndarray:
         """Both kernels for one set of particles; the rows on the host."""
-        k = self._kernels(derivatives)
-        n, rays, total = len(points), self.bundle.rays, int(patches.offset[-1])
-        if n == 0 or total == 0:
+        total = int(patches.offset[-1])
+        if len(points) == 0 or total == 0:
             return np.zeros((5 if derivatives else 1, total), f32)
-        out = k.array((5 if derivatives else 1) * total)
+        out = self._kernels(derivatives).array((5 if derivatives else 1) * total)
+        self._launch(points, intensity, patches, derivatives, out, total)
+        return out.get().reshape(-1, total)
+
+    def render_into(self, image_points: np.ndarray, intensity: np.ndarray,
+                    patches: Patches, derivatives: bool, out, total: int) -> None:
+        """Render into the device array ``out`` and leave the rows there.
+
+        ``out`` holds the rows (5 with ``derivatives``, else 1) of ``total`` elements each;
+        ``patches.offset`` places each particle's patch in them (so that chunks of
+        particles fill one buffer). Every element of every patch is written.
+        """
+        if len(image_points) == 0:
+            return
+        with self._lock:
+            self._launch(np.asarray(image_points, f32), np.asarray(intensity, f32), patches,
+                         bool(derivatives), out, total)
+
+    def _launch(self, points: np.ndarray, intensity: np.ndarray, patches: Patches,
+                derivatives: bool, out, total: int) -> None:
+        """Enqueue both kernels for one set of particles, rows into ``out``."""
+        k = self._kernels(derivatives)
+        n, rays = len(points), self.bundle.rays
         pts = k.to_device(points)
-        slots = k.array(n * rays * 4 * SLOT)
+        slots, keys = k.array(n * rays * 4 * SLOT), k.array(n * rays * 4, i32)
         rows, cols = self.bundle.lenses.shape[:2]
         k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays), self._lenses,
-                 i32(rows), i32(cols), *self._optics, slots)
+                 i32(rows), i32(cols), *self._optics, slots, keys)
         row_pid = np.repeat(np.arange(n, dtype=i32), patches.height)
         first = np.cumsum(patches.height) - patches.height  # each patch's first item
         row_local = (np.arange(len(row_pid)) - np.repeat(first, patches.height)).astype(i32)
         arrays = [k.to_device(a) for a in (
             intensity, patches.offset.astype(i64), patches.col0.astype(i32),
             patches.row0.astype(i32), patches.width.astype(i32), row_pid, row_local)]
-        k.launch("render_rows", (len(row_pid),), slots, i32(rays), pts, *arrays,
+        k.launch("render_rows", (len(row_pid),), slots, keys, i32(rays), pts, *arrays,
                  self._f_px, i64(total), out)
-        return out.get().reshape(-1, total)

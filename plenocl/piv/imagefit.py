@@ -27,6 +27,7 @@ from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
 from ..threads import thread_count
 from .devicebundle import DeviceRayBundle
+from .fitsums import DeviceFitSums
 
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
@@ -100,15 +101,22 @@ class ImageFit:
         An OpenCL queue (the pipeline's projector's): the particles are rendered on its
         device (:class:`plenocl.piv.devicebundle.DeviceRayBundle`, float32); ``None``:
         on the host (:class:`RayBundle`, NumPy, float64).
+    host_sums
+        With a ``queue``: sum the normal equations, the model image and the residual on
+        the host (NumPy, the rows brought back) instead of on the device
+        (:class:`plenocl.piv.fitsums.DeviceFitSums`, float32); the previous path,
+        kept for comparison.
     """
 
     def __init__(self, camera, grid, images, settings: ImageFitSettings | None = None,
-                 queue=None):
+                 queue=None, host_sums: bool = False):
         self.settings = ImageFitSettings() if settings is None else settings
         self.bundle = RayBundle.of(camera, self.settings.rays, self.settings.blur_px)
         self.renderer = self.bundle if queue is None else DeviceRayBundle(self.bundle, queue)
+        self.sums = (None if queue is None or host_sums
+                     else DeviceFitSums(self.renderer, self.settings.chunk))
         self.grid = grid
-        self.images = []
+        self.images, self._device_images = [], {}
         for raw in images:
             img, noise = subtract_background(check_image(raw, camera))
             self.images.append((img.astype(np.float64).ravel(), max(noise, 1e-12)))
@@ -138,14 +146,16 @@ class ImageFit:
         prior = self._prior_mm()
         start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         p, sigma = start.copy(), np.broadcast_to(prior, start.shape).copy()
-        intensity = self._start_intensity(data, p)
+        device = self.sums is not None and self.sums.fits(
+            self.bundle.patches(self.bundle.camera.image_points(p)))
+        intensity = (self._device_start(index, p) if device
+                     else self._start_intensity(data, p))
         for _ in range(self.settings.iterations):
-            renders = [self._render(p[part], intensity[part]) for part in self._chunks(len(p))]
-            # one sensor-sized sum per step (not one per chunk); the same order of additions
-            model = np.bincount(np.concatenate([r[3] for r in renders]),
-                                np.concatenate([r[4][0] for r in renders]), minlength=data.size)
-            step, intensity_step, sigma = self._step(data, model, noise, p, start, prior,
-                                                     renders)
+            if device:
+                normal, rhs, scatter = self._device_sums(index, noise, p, intensity)
+            else:
+                normal, rhs, scatter = self._host_sums(data, noise, p, intensity)
+            step, intensity_step, sigma = self._solve(normal, rhs, scatter, p - start, prior)
             p += step
             intensity = np.maximum(intensity + intensity_step, 0.0)
         return FittedParticles(p, intensity, sigma)
@@ -178,25 +188,67 @@ class ImageFit:
                 np.bincount(pid, unit**2, minlength=n), 1e-30)
         return np.maximum(out, 0.0)
 
-    def _step(self, data, model, noise, p, start, prior, renders):
-        """One damped Gauss-Newton step of every particle (position mm, intensity) and
-        the posterior standard deviation of each position, from the chunks' ``renders``
-        at ``p`` (:meth:`_render`, with derivatives) and their summed image ``model``."""
+    def _device_start(self, index: int, p: np.ndarray) -> np.ndarray:
+        """:meth:`_start_intensity` with the sums on the device."""
+        pts = self.bundle.camera.image_points(p)
+        sums = self.sums.unit_sums(self._device_image(index), pts, self.bundle.patches(pts))
+        return np.maximum(sums[:, 0] / np.maximum(sums[:, 1], 1e-30), 0.0)
+
+    def _device_image(self, index: int):
+        """Exposure ``index``'s image on the device (uploaded once)."""
+        if index not in self._device_images:
+            cols, rows = self.bundle.camera.pixels
+            self._device_images[index] = self.sums.upload(
+                self.images[index][0].reshape(rows, cols))
+        return self._device_images[index]
+
+    def _device_sums(self, index: int, noise: float, p: np.ndarray, intensity: np.ndarray):
+        """:meth:`_host_sums` with the rendering, the model image and the sums on the
+        device (:class:`DeviceFitSums`)."""
+        pts = self.bundle.camera.image_points(p)
+        sums = self.sums.normal_sums(self._device_image(index), pts, intensity,
+                                     self.bundle.patches(pts),
+                                     _to_object(self.bundle.camera, p, pts))
+        upper = np.triu_indices(4)
+        normal = np.zeros((len(p), 4, 4))
+        normal[:, upper[0], upper[1]] = normal[:, upper[1], upper[0]] = sums[:, :10]
+        mean_sq = sums[:, 15] / np.maximum(sums[:, 14], 1.0)
+        return normal, sums[:, 10:14].copy(), np.maximum(np.sqrt(mean_sq), noise)
+
+    def _host_sums(self, data: np.ndarray, noise: float, p: np.ndarray,
+                   intensity: np.ndarray):
+        """Every particle's ``J^T J`` ``(n, 4, 4)``, ``J^T r`` ``(n, 4)`` (position columns
+        in object coordinates) and residual scatter ``(n,)`` at ``p``, against the image
+        of all particles, rendered chunk by chunk and summed on the host."""
         n = len(p)
-        steps, sigmas = np.zeros((n, 4)), np.zeros((n, 3))
+        renders = [self._render(p[part], intensity[part]) for part in self._chunks(n)]
+        # one sensor-sized sum per step (not one per chunk); the same order of additions
+        model = np.bincount(np.concatenate([r[3] for r in renders]),
+                            np.concatenate([r[4][0] for r in renders]), minlength=data.size)
+        normal, rhs, scatter = np.zeros((n, 4, 4)), np.zeros((n, 4)), np.zeros(n)
         for part, (pts, patches, pid, pixel, rows) in zip(self._chunks(n), renders,
                                                           strict=True):
-            normal, rhs = _normal_equations(rows, data[pixel] - model[pixel], pid,
-                                            _to_object(self.bundle.camera, p[part], pts),
-                                            part.stop - part.start)
-            scatter = _residual_noise(rows[0], data[pixel] - model[pixel], pid, patches, noise)
-            normal /= scatter[:, None, None] ** 2
-            rhs /= scatter[:, None] ** 2
-            normal[:, :3, :3] += np.diag(1.0 / prior**2)
-            rhs[:, :3] -= (p[part] - start[part]) / prior**2
-            sigmas[part] = np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal), axis1=1,
+            residual = data[pixel] - model[pixel]
+            normal[part], rhs[part] = _normal_equations(
+                rows, residual, pid, _to_object(self.bundle.camera, p[part], pts),
+                part.stop - part.start)
+            scatter[part] = _residual_noise(rows[0], residual, pid, patches, noise)
+        return normal, rhs, scatter
+
+    def _solve(self, normal, rhs, scatter, offset, prior):
+        """One damped Gauss-Newton step of every particle (position mm, intensity) and
+        the posterior standard deviation of each position, from the sums at ``p``
+        (:meth:`_host_sums`) and ``offset = p - start``; chunk by chunk."""
+        n = len(offset)
+        steps, sigmas = np.zeros((n, 4)), np.zeros((n, 3))
+        normal = normal / scatter[:, None, None] ** 2
+        rhs = rhs / scatter[:, None] ** 2
+        normal[:, :3, :3] += np.diag(1.0 / prior**2)
+        rhs[:, :3] -= offset / prior**2
+        for part in self._chunks(n):
+            sigmas[part] = np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal[part]), axis1=1,
                                                       axis2=2)[:, :3]))
-            steps[part] = _damped_solve(normal, rhs, self.settings.damping)
+            steps[part] = _damped_solve(normal[part], rhs[part], self.settings.damping)
         limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
         return np.clip(steps[:, :3], -limit, limit), steps[:, 3], sigmas
 

@@ -1,0 +1,165 @@
+"""The image fit's per-particle sums on the OpenCL device (docs/design.md §7.2).
+
+:class:`DeviceFitSums` renders every particle's patch rows with a
+:class:`plenocl.piv.devicebundle.DeviceRayBundle` into one device buffer and reduces them
+there with ``kernels/imagefit.cl``: the model image of all particles, each particle's
+Gauss-Newton normal equations and residual scatter, and the start intensity's sums. Only
+16 floats per particle come back to the host, which solves the 4 x 4 systems
+(:class:`plenocl.piv.imagefit.ImageFit`). The host's NumPy sums stay the path without a
+queue; ``plenocl.reference.imagefit`` holds the kernels' twins.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pyopencl.array as cl_array
+
+from ..device import is_cpu
+from ..optics.raybundle import Patches
+from ..program import KernelSet
+from .devicebundle import DeviceRayBundle
+
+i32, i64, f32 = np.int32, np.int64, np.float32
+_KERNELS = ("patch_model", "normal_sums", "unit_sums")
+#: Work-items per particle of the sums on a GPU (a power of two; 1 on a CPU).
+GPU_GROUP = 64
+#: Sensor columns per work-item of the model image: one on a GPU, a run on a CPU.
+MODEL_BLOCK = {False: 1, True: 256}
+
+
+class DeviceFitSums:
+    """The fit's sums on ``renderer``'s queue.
+
+    Parameters
+    ----------
+    renderer
+        The device ray bundle that renders the particles' rows.
+    chunk
+        Particles rendered at once (bounds the rays' scratch memory).
+    group
+        Work-items per particle of the sums (a power of two); ``None``: 1 on a CPU,
+        :data:`GPU_GROUP` elsewhere.
+
+    Notes
+    -----
+    One computation at a time per object (a lock): both exposures' fits may run on two
+    threads (:meth:`plenocl.piv.imagefit.ImageFit.refine_pair`).
+    """
+
+    def __init__(self, renderer: DeviceRayBundle, chunk: int, group: int | None = None
+                 ) -> None:
+        self.renderer = renderer
+        self.chunk = int(chunk)
+        cpu = is_cpu(renderer.queue.device)
+        self.group = (1 if cpu else GPU_GROUP) if group is None else int(group)
+        if self.group < 1 or self.group & (self.group - 1):
+            raise ValueError(f"group must be a power of two, got {group!r}")
+        self._k = KernelSet(renderer.queue, "imagefit.cl", _KERNELS,
+                            [f"-DPL_GROUP={self.group}"], looping=["patch_model"])
+        self._block = MODEL_BLOCK[cpu]
+        self._lock = threading.Lock()
+
+    def upload(self, image: np.ndarray) -> cl_array.Array:
+        """A device copy (float32) of a sensor-shaped ``(rows, cols)`` image."""
+        return self._k.to_device(np.asarray(image, f32))
+
+    def fits(self, patches: Patches) -> bool:
+        """Whether the rows of ``patches`` (with derivatives) fit one device buffer."""
+        return 5 * 4 * int(patches.offset[-1]) <= self.renderer.queue.device.max_mem_alloc_size
+
+    def unit_sums(self, data: cl_array.Array, image_points: np.ndarray,
+                  patches: Patches) -> np.ndarray:
+        """Per particle ``(n, 2)``: ``sum(unit * data)`` and ``sum(unit^2)`` of its image
+        at unit intensity, over its patch; ``data`` from :meth:`upload`."""
+        n = len(image_points)
+        if n == 0:
+            return np.zeros((0, 2))
+        with self._lock:
+            unit = self._render(image_points, np.ones(n), patches, False)
+            return self.reduce_units(unit, data, patches)
+
+    def normal_sums(self, data: cl_array.Array, image_points: np.ndarray,
+                    intensity: np.ndarray, patches: Patches, jac: np.ndarray) -> np.ndarray:
+        """Per particle ``(n, 16)``: ``J^T J`` (upper triangle, row by row), ``J^T r``,
+        the lit elements and their summed squared residuals
+        (:func:`plenocl.reference.imagefit.normal_sums`), against the model image of all
+        ``n`` particles; ``jac`` ``(n, 3, 3)``: ``d (X', Y', s_i') / d (x, y, z)``."""
+        n = len(image_points)
+        if n == 0:
+            return np.zeros((0, 16))
+        with self._lock:
+            rows = self._render(image_points, intensity, patches, True)
+            model = self.model(rows, patches, data.shape)
+            return self.reduce_normals(rows, data, model, patches, jac)
+
+    def reduce_units(self, unit: cl_array.Array, data: cl_array.Array,
+                     patches: Patches) -> np.ndarray:
+        """The ``unit_sums`` kernel on rendered value rows ``unit`` (device, float32):
+        :func:`plenocl.reference.imagefit.unit_sums`, ``(n, 2)`` float64."""
+        n = len(patches.width)
+        out = self._k.array(2 * n)
+        self._k.launch("unit_sums", (n * self.group,), unit, data, *self._geometry(patches),
+                       *_sensor(data), out, local_size=(self.group,))
+        return out.get().reshape(n, 2).astype(np.float64)
+
+    def reduce_normals(self, rows: cl_array.Array, data: cl_array.Array,
+                       model: cl_array.Array, patches: Patches, jac: np.ndarray) -> np.ndarray:
+        """The ``normal_sums`` kernel on rendered ``rows`` (device, 5 rows of the patches'
+        elements): :func:`plenocl.reference.imagefit.normal_sums`, ``(n, 16)`` float64."""
+        n = len(patches.width)
+        out = self._k.array(16 * n)
+        self._k.launch("normal_sums", (n * self.group,), rows, i64(patches.offset[-1]),
+                       data, model, *self._geometry(patches), *_sensor(data),
+                       self._k.to_device(np.asarray(jac, f32)), out, local_size=(self.group,))
+        return out.get().reshape(n, 16).astype(np.float64)
+
+    def _render(self, image_points: np.ndarray, intensity: np.ndarray, patches: Patches,
+                derivatives: bool) -> cl_array.Array:
+        """Every particle's rows into one device buffer, ``chunk`` particles at a time."""
+        total = int(patches.offset[-1])
+        rows = self._k.array((5 if derivatives else 1) * total)
+        for start in range(0, len(image_points), self.chunk):
+            part = slice(start, start + self.chunk)
+            sub = Patches(patches.offset[start:part.stop + 1], patches.col0[part],
+                          patches.row0[part], patches.width[part], patches.height[part])
+            self.renderer.render_into(image_points[part], intensity[part], sub,
+                                      derivatives, rows, total)
+        return rows
+
+    def model(self, values: cl_array.Array, patches: Patches,
+              shape: tuple[int, int]) -> cl_array.Array:
+        """The sum of every particle's value patch (the first row of ``values``) on the
+        sensor ``shape`` ``(rows, cols)``: the ``patch_model`` kernel,
+        :func:`plenocl.reference.imagefit.patch_model`."""
+        row_start, row_list = _rows_covered(patches, shape[0])
+        model = self._k.array(shape)
+        blocks = -(-shape[1] // self._block)
+        self._k.launch("patch_model", (blocks, shape[0]), values,
+                       *self._geometry(patches)[:4], self._k.to_device(row_start),
+                       self._k.to_device(row_list), i32(shape[1]), i32(self._block), model)
+        return model
+
+    def _geometry(self, patches: Patches) -> list[cl_array.Array]:
+        """The patches' offset (long), col0, row0, width and height (int) on the device."""
+        return [self._k.to_device(patches.offset.astype(i64))] + [
+            self._k.to_device(a.astype(i32))
+            for a in (patches.col0, patches.row0, patches.width, patches.height)]
+
+
+def _sensor(image: cl_array.Array) -> tuple[np.int32, np.int32]:
+    """``(cols, rows)`` of a sensor-shaped device image, as kernel arguments."""
+    return i32(image.shape[1]), i32(image.shape[0])
+
+
+def _rows_covered(patches: Patches, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR table of the particles whose patch covers each sensor row (in particle order):
+    ``row_start`` ``(rows + 1,)`` and ``row_list`` (int32)."""
+    on = np.clip(rows - patches.row0, 0, patches.height)
+    pid = np.repeat(np.arange(len(on), dtype=i32), on)
+    first = np.cumsum(on) - on
+    sensor_row = patches.row0[pid] + np.arange(len(pid)) - np.repeat(first, on)
+    order = np.argsort(sensor_row, kind="stable")
+    counts = np.bincount(sensor_row, minlength=rows)
+    return np.concatenate([[0], np.cumsum(counts)]).astype(i32), pid[order]

@@ -1,0 +1,124 @@
+"""The image fit's sums on the device (kernels/imagefit.cl, plenocl/piv/fitsums.py)
+against their NumPy twins (plenocl/reference/imagefit.py) on awkward patches, and the
+fit with them against the fit summed on the host."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tolerances as tol
+
+from plenocl.bench.accuracy_section import paper_optics
+from plenocl.optics.raybundle import Patches, RayBundle
+from plenocl.piv.devicebundle import DeviceRayBundle
+from plenocl.piv.fitsums import DeviceFitSums
+from plenocl.piv.imagefit import ImageFit, ImageFitSettings
+from plenocl.reference import imagefit as ref
+from plenocl.reference.simulate import trace_particles
+
+CAM, GRID = paper_optics((32, 24))
+VOXEL = np.array([GRID.spacing[2], GRID.spacing[1], GRID.spacing[0]])  # (x, y, z) mm
+SENSOR = (53, 71)  # (rows, cols): not multiples of any work-group or column block
+
+
+def awkward_patches(count: int, rng: np.random.Generator) -> Patches:
+    """``count`` patches on a ``SENSOR``: random ones, one cut by the right and bottom
+    edges, a 1 x 1 one, one wider than a GPU group, and one wholly off the sensor (as
+    :meth:`RayBundle.patches` clips it: one column at ``col0 = cols``)."""
+    rows, cols = SENSOR
+    col0, row0 = rng.integers(0, cols - 2, count), rng.integers(0, rows - 2, count)
+    width = np.minimum(rng.integers(1, 40, count), cols - col0)
+    height = np.minimum(rng.integers(1, 30, count), rows - row0)
+    special = [(cols - 9, rows - 4, 9, 4), (5, 7, 1, 1), (0, 2, cols, 3), (cols, 10, 1, 6)]
+    for k, patch in enumerate(special[:count]):
+        col0[k], row0[k], width[k], height[k] = patch
+    offset = np.concatenate([[0], np.cumsum(width * height)])
+    return Patches(offset, col0, row0, width, height)
+
+
+def sparse_rows(patches: Patches, rng: np.random.Generator, count: int = 5) -> np.ndarray:
+    """Rows ``(count, total)`` float32 like rendered ones: light on a third of the
+    elements (positive value and d/dI), zero elsewhere."""
+    total = int(patches.offset[-1])
+    lit = rng.random(total) < 0.35
+    rows = rng.normal(0.0, 1.0, (count, total)) * lit
+    rows[0] = rng.uniform(0.0, 50.0, total) * lit
+    if count == 5:
+        rows[4] = rows[0] / 40.0
+    return rows.astype(np.float32)
+
+
+@pytest.fixture(params=[None, 64], ids=["device-group", "group64"])
+def sums(queue, request) -> DeviceFitSums:
+    """The sums with the device's work-group (1 on a CPU) and with a GPU's 64."""
+    return DeviceFitSums(DeviceRayBundle(RayBundle.of(CAM, rays=64), queue), chunk=5,
+                         group=request.param)
+
+
+@pytest.mark.parametrize("count", [1, 4, 7, 37])
+def test_model_matches_reference(sums, count):
+    rng = np.random.default_rng(count)
+    patches = awkward_patches(count, rng)
+    rows = sparse_rows(patches, rng, 1)
+    got = sums.model(sums.upload(rows[0]), patches, SENSOR).get()
+    want = ref.patch_model(rows[0].astype(np.float64), patches, SENSOR)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, rtol=tol.ROUNDING * 10, atol=tol.ROUNDING * 10 * 50)
+
+
+@pytest.mark.parametrize("count", [1, 4, 7, 37])
+def test_normal_sums_match_reference(sums, count):
+    """Every sum, against float64: each within float32 rounding of the sum of the
+    magnitudes of its terms (the lit count exactly)."""
+    rng = np.random.default_rng(10 + count)
+    patches = awkward_patches(count, rng)
+    rows = sparse_rows(patches, rng)
+    data = rng.uniform(-5.0, 60.0, SENSOR)
+    model = rng.uniform(0.0, 50.0, SENSOR).astype(np.float32)
+    jac = rng.normal(0.0, 1.0, (count, 3, 3))
+    got = sums.reduce_normals(sums.upload(rows.ravel()), sums.upload(data),
+                              sums.upload(model), patches, jac)
+    want = ref.normal_sums(rows.astype(np.float64), data.astype(np.float32).astype(np.float64),
+                           model.astype(np.float64), patches, jac.astype(np.float32))
+    scale = ref.normal_sums(np.abs(rows.astype(np.float64)), np.abs(data) + np.abs(model),
+                            np.zeros(SENSOR), patches, np.abs(jac))
+    assert np.isfinite(got).all()
+    np.testing.assert_array_equal(got[:, 14], want[:, 14])
+    assert np.all(np.abs(got - want) <= 1e-5 * scale + 1e-30), np.abs(got - want) / scale
+
+
+@pytest.mark.parametrize("count", [1, 7, 37])
+def test_unit_sums_match_reference(sums, count):
+    rng = np.random.default_rng(20 + count)
+    patches = awkward_patches(count, rng)
+    unit = sparse_rows(patches, rng, 1)[0] / 40.0
+    data = rng.uniform(-5.0, 60.0, SENSOR).astype(np.float32)
+    got = sums.reduce_units(sums.upload(unit), sums.upload(data), patches)
+    want = ref.unit_sums(unit.astype(np.float64), data.astype(np.float64), patches)
+    scale = ref.unit_sums(unit.astype(np.float64), np.abs(data.astype(np.float64)), patches)
+    assert np.all(np.abs(got - want) <= 1e-5 * scale + 1e-30)
+
+
+def test_fit_with_device_sums_matches_host_sums(queue):
+    """The same device-rendered fit, summed on the device and on the host: positions
+    within float32 tolerance, intensities close; no particles gives no positions."""
+    rng = np.random.default_rng(2)
+    true = np.column_stack([rng.uniform(-1.5, 1.5, 11), rng.uniform(-1.2, 1.2, 11),
+                            rng.uniform(-8.0, 8.0, 11)])
+    start = true + np.array([0.3, -0.3, 1.5]) * VOXEL
+    img = trace_particles(CAM, true, 4000.0, 40_000, seed=4, blur_px=0.8)
+    img = img + 20.0 + np.random.default_rng(4).normal(0.0, 1.0, img.shape)
+    fits = [ImageFit(CAM, GRID, [img], ImageFitSettings(chunk=4), queue=queue,
+                     host_sums=host) for host in (True, False)]
+    assert fits[1].sums is not None and fits[0].sums is None
+    host, device = (f.fit(0, start) for f in fits)
+    assert np.abs(device.positions - host.positions).max(axis=0) / VOXEL == \
+        pytest.approx(np.zeros(3), abs=tol.IMAGEFIT_POSITION_VOXELS)
+    assert device.intensities == pytest.approx(host.intensities, rel=1e-3)
+    assert device.sigma == pytest.approx(host.sigma, rel=1e-3)
+    assert fits[1].refine(0, np.zeros((0, 3))).shape == (0, 3)
+
+
+def test_group_must_be_a_power_of_two(queue):
+    with pytest.raises(ValueError, match="power of two"):
+        DeviceFitSums(DeviceRayBundle(RayBundle.of(CAM, rays=64), queue), 8, group=48)
