@@ -13,6 +13,7 @@ from plenocl.cli.main import main
 from plenocl.io import write_tiff
 from plenocl.metrics import quality_q, recovery, render_particles
 from plenocl.optics.rawimage import subtract_background
+from plenocl.pipeline.settings import PAIR_RECONSTRUCTION
 from plenocl.reconstruction import Solver, extent_box, nonzero_box
 from plenocl.simulate import simulate_image
 from plenocl.volumefile import load_volume
@@ -258,7 +259,9 @@ def test_process_pair_runs_the_default_chain(queue):
     pair = plenocl.process_pair(raw_a, raw_b, Projector(cam, grid, queue))
     assert pair.vol_a.shape == pair.vol_b.shape == grid.shape
     assert set(pair.seconds) == {"reconstruct_a", "reconstruct_b", "piv", "particles"}
-    assert (pair.info_a.coarse_iterations, pair.info_a.iterations) == (10, 10)
+    rec = PAIR_RECONSTRUCTION
+    assert (pair.info_a.coarse_iterations, pair.info_a.iterations) == (
+        rec.coarse_iterations, rec.iterations)
     assert 0 < pair.info_a.support_fraction < 1
     u = pair.piv.u[pair.piv.valid]
     assert np.median(u) == pytest.approx(2.0, abs=0.15)

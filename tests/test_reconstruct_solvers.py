@@ -192,7 +192,9 @@ def test_masking_keeps_zero_voxels_zero_and_callback_can_stop(tiny):
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    (dict(relax=0.0), "0 < μ <= 1"), (dict(relax=1.5), "0 < μ <= 1"),
+    (dict(relax=0.0), "0 < μ < 2"), (dict(relax=2.0), "0 < μ < 2 for MLEM"),
+    (dict(method="smart", relax=1.5), "0 < μ <= 1 for SMART"),
+    (dict(method="mart", relax=1.01), "0 < μ <= 1 for MART"),
     (dict(method="art"), "method must be"), (dict(iterations=-1), "non-negative"),
     (dict(mask_fraction=2.0), "mask_fraction"), (dict(start="random"), "start must be"),
     (dict(ratio_floor=0.3), "geometric-mean methods"),

@@ -20,7 +20,7 @@ from plenocl.cli.main import build_parser
 from plenocl.cli.volume import reconstruction_settings
 from plenocl.io.tomlfile import read_toml, write_toml
 from plenocl.options import NONE
-from plenocl.pipeline.settings import PAIR_SUPERSAMPLE
+from plenocl.pipeline.settings import PAIR_COARSE, PAIR_RELAX, PAIR_SUPERSAMPLE
 from plenocl.piv.imagefit import ImageFitSettings
 from plenocl.reconstruction import DEFAULTS
 
@@ -108,17 +108,20 @@ def test_defaults_agree():
     assert pair.particles and pair.image_fit == ImageFitSettings()
     assert pair.piv == PIVSettings()
     assert PairSettings.from_dict({}) == pair
-    assert PairSettings.from_dict({"reconstruction": {"iterations": 10}}) == pair
+    assert PairSettings.from_dict({"reconstruction": {"iterations": 7}}) == pair
     rec = pair.reconstruction
-    assert (rec.coarse_iterations, rec.support, rec.iterations) == (10, 0.01, 10)
+    assert (rec.coarse_iterations, rec.support, rec.iterations, rec.relax) == (
+        PAIR_COARSE["coarse_iterations"], 0.01, 7, PAIR_RELAX) == (5, 0.01, 7, 1.5)
     args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
                                       "g", "--out", "v.npz"])
     assert reconstruction_settings(args) == rec
     # the voxels themselves, or another method, keep the method's own iterations
     one = PairSettings.from_dict({"reconstruction": {"supersample": 1}}).reconstruction
-    assert one.iterations == DEFAULTS["mlem"][0] and one.coarse_iterations == 0
+    assert (one.iterations, one.relax) == DEFAULTS["mlem"] and one.coarse_iterations == 0
     mart = PairSettings.from_dict({"reconstruction": {"method": "mart"}}).reconstruction
-    assert mart.iterations == DEFAULTS["mart"][0] and mart.coarse_iterations == 10
+    assert (mart.iterations, mart.relax) == DEFAULTS["mart"] and mart.coarse_iterations == 5
+    given = PairSettings.from_dict({"reconstruction": {"relax": 1.0}}).reconstruction
+    assert (given.relax, given.iterations) == (1.0, 7)
     args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
                                       "g", "--out", "v.npz", "--supersample", "1"])
     assert reconstruction_settings(args) == one

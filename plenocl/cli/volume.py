@@ -182,7 +182,9 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
                    help="default: per method (mlem and smart 30, mart 15; mlem on "
                         f"sub-voxels after coarse iterations {PAIR_FINE_ITERATIONS}); 0 "
                         "returns the start")
-    p.add_argument("--relax", type=float, default=None, help="relaxation 0 < mu <= 1")
+    p.add_argument("--relax", type=float, default=None,
+                   help="relaxation: 0 < mu < 2 for mlem (default 1.5 on sub-voxels after "
+                        "coarse iterations, else 1), 0 < mu <= 1 for smart and mart")
     p.add_argument("--start", default="uniform", choices=["uniform", "mlos"],
                    help="first guess: a uniform volume carrying the image's light, or MLOS")
     p.add_argument("--background", default="median", choices=["median", "none"],
