@@ -30,6 +30,7 @@ from plenocl.bench.core import particle_scene  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
+from plenocl.pipeline.settings import PAIR_RECONSTRUCTION  # noqa: E402
 from plenocl.reconstruction import ReconstructionSettings, reconstruct  # noqa: E402
 
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
@@ -40,6 +41,9 @@ SETTINGS = {
                                                        coarse_iterations=0),
     "coarse-to-fine 10 + 10": ReconstructionSettings(supersample=3, iterations=10,
                                                      coarse_iterations=10, support=1e-2),
+    "pair default (5 + 7, μ 1.5)": PAIR_RECONSTRUCTION,
+    "5 + 10, μ 1.5": ReconstructionSettings(supersample=3, iterations=10, relax=1.5,
+                                            coarse_iterations=5, support=1e-2),
 }
 
 
@@ -53,7 +57,7 @@ def main() -> None:
     proj = Projector(cam, CUBIC, queue)
     print(f"device: {queue.device.name.strip()}; grid {CUBIC.shape}, voxel "
           f"{CUBIC.spacing[0]:.3f} mm; {args.scenes} scenes per count")
-    print(f"{'particles':>9s} {'reconstruction':26s} {'recovered':>9s} {'min':>5s} "
+    print(f"{'particles':>9s} {'reconstruction':28s} {'recovered':>9s} {'min':>5s} "
           f"{'ghosts':>6s} {'Q':>5s} {'s':>5s}")
     for count in args.counts:
         stats = {label: [] for label in SETTINGS}
@@ -67,7 +71,7 @@ def main() -> None:
                                      t))
         for label, rows in stats.items():
             a = np.array(rows)
-            print(f"{count:9d} {label:26s} {a[:, 0].mean():9.1%} {a[:, 0].min():5.0%} "
+            print(f"{count:9d} {label:28s} {a[:, 0].mean():9.1%} {a[:, 0].min():5.0%} "
                   f"{a[:, 1].mean():6.1%} {a[:, 2].mean():5.2f} {np.median(a[:, 3]):5.1f}",
                   flush=True)
 
