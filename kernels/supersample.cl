@@ -1,8 +1,10 @@
 /* Lateral binning of a supersampled reconstruction (docs/design.md §6.4-6.5): each
  * output voxel is the sum of its factor x factor lateral sub-voxels, times a scale (the
- * image's scaling), so that only the binned volume crosses to the host. NumPy twin:
- * plenocl/reconstruction/supersample.py (bin_lateral). Sizes are arguments; one build
- * serves every shape and factor.
+ * image's scaling), so that only the binned volume crosses to the host; and its flat
+ * inverse, the spreading of a coarse start over the sub-voxels, so that only the coarse
+ * volume crosses to the device. NumPy twins: plenocl/reconstruction/supersample.py
+ * (bin_lateral, spread_lateral). Sizes are arguments; one build serves every shape and
+ * factor.
  *
  * Parallel structure: one work-item per output voxel of a depth slab, a gather of its
  * factor x factor sub-voxels; no atomics. The slab may be a cropped part of the fine grid
@@ -38,4 +40,16 @@ __kernel void bin_lateral(__global const float *fine, int nyf, int nxf, int oy, 
         sum += row_sum;
     }
     out[j] = sum;
+}
+
+/* fine[z][y][x] = coarse[z][y / factor][x / factor] * scale (scale: 1 / factor^2 over the
+ * image's scaling). Parallel structure: one work-item per sub-voxel of a depth slab, a
+ * gather of its one coarse voxel; no atomics. */
+__kernel void spread_lateral(__global const float *coarse, int ny, int nx, int factor,
+                             float scale, __global float *fine, int nyf, int nxf, int n)
+{
+    const int j = get_global_id(0);
+    if (j >= n) return;
+    const int x = j % nxf, y = (j / nxf) % nyf, z = j / (nxf * nyf);
+    fine[j] = coarse[((size_t)z * ny + y / factor) * nx + x / factor] * scale;
 }

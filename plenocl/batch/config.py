@@ -28,8 +28,9 @@ Example::
     pair_interval_s = 0.01               # between successive pairs: the time axis
     [reconstruction]                     # every ReconstructionSettings option
     method = "mlem"
-    iterations = 10                      # on the sub-voxels, after
-    coarse_iterations = 10               # iterations on the voxels (docs/design.md §6.5)
+    iterations = 7                       # on the sub-voxels, after
+    coarse_iterations = 5                # iterations on the voxels (docs/design.md §6.5)
+    relax = 1.5                          # MLEM over-relaxed, 0 < relax < 2
     supersample = 3                      # lateral sub-voxels per voxel (1: the voxels,
                                          # depth about 3x worse; docs/design.md §6.4)
     [piv]                                # every PIVSettings option, and ensemble

@@ -44,7 +44,7 @@ from .images import PreparedImage, prepare_image
 from .operator import ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
-from .supersample import bin_lateral, spread_lateral
+from .supersample import bin_lateral
 
 
 def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
@@ -218,14 +218,15 @@ def _refined(projector, factor: int):
                           "1, is the grid itself) needs less") from err
 
 
-def _fine_start(start, grid, factor: int):
-    """A start volume given on the grid, spread over its sub-voxels (a name as it is)."""
+def _coarse_start(start, grid) -> np.ndarray | None:
+    """A start volume given on the grid (the fine run spreads it over the sub-voxels on
+    the device), checked for its shape; ``None`` for a named start."""
     if not isinstance(start, np.ndarray):
-        return start
+        return None
     if start.shape != grid.shape:
         raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
                          f"{grid.shape} (nz, ny, nx)")
-    return spread_lateral(start, factor)
+    return start
 
 
 def _numbered(callback, offset: int):
@@ -244,8 +245,8 @@ def _supersampled(prepared: PreparedImage, projector, refined,
     coarse run on the voxels first (its iterations are the callback's first ones:
     docs/design.md §6.5; an empty or stopped coarse run returns the coarse grid's)."""
     f = settings.supersample
-    start, support, done = _fine_start(settings.start, projector.grid, f), None, 0
-    if settings.coarse_iterations and isinstance(start, str):
+    start, support, done = _coarse_start(settings.start, projector.grid), None, 0
+    if settings.coarse_iterations and start is None:
         coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                               iterations=settings.coarse_iterations)
         coarse, coarse_info = _solve(prepared, projector, coarse_settings, callback)
@@ -256,9 +257,10 @@ def _supersampled(prepared: PreparedImage, projector, refined,
         if coarse_info.iterations < coarse_settings.iterations and not coarse_info.converged:
             return coarse, coarse_info  # the callback stopped the reconstruction
         done = coarse_info.iterations
-    fine = dataclasses.replace(settings, supersample=1, start=start, coarse_iterations=0)
+    fine = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
+                               start=settings.start if start is None else "uniform")
     vol, info = _solve(prepared, refined, fine, _numbered(callback, done),
-                       factor=f if binned else 1)
+                       factor=f if binned else 1, spread=None if start is None else (start, f))
     info.supersample = f
     if support is not None:
         info.coarse_iterations, info.support_fraction = settings.coarse_iterations, support
@@ -267,9 +269,9 @@ def _supersampled(prepared: PreparedImage, projector, refined,
 
 def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
                     ) -> tuple[np.ndarray | None, float]:
-    """The sub-voxel start of a coarse-to-fine reconstruction (docs/design.md §6.5) from
-    the coarse volume, and the fraction of the grid it covers (``None`` and 0 for an
-    empty volume).
+    """The start of a coarse-to-fine reconstruction's sub-voxels (docs/design.md §6.5) on
+    the coarse grid (the fine run spreads it), and the fraction of the grid it covers
+    (``None`` and 0 for an empty volume).
 
     The voxels brighter than ``support`` times the brightest one, grown by one voxel in
     every direction, are the support. Its sub-voxels start flat, at the coarse volume's
@@ -283,34 +285,42 @@ def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
     keep = ndimage.binary_dilation(coarse > settings.support * peak,
                                    np.ones((3, 3, 3), bool))
     flat = np.where(keep, np.float32(coarse[keep].mean()), np.float32(0))
-    return spread_lateral(flat, settings.supersample), float(keep.mean())
+    return flat, float(keep.mean())
 
 
 def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSettings,
-                  info: ReconstructionInfo) -> tuple[Solver, cla.Array, list]:
-    """The solver of one run, the device image and the first guess (masked)."""
+                  info: ReconstructionInfo, spread: tuple[np.ndarray, int] | None = None
+                  ) -> tuple[Solver, cla.Array, list]:
+    """The solver of one run, the device image and the first guess (masked): with
+    ``spread`` ``(volume, factor)``, that volume of the ``factor`` times coarser grid
+    spread over the sub-voxels instead of ``settings.start``."""
     if prepared.lit is not None:
         info.lit_lens_fraction = float(prepared.lit.mean())
     solver = Solver(projector, settings.min_sensitivity, prepared.lit,
                     observed=prepared.observed)
     _warn_if_outside(projector, solver, settings.min_sensitivity)
     img = cla.to_device(solver.queue, prepared.image)
-    vol = solver.start(img, settings.start, prepared.threshold, prepared.scale)
+    if spread is None:
+        vol = solver.start(img, settings.start, prepared.threshold, prepared.scale)
+    else:
+        vol = solver.spread_start(*spread, prepared.scale)
     if settings.mask_fraction is not None:
         solver.mask(vol, img, prepared.threshold, settings.mask_fraction)
     return solver, img, vol
 
 
 def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings, callback,
-           factor: int = 1) -> tuple[np.ndarray, ReconstructionInfo]:
+           factor: int = 1, spread: tuple[np.ndarray, int] | None = None
+           ) -> tuple[np.ndarray, ReconstructionInfo]:
     """One run of the iterations on the projector's grid; the host volume in image units,
-    summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``."""
+    summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``;
+    ``spread``: the first guess on a coarser grid (:func:`_start_solver`)."""
     info = ReconstructionInfo(settings.method)
     nz, ny, nx = projector.grid.shape
     shape = (nz, ny // factor, nx // factor)
     if prepared.scale == 0:  # warned by prepare_image
         return np.zeros(shape, np.float32), info
-    solver, img, vol = _start_solver(prepared, projector, settings, info)
+    solver, img, vol = _start_solver(prepared, projector, settings, info, spread)
     blocks = device_view_blocks(projector, settings.mart_blocks) if settings.n_blocks > 1 else None
     step = functools.partial(UPDATES[settings.method], relax=settings.relax,
                              threshold=prepared.threshold, blocks=blocks,

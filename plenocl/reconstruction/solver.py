@@ -26,11 +26,11 @@ RATIO_MIN = 1e-6
 CROP_BELOW = 0.8
 
 
-def _start_volume(start: np.ndarray, grid) -> np.ndarray:
+def _start_volume(start: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
     """A user-supplied first guess, checked: the grid's shape, finite, non-negative."""
-    if start.shape != grid.shape:
+    if start.shape != shape:
         raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
-                         f"{grid.shape} (nz, ny, nx)")
+                         f"{shape} (nz, ny, nx)")
     if not np.all(np.isfinite(start)) or start.min() < 0:
         raise ValueError("start volume must be finite and non-negative")
     return start.astype(np.float32)
@@ -155,7 +155,7 @@ class Solver:
         """First guess: ``"uniform"`` (scaled to the image's total), ``"mlos"``, or a
         volume array in image units (divided by ``scale``, the image's scaling)."""
         if isinstance(kind, np.ndarray):
-            return self.proj.volume_to_device(_start_volume(kind, self.proj.grid) / scale)
+            return self.proj.volume_to_device(_start_volume(kind, self.proj.grid.shape) / scale)
         vol = self.proj.empty_volume()
         if kind == "uniform":
             # the projection of a volume of ones carries 1ᵀ A 1 = Σ sensitivity
@@ -167,6 +167,17 @@ class Solver:
             self.update_voxels("mlos", vol, self.proj.back_device(logimg), self.smin)
         else:
             raise ValueError(f"start must be 'uniform', 'mlos' or a volume array, got {kind!r}")
+        return vol
+
+    def spread_start(self, coarse: np.ndarray, factor: int, scale: float = 1.0):
+        """First guess from a volume in image units on the grid ``factor`` times coarser
+        laterally (a coarse run's support, a start given on a supersampled
+        reconstruction's grid): each voxel shared by its ``factor x factor`` sub-voxels,
+        on the device (:func:`plenocl.reconstruction.supersample.spread_lateral`)."""
+        nz, ny, nx = self.proj.grid.shape
+        coarse = _start_volume(np.asarray(coarse), (nz, ny // factor, nx // factor))
+        vol = self.proj.empty_volume()
+        LateralBinning(self.queue).spread_into(coarse, factor, vol, 1.0 / scale)
         return vol
 
     def mask(self, vol, img, threshold: float, fraction: float) -> None:

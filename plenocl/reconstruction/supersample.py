@@ -43,7 +43,9 @@ def spread_lateral(vol: np.ndarray, factor: int) -> np.ndarray:
 class LateralBinning:
     """:func:`bin_lateral` on the device (``kernels/supersample.cl``): one work-item per
     output voxel, a gather of its sub-voxels; the sums agree with :func:`bin_lateral` of
-    the scaled volume to float32 rounding (same order of additions).
+    the scaled volume to float32 rounding (same order of additions). And its flat
+    inverse, :func:`spread_lateral`, from a host volume into device slabs
+    (:meth:`spread_into`).
 
     Parameters
     ----------
@@ -52,7 +54,7 @@ class LateralBinning:
     """
 
     def __init__(self, queue: cl.CommandQueue) -> None:
-        self._k = KernelSet(queue, "supersample.cl", ("bin_lateral",))
+        self._k = KernelSet(queue, "supersample.cl", ("bin_lateral", "spread_lateral"))
 
     def to_host(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
                 scale: float = 1.0) -> np.ndarray:
@@ -81,3 +83,23 @@ class LateralBinning:
                            i32(ox), i32(factor), np.float32(scale), out, i32(ny), i32(nx),
                            i32(out.size))
         return out
+
+    def spread_into(self, coarse: np.ndarray, factor: int, slabs: list[cla.Array],
+                    scale: float = 1.0) -> None:
+        """Fill the device ``slabs`` (consecutive depth slabs ``(dz, ny f, nx f)`` of one
+        volume) with :func:`spread_lateral` of the host volume ``coarse`` ``(nz, ny, nx)``,
+        times ``scale``: only the coarse volume crosses to the device."""
+        nz, ny, nx = coarse.shape
+        if sum(s.shape[0] for s in slabs) != nz or any(
+                s.shape[1:] != (ny * factor, nx * factor) for s in slabs):
+            raise ValueError(f"a {coarse.shape} volume does not spread by {factor} into slabs "
+                             f"{[s.shape for s in slabs]}")
+        z0, i32 = 0, np.int32
+        for slab in slabs:
+            part = self._k.to_device(np.ascontiguousarray(coarse[z0:z0 + slab.shape[0]],
+                                                          np.float32))
+            z0 += slab.shape[0]
+            if slab.size:
+                self._k.launch("spread_lateral", (slab.size,), part, i32(ny), i32(nx),
+                               i32(factor), np.float32(scale / factor**2), slab,
+                               i32(ny * factor), i32(nx * factor), i32(slab.size))
