@@ -41,6 +41,16 @@ __kernel void ratio(__global const float *img, __global const float *proj,
     out[i] = log_mode ? log(fmax(r, fmax(ratio_min, PL_RATIO_MIN))) : r;
 }
 
+/* f^mu for f >= 0: the two relaxations in use (1, and MLEM's over-relaxation 1.5: a
+ * square root instead of pow, 5x faster on a CPU driver over a sub-voxel grid) exactly
+ * as written, any other by pow. */
+inline float pl_power(float f, float mu)
+{
+    if (mu == 1.0f) return f;
+    if (mu == 1.5f) return f * sqrt(f);
+    return pow(f, mu);
+}
+
 /* Multiplicative EM: E <- E (b / s)^mu with b = W^T r (the arithmetic mean of ratios).
  * Voxels whose sensitivity s (the fraction of their light that reaches the sensor) is
  * at or below smin are not constrained by the image and stay 0. */
@@ -52,7 +62,7 @@ __kernel void update_mlem(__global float *vol, __global const float *b,
     float s = sens[j], e = vol[j];
     if (s <= smin || !(e > 0.0f)) { vol[j] = 0.0f; return; }
     float f = fmax(b[j], 0.0f) / s;
-    vol[j] = pl_clean(e * (relax == 1.0f ? f : pow(f, relax)));
+    vol[j] = pl_clean(e * pl_power(f, relax));
 }
 
 /* Exponential update: E <- E exp(mu b / s) (SMART, by_sens = 1) or E exp(mu b) (MART

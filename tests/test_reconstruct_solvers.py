@@ -102,6 +102,16 @@ def test_simultaneous_solvers_match_reference(tiny, method, fn):
     np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
 
 
+@pytest.mark.parametrize("relax", [1.5, 1.3, 1.9])
+def test_over_relaxed_mlem_matches_reference(tiny, relax):
+    """MLEM at 1 < μ < 2 (the kernel's square-root form at 1.5, pow otherwise) is the
+    reference's update."""
+    proj, W, image = tiny
+    vol = reconstruct(image, proj, "mlem", iterations=6, relax=relax)
+    expected = ref.mlem(W, image / image.max(), 6, relax) * image.max()
+    np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
+
+
 def test_block_mart_matches_block_reference_and_approaches_sequential(tiny):
     proj, W, image = tiny
     blocks = view_blocks(proj.camera, 2).ravel()
