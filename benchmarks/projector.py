@@ -4,7 +4,7 @@ alternatives, and one forward + back projection of the paper's full experiment.
 
     python benchmarks/projector.py [--repeats 5] [--skip-paper] [--skip-direct]
                                    [--skip-stored] [--skip-small] [--skip-rotated]
-                                   [--skip-reconstruction]
+                                   [--skip-reconstruction] [--skip-scratch]
 
 Weights per second count the non-zeros of the weight matrix processed per second (the
 CSR matrix's ``nnz`` for the stored case; an estimate from sampled voxels for the paper
@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue
+from plenocl.bench.accuracy_section import paper_optics
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.sparse import matrix_bytes
 from plenocl.bench.stages import csr_case, device_pair, projector_bytes
@@ -213,12 +214,45 @@ def rotated_reconstruction(queue, rotation: float = 0.15) -> None:
               f"{seconds / base:.2f}x the aligned array")
 
 
+def scratch_sizes(queue, repeats: int, sizes_mib=(32, 256)) -> None:
+    """Forward + back on the paper's 3 x 3 sub-voxels (a sparse support, 6.5 % of the
+    grid, as a pair's fine iterations see it) for scratch buffers of each size, the
+    projectors taking turns; medians of ``repeats``."""
+    from scipy import ndimage
+
+    cam, grid = paper_optics((289, 193))
+    rng = np.random.default_rng(0)
+    coarse = ndimage.binary_dilation(rng.random(grid.shape) < 0.0015, np.ones((3, 3, 5), bool))
+    projs = {mib: Projector(cam, grid, queue, scratch_bytes=mib * 2**20).refined(3)
+             for mib in sizes_mib}
+    fine = next(iter(projs.values())).grid
+    sup = (np.repeat(np.repeat(coarse, 3, 1), 3, 2) * rng.random(fine.shape)).astype(np.float32)
+    times: dict[int, list] = {mib: [] for mib in projs}
+    for _ in range(repeats):
+        for mib, p in projs.items():
+            vol, img, out = p.volume_to_device(sup), p.empty_image(), p.empty_volume()
+            img.fill(1.0)
+            t0 = time.perf_counter()
+            p.forward_device(vol)
+            p.back_device(img, out=out, support=vol)
+            queue.finish()
+            times[mib].append(time.perf_counter() - t0)
+    print(f"\nscratch size, paper grid on 3 x 3 sub-voxels {fine.shape}, support "
+          f"{(sup > 0).mean():.1%}: forward + back, medians of {repeats}")
+    base = np.median(times[sizes_mib[0]])
+    for mib, p in projs.items():
+        t = np.median(times[mib])
+        print(f"  {mib:5d} MiB: {len(p.plan.columns)} column chunk(s), {p.plan.zchunk:3d} "
+              f"depths per chunk: {t:.3f} s ({t / base:.2f}x the {sizes_mib[0]} MiB)")
+
+
 def main() -> None:
     parser = script_parser(__doc__, {"paper": None, "direct": None,
                                      "rotated": "skip the rotated-array (general path) figure",
                                      "reconstruction": "skip the rotated array's "
                                                        "reconstruction times",
                                      "stored": "skip the stored-matrix (CSR) comparison",
+                                     "scratch": "skip the scratch-size comparison",
                                      "small": "skip the per-call cost of small problems"})
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--paper-repeats", type=int, default=3)
@@ -237,6 +271,8 @@ def main() -> None:
         rotated_array(queue, args.paper_repeats)
     if not args.skip_reconstruction:
         rotated_reconstruction(queue)
+    if not args.skip_scratch:
+        scratch_sizes(queue, args.paper_repeats)
     print(f"load average at end {os.getloadavg()[0]:.2f}")
 
 

@@ -54,8 +54,13 @@ METHODS = ("factorised", "direct")
 GENERAL_MODES = ("resample", "exact")
 #: Back projections of the separable path: a deterministic gather, or a float-atomic scatter.
 BACK_MODES = ("gather", "atomic")
-#: Bounds of the automatic scratch size (each of the light-field and intermediate buffers).
-SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES = 2 * 2**20, 32 * 2**20
+#: Bounds of the automatic scratch size (each of the light-field and intermediate buffers):
+#: at most 256 MiB, and at most 1/SCRATCH_MEMORY_SHARE of the device's memory. At the
+#: paper's size one chunk then holds every aperture column, so the lens-column kernels
+#: read each voxel row once per projection (32 MiB: three chunks, about 8 % slower on
+#: sub-voxels; ``benchmarks/projector.py``, scratch section).
+SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES = 2 * 2**20, 256 * 2**20
+SCRATCH_MEMORY_SHARE = 16
 
 VolumeLike = cl_array.Array | Sequence[cl_array.Array]
 i32, f32 = np.int32, np.float32
@@ -248,8 +253,9 @@ class Projector:
         max_alloc = int(min(max_alloc_bytes or info.max_alloc_bytes, info.max_alloc_bytes))
         if scratch_bytes is None:
             pixels = self.camera.pixels[0] * self.camera.pixels[1]
+            top = min(SCRATCH_MAX_BYTES, info.global_mem_bytes // SCRATCH_MEMORY_SHARE)
             scratch_bytes = int(np.clip(max(self.grid.nbytes, 4 * pixels),
-                                        SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES))
+                                        SCRATCH_MIN_BYTES, max(top, SCRATCH_MIN_BYTES)))
         return make_plan(self.grid, self.camera, self.aperture, self.nkxp, max_alloc,
                          scratch_bytes, self.method)
 
