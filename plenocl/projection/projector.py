@@ -57,7 +57,7 @@ BACK_MODES = ("gather", "atomic")
 #: Bounds of the automatic scratch size (each of the light-field and intermediate buffers):
 #: at most 256 MiB, and at most 1/SCRATCH_MEMORY_SHARE of the device's memory. At the
 #: paper's size one chunk then holds every aperture column, so the lens-column kernels
-#: read each voxel row once per projection (32 MiB: three chunks, about 8 % slower on
+#: read each voxel row once per projection (32 MiB: three chunks, 3-8 % slower on
 #: sub-voxels; ``benchmarks/projector.py``, scratch section).
 SCRATCH_MIN_BYTES, SCRATCH_MAX_BYTES = 2 * 2**20, 256 * 2**20
 SCRATCH_MEMORY_SHARE = 16
