@@ -282,7 +282,64 @@ __kernel void back_pix(__global const float *restrict image, __global float *res
 
 /* ---- back, separable: T[(izl, il)][iy][kx] = sum_j,ky hat(ky(iy, j) - ky) L[ky][s(i, j)][kx].
  * One work-item per (segment, iy, aperture column i), for every depth of the chunk: the
- * L rows it reads (near ky(iy)) stay in cache from one depth to the next. */
+ * L rows it reads (near ky(iy)) stay in cache from one depth to the next.
+ * With PL_BACK_ALLCOLS (CPUs, whole rows): one work-item per voxel row iy for every
+ * column and depth of the chunk (global size (1, ny, 1)). It lists the weights of each
+ * (aperture row j, depth) once for all columns (they depend on neither), j by j and depth
+ * fastest, and applies them column by column: the depths of one j mostly read the same two
+ * L rows, which stay in L1. Each T row gets the same terms in the same order (j) as in
+ * the per-column form, so both give the same T bit for bit. */
+#if PL_BACK_ALLCOLS
+__kernel void back_y(__global const float *restrict L, __global float *restrict T,
+                     __global const float *restrict coef, __global const int *restrict col_lo,
+                     __global const int *restrict col_off, __global const uchar *restrict rows_lit,
+                     int ny, int nky, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic,
+                     int s0, int nsc, float ic)
+{
+    const int t = get_global_id(0), iy = get_global_id(1);
+    const size_t off = (size_t)t * seg * PL_VW;
+    int jmin = n, jmax = -1;  /* the aperture rows of the chunk's columns */
+    for (int il = 0; il < nic; ++il) {
+        jmin = pl_mini(jmin, col_lo[i0 + il]);
+        jmax = pl_maxi(jmax, n - 1 - col_lo[i0 + il]);
+    }
+    const size_t ostride = (size_t)ny * nkxp;  /* from one column's T row to the next */
+    __global float *out = T + (size_t)iy * nkxp + off;  /* (izl, il): + (izl nic + il) */
+    for (int q = 0; q < nzc * nic; ++q)
+        pl_zero(out + q * ostride, seg);
+    int je[PL_PAIRS], ez[PL_PAIRS], ia[PL_PAIRS], ib[PL_PAIRS];
+    float wa[PL_PAIRS], wb[PL_PAIRS];
+    for (int j = jmin, izl = 0; j <= jmax;) {
+        int cnt = 0;  /* list (j, depth) pairs, depth fastest: a column's L rows stay in L1 */
+        for (; j <= jmax && cnt < PL_PAIRS; izl = izl + 1 < nzc ? izl + 1 : 0, j += izl == 0) {
+            __global const float *c = coef + 16 * (zc0 + izl);
+            const float kyf = pl_ky(c, (float)j - ic, iy);
+            const int ky0 = pl_floori(kyf);
+            float w0 = 1.0f - (kyf - (float)ky0), w1 = kyf - (float)ky0;
+            if (ky0 < 0 || ky0 >= nky) w0 = 0.0f;
+            if (ky0 + 1 < 0 || ky0 + 1 >= nky) w1 = 0.0f;
+            if (w0 == 0.0f && w1 == 0.0f) continue;
+            const int ka = pl_mini(pl_maxi(ky0, 0), nky - 1);
+            const int kb = pl_mini(pl_maxi(ky0 + 1, 0), nky - 1);
+            if (!rows_lit[ka] && !rows_lit[kb]) continue;  /* both rows are zero */
+            je[cnt] = j;
+            ez[cnt] = izl * nic;
+            ia[cnt] = ka * nsc + j;  /* L row of (ka, j) less the column's offset */
+            ib[cnt] = kb * nsc + j;
+            wa[cnt] = w0;
+            wb[cnt++] = w1;
+        }
+        for (int il = 0; il < nic; ++il) {
+            const int i = i0 + il, lo = col_lo[i], hi = n - 1 - lo;
+            __global const float *col = L + (long)(col_off[i] - s0 - lo) * nkxp + off;
+            for (int e = 0; e < cnt; ++e)
+                if (je[e] >= lo && je[e] <= hi)
+                    pl_axpy2(out + (ez[e] + il) * ostride, col + (size_t)ia[e] * nkxp,
+                             col + (size_t)ib[e] * nkxp, wa[e], wb[e], seg);
+        }
+    }
+}
+#else
 __kernel void back_y(__global const float *restrict L, __global float *restrict T,
                      __global const float *restrict coef, __global const int *restrict col_lo,
                      __global const int *restrict col_off, __global const uchar *restrict rows_lit,
@@ -313,6 +370,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
         }
     }
 }
+#endif
 
 /* Voxel ix's two lens taps in the T row of aperture column offset bu. */
 inline float pl_back_x_tap(__global const float *c, __global const float *row, float bu,

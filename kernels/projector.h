@@ -34,6 +34,11 @@ typedef float4 pl_vec;
 typedef float pl_vec;
 #endif
 
+#ifndef PL_BACK_ALLCOLS
+#define PL_BACK_ALLCOLS 0  /* 1: a back_y work-item covers every column of a chunk (CPUs) */
+#endif
+#define PL_PAIRS 128  /* (aperture row, depth) weights back_y lists at a time */
+
 #define PL_NO_LENS (-1073741824)   /* lens_rnd.x of a lens calibration missed (NaN centre) */
 
 inline float pl_abs(float x) { return x < 0.0f ? -x : x; }

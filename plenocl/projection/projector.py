@@ -188,7 +188,8 @@ class Projector:
                    f"projecting a {grid.shape} grid onto the {width} x {height} sensor")
         # every projector kernel but the element ones (_ELEMENTWISE) loops over a row, a
         # sample's plane or a lens's samples
-        self._k = KernelSet(self.queue, "projector.cl", _KERNELS, [f"-DPL_VW={self.vw}"],
+        self._k = KernelSet(self.queue, "projector.cl", _KERNELS,
+                            [f"-DPL_VW={self.vw}", f"-DPL_BACK_ALLCOLS={int(self.back_allcols)}"],
                             looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
@@ -270,6 +271,9 @@ class Projector:
         if (self.nkxp // self.vw) % self.seg:
             raise ValueError(f"segment must divide the {self.nkxp // self.vw} vectors of a row")
         self.nseg = self.nkxp // self.vw // self.seg
+        # a CPU's whole-row back_y work-items cover every aperture column of a chunk
+        # (PL_BACK_ALLCOLS: weights computed once for all columns, L rows reused in L1)
+        self.back_allcols = cpu and self.nseg == 1
 
     # ---- set-up -----------------------------------------------------------------------
     def _upload_tables(self) -> None:
@@ -677,7 +681,9 @@ class Projector:
                            self._d["coef"], self._d["ij"], ny, nkxp, i32(self.seg), zc, nzc,
                            i32(i0), i32(nic), i32(s0), self._ic)
         else:
-            self._k.launch("back_y", (self.nseg, int(ny), nic), light, t_buf, self._d["coef"],
+            columns = 1 if self.back_allcols else nic  # work-items across the columns
+            self._k.launch("back_y", (self.nseg, int(ny), columns), light, t_buf,
+                           self._d["coef"],
                            self._d["col_lo"], self._d["col_off"], lenses.rows, ny, nky, nkxp,
                            i32(self.seg), i32(self.aperture.n), zc, nzc, i32(i0), i32(nic),
                            i32(s0), i32(s1 - s0), self._ic)
