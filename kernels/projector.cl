@@ -289,6 +289,24 @@ __kernel void back_pix(__global const float *restrict image, __global float *res
  * fastest, and applies them column by column: the depths of one j mostly read the same two
  * L rows, which stay in L1. Each T row gets the same terms in the same order (j) as in
  * the per-column form, so both give the same T bit for bit. */
+/* Voxel row iy's two lens-row taps for aperture row offset bv at depth coefficients c:
+ * rows ka, kb (clamped to the array) with weights w0, w1. Returns 0 when the row adds
+ * nothing (both weights 0, or both rows dark). Both forms of back_y use it, so they add
+ * the same terms. */
+inline int pl_back_y_taps(__global const float *c, float bv, int iy, int nky,
+                          __global const uchar *rows_lit, int *ka, int *kb, float *w0,
+                          float *w1)
+{
+    const float kyf = pl_ky(c, bv, iy);
+    const int ky0 = pl_floori(kyf);
+    *w0 = ky0 < 0 || ky0 >= nky ? 0.0f : 1.0f - (kyf - (float)ky0);
+    *w1 = ky0 + 1 < 0 || ky0 + 1 >= nky ? 0.0f : kyf - (float)ky0;
+    if (*w0 == 0.0f && *w1 == 0.0f) return 0;
+    *ka = pl_mini(pl_maxi(ky0, 0), nky - 1);
+    *kb = pl_mini(pl_maxi(ky0 + 1, 0), nky - 1);
+    return rows_lit[*ka] || rows_lit[*kb];
+}
+
 #if PL_BACK_ALLCOLS
 __kernel void back_y(__global const float *restrict L, __global float *restrict T,
                      __global const float *restrict coef, __global const int *restrict col_lo,
@@ -312,16 +330,11 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
     for (int j = jmin, izl = 0; j <= jmax;) {
         int cnt = 0;  /* list (j, depth) pairs, depth fastest: a column's L rows stay in L1 */
         for (; j <= jmax && cnt < PL_PAIRS; izl = izl + 1 < nzc ? izl + 1 : 0, j += izl == 0) {
-            __global const float *c = coef + 16 * (zc0 + izl);
-            const float kyf = pl_ky(c, (float)j - ic, iy);
-            const int ky0 = pl_floori(kyf);
-            float w0 = 1.0f - (kyf - (float)ky0), w1 = kyf - (float)ky0;
-            if (ky0 < 0 || ky0 >= nky) w0 = 0.0f;
-            if (ky0 + 1 < 0 || ky0 + 1 >= nky) w1 = 0.0f;
-            if (w0 == 0.0f && w1 == 0.0f) continue;
-            const int ka = pl_mini(pl_maxi(ky0, 0), nky - 1);
-            const int kb = pl_mini(pl_maxi(ky0 + 1, 0), nky - 1);
-            if (!rows_lit[ka] && !rows_lit[kb]) continue;  /* both rows are zero */
+            int ka, kb;
+            float w0, w1;
+            if (!pl_back_y_taps(coef + 16 * (zc0 + izl), (float)j - ic, iy, nky, rows_lit,
+                                &ka, &kb, &w0, &w1))
+                continue;
             je[cnt] = j;
             ez[cnt] = izl * nic;
             ia[cnt] = ka * nsc + j;  /* L row of (ka, j) less the column's offset */
@@ -355,16 +368,11 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
         __global float *out = T + ((size_t)(izl * nic + il) * ny + iy) * nkxp + off;
         pl_zero(out, seg);
         for (int j = lo; j <= hi; ++j) {
-            const float kyf = pl_ky(c, (float)j - ic, iy);
-            const int ky0 = pl_floori(kyf);
-            float w0 = 1.0f - (kyf - (float)ky0), w1 = kyf - (float)ky0;
-            if (ky0 < 0 || ky0 >= nky) w0 = 0.0f;
-            if (ky0 + 1 < 0 || ky0 + 1 >= nky) w1 = 0.0f;
-            if (w0 == 0.0f && w1 == 0.0f) continue;
+            int ka, kb;
+            float w0, w1;
+            if (!pl_back_y_taps(c, (float)j - ic, iy, nky, rows_lit, &ka, &kb, &w0, &w1))
+                continue;
             __global const float *src = col + (size_t)(j - lo) * nkxp;
-            const int ka = pl_mini(pl_maxi(ky0, 0), nky - 1);
-            const int kb = pl_mini(pl_maxi(ky0 + 1, 0), nky - 1);
-            if (!rows_lit[ka] && !rows_lit[kb]) continue;  /* both rows are zero */
             pl_axpy2(out, src + (size_t)ka * nsc * nkxp, src + (size_t)kb * nsc * nkxp, w0, w1,
                      seg);
         }
