@@ -27,37 +27,26 @@
 /* 0-9 J^T J upper triangle row by row (00 01 02 03 11 12 13 22 23 33), 10-13 J^T r,
  * 14 lit elements, 15 sum of their squared residuals */
 
-/* The sum over the work-group of each item's v (every item gets it). */
-inline float pl_group_sum(__local float *scratch, float v)
+/* The sum (largest = 0) or the largest (1) of each item's v over the work-group, by a
+ * tree in local memory; every item gets it. */
+inline float pl_group_reduce(__local float *scratch, float v, int largest)
 {
     int lid = get_local_id(0);
     scratch[lid] = v;
     barrier(CLK_LOCAL_MEM_FENCE);
     for (int stride = PL_GROUP / 2; stride > 0; stride >>= 1) {
-        if (lid < stride)
-            scratch[lid] += scratch[lid + stride];
+        if (lid < stride) {
+            const float a = scratch[lid], b = scratch[lid + stride];
+            scratch[lid] = largest ? fmax(a, b) : a + b;
+        }
         barrier(CLK_LOCAL_MEM_FENCE);
     }
-    float total = scratch[0];
+    float out = scratch[0];
     barrier(CLK_LOCAL_MEM_FENCE);
-    return total;
+    return out;
 }
-
-/* The largest v over the work-group (every item gets it). */
-inline float pl_group_max(__local float *scratch, float v)
-{
-    int lid = get_local_id(0);
-    scratch[lid] = v;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int stride = PL_GROUP / 2; stride > 0; stride >>= 1) {
-        if (lid < stride)
-            scratch[lid] = fmax(scratch[lid], scratch[lid + stride]);
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    float top = scratch[0];
-    barrier(CLK_LOCAL_MEM_FENCE);
-    return top;
-}
+#define pl_group_sum(scratch, v) pl_group_reduce(scratch, v, 0)
+#define pl_group_max(scratch, v) pl_group_reduce(scratch, v, 1)
 
 /* The patch rows of particle p that lie on the sensor: *rows_on, *cols_on. */
 inline void pl_on_sensor(int p, __global const int *col0, __global const int *row0,
