@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import tolerances as tol
+from helpers import traced_fit_scene
 
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.optics.raybundle import RayBundle
 from plenocl.piv.devicebundle import DeviceRayBundle
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
-from plenocl.reference.simulate import trace_particles
 
 CAM, GRID = paper_optics((32, 24))
 VOXEL = np.array([GRID.spacing[2], GRID.spacing[1], GRID.spacing[0]])  # (x, y, z) mm
@@ -84,12 +84,7 @@ def test_kernel_renders_nothing_for_no_particles(queue):
 def test_fit_on_device_matches_numpy(queue):
     """The same fit, rendered on the device (float32) and by NumPy (float64): positions
     within a small fraction of the fit's accuracy (a few tenths of a voxel in depth)."""
-    rng = np.random.default_rng(1)
-    true = np.column_stack([rng.uniform(-1.5, 1.5, 9), rng.uniform(-1.2, 1.2, 9),
-                            rng.uniform(-8.0, 8.0, 9)])
-    start = true + np.array([0.3, -0.3, 1.5]) * VOXEL
-    img = trace_particles(CAM, true, 4000.0, 40_000, seed=3, blur_px=0.8)
-    img = img + 20.0 + np.random.default_rng(3).normal(0.0, 1.0, img.shape)
+    start, img = traced_fit_scene(CAM, VOXEL, 9, 1)
     fits = [ImageFit(CAM, GRID, [img], ImageFitSettings(), queue=q).fit(0, start)
             for q in (None, queue)]
     assert np.abs(fits[1].positions - fits[0].positions).max(axis=0) / VOXEL == \

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import tolerances as tol
+from helpers import traced_fit_scene
 
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.optics.raybundle import Patches, RayBundle
@@ -14,7 +15,6 @@ from plenocl.piv.devicebundle import DeviceRayBundle
 from plenocl.piv.fitsums import DeviceFitSums
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.reference import imagefit as ref
-from plenocl.reference.simulate import trace_particles
 
 CAM, GRID = paper_optics((32, 24))
 VOXEL = np.array([GRID.spacing[2], GRID.spacing[1], GRID.spacing[0]])  # (x, y, z) mm
@@ -102,12 +102,7 @@ def test_unit_sums_match_reference(sums, count):
 def test_fit_with_device_sums_matches_host_sums(queue):
     """The same device-rendered fit, summed on the device and on the host: positions
     within float32 tolerance, intensities close; no particles gives no positions."""
-    rng = np.random.default_rng(2)
-    true = np.column_stack([rng.uniform(-1.5, 1.5, 11), rng.uniform(-1.2, 1.2, 11),
-                            rng.uniform(-8.0, 8.0, 11)])
-    start = true + np.array([0.3, -0.3, 1.5]) * VOXEL
-    img = trace_particles(CAM, true, 4000.0, 40_000, seed=4, blur_px=0.8)
-    img = img + 20.0 + np.random.default_rng(4).normal(0.0, 1.0, img.shape)
+    start, img = traced_fit_scene(CAM, VOXEL, 11, 2)
     fits = [ImageFit(CAM, GRID, [img], ImageFitSettings(chunk=4), queue=queue,
                      host_sums=host) for host in (True, False)]
     assert fits[1].sums is not None and fits[0].sums is None

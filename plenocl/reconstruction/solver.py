@@ -106,6 +106,12 @@ class Solver:
         self.sens = (projector.sensitivity() if observed is None else
                      projector.back_device(self._observed.reshape(observed.shape)))
 
+    @functools.cached_property
+    def binning(self) -> LateralBinning:
+        """The lateral binning and spreading kernels on this solver's queue, fetched once
+        (a sub-voxel run's start and its binned result)."""
+        return LateralBinning(self.queue)
+
     def _run(self, name: str, n: int, *args) -> None:
         """An element-wise kernel over ``n`` items (``n`` is its last argument)."""
         self._k.launch(name, (n,), *args, np.int32(n))
@@ -177,7 +183,7 @@ class Solver:
         nz, ny, nx = self.proj.grid.shape
         coarse = _start_volume(np.asarray(coarse), (nz, ny // factor, nx // factor))
         vol = self.proj.empty_volume()
-        LateralBinning(self.queue).spread_into(coarse, factor, vol, 1.0 / scale)
+        self.binning.spread_into(coarse, factor, vol, 1.0 / scale)
         return vol
 
     def mask(self, vol, img, threshold: float, fraction: float) -> None:
@@ -233,7 +239,7 @@ class Solver:
         A crop box need not start on a block boundary: the blocks it cuts are summed
         over the sub-voxels inside it (the others are 0 in the full fine grid).
         """
-        binning = LateralBinning(self.queue)
+        binning = self.binning
         if self.box is None:
             return binning.to_host(vol, factor, scale=scale)
         z, y, x = self.box
