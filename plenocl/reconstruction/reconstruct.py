@@ -117,8 +117,8 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         ``"mlem"`` (default), ``"smart"`` or ``"mart"`` (see the module documentation).
     iterations, relax
         Iterations and relaxation ``0 < μ <= 1``; MLEM may be over-relaxed, ``0 < μ < 2``
-        (``settings.MAX_RELAX``; fewer iterations reach the same volume). Defaults per method in
-        :data:`DEFAULTS` (MART: the paper's 15 at μ = 0.7; ``process_pair``'s
+        (``settings.MLEM_MAX_RELAX``; fewer iterations reach the same volume). Defaults
+        per method in :data:`DEFAULTS` (MART: the paper's 15 at μ = 0.7; ``process_pair``'s
         coarse-to-fine MLEM: μ = 1.5).
     start
         ``"uniform"`` (constant, scaled so its projection carries the image's intensity),

@@ -13,11 +13,11 @@ METHODS = ("mlem", "smart", "mart")
 MAX_MART_BLOCKS = 32
 #: Defaults per method: (iterations, relaxation). MART's are the paper's synthetic case.
 DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
-#: The largest relaxation per method (exclusive for MLEM): MLEM may be over-relaxed,
+#: MLEM's relaxation lies below this bound: MLEM may be over-relaxed,
 #: ``E ← E (Wᵀ r / s)^μ`` with ``1 < μ < 2`` (docs/design.md §6.5: μ = 1.5 reaches in 7
-#: iterations the volume of 10 at μ = 1; μ = 2 oscillates); SMART and MART take
-#: ``0 < μ <= 1``.
-MAX_RELAX = {"mlem": 2.0, "smart": 1.0, "mart": 1.0}
+#: iterations the volume of 10 at μ = 1; μ = 2 oscillates); SMART and MART take the
+#: paper's ``0 < μ <= 1``.
+MLEM_MAX_RELAX = 2.0
 
 
 @dataclass
@@ -123,12 +123,11 @@ def _check_options(s: ReconstructionSettings) -> None:
 
 
 def _check_relax(method: str, relax: float) -> None:
-    """``0 < μ <= 1``, and for MLEM (over-relaxed EM) ``0 < μ < 2``."""
-    top = MAX_RELAX[method]
+    """``0 < μ <= 1``, and for MLEM (over-relaxed EM) ``0 < μ < MLEM_MAX_RELAX``."""
     if method == "mlem":
-        if not (np.isfinite(relax) and 0 < relax < top):
-            raise ValueError(f"relax (μ) must satisfy 0 < μ < {top:g} for MLEM (1 < μ "
-                             f"over-relaxes: fewer iterations), got {relax!r}")
-    elif not (np.isfinite(relax) and 0 < relax <= top):
-        raise ValueError(f"relax (μ) must satisfy 0 < μ <= 1 for {method.upper()}, got "
-                         f"{relax!r}")
+        ok = 0 < relax < MLEM_MAX_RELAX
+        bound = f"0 < μ < {MLEM_MAX_RELAX:g} for MLEM (1 < μ over-relaxes: fewer iterations)"
+    else:
+        ok, bound = 0 < relax <= 1, f"0 < μ <= 1 for {method.upper()}"
+    if not (np.isfinite(relax) and ok):
+        raise ValueError(f"relax (μ) must satisfy {bound}, got {relax!r}")
