@@ -2,7 +2,7 @@
 solver against a scipy.sparse implementation of the same method (same run), and the
 time of the paper's full experiment.
 
-    python benchmarks/reconstruct.py [--quick] [--skip-paper] [--repeats 3]
+    python benchmarks/reconstruct.py [--quick] [--skip-paper] [--repeats 3] [--relax-only]
 
 Scene: the paper's synthetic case, the 850 x 850 px camera (50 x 50 microlenses, M = 1,
 f/2) and particles in a 5 mm cube, reconstructed on 20 x 40 x 40 voxels (one microlens
@@ -208,14 +208,47 @@ def paper_experiment(queue) -> None:
               f"(residual {info.residuals[-1]:.3f})", flush=True)
 
 
+def relax_cost(queue, repeats: int, n: int = 81_000_000) -> None:
+    """One MLEM update (``kernels/solver.cl`` update_mlem) of a paper-size sub-voxel grid
+    (81 M sub-voxels, 7 % non-zero as a coarse-to-fine support) at μ = 1, at the pair's
+    μ = 1.5 (a square root) and at μ = 1.3 (``pow``), taking turns; medians."""
+    import pyopencl.array as cla
+
+    from plenocl.program import KernelSet
+
+    kernels = KernelSet(queue, "solver.cl", ("update_mlem",))
+    rng = np.random.default_rng(0)
+    start = np.where(rng.random(n, np.float32) < 0.07, np.float32(1), np.float32(0))
+    vol = cla.to_device(queue, start)
+    ratio = cla.to_device(queue, rng.random(n, np.float32) + np.float32(0.5))
+    sens = cla.to_device(queue, np.full(n, 0.9, np.float32))
+    times: dict[float, list] = {mu: [] for mu in (1.0, 1.5, 1.3)}
+    for _ in range(repeats):
+        for mu in times:
+            vol.set(start)
+            queue.finish()
+            t0 = time.perf_counter()
+            kernels.launch("update_mlem", (n,), vol, ratio, sens, np.float32(mu),
+                           np.float32(0.5), np.int32(n))
+            queue.finish()
+            times[mu].append(time.perf_counter() - t0)
+    print(f"\nMLEM update of {n / 1e6:.0f} M sub-voxels (medians of {repeats}): "
+          + ", ".join(f"μ = {mu:g} {statistics.median(t):.3f} s" for mu, t in times.items()))
+
+
 def main() -> None:
     parser = script_parser(__doc__, {"paper": None})
     parser.add_argument("--quick", action="store_true", help="20 and 60 particles, fewer rows")
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--relax-only", action="store_true",
+                        help="only the cost of the MLEM update's relaxation")
     args = parser.parse_args()
     queue = get_queue()
     info = device_info(queue)
     print(f"device: {info.name} ({info.platform})\n")
+    relax_cost(queue, max(args.repeats, 5))
+    if args.relax_only:
+        return
     counts = (20, 60) if args.quick else (20, 60, 150)
     settings = SETTINGS[:5] if args.quick else SETTINGS
     table(queue, CUBE, counts, settings, args.repeats)

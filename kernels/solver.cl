@@ -42,8 +42,8 @@ __kernel void ratio(__global const float *img, __global const float *proj,
 }
 
 /* f^mu for f >= 0: the two relaxations in use (1, and MLEM's over-relaxation 1.5: a
- * square root instead of pow, 5x faster on a CPU driver over a sub-voxel grid) exactly
- * as written, any other by pow. */
+ * square root instead of pow, 5.5x faster on PoCL over a sub-voxel grid:
+ * benchmarks/reconstruct.py --relax-only) exactly as written, any other by pow. */
 inline float pl_power(float f, float mu)
 {
     if (mu == 1.0f) return f;
