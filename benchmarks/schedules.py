@@ -7,7 +7,10 @@ same scenes in the same run, beside the default.
 
 A schedule ``C+F+MU`` is ``C`` MLEM iterations on the voxels, then ``F`` on 3 x 3
 lateral sub-voxels within the coarse support (1 % of the brightest voxel, grown by one),
-both at relaxation ``MU`` (``E ← E (Wᵀ r / s)^MU``; ``MU > 1`` over-relaxes). Camera and
+both at relaxation ``MU`` (``E ← E (Wᵀ r / s)^MU``; ``MU > 1`` over-relaxes);
+``C+F+MU/CO`` runs the coarse iterations on the aperture sampled ``CO`` times per pixel
+footprint (default ``coarse_oversample``, 0.625), ``C+F+MU/CO/O`` also the projector
+(the fine iterations) at ``O`` (default 1.25). Camera and
 scenes as ``benchmarks/accuracy.py``: the paper's optics on ``--lenses`` microlenses,
 the paper's voxel, ray-traced particles with 0.8 px blur, photon and read noise, a
 uniform displacement and a rotation about x. Each schedule runs ``plenocl.process_pair``
@@ -43,14 +46,21 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
+from plenocl.projection import Projector  # noqa: E402
 from plenocl.reconstruction import ReconstructionSettings  # noqa: E402
+from plenocl.reconstruction.settings import COARSE_OVERSAMPLE  # noqa: E402
 
 
-def schedule(spec: str) -> ReconstructionSettings:
-    """``"C+F+MU"`` as the pair's reconstruction settings."""
-    coarse, fine, relax = spec.split("+")
-    return ReconstructionSettings(supersample=3, coarse_iterations=int(coarse),
-                                  iterations=int(fine), relax=float(relax), support=0.01)
+def schedule(spec: str) -> tuple[ReconstructionSettings, float | None]:
+    """``"C+F+MU[/CO[/O]]"`` as the pair's reconstruction settings and the projector's
+    aperture sampling ``O`` (``None``: the default projector)."""
+    steps, *sampling = spec.split("/")
+    coarse, fine, relax = steps.split("+")
+    over = float(sampling[0]) if sampling else COARSE_OVERSAMPLE
+    settings = ReconstructionSettings(supersample=3, coarse_iterations=int(coarse),
+                                      iterations=int(fine), relax=float(relax), support=0.01,
+                                      coarse_oversample=over)
+    return settings, float(sampling[1]) if len(sampling) > 1 else None
 
 
 def main() -> None:
@@ -62,14 +72,18 @@ def main() -> None:
     args = parser.parse_args()
     queue = get_queue()
     cam, grid, proj = paper_setup(tuple(args.lenses), queue)
+    projectors: dict[float, Projector] = {}  # other aperture samplings, built once
     rows: dict[str, list] = {spec: [] for spec in args.schedules}
     for motion in (UNIFORM, ROTATION):
         for seed in args.seeds:
             scene = budget_scene(cam, grid, args.seeding, seed, queue, motion=motion)
             for spec in args.schedules:
+                settings, over = schedule(spec)
+                if over is not None and over not in projectors:
+                    projectors[over] = Projector(cam, grid, queue, oversample=over)
                 t0 = time.perf_counter()
-                pair = process_pair(scene.raw_a, scene.raw_b, proj,
-                                    reconstruction=schedule(spec))
+                pair = process_pair(scene.raw_a, scene.raw_b, projectors.get(over, proj),
+                                    reconstruction=settings)
                 seconds = time.perf_counter() - t0
                 row = pair_row(pair, scene, grid, motion)
                 e = row["errors"]

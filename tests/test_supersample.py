@@ -20,6 +20,7 @@ from plenocl.reconstruction import (
 )
 from plenocl.reconstruction import images as images_module
 from plenocl.reconstruction.images import prepare_image
+from plenocl.reconstruction.settings import COARSE_OVERSAMPLE
 from plenocl.reconstruction.supersample import LateralBinning
 from plenocl.simulate import simulate_image
 
@@ -99,16 +100,23 @@ def test_bad_coarse_to_fine_options_are_refused(bad):
         ReconstructionSettings(supersample=3, **bad)
 
 
-def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(optics, queue):
+@pytest.mark.parametrize("coarse_oversample", [COARSE_OVERSAMPLE, None])
+def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(
+        coarse_oversample, optics, queue):
     """The fine iterations start from the coarse volume's support (grown by one voxel,
-    flat) and stay on it; an empty image gives an empty volume."""
+    flat) and stay on it; the coarse iterations run on the aperture sampled
+    ``coarse_oversample`` times per pixel footprint (``None``: the projector's own); an
+    empty image gives an empty volume."""
     cam, grid, proj = optics
     pos, inten = random_particles(((-1.3, 1.3), (-0.8, 0.8), (-8, 8)), count=6, seed=4,
                                   intensity=2e4)
     img = simulate_image(cam, pos, inten, 4000, seed=2, queue=queue, background=20.0)
-    coarse = reconstruct(img, proj, iterations=4)
+    coarse_proj = proj if coarse_oversample is None else proj.sampled(coarse_oversample)
+    assert coarse_proj.aperture.n < proj.aperture.n or coarse_oversample is None
+    coarse = reconstruct(img, coarse_proj, iterations=4)
     vol, info = reconstruct(img, proj, iterations=3, supersample=2, coarse_iterations=4,
-                            support=0.05, return_info=True)
+                            support=0.05, coarse_oversample=coarse_oversample,
+                            return_info=True)
     grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
     assert info.support_fraction == pytest.approx(grown.mean())
     assert not vol[~grown].any() and vol[grown].any()
@@ -117,6 +125,17 @@ def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(opt
         empty = reconstruct(np.full(img.shape, 20.0, np.float32), proj, supersample=2,
                             coarse_iterations=2)
     assert not empty.any() and empty.shape == grid.shape
+
+
+def test_a_sampled_projector_is_kept_and_its_own_adjoint(optics, queue):
+    """``Projector.sampled``: the same grid and camera on a coarser aperture sampling,
+    built once per value, itself at its own value, and a true pair of transposes."""
+    cam, grid, proj = optics
+    coarse = proj.sampled(0.5)
+    assert proj.sampled(0.5) is coarse and proj.sampled(proj.oversample) is proj
+    assert coarse.grid == grid and coarse.oversample == 0.5
+    assert coarse.n_samples < proj.n_samples / 4
+    assert_adjoint(coarse, seed=3)
 
 
 def test_an_operator_that_cannot_refine_is_refused(optics):
@@ -268,7 +287,7 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     start's spreading on the device (one product instead of two quotients per
     sub-voxel), carried through the iterations."""
     cam, grid, proj = optics
-    coarse = reconstruct(scene, proj, iterations=4)
+    coarse = reconstruct(scene, proj.sampled(COARSE_OVERSAMPLE), iterations=4)
     grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
     flat = np.where(grown, np.float32(coarse[grown].mean()), np.float32(0))
     fine = reconstruct(scene, proj.refined(2), iterations=3, start=spread_lateral(flat, 2))

@@ -177,6 +177,7 @@ class Projector:
                              general=general)
         self.queue = get_queue(queue)
         self._refined: dict[int, Projector] = {}
+        self._sampled: dict[float, Projector] = {}
         self.model = model
         self.resampler: FrameResampler | None = None
         self.frame = self._frame_projector(frame) if model.path == "general" else None
@@ -747,6 +748,25 @@ class Projector:
             self._refined[factor] = Projector(self.camera, self.grid.refined(factor),
                                               self.queue, **self._options, frame=frame)
         return self._refined[factor]
+
+    @property
+    def oversample(self) -> float:
+        """Aperture samples per pixel footprint (:attr:`WeightingModel.oversample`)."""
+        return self.model.oversample
+
+    def sampled(self, oversample: float) -> Projector:
+        """A projector for this grid with the aperture sampled ``oversample`` times per
+        pixel footprint (same camera, queue and other options; a resampled grid's through
+        its frame's), built once per value and kept: the coarse-to-fine reconstruction's
+        coarse iterations (docs/design.md §6.5). ``self`` at this projector's own value."""
+        if oversample == self.oversample:
+            return self
+        if oversample not in self._sampled:
+            frame = None if self.frame is None else self.frame.sampled(oversample)
+            self._sampled[oversample] = Projector(
+                self.camera, self.grid, self.queue,
+                **{**self._options, "oversample": oversample}, frame=frame)
+        return self._sampled[oversample]
 
     def cropped(self, box: tuple[slice, slice, slice]) -> Projector:
         """A projector for the sub-grid ``vol[box]`` (same camera, queue and options).

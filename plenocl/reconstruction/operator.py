@@ -94,3 +94,16 @@ class RefinableOperator(ProjectionOperator, Protocol):
         voxel (:meth:`plenocl.Grid.refined`; ``factor`` 1: itself), kept per factor. Same
         camera: its :meth:`lit_lenses` are this operator's, which a supersampled
         reconstruction computes once, on this one."""
+
+
+class SampledOperator(ProjectionOperator, Protocol):
+    """A :class:`ProjectionOperator` that can also resample the main-lens aperture: the
+    coarse iterations of a coarse-to-fine reconstruction run on a coarser sampling
+    (``coarse_oversample``; docs/design.md §6.5; :class:`plenocl.Projector` is one). An
+    operator without it runs them on itself."""
+
+    oversample: float
+
+    def sampled(self, oversample: float) -> ProjectionOperator:
+        """The same operator with ``oversample`` aperture samples per pixel footprint,
+        kept per value (itself at its own value)."""

@@ -178,6 +178,12 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         ``iterations`` on the sub-voxels start flat on it and never leave it (the back
         projection skips the zero voxels). ``0`` (default): the sub-voxels start from
         ``start`` everywhere. ``info.support_fraction``: the grid's fraction it kept.
+    coarse_oversample
+        Aperture samples per pixel footprint of the coarse iterations (default
+        ``COARSE_OVERSAMPLE``, 0.625: a quarter of the projector's samples, which finds
+        the same support in a third of the time; :meth:`plenocl.Projector.sampled`, built
+        once per projector); ``None`` or a value at or above the projector's own: the
+        projector itself.
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
         ``False`` stops the reconstruction. Coarse-to-fine: the coarse iterations come
@@ -218,6 +224,16 @@ def _refined(projector, factor: int):
                           "1, is the grid itself) needs less") from err
 
 
+def _coarse_sampled(projector, settings: ReconstructionSettings):
+    """The coarse iterations' operator: the projector with its aperture sampled
+    ``coarse_oversample`` times per pixel footprint when it can resample
+    (:meth:`plenocl.Projector.sampled`) and that is coarser than its own; else itself."""
+    over = settings.coarse_oversample
+    if over is None or not hasattr(projector, "sampled") or over >= projector.oversample:
+        return projector
+    return projector.sampled(over)
+
+
 def _coarse_start(start, grid) -> np.ndarray | None:
     """A start volume given on the grid (the fine run spreads it over the sub-voxels on
     the device), checked for its shape; ``None`` for a named start."""
@@ -249,7 +265,8 @@ def _supersampled(prepared: PreparedImage, projector, refined,
     if settings.coarse_iterations and start is None:
         coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                               iterations=settings.coarse_iterations)
-        coarse, coarse_info = _solve(prepared, projector, coarse_settings, callback)
+        coarse, coarse_info = _solve(prepared, _coarse_sampled(projector, settings),
+                                     coarse_settings, callback)
         start, support = _coarse_support(coarse, settings)
         if not support:  # nothing to refine: the image holds no light (warned)
             coarse_info.support_fraction = 0.0

@@ -38,6 +38,12 @@ class ReconstructionInfo:
     support_fraction: float = 1.0
 
 
+#: Aperture samples per pixel footprint of a coarse-to-fine reconstruction's coarse
+#: iterations (docs/design.md §6.5): they only find the support, and a quarter of the
+#: projector's samples (1.25) finds the same one.
+COARSE_OVERSAMPLE = 0.625
+
+
 @dataclass(frozen=True)
 class ReconstructionSettings:
     """Every option of a reconstruction, validated once (see :func:`reconstruct` for
@@ -61,6 +67,7 @@ class ReconstructionSettings:
     supersample: int = 1
     coarse_iterations: int = 0
     support: float = 1e-3
+    coarse_oversample: float | None = COARSE_OVERSAMPLE
 
     def __post_init__(self) -> None:
         it_default, mu_default = DEFAULTS.get(self.method, (0, 1.0))
@@ -108,6 +115,12 @@ def _check_options(s: ReconstructionSettings) -> None:
             or isinstance(s.coarse_iterations, bool)):
         raise ValueError(f"coarse_iterations must be a non-negative integer, got "
                          f"{s.coarse_iterations!r}")
+    if s.coarse_oversample is not None and (
+            isinstance(s.coarse_oversample, bool) or not np.isfinite(s.coarse_oversample)
+            or s.coarse_oversample <= 0):
+        raise ValueError(f"coarse_oversample must be a positive number (aperture samples "
+                         f"per pixel footprint of the coarse iterations) or None (the "
+                         f"projector's own), got {s.coarse_oversample!r}")
     if not (np.isfinite(s.support) and 0 <= s.support < 1):
         raise ValueError(f"support must be in [0, 1) (a fraction of the coarse volume's "
                          f"brightest voxel), got {s.support!r}")
