@@ -35,8 +35,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
-from plenocl.pipeline.settings import PAIR_SUPERSAMPLE  # noqa: E402
-from plenocl.reconstruction import ReconstructionSettings  # noqa: E402
+from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 #: The reconstruction settings compared (each with process_pair's other defaults).
@@ -44,7 +43,7 @@ SETTINGS = {  # before: 30 MLEM iterations on the sub-voxels from a uniform volu
     "before": PREVIOUS_SETTINGS,
     # the default until 2026-11-26: coarse 10 + fine 10 MLEM iterations at μ = 1
     "previous": ReconstructionSettings(supersample=3, coarse_iterations=10, iterations=10,
-                                       support=0.01),
+                                       relax=1.0, support=0.01),
     "default": None,
     "voxels": ReconstructionSettings(supersample=1),
 }
@@ -63,7 +62,7 @@ def main() -> None:
     motion = MOTIONS[args.motion]
     scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion)
     t0 = time.perf_counter()
-    proj.refined(PAIR_SUPERSAMPLE).sensitivity()
+    proj.refined(SUPERSAMPLE).sensitivity()
     queue.finish()
     print(f"the refined projector and its sensitivity, built once per projector (a batch "
           f"worker's first pair): {time.perf_counter() - t0:.1f} s; every row below runs "
