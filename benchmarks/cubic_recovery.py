@@ -1,7 +1,8 @@
-"""Particle recovery on the paper's synthetic case with cubic voxels (issue 15): the
-default reconstruction of ``process_pair`` (3 x 3 lateral sub-voxels per voxel) against
-the single-frame reconstruction on the voxels themselves (``supersample=1``, the default
-before), on the same unseen scenes in the same run.
+"""Particle recovery on the paper's synthetic case with cubic voxels (issues 15, 28):
+``reconstruct()``'s default, which ``process_pair`` and the CLI share (coarse-to-fine
+MLEM on 3 x 3 lateral sub-voxels per voxel), against the single-frame reconstruction on
+the voxels themselves (``supersample=1``, ``reconstruct()``'s default before issue 28)
+and other sub-voxel schedules, on the same unseen scenes in the same run.
 
     python benchmarks/cubic_recovery.py [--scenes 6] [--counts 20 60]
 
@@ -30,18 +31,17 @@ from plenocl.bench.core import particle_scene  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
-from plenocl.pipeline.settings import PAIR_RECONSTRUCTION  # noqa: E402
 from plenocl.reconstruction import ReconstructionSettings, reconstruct  # noqa: E402
 
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 #: The reconstructions compared (label: settings).
 SETTINGS = {
-    "voxels, 30 it.": ReconstructionSettings(supersample=1),
+    "voxels, 30 it. (supersample=1)": ReconstructionSettings(supersample=1),
     "3 x 3 sub-voxels, 30 it.": ReconstructionSettings(supersample=3, iterations=30,
                                                        coarse_iterations=0),
-    "coarse-to-fine 10 + 10": ReconstructionSettings(supersample=3, iterations=10,
+    "coarse-to-fine 10 + 10": ReconstructionSettings(supersample=3, iterations=10, relax=1.0,
                                                      coarse_iterations=10, support=1e-2),
-    "pair default (5 + 7, μ 1.5)": PAIR_RECONSTRUCTION,
+    "reconstruct() default (5 + 7, μ 1.5)": ReconstructionSettings(),
     "5 + 10, μ 1.5": ReconstructionSettings(supersample=3, iterations=10, relax=1.5,
                                             coarse_iterations=5, support=1e-2),
 }
@@ -57,7 +57,7 @@ def main() -> None:
     proj = Projector(cam, CUBIC, queue)
     print(f"device: {queue.device.name.strip()}; grid {CUBIC.shape}, voxel "
           f"{CUBIC.spacing[0]:.3f} mm; {args.scenes} scenes per count")
-    print(f"{'particles':>9s} {'reconstruction':28s} {'recovered':>9s} {'min':>5s} "
+    print(f"{'particles':>9s} {'reconstruction':36s} {'recovered':>9s} {'min':>5s} "
           f"{'ghosts':>6s} {'Q':>5s} {'s':>5s}")
     for count in args.counts:
         stats = {label: [] for label in SETTINGS}
@@ -71,7 +71,7 @@ def main() -> None:
                                      t))
         for label, rows in stats.items():
             a = np.array(rows)
-            print(f"{count:9d} {label:28s} {a[:, 0].mean():9.1%} {a[:, 0].min():5.0%} "
+            print(f"{count:9d} {label:36s} {a[:, 0].mean():9.1%} {a[:, 0].min():5.0%} "
                   f"{a[:, 1].mean():6.1%} {a[:, 2].mean():5.2f} {np.median(a[:, 3]):5.1f}",
                   flush=True)
 

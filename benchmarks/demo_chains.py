@@ -91,7 +91,7 @@ def main() -> None:
     rows["correlation only (sub-voxels)"] = (corr, t_corr)
     t0 = time.perf_counter()
     proj = Projector(cam, sc.grid, queue)
-    before = [reconstruct(raw, proj, "mlem", sc.iterations) for raw in raws]
+    before = [reconstruct(raw, proj, "mlem", sc.iterations, supersample=1) for raw in raws]
     rows["before (voxels, correlation only)"] = (piv3d(*before, windows=sc.windows, queue=queue),
                                                  time.perf_counter() - t0)
     print(f"\n{args.size} demo, final window {corr.window} (z, y, x voxels)\n")

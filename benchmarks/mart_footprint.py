@@ -65,7 +65,7 @@ def solvers(proj: Projector, count: int) -> None:
     for name, img in images.items():
         for method, floor in VARIANTS:
             it, mu = DEFAULTS[method]
-            vol = reconstruct(img, proj, method, it, mu, ratio_floor=floor)
+            vol = reconstruct(img, proj, method, it, mu, ratio_floor=floor, supersample=1)
             rep = recovery(vol, GRID, pos)
             label = method if floor is None else f"{method} floor {floor:g}"
             print(f"{count:9d} {name:24s} {label:16s} {it:4d} {rep.fraction:6.2f} "

@@ -34,8 +34,8 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.metrics import quality_q, recovery  # noqa: E402
 from plenocl.pipeline import MTESettings, motion_tracking_enhancement, process_pair  # noqa: E402
-from plenocl.pipeline.settings import PAIR_RECONSTRUCTION  # noqa: E402
 from plenocl.piv.tracking import refine_with_particles  # noqa: E402
+from plenocl.reconstruction import ReconstructionSettings  # noqa: E402
 
 VARIANTS = {"geometric": MTESettings(cycles=1), "mean": MTESettings(cycles=1, combine="mean"),
             "min": MTESettings(cycles=1, combine="min")}
@@ -69,7 +69,7 @@ def run_scene(scene, proj, grid, cycles: int, variants: list[str]) -> list[dict]
         a, b, res, total = pair.vol_a, pair.vol_b, pair.piv, t_single
         for c in range(cycles):
             a, b, res, _, sec = motion_tracking_enhancement(
-                scene.raw_a, scene.raw_b, proj, a, b, res, PAIR_RECONSTRUCTION,
+                scene.raw_a, scene.raw_b, proj, a, b, res, ReconstructionSettings(),
                 VARIANTS[name], lambda x, y: piv3d(x, y, queue=proj.queue))
             total += sec
             rows.append(row(f"MTE {name}, {c + 1} cycle{'s' * (c > 0)}", scene, grid, a,

@@ -36,8 +36,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
-from plenocl.pipeline.settings import PAIR_SUPERSAMPLE  # noqa: E402
-from plenocl.reconstruction import ReconstructionSettings  # noqa: E402
+from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
 from plenocl.reconstruction.settings import COARSE_OVERSAMPLE  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
@@ -46,7 +45,7 @@ SETTINGS = {  # before: 30 MLEM iterations on the sub-voxels from a uniform volu
     "before": PREVIOUS_SETTINGS,
     # the default until 2026-11-26: coarse 10 + fine 10 MLEM iterations at μ = 1
     "previous": ReconstructionSettings(supersample=3, coarse_iterations=10, iterations=10,
-                                       support=0.01, coarse_oversample=None),
+                                       relax=1.0, support=0.01, coarse_oversample=None),
     # the default with its coarse iterations on the projector's own aperture sampling
     # (until 2026-11-26 afternoon: coarse_oversample=None)
     "fullcoarse": ReconstructionSettings(supersample=3, coarse_iterations=5, iterations=7,
@@ -69,7 +68,7 @@ def main() -> None:
     motion = MOTIONS[args.motion]
     scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion)
     t0 = time.perf_counter()
-    proj.refined(PAIR_SUPERSAMPLE).sensitivity()
+    proj.refined(SUPERSAMPLE).sensitivity()
     proj.sampled(COARSE_OVERSAMPLE).sensitivity()
     queue.finish()
     print(f"the refined and the coarse-sampled projectors and their sensitivities, built "

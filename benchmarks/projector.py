@@ -27,8 +27,8 @@ from plenocl.bench.sparse import matrix_bytes
 from plenocl.bench.stages import csr_case, device_pair, projector_bytes
 from plenocl.bench.timing import median_time
 from plenocl.device import device_info
-from plenocl.pipeline.settings import PAIR_RECONSTRUCTION
 from plenocl.projection import Projector
+from plenocl.reconstruction import ReconstructionSettings
 from plenocl.reconstruction.reconstruct import run_reconstruction
 
 
@@ -207,7 +207,7 @@ def rotated_reconstruction(queue, rotation: float = 0.15) -> None:
         proj = Projector(cam, Grid(grid.shape, grid.x, grid.y, grid.z, rotation_deg=frame),
                          queue)
         t0 = time.perf_counter()
-        run_reconstruction(images[id(cam)], proj, PAIR_RECONSTRUCTION)
+        run_reconstruction(images[id(cam)], proj, ReconstructionSettings())
         seconds = time.perf_counter() - t0
         base = base or seconds
         print(f"{label} ({proj.path} path): pair-default reconstruction {seconds:.1f} s = "

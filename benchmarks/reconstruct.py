@@ -63,7 +63,8 @@ def table(queue, grid: Grid, counts, settings, repeats: int) -> None:
             times = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                vol, info = reconstruct(img, proj, method, it, mu, return_info=True, **opts)
+                vol, info = reconstruct(img, proj, method, it, mu, return_info=True,
+                                        supersample=1, **opts)
                 times.append(time.perf_counter() - t0)
             rep = recovery(vol, grid, pos)
             print(f"{n:9d} {label:24s} {info.iterations:4d} {statistics.median(times):7.2f} "
@@ -126,8 +127,8 @@ def seed_study(queue, seeds: int = 20, counts=(20, 60)) -> None:
     for n in counts:
         scenes = [particle_scene(cam, n, seed=5000 + k) for k in range(seeds)]
         for name, proj in projs.items():
-            rec = {m: [recovery(reconstruct(img, proj, m, it, mu), proj.grid, pos).fraction
-                       for pos, _, img in scenes]
+            rec = {m: [recovery(reconstruct(img, proj, m, it, mu, supersample=1), proj.grid,
+                                pos).fraction for pos, _, img in scenes]
                    for m, it, mu in (("mlem", 30, 1.0), ("mart", 15, 0.7))}
             cells = [f"{np.mean(v):.2f} / {min(v):.2f}" for v in rec.values()]
             print(f"{n:9d} {name:12s} {cells[0]:>14s} {cells[1]:>14s}", flush=True)
@@ -151,9 +152,9 @@ def coarse_to_fine(queue, counts=(20, 60, 150), seeds=3) -> None:
                 t0 = time.perf_counter()
                 start = "uniform"
                 if kc:
-                    vc = reconstruct(img, coarse_p, iterations=kc)
+                    vc = reconstruct(img, coarse_p, iterations=kc, supersample=1)
                     start = vc.repeat(2, 0).repeat(2, 1).repeat(2, 2) / 8
-                vol = reconstruct(img, fine_p, iterations=kf, start=start)
+                vol = reconstruct(img, fine_p, iterations=kf, start=start, supersample=1)
                 rows.setdefault(label, []).append((time.perf_counter() - t0,
                                                    recovery(vol, CUBE, pos).fraction))
         for label, vals in rows.items():
@@ -174,7 +175,7 @@ def sparse_comparison(queue, repeats: int) -> None:
     norm = img / img.max()
 
     def device():
-        return reconstruct(img, proj, "mlem", 30)
+        return reconstruct(img, proj, "mlem", 30, supersample=1)
 
     def stored():
         return ref.mlem(W, norm, 30) * img.max()
@@ -203,7 +204,7 @@ def paper_experiment(queue) -> None:
     for label, method, mu in (("MART, mu = 1 (paper)", "mart", 1.0), ("MLEM (default)", "mlem",
                                                                        1.0)):
         t0 = time.perf_counter()
-        _, info = reconstruct(img, proj, method, 5, mu, return_info=True)
+        _, info = reconstruct(img, proj, method, 5, mu, return_info=True, supersample=1)
         print(f"  {label:22s} 5 iterations: {time.perf_counter() - t0:7.1f} s "
               f"(residual {info.residuals[-1]:.3f})", flush=True)
 

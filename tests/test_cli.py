@@ -120,7 +120,7 @@ def test_likely_mistakes_warn_in_the_library(queue):
     img = simulate_image(cam, np.array([[0.1, 0.2, 0.3]]), 2e4, 2000, queue=queue)
     wide = Grid((8, 40, 40), x=(-6.0, 6.0), y=(-6.0, 6.0), z=(-1.0, 1.0))
     with pytest.warns(UserWarning, match="beyond the camera's field of view"):
-        reconstruct(img, Projector(cam, wide, queue), iterations=1)
+        reconstruct(img, Projector(cam, wide, queue), iterations=1, supersample=1)
 
 
 def test_a_whole_experiment_from_the_command_line(tmp_path, capsys):

@@ -142,7 +142,7 @@ def test_reconstruction_unchanged_by_skipping(method, small_camera, queue):
     proj = Projector(small_camera, grid, queue)
     pos = np.array([[0.1, 0.2, 0.3], [-0.3, -0.1, -0.8], [0.4, -0.3, 1.0]])
     img = simulate_image(small_camera, pos, 1e4, 4000, seed=2)
-    kw = dict(method=method, iterations=6, threshold=0.5, return_info=True)
+    kw = dict(method=method, iterations=6, threshold=0.5, return_info=True, supersample=1)
     on, info_on = reconstruct(img, proj, skip_dark=True, **kw)
     off, info_off = reconstruct(img, proj, skip_dark=False, **kw)
     assert info_off.lit_lens_fraction == 1.0

@@ -88,7 +88,7 @@ def test_process_pair_with_mte_refines_both_volumes_and_the_field(queue):
     kw = dict(rays_per_particle=4000, blur_px=0.8, background=20.0, queue=queue)
     raw_a = simulate_image(cam, pos, inten, seed=1, **kw)
     raw_b = simulate_image(cam, pos + shift_mm, inten, seed=2, **kw)
-    settings = ReconstructionSettings(iterations=20, supersample=3)
+    settings = ReconstructionSettings(iterations=20, supersample=3, coarse_iterations=0)
     single = process_pair(raw_a, raw_b, proj, reconstruction=settings,
                           mte=MTESettings(cycles=0))
     pair = process_pair(raw_a, raw_b, proj, reconstruction=settings,

@@ -13,8 +13,7 @@ from plenocl.cli.main import main
 from plenocl.io import write_tiff
 from plenocl.metrics import quality_q, recovery, render_particles
 from plenocl.optics.rawimage import subtract_background
-from plenocl.pipeline.settings import PAIR_RECONSTRUCTION
-from plenocl.reconstruction import Solver, extent_box, nonzero_box
+from plenocl.reconstruction import ReconstructionSettings, Solver, extent_box, nonzero_box
 from plenocl.simulate import simulate_image
 from plenocl.volumefile import load_volume
 
@@ -53,9 +52,10 @@ def test_default_recovers_the_papers_synthetic_particles(paper_case, queue, coun
 @pytest.mark.parametrize("count, target", [(20, 0.9), (60, 0.8)])
 def test_sub_voxels_recover_the_synthetic_particles_on_cubic_voxels(queue, count, target):
     """The paper's cube on cubic 40^3 voxels (a quarter of the depth resolution deep),
-    1 px particle blur, two scenes no other test uses: process_pair's reconstruction
-    (3 x 3 lateral sub-voxels) recovers >= 90 % of 20 and >= 80 % of 60 particles (issue
-    15; benchmarks/cubic_recovery.py measures six scenes against the voxels alone)."""
+    1 px particle blur, two scenes no other test uses: the default reconstruction
+    (reconstruct()'s and process_pair's: coarse-to-fine on 3 x 3 lateral sub-voxels)
+    recovers >= 90 % of 20 and >= 80 % of 60 particles (issues 15, 28;
+    benchmarks/cubic_recovery.py measures more scenes against the voxels alone)."""
     cubic = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
     cam = Camera.synthetic_850()
     proj = Projector(cam, cubic, queue)
@@ -64,13 +64,13 @@ def test_sub_voxels_recover_the_synthetic_particles_on_cubic_voxels(queue, count
         pos, inten = random_particles(((-2.3, 2.3),) * 3, count=count, seed=seed,
                                       intensity=1e4)
         img = simulate_image(cam, pos, inten, 20000, seed=seed, blur_px=1.0, queue=queue)
-        fractions.append(recovery(reconstruct(img, proj, supersample=3), cubic, pos).fraction)
+        fractions.append(recovery(reconstruct(img, proj), cubic, pos).fraction)
     assert np.mean(fractions) >= target
 
 
 def test_papers_mart_runs_finite_and_worse_than_default(paper_case):
     _, proj, pos, _, img = paper_case
-    vol = reconstruct(img, proj, "mart", 15, 0.7)
+    vol = reconstruct(img, proj, "mart", 15, 0.7, supersample=1)  # the paper's, on voxels
     assert np.all(np.isfinite(vol)) and vol.min() >= 0 and vol.max() > 0
     assert recovery(vol, CUBE, pos).fraction < recovery(reconstruct(img, proj), CUBE, pos).fraction
 
@@ -80,15 +80,16 @@ def test_a_ratio_floor_keeps_the_particles_the_literal_mart_loses(paper_case):
     literal MART; floored at 0.3 the ratio costs it at most 0.3^(mu w): far more of the
     particles survive (benchmarks/mart_footprint.py: 0.25 -> 0.95 on this image)."""
     _, proj, pos, _, img = paper_case
-    literal = recovery(reconstruct(img, proj, "mart", 15, 0.7), CUBE, pos).fraction
-    floored = recovery(reconstruct(img, proj, "mart", 15, 0.7, ratio_floor=0.3), CUBE,
+    kw = dict(supersample=1)  # the paper's MART, on the voxels
+    literal = recovery(reconstruct(img, proj, "mart", 15, 0.7, **kw), CUBE, pos).fraction
+    floored = recovery(reconstruct(img, proj, "mart", 15, 0.7, ratio_floor=0.3, **kw), CUBE,
                        pos).fraction
     assert floored >= literal + 0.4
 
 
 def test_reconstruction_conserves_the_light_it_explains(paper_case):
     _, proj, _, _, img = paper_case
-    vol = reconstruct(img, proj, iterations=60)
+    vol = reconstruct(img, proj, iterations=60, supersample=1)
     # MLEM preserves total counts: Σ_i (W E)_i equals Σ I over the pixels it explains
     assert proj.forward(vol).sum() == pytest.approx(img.sum(), rel=0.02)
 
@@ -156,7 +157,8 @@ def test_skipping_empty_slices_changes_nothing_but_work(paper_case, queue):
     pos, inten = random_particles(((-2.3, 2.3), (-2.3, 2.3), (-0.5, 0.5)), count=20, seed=4,
                                   intensity=1e4)
     img = simulate_image(cam, pos, inten, 20000, seed=4, queue=queue)
-    kw = dict(iterations=15, mask_fraction=0.5, threshold=1.0, return_info=True)
+    kw = dict(iterations=15, mask_fraction=0.5, threshold=1.0, return_info=True,
+              supersample=1)
     fast, info = reconstruct(img, proj, skip_empty=True, **kw)
     slow, _ = reconstruct(img, proj, skip_empty=False, **kw)
     np.testing.assert_allclose(fast, slow, rtol=tol.RECOMPUTED,
@@ -168,15 +170,15 @@ def test_array_start_continues_a_reconstruction(paper_case):
     """A volume start picks up where a reconstruction stopped: 10 + 10 iterations equal 20
     (MLEM is a fixed-point iteration), in image units."""
     _, proj, _, _, img = paper_case
-    ten = reconstruct(img, proj, iterations=10)
-    twenty = reconstruct(img, proj, iterations=20)
-    resumed = reconstruct(img, proj, iterations=10, start=ten)
+    ten = reconstruct(img, proj, iterations=10, supersample=1)
+    twenty = reconstruct(img, proj, iterations=20, supersample=1)
+    resumed = reconstruct(img, proj, iterations=10, start=ten, supersample=1)
     np.testing.assert_allclose(resumed, twenty, rtol=tol.RESUMED,
                                atol=tol.RESUMED_FLOOR * twenty.max())
     with pytest.raises(ValueError, match="expected the grid's"):
-        reconstruct(img, proj, iterations=1, start=ten[:-1])
+        reconstruct(img, proj, iterations=1, start=ten[:-1], supersample=1)
     with pytest.raises(ValueError, match="finite and non-negative"):
-        reconstruct(img, proj, iterations=1, start=-ten)
+        reconstruct(img, proj, iterations=1, start=-ten, supersample=1)
 
 
 def test_cropping_to_the_illuminated_region_is_exact(paper_case, queue):
@@ -186,8 +188,8 @@ def test_cropping_to_the_illuminated_region_is_exact(paper_case, queue):
     pos, inten = random_particles(((-2.3, -0.8), (0.8, 2.3), (-2.3, 2.3)), count=8, seed=6,
                                   intensity=1e4)
     img = simulate_image(cam, pos, inten, 20000, seed=6, queue=queue)
-    fast, info = reconstruct(img, proj, iterations=15, return_info=True)
-    slow = reconstruct(img, proj, iterations=15, crop=False)
+    fast, info = reconstruct(img, proj, iterations=15, return_info=True, supersample=1)
+    slow = reconstruct(img, proj, iterations=15, crop=False, supersample=1)
     assert info.cropped_shape is not None
     assert np.prod(info.cropped_shape) < 0.8 * CUBE.size
     np.testing.assert_allclose(fast, slow, rtol=tol.ITERATED, atol=1e-5 * slow.max())
@@ -200,10 +202,10 @@ def test_cropping_again_between_iterations(paper_case, queue):
     pos, inten = random_particles(((-2.3, 0.0), (0.0, 2.3), (-2.3, 2.3)), count=40, seed=9,
                                   intensity=1e4)
     img = simulate_image(cam, pos, inten, 20000, seed=9, queue=queue)
-    kw = dict(method="smart", threshold=1.0, return_info=True)
-    _, early = reconstruct(img, proj, iterations=2, **kw)
-    fast, late = reconstruct(img, proj, iterations=14, **kw)
-    slow = reconstruct(img, proj, iterations=14, crop=False, method="smart", threshold=1.0)
+    kw = dict(method="smart", threshold=1.0, supersample=1)
+    _, early = reconstruct(img, proj, iterations=2, return_info=True, **kw)
+    fast, late = reconstruct(img, proj, iterations=14, return_info=True, **kw)
+    slow = reconstruct(img, proj, iterations=14, crop=False, **kw)
     assert late.cropped_shape is not None
     assert np.prod(late.cropped_shape) < 0.8 * np.prod(early.cropped_shape or CUBE.shape)
     assert fast.max() > 0
@@ -259,7 +261,7 @@ def test_process_pair_runs_the_default_chain(queue):
     pair = plenocl.process_pair(raw_a, raw_b, Projector(cam, grid, queue))
     assert pair.vol_a.shape == pair.vol_b.shape == grid.shape
     assert set(pair.seconds) == {"reconstruct_a", "reconstruct_b", "piv", "particles"}
-    rec = PAIR_RECONSTRUCTION
+    rec = ReconstructionSettings()  # the pair's default, reconstruct()'s
     assert (pair.info_a.coarse_iterations, pair.info_a.iterations) == (
         rec.coarse_iterations, rec.iterations)
     assert 0 < pair.info_a.support_fraction < 1
@@ -294,11 +296,12 @@ def test_pixels_without_data_masked_do_not_darken_the_volume(queue):
     pos, inten = random_particles(((-2.3, 2.3),) * 3, count=40, seed=12, intensity=2e4)
     image = simulate_image(cam, pos, inten, 4000, seed=12, queue=queue)
     proj = Projector(cam, CUBE, queue)
-    full = reconstruct(image, proj, iterations=30)
+    kw = dict(iterations=30, supersample=1)
+    full = reconstruct(image, proj, **kw)
     observed = np.random.default_rng(1).random(image.shape) > 0.3
     blanked = np.where(observed, image, 0)
-    naive = reconstruct(blanked, proj, iterations=30)
-    masked = reconstruct(blanked, proj, iterations=30, pixel_mask=observed)
+    naive = reconstruct(blanked, proj, **kw)
+    masked = reconstruct(blanked, proj, pixel_mask=observed, **kw)
     assert masked.sum() == pytest.approx(full.sum(), rel=0.03)
     assert naive.sum() < 0.8 * full.sum()
     assert np.corrcoef(masked.ravel(), full.ravel())[0, 1] > 0.99

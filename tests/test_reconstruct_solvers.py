@@ -15,6 +15,13 @@ from plenocl.reconstruction.operator import ProjectionOperator
 from plenocl.reference import reconstruct as ref
 
 
+def reconstruct_voxels(image, projector, *args, **keywords):
+    """:func:`plenocl.reconstruction.reconstruct` on the voxels themselves
+    (``supersample=1``): the kernels are checked voxel by voxel against the references,
+    and a matrix operator has no sub-voxels."""
+    return reconstruct(image, projector, *args, supersample=1, **keywords)
+
+
 class MatrixProjector:
     """A projector from an explicit matrix W (pixels x voxels), for solver tests; it holds
     volumes as two depth slabs so the per-slab code paths are exercised. It implements
@@ -97,7 +104,7 @@ def tiny(queue):
 @pytest.mark.parametrize("method, fn", [("mlem", ref.mlem), ("smart", ref.smart)])
 def test_simultaneous_solvers_match_reference(tiny, method, fn):
     proj, W, image = tiny
-    vol = reconstruct(image, proj, method, iterations=12, relax=0.8)
+    vol = reconstruct_voxels(image, proj, method, iterations=12, relax=0.8)
     expected = fn(W, image / image.max(), 12, 0.8) * image.max()
     np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
 
@@ -107,7 +114,7 @@ def test_over_relaxed_mlem_matches_reference(tiny, relax):
     """MLEM at 1 < μ < 2 (the kernel's square-root form at 1.5, pow otherwise) is the
     reference's update."""
     proj, W, image = tiny
-    vol = reconstruct(image, proj, "mlem", iterations=6, relax=relax)
+    vol = reconstruct_voxels(image, proj, "mlem", iterations=6, relax=relax)
     expected = ref.mlem(W, image / image.max(), 6, relax) * image.max()
     np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
 
@@ -115,7 +122,7 @@ def test_over_relaxed_mlem_matches_reference(tiny, relax):
 def test_block_mart_matches_block_reference_and_approaches_sequential(tiny):
     proj, W, image = tiny
     blocks = view_blocks(proj.camera, 2).ravel()
-    vol = reconstruct(image, proj, "mart", iterations=5, relax=0.7, mart_blocks=2)
+    vol = reconstruct_voxels(image, proj, "mart", iterations=5, relax=0.7, mart_blocks=2)
     groups = [np.nonzero(blocks == b)[0] for b in range(4)]
     expected = ref.mart_blocks(W, image / image.max(), groups, 5, 0.7) * image.max()
     np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
@@ -130,21 +137,21 @@ def test_ratio_floor_matches_the_references(tiny, floor):
     dark pixels fall far more slowly than in the literal form."""
     proj, W, image = tiny
     top = image.max()
-    vol = reconstruct(image, proj, "smart", iterations=8, relax=0.8, ratio_floor=floor)
+    vol = reconstruct_voxels(image, proj, "smart", iterations=8, relax=0.8, ratio_floor=floor)
     expected = ref.smart(W, image / top, 8, 0.8, ratio_floor=floor) * top
     np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
     literal = ref.smart(W, image / top, 8, 0.8) * top
     dark = (W.T @ (image.ravel() <= 0)) > 0
     assert expected[dark].max() > 1e3 * literal[dark].max()
     groups = [np.nonzero(view_blocks(proj.camera, 2).ravel() == b)[0] for b in range(4)]
-    vol = reconstruct(image, proj, "mart", iterations=4, relax=0.7, ratio_floor=floor)
+    vol = reconstruct_voxels(image, proj, "mart", iterations=4, relax=0.7, ratio_floor=floor)
     expected = ref.mart_blocks(W, image / top, groups, 4, 0.7, ratio_floor=floor) * top
     np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
 
 
 def test_solvers_converge_to_the_truth_on_a_determined_case(tiny):
     proj, W, image = tiny
-    vol = reconstruct(image, proj, "mlem", iterations=300)
+    vol = reconstruct_voxels(image, proj, "mlem", iterations=300)
     assert np.argsort(vol.ravel())[-3:].tolist() == [17, 3, 42]
     resid = np.linalg.norm(W @ vol.ravel() - image.ravel()) / np.linalg.norm(image)
     assert resid < 0.05
@@ -154,8 +161,8 @@ def test_solvers_converge_to_the_truth_on_a_determined_case(tiny):
 @pytest.mark.parametrize("relax", [1e-6, 1.0])
 def test_thousand_iterations_stay_finite(tiny, method, relax):
     proj, _, image = tiny
-    vol = reconstruct(image, proj, method, iterations=1000 if method != "mart" else 250,
-                      relax=relax)
+    vol = reconstruct_voxels(image, proj, method, iterations=1000 if method != "mart" else 250,
+                             relax=relax)
     assert np.all(np.isfinite(vol)) and vol.min() >= 0 and vol.max() > 0
 
 
@@ -171,33 +178,34 @@ def test_thousand_iterations_stay_finite(tiny, method, relax):
 ])
 def test_extreme_images_never_give_nan_or_inf(tiny, make):
     proj, _, image = tiny
-    vol = reconstruct(make(image), proj, "mlem", iterations=20, start="mlos", mask_fraction=0.5)
+    vol = reconstruct_voxels(make(image), proj, "mlem", iterations=20, start="mlos",
+                             mask_fraction=0.5)
     assert np.all(np.isfinite(vol)) and vol.min() >= 0
 
 
 def test_dynamic_range_scales_linearly(tiny):
     proj, _, image = tiny
-    lo = reconstruct(image * 1e-6, proj, "smart", iterations=10)
-    hi = reconstruct(image * 1e6, proj, "smart", iterations=10)
+    lo = reconstruct_voxels(image * 1e-6, proj, "smart", iterations=10)
+    hi = reconstruct_voxels(image * 1e6, proj, "smart", iterations=10)
     np.testing.assert_allclose(lo * 1e12, hi, rtol=tol.ITERATED, atol=1e-6 * hi.max())
 
 
 def test_same_input_same_output(tiny):
     proj, _, image = tiny
-    a = reconstruct(image, proj, "mlem", iterations=10)
-    np.testing.assert_array_equal(a, reconstruct(image, proj, "mlem", iterations=10))
+    a = reconstruct_voxels(image, proj, "mlem", iterations=10)
+    np.testing.assert_array_equal(a, reconstruct_voxels(image, proj, "mlem", iterations=10))
 
 
 def test_masking_keeps_zero_voxels_zero_and_callback_can_stop(tiny):
     proj, W, image = tiny
     seen = []
-    vol, info = reconstruct(image, proj, "mlem", iterations=50, mask_fraction=0.0,
-                            callback=lambda it, r: seen.append(it) or it < 7,
-                            return_info=True)
+    vol, info = reconstruct_voxels(image, proj, "mlem", iterations=50, mask_fraction=0.0,
+                                   callback=lambda it, r: seen.append(it) or it < 7,
+                                   return_info=True)
     dark_voxels = (W.T @ (image.ravel() <= 0)) > 0
     assert np.all(vol.ravel()[dark_voxels] == 0)
     assert seen == list(range(1, 8)) and info.iterations == 7
-    _, info = reconstruct(image, proj, "mlem", iterations=5000, tol=1e-4, return_info=True)
+    _, info = reconstruct_voxels(image, proj, "mlem", iterations=5000, tol=1e-4, return_info=True)
     assert info.converged and info.iterations < 5000
 
 
@@ -214,7 +222,7 @@ def test_masking_keeps_zero_voxels_zero_and_callback_can_stop(tiny):
 def test_bad_options_are_rejected(tiny, kwargs, message):
     proj, _, image = tiny
     with pytest.raises(ValueError, match=message):
-        reconstruct(image, proj, **{"iterations": 1, **kwargs})
+        reconstruct_voxels(image, proj, **{"iterations": 1, **kwargs})
 
 
 @pytest.mark.parametrize("bad, message, kw", [
@@ -226,21 +234,21 @@ def test_bad_options_are_rejected(tiny, kwargs, message):
 def test_bad_images_are_rejected(tiny, bad, message, kw):
     proj, _, _ = tiny
     with pytest.raises(ValueError, match=message):
-        reconstruct(bad, proj, iterations=1, **kw)
+        reconstruct_voxels(bad, proj, iterations=1, **kw)
 
 
 def test_the_median_background_and_noise_threshold_are_the_default(tiny):
     """A dark level with read noise (negative pixels after dark subtraction) reconstructs
     as the clean image does, by default; an image without light warns."""
     proj, _, image = tiny
-    clean = reconstruct(image, proj, "mlem", iterations=10)
+    clean = reconstruct_voxels(image, proj, "mlem", iterations=10)
     rng = np.random.default_rng(2)
     noisy = image + 0.002 * image.max() * rng.standard_normal(image.shape) - 5e-4
     assert noisy.min() < 0
-    got = reconstruct(noisy, proj, "mlem", iterations=10)
+    got = reconstruct_voxels(noisy, proj, "mlem", iterations=10)
     assert np.corrcoef(got.ravel(), clean.ravel())[0, 1] > 0.99
     with pytest.warns(UserWarning, match="no light above its background"):
-        assert not reconstruct(np.full(image.shape, 7.0), proj, iterations=3).any()
+        assert not reconstruct_voxels(np.full(image.shape, 7.0), proj, iterations=3).any()
 
 
 @pytest.mark.parametrize("rotation, jitter", [(0.0, 0.0), (2.0, 0.0), (0.3, 0.2)])
@@ -283,8 +291,8 @@ def test_pixels_without_data_match_the_reference(tiny, method, fn):
     """A pixel mask: the kernels' missing-data update (ratio 1) equals the twin's."""
     proj, W, image = tiny
     observed = np.random.default_rng(4).random(image.shape) > 0.3
-    vol = reconstruct(image, proj, method, iterations=12, relax=0.8, background=None,
-                      threshold=0.0, pixel_mask=observed)
+    vol = reconstruct_voxels(image, proj, method, iterations=12, relax=0.8, background=None,
+                             threshold=0.0, pixel_mask=observed)
     top = image[observed].max()
     expected = fn(W, np.where(observed, image, 0.0) / top, 12, 0.8, observed=observed) * top
     np.testing.assert_allclose(vol.ravel(), expected, **_solver(expected))
@@ -293,11 +301,11 @@ def test_pixels_without_data_match_the_reference(tiny, method, fn):
 def test_a_pixel_mask_is_checked(tiny):
     proj, _, image = tiny
     with pytest.raises(ValueError, match="pixel_mask shape"):
-        reconstruct(image, proj, pixel_mask=np.ones((5, 5), bool))
+        reconstruct_voxels(image, proj, pixel_mask=np.ones((5, 5), bool))
     with pytest.raises(ValueError, match="leaves no pixel"):
-        reconstruct(image, proj, pixel_mask=np.zeros(image.shape, bool))
+        reconstruct_voxels(image, proj, pixel_mask=np.zeros(image.shape, bool))
     with pytest.raises(ValueError, match="start='mlos' cannot use a pixel_mask"):
-        reconstruct(image, proj, start="mlos", pixel_mask=np.ones(image.shape, bool))
+        reconstruct_voxels(image, proj, start="mlos", pixel_mask=np.ones(image.shape, bool))
 
 
 def test_pixels_without_data_carry_no_light_after_a_negative_median(tiny):

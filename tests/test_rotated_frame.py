@@ -129,7 +129,7 @@ def test_reconstruction_in_the_rotated_frame_finds_the_particles(queue):
         img = simulate_image(cam, pos, 4000.0, rays_per_particle=4000, seed=1, queue=queue)
         proj = Projector(cam, grid, queue)
         assert proj.path == "separable"
-        report = recovery(reconstruct(img, proj, iterations=30), grid, pos)
+        report = recovery(reconstruct(img, proj, iterations=30, supersample=1), grid, pos)
         found[rotation] = report.recovered
         assert report.position_rms_vox < 1.0
     assert found[2.0] >= found[0.0] >= 5

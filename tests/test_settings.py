@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 import pytest
@@ -20,9 +21,14 @@ from plenocl.cli.main import build_parser
 from plenocl.cli.volume import reconstruction_settings
 from plenocl.io.tomlfile import read_toml, write_toml
 from plenocl.options import NONE
-from plenocl.pipeline.settings import PAIR_COARSE, PAIR_RELAX, PAIR_SUPERSAMPLE
 from plenocl.piv.imagefit import ImageFitSettings
-from plenocl.reconstruction import DEFAULTS
+from plenocl.reconstruction import (
+    COARSE_ITERATIONS,
+    DEFAULTS,
+    FINE_DEFAULTS,
+    SUPERSAMPLE,
+    SUPPORT,
+)
 
 CHANGED = PairSettings(
     reconstruction=ReconstructionSettings("mart", 12, 0.6, threshold=3.0, ratio_floor=0.2,
@@ -98,12 +104,52 @@ def test_unknown_keys_and_bad_values_are_named(doc, message):
         PairSettings.from_dict(doc, source="e.toml")
 
 
+def _cli_settings(*options: str) -> ReconstructionSettings:
+    """``plenocl reconstruct``'s reconstruction with these options."""
+    args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
+                                      "g", "--out", "v.npz", *options])
+    return reconstruction_settings(args)
+
+
+def _reconstruct_settings(monkeypatch, **keywords) -> ReconstructionSettings:
+    """The settings :func:`plenocl.reconstruct` runs with these keywords."""
+    module = sys.modules["plenocl.reconstruction.reconstruct"]  # not the function
+    seen = []
+    monkeypatch.setattr(module, "run_reconstruction",
+                        lambda image, proj, settings, *rest: seen.append(settings) or (0, 0))
+    reconstruct(None, None, **keywords)
+    return seen[0]
+
+
+def test_one_default_reconstruction(monkeypatch):
+    """One default for every entry point: plenocl.reconstruct with no options,
+    process_pair (its settings, an empty document) and plenocl reconstruct run the same
+    reconstruction, coarse-to-fine MLEM on 3 x 3 sub-voxels (docs/design.md §6.5)."""
+    rec = ReconstructionSettings()
+    assert _reconstruct_settings(monkeypatch) == rec
+    assert PairSettings().reconstruction == rec
+    assert PairSettings.from_dict({}).reconstruction == rec
+    assert PairSettings.from_dict({"reconstruction": {}}).reconstruction == rec
+    assert _cli_settings() == rec
+    assert (rec.method, rec.supersample, rec.coarse_iterations, rec.support, rec.iterations,
+            rec.relax) == ("mlem", SUPERSAMPLE, COARSE_ITERATIONS, SUPPORT,
+                           *FINE_DEFAULTS) == ("mlem", 3, 5, 0.01, 7, 1.5)
+    assert (rec.background, rec.start, rec.total_iterations) == ("median", "uniform", 12)
+    # the voxels themselves: the method's own iterations, everywhere alike
+    one = ReconstructionSettings(supersample=1)
+    assert (one.iterations, one.relax, one.coarse_iterations) == (*DEFAULTS["mlem"], 0)
+    assert (one.iterations, one.relax) == (30, 1.0) and one.total_iterations == 30
+    assert _reconstruct_settings(monkeypatch, supersample=1) == one
+    assert _cli_settings("--supersample", "1") == one
+    assert PairSettings.from_dict({"reconstruction": {"supersample": 1}}).reconstruction == one
+
+
 def test_defaults_agree():
     """One default per option: the pair's reconstruction on 3 x 3 sub-voxels, MTE off,
     the particle refinement and the image fit on; an empty document is the defaults, as
-    is the CLI's reconstruction."""
+    is the CLI's reconstruction; each option given replaces its own default only."""
     pair = PairSettings()
-    assert pair.reconstruction.supersample == PAIR_SUPERSAMPLE == 3
+    assert pair.reconstruction.supersample == SUPERSAMPLE == 3
     assert pair.mte == MTESettings() and MTESettings().cycles == 0
     assert pair.particles and pair.image_fit == ImageFitSettings()
     assert pair.piv == PIVSettings()
@@ -111,20 +157,29 @@ def test_defaults_agree():
     assert PairSettings.from_dict({"reconstruction": {"iterations": 7}}) == pair
     rec = pair.reconstruction
     assert (rec.coarse_iterations, rec.support, rec.iterations, rec.relax) == (
-        PAIR_COARSE["coarse_iterations"], 0.01, 7, PAIR_RELAX) == (5, 0.01, 7, 1.5)
-    args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
-                                      "g", "--out", "v.npz"])
-    assert reconstruction_settings(args) == rec
+        COARSE_ITERATIONS, SUPPORT, *FINE_DEFAULTS) == (5, 0.01, 7, 1.5)
+    assert _cli_settings() == rec
     # the voxels themselves, or another method, keep the method's own iterations
     one = PairSettings.from_dict({"reconstruction": {"supersample": 1}}).reconstruction
     assert (one.iterations, one.relax) == DEFAULTS["mlem"] and one.coarse_iterations == 0
-    mart = PairSettings.from_dict({"reconstruction": {"method": "mart"}}).reconstruction
-    assert (mart.iterations, mart.relax) == DEFAULTS["mart"] and mart.coarse_iterations == 5
+    for method in ("mart", "smart"):
+        other = PairSettings.from_dict({"reconstruction": {"method": method}}).reconstruction
+        assert other == ReconstructionSettings(method=method)
+        assert (other.iterations, other.relax) == DEFAULTS[method]
+        assert (other.supersample, other.coarse_iterations) == (3, 5)
     given = PairSettings.from_dict({"reconstruction": {"relax": 1.0}}).reconstruction
     assert (given.relax, given.iterations) == (1.0, 7)
-    args = build_parser().parse_args(["reconstruct", "r.tif", "--camera", "c", "--grid",
-                                      "g", "--out", "v.npz", "--supersample", "1"])
-    assert reconstruction_settings(args) == one
+    assert ReconstructionSettings(relax=1.0) == given
+    assert (ReconstructionSettings(iterations=30).relax, _cli_settings(
+        "--iterations", "30").relax) == (1.5, 1.5)
+    # no coarse iterations: MLEM's own on the sub-voxels
+    flat = ReconstructionSettings(coarse_iterations=0)
+    assert (flat.supersample, flat.iterations, flat.relax) == (3, *DEFAULTS["mlem"])
+    assert _cli_settings("--coarse-iterations", "0") == flat
+    assert _cli_settings("--supersample", "1") == one
+    # the document's "none" (TOML) is the default too
+    assert PairSettings.from_dict({"reconstruction": {"iterations": NONE, "relax": NONE,
+                                                      "coarse_iterations": NONE}}) == pair
 
 
 def test_keywords_build_settings_and_conflicts_are_refused():

@@ -74,16 +74,17 @@ def test_supersampled_reconstruction_is_the_binned_fine_one(optics, queue):
     pos, inten = random_particles(((-1.3, 1.3), (-0.8, 0.8), (-8, 8)), count=6, seed=3,
                                   intensity=2e4)
     img = simulate_image(cam, pos, inten, 4000, seed=1, queue=queue, background=20.0)
-    vol, info = reconstruct(img, proj, iterations=6, supersample=2, return_info=True)
-    fine = reconstruct(img, proj.refined(2), iterations=6)
+    flat = dict(supersample=2, coarse_iterations=0)  # the sub-voxels from a uniform start
+    vol, info = reconstruct(img, proj, iterations=6, return_info=True, **flat)
+    fine = reconstruct(img, proj.refined(2), iterations=6, supersample=1)
     # binned on the device (kernels/supersample.cl) against the NumPy twin
     np.testing.assert_allclose(vol, bin_lateral(fine, 2), rtol=tol.BINNED, atol=0)
     assert vol.shape == grid.shape and info.supersample == 2
     # a start volume is given on the coarse grid and spread over the sub-voxels
-    resumed = reconstruct(img, proj, iterations=3, supersample=2, start=vol)
+    resumed = reconstruct(img, proj, iterations=3, start=vol, **flat)
     assert resumed.shape == grid.shape and np.isfinite(resumed).all()
     with pytest.raises(ValueError, match=r"expected the grid's \(150, 16, 23\)"):
-        reconstruct(img, proj, iterations=1, supersample=2, start=spread_lateral(vol, 2))
+        reconstruct(img, proj, iterations=1, start=spread_lateral(vol, 2), **flat)
 
 
 @pytest.mark.parametrize("bad", [0, 5, 1.5, True])
@@ -113,9 +114,9 @@ def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(
     img = simulate_image(cam, pos, inten, 4000, seed=2, queue=queue, background=20.0)
     coarse_proj = proj if coarse_oversample is None else proj.sampled(coarse_oversample)
     assert coarse_proj.aperture.n < proj.aperture.n or coarse_oversample is None
-    coarse = reconstruct(img, coarse_proj, iterations=4)
+    coarse = reconstruct(img, coarse_proj, iterations=4, supersample=1)
     vol, info = reconstruct(img, proj, iterations=3, supersample=2, coarse_iterations=4,
-                            support=0.05, coarse_oversample=coarse_oversample,
+                            support=0.05, relax=1.0, coarse_oversample=coarse_oversample,
                             return_info=True)
     grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
     assert info.support_fraction == pytest.approx(grown.mean())
@@ -170,10 +171,10 @@ def test_sub_voxels_recover_more_ray_traced_particles_and_fewer_ghosts(optics, q
         pos, inten = random_particles(box, count=20, seed=seed, intensity=2e4)
         img = simulate_image(cam, pos, inten, 20000, seed=seed, queue=queue, blur_px=0.8,
                              background=20.0, photon_noise=True, read_noise=3.0)
-        one, three = (recovery(reconstruct(img, proj, supersample=f), grid, pos)
-                      for f in (1, 3))
+        one, three = (recovery(reconstruct(img, proj, supersample=f, coarse_iterations=0),
+                               grid, pos) for f in (1, 3))  # 30 iterations on each grid
         vol, info = reconstruct(img, proj, supersample=3, iterations=10, coarse_iterations=10,
-                                support=1e-2, return_info=True)
+                                support=1e-2, relax=1.0, return_info=True)
         c2f = recovery(vol, grid, pos)
         assert three.ghost_fraction < one.ghost_fraction
         gain.append(three.fraction - one.fraction)
@@ -287,10 +288,12 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     start's spreading on the device (one product instead of two quotients per
     sub-voxel), carried through the iterations."""
     cam, grid, proj = optics
-    coarse = reconstruct(scene, proj.sampled(COARSE_OVERSAMPLE), iterations=4)
+    coarse = reconstruct(scene, proj.sampled(COARSE_OVERSAMPLE), iterations=4,
+                         supersample=1)
     grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
     flat = np.where(grown, np.float32(coarse[grown].mean()), np.float32(0))
-    fine = reconstruct(scene, proj.refined(2), iterations=3, start=spread_lateral(flat, 2))
+    fine = reconstruct(scene, proj.refined(2), iterations=3, start=spread_lateral(flat, 2),
+                       supersample=1)
     calls = {"preprocess": 0, "lit_lenses": 0, "fine": []}
 
     def counted(name, function):
@@ -309,7 +312,7 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
     monkeypatch.setattr(Solver, "binned_to_host", binned_to_host)
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
-                            support=0.05, return_info=True)
+                            support=0.05, relax=1.0, return_info=True)
     assert calls["preprocess"] == 1 and calls["lit_lenses"] == 1
     assert info.cropped_shape is not None  # the fine run cropped itself before binning
     peak = float(fine.max())
@@ -323,7 +326,8 @@ def test_the_callback_counts_the_coarse_iterations_then_the_fine_ones(optics, sc
     settings = ReconstructionSettings(iterations=2, supersample=2, coarse_iterations=3,
                                       support=0.05)
     assert settings.total_iterations == 5
-    assert ReconstructionSettings(iterations=2, coarse_iterations=3).total_iterations == 2
+    voxels = ReconstructionSettings(iterations=2, coarse_iterations=3, supersample=1)
+    assert voxels.total_iterations == 2  # no coarse run on the voxels themselves
     seen = []
     vol, info = reconstruct(scene, proj, settings=settings, return_info=True,
                             callback=lambda it, resid: seen.append(it))

@@ -41,7 +41,7 @@ VOXEL_MM = (0.1833, 0.175, 0.1333)      # (x, y, z): the paper's 300 x 200 x 150
 BASELINE_SETTINGS = ReconstructionSettings(supersample=1)
 #: The default chain's reconstruction before coarse-to-fine (docs/design.md §6.5): 30
 #: MLEM iterations on the sub-voxels from a uniform volume.
-PREVIOUS_SETTINGS = ReconstructionSettings(supersample=3, iterations=30)
+PREVIOUS_SETTINGS = ReconstructionSettings(supersample=3, iterations=30, coarse_iterations=0)
 #: The rows of a budget: the default chain, the same chain with the reconstruction before
 #: coarse-to-fine (where asked for), its particles as the volumes place them (not fitted
 #: to the raw images), its volumes correlated without the particle refinement, and the

@@ -97,7 +97,8 @@ def stage_outputs(queue: cl.CommandQueue, mlem_image: np.ndarray | None = None
     refocused = LightField(sim, calibrated, queue=queue).refocus(z_mm=0.5)
     target = sim if mlem_image is None else mlem_image
     return {"simulate": sim, "forward": proj.forward(volume), "back": proj.back(image),
-            "refocus": refocused, "mlem": reconstruct(target, proj, "mlem", 20)}
+            "refocus": refocused, "mlem": reconstruct(target, proj, "mlem", 20,
+                                                      supersample=1)}
 
 
 def stage_difference(stage: str, a: np.ndarray, b: np.ndarray) -> float:

@@ -19,6 +19,10 @@ SIZES = ("ci", "small", "paper")
 Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
 #: (label, method, iterations, relax, options) of a reconstruction setting.
 ReconSetting = tuple[str, str, int, float, dict]
+#: The report's solver rows run on the voxels themselves: they compare methods, iteration
+#: counts and skipping options on one grid (``reconstruct()``'s default is coarse-to-fine
+#: on sub-voxels, docs/design.md §6.5).
+VOXELS = {"supersample": 1}
 
 
 # ---- configuration ----------------------------------------------------------------------

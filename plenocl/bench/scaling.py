@@ -11,6 +11,7 @@ from ..projection.projector import Projector
 from ..reconstruction import reconstruct
 from ..simulate import Simulator
 from .core import (
+    VOXELS,
     BenchRun,
     bench_scene,
     camera_for,
@@ -74,10 +75,11 @@ def _scale_iterations(run: BenchRun) -> list[dict]:
     """MLEM time and host peak memory against the number of iterations."""
     proj = Projector(run.camera, run.cfg.grid, run.queue)
     _, _, img = bench_scene(run, run.cfg.counts[0], seed=5)
-    reconstruct(img, proj, "mlem", 1)  # warm-up
+    reconstruct(img, proj, "mlem", 1, **VOXELS)  # warm-up
     points = []
     for it in run.cfg.scale_iterations:
-        call = lambda k=it: reconstruct(img, proj, "mlem", k, skip_empty=False)  # noqa: E731
+        call = lambda k=it: reconstruct(img, proj, "mlem", k, skip_empty=False,  # noqa: E731
+                                        **VOXELS)
         t = median_time(call, run.repeats)
         points.append({"n": it, "seconds": t, "bytes": host_peak_bytes(call),
                        "rate": f"{t / it:.3f} s/iteration"})

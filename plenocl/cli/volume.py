@@ -16,14 +16,15 @@ import numpy as np
 from ..camera import load_camera
 from ..io.files import CHANNELS
 from ..pipeline.frames import load_frame
-from ..pipeline.settings import (
-    PAIR_COARSE,
-    PAIR_FINE_ITERATIONS,
-    PAIR_SUPERSAMPLE,
-    pair_reconstruction_table,
-)
 from ..projection.weighting import DEFAULT_OVERSAMPLE
-from ..reconstruction.settings import COARSE_OVERSAMPLE
+from ..reconstruction.settings import (
+    COARSE_ITERATIONS,
+    COARSE_OVERSAMPLE,
+    DEFAULTS,
+    FINE_DEFAULTS,
+    SUPERSAMPLE,
+    SUPPORT,
+)
 from .frames import add_frame_options, camera_for_frames, read_frame
 
 
@@ -55,9 +56,10 @@ def reconstruct_command(args: argparse.Namespace) -> int:
 
 
 def reconstruction_settings(args: argparse.Namespace):
-    """The reconstruction the command line asks for: its options over the pair's
-    defaults (:func:`plenocl.pipeline.settings.pair_reconstruction_table`), so that
-    ``plenocl reconstruct`` and ``process_pair`` reconstruct alike."""
+    """The reconstruction the command line asks for: its options over
+    :class:`~plenocl.reconstruction.ReconstructionSettings`' defaults, so that
+    ``plenocl reconstruct``, :func:`plenocl.reconstruct` and ``process_pair`` reconstruct
+    alike."""
     from ..reconstruction import ReconstructionSettings
 
     given = dict(method=args.method, iterations=args.iterations, relax=args.relax,
@@ -67,7 +69,7 @@ def reconstruction_settings(args: argparse.Namespace):
                  support=args.support, coarse_oversample=args.coarse_oversample)
     table = {k: v for k, v in given.items() if v is not None}
     table["background"] = "median" if args.background == "median" else None
-    return ReconstructionSettings(**pair_reconstruction_table(table))
+    return ReconstructionSettings(**table)
 
 
 def _pixel_mask(args: argparse.Namespace, camera):
@@ -181,12 +183,14 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
                    help="mlem: multiplicative EM, keeps in-focus particles; smart: "
                         "simultaneous MART; mart: the paper's block MART")
     p.add_argument("--iterations", type=int, default=None,
-                   help="default: per method (mlem and smart 30, mart 15; mlem on "
-                        f"sub-voxels after coarse iterations {PAIR_FINE_ITERATIONS}); 0 "
-                        "returns the start")
+                   help=f"default: per method (mlem on sub-voxels after coarse "
+                        f"iterations {FINE_DEFAULTS[0]}; mlem on the voxels and smart "
+                        f"{DEFAULTS['smart'][0]}, mart {DEFAULTS['mart'][0]}); 0 returns "
+                        "the start")
     p.add_argument("--relax", type=float, default=None,
-                   help="relaxation: 0 < mu < 2 for mlem (default 1.5 on sub-voxels after "
-                        "coarse iterations, else 1), 0 < mu <= 1 for smart and mart")
+                   help=f"relaxation: 0 < mu < 2 for mlem (default {FINE_DEFAULTS[1]:g} "
+                        "on sub-voxels after coarse iterations, else 1), 0 < mu <= 1 for "
+                        "smart and mart")
     p.add_argument("--start", default="uniform", choices=["uniform", "mlos"],
                    help="first guess: a uniform volume carrying the image's light, or MLOS")
     p.add_argument("--background", default="median", choices=["median", "none"],
@@ -204,19 +208,19 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
                         "image's alpha channel, or a mask image file, nonzero where the "
                         "image holds data; those pixels are left out instead of read as "
                         "dark")
-    p.add_argument("--supersample", type=int, default=PAIR_SUPERSAMPLE,
-                   help="lateral sub-voxels per voxel and axis (default: %(default)s, as "
-                        "process_pair and plenocl run; 1: the voxels themselves, with "
-                        "about 3x the depth error)")
+    p.add_argument("--supersample", type=int, default=None,
+                   help=f"lateral sub-voxels per voxel and axis (default {SUPERSAMPLE}, as "
+                        "plenocl.reconstruct, process_pair and plenocl run; 1: the voxels "
+                        "themselves, cheaper, with about 3x the depth error)")
     p.add_argument("--coarse-iterations", type=int, default=None,
                    help="with sub-voxels: iterations on the voxels first, whose support "
                         "the sub-voxel iterations keep to (default "
-                        f"{PAIR_COARSE['coarse_iterations']}, as process_pair, and then "
-                        f"{PAIR_FINE_ITERATIONS} mlem iterations on the sub-voxels; 0: "
+                        f"{COARSE_ITERATIONS}, as plenocl.reconstruct and process_pair, and "
+                        f"then {FINE_DEFAULTS[0]} mlem iterations on the sub-voxels; 0: "
                         "the sub-voxels from the start)")
     p.add_argument("--support", type=float, default=None,
                    help="support threshold of the coarse volume, a fraction of its "
-                        f"brightest voxel (default {PAIR_COARSE['support']:g})")
+                        f"brightest voxel (default {SUPPORT:g})")
     p.add_argument("--coarse-oversample", type=float, default=None,
                    help="aperture samples per pixel footprint of the coarse iterations "
                         f"(default {COARSE_OVERSAMPLE:g}; the projector's own, "

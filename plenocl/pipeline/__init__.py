@@ -5,7 +5,7 @@ its defaults) and its two-exposure reconstruction, motion-tracking enhancement
 
 from .mte import MTESettings, motion_tracking_enhancement
 from .pair import PairResult, process_pair
-from .settings import PAIR_SUPERSAMPLE, PairSettings
+from .settings import PairSettings
 
-__all__ = ["PAIR_SUPERSAMPLE", "MTESettings", "PairResult", "PairSettings",
+__all__ = ["MTESettings", "PairResult", "PairSettings",
            "motion_tracking_enhancement", "process_pair"]

@@ -65,12 +65,13 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         ``piv=``, ``mte=``, ``particles=``, ``image_fit=``), which build one; keywords
         that differ from a given ``settings`` are an error. The parts:
 
-        - ``reconstruction``: by default MLEM, the median background removed and
-          pixels within 4 noise deviations of it dark, as :func:`plenocl.reconstruct`,
+        - ``reconstruction``: by default :func:`plenocl.reconstruct`'s
+          (:class:`~plenocl.reconstruction.ReconstructionSettings`' defaults): MLEM, the
+          median background removed and pixels within 4 noise deviations of it dark,
           on 3 x 3 lateral sub-voxels per voxel (``supersample=3``, docs/design.md
-          §6.4: the depth error falls two- to threefold), coarse-to-fine (§6.5): 10
-          iterations on the voxels, then 10 on the sub-voxels within the coarse
-          volume's support (:data:`plenocl.pipeline.settings.PAIR_RECONSTRUCTION`).
+          §6.4: the depth error falls two- to threefold), coarse-to-fine (§6.5): 5
+          iterations on the voxels, then 7 over-relaxed ones (μ = 1.5) on the
+          sub-voxels within the coarse volume's support.
         - ``piv``: :func:`plenocl.piv3d`'s options (by default the windows are fitted to
           the volume's shape); the volumes are deformed on the projector's device.
         - ``mte``: motion-tracking enhancement: after the single-frame volumes and their

@@ -1,51 +1,19 @@
 """Every option of one image pair's chain as one object: :class:`PairSettings`, the single
 home of :func:`plenocl.process_pair`'s defaults, read from and written to plain nested
-dicts (an experiment file's sections, docs/batch.md)."""
+dicts (an experiment file's sections, docs/batch.md). Its reconstruction's defaults are
+:class:`~plenocl.reconstruction.ReconstructionSettings`' own, :func:`plenocl.reconstruct`'s."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from ..options import NONE, field_names, from_table, refuse_unknown, to_table
+from ..options import field_names, from_table, refuse_unknown, to_table
 from ..piv.imagefit import ImageFitSettings
 from ..piv.settings import PIVSettings
 from ..reconstruction import ReconstructionSettings
 from .mte import MTESettings
 
-#: Sub-voxels per voxel and lateral axis of a pair's reconstruction (docs/design.md §6.4).
-PAIR_SUPERSAMPLE = 3
-#: A pair's coarse-to-fine defaults on sub-voxels (docs/design.md §6.5): MLEM iterations
-#: on the voxels, the support threshold, and MLEM's iterations on the sub-voxels after
-#: them and its over-relaxation (both phases).
-PAIR_COARSE = {"coarse_iterations": 5, "support": 0.01}
-PAIR_FINE_ITERATIONS = 7
-PAIR_RELAX = 1.5
-
-
-def pair_reconstruction_table(table: Mapping) -> dict:
-    """A pair's reconstruction options: ``table`` (an experiment file's
-    ``[reconstruction]``, the command line's options) with the pair's defaults filled in
-    where it is silent: 3 x 3 sub-voxels; on sub-voxels coarse-to-fine
-    (:data:`PAIR_COARSE`) and, for MLEM after coarse iterations,
-    :data:`PAIR_FINE_ITERATIONS` on the sub-voxels at :data:`PAIR_RELAX`. Other methods
-    and the voxels themselves (``supersample = 1``) keep the method's own iteration and
-    relaxation defaults."""
-    opts = {"supersample": PAIR_SUPERSAMPLE, **table}
-    if not isinstance(opts["supersample"], int) or opts["supersample"] <= 1:
-        return opts
-    opts = {**PAIR_COARSE, **opts}
-    if opts["coarse_iterations"] and opts.get("method", "mlem") == "mlem":
-        for key, value in (("iterations", PAIR_FINE_ITERATIONS), ("relax", PAIR_RELAX)):
-            if opts.get(key, NONE) in (None, NONE):
-                opts[key] = value
-    return opts
-
-
-#: The reconstruction :func:`plenocl.process_pair` runs by default: MLEM over-relaxed at
-#: μ = 1.5 with the median background removed, coarse-to-fine: 5 iterations on the
-#: voxels, then 7 on 3 x 3 lateral sub-voxels per voxel within the coarse support.
-PAIR_RECONSTRUCTION = ReconstructionSettings(**pair_reconstruction_table({}))
 #: The parts of a pair's settings, as the sections of a document.
 PARTS = ("reconstruction", "piv", "mte", "particles", "image_fit")
 
@@ -58,7 +26,8 @@ class PairSettings:
     ----------
     reconstruction
         Both exposures' reconstruction (:class:`~plenocl.reconstruction.ReconstructionSettings`;
-        by default :data:`PAIR_RECONSTRUCTION`).
+        by default its defaults, as :func:`plenocl.reconstruct`'s: coarse-to-fine MLEM on
+        3 x 3 lateral sub-voxels per voxel, docs/design.md §6.5).
     piv
         The correlation (:class:`~plenocl.piv.PIVSettings`; by default the windows are
         fitted to the volume).
@@ -74,7 +43,7 @@ class PairSettings:
         ``True`` or ``False``, it holds the default settings or ``None``.
     """
 
-    reconstruction: ReconstructionSettings = PAIR_RECONSTRUCTION
+    reconstruction: ReconstructionSettings = field(default_factory=ReconstructionSettings)
     piv: PIVSettings = field(default_factory=PIVSettings)
     mte: MTESettings = field(default_factory=MTESettings)
     particles: bool = True
@@ -127,11 +96,8 @@ class PairSettings:
             raise ValueError(f"{source}: pair settings must be a table, got {doc!r}")
         refuse_unknown(doc, PARTS, lambda bad: f"{source}: unknown section(s) {bad}; the "
                        f"pair settings are {list(PARTS)}")
-        rec = doc.get("reconstruction", {})
-        if isinstance(rec, Mapping):  # the pair's defaults, not the single step's
-            rec = pair_reconstruction_table(rec)
         return cls(
-            reconstruction=from_table(ReconstructionSettings, rec,
+            reconstruction=from_table(ReconstructionSettings, doc.get("reconstruction", {}),
                                       f"{source}: [reconstruction]"),
             piv=from_table(PIVSettings, doc.get("piv", {}), f"{source}: [piv]"),
             mte=from_table(MTESettings, doc.get("mte", {}), f"{source}: [mte]"),

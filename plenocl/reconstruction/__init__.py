@@ -1,6 +1,7 @@
 """Reconstruction of particle volumes from plenoptic images (docs/design.md §6).
 
-- :mod:`.settings`: :class:`ReconstructionSettings` (every option, validated once) and
+- :mod:`.settings`: :class:`ReconstructionSettings` (every option, validated once; the
+  one default of every entry point, coarse-to-fine on sub-voxels) and
   :class:`ReconstructionInfo` (what a run did);
 - :mod:`.images`: the raw image's scaling and background (its checks:
   :mod:`plenocl.optics.rawimage`);
@@ -17,17 +18,22 @@ from .images import FLOAT32_LIMIT, NOISE_SIGMAS, preprocess, scale_raw_image
 from .operator import ProjectionOperator, RefinableOperator
 from .reconstruct import reconstruct, run_reconstruction
 from .settings import (
+    COARSE_ITERATIONS,
     DEFAULTS,
+    FINE_DEFAULTS,
     MAX_MART_BLOCKS,
     METHODS,
+    SUPERSAMPLE,
+    SUPPORT,
     ReconstructionInfo,
     ReconstructionSettings,
 )
 from .solver import CROP_BELOW, UPDATES, Solver, extent_box, nonzero_box
 from .supersample import MAX_SUPERSAMPLE, bin_lateral, spread_lateral
 
-__all__ = ["CROP_BELOW", "DEFAULTS", "FLOAT32_LIMIT", "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE",
-           "METHODS", "NOISE_SIGMAS", "UPDATES", "bin_lateral",
+__all__ = ["COARSE_ITERATIONS", "CROP_BELOW", "DEFAULTS", "FINE_DEFAULTS", "FLOAT32_LIMIT",
+           "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHODS", "NOISE_SIGMAS", "SUPERSAMPLE",
+           "SUPPORT", "UPDATES", "bin_lateral",
            "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
            "RefinableOperator", "Solver",

@@ -38,9 +38,9 @@ class ProjectionOperator(Protocol):
     dark lens is exact. ``active`` (bool per depth slice, ``None``: all) marks the slices
     that can be non-zero; the others may be skipped and come out 0 in a back projection.
 
-    A supersampled reconstruction (``supersample > 1``) needs more:
+    A supersampled reconstruction (``supersample > 1``, the default) needs more:
     :class:`RefinableOperator`. An operator without ``refined`` reconstructs with
-    ``supersample=1`` and is refused otherwise.
+    ``supersample=1`` (given explicitly) and is refused otherwise.
     """
 
     queue: cl.CommandQueue

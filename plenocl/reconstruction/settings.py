@@ -11,8 +11,19 @@ from .supersample import MAX_SUPERSAMPLE
 METHODS = ("mlem", "smart", "mart")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
 MAX_MART_BLOCKS = 32
-#: Defaults per method: (iterations, relaxation). MART's are the paper's synthetic case.
+#: Defaults per method on one grid: (iterations, relaxation). MART's are the paper's
+#: synthetic case. They hold on the voxels (``supersample=1``), for SMART and MART also
+#: on sub-voxels, and for MLEM on sub-voxels without coarse iterations.
 DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
+#: Lateral sub-voxels per voxel and axis by default (docs/design.md §6.4).
+SUPERSAMPLE = 3
+#: Coarse-to-fine by default on sub-voxels (docs/design.md §6.5): iterations on the
+#: voxels first, and the support threshold (a fraction of their brightest voxel).
+COARSE_ITERATIONS = 5
+SUPPORT = 0.01
+#: MLEM's defaults on sub-voxels after coarse iterations: (iterations, relaxation), both
+#: phases over-relaxed (docs/design.md §6.5).
+FINE_DEFAULTS = (7, 1.5)
 #: MLEM's relaxation lies below this bound: MLEM may be over-relaxed,
 #: ``E ← E (Wᵀ r / s)^μ`` with ``1 < μ < 2`` (docs/design.md §6.5: μ = 1.5 reaches in 7
 #: iterations the volume of 10 at μ = 1; μ = 2 oscillates); SMART and MART take the
@@ -47,8 +58,19 @@ COARSE_OVERSAMPLE = 0.625
 @dataclass(frozen=True)
 class ReconstructionSettings:
     """Every option of a reconstruction, validated once (see :func:`reconstruct` for
-    their meaning). ``iterations`` and ``relax`` left at ``None`` take the method's
-    defaults (:data:`DEFAULTS`); the stored object holds the resolved values."""
+    their meaning); the one default of :func:`reconstruct`, :func:`plenocl.process_pair`,
+    ``plenocl reconstruct`` and ``plenocl run``.
+
+    By default coarse-to-fine on sub-voxels (docs/design.md §6.5): :data:`SUPERSAMPLE`
+    x :data:`SUPERSAMPLE` lateral sub-voxels per voxel, :data:`COARSE_ITERATIONS` on the
+    voxels first, :data:`SUPPORT`; for MLEM then :data:`FINE_DEFAULTS` (7 iterations on
+    the sub-voxels at μ = 1.5). Options left at ``None`` resolve from those given:
+    ``coarse_iterations`` is 0 on the voxels (``supersample=1``); ``iterations`` and
+    ``relax`` are :data:`FINE_DEFAULTS` for MLEM on sub-voxels after coarse iterations,
+    else the method's own (:data:`DEFAULTS`: ``supersample=1`` is MLEM's 30 at μ = 1).
+    Values given always win, each on its own. The stored object holds the resolved
+    values (so ``dataclasses.replace(settings, supersample=1)`` keeps the sub-voxels'
+    iterations; ``ReconstructionSettings(supersample=1)`` takes the voxels' own)."""
 
     method: str = "mlem"
     iterations: int | None = None
@@ -64,13 +86,19 @@ class ReconstructionSettings:
     tol: float | None = None
     mart_blocks: int = 2
     ratio_floor: float | None = None
-    supersample: int = 1
-    coarse_iterations: int = 0
-    support: float = 1e-3
+    supersample: int = SUPERSAMPLE
+    coarse_iterations: int | None = None
+    support: float = SUPPORT
     coarse_oversample: float | None = COARSE_OVERSAMPLE
 
     def __post_init__(self) -> None:
-        it_default, mu_default = DEFAULTS.get(self.method, (0, 1.0))
+        fine = _is_int(self.supersample) and self.supersample > 1
+        if self.coarse_iterations is None:
+            object.__setattr__(self, "coarse_iterations", COARSE_ITERATIONS if fine else 0)
+        if fine and self.coarse_iterations and self.method == "mlem":
+            it_default, mu_default = FINE_DEFAULTS
+        else:
+            it_default, mu_default = DEFAULTS.get(self.method, (0, 1.0))
         if self.iterations is None:
             object.__setattr__(self, "iterations", it_default)
         if self.relax is None:
@@ -91,6 +119,11 @@ class ReconstructionSettings:
         return self.mart_blocks**2 if self.method == "mart" and self.mart_blocks > 1 else 1
 
 
+def _is_int(value) -> bool:
+    """An integer, and not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
 def _check_options(s: ReconstructionSettings) -> None:
     if s.threshold is not None and not np.isfinite(s.threshold):
         raise ValueError(f"threshold must be a finite number (image units) or None (from the "
@@ -107,8 +140,7 @@ def _check_options(s: ReconstructionSettings) -> None:
     _check_relax(s.method, s.relax)
     if s.mask_fraction is not None and not 0 <= s.mask_fraction <= 1:
         raise ValueError(f"mask_fraction must be in [0, 1] or None, got {s.mask_fraction!r}")
-    if (not isinstance(s.supersample, (int, np.integer)) or isinstance(s.supersample, bool)
-            or not 1 <= s.supersample <= MAX_SUPERSAMPLE):
+    if not _is_int(s.supersample) or not 1 <= s.supersample <= MAX_SUPERSAMPLE:
         raise ValueError(f"supersample must be an integer from 1 to {MAX_SUPERSAMPLE} (lateral "
                          f"sub-voxels per voxel and axis), got {s.supersample!r}")
     if (int(s.coarse_iterations) != s.coarse_iterations or s.coarse_iterations < 0
