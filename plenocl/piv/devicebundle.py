@@ -119,29 +119,33 @@ class DeviceRayBundle:
         return out.get().reshape(-1, total)
 
     def render_into(self, image_points: np.ndarray, intensity: np.ndarray,
-                    patches: Patches, derivatives: bool, out, total: int) -> None:
+                    patches: Patches, derivatives: bool, out, total: int
+                    ) -> list[cl.Event]:
         """Render into the device array ``out`` and leave the rows there.
 
         ``out`` holds the rows (5 with ``derivatives``, else 1) of ``total`` elements each;
         ``patches.offset`` places each particle's patch in them (so that chunks of
-        particles fill one buffer). Every element of every patch is written.
+        particles fill one buffer). Every element of every patch is written. Returns the
+        events of ``ray_spots`` and ``render_rows`` (none without particles), for a
+        profiling queue's timings (``benchmarks/raybundle_kernels.py``).
         """
         if len(image_points) == 0:
-            return
+            return []
         with self._lock:
-            self._launch(np.asarray(image_points, f32), np.asarray(intensity, f32), patches,
-                         bool(derivatives), out, total)
+            return self._launch(np.asarray(image_points, f32), np.asarray(intensity, f32),
+                                patches, bool(derivatives), out, total)
 
     def _launch(self, points: np.ndarray, intensity: np.ndarray, patches: Patches,
-                derivatives: bool, out, total: int) -> None:
-        """Enqueue both kernels for one set of particles, rows into ``out``."""
+                derivatives: bool, out, total: int) -> list[cl.Event]:
+        """Enqueue both kernels for one set of particles, rows into ``out``; their
+        events."""
         k = self._kernels(derivatives)
         n, rays = len(points), self.bundle.rays
         pts = k.to_device(points)
         slots, keys = self._slots(k, n)
         rows, cols = self.bundle.lenses.shape[:2]
-        k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays), self._lenses,
-                 i32(rows), i32(cols), *self._optics, slots, keys)
+        spots = k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays),
+                         self._lenses, i32(rows), i32(cols), *self._optics, slots, keys)
         band = self.rows_per_item or max(int(patches.height.max()), 1)
         per = -(-patches.height // band)  # work-items per particle
         item_pid = np.repeat(np.arange(n, dtype=i32), per)
@@ -151,8 +155,8 @@ class DeviceRayBundle:
             intensity, patches.offset.astype(i64), patches.col0.astype(i32),
             patches.row0.astype(i32), patches.width.astype(i32), patches.height.astype(i32),
             item_pid, item_row)]
-        k.launch("render_rows", (len(item_pid),), slots, keys, i32(rays), pts, *arrays,
-                 i32(band), self._f_px, i64(total), out)
+        return [spots, k.launch("render_rows", (len(item_pid),), slots, keys, i32(rays), pts,
+                                *arrays, i32(band), self._f_px, i64(total), out)]
 
     def _slots(self, k: KernelSet, n: int) -> tuple:
         """The slots and keys of ``n`` particles' rays: the kept buffers, grown as needed
