@@ -242,7 +242,10 @@ __kernel void render_rows(__global const float *slots, __global const int *keys,
         for (int r = lo; r <= hi; ++r) {
             float gy = slot[20 + r - kr], dgy = slot[25 + r - kr];
             __global float *o = out + base + (long)r * wd + lc0;
-            for (int c = clo; c < chi; ++c) {
+#pragma unroll
+            for (int c = 0; c < 5; ++c) { /* unrolled: gx, dgx stay in registers */
+                if (c < clo || c >= chi)
+                    continue;
                 float g = gx[c] * gy;
                 o[c] += g * ws;
 #if PL_DERIVATIVES
