@@ -50,7 +50,7 @@ inline float pl_rint(float x) { return (x + 12582912.0f) - 12582912.0f; }
 inline int pl_finite(float x) { return x - x == 0.0f; }
 
 /* erfc(a) for a >= 0 given g = exp(-a^2): t P(t) g with t = 1 / (1 + p a), P of degree 6
- * fitted to erfc(a) exp(a^2) (1e-9 in float64; 2.5e-7 absolute in float32 arithmetic,
+ * fitted to erfc(a) exp(a^2) (3.4e-8 in float64; 2.5e-7 absolute in float32 arithmetic,
  * about the builtin erf's rounding of values near 1). It reuses the exp the derivative
  * needs, so a pixel edge costs one exp and one division instead of exp and erf. */
 inline float pl_erfc_g(float a, float g)
