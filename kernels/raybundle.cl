@@ -4,24 +4,30 @@
  * (spots, render), float64 there, float32 here.
  *
  * Two kernels, both gathers without atomics:
- * - ray_spots: one work-item per (ray, particle). It traces the ray from the image point
- *   through its aperture sample to the array, takes the (up to) 2 x 2 lenses that share
- *   it near a cell edge and writes one slot per lens choice: the nearest sensor pixel,
- *   the lens share and its derivatives, the landing point's derivatives by s_i' and the
- *   normalised pixel-integrated Gaussian of the blur over the 5 x 5 pixels around it
- *   (per axis, with its derivative), and its key: the nearest row. A lens choice that
- *   gets no light, lies off the array or is missing (NaN centre) gets weight 0 and no
- *   key (PL_NO_KEY). Each item writes its own 4 slots and keys.
- * - render_rows: one work-item per patch row (all particles' rows in one flat range;
- *   the host's table names the particle and the row). It zeroes its row, then gathers
- *   over its particle's 4 x rays slots in ray order, adding the 5 pixels of each slot
- *   whose spread reaches the row: every patch element is written by one item only, in a
- *   fixed order, so the result is deterministic. It scans the slots' keys (4 bytes a
- *   slot, cached for all the particle's rows) and reads a slot only near its row.
- * On a GPU both ranges are wide (rays x particles; rows x particles) and the items of one
- * particle read the same slots (cached broadcasts); on a CPU render_rows runs in groups
- * of one item (KernelSet's looping rule). Sizes are arguments: a new particle count or
- * patch never recompiles. */
+ * - ray_spots: one work-item per (ray, particle), range (rays, particles). It traces the
+ *   ray from the image point through its aperture sample to the array, takes the (up to)
+ *   2 x 2 lenses that share it near a cell edge and writes one slot per lens choice: the
+ *   nearest sensor pixel, the lens share and its derivatives, the landing point's
+ *   derivatives by s_i' and the normalised pixel-integrated Gaussian of the blur over the
+ *   5 x 5 pixels around it (per axis, with its derivative), and its key: the nearest row.
+ *   A lens choice that gets no light (most of them), lies off the array or is missing
+ *   (NaN centre) gets weight 0 and no key (PL_NO_KEY) and costs no spread. Each item
+ *   writes its own 4 slots and keys. A lit slot's spread costs 2 x 2 exps and 12
+ *   divisions (pl_spread: the edges' exps from two, erf from the edge's exp), no erf.
+ * - render_rows: one work-item per band of `band` rows of one particle's patch (the
+ *   host's table names the particle and the band's first row). It zeroes its band, then
+ *   gathers over its particle's 4 x rays slots in ray order, adding the 5 x 5 pixels of
+ *   each slot whose spread reaches the band: every patch element is written by one item
+ *   only, in a fixed order (slot by slot, whatever the band), so the result is
+ *   deterministic and the same for every band. It scans the slots' keys (4 bytes a slot)
+ *   and reads a slot only near its band.
+ * On a GPU both ranges are wide (rays x particles; band 1: rows x particles) and the
+ * items of one particle read the same slots (cached broadcasts). On a CPU render_rows runs
+ * in groups of one item (KernelSet's looping rule) with a particle's whole patch as its
+ * band (a particle's keys scanned once instead of once a row: 3.5x faster on PoCL). No
+ * builtin but exp in the hot paths (kernels/projector.h's note: PoCL's CPU driver calls
+ * builtins out of line). Sizes are arguments: a new particle count or patch never
+ * recompiles. */
 #ifndef PL_DERIVATIVES
 #define PL_DERIVATIVES 1
 #endif
@@ -33,14 +39,41 @@
  * 6 d col / d s_i', 7 d row / d s_i', 8-12 column shares, 13-17 their d / d col,
  * 18-22 row shares, 23-27 their d / d row */
 
+/* Plain-arithmetic stand-ins for builtins (kernels/projector.h's performance note: PoCL's
+ * CPU driver calls rint, clamp, fabs, sign, isfinite, erf ... out of line). */
+inline float pl_abs(float x) { return x < 0.0f ? -x : x; }
+inline float pl_clamp01(float x) { return x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x); }
+/* rint (ties to even) for |x| < 2^22: adding and taking away 1.5 * 2^23 rounds at the
+ * units (no -cl-fast-relaxed-math, so the compiler keeps both operations) */
+inline float pl_rint(float x) { return (x + 12582912.0f) - 12582912.0f; }
+/* whether x is finite: x - x is NaN for NaN and infinities */
+inline int pl_finite(float x) { return x - x == 0.0f; }
+
+/* erfc(a) for a >= 0 given g = exp(-a^2): t P(t) g with t = 1 / (1 + p a), P of degree 6
+ * fitted to erfc(a) exp(a^2) (3.4e-8 in float64; 2.5e-7 absolute in float32 arithmetic,
+ * about the builtin erf's rounding of values near 1). It reuses the exp the derivative
+ * needs, so a pixel edge costs one exp and one division instead of exp and erf. */
+inline float pl_erfc_g(float a, float g)
+{
+    float t = 1.0f / (1.0f + 0.7f * a);
+    float q = -8.798170146e-02f;
+    q = q * t + 4.316032998e-01f;
+    q = q * t - 7.509929252e-01f;
+    q = q * t + 3.509097379e-01f;
+    q = q * t + 2.735411815e-01f;
+    q = q * t + 3.859967628e-01f;
+    q = q * t + 3.969236110e-01f;
+    return q * t * g;
+}
+
 /* Share of a lattice axis (raybundle._shares): the own lens n and the neighbour n + side,
  * the neighbour's share w (the own one 1 - w), dw by the coordinate and dr by the ramp. */
 inline void pl_share(float coord, float ramp, int *n, int *side, float *w, float *dw,
                      float *dr)
 {
-    float fn = rint(coord), t = coord - fn;
-    float up = clamp((t - (0.5f - ramp)) / (2.0f * ramp), 0.0f, 1.0f);
-    float down = clamp(((ramp - 0.5f) - t) / (2.0f * ramp), 0.0f, 1.0f);
+    float fn = pl_rint(coord), t = coord - fn;
+    float up = pl_clamp01((t - (0.5f - ramp)) / (2.0f * ramp));
+    float down = pl_clamp01(((ramp - 0.5f) - t) / (2.0f * ramp));
     int s = up > 0.0f ? 1 : (down > 0.0f ? -1 : 0);
     float share = s > 0 ? up : down;
     int inside = share > 0.0f && share < 1.0f;
@@ -52,15 +85,35 @@ inline void pl_share(float coord, float ramp, int *n, int *side, float *w, float
 }
 
 /* The normalised shares of the 5 pixels around a landing point x (raybundle._spread):
- * g[i], dg[i] for pixel near - 2 + i; returns near. */
-inline float pl_spread(float x, float sigma, __global float *g, __global float *dg)
+ * g[i], dg[i] for pixel near - 2 + i; returns near. The 6 pixel edges lie at
+ * e_j = t + (j - 5/2) delta (t = (near - x) delta, delta = 1 / (sqrt2 sigma)), so
+ * exp(-e_j^2) = exp(-t^2) b^(2j - 5) c_|2j-5| with b = exp(-t delta) and the launch's
+ * constants c_k = exp(-k^2 delta^2 / 4) (`gauss`: c_1, c_3, c_5): two exps for all six
+ * edges. Where b^5 could overflow (delta^2 > 30, sigma < 0.13 px) the host passes
+ * c_1 = -1 and each edge takes its own exp. */
+inline float pl_spread(float x, float delta, float4 gauss, __global float *g,
+                       __global float *dg)
 {
-    float near = rint(x), s2 = M_SQRT2_F * sigma, norm = M_2_SQRTPI_F / (2.0f * s2);
-    float e[6], f[6], g2[6], gs[5], ds[5], total = 0.0f, dtotal = 0.0f;
-    for (int j = 0; j < 6; ++j) {
-        e[j] = (near - 2.5f + j - x) / s2;
-        f[j] = erf(e[j]); /* each pixel edge's erf and exp once, shared by its pixels */
-        g2[j] = exp(-e[j] * e[j]);
+    float near = pl_rint(x), t = (near - x) * delta, norm = delta * M_2_SQRTPI_F * 0.5f;
+    float e[6], g2[6], f[6], gs[5], ds[5], total = 0.0f, dtotal = 0.0f;
+    for (int j = 0; j < 6; ++j)
+        e[j] = t + (j - 2.5f) * delta;
+    if (gauss.x > 0.0f) {
+        float a = exp(-t * t), b = exp(-t * delta), ib = 1.0f / b;
+        float b3 = b * b * b, ib3 = ib * ib * ib;
+        g2[0] = a * (ib3 * ib * ib) * gauss.z;
+        g2[1] = a * ib3 * gauss.y;
+        g2[2] = a * ib * gauss.x;
+        g2[3] = a * b * gauss.x;
+        g2[4] = a * b3 * gauss.y;
+        g2[5] = a * (b3 * b * b) * gauss.z;
+    } else {
+        for (int j = 0; j < 6; ++j)
+            g2[j] = exp(-e[j] * e[j]);
+    }
+    for (int j = 0; j < 6; ++j) { /* erf(e) = sign(e) (1 - erfc(|e|)) */
+        float s = e[j] < 0.0f ? -1.0f : 1.0f;
+        f[j] = s - s * pl_erfc_g(s * e[j], g2[j]);
     }
     for (int i = 0; i < 5; ++i) {
         gs[i] = 0.5f * (f[i + 1] - f[i]);
@@ -68,20 +121,23 @@ inline float pl_spread(float x, float sigma, __global float *g, __global float *
         total += gs[i];
         dtotal += ds[i];
     }
+    float inv = 1.0f / total;
     for (int i = 0; i < 5; ++i) {
-        g[i] = gs[i] / total;
-        dg[i] = (ds[i] - g[i] * dtotal) / total;
+        float gi = gs[i] * inv;
+        g[i] = gi;
+        dg[i] = (ds[i] - gi * dtotal) * inv;
     }
     return near;
 }
 
 /* lattice: [x, y, 1] @ lattice (3 x 2, row-major) = (kx, ky); lenses: (rows, cols) of
  * (col, row) sensor pixels of a lens's landing point for a ray along the axis (NaN:
- * missing); optics: s_i, f_ml / pixel pitch, ramp spacing, blur sigma (px). */
+ * missing); optics: s_i, f_ml / pixel pitch, ramp spacing, delta = 1 / (sqrt2 blur sigma)
+ * (px) and gauss = (c_1, c_3, c_5) of pl_spread (c_1 = -1: an exp per edge). */
 __kernel void ray_spots(__global const float *points, __global const float *aperture,
                         int rays, __global const float *lenses, int rows, int cols,
                         float l00, float l01, float l10, float l11, float l20, float l21,
-                        float s_i, float f_px, float spacing, float sigma,
+                        float s_i, float f_px, float spacing, float delta, float4 gauss,
                         __global float *slots, __global int *keys)
 {
     int ray = get_global_id(0), p = get_global_id(1);
@@ -89,8 +145,9 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
     float ux = aperture[2 * ray], uy = aperture[2 * ray + 1];
     float ex = points[3 * p] - ux, ey = points[3 * p + 1] - uy;
     float x = ux + ex * rho, y = uy + ey * rho;
-    float ramp = spacing * fabs(1.0f - rho);
-    float slope = spacing * sign(1.0f - rho) * s_i / (s * s);
+    float ramp = spacing * pl_abs(1.0f - rho);
+    float sgn = 1.0f - rho > 0.0f ? 1.0f : (1.0f - rho < 0.0f ? -1.0f : 0.0f);
+    float slope = spacing * sgn * s_i / (s * s);
     if (ramp < PL_RAMP_FLOOR) {
         ramp = PL_RAMP_FLOOR;
         slope = 0.0f;
@@ -112,11 +169,13 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
             float gx = a ? dwx : -dwx, gy = b ? dwy : -dwy;
             float hx = a ? rwx : -rwx, hy = b ? rwy : -rwy;
             float lx = NAN, ly = NAN, w = shx * shy;
+            /* a lens choice without light (w = 0: most of them away from cell edges)
+             * reads no lens and spreads nothing */
             if (w > 0.0f && kx >= 0 && ky >= 0 && kx < cols && ky < rows) {
                 lx = lenses[2 * ((long)ky * cols + kx)];
                 ly = lenses[2 * ((long)ky * cols + kx) + 1];
             }
-            if (!(isfinite(lx) && isfinite(ly))) {
+            if (!(pl_finite(lx) && pl_finite(ly))) {
                 slot[2] = 0.0f;
                 continue;
             }
@@ -126,26 +185,29 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
             slot[5] += (hx * shy + shx * hy) * slope; /* the ramp widens with defocus */
             slot[6] = -f_px * ex / (s * s);
             slot[7] = -f_px * ey / (s * s);
-            slot[0] = pl_spread(lx + f_px * ex / s, sigma, slot + 8, slot + 13);
-            slot[1] = pl_spread(ly + f_px * ey / s, sigma, slot + 18, slot + 23);
+            slot[0] = pl_spread(lx + f_px * ex / s, delta, gauss, slot + 8, slot + 13);
+            slot[1] = pl_spread(ly + f_px * ey / s, delta, gauss, slot + 18, slot + 23);
             keys[index] = (int)slot[1];
         }
     }
 }
 
-/* patches: per particle offset (long), col0, row0, width; row_pid, row_local: the
- * particle and patch row of each work-item; out: PL_DERIVATIVES ? 5 : 1 rows of `total`
- * elements (value, d / d X', Y', s_i', d / d intensity). */
+/* patches: per particle offset (long), col0, row0, width, height; item_pid, item_row: the
+ * particle and first patch row of each work-item, which renders `band` rows from there
+ * (fewer at the patch's end); out: PL_DERIVATIVES ? 5 : 1 rows of `total` elements
+ * (value, d / d X', Y', s_i', d / d intensity). */
 __kernel void render_rows(__global const float *slots, __global const int *keys, int rays,
                           __global const float *points, __global const float *intensity,
                           __global const long *offset, __global const int *col0,
                           __global const int *row0, __global const int *width,
-                          __global const int *row_pid, __global const int *row_local,
-                          float f_px, long total, __global float *out)
+                          __global const int *height, __global const int *item_pid,
+                          __global const int *item_row, int band, float f_px, long total,
+                          __global float *out)
 {
-    int item = get_global_id(0), p = row_pid[item], r = row_local[item];
-    int wd = width[p], c0 = col0[p], srow = row0[p] + r;
-    long base = offset[p] + (long)r * wd;
+    int item = get_global_id(0), p = item_pid[item], r0 = item_row[item];
+    int wd = width[p], c0 = col0[p], srow = row0[p] + r0;
+    int nr = height[p] - r0 < band ? height[p] - r0 : band;
+    long base = offset[p] + (long)r0 * wd;
     float inv_rays = 1.0f / rays, scale = intensity[p] * inv_rays;
     float dcol_dx = f_px / points[3 * p + 2];
 #if PL_DERIVATIVES
@@ -154,32 +216,46 @@ __kernel void render_rows(__global const float *slots, __global const int *keys,
     const int n_out = 1;
 #endif
     for (int k = 0; k < n_out; ++k)
-        for (int c = 0; c < wd; ++c)
+        for (int c = 0; c < nr * wd; ++c)
             out[k * total + base + c] = 0.0f;
     __global const float *slot = slots + (long)p * rays * 4 * PL_SLOT;
     __global const int *key = keys + (long)p * rays * 4;
     for (int i = 0; i < 4 * rays; ++i, slot += PL_SLOT) {
-        int dr = srow - key[i];
-        if (dr < -2 || dr > 2)
+        int kr = key[i] - srow; /* the slot's nearest row in the band */
+        if (kr < -2 || kr > nr + 1)
             continue;
-        float w = slot[2];
-        float gy = slot[20 + dr], dgy = slot[25 + dr];
+        /* the slot in private variables (the stores to out could alias it) and its
+         * factors by pixel share: a patch element costs a few products per row */
+        int lo = kr - 2 < 0 ? 0 : kr - 2, hi = kr + 2 < nr ? kr + 2 : nr - 1;
         int lc0 = (int)slot[0] - 2 - c0;
+        int clo = lc0 < 0 ? -lc0 : 0, chi = wd - lc0 < 5 ? wd - lc0 : 5;
+        float w = slot[2], ws = w * scale, gx[5], dgx[5];
         for (int c = 0; c < 5; ++c) {
-            int lc = lc0 + c;
-            if (lc < 0 || lc >= wd)
-                continue;
-            float gx = slot[8 + c], g = gx * gy;
-            long e = base + lc;
-            out[e] += w * g * scale;
+            gx[c] = slot[8 + c];
+            dgx[c] = slot[13 + c];
+        }
 #if PL_DERIVATIVES
-            float dgx = slot[13 + c];
-            out[total + e] += (slot[3] * g + w * dgx * gy * dcol_dx) * scale;
-            out[2 * total + e] += (slot[4] * g + w * gx * dgy * dcol_dx) * scale;
-            out[3 * total + e] += (slot[5] * g + w * (dgx * gy * slot[6] + gx * dgy * slot[7]))
-                                  * scale;
-            out[4 * total + e] += w * g * inv_rays;
+        float as = slot[3] * scale, bs = slot[4] * scale, cs = slot[5] * scale;
+        float wd_s = w * dcol_dx * scale, w6 = w * slot[6] * scale, w7 = w * slot[7] * scale;
+        float wr = w * inv_rays;
 #endif
+        for (int r = lo; r <= hi; ++r) {
+            float gy = slot[20 + r - kr], dgy = slot[25 + r - kr];
+            __global float *o = out + base + (long)r * wd + lc0;
+#pragma unroll
+            for (int c = 0; c < 5; ++c) { /* unrolled: gx, dgx stay in registers */
+                if (c < clo || c >= chi)
+                    continue;
+                float g = gx[c] * gy;
+                o[c] += g * ws;
+#if PL_DERIVATIVES
+                float px = dgx[c] * gy, py = gx[c] * dgy;
+                o[total + c] += g * as + px * wd_s;
+                o[2 * total + c] += g * bs + py * wd_s;
+                o[3 * total + c] += g * cs + (px * w6 + py * w7);
+                o[4 * total + c] += g * wr;
+#endif
+            }
         }
     }
 }

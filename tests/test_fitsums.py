@@ -117,3 +117,27 @@ def test_fit_with_device_sums_matches_host_sums(queue):
 def test_group_must_be_a_power_of_two(queue):
     with pytest.raises(ValueError, match="power of two"):
         DeviceFitSums(DeviceRayBundle(RayBundle.of(CAM, rays=64), queue), 8, group=48)
+
+
+def test_kept_buffers_give_fresh_results(queue):
+    """The rows, model and slot buffers kept from one computation to the next (grown,
+    then used in part): the same sums as a fresh object's, bit for bit."""
+    bundle = RayBundle.of(CAM, rays=37)
+    rng = np.random.default_rng(4)
+    pts = CAM.image_points(np.column_stack([rng.uniform(-2.5, 2.5, 9),
+                                            rng.uniform(-2, 2, 9), rng.uniform(-9, 9, 9)]))
+    data = rng.uniform(0.0, 50.0, CAM.pixels[::-1])
+    jac = np.tile(np.eye(3), (9, 1, 1))
+    kept = DeviceFitSums(DeviceRayBundle(bundle, queue), chunk=4)
+    for n in (3, 9, 2):  # small, larger (the buffers grow), small again (in part)
+        part = pts[:n]
+        patches = bundle.patches(part)
+        fresh = DeviceFitSums(DeviceRayBundle(bundle, queue), chunk=4)
+        for sums in (kept, fresh):
+            image = sums.upload(data)
+            got = (sums.normal_sums(image, part, np.full(n, 300.0), patches, jac[:n]),
+                   sums.unit_sums(image, part, patches))
+            if sums is kept:
+                want = got
+        for a, b in zip(want, got, strict=True):
+            np.testing.assert_array_equal(a, b)

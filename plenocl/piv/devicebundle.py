@@ -3,9 +3,9 @@
 :class:`DeviceRayBundle` renders what :meth:`plenocl.optics.raybundle.RayBundle.render`
 renders, the particles' images on their patches and the derivatives by the image point
 and the intensity, with ``kernels/raybundle.cl`` in float32: one work-item per (ray,
-particle) traces the rays and their lens choices, one work-item per patch row gathers
-them. The NumPy :class:`RayBundle` stays the fit's renderer without a queue and the
-kernel's twin in the tests.
+particle) traces the rays and their lens choices, one work-item per patch row (on a GPU)
+or per patch (on a CPU) gathers them. The NumPy :class:`RayBundle` stays the fit's
+renderer without a queue and the kernel's twin in the tests.
 """
 
 from __future__ import annotations
@@ -14,7 +14,9 @@ import threading
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.cltypes
 
+from ..device import is_cpu
 from ..optics.raybundle import Patches, RayBundle
 from ..program import KernelSet
 
@@ -22,6 +24,22 @@ i32, i64, f32 = np.int32, np.int64, np.float32
 _KERNELS = ("ray_spots", "render_rows")
 #: Floats per (particle, ray, lens choice) slot (``PL_SLOT`` of the kernel).
 SLOT = 28
+
+
+#: Above this delta^2 = 1 / (2 sigma^2) the kernel's two-exp form of a ray's pixel edges
+#: (``pl_spread``) could overflow float32: each edge takes its own exp.
+FAST_SPREAD_MAX = 30.0
+
+
+def _spread_constants(blur_px: float) -> tuple[np.float32, np.ndarray]:
+    """``ray_spots``' ``delta`` = 1 / (sqrt2 sigma) and ``gauss`` (float4): the constants
+    ``exp(-k^2 delta^2 / 4)``, k = 1, 3, 5, of its pixel edges, or -1 (an exp per edge)
+    where they do not suit (:data:`FAST_SPREAD_MAX`)."""
+    delta = 1.0 / (np.sqrt(2.0) * blur_px)
+    gauss = cl.cltypes.make_float4(*np.exp(-np.array([1, 9, 25]) * delta**2 / 4), 0)
+    if delta**2 > FAST_SPREAD_MAX:
+        gauss = cl.cltypes.make_float4(-1, 0, 0, 0)
+    return f32(delta), gauss
 
 
 class DeviceRayBundle:
@@ -37,7 +55,9 @@ class DeviceRayBundle:
     Notes
     -----
     One render at a time per object (a lock): :meth:`plenocl.piv.imagefit.ImageFit.
-    refine_pair` renders both exposures from two threads.
+    refine_pair` renders both exposures from two threads. The rays' scratch buffers are
+    kept and reused (a fresh buffer's first touch costs page faults on a CPU device), so
+    ``queue`` must be in order, as plenocl's queues are.
     """
 
     def __init__(self, bundle: RayBundle, queue: cl.CommandQueue) -> None:
@@ -45,6 +65,10 @@ class DeviceRayBundle:
         self.queue = queue
         self._programs: dict[bool, KernelSet] = {}
         self._lock = threading.Lock()
+        #: Patch rows per work-item of ``render_rows``: 1 on a GPU (wide ranges), 0 (a
+        #: particle's whole patch: its slots' keys scanned once) on a CPU.
+        self.rows_per_item = 0 if is_cpu(queue.device) else 1
+        self._scratch: tuple | None = None
         cam = bundle.camera
         k = self._kernels(True)
         self._aperture = k.to_device(bundle.aperture.astype(f32))
@@ -53,7 +77,7 @@ class DeviceRayBundle:
         spacing = cam.aperture_diameter_mm / 2 * np.sqrt(np.pi / bundle.rays) / cam.ml_pitch_mm
         self._f_px = f32(cam.ml_focal_length_mm / cam.pixel_pitch_mm)
         self._optics = (*lattice, f32(cam.image_distance_mm), self._f_px, f32(spacing),
-                        f32(bundle.blur_px))
+                        *_spread_constants(bundle.blur_px))
 
     def _kernels(self, derivatives: bool) -> KernelSet:
         """The program of one variant (``-DPL_DERIVATIVES``), built on first use."""
@@ -95,34 +119,50 @@ class DeviceRayBundle:
         return out.get().reshape(-1, total)
 
     def render_into(self, image_points: np.ndarray, intensity: np.ndarray,
-                    patches: Patches, derivatives: bool, out, total: int) -> None:
+                    patches: Patches, derivatives: bool, out, total: int
+                    ) -> list[cl.Event]:
         """Render into the device array ``out`` and leave the rows there.
 
         ``out`` holds the rows (5 with ``derivatives``, else 1) of ``total`` elements each;
         ``patches.offset`` places each particle's patch in them (so that chunks of
-        particles fill one buffer). Every element of every patch is written.
+        particles fill one buffer). Every element of every patch is written. Returns the
+        events of ``ray_spots`` and ``render_rows`` (none without particles), for a
+        profiling queue's timings (``benchmarks/raybundle_kernels.py``).
         """
         if len(image_points) == 0:
-            return
+            return []
         with self._lock:
-            self._launch(np.asarray(image_points, f32), np.asarray(intensity, f32), patches,
-                         bool(derivatives), out, total)
+            return self._launch(np.asarray(image_points, f32), np.asarray(intensity, f32),
+                                patches, bool(derivatives), out, total)
 
     def _launch(self, points: np.ndarray, intensity: np.ndarray, patches: Patches,
-                derivatives: bool, out, total: int) -> None:
-        """Enqueue both kernels for one set of particles, rows into ``out``."""
+                derivatives: bool, out, total: int) -> list[cl.Event]:
+        """Enqueue both kernels for one set of particles, rows into ``out``; their
+        events."""
         k = self._kernels(derivatives)
         n, rays = len(points), self.bundle.rays
         pts = k.to_device(points)
-        slots, keys = k.array(n * rays * 4 * SLOT), k.array(n * rays * 4, i32)
+        slots, keys = self._slots(k, n)
         rows, cols = self.bundle.lenses.shape[:2]
-        k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays), self._lenses,
-                 i32(rows), i32(cols), *self._optics, slots, keys)
-        row_pid = np.repeat(np.arange(n, dtype=i32), patches.height)
-        first = np.cumsum(patches.height) - patches.height  # each patch's first item
-        row_local = (np.arange(len(row_pid)) - np.repeat(first, patches.height)).astype(i32)
+        spots = k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays),
+                         self._lenses, i32(rows), i32(cols), *self._optics, slots, keys)
+        band = self.rows_per_item or max(int(patches.height.max()), 1)
+        per = -(-patches.height // band)  # work-items per particle
+        item_pid = np.repeat(np.arange(n, dtype=i32), per)
+        first = np.cumsum(per) - per  # each particle's first item
+        item_row = ((np.arange(len(item_pid)) - np.repeat(first, per)) * band).astype(i32)
         arrays = [k.to_device(a) for a in (
             intensity, patches.offset.astype(i64), patches.col0.astype(i32),
-            patches.row0.astype(i32), patches.width.astype(i32), row_pid, row_local)]
-        k.launch("render_rows", (len(row_pid),), slots, keys, i32(rays), pts, *arrays,
-                 self._f_px, i64(total), out)
+            patches.row0.astype(i32), patches.width.astype(i32), patches.height.astype(i32),
+            item_pid, item_row)]
+        return [spots, k.launch("render_rows", (len(item_pid),), slots, keys, i32(rays), pts,
+                                *arrays, i32(band), self._f_px, i64(total), out)]
+
+    def _slots(self, k: KernelSet, n: int) -> tuple:
+        """The slots and keys of ``n`` particles' rays: the kept buffers, grown as needed
+        (the in-order queue runs the previous launch's kernels before these overwrite
+        them)."""
+        size = n * self.bundle.rays * 4
+        if self._scratch is None or self._scratch[1].size < size:
+            self._scratch = (k.array(size * SLOT), k.array(size, i32))
+        return self._scratch

@@ -45,7 +45,10 @@ class DeviceFitSums:
     Notes
     -----
     One computation at a time per object (a lock): both exposures' fits may run on two
-    threads (:meth:`plenocl.piv.imagefit.ImageFit.refine_pair`).
+    threads (:meth:`plenocl.piv.imagefit.ImageFit.refine_pair`). The rendered rows and the
+    model image live in buffers kept from one computation to the next (grown as needed):
+    on a CPU device a fresh buffer costs a page fault per 4 KiB at its first touch, which
+    on a paper-size fit took longer than the rendering itself.
     """
 
     def __init__(self, renderer: DeviceRayBundle, chunk: int, group: int | None = None
@@ -60,6 +63,7 @@ class DeviceFitSums:
                             [f"-DPL_GROUP={self.group}"], looping=["patch_model"])
         self._block = MODEL_BLOCK[cpu]
         self._lock = threading.Lock()
+        self._kept: dict[str, cl_array.Array] = {}
 
     def upload(self, image: np.ndarray) -> cl_array.Array:
         """A device copy (float32) of a sensor-shaped ``(rows, cols)`` image."""
@@ -119,7 +123,7 @@ class DeviceFitSums:
                 derivatives: bool) -> cl_array.Array:
         """Every particle's rows into one device buffer, ``chunk`` particles at a time."""
         total = int(patches.offset[-1])
-        rows = self._k.array((5 if derivatives else 1) * total)
+        rows = self._kept_array("rows", (5 if derivatives else 1) * total)
         for start in range(0, len(image_points), self.chunk):
             part = slice(start, start + self.chunk)
             sub = Patches(patches.offset[start:part.stop + 1], patches.col0[part],
@@ -134,12 +138,20 @@ class DeviceFitSums:
         sensor ``shape`` ``(rows, cols)``: the ``patch_model`` kernel,
         :func:`plenocl.reference.imagefit.patch_model`."""
         row_start, row_list = _rows_covered(patches, shape[0])
-        model = self._k.array(shape)
+        model = self._kept_array("model", shape[0] * shape[1]).reshape(shape)
         blocks = -(-shape[1] // self._block)
         self._k.launch("patch_model", (blocks, shape[0]), values,
                        *self._geometry(patches)[:4], self._k.to_device(row_start),
                        self._k.to_device(row_list), i32(shape[1]), i32(self._block), model)
         return model
+
+    def _kept_array(self, name: str, size: int) -> cl_array.Array:
+        """The first ``size`` floats of the kept buffer ``name``, grown to hold them (the
+        in-order queue finishes the previous computation's kernels before new ones)."""
+        kept = self._kept.get(name)
+        if kept is None or kept.size < size:
+            kept = self._kept[name] = self._k.array(max(size, 1))
+        return kept[:size]
 
     def _geometry(self, patches: Patches) -> list[cl_array.Array]:
         """The patches' offset (long), col0, row0, width and height (int) on the device."""
