@@ -1,7 +1,7 @@
 """One image pair at the paper's full size: the stage split and the velocity error of
 each reconstruction setting, every setting on the same scene in the same run.
 
-    python benchmarks/paper_pair.py [--settings previous fullcoarse default] [--lenses 289 193]
+    python benchmarks/paper_pair.py [--settings previous fullaperture default] [--lenses 289 193]
                                     [--seeding 0.05] [--motion uniform]
 
 Camera: the paper's optics on the whole 16 MP sensor (289 x 193 microlenses,
@@ -11,10 +11,10 @@ with 0.8 px blur, photon and read noise (``budget_scene``), moved by the motion.
 setting runs ``plenocl.process_pair`` on the same two raw images; the table gives the
 seconds of each stage (both reconstructions, PIV, the particle refinement with its fit
 to the raw images), the lateral and depth RMS error (voxels) of the valid vectors, and
-the particles the first volume recovered. The refined projector (the fine iterations)
-and the coarse-sampled one (the coarse iterations) and their sensitivities are built
-before the rows (a batch builds them once per worker) and their time printed,
-so no row pays for them and the order of the rows does not matter.
+the particles the first volume recovered. The refined projector (the fine iterations),
+the coarse-sampled ones (the coarse and the early fine iterations) and their
+sensitivities are built before the rows (a batch builds them once per worker) and their
+time printed, so no row pays for them and the order of the rows does not matter.
 """
 
 from __future__ import annotations
@@ -37,7 +37,10 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
-from plenocl.reconstruction.settings import COARSE_OVERSAMPLE  # noqa: E402
+from plenocl.reconstruction.settings import (  # noqa: E402
+    COARSE_OVERSAMPLE,
+    EARLY_OVERSAMPLE,
+)
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 #: The reconstruction settings compared (each with process_pair's other defaults).
@@ -45,11 +48,13 @@ SETTINGS = {  # before: 30 MLEM iterations on the sub-voxels from a uniform volu
     "before": PREVIOUS_SETTINGS,
     # the default until 2026-11-26: coarse 10 + fine 10 MLEM iterations at μ = 1
     "previous": ReconstructionSettings(supersample=3, coarse_iterations=10, iterations=10,
-                                       relax=1.0, support=0.01, coarse_oversample=None),
-    # the default with its coarse iterations on the projector's own aperture sampling
-    # (until 2026-11-26 afternoon: coarse_oversample=None)
-    "fullcoarse": ReconstructionSettings(supersample=3, coarse_iterations=5, iterations=7,
-                                         relax=1.5, support=0.01, coarse_oversample=None),
+                                       relax=1.0, support=0.01, coarse_oversample=None,
+                                       early_oversample=None),
+    # the default with every iteration on the projector's own aperture sampling (the
+    # default until 2026-11-26 afternoon, before coarse_oversample and early_oversample)
+    "fullaperture": ReconstructionSettings(supersample=3, coarse_iterations=5, iterations=7,
+                                           relax=1.5, support=0.01, coarse_oversample=None,
+                                           early_oversample=None),
     "default": None,
     "voxels": ReconstructionSettings(supersample=1),
 }
@@ -70,8 +75,10 @@ def main() -> None:
     t0 = time.perf_counter()
     proj.refined(SUPERSAMPLE).sensitivity()
     proj.sampled(COARSE_OVERSAMPLE).sensitivity()
+    proj.refined(SUPERSAMPLE).sampled(EARLY_OVERSAMPLE).sensitivity()
     queue.finish()
-    print(f"the refined and the coarse-sampled projectors and their sensitivities, built "
+    print(f"the refined projector, the coarse and early sampled ones and their "
+          f"sensitivities, built "
           f"once per projector (a batch "
           f"worker's first pair): {time.perf_counter() - t0:.1f} s; every row below runs "
           "with them built")

@@ -8,9 +8,10 @@ same scenes in the same run, beside the default.
 A schedule ``C+F+MU`` is ``C`` MLEM iterations on the voxels, then ``F`` on 3 x 3
 lateral sub-voxels within the coarse support (1 % of the brightest voxel, grown by one),
 both at relaxation ``MU`` (``E ← E (Wᵀ r / s)^MU``; ``MU > 1`` over-relaxes);
-``C+F+MU/CO`` runs the coarse iterations on the aperture sampled ``CO`` times per pixel
-footprint (default ``coarse_oversample``, 0.625), ``C+F+MU/CO/O`` also the projector
-(the fine iterations) at ``O`` (default 1.25). Camera and
+options after commas: ``co=CO`` runs the coarse iterations on the aperture sampled
+``CO`` times per pixel footprint (default 0.625), ``o=O`` the projector (the fine
+iterations) at ``O`` (default 1.25), ``e=E@EO`` the first ``E`` fine iterations at
+``EO`` (default none: ``e=3@0.9`` is the default reconstruction's). Camera and
 scenes as ``benchmarks/accuracy.py``: the paper's optics on ``--lenses`` microlenses,
 the paper's voxel, ray-traced particles with 0.8 px blur, photon and read noise, a
 uniform displacement and a rotation about x. Each schedule runs ``plenocl.process_pair``
@@ -48,24 +49,30 @@ from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.projection import Projector  # noqa: E402
 from plenocl.reconstruction import ReconstructionSettings  # noqa: E402
-from plenocl.reconstruction.settings import COARSE_OVERSAMPLE  # noqa: E402
+from plenocl.reconstruction.settings import (  # noqa: E402
+    COARSE_OVERSAMPLE,
+    EARLY_OVERSAMPLE,
+)
 
 
 def schedule(spec: str) -> tuple[ReconstructionSettings, float | None]:
-    """``"C+F+MU[/CO[/O]]"`` as the pair's reconstruction settings and the projector's
-    aperture sampling ``O`` (``None``: the default projector)."""
-    steps, *sampling = spec.split("/")
+    """``"C+F+MU[,co=CO][,o=O][,e=E@EO]"`` as the pair's reconstruction settings and the
+    projector's aperture sampling ``O`` (``None``: the default projector)."""
+    steps, *options = spec.split(",")
     coarse, fine, relax = steps.split("+")
-    over = float(sampling[0]) if sampling else COARSE_OVERSAMPLE
-    settings = ReconstructionSettings(supersample=3, coarse_iterations=int(coarse),
-                                      iterations=int(fine), relax=float(relax), support=0.01,
-                                      coarse_oversample=over)
-    return settings, float(sampling[1]) if len(sampling) > 1 else None
+    given = dict(option.split("=") for option in options)
+    early, _, early_over = given.get("e", f"0@{EARLY_OVERSAMPLE}").partition("@")
+    settings = ReconstructionSettings(
+        supersample=3, coarse_iterations=int(coarse), iterations=int(fine),
+        relax=float(relax), support=0.01,
+        coarse_oversample=float(given.get("co", COARSE_OVERSAMPLE)),
+        early_iterations=int(early), early_oversample=float(early_over))
+    return settings, float(given["o"]) if "o" in given else None
 
 
 def main() -> None:
     parser = script_parser(__doc__)
-    parser.add_argument("--schedules", nargs="+", default=["10+10+1", "5+7+1.5"])
+    parser.add_argument("--schedules", nargs="+", default=["10+10+1,co=1.25", "5+7+1.5,e=3@0.9"])
     parser.add_argument("--seeds", type=int, nargs="+", default=[3, 103])
     parser.add_argument("--lenses", type=int, nargs=2, default=[96, 64])
     parser.add_argument("--seeding", type=float, default=0.05)

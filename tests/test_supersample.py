@@ -312,13 +312,38 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
     monkeypatch.setattr(Solver, "binned_to_host", binned_to_host)
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
-                            support=0.05, relax=1.0, return_info=True)
+                            support=0.05, relax=1.0, early_oversample=None, return_info=True)
     assert calls["preprocess"] == 1 and calls["lit_lenses"] == 1
     assert info.cropped_shape is not None  # the fine run cropped itself before binning
     peak = float(fine.max())
     np.testing.assert_allclose(calls["fine"][0], fine, rtol=tol.ITERATED,
                                atol=tol.ROUNDING * peak)
     np.testing.assert_allclose(vol, bin_lateral(calls["fine"][0], 2), rtol=tol.BINNED, atol=0)
+
+
+def test_the_first_sub_voxel_iterations_run_on_the_early_sampling(optics, scene):
+    """``early_iterations`` of the sub-voxel iterations on the aperture sampled
+    ``early_oversample`` times per pixel footprint, from the coarse support; the rest on
+    the refined projector from their volume: the same volume as the three runs made
+    separately, on the support alone, with every iteration in the info."""
+    cam, grid, proj = optics
+    kw = dict(supersample=1, relax=1.0)
+    coarse = reconstruct(scene, proj.sampled(COARSE_OVERSAMPLE), iterations=4, **kw)
+    grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
+    flat = np.where(grown, np.float32(coarse[grown].mean()), np.float32(0))
+    fine = proj.refined(2)
+    early = reconstruct(scene, fine.sampled(0.6), iterations=2, start=spread_lateral(flat, 2),
+                        **kw)
+    assert fine.sampled(0.6).n_samples < fine.n_samples / 2
+    late = reconstruct(scene, fine, iterations=1, start=early, **kw)
+    vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
+                            support=0.05, relax=1.0, early_iterations=2, early_oversample=0.6,
+                            return_info=True)
+    assert info.iterations == 3 and len(info.residuals) == 3 and not info.stopped
+    assert not vol[~grown].any()
+    peak = float(late.max())
+    np.testing.assert_allclose(vol, bin_lateral(late, 2), rtol=tol.ITERATED,
+                               atol=tol.ROUNDING * 4 * peak)
 
 
 def test_the_callback_counts_the_coarse_iterations_then_the_fine_ones(optics, scene):

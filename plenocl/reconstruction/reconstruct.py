@@ -66,6 +66,7 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
         info.residuals.append(resid)
         info.iterations = it + 1
         if callback is not None and callback(it + 1, resid) is False:
+            info.stopped = True
             break
         tol = settings.tol
         if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
@@ -203,6 +204,12 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         the same support in a third of the time; :meth:`plenocl.Projector.sampled`, built
         once per projector); ``None`` or a value at or above the projector's own: the
         projector itself.
+    early_iterations, early_oversample
+        Coarse-to-fine: the first ``early_iterations`` (default 3, at most all but one)
+        of the sub-voxel iterations run on the refined projector with the aperture
+        sampled ``early_oversample`` times per pixel footprint (default 0.9: about half
+        the samples), the rest on the refined projector itself from their volume;
+        ``early_oversample=None`` or ``early_iterations=0``: all on the projector's own.
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
         ``False`` stops the reconstruction. Coarse-to-fine: the coarse iterations come
@@ -290,17 +297,54 @@ def _supersampled(prepared: PreparedImage, projector, refined,
         if not support:  # nothing to refine: the image holds no light (warned)
             coarse_info.support_fraction = 0.0
             return np.zeros(projector.grid.shape, np.float32), coarse_info
-        if coarse_info.iterations < coarse_settings.iterations and not coarse_info.converged:
+        if coarse_info.stopped:
             return coarse, coarse_info  # the callback stopped the reconstruction
         done = coarse_info.iterations
     fine = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                start=settings.start if start is None else "uniform")
-    vol, info = _solve(prepared, refined, fine, _numbered(callback, done),
-                       factor=f if binned else 1, spread=None if start is None else (start, f))
+    factor = f if binned else 1
+    if start is None:
+        vol, info = _solve(prepared, refined, fine, _numbered(callback, done), factor=factor)
+    else:
+        vol, info = _from_support(prepared, refined, fine, settings, _numbered(callback, done),
+                                  factor, (start, f))
     info.supersample = f
     if support is not None:
         info.coarse_iterations, info.support_fraction = settings.coarse_iterations, support
     return vol, info
+
+
+def _early_count(refined, fine: ReconstructionSettings,
+                 settings: ReconstructionSettings) -> int:
+    """How many of the sub-voxel iterations run on the early aperture sampling: up to
+    ``early_iterations``, leaving at least one on the projector's own; 0 when
+    ``early_oversample`` is ``None``, not coarser than the projector's, or the operator
+    cannot resample."""
+    over = settings.early_oversample
+    if over is None or not hasattr(refined, "sampled") or over >= refined.oversample:
+        return 0
+    return max(0, min(settings.early_iterations, fine.iterations - 1))
+
+
+def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings,
+                  settings: ReconstructionSettings, callback, factor: int,
+                  spread: tuple[np.ndarray, int]) -> tuple[np.ndarray, ReconstructionInfo]:
+    """The sub-voxel iterations from the coarse support (docs/design.md §6.5): the first
+    ones (:func:`_early_count`) on the aperture sampled ``early_oversample`` times per
+    pixel footprint, the rest on the refined projector from their volume."""
+    early = _early_count(refined, fine, settings)
+    if not early:
+        return _solve(prepared, refined, fine, callback, factor=factor, spread=spread)
+    first = dataclasses.replace(fine, iterations=early)
+    vol, info = _solve(prepared, refined.sampled(settings.early_oversample), first,
+                       callback, spread=spread)
+    if info.stopped:  # the callback ended the reconstruction
+        return (bin_lateral(vol, factor) if factor > 1 else vol), info
+    rest = dataclasses.replace(fine, iterations=fine.iterations - early, start=vol)
+    out, late = _solve(prepared, refined, rest, _numbered(callback, early), factor=factor)
+    late.iterations += info.iterations
+    late.residuals[:0] = info.residuals
+    return out, late
 
 
 def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings

@@ -33,12 +33,14 @@ MLEM_MAX_RELAX = 2.0
 
 @dataclass
 class ReconstructionInfo:
-    """What a reconstruction did: iterations, residual history, time, masking."""
+    """What a reconstruction did: iterations, residual history, time, masking;
+    ``stopped``: the callback ended it."""
 
     method: str
     iterations: int = 0
     residuals: list[float] = field(default_factory=list)
     converged: bool = False
+    stopped: bool = False
     seconds: float = 0.0
     active_fraction: float = 1.0
     active_slices: list[int] = field(default_factory=list)
@@ -53,6 +55,10 @@ class ReconstructionInfo:
 #: iterations (docs/design.md §6.5): they only find the support, and a quarter of the
 #: projector's samples (1.25) finds the same one.
 COARSE_OVERSAMPLE = 0.625
+#: The first sub-voxel iterations of a coarse-to-fine reconstruction, and their aperture
+#: sampling (docs/design.md §6.5): the rest run on the projector's own (1.25).
+EARLY_ITERATIONS = 3
+EARLY_OVERSAMPLE = 0.9
 
 
 @dataclass(frozen=True)
@@ -90,6 +96,8 @@ class ReconstructionSettings:
     coarse_iterations: int | None = None
     support: float = SUPPORT
     coarse_oversample: float | None = COARSE_OVERSAMPLE
+    early_iterations: int = EARLY_ITERATIONS
+    early_oversample: float | None = EARLY_OVERSAMPLE
 
     def __post_init__(self) -> None:
         fine = _is_int(self.supersample) and self.supersample > 1
@@ -147,12 +155,17 @@ def _check_options(s: ReconstructionSettings) -> None:
             or isinstance(s.coarse_iterations, bool)):
         raise ValueError(f"coarse_iterations must be a non-negative integer, got "
                          f"{s.coarse_iterations!r}")
-    if s.coarse_oversample is not None and (
-            isinstance(s.coarse_oversample, bool) or not np.isfinite(s.coarse_oversample)
-            or s.coarse_oversample <= 0):
-        raise ValueError(f"coarse_oversample must be a positive number (aperture samples "
-                         f"per pixel footprint of the coarse iterations) or None (the "
-                         f"projector's own), got {s.coarse_oversample!r}")
+    for name in ("coarse_oversample", "early_oversample"):
+        value = getattr(s, name)
+        if value is not None and (isinstance(value, bool) or not np.isfinite(value)
+                                  or value <= 0):
+            raise ValueError(f"{name} must be a positive number (aperture samples per "
+                             f"pixel footprint) or None (the projector's own), got "
+                             f"{value!r}")
+    if (isinstance(s.early_iterations, bool) or int(s.early_iterations) != s.early_iterations
+            or s.early_iterations < 0):
+        raise ValueError(f"early_iterations must be a non-negative integer, got "
+                         f"{s.early_iterations!r}")
     if not (np.isfinite(s.support) and 0 <= s.support < 1):
         raise ValueError(f"support must be in [0, 1) (a fraction of the coarse volume's "
                          f"brightest voxel), got {s.support!r}")
