@@ -758,7 +758,8 @@ class Projector:
         """A projector for this grid with the aperture sampled ``oversample`` times per
         pixel footprint (same camera, queue and other options; a resampled grid's through
         its frame's), built once per value and kept: the coarse-to-fine reconstruction's
-        coarse iterations (docs/design.md §6.5). ``self`` at this projector's own value."""
+        coarse iterations and its first sub-voxel ones (docs/design.md §6.5). ``self`` at
+        this projector's own value."""
         if oversample == self.oversample:
             return self
         if oversample not in self._sampled:

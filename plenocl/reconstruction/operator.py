@@ -98,9 +98,10 @@ class RefinableOperator(ProjectionOperator, Protocol):
 
 class SampledOperator(ProjectionOperator, Protocol):
     """A :class:`ProjectionOperator` that can also resample the main-lens aperture: the
-    coarse iterations of a coarse-to-fine reconstruction run on a coarser sampling
-    (``coarse_oversample``; docs/design.md §6.5; :class:`plenocl.Projector` is one). An
-    operator without it runs them on itself."""
+    coarse iterations of a coarse-to-fine reconstruction and its first sub-voxel ones run
+    on coarser samplings (``coarse_oversample``, ``early_oversample``; docs/design.md
+    §6.5; :class:`plenocl.Projector` is one). An operator without it runs them on
+    itself."""
 
     oversample: float
 

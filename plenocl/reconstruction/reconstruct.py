@@ -250,14 +250,15 @@ def _refined(projector, factor: int):
                           "1, is the grid itself) needs less") from err
 
 
-def _coarse_sampled(projector, settings: ReconstructionSettings):
-    """The coarse iterations' operator: the projector with its aperture sampled
-    ``coarse_oversample`` times per pixel footprint when it can resample
-    (:meth:`plenocl.Projector.sampled`) and that is coarser than its own; else itself."""
-    over = settings.coarse_oversample
-    if over is None or not hasattr(projector, "sampled") or over >= projector.oversample:
-        return projector
-    return projector.sampled(over)
+def _sampled(projector, oversample: float | None):
+    """The projector with its aperture sampled ``oversample`` times per pixel footprint
+    (:meth:`plenocl.Projector.sampled`; the coarse and the early sub-voxel iterations of
+    a coarse-to-fine reconstruction) when that is coarser than its own and the operator
+    can resample; ``None`` otherwise (``oversample`` ``None`` included)."""
+    if (oversample is None or not hasattr(projector, "sampled")
+            or oversample >= projector.oversample):
+        return None
+    return projector.sampled(oversample)
 
 
 def _coarse_start(start, grid) -> np.ndarray | None:
@@ -291,7 +292,8 @@ def _supersampled(prepared: PreparedImage, projector, refined,
     if settings.coarse_iterations and start is None:
         coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                               iterations=settings.coarse_iterations)
-        coarse, coarse_info = _solve(prepared, _coarse_sampled(projector, settings),
+        sampled = _sampled(projector, settings.coarse_oversample)
+        coarse, coarse_info = _solve(prepared, projector if sampled is None else sampled,
                                      coarse_settings, callback)
         start, support = _coarse_support(coarse, settings)
         if not support:  # nothing to refine: the image holds no light (warned)
@@ -314,30 +316,19 @@ def _supersampled(prepared: PreparedImage, projector, refined,
     return vol, info
 
 
-def _early_count(refined, fine: ReconstructionSettings,
-                 settings: ReconstructionSettings) -> int:
-    """How many of the sub-voxel iterations run on the early aperture sampling: up to
-    ``early_iterations``, leaving at least one on the projector's own; 0 when
-    ``early_oversample`` is ``None``, not coarser than the projector's, or the operator
-    cannot resample."""
-    over = settings.early_oversample
-    if over is None or not hasattr(refined, "sampled") or over >= refined.oversample:
-        return 0
-    return max(0, min(settings.early_iterations, fine.iterations - 1))
-
-
 def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings,
                   settings: ReconstructionSettings, callback, factor: int,
                   spread: tuple[np.ndarray, int]) -> tuple[np.ndarray, ReconstructionInfo]:
     """The sub-voxel iterations from the coarse support (docs/design.md §6.5): the first
-    ones (:func:`_early_count`) on the aperture sampled ``early_oversample`` times per
-    pixel footprint, the rest on the refined projector from their volume."""
-    early = _early_count(refined, fine, settings)
-    if not early:
+    ``early_iterations`` (leaving at least one) on the aperture sampled
+    ``early_oversample`` times per pixel footprint when :func:`_sampled` gives that
+    projector, the rest on the refined projector from their volume."""
+    early = min(settings.early_iterations, fine.iterations - 1)
+    sampled = _sampled(refined, settings.early_oversample) if early > 0 else None
+    if sampled is None:
         return _solve(prepared, refined, fine, callback, factor=factor, spread=spread)
     first = dataclasses.replace(fine, iterations=early)
-    vol, info = _solve(prepared, refined.sampled(settings.early_oversample), first,
-                       callback, spread=spread)
+    vol, info = _solve(prepared, sampled, first, callback, spread=spread)
     if info.stopped:  # the callback ended the reconstruction
         return (bin_lateral(vol, factor) if factor > 1 else vol), info
     rest = dataclasses.replace(fine, iterations=fine.iterations - early, start=vol)
