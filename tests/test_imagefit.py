@@ -126,6 +126,31 @@ def test_bad_inputs_name_the_problem():
         ImageFitSettings(damping=0.0)
 
 
+def test_a_known_background_gives_the_fits_own_images():
+    """The median and noise a reconstruction removed (``ReconstructionInfo``), given to
+    the fit, give exactly the images and noise it computes itself; bad ones are named."""
+    from plenocl.reconstruction.images import prepare_image
+    from plenocl.reconstruction.settings import ReconstructionSettings
+
+    class Optics:  # the camera alone: prepare_image asks nothing else without skip_dark
+        camera = CAM
+
+    raws = [noisy_image(np.array([[0.1, 0.2, z]]), seed) for z, seed in ((-5.0, 6), (3.0, 7))]
+    known = []
+    for raw in raws:
+        prepared = prepare_image(raw, Optics, ReconstructionSettings(skip_dark=False))
+        known.append((prepared.background, prepared.noise))
+    assert all(med > 0 and noise > 0 for med, noise in known)  # a dark level and noise
+    own = ImageFit(CAM, GRID, raws)
+    given = ImageFit(CAM, GRID, raws, backgrounds=known)
+    for (img, noise), (img_k, noise_k) in zip(own.images, given.images, strict=True):
+        assert np.array_equal(img, img_k) and noise == noise_k
+    with pytest.raises(ValueError, match="2 images"):
+        ImageFit(CAM, GRID, raws, backgrounds=known[:1])
+    with pytest.raises(ValueError, match="finite"):
+        ImageFit(CAM, GRID, raws, backgrounds=[(float("nan"), 1.0), known[1]])
+
+
 def test_per_particle_peaks_match_the_unsorted_form():
     """The residual noise's per-particle peak by runs of the sorted particle ids equals
     ``np.maximum.at`` (sorted, unsorted, a particle without elements, none at all)."""

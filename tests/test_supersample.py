@@ -294,7 +294,7 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     flat = np.where(grown, np.float32(coarse[grown].mean()), np.float32(0))
     fine = reconstruct(scene, proj.refined(2), iterations=3, start=spread_lateral(flat, 2),
                        supersample=1)
-    calls = {"preprocess": 0, "lit_lenses": 0, "fine": []}
+    calls = {"_preprocessed": 0, "lit_lenses": 0, "fine": []}
 
     def counted(name, function):
         def wrapper(*args, **kwargs):
@@ -307,13 +307,13 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
         return Solver.binned_to_host.__wrapped__(solver, vol, factor, shape, scale)
 
     binned_to_host.__wrapped__ = Solver.binned_to_host
-    monkeypatch.setattr(images_module, "preprocess", counted("preprocess",
-                                                             images_module.preprocess))
+    monkeypatch.setattr(images_module, "_preprocessed",
+                        counted("_preprocessed", images_module._preprocessed))
     monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
     monkeypatch.setattr(Solver, "binned_to_host", binned_to_host)
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, relax=1.0, early_oversample=None, return_info=True)
-    assert calls["preprocess"] == 1 and calls["lit_lenses"] == 1
+    assert calls["_preprocessed"] == 1 and calls["lit_lenses"] == 1
     assert info.cropped_shape is not None  # the fine run cropped itself before binning
     peak = float(fine.max())
     np.testing.assert_allclose(calls["fine"][0], fine, rtol=tol.ITERATED,
@@ -321,13 +321,16 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     np.testing.assert_allclose(vol, bin_lateral(calls["fine"][0], 2), rtol=tol.BINNED, atol=0)
 
 
-def test_the_first_sub_voxel_iterations_run_on_the_early_sampling(optics, scene):
+@pytest.mark.parametrize("crop", [True, False])
+def test_the_first_sub_voxel_iterations_run_on_the_early_sampling(optics, scene, crop,
+                                                                  monkeypatch):
     """``early_iterations`` of the sub-voxel iterations on the aperture sampled
     ``early_oversample`` times per pixel footprint, from the coarse support; the rest on
     the refined projector from their volume: the same volume as the three runs made
-    separately, on the support alone, with every iteration in the info."""
+    separately, on the support alone, with every iteration in the info. Uncropped, the
+    early volume goes on to the rest on the device: no full volume crosses to the host."""
     cam, grid, proj = optics
-    kw = dict(supersample=1, relax=1.0)
+    kw = dict(supersample=1, relax=1.0, crop=crop)
     coarse = reconstruct(scene, proj.sampled(COARSE_OVERSAMPLE), iterations=4, **kw)
     grown = ndimage.binary_dilation(coarse > 0.05 * coarse.max(), np.ones((3, 3, 3), bool))
     flat = np.where(grown, np.float32(coarse[grown].mean()), np.float32(0))
@@ -336,11 +339,19 @@ def test_the_first_sub_voxel_iterations_run_on_the_early_sampling(optics, scene)
                         **kw)
     assert fine.sampled(0.6).n_samples < fine.n_samples / 2
     late = reconstruct(scene, fine, iterations=1, start=early, **kw)
+    to_host, original = [], Solver.volume_to_host
+
+    def counted(solver, vol, shape):
+        to_host.append(shape)
+        return original(solver, vol, shape)
+
+    monkeypatch.setattr(Solver, "volume_to_host", counted)
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, relax=1.0, early_iterations=2, early_oversample=0.6,
-                            return_info=True)
+                            crop=crop, return_info=True)
     assert info.iterations == 3 and len(info.residuals) == 3 and not info.stopped
     assert not vol[~grown].any()
+    assert (fine.grid.shape in to_host) == crop  # uncropped: handed over on the device
     peak = float(late.max())
     np.testing.assert_allclose(vol, bin_lateral(late, 2), rtol=tol.ITERATED,
                                atol=tol.ROUNDING * 4 * peak)

@@ -11,8 +11,8 @@ import numpy as np
 
 from ..camera import Camera
 
-__all__ = ["check_image", "check_pixel_mask", "check_shape", "median_background",
-           "subtract_background"]
+__all__ = ["check_image", "check_pixel_mask", "check_shape", "median_and_noise",
+           "median_background", "subtract_background", "subtract_known_background"]
 
 
 def check_pixel_mask(observed, camera: Camera) -> np.ndarray | None:
@@ -84,11 +84,31 @@ def subtract_background(image) -> tuple[np.ndarray, float]:
     return img.astype(np.float32), sigma
 
 
-def median_background(img: np.ndarray, observed: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, float]:
-    """``max(I - median, 0)`` in float64 and the noise ``1.4826 MAD``, both over the
-    ``observed`` pixels (all by default)."""
+def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None
+                     ) -> tuple[float, float]:
+    """The median (the dark level) and the noise ``1.4826 MAD`` of the ``observed``
+    pixels (all by default)."""
     data = img if observed is None else img[observed]
     med = float(np.median(data))
-    sigma = 1.4826 * float(np.median(np.abs(data - med)))
+    return med, 1.4826 * float(np.median(np.abs(data - med)))
+
+
+def median_background(img: np.ndarray, observed: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, float]:
+    """``max(I - median, 0)`` in float64 and the noise ``1.4826 MAD``, both over the
+    ``observed`` pixels (all by default): :func:`median_and_noise`."""
+    med, sigma = median_and_noise(img, observed)
     return np.clip(img - med, 0, None), sigma
+
+
+def subtract_known_background(image, camera: Camera, background: float, noise: float
+                              ) -> tuple[np.ndarray, float]:
+    """:func:`subtract_background` of ``image`` (checked against ``camera``) with its
+    median ``background`` and ``noise`` already known (a reconstruction's
+    :class:`plenocl.reconstruction.ReconstructionInfo` carries them), so the medians are
+    not computed again; the same float32 image and noise."""
+    if not (np.isfinite(background) and np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"a known background needs a finite median and a finite "
+                         f"non-negative noise, got {background!r} and {noise!r}")
+    img = np.clip(check_image(image, camera) - float(background), 0, None)
+    return img.astype(np.float32), float(noise)

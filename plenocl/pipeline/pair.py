@@ -120,9 +120,17 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         fit = None
         if settings.image_fit is not None:
             fit = ImageFit(projector.camera, projector.grid, (raw_a, raw_b),
-                           settings.image_fit, queue=projector.queue)
+                           settings.image_fit, queue=projector.queue,
+                           backgrounds=_known_backgrounds(info_a, info_b))
         res = refine_with_particles(res, vol_a, vol_b,
                                     focus=FocalZone.of(projector.camera, projector.grid),
                                     fit=fit)
         seconds["particles"] = time.perf_counter() - t0
     return PairResult(vol_a, vol_b, res, info_a, info_b, seconds)
+
+
+def _known_backgrounds(*infos: ReconstructionInfo) -> list | None:
+    """The median and noise the reconstructions removed from the raw images, for the
+    particle fit to reuse (``None`` when a reconstruction removed none)."""
+    known = [(info.background, info.noise) for info in infos]
+    return None if any(med is None for med, _ in known) else known

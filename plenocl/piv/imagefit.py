@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.rawimage import check_image, subtract_background
+from ..optics.rawimage import check_image, subtract_background, subtract_known_background
 from ..optics.raybundle import Patches, RayBundle
 from ..threads import thread_count
 from .devicebundle import DeviceRayBundle
@@ -106,10 +106,15 @@ class ImageFit:
         the host (NumPy, the rows brought back) instead of on the device
         (:class:`plenocl.piv.fitsums.DeviceFitSums`, float32); the previous path,
         kept for comparison.
+    backgrounds
+        The median and noise of each image when already known (the reconstructions'
+        ``ReconstructionInfo.background`` and ``.noise``, from the same raw images
+        without a pixel mask): subtracted as they are instead of computing the medians
+        again. ``None``: computed here.
     """
 
     def __init__(self, camera, grid, images, settings: ImageFitSettings | None = None,
-                 queue=None, host_sums: bool = False):
+                 queue=None, host_sums: bool = False, backgrounds=None):
         self.settings = ImageFitSettings() if settings is None else settings
         self.bundle = RayBundle.of(camera, self.settings.rays, self.settings.blur_px)
         self.renderer = self.bundle if queue is None else DeviceRayBundle(self.bundle, queue)
@@ -117,8 +122,9 @@ class ImageFit:
                      else DeviceFitSums(self.renderer, self.settings.chunk))
         self.grid = grid
         self.images, self._device_images = [], {}
-        for raw in images:
-            img, noise = subtract_background(check_image(raw, camera))
+        for raw, known in zip(images, _backgrounds(backgrounds, len(images)), strict=True):
+            img, noise = (subtract_background(check_image(raw, camera)) if known is None
+                          else subtract_known_background(raw, camera, *known))
             self.images.append((img.astype(np.float64).ravel(), max(noise, 1e-12)))
 
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
@@ -251,6 +257,18 @@ class ImageFit:
             steps[part] = _damped_solve(normal[part], rhs[part], self.settings.damping)
         limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
         return np.clip(steps[:, :3], -limit, limit), steps[:, 3], sigmas
+
+
+def _backgrounds(backgrounds, n: int) -> list:
+    """:class:`ImageFit`'s ``backgrounds`` as one ``(median, noise)`` or ``None`` per
+    image, refused when their number differs from the images'."""
+    if backgrounds is None:
+        return [None] * n
+    out = list(backgrounds)
+    if len(out) != n:
+        raise ValueError(f"ImageFit got {len(out)} backgrounds for {n} images: give one "
+                         "(median, noise) per image, or None to compute them")
+    return out
 
 
 def _to_object(camera, p: np.ndarray, pts: np.ndarray) -> np.ndarray:

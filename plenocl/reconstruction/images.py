@@ -4,12 +4,13 @@ prepared once for every run of a reconstruction (:class:`PreparedImage`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.rawimage import check_image, median_background
+from ..optics.rawimage import check_image, median_and_noise
 from .operator import ProjectionOperator
 from .settings import ReconstructionSettings
 
@@ -53,11 +54,21 @@ def preprocess(image, camera, background: str | None = "median",
         The float32 image scaled to a maximum of 1, the scale (0 for an image without
         light) and the threshold in the scaled units.
     """
+    prepared = _preprocessed(image, camera, background, threshold, observed)
+    return prepared.image, prepared.scale, prepared.threshold
+
+
+def _preprocessed(image, camera, background: str | None, threshold: float | None,
+                  observed: np.ndarray | None) -> PreparedImage:
+    """:func:`preprocess` as a :class:`PreparedImage` (no lit lenses), with the median
+    and noise it removed."""
     img = check_image(image, camera)
     if observed is not None:
         img = np.where(observed, img, 0.0)  # no data: no light, no statistics
+    med = noise = None
     if background == "median":
-        img, noise = median_background(img, observed)
+        med, noise = median_and_noise(img, observed)
+        img = np.clip(img - med, 0, None)
         thr = NOISE_SIGMAS * noise if threshold is None else float(threshold)
     elif background is None:
         if img.min() < 0:
@@ -74,8 +85,9 @@ def preprocess(image, camera, background: str | None = "median",
                          "largest value plenocl reconstructs in float32; divide the image "
                          "by a constant (the volume scales with it)")
     if scale == 0:
-        return img.astype(np.float32), 0.0, thr
-    return (img / scale).astype(np.float32), scale, thr / scale
+        return PreparedImage(img.astype(np.float32), 0.0, thr, observed, None, med, noise)
+    return PreparedImage((img / scale).astype(np.float32), scale, thr / scale, observed,
+                         None, med, noise)
 
 
 def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
@@ -100,6 +112,10 @@ class PreparedImage:
         Bool per microlens, the lenses that see a pixel above the threshold
         (:meth:`plenocl.reconstruction.operator.ProjectionOperator.lit_lenses`); ``None``
         without dark-microlens skipping. A camera's, so a refined operator's are the same.
+    background, noise
+        The median and noise (image units) the median background removed (``None``
+        with ``background=None``): the particle fit reuses them
+        (:class:`plenocl.reconstruction.ReconstructionInfo`).
     """
 
     image: np.ndarray
@@ -107,24 +123,29 @@ class PreparedImage:
     threshold: float
     observed: np.ndarray | None = None
     lit: np.ndarray | None = None
+    background: float | None = None
+    noise: float | None = None
 
 
 def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                   observed: np.ndarray | None = None) -> PreparedImage:
     """:func:`preprocess` with ``settings``' background and threshold, and the lit
     lenses when ``settings.skip_dark``; warns when the volume will be empty."""
-    img, scale, thr = preprocess(image, projector.camera, settings.background,
-                                 settings.threshold, observed)
-    if scale == 0:
+    prepared = _preprocessed(image, projector.camera, settings.background,
+                             settings.threshold, observed)
+    if prepared.scale == 0:
         warnings.warn("the image holds no light above its background: the volume is empty "
                       "(check the exposure, the file, or background=None, --background none)",
                       stacklevel=4)
-        return PreparedImage(img, scale, thr, observed)
-    if thr >= 1.0:
-        _warn_all_dark(thr * scale, scale, settings.threshold is None)
+        return prepared
+    if prepared.threshold >= 1.0:
+        _warn_all_dark(prepared.threshold * prepared.scale, prepared.scale,
+                       settings.threshold is None)
+    if not settings.skip_dark:
+        return prepared
     # lenses without data give no update either: skipped alike
-    lit = projector.lit_lenses(img, thr) if settings.skip_dark else None
-    return PreparedImage(img, scale, thr, observed, lit)
+    return dataclasses.replace(prepared, lit=projector.lit_lenses(prepared.image,
+                                                                  prepared.threshold))
 
 
 def _warn_all_dark(threshold: float, peak: float, estimated: bool) -> None:

@@ -322,20 +322,34 @@ def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings
     """The sub-voxel iterations from the coarse support (docs/design.md §6.5): the first
     ``early_iterations`` (leaving at least one) on the aperture sampled
     ``early_oversample`` times per pixel footprint when :func:`_sampled` gives that
-    projector, the rest on the refined projector from their volume."""
+    projector, the rest on the refined projector from their volume (handed over on the
+    device when both keep it in the same slabs and the early run did not crop it)."""
     early = min(settings.early_iterations, fine.iterations - 1)
     sampled = _sampled(refined, settings.early_oversample) if early > 0 else None
     if sampled is None:
         return _solve(prepared, refined, fine, callback, factor=factor, spread=spread)
     first = dataclasses.replace(fine, iterations=early)
-    vol, info = _solve(prepared, sampled, first, callback, spread=spread)
-    if info.stopped:  # the callback ended the reconstruction
-        return (bin_lateral(vol, factor) if factor > 1 else vol), info
-    rest = dataclasses.replace(fine, iterations=fine.iterations - early, start=vol)
-    out, late = _solve(prepared, refined, rest, _numbered(callback, early), factor=factor)
+    solver, vol, info = _iterations(prepared, sampled, first, callback, spread=spread)
+    rest = dataclasses.replace(fine, iterations=fine.iterations - early)
+    if info.stopped or solver.box is not None or not _same_slabs(sampled, refined):
+        host = _to_host(solver, vol, prepared, info, 1, refined.grid.shape)
+        if info.stopped:  # the callback ended the reconstruction
+            return (bin_lateral(host, factor) if factor > 1 else host), info
+        out, late = _solve(prepared, refined, dataclasses.replace(rest, start=host),
+                           _numbered(callback, early), factor=factor)
+    else:
+        out, late = _solve(prepared, refined, rest, _numbered(callback, early),
+                           factor=factor, device=vol)
     late.iterations += info.iterations
     late.residuals[:0] = info.residuals
     return out, late
+
+
+def _same_slabs(a, b) -> bool:
+    """Whether two operators on one grid keep a volume in the same device slabs (a
+    volume of one is then a volume of the other)."""
+    shapes = [[v.shape for v in op.empty_volume()] for op in (a, b)]
+    return shapes[0] == shapes[1]
 
 
 def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
@@ -360,18 +374,21 @@ def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
 
 
 def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSettings,
-                  info: ReconstructionInfo, spread: tuple[np.ndarray, int] | None = None
-                  ) -> tuple[Solver, cla.Array, list]:
+                  info: ReconstructionInfo, spread: tuple[np.ndarray, int] | None = None,
+                  device: list | None = None) -> tuple[Solver, cla.Array, list]:
     """The solver of one run, the device image and the first guess (masked): with
     ``spread`` ``(volume, factor)``, that volume of the ``factor`` times coarser grid
-    spread over the sub-voxels instead of ``settings.start``."""
+    spread over the sub-voxels instead of ``settings.start``; with ``device``, a device
+    volume in the solver's units and this projector's slabs (an earlier run's)."""
     if prepared.lit is not None:
         info.lit_lens_fraction = float(prepared.lit.mean())
     solver = Solver(projector, settings.min_sensitivity, prepared.lit,
                     observed=prepared.observed)
     _warn_if_outside(projector, solver, settings.min_sensitivity)
     img = cla.to_device(solver.queue, prepared.image)
-    if spread is None:
+    if device is not None:
+        vol = device
+    elif spread is None:
         vol = solver.start(img, settings.start, prepared.threshold, prepared.scale)
     else:
         vol = solver.spread_start(*spread, prepared.scale)
@@ -380,30 +397,50 @@ def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSe
     return solver, img, vol
 
 
-def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings, callback,
-           factor: int = 1, spread: tuple[np.ndarray, int] | None = None
-           ) -> tuple[np.ndarray, ReconstructionInfo]:
-    """One run of the iterations on the projector's grid; the host volume in image units,
-    summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``;
-    ``spread``: the first guess on a coarser grid (:func:`_start_solver`)."""
+def _iterations(prepared: PreparedImage, projector, settings: ReconstructionSettings,
+                callback, spread: tuple[np.ndarray, int] | None = None,
+                device: list | None = None) -> tuple[Solver, list, ReconstructionInfo]:
+    """One run of the iterations on the projector's grid: the solver it ended with
+    (cropped or not), its device volume in the solver's units and the run's info;
+    ``spread``, ``device``: the first guess (:func:`_start_solver`)."""
     info = ReconstructionInfo(settings.method)
-    nz, ny, nx = projector.grid.shape
-    shape = (nz, ny // factor, nx // factor)
-    if prepared.scale == 0:  # warned by prepare_image
-        return np.zeros(shape, np.float32), info
-    solver, img, vol = _start_solver(prepared, projector, settings, info, spread)
+    solver, img, vol = _start_solver(prepared, projector, settings, info, spread, device)
     blocks = device_view_blocks(projector, settings.mart_blocks) if settings.n_blocks > 1 else None
     step = functools.partial(UPDATES[settings.method], relax=settings.relax,
                              threshold=prepared.threshold, blocks=blocks,
                              n_blocks=settings.n_blocks, ratio_floor=settings.ratio_floor)
     solver, vol = _iterate(solver, vol, img, settings, info, step, callback,
                            float(np.linalg.norm(prepared.image)))
+    return solver, vol, info
+
+
+def _to_host(solver: Solver, vol, prepared: PreparedImage, info: ReconstructionInfo,
+             factor: int, grid_shape: tuple[int, int, int]) -> np.ndarray:
+    """A run's device volume as the host volume in image units on the full grid of
+    ``grid_shape`` (a cropped solver's box placed in it), summed over ``factor x factor``
+    lateral blocks on the device when ``factor > 1``; sets ``info.active_fraction``."""
+    nz, ny, nx = grid_shape
+    shape = (nz, ny // factor, nx // factor)
     if factor == 1:
         out = solver.volume_to_host(vol, shape) * np.float32(prepared.scale)
     else:
         out = solver.binned_to_host(vol, factor, shape, prepared.scale)
     info.active_fraction = float(np.count_nonzero(out)) / out.size
-    return out, info
+    return out
+
+
+def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings, callback,
+           factor: int = 1, spread: tuple[np.ndarray, int] | None = None,
+           device: list | None = None) -> tuple[np.ndarray, ReconstructionInfo]:
+    """One run of the iterations on the projector's grid; the host volume in image units,
+    summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``;
+    ``spread``, ``device``: the first guess (:func:`_start_solver`)."""
+    if prepared.scale == 0:  # warned by prepare_image
+        nz, ny, nx = projector.grid.shape
+        return np.zeros((nz, ny // factor, nx // factor), np.float32), ReconstructionInfo(
+            settings.method)
+    solver, vol, info = _iterations(prepared, projector, settings, callback, spread, device)
+    return _to_host(solver, vol, prepared, info, factor, projector.grid.shape), info
 
 
 def _in_frame(image, projector, settings: ReconstructionSettings, callback, observed
@@ -466,4 +503,5 @@ def _run(image, projector, settings: ReconstructionSettings, callback, observed,
     else:
         vol, info = _supersampled(prepared, projector, refined, settings, callback, binned)
     info.seconds = time.perf_counter() - t0
+    info.background, info.noise = prepared.background, prepared.noise
     return vol, info

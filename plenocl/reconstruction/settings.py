@@ -34,7 +34,8 @@ MLEM_MAX_RELAX = 2.0
 @dataclass
 class ReconstructionInfo:
     """What a reconstruction did: iterations, residual history, time, masking;
-    ``stopped``: the callback ended it."""
+    ``stopped``: the callback ended it; ``background`` and ``noise``: the median and
+    noise (image units) the median background removed (``None`` without it)."""
 
     method: str
     iterations: int = 0
@@ -49,6 +50,8 @@ class ReconstructionInfo:
     supersample: int = 1
     coarse_iterations: int = 0
     support_fraction: float = 1.0
+    background: float | None = None
+    noise: float | None = None
 
 
 #: Aperture samples per pixel footprint of a coarse-to-fine reconstruction's coarse
