@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +122,13 @@ def test_likely_mistakes_warn_in_the_library(queue):
     wide = Grid((8, 40, 40), x=(-6.0, 6.0), y=(-6.0, 6.0), z=(-1.0, 1.0))
     with pytest.warns(UserWarning, match="beyond the camera's field of view"):
         reconstruct(img, Projector(cam, wide, queue), iterations=1, supersample=1)
+    # coarse-to-fine: once, from the coarse run (its sub-voxels cover the same extent)
+    wider = Grid((8, 40, 40), x=(-7.0, 7.0), y=(-7.0, 7.0), z=(-1.0, 1.0))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        reconstruct(img, Projector(cam, wider, queue), iterations=2, supersample=2,
+                    coarse_iterations=1, early_iterations=1, early_oversample=0.6)
+    assert sum("field of view" in str(w.message) for w in seen) == 1
 
 
 def test_a_whole_experiment_from_the_command_line(tmp_path, capsys):

@@ -78,14 +78,22 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
 #: Warn when more than this fraction of the grid's voxels send too little light to the
 #: sensor to be reconstructed (the grid reaches beyond the field of view).
 OUTSIDE_WARN = 0.25
-_WARNED: weakref.WeakSet = weakref.WeakSet()
+#: Per camera, the grid extents already checked (:func:`_warn_if_outside`).
+_CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _warn_if_outside(projector, solver: Solver, min_sensitivity: float) -> None:
-    """Once per projector: warn when much of the grid lies outside the field of view."""
-    if projector in _WARNED:
+    """Once per camera and grid extent: warn when much of the grid lies outside the field
+    of view. A voxel's sensitivity is the fraction of its light reaching the sensor,
+    whatever its size, so the check of a coarse-to-fine reconstruction's coarse run
+    stands for its sub-voxels too (the same extent on a finer grid; their sensitivities
+    need not cross to the host)."""
+    g = projector.grid
+    key = (tuple(g.x), tuple(g.y), tuple(g.z), g.rotation_deg, float(min_sensitivity))
+    checked = _CHECKED.setdefault(projector.camera, set())
+    if key in checked:
         return
-    _WARNED.add(projector)
+    checked.add(key)
     dark = sum(int((s.get() <= solver.smin).sum()) for s in solver.sens)
     fraction = dark / projector.grid.size
     if fraction > OUTSIDE_WARN:
