@@ -103,6 +103,33 @@ def test_background_subtraction_returns_noise_level():
     assert clean[50, 50] == pytest.approx(980, abs=1)
 
 
+@pytest.mark.parametrize("kind", ["counts", "signed", "one fraction", "float", "wide", "mask"])
+def test_the_median_and_noise_of_integer_counts_equal_numpys(kind):
+    """A camera's integer counts take a histogram: the median and MAD are NumPy's exactly
+    (odd and even counts, ties, negative levels); anything else takes NumPy's sorts."""
+    from plenocl.optics.rawimage import median_and_noise
+
+    rng = np.random.default_rng(len(kind))
+    for n in (1, 2, 7, 40, 1001, 40_000):
+        img = rng.poisson(20, n).astype(np.float64)
+        img[rng.random(n) < 0.02] += 3000
+        observed = rng.random(n) < 0.7 if kind == "mask" else None
+        if kind == "signed":
+            img -= 25
+        elif kind == "one fraction":
+            img[-1] += 0.5
+        elif kind == "float":
+            img += rng.normal(0, 1, n)
+        elif kind == "wide":
+            img[0] = 2.0**40
+        data = img if observed is None else img[observed]
+        if not data.size:
+            continue
+        med = float(np.median(data))
+        expected = (med, 1.4826 * float(np.median(np.abs(data - med))))
+        assert median_and_noise(img, observed) == expected
+
+
 def test_reconstruct_cli_writes_volume_with_grid(tmp_path, small_camera, queue):
     pos = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.8]])
     img = simulate_image(small_camera, pos, 2e4, 5000, seed=1, background=20.0,

@@ -87,10 +87,51 @@ def subtract_background(image) -> tuple[np.ndarray, float]:
 def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None
                      ) -> tuple[float, float]:
     """The median (the dark level) and the noise ``1.4826 MAD`` of the ``observed``
-    pixels (all by default)."""
+    pixels (all by default). A camera's integer counts take a histogram instead of two
+    partial sorts (the same values, several times faster on a 16 MP frame)."""
     data = img if observed is None else img[observed]
+    counts = _integer_histogram(data)
+    if counts is not None:
+        low, hist = counts
+        levels = np.arange(low, low + len(hist), dtype=np.float64)
+        med = _multiset_median(levels, hist)
+        dist = np.abs(levels - med)
+        order = np.argsort(dist, kind="stable")
+        return med, 1.4826 * _multiset_median(dist[order], hist[order])
     med = float(np.median(data))
     return med, 1.4826 * float(np.median(np.abs(data - med)))
+
+
+#: The widest span of integer levels :func:`median_and_noise` histograms (a 24-bit
+#: camera's; wider spans take the sorts).
+HISTOGRAM_LEVELS = 1 << 24
+
+
+def _integer_histogram(data: np.ndarray) -> tuple[int, np.ndarray] | None:
+    """``(lowest level, counts per level)`` when every value is an integer within
+    :data:`HISTOGRAM_LEVELS` levels, else ``None`` (a few pixels tried first, so a
+    float image costs almost nothing)."""
+    flat = data.ravel()
+    if not flat.size or np.any(flat[:: max(1, flat.size // 1024)] % 1):
+        return None
+    low, high = float(flat.min()), float(flat.max())
+    if high - low >= HISTOGRAM_LEVELS:
+        return None
+    levels = flat.astype(np.int64)
+    if not np.array_equal(levels, flat):  # a fraction somewhere
+        return None
+    if low:
+        levels -= int(low)
+    return int(low), np.bincount(levels)
+
+
+def _multiset_median(values: np.ndarray, counts: np.ndarray) -> float:
+    """:func:`numpy.median` of ``values`` (ascending) each repeated ``counts`` times."""
+    cum = np.cumsum(counts)
+    n = int(cum[-1])
+    lo = values[np.searchsorted(cum, (n - 1) // 2, side="right")]
+    hi = values[np.searchsorted(cum, n // 2, side="right")]
+    return float((lo + hi) / 2)
 
 
 def median_background(img: np.ndarray, observed: np.ndarray | None = None
