@@ -8,9 +8,11 @@ import pytest
 
 from plenocl import Grid, piv3d
 from plenocl.metrics import render_particles
+from plenocl.piv import PIVResult
 from plenocl.piv.tracking import (
     FITTED_POSITION_SIGMA,
     FOCAL_SYSTEMATIC,
+    GRADIENT_PAIRS,
     ONE_SIGMA,
     POSITION_SIGMA,
     FocalZone,
@@ -20,6 +22,7 @@ from plenocl.piv.tracking import (
     refine_with_particles,
     window_estimate,
     window_means,
+    window_means_reference,
 )
 
 GRID = Grid((48, 40, 56), x=(0, 56), y=(0, 40), z=(0, 48))  # 1 mm = 1 voxel
@@ -203,3 +206,73 @@ def test_fitted_particles_carry_the_smaller_position_term(scene):
     expected = np.abs(grad[:, 2]) * FITTED_POSITION_SIGMA[2]
     np.testing.assert_allclose(error[:, ok], expected[:, None] * np.ones(ok.sum()), atol=1e-5)
     assert FITTED_POSITION_SIGMA[2] < POSITION_SIGMA[2]
+
+
+def grid_field(shape=(5, 6, 7), window=(8, 8, 8), step=4.0) -> PIVResult:
+    """A field of ``shape`` window centres ``step`` voxels apart (the correlation's values
+    do not enter :func:`window_means`)."""
+    z, y, x = (3.5 + step * np.arange(n) for n in shape)
+    ones = np.ones(shape, bool)
+    zero = np.zeros(shape)
+    return PIVResult(x, y, z, zero, zero, zero, ones, np.full(shape, np.nan), ~ones, ~ones,
+                     window)
+
+
+def awkward_pairs(case: str, rng) -> ParticlePairs:
+    """Pairs that test the batched window means: sparse windows (many with exactly 3
+    pairs), outliers beyond the median band, pairs on one plane or one line (rank-deficient
+    gradient fits), midpoints on the windows' faces, none at all."""
+    n = {"sparse": 70, "outliers": 600, "plane": 400, "line": 300, "faces": 500, "empty": 0}
+    lo, hi = np.zeros(3), np.array([34.0, 30.0, 26.0])  # (x, y, z), a little beyond the grid
+    mid = rng.uniform(lo, hi, (n[case], 3))
+    if case == "plane":
+        mid[:, 2] = 11.5  # every window's pairs share one depth
+    if case == "line":
+        mid[:, 1:] = [13.5, 11.5]
+    if case == "faces":  # integers: |midpoint - centre| is exactly the half-window
+        mid = np.round(mid - 0.5) + 0.5
+    grad = np.array([[0.0, 0.03, -0.02], [0.02, 0.0, 0.01], [0.0, -0.04, 0.05]])
+    disp = SHIFT + (mid - 15.0) @ grad.T + rng.normal(0, [0.1, 0.1, 0.5], mid.shape)
+    bad = rng.random(len(mid)) < 0.1
+    disp[bad] += rng.choice([-4.0, 4.0], (bad.sum(), 3))
+    return ParticlePairs(mid, disp)
+
+
+@pytest.mark.parametrize("case", ["sparse", "outliers", "plane", "line", "faces", "empty"])
+@pytest.mark.parametrize("focus", [None, FocalZone(plane=12.0, resolution=5.0)])
+@pytest.mark.parametrize("min_pairs", [2, 3])
+def test_window_means_equal_the_per_window_loop(case, focus, min_pairs):
+    """The batched window means against the per-window loop over local_gradient,
+    near_median and window_estimate: the same counts, to float64 rounding the same
+    means and uncertainties (rank-deficient fits take lstsq's minimum-norm solution)."""
+    pairs = awkward_pairs(case, np.random.default_rng(len(case)))
+    field = grid_field()
+    got = window_means(pairs, field, min_pairs, focus=focus)
+    want = window_means_reference(pairs, field, min_pairs, focus=focus)
+    np.testing.assert_array_equal(got[2], want[2])
+    for a, b in zip(got[:2], want[:2]):
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    if case == "sparse":  # windows with just enough pairs, and too few
+        assert (want[2] == min_pairs).any() and np.isnan(want[0][0]).any()
+    if case in ("outliers", "plane", "line"):  # gradient fits and pairs left out
+        full = window_means_reference(pairs, field, min_pairs, search=(99.0,) * 3)[2]
+        assert (want[2] >= GRADIENT_PAIRS).any() and (want[2] < full).any()
+    if case == "empty":
+        assert not want[2].any() and np.isnan(want[0]).all()
+
+
+def test_a_flat_scatter_takes_the_minimum_norm_gradient():
+    """Pairs on one plane leave the depth gradient undetermined: as lstsq, the batched
+    fit shares the offset between the constant and the depth slope (minimum norm)."""
+    from plenocl.piv.tracking import _fit_gradients, local_gradient
+
+    rng = np.random.default_rng(2)
+    mid = np.column_stack([rng.uniform(0, 20, (40, 2)), np.full(40, 7.0)])
+    disp = SHIFT + 0.05 * mid[:, :1] + rng.normal(0, 0.05, (40, 3))
+    centre = np.array([10.0, 10.0, 5.0])
+    want = local_gradient(ParticlePairs(mid, disp), list(range(40)), centre)
+    pos = np.concatenate([mid - centre, disp], axis=1)[None]
+    got = _fit_gradients(pos, np.ones((1, 40), bool))[0]
+    assert abs(want[0, 2]) > 0.01  # the constant leaks into the depth column
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
