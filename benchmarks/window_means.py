@@ -29,7 +29,8 @@ import numpy as np
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
 from plenocl.piv import PIVResult
-from plenocl.piv.tracking import FocalZone, ParticlePairs, window_means, window_means_reference
+from plenocl.piv.tracking import FocalZone, ParticlePairs, window_means  # noqa: E402
+from plenocl.reference.tracking import window_means_reference
 
 SHAPE = (150, 200, 300)  # (z, y, x) voxels
 WINDOW, STEP = 32, 8

@@ -22,8 +22,8 @@ from plenocl.piv.tracking import (
     refine_with_particles,
     window_estimate,
     window_means,
-    window_means_reference,
 )
+from plenocl.reference.tracking import window_means_reference
 
 GRID = Grid((48, 40, 56), x=(0, 56), y=(0, 40), z=(0, 48))  # 1 mm = 1 voxel
 SHIFT = np.array([1.6, -0.7, 2.2])  # (x, y, z) voxels

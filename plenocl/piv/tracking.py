@@ -223,7 +223,8 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
     :func:`window_estimate`), its uncertainty, and the pair counts.
 
-    The same as :func:`window_means_reference`, the per-window loop over
+    The same as :func:`plenocl.reference.tracking.window_means_reference`, the
+    per-window loop over
     :func:`local_gradient`, :func:`near_median` and :func:`window_estimate`, computed for
     all windows holding the same number of pairs at once: about 5 times faster at the
     paper's size (11,220 windows, 5,000 pairs; ``benchmarks/window_means.py``), the
@@ -249,35 +250,6 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     count.reshape(-1)[busy] = n[busy]
     use = busy & (n >= max(min_pairs, 1))
     mean.reshape(3, -1)[:, use], error.reshape(3, -1)[:, use] = m[use].T, e[use].T
-    return mean, error, count
-
-
-def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3,
-                           search=SEARCH, focus: FocalZone | None = None,
-                           position_sigma=POSITION_SIGMA
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`window_means` one window at a time: the readable reference that it is
-    tested and timed against (``benchmarks/window_means.py``)."""
-    shape = field.u.shape
-    mean, error = np.full((2, 3, *shape), np.nan)
-    count = np.zeros(shape, int)
-    if not len(pairs.midpoints):
-        return mean, error, count
-    half = np.asarray(field.window[::-1], float) / 2  # (x, y, z)
-    tree = cKDTree(pairs.midpoints / half)
-    centres = _grid_centres(field)
-    windows = tree.query_ball_point(centres / half, 1.0, p=np.inf)  # all at once
-    busy = [w for w, inside in enumerate(windows) if len(inside) >= min_pairs]
-    reach = tree.query_ball_point(centres[busy] / half, 2.0, p=np.inf) if busy else []
-    for w, near in zip(busy, reach):
-        (k, j, i), centre, inside = np.unravel_index(w, shape), centres[w], windows[w]
-        grad = local_gradient(pairs, near, centre, search)
-        d = pairs.displacements[inside] - (pairs.midpoints[inside] - centre) @ grad.T
-        keep = near_median(d, search)
-        count[k, j, i] = np.count_nonzero(keep)
-        if count[k, j, i] >= min_pairs:
-            mean[:, k, j, i], error[:, k, j, i] = window_estimate(
-                d[keep], pairs.midpoints[inside][keep, 2], grad, focus, position_sigma)
     return mean, error, count
 
 

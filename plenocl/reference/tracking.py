@@ -1,0 +1,51 @@
+"""NumPy twin of :func:`plenocl.piv.tracking.window_means`: the per-window loop over
+:func:`~plenocl.piv.tracking.local_gradient`, :func:`~plenocl.piv.tracking.near_median`
+and :func:`~plenocl.piv.tracking.window_estimate`, written for clarity; the batched
+production code is tested and timed against it (``benchmarks/window_means.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..piv.tracking import (
+    POSITION_SIGMA,
+    SEARCH,
+    FocalZone,
+    ParticlePairs,
+    local_gradient,
+    near_median,
+    window_estimate,
+)
+from ..vectorfield import PIVResult
+
+
+def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3,
+                           search=SEARCH, focus: FocalZone | None = None,
+                           position_sigma=POSITION_SIGMA
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`plenocl.piv.tracking.window_means` one window at a time: the readable
+    reference that it is
+    tested and timed against (``benchmarks/window_means.py``)."""
+    shape = field.u.shape
+    mean, error = np.full((2, 3, *shape), np.nan)
+    count = np.zeros(shape, int)
+    if not len(pairs.midpoints):
+        return mean, error, count
+    half = np.asarray(field.window[::-1], float) / 2  # (x, y, z)
+    tree = cKDTree(pairs.midpoints / half)
+    z, y, x = np.meshgrid(field.z, field.y, field.x, indexing="ij")
+    centres = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)  # np.ndindex order
+    windows = tree.query_ball_point(centres / half, 1.0, p=np.inf)  # all at once
+    busy = [w for w, inside in enumerate(windows) if len(inside) >= min_pairs]
+    reach = tree.query_ball_point(centres[busy] / half, 2.0, p=np.inf) if busy else []
+    for w, near in zip(busy, reach):
+        (k, j, i), centre, inside = np.unravel_index(w, shape), centres[w], windows[w]
+        grad = local_gradient(pairs, near, centre, search)
+        d = pairs.displacements[inside] - (pairs.midpoints[inside] - centre) @ grad.T
+        keep = near_median(d, search)
+        count[k, j, i] = np.count_nonzero(keep)
+        if count[k, j, i] >= min_pairs:
+            mean[:, k, j, i], error[:, k, j, i] = window_estimate(
+                d[keep], pairs.midpoints[inside][keep, 2], grad, focus, position_sigma)
+    return mean, error, count
