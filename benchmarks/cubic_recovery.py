@@ -41,7 +41,7 @@ SETTINGS = {
                                                        coarse_iterations=0),
     "coarse-to-fine 10 + 10": ReconstructionSettings(supersample=3, iterations=10, relax=1.0,
                                                      coarse_iterations=10, support=1e-2),
-    "reconstruct() default (5 + 7, μ 1.5)": ReconstructionSettings(),
+    "reconstruct() default (4 + 7, μ 1.5)": ReconstructionSettings(),
     "5 + 10, μ 1.5": ReconstructionSettings(supersample=3, iterations=10, relax=1.5,
                                             coarse_iterations=5, support=1e-2),
 }

@@ -26,7 +26,7 @@ def main(count: int = 20, seed: int = 1) -> None:
     print(f"{count} particles, grid {grid.shape}, voxel {grid.spacing} mm")
     paper = dict(method="mart", iterations=15, relax=0.7, supersample=1)
     for label, options in (("paper's MART, 15 it., mu 0.7", paper),
-                           ("default (MLEM, 5 + 7 it.)", {})):
+                           ("default (MLEM, 4 + 7 it.)", {})):
         t0 = time.perf_counter()
         vol = reconstruct(image, proj, **options)
         rep = recovery(vol, grid, pos)

@@ -133,8 +133,8 @@ def test_one_default_reconstruction(monkeypatch):
     assert _cli_settings() == rec
     assert (rec.method, rec.supersample, rec.coarse_iterations, rec.support, rec.iterations,
             rec.relax) == ("mlem", SUPERSAMPLE, COARSE_ITERATIONS, SUPPORT,
-                           *FINE_DEFAULTS) == ("mlem", 3, 5, 0.01, 7, 1.5)
-    assert (rec.background, rec.start, rec.total_iterations) == ("median", "uniform", 12)
+                           *FINE_DEFAULTS) == ("mlem", 3, 4, 0.01, 7, 1.5)
+    assert (rec.background, rec.start, rec.total_iterations) == ("median", "uniform", 11)
     # the voxels themselves: the method's own iterations, everywhere alike
     one = ReconstructionSettings(supersample=1)
     assert (one.iterations, one.relax, one.coarse_iterations) == (*DEFAULTS["mlem"], 0)
@@ -157,7 +157,7 @@ def test_defaults_agree():
     assert PairSettings.from_dict({"reconstruction": {"iterations": 7}}) == pair
     rec = pair.reconstruction
     assert (rec.coarse_iterations, rec.support, rec.iterations, rec.relax) == (
-        COARSE_ITERATIONS, SUPPORT, *FINE_DEFAULTS) == (5, 0.01, 7, 1.5)
+        COARSE_ITERATIONS, SUPPORT, *FINE_DEFAULTS) == (4, 0.01, 7, 1.5)
     assert _cli_settings() == rec
     # the voxels themselves, or another method, keep the method's own iterations
     one = PairSettings.from_dict({"reconstruction": {"supersample": 1}}).reconstruction
@@ -166,7 +166,7 @@ def test_defaults_agree():
         other = PairSettings.from_dict({"reconstruction": {"method": method}}).reconstruction
         assert other == ReconstructionSettings(method=method)
         assert (other.iterations, other.relax) == DEFAULTS[method]
-        assert (other.supersample, other.coarse_iterations) == (3, 5)
+        assert (other.supersample, other.coarse_iterations) == (3, 4)
     given = PairSettings.from_dict({"reconstruction": {"relax": 1.0}}).reconstruction
     assert (given.relax, given.iterations) == (1.0, 7)
     assert ReconstructionSettings(relax=1.0) == given

@@ -29,7 +29,7 @@ Example::
     [reconstruction]                     # every ReconstructionSettings option
     method = "mlem"
     iterations = 7                       # on the sub-voxels, after
-    coarse_iterations = 5                # iterations on the voxels (docs/design.md §6.5)
+    coarse_iterations = 4                # iterations on the voxels (docs/design.md §6.5)
     relax = 1.5                          # MLEM over-relaxed, 0 < relax < 2
     supersample = 3                      # lateral sub-voxels per voxel (1: the voxels,
                                          # depth about 3x worse; docs/design.md §6.4)

@@ -112,7 +112,7 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
 
     By default (no options) coarse-to-fine MLEM on sub-voxels (docs/design.md §6.5), the
     same reconstruction as :func:`plenocl.process_pair`, ``plenocl reconstruct`` and
-    ``plenocl run`` (:class:`ReconstructionSettings`' defaults): 5 iterations on the
+    ``plenocl run`` (:class:`ReconstructionSettings`' defaults): 4 iterations on the
     voxels find the particles' support, then 7 over-relaxed iterations (μ = 1.5) on 3 x 3
     lateral sub-voxels per voxel within it, summed back onto the projector's grid. On
     the cubic 40³ case it recovers more particles than 30 iterations on the voxels
@@ -200,7 +200,7 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         against a reference; a ``start`` volume iterated on the voxels themselves.
     coarse_iterations, support
         Coarse-to-fine (``supersample > 1`` only; docs/design.md §6.5): first
-        ``coarse_iterations`` (default 5) on the voxels themselves; the voxels brighter
+        ``coarse_iterations`` (default 4) on the voxels themselves; the voxels brighter
         than ``support`` (default 0.01) times the brightest, grown by one voxel, are the
         support, and the ``iterations`` on the sub-voxels start flat on it and never
         leave it (the back projection skips the zero voxels). ``0``: the sub-voxels start

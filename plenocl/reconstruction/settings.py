@@ -19,7 +19,7 @@ DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
 SUPERSAMPLE = 3
 #: Coarse-to-fine by default on sub-voxels (docs/design.md §6.5): iterations on the
 #: voxels first, and the support threshold (a fraction of their brightest voxel).
-COARSE_ITERATIONS = 5
+COARSE_ITERATIONS = 4
 SUPPORT = 0.01
 #: MLEM's defaults on sub-voxels after coarse iterations: (iterations, relaxation), both
 #: phases over-relaxed (docs/design.md §6.5).
