@@ -17,10 +17,11 @@ For each motion, seeding (particles per microlens) and scene, in the same run:
 
 - **windows only**: PIV on volumes rendered from the true particles (Gaussian blobs of
   1 voxel): what the interrogation windows themselves cannot resolve;
-- **default**: ``plenocl.process_pair`` defaults (MLEM coarse-to-fine: 10 iterations on
-  the voxels, then 10 on 3 x 3 lateral sub-voxels per voxel within the coarse support,
-  summed back; windows fitted to the volume; each window's vector refined by its matched
-  particle pairs, fitted to the raw images): what the user gets;
+- **default**: ``plenocl.process_pair`` defaults (MLEM coarse-to-fine: 4 iterations on
+  the voxels, then 7 over-relaxed ones on 3 x 3 lateral sub-voxels per voxel within the
+  coarse support, summed back, docs/design.md §6.5; windows fitted to the volume; each
+  window's vector refined by its matched particle pairs, fitted to the raw images): what
+  the user gets;
 - **30 sub-voxel iterations**: the default before (``--before``, 30 MLEM iterations on
   the sub-voxels from a uniform start), same images, with its seconds per pair;
 - **sub-voxels, correlation only**: the default's volumes correlated without the

@@ -781,6 +781,12 @@ INVALID = [
      r"rays must be an integer >= 16"),
     ("imagefit-blur", lambda c: ImageFitSettings(blur_px=-1.0), ValueError,
      "blur_px must be a positive number"),
+    ("imagefit-backgrounds-count", lambda c: ImageFit(
+        c["cam"], c["proj"].grid, [c["img"], c["img"]], backgrounds=[(20.0, 3.0)]),
+     ValueError, "got 1 backgrounds for 2 images"),
+    ("imagefit-background-nan", lambda c: ImageFit(
+        c["cam"], c["proj"].grid, [c["img"]], backgrounds=[(np.nan, 3.0)]),
+     ValueError, "a known background needs a finite median"),
     # calibrate
     ("calibrate-blank", _cal(lambda c: np.zeros((70, 70))), ValueError, "white image is blank"),
     ("calibrate-noise", _cal(lambda c: np.random.default_rng(0).random((70, 70))), ValueError,
