@@ -194,7 +194,8 @@ def test_diagnostic_png_and_cli_round_trip(tmp_path, small_white):
     add_calibrate_parser(parser.add_subparsers())
     args = parser.parse_args(["calibrate", str(tmp_path / "white.tif"), "--camera",
                               str(tmp_path / "cam.toml"), "--out", str(tmp_path / "cal.toml"),
-                              "--diagnostic", str(tmp_path / "centres.png")])
+                              "--diagnostic", str(tmp_path / "centres.png"),
+                              "--aperture", "stopped"])
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a clean white image gives no warning
         assert args.func(args) == 0
@@ -507,3 +508,30 @@ def test_small_spots_with_lenses_off_the_lattice(queue, rotation):
     actual = _rms(_errors(fit.centroids, truth)) / np.sqrt(2)  # per axis
     assert float(np.median(fit.noise_px)) == pytest.approx(actual, rel=0.5)
     assert fit.lattice_scatter_px == pytest.approx(0.1, rel=0.25)
+
+
+@pytest.mark.parametrize("aperture", ["auto", "full"])
+def test_full_aperture_white_images_are_calibrated(queue, aperture):
+    """Issue 29: a vendor-style white image at the main lens's own f-number (each
+    micro-image a disk filling its lens), rotated 0.3°, 50 % vignetting falloff across
+    the sensor (so each disk is brighter on the side toward the centre), photon and read
+    noise: recognised as full-aperture, at least 97 % of the lenses found, the centres
+    within 0.05 px RMS of the truth."""
+    cam = _camera(rotation=0.3)
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, photon_noise=True,
+                                 read_noise=3.0, bit_depth=12, intensity=1e5,
+                                 rays_per_lens=50000, seed=18, queue=queue).astype(float)
+    rows, cols = np.mgrid[0:white.shape[0], 0:white.shape[1]]
+    r2 = (cols - white.shape[1] / 2) ** 2 + (rows - white.shape[0] / 2) ** 2
+    white *= 1.0 - 0.5 * r2 / r2.max()
+    fit = find_centers(white, _nominal(cam), aperture=aperture)
+    assert fit.aperture == "full"
+    assert fit.found[_on_sensor(cam)].mean() >= 0.97
+    assert _rms(_errors(fit.centers, cam.ideal_microlens_centers())) <= TARGET_RMS_PX
+    assert find_centers(white, _nominal(cam), method="fit").aperture == "full"
+
+
+def test_the_aperture_option_is_checked(small_white):
+    with pytest.raises(ValueError, match="aperture"):
+        find_centers(small_white, _camera(12, 10), aperture="wide")
+    assert find_centers(small_white, _camera(12, 10)).aperture == "stopped"
