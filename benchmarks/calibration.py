@@ -39,7 +39,12 @@ CASES = {**CALIBRATION_CASES,
          "2 deg, lenses 0.1 px off, dark-subtracted": (
              dict(ml_rotation_deg=2.0), dict(EXPOSED, lens_shift_px=0.1, dark_subtracted=0.009)),
          "dim, lenses 0.1 px off (1000 counts/lens)": (
-             dict(ml_rotation_deg=0.15), dict(photon_noise=True, lens_shift_px=0.1))}
+             dict(ml_rotation_deg=0.15), dict(photon_noise=True, lens_shift_px=0.1)),
+         "small spots 0.6 px, 0.2 deg, lenses 0.1 px off": (
+             dict(ml_rotation_deg=0.2), dict(EXPOSED, blur_px=0.3, lens_shift_px=0.1)),
+         "full aperture (f/2 disks), 0.3 deg, vign. 50 %": (
+             dict(ml_rotation_deg=0.3), dict(EXPOSED, stop_f_number=2.0, vignetting=0.5,
+                                             intensity=1e5, rays_per_lens=50000))}
 
 
 def run_case(base: Camera, layout: dict, sim: dict, seed: int, queue) -> tuple:

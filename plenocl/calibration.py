@@ -38,6 +38,7 @@ sensor. Rotations of a few degrees (any angle within ±45° in principle) are ha
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -66,9 +67,18 @@ NEGATIVE_WARN = 0.1
 DISTORTION_P_VALUE = 1e-3
 #: ... and must move the centres by more than this (px RMS).
 DISTORTION_MIN_PX = 0.05
-#: Width of the Gaussian centroid window: this many spot widths, at least WINDOW_MIN_PX.
+#: Apertures a white image is taken at: ``"auto"`` tells them apart by the bright pixels.
+APERTURES = ("auto", "stopped", "full")
+#: Above this fraction of bright pixels (over half their local range) an image is a
+#: full-aperture one (stopped down to f/16: about 2 %; full aperture: 60-75 %).
+FULL_APERTURE_FRACTION = 0.3
+#: Radius (pitches, plus 1 px of edge blur) of the circular window of a full-aperture disk.
+DISK_WINDOW = 0.5
+#: Width of the Gaussian centroid window: this many spot widths, at least WINDOW_MIN_PX
+#: (a narrower window samples a sub-pixel spot too coarsely: 1 px biased 0.5 px spots by
+#: 0.024 px toward the pixel grid, 1.5 px by 0.009).
 WINDOW_SCALE = 1.5
-WINDOW_MIN_PX = 1.0
+WINDOW_MIN_PX = 1.5
 
 
 @dataclass(frozen=True)
@@ -105,6 +115,9 @@ class CenterFit:
     lattice_scatter_px
         Estimated RMS per axis (px) of the lenses' true offsets from the grid model
         (manufacturing errors), the centroid noise taken out.
+    aperture
+        ``"stopped"`` (small spots) or ``"full"`` (disks filling the lenses): how the
+        image was read.
     """
 
     centers: np.ndarray
@@ -120,6 +133,7 @@ class CenterFit:
     method: str
     noise_px: np.ndarray
     lattice_scatter_px: float
+    aperture: str = "stopped"
 
     @property
     def n_missing(self) -> int:
@@ -177,17 +191,23 @@ def _local_floor(img: np.ndarray, pitch: float) -> np.ndarray:
 def _remove_hot_pixels(img: np.ndarray, pitch: float) -> np.ndarray:
     """Replace isolated hot pixels by the median of their 3 x 3 neighbourhood.
 
-    A pixel is hot when it exceeds that median by more than three times the median's
-    own height above the background (plus 8 noise) and by twice the height of the
-    brightest median-filtered spots: a spot's peak, even a saturated or sharp one,
-    rises far less above its neighbours, and weaker outliers cannot pass for spots.
+    A pixel is hot when it exceeds the brightest of its 8 neighbours by more than twice
+    the typical spot peak (the median over the image of the brightest pixel within a
+    pitch, above the local background) plus 8 noise. A spot's peak pixel, however sharp
+    (a 0.3 px spot keeps 5 % of its peak in its brightest neighbour) or saturated, never
+    rises that far above its neighbours; comparing with the neighbours' median instead
+    took the peaks of sub-pixel spots for hot pixels and pulled their centroids to the
+    pixel grid (0.17 px at 0.6 px spot width).
     """
+    ring = np.ones((3, 3), bool)
+    ring[1, 1] = False
+    excess = img - ndimage.maximum_filter(img, footprint=ring, mode="nearest")
     med = ndimage.median_filter(img, 3)
-    excess = img - med
-    noise = 1.4826 * float(np.median(np.abs(excess - np.median(excess))))
-    height = np.clip(med - _local_floor(med, pitch), 0, None)
-    spot_peak = float(np.percentile(height, 99.9))  # of the median-filtered spots
-    hot = (excess > 3 * height + 8 * noise) & (excess > 2 * spot_peak)
+    resid = img - med
+    noise = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+    height = ndimage.maximum_filter(img - _local_floor(img, pitch), _odd(pitch))
+    typical = max(float(np.median(height)), 0.0)
+    hot = excess > 2 * typical + 8 * noise
     return np.where(hot, med, img) if hot.any() else img
 
 
@@ -299,34 +319,44 @@ def _windowed_centroids(img: np.ndarray, peaks: np.ndarray, pitch: float,
 
 
 def _split_difference(padded, pad, c, bg, half, width, gain) -> np.ndarray:
-    """Each spot's centroid from the pixels with even ``col + row`` minus that from the
-    odd ones, ``(N, 2)`` (``NaN`` for lost spots).
+    """Each spot's ``col`` centroid from its even rows minus that from its odd rows, and
+    its ``row`` centroid from its even columns minus that from its odd columns, ``(N, 2)``
+    (``NaN`` for lost spots).
 
-    The two checkerboard halves see independent noise, so the difference measures a
-    spot's centroid noise from the image alone: each half has twice the variance of the
-    whole, so ``E[d²] = 4 σ²`` per axis. A spot wider than about 0.7 px is sampled finely
-    enough on either half that the difference carries no bias of its own.
+    The two halves see independent noise, so the difference measures a spot's centroid
+    noise from the image alone: each half has twice the variance of the whole, so
+    ``E[d²] = 4 σ²`` per axis. Along the axis it measures, each half keeps every pixel,
+    so for a separable spot (a Gaussian) either half's centroid is the whole spot's
+    however small the spot: the difference carries no sampling bias of its own. (The
+    checkerboard halves used before are each sampled on a lattice that aliases a spot
+    under 0.7 px wide: on 0.6 px spots they reported 0.06 px of noise where the
+    centroids scattered by 0.012, and the combined centres lost the lenses' offsets.)
     """
     lost = ~np.isfinite(c).all(1)
     at = np.where(lost[:, None], 0.0, c)
-    steps = [_centroid_step(padded, pad, at, bg, half, width, gain, parity)[0]
-             for parity in (0, 1)]
-    diff = steps[0] - steps[1]
+    diff = np.empty_like(at)
+    for axis in (0, 1):  # rows split for the col centroid, columns for the row centroid
+        halves = [_centroid_step(padded, pad, at, bg, half, width, gain, (1 - axis, parity))[0]
+                  for parity in (0, 1)]
+        diff[:, axis] = halves[0][:, axis] - halves[1][:, axis]
     diff[lost] = np.nan
     return diff
 
 
 def _centroid_step(padded, pad, c, bg, half, width, gain,
-                   parity: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   lines: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One Gaussian-windowed centroid update ``(N, 2)`` and which spots still have signal
-    (from the pixels whose ``col + row`` has ``parity`` only, when given)."""
+    (from the pixels whose column (``lines = (0, parity)``) or row (``(1, parity)``) index
+    has ``parity`` only, when given)."""
     base = np.rint(c).astype(np.int64)
     patch, off = _patches(padded, pad, base, half)
     signal = np.nan_to_num(patch - bg[:, None, None])
-    if parity is not None:
-        odd = (base[:, 0, None, None] + base[:, 1, None, None]
-               + off[None, None, :] + off[None, :, None]) % 2
-        signal = np.where(odd == parity, signal, 0.0)
+    if lines is not None:
+        axis, parity = lines
+        index = base[:, axis, None] + off[None, :]  # (N, 2h+1) column or row indices
+        keep = (index % 2 == parity)[:, None, :] if axis == 0 else \
+            (index % 2 == parity)[:, :, None]
+        signal = np.where(keep, signal, 0.0)
     dx = base[:, 0, None] + off[None, :] - c[:, 0, None]  # (N, cols of the patch)
     dy = base[:, 1, None] + off[None, :] - c[:, 1, None]  # (N, rows of the patch)
     gx, gy = np.exp(-dx**2 / (2 * width**2)), np.exp(-dy**2 / (2 * width**2))
@@ -338,6 +368,115 @@ def _centroid_step(padded, pad, c, bg, half, width, gain,
     safe = np.where(ok, total, 1.0)[:, None]
     step = gain * np.stack([moment_x, moment_y], -1) / safe
     return np.where(ok[:, None], np.clip(step, -1.0, 1.0), 0.0), ok
+
+
+# ---- 2b. full-aperture disks --------------------------------------------------------
+def _bright_fraction(img: np.ndarray, pitch: float) -> float:
+    """Fraction of pixels above half their local range (the minimum and maximum over a
+    pitch): a few % for stopped-down spots, most of the image for full-aperture disks."""
+    smooth = ndimage.gaussian_filter(img, 1.0)
+    floor = ndimage.minimum_filter(smooth, _odd(pitch))
+    top = ndimage.maximum_filter(smooth, _odd(pitch))
+    return float(np.mean(smooth - floor > 0.5 * (top - floor)))
+
+
+def _choose_aperture(img: np.ndarray, pitch: float, aperture: str) -> str:
+    """``"stopped"`` or ``"full"``: as asked, or from the bright-pixel fraction."""
+    if aperture not in APERTURES:
+        raise ValueError(f"aperture must be one of {APERTURES}, got {aperture!r}")
+    if aperture != "auto":
+        return aperture
+    return "full" if _bright_fraction(img, pitch) > FULL_APERTURE_FRACTION else "stopped"
+
+
+def _flatten(img: np.ndarray, pitch: float) -> np.ndarray:
+    """The disks above the gaps between them, divided by their local mean over a pitch
+    (two box filters): vignetting's falloff across each disk, which would pull its
+    centroid toward the bright side, is
+    taken out to first order (without it the grid model of a 50 % vignetted image was
+    0.14 px RMS off, with it 0.005). Where almost no light arrives the result is 0."""
+    signal = img - _local_floor(img, pitch)
+    env = ndimage.uniform_filter(ndimage.uniform_filter(signal, _odd(pitch)), _odd(pitch))
+    lit = env > 0.02 * float(np.percentile(env, 99))
+    return np.where(lit, signal / np.where(lit, env, 1.0), 0.0)
+
+
+def _detect_disks(flat: np.ndarray, pitch: float) -> tuple[np.ndarray, np.ndarray]:
+    """Integer ``(col, row)`` positions and strengths of full-aperture disks: maxima of
+    the flattened image smoothed over a quarter pitch (a disk's centre), above half the
+    brightest one within 2.5 pitches (dead lenses and the gaps stay out)."""
+    smooth = ndimage.gaussian_filter(flat, 0.25 * pitch)
+    peak = ndimage.maximum_filter(smooth, _odd(0.5 * pitch))
+    nearby = ndimage.maximum_filter(smooth, _odd(2.5 * pitch))
+    rows, cols = np.nonzero((smooth == peak) & (smooth > 0.5 * nearby) & (smooth > 0))
+    pts, strength = np.column_stack([cols, rows]), smooth[rows, cols]
+    keep = _suppress_duplicates(pts, strength, DUPLICATE_RADIUS * pitch)
+    return pts[keep], strength[keep]
+
+
+def _disk_centroids(flat: np.ndarray, peaks: np.ndarray, pitch: float,
+                    iterations: int = 30) -> tuple[np.ndarray, float, np.ndarray]:
+    """Centroids ``(N, 2)`` of full-aperture disks in a circular window centred on each,
+    iterated until the window sits on the disk's centre of symmetry; the equivalent spot
+    width for the sensor-edge margin; the split differences (their noise).
+
+    The window (``DISK_WINDOW`` pitches plus 1 px for the edge's blur) holds the whole
+    disk, so the centroid follows it one to one; what it takes of the neighbours' edges
+    is symmetric about a lens on a regular lattice.
+    """
+    radius = DISK_WINDOW * pitch + 1.0
+    half = int(math.ceil(radius)) + 1
+    pad = half + 2
+    padded = np.pad(flat, pad, mode="constant", constant_values=0.0)
+    c = peaks.astype(np.float64)
+    alive, active = np.ones(len(c), bool), np.arange(len(c))
+    for _ in range(iterations):
+        step, ok = _disk_step(padded, pad, c[active], radius, half)
+        c[active] += step
+        alive[active] = ok & (np.abs(c[active] - peaks[active]) <= 0.3 * pitch).all(1)
+        active = active[alive[active] & (np.abs(step) >= 1e-5).any(1)]
+        if len(active) == 0:
+            break
+    c[~alive] = np.nan
+    return c, (radius - 1.0) / 3.0, _disk_split(padded, pad, c, radius, half)
+
+
+def _disk_split(padded, pad, c, radius: float, half: int) -> np.ndarray:
+    """:func:`_split_difference` for disks: a disk is mirror-symmetric about its centre's
+    row and column, so each half of its rows (columns) has its col (row) centroid."""
+    lost = ~np.isfinite(c).all(1)
+    at = np.where(lost[:, None], 0.0, c)
+    diff = np.empty_like(at)
+    for axis in (0, 1):
+        halves = [_disk_step(padded, pad, at, radius, half, (1 - axis, parity))[0]
+                  for parity in (0, 1)]
+        diff[:, axis] = halves[0][:, axis] - halves[1][:, axis]
+    diff[lost] = np.nan
+    return diff
+
+
+def _disk_step(padded, pad, c, radius: float, half: int,
+               lines: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One centroid update ``(N, 2)`` in a circular window (1 px soft edge) and which
+    disks still have signal; ``lines`` as for :func:`_centroid_step`."""
+    base = np.rint(c).astype(np.int64)
+    patch, off = _patches(padded, pad, base, half)
+    dx = base[:, 0, None] + off[None, :] - c[:, 0, None]
+    dy = base[:, 1, None] + off[None, :] - c[:, 1, None]
+    window = np.clip(radius + 0.5 - np.hypot(dx[:, None, :], dy[:, :, None]), 0.0, 1.0)
+    signal = np.clip(patch, 0.0, None) * window
+    if lines is not None:
+        axis, parity = lines
+        index = base[:, axis, None] + off[None, :]
+        keep = (index % 2 == parity)[:, None, :] if axis == 0 else \
+            (index % 2 == parity)[:, :, None]
+        signal = np.where(keep, signal, 0.0)
+    total = signal.sum((1, 2))
+    ok = total > 0
+    safe = np.where(ok, total, 1.0)
+    step = np.stack([(signal * dx[:, None, :]).sum((1, 2)),
+                     (signal * dy[:, :, None]).sum((1, 2))], -1) / safe[:, None]
+    return np.where(ok[:, None], np.clip(step, -2.0, 2.0), 0.0), ok
 
 
 # ---- 3. lattice matching ------------------------------------------------------------
@@ -541,13 +680,15 @@ def _choose_degree(k, c, shape, use, degree) -> int:
 
 # ---- public -------------------------------------------------------------------------
 def find_centers(white_image, camera: Camera, *, method: str = "combined",
-                 degree: int | str = "auto", fill_missing: bool = False) -> CenterFit:
+                 degree: int | str = "auto", fill_missing: bool = False,
+                 aperture: str = "auto") -> CenterFit:
     """Measure every microlens image centre in a white image.
 
     Parameters
     ----------
     white_image
-        ``(H, W)`` raw white image (8/16-bit integer or float), aperture stopped down.
+        ``(H, W)`` raw white image (8/16-bit integer or float): stopped down (one small
+        spot per microlens) or at full aperture (one disk filling most of each lens).
     camera
         The camera (nominal layout); sets the expected pitch and the lens count.
     method
@@ -560,6 +701,10 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         a cubic distortion term is significant).
     fill_missing
         Give lenses without a spot the model's prediction instead of ``NaN``.
+    aperture
+        ``"stopped"`` (spots: windowed centroids), ``"full"`` (disks: centroids in a
+        circular window, vignetting divided out) or ``"auto"`` (default: full when
+        over ``FULL_APERTURE_FRACTION`` of the pixels are bright).
 
     Returns
     -------
@@ -577,17 +722,25 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         raise ValueError(f"degree must be 1, 2, 3 or 'auto', got {degree!r}")
     pitch = _pitch_px(camera)
     img = _remove_hot_pixels(_validate_image(white_image, camera), pitch)
-    peaks, strength = _detect_spots(img, pitch)
-    _check_count(len(peaks), camera, "bright spots")
-    cents, sigma, split = _windowed_centroids(img, peaks, pitch)
+    kind = _choose_aperture(img, pitch, aperture)
+    if kind == "full":
+        flat = _flatten(img, pitch)
+        peaks, strength = _detect_disks(flat, pitch)
+        _check_count(len(peaks), camera, "bright disks")
+        cents, sigma, split = _disk_centroids(flat, peaks, pitch)
+    else:
+        peaks, strength = _detect_spots(img, pitch)
+        _check_count(len(peaks), camera, "bright spots")
+        cents, sigma, split = _windowed_centroids(img, peaks, pitch)
     ok = np.isfinite(cents).all(1)
     cents, strength, split = cents[ok], strength[ok], split[ok]
     keep = _suppress_duplicates(cents, strength, DUPLICATE_RADIUS * pitch)
     cents, split = cents[keep], split[keep]
     _check_count(len(cents), camera, "well-formed spots")
     k, dev = _match(cents, camera)
-    return _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
-                     fill_missing)
+    fit = _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
+                    fill_missing)
+    return dataclasses.replace(fit, aperture=kind)
 
 
 def _check_count(n: int, camera: Camera, what: str) -> None:
@@ -703,20 +856,21 @@ def _layout(model: np.ndarray, camera: Camera) -> tuple:
 
 def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None = None,
               method: str = "combined", degree: int | str = "auto",
-              fill_missing: bool = False) -> Camera:
+              fill_missing: bool = False, aperture: str = "auto") -> Camera:
     """Calibrate the microlens image centres of ``camera`` from a white image.
 
     Parameters
     ----------
     white_image
         ``(H, W)`` raw white image (8/16-bit integer or float) taken with the main lens
-        stopped down: one small spot per microlens.
+        stopped down (one small spot per microlens) or at full aperture (one disk per
+        microlens, as camera vendors supply them).
     camera
         The camera with its nominal layout (rotation and offset may be unknown).
     diagnostic_png
         Optional path of a PNG overlaying the found centres on the image; written also
         when calibration fails, then showing what was found (spots, the nominal array).
-    method, degree, fill_missing
+    method, degree, fill_missing, aperture
         See :func:`find_centers`.
 
     Returns
@@ -732,7 +886,7 @@ def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None 
     """
     try:
         fit = find_centers(white_image, camera, method=method, degree=degree,
-                           fill_missing=fill_missing)
+                           fill_missing=fill_missing, aperture=aperture)
     except ValueError as exc:
         if diagnostic_png is not None:  # what was found: when it helps most
             save_failure_diagnostic(diagnostic_png, white_image, camera, str(exc))

@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 
-from ..calibration import METHODS
+from ..calibration import APERTURES, METHODS
 from ..camera import load_camera
 from ..io.files import write_tiff
 from .frames import add_frame_options, camera_for_frames, read_frame
@@ -28,7 +28,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
     ----------
     args
         ``white`` (image path), ``camera`` (TOML or preset), ``out`` (TOML path), and
-        optionally ``diagnostic`` (PNG path), ``method``, ``fill_missing``.
+        optionally ``diagnostic`` (PNG path), ``method``, ``fill_missing``, ``aperture``.
 
     Returns
     -------
@@ -41,7 +41,8 @@ def calibrate_command(args: argparse.Namespace) -> int:
     white = read_frame(args, args.white, camera)
     try:
         fit = find_centers(white, camera, method=getattr(args, "method", "combined"),
-                           fill_missing=getattr(args, "fill_missing", False))
+                           fill_missing=getattr(args, "fill_missing", False),
+                           aperture=getattr(args, "aperture", "auto"))
     except ValueError as exc:
         if getattr(args, "diagnostic", None):  # when it helps most
             save_failure_diagnostic(args.diagnostic, white, camera, str(exc))
@@ -100,7 +101,8 @@ def refocus_command(args: argparse.Namespace) -> int:
 def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``calibrate`` on an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("calibrate", help="find the microlens centres in a white image")
-    p.add_argument("white", help="white image (TIFF/PNG/NPY) taken with the lens stopped down")
+    p.add_argument("white", help="white image (TIFF/PNG/NPY): main lens stopped down (spots) or "
+                   "at full aperture (disks, as vendors supply them)")
     add_frame_options(p)
     p.add_argument("--camera", required=True, help="camera TOML file or preset (synthetic, "
                    "paper) with the nominal optics")
@@ -114,6 +116,10 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
                         "centroids (the paper's)")
     p.add_argument("--fill-missing", action="store_true",
                    help="give lenses without a spot the grid model's centre instead of NaN")
+    p.add_argument("--aperture", choices=list(APERTURES), default="auto",
+                   help="stopped: one small spot per lens; full: one disk filling each lens "
+                        "(vendor white images); auto (default): full when most pixels are "
+                        "bright")
     p.set_defaults(func=calibrate_command)
     return p
 
