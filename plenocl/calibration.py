@@ -738,9 +738,27 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     cents, split = cents[keep], split[keep]
     _check_count(len(cents), camera, "well-formed spots")
     k, dev = _match(cents, camera)
+    _check_lattice(dev, "disks" if kind == "full" else "spots")
     fit = _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
                     fill_missing)
     return dataclasses.replace(fit, aperture=kind)
+
+
+#: Of a white image's spots, at least half lie within this many pitches of their lattice
+#: node (real arrays: a few hundredths; maxima of noise or of a particle image: scattered).
+ON_LATTICE = 0.1
+
+
+def _check_lattice(dev: np.ndarray, what: str) -> None:
+    """Refuse spots that do not form a lattice: ``dev`` is each one's distance (pitches)
+    from its node (:func:`_match`)."""
+    share = float(np.mean(dev <= ON_LATTICE))
+    if share < 0.5:
+        raise ValueError(
+            f"the {len(dev)} {what} found do not lie on a lattice (only {share:.0%} within "
+            f"{ON_LATTICE:g} pitch of a node): this does not look like a white image. Image "
+            "a uniform bright target with the main lens stopped down (e.g. f/16) or at full "
+            "aperture, and check the exposure and the camera file's pitch")
 
 
 def _check_count(n: int, camera: Camera, what: str) -> None:
@@ -751,8 +769,10 @@ def _check_count(n: int, camera: Camera, what: str) -> None:
     if n < max(4, MIN_FOUND_FRACTION * expected):
         raise ValueError(
             f"found only {n} {what} where the camera expects {expected} microlens images: "
-            "this does not look like a white image. Stop the main lens down (e.g. f/16), "
-            "image a uniform bright target, and check the exposure and the camera file")
+            "this does not look like a white image. Image a uniform bright target with the "
+            "main lens stopped down (e.g. f/16: one small spot per lens) or at full aperture "
+            "(one disk filling each lens; aperture='full', --aperture full, if the automatic "
+            "choice missed it), and check the exposure and the camera file")
 
 
 def _lens_grid(camera: Camera, per_spot: np.ndarray, k: np.ndarray,
