@@ -303,18 +303,9 @@ def _windowed_centroids(img: np.ndarray, peaks: np.ndarray, pitch: float,
     sigma = max(0.5, _spot_sigma(np.nan_to_num(patch - bg[:, None, None]), off))
     width = max(WINDOW_MIN_PX, WINDOW_SCALE * sigma)
     half = max(2, min(int(0.45 * pitch), int(math.ceil(4 * width))))
-    c = peaks.astype(np.float64)
-    alive, active = np.ones(len(c), bool), np.arange(len(c))
-    for _ in range(iterations):
-        step, ok = _centroid_step(padded, pad, c[active], bg[active], half, width,
-                                  1.0 + sigma**2 / width**2)
-        c[active] += step
-        alive[active] = ok & (np.abs(c[active] - peaks[active]) <= 0.3 * pitch).all(1)
-        active = active[alive[active] & (np.abs(step) >= 1e-5).any(1)]
-        if len(active) == 0:
-            break
-    c[~alive] = np.nan
     gain = 1.0 + sigma**2 / width**2
+    c = _settle(lambda at, which: _centroid_step(padded, pad, at, bg[which], half, width, gain),
+                peaks, pitch, iterations)
     return c, sigma, _split_difference(padded, pad, c, bg, half, width, gain)
 
 
@@ -332,15 +323,51 @@ def _split_difference(padded, pad, c, bg, half, width, gain) -> np.ndarray:
     under 0.7 px wide: on 0.6 px spots they reported 0.06 px of noise where the
     centroids scattered by 0.012, and the combined centres lost the lenses' offsets.)
     """
+    return _split_halves(
+        lambda at, lines: _centroid_step(padded, pad, at, bg, half, width, gain, lines), c)
+
+
+def _settle(step, peaks: np.ndarray, pitch: float, iterations: int) -> np.ndarray:
+    """Centres ``(N, 2)`` iterated from ``peaks`` by ``step(centres, which) -> (moves,
+    ok)`` (``which``: the indices of the centres given) until each moves less than 1e-5
+    px; ``NaN`` for one that loses its signal or wanders over 0.3 pitch from its peak."""
+    c = peaks.astype(np.float64)
+    alive, active = np.ones(len(c), bool), np.arange(len(c))
+    for _ in range(iterations):
+        move, ok = step(c[active], active)
+        c[active] += move
+        alive[active] = ok & (np.abs(c[active] - peaks[active]) <= 0.3 * pitch).all(1)
+        active = active[alive[active] & (np.abs(move) >= 1e-5).any(1)]
+        if len(active) == 0:
+            break
+    c[~alive] = np.nan
+    return c
+
+
+def _split_halves(step, c: np.ndarray) -> np.ndarray:
+    """The ``col`` centroid from the even rows minus that from the odd rows, and the
+    ``row`` centroid from the even minus the odd columns, ``(N, 2)`` (``NaN`` where ``c``
+    is lost), by ``step(centres, lines) -> (moves, ok)`` (:func:`_half_lines`)."""
     lost = ~np.isfinite(c).all(1)
     at = np.where(lost[:, None], 0.0, c)
     diff = np.empty_like(at)
     for axis in (0, 1):  # rows split for the col centroid, columns for the row centroid
-        halves = [_centroid_step(padded, pad, at, bg, half, width, gain, (1 - axis, parity))[0]
-                  for parity in (0, 1)]
+        halves = [step(at, (1 - axis, parity))[0] for parity in (0, 1)]
         diff[:, axis] = halves[0][:, axis] - halves[1][:, axis]
     diff[lost] = np.nan
     return diff
+
+
+def _half_lines(signal: np.ndarray, base: np.ndarray, off: np.ndarray,
+                lines: tuple[int, int] | None) -> np.ndarray:
+    """Patches ``signal`` ``(N, rows, cols)`` around ``base`` keeping only the pixels
+    whose column (``lines = (0, parity)``) or row (``(1, parity)``) index has ``parity``;
+    all of them for ``lines=None``."""
+    if lines is None:
+        return signal
+    axis, parity = lines
+    keep = (base[:, axis, None] + off[None, :]) % 2 == parity  # (N, 2h+1)
+    return np.where(keep[:, None, :] if axis == 0 else keep[:, :, None], signal, 0.0)
 
 
 def _centroid_step(padded, pad, c, bg, half, width, gain,
@@ -350,13 +377,7 @@ def _centroid_step(padded, pad, c, bg, half, width, gain,
     has ``parity`` only, when given)."""
     base = np.rint(c).astype(np.int64)
     patch, off = _patches(padded, pad, base, half)
-    signal = np.nan_to_num(patch - bg[:, None, None])
-    if lines is not None:
-        axis, parity = lines
-        index = base[:, axis, None] + off[None, :]  # (N, 2h+1) column or row indices
-        keep = (index % 2 == parity)[:, None, :] if axis == 0 else \
-            (index % 2 == parity)[:, :, None]
-        signal = np.where(keep, signal, 0.0)
+    signal = _half_lines(np.nan_to_num(patch - bg[:, None, None]), base, off, lines)
     dx = base[:, 0, None] + off[None, :] - c[:, 0, None]  # (N, cols of the patch)
     dy = base[:, 1, None] + off[None, :] - c[:, 1, None]  # (N, rows of the patch)
     gx, gy = np.exp(-dx**2 / (2 * width**2)), np.exp(-dy**2 / (2 * width**2))
@@ -428,31 +449,11 @@ def _disk_centroids(flat: np.ndarray, peaks: np.ndarray, pitch: float,
     half = int(math.ceil(radius)) + 1
     pad = half + 2
     padded = np.pad(flat, pad, mode="constant", constant_values=0.0)
-    c = peaks.astype(np.float64)
-    alive, active = np.ones(len(c), bool), np.arange(len(c))
-    for _ in range(iterations):
-        step, ok = _disk_step(padded, pad, c[active], radius, half)
-        c[active] += step
-        alive[active] = ok & (np.abs(c[active] - peaks[active]) <= 0.3 * pitch).all(1)
-        active = active[alive[active] & (np.abs(step) >= 1e-5).any(1)]
-        if len(active) == 0:
-            break
-    c[~alive] = np.nan
-    return c, (radius - 1.0) / 3.0, _disk_split(padded, pad, c, radius, half)
-
-
-def _disk_split(padded, pad, c, radius: float, half: int) -> np.ndarray:
-    """:func:`_split_difference` for disks: a disk is mirror-symmetric about its centre's
-    row and column, so each half of its rows (columns) has its col (row) centroid."""
-    lost = ~np.isfinite(c).all(1)
-    at = np.where(lost[:, None], 0.0, c)
-    diff = np.empty_like(at)
-    for axis in (0, 1):
-        halves = [_disk_step(padded, pad, at, radius, half, (1 - axis, parity))[0]
-                  for parity in (0, 1)]
-        diff[:, axis] = halves[0][:, axis] - halves[1][:, axis]
-    diff[lost] = np.nan
-    return diff
+    c = _settle(lambda at, which: _disk_step(padded, pad, at, radius, half), peaks, pitch,
+                iterations)
+    split = _split_halves(lambda at, lines: _disk_step(padded, pad, at, radius, half, lines),
+                          c)  # a disk is mirror-symmetric about its centre's row and column
+    return c, (radius - 1.0) / 3.0, split
 
 
 def _disk_step(padded, pad, c, radius: float, half: int,
@@ -464,13 +465,7 @@ def _disk_step(padded, pad, c, radius: float, half: int,
     dx = base[:, 0, None] + off[None, :] - c[:, 0, None]
     dy = base[:, 1, None] + off[None, :] - c[:, 1, None]
     window = np.clip(radius + 0.5 - np.hypot(dx[:, None, :], dy[:, :, None]), 0.0, 1.0)
-    signal = np.clip(patch, 0.0, None) * window
-    if lines is not None:
-        axis, parity = lines
-        index = base[:, axis, None] + off[None, :]
-        keep = (index % 2 == parity)[:, None, :] if axis == 0 else \
-            (index % 2 == parity)[:, :, None]
-        signal = np.where(keep, signal, 0.0)
+    signal = _half_lines(np.clip(patch, 0.0, None) * window, base, off, lines)
     total = signal.sum((1, 2))
     ok = total > 0
     safe = np.where(ok, total, 1.0)
