@@ -691,6 +691,8 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         weighted by their uncertainties (a lens that really sits off the lattice keeps its
         offset, noise is smoothed); ``"fit"``: the global grid model's prediction for
         each found lens; ``"centroid"``: each spot's own centroid (the paper's method).
+        At full aperture ``"combined"`` is ``"fit"`` (touching disks' centroids carry
+        their neighbours' offsets, docs/design.md §3; ``CenterFit.method`` says so).
     degree
         Grid-model polynomial degree: 1 (affine), 2, 3, or ``"auto"`` (affine unless
         a cubic distortion term is significant).
@@ -734,6 +736,8 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     _check_count(len(cents), camera, "well-formed spots")
     k, dev = _match(cents, camera)
     _check_lattice(dev, "disks" if kind == "full" else "spots")
+    if kind == "full" and method == "combined":  # the disks cannot resolve own offsets
+        method = "fit"
     fit = _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
                     fill_missing)
     return dataclasses.replace(fit, aperture=kind)
