@@ -354,10 +354,11 @@ def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings
 
 
 def _same_slabs(a, b) -> bool:
-    """Whether two operators on one grid keep a volume in the same device slabs (a
-    volume of one is then a volume of the other)."""
-    shapes = [[v.shape for v in op.empty_volume()] for op in (a, b)]
-    return shapes[0] == shapes[1]
+    """Whether two projectors on one grid keep a volume in the same device slabs (their
+    plans' depth ranges: a volume of one is then a volume of the other); ``False`` for
+    operators without a plan."""
+    plans = [getattr(getattr(op, "plan", None), "slabs", None) for op in (a, b)]
+    return plans[0] is not None and list(plans[0]) == list(plans[1] or [])
 
 
 def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
