@@ -2,12 +2,13 @@
 each reconstruction setting, every setting on the same scene in the same run.
 
     python benchmarks/paper_pair.py [--settings previous fullaperture default] [--lenses 289 193]
-                                    [--seeding 0.05] [--motion uniform]
+                                    [--seeding 0.05] [--motion uniform] [--bit-depth 16]
 
 Camera: the paper's optics on the whole 16 MP sensor (289 x 193 microlenses,
 4914 x 3282 px); grid: the paper's 300 x 200 x 150 voxels (``paper_optics``, as in
 ``benchmarks/accuracy.py``). Scene: ray-traced particles at ``--seeding`` per microlens
-with 0.8 px blur, photon and read noise (``budget_scene``), moved by the motion. Each
+with 0.8 px blur, photon and read noise (``budget_scene``; ``--bit-depth 16``: as a
+camera's 16-bit integers, whose median takes a histogram), moved by the motion. Each
 setting runs ``plenocl.process_pair`` on the same two raw images; the table gives the
 seconds of each stage (both reconstructions, PIV, the particle refinement with its fit
 to the raw images), the lateral and depth RMS error (voxels) of the valid vectors, and
@@ -67,11 +68,15 @@ def main() -> None:
     parser.add_argument("--seeding", type=float, default=0.05)
     parser.add_argument("--motion", default="uniform", choices=MOTIONS)
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--bit-depth", type=int, default=None,
+                        help="raw images as a camera's integers (e.g. 16) instead of float "
+                             "counts")
     args = parser.parse_args()
     queue = get_queue()
     cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     motion = MOTIONS[args.motion]
-    scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion)
+    scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion,
+                         bit_depth=args.bit_depth)
     t0 = time.perf_counter()
     proj.refined(SUPERSAMPLE).sensitivity()
     proj.sampled(COARSE_OVERSAMPLE).sensitivity()

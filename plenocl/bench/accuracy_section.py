@@ -156,15 +156,16 @@ class BudgetScene:
 
 
 def budget_scene(cam: Camera, grid: Grid, ppm: float, seed: int, queue, rays: int = 2000,
-                 motion: Motion = UNIFORM) -> BudgetScene:
+                 motion: Motion = UNIFORM, bit_depth: int | None = None) -> BudgetScene:
     """Particles at ``ppm`` per microlens moved by ``motion``, ray traced with 0.8 px
-    blur, photon and read noise on a dark level of 20 counts."""
+    blur, photon and read noise on a dark level of 20 counts; float counts, or a
+    camera's integers of ``bit_depth`` bits."""
     box = tuple((lo + 0.3, hi - 0.3) for lo, hi in (grid.x, grid.y, grid.z))
     count = max(2, int(round(ppm * cam.ml_count[0] * cam.ml_count[1])))
     pos, inten = random_particles(box, count=count, seed=seed, intensity=2e4)
     pa, pb = motion.positions(pos)
     kw = dict(rays_per_particle=rays, blur_px=0.8, photon_noise=True, background=20.0,
-              read_noise=3.0, queue=queue)
+              read_noise=3.0, queue=queue, bit_depth=bit_depth)
     raw_a = simulate_image(cam, pa, inten, seed=2 * seed, **kw)
     raw_b = simulate_image(cam, pb, inten, seed=2 * seed + 1, **kw)
     return BudgetScene(count, pa, pb, raw_a, raw_b,
