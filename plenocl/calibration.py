@@ -49,6 +49,7 @@ from scipy import ndimage, stats
 from scipy.spatial import cKDTree
 
 from .camera import Camera
+from .io.centres import read_centers_csv
 from .optics.rawimage import check_image
 
 #: Relative pitch error (measured vs the camera's) above which calibration refuses.
@@ -914,6 +915,34 @@ def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None 
     if diagnostic_png is not None:
         save_diagnostic(diagnostic_png, white_image, fit)
     return camera.with_centers(fit.centers)
+
+
+#: Imported centres must lie within this many pitches (median) of the camera's nominal
+#: lattice: farther, the file and the camera describe different arrays.
+IMPORT_TOLERANCE = 0.5
+
+
+def import_centers(path: str | Path, camera: Camera) -> Camera:
+    """``camera`` calibrated with the centres of a centres CSV (another tool's
+    calibration; format in :mod:`plenocl.io.centres`), checked against the camera's
+    nominal layout: refused when they lie, in the median, more than
+    :data:`IMPORT_TOLERANCE` pitches from its lattice (swapped x and y, indices counted
+    from 1, another camera file), since every later stage would then see the wrong
+    lenses."""
+    centers = read_centers_csv(path, camera.ml_count)
+    found = np.isfinite(centers).all(-1)
+    off = np.hypot(*(centers - camera.ideal_microlens_centers())[found].T) / _pitch_px(camera)
+    if float(np.median(off)) > IMPORT_TOLERANCE:
+        raise ValueError(f"the centres in {path} lie {float(np.median(off)):.2f} pitches "
+                         "(median) from the camera's nominal lattice: check that x_px is the "
+                         "column and y_px the row, that lens indices count from 0, and that "
+                         "the camera file's pitch, count, rotation and offset are this "
+                         "camera's")
+    missing = int((~found).sum())
+    if missing:
+        warnings.warn(f"{missing} of {found.size} microlenses have no centre in {path} "
+                      "(NaN: their pixels are not used)", stacklevel=2)
+    return camera.with_centers(centers)
 
 
 def warn_about(fit: CenterFit) -> None:

@@ -540,3 +540,60 @@ def test_the_aperture_option_is_checked(small_white):
     with pytest.raises(ValueError, match="aperture"):
         find_centers(small_white, _camera(12, 10), aperture="wide")
     assert find_centers(small_white, _camera(12, 10)).aperture == "stopped"
+
+
+def test_centres_travel_to_and_from_other_tools_as_csv(tmp_path, small_white):
+    """Issue 29: the centres found, written as a centres CSV (``--centres-out``) and
+    imported again (``--centres``, no white image), give the same calibrated camera to
+    the last bit; a lens missing from the file stays NaN with a warning."""
+    from plenocl.calibration import import_centers
+    from plenocl.io.centres import read_centers_csv, write_centers_csv
+
+    cam = _camera(12, 10)
+    cam.to_toml(tmp_path / "cam.toml")
+    np.save(tmp_path / "white.npy", small_white)
+    parser = argparse.ArgumentParser()
+    add_calibrate_parser(parser.add_subparsers())
+    run = [("calibrate", str(tmp_path / "white.npy"), "--centres-out", str(tmp_path / "c.csv"),
+            "--out", str(tmp_path / "cal.toml")),
+           ("calibrate", "--centres", str(tmp_path / "c.csv"), "--out", str(tmp_path / "imp.toml"))]
+    for words in run:
+        args = parser.parse_args([*words, "--camera", str(tmp_path / "cam.toml")])
+        assert args.func(args) == 0
+    found, imported = (Camera.from_toml(tmp_path / f"{n}.toml") for n in ("cal", "imp"))
+    assert imported.calibrated
+    np.testing.assert_array_equal(imported.microlens_centers, found.microlens_centers)
+    lines = (tmp_path / "c.csv").read_text().splitlines()
+    assert lines[0] == "lens_col,lens_row,x_px,y_px" and len(lines) == 1 + 12 * 10
+    (tmp_path / "part.csv").write_text("\n".join(lines[:-1]) + "\n")  # the last lens left out
+    with pytest.warns(UserWarning, match="1 of 120 microlenses have no centre"):
+        part = import_centers(tmp_path / "part.csv", cam)
+    assert np.isnan(part.microlens_centers[-1, -1]).all()
+    write_centers_csv(tmp_path / "again.csv", part.microlens_centers)
+    np.testing.assert_array_equal(read_centers_csv(tmp_path / "again.csv", cam.ml_count),
+                                  part.microlens_centers)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda lines: ["col,row,x,y", *lines[1:]], "the first line must be the header"),
+    (lambda lines: [*lines, "3,4,abc,5"], "line 122: 3,4,abc,5 is not four numbers"),
+    (lambda lines: [*lines, "3,4,5"], "expected 4 values"),
+    (lambda lines: [lines[0], "12,0,1.0,2.0"], r"outside the camera's 12 x 10 array .* count "
+                                                "from 0"),
+    (lambda lines: [*lines, lines[5]], r"line 122: lens \(4, 0\) is listed twice"),
+    (lambda lines: [lines[0]], "lists no lens with a centre"),
+    (lambda lines: [lines[0], *(",".join([*r.split(",")[:2], *r.split(",")[:1:-1]])
+                                for r in lines[1:])], "from the camera's nominal lattice"),
+])
+def test_a_bad_centres_csv_is_refused_naming_the_line(tmp_path, small_white, edit, message):
+    """A wrong header, a word for a number, a short line, a lens outside the array (the
+    1-based hint), a lens twice, no lens, and x and y swapped are refused."""
+    from plenocl.calibration import import_centers
+    from plenocl.io.centres import write_centers_csv
+
+    cam = _camera(12, 10)
+    write_centers_csv(tmp_path / "c.csv", find_centers(small_white, cam).centers)
+    lines = (tmp_path / "c.csv").read_text().splitlines()
+    (tmp_path / "bad.csv").write_text("\n".join(edit(lines)) + "\n")
+    with pytest.raises(ValueError, match=message):
+        import_centers(tmp_path / "bad.csv", cam)

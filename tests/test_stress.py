@@ -29,6 +29,7 @@ from plenocl import (
     simulate_image,
     simulate_white_image,
 )
+from plenocl.calibration import import_centers
 from plenocl.io import read_image, read_particles
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
@@ -506,6 +507,7 @@ def ctx(tiny, queue, tmp_path_factory):
     np.save(d / "line.npy", np.zeros(5))
     (d / "camera_missing_key.toml").write_text("[main_lens]\nfocal_length_mm = 50.0\n")
     (d / "camera_bad.toml").write_text("[main_lens\nfocal_length_mm = 50.0\n")
+    (d / "centres_from_one.csv").write_text("lens_col,lens_row,x_px,y_px\n4,4,60.0,60.0\n")
     vol = np.random.default_rng(2).random((16, 16, 16)).astype(np.float32)
     return {"cam": cam, "proj": proj, "img": img, "dir": d, "vol": vol, "queue": queue}
 
@@ -794,6 +796,9 @@ INVALID = [
     ("calibrate-particle-image", _cal(_particle_image), ValueError,
      "does not look like a white image"),
     ("calibrate-shape", _cal(lambda c: np.ones((70, 71))), ValueError, "but the camera has"),
+    ("calibrate-centres-index", lambda c: import_centers(c["dir"] / "centres_from_one.csv",
+                                                         c["cam"]),
+     ValueError, "outside the camera's 4 x 4 array"),
     ("calibrate-aperture", lambda c: calibrate(simulate_white_image(c["cam"], queue=c["queue"]),
                                                c["cam"], aperture="wide"),
      ValueError, "aperture must be one of"),

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..calibration import APERTURES, METHODS
 from ..camera import load_camera
+from ..io.centres import write_centers_csv
 from ..io.files import write_tiff
 from .frames import add_frame_options, camera_for_frames, read_frame
 
@@ -38,6 +39,11 @@ def calibrate_command(args: argparse.Namespace) -> int:
     from ..calibration import find_centers, save_diagnostic, save_failure_diagnostic, warn_about
 
     camera = camera_for_frames(args, load_camera(args.camera))
+    if getattr(args, "centres", None):
+        return _import_centres(args, camera)
+    if args.white is None:
+        raise ValueError("give a white image, or --centres CSV to take the centres from "
+                         "another tool's calibration")
     white = read_frame(args, args.white, camera)
     try:
         fit = find_centers(white, camera, method=getattr(args, "method", "combined"),
@@ -52,6 +58,8 @@ def calibrate_command(args: argparse.Namespace) -> int:
     warn_about(fit)
     calibrated = camera.with_centers(fit.centers)
     calibrated.to_toml(args.out)
+    if getattr(args, "centres_out", None):
+        write_centers_csv(args.centres_out, fit.centers)
     found, total = int(fit.found.sum()), fit.found.size
     print(f"found {found} of {total} microlens centres: rotation {fit.rotation_deg:+.4f} deg, "
           f"pitch {fit.pitch_px[0]:.4f} x {fit.pitch_px[1]:.4f} px, shift "
@@ -60,6 +68,21 @@ def calibrate_command(args: argparse.Namespace) -> int:
     if getattr(args, "diagnostic", None):
         save_diagnostic(args.diagnostic, white, fit)
         print(f"wrote {args.diagnostic}")
+    return 0
+
+
+def _import_centres(args: argparse.Namespace, camera) -> int:
+    """``plenocl calibrate --centres CSV``: the camera calibrated with another tool's
+    centres (:func:`plenocl.calibration.import_centers`), written to ``args.out``."""
+    from ..calibration import import_centers
+
+    if args.white is not None:
+        raise ValueError("give either a white image or --centres CSV, not both")
+    calibrated = import_centers(args.centres, camera)
+    calibrated.to_toml(args.out)
+    found = int(np.isfinite(calibrated.microlens_centers).all(-1).sum())
+    print(f"imported {found} of {calibrated.microlens_centers[..., 0].size} microlens "
+          f"centres from {args.centres}; wrote {args.out}")
     return 0
 
 
@@ -101,8 +124,9 @@ def refocus_command(args: argparse.Namespace) -> int:
 def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``calibrate`` on an argparse subparsers object; returns its parser."""
     p = subparsers.add_parser("calibrate", help="find the microlens centres in a white image")
-    p.add_argument("white", help="white image (TIFF/PNG/NPY): main lens stopped down (spots) or "
-                   "at full aperture (disks, as vendors supply them)")
+    p.add_argument("white", nargs="?", default=None,
+                   help="white image (TIFF/PNG/NPY): main lens stopped down (spots) or "
+                   "at full aperture (disks, as vendors supply them); leave out with --centres")
     add_frame_options(p)
     p.add_argument("--camera", required=True, help="camera TOML file or preset (synthetic, "
                    "paper) with the nominal optics")
@@ -120,6 +144,12 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
                    help="stopped: one small spot per lens; full: one disk filling each lens "
                         "(vendor white images); auto (default): full when most pixels are "
                         "bright")
+    p.add_argument("--centres", metavar="CSV", default=None,
+                   help="take the centres from another tool's calibration instead of a white "
+                        "image: a CSV with the header lens_col,lens_row,x_px,y_px (lens "
+                        "indices from 0, pixel centres from 0; docs/design.md §3)")
+    p.add_argument("--centres-out", metavar="CSV", default=None,
+                   help="also write the centres found as such a CSV (for other tools)")
     p.set_defaults(func=calibrate_command)
     return p
 

@@ -1,0 +1,91 @@
+"""Microlens image centres as a plain CSV, to bring another tool's calibration (LFIT,
+plenopticam, a vendor's export) into a plenocl camera, or to take plenocl's out.
+
+The format, one lens per line after a header (docs/design.md §3)::
+
+    lens_col,lens_row,x_px,y_px
+    0,0,8.47,8.52
+    1,0,25.46,8.49
+
+``lens_col``, ``lens_row``: the lens's column and row in the array, counted from 0 (the
+``(rows, cols)`` order of ``Camera.microlens_centers``); ``x_px``, ``y_px``: its image
+centre in pixels, column and row, with the centre of the first pixel at 0. Lenses not
+listed (or with an empty or NaN centre) are missing.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+
+#: The columns of a centres CSV, in order.
+HEADER = ("lens_col", "lens_row", "x_px", "y_px")
+
+
+def write_centers_csv(path: str | Path, centers: np.ndarray) -> None:
+    """Write the found centres of ``centers`` ``(rows, cols, 2)`` (``(col, row)`` px,
+    ``NaN``: missing) as a centres CSV, atomically."""
+    centers = np.asarray(centers, float)
+    rows, cols = np.nonzero(np.isfinite(centers).all(-1))
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(HEADER)
+        for r, c in zip(rows, cols, strict=True):
+            out.writerow([c, r, repr(float(centers[r, c, 0])), repr(float(centers[r, c, 1]))])
+
+
+def read_centers_csv(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
+    """The centres ``(rows, cols, 2)`` (``(col, row)`` px, ``NaN``: missing) of an array
+    of ``ml_count`` = ``(columns, rows)`` lenses from a centres CSV; refused, naming the
+    line, when the header, a number, a lens index or a repeated lens is wrong."""
+    cols, rows = ml_count
+    centers = np.full((rows, cols, 2), np.nan)
+    with open(path, newline="") as f:
+        lines = csv.reader(f)
+        header = tuple(cell.strip() for cell in next(lines, []))
+        if header != HEADER:
+            raise ValueError(f"{path}: the first line must be the header {','.join(HEADER)}, "
+                             f"got {','.join(header) or 'nothing'}")
+        for number, cells in enumerate(lines, start=2):
+            if cells and any(cell.strip() for cell in cells):
+                _place(centers, _parse(cells, path, number), path, number)
+    if not np.isfinite(centers).all(-1).any():
+        raise ValueError(f"{path} lists no lens with a centre")
+    return centers
+
+
+def _parse(cells: list[str], path, number: int) -> tuple[int, int, float, float]:
+    """One line's lens column and row and its centre (``NaN`` for an empty cell)."""
+    if len(cells) != len(HEADER):
+        raise ValueError(f"{path}, line {number}: expected {len(HEADER)} values "
+                         f"({','.join(HEADER)}), got {len(cells)}")
+    try:
+        kx, ky = (float(cell) for cell in cells[:2])
+        x, y = (float(cell) if cell.strip() else np.nan for cell in cells[2:])
+    except ValueError:
+        raise ValueError(f"{path}, line {number}: {','.join(cells)} is not four numbers"
+                         ) from None
+    if kx != int(kx) or ky != int(ky) or np.isinf(x) or np.isinf(y):
+        raise ValueError(f"{path}, line {number}: lens indices must be whole numbers and the "
+                         f"centre finite (or empty: missing), got {','.join(cells)}")
+    return int(kx), int(ky), x, y
+
+
+def _place(centers: np.ndarray, entry: tuple[int, int, float, float], path,
+           number: int) -> None:
+    """Put one parsed line into ``centers``, refusing an index outside the array and a
+    lens given twice."""
+    kx, ky, x, y = entry
+    rows, cols = centers.shape[:2]
+    if not (0 <= kx < cols and 0 <= ky < rows):
+        raise ValueError(f"{path}, line {number}: lens ({kx}, {ky}) is outside the camera's "
+                         f"{cols} x {rows} array (columns x rows); indices count from 0 — "
+                         "check the camera file's microlens count, or subtract 1 from "
+                         "indices that count from 1")
+    if not np.isnan(centers[ky, kx]).all():
+        raise ValueError(f"{path}, line {number}: lens ({kx}, {ky}) is listed twice")
+    centers[ky, kx] = (x, y)
