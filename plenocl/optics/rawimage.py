@@ -12,7 +12,7 @@ import numpy as np
 from ..camera import Camera
 
 __all__ = ["check_image", "check_pixel_mask", "check_shape", "median_and_noise",
-           "median_background", "subtract_background", "subtract_known_background"]
+           "median_background", "subtract_background"]
 
 
 def check_pixel_mask(observed, camera: Camera) -> np.ndarray | None:
@@ -72,16 +72,27 @@ def check_shape(shape: tuple[int, ...], camera: Camera, name: str = "image") -> 
                      f"sensor{hint}")
 
 
-def subtract_background(image) -> tuple[np.ndarray, float]:
+def subtract_background(image, known: tuple[float, float] | None = None
+                        ) -> tuple[np.ndarray, float]:
     """Remove a camera's dark level and estimate its noise, robustly.
 
     At PIV seeding densities most pixels see no particle, so the median is the
     background and the median absolute deviation the noise. Returns the float32 image
     ``max(I - median, 0)`` and the noise standard deviation (a sensible ``threshold`` for
-    :func:`plenocl.reconstruct` is 3 to 5 times it).
+    :func:`plenocl.reconstruct` is 3 to 5 times it). ``known``: the ``(median, noise)``
+    already measured on this image (a reconstruction's
+    :class:`plenocl.reconstruction.ReconstructionInfo` carries them), used instead of
+    computing the medians again.
     """
-    img, sigma = median_background(np.asarray(image, dtype=np.float64))
-    return img.astype(np.float32), sigma
+    img = np.asarray(image, dtype=np.float64)
+    if known is None:
+        med, sigma = median_and_noise(img)
+    else:
+        med, sigma = (float(v) for v in known)
+        if not (np.isfinite(med) and np.isfinite(sigma) and sigma >= 0):
+            raise ValueError(f"a known background needs a finite median and a finite "
+                             f"non-negative noise, got {med!r} and {sigma!r}")
+    return np.clip(img - med, 0, None).astype(np.float32), sigma
 
 
 def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None
@@ -141,15 +152,3 @@ def median_background(img: np.ndarray, observed: np.ndarray | None = None
     med, sigma = median_and_noise(img, observed)
     return np.clip(img - med, 0, None), sigma
 
-
-def subtract_known_background(image, camera: Camera, background: float, noise: float
-                              ) -> tuple[np.ndarray, float]:
-    """:func:`subtract_background` of ``image`` (checked against ``camera``) with its
-    median ``background`` and ``noise`` already known (a reconstruction's
-    :class:`plenocl.reconstruction.ReconstructionInfo` carries them), so the medians are
-    not computed again; the same float32 image and noise."""
-    if not (np.isfinite(background) and np.isfinite(noise) and noise >= 0):
-        raise ValueError(f"a known background needs a finite median and a finite "
-                         f"non-negative noise, got {background!r} and {noise!r}")
-    img = np.clip(check_image(image, camera) - float(background), 0, None)
-    return img.astype(np.float32), float(noise)

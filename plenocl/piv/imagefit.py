@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.rawimage import check_image, subtract_background, subtract_known_background
+from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
 from ..threads import thread_count
 from .devicebundle import DeviceRayBundle
@@ -123,8 +123,7 @@ class ImageFit:
         self.grid = grid
         self.images, self._device_images = [], {}
         for raw, known in zip(images, _backgrounds(backgrounds, len(images)), strict=True):
-            img, noise = (subtract_background(check_image(raw, camera)) if known is None
-                          else subtract_known_background(raw, camera, *known))
+            img, noise = subtract_background(check_image(raw, camera), known)
             self.images.append((img.astype(np.float64).ravel(), max(noise, 1e-12)))
 
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
