@@ -69,7 +69,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
           (:class:`~plenocl.reconstruction.ReconstructionSettings`' defaults): MLEM, the
           median background removed and pixels within 4 noise deviations of it dark,
           on 3 x 3 lateral sub-voxels per voxel (``supersample=3``, docs/design.md
-          §6.4: the depth error falls two- to threefold), coarse-to-fine (§6.5): 5
+          §6.4: the depth error falls two- to threefold), coarse-to-fine (§6.5): 4
           iterations on the voxels, then 7 over-relaxed ones (μ = 1.5) on the
           sub-voxels within the coarse volume's support.
         - ``piv``: :func:`plenocl.piv3d`'s options (by default the windows are fitted to

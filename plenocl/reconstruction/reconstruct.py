@@ -338,11 +338,11 @@ def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings
         return _solve(prepared, refined, fine, callback, factor=factor, spread=spread)
     first = dataclasses.replace(fine, iterations=early)
     solver, vol, info = _iterations(prepared, sampled, first, callback, spread=spread)
+    if info.stopped:  # the callback ended the reconstruction
+        return _to_host(solver, vol, prepared, info, factor, refined.grid.shape), info
     rest = dataclasses.replace(fine, iterations=fine.iterations - early)
-    if info.stopped or solver.box is not None or not _same_slabs(sampled, refined):
+    if solver.box is not None or not _same_slabs(sampled, refined):
         host = _to_host(solver, vol, prepared, info, 1, refined.grid.shape)
-        if info.stopped:  # the callback ended the reconstruction
-            return (bin_lateral(host, factor) if factor > 1 else host), info
         out, late = _solve(prepared, refined, dataclasses.replace(rest, start=host),
                            _numbered(callback, early), factor=factor)
     else:
