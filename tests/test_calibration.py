@@ -560,6 +560,13 @@ def test_centres_travel_to_and_from_other_tools_as_csv(tmp_path, small_white):
     for words in run:
         args = parser.parse_args([*words, "--camera", str(tmp_path / "cam.toml")])
         assert args.func(args) == 0
+    for words, message in ((("calibrate",), "give a white image, or --centres CSV"),
+                           (("calibrate", str(tmp_path / "white.npy"), "--centres",
+                             str(tmp_path / "c.csv")), "not both")):
+        args = parser.parse_args([*words, "--camera", str(tmp_path / "cam.toml"), "--out",
+                                  str(tmp_path / "x.toml")])
+        with pytest.raises(ValueError, match=message):
+            args.func(args)
     found, imported = (Camera.from_toml(tmp_path / f"{n}.toml") for n in ("cal", "imp"))
     assert imported.calibrated
     np.testing.assert_array_equal(imported.microlens_centers, found.microlens_centers)
