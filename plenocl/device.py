@@ -235,15 +235,29 @@ def create_context(device: DeviceLike = None) -> cl.Context:
     if isinstance(device, cl.Context):
         return device
     if isinstance(device, cl.Device):
-        return cl.Context([device])
+        return device_context(device)
     if isinstance(device, str):
-        return cl.Context([_match(all_devices(), device)])
+        return device_context(_match(all_devices(), device))
     if device is not None:
         raise TypeError(f"device must be a name, Device, Context or CommandQueue, not {device!r}")
     if os.environ.get("PYOPENCL_CTX"):
         _platforms()  # a clear error first if nothing is installed
-        return cl.create_some_context(interactive=False)
-    return _probe(_default_device())  # the probe's context, its programs built once
+        chosen = cl.choose_devices(interactive=False)
+        return device_context(chosen[0]) if len(chosen) == 1 else cl.Context(chosen)
+    return device_context(_default_device())
+
+
+def device_context(device: cl.Device) -> cl.Context:
+    """The process's one context on ``device``: the one its build probe made, so every
+    queue plenocl makes there shares it and its built programs.
+
+    A GPU driver gives each context its own device memory and compiled programs: a
+    context per call (``piv3d`` without a queue, in a loop) would build every kernel
+    again and, on NVIDIA's driver, runs out of memory after a few dozen. A device whose
+    probe failed gets a new context, so that its first build reports the driver's error.
+    """
+    probed = _probe(device)
+    return probed if isinstance(probed, cl.Context) else cl.Context([device])
 
 
 def get_queue(queue: DeviceLike = None, profiling: bool = False) -> cl.CommandQueue:

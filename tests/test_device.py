@@ -76,7 +76,9 @@ def test_unknown_cpu_build_failure_names_the_fix():
 def test_kernels_found_from_installed_package_and_from_checkout():
     assert (kernel_dir() / "simulate.cl").is_file()
     checkout = Path(__file__).resolve().parents[1]
-    env = {**os.environ, "PYTHONPATH": str(checkout)}
+    # the checkout first; the rest of the path kept (pyopencl may live elsewhere)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        filter(None, [str(checkout), os.environ.get("PYTHONPATH")]))}
     out = subprocess.run([sys.executable, "-c",
                           "import plenocl.program as p; print(p.kernel_dir())"],
                          cwd=checkout, env=env, capture_output=True, text=True, check=True)
@@ -183,6 +185,22 @@ def test_queue_keeps_its_context_alive():
     q = device.get_queue(device.all_devices()[0])
     gc.collect()
     assert q.context == q.plenocl_context and q.context.devices[0] == q.device
+
+
+def test_every_choice_of_a_device_shares_its_one_context(monkeypatch):
+    """A device chosen by name, as a Device, through PYOPENCL_CTX or by default gets the
+    process's one context on it (a GPU driver gives every context its own memory and
+    programs: a new one per piv3d call ran NVIDIA's driver out of memory)."""
+    default = device.get_queue()
+    dev = default.device
+    platform = cl.get_platforms().index(dev.platform)
+    monkeypatch.setenv("PYOPENCL_CTX", f"{platform}:{dev.platform.get_devices().index(dev)}")
+    queues = [device.get_queue(), device.get_queue(), device.get_queue(dev),
+              device.get_queue(profiling=True)]
+    assert all(q.context == default.context for q in queues)
+    assert len({q.int_ptr for q in queues}) == len(queues)  # still a new queue per call
+    by_name = device.get_queue(dev.name.strip())  # the first device of that name
+    assert by_name.context == device.get_queue(by_name.device).context
 
 
 def _run(code: str, **env) -> subprocess.CompletedProcess:
