@@ -8,9 +8,10 @@ from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices,
 from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
-from .pipeline import MTESettings, PairResult, PairSettings, process_pair
+from .pipeline import MTESettings, PairResult, PairSettings, TrackSettings, process_pair, track
 from .piv import PIVResult, PIVSettings, piv3d
 from .projection import Projector
+from .ptv import Tracks
 from .reconstruction import ReconstructionSettings, reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
 from .vectorfile import read_npz, save_field
@@ -32,6 +33,8 @@ __all__ = [
     "Projector",
     "ReconstructionSettings",
     "Simulator",
+    "TrackSettings",
+    "Tracks",
     "__version__",
     "calibrate",
     "create_context",
@@ -50,4 +53,5 @@ __all__ = [
     "save_volume",
     "simulate_image",
     "simulate_white_image",
+    "track",
 ]

@@ -31,6 +31,7 @@ from plenocl import (
 )
 from plenocl.calibration import import_centers
 from plenocl.io import read_image, read_particles
+from plenocl.pipeline import TrackSettings, track
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.reconstruction import FLOAT32_LIMIT, METHODS, preprocess, view_blocks
@@ -789,6 +790,17 @@ INVALID = [
     ("imagefit-background-nan", lambda c: ImageFit(
         c["cam"], c["proj"].grid, [c["img"]], backgrounds=[(np.nan, 3.0)]),
      ValueError, "a known background needs a finite median"),
+    # track
+    ("track-too-few-frames", lambda c: track([c["img"]] * 3, c["proj"], dt=1e-3), ValueError,
+     "tracking needs at least 4 frames"),
+    ("track-frame-shape", lambda c: track([c["img"]] * 3 + [c["img"][:-1]], c["proj"],
+                                          dt=1e-3), ValueError, "frame 3 is"),
+    ("track-dt", lambda c: track([c["img"]] * 4, c["proj"], dt=0.0), ValueError,
+     r"dt \(the time between frames\) must be a positive number"),
+    ("track-gap", lambda c: TrackSettings(gap=-1), ValueError,
+     "TrackSettings.gap must be an integer >= 0"),
+    ("track-window", lambda c: TrackSettings(window=6), ValueError,
+     "TrackSettings.window must be an odd number"),
     # calibrate
     ("calibrate-blank", _cal(lambda c: np.zeros((70, 70))), ValueError, "white image is blank"),
     ("calibrate-noise", _cal(lambda c: np.random.default_rng(0).random((70, 70))), ValueError,

@@ -89,10 +89,14 @@ class Motion:
 
     def positions(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The two exposures' particles (mm) for mid-time positions ``pos``."""
+        return self.moved(pos, -0.5), self.moved(pos, 0.5)
+
+    def moved(self, pos: np.ndarray, steps: float) -> np.ndarray:
+        """Where particles at ``pos`` (mm) are after ``steps`` exposure intervals (a
+        time series: the shift, or the angle, once per interval)."""
         if not self.angle_rad:
-            shift = SHIFT_VOX * np.array(VOXEL_MM)
-            return pos - shift / 2, pos + shift / 2
-        return _rotate_x(pos, -self.angle_rad / 2), _rotate_x(pos, self.angle_rad / 2)
+            return pos + steps * SHIFT_VOX * np.array(VOXEL_MM)
+        return _rotate_x(pos, self.angle_rad * steps)
 
     def displacement(self, res, grid: Grid) -> tuple[np.ndarray, ...]:
         """The true displacement ``(u, v, w)`` (voxels) at ``res``'s window centres. The

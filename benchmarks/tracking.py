@@ -1,0 +1,89 @@
+"""Particles tracked through time-resolved recordings at the paper's optics (issue 30),
+beside the pair chain on the same frames, in one run.
+
+    python benchmarks/tracking.py [--seeding 0.05] [--frames 8] [--lenses 96 64]
+                                  [--motion uniform rotation] [--pairs 2]
+
+Camera and grid: ``benchmarks/accuracy.py``'s (the paper's optics and voxel on
+``--lenses`` microlenses). Each series: ``--frames`` images of particles at ``--seeding``
+per microlens moved by the motion at every frame (uniform: (2.3, -1.4, 1.7) voxels per
+frame; rotation: 2 degrees per frame about the lateral x axis, which moves particles in
+depth), exact ray tracing, 0.8 px blur, photon and read noise.
+
+``plenocl.track`` on the whole series: per-step displacement errors (voxels) of the
+tracks seen in at least 4 frames, matched to the true particles, lateral (RMS over x
+and y) and depth, the focal zone (|z| < 2 mm) apart, both for the smoothed tracks and
+for the positions as each frame's fit measured them (what linking alone gives); the
+share of the true particles tracked, the share of ghost tracks, seconds per frame.
+Beside it: ``plenocl.process_pair`` on the first ``--pairs`` consecutive pairs (its
+vectors' errors against the same motion, seconds per frame = per pair / 2).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from plenocl import get_queue, process_pair, track  # noqa: E402
+from plenocl.bench.accuracy_section import (  # noqa: E402
+    ROTATION,
+    UNIFORM,
+    Motion,
+    budget_errors,
+    paper_setup,
+)
+from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.tracking_section import simulate_series, track_errors  # noqa: E402
+
+MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
+
+
+def main() -> None:
+    parser = script_parser(__doc__)
+    parser.add_argument("--seeding", type=float, nargs="+", default=[0.05])
+    parser.add_argument("--frames", type=int, default=8)
+    parser.add_argument("--lenses", type=int, nargs=2, default=[96, 64])
+    parser.add_argument("--motion", nargs="+", default=list(MOTIONS), choices=MOTIONS)
+    parser.add_argument("--pairs", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=5)
+    args = parser.parse_args()
+    queue = get_queue()
+    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
+    print(f"{'motion':9s} {'ppm':>5s} {'chain':9s} {'lateral':>7s} {'depth':>6s} "
+          f"{'focal':>6s} {'tracked':>7s} {'ghosts':>6s} {'s/frame':>7s}")
+    for name in args.motion:
+        for ppm in args.seeding:
+            _rows(MOTIONS[name], ppm, args, cam, grid, proj, queue)
+
+
+def _rows(motion: Motion, ppm: float, args, cam, grid, proj, queue) -> None:
+    series = simulate_series(cam, grid, ppm, args.frames, args.seed, queue, motion)
+    t0 = time.perf_counter()
+    tracks = track(series.frames, proj, dt=1.0)
+    row = track_errors(tracks, series.truth, grid, time.perf_counter() - t0)
+    for chain in ("smoothed", "measured"):
+        e = row[chain]
+        print(f"{motion.name[:9]:9s} {ppm:5.3f} {'track ' + chain[:3]:9s} "
+              f"{e['lateral']:7.3f} {e['depth']:6.3f} {e['focal_depth']:6.3f} "
+              f"{row['tracked']:7.0%} {row['ghosts']:6.0%} {row['seconds_per_frame']:7.1f}",
+              flush=True)
+    errors, seconds = [], []
+    for k in range(min(args.pairs, args.frames - 1)):
+        pair = process_pair(series.frames[k], series.frames[k + 1], proj)
+        errors.append(budget_errors(pair.piv, grid, motion))
+        seconds.append(sum(pair.seconds.values()) / 2)
+    if errors:
+        lat = np.sqrt(np.mean([e["lateral"] ** 2 for e in errors]))
+        dep = np.sqrt(np.mean([e["depth"] ** 2 for e in errors]))
+        foc = np.sqrt(np.nanmean([e["in focus"] ** 2 for e in errors]))
+        print(f"{motion.name[:9]:9s} {ppm:5.3f} {'pairs':9s} {lat:7.3f} {dep:6.3f} {foc:6.3f} "
+              f"{'':7s} {'':6s} {np.median(seconds):7.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

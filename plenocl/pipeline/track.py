@@ -1,0 +1,259 @@
+"""Particles tracked through a time-resolved recording of one camera (docs/design.md
+§7.3): :func:`track`.
+
+Each frame is reconstructed (:func:`plenocl.reconstruct`'s chain), its volume's peaks
+are fitted to the frame's raw image (:class:`plenocl.piv.imagefit.ImageFit`), the
+particles of consecutive frames are linked (:func:`plenocl.ptv.link`; the first step
+predicted by the correlation of the first two volumes) and every track is smoothed by
+local polynomial fits weighted by the fit's variances (:func:`plenocl.ptv.smooth`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..options import with_keywords
+from ..peaks import find_particles
+from ..piv import PIVSettings, piv3d
+from ..piv.imagefit import ImageFit, ImageFitSettings
+from ..piv.tracking import SEARCH, predicted
+from ..ptv import Tracks, link
+from ..reconstruction import ProjectionOperator, ReconstructionSettings, run_reconstruction
+
+#: Standard deviation (x, y, z voxels) of a volume's peak without the image fit: the
+#: reconstruction draws particles up to about a voxel towards the focal plane.
+PEAK_SIGMA_VOXELS = (0.1, 0.1, 1.0)
+#: Below this share of a step's particles linked, the step is reported (a warning).
+LINKED_FLOOR = 0.2
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """Every option of :func:`track`.
+
+    Attributes
+    ----------
+    reconstruction
+        Each frame's reconstruction (:class:`~plenocl.reconstruction.ReconstructionSettings`;
+        by default :func:`plenocl.reconstruct`'s).
+    image_fit
+        The fit of each volume's peaks to its raw image
+        (:class:`~plenocl.piv.imagefit.ImageFitSettings`); ``None``: the peaks as they
+        are, with :data:`PEAK_SIGMA_VOXELS` as their uncertainty.
+    piv
+        The correlation of the first two volumes that predicts the first step.
+    threshold
+        A peak counts as a particle above this fraction of its volume's maximum.
+    search
+        Largest distance ``(x, y, z)`` voxels between a predicted position and its
+        partner in the next frame.
+    gap
+        Frames a track may miss (a particle the reconstruction lost) and continue.
+    window
+        Frames of each local polynomial fit along a track (odd, >= 3).
+    degree
+        The polynomial's degree (0-3): 1, a straight line over ``window`` frames, is
+        the default (measured, docs/design.md §7.3); 2 gives accelerations, for
+        particles that accelerate noticeably within ``window`` frames.
+    refits
+        Times every tracked particle is fitted to its raw image again, starting from its
+        smoothed track, and the tracks smoothed again (needs ``image_fit``).
+    min_length
+        Tracks seen in fewer frames are left out (>= 2).
+    """
+
+    reconstruction: ReconstructionSettings = field(default_factory=ReconstructionSettings)
+    image_fit: ImageFitSettings | None = field(default_factory=ImageFitSettings)
+    piv: PIVSettings = field(default_factory=PIVSettings)
+    threshold: float = 0.1
+    search: tuple[float, float, float] = SEARCH
+    gap: int = 1
+    window: int = 7
+    degree: int = 1
+    refits: int = 1
+    min_length: int = 4
+
+    def __post_init__(self) -> None:
+        if isinstance(self.image_fit, bool):
+            object.__setattr__(self, "image_fit", ImageFitSettings() if self.image_fit else None)
+        object.__setattr__(self, "search", tuple(float(s) for s in self.search))
+        if len(self.search) != 3 or not all(np.isfinite(s) and s > 0 for s in self.search):
+            raise ValueError(f"TrackSettings.search must be three positive distances "
+                             f"(x, y, z voxels), got {self.search}")
+        if not 0 < self.threshold < 1:
+            raise ValueError(f"TrackSettings.threshold must lie between 0 and 1 (a fraction "
+                             f"of the volume's maximum), got {self.threshold}")
+        if isinstance(self.min_length, bool) or int(self.min_length) != self.min_length \
+                or self.min_length < 2:
+            raise ValueError(f"TrackSettings.min_length must be an integer >= 2 (frames), "
+                             f"got {self.min_length!r}")
+        for name in ("gap", "refits"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 0:
+                raise ValueError(f"TrackSettings.{name} must be an integer >= 0, got {value!r}")
+        if self.window < 3 or self.window % 2 == 0 or self.degree not in (0, 1, 2, 3):
+            raise ValueError(f"TrackSettings.window must be an odd number of frames >= 3 and "
+                             f"degree 0-3, got window={self.window}, degree={self.degree}")
+
+
+@dataclass
+class FrameParticles:
+    """One frame's particles: positions ``(N, 3)`` mm and voxel indices, their standard
+    deviations ``(N, 3)`` mm and intensities ``(N,)``; the median and noise the
+    reconstruction removed from the frame (``None`` when it removed none)."""
+
+    positions: np.ndarray
+    index: np.ndarray
+    sigma: np.ndarray
+    intensities: np.ndarray
+    background: tuple[float, float] | None = None
+
+
+def track(frames, projector: ProjectionOperator, dt: float,
+          settings: TrackSettings | None = None, **options) -> Tracks:
+    """Track the particles of a time-resolved recording.
+
+    Parameters
+    ----------
+    frames
+        The raw images, one per frame at a constant interval (a sequence of
+        ``(rows, cols)`` arrays of the projector's camera, or one ``(frames, rows,
+        cols)`` array), at least ``settings.min_length`` of them.
+    projector
+        A :class:`plenocl.Projector` (reused for every frame).
+    dt
+        The time between frames (velocities are mm per unit of ``dt``).
+    settings
+        :class:`TrackSettings` (``None``: the defaults); its fields may be given as
+        keywords instead.
+
+    Returns
+    -------
+    plenocl.ptv.Tracks
+        The tracks seen in at least ``settings.min_length`` frames.
+    """
+    settings = with_keywords(TrackSettings, settings, options, "track")
+    frames = _check_frames(frames, settings.min_length)
+    dt = _check_dt(dt)
+    particles, first_step = _frame_particles(frames, projector, settings)
+    table = link([p.index for p in particles], settings.search, first_step, settings.gap)
+    _warn_if_unlinked(table)
+    table = table[(table >= 0).sum(axis=1) >= settings.min_length]
+    tracks = Tracks.from_measured(*_gather(table, particles), dt, settings.window,
+                                  settings.degree)
+    for _ in range(settings.refits if settings.image_fit is not None else 0):
+        tracks = _refit(tracks, frames, particles, projector, settings)
+    return tracks
+
+
+def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projector,
+           settings: TrackSettings) -> Tracks:
+    """Every tracked particle fitted to its frame again from its smoothed position, and
+    the tracks smoothed again."""
+    measured, sigma = np.full_like(tracks.measured, np.nan), np.full_like(tracks.measured, np.nan)
+    intensity = np.full_like(tracks.intensities, np.nan)
+    for k, (raw, part) in enumerate(zip(frames, particles)):
+        rows = np.all(np.isfinite(tracks.measured[:, k]), axis=1)
+        if rows.any():
+            fitted = _image_fit(raw, part.background, projector, settings).fit(
+                0, tracks.positions[rows, k])
+            measured[rows, k], sigma[rows, k] = fitted.positions, fitted.sigma
+            intensity[rows, k] = fitted.intensities
+    return Tracks.from_measured(measured, sigma, intensity, tracks.dt, settings.window,
+                                settings.degree)
+
+
+def _image_fit(raw, background, projector, settings: TrackSettings) -> ImageFit:
+    """The fit of particles to one frame (its background as the reconstruction found it)."""
+    return ImageFit(projector.camera, projector.grid, [raw], settings.image_fit,
+                    queue=projector.queue, backgrounds=None if background is None
+                    else [background])
+
+
+def _frame_particles(frames: list, projector, settings: TrackSettings):
+    """Every frame's particles, and the first step's predictor (the correlation of the
+    first two volumes, in voxel indices)."""
+    particles, volumes = [], []
+    for raw in frames:
+        vol, info = run_reconstruction(raw, projector, settings.reconstruction)
+        particles.append(_particles(raw, vol, info, projector, settings))
+        if len(volumes) < 2:
+            volumes.append(vol)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the window-count notes of a field used once
+        field_01 = piv3d(volumes[0], volumes[1], settings.piv, queue=projector.queue)
+
+    def first_step(points: np.ndarray) -> np.ndarray:
+        return predicted(field_01, points + predicted(field_01, points) / 2)
+
+    return particles, first_step
+
+
+def _particles(raw, vol: np.ndarray, info, projector, settings: TrackSettings
+               ) -> FrameParticles:
+    """A volume's peaks, fitted to the frame's raw image when ``settings.image_fit``."""
+    grid = projector.grid
+    peaks, _ = find_particles(vol, settings.threshold)
+    voxel = np.asarray(grid.spacing[::-1])
+    if settings.image_fit is None or not len(peaks):
+        sigma = np.broadcast_to(np.asarray(PEAK_SIGMA_VOXELS) * voxel, peaks.shape)
+        return FrameParticles(grid.from_index(peaks), peaks, sigma.copy(),
+                              np.ones(len(peaks)))
+    known = None if info.background is None else (info.background, info.noise)
+    fitted = _image_fit(raw, known, projector, settings).fit(0, grid.from_index(peaks))
+    return FrameParticles(fitted.positions, grid.to_index(fitted.positions), fitted.sigma,
+                          fitted.intensities, known)
+
+
+def _gather(table: np.ndarray, particles: list[FrameParticles]):
+    """The linked particles as track arrays (NaN where absent)."""
+    n, f = table.shape
+    measured, sigma = np.full((n, f, 3), np.nan), np.full((n, f, 3), np.nan)
+    intensity = np.full((n, f), np.nan)
+    for k, part in enumerate(particles):
+        rows = table[:, k] >= 0
+        measured[rows, k] = part.positions[table[rows, k]]
+        sigma[rows, k] = part.sigma[table[rows, k]]
+        intensity[rows, k] = part.intensities[table[rows, k]]
+    return measured, sigma, intensity
+
+
+def _check_frames(frames, min_length: int) -> list:
+    """The frames as a list, refused when too few or of different shapes."""
+    if isinstance(frames, np.ndarray) and frames.ndim == 3:
+        frames = list(frames)
+    frames = list(frames)
+    if len(frames) < min_length:
+        raise ValueError(f"tracking needs at least {min_length} frames (min_length), got "
+                         f"{len(frames)}; give more frames or a smaller min_length (>= 2)")
+    shapes = [np.shape(f) for f in frames]
+    for k, shape in enumerate(shapes):
+        if shape != shapes[0]:
+            raise ValueError(f"frame {k} is {shape[::-1] if len(shape) == 2 else shape} "
+                             f"(cols x rows) but frame 0 is {shapes[0][::-1]}: every frame "
+                             "of a recording must come from the same sensor region")
+    return frames
+
+
+def _check_dt(dt) -> float:
+    value = float(dt)
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"dt (the time between frames) must be a positive number, got {dt!r}")
+    return value
+
+
+def _warn_if_unlinked(table: np.ndarray) -> None:
+    """Warn about a step in which few particles found a partner."""
+    for k in range(table.shape[1] - 1):
+        here = table[:, k] >= 0
+        if here.sum() >= 10:
+            share = float((table[here, k + 1] >= 0).mean())
+            if share < LINKED_FLOOR:
+                warnings.warn(
+                    f"only {share:.0%} of frame {k}'s particles found a partner in frame "
+                    f"{k + 1}: the particles move farther than the search range, or the "
+                    "frames are not consecutive. Record at a shorter interval, or widen "
+                    "search= (x, y, z voxels) (docs/errors.md)", stacklevel=3)

@@ -1,0 +1,178 @@
+"""Particle tracking through time (docs/design.md §7.3): linking, track smoothing, and
+plenocl.track on a simulated recording at the paper's optics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import plenocl
+from plenocl.ptv import Tracks, link, smooth
+
+SEARCH = (1.0, 1.0, 3.0)
+NOISE = (0.05, 0.05, 0.3)
+
+
+def _series(n=150, frames=8, detect=1.0, seed=0, velocity=(1.5, -0.7, 0.4)):
+    """True tracks, and per frame the detected particles (shuffled, noisy) with their
+    true identities."""
+    rng = np.random.default_rng(seed)
+    p0 = rng.uniform(0, 40, (n, 3))
+    truth = p0[:, None, :] + np.arange(frames)[None, :, None] * np.asarray(velocity)
+    points, ids = [], []
+    for k in range(frames):
+        who = rng.permutation(np.flatnonzero(rng.random(n) < detect))
+        points.append(truth[who, k] + rng.normal(0, NOISE, (len(who), 3)))
+        ids.append(who)
+    return truth, points, ids
+
+
+def _identities(table, ids):
+    return [{int(ids[k][j]) for k, j in enumerate(row) if j >= 0} for row in table]
+
+
+@pytest.mark.parametrize("detect, gap", [(1.0, 0), (0.8, 1), (0.8, 0)])
+def test_links_follow_each_particle_and_use_every_particle_once(detect, gap):
+    truth, points, ids = _series(detect=detect, seed=int(10 * detect) + gap)
+    v = np.array([1.5, -0.7, 0.4])
+    table = link(points, SEARCH, first_step=lambda p: np.tile(v, (len(p), 1)), gap=gap)
+    for k, pts in enumerate(points):  # a partition of every frame's particles
+        assert sorted(table[table[:, k] >= 0, k]) == list(range(len(pts)))
+    pure = [len(who) == 1 for who in _identities(table, ids)]  # tracks that never swap
+    assert np.mean(pure) >= (1.0 if detect == 1.0 else 0.98)
+    lengths = (table >= 0).sum(axis=1)
+    if detect == 1.0:  # (a rare pair of close predictions may split a track)
+        assert np.sum(lengths == len(points)) >= 0.97 * len(truth)
+    elif gap:  # a particle lost in one frame keeps its track
+        assert np.mean(lengths >= 4) > 0.75
+        assert np.any((table[:, 1:-1] < 0) & (table[:, :-2] >= 0) & (table[:, 2:] >= 0))
+    else:
+        assert not np.any((table[:, 1:-1] < 0) & (table[:, :-2] >= 0) & (table[:, 2:] >= 0))
+
+
+def test_crossing_particles_keep_their_tracks_by_their_history():
+    """Two particles crossing 0.6 apart: nearest neighbours without the tracks' own
+    straight-line predictions would swap them."""
+    t = np.arange(8.0)
+    a = np.column_stack([t - 3.5, np.zeros(8), np.zeros(8)])
+    b = np.column_stack([3.5 - t, np.full(8, 0.6), np.zeros(8)])
+    points = [np.array([a[k], b[k]]) for k in range(8)]
+    first = lambda p: np.array([[1.0, 0, 0], [-1.0, 0, 0]])[: len(p)]  # noqa: E731
+    table = link(points, SEARCH, first_step=first)
+    assert table.shape == (2, 8) and np.all(table[0] == 0) and np.all(table[1] == 1)
+    still = link(points, SEARCH)  # no prediction in the first step: the pairing by
+    assert still.shape[0] > 2 or np.any(still[0] != 0)  # position alone breaks them
+
+
+def test_smoothing_recovers_a_polynomial_track_exactly_and_its_derivatives():
+    t = np.arange(9.0)
+    pos = np.stack([2 + 0.5 * t - 0.1 * t**2, -t, 3 + 0.02 * t**2], axis=1)[None]
+    fit = smooth(pos, np.full(pos.shape, 0.1), dt=0.5, window=5, degree=2)
+    np.testing.assert_allclose(fit.positions, pos, atol=1e-10)
+    velocity = np.stack([0.5 - 0.2 * t, -np.ones(9), 0.04 * t], axis=1) / 0.5
+    np.testing.assert_allclose(fit.velocities[0], velocity, atol=1e-9)
+    np.testing.assert_allclose(fit.accelerations[0], np.tile([-0.8, 0, 0.16], (9, 1)),
+                               atol=1e-9)
+
+
+def test_smoothing_lowers_the_noise_and_states_it():
+    """A line with noise: the smoothed steps err less than the measured ones, and the
+    velocity's stated deviation matches its scatter."""
+    rng = np.random.default_rng(3)
+    n, f, sigma = 4000, 8, np.array(NOISE)
+    truth = np.arange(f)[None, :, None] * np.array([1.0, 2.0, -0.5]) + np.zeros((n, 1, 3))
+    measured = truth + rng.normal(0, sigma, (n, f, 3))
+    fit = smooth(measured, np.broadcast_to(sigma, measured.shape), dt=1.0, window=7,
+                 degree=1)
+    raw = np.std(np.diff(measured, axis=1) - np.diff(truth, axis=1), axis=(0, 1))
+    smoothed = np.std(np.diff(fit.positions, axis=1) - np.diff(truth, axis=1), axis=(0, 1))
+    assert np.all(smoothed < 0.6 * raw)
+    scatter = np.std(fit.velocities[:, 3] - [1.0, 2.0, -0.5], axis=0)
+    np.testing.assert_allclose(fit.velocity_sigma[:, 3].mean(axis=0), scatter, rtol=0.1)
+
+
+def test_smoothing_spans_gaps_and_leaves_lone_particles_without_velocity():
+    pos = np.full((2, 6, 3), np.nan)
+    pos[0] = np.arange(6.0)[:, None] * [1.0, 0.0, 2.0]
+    pos[0, 2] = np.nan
+    pos[1, 3] = [1.0, 2.0, 3.0]
+    fit = smooth(pos, np.ones(pos.shape), dt=1.0, window=3, degree=1)
+    assert np.all(np.isnan(fit.positions[0, 2])) and np.isnan(fit.velocities[1, 3]).all()
+    np.testing.assert_allclose(fit.velocities[0, [0, 1, 3, 4, 5]], [[1, 0, 2]] * 5)
+    np.testing.assert_allclose(fit.positions[1, 3], [1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize("bad", [dict(window=4), dict(window=1), dict(degree=4)])
+def test_smoothing_refuses_bad_windows_and_degrees(bad):
+    with pytest.raises(ValueError, match="window|degree"):
+        smooth(np.zeros((1, 5, 3)), np.ones((1, 5, 3)), 1.0, **{"window": 5, "degree": 1,
+                                                                **bad})
+
+
+def test_tracks_keep_long_tracks_and_give_steps():
+    measured = np.full((3, 5, 3), np.nan)
+    measured[0] = np.arange(5.0)[:, None]
+    measured[1, :2] = 1.0
+    measured[2, 1:] = np.arange(4.0)[:, None] * 2
+    tracks = Tracks.from_measured(measured, np.ones(measured.shape), np.ones((3, 5)), 0.1,
+                                  window=3, degree=1)
+    assert list(tracks.lengths) == [5, 2, 4]
+    long = tracks.longer_than(4)
+    assert len(long.positions) == 2 and long.dt == 0.1
+    np.testing.assert_allclose(long.displacements()[0], np.ones((4, 3)))
+    np.testing.assert_allclose(long.velocities[1, 1:], np.full((4, 3), 20.0))
+
+
+@pytest.fixture(scope="module")
+def recording(queue):
+    """Six frames at the paper's optics on 24 x 16 lenses, 0.15 particles per microlens
+    moving uniformly, and the camera's projector."""
+    from plenocl.bench.accuracy_section import UNIFORM, paper_optics
+    from plenocl.bench.tracking_section import simulate_series
+
+    cam, grid = paper_optics((24, 16))
+    series = simulate_series(cam, grid, 0.15, 6, 11, queue, UNIFORM)
+    return series, grid, plenocl.Projector(cam, grid, queue)
+
+
+def test_track_follows_particles_and_smoothing_beats_each_frame(recording):
+    """plenocl.track on ray-traced frames: most particles tracked, few ghosts, lateral
+    steps within 0.1 voxel, and the smoothed tracks' depth steps better than the
+    measured positions'."""
+    from plenocl.bench.tracking_section import track_errors
+
+    series, grid, proj = recording
+    tracks = plenocl.track(series.frames, proj, dt=1e-3)
+    assert tracks.positions.shape[1:] == (6, 3) and tracks.dt == 1e-3
+    assert np.all(tracks.lengths >= 4)
+    row = track_errors(tracks, series.truth, grid, 1.0)
+    assert row["tracked"] >= 0.6 and row["ghosts"] <= 0.2
+    smoothed, measured = row["smoothed"], row["measured"]
+    assert smoothed["lateral"] <= 0.1 and smoothed["depth"] < 0.8 * measured["depth"]
+    speed = np.nanmedian(tracks.velocities, axis=(0, 1)) * 1e-3
+    np.testing.assert_allclose(speed, np.array([2.3, -1.4, 1.7]) * grid.spacing[::-1],
+                               atol=0.2 * 0.133)
+
+
+def test_track_refuses_bad_recordings(recording):
+    series, _, proj = recording
+    frames = series.frames
+    with pytest.raises(ValueError, match="at least 4 frames"):
+        plenocl.track(frames[:3], proj, dt=1.0)
+    with pytest.raises(ValueError, match="frame 2 is"):
+        plenocl.track(frames[:2] + [frames[2][:-1]] + frames[3:], proj, dt=1.0)
+    for dt in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="dt"):
+            plenocl.track(frames, proj, dt=dt)
+    for bad in (dict(gap=-1), dict(window=4), dict(min_length=1), dict(search=(1, 1))):
+        with pytest.raises(ValueError, match="TrackSettings"):
+            plenocl.TrackSettings(**bad)
+    with pytest.raises(TypeError, match="unknown keyword"):
+        plenocl.track(frames, proj, dt=1.0, windows=5)
+
+
+def test_track_warns_when_frames_are_not_consecutive(recording):
+    series, _, proj = recording
+    shuffled = [series.frames[k] for k in (0, 5, 1, 4, 2, 3)]
+    with pytest.warns(UserWarning, match="found a partner"):
+        plenocl.track(shuffled, proj, dt=1.0, min_length=2, refits=0)
