@@ -16,7 +16,10 @@ and y) and depth, the focal zone (|z| < 2 mm) apart, both for the smoothed track
 for the positions as each frame's fit measured them (what linking alone gives); the
 share of the true particles tracked, the share of ghost tracks, seconds per frame.
 Beside it: ``plenocl.process_pair`` on the first ``--pairs`` consecutive pairs (its
-vectors' errors against the same motion, seconds per frame = per pair / 2).
+vectors' errors against the same motion, seconds per frame = per pair / 2), and the
+tracks binned into the pair chain's windows (``plenocl.ptv.bin_tracks``, every frame's
+samples: both motions are steady), with the share of windows holding a vector.
+``--figure tracks.png`` draws the first series' tracks coloured by speed.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.tracking_section import simulate_series, track_errors  # noqa: E402
+from plenocl.demo.figures import tracks_figure  # noqa: E402
+from plenocl.ptv import bin_tracks  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 
@@ -51,11 +56,14 @@ def main() -> None:
     parser.add_argument("--motion", nargs="+", default=list(MOTIONS), choices=MOTIONS)
     parser.add_argument("--pairs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--figure", default=None,
+                        help="write the first series' tracks, coloured by speed, here (.png)")
     args = parser.parse_args()
     queue = get_queue()
     cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     print(f"{'motion':9s} {'ppm':>5s} {'chain':9s} {'lateral':>7s} {'depth':>6s} "
           f"{'focal':>6s} {'tracked':>7s} {'ghosts':>6s} {'s/frame':>7s}")
+    print("(track rows: per-step errors of tracked particles; pairs and binned: of vectors)")
     for name in args.motion:
         for ppm in args.seeding:
             _rows(MOTIONS[name], ppm, args, cam, grid, proj, queue)
@@ -66,23 +74,38 @@ def _rows(motion: Motion, ppm: float, args, cam, grid, proj, queue) -> None:
     t0 = time.perf_counter()
     tracks = track(series.frames, proj, dt=1.0)
     row = track_errors(tracks, series.truth, grid, time.perf_counter() - t0)
+    if args.figure:
+        tracks_figure(Path(args.figure), tracks, "mm per frame")
+        args.figure = None
     for chain in ("smoothed", "measured"):
         e = row[chain]
-        print(f"{motion.name[:9]:9s} {ppm:5.3f} {'track ' + chain[:3]:9s} "
-              f"{e['lateral']:7.3f} {e['depth']:6.3f} {e['focal_depth']:6.3f} "
-              f"{row['tracked']:7.0%} {row['ghosts']:6.0%} {row['seconds_per_frame']:7.1f}",
-              flush=True)
-    errors, seconds = [], []
-    for k in range(min(args.pairs, args.frames - 1)):
-        pair = process_pair(series.frames[k], series.frames[k + 1], proj)
-        errors.append(budget_errors(pair.piv, grid, motion))
-        seconds.append(sum(pair.seconds.values()) / 2)
-    if errors:
-        lat = np.sqrt(np.mean([e["lateral"] ** 2 for e in errors]))
-        dep = np.sqrt(np.mean([e["depth"] ** 2 for e in errors]))
-        foc = np.sqrt(np.nanmean([e["in focus"] ** 2 for e in errors]))
-        print(f"{motion.name[:9]:9s} {ppm:5.3f} {'pairs':9s} {lat:7.3f} {dep:6.3f} {foc:6.3f} "
-              f"{'':7s} {'':6s} {np.median(seconds):7.1f}", flush=True)
+        _print(motion, ppm, "track " + chain[:3], e["lateral"], e["depth"], e["focal_depth"],
+               f"{row['tracked']:7.0%} {row['ghosts']:6.0%}", row["seconds_per_frame"])
+    pairs = [process_pair(series.frames[k], series.frames[k + 1], proj)
+             for k in range(min(args.pairs, args.frames - 1))]
+    if not pairs:
+        return
+    errors = [budget_errors(pair.piv, grid, motion) for pair in pairs]
+    seconds = np.median([sum(pair.seconds.values()) / 2 for pair in pairs])
+    _print(motion, ppm, "pairs", *_pooled(errors), "", seconds)
+    ref = pairs[0].piv
+    step = tuple(int(round(np.diff(a)[0])) if len(a) > 1 else w
+                 for a, w in zip((ref.z, ref.y, ref.x), ref.window))
+    field = bin_tracks(tracks, grid, window=ref.window, step=step)
+    binned = budget_errors(field, grid, motion)
+    _print(motion, ppm, "binned", *_pooled([binned]), f"{binned['valid']:7.0%}", float("nan"))
+
+
+def _pooled(errors: list[dict]) -> tuple[float, float, float]:
+    """RMS over several fields' lateral, depth and in-focus depth errors."""
+    return tuple(float(np.sqrt(np.nanmean([e[k] ** 2 for e in errors])))
+                 for k in ("lateral", "depth", "in focus"))
+
+
+def _print(motion: Motion, ppm: float, chain: str, lateral: float, depth: float,
+           focal: float, shares: str, seconds: float) -> None:
+    print(f"{motion.name[:9]:9s} {ppm:5.3f} {chain:9s} {lateral:7.3f} {depth:6.3f} "
+          f"{focal:6.3f} {shares:14s} {seconds:7.1f}", flush=True)
 
 
 if __name__ == "__main__":

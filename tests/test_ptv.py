@@ -176,3 +176,88 @@ def test_track_warns_when_frames_are_not_consecutive(recording):
     shuffled = [series.frames[k] for k in (0, 5, 1, 4, 2, 3)]
     with pytest.warns(UserWarning, match="found a partner"):
         plenocl.track(shuffled, proj, dt=1.0, min_length=2, refits=0)
+
+
+def _grid_tracks(field, n=4000, frames=6, noise=0.01, seed=1):
+    """Tracks of particles moved each frame by ``field(positions)`` (mm), in a 10 x 6 x
+    8 mm grid of 50 x 30 x 40 voxels."""
+    grid = plenocl.Grid((40, 30, 50), x=(-5, 5), y=(-3, 3), z=(-4, 4))
+    rng = np.random.default_rng(seed)
+    pos = [np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-3, 3, n),
+                            rng.uniform(-4, 4, n)])]
+    for _ in range(frames - 1):
+        pos.append(pos[-1] + field(pos[-1]))
+    truth = np.stack(pos, axis=1)
+    measured = truth + rng.normal(0, noise, truth.shape)
+    tracks = Tracks.from_measured(measured, np.full(truth.shape, noise), np.ones((n, frames)),
+                                  1.0, window=5, degree=2)
+    return grid, tracks
+
+
+def test_binned_tracks_give_the_field_and_its_uncertainty():
+    """A linear shear: each window's mean displacement is the field at its centre (a
+    linear field's window average), its stated sigma the scatter over the windows."""
+    from plenocl.ptv import bin_tracks
+
+    shear = lambda p: np.column_stack([0.2 + 0.02 * p[:, 1], np.full(len(p), -0.1),  # noqa: E731
+                                       0.05 + 0.01 * p[:, 0]])
+    grid, tracks = _grid_tracks(shear)
+    res = bin_tracks(tracks, grid, window=(16, 12, 20), step=(8, 6, 10))
+    assert res.u.shape == (4, 4, 4) and res.valid.all() and res.window == (16, 12, 20)
+    x, y, z = res.positions_mm(grid.spacing, (grid.z[0] + 0.1, grid.y[0] + 0.1,
+                                              grid.x[0] + 0.1))
+    vox = np.array(grid.spacing[::-1])
+    expected_u = (0.2 + 0.02 * y)[None, :, None] / vox[0]
+    expected_w = (0.05 + 0.01 * x)[None, None, :] / vox[2]
+    np.testing.assert_allclose(res.u, np.broadcast_to(expected_u, res.u.shape), atol=0.03)
+    np.testing.assert_allclose(res.w, np.broadcast_to(expected_w, res.w.shape), atol=0.03)
+    np.testing.assert_allclose(res.v, -0.1 / vox[1], atol=0.03)
+    error = res.v + 0.1 / vox[1]
+    assert 0.5 < np.std(error) / np.mean(res.sigma_v) < 2.0
+
+
+def test_binning_counts_only_the_chosen_frames_and_leaves_sparse_windows_empty():
+    from plenocl.ptv import bin_tracks
+
+    grid, tracks = _grid_tracks(lambda p: np.tile([0.1, 0.0, 0.0], (len(p), 1)), n=60)
+    every = bin_tracks(tracks, grid, window=(16, 12, 20), min_samples=3)
+    one = bin_tracks(tracks, grid, window=(16, 12, 20), frames=[2], min_samples=3)
+    assert every.refinement["tracks_binned"] == 6 * 60 and one.refinement["tracks_binned"] == 60
+    assert one.valid.sum() < every.valid.sum()
+    assert np.all(np.isnan(one.u[~one.valid])) and np.all(one.masked == ~one.valid)
+    with pytest.raises(ValueError, match="must be positive and fit the grid"):
+        bin_tracks(tracks, grid, window=(64, 12, 20))
+
+
+def test_tracks_files_round_trip_and_open_as_poly_lines(tmp_path):
+    """.npz holds every array (read back equal); .vtu holds one poly-line cell per track
+    of two or more positions, with its velocity, speed, frame and track per point."""
+    measured = np.full((3, 5, 3), np.nan)
+    measured[0] = np.arange(5.0)[:, None] * [1.0, 0.5, -0.2]
+    measured[1, 1:4] = [2.0, 1.0, 0.0]
+    measured[2, 2] = 1.0  # a lone particle: no line
+    tracks = Tracks.from_measured(measured, np.full(measured.shape, 0.1), np.ones((3, 5)),
+                                  0.01, window=3, degree=1)
+    back = Tracks.load(tracks.save(tmp_path / "t.npz"))
+    for name in ("positions", "measured", "velocities", "velocity_sigma", "intensities"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(tracks, name))
+    assert back.dt == 0.01
+    raw = tracks.save(tmp_path / "t.vtu").read_bytes()
+    header = raw[:raw.index(b"<AppendedData")].decode()  # then pyevtk's raw binary arrays
+    assert 'NumberOfPoints="8" NumberOfCells="2"' in header
+    for name in ("velocity", "speed", "frame", "track"):
+        assert f'Name="{name}"' in header
+    with pytest.raises(ValueError, match="not a plenocl tracks file"):
+        np.savez(tmp_path / "other.npz", x=np.zeros(3))
+        Tracks.load(tmp_path / "other.npz")
+    with pytest.raises(ValueError, match=r"\.npz or \.vtu"):
+        tracks.save(tmp_path / "t.csv")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.npz", "t.npz", "t.vtu"]
+
+
+def test_the_tracks_figure_is_written(tmp_path):
+    from plenocl.demo.figures import tracks_figure
+
+    grid, tracks = _grid_tracks(lambda p: np.tile([0.1, 0.0, 0.05], (len(p), 1)), n=30)
+    tracks_figure(tmp_path / "tracks.png", tracks)
+    assert (tmp_path / "tracks.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

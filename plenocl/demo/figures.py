@@ -145,3 +145,33 @@ def vectors_figure(path: Path, vel: np.ndarray, valid: np.ndarray, x, y, z) -> N
                  f"planes parallel to the wall{which}\n(arrows to scale, reference "
                  f"{ref:.2f} m/s)", fontsize=9)
     save_png(fig, path)
+
+
+def tracks_figure(path: Path, tracks, speed_unit: str = "mm per dt") -> None:
+    """Every track of :class:`plenocl.Tracks` in 3-D (its smoothed positions, mm),
+    coloured by speed, with a colour bar."""
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    plt = pyplot()
+    fig = plt.figure(figsize=(7, 6))
+    ax = fig.add_subplot(projection="3d")
+    segments, speeds = [], []
+    for pos, vel in zip(tracks.positions, tracks.velocities):
+        ok = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(vel), axis=1)
+        pts = pos[ok]
+        segments += [pts[k:k + 2] for k in range(len(pts) - 1)]
+        speed = np.linalg.norm(vel[ok], axis=1)
+        speeds += list((speed[1:] + speed[:-1]) / 2)
+    lines = Line3DCollection(segments, cmap="viridis", linewidths=1.2)
+    lines.set_array(np.asarray(speeds))
+    ax.add_collection3d(lines)
+    if segments:
+        every = np.concatenate(segments)
+        for axis, lo, hi in zip("xyz", every.min(axis=0), every.max(axis=0)):
+            getattr(ax, f"set_{axis}lim")(lo, hi if hi > lo else lo + 1)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+    ax.set_title(f"{len(tracks.positions)} tracks, coloured by speed")
+    fig.colorbar(lines, ax=ax, shrink=0.7, label=f"speed ({speed_unit})")
+    save_png(fig, path)

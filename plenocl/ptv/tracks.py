@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from ..io.atomic import atomic_path
+from ..io.polylines import write_vtu
 from .smoothing import TrackFit, smooth
+
+#: What a tracks file says it is (``.npz``), and its layout's version.
+FORMAT = "plenocl-tracks-1"
 
 
 @dataclass(frozen=True)
@@ -66,6 +72,46 @@ class Tracks:
         """The smoothed positions' steps from each frame to the next,
         ``(n_tracks, n_frames - 1, 3)`` mm (NaN where either end is missing)."""
         return np.diff(self.positions, axis=1)
+
+    def save(self, path) -> Path:
+        """Write the tracks: ``.npz`` (every array and ``dt``, read back by :meth:`load`)
+        or ``.vtu`` (poly-lines for ParaView: each track through its smoothed positions,
+        with its velocity, speed, frame and track number per point; tracks with fewer
+        than two positions are left out). Written atomically."""
+        path = Path(path)
+        if path.suffix == ".npz":
+            with atomic_path(path) as tmp:
+                with open(tmp, "wb") as handle:
+                    np.savez_compressed(handle, format=FORMAT, dt=self.dt,
+                                        **{name: getattr(self, name) for name in _PER_TRACK})
+        elif path.suffix == ".vtu":
+            write_vtu(path, *self._lines())
+        else:
+            raise ValueError(f"tracks are written as .npz or .vtu (ParaView), not {path.name!r}")
+        return path
+
+    @classmethod
+    def load(cls, path) -> Tracks:
+        """Tracks written by :meth:`save` as ``.npz``."""
+        with np.load(path) as data:
+            if "format" not in data.files or str(data["format"]) != FORMAT:
+                raise ValueError(f"{path} is not a plenocl tracks file (written by "
+                                 "Tracks.save(... .npz))")
+            return cls(*(data[name] for name in _PER_TRACK), dt=float(data["dt"]))
+
+    def _lines(self) -> tuple[list[np.ndarray], dict[str, list[np.ndarray]]]:
+        """Each track's smoothed positions as a line and its per-point arrays."""
+        lines, data = [], {"velocity": [], "speed": [], "frame": [], "track": []}
+        for number, (pos, vel) in enumerate(zip(self.positions, self.velocities)):
+            here = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
+            if len(here) < 2:
+                continue
+            lines.append(pos[here])
+            data["velocity"].append(np.nan_to_num(vel[here]))
+            data["speed"].append(np.linalg.norm(np.nan_to_num(vel[here]), axis=1))
+            data["frame"].append(here.astype(float))
+            data["track"].append(np.full(len(here), float(number)))
+        return lines, data
 
     def longer_than(self, frames: int) -> Tracks:
         """The tracks seen in at least ``frames`` frames."""
