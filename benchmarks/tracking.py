@@ -17,7 +17,7 @@ for the positions as each frame's fit measured them (what linking alone gives); 
 share of the true particles tracked, the share of ghost tracks, seconds per frame.
 Beside it: ``plenocl.process_pair`` on the first ``--pairs`` consecutive pairs (its
 vectors' errors against the same motion, seconds per frame = per pair / 2), and the
-tracks binned into the pair chain's windows (``plenocl.ptv.bin_tracks``, every frame's
+tracks binned into the pair chain's windows (``plenocl.bin_tracks``, every frame's
 samples: both motions are steady), with the share of windows holding a vector.
 ``--figure tracks.png`` draws the first series' tracks coloured by speed.
 """
@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import get_queue, process_pair, track  # noqa: E402
+from plenocl import bin_tracks, get_queue, process_pair, track  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
     ROTATION,
     UNIFORM,
@@ -43,7 +43,6 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.tracking_section import simulate_series, track_errors  # noqa: E402
 from plenocl.demo.figures import tracks_figure  # noqa: E402
-from plenocl.ptv import bin_tracks  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 

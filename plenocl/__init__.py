@@ -8,7 +8,15 @@ from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices,
 from .grid import Grid
 from .lightfield import LightField
 from .particles import random_particles
-from .pipeline import MTESettings, PairResult, PairSettings, TrackSettings, process_pair, track
+from .pipeline import (
+    MTESettings,
+    PairResult,
+    PairSettings,
+    TrackSettings,
+    bin_tracks,
+    process_pair,
+    track,
+)
 from .piv import PIVResult, PIVSettings, piv3d
 from .projection import Projector
 from .ptv import Tracks
@@ -36,6 +44,7 @@ __all__ = [
     "TrackSettings",
     "Tracks",
     "__version__",
+    "bin_tracks",
     "calibrate",
     "create_context",
     "describe_devices",

@@ -5,7 +5,7 @@ camera, a turbulent boundary layer with known truth) recorded at ``frames`` inst
 ``DT`` apart, as a high-speed plenoptic camera would: the particles are advected along
 the flow from frame to frame, ray traced with the demo's sensor (blur, photon and read
 noise, 16 bit). :func:`plenocl.track` follows them; their tracks are binned into the
-windows of the pair chain (:func:`plenocl.ptv.bin_tracks`) and compared with the
+windows of the pair chain (:func:`plenocl.bin_tracks`) and compared with the
 window-averaged truth, beside :func:`plenocl.process_pair` on the middle pair of
 frames. Writes ``tracks.npz``, ``tracks.vtu`` (ParaView), ``field_tracks.npz``,
 ``fig_tracks.png`` and ``summary.json``.
@@ -23,9 +23,8 @@ from ..bench.tracking_section import track_errors
 from ..flows import displace
 from ..io.atomic import write_json
 from ..particles import random_particles
-from ..pipeline import TrackSettings, process_pair, track
+from ..pipeline import TrackSettings, bin_tracks, process_pair, track
 from ..projection import Projector
-from ..ptv import bin_tracks
 from ..simulate import simulate_image
 from ..vectorfile import save_field
 from .boundary_layer import (

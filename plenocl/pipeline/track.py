@@ -6,22 +6,34 @@ are fitted to the frame's raw image (:class:`plenocl.piv.imagefit.ImageFit`), th
 particles of consecutive frames are linked (:func:`plenocl.ptv.link`; the first step
 predicted by the correlation of the first two volumes) and every track is smoothed by
 local polynomial fits weighted by the fit's variances (:func:`plenocl.ptv.smooth`).
+:func:`bin_tracks` turns tracks into an Eulerian field on interrogation windows.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..grid import Grid
 from ..options import with_keywords
 from ..peaks import find_particles
 from ..piv import PIVSettings, piv3d
 from ..piv.imagefit import ImageFit, ImageFitSettings
-from ..piv.tracking import SEARCH, predicted
+from ..piv.tracking import (
+    FITTED_POSITION_SIGMA,
+    SEARCH,
+    FocalZone,
+    ParticlePairs,
+    predicted,
+    window_means,
+)
+from ..piv.validation import normalized_median_test, replace_outliers
 from ..ptv import Tracks, link
 from ..reconstruction import ProjectionOperator, ReconstructionSettings, run_reconstruction
+from ..vectorfield import PIVResult
 
 #: Standard deviation (x, y, z voxels) of a volume's peak without the image fit: the
 #: reconstruction draws particles up to about a voxel towards the focal plane.
@@ -257,3 +269,82 @@ def _warn_if_unlinked(table: np.ndarray) -> None:
                     f"{k + 1}: the particles move farther than the search range, or the "
                     "frames are not consecutive. Record at a shorter interval, or widen "
                     "search= (x, y, z voxels) (docs/errors.md)", stacklevel=3)
+
+
+def bin_tracks(tracks: Tracks, grid: Grid, window=(16, 16, 16), step=None, frames=None,
+               min_samples: int = 3, focus: FocalZone | None = None) -> PIVResult:
+    """The tracks' Eulerian field: their steps per frame interval averaged in
+    interrogation windows, as a :class:`plenocl.PIVResult` (docs/design.md §7.3).
+
+    Each step of a track from frame ``k`` to ``k + 1`` (of its smoothed positions) is a
+    sample at its midpoint, like a particle pair of the pair chain, and the windows
+    average them as the pair chain's particle refinement does
+    (:func:`plenocl.piv.tracking.window_means`, §7.1): samples farther than the search
+    range from their window's median are left out, the rest moved to the window's centre
+    along the local gradient, and the uncertainty is the standard error with Student's
+    t (with ``focus``, the focal zone's systematic depth term too). Windows of
+    ``window`` voxels ``(z, y, x)``, centres ``step`` apart (half a window by default),
+    the first at ``(w - 1) / 2``, as :func:`plenocl.piv3d` lays them out; a window with
+    fewer than ``min_samples`` samples holds no vector (NaN, not valid). The field is
+    validated as a correlation's (normalised median test, outliers replaced).
+
+    Parameters
+    ----------
+    tracks
+        :class:`plenocl.Tracks` on ``grid``'s millimetres.
+    grid
+        The grid whose voxels are the field's units (the reconstruction's).
+    window, step
+        Window size and centre spacing, voxels.
+    frames
+        The frames whose steps count (a step from ``k`` to ``k + 1`` counts for ``k``);
+        ``None``: every frame (a steady flow's mean field).
+    min_samples
+        Fewest samples for a vector.
+    focus
+        The camera's focal zone (:meth:`plenocl.piv.tracking.FocalZone.of`), for the
+        systematic depth term of the uncertainty.
+    """
+    template = _windows(grid, window, step)
+    samples = _steps(tracks, grid, frames)
+    mean, error, count = window_means(samples, template, min_samples, SEARCH, focus,
+                                      FITTED_POSITION_SIGMA)
+    use = np.isfinite(mean[0])
+    outlier = normalized_median_test(np.where(use, mean, 0.0), ignore=~use) & use
+    vectors = np.where(use, replace_outliers(np.where(use, mean, 0.0), outlier | ~use), np.nan)
+    valid = use & ~outlier
+    sigma = np.where(valid, error, np.nan)
+    return dataclasses.replace(
+        template, u=vectors[0], v=vectors[1], w=vectors[2], valid=valid, outlier=outlier,
+        masked=~use, sigma_u=sigma[0], sigma_v=sigma[1], sigma_w=sigma[2],
+        refinement={"refinement": "tracks", "samples": len(samples.midpoints),
+                    "vectors": int(valid.sum()), "outliers": int(outlier.sum()),
+                    "median_samples": float(np.median(count[use])) if use.any() else 0.0})
+
+
+def _windows(grid: Grid, window, step) -> PIVResult:
+    """An empty field on ``grid``'s windows of ``window`` voxels ``step`` apart."""
+    window = np.broadcast_to(np.asarray(window, int), 3)
+    step = window // 2 if step is None else np.broadcast_to(np.asarray(step, int), 3)
+    if np.any(window < 1) or np.any(step < 1) or np.any(window > np.asarray(grid.shape)):
+        raise ValueError(f"bin_tracks: window {tuple(window)} and step {tuple(step)} (z, y, x "
+                         f"voxels) must be positive and fit the grid {grid.shape}")
+    counts = tuple((np.asarray(grid.shape) - window) // step + 1)
+    z, y, x = ((w - 1) / 2 + s * np.arange(c) for w, s, c in zip(window, step, counts))
+    empty = np.full(counts, np.nan)
+    flags = np.zeros(counts, bool)
+    return PIVResult(x, y, z, empty, empty.copy(), empty.copy(), flags, empty.copy(),
+                     flags.copy(), flags.copy(), tuple(int(w) for w in window))
+
+
+def _steps(tracks: Tracks, grid: Grid, frames) -> ParticlePairs:
+    """The tracks' steps from each chosen frame to the next as particle pairs (voxel
+    indices ``(x, y, z)``)."""
+    n, f, _ = tracks.positions.shape
+    chosen = np.arange(f - 1) if frames is None else np.atleast_1d(frames)
+    chosen = chosen[(chosen >= 0) & (chosen < f - 1)]
+    start = tracks.positions[:, chosen].reshape(-1, 3)
+    end = tracks.positions[:, chosen + 1].reshape(-1, 3)
+    ok = np.all(np.isfinite(start) & np.isfinite(end), axis=1)
+    a, b = grid.to_index(start[ok]), grid.to_index(end[ok])
+    return ParticlePairs((a + b) / 2, b - a)
