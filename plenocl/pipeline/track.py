@@ -266,9 +266,11 @@ def _warn_if_unlinked(table: np.ndarray) -> None:
             if share < LINKED_FLOOR:
                 warnings.warn(
                     f"only {share:.0%} of frame {k}'s particles found a partner in frame "
-                    f"{k + 1}: the particles move farther than the search range, or the "
-                    "frames are not consecutive. Record at a shorter interval, or widen "
-                    "search= (x, y, z voxels) (docs/errors.md)", stacklevel=3)
+                    f"{k + 1}: the particles move farther than the search range, the "
+                    "frames are not consecutive, or most of a frame's peaks are ghosts (a "
+                    "dense seeding). Record at a shorter interval, check the frames' order, "
+                    "widen search= (x, y, z voxels) or raise threshold= (docs/errors.md)",
+                    stacklevel=3)
 
 
 def bin_tracks(tracks: Tracks, grid: Grid, window=(16, 16, 16), step=None, frames=None,
