@@ -27,13 +27,31 @@ def gaussian_subpixel(c_minus: np.ndarray, c0: np.ndarray, c_plus: np.ndarray) -
     return np.clip(offset, -0.5, 0.5)
 
 
-def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int = 1
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Local maxima above ``threshold · max`` with sub-voxel positions.
+#: With ``reference="robust"``: the share of the brightest candidate peaks (those above
+#: :data:`CANDIDATE` of the maximum) set aside before the reference level is read, and
+#: the fewest set aside (while another candidate remains).
+ROBUST_SHARE = 0.005
+ROBUST_MIN = 2
+#: Candidate peaks of the robust reference: above this fraction of the volume's maximum.
+CANDIDATE = 0.01
+
+
+def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int = 1,
+                   reference: str = "max") -> tuple[np.ndarray, np.ndarray]:
+    """Local maxima above ``threshold`` times a reference level, with sub-voxel positions.
+
+    ``reference="max"``: the volume's maximum. ``"robust"``: the brightest local maximum
+    left once the brightest :data:`ROBUST_SHARE` (at least :data:`ROBUST_MIN`) of those
+    above :data:`CANDIDATE` of the maximum are set aside, so that a few spuriously bright voxels (overlapping
+    particles, crossing lines of sight in a densely seeded volume) do not hide the rest:
+    at the paper's optics with 0.2 particles per microlens a maximum 30 times the
+    typical particle kept 40-136 peaks of about 1,200 particles (design.md §7.3).
 
     Returns fractional voxel indices ``(N, 3)`` as ``(ix, iy, iz)`` and peak values,
     brightest first. Positions use a three-point Gaussian fit along each axis.
     """
+    if reference not in ("max", "robust"):
+        raise ValueError(f"reference must be 'max' or 'robust', got {reference!r}")
     v = np.asarray(vol, np.float32)
     if v.ndim != 3:
         raise ValueError(f"expected a 3-D volume, got shape {v.shape}")
@@ -41,7 +59,13 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
     if vmax <= 0:
         return np.zeros((0, 3)), np.zeros(0)
     size = 2 * min_separation + 1
-    peaks = (v == ndimage.maximum_filter(v, size=size, mode="constant")) & (v > threshold * vmax)
+    maxima = v == ndimage.maximum_filter(v, size=size, mode="constant")
+    level = vmax
+    if reference == "robust":
+        bright = np.sort(v[maxima & (v > CANDIDATE * vmax)])[::-1]
+        aside = max(ROBUST_MIN, int(np.ceil(ROBUST_SHARE * len(bright))))
+        level = float(bright[min(aside, len(bright) - 1)])
+    peaks = maxima & (v > threshold * level)
     iz, iy, ix = np.nonzero(peaks)
     vals = v[iz, iy, ix]
     pad = np.pad(v, 1)

@@ -58,7 +58,10 @@ class TrackSettings:
     piv
         The correlation of the first two volumes that predicts the first step.
     threshold
-        A peak counts as a particle above this fraction of its volume's maximum.
+        A peak counts as a particle above this fraction of its volume's bright level:
+        the brightest peaks' level once the brightest 0.5 % are set aside
+        (:func:`plenocl.peaks.find_particles` with ``reference="robust"``), so that a
+        few spurious bright voxels of a densely seeded frame do not hide its particles.
     search
         Largest distance ``(x, y, z)`` voxels between a predicted position and its
         partner in the next frame.
@@ -208,7 +211,7 @@ def _particles(raw, vol: np.ndarray, info, projector, settings: TrackSettings
                ) -> FrameParticles:
     """A volume's peaks, fitted to the frame's raw image when ``settings.image_fit``."""
     grid = projector.grid
-    peaks, _ = find_particles(vol, settings.threshold)
+    peaks, _ = find_particles(vol, settings.threshold, reference="robust")
     voxel = np.asarray(grid.spacing[::-1])
     if settings.image_fit is None or not len(peaks):
         sigma = np.broadcast_to(np.asarray(PEAK_SIGMA_VOXELS) * voxel, peaks.shape)
