@@ -42,10 +42,11 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
 
     ``reference="max"``: the volume's maximum. ``"robust"``: the brightest local maximum
     left once the brightest :data:`ROBUST_SHARE` (at least :data:`ROBUST_MIN`) of those
-    above :data:`CANDIDATE` of the maximum are set aside, so that a few spuriously bright voxels (overlapping
-    particles, crossing lines of sight in a densely seeded volume) do not hide the rest:
-    at the paper's optics with 0.2 particles per microlens a maximum 30 times the
-    typical particle kept 40-136 peaks of about 1,200 particles (design.md §7.3).
+    above :data:`CANDIDATE` of the maximum are set aside, so that a few spuriously bright
+    voxels (overlapping particles, crossing lines of sight in a densely seeded volume) do
+    not hide the rest. At the paper's optics with 0.2 particles per microlens a maximum
+    30 times the typical particle's kept 40-136 peaks of about 1,200 particles
+    (design.md §7.3).
 
     Returns fractional voxel indices ``(N, 3)`` as ``(ix, iy, iz)`` and peak values,
     brightest first. Positions use a three-point Gaussian fit along each axis.
