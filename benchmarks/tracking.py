@@ -88,9 +88,7 @@ def _rows(motion: Motion, ppm: float, args, cam, grid, proj, queue) -> None:
     seconds = np.median([sum(pair.seconds.values()) / 2 for pair in pairs])
     _print(motion, ppm, "pairs", *_pooled(errors), "", seconds)
     ref = pairs[0].piv
-    step = tuple(int(round(np.diff(a)[0])) if len(a) > 1 else w
-                 for a, w in zip((ref.z, ref.y, ref.x), ref.window))
-    field = bin_tracks(tracks, grid, window=ref.window, step=step)
+    field = bin_tracks(tracks, grid, window=ref.window, step=ref.step)
     binned = budget_errors(field, grid, motion)
     _print(motion, ppm, "binned", *_pooled([binned]), f"{binned['valid']:7.0%}", float("nan"))
 

@@ -97,6 +97,13 @@ class PIVResult:
         """Vector-grid shape ``(nz', ny', nx')``."""
         return self.u.shape
 
+    @property
+    def step(self) -> Size3:
+        """Window-centre spacing ``(z, y, x)`` voxels (the window along an axis with a
+        single vector)."""
+        return tuple(int(round(c[1] - c[0])) if len(c) > 1 else int(w)
+                     for c, w in zip((self.z, self.y, self.x), self.window))
+
     def velocity(self, voxel_size_mm, dt: float):
         """Velocity ``(U, V, W)`` in m/s for a voxel size (mm, scalar or ``(dz, dy, dx)``)."""
         return displacement_to_velocity((self.u, self.v, self.w), voxel_size_mm, dt)

@@ -205,6 +205,7 @@ def test_binned_tracks_give_the_field_and_its_uncertainty():
     grid, tracks = _grid_tracks(shear)
     res = bin_tracks(tracks, grid, window=(16, 12, 20), step=(8, 6, 10))
     assert res.u.shape == (4, 4, 4) and res.valid.all() and res.window == (16, 12, 20)
+    assert res.step == (8, 6, 10)
     x, y, z = res.positions_mm(grid.spacing, (grid.z[0] + 0.1, grid.y[0] + 0.1,
                                               grid.x[0] + 0.1))
     vox = np.array(grid.spacing[::-1])

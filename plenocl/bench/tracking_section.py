@@ -63,14 +63,12 @@ def match_tracks(tracks: Tracks, truth: np.ndarray, grid: Grid) -> np.ndarray:
     for i, (pos, mask) in enumerate(zip(tracks.measured, seen)):
         d = np.linalg.norm((truth[:, mask] - pos[mask]) / voxel, axis=2).mean(axis=1)
         cost[i] = np.where(d <= 1.0, d, np.inf)
-    taken = set()
-    for i in np.argsort(cost.min(axis=1)):
-        for j in np.argsort(cost[i]):
-            if not np.isfinite(cost[i, j]):
-                break
-            if j not in taken:
-                out[i], _ = j, taken.add(j)
-                break
+    taken = np.zeros(len(truth), bool)
+    for i in np.argsort(cost.min(axis=1)):  # the best-matched tracks choose first
+        free = np.flatnonzero(np.isfinite(cost[i]) & ~taken)
+        if len(free):
+            out[i] = free[np.argmin(cost[i, free])]
+            taken[out[i]] = True
     return out
 
 

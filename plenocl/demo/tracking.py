@@ -65,7 +65,7 @@ def run_tracking(out_dir: str | Path, frames: int = FRAMES, queue=None, seed: in
     tracks_figure(out / "fig_tracks.png", tracks, "mm/s")
     mid = frames // 2 - 1
     pair = process_pair(images[mid], images[mid + 1], proj, chain_settings(sc))
-    field = bin_tracks(tracks, sc.grid, window=pair.piv.window, step=_step(pair.piv))
+    field = bin_tracks(tracks, sc.grid, window=pair.piv.window, step=pair.piv.step)
     save_field(out / "field_tracks.npz", field, voxel_size_mm=sc.grid.spacing, dt=DT)
     summary = {"frames": frames, "particles": int(truth.shape[0]), "dt_s": DT,
                "u_inf_m_s": U_INF, "tracks": int(len(tracks.positions)),
@@ -95,12 +95,6 @@ def _recording(sc, flow: CameraFrameFlow, frames: int, seed: int, queue):
     images = [simulate_image(sc.physical_camera, truth[:, k], inten[keep], sc.rays, queue=queue,
                              **sensor_options(seed + 10 + k)) for k in range(frames)]
     return truth, images
-
-
-def _step(res) -> tuple[int, int, int]:
-    """The window spacing ``(z, y, x)`` voxels of a field."""
-    return tuple(int(round(a[1] - a[0])) if len(a) > 1 else w
-                 for a, w in zip((res.z, res.y, res.x), res.window))
 
 
 def _field_errors(res, sc, flow: CameraFrameFlow) -> dict:

@@ -100,7 +100,7 @@ class TrackSettings:
                              f"(x, y, z voxels), got {self.search}")
         if not 0 < self.threshold < 1:
             raise ValueError(f"TrackSettings.threshold must lie between 0 and 1 (a fraction "
-                             f"of the volume's maximum), got {self.threshold}")
+                             f"of the volume's bright level), got {self.threshold}")
         if isinstance(self.min_length, bool) or int(self.min_length) != self.min_length \
                 or self.min_length < 2:
             raise ValueError(f"TrackSettings.min_length must be an integer >= 2 (frames), "
@@ -238,9 +238,7 @@ def _gather(table: np.ndarray, particles: list[FrameParticles]):
 
 def _check_frames(frames, min_length: int) -> list:
     """The frames as a list, refused when too few or of different shapes."""
-    if isinstance(frames, np.ndarray) and frames.ndim == 3:
-        frames = list(frames)
-    frames = list(frames)
+    frames = list(frames)  # a (frames, rows, cols) array gives its frames
     if len(frames) < min_length:
         raise ValueError(f"tracking needs at least {min_length} frames (min_length), got "
                          f"{len(frames)}; give more frames or a smaller min_length (>= 2)")
