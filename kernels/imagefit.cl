@@ -2,7 +2,7 @@
  * of all particles, each particle's Gauss-Newton normal equations against the residual
  * and its residual's scatter, and the start intensity's least-squares sums. They read
  * the rows kernels/raybundle.cl renders (dense patches, one after another from each
- * particle's offset; value, d/dX', d/dY', d/ds_i', d/dI rows of `total` elements).
+ * particle's offset; value, d/dX', d/dY', d/dd', d/dI rows of `total` elements).
  * NumPy twin: plenocl.reference.imagefit (float64 there, float32 here).
  *
  * Three kernels, all gathers without atomics:
@@ -80,7 +80,7 @@ __kernel void patch_model(__global const float *values, __global const long *off
 }
 
 /* rows: 5 rows of `total`; data, model: the sensor (rows x cols); jac: per particle
- * d (X', Y', s_i') / d (x, y, z), 3 x 3 row-major; out: PL_NORMALS per particle. */
+ * d (X', Y', d') / d (x, y, z), 3 x 3 row-major; out: PL_NORMALS per particle. */
 __kernel void normal_sums(__global const float *patch_rows, long total,
                           __global const float *data, __global const float *model,
                           __global const long *offset, __global const int *col0,

@@ -129,8 +129,8 @@ inline void pl_atomic_addf(volatile __global float *p, float q)
 }
 
 /* The 4 bilinear pixel taps (paper §III.A step 3) of an aperture sample that lands d
- * pixels from the image centre of a lens (c_k - u f_ml / s_i: d = -(u, v) f_ml/(s_i p_px),
- * one float2 per sample from the host, rotated into the sensor's axes when the
+ * pixels from the image centre of a lens (c_k - u f_ml / d_p: -(u, v) f_ml/(d_p p_px),
+ * d_p the exit pupil's distance from the array; one float2 per sample from the host, rotated into the sensor's axes when the
  * reconstruction frame is rotated) whose centre lies at rounded pixel r plus remainder f:
  * flat pixel indices (-1 off the sensor or for a missing lens) and weights (0 there). */
 inline void pl_pixel_taps(int2 r, float2 f, float2 d, int width, int height, int *idx,

@@ -1,6 +1,6 @@
 /* The image fit's forward model (docs/design.md §7.2): every particle's image on its
  * sensor patch and, with PL_DERIVATIVES, its derivatives by the image point
- * (X', Y', s_i') and by the intensity. NumPy twin: plenocl.optics.raybundle.RayBundle
+ * (X', Y', d') and by the intensity. NumPy twin: plenocl.optics.raybundle.RayBundle
  * (spots, render), float64 there, float32 here.
  *
  * Two kernels, both gathers without atomics:
@@ -8,7 +8,7 @@
  *   ray from the image point through its aperture sample to the array, takes the (up to)
  *   2 x 2 lenses that share it near a cell edge and writes one slot per lens choice: the
  *   nearest sensor pixel, the lens share and its derivatives, the landing point's
- *   derivatives by s_i' and the normalised pixel-integrated Gaussian of the blur over the
+ *   derivatives by d' and the normalised pixel-integrated Gaussian of the blur over the
  *   5 x 5 pixels around it (per axis, with its derivative), and its key: the nearest row.
  *   A lens choice that gets no light (most of them), lies off the array or is missing
  *   (NaN centre) gets weight 0 and no key (PL_NO_KEY) and costs no spread. Each item
@@ -35,8 +35,8 @@
 #define PL_RAMP_FLOOR 1e-3f /* raybundle.RAMP_FLOOR */
 #define PL_SLOT 28          /* floats per slot, layout below */
 #define PL_NO_KEY (-(1 << 30)) /* the key of a slot without light: no row is near it */
-/* slot: 0 near col, 1 near row, 2 weight, 3-5 d weight / d(X', Y', s_i'),
- * 6 d col / d s_i', 7 d row / d s_i', 8-12 column shares, 13-17 their d / d col,
+/* slot: 0 near col, 1 near row, 2 weight, 3-5 d weight / d(X', Y', d'),
+ * 6 d col / d d', 7 d row / d d', 8-12 column shares, 13-17 their d / d col,
  * 18-22 row shares, 23-27 their d / d row */
 
 /* Plain-arithmetic stand-ins for builtins (kernels/projector.h's performance note: PoCL's
@@ -132,22 +132,23 @@ inline float pl_spread(float x, float delta, float4 gauss, __global float *g,
 
 /* lattice: [x, y, 1] @ lattice (3 x 2, row-major) = (kx, ky); lenses: (rows, cols) of
  * (col, row) sensor pixels of a lens's landing point for a ray along the axis (NaN:
- * missing); optics: s_i, f_ml / pixel pitch, ramp spacing, delta = 1 / (sqrt2 blur sigma)
+ * missing); optics: d_p (exit pupil to array; a thin lens: s_i), f_ml / pixel pitch,
+ * ramp spacing, delta = 1 / (sqrt2 blur sigma)
  * (px) and gauss = (c_1, c_3, c_5) of pl_spread (c_1 = -1: an exp per edge). */
 __kernel void ray_spots(__global const float *points, __global const float *aperture,
                         int rays, __global const float *lenses, int rows, int cols,
                         float l00, float l01, float l10, float l11, float l20, float l21,
-                        float s_i, float f_px, float spacing, float delta, float4 gauss,
+                        float d_p, float f_px, float spacing, float delta, float4 gauss,
                         __global float *slots, __global int *keys)
 {
     int ray = get_global_id(0), p = get_global_id(1);
-    float s = points[3 * p + 2], rho = s_i / s;
+    float s = points[3 * p + 2], rho = d_p / s;
     float ux = aperture[2 * ray], uy = aperture[2 * ray + 1];
     float ex = points[3 * p] - ux, ey = points[3 * p + 1] - uy;
     float x = ux + ex * rho, y = uy + ey * rho;
     float ramp = spacing * pl_abs(1.0f - rho);
     float sgn = 1.0f - rho > 0.0f ? 1.0f : (1.0f - rho < 0.0f ? -1.0f : 0.0f);
-    float slope = spacing * sgn * s_i / (s * s);
+    float slope = spacing * sgn * d_p / (s * s);
     if (ramp < PL_RAMP_FLOOR) {
         ramp = PL_RAMP_FLOOR;
         slope = 0.0f;
@@ -156,7 +157,7 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
     float wx, dwx, rwx, wy, dwy, rwy;
     pl_share(x * l00 + y * l10 + l20, ramp, &nx, &sx, &wx, &dwx, &rwx);
     pl_share(x * l01 + y * l11 + l21, ramp, &ny, &sy, &wy, &dwy, &rwy);
-    float dsx = -ex * s_i / (s * s), dsy = -ey * s_i / (s * s); /* d array point / d s' */
+    float dsx = -ex * d_p / (s * s), dsy = -ey * d_p / (s * s); /* d array point / d d' */
     float dlx[3] = {rho * l00, rho * l10, dsx * l00 + dsy * l10};  /* d kx / d X', Y', s' */
     float dly[3] = {rho * l01, rho * l11, dsx * l01 + dsy * l11};  /* d ky / d X', Y', s' */
     for (int a = 0; a < 2; ++a) {
@@ -195,7 +196,7 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
 /* patches: per particle offset (long), col0, row0, width, height; item_pid, item_row: the
  * particle and first patch row of each work-item, which renders `band` rows from there
  * (fewer at the patch's end); out: PL_DERIVATIVES ? 5 : 1 rows of `total` elements
- * (value, d / d X', Y', s_i', d / d intensity). */
+ * (value, d / d X', Y', d', d / d intensity). */
 __kernel void render_rows(__global const float *slots, __global const int *keys, int rays,
                           __global const float *points, __global const float *intensity,
                           __global const long *offset, __global const int *col0,

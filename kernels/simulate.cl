@@ -1,5 +1,6 @@
-/* Plenoptic image simulator (docs/design.md §2, §8): rays traced exactly through the thin
- * main lens and the microlens each one enters. NumPy twin: plenocl/reference/simulate.py.
+/* Plenoptic image simulator (docs/design.md §2, §8): rays traced exactly through the main
+ * lens (thin, or thick as its exit pupil at d_p before the array) and the microlens each
+ * one enters. NumPy twin: plenocl/reference/simulate.py.
  *
  * Work layout: global id 0 = block of rays, global id 1 = source (particle or lens)
  * within the current chunk. A source's rays are numbered 0..rays-1 and each ray's
@@ -23,13 +24,13 @@ inline int pl_transmitted(__global const float *gain, int k, uint key)
     return g >= 1.0f || pl_uniform(pl_word(key, 2)) < g;
 }
 
-/* Rays of point particles. img_pts[p] = (X', Y', s_i', unused) in image space. */
+/* Rays of point particles. img_pts[p] = (X', Y', d', unused) in image space. */
 __kernel void trace_particles(
     __global const float4 *img_pts, __global const pl_acc_t *quantum,
     __global const float *lens_gain, __global const float2 *lens_shift,
     volatile __global pl_acc_t *image,
     uint seed, uint src_offset, uint rays, uint rays_per_item,
-    float aperture_radius, float s_i, float f_ml, float blur_mm,
+    float aperture_radius, float d_p, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
     float px_pitch, int width, int height)
 {
@@ -38,7 +39,7 @@ __kernel void trace_particles(
     const uint src = src_offset + p;
     const float4 ip = img_pts[p];
     const pl_acc_t q = quantum[p];
-    const float inv = s_i / ip.z;
+    const float inv = d_p / ip.z;
     const uint r0 = get_global_id(0) * rays_per_item;
     const uint r1 = min(r0 + rays_per_item, rays);
     const uint skey = pl_source_key(seed, src);
@@ -65,7 +66,7 @@ __kernel void trace_white(
     __global const float *lens_gain, __global const float2 *lens_shift,
     volatile __global pl_acc_t *image, pl_acc_t quantum,
     uint seed, uint src_offset, uint rays, uint rays_per_item,
-    float stop_radius, float s_i, float f_ml, float blur_mm,
+    float stop_radius, float d_p, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
     float px_pitch, int width, int height)
 {
@@ -85,7 +86,7 @@ __kernel void trace_white(
         float2 x = c + (float2)(ml_cos * a - ml_sin * b, ml_sin * a + ml_cos * b);
         float rad = stop_radius * sqrt(pl_uniform(pl_word(key, 0)));
         float th = PLENOCL_TWO_PI * pl_uniform(pl_word(key, 1));
-        float2 s = c + f_ml * (x - (float2)(rad * cos(th), rad * sin(th))) / s_i;
+        float2 s = c + f_ml * (x - (float2)(rad * cos(th), rad * sin(th))) / d_p;
         if (blur_mm > 0.0f) s += pl_blur(key, blur_mm);
         int idx = pl_pixel_index(s.x, s.y, px_pitch, width, height);
         if (idx >= 0) pl_accumulate(image, idx, quantum);

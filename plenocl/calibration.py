@@ -1,7 +1,7 @@
 """Microlens image centres from a white image (docs/design.md §3, paper §II.A).
 
 A white image is taken with the main lens stopped down: every microlens images the
-small aperture as a spot centred on its image centre ``c_k = x_k (1 + f_ml/s_i)``.
+small aperture as a spot centred on its image centre ``c_k = x_k (1 + f_ml/d)``.
 Calibration finds those spots to sub-pixel accuracy and matches each to its lens
 ``(kx, ky)``:
 

@@ -34,6 +34,16 @@ def _positive(name: str, value: float) -> float:
     return value
 
 
+def _finite(name: str, value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not math.isfinite(value):
+        raise ValueError(f"camera {name} must be a finite number (0 for a thin lens)")
+    return value
+
+
 def _origin(value) -> tuple[int, int]:
     try:
         col, row = (int(v) for v in value)
@@ -59,12 +69,12 @@ def _count_pair(name: str, value) -> tuple[int, int]:
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """An unfocused plenoptic camera: thin main lens, microlens array, sensor.
+    """An unfocused plenoptic camera: main lens, microlens array, sensor.
 
     Parameters
     ----------
     focal_length_mm, f_number, magnification
-        Main lens focal length, f-number (aperture ``D = f/N``) and ``|M|`` at the
+        Main lens focal length, f-number (entrance pupil ``D = f/N``) and ``|M|`` at the
         nominal focal plane.
     ml_pitch_mm, ml_focal_length_mm, ml_count
         Microlens pitch, focal length and ``(columns, rows)``.
@@ -76,6 +86,11 @@ class Camera:
     microlens_centers
         Microlens image centres ``(rows, cols, 2)`` as ``(col, row)`` pixels; the ideal
         centres of the layout when not given. ``NaN`` marks a lens calibration missed.
+    pupil_magnification, principal_plane_separation_mm
+        A thick main lens (docs/design.md §2): the exit pupil's diameter over the
+        entrance pupil's, ``m_p``, and the distance from the front principal plane to
+        the rear one (positive when the rear lies nearer the sensor). The defaults,
+        1 and 0, are the thin lens.
     """
 
     focal_length_mm: float
@@ -91,10 +106,12 @@ class Camera:
     microlens_centers: np.ndarray | None = field(default=None, repr=False)
     calibrated: bool = False
     crop_origin: tuple[int, int] | None = None
+    pupil_magnification: float = 1.0
+    principal_plane_separation_mm: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "f_number", "magnification", "ml_pitch_mm",
-                     "ml_focal_length_mm", "pixel_pitch_mm"):
+                     "ml_focal_length_mm", "pixel_pitch_mm", "pupil_magnification"):
             object.__setattr__(self, name, _positive(name, getattr(self, name)))
         object.__setattr__(self, "ml_count", _count_pair("microlens count", self.ml_count))
         object.__setattr__(self, "pixels", _count_pair("sensor pixels", self.pixels))
@@ -103,6 +120,8 @@ class Camera:
             raise ValueError("microlens rotation and offset must be finite numbers")
         object.__setattr__(self, "ml_rotation_deg", rot)
         object.__setattr__(self, "ml_offset_mm", off)
+        object.__setattr__(self, "principal_plane_separation_mm", _finite(
+            "principal_plane_separation_mm", self.principal_plane_separation_mm))
         if self.crop_origin is not None:
             object.__setattr__(self, "crop_origin", _origin(self.crop_origin))
         self._check_sensor_covers_array()
@@ -166,41 +185,64 @@ class Camera:
     # ---- optics -----------------------------------------------------------------
     @property
     def aperture_diameter_mm(self) -> float:
-        """Main-lens aperture diameter ``D = f/N``."""
+        """Main-lens entrance pupil diameter ``D = f/N`` (a thin lens: its aperture)."""
         return self.focal_length_mm / self.f_number
 
     @property
     def object_distance_mm(self) -> float:
-        """Nominal object distance ``s_o = f (1 + 1/M)``."""
+        """Nominal object distance ``s_o = f (1 + 1/M)`` (from the front principal plane)."""
         return self.focal_length_mm * (1 + 1 / self.magnification)
 
     @property
     def image_distance_mm(self) -> float:
-        """Main lens to microlens array, ``s_i = f (1 + M)``."""
+        """Rear principal plane to microlens array, ``s_i = f (1 + M)``."""
         return self.focal_length_mm * (1 + self.magnification)
 
     @property
+    def exit_pupil_diameter_mm(self) -> float:
+        """Exit pupil diameter ``D' = m_p D``: the cone of every image-space ray."""
+        return self.exit_pupil_diameter_at(self.f_number)
+
+    def exit_pupil_diameter_at(self, f_number: float) -> float:
+        """Exit pupil diameter with the lens stopped to ``f_number``, ``m_p f / N``."""
+        return self.pupil_magnification * self.focal_length_mm / f_number
+
+    @property
+    def exit_pupil_distance_mm(self) -> float:
+        """Exit pupil to microlens array, ``d = f (M + m_p)`` (the pupil lies ``f (1 -
+        m_p)`` behind the rear principal plane; a thin lens: ``s_i``). Every image-space
+        ray geometry measures from here: the aperture coordinates ``(u, v)`` lie on it."""
+        return self.focal_length_mm * (self.magnification + self.pupil_magnification)
+
+    @property
+    def focal_plane_distance_mm(self) -> float:
+        """Nominal focal plane to microlens array along the axis, ``s_o + HH' + s_i``."""
+        return (self.object_distance_mm + self.principal_plane_separation_mm
+                + self.image_distance_mm)
+
+    @property
     def working_f_number(self) -> float:
-        """Image-side f-number ``s_i / D``; matches ``f_ml / p_ml`` in a well-built camera."""
-        return self.image_distance_mm / self.aperture_diameter_mm
+        """Image-side f-number ``d / D' = N (1 + M/m_p)``; matches ``f_ml / p_ml`` in a
+        well-built camera."""
+        return self.exit_pupil_distance_mm / self.exit_pupil_diameter_mm
 
     @property
     def lens_image_scale(self) -> float:
         """The imaging relation of the microlens images: a lens at array-plane position
-        ``x_k`` (from the optical axis) images the aperture centred at ``c_k = x_k (1 +
-        f_ml/s_i)`` on the sensor. The one place plenocl computes it
+        ``x_k`` (from the optical axis) images the exit pupil centred at ``c_k = x_k (1 +
+        f_ml/d)`` on the sensor. The one place plenocl computes it
         (:mod:`plenocl.optics.imaging` builds on it)."""
-        return 1 + self.ml_focal_length_mm / self.image_distance_mm
+        return 1 + self.ml_focal_length_mm / self.exit_pupil_distance_mm
 
     @property
     def microlens_image_pitch_mm(self) -> float:
-        """Spacing of microlens images on the sensor, ``p_ml (1 + f_ml / s_i)``."""
+        """Spacing of microlens images on the sensor, ``p_ml (1 + f_ml / d)``."""
         return self.ml_pitch_mm * self.lens_image_scale
 
     @property
     def microlens_image_fill(self) -> float:
         """Diameter of a microlens image of the aperture over the image pitch."""
-        diameter = self.ml_focal_length_mm * self.aperture_diameter_mm / self.image_distance_mm
+        diameter = self.ml_focal_length_mm / self.working_f_number
         return diameter / self.microlens_image_pitch_mm
 
     @property
@@ -221,7 +263,8 @@ class Camera:
         return (self.pixels[0] * self.pixel_pitch_mm, self.pixels[1] * self.pixel_pitch_mm)
 
     def image_distance_at(self, z_mm) -> np.ndarray:
-        """Image distance ``s_i'`` of object depth ``z`` (+z away from the camera)."""
+        """Image distance ``s_i'`` (from the rear principal plane) of object depth ``z``
+        (+z away from the camera)."""
         s_o = self.object_distance_mm + np.asarray(z_mm, dtype=np.float64)
         if np.any(s_o <= self.focal_length_mm) or not np.all(np.isfinite(s_o)):
             raise ValueError(
@@ -231,20 +274,36 @@ class Camera:
             )
         return self.focal_length_mm * s_o / (s_o - self.focal_length_mm)
 
+    def pupil_distance_at(self, z_mm) -> np.ndarray:
+        """Distance ``d'`` of the image of depth ``z`` from the exit pupil, ``s_i' - s_i +
+        d`` (a thin lens: ``s_i'``): where a ray from aperture point ``(u, v)`` to the image
+        point meets the array, ``x = u + (X' - u) d / d'``."""
+        return self.image_distance_at(z_mm) - self.image_distance_mm + self.exit_pupil_distance_mm
+
     def alpha(self, z_mm) -> np.ndarray:
-        """Refocus parameter ``α = s_i'/s_i`` of depth ``z``."""
-        return self.image_distance_at(z_mm) / self.image_distance_mm
+        """Refocus parameter ``α = d'/d`` of depth ``z`` (a thin lens: ``s_i'/s_i``)."""
+        return self.pupil_distance_at(z_mm) / self.exit_pupil_distance_mm
 
     def image_points(self, points_xyz) -> np.ndarray:
-        """Image-space ``(X', Y', s_i')`` of object points ``(N, 3)``."""
+        """Image-space ``(X', Y', d')`` of object points ``(N, 3)``: the lateral image
+        position ``-(s_i'/s_o') (X, Y)`` and the image's distance from the exit pupil
+        (:meth:`pupil_distance_at`; a thin lens: ``s_i'``)."""
         pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
         s_ip = self.image_distance_at(pts[:, 2])
         scale = -s_ip / (self.object_distance_mm + pts[:, 2])
-        return np.column_stack([pts[:, 0] * scale, pts[:, 1] * scale, s_ip])
+        d_p = s_ip - self.image_distance_mm + self.exit_pupil_distance_mm
+        return np.column_stack([pts[:, 0] * scale, pts[:, 1] * scale, d_p])
+
+    @property
+    def pixel_pupil_footprint_mm(self) -> float:
+        """One sensor pixel's footprint on the exit pupil, ``p_px d / f_ml``: the step of
+        the aperture coordinate between neighbouring pixels behind a microlens."""
+        return self.pixel_pitch_mm * self.exit_pupil_distance_mm / self.ml_focal_length_mm
 
     def aperture_u_of_offset(self, offset_mm):
-        """Aperture coordinate seen by a pixel ``offset_mm`` from its microlens image centre."""
-        return -np.asarray(offset_mm) * self.image_distance_mm / self.ml_focal_length_mm
+        """Exit-pupil coordinate seen by a pixel ``offset_mm`` from its microlens image
+        centre, ``-offset d / f_ml``."""
+        return -np.asarray(offset_mm) * self.exit_pupil_distance_mm / self.ml_focal_length_mm
 
     # ---- microlens layout --------------------------------------------------------
     def _rotation(self) -> tuple[float, float]:
@@ -263,7 +322,7 @@ class Camera:
         return np.stack([x, y], axis=-1)
 
     def ideal_microlens_centers(self) -> np.ndarray:
-        """Microlens image centres ``c_k = x_k (1 + f_ml/s_i)`` as ``(col, row)`` pixels."""
+        """Microlens image centres ``c_k = x_k (1 + f_ml/d)`` as ``(col, row)`` pixels."""
         ck = self.microlens_positions_mm() * self.lens_image_scale
         return self.mm_to_px(ck)
 
@@ -319,20 +378,36 @@ class Camera:
 
     def describe(self) -> str:
         """A short human-readable summary of the derived optics."""
+        thick = "" if self.is_thin_lens else (
+            f", exit pupil {self.exit_pupil_diameter_mm:.2f} mm wide "
+            f"{self.exit_pupil_distance_mm:.2f} mm before the array (working "
+            f"f/{self.working_f_number:.2f}), focal plane {self.focal_plane_distance_mm:.2f} "
+            "mm from the array")
         return (
             f"f={self.focal_length_mm:g} mm f/{self.f_number:g} |M|={self.magnification:g}: "
             f"s_o={self.object_distance_mm:.2f} mm, s_i={self.image_distance_mm:.2f} mm, "
-            f"D={self.aperture_diameter_mm:.2f} mm; {self.ml_count[0]}x{self.ml_count[1]} "
+            f"D={self.aperture_diameter_mm:.2f} mm{thick}; "
+            f"{self.ml_count[0]}x{self.ml_count[1]} "
             f"microlenses, {self.pixels_per_microlens:.2f} px each, image fill "
             f"{100 * self.microlens_image_fill:.1f}%"
         )
 
+    @property
+    def is_thin_lens(self) -> bool:
+        """Whether the main lens is the thin one (``m_p = 1``, no principal-plane gap)."""
+        return self.pupil_magnification == 1.0 and self.principal_plane_separation_mm == 0.0
+
     # ---- files ------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """The camera as TOML-ready nested dictionaries (docs/design.md §2 keys)."""
+        """The camera as TOML-ready nested dictionaries (docs/design.md §2 keys; a thick
+        lens's two keys only when they differ from the thin lens)."""
+        lens = {"focal_length_mm": self.focal_length_mm, "f_number": self.f_number,
+                "magnification": self.magnification}
+        if not self.is_thin_lens:
+            lens["pupil_magnification"] = self.pupil_magnification
+            lens["principal_plane_separation_mm"] = self.principal_plane_separation_mm
         doc = {
-            "main_lens": {"focal_length_mm": self.focal_length_mm, "f_number": self.f_number,
-                          "magnification": self.magnification},
+            "main_lens": lens,
             "microlens_array": {"pitch_mm": self.ml_pitch_mm,
                                 "focal_length_mm": self.ml_focal_length_mm,
                                 "count": list(self.ml_count),
@@ -358,6 +433,8 @@ class Camera:
             kwargs = dict(
                 focal_length_mm=lens["focal_length_mm"], f_number=lens["f_number"],
                 magnification=lens["magnification"], ml_pitch_mm=mla["pitch_mm"],
+                pupil_magnification=lens.get("pupil_magnification", 1.0),
+                principal_plane_separation_mm=lens.get("principal_plane_separation_mm", 0.0),
                 ml_focal_length_mm=mla["focal_length_mm"], ml_count=mla["count"],
                 ml_rotation_deg=mla.get("rotation_deg", 0.0),
                 ml_offset_mm=mla.get("offset_mm", (0.0, 0.0)),
@@ -399,7 +476,8 @@ PRESETS = {"paper": Camera.paper_16mp, "synthetic": Camera.synthetic_850}
 
 #: The sections of a camera file and the keys each may hold (docs/design.md §2).
 CAMERA_KEYS = {
-    "main_lens": ("focal_length_mm", "f_number", "magnification"),
+    "main_lens": ("focal_length_mm", "f_number", "magnification", "pupil_magnification",
+                  "principal_plane_separation_mm"),
     "microlens_array": ("pitch_mm", "focal_length_mm", "count", "rotation_deg", "offset_mm"),
     "sensor": ("pixel_pitch_mm", "pixels", "crop_origin"),
     "calibration": ("centers_col", "centers_row"),

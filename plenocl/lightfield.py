@@ -7,7 +7,7 @@ Coordinates
   around ``c_k`` on the calibrated lattice, contains it) sits at offset ``d`` (mm) from
   ``c_k`` and sees the aperture point ``u = -d s_i / f_ml`` (same for ``v``); its
   spatial coordinate is the lens position on the array plane
-  ``x_k = c_k / (1 + f_ml / s_i)`` (:func:`pixel_coordinates`).
+  ``x_k = c_k / (1 + f_ml / d)`` (:func:`pixel_coordinates`).
 * :class:`LightField` resamples the image onto one **plaid** ``(u, v)`` grid shared by
   all lenses (bilinear between the pixels behind the same lens, since the ``(u, v)``
   of a pixel differs slightly from lens to lens): ``views[iv, iu, ky, kx]``. The
@@ -137,7 +137,7 @@ def pixel_coordinates(camera: Camera) -> PixelCoordinates:
     c_mm = camera.px_to_mm(c_px)
     uv = camera.aperture_u_of_offset(camera.px_to_mm(pix) - c_mm)
     xy = array_plane_positions(camera, c_px)
-    radius = camera.aperture_diameter_mm / 2
+    radius = camera.exit_pupil_diameter_mm / 2
     valid = inside & np.isfinite(c_px).all(-1) & (np.hypot(uv[..., 0], uv[..., 1]) <= radius)
     nan = np.where(inside[..., None] & np.isfinite(c_px), 1.0, np.nan)
     xy, uv = xy * nan, uv * nan
@@ -157,13 +157,14 @@ def plaid_uv(camera: Camera, step_mm: float | None = None) -> np.ndarray:
     step = pixel_footprint_mm(camera) if step_mm is None else float(step_mm)
     if not (math.isfinite(step) and step > 0):
         raise ValueError(f"the (u, v) step must be a positive number of mm, got {step_mm!r}")
-    half = int(math.floor(camera.aperture_diameter_mm / 2 / step + 1e-9))
+    half = int(math.floor(camera.exit_pupil_diameter_mm / 2 / step + 1e-9))
     return np.arange(-half, half + 1) * step
 
 
 def pixel_footprint_mm(camera: Camera) -> float:
-    """Width of one pixel's view of the aperture, ``p_px s_i / f_ml`` (mm)."""
-    return camera.pixel_pitch_mm * camera.image_distance_mm / camera.ml_focal_length_mm
+    """Width of one pixel's view of the exit pupil, ``p_px d / f_ml`` (mm; a thin lens:
+    ``d = s_i``)."""
+    return camera.pixel_pupil_footprint_mm
 
 
 # ---- the light field ------------------------------------------------------------------
@@ -171,7 +172,7 @@ def resample_light_field(image, camera: Camera, u: np.ndarray, v: np.ndarray,
                          centers: np.ndarray) -> np.ndarray:
     """Sample the raw image at every lens's pixel positions of the plaid ``(u, v)`` grid.
 
-    Sample ``(u, v)`` of lens ``k`` lies at ``c_k - (u, v) f_ml / s_i`` on the sensor; it is
+    Sample ``(u, v)`` of lens ``k`` lies at ``c_k - (u, v) f_ml / d`` on the sensor; it is
     interpolated bilinearly from the pixels *behind lens k* only (taps on a neighbour's
     pixels are dropped and the weights renormalised), so the rim of one microlens image
     never borrows light from the next.
@@ -186,8 +187,8 @@ def resample_light_field(image, camera: Camera, u: np.ndarray, v: np.ndarray,
     owner = lens_owner(camera, centers)
     rows, cols = centers.shape[:2]
     lens_id = np.arange(rows * cols, dtype=np.int32).reshape(rows, cols)
-    scale = camera.ml_focal_length_mm / camera.image_distance_mm / camera.pixel_pitch_mm
-    aperture = np.hypot(u[None, :], v[:, None]) <= camera.aperture_diameter_mm / 2 + 1e-9
+    scale = 1 / camera.pixel_pupil_footprint_mm
+    aperture = np.hypot(u[None, :], v[:, None]) <= camera.exit_pupil_diameter_mm / 2 + 1e-9
     out = np.full((len(v), len(u), rows, cols), np.nan, np.float32)
     for iv in range(len(v)):  # one plaid row at a time bounds the memory
         col = centers[None, ..., 0] - scale * u[:, None, None]
@@ -284,7 +285,7 @@ class LightField:
         numpy.ndarray
             ``(rows, cols)`` float32, one value per microlens (``NaN``: no sample).
         """
-        radius = self.camera.aperture_diameter_mm / 2
+        radius = self.camera.exit_pupil_diameter_mm / 2
         if not math.hypot(u_mm, v_mm) <= radius:
             raise ValueError(f"(u, v) = ({u_mm}, {v_mm}) mm lies outside the aperture of "
                              f"radius {radius:.3f} mm")

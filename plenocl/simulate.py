@@ -158,7 +158,7 @@ class Simulator:
             self._k.launch(
                 "trace_particles", (blocks, n), pts, q, gain, shift, image,
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
-                np.float32(cam.aperture_diameter_mm / 2), np.float32(cam.image_distance_mm),
+                np.float32(cam.exit_pupil_diameter_mm / 2), np.float32(cam.exit_pupil_distance_mm),
                 np.float32(cam.ml_focal_length_mm),
                 np.float32(blur_px * cam.pixel_pitch_mm), *self._geometry_args())
         return self._read_image(image, scale)
@@ -185,8 +185,8 @@ class Simulator:
             self._k.launch(
                 "trace_white", (blocks, n), gain, shift, image, quantum[0],
                 np.uint32(seed), np.uint32(start), np.uint32(rays), np.uint32(RAYS_PER_ITEM),
-                np.float32(cam.focal_length_mm / stop_f_number / 2),
-                np.float32(cam.image_distance_mm), np.float32(cam.ml_focal_length_mm),
+                np.float32(cam.exit_pupil_diameter_at(stop_f_number) / 2),
+                np.float32(cam.exit_pupil_distance_mm), np.float32(cam.ml_focal_length_mm),
                 np.float32(blur_px * cam.pixel_pitch_mm), *self._geometry_args())
         return self._read_image(image, scale)
 
@@ -218,7 +218,7 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
     lens_shift_mm
         Optional ``(rows, cols, 2)`` displacement of each lens from its lattice node on
         the array plane (mm; manufacturing errors, at most a quarter pitch). A displaced
-        lens's image centre moves by ``(1 + f_ml/s_i)`` times its shift.
+        lens's image centre moves by ``(1 + f_ml/d)`` times its shift.
     queue
         OpenCL queue, context, device or device-name substring.
 
@@ -269,13 +269,14 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
     """Simulate a white (calibration) image taken with the main lens stopped down.
 
     Each microlens images the small stopped-down aperture as a spot centred at
-    ``c_k = x_k (1 + f_ml / s_i)`` (docs/design.md §2).
+    ``c_k = x_k (1 + f_ml / d)`` (``d``: the exit pupil's distance from the array;
+    docs/design.md §2).
 
     Parameters
     ----------
     stop_f_number
         The f-number the main lens is stopped down to (spot diameter
-        ``f_ml (f / N_stop) / s_i``).
+        ``f_ml m_p (f / N_stop) / d``).
     rays_per_lens, intensity
         Rays traced per microlens and the total counts each lens receives.
     blur_px
@@ -311,6 +312,6 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
 
 def centre_shift_px(camera: Camera, lens_shift_mm) -> np.ndarray:
     """How far (pixels, ``(col, row)``) each microlens image centre moves when its lens
-    is displaced by ``lens_shift_mm`` on the array plane: ``(1 + f_ml/s_i) / p_px`` times."""
+    is displaced by ``lens_shift_mm`` on the array plane: ``(1 + f_ml/d) / p_px`` times."""
     d = np.asarray(lens_shift_mm, dtype=np.float64)
     return d * camera.lens_image_scale / camera.pixel_pitch_mm

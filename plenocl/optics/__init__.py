@@ -2,7 +2,7 @@
 
 - :mod:`.lattice`: the microlens lattice (:class:`LensLattice`, :class:`RectangularLattice`
   and the affine fit of the calibrated centres);
-- :mod:`.imaging`: the imaging relation ``c_k = x_k (1 + f_ml/s_i)`` between a lens's
+- :mod:`.imaging`: the imaging relation ``c_k = x_k (1 + f_ml/d)`` between a lens's
   array-plane position and its image centre on the sensor;
 - :mod:`.ownership`: which lens a sensor pixel lies behind;
 - :mod:`.rawimage`: the raw image's checks against the camera, the pixel mask, the

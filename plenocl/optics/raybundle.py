@@ -3,9 +3,11 @@
 (:mod:`plenocl.piv.imagefit`) matches to the raw image.
 
 The rays are those of the simulator (docs/design.md §2, §8): from the image point
-``X' = (X', Y', s_i')`` of the particle through a point ``u`` of the main-lens aperture to
-``x = u + (X' - u) s_i / s_i'`` on the microlens array, and from the microlens ``k`` that
-holds ``x`` to ``x_k + f_ml (X' - u) / s_i'`` on the sensor. The aperture is sampled on
+``X' = (X', Y', d')`` of the particle (``d'``: its distance from the exit pupil,
+:meth:`plenocl.Camera.image_points`) through a point ``u`` of the exit pupil to
+``x = u + (X' - u) d / d'`` on the microlens array (``d``: the pupil's distance from the
+array; a thin lens: ``s_i`` and ``s_i'``), and from the microlens ``k`` that holds ``x``
+to ``x_k + f_ml (X' - u) / d'`` on the sensor. The aperture is sampled on
 a fixed sunflower pattern instead of at random, each ray lands as a pixel-integrated
 Gaussian of the optics' blur, and a ray within a ramp of a cell edge is shared between
 the two lenses, so the image is a smooth function of ``X'``: its derivatives are exact
@@ -44,7 +46,7 @@ def sunflower(n: int) -> np.ndarray:
 class Spots:
     """Where each (particle, ray, lens) lands: ``pid`` (particle), ``col``/``row``
     (pixels), ``weight`` (the ray's share of this lens) and the derivatives with
-    respect to the image point ``(X', Y', s_i')``: ``dweight`` ``(3, M)``, ``dcol_dx``
+    respect to the image point ``(X', Y', d')``: ``dweight`` ``(3, M)``, ``dcol_dx``
     (equal to ``drow/dY'``), ``dcol_ds``, ``drow_ds``."""
 
     pid: np.ndarray
@@ -108,7 +110,7 @@ class RayBundle:
         fit = RectangularLattice.fit(lenses).model
         inverse = np.linalg.inv(fit[:2])
         to_lattice = np.vstack([inverse, -fit[2] @ inverse])
-        aperture = sunflower(int(rays)) * camera.aperture_diameter_mm / 2
+        aperture = sunflower(int(rays)) * camera.exit_pupil_diameter_mm / 2
         return cls(camera, aperture, lenses, to_lattice, float(blur_px))
 
     @property
@@ -119,21 +121,21 @@ class RayBundle:
     def _ramp(self, s_ip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Half-width (lattice units) over which a ray is shared between two lenses, the
         spacing of the aperture samples on the array plane, per particle; and its
-        derivative by ``s_i'``."""
+        derivative by ``d'``."""
         cam = self.camera
-        spacing = cam.aperture_diameter_mm / 2 * np.sqrt(np.pi / self.rays) / cam.ml_pitch_mm
-        rho = cam.image_distance_mm / s_ip
+        spacing = cam.exit_pupil_diameter_mm / 2 * np.sqrt(np.pi / self.rays) / cam.ml_pitch_mm
+        rho = cam.exit_pupil_distance_mm / s_ip
         ramp = spacing * np.abs(1 - rho)
-        slope = spacing * np.sign(1 - rho) * cam.image_distance_mm / s_ip**2
+        slope = spacing * np.sign(1 - rho) * cam.exit_pupil_distance_mm / s_ip**2
         floor = ramp < RAMP_FLOOR
         return np.where(floor, RAMP_FLOOR, ramp), np.where(floor, 0.0, slope)
 
     def spots(self, image_points: np.ndarray) -> Spots:
-        """Every ray of every particle ``image_points`` ``(P, 3)`` ``(X', Y', s_i')``
+        """Every ray of every particle ``image_points`` ``(P, 3)`` ``(X', Y', d')``
         (:meth:`plenocl.Camera.image_points`) on the sensor."""
         cam = self.camera
         s_ip = image_points[:, 2]
-        rho = cam.image_distance_mm / s_ip
+        rho = cam.exit_pupil_distance_mm / s_ip
         e = image_points[:, None, :2] - self.aperture[None]  # (P, N, 2): X' - u
         x = self.aperture[None] + e * rho[:, None, None]
         lat = x @ self.to_lattice[:2] + self.to_lattice[2]
@@ -164,10 +166,10 @@ class RayBundle:
         ee = e[pid, ray]
         sensor = centre + f * ee / s_ip[:, None]
         colrow = cam.mm_to_px(sensor)
-        # lattice coordinates move with x = u + e rho: dx/dX' = rho, dx/ds' = -e s_i/s'^2
+        # lattice coordinates move with x = u + e rho: dx/dX' = rho, dx/dd' = -e d/d'^2
         inv = self.to_lattice[:2]
         dlat = [rho[pid, None] * inv[0], rho[pid, None] * inv[1],
-                (-ee * cam.image_distance_mm / s_ip[:, None] ** 2) @ inv]
+                (-ee * cam.exit_pupil_distance_mm / s_ip[:, None] ** 2) @ inv]
         (wx, dwx, rwx), (wy, dwy, rwy) = share_x, share_y
         dweight = np.stack([dwx * wy * d[:, 0] + wx * dwy * d[:, 1] for d in dlat])
         dweight[2] += (rwx * wy + wx * rwy) * dramp  # the ramp widens with defocus
@@ -179,8 +181,8 @@ class RayBundle:
         the array plane grown by a lens and ``margin`` pixels."""
         cam = self.camera
         s_ip = image_points[:, 2]
-        rho = cam.image_distance_mm / s_ip
-        radius = cam.aperture_diameter_mm / 2 * np.abs(1 - rho) + cam.ml_pitch_mm
+        rho = cam.exit_pupil_distance_mm / s_ip
+        radius = cam.exit_pupil_diameter_mm / 2 * np.abs(1 - rho) + cam.ml_pitch_mm
         centre = image_points[:, :2] * rho[:, None]
         scale = cam.lens_image_scale
         lo = cam.mm_to_px((centre - radius[:, None]) * scale) - margin
@@ -197,7 +199,7 @@ class RayBundle:
         """The particles' images on their patches and the derivatives.
 
         Returns the patch elements the light reaches ``(n,)`` (ascending; the rest are
-        zero) and their rows ``(5, n)``: value, d/dX', d/dY', d/ds_i' and d/dI; the
+        zero) and their rows ``(5, n)``: value, d/dX', d/dY', d/dd' and d/dI; the
         value row alone ``(1, n)`` without ``derivatives``.
         """
         s = self.spots(image_points)

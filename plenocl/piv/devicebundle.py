@@ -74,9 +74,9 @@ class DeviceRayBundle:
         self._aperture = k.to_device(bundle.aperture.astype(f32))
         self._lenses = k.to_device(self._lens_pixels().astype(f32))
         lattice = tuple(f32(v) for v in bundle.to_lattice.ravel())
-        spacing = cam.aperture_diameter_mm / 2 * np.sqrt(np.pi / bundle.rays) / cam.ml_pitch_mm
+        spacing = cam.exit_pupil_diameter_mm / 2 * np.sqrt(np.pi / bundle.rays) / cam.ml_pitch_mm
         self._f_px = f32(cam.ml_focal_length_mm / cam.pixel_pitch_mm)
-        self._optics = (*lattice, f32(cam.image_distance_mm), self._f_px, f32(spacing),
+        self._optics = (*lattice, f32(cam.exit_pupil_distance_mm), self._f_px, f32(spacing),
                         *_spread_constants(bundle.blur_px))
 
     def _kernels(self, derivatives: bool) -> KernelSet:

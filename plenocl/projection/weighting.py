@@ -62,9 +62,8 @@ class ApertureGrid:
         """The grid whose step is one pixel's aperture footprint over ``oversample``."""
         if not (math.isfinite(oversample) and oversample > 0):
             raise ValueError(f"oversample must be a positive number, got {oversample!r}")
-        footprint = camera.pixel_pitch_mm * camera.image_distance_mm / camera.ml_focal_length_mm
-        step = footprint / oversample
-        radius = camera.aperture_diameter_mm / 2
+        step = camera.pixel_pupil_footprint_mm / oversample
+        radius = camera.exit_pupil_diameter_mm / 2
         k = int(math.floor(radius / step + 1e-9))
         # the outermost columns must hold a sample by the very test inside() applies
         while k > 0 and ((0 - k) * step) ** 2 > radius**2:
@@ -107,13 +106,13 @@ class ApertureGrid:
         return frame @ rotation_matrix(self.rotation_deg).T
 
     def pixels_per_step(self, camera: Camera) -> float:
-        """Sensor pixels per sample step behind a microlens, ``step f_ml / (s_i p_px)``."""
+        """Sensor pixels per sample step behind a microlens, ``step f_ml / (d p_px)``."""
         return self.step * camera.ml_focal_length_mm / (
-            camera.image_distance_mm * camera.pixel_pitch_mm)
+            camera.exit_pupil_distance_mm * camera.pixel_pitch_mm)
 
     def pixel_offsets(self, camera: Camera) -> np.ndarray:
         """``(n_samples, 2)`` float32: where each sample lands behind a microlens, in
-        pixels ``(col, row)`` from the lens's image centre, ``-(u, v) f_ml / (s_i p_px)``.
+        pixels ``(col, row)`` from the lens's image centre, ``-(u, v) f_ml / (d p_px)``.
 
         Rounded as the kernels used to compute it (``-(b * dug)`` in float32) when the
         frame is the sensor's, so that table and arithmetic agree bit for bit.
@@ -149,7 +148,7 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
                    rotation_deg: float = 0.0) -> LensIndexMap:
     """Fit the affine lens layout to the (calibrated) centres and invert it.
 
-    The array-plane position of lens ``k`` is ``x_k = c_k / (1 + f_ml/s_i)``
+    The array-plane position of lens ``k`` is ``x_k = c_k / (1 + f_ml/d)``
     (docs/design.md §2) with ``c_k`` its image centre in sensor mm; NaN centres are
     ignored. The map takes array-plane points in the coordinates of a frame rotated by
     ``rotation_deg`` about the optical axis (the reconstruction grid's). When the fitted
@@ -186,9 +185,8 @@ def depth_coefficients(camera: Camera, grid: Grid, lens_map: LensIndexMap,
     ``G⁻¹`` and the row sums of ``|G⁻¹|``.
     """
     z = grid.axis_centers("z")
-    sip = camera.image_distance_at(z)
-    alpha = sip / camera.image_distance_mm
-    mag = sip / (camera.object_distance_mm + z)  # X' = -mag x
+    alpha = camera.alpha(z)
+    mag = camera.image_distance_at(z) / (camera.object_distance_mm + z)  # X' = -mag x
     _, dy, dx = grid.spacing
     m = lens_map.matrix
     out = np.zeros((len(z), 16))

@@ -88,18 +88,20 @@ def trace_particles(cam: Camera, positions, intensities, rays_per_particle: int,
 
     Each ray leaves the particle, crosses a uniformly sampled point ``(u, v)`` of the
     circular aperture, passes the image point ``X'`` and meets the array plane at
-    ``x = u + (X' - u) s_i / s_i'``; the microlens ``k`` it enters sends it to
-    ``x_k + f_ml (X' - u) / s_i'`` on the sensor. Each ray carries ``I / rays``.
+    ``x = u + (X' - u) d / d'`` (``d``, ``d'``: the array's and the image point's
+    distances from the exit pupil, :meth:`plenocl.Camera.image_points`; a thin lens: ``s_i``,
+    ``s_i'``); the microlens ``k`` it enters sends it to ``x_k + f_ml (X' - u) / d'`` on
+    the sensor. Each ray carries ``I / rays``.
     """
     img_pts = cam.image_points(positions)
     intens = np.broadcast_to(np.asarray(intensities, float), (len(img_pts),))
     src, ray = np.meshgrid(np.arange(len(img_pts)), np.arange(rays_per_particle), indexing="ij")
-    radius = cam.aperture_diameter_mm / 2 * np.sqrt(_uniform(random_words(seed, src, ray, 0)))
+    radius = cam.exit_pupil_diameter_mm / 2 * np.sqrt(_uniform(random_words(seed, src, ray, 0)))
     theta = 2 * np.pi * _uniform(random_words(seed, src, ray, 1))
     u, v = radius * np.cos(theta), radius * np.sin(theta)
     xp, yp, sip = (img_pts[:, k, None] for k in range(3))
-    x = u + (xp - u) * cam.image_distance_mm / sip
-    y = v + (yp - v) * cam.image_distance_mm / sip
+    x = u + (xp - u) * cam.exit_pupil_distance_mm / sip
+    y = v + (yp - v) * cam.exit_pupil_distance_mm / sip
     kx, ky, inside = _lens_lookup(cam, x, y)
     keep = _transmitted(seed, src, ray, kx, ky, inside, lens_transmission)
     centres = _centres(cam, lens_shift_mm)[ky, kx]
@@ -118,7 +120,7 @@ def trace_white(cam: Camera, stop_f_number: float, rays_per_lens: int, seed: int
 
     A uniform white field lights every point of each microlens; rays come from a
     uniformly sampled point of the stopped-down aperture (diameter ``f / N_stop``)
-    and reach the sensor at ``x_k + f_ml (x - u) / s_i``. Each lens receives
+    and reach the sensor at ``x_k + f_ml (x - u) / d``. Each lens receives
     ``intensity`` in total (times its transmission).
     """
     nx, ny = cam.ml_count
@@ -129,13 +131,13 @@ def trace_white(cam: Camera, stop_f_number: float, rays_per_lens: int, seed: int
     b = (_uniform(random_words(seed, src, ray, 6)) - 0.5) * cam.ml_pitch_mm
     c, s = np.cos(np.radians(cam.ml_rotation_deg)), np.sin(np.radians(cam.ml_rotation_deg))
     x, y = centres[..., 0] + c * a - s * b, centres[..., 1] + s * a + c * b
-    radius = cam.focal_length_mm / stop_f_number / 2 * np.sqrt(
+    radius = cam.exit_pupil_diameter_at(stop_f_number) / 2 * np.sqrt(
         _uniform(random_words(seed, src, ray, 0)))
     theta = 2 * np.pi * _uniform(random_words(seed, src, ray, 1))
     u, v = radius * np.cos(theta), radius * np.sin(theta)
     keep = _transmitted(seed, src, ray, kx, ky, np.ones_like(kx, bool), lens_transmission)
-    sx = centres[..., 0] + cam.ml_focal_length_mm * (x - u) / cam.image_distance_mm
-    sy = centres[..., 1] + cam.ml_focal_length_mm * (y - v) / cam.image_distance_mm
+    sx = centres[..., 0] + cam.ml_focal_length_mm * (x - u) / cam.exit_pupil_distance_mm
+    sy = centres[..., 1] + cam.ml_focal_length_mm * (y - v) / cam.exit_pupil_distance_mm
     if blur_px > 0:
         gx, gy = _gauss_pair(seed, src, ray)
         sx, sy = sx + gx * blur_px * cam.pixel_pitch_mm, sy + gy * blur_px * cam.pixel_pitch_mm

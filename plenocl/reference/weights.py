@@ -9,7 +9,7 @@ A voxel's column of the weight matrix, literally the paper's four steps:
    microlens index units it falls between four microlens centres, which get the
    bilinear weights ``(1 - t_x)(1 - t_y) … t_x t_y``;
 3. behind each of those microlenses the sample's ``(u, v)`` lands at the sensor point
-   ``c_k - u f_ml / s_i`` (``c_k``: that lens's calibrated image centre), between four
+   ``c_k - u f_ml / d`` (``c_k``: that lens's calibrated image centre), between four
    pixel centres with bilinear weights ``(1 - t_u)(1 - t_v) … t_u t_v``;
 4. the sixteen products accumulate onto pixels and are normalised so that the voxel's
    weights over *all* samples sum to one. Products landing off the sensor, on a missing
@@ -69,7 +69,7 @@ def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
     # a frame point is in the frame too. Only step 3 needs the sensor's axes.
     centre = [grid.axis_centers("x")[ix], grid.axis_centers("y")[iy], grid.axis_centers("z")[iz]]
     xp, yp, sip = camera.image_points(centre)[0]
-    alpha = sip / camera.image_distance_mm
+    alpha = sip / camera.exit_pupil_distance_mm  # = camera.alpha(z): sip is d' (image_points)
     # Step 1: plaid aperture samples inside the circle, along the frame's axes.
     ap = ApertureGrid.for_camera(camera, oversample, grid.rotation_deg)
     i, j = ap.samples()
@@ -101,7 +101,7 @@ def _lens_to_pixels(camera: Camera, kx, ky, u, v, w_lens):
     inside = (kx >= 0) & (kx < cols) & (ky >= 0) & (ky < rows)
     centre = camera.microlens_centers[np.clip(ky, 0, rows - 1), np.clip(kx, 0, cols - 1)]
     inside &= np.isfinite(centre).all(axis=-1)
-    g = camera.ml_focal_length_mm / (camera.image_distance_mm * camera.pixel_pitch_mm)
+    g = camera.ml_focal_length_mm / (camera.exit_pupil_distance_mm * camera.pixel_pitch_mm)
     c0, tu = _bilinear_corners(np.where(inside, centre[:, 0] - u * g, 0.0))
     r0, tv = _bilinear_corners(np.where(inside, centre[:, 1] - v * g, 0.0))
     pix, wts = [], []
