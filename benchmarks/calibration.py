@@ -8,12 +8,17 @@ and matching, in the same run.
 
     python benchmarks/calibration.py [--camera synthetic|paper] [--seeds 3]
 
+Hexagonal rows (issue 29): the same camera's lenses in a hexagonal array of the same
+pitch (rows 0.866 pitch apart, odd rows half a pitch along; as many columns, and as many
+rows as the sensor holds), stopped down and at full aperture.
+
 The truth is ``camera.ideal_microlens_centers()`` of the camera that made the image;
 the calibration sees only the nominal camera (no rotation, no offset).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import time
 
@@ -47,6 +52,31 @@ CASES = {**CALIBRATION_CASES,
                                              intensity=1e5, rays_per_lens=50000))}
 
 
+#: The hexagonal array's cases (the true layout is hexagonal in each).
+HEX_CASES = {
+    "hex: clean": (dict(), dict()),
+    "hex: rotated +2 deg, shifted, noisy": (
+        dict(ml_rotation_deg=2.0, ml_offset_mm=(0.04, -0.03)),
+        dict(photon_noise=True, read_noise=2.0, bit_depth=16)),
+    "hex: odd rows -0.5, -1 deg, noisy": (dict(ml_odd_row_shift=-0.5, ml_rotation_deg=-1.0),
+                                          dict(photon_noise=True)),
+    "hex: small spots, 0.2 deg, lenses 0.1 px off": (
+        dict(ml_rotation_deg=0.2), dict(EXPOSED, blur_px=0.3, lens_shift_px=0.1)),
+    "hex: full aperture, 0.3 deg, vign. 50 %": (
+        dict(ml_rotation_deg=0.3), dict(EXPOSED, stop_f_number=2.0, vignetting=0.5,
+                                        intensity=1e5, rays_per_lens=50000)),
+}
+
+
+def hexagonal(base: Camera, shift: float = 0.5) -> Camera:
+    """``base`` with a hexagonal array of the same pitch and columns, as many rows as fill
+    its sensor (the even rows' outer centres within half a row of its edges)."""
+    row_px = base.microlens_image_pitch_mm * 3**0.5 / 2 / base.pixel_pitch_mm
+    rows = int((base.pixels[1] - 1) / row_px)
+    return dataclasses.replace(base, ml_layout="hexagonal", ml_count=(base.ml_count[0], rows),
+                               ml_odd_row_shift=shift, microlens_centers=None)
+
+
 def run_case(base: Camera, layout: dict, sim: dict, seed: int, queue) -> tuple:
     """One white image: (box, centroid, model, combined RMS, found, lenses, seconds)."""
     white, truth = white_case(base, layout, sim, seed, queue)
@@ -72,8 +102,11 @@ def main() -> None:
     print("centre RMS error (px, 2-D) against the truth:")
     print(f"{'case':46s} {'box cen.':>9s} {'win cen.':>9s} {'model':>7s} {'combined':>9s} "
           f"{'found':>12s} {'calib s':>8s}")
-    for name, (layout, sim) in CASES.items():
-        runs = [run_case(base, layout, sim, seed, queue) for seed in range(args.seeds)]
+    cases = [(base, name, case) for name, case in CASES.items()]
+    cases += [(hexagonal(base, case[0].get("ml_odd_row_shift", 0.5)), name, case)
+              for name, case in HEX_CASES.items()]
+    for camera, name, (layout, sim) in cases:
+        runs = [run_case(camera, layout, sim, seed, queue) for seed in range(args.seeds)]
         box, cen, fit, comb, found, total, sec = (statistics.median(r[i] for r in runs)
                                                   for i in range(7))
         print(f"{name:46s} {box:9.4f} {cen:9.4f} {fit:7.4f} {comb:9.4f} "

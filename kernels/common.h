@@ -49,12 +49,16 @@ inline int pl_ifloor(float x)
     return i - (x < (float)i);
 }
 
-/* Microlens geometry on the array plane (docs/design.md §2), rotation (c, s) and offset. */
+/* Microlens geometry on the array plane (docs/design.md §2), rotation (c, s) and offset.
+ * A rectangular array has row = pitch and odd = 0; a hexagonal one row = pitch sqrt(3)/2
+ * and its odd rows shifted by odd = +-0.5 pitches along the row. */
 typedef struct {
     float pitch;    /* microlens pitch, mm */
     float c, s;     /* cos, sin of the array rotation */
     float ox, oy;   /* array offset, mm */
     int nx, ny;     /* lenses: columns, rows */
+    float row;      /* distance between rows, mm */
+    float odd;      /* shift of the odd rows, pitches */
 } pl_mla;
 
 /* Index of the microlens containing array-plane point (x, y); -1 when outside. */
@@ -63,8 +67,23 @@ inline int pl_lens_index(const pl_mla m, float x, float y, int *kx, int *ky)
     float dx = x - m.ox, dy = y - m.oy;
     float a = m.c * dx + m.s * dy;      /* rotate into the array frame */
     float b = -m.s * dx + m.c * dy;
-    int ix = pl_ifloor(a / m.pitch + 0.5f * (float)m.nx);
-    int iy = pl_ifloor(b / m.pitch + 0.5f * (float)m.ny);
+    int ix, iy;
+    if (m.odd == 0.0f) {
+        ix = pl_ifloor(a / m.pitch + 0.5f * (float)m.nx);
+        iy = pl_ifloor(b / m.pitch + 0.5f * (float)m.ny);
+    } else {
+        /* hexagonal: the nearest centre lies in one of the two rows around the point */
+        float fy = b / m.row + 0.5f * (float)(m.ny - 1), best = INFINITY;
+        int r0 = pl_ifloor(fy);
+        ix = iy = -1;
+        for (int r = r0; r <= r0 + 1; ++r) {
+            float fx = a / m.pitch + 0.5f * (float)(m.nx - 1) - m.odd * (float)(r & 1);
+            int k = pl_ifloor(fx + 0.5f);
+            float ex = (fx - (float)k) * m.pitch, ey = (fy - (float)r) * m.row;
+            float d2 = ex * ex + ey * ey;
+            if (d2 < best) { best = d2; ix = k; iy = r; }
+        }
+    }
     if (ix < 0 || iy < 0 || ix >= m.nx || iy >= m.ny) return -1;
     *kx = ix;
     *ky = iy;
@@ -74,8 +93,8 @@ inline int pl_lens_index(const pl_mla m, float x, float y, int *kx, int *ky)
 /* Centre of microlens (kx, ky) on the array plane, mm. */
 inline float2 pl_lens_center(const pl_mla m, int kx, int ky)
 {
-    float a = ((float)kx - 0.5f * (float)(m.nx - 1)) * m.pitch;
-    float b = ((float)ky - 0.5f * (float)(m.ny - 1)) * m.pitch;
+    float a = ((float)kx - 0.5f * (float)(m.nx - 1) + m.odd * (float)(ky & 1)) * m.pitch;
+    float b = ((float)ky - 0.5f * (float)(m.ny - 1)) * m.row;
     return (float2)(m.c * a - m.s * b + m.ox, m.s * a + m.c * b + m.oy);
 }
 

@@ -32,9 +32,9 @@ __kernel void trace_particles(
     uint seed, uint src_offset, uint rays, uint rays_per_item,
     float aperture_radius, float d_p, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
-    float px_pitch, int width, int height)
+    float ml_row, float ml_odd, float px_pitch, int width, int height)
 {
-    const pl_mla m = {ml_pitch, ml_cos, ml_sin, ml_ox, ml_oy, nx, ny};
+    const pl_mla m = {ml_pitch, ml_cos, ml_sin, ml_ox, ml_oy, nx, ny, ml_row, ml_odd};
     const uint p = get_global_id(1);
     const uint src = src_offset + p;
     const float4 ip = img_pts[p];
@@ -60,6 +60,20 @@ __kernel void trace_particles(
     }
 }
 
+/* A uniform point of a lens's cell (array frame, from its centre) from two uniform
+ * numbers: the pitch x row rectangle, for a hexagonal array with the four corners that lie
+ * outside the (pointy-top) hexagon folded into its tips (the same area, point-reflected
+ * about the middle of each rectangle half-edge). */
+inline float2 pl_cell_point(const pl_mla m, float u1, float u2)
+{
+    float a = (u1 - 0.5f) * m.pitch, b = (u2 - 0.5f) * m.row;
+    if (m.odd != 0.0f && fabs(b) > m.pitch * 0.57735027f - fabs(a) * 0.57735027f) {
+        a = copysign(0.5f * m.pitch, a) - a;
+        b = copysign(m.row, b) - b;
+    }
+    return (float2)(a, b);
+}
+
 /* Rays of a white calibration image: uniform light over each microlens, from a
  * stopped-down aperture of radius stop_radius. Source = lens index ky * nx + kx. */
 __kernel void trace_white(
@@ -68,9 +82,9 @@ __kernel void trace_white(
     uint seed, uint src_offset, uint rays, uint rays_per_item,
     float stop_radius, float d_p, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
-    float px_pitch, int width, int height)
+    float ml_row, float ml_odd, float px_pitch, int width, int height)
 {
-    const pl_mla m = {ml_pitch, ml_cos, ml_sin, ml_ox, ml_oy, nx, ny};
+    const pl_mla m = {ml_pitch, ml_cos, ml_sin, ml_ox, ml_oy, nx, ny, ml_row, ml_odd};
     const uint src = src_offset + get_global_id(1);
     if (src >= (uint)(nx * ny)) return;
     const int kx = (int)(src % (uint)nx), ky = (int)(src / (uint)nx);
@@ -81,8 +95,8 @@ __kernel void trace_white(
     for (uint r = r0; r < r1; ++r) {
         const uint key = pl_ray_key(skey, r);
         if (!pl_transmitted(lens_gain, (int)src, key)) continue;
-        float a = (pl_uniform(pl_word(key, 5)) - 0.5f) * ml_pitch;
-        float b = (pl_uniform(pl_word(key, 6)) - 0.5f) * ml_pitch;
+        float2 ab = pl_cell_point(m, pl_uniform(pl_word(key, 5)), pl_uniform(pl_word(key, 6)));
+        float a = ab.x, b = ab.y;
         float2 x = c + (float2)(ml_cos * a - ml_sin * b, ml_sin * a + ml_cos * b);
         float rad = stop_radius * sqrt(pl_uniform(pl_word(key, 0)));
         float th = PLENOCL_TWO_PI * pl_uniform(pl_word(key, 1));

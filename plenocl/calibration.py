@@ -50,6 +50,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .io.centres import read_centers_csv
+from .optics.lattice import axial_basis, axial_to_offset, offset_to_axial
 from .optics.rawimage import check_image
 
 #: Relative pitch error (measured vs the camera's) above which calibration refuses.
@@ -476,9 +477,11 @@ def _disk_step(padded, pad, c, radius: float, half: int,
 
 
 # ---- 3. lattice matching ------------------------------------------------------------
-def _lattice_frame(pts: np.ndarray, pitch_nominal: float) -> tuple[float, float]:
-    """Pitch (px) and rotation (rad) of the spot lattice from nearest-neighbour vectors."""
-    dist, idx = cKDTree(pts).query(pts, k=min(5, len(pts)))
+def _lattice_frame(pts: np.ndarray, pitch_nominal: float, symmetry: int = 4
+                   ) -> tuple[float, float]:
+    """Pitch (px) and rotation (rad) of the spot lattice from nearest-neighbour vectors
+    (``symmetry``: 4 for a rectangular lattice, 6 for a hexagonal one)."""
+    dist, idx = cKDTree(pts).query(pts, k=min(symmetry + 1, len(pts)))
     rough = float(np.median(dist[:, 1]))
     vec = pts[idx[:, 1:]] - pts[:, None, :]
     length = np.hypot(vec[..., 0], vec[..., 1])
@@ -491,7 +494,7 @@ def _lattice_frame(pts: np.ndarray, pitch_nominal: float) -> tuple[float, float]
             "pixel pitch, focal lengths, magnification) or whether this is a white image "
             "taken with the main lens stopped down")
     theta = np.arctan2(vec[..., 1][near], vec[..., 0][near])
-    return pitch, float(np.angle(np.exp(4j * theta).mean()) / 4)
+    return pitch, float(np.angle(np.exp(1j * symmetry * theta).mean()) / symmetry)
 
 
 def _match(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -503,11 +506,15 @@ def _match(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     in the initial pitch or rotation never accumulates across a large array.
     """
     cols, rows = camera.ml_count
-    pitch, rot = _lattice_frame(pts, _pitch_px(camera))
+    hexagonal = camera.ml_layout == "hexagonal"
+    pitch, rot = _lattice_frame(pts, _pitch_px(camera), 6 if hexagonal else 4)
     centre = camera.ideal_microlens_centers().reshape(-1, 2).mean(0)
     c, s = math.cos(rot), math.sin(rot)
-    lin = pitch * np.array([[c, -s], [s, c]])  # columns: d(px)/d(kx), d(px)/d(ky)
-    model = np.vstack([lin.T, centre - lin @ [(cols - 1) / 2, (rows - 1) / 2]])
+    basis = axial_basis(camera.odd_row_shift, camera.ml_row_pitch_mm / camera.ml_pitch_mm)
+    lin = pitch * np.array([[c, -s], [s, c]]) @ basis.T  # columns: d(px)/d(q), d(px)/d(r)
+    every = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), -1).reshape(-1, 2)
+    middle = offset_to_axial(every, camera.odd_row_shift).mean(0)
+    model = np.vstack([lin.T, centre - lin @ middle])
     f = _fractional_index(pts, model)
     near = np.argsort(np.hypot(*(pts - centre).T))[:100]
     phase = np.angle(np.exp(2j * np.pi * f[near]).mean(0)) / (2 * np.pi)
@@ -516,8 +523,11 @@ def _match(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     f = _fractional_index(pts, model)
     base = np.rint(f).astype(np.int64)
     dev = np.abs(f - base).max(1)
-    k = base + _lens_count_and_shift(base[dev <= 0.3], pts[dev <= 0.3], model, camera,
-                                     pitch)
+    if hexagonal:
+        k = _hexagonal_indices(base, dev <= 0.3, model, camera, pitch)
+    else:
+        k = base + _lens_count_and_shift(base[dev <= 0.3], pts[dev <= 0.3], model, camera,
+                                         pitch)
     inside = (k[:, 0] >= 0) & (k[:, 0] < cols) & (k[:, 1] >= 0) & (k[:, 1] < rows)
     k[(dev > 0.3) | ~inside] = -1
     return k, dev
@@ -556,6 +566,56 @@ def _lens_count_and_shift(base: np.ndarray, pts: np.ndarray, model: np.ndarray,
             f"{count[0]} x {count[1]} microlenses: correct [microlens_array] count = "
             "[columns, rows] in the camera file")
     return -first
+
+
+def _hexagonal_indices(base: np.ndarray, ok: np.ndarray, model: np.ndarray,
+                       camera: Camera, pitch: float) -> np.ndarray:
+    """Lens indices ``(kx, ky)`` of spots at axial lattice indices ``base`` (``ok``: on
+    the lattice) on a hexagonal array, with the counting rule of
+    :func:`_lens_count_and_shift` (docs/design.md §3): row 0 is the first row whose
+    centres lie on the sensor, lens 0 of the even rows their first such lens, and the
+    odd rows sit ``odd_row_shift`` pitches from them; a camera file whose count or shift
+    disagrees with the image is refused, naming the fix."""
+    if ok.sum() < 10:
+        raise ValueError(f"only {int(ok.sum())} spots lie on a hexagonal lattice: too few to "
+                         "number the lenses; check the white image and the camera file")
+    size, (cols, rows) = np.array(camera.pixels, float), camera.ml_count
+    q, r = base[ok].T
+    lo, hi = np.rint(np.percentile(r, [0.2, 99.8])).astype(int)
+    edge = _EdgeLattice(model, 1, float(np.median(q)), size[1], pitch)
+    first_r, last_r = edge.boundary(lo, -1), edge.boundary(hi, +1)
+    even = first_r + 2 * int(round((np.median(r) - first_r) / 2))
+    row = q[r == even]
+    if len(row) == 0:
+        raise ValueError("no spot in the middle row of the white image; check it")
+    edge = _EdgeLattice(model, 0, float(even), size[0], pitch)
+    first_q, last_q = edge.boundary(int(row.min()), -1), edge.boundary(int(row.max()), +1)
+    seen = (last_q - first_q + 1, last_r - first_r + 1)
+    if seen != (cols, rows):
+        raise ValueError(
+            f"the white image shows about {seen[0]} x {seen[1]} microlens images (lenses in "
+            f"an even row x rows, counting those whose centre lies on the sensor) but the "
+            f"camera file has {cols} x {rows} microlenses: correct [microlens_array] count = "
+            "[columns, rows] in the camera file")
+    origin = np.array([first_q + camera.odd_row_shift * (even - first_r), first_r])
+    k = axial_to_offset(base - origin.astype(np.int64), camera.odd_row_shift)
+    _check_stagger(k[ok], camera)
+    return k
+
+
+def _check_stagger(k: np.ndarray, camera: Camera) -> None:
+    """Refuse a hexagonal camera file whose odd rows are shifted the wrong way: then most
+    odd rows show a lens just before their lens 0 (or after their last)."""
+    cols = camera.ml_count[0]
+    wrong = -1 if camera.odd_row_shift > 0 else cols
+    odd = k[:, 1] % 2 == 1
+    rows_wrong = np.unique(k[odd & (k[:, 0] == wrong), 1])
+    rows_odd = np.unique(k[odd, 1])
+    if len(rows_odd) and len(rows_wrong) > len(rows_odd) / 2:
+        raise ValueError(
+            f"the white image's odd rows of lenses sit {-camera.odd_row_shift:+g} pitch from "
+            f"the even ones, the camera file says {camera.odd_row_shift:+g}: set "
+            f"[microlens_array] odd_row_shift = {-camera.odd_row_shift:g}")
 
 
 class _EdgeLattice:
@@ -740,8 +800,28 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     if kind == "full" and method == "combined":  # the disks cannot resolve own offsets
         method = "fit"
     fit = _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
-                    fill_missing)
+                    fill_missing, interior=kind == "full")
+    if kind == "full" and method == "fit":
+        fit = _cut_by_the_edge(fit, flat)
     return dataclasses.replace(fit, aperture=kind)
+
+
+def _cut_by_the_edge(fit: CenterFit, flat: np.ndarray) -> CenterFit:
+    """At full aperture, a lens whose centre lies on the sensor but whose disk the
+    sensor's edge cuts too much to be detected is still lit: where the flattened image
+    is bright at the model's centre, the lens is found, at the model's centre (the
+    centres there are the model's anyway)."""
+    h, w = flat.shape
+    c = np.rint(fit.model).astype(np.int64)
+    on = (c[..., 0] >= 0) & (c[..., 0] < w) & (c[..., 1] >= 0) & (c[..., 1] < h)
+    lit = np.zeros_like(on)
+    lit[on] = flat[c[..., 1][on], c[..., 0][on]] > 0.5
+    cut = ~fit.found & lit
+    if not cut.any():
+        return fit
+    centers = fit.centers.copy()
+    centers[cut] = fit.model[cut]
+    return dataclasses.replace(fit, centers=centers, found=fit.found | cut)
 
 
 #: Of a white image's spots, at least half lie within this many pitches of their lattice
@@ -791,11 +871,13 @@ def _lens_grid(camera: Camera, per_spot: np.ndarray, k: np.ndarray,
 
 
 def _assemble(camera, cents, split, k, dev, sigma, shape, method, degree,
-              fill_missing) -> CenterFit:
+              fill_missing, interior: bool = False) -> CenterFit:
+    """The grid model, the noise and scatter, and the centres (``interior``: the model is
+    fitted to the lenses whose neighbours all have a spot, see :func:`_surrounded`)."""
     cols, rows = camera.ml_count
     grid = _lens_grid(camera, cents, k, dev)
     found = np.isfinite(grid).all(-1)
-    kk = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), -1).reshape(-1, 2)
+    kk = camera.lens_lattice_coords().reshape(-1, 2)  # affine in the lens positions
     c = grid.reshape(-1, 2)
     margin = 3 * sigma + 1
     h, w = shape
@@ -803,6 +885,9 @@ def _assemble(camera, cents, split, k, dev, sigma, shape, method, degree,
     use &= (c[:, 0] < w - 1 - margin) & (c[:, 1] < h - 1 - margin)
     if use.sum() < 6:
         use = found.ravel().copy()
+    if interior:
+        inner = use & _surrounded(_surrounded(found, camera), camera).ravel()
+        use = inner if inner.sum() >= MIN_INTERIOR else use
     deg = _choose_degree(kk, c, (cols, rows), use, degree)
     coef, use = _robust_fit(kk, c, (cols, rows), deg, use)
     model = (_design(kk, (cols, rows), deg) @ coef).reshape(rows, cols, 2)
@@ -859,6 +944,27 @@ def _combine(model, grid, noise, scatter: float, trusted) -> np.ndarray:
     return model + np.where(trusted, w, 0.0)[..., None] * np.nan_to_num(grid - model)
 
 
+#: Lenses with every neighbour found needed before a full-aperture grid model leaves the
+#: array's outer lenses out of its fit.
+MIN_INTERIOR = 12
+
+
+def _surrounded(found: np.ndarray, camera: Camera) -> np.ndarray:
+    """``(rows, cols)``: found lenses whose every lattice neighbour (4 in a rectangular
+    array, 6 in a hexagonal one) lies in the array and was found. A full-aperture disk's
+    window takes in slivers of its neighbours' disks, symmetric about an inner lens but
+    one-sided at the array's edge (0.35 px there at 65 px per lens, rectangular; 2-4 px
+    hexagonal, where the slivers pull the window along), so the model is fitted to the
+    inner lenses and predicts the outer ones."""
+    xy = camera.lens_lattice_coords() * [1.0, camera.ml_row_pitch_mm / camera.ml_pitch_mm]
+    flat = xy.reshape(-1, 2)
+    neighbours = cKDTree(flat).query_ball_point(flat, r=1.01)
+    want = 6 if camera.ml_layout == "hexagonal" else 4
+    ok = found.ravel()
+    return np.array([ok[i] and len(n) == want + 1 and ok[n].all()
+                     for i, n in enumerate(neighbours)]).reshape(found.shape)
+
+
 def _drop_far_spots(found, grid, model, pitch) -> np.ndarray:
     """Spots far from the model (a hot pixel, a stray reflection) are not that lens's."""
     dist = np.hypot(*(grid - model).transpose(2, 0, 1))
@@ -868,8 +974,11 @@ def _drop_far_spots(found, grid, model, pitch) -> np.ndarray:
 def _layout(model: np.ndarray, camera: Camera) -> tuple:
     """Rotation (deg), pitch along the array axes (px) and shift of the array centre."""
     ax = np.nanmean(np.diff(model, axis=1), axis=(0, 1))
-    ay = np.nanmean(np.diff(model, axis=0), axis=(0, 1))
-    rot = math.degrees(math.atan2(ax[1] - ay[0], ax[0] + ay[1]))
+    ay = np.nanmean(np.diff(model, axis=0), axis=(0, 1))  # hexagonal: the mean row step
+    if camera.ml_layout == "hexagonal":
+        rot = math.degrees(math.atan2(ax[1], ax[0]))
+    else:
+        rot = math.degrees(math.atan2(ax[1] - ay[0], ax[0] + ay[1]))
     shift = model.reshape(-1, 2).mean(0) - camera.ideal_microlens_centers().reshape(-1, 2).mean(0)
     return rot, (float(np.hypot(*ax)), float(np.hypot(*ay))), (float(shift[0]), float(shift[1]))
 

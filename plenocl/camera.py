@@ -17,6 +17,8 @@ import numpy as np
 from .io.tomlfile import read_toml, write_toml
 from .options import refuse_unknown
 
+#: The microlens layouts a camera may have (docs/design.md §2).
+LAYOUTS = ("rectangular", "hexagonal")
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80
 #: Microlens images wider than their pitch by more than this fraction trigger a warning.
@@ -83,6 +85,10 @@ class Camera:
     ml_rotation_deg, ml_offset_mm
         Physical layout of the array on its plane (rotation about the optical axis,
         lateral shift). The simulator uses them; calibration measures their effect.
+    ml_layout, ml_odd_row_shift
+        ``"rectangular"`` (default) or ``"hexagonal"``: rows ``pitch·√3/2`` apart, the odd
+        rows (1, 3, ...) shifted along the row by ``ml_odd_row_shift`` pitches (+0.5, the
+        default, or -0.5) against the even ones (docs/design.md §2).
     microlens_centers
         Microlens image centres ``(rows, cols, 2)`` as ``(col, row)`` pixels; the ideal
         centres of the layout when not given. ``NaN`` marks a lens calibration missed.
@@ -108,6 +114,8 @@ class Camera:
     crop_origin: tuple[int, int] | None = None
     pupil_magnification: float = 1.0
     principal_plane_separation_mm: float = 0.0
+    ml_layout: str = "rectangular"
+    ml_odd_row_shift: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "f_number", "magnification", "ml_pitch_mm",
@@ -120,6 +128,7 @@ class Camera:
             raise ValueError("microlens rotation and offset must be finite numbers")
         object.__setattr__(self, "ml_rotation_deg", rot)
         object.__setattr__(self, "ml_offset_mm", off)
+        self._check_layout()
         object.__setattr__(self, "principal_plane_separation_mm", _finite(
             "principal_plane_separation_mm", self.principal_plane_separation_mm))
         if self.crop_origin is not None:
@@ -129,12 +138,30 @@ class Camera:
         object.__setattr__(self, "microlens_centers", self._validated_centers())
 
     # ---- validation -------------------------------------------------------------
+    def _check_layout(self) -> None:
+        if self.ml_layout not in LAYOUTS:
+            raise ValueError(f"microlens layout must be one of {LAYOUTS}, got "
+                             f"{self.ml_layout!r} ([microlens_array] layout)")
+        allowed = (0.5, -0.5) if self.ml_layout == "hexagonal" else (0.0,)
+        if self.ml_odd_row_shift is not None and self.ml_odd_row_shift not in allowed:
+            raise ValueError(f"odd_row_shift must be one of {allowed} (pitches) for a "
+                             f"{self.ml_layout} array, got {self.ml_odd_row_shift!r}")
+
+    @property
+    def odd_row_shift(self) -> float:
+        """How far (pitches, along the row) the odd rows of lenses sit from the even ones:
+        0 for a rectangular array, ``ml_odd_row_shift`` (default +0.5) for a hexagonal one."""
+        if self.ml_layout != "hexagonal":
+            return 0.0
+        return 0.5 if self.ml_odd_row_shift is None else float(self.ml_odd_row_shift)
+
     def _check_sensor_covers_array(self) -> None:
         # the array's lenses are those whose image centre lies on the sensor (design.md
-        # §2): the outermost centres, a pitch inside the array's edges, fit on the sensor
-        mla = np.array(self.ml_count) * self.ml_pitch_mm
+        # §2): the outermost centres (of the even rows), a pitch inside the array's
+        # edges, fit on the sensor
+        mla = np.array(self.ml_count) * [self.ml_pitch_mm, self.ml_row_pitch_mm]
         sensor = np.array(self.pixels) * self.pixel_pitch_mm
-        if np.any(mla - self.ml_pitch_mm > sensor * (1 + 1e-9)):
+        if np.any(mla - [self.ml_pitch_mm, self.ml_row_pitch_mm] > sensor * (1 + 1e-9)):
             raise ValueError(
                 f"the microlens array ({mla[0]:.3f} x {mla[1]:.3f} mm) is larger than the "
                 f"sensor ({sensor[0]:.3f} x {sensor[1]:.3f} mm) by more than a lens: count "
@@ -310,12 +337,36 @@ class Camera:
         t = math.radians(self.ml_rotation_deg)
         return math.cos(t), math.sin(t)
 
+    @property
+    def ml_row_pitch_mm(self) -> float:
+        """Distance between neighbouring rows of lenses: the pitch, or ``pitch·√3/2`` for a
+        hexagonal array."""
+        return self.ml_pitch_mm * (math.sqrt(3) / 2 if self.ml_layout == "hexagonal" else 1)
+
+    def require_rectangular(self, what: str) -> None:
+        """Refuse a hexagonal array for a stage that handles rectangular ones only, naming
+        what plenocl does with hexagonal cameras so far."""
+        if self.ml_layout != "rectangular":
+            raise ValueError(
+                f"{what} does not handle {self.ml_layout} microlens arrays yet: plenocl "
+                "simulates hexagonal cameras and calibrates their white images (stopped "
+                "down or at full aperture; docs/design.md §2, §3); reconstruction, the light "
+                "field and the image fit need a rectangular array")
+
+    def lens_lattice_coords(self) -> np.ndarray:
+        """``(rows, cols, 2)`` position of every lens in the array's own frame, in pitches
+        along the rows and rows down: ``(kx + shift·(ky odd), ky)`` (``shift``:
+        :attr:`odd_row_shift`, 0 for a rectangular array)."""
+        cols, rows = self.ml_count
+        ky, kx = np.mgrid[0:rows, 0:cols].astype(np.float64)
+        return np.stack([kx + self.odd_row_shift * (ky % 2), ky], -1)
+
     def microlens_positions_mm(self) -> np.ndarray:
         """Microlens centres on the array plane, ``(rows, cols, 2)`` as ``(x, y)`` mm."""
         cols, rows = self.ml_count
-        a = (np.arange(cols) - (cols - 1) / 2) * self.ml_pitch_mm
-        b = (np.arange(rows) - (rows - 1) / 2) * self.ml_pitch_mm
-        aa, bb = np.meshgrid(a, b)
+        k = self.lens_lattice_coords()
+        aa = (k[..., 0] - (cols - 1) / 2) * self.ml_pitch_mm
+        bb = (k[..., 1] - (rows - 1) / 2) * self.ml_row_pitch_mm
         c, s = self._rotation()
         x = c * aa - s * bb + self.ml_offset_mm[0]
         y = s * aa + c * bb + self.ml_offset_mm[1]
@@ -392,6 +443,11 @@ class Camera:
             f"{100 * self.microlens_image_fill:.1f}%"
         )
 
+    def _layout_keys(self) -> dict:
+        if self.ml_layout == "rectangular":
+            return {}
+        return {"layout": self.ml_layout, "odd_row_shift": self.odd_row_shift}
+
     @property
     def is_thin_lens(self) -> bool:
         """Whether the main lens is the thin one (``m_p = 1``, no principal-plane gap)."""
@@ -408,7 +464,7 @@ class Camera:
             lens["principal_plane_separation_mm"] = self.principal_plane_separation_mm
         doc = {
             "main_lens": lens,
-            "microlens_array": {"pitch_mm": self.ml_pitch_mm,
+            "microlens_array": {**self._layout_keys(), "pitch_mm": self.ml_pitch_mm,
                                 "focal_length_mm": self.ml_focal_length_mm,
                                 "count": list(self.ml_count),
                                 "rotation_deg": self.ml_rotation_deg,
@@ -438,6 +494,8 @@ class Camera:
                 ml_focal_length_mm=mla["focal_length_mm"], ml_count=mla["count"],
                 ml_rotation_deg=mla.get("rotation_deg", 0.0),
                 ml_offset_mm=mla.get("offset_mm", (0.0, 0.0)),
+                ml_layout=mla.get("layout", "rectangular"),
+                ml_odd_row_shift=mla.get("odd_row_shift"),
                 pixel_pitch_mm=sensor["pixel_pitch_mm"], pixels=sensor["pixels"],
                 crop_origin=sensor.get("crop_origin"),
             )
@@ -478,7 +536,8 @@ PRESETS = {"paper": Camera.paper_16mp, "synthetic": Camera.synthetic_850}
 CAMERA_KEYS = {
     "main_lens": ("focal_length_mm", "f_number", "magnification", "pupil_magnification",
                   "principal_plane_separation_mm"),
-    "microlens_array": ("pitch_mm", "focal_length_mm", "count", "rotation_deg", "offset_mm"),
+    "microlens_array": ("pitch_mm", "focal_length_mm", "count", "rotation_deg", "offset_mm",
+                        "layout", "odd_row_shift"),
     "sensor": ("pixel_pitch_mm", "pixels", "crop_origin"),
     "calibration": ("centers_col", "centers_row"),
 }

@@ -201,6 +201,7 @@ class Grid:
         separable path; an array aligned with the sensor to within 0.001 lens across it
         keeps the sensor's axes.
         """
+        camera.require_rectangular("Grid.for_camera")
         voxel = voxel_mm or camera.ml_pitch_mm / camera.magnification
         dvox = depth_voxel_mm or camera.depth_resolution_mm / 2
         w, h = (n * camera.ml_pitch_mm / camera.magnification * fraction

@@ -244,6 +244,7 @@ class LightField:
 
     def __init__(self, raw_image, camera: Camera, *, uv_step_mm: float | None = None,
                  queue: DeviceLike = None) -> None:
+        camera.require_rectangular("the light field")
         self.camera = camera
         image = check_image(raw_image, camera, np.float32)
         self.centers = _centers(camera)

@@ -112,6 +112,7 @@ class Simulator:
         return [np.float32(cam.ml_pitch_mm), np.float32(math.cos(t)), np.float32(math.sin(t)),
                 np.float32(cam.ml_offset_mm[0]), np.float32(cam.ml_offset_mm[1]),
                 np.int32(cam.ml_count[0]), np.int32(cam.ml_count[1]),
+                np.float32(cam.ml_row_pitch_mm), np.float32(cam.odd_row_shift),
                 np.float32(cam.pixel_pitch_mm), np.int32(cam.pixels[0]),
                 np.int32(cam.pixels[1])]
 

@@ -61,3 +61,18 @@ def traced_fit_scene(camera, voxel: np.ndarray, count: int, seed: int
     img = trace_particles(camera, true, 4000.0, 40_000, seed=seed + 2, blur_px=0.8)
     img = img + 20.0 + np.random.default_rng(seed + 2).normal(0.0, 1.0, img.shape)
     return true + np.array([0.3, -0.3, 1.5]) * voxel, img
+
+
+def vendor_white_image(cam: Camera, queue) -> np.ndarray:
+    """A vendor-style white image of ``cam``: at the main lens's own f-number (each
+    micro-image a disk filling its lens), photon and read noise, 12-bit, and a 50 %
+    vignetting falloff across the sensor (each disk brighter on the side toward the
+    centre)."""
+    from plenocl.simulate import simulate_white_image
+
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, photon_noise=True,
+                                 read_noise=3.0, bit_depth=12, intensity=1e5,
+                                 rays_per_lens=50000, seed=18, queue=queue).astype(float)
+    rows, cols = np.mgrid[0:white.shape[0], 0:white.shape[1]]
+    r2 = (cols - white.shape[1] / 2) ** 2 + (rows - white.shape[0] / 2) ** 2
+    return white * (1.0 - 0.5 * r2 / r2.max())

@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import lens_camera
+from helpers import lens_camera, vendor_white_image
 
 from plenocl import Camera
 from plenocl.calibration import calibrate, find_centers
@@ -518,12 +518,7 @@ def test_full_aperture_white_images_are_calibrated(queue, aperture):
     noise: recognised as full-aperture, at least 97 % of the lenses found, the centres
     within 0.05 px RMS of the truth."""
     cam = _camera(rotation=0.3)
-    white = simulate_white_image(cam, stop_f_number=cam.f_number, photon_noise=True,
-                                 read_noise=3.0, bit_depth=12, intensity=1e5,
-                                 rays_per_lens=50000, seed=18, queue=queue).astype(float)
-    rows, cols = np.mgrid[0:white.shape[0], 0:white.shape[1]]
-    r2 = (cols - white.shape[1] / 2) ** 2 + (rows - white.shape[0] / 2) ** 2
-    white *= 1.0 - 0.5 * r2 / r2.max()
+    white = vendor_white_image(cam, queue)
     fit = find_centers(white, _nominal(cam), aperture=aperture)
     assert fit.aperture == "full"
     assert fit.found[_on_sensor(cam)].mean() >= 0.97

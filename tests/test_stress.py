@@ -564,6 +564,14 @@ def _cal_wrong_count(c):
     calibrate(white, Camera(**{**TINY, "ml_count": (2, 2)}))
 
 
+def _cal_wrong_stagger(c):
+    """A hexagonal array's white image (odd rows half a pitch right) with a camera file
+    saying half a pitch left."""
+    hexagonal = {**TINY, "ml_layout": "hexagonal", "ml_count": (8, 8), "pixels": (137, 118)}
+    white = simulate_white_image(Camera(**hexagonal), queue=c["queue"])
+    calibrate(white, Camera(**hexagonal, ml_odd_row_shift=-0.5))
+
+
 def _with_nan(a):
     a = a.astype(np.float64)
     a.flat[5] = np.nan
@@ -605,6 +613,13 @@ INVALID = [
      "pixels per microlens"),
     ("camera-rotation-nan", _cam(ml_rotation_deg=NAN), ValueError,
      "rotation and offset must be finite"),
+    ("camera-layout", _cam(ml_layout="hex"), ValueError, "microlens layout must be one of"),
+    ("camera-odd-row-shift", _cam(ml_layout="hexagonal", ml_odd_row_shift=0.25), ValueError,
+     r"odd_row_shift must be one of \(0.5, -0.5\)"),
+    ("camera-pupil-magnification", _cam(pupil_magnification=0.0), ValueError,
+     "pupil_magnification must be a positive finite number"),
+    ("camera-principal-planes-nan", _cam(principal_plane_separation_mm=NAN), ValueError,
+     "principal_plane_separation_mm must be a finite number"),
     ("camera-centers-shape", _cam(microlens_centers=np.zeros((3, 3, 2))), ValueError,
      r"microlens_centers must have shape \(rows, cols, 2\)"),
     ("camera-centers-inf", _cam(microlens_centers=np.full((4, 4, 2), np.inf)), ValueError,
@@ -672,6 +687,9 @@ INVALID = [
     ("projector-outside-field-of-view", _proj(x=(10.0, 11.0)), ValueError,
      "entirely outside the camera's field of view"),
     ("projector-method", _proj(method="sparse"), ValueError, "method must be one of"),
+    ("projector-hexagonal",
+     lambda c: Projector(Camera(**{**TINY, "ml_layout": "hexagonal"}), TINY_GRID, c["queue"]),
+     ValueError, "does not handle hexagonal microlens arrays yet"),
     ("projector-back-mode", _proj(back="scatter"), ValueError, "back must be one of"),
     ("projector-oversample-zero", _proj(oversample=0), ValueError,
      "oversample must be a positive number"),
@@ -821,6 +839,8 @@ INVALID = [
      "NaN or Inf pixels"),
     ("calibrate-lens-count", _cal_wrong_count, ValueError,
      r"shows about 4 x 4 microlens images .* the camera file has 2 x 2"),
+    ("calibrate-hexagonal-stagger", _cal_wrong_stagger, ValueError,
+     r"set \[microlens_array\] odd_row_shift = 0.5"),
     ("calibrate-colour", _cal(lambda c: np.ones((70, 70, 3))), ValueError,
      "one 2-D monochrome frame"),
     # io

@@ -4,6 +4,7 @@ and ``benchmarks/refocus.py`` use."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -59,9 +60,7 @@ def white_case(base: Camera, layout: dict, sim: dict, seed: int, queue):
     its lattice node by ``s`` px RMS per axis, manufacturing errors) and
     ``dark_subtracted=f`` (read noise of ``f`` times the spot peak about a subtracted dark
     level: negative pixels)."""
-    true = Camera(base.focal_length_mm, base.f_number, base.magnification, base.ml_pitch_mm,
-                  base.ml_focal_length_mm, base.ml_count, base.pixel_pitch_mm, base.pixels,
-                  **layout)
+    true = dataclasses.replace(base, microlens_centers=None, calibrated=False, **layout)
     sim, rng = dict(sim), np.random.default_rng(seed)
     if sim.get("missing") == "1%":
         sim["missing"] = rng.random(base.ml_count[::-1]) < 0.01

@@ -99,6 +99,30 @@ def separable_rotation_deg(centres: np.ndarray, tol_lenses: float) -> float:
     return 0.0 if drift <= tol_lenses else angle
 
 
+def axial_basis(odd_row_shift: float, row_ratio: float) -> np.ndarray:
+    """``(2, 2)`` the array's two lattice steps as rows, in pitches along the array's
+    axes: ``e1 = (1, 0)`` along a row and ``e2 = (shift, row_ratio)`` to the next row's
+    lens (a rectangular array: ``(0, 1)``; a hexagonal one: ``(±1/2, √3/2)``). Any lens
+    lies at ``q e1 + r e2`` for integer axial indices ``(q, r)``."""
+    return np.array([[1.0, 0.0], [odd_row_shift, row_ratio]])
+
+
+def offset_to_axial(k: np.ndarray, odd_row_shift: float) -> np.ndarray:
+    """Axial indices ``(q, r)`` of lenses ``(kx, ky)`` (``(..., 2)`` int): ``r = ky``,
+    ``q = kx - 2 shift floor(ky / 2)`` (the identity for a rectangular array)."""
+    k = np.asarray(k, dtype=np.int64)
+    step = int(round(2 * odd_row_shift))
+    return np.stack([k[..., 0] - step * (k[..., 1] // 2), k[..., 1]], -1)
+
+
+def axial_to_offset(qr: np.ndarray, odd_row_shift: float) -> np.ndarray:
+    """Lens indices ``(kx, ky)`` of axial indices ``(q, r)``: the inverse of
+    :func:`offset_to_axial`."""
+    qr = np.asarray(qr, dtype=np.int64)
+    step = int(round(2 * odd_row_shift))
+    return np.stack([qr[..., 0] + step * (qr[..., 1] // 2), qr[..., 1]], -1)
+
+
 @runtime_checkable
 class LensLattice(Protocol):
     """What a microlens array's layout offers, whatever its shape.

@@ -39,6 +39,7 @@ def pixel_lenses(camera: Camera, centres: np.ndarray | None = None, clamp: bool 
         Give pixels beyond the array the nearest edge lens; otherwise their indices lie
         outside ``[0, cols) x [0, rows)``.
     """
+    camera.require_rectangular("the pixels' lens cells")
     centres = camera.microlens_centers if centres is None else centres
     lattice = RectangularLattice.fit(centres)
     kx, ky = lattice.cells(*camera.pixels)

@@ -100,6 +100,7 @@ class RayBundle:
     def of(cls, camera: Camera, rays: int = 400, blur_px: float = 0.8) -> RayBundle:
         """The bundle of ``camera`` with ``rays`` aperture samples and the optics' blur
         (Gaussian standard deviation in pixels)."""
+        camera.require_rectangular("the image fit's ray bundle")
         if int(rays) != rays or rays < 16:
             raise ValueError(f"rays must be an integer >= 16, got {rays!r}")
         if not (np.isfinite(blur_px) and blur_px > 0):

@@ -78,6 +78,7 @@ class WeightingModel:
 
     def __init__(self, camera: Camera, grid: Grid, oversample: float = DEFAULT_OVERSAMPLE,
                  shear_tol: float = DEFAULT_SHEAR_TOL, warn: bool = True) -> None:
+        camera.require_rectangular("the weighting function and projector")
         check_depth_range(camera, grid)
         self.camera, self.grid = camera, grid
         self.oversample, self.shear_tol = oversample, shear_tol

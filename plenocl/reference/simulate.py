@@ -50,10 +50,44 @@ def _lens_lookup(cam: Camera, x: np.ndarray, y: np.ndarray):
     dx, dy = x - cam.ml_offset_mm[0], y - cam.ml_offset_mm[1]
     a, b = c * dx + s * dy, -s * dx + c * dy
     nx, ny = cam.ml_count
-    kx = np.floor(a / cam.ml_pitch_mm + nx / 2).astype(np.int64)
-    ky = np.floor(b / cam.ml_pitch_mm + ny / 2).astype(np.int64)
+    if cam.ml_layout == "hexagonal":
+        kx, ky = _nearest_hexagonal(cam, a, b)
+    else:
+        kx = np.floor(a / cam.ml_pitch_mm + nx / 2).astype(np.int64)
+        ky = np.floor(b / cam.ml_pitch_mm + ny / 2).astype(np.int64)
     inside = (kx >= 0) & (ky >= 0) & (kx < nx) & (ky < ny)
     return np.clip(kx, 0, nx - 1), np.clip(ky, 0, ny - 1), inside
+
+
+def _nearest_hexagonal(cam: Camera, a: np.ndarray, b: np.ndarray):
+    """Lens ``(kx, ky)`` of a hexagonal array whose centre is nearest to array-frame points
+    ``(a, b)``: the nearer of the nearest centres in the two rows around each point."""
+    nx, ny = cam.ml_count
+    fy = b / cam.ml_row_pitch_mm + (ny - 1) / 2
+    best = None
+    for r in (np.floor(fy), np.floor(fy) + 1):
+        fx = a / cam.ml_pitch_mm + (nx - 1) / 2 - cam.odd_row_shift * (r % 2)
+        k = np.floor(fx + 0.5)
+        d2 = ((fx - k) * cam.ml_pitch_mm) ** 2 + ((fy - r) * cam.ml_row_pitch_mm) ** 2
+        if best is None:
+            best = (k, r, d2)
+        else:
+            nearer = d2 < best[2]
+            best = tuple(np.where(nearer, new, old) for new, old in zip((k, r, d2), best))
+    return best[0].astype(np.int64), best[1].astype(np.int64)
+
+
+def _cell_points(cam: Camera, u1: np.ndarray, u2: np.ndarray):
+    """Uniform points of a lens's cell (array frame, from its centre) from uniform numbers:
+    the pitch x row rectangle, for a hexagonal array its four corners outside the hexagon
+    folded into the tips (``pl_cell_point`` in kernels/simulate.cl)."""
+    a, b = (u1 - 0.5) * cam.ml_pitch_mm, (u2 - 0.5) * cam.ml_row_pitch_mm
+    if cam.ml_layout != "hexagonal":
+        return a, b
+    outside = np.abs(b) > (cam.ml_pitch_mm - np.abs(a)) / np.sqrt(3)
+    a = np.where(outside, np.copysign(cam.ml_pitch_mm / 2, a) - a, a)
+    b = np.where(outside, np.copysign(cam.ml_row_pitch_mm, b) - b, b)
+    return a, b
 
 
 def _deposit(cam: Camera, sx, sy, weight, keep) -> np.ndarray:
@@ -127,8 +161,8 @@ def trace_white(cam: Camera, stop_f_number: float, rays_per_lens: int, seed: int
     src, ray = np.meshgrid(np.arange(nx * ny), np.arange(rays_per_lens), indexing="ij")
     kx, ky = src % nx, src // nx
     centres = _centres(cam, lens_shift_mm)[ky, kx]
-    a = (_uniform(random_words(seed, src, ray, 5)) - 0.5) * cam.ml_pitch_mm
-    b = (_uniform(random_words(seed, src, ray, 6)) - 0.5) * cam.ml_pitch_mm
+    a, b = _cell_points(cam, _uniform(random_words(seed, src, ray, 5)),
+                        _uniform(random_words(seed, src, ray, 6)))
     c, s = np.cos(np.radians(cam.ml_rotation_deg)), np.sin(np.radians(cam.ml_rotation_deg))
     x, y = centres[..., 0] + c * a - s * b, centres[..., 1] + s * a + c * b
     radius = cam.exit_pupil_diameter_at(stop_f_number) / 2 * np.sqrt(

@@ -1,0 +1,259 @@
+"""Hexagonal microlens arrays (issue 29; docs/design.md §2): the camera's layout, the
+simulator's kernel against its NumPy twin and against an independent nearest-centre ray
+trace, and the lens cells a white image lights."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from helpers import lens_camera, vendor_white_image
+from scipy.spatial import cKDTree
+
+from plenocl import Camera, reference
+from plenocl.calibration import find_centers
+from plenocl.reference.simulate import _cell_points
+from plenocl.simulate import Simulator, centre_shift_px, simulate_image, simulate_white_image
+
+ROW = np.sqrt(3) / 2
+
+
+def hex_camera(cols: int = 12, rows: int = 12, **changes) -> Camera:
+    """A hexagonal test camera: ``cols x rows`` lenses of ~17 px, rows 0.866 pitch apart."""
+    return lens_camera(cols, rows, (17 * cols + 9, int(17 * rows * ROW) + 17),
+                       ml_layout="hexagonal", **changes)
+
+
+@pytest.mark.parametrize("shift", [0.5, -0.5])
+def test_every_inner_lens_has_six_neighbours_one_pitch_away(shift):
+    cam = hex_camera(ml_odd_row_shift=shift, ml_rotation_deg=3.0)
+    pos = cam.microlens_positions_mm().reshape(-1, 2)
+    dist, _ = cKDTree(pos).query(pos, k=7)
+    inner = np.hypot(*(pos - pos.mean(0)).T) < 0.4
+    np.testing.assert_allclose(dist[inner, 1:], cam.ml_pitch_mm, rtol=1e-12)
+    assert cam.ml_row_pitch_mm == pytest.approx(cam.ml_pitch_mm * ROW)
+    odd = cam.microlens_positions_mm()[1, 0] - cam.microlens_positions_mm()[0, 0]
+    turn = np.radians(3.0)
+    along = odd @ [np.cos(turn), np.sin(turn)]
+    assert along == pytest.approx(shift * cam.ml_pitch_mm)
+
+
+def test_a_hexagonal_camera_file_round_trips_and_refuses_bad_layouts(tmp_path):
+    cam = hex_camera(ml_odd_row_shift=-0.5)
+    cam.to_toml(tmp_path / "hex.toml")
+    back = Camera.from_toml(tmp_path / "hex.toml")
+    assert (back.ml_layout, back.odd_row_shift) == ("hexagonal", -0.5)
+    np.testing.assert_array_equal(back.microlens_centers, cam.microlens_centers)
+    assert "layout" not in lens_camera().to_dict()["microlens_array"]
+    with pytest.raises(ValueError, match="layout must be one of"):
+        lens_camera(ml_layout="hex")
+    with pytest.raises(ValueError, match="odd_row_shift must be one of"):
+        lens_camera(ml_odd_row_shift=0.5)
+    with pytest.raises(ValueError, match="odd_row_shift must be one of"):
+        hex_camera(ml_odd_row_shift=0.25)
+
+
+def test_cell_points_fill_the_hexagon_uniformly():
+    cam = hex_camera()
+    rng = np.random.default_rng(1)
+    a, b = _cell_points(cam, rng.random(400_000), rng.random(400_000))
+    p = cam.ml_pitch_mm
+    # inside the pointy-top hexagon: |a| <= p/2 and |b| <= (p - |a|)/sqrt(3)
+    assert np.abs(a).max() <= p / 2 + 1e-12
+    assert (np.abs(b) <= (p - np.abs(a)) / np.sqrt(3) + 1e-12).all()
+    # uniform: each of the hexagon's 6 triangles and its inner circle hold their area's share
+    sector = np.floor((np.degrees(np.arctan2(b, a)) + 360) % 360 / 60)
+    assert np.bincount(sector.astype(int), minlength=6) / len(a) == pytest.approx(
+        np.full(6, 1 / 6), abs=0.003)
+    inner = np.pi * (p / 2) ** 2 / (p * p * ROW)  # the inscribed circle's share of the area
+    assert np.mean(np.hypot(a, b) < p / 2) == pytest.approx(inner, abs=0.003)
+
+
+def test_kernel_matches_reference_ray_for_ray(queue):
+    cam = hex_camera(ml_rotation_deg=1.5, ml_offset_mm=(0.01, -0.02))
+    pos = np.array([[0.1, 0.05, 0.0], [-0.3, 0.2, 1.5], [0.2, -0.1, -2.0], [0.6, 0.4, 0.7]])
+    inten = np.array([1000.0, 500.0, 2000.0, 750.0])
+    a = Simulator(cam, queue).trace(pos, inten, 7001, seed=11, blur_px=0.5)
+    b = reference.trace_particles(cam, pos, inten, 7001, seed=11, blur_px=0.5)
+    assert a.sum() == pytest.approx(b.sum(), rel=1e-5)
+    # only rays within float32 rounding of a cell edge may move: a handful of pixels
+    assert np.count_nonzero(np.abs(a - b) > 1e-3) <= 10
+
+
+def test_white_images_match_the_reference(queue):
+    cam = hex_camera(ml_odd_row_shift=-0.5)
+    for stop in (16.0, cam.f_number):  # stopped down, and at full aperture
+        img = simulate_white_image(cam, stop_f_number=stop, rays_per_lens=800, seed=3,
+                                   queue=queue)
+        ref = reference.trace_white(cam, stop, 800, 3, 1000.0, 0.8)
+        assert np.corrcoef(img.ravel(), ref.ravel())[0, 1] > 0.9999
+
+
+def _nearest_centre_trace(cam: Camera, point, rays: int, seed: int) -> np.ndarray:
+    """Independent exact trace: aperture point, thin main lens, the array plane, the lens
+    whose centre is nearest (a k-d tree over the array's centres), the sensor."""
+    rng = np.random.default_rng(seed)
+    r = cam.aperture_diameter_mm / 2 * np.sqrt(rng.random(rays))
+    t = 2 * np.pi * rng.random(rays)
+    ap = np.stack([r * np.cos(t), r * np.sin(t)], -1)
+    s_o = cam.object_distance_mm + point[2]
+    slope = (ap - np.asarray(point[:2])) / s_o - ap / cam.focal_length_mm
+    mla = ap + slope * cam.image_distance_mm
+    centres = cam.microlens_positions_mm().reshape(-1, 2)
+    dist, k = cKDTree(centres).query(mla)
+    # a ray beyond the array's outer cells is lost (a cell is at most p/sqrt(3) round)
+    ok = dist <= cam.ml_pitch_mm / np.sqrt(3)
+    sensor = centres[k] + slope * cam.ml_focal_length_mm
+    px = np.floor(sensor / cam.pixel_pitch_mm + np.array(cam.pixels) / 2).astype(int)
+    ok &= np.all((px >= 0) & (px < np.array(cam.pixels)), axis=1)
+    img = np.zeros(cam.pixels[::-1])
+    np.add.at(img, (px[ok, 1], px[ok, 0]), 1.0 / rays)
+    return img
+
+
+@pytest.mark.parametrize("z", [-2.5, 0.0, 1.0])
+def test_particle_rays_enter_the_lens_whose_centre_is_nearest(queue, z):
+    cam = hex_camera(ml_rotation_deg=2.0)
+    point = np.array([0.17, -0.09, z])
+    img, again = (simulate_image(cam, point[None], 3e5, 300_000, seed=s, queue=queue) / 3e5
+                  for s in (5, 7))
+    ref = _nearest_centre_trace(cam, point, 300_000, seed=6)
+    assert img.sum() == pytest.approx(ref.sum(), abs=0.01)
+    # the light placed differently: no more than between two seeds of the simulator
+    assert np.abs(img - ref).sum() < 1.1 * np.abs(img - again).sum()  # 0.031-0.039
+
+
+# ---- calibration ------------------------------------------------------------------------
+def sensor_camera(cols: int = 20, rows: int = 18, **changes) -> Camera:
+    """A hexagonal camera whose sensor the array fills as a real one does: the even rows'
+    outer centres half a pitch inside its edges."""
+    return lens_camera(cols, rows, (int(16.98 * cols) + 1, int(16.98 * rows * ROW) + 1),
+                       ml_layout="hexagonal", **changes)
+
+
+def nominal(cam: Camera) -> Camera:
+    """What the user knows: the camera file without the array's rotation and offset."""
+    return dataclasses.replace(cam, ml_rotation_deg=0.0, ml_offset_mm=(0.0, 0.0),
+                               microlens_centers=None)
+
+
+def centre_errors(fit, truth, cam: Camera) -> tuple[float, float]:
+    """Share of the lenses whose true centre lies on the sensor that were found, and the
+    RMS distance (px) of the found centres from the truth."""
+    err = np.hypot(*(fit.centers - truth).transpose(2, 0, 1))
+    on = ((truth >= 0) & (truth <= np.array(cam.pixels) - 1)).all(-1)
+    return float(np.isfinite(err[on]).mean()), float(np.sqrt(np.nanmean(err**2)))
+
+
+HEX_CASES = {  # name: (the true array, the white image)
+    "clean": (dict(), dict()),
+    "rotated+2-shifted-noisy": (dict(ml_rotation_deg=2.0, ml_offset_mm=(0.04, -0.03)),
+                                dict(photon_noise=True, read_noise=2.0, bit_depth=12)),
+    "odd-rows-left-rotated-1": (dict(ml_odd_row_shift=-0.5, ml_rotation_deg=-1.0),
+                                dict(photon_noise=True)),
+}
+
+
+@pytest.mark.parametrize("case", HEX_CASES)
+def test_stopped_down_hexagonal_white_images_are_calibrated(queue, case):
+    """Every lens found, its centre within 0.05 px RMS of the truth (0.004-0.006 px), and
+    the array's rotation measured."""
+    layout, image = HEX_CASES[case]
+    cam = sensor_camera(**layout)
+    white = simulate_white_image(cam, seed=3, queue=queue, **image)
+    fit = find_centers(white, nominal(cam))
+    found, rms = centre_errors(fit, cam.ideal_microlens_centers(), cam)
+    assert found == 1.0 and rms <= 0.05
+    assert fit.rotation_deg == pytest.approx(cam.ml_rotation_deg, abs=0.01)
+
+
+def test_hexagonal_lenses_off_the_lattice_keep_their_offsets(queue):
+    """Small spots (f/16, 0.3 px blur), 12-bit, noise, lenses 0.1 px (per axis) off the
+    lattice: the combined centres keep the offsets (0.029 px RMS; the lattice model alone
+    is off by the lenses' scatter)."""
+    cam = sensor_camera(ml_rotation_deg=0.3)
+    rng = np.random.default_rng(4)
+    per_px = centre_shift_px(cam, np.ones(2))[0]
+    shift = rng.normal(0.0, 0.1 / per_px, (*cam.ml_count[::-1], 2))
+    truth = cam.ideal_microlens_centers() + centre_shift_px(cam, shift)
+    white = simulate_white_image(cam, blur_px=0.3, photon_noise=True, read_noise=3.0,
+                                 bit_depth=12, intensity=1e4, rays_per_lens=20000, seed=17,
+                                 lens_shift_mm=shift, queue=queue)
+    found, rms = centre_errors(find_centers(white, nominal(cam)), truth, cam)
+    model = centre_errors(find_centers(white, nominal(cam), method="fit"), truth, cam)[1]
+    assert found == 1.0 and rms <= 0.05 and rms < 0.5 * model
+
+
+def test_full_aperture_hexagonal_white_images_are_calibrated(queue):
+    """Disks filling their (hexagonal) lenses at the main lens's own f-number, rotated,
+    50 % vignetting falloff across the sensor, photon and read noise: recognised, at
+    least 97 % of the lenses on the sensor found, within 0.05 px RMS."""
+    cam = sensor_camera(ml_rotation_deg=1.0, ml_offset_mm=(0.02, 0.01))
+    white = vendor_white_image(cam, queue)
+    fit = find_centers(white, nominal(cam))
+    found, rms = centre_errors(fit, cam.ideal_microlens_centers(), cam)
+    assert fit.aperture == "full" and found >= 0.97 and rms <= 0.05
+
+
+def test_a_wrong_hexagonal_count_or_stagger_is_refused(queue):
+    cam = sensor_camera()
+    white = simulate_white_image(cam, seed=3, queue=queue)
+    with pytest.raises(ValueError, match="20 x 18 microlens images .* has 20 x 17"):
+        find_centers(white, dataclasses.replace(nominal(cam), ml_count=(20, 17),
+                                                microlens_centers=None))
+    with pytest.raises(ValueError, match="set \\[microlens_array\\] odd_row_shift = 0.5"):
+        find_centers(white, dataclasses.replace(nominal(cam), ml_odd_row_shift=-0.5,
+                                                microlens_centers=None))
+
+
+def test_stages_for_rectangular_arrays_refuse_a_hexagonal_one(queue):
+    """Reconstruction, the light field and the image fit name what plenocl does with a
+    hexagonal camera so far instead of treating it as a rectangular one."""
+    from plenocl import Grid, LightField, Projector
+    from plenocl.optics.raybundle import RayBundle
+
+    cam = sensor_camera(8, 8)
+    grid = Grid((4, 8, 8), x=(-0.5, 0.5), y=(-0.5, 0.5), z=(-1.0, 1.0))
+    for stage in (lambda: Projector(cam, grid, queue), lambda: RayBundle.of(cam),
+                  lambda: LightField(np.ones(cam.pixels[::-1]), cam, queue=queue),
+                  lambda: Grid.for_camera(cam, (-1.0, 1.0))):
+        with pytest.raises(ValueError, match="hexagonal microlens arrays yet: plenocl "
+                           "simulates hexagonal cameras and calibrates"):
+            stage()
+
+
+def test_hexagonal_centres_travel_as_csv(tmp_path, queue):
+    """A hexagonal camera calibrated from its white image writes its centres as a
+    centres CSV (lens column and row, the (rows, cols) of ``microlens_centers``) and an
+    import gives the same camera, to the last bit."""
+    from plenocl.calibration import calibrate, import_centers
+    from plenocl.io.centres import write_centers_csv
+
+    cam = sensor_camera(ml_rotation_deg=0.5)
+    calibrated = calibrate(simulate_white_image(cam, seed=5, queue=queue), nominal(cam))
+    write_centers_csv(tmp_path / "c.csv", calibrated.microlens_centers)
+    back = import_centers(tmp_path / "c.csv", nominal(cam))
+    np.testing.assert_array_equal(back.microlens_centers, calibrated.microlens_centers)
+    assert back.ml_layout == "hexagonal"
+
+
+def test_large_hexagonal_disks_are_calibrated_to_the_sensors_edge(queue):
+    """A vendor-style image of few large lenses (65 px, 720 x 720 px, 11 x 12 hexagonal
+    lenses) at full aperture: the disks at the array's edge, with neighbours on one side
+    only, are left out of the grid model (their centroids were 2-4 px off), the lenses
+    whose centre lies on the sensor are all found, those whose disk the edge cuts from
+    the model, within 0.05 px RMS (0.012); a dead lens stays missing."""
+    pitch_px = 65.0
+    cam = Camera(50.0, 2.0, 1.0, 0.125, 0.5, (11, 12), 0.125 * 1.005 / pitch_px, (720, 720),
+                 ml_layout="hexagonal")
+    dead = np.zeros((12, 11), bool)
+    dead[5, 4] = True
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, photon_noise=True,
+                                 intensity=1e5, rays_per_lens=200_000, missing=dead, seed=2,
+                                 queue=queue)
+    fit = find_centers(white, cam)
+    truth = cam.ideal_microlens_centers()
+    found, rms = centre_errors(fit, truth, cam)
+    assert fit.aperture == "full" and rms <= 0.05
+    assert np.array_equal(~fit.found, dead) and found == pytest.approx(131 / 132)
