@@ -78,6 +78,7 @@ def test_a_tracked_run_writes_tracks_and_field_that_follow_the_motion(recording)
     ds = xr.open_zarr(out / "tracks.zarr")
     assert ds.position.dims == ("track", "frame", "axis") and list(ds.axis.values) == list("xyz")
     np.testing.assert_allclose(ds.time.values, np.arange(6) * INTERVAL_S)
+    assert {"time", "field_first_frame"} <= set(ds.coords)
     assert list(ds.frame.values) == list(range(6))
     np.testing.assert_allclose(ds.position.values, tracks.positions, rtol=1e-6)
     np.testing.assert_allclose(ds.velocity_sigma.values, tracks.velocity_sigma * 1e-3,
@@ -115,7 +116,7 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
     assert [p.stat().st_mtime_ns for p in marks] == before
     old = Tracks.load(out / "tracks.npz")
     (d / "changed.toml").write_text(EXPERIMENT.replace(
-        "[output]", "refits = 0\nfield_window = [16, 8, 8]\n[output]"))
+        "[output]", "refits = 0\nfield_window = [16, 8, 8]\nfield_steps = 2\n[output]"))
     lines.clear()
     changed = plenocl.run(d / "changed.toml", log=_logged(lines))
     assert changed.processed == ["tracks", "field"]
@@ -125,6 +126,9 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
     xr = pytest.importorskip("xarray")
     field = xr.open_zarr(out / "tracks.zarr")  # windows of 8 voxels, 4 apart, on 16 x 23
     assert (field.sizes["y"], field.sizes["x"]) == (3, 4)
+    assert list(field.field_first_frame.values) == [0, 2, 4]  # 5 steps, 2 per field
+    assert list(field.field_last_frame.values) == [2, 4, 5]
+    np.testing.assert_allclose(field.field_time.values, np.array([1, 3, 4.5]) * INTERVAL_S)
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -198,3 +202,28 @@ def test_on_dask_the_tracking_is_one_task_and_gives_the_serial_tracks(recording,
     want, got = (Tracks.load(tmp_path / name / "tracks.npz") for name in ("serial", "dask"))
     for name in ("positions", "velocities", "measured_sigma", "intensities"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+def test_a_run_stopped_while_writing_the_store_leaves_none_and_goes_on(recording, tmp_path,
+                                                                        monkeypatch):
+    """Ctrl-C while the store is written: the tracks stay, no store or half of one; the
+    rerun removes the leftover, skips the tracking and writes the store."""
+    import plenocl.io.zarrstore as zarrstore
+
+    d, _ = recording
+
+    def stopped(partial, path):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(zarrstore, "finish_store", stopped)
+        with pytest.raises(KeyboardInterrupt):
+            plenocl.run(d / "experiment.toml", tmp_path, log=_logged([]))
+    assert (tmp_path / "tracks.npz").is_file() and (tmp_path / "tracks.zarr.partial").is_dir()
+    assert not (tmp_path / "tracks.zarr").exists()
+    lines: list[str] = []
+    again = plenocl.run(d / "experiment.toml", tmp_path, log=_logged(lines))
+    assert again.skipped == ["tracks"] and again.processed == ["field"]
+    assert any("removed tracks.zarr.partial" in line for line in lines)
+    assert (tmp_path / "tracks.zarr" / "zarr.json").is_file()
+    assert not (tmp_path / "tracks.zarr.partial").exists()

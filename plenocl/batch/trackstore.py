@@ -62,14 +62,14 @@ def track_variables(tracks: Tracks, frame_numbers: Sequence[int]) -> dict[str, V
                  {"units": "s", "long_name": "time from the first frame"}),
         "axis": (("axis",), np.array(["x", "y", "z"]), {"long_name": "component"}),
         "intensity": (("track", "frame"), tracks.intensities.astype(np.float32),
-                      {"long_name": "particle intensity (image units)"}),
+                      {"long_name": "particle intensity (image units)", "coordinates": "time"}),
         "length": (("track",), tracks.lengths.astype(np.int64),
                    {"long_name": "frames the track is seen in"}),
     }
     for name, attr, unit, scale in VECTORS:
         values = (getattr(tracks, attr) * scale).astype(np.float32)
         out[name] = (("track", "frame", "axis"), values,
-                     {"units": unit, "long_name": attr.replace("_", " ")})
+                     {"units": unit, "long_name": attr.replace("_", " "), "coordinates": "time"})
     return out
 
 
@@ -81,6 +81,7 @@ def field_variables(fields: Sequence[tuple[int, int, PIVResult]], grid: Grid,
               for _, _, res in fields]
     first, last = (np.array([f[k] for f in fields], np.int64) for k in (0, 1))
     dims = ("field_time", "z", "y", "x")
+    frames = {"coordinates": "field_first_frame field_last_frame"}
     out: dict[str, Variable] = {
         "field_time": (("field_time",), (first + last) / 2 * dt,
                        {"units": "s", "long_name": "middle of the steps binned"}),
@@ -91,10 +92,11 @@ def field_variables(fields: Sequence[tuple[int, int, PIVResult]], grid: Grid,
            for axis in ("z", "y", "x")}}
     for k, comp in enumerate(COMPONENTS):
         out[comp] = (dims, np.stack([a["velocity"][k] for a in arrays]).astype(np.float32),
-                     {"units": "m/s", "long_name": f"{comp} of the binned tracks"})
+                     {"units": "m/s", "long_name": f"{comp} of the binned tracks", **frames})
         out[f"{comp}_sigma"] = (dims, np.stack([a["velocity_uncertainty"][k]
                                                 for a in arrays]).astype(np.float32),
-                                {"units": "m/s", "long_name": f"standard uncertainty of {comp}"})
+                                {"units": "m/s", "long_name": f"standard uncertainty of {comp}",
+                                 **frames})
     for flag in ("valid", "outlier"):
-        out[flag] = (dims, np.stack([a[flag] for a in arrays]), {})
+        out[flag] = (dims, np.stack([a[flag] for a in arrays]), dict(frames))
     return out
