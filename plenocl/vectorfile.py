@@ -16,15 +16,21 @@ import numpy as np
 from .io.fields import check_field_path, read_field, write_field
 from .vectorfield import PIVResult, voxel_size
 
-__all__ = ["field_arrays", "read_npz", "save_field"]
+__all__ = ["field_arrays", "grid_geometry", "read_npz", "save_field"]
+
+
+def grid_geometry(grid) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """A grid's voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm
+    (what :meth:`plenocl.PIVResult.arrays` takes)."""
+    spacing = tuple(float(s) for s in grid.spacing)
+    lows = (grid.z[0], grid.y[0], grid.x[0])
+    return spacing, tuple(lo + 0.5 * s for lo, s in zip(lows, spacing))
 
 
 def _geometry(voxel_size_mm, origin_mm, grid):
     """Voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm."""
     if grid is not None:
-        spacing = tuple(float(s) for s in grid.spacing)
-        lows = (grid.z[0], grid.y[0], grid.x[0])
-        return spacing, tuple(lo + 0.5 * s for lo, s in zip(lows, spacing))
+        return grid_geometry(grid)
     origin = tuple(float(o) for o in np.broadcast_to(np.asarray(origin_mm, float), (3,)))
     return voxel_size(voxel_size_mm), origin
 

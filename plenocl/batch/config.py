@@ -46,6 +46,9 @@ Example::
     [output]
     folder = "results"
     vti = false                          # also a ParaView .vti per pair
+
+A ``[tracking]`` section (:mod:`.trackconfig`) makes the run track the frames as one
+time-resolved recording instead of processing pairs.
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ from ..io.tomlfile import read_toml
 from ..pipeline.settings import PARTS, PairSettings
 from ..units import check_dt
 from .pairing import PAIRINGS, PairPlan, ab_pairs, listed_pairs, numbered_pairs
+from .trackconfig import TrackingOptions, check_images_for_tracking, tracking_options
 
 #: Keys each section of an experiment file may hold, with their defaults (None: required
 #: or optional without default), besides the pair's settings (:data:`PAIR_SECTIONS`).
@@ -77,11 +81,13 @@ SECTIONS = {
 @dataclass(frozen=True)
 class Experiment:
     """A validated experiment file: every section's values with defaults filled in, the
-    folder relative paths are resolved against, and each pair's settings."""
+    folder relative paths are resolved against, and each pair's settings; with an
+    enabled ``[tracking]`` section, its options (the run tracks the frames instead)."""
 
     sections: dict = field(compare=False)
     base: Path = Path(".")
     pair: PairSettings = field(default_factory=PairSettings)
+    tracking: TrackingOptions | None = None
 
     def __getitem__(self, section: str) -> dict:
         return self.sections[section]
@@ -89,16 +95,18 @@ class Experiment:
 
 #: The sections that make each pair's :class:`~plenocl.pipeline.PairSettings`.
 PAIR_SECTIONS = PARTS
+#: The section of a time-resolved recording's tracking (:mod:`.trackconfig`).
+TRACKING = "tracking"
 
 
 def load_experiment(path: str | Path) -> Experiment:
     """Read and check an experiment file; every unknown or bad key is an error naming it."""
     path = Path(path)
     doc = read_toml(path)
-    unknown = set(doc) - set(SECTIONS) - set(PAIR_SECTIONS)
+    unknown = set(doc) - set(SECTIONS) - set(PAIR_SECTIONS) - {TRACKING}
     if unknown:
         raise ValueError(f"{path}: unknown section(s) {sorted(unknown)}; the sections are "
-                         f"{list(dict.fromkeys([*SECTIONS, *PAIR_SECTIONS]))}")
+                         f"{list(dict.fromkeys([*SECTIONS, *PAIR_SECTIONS, TRACKING]))}")
     batch, pair = _split(doc)
     sections = {}
     for name, defaults in SECTIONS.items():
@@ -108,8 +116,10 @@ def load_experiment(path: str | Path) -> Experiment:
             raise ValueError(f"{path}: unknown key(s) {sorted(bad)} in [{name}]; it takes "
                              f"{list(defaults)}")
         sections[name] = {**defaults, **given}
-    _check(sections, path)
-    return Experiment(sections, path.parent, PairSettings.from_dict(pair, source=str(path)))
+    tracking = tracking_options(doc.get(TRACKING), pair, sections["images"], path)
+    _check(sections, path, tracking is not None)
+    return Experiment(sections, path.parent, PairSettings.from_dict(pair, source=str(path)),
+                      tracking)
 
 
 def _split(doc: dict) -> tuple[dict, dict]:
@@ -124,7 +134,8 @@ def _split(doc: dict) -> tuple[dict, dict]:
     return batch, pair
 
 
-def _check(s: dict, path: Path) -> None:
+def _check(s: dict, path: Path, tracking: bool = False) -> None:
+    """Every section's values (``tracking``: the pair keys refused instead of needed)."""
     cam = [k for k in ("file", "preset") if s["camera"][k]]
     if len(cam) != 1:
         raise ValueError(f"{path}: [camera] needs exactly one of file or preset (the "
@@ -133,27 +144,34 @@ def _check(s: dict, path: Path) -> None:
         raise ValueError(f"{path}: [grid] needs exactly one of file or z_mm")
     _check_pairing(s["images"], path)
     _check_frames(s["images"], path)
-    if not isinstance(s["images"]["force_dt"], bool):
-        raise ValueError(f"{path}: [images] force_dt must be true or false")
-    dt = s["images"]["dt_s"]
-    if not isinstance(dt, (int, float)) or isinstance(dt, bool):
-        raise ValueError(f"{path}: [images] dt_s must be the time between the exposures in "
-                         f"seconds (e.g. 175e-6), got {dt!r}")
-    check_dt(dt, f"{path}: [images] dt_s", s["images"]["force_dt"],
-             flag="[images] force_dt = true")
-    interval = s["images"]["pair_interval_s"]
-    if interval is not None and not (isinstance(interval, (int, float)) and interval > 0):
-        raise ValueError(f"{path}: [images] pair_interval_s must be the time between "
-                         f"successive pairs in seconds, got {interval!r}")
     for section, key in (("output", "vti"), ("piv", "ensemble")):
         if not isinstance(s[section][key], bool):
             raise ValueError(f"{path}: [{section}] {key} must be true or false, got "
                              f"{s[section][key]!r}")
+    if tracking:
+        check_images_for_tracking(s["images"], s["piv"]["ensemble"], path)
+    else:
+        _check_times(s["images"], path)
+
+
+def _check_times(img: dict, path: Path) -> None:
+    """The pairs' ``dt_s`` (needed) and ``pair_interval_s``."""
+    dt = img["dt_s"]
+    if not isinstance(dt, (int, float)) or isinstance(dt, bool):
+        raise ValueError(f"{path}: [images] dt_s must be the time between the exposures in "
+                         f"seconds (e.g. 175e-6), got {dt!r}")
+    check_dt(dt, f"{path}: [images] dt_s", img["force_dt"], flag="[images] force_dt = true")
+    interval = img["pair_interval_s"]
+    if interval is not None and not (isinstance(interval, (int, float)) and interval > 0):
+        raise ValueError(f"{path}: [images] pair_interval_s must be the time between "
+                         f"successive pairs in seconds, got {interval!r}")
 
 
 def _check_frames(img: dict, path: Path) -> None:
     from ..io.files import CHANNELS
 
+    if not isinstance(img["force_dt"], bool):
+        raise ValueError(f"{path}: [images] force_dt must be true or false")
     if img["channel"] is not None and img["channel"] not in CHANNELS:
         raise ValueError(f"{path}: [images] channel must be one of {CHANNELS}, got "
                          f"{img['channel']!r}")

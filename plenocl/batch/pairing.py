@@ -10,6 +10,9 @@ of shifting every later pair onto the wrong exposures:
   (``first`` subtracted) or, without numbers, the position among the sorted names;
 - ``list``: the pairs listed in the experiment file, ``k`` their position.
 
+A tracking run (``[tracking]``) takes every frame by number instead, from ``first`` on,
+with no gap (:func:`numbered_series`).
+
 ``first`` is ``[images] first_frame``, by default the lowest frame number found. The
 number of a frame is the last run of digits in its file name (without the extension).
 Each pair's source files are fingerprinted (name, size, modification time, SHA-256), so
@@ -86,6 +89,28 @@ def _by_numbers(frames: dict[int, Path], first: int, step: int, folder: Path,
         missing = [name_of(n) for n, f in ((na, fa), (nb, fb)) if f is None]
         plan.gaps[k] = f"frame {na} + {nb}: {' and '.join(missing)} missing in {folder}"
     return plan
+
+
+def numbered_series(files: list[Path], first_frame: int | None, folder: Path
+                    ) -> dict[int, Path]:
+    """The frames of one time-resolved recording, ``{frame number: file}`` in order from
+    ``first_frame`` (default: the lowest found) to the highest: a time series at a
+    constant interval, so a missing frame between them is an error naming it."""
+    frames = numbered_frames(files, "sequence")
+    first = min(frames) if first_frame is None else int(first_frame)
+    frames = {n: frames[n] for n in sorted(frames) if n >= first}
+    if not frames:
+        raise ValueError(f"no frame numbered {first} ([images] first_frame) or later in "
+                         f"{folder}")
+    example = next(iter(frames.values()))
+    missing = [_name_like(example, n) for n in range(first, max(frames)) if n not in frames]
+    if missing:
+        raise ValueError(
+            f"{', '.join(missing[:5])}{' and more' if len(missing) > 5 else ''} missing in "
+            f"{folder}: tracking follows every frame of a recording at a constant interval; "
+            "restore the frame, or track the frames before or after it ([images] "
+            "first_frame, pattern)")
+    return frames
 
 
 def _name_like(example: Path, number: int) -> str:

@@ -29,13 +29,19 @@ from ..io.atomic import write_json
 from ..io.fields import field_metadata
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
-from ..io.tomlfile import write_toml
 from ..options import NONE
 from ..pipeline.resume import pending
-from ..version import __version__
 from .config import Experiment, image_pairs, load_experiment
 from .layout import finished_pairs, pair_file, remove_partial_files
 from .pairing import ImagePair, PairPlan, changed_since
+from .prepare import (
+    check_cluster_device,
+    frame_corrections,
+    run_camera,
+    run_grid,
+    write_used_config,
+)
+from .tracking import TrackingSummary, run_tracking
 from .worker import PairOutcome, PairProcessor, PairTask, RunSettings
 
 
@@ -58,11 +64,19 @@ class RunSummary:
     store: str | None = None
     ensemble: str | None = None
 
+    def exit_status(self) -> int:
+        """The command's exit status: 130 when interrupted, 1 when a pair failed, else 0."""
+        if self.interrupted:
+            return 130
+        return 1 if self.failed else 0
+
 
 def run(config: str | Path, out: str | Path | None = None, queue=None, log=print, *,
         workers: int | None = None, scheduler: str | None = None,
-        progress: bool = True) -> RunSummary:
-    """Process every image pair of an experiment file (see the module notes).
+        progress: bool = True) -> RunSummary | TrackingSummary:
+    """Process every image pair of an experiment file (see the module notes); with an
+    enabled ``[tracking]`` section, track its frames instead
+    (:func:`plenocl.batch.tracking.run_tracking`).
 
     Parameters
     ----------
@@ -80,27 +94,28 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     scheduler
         Address of an existing Dask scheduler to process the pairs on instead.
     progress
-        Show a progress bar (pairs done, pairs/s, time left).
+        Show a progress bar (pairs done, pairs/s, time left; not for tracking).
 
     Returns
     -------
-    RunSummary
+    RunSummary or TrackingSummary
         Pairs processed, skipped (already written), failed (with the reason) and left
-        out for a missing frame (``gaps``), and each finished pair's source files.
+        out for a missing frame (``gaps``), and each finished pair's source files; or
+        the tracking run's frames, tracks and stages run or skipped.
     """
     exp = load_experiment(config)
     out = Path(out) if out is not None else exp.base / exp["output"]["folder"]
+    if exp.tracking is not None:
+        return run_tracking(exp, out, queue, log, workers=workers, scheduler=scheduler)
     plan = image_pairs(exp)
-    if (workers or scheduler) and not (queue is None or isinstance(queue, str)):
-        raise ValueError("with --workers or --scheduler the device must be a name each "
-                         "worker looks up (e.g. 'cpu' or 'NVIDIA'), not an OpenCL object")
+    check_cluster_device(queue, workers, scheduler)
     for path in remove_partial_files(out) if out.is_dir() else []:
         log(f"removed {path.name}, left half-written by an interrupted run")
-    camera = _camera(exp, queue, log)
-    grid = _grid(exp, camera)
+    camera = run_camera(exp, queue, log)
+    grid = run_grid(exp, camera)
     _refuse_other_grid(out, grid)
     _refuse_changed_inputs(plan, out)
-    _write_used_config(exp, out, camera, grid)
+    write_used_config(exp, out, camera, grid, _pair_record(exp))
     summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),
                          workers=workers or (0 if scheduler else 1),
                          gaps=dict(plan.gaps), unpaired=list(plan.unpaired))
@@ -168,11 +183,17 @@ def _tasks(pairs: list[ImagePair], out: Path, summary: RunSummary, log) -> list[
     return tasks
 
 
+def _pair_record(exp: Experiment) -> dict:
+    """The pair settings' sections as ``experiment_used.toml`` records them."""
+    pair = exp.pair.to_dict(none=NONE)  # TOML has no null: "none"
+    pair["piv"].update(exp["piv"])  # ensemble, the batch's
+    return pair
+
+
 def _run_settings(exp: Experiment) -> RunSettings:
     """What every pair of the run shares, from the checked experiment file."""
     img = exp["images"]
-    dark, flat = (str((exp.base / img[k]).resolve()) if img[k] else None
-                  for k in ("dark", "flat"))
+    dark, flat = frame_corrections(exp)
     return RunSettings(exp.pair, float(img["dt_s"]), bool(exp["output"]["vti"]),
                        bool(exp["piv"]["ensemble"]), img["channel"], dark, flat)
 
@@ -203,34 +224,6 @@ def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:
         summary.stage_seconds[key] = summary.stage_seconds.get(key, 0.0) + value
 
 
-def _camera(exp: Experiment, queue, log):
-    from ..camera import load_camera
-
-    cam = exp["camera"]
-    camera = load_camera(exp.base / cam["file"] if cam["file"] else cam["preset"])
-    if not cam["white"]:
-        return camera
-    from ..calibration import calibrate
-    from ..io.files import read_image
-    from ..pipeline.frames import load_frame
-
-    log(f"calibrating from {cam['white']}")
-    img = exp["images"]
-    dark = read_image(exp.base / img["dark"], img["channel"]) if img["dark"] else None
-    # a white image is a flat field itself: the dark frame only
-    return calibrate(load_frame(exp.base / cam["white"], camera, img["channel"], dark), camera)
-
-
-def _grid(exp: Experiment, camera):
-    from ..grid import Grid
-
-    g = exp["grid"]
-    if g["file"]:
-        return Grid.from_toml(exp.base / g["file"])
-    return Grid.for_camera(camera, tuple(g["z_mm"]), voxel_mm=g["voxel_mm"],
-                           depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
-
-
 def _refuse_other_grid(out: Path, grid) -> None:
     """A rerun refuses to mix pairs of another grid into the folder."""
     grid_file = out / "grid_used.toml"
@@ -240,25 +233,6 @@ def _refuse_other_grid(out: Path, grid) -> None:
         if Grid.from_toml(grid_file) != grid:
             raise ValueError(f"{out} holds pairs of another grid ({grid_file}); write this "
                              f"run to another folder (--out) or remove the old results")
-
-
-def _write_used_config(exp: Experiment, out: Path, camera, grid) -> None:
-    """The configuration used (a record: the workers get theirs as an object), the
-    camera and the grid, beside the results."""
-    out.mkdir(parents=True, exist_ok=True)
-    grid_file = out / "grid_used.toml"
-    pair = exp.pair.to_dict(none=NONE)  # TOML has no null: "none"
-    pair["piv"].update(exp["piv"])  # ensemble, the batch's
-    used = {name: {k: v for k, v in values.items() if v is not None}
-            for name, values in {**exp.sections, **pair}.items()}
-    for key in ("dark", "flat"):  # absolute: the record holds wherever it is read
-        if key in used["images"]:
-            used["images"][key] = str((exp.base / used["images"][key]).resolve())
-    used["run"] = {"plenocl_version": __version__,
-                   "grid_shape": list(grid.shape), "grid_rotation_deg": grid.rotation_deg}
-    write_toml(out / "experiment_used.toml", used)
-    camera.to_toml(out / "camera_used.toml")
-    grid.to_toml(grid_file)
 
 
 def _ensemble(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> Path | None:

@@ -6,21 +6,21 @@ import argparse
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """Process every pair of an experiment file; exit 1 when a pair failed, 130 when
-    interrupted (the finished pairs are kept and gathered)."""
+    """Process every pair of an experiment file (or track its frames, with
+    ``[tracking]``); exit 1 when a pair failed, 130 when interrupted (the finished pairs
+    are kept and gathered)."""
     from ..batch import run
 
     summary = run(args.experiment, args.out, queue=args.device, workers=args.workers,
                   scheduler=args.scheduler, progress=not args.no_progress)
-    if summary.interrupted:
-        return 130
-    return 1 if summary.failed else 0
+    return summary.exit_status()
 
 
 def add_run_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``run``."""
-    p = subparsers.add_parser("run", help="process every image pair of an experiment file "
-                                          "(resumable: finished pairs are skipped)")
+    p = subparsers.add_parser("run", help="process every image pair of an experiment file, "
+                                          "or track its frames ([tracking]); resumable: "
+                                          "finished work is skipped")
     p.add_argument("experiment", help="experiment TOML (camera, grid, images, dt, settings)")
     p.add_argument("--out", default=None,
                    help="output folder (default: [output] folder of the experiment file)")

@@ -22,15 +22,13 @@ midway leaves the previous store (or none), never half of one.
 
 from __future__ import annotations
 
-import os
-import shutil
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .fields import metadata_of, read_field
+from .zarrstore import finish_store, partial_store
 
 COMPONENTS = ("u", "v", "w")
 
@@ -62,8 +60,7 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     if not fields:
         raise ValueError("no vector fields to gather into a time series")
     path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
+    partial = partial_store(path)
     group = zarr.open_group(partial, mode="w")
     first = read_field(fields[0][2])
     _coordinates(group, first, fields, time_units)
@@ -87,11 +84,7 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     if ensemble is not None:
         _write_ensemble(group, read_field(ensemble), first, Path(ensemble))
     group.attrs.update({"title": "plenocl time series", "source": "plenocl run"})
-    with warnings.catch_warnings():  # zarr: "not part of the Zarr 3 specification" (yet)
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        zarr.consolidate_metadata(partial)   # one read opens the whole store
-    _replace(partial, path)
-    return path
+    return finish_store(partial, path)
 
 
 def _sources(data: dict) -> tuple[str, str, str, str]:
@@ -201,12 +194,3 @@ class _Ensemble:
         group.create_array("valid_count", data=self.count, dimension_names=dims,
                            attributes={"long_name": "valid vectors in the ensemble"})
 
-
-def _replace(partial: Path, path: Path) -> None:
-    """Move the finished store into place, replacing an older one."""
-    old = path.with_name(path.name + ".old")
-    shutil.rmtree(old, ignore_errors=True)
-    if path.exists():
-        os.replace(path, old)
-    os.replace(partial, path)
-    shutil.rmtree(old, ignore_errors=True)

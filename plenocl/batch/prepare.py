@@ -1,0 +1,76 @@
+"""What every run of an experiment file makes before its work: the camera (calibrated
+from a white image if one is given), the grid, and the record of the configuration used
+in the output folder (``experiment_used.toml``, ``camera_used.toml``, ``grid_used.toml``);
+shared by the pairs' run (:mod:`.run`) and the tracking run (:mod:`.tracking`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..camera import Camera
+from ..grid import Grid
+from ..io.tomlfile import write_toml
+from ..version import __version__
+from .config import Experiment
+
+
+def check_cluster_device(queue, workers: int | None, scheduler: str | None) -> None:
+    """On a cluster the device is a name each worker looks up, never an OpenCL object."""
+    if (workers or scheduler) and not (queue is None or isinstance(queue, str)):
+        raise ValueError("with --workers or --scheduler the device must be a name each "
+                         "worker looks up (e.g. 'cpu' or 'NVIDIA'), not an OpenCL object")
+
+
+def run_camera(exp: Experiment, queue, log) -> Camera:
+    """The experiment's camera, calibrated from its white image when one is given (the
+    white image read as a frame: its channel and dark frame, not the flat field)."""
+    from ..camera import load_camera
+
+    cam = exp["camera"]
+    camera = load_camera(exp.base / cam["file"] if cam["file"] else cam["preset"])
+    if not cam["white"]:
+        return camera
+    from ..calibration import calibrate
+    from ..io.files import read_image
+    from ..pipeline.frames import load_frame
+
+    log(f"calibrating from {cam['white']}")
+    img = exp["images"]
+    dark = read_image(exp.base / img["dark"], img["channel"]) if img["dark"] else None
+    # a white image is a flat field itself: the dark frame only
+    return calibrate(load_frame(exp.base / cam["white"], camera, img["channel"], dark), camera)
+
+
+def run_grid(exp: Experiment, camera: Camera) -> Grid:
+    """The experiment's grid: its file, or fitted to the camera (``z_mm``)."""
+    g = exp["grid"]
+    if g["file"]:
+        return Grid.from_toml(exp.base / g["file"])
+    return Grid.for_camera(camera, tuple(g["z_mm"]), voxel_mm=g["voxel_mm"],
+                           depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
+
+
+def frame_corrections(exp: Experiment) -> tuple[str | None, str | None]:
+    """The absolute paths of the dark frame and the flat field (``None``: none)."""
+    img = exp["images"]
+    return tuple(str((exp.base / img[k]).resolve()) if img[k] else None
+                 for k in ("dark", "flat"))
+
+
+def write_used_config(exp: Experiment, out: Path, camera: Camera, grid: Grid,
+                      settings: dict) -> None:
+    """The configuration used (a record, not read back: the work gets its settings as an
+    object), the camera and the grid, beside the results. ``settings``: the resolved
+    settings' sections (a pair's, or the tracking's), over the file's own."""
+    out.mkdir(parents=True, exist_ok=True)
+    used = {name: {k: v for k, v in values.items() if v is not None}
+            for name, values in {**exp.sections, **settings}.items()}
+    dark, flat = frame_corrections(exp)  # absolute: the record holds wherever it is read
+    for key, value in (("dark", dark), ("flat", flat)):
+        if value is not None:
+            used["images"][key] = value
+    used["run"] = {"plenocl_version": __version__,
+                   "grid_shape": list(grid.shape), "grid_rotation_deg": grid.rotation_deg}
+    write_toml(out / "experiment_used.toml", used)
+    camera.to_toml(out / "camera_used.toml")
+    grid.to_toml(out / "grid_used.toml")

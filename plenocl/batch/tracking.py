@@ -1,0 +1,259 @@
+"""A time-resolved experiment tracked: ``plenocl run`` with an enabled ``[tracking]``
+section (docs/batch.md).
+
+The frames matched by ``[images]`` (every frame by number, no gap: one recording at
+``[tracking] frame_interval_s``) are read through the pairs' frame reader (channel,
+dark frame, flat field, region of interest) and tracked by :func:`plenocl.track` as one
+job: in this process, or as one task on a Dask cluster (``--workers``/``--scheduler``;
+tracking is sequential, so one worker runs it). The run writes ``OUT/tracks.npz``
+(:meth:`plenocl.Tracks.save`), ``OUT/tracks.vtu`` (ParaView poly-lines) and
+``OUT/tracks.zarr`` (the tracks and their binned field, :mod:`.trackstore`), each
+atomically, and ``summary.json``.
+
+Resume is :class:`plenocl.pipeline.resume.StageRunner`'s: two stages, ``tracks`` (the
+tracking) and ``field`` (the binned field, the ParaView file and the store), keyed on
+the frames' content (name, size, SHA-256), the camera and grid used, the frame
+corrections and every setting; a rerun with the same skips both, any change runs both
+again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import load_camera
+from ..grid import Grid
+from ..io.atomic import write_json
+from ..io.files import read_image
+from ..pipeline.frames import load_frame
+from ..pipeline.resume import StageRunner
+from ..pipeline.track import TrackSettings, bin_tracks, track
+from ..piv.tracking import FocalZone
+from ..ptv import Tracks
+from .config import Experiment
+from .pairing import fingerprint, numbered_series
+from .prepare import (
+    check_cluster_device,
+    frame_corrections,
+    run_camera,
+    run_grid,
+    write_used_config,
+)
+from .trackconfig import TrackingOptions
+from .trackstore import write_track_store
+
+#: The files a tracking run writes in its output folder.
+TRACKS, LINES, STORE = "tracks.npz", "tracks.vtu", "tracks.zarr"
+
+
+@dataclass
+class TrackingSummary:
+    """What a tracking run did (also written to ``summary.json``)."""
+
+    frames: int = 0
+    frame_numbers: list[int] = field(default_factory=list)
+    tracks: int = 0
+    processed: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    wall_seconds: float = 0.0
+    workers: int = 1
+    store: str | None = None
+
+    def exit_status(self) -> int:
+        """The command's exit status: 0 (a tracking run that fails raises instead)."""
+        return 0
+
+
+@dataclass(frozen=True)
+class TrackJob:
+    """The tracking of one run, from file paths to ``tracks.npz``: the unit of work in
+    this process or on a Dask worker."""
+
+    frames: tuple[str, ...]
+    run_folder: str
+    settings: TrackSettings
+    interval_s: float
+    channel: str | None = None
+    dark: str | None = None
+    flat: str | None = None
+    device: str | None = None
+
+
+def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
+                 workers: int | None = None, scheduler: str | None = None
+                 ) -> TrackingSummary:
+    """Track the experiment's frames (see the module notes); :func:`plenocl.run` calls it
+    for an experiment with an enabled ``[tracking]`` section.
+
+    Raises
+    ------
+    ValueError
+        A missing, unreadable or mis-sized frame, too few frames for ``min_length``, a
+        binned-field window larger than the grid: named with the fix, before any frame
+        is tracked.
+    """
+    opts = exp.tracking
+    frames = frame_series(exp, opts)
+    check_cluster_device(queue, workers, scheduler)
+    camera = run_camera(exp, queue, log)
+    grid = run_grid(exp, camera)
+    layout = opts.layout(grid)
+    write_used_config(exp, out, camera, grid, opts.record())
+    runner = StageRunner(out, _config(exp, frames, out, opts), log)
+    summary = TrackingSummary(len(frames), list(frames),
+                              workers=workers or (0 if scheduler else 1))
+    job = _job(exp, frames, out, opts, queue if isinstance(queue, str) else None)
+    log(f"tracking {len(frames)} frames {opts.interval_s:g} s apart")
+    t0 = time.perf_counter()
+    _stage(runner, summary, "tracks", [TRACKS],
+           lambda: _track(job, queue, workers, scheduler))
+    _stage(runner, summary, "field", [LINES, f"{STORE}/zarr.json"],
+           lambda: _write_outputs(out, frames, opts, camera, grid, layout))
+    summary.wall_seconds = time.perf_counter() - t0
+    summary.tracks = len(Tracks.load(out / TRACKS).positions)
+    summary.store = str(out / STORE)
+    write_json(out / "summary.json", asdict(summary))
+    log(f"{summary.tracks} tracks over {len(frames)} frames in {out / TRACKS}, "
+        f"{out / LINES} and {out / STORE}")
+    return summary
+
+
+def frame_series(exp: Experiment, opts: TrackingOptions) -> dict[int, Path]:
+    """``{frame number: file}`` of the recording; none, a gap, or fewer frames than
+    ``min_length`` is an error naming the folder and the fix."""
+    img = exp["images"]
+    folder = exp.base / img["folder"]
+    files = sorted(f for f in folder.glob(img["pattern"]) if f.is_file())
+    if not files:
+        raise ValueError(f"no frames in {folder} matching {img['pattern']!r}: check "
+                         "[images] folder and pattern")
+    frames = numbered_series(files, img["first_frame"], folder)
+    least = opts.settings.min_length
+    if len(frames) < least:
+        raise ValueError(f"{len(frames)} frame(s) in {folder} matching {img['pattern']!r}, "
+                         f"but a track is kept when seen in [tracking] min_length = {least} "
+                         f"frames: give at least {least} frames, or a smaller min_length "
+                         "(>= 2)")
+    return frames
+
+
+def _stage(runner: StageRunner, summary: TrackingSummary, name: str, outputs: list[str],
+           work: Callable[[], None]) -> None:
+    """One stage through the runner, recorded as skipped or processed."""
+    (summary.skipped if runner.done(name, outputs) else summary.processed).append(name)
+    summary.stage_seconds[name] = runner.run(name, outputs, work)
+
+
+def _config(exp: Experiment, frames: dict[int, Path], out: Path,
+            opts: TrackingOptions) -> dict:
+    """What the tracks and their field are made from: the resume key."""
+    dark, flat = frame_corrections(exp)
+    return {"frames": {n: _content(path) for n, path in frames.items()},
+            "settings": opts.record(), "channel": exp["images"]["channel"],
+            "dark": dark and _content(Path(dark)), "flat": flat and _content(Path(flat)),
+            "camera": _digest(out / "camera_used.toml"), "grid": _digest(out / "grid_used.toml")}
+
+
+def _content(path: Path) -> dict:
+    """A file's name, size and SHA-256 (not its time: a copy is the same input)."""
+    return {k: v for k, v in fingerprint(path).items() if k != "mtime_ns"}
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _job(exp: Experiment, frames: dict[int, Path], out: Path, opts: TrackingOptions,
+         device: str | None) -> TrackJob:
+    dark, flat = frame_corrections(exp)
+    return TrackJob(tuple(str(p.resolve()) for p in frames.values()), str(out.resolve()),
+                    opts.settings, opts.interval_s, exp["images"]["channel"], dark, flat,
+                    device)
+
+
+def _track(job: TrackJob, queue, workers: int | None, scheduler: str | None) -> None:
+    """The job in this process, or as one task on a Dask cluster."""
+    if not (workers or scheduler):
+        track_job(job, queue)
+        return
+    from .cluster import dask_client
+
+    with dask_client(workers, scheduler) as client:
+        client.submit(track_on_worker, job, pure=False).result()
+
+
+def track_on_worker(job: TrackJob) -> dict[str, float]:
+    """The Dask task: the job on this worker's device (the run's device name, else the
+    worker's ``PLENOCL_DEVICE``, else its default)."""
+    return track_job(job, job.device or os.environ.get("PLENOCL_DEVICE") or None)
+
+
+def track_job(job: TrackJob, device=None) -> dict[str, float]:
+    """Read every frame (all before any is tracked), track them, write ``tracks.npz``
+    atomically; returns seconds per step."""
+    folder = Path(job.run_folder)
+    camera = load_camera(folder / "camera_used.toml")
+    grid = Grid.from_toml(folder / "grid_used.toml")
+    t0 = time.perf_counter()
+    frames = read_frames(job, camera)
+    t1 = time.perf_counter()
+    from ..projection import Projector
+
+    tracks = track(frames, Projector(camera, grid, device), job.interval_s, job.settings)
+    t2 = time.perf_counter()
+    tracks.save(folder / TRACKS)
+    return {"read": t1 - t0, "track": t2 - t1, "write": time.perf_counter() - t2}
+
+
+def read_frames(job: TrackJob, camera) -> list[np.ndarray]:
+    """Every frame as the camera sees it (:func:`plenocl.pipeline.frames.load_frame`);
+    an unreadable or mis-sized frame is an error naming it and the fix."""
+    dark, flat = (read_image(path, job.channel) if path else None
+                  for path in (job.dark, job.flat))
+    frames = []
+    for path in job.frames:
+        try:
+            frames.append(load_frame(path, camera, job.channel, dark, flat))
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"{exc}. A recording is tracked as one series at a constant "
+                             f"interval: replace {Path(path).name}, or track the frames "
+                             "before or after it ([images] first_frame, pattern)") from exc
+    return frames
+
+
+def _write_outputs(out: Path, frames: dict[int, Path], opts: TrackingOptions, camera,
+                   grid: Grid, layout) -> None:
+    """The tracks' ParaView lines, their binned field and the store."""
+    tracks = Tracks.load(out / TRACKS)
+    if not np.any(tracks.lengths >= 2):
+        raise ValueError(f"no particle was tracked through {opts.settings.min_length} frames "
+                         f"({out / TRACKS} holds no track): check that the frames are "
+                         "consecutive and in focus, or lower [tracking] threshold or "
+                         "min_length, or widen search (docs/errors.md)")
+    tracks.save(out / LINES)
+    fields = binned_fields(tracks, grid, opts, layout, FocalZone.of(camera, grid))
+    write_track_store(out / STORE, tracks, list(frames), fields, grid)
+
+
+def binned_fields(tracks: Tracks, grid: Grid, opts: TrackingOptions, layout,
+                  focus: FocalZone | None = None) -> list:
+    """``(first frame, last frame, field)`` of every ``opts.field_steps`` steps (all
+    steps at once for 0): :func:`plenocl.bin_tracks` on ``layout``'s windows."""
+    steps = tracks.positions.shape[1] - 1
+    size = opts.field_steps or steps
+    window, step = layout
+    out = []
+    for start in range(0, steps, size):
+        chosen = list(range(start, min(start + size, steps)))
+        res = bin_tracks(tracks, grid, window, step, frames=chosen,
+                         min_samples=opts.field_min_samples, focus=focus)
+        out.append((start, chosen[-1] + 1, res))
+    return out
