@@ -115,6 +115,13 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
     assert main(["run", str(d / "experiment.toml")]) == 0  # the command line too
     assert [p.stat().st_mtime_ns for p in marks] == before
     old = Tracks.load(out / "tracks.npz")
+    # the binned field's options alone: the field is binned again, the tracks kept
+    (d / "field_only.toml").write_text(EXPERIMENT.replace(
+        "[output]", "field_window = [16, 12, 12]\n[output]"))
+    field_only = plenocl.run(d / "field_only.toml", log=_logged([]))
+    assert field_only.skipped == ["tracks"] and field_only.processed == ["field"]
+    assert (out / "tracks.npz").stat().st_mtime_ns == before[0]
+    assert (out / "tracks.zarr" / "zarr.json").stat().st_mtime_ns != before[2]
     (d / "changed.toml").write_text(EXPERIMENT.replace(
         "[output]", "refits = 0\nfield_window = [16, 8, 8]\nfield_steps = 2\n[output]"))
     lines.clear()
@@ -184,6 +191,9 @@ def _copy(recording, tmp_path):
      r"cannot read .*frame_003.tif.*replace frame_003.tif"),
     (lambda raw: write_tiff(raw / "frame_004.tif", np.zeros((274, 400), np.float32)),
      r"frame_004.tif is 400 x 274 px .*does not match the camera's sensor"),
+    (lambda raw: (raw / "frame_004.tif").rename(raw / "frame_last.tif"),
+     r"frame_last.tif has no frame number: tracking orders the frames .*narrow \[images\] "
+     "pattern"),
 ])
 def test_bad_recordings_are_named_with_the_fix_and_nothing_is_written(recording, tmp_path,
                                                                       damage, message):

@@ -55,19 +55,25 @@ def frame_number(path: Path) -> int | None:
     return int(found[-1]) if found else None
 
 
-def numbered_frames(files: list[Path], pairing: str) -> dict[int, Path]:
+def numbered_frames(files: list[Path], pairing: str | None) -> dict[int, Path]:
     """``{frame number: file}``; a file without a number, or two files with the same
-    number, is an error naming them and the fix."""
+    number, is an error naming them and the fix (``pairing=None``: a tracking run's
+    recording, which has no list of pairs to fall back on)."""
     frames: dict[int, Path] = {}
+    fix = ("rename the frames or narrow [images] pattern to the recording's frames"
+           if pairing is None else
+           "rename the frames or list the pairs ([images] pairs = [[\"a.tif\", \"b.tif\"], "
+           "...])")
+    how = ("tracking orders the frames" if pairing is None
+           else f"pairing {pairing!r} pairs frames")
     for f in files:
         n = frame_number(f)
         if n is None:
-            raise ValueError(f"{f.name} has no frame number: pairing {pairing!r} pairs frames "
-                             "by the number in their names; rename the frames or list the "
-                             "pairs ([images] pairs = [[\"a.tif\", \"b.tif\"], ...])")
+            raise ValueError(f"{f.name} has no frame number: {how} by the number in their "
+                             f"names; {fix}")
         if n in frames:
             raise ValueError(f"{frames[n].name} and {f.name} have the same frame number {n}; "
-                             "keep one, or list the pairs ([images] pairs)")
+                             f"keep one, or {fix.split(' or ', 1)[1]}")
         frames[n] = f
     return frames
 
@@ -96,7 +102,7 @@ def numbered_series(files: list[Path], first_frame: int | None, folder: Path
     """The frames of one time-resolved recording, ``{frame number: file}`` in order from
     ``first_frame`` (default: the lowest found) to the highest: a time series at a
     constant interval, so a missing frame between them is an error naming it."""
-    frames = numbered_frames(files, "sequence")
+    frames = numbered_frames(files, None)
     first = min(frames) if first_frame is None else int(first_frame)
     frames = {n: frames[n] for n in sorted(frames) if n >= first}
     if not frames:

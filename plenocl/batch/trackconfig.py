@@ -86,6 +86,12 @@ class TrackingOptions:
         step = self.field_step or tuple(max(1, w // 2) for w in window)
         return window, step
 
+    def field_record(self) -> dict:
+        """The binned field's options as given (``None``: the default): what only the
+        field stage depends on."""
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in asdict(self).items() if k.startswith("field_")}
+
     def record(self) -> dict:
         """The sections this run used, resolved (``experiment_used.toml``): ``[tracking]``
         and the :data:`PARTS`."""
@@ -93,10 +99,8 @@ class TrackingOptions:
                              piv=self.settings.piv, image_fit=self.settings.image_fit)
         doc = parts.to_dict(none="none")
         own = to_table(self.settings, skip=PARTS)
-        fields = {k: v for k, v in asdict(self).items() if k.startswith("field_")}
-        tracking = {"enabled": True, "frame_interval_s": self.interval_s, **own,
-                    **{k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()
-                       if v is not None}}
+        fields = {k: v for k, v in self.field_record().items() if v is not None}
+        tracking = {"enabled": True, "frame_interval_s": self.interval_s, **own, **fields}
         return {"tracking": tracking, **{part: doc[part] for part in PARTS}}
 
 

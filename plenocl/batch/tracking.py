@@ -14,7 +14,8 @@ Resume is :class:`plenocl.pipeline.resume.StageRunner`'s: two stages, ``tracks``
 tracking) and ``field`` (the binned field, the ParaView file and the store), keyed on
 the frames' content (name, size, SHA-256), the camera and grid used, the frame
 corrections and every setting; a rerun with the same skips both, any change runs both
-again.
+again, but a change of the binned field's options alone (the field stage's own key)
+runs the field stage only.
 """
 
 from __future__ import annotations
@@ -116,7 +117,8 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     _stage(runner, summary, "tracks", [TRACKS],
            lambda: _track(job, queue, workers, scheduler))
     _stage(runner, summary, "field", [LINES, f"{STORE}/zarr.json"],
-           lambda: _write_outputs(out, frames, opts, camera, grid, layout))
+           lambda: _write_outputs(out, frames, opts, camera, grid, layout),
+           opts.field_record())
     summary.wall_seconds = time.perf_counter() - t0
     summary.tracks = len(Tracks.load(out / TRACKS).positions)
     summary.store = str(out / STORE)
@@ -146,18 +148,23 @@ def frame_series(exp: Experiment, opts: TrackingOptions) -> dict[int, Path]:
 
 
 def _stage(runner: StageRunner, summary: TrackingSummary, name: str, outputs: list[str],
-           work: Callable[[], None]) -> None:
-    """One stage through the runner, recorded as skipped or processed."""
-    (summary.skipped if runner.done(name, outputs) else summary.processed).append(name)
-    summary.stage_seconds[name] = runner.run(name, outputs, work)
+           work: Callable[[], None], key: dict | None = None) -> None:
+    """One stage through the runner (``key``: the stage's own resume key), recorded as
+    skipped or processed."""
+    (summary.skipped if runner.done(name, outputs, key) else summary.processed).append(name)
+    summary.stage_seconds[name] = runner.run(name, outputs, work, key)
 
 
 def _config(exp: Experiment, frames: dict[int, Path], out: Path,
             opts: TrackingOptions) -> dict:
-    """What the tracks and their field are made from: the resume key."""
+    """What the tracks are made from: the resume key (the field's own options are the
+    field stage's key, so changing only them does not track again)."""
     dark, flat = frame_corrections(exp)
+    record = opts.record()
+    record["tracking"] = {k: v for k, v in record["tracking"].items()
+                          if not k.startswith("field_")}
     return {"frames": {n: _content(path) for n, path in frames.items()},
-            "settings": opts.record(), "channel": exp["images"]["channel"],
+            "settings": record, "channel": exp["images"]["channel"],
             "dark": dark and _content(Path(dark)), "flat": flat and _content(Path(flat)),
             "camera": _digest(out / "camera_used.toml"), "grid": _digest(out / "grid_used.toml")}
 

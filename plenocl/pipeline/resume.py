@@ -55,6 +55,13 @@ def remove_partial_files(*folders: Path) -> list[Path]:
     return left
 
 
+def _digest(config: dict | None) -> str | None:
+    """SHA-256 of a JSON-serialisable configuration (``None`` stays ``None``)."""
+    if config is None:
+        return None
+    return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
+
+
 class StageRunner:
     """Runs named stages in an output folder, skipping those already done.
 
@@ -63,7 +70,8 @@ class StageRunner:
     out_dir
         Output folder (created).
     config
-        JSON-serialisable configuration; a change invalidates every stage.
+        JSON-serialisable configuration; a change invalidates every stage. A stage may
+        have a key of its own as well (:meth:`run`), whose change reruns that stage.
     log
         Called with progress lines (``print`` by default).
     """
@@ -74,7 +82,7 @@ class StageRunner:
         self.out.mkdir(parents=True, exist_ok=True)
         for path in remove_partial_files(self.out):
             log(f"removed {path.name}, left half-written by an interrupted run")
-        self.key = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
+        self.key = _digest(config)
         self.log = log
         self.state_path = self.out / "state.json"
         self.state = {"config": self.key, "stages": {}}
@@ -89,13 +97,18 @@ class StageRunner:
         """A file in the output folder."""
         return self.out / name
 
-    def done(self, name: str, outputs: Sequence[str]) -> bool:
-        """Whether stage ``name`` finished and its outputs are all present."""
-        return name in self.state["stages"] and outputs_exist(self.path(o) for o in outputs)
+    def done(self, name: str, outputs: Sequence[str], key: dict | None = None) -> bool:
+        """Whether stage ``name`` finished with the stage key ``key`` and its outputs are
+        all present."""
+        stage = self.state["stages"].get(name)
+        return (stage is not None and stage.get("key") == _digest(key)
+                and outputs_exist(self.path(o) for o in outputs))
 
-    def run(self, name: str, outputs: Sequence[str], fn: Callable[[], None]) -> float:
-        """Run ``fn`` unless the stage is done; returns the stage's (recorded) seconds."""
-        if self.done(name, outputs):
+    def run(self, name: str, outputs: Sequence[str], fn: Callable[[], None],
+            key: dict | None = None) -> float:
+        """Run ``fn`` unless the stage is done (with the same stage ``key``: what only this
+        stage depends on, JSON-serialisable); returns the stage's (recorded) seconds."""
+        if self.done(name, outputs, key):
             seconds = self.state["stages"][name]["seconds"]
             self.log(f"[{name}] done earlier ({seconds:.1f} s), skipped")
             return seconds
@@ -103,7 +116,8 @@ class StageRunner:
         t0 = time.perf_counter()
         fn()
         seconds = time.perf_counter() - t0
-        self.state["stages"][name] = {"seconds": seconds, "outputs": list(outputs)}
+        self.state["stages"][name] = {"seconds": seconds, "outputs": list(outputs),
+                                      "key": _digest(key)}
         write_json(self.state_path, self.state, sort_keys=True)
         self.log(f"[{name}] {seconds:.1f} s")
         return seconds
