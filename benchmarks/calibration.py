@@ -9,8 +9,9 @@ and matching, in the same run.
     python benchmarks/calibration.py [--camera synthetic|paper] [--seeds 3]
 
 Hexagonal rows (issue 29): the same camera's lenses in a hexagonal array of the same
-pitch (rows 0.866 pitch apart, odd rows half a pitch along; as many columns, and as many
-rows as the sensor holds), stopped down and at full aperture.
+pitch (rows 0.866 pitch apart, odd rows half a pitch along; as many columns, as many
+rows as the sensor holds, and the sensor's height cut to them), stopped down and at full
+aperture.
 
 The truth is ``camera.ideal_microlens_centers()`` of the camera that made the image;
 the calibration sees only the nominal camera (no rotation, no offset).
@@ -69,12 +70,14 @@ HEX_CASES = {
 
 
 def hexagonal(base: Camera, shift: float = 0.5) -> Camera:
-    """``base`` with a hexagonal array of the same pitch and columns, as many rows as fill
-    its sensor (the even rows' outer centres within half a row of its edges)."""
+    """``base`` with a hexagonal array of the same pitch and columns, as many rows as its
+    sensor holds, the sensor's height cut to them (the outer rows' centres half a row
+    inside its edges, as the columns' are half a pitch inside)."""
     row_px = base.microlens_image_pitch_mm * 3**0.5 / 2 / base.pixel_pitch_mm
     rows = int((base.pixels[1] - 1) / row_px)
     return dataclasses.replace(base, ml_layout="hexagonal", ml_count=(base.ml_count[0], rows),
-                               ml_odd_row_shift=shift, microlens_centers=None)
+                               ml_odd_row_shift=shift, microlens_centers=None,
+                               pixels=(base.pixels[0], int(rows * row_px) + 1))
 
 
 def run_case(base: Camera, layout: dict, sim: dict, seed: int, queue) -> tuple:

@@ -582,7 +582,11 @@ def _hexagonal_indices(base: np.ndarray, ok: np.ndarray, model: np.ndarray,
     size, (cols, rows) = np.array(camera.pixels, float), camera.ml_count
     q, r = base[ok].T
     lo, hi = np.rint(np.percentile(r, [0.2, 99.8])).astype(int)
-    edge = _EdgeLattice(model, 1, float(np.median(q)), size[1], pitch)
+    # along the rows' normal: q drifts by -shift per row (e2 leans by shift along a row)
+    middle = float(np.median(r))
+    row_pitch = pitch * camera.ml_row_pitch_mm / camera.ml_pitch_mm
+    edge = _EdgeLattice(model, 1, float(np.median(q)), size[1], row_pitch,
+                        drift=camera.odd_row_shift, origin=middle)
     first_r, last_r = edge.boundary(lo, -1), edge.boundary(hi, +1)
     even = first_r + 2 * int(round((np.median(r) - first_r) / 2))
     row = q[r == even]
@@ -605,13 +609,18 @@ def _hexagonal_indices(base: np.ndarray, ok: np.ndarray, model: np.ndarray,
 
 def _check_stagger(k: np.ndarray, camera: Camera) -> None:
     """Refuse a hexagonal camera file whose odd rows are shifted the wrong way: then most
-    odd rows show a lens just before their lens 0 (or after their last)."""
+    odd rows show a lens just before their lens 0 (or after their last) and lack the
+    lens the file puts at their other end. An array that overfills the sensor may show
+    both in its odd rows (one lens more than the count): either labelling then holds,
+    and the lens beyond the count is not used."""
     cols = camera.ml_count[0]
-    wrong = -1 if camera.odd_row_shift > 0 else cols
+    wrong, end = (-1, cols - 1) if camera.odd_row_shift > 0 else (cols, 0)
     odd = k[:, 1] % 2 == 1
-    rows_wrong = np.unique(k[odd & (k[:, 0] == wrong), 1])
     rows_odd = np.unique(k[odd, 1])
-    if len(rows_odd) and len(rows_wrong) > len(rows_odd) / 2:
+    rows_wrong = np.unique(k[odd & (k[:, 0] == wrong), 1])
+    rows_end = np.unique(k[odd & (k[:, 0] == end), 1])
+    half = len(rows_odd) / 2
+    if len(rows_odd) and len(rows_wrong) > half and len(rows_end) <= half:
         raise ValueError(
             f"the white image's odd rows of lenses sit {-camera.odd_row_shift:+g} pitch from "
             f"the even ones, the camera file says {camera.odd_row_shift:+g}: set "
@@ -623,13 +632,15 @@ class _EdgeLattice:
     middle, against the sensor's extent ``[-0.5, size - 0.5]`` along that axis."""
 
     def __init__(self, model: np.ndarray, axis: int, other: float, size: float,
-                 pitch: float) -> None:
+                 pitch: float, drift: float = 0.0, origin: float = 0.0) -> None:
         self.model, self.axis, self.other = model, axis, other
         self.size, self.pitch = size, pitch
+        self.drift, self.origin = drift, origin  # the other index moves by -drift per step
 
     def centre(self, k: int) -> float:
         idx = np.empty(2)
-        idx[self.axis], idx[1 - self.axis] = k, self.other
+        idx[self.axis] = k
+        idx[1 - self.axis] = self.other - self.drift * (k - self.origin)
         return float((idx @ self.model[:2] + self.model[2])[self.axis])
 
     def margin(self, k: int) -> float:

@@ -305,7 +305,14 @@ class Camera:
         """Distance ``d'`` of the image of depth ``z`` from the exit pupil, ``s_i' - s_i +
         d`` (a thin lens: ``s_i'``): where a ray from aperture point ``(u, v)`` to the image
         point meets the array, ``x = u + (X' - u) d / d'``."""
-        return self.image_distance_at(z_mm) - self.image_distance_mm + self.exit_pupil_distance_mm
+        return self._from_pupil(self.image_distance_at(z_mm))
+
+    def _from_pupil(self, s_ip):
+        """``d' = s_i' - s_i + d = s_i' + f (m_p - 1)``: the image distance from the exit
+        pupil (a thin lens: ``s_i'`` itself, to the last bit)."""
+        if self.pupil_magnification == 1.0:
+            return s_ip
+        return s_ip + self.focal_length_mm * (self.pupil_magnification - 1.0)
 
     def alpha(self, z_mm) -> np.ndarray:
         """Refocus parameter ``α = d'/d`` of depth ``z`` (a thin lens: ``s_i'/s_i``)."""
@@ -318,8 +325,7 @@ class Camera:
         pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
         s_ip = self.image_distance_at(pts[:, 2])
         scale = -s_ip / (self.object_distance_mm + pts[:, 2])
-        d_p = s_ip - self.image_distance_mm + self.exit_pupil_distance_mm
-        return np.column_stack([pts[:, 0] * scale, pts[:, 1] * scale, d_p])
+        return np.column_stack([pts[:, 0] * scale, pts[:, 1] * scale, self._from_pupil(s_ip)])
 
     @property
     def pixel_pupil_footprint_mm(self) -> float:

@@ -4,21 +4,23 @@ computational refocusing (docs/design.md §2 and §4, paper §II).
 Coordinates
 -----------
 * Every pixel behind microlens ``k`` (the lens whose cell, one image pitch square
-  around ``c_k`` on the calibrated lattice, contains it) sits at offset ``d`` (mm) from
-  ``c_k`` and sees the aperture point ``u = -d s_i / f_ml`` (same for ``v``); its
-  spatial coordinate is the lens position on the array plane
+  around ``c_k`` on the calibrated lattice, contains it) sits at offset ``δ`` (mm) from
+  ``c_k`` and sees the aperture point ``u = -δ d / f_ml`` (same for ``v``; ``u`` on the
+  exit pupil, ``d`` its distance from the array: ``s_i`` for a thin lens, docs/design.md
+  §2); its spatial coordinate is the lens position on the array plane
   ``x_k = c_k / (1 + f_ml / d)`` (:func:`pixel_coordinates`).
 * :class:`LightField` resamples the image onto one **plaid** ``(u, v)`` grid shared by
   all lenses (bilinear between the pixels behind the same lens, since the ``(u, v)``
   of a pixel differs slightly from lens to lens): ``views[iv, iu, ky, kx]``. The
-  default step is one pixel's footprint on the aperture, ``p_px s_i / f_ml``; samples
+  default step is one pixel's footprint on the aperture, ``p_px d / f_ml``; samples
   outside the circular aperture, off the sensor or behind a lens calibration missed
   are ``NaN``.
 
 Refocusing
 ----------
 A ray from aperture point ``u`` through the image point ``X'`` meets the array plane
-at ``x = u (1 - 1/α) + X'/α`` with ``α = s_i'/s_i``. The refocused image is sampled at
+at ``x = u (1 - 1/α) + X'/α`` with ``α = d'/d`` (``d'``: the image point's distance from
+the exit pupil; a thin lens: ``s_i'/s_i``). The refocused image is sampled at
 the array plane on the microlens lattice: output pixel ``ξ`` (lens-index coordinates;
 ``supersample`` pixels per lens) collects, for every plaid sample ``(u, v)``, the light
 field at ``ξ + (1 - 1/α) L⁻¹ (u, v)`` (bilinear between the four nearest lenses;
@@ -28,7 +30,8 @@ every depth shares one field of view. Together with the bilinear ``(u, v)`` resa
 this is the paper's 4-D interpolation. ``E`` is the weighted *mean* over the samples
 that exist (radiance-like: the same scale as a view; vignetted or missing samples do
 not darken the image). An object point ``(X, Y, z)`` refocused at its own depth appears
-at ``ξ = X'/α = -(s_i/s_o') X`` on the array plane (the main lens inverts it).
+at ``ξ = X'/α = -(s_i'/s_o') (d/d') X`` on the array plane (the main lens inverts it; a
+thin lens: ``-(s_i/s_o') X``).
 
 A point at depth ``z`` appears in the perspective view ``(u, v)`` at array-plane
 position ``X'/α + (1 - 1/α) u``: its parallax is ``(1 - 1/α)`` mm per mm of ``u``.
@@ -99,7 +102,7 @@ class PixelCoordinates:
     x_mm, y_mm
         That microlens's position on the array plane (mm).
     u_mm, v_mm
-        Aperture coordinates the pixel sees (mm), ``u = -d s_i / f_ml``.
+        Aperture (exit-pupil) coordinates the pixel sees (mm), ``u = -δ d / f_ml``.
     valid
         The lens has a calibrated centre and ``(u, v)`` lies inside the aperture.
     """
@@ -152,7 +155,7 @@ def plaid_uv(camera: Camera, step_mm: float | None = None) -> np.ndarray:
     camera
         The camera (aperture diameter, pixel footprint).
     step_mm
-        Sample spacing on the aperture; default one pixel's footprint ``p_px s_i/f_ml``.
+        Sample spacing on the aperture; default one pixel's footprint ``p_px d/f_ml``.
     """
     step = pixel_footprint_mm(camera) if step_mm is None else float(step_mm)
     if not (math.isfinite(step) and step > 0):
@@ -187,7 +190,7 @@ def resample_light_field(image, camera: Camera, u: np.ndarray, v: np.ndarray,
     owner = lens_owner(camera, centers)
     rows, cols = centers.shape[:2]
     lens_id = np.arange(rows * cols, dtype=np.int32).reshape(rows, cols)
-    scale = 1 / camera.pixel_pupil_footprint_mm
+    scale = camera.ml_focal_length_mm / camera.exit_pupil_distance_mm / camera.pixel_pitch_mm
     aperture = np.hypot(u[None, :], v[:, None]) <= camera.exit_pupil_diameter_mm / 2 + 1e-9
     out = np.full((len(v), len(u), rows, cols), np.nan, np.float32)
     for iv in range(len(v)):  # one plaid row at a time bounds the memory
@@ -230,7 +233,7 @@ class LightField:
         A calibrated camera (:func:`plenocl.calibrate`); an uncalibrated one uses its
         nominal centres, with a warning.
     uv_step_mm
-        Plaid spacing on the aperture (default: one pixel's footprint ``p_px s_i/f_ml``).
+        Plaid spacing on the aperture (default: one pixel's footprint ``p_px d/f_ml``).
     queue
         OpenCL queue, context, device or name for refocusing (default: chosen at first use).
 
@@ -321,7 +324,8 @@ class LightField:
 
     def refocus(self, alpha: float | None = None, z_mm: float | None = None, *,
                 supersample: int = 1) -> np.ndarray:
-        """The image refocused at ``α = s_i'/s_i`` or at object depth ``z_mm``.
+        """The image refocused at ``α = d'/d`` (a thin lens: ``s_i'/s_i``) or at object
+        depth ``z_mm``.
 
         Parameters
         ----------

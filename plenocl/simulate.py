@@ -249,7 +249,8 @@ def _warn_if_unusable(camera: Camera, clean: np.ndarray, light: float) -> None:
         return
     peak = float(clean.max())
     if peak == 0:
-        half = np.array(camera.ml_count) * camera.ml_pitch_mm / camera.magnification / 2
+        half = (np.array(camera.ml_count) * [camera.ml_pitch_mm, camera.ml_row_pitch_mm]
+                / camera.magnification / 2)
         warnings.warn("no light of the particles reached the sensor: they lie outside the "
                       f"field of view (about x in ±{half[0]:.2f}, y in ±{half[1]:.2f} mm at "
                       "z = 0)", stacklevel=3)

@@ -14,8 +14,8 @@ Resume is :class:`plenocl.pipeline.resume.StageRunner`'s: two stages, ``tracks``
 tracking) and ``field`` (the binned field, the ParaView file and the store), keyed on
 the frames' content (name, size, SHA-256), the camera and grid used, the frame
 corrections and every setting; a rerun with the same skips both, any change runs both
-again, but a change of the binned field's options alone (the field stage's own key)
-runs the field stage only.
+again, but a change of the binned field's options alone (the field stage's own key,
+with the digest of the tracks it bins) runs the field stage only.
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
            lambda: _track(job, queue, workers, scheduler))
     _stage(runner, summary, "field", [LINES, f"{STORE}/zarr.json"],
            lambda: _write_outputs(out, frames, opts, camera, grid, layout),
-           opts.field_record())
+           {**opts.field_record(), "tracks": _digest(out / TRACKS)})  # new tracks: again
     summary.wall_seconds = time.perf_counter() - t0
     summary.tracks = len(Tracks.load(out / TRACKS).positions)
     summary.store = str(out / STORE)

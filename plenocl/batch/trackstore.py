@@ -11,7 +11,7 @@ arrays that ``xarray.open_zarr`` reads (docs/batch.md), written whole or not at 
   frames each track is seen in, ``(track,)``;
 - the binned field on the windows' centres ``z``, ``y``, ``x`` (mm), one per
   ``field_time`` (s, the middle of the steps it pools; ``field_first_frame`` and
-  ``field_last_frame`` give its frames): ``u``, ``v``, ``w`` (m/s), their standard
+  ``field_last_frame`` give its frames, by number): ``u``, ``v``, ``w`` (m/s), their standard
   uncertainties ``u_sigma``, ``v_sigma``, ``w_sigma``, ``valid`` and ``outlier``,
   shaped ``(field_time, z, y, x)``.
 """
@@ -46,7 +46,7 @@ def write_track_store(path: Path, tracks: Tracks, frame_numbers: Sequence[int],
     their binned ``fields`` (``(first frame, last frame, field)``, frames counted from
     0) as the store (see the module notes)."""
     variables = {**track_variables(tracks, frame_numbers),
-                 **field_variables(fields, grid, tracks.dt)}
+                 **field_variables(fields, grid, tracks.dt, frame_numbers)}
     return write_store(path, variables, {"title": "plenocl tracks", "source": "plenocl run",
                                          "frame_interval_s": tracks.dt})
 
@@ -74,8 +74,9 @@ def track_variables(tracks: Tracks, frame_numbers: Sequence[int]) -> dict[str, V
 
 
 def field_variables(fields: Sequence[tuple[int, int, PIVResult]], grid: Grid,
-                    dt: float) -> dict[str, Variable]:
-    """The binned fields' arrays (m/s, object space) on their windows' centres (mm)."""
+                    dt: float, frame_numbers: Sequence[int]) -> dict[str, Variable]:
+    """The binned fields' arrays (m/s, object space) on their windows' centres (mm);
+    each field's first and last frame by its number (the ``frame`` coordinate's)."""
     spacing, origin = grid_geometry(grid)
     arrays = [field_arrays(res, spacing, origin, dt, grid.rotation_deg)
               for _, _, res in fields]
@@ -85,8 +86,10 @@ def field_variables(fields: Sequence[tuple[int, int, PIVResult]], grid: Grid,
     out: dict[str, Variable] = {
         "field_time": (("field_time",), (first + last) / 2 * dt,
                        {"units": "s", "long_name": "middle of the steps binned"}),
-        "field_first_frame": (("field_time",), first, {"long_name": "first frame binned"}),
-        "field_last_frame": (("field_time",), last, {"long_name": "last frame binned"}),
+        "field_first_frame": (("field_time",), np.asarray(frame_numbers)[first],
+                              {"long_name": "first frame binned (its number)"}),
+        "field_last_frame": (("field_time",), np.asarray(frame_numbers)[last],
+                             {"long_name": "last frame binned (its number)"}),
         **{axis: ((axis,), np.asarray(arrays[0][f"{axis}_mm"], float),
                   {"units": "mm", "long_name": f"{axis} of the window centre"})
            for axis in ("z", "y", "x")}}

@@ -98,7 +98,7 @@ class DeviceRayBundle:
         """As :meth:`RayBundle.render`, on the device.
 
         Returns the patch elements the light reaches ``(n,)`` (ascending; the rest are
-        zero) and their rows ``(5, n)`` float32: value, d/dX', d/dY', d/ds_i' and d/dI;
+        zero) and their rows ``(5, n)`` float32: value, d/dX', d/dY', d/dd' and d/dI;
         the value row alone ``(1, n)`` without ``derivatives``.
         """
         with self._lock:

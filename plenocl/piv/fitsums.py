@@ -89,7 +89,7 @@ class DeviceFitSums:
         """Per particle ``(n, 16)``: ``J^T J`` (upper triangle, row by row), ``J^T r``,
         the lit elements and their summed squared residuals
         (:func:`plenocl.reference.imagefit.normal_sums`), against the model image of all
-        ``n`` particles; ``jac`` ``(n, 3, 3)``: ``d (X', Y', s_i') / d (x, y, z)``."""
+        ``n`` particles; ``jac`` ``(n, 3, 3)``: ``d (X', Y', d') / d (x, y, z)``."""
         n = len(image_points)
         if n == 0:
             return np.zeros((0, 16))

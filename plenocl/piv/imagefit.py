@@ -271,7 +271,7 @@ def _backgrounds(backgrounds, n: int) -> list:
 
 
 def _to_object(camera, p: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """``d (X', Y', s_i') / d (x, y, z)`` ``(P, 3, 3)`` by central differences."""
+    """``d (X', Y', d') / d (x, y, z)`` ``(P, 3, 3)`` by central differences."""
     h = 1e-4
     jac = np.empty((len(p), 3, 3))
     for k in range(3):

@@ -82,9 +82,10 @@ class Projector:
     queue
         A ``pyopencl.CommandQueue`` or anything :func:`plenocl.device.get_queue` accepts.
     oversample
-        Aperture samples per pixel footprint on the aperture (``p_px s_i / f_ml``), per
-        axis. Integer values sample the pixels evenly (2 correlates best with ray
-        tracing) at a cost that grows with its square.
+        Aperture samples per pixel footprint on the aperture (``p_px d / f_ml``, ``d``:
+        the exit pupil's distance from the array), per axis. Integer values sample the
+        pixels evenly (2 correlates best with ray tracing) at a cost that grows with its
+        square.
     shear_tol
         Rotation of the fitted lens layout, in lenses across the array, below which the
         separable fast path is used (see :func:`plenocl.projection.weighting.lens_index_map`).

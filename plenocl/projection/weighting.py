@@ -30,7 +30,7 @@ from ..grid import Grid
 from ..optics.imaging import array_plane_positions
 from ..optics.lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
 
-#: Aperture samples per pixel footprint on the aperture (``p_px s_i / f_ml``), per axis.
+#: Aperture samples per pixel footprint on the aperture (``p_px d / f_ml``), per axis.
 DEFAULT_OVERSAMPLE = 1.25
 __all__ = ["DEFAULT_OVERSAMPLE", "DEFAULT_SHEAR_TOL", "NO_LENS", "ApertureGrid", "LensIndexMap",
            "check_depth_range", "check_field_of_view", "colour_stride",
@@ -158,6 +158,7 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     rows (:func:`plenocl.optics.lattice.separable_rotation_deg`) makes a rotated array
     axis-aligned this way.
     """
+    camera.require_rectangular("the projector's lens index map")
     cols, rows = camera.ml_count
     pos = array_plane_positions(camera, camera.microlens_centers)
     if rotation_deg:

@@ -3,7 +3,7 @@ sums, one particle and one sensor pixel at a time, in float64.
 
 Patches are given as ``(offset, col0, row0, width, height)`` arrays
 (:class:`plenocl.optics.raybundle.Patches`); patch rows as ``(k, total)`` arrays of the
-rendered rows (value, d/dX', d/dY', d/ds_i', d/dI). Patch elements off the sensor are
+rendered rows (value, d/dX', d/dY', d/dd', d/dI). Patch elements off the sensor are
 left out.
 """
 
@@ -35,7 +35,7 @@ def normal_sums(rows: np.ndarray, data: np.ndarray, model: np.ndarray, patches,
     """Per particle ``(n, 16)``: ``J^T J`` (upper triangle, row by row), ``J^T r``, the
     lit elements (value above 1 % of the particle's brightest) and their summed squared
     residuals, where ``J`` holds the position columns in object coordinates
-    (``jac[p]`` ``d (X', Y', s_i') / d (x, y, z)``) and the intensity column, and
+    (``jac[p]`` ``d (X', Y', d') / d (x, y, z)``) and the intensity column, and
     ``r = data - model`` (sensor-shaped)."""
     out = np.zeros((len(patches.width), 16))
     for p in range(len(out)):

@@ -3,7 +3,7 @@
 A voxel's column of the weight matrix, literally the paper's four steps:
 
 1. sample the main-lens aperture on a plaid ``(u, v)`` grid a little finer than one
-   pixel's footprint on the aperture (``p_px s_i / f_ml``), keeping samples inside the
+   pixel's footprint on the aperture (``p_px d / f_ml``), keeping samples inside the
    circular aperture;
 2. each sample meets the microlens-array plane at ``x = u (1 - 1/α) + X'/α``; in
    microlens index units it falls between four microlens centres, which get the
