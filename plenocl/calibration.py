@@ -49,7 +49,7 @@ from scipy import ndimage, stats
 from scipy.spatial import cKDTree
 
 from .camera import Camera
-from .io.centres import read_centers_csv
+from .io.centres import read_centres
 from .optics.lattice import axial_basis, axial_to_offset, offset_to_axial
 from .optics.rawimage import check_image
 
@@ -1043,13 +1043,14 @@ IMPORT_TOLERANCE = 0.5
 
 
 def import_centers(path: str | Path, camera: Camera) -> Camera:
-    """``camera`` calibrated with the centres of a centres CSV (another tool's
-    calibration; format in :mod:`plenocl.io.centres`), checked against the camera's
+    """``camera`` calibrated with the centres of a centres CSV or of LFIT's ``.mat``
+    calibration (another tool's; formats in :mod:`plenocl.io.centres`), checked against
+    the camera's
     nominal layout: refused when they lie, in the median, more than
     :data:`IMPORT_TOLERANCE` pitches from its lattice (swapped x and y, indices counted
     from 1, another camera file), since every later stage would then see the wrong
     lenses."""
-    centers = read_centers_csv(path, camera.ml_count)
+    centers = read_centres(path, camera.ml_count)
     found = np.isfinite(centers).all(-1)
     off = np.hypot(*(centers - camera.ideal_microlens_centers())[found].T) / _pitch_px(camera)
     if float(np.median(off)) > IMPORT_TOLERANCE:

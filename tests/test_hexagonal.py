@@ -279,3 +279,30 @@ def test_an_array_that_overfills_the_sensor_takes_either_odd_row_shift(queue, sh
     found = fit.centers[fit.found]
     near, _ = cKDTree(truth - [c0, r0]).query(found)
     assert fit.found[0::2].all() and np.sqrt(np.mean(near**2)) < 0.05
+
+
+def test_lfit_calibration_files_are_read(tmp_path, queue):
+    """LFIT's ``*_calData.mat`` (the cell array calData: centres rows x columns x (x, y),
+    1-based pixels, then the centre lists and the counts) imports as its centres less
+    one pixel, a lens LFIT left at 0 missing; another lens count is refused naming both."""
+    from scipy.io import savemat
+
+    from plenocl.calibration import import_centers
+
+    cam = sensor_camera(12, 10)
+    truth = cam.ideal_microlens_centers()
+    points = truth + 1.0
+    points[3, 4] = 0.0
+    cal = np.empty((1, 5), dtype=object)
+    cal[0, :] = [points, points[..., 0].ravel(), points[..., 1].ravel(), 12.0, 10.0]
+    savemat(tmp_path / "run_calData.mat", {"calData": cal})
+    with pytest.warns(UserWarning, match="1 of 120 microlenses have no centre"):
+        back = import_centers(tmp_path / "run_calData.mat", nominal(cam))
+    missing = np.zeros((10, 12), bool)
+    missing[3, 4] = True
+    assert np.array_equal(~np.isfinite(back.microlens_centers).all(-1), missing)
+    np.testing.assert_allclose(back.microlens_centers[~missing], truth[~missing], atol=1e-12)
+    with pytest.raises(ValueError, match="holds 12 x 10 lens centres .* camera file has 12 x 9"):
+        import_centers(tmp_path / "run_calData.mat",
+                       dataclasses.replace(nominal(cam), ml_count=(12, 9),
+                                           microlens_centers=None))

@@ -144,10 +144,11 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
                    help="stopped: one small spot per lens; full: one disk filling each lens "
                         "(vendor white images); auto (default): full when most pixels are "
                         "bright")
-    p.add_argument("--centres", metavar="CSV", default=None,
+    p.add_argument("--centres", metavar="FILE", default=None,
                    help="take the centres from another tool's calibration instead of a white "
                         "image: a CSV with the header lens_col,lens_row,x_px,y_px (lens "
-                        "indices from 0, pixel centres from 0; docs/design.md §3)")
+                        "indices from 0, pixel centres from 0; docs/design.md §3), or LFIT's "
+                        "calibration file (*_calData.mat)")
     p.add_argument("--centres-out", metavar="CSV", default=None,
                    help="also write the centres found as such a CSV (for other tools)")
     p.set_defaults(func=calibrate_command)

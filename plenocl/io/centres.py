@@ -11,6 +11,10 @@ The format, one lens per line after a header (docs/design.md §3)::
 ``(rows, cols)`` order of ``Camera.microlens_centers``); ``x_px``, ``y_px``: its image
 centre in pixels, column and row, with the centre of the first pixel at 0. Lenses not
 listed (or with an empty or NaN centre) are missing.
+
+LFIT's own calibration file (``<name>_calData.mat``, LFIT v2: the cell array ``calData``
+whose first entry holds the centres, lens rows x lens columns x (x, y), in MATLAB's
+1-based pixel coordinates) is read directly (:func:`read_lfit_calibration`).
 """
 
 from __future__ import annotations
@@ -36,6 +40,38 @@ def write_centers_csv(path: str | Path, centers: np.ndarray) -> None:
         out.writerow(HEADER)
         for r, c in zip(rows, cols, strict=True):
             out.writerow([c, r, repr(float(centers[r, c, 0])), repr(float(centers[r, c, 1]))])
+
+
+def read_centres(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
+    """The centres of a centres CSV, or of LFIT's ``.mat`` calibration (by the suffix)."""
+    if Path(path).suffix.lower() == ".mat":
+        return read_lfit_calibration(path, ml_count)
+    return read_centers_csv(path, ml_count)
+
+
+def read_lfit_calibration(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
+    """The centres ``(rows, cols, 2)`` (``(col, row)`` px from the first pixel's centre,
+    ``NaN``: missing) of LFIT's calibration file: ``calData{1}``, rows x columns x
+    (x, y) in MATLAB's pixel coordinates (the first pixel's centre at 1), less 1.
+    Refused, naming the fix, when the file holds no ``calData`` or another array size."""
+    from scipy.io import loadmat
+
+    try:
+        cal = loadmat(path)["calData"]
+        points = np.asarray(cal.ravel()[0], dtype=np.float64)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path} is not an LFIT calibration file (a calData cell array "
+                         f"whose first entry holds the centres): {exc}") from None
+    cols, rows = ml_count
+    if points.shape != (rows, cols, 2):
+        raise ValueError(
+            f"{path} holds {points.shape[1] if points.ndim == 3 else '?'} x "
+            f"{points.shape[0]} lens centres (columns x rows; LFIT leaves out lenses its "
+            f"calibration cut at the sensor's edge) but the camera file has {cols} x "
+            f"{rows}: give the camera file LFIT's count, or export LFIT's centres as a "
+            "centres CSV with their lens indices")
+    found = (points > 0).all(-1, keepdims=True)  # NaN, or 0 where LFIT found none
+    return np.where(found, points - 1.0, np.nan)
 
 
 def read_centers_csv(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
