@@ -127,7 +127,7 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
     lines.clear()
     changed = plenocl.run(d / "changed.toml", log=_logged(lines))
     assert changed.processed == ["tracks", "field"]
-    assert any("configuration changed" in line for line in lines)
+    assert any("configuration changed (settings.tracking)" in line for line in lines)
     new = Tracks.load(out / "tracks.npz")
     assert not np.array_equal(new.measured, old.measured, equal_nan=True)
     xr = pytest.importorskip("xarray")

@@ -62,6 +62,26 @@ def _digest(config: dict | None) -> str | None:
     return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
 
 
+def _parts(config: dict) -> dict[str, str]:
+    """A digest of each entry of ``config``, and of each entry of its dictionaries
+    (``"settings.tracking"``): what a changed configuration names."""
+    parts = {}
+    for key, value in config.items():
+        if isinstance(value, dict) and value:
+            parts.update({f"{key}.{k}": _digest({"v": v}) for k, v in value.items()})
+        else:
+            parts[str(key)] = _digest({"v": value})
+    return parts
+
+
+def _changed(old: dict | None, new: dict) -> str:
+    """The entries that differ between two :func:`_parts` (empty when unknown)."""
+    if not old:
+        return ""
+    names = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    return ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
+
+
 class StageRunner:
     """Runs named stages in an output folder, skipping those already done.
 
@@ -85,13 +105,15 @@ class StageRunner:
         self.key = _digest(config)
         self.log = log
         self.state_path = self.out / "state.json"
-        self.state = {"config": self.key, "stages": {}}
+        self.state = {"config": self.key, "parts": _parts(config), "stages": {}}
         if self.state_path.is_file():
             old = json.loads(self.state_path.read_text())
             if old.get("config") == self.key:
                 self.state = old
             else:
-                self.log("configuration changed: running every stage again")
+                changed = _changed(old.get("parts"), self.state["parts"])
+                self.log(f"configuration changed{f' ({changed})' if changed else ''}: "
+                         "running every stage again")
 
     def path(self, name: str) -> Path:
         """A file in the output folder."""
