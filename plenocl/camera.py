@@ -19,6 +19,8 @@ from .options import refuse_unknown
 
 #: The microlens layouts a camera may have (docs/design.md §2).
 LAYOUTS = ("rectangular", "hexagonal")
+#: A hexagonal array's axial view (:meth:`Camera.on_lens_lattice`), for the projector only.
+AXIAL = "axial"
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80
 #: Microlens images wider than their pitch by more than this fraction trigger a warning.
@@ -139,10 +141,10 @@ class Camera:
 
     # ---- validation -------------------------------------------------------------
     def _check_layout(self) -> None:
-        if self.ml_layout not in LAYOUTS:
+        if self.ml_layout not in (*LAYOUTS, AXIAL):
             raise ValueError(f"microlens layout must be one of {LAYOUTS}, got "
                              f"{self.ml_layout!r} ([microlens_array] layout)")
-        allowed = (0.5, -0.5) if self.ml_layout == "hexagonal" else (0.0,)
+        allowed = (0.0,) if self.ml_layout == "rectangular" else (0.5, -0.5)
         if self.ml_odd_row_shift is not None and self.ml_odd_row_shift not in allowed:
             raise ValueError(f"odd_row_shift must be one of {allowed} (pitches) for a "
                              f"{self.ml_layout} array, got {self.ml_odd_row_shift!r}")
@@ -151,14 +153,16 @@ class Camera:
     def odd_row_shift(self) -> float:
         """How far (pitches, along the row) the odd rows of lenses sit from the even ones:
         0 for a rectangular array, ``ml_odd_row_shift`` (default +0.5) for a hexagonal one."""
-        if self.ml_layout != "hexagonal":
+        if self.ml_layout == "rectangular":
             return 0.0
         return 0.5 if self.ml_odd_row_shift is None else float(self.ml_odd_row_shift)
 
     def _check_sensor_covers_array(self) -> None:
         # the array's lenses are those whose image centre lies on the sensor (design.md
         # §2): the outermost centres (of the even rows), a pitch inside the array's
-        # edges, fit on the sensor
+        # edges, fit on the sensor (a hexagonal array's axial view pads its rows)
+        if self.ml_layout == AXIAL:
+            return
         mla = np.array(self.ml_count) * [self.ml_pitch_mm, self.ml_row_pitch_mm]
         sensor = np.array(self.pixels) * self.pixel_pitch_mm
         if np.any(mla - [self.ml_pitch_mm, self.ml_row_pitch_mm] > sensor * (1 + 1e-9)):
@@ -354,10 +358,29 @@ class Camera:
         what plenocl does with hexagonal cameras so far."""
         if self.ml_layout != "rectangular":
             raise ValueError(
-                f"{what} does not handle {self.ml_layout} microlens arrays yet: plenocl "
-                "simulates hexagonal cameras and calibrates their white images (stopped "
-                "down or at full aperture; docs/design.md §2, §3); reconstruction, the light "
-                "field and the image fit need a rectangular array")
+                f"{what} does not handle hexagonal microlens arrays yet: plenocl simulates "
+                "hexagonal cameras, calibrates their white images and reconstructs their "
+                "volumes (docs/design.md §2, §3, §5); the light field and the image fit "
+                "need a rectangular array (process_pair(..., image_fit=None), [image_fit] "
+                "enabled = false)")
+
+    def on_lens_lattice(self) -> Camera:
+        """This camera with its lenses numbered on an affine lattice: itself for a
+        rectangular array; for a hexagonal one its axial view (docs/design.md §5), the
+        lenses at axial indices ``(q - q_min, r)``, ``NaN`` where the parallelogram holds
+        no lens of the array, so that the weighting function and projector, written for
+        (possibly sheared) affine lattices, take it as it is. Only for them: the view is
+        not simulated, written or calibrated."""
+        if self.ml_layout != "hexagonal":
+            return self
+        cols, rows = self.ml_count
+        ky, kx = np.mgrid[0:rows, 0:cols]
+        q = kx - int(round(2 * self.odd_row_shift)) * (ky // 2)  # optics.lattice's axial
+        width = int(q.max() - q.min()) + 1
+        centres = np.full((rows, width, 2), np.nan)
+        centres[ky, q - q.min()] = self.microlens_centers
+        return replace(self, ml_layout=AXIAL, ml_count=(width, rows),
+                       ml_odd_row_shift=self.odd_row_shift, microlens_centers=centres)
 
     def lens_lattice_coords(self) -> np.ndarray:
         """``(rows, cols, 2)`` position of every lens in the array's own frame, in pitches
@@ -450,6 +473,9 @@ class Camera:
         )
 
     def _layout_keys(self) -> dict:
+        if self.ml_layout == AXIAL:
+            raise ValueError("a hexagonal array's axial view (Camera.on_lens_lattice) is "
+                             "the projector's, not a camera file: write the camera itself")
         if self.ml_layout == "rectangular":
             return {}
         return {"layout": self.ml_layout, "odd_row_shift": self.odd_row_shift}

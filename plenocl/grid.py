@@ -199,16 +199,17 @@ class Grid:
         (``rotation_deg=None``) the grid's lateral axes follow the microlens rows and
         columns of the (calibrated) array, so that a rotated array projects on the fast
         separable path; an array aligned with the sensor to within 0.001 lens across it
-        keeps the sensor's axes.
+        keeps the sensor's axes. A hexagonal array's field is its columns' pitch by its
+        rows' (``pitch·√3/2``), and its axes follow its rows.
         """
-        camera.require_rectangular("Grid.for_camera")
         voxel = voxel_mm or camera.ml_pitch_mm / camera.magnification
         dvox = depth_voxel_mm or camera.depth_resolution_mm / 2
-        w, h = (n * camera.ml_pitch_mm / camera.magnification * fraction
-                for n in camera.ml_count)
+        w, h = (n * step / camera.magnification * fraction for n, step in
+                zip(camera.ml_count, (camera.ml_pitch_mm, camera.ml_row_pitch_mm)))
         nx, ny = max(1, round(w / voxel)), max(1, round(h / voxel))
         nz = max(1, round((z[1] - z[0]) / dvox))
         if rotation_deg is None:
-            rotation_deg = separable_rotation_deg(camera.microlens_centers, DEFAULT_SHEAR_TOL)
+            rotation_deg = separable_rotation_deg(camera.on_lens_lattice().microlens_centers,
+                                                  DEFAULT_SHEAR_TOL)
         return cls((nz, ny, nx), (-nx * voxel / 2, nx * voxel / 2),
                    (-ny * voxel / 2, ny * voxel / 2), tuple(z), rotation_deg)

@@ -208,19 +208,91 @@ def test_a_wrong_hexagonal_count_or_stagger_is_refused(queue):
 
 
 def test_stages_for_rectangular_arrays_refuse_a_hexagonal_one(queue):
-    """Reconstruction, the light field and the image fit name what plenocl does with a
-    hexagonal camera so far instead of treating it as a rectangular one."""
-    from plenocl import Grid, LightField, Projector
+    """The light field and the image fit name what plenocl does with a hexagonal camera
+    so far (and how to run a pair without the image fit) instead of treating it as a
+    rectangular one; so do they for the projector's axial view of it."""
+    from plenocl import LightField
     from plenocl.optics.raybundle import RayBundle
 
     cam = sensor_camera(8, 8)
-    grid = Grid((4, 8, 8), x=(-0.5, 0.5), y=(-0.5, 0.5), z=(-1.0, 1.0))
-    for stage in (lambda: Projector(cam, grid, queue), lambda: RayBundle.of(cam),
-                  lambda: LightField(np.ones(cam.pixels[::-1]), cam, queue=queue),
-                  lambda: Grid.for_camera(cam, (-1.0, 1.0))):
-        with pytest.raises(ValueError, match="hexagonal microlens arrays yet: plenocl "
-                           "simulates hexagonal cameras and calibrates"):
-            stage()
+    for camera in (cam, cam.on_lens_lattice()):
+        for stage in (lambda c=camera: RayBundle.of(c),
+                      lambda c=camera: LightField(np.ones(c.pixels[::-1]), c, queue=queue)):
+            with pytest.raises(ValueError, match="hexagonal microlens arrays yet: .* "
+                               "reconstructs their volumes.*image_fit"):
+                stage()
+    with pytest.raises(ValueError, match="axial view .* not a camera file"):
+        cam.on_lens_lattice().to_dict()
+
+
+# ---- reconstruction ---------------------------------------------------------------------
+def test_the_projector_takes_a_hexagonal_array_on_its_axial_lattice(queue):
+    """A hexagonal camera projects through its axial view (the lenses on the sheared
+    lattice ``q e1 + r e2``, NaN where the parallelogram has no lens): the general
+    kernels agree with the NumPy reference voxel by voxel, are adjoint, and send no
+    voxel more light than it has."""
+    from helpers import assert_adjoint, assert_close_to_peak
+    from tolerances import FOOTPRINT_TOTAL, WEIGHTS
+
+    from plenocl import Grid, Projector
+    from plenocl.reference.weights import voxel_weights
+
+    cam = sensor_camera(12, 12, ml_rotation_deg=1.0)
+    cam = cam.with_centers(cam.ideal_microlens_centers())
+    grid = Grid((5, 7, 9), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-4.0, 4.0))
+    proj = Projector(cam, grid, queue)
+    assert proj.path == "general" and proj.camera.ml_layout == "axial"
+    assert proj.camera.ml_count == (17, 12)  # 12 + 5 columns of padding across 12 rows
+    n = cam.pixels[0] * cam.pixels[1]
+    for vox in [(2, 3, 4), (0, 5, 1), (4, 1, 7), (2, 0, 0), (4, 6, 8)]:
+        ref = np.zeros(n)
+        idx, w = voxel_weights(cam, grid, *vox)
+        ref[idx] = w
+        onehot = np.zeros(grid.shape, np.float32)
+        onehot[vox] = 1.0
+        fwd = proj.forward(onehot).ravel()
+        assert_close_to_peak(fwd, ref, WEIGHTS, vox)
+        np.testing.assert_allclose(fwd.sum(), ref.sum(), rtol=FOOTPRINT_TOTAL)
+        assert fwd.sum() <= 1.0 + 1e-5
+    assert_adjoint(proj)
+
+
+def _particle_errors(cam: Camera, queue, seed: int) -> tuple[np.ndarray, int]:
+    """Per matched particle (x, y, z) errors (voxels) of ``reconstruct()``'s default on
+    12 ray-traced particles (1 px blur, photon noise), and how many were matched."""
+    from plenocl import Grid, Projector
+    from plenocl.metrics import match_particles
+    from plenocl.peaks import find_particles
+    from plenocl.reconstruction import reconstruct
+
+    grid = Grid((32, 24, 24), x=(-1.5, 1.5), y=(-1.5, 1.5), z=(-2.0, 2.0))
+    rng = np.random.default_rng(seed)
+    pos = np.column_stack([rng.uniform(-1.0, 1.0, (12, 2)), rng.uniform(-1.6, 1.6, 12)])
+    img = simulate_image(cam, pos, np.full(12, 2e4), 20000, seed=3, blur_px=1.0,
+                         photon_noise=True, queue=queue)
+    found, _ = find_particles(reconstruct(img, Projector(cam, grid, queue)), 0.1)
+    true = grid.to_index(pos)
+    pairs = match_particles(found, true, 1.5, 4.0)
+    return np.array([found[f] - true[t] for t, f in pairs]), len(pairs)
+
+
+def test_hexagonal_particles_reconstruct_as_rectangular_ones_do(queue):
+    """Particles ray traced through exact hexagonal cells (24 x 28 lenses) reconstruct
+    through the axial view about as well as through a rectangular array of 24 x 24
+    lenses of the same pitch on the same grid (two scenes: lateral 0.10 / depth 0.97
+    voxel, 22 of 24, against 0.10 / 1.33, 23 of 24)."""
+    hexagonal = sensor_camera(24, 28)
+    rectangular = lens_camera(24, 24)
+    stats = {}
+    for name, cam in (("hex", hexagonal), ("rect", rectangular)):
+        runs = [_particle_errors(cam.with_centers(cam.ideal_microlens_centers()), queue, s)
+                for s in (11, 12)]
+        d = np.vstack([r[0] for r in runs])
+        stats[name] = (np.sqrt(np.mean(d[:, :2] ** 2)), np.sqrt(np.mean(d[:, 2] ** 2)),
+                       sum(r[1] for r in runs))
+    print(stats)
+    assert stats["hex"][0] <= 0.15 and stats["hex"][1] <= 1.1 * stats["rect"][1]
+    assert stats["hex"][2] >= 20
 
 
 def test_hexagonal_centres_travel_as_csv(tmp_path, queue):

@@ -78,7 +78,8 @@ class WeightingModel:
 
     def __init__(self, camera: Camera, grid: Grid, oversample: float = DEFAULT_OVERSAMPLE,
                  shear_tol: float = DEFAULT_SHEAR_TOL, warn: bool = True) -> None:
-        camera.require_rectangular("the weighting function and projector")
+        self.source_camera = camera
+        camera = camera.on_lens_lattice()  # a hexagonal array: its axial view (§5)
         check_depth_range(camera, grid)
         self.camera, self.grid = camera, grid
         self.oversample, self.shear_tol = oversample, shear_tol

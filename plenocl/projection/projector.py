@@ -30,7 +30,7 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl.array as cl_array
 
-from ..camera import Camera
+from ..camera import AXIAL, Camera
 from ..device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..grid import Grid
 from ..optics.lattice import separable_rotation_deg
@@ -168,8 +168,10 @@ class Projector:
             raise ValueError(f"general must be one of {GENERAL_MODES}, got {general!r}")
         if model is None:
             model = WeightingModel(camera, grid, oversample, shear_tol, warn=False)
-        elif model.camera is not camera or model.grid != grid:
+        elif camera not in (model.camera, model.source_camera) or model.grid != grid:
             raise ValueError("the weighting model belongs to another camera or grid")
+        # a hexagonal array's lenses on its axial lattice (Camera.on_lens_lattice)
+        camera = model.camera
         self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
         self._options = dict(oversample=model.oversample, shear_tol=model.shear_tol,
                              method=method, back=back, max_alloc_bytes=max_alloc_bytes,
@@ -204,6 +206,8 @@ class Projector:
         direct method."""
         opts = self._options
         if opts["general"] == "exact" or self.method == "direct":
+            return None
+        if self.camera.ml_layout == AXIAL:  # a hexagonal lattice: no frame is separable
             return None
         if frame is None:
             angle = separable_rotation_deg(self.camera.microlens_centers, opts["shear_tol"])

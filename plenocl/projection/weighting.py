@@ -158,7 +158,7 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     rows (:func:`plenocl.optics.lattice.separable_rotation_deg`) makes a rotated array
     axis-aligned this way.
     """
-    camera.require_rectangular("the projector's lens index map")
+    camera = camera.on_lens_lattice()  # a hexagonal array: its axial lattice (§5)
     cols, rows = camera.ml_count
     pos = array_plane_positions(camera, camera.microlens_centers)
     if rotation_deg:

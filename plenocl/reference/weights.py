@@ -64,6 +64,7 @@ def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
     indices, weights
         Pixels ``row * W + col`` with a non-zero weight, in increasing order.
     """
+    camera = camera.on_lens_lattice()  # a hexagonal array: its axial lattice
     # Everything lateral below is in the grid's frame (rotated by grid.rotation_deg about
     # the optical axis); the main lens maps x -> X' isotropically, so the image point of
     # a frame point is in the frame too. Only step 3 needs the sensor's axes.
