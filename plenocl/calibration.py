@@ -897,7 +897,7 @@ def _assemble(camera, cents, split, k, dev, sigma, shape, method, degree,
     if use.sum() < 6:
         use = found.ravel().copy()
     if interior:
-        inner = use & _surrounded(_surrounded(found, camera), camera).ravel()
+        inner = use & _surrounded(found, camera, rings=2).ravel()
         use = inner if inner.sum() >= MIN_INTERIOR else use
     deg = _choose_degree(kk, c, (cols, rows), use, degree)
     coef, use = _robust_fit(kk, c, (cols, rows), deg, use)
@@ -960,20 +960,24 @@ def _combine(model, grid, noise, scatter: float, trusted) -> np.ndarray:
 MIN_INTERIOR = 12
 
 
-def _surrounded(found: np.ndarray, camera: Camera) -> np.ndarray:
+def _surrounded(found: np.ndarray, camera: Camera, rings: int = 1) -> np.ndarray:
     """``(rows, cols)``: found lenses whose every lattice neighbour (4 in a rectangular
-    array, 6 in a hexagonal one) lies in the array and was found. A full-aperture disk's
-    window takes in slivers of its neighbours' disks, symmetric about an inner lens but
-    one-sided at the array's edge (0.35 px there at 65 px per lens, rectangular; 2-4 px
-    hexagonal, where the slivers pull the window along), so the model is fitted to the
-    inner lenses and predicts the outer ones."""
+    array, 6 in a hexagonal one) lies in the array and was found, ``rings`` deep (2: the
+    neighbours' neighbours too). A full-aperture disk's window takes in slivers of its
+    neighbours' disks, symmetric about an inner lens but one-sided at the array's edge
+    (0.35 px there at 65 px per lens, rectangular; 2-4 px hexagonal, where the slivers
+    pull the window along), so the model is fitted to the inner lenses and predicts the
+    outer ones."""
     xy = camera.lens_lattice_coords() * [1.0, camera.ml_row_pitch_mm / camera.ml_pitch_mm]
     flat = xy.reshape(-1, 2)
-    neighbours = cKDTree(flat).query_ball_point(flat, r=1.01)
     want = 6 if camera.ml_layout == "hexagonal" else 4
+    # each lens and its neighbours; a missing neighbour (beyond the array) is index n
+    dist, near = cKDTree(flat).query(flat, k=want + 1, distance_upper_bound=1.01)
+    complete = np.isfinite(dist).all(1)
     ok = found.ravel()
-    return np.array([ok[i] and len(n) == want + 1 and ok[n].all()
-                     for i, n in enumerate(neighbours)]).reshape(found.shape)
+    for _ in range(rings):
+        ok = complete & np.append(ok, False)[near].all(1)  # near holds the lens itself
+    return ok.reshape(found.shape)
 
 
 def _drop_far_spots(found, grid, model, pitch) -> np.ndarray:

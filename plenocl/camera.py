@@ -351,7 +351,7 @@ class Camera:
     def ml_row_pitch_mm(self) -> float:
         """Distance between neighbouring rows of lenses: the pitch, or ``pitch·√3/2`` for a
         hexagonal array."""
-        return self.ml_pitch_mm * (math.sqrt(3) / 2 if self.ml_layout == "hexagonal" else 1)
+        return self.ml_pitch_mm * (1 if self.ml_layout == "rectangular" else math.sqrt(3) / 2)
 
     def require_rectangular(self, what: str) -> None:
         """Refuse a hexagonal array for a stage that handles rectangular ones only, naming
@@ -373,9 +373,11 @@ class Camera:
         not simulated, written or calibrated."""
         if self.ml_layout != "hexagonal":
             return self
+        from .optics.lattice import offset_to_axial
+
         cols, rows = self.ml_count
         ky, kx = np.mgrid[0:rows, 0:cols]
-        q = kx - int(round(2 * self.odd_row_shift)) * (ky // 2)  # optics.lattice's axial
+        q = offset_to_axial(np.stack([kx, ky], -1), self.odd_row_shift)[..., 0]
         width = int(q.max() - q.min()) + 1
         centres = np.full((rows, width, 2), np.nan)
         centres[ky, q - q.min()] = self.microlens_centers
@@ -587,6 +589,10 @@ def _check_keys(doc: dict, source: str) -> None:
         refuse_unknown(given, keys, lambda bad, section=section, keys=keys:
                        f"{source}: unknown key(s) {bad} in [{section}]; it takes "
                        f"{list(keys)} (docs/design.md §2)")
+    layout = doc.get("microlens_array", {}).get("layout", "rectangular")
+    if layout not in LAYOUTS:  # the axial view is the projector's, never a file's
+        raise ValueError(f"{source}: microlens layout must be one of {LAYOUTS}, got "
+                         f"{layout!r} ([microlens_array] layout)")
 
 
 def load_camera(spec: str | Path | None) -> Camera:

@@ -157,17 +157,11 @@ def plaid_uv(camera: Camera, step_mm: float | None = None) -> np.ndarray:
     step_mm
         Sample spacing on the aperture; default one pixel's footprint ``p_px d/f_ml``.
     """
-    step = pixel_footprint_mm(camera) if step_mm is None else float(step_mm)
+    step = camera.pixel_pupil_footprint_mm if step_mm is None else float(step_mm)
     if not (math.isfinite(step) and step > 0):
         raise ValueError(f"the (u, v) step must be a positive number of mm, got {step_mm!r}")
     half = int(math.floor(camera.exit_pupil_diameter_mm / 2 / step + 1e-9))
     return np.arange(-half, half + 1) * step
-
-
-def pixel_footprint_mm(camera: Camera) -> float:
-    """Width of one pixel's view of the exit pupil, ``p_px d / f_ml`` (mm; a thin lens:
-    ``d = s_i``)."""
-    return camera.pixel_pupil_footprint_mm
 
 
 # ---- the light field ------------------------------------------------------------------

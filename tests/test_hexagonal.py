@@ -48,6 +48,10 @@ def test_a_hexagonal_camera_file_round_trips_and_refuses_bad_layouts(tmp_path):
     assert "layout" not in lens_camera().to_dict()["microlens_array"]
     with pytest.raises(ValueError, match="layout must be one of"):
         lens_camera(ml_layout="hex")
+    doc = cam.to_dict()
+    doc["microlens_array"]["layout"] = "axial"  # the projector's view, never a file's
+    with pytest.raises(ValueError, match="layout must be one of"):
+        Camera.from_dict(doc)
     with pytest.raises(ValueError, match="odd_row_shift must be one of"):
         lens_camera(ml_odd_row_shift=0.5)
     with pytest.raises(ValueError, match="odd_row_shift must be one of"):

@@ -64,17 +64,17 @@ def _nearest_hexagonal(cam: Camera, a: np.ndarray, b: np.ndarray):
     ``(a, b)``: the nearer of the nearest centres in the two rows around each point."""
     nx, ny = cam.ml_count
     fy = b / cam.ml_row_pitch_mm + (ny - 1) / 2
-    best = None
-    for r in (np.floor(fy), np.floor(fy) + 1):
+
+    def nearest_in_row(r):
         fx = a / cam.ml_pitch_mm + (nx - 1) / 2 - cam.odd_row_shift * (r % 2)
         k = np.floor(fx + 0.5)
-        d2 = ((fx - k) * cam.ml_pitch_mm) ** 2 + ((fy - r) * cam.ml_row_pitch_mm) ** 2
-        if best is None:
-            best = (k, r, d2)
-        else:
-            nearer = d2 < best[2]
-            best = tuple(np.where(nearer, new, old) for new, old in zip((k, r, d2), best))
-    return best[0].astype(np.int64), best[1].astype(np.int64)
+        return k, ((fx - k) * cam.ml_pitch_mm) ** 2 + ((fy - r) * cam.ml_row_pitch_mm) ** 2
+
+    below, above = np.floor(fy), np.floor(fy) + 1
+    (k0, d0), (k1, d1) = nearest_in_row(below), nearest_in_row(above)
+    upper = d1 < d0  # ties stay in the lower row, as the kernel's strict comparison does
+    return (np.where(upper, k1, k0).astype(np.int64),
+            np.where(upper, above, below).astype(np.int64))
 
 
 def _cell_points(cam: Camera, u1: np.ndarray, u2: np.ndarray):
