@@ -20,7 +20,6 @@ with the digest of the tracks it bins) runs the field stage only.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import time
 from collections.abc import Callable
@@ -175,7 +174,8 @@ def _content(path: Path) -> dict:
 
 
 def _digest(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """A file's SHA-256 (its content only)."""
+    return fingerprint(path)["sha256"]
 
 
 def _job(exp: Experiment, frames: dict[int, Path], out: Path, opts: TrackingOptions,
