@@ -8,6 +8,12 @@ and matching, in the same run.
 
     python benchmarks/calibration.py [--camera synthetic|paper] [--seeds 3]
 
+Scale rows (issue 29, ``--skip-scales`` leaves them out): 720 x 720 px images of the sizes
+another light-field project publishes with true centres, traced by plenocl: hexagonal at
+13 and 65 px per lens, at full aperture (f/2) and stopped down, and rectangular at
+7.7 px rotated 2 degrees at full aperture; blur 0.8 px, 400 rays per lens pixel area,
+100,000 counts per lens, no noise.
+
 Hexagonal rows (issue 29): the same camera's lenses in a hexagonal array of the same
 pitch (rows 0.866 pitch apart, odd rows half a pitch along; as many columns, as many
 rows as the sensor holds, and the sensor's height cut to them), stopped down and at full
@@ -80,6 +86,27 @@ def hexagonal(base: Camera, shift: float = 0.5) -> Camera:
                                pixels=(base.pixels[0], int(rows * row_px) + 1))
 
 
+def scale_camera(pitch_px: float, layout: str) -> Camera:
+    """The synthetic optics on a 720 x 720 px sensor whose pixels make a microlens image
+    ``pitch_px`` wide, as many lenses (columns, rows) as fill it."""
+    pp = 0.125 * (1 + 0.5 / 100.0) / pitch_px
+    row = pitch_px * (3**0.5 / 2 if layout == "hexagonal" else 1.0)
+    return Camera(50.0, 2.0, 1.0, 0.125, 0.5, (int(719 / pitch_px), int(719 / row)), pp,
+                  (720, 720), ml_layout=layout)
+
+
+def scale_cases() -> list:
+    """``(camera, name, (layout, white image))`` of the 720 px scale rows."""
+    out = []
+    for pitch, layout, rot, stop in [(13, "hexagonal", 0.0, 2.0), (13, "hexagonal", 1.0, 16.0),
+                                     (65, "hexagonal", 0.0, 2.0), (65, "hexagonal", 0.5, 16.0),
+                                     (7.7, "rectangular", 2.0, 2.0)]:
+        name = f"720 px: {layout[:4]}. {pitch:g} px, {rot:g} deg, f/{stop:g}"
+        sim = dict(stop_f_number=stop, intensity=1e5, rays_per_lens=int(400 * pitch**2))
+        out.append((scale_camera(pitch, layout), name, (dict(ml_rotation_deg=rot), sim)))
+    return out
+
+
 def run_case(base: Camera, layout: dict, sim: dict, seed: int, queue) -> tuple:
     """One white image: (box, centroid, model, combined RMS, found, lenses, seconds)."""
     white, truth = white_case(base, layout, sim, seed, queue)
@@ -93,7 +120,7 @@ def run_case(base: Camera, layout: dict, sim: dict, seed: int, queue) -> tuple:
 
 
 def main() -> None:
-    parser = script_parser(__doc__)
+    parser = script_parser(__doc__, {"scales": "leave out the 720 px scale rows"})
     parser.add_argument("--camera", choices=["synthetic", "paper"], default="synthetic")
     parser.add_argument("--seeds", type=int, default=3, help="images per case")
     args = parser.parse_args()
@@ -108,6 +135,7 @@ def main() -> None:
     cases = [(base, name, case) for name, case in CASES.items()]
     cases += [(hexagonal(base, case[0].get("ml_odd_row_shift", 0.5)), name, case)
               for name, case in HEX_CASES.items()]
+    cases += [] if args.skip_scales else scale_cases()
     for camera, name, (layout, sim) in cases:
         runs = [run_case(camera, layout, sim, seed, queue) for seed in range(args.seeds)]
         box, cen, fit, comb, found, total, sec = (statistics.median(r[i] for r in runs)

@@ -25,8 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from plenocl import Camera, Grid, Projector, get_queue, simulate_image  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import median_time  # noqa: E402
-from plenocl.metrics import match_particles  # noqa: E402
-from plenocl.peaks import find_particles  # noqa: E402
+from plenocl.metrics import matched_errors  # noqa: E402
 from plenocl.reconstruction import reconstruct  # noqa: E402
 
 GRID = Grid((32, 24, 24), x=(-1.5, 1.5), y=(-1.5, 1.5), z=(-2.0, 2.0))
@@ -46,9 +45,7 @@ def errors(cam: Camera, proj: Projector, seed: int, queue) -> np.ndarray:
     pos = np.column_stack([rng.uniform(-1.0, 1.0, (12, 2)), rng.uniform(-1.6, 1.6, 12)])
     img = simulate_image(cam, pos, np.full(12, 2e4), 20000, seed=seed, blur_px=1.0,
                          photon_noise=True, queue=queue)
-    found, _ = find_particles(reconstruct(img, proj), 0.1)
-    true = GRID.to_index(pos)
-    return np.array([found[f] - true[t] for t, f in match_particles(found, true, 1.5, 4.0)])
+    return matched_errors(reconstruct(img, proj), GRID, pos, lateral=1.5, depth=4.0)
 
 
 def main() -> None:

@@ -265,8 +265,7 @@ def _particle_errors(cam: Camera, queue, seed: int) -> tuple[np.ndarray, int]:
     """Per matched particle (x, y, z) errors (voxels) of ``reconstruct()``'s default on
     12 ray-traced particles (1 px blur, photon noise), and how many were matched."""
     from plenocl import Grid, Projector
-    from plenocl.metrics import match_particles
-    from plenocl.peaks import find_particles
+    from plenocl.metrics import matched_errors
     from plenocl.reconstruction import reconstruct
 
     grid = Grid((32, 24, 24), x=(-1.5, 1.5), y=(-1.5, 1.5), z=(-2.0, 2.0))
@@ -274,10 +273,9 @@ def _particle_errors(cam: Camera, queue, seed: int) -> tuple[np.ndarray, int]:
     pos = np.column_stack([rng.uniform(-1.0, 1.0, (12, 2)), rng.uniform(-1.6, 1.6, 12)])
     img = simulate_image(cam, pos, np.full(12, 2e4), 20000, seed=3, blur_px=1.0,
                          photon_noise=True, queue=queue)
-    found, _ = find_particles(reconstruct(img, Projector(cam, grid, queue)), 0.1)
-    true = grid.to_index(pos)
-    pairs = match_particles(found, true, 1.5, 4.0)
-    return np.array([found[f] - true[t] for t, f in pairs]), len(pairs)
+    d = matched_errors(reconstruct(img, Projector(cam, grid, queue)), grid, pos,
+                       lateral=1.5, depth=4.0)
+    return d, len(d)
 
 
 def test_hexagonal_particles_reconstruct_as_rectangular_ones_do(queue):
