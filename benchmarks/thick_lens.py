@@ -1,8 +1,9 @@
 """A thick main lens (issue 29): particles traced element by element through a two-element
 objective (``plenocl.bench.objective``), reconstructed on the thick camera that describes
 it, beside the baselines in the same run: a thin lens's own particles on its own camera
-(the same image-side cone), and the objective described by its nominal f-number alone
-(the pupils ignored, calibrated centres given).
+(the same image-side cone), the objective's particles on that thin lens (what users
+computed by hand before), and the objective described by its nominal f-number alone (the
+pupils ignored, calibrated centres given).
 
     python benchmarks/thick_lens.py [--scenes 3]
 
@@ -53,6 +54,7 @@ def main() -> None:
     queue = get_queue()
     print(f"device: {queue.device.name.strip()}; thick camera: {thick_camera().describe()}")
     rows = {"thick camera, objective's particles": [], "thin lens, its own particles": [],
+            "thin lens of the same cone, objective's": [],
             "nominal f-number (pupils ignored), objective's": []}
     for seed in range(args.scenes):
         rng = np.random.default_rng(11 + seed)
@@ -61,7 +63,8 @@ def main() -> None:
         thin = simulate_image(thin_camera(), pos, np.full(12, 2e4), 20_000, seed=3,
                               blur_px=1.0, photon_noise=True, queue=queue)
         for out, (image, cam) in zip(rows.values(), (
-                (traced, thick_camera()), (thin, thin_camera()), (traced, nominal_camera()))):
+                (traced, thick_camera()), (thin, thin_camera()), (traced, thin_camera()),
+                (traced, nominal_camera()))):
             out.append(matched_errors(reconstruct(image, Projector(cam, GRID, queue)), GRID,
                                       pos, lateral=1.5, depth=4.0))
     print(f"{'camera':48s} {'lateral':>8s} {'depth':>6s} {'found':>6s}")
