@@ -53,9 +53,10 @@ __kernel void fwd_x(__global const float *restrict vol, __global float *restrict
     __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
     float acc = 0.0f;
     if (kx < nkx) {
-        const int2 r = pl_hat_range(c[10], c[6] * bu + c[4], (float)kx, nx);
+        const float b = pl_kx_offset(c, bu, iy);
+        const int2 r = pl_hat_range(c[10], b, (float)kx, nx);
         for (int ix = r.x; ix <= r.y; ++ix) {
-            const float kxf = pl_kx(c, bu, ix);
+            const float kxf = pl_kx_at(c, b, ix);
             const int kx0 = pl_floori(kxf);
             const float tx = kxf - (float)kx0;
             const float w = kx0 == kx ? 1.0f - tx : (kx0 + 1 == kx ? tx : 0.0f);
@@ -84,7 +85,7 @@ __kernel void fwd_x_row(__global const float *restrict vol, __global float *rest
         const float e = row[ix];
         if (e == 0.0f) continue;  /* sparse volumes: most voxels are zero */
         for (int il = 0; il < nic; ++il) {
-            const float kxf = pl_kx(c, (float)(i0 + il) - ic, ix);
+            const float kxf = pl_kx(c, (float)(i0 + il) - ic, ix, iy);
             const int kx0 = pl_floori(kxf);
             const float tx = kxf - (float)kx0;
             __global float *out = base + il * stride;
@@ -100,13 +101,14 @@ __kernel void fwd_x_row(__global const float *restrict vol, __global float *rest
  * samples (kept in cache) and reads each T row once per depth for all of them. */
 __kernel void fwd_y(__global const float *restrict T, __global float *restrict L,
                     __global const float *restrict coef, __global const int *restrict col_lo,
-                    __global const int *restrict col_off, __global const uchar *restrict rows_lit,
-                    int ny, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic, int s0,
+                    __global const int *restrict col_hi, __global const int *restrict col_off,
+                    __global const uchar *restrict rows_lit,
+                    int ny, int nkxp, int seg, int zc0, int nzc, int i0, int nic, int s0,
                     int nsc, float ic, int accumulate)
 {
     const int t = get_global_id(0), ky = get_global_id(1), il = get_global_id(2);
     if (!rows_lit[ky]) return;  /* no listed lens: fwd_pix never reads this row */
-    const int i = i0 + il, lo = col_lo[i], hi = n - 1 - lo;
+    const int i = i0 + il, lo = col_lo[i], hi = col_hi[i];
     const size_t off = (size_t)t * seg * PL_VW;
     __global float *rows = L + ((size_t)ky * nsc + col_off[i] - s0) * nkxp + off;
     if (!accumulate)
@@ -310,16 +312,18 @@ inline int pl_back_y_taps(__global const float *c, float bv, int iy, int nky,
 #if PL_BACK_ALLCOLS
 __kernel void back_y(__global const float *restrict L, __global float *restrict T,
                      __global const float *restrict coef, __global const int *restrict col_lo,
-                     __global const int *restrict col_off, __global const uchar *restrict rows_lit,
-                     int ny, int nky, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic,
+                     __global const int *restrict col_hi, __global const int *restrict col_off,
+                     __global const uchar *restrict rows_lit,
+                     int ny, int nky, int nkxp, int seg, int zc0, int nzc, int i0, int nic,
                      int s0, int nsc, float ic)
 {
     const int t = get_global_id(0), iy = get_global_id(1);
     const size_t off = (size_t)t * seg * PL_VW;
-    int jmin = n, jmax = -1;  /* the aperture rows of the chunk's columns */
+    int jmin = 1 << 30, jmax = -1;  /* the aperture rows of the chunk's columns */
     for (int il = 0; il < nic; ++il) {
+        if (col_hi[i0 + il] < col_lo[i0 + il]) continue;  /* a column without samples */
         jmin = pl_mini(jmin, col_lo[i0 + il]);
-        jmax = pl_maxi(jmax, n - 1 - col_lo[i0 + il]);
+        jmax = pl_maxi(jmax, col_hi[i0 + il]);
     }
     const size_t ostride = (size_t)ny * nkxp;  /* from one column's T row to the next */
     __global float *out = T + (size_t)iy * nkxp + off;  /* (izl, il): + (izl nic + il) */
@@ -343,7 +347,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
             wb[cnt++] = w1;
         }
         for (int il = 0; il < nic; ++il) {
-            const int i = i0 + il, lo = col_lo[i], hi = n - 1 - lo;
+            const int i = i0 + il, lo = col_lo[i], hi = col_hi[i];
             __global const float *col = L + (long)(col_off[i] - s0 - lo) * nkxp + off;
             for (int e = 0; e < cnt; ++e)
                 if (je[e] >= lo && je[e] <= hi)
@@ -355,12 +359,13 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
 #else
 __kernel void back_y(__global const float *restrict L, __global float *restrict T,
                      __global const float *restrict coef, __global const int *restrict col_lo,
-                     __global const int *restrict col_off, __global const uchar *restrict rows_lit,
-                     int ny, int nky, int nkxp, int seg, int n, int zc0, int nzc, int i0, int nic,
+                     __global const int *restrict col_hi, __global const int *restrict col_off,
+                     __global const uchar *restrict rows_lit,
+                     int ny, int nky, int nkxp, int seg, int zc0, int nzc, int i0, int nic,
                      int s0, int nsc, float ic)
 {
     const int t = get_global_id(0), iy = get_global_id(1), il = get_global_id(2);
-    const int i = i0 + il, lo = col_lo[i], hi = n - 1 - lo;
+    const int i = i0 + il, lo = col_lo[i], hi = col_hi[i];
     const size_t off = (size_t)t * seg * PL_VW;
     __global const float *col = L + (size_t)(col_off[i] - s0) * nkxp + off;
     for (int izl = 0; izl < nzc; ++izl) {
@@ -380,11 +385,11 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
 }
 #endif
 
-/* Voxel ix's two lens taps in the T row of aperture column offset bu. */
+/* Voxel (ix, iy)'s two lens taps in the T row of aperture column offset bu. */
 inline float pl_back_x_tap(__global const float *c, __global const float *row, float bu,
-                           int ix, int nkx)
+                           int ix, int iy, int nkx)
 {
-    const float kxf = pl_kx(c, bu, ix);
+    const float kxf = pl_kx(c, bu, ix, iy);
     const int kx0 = pl_floori(kxf);
     const float tx = kxf - (float)kx0;
     const int k0 = pl_mini(pl_maxi(kx0, 0), nkx - 1);
@@ -396,10 +401,11 @@ inline float pl_back_x_tap(__global const float *c, __global const float *row, f
 /* v + the taps of voxel ix in the T rows of every aperture column (base + il * stride),
  * column by column: the order both back_x forms sum in. */
 inline float pl_back_x_sum(__global const float *c, __global const float *base,
-                           size_t stride, int ix, int nkx, int i0, int nic, float ic, float v)
+                           size_t stride, int ix, int iy, int nkx, int i0, int nic, float ic,
+                           float v)
 {
     for (int il = 0; il < nic; ++il)
-        v += pl_back_x_tap(c, base + (size_t)il * stride, (float)(i0 + il) - ic, ix, nkx);
+        v += pl_back_x_tap(c, base + (size_t)il * stride, (float)(i0 + il) - ic, ix, iy, nkx);
     return v;
 }
 
@@ -425,8 +431,8 @@ __kernel void back_x(__global const float *restrict T, __global float *restrict 
         return;
     }
     __global const float *base = T + (size_t)izl * nic * ny * nkxp + (size_t)iy * nkxp;
-    vol[at] = pl_back_x_sum(coef + 16 * (zc0 + izl), base, (size_t)ny * nkxp, ix, nkx, i0,
-                            nic, ic, accumulate ? vol[at] : 0.0f);
+    vol[at] = pl_back_x_sum(coef + 16 * (zc0 + izl), base, (size_t)ny * nkxp, ix, iy, nkx,
+                            i0, nic, ic, accumulate ? vol[at] : 0.0f);
 }
 
 __kernel void back_x_row(__global const float *restrict T, __global float *restrict vol,
@@ -449,7 +455,7 @@ __kernel void back_x_row(__global const float *restrict T, __global float *restr
                 if (!accumulate) out[ix] = 0.0f;
                 continue;
             }
-            out[ix] = pl_back_x_sum(c, base, (size_t)ny * nkxp, ix, nkx, i0, nic, ic,
+            out[ix] = pl_back_x_sum(c, base, (size_t)ny * nkxp, ix, iy, nkx, i0, nic, ic,
                                     accumulate ? out[ix] : 0.0f);
         }
         return;
@@ -459,7 +465,7 @@ __kernel void back_x_row(__global const float *restrict T, __global float *restr
         const int keep = accumulate || il > 0;
         __global const float *row = base + (size_t)il * ny * nkxp;
         for (int ix = 0; ix < nx; ++ix) {
-            const float v = pl_back_x_tap(c, row, bu, ix, nkx);
+            const float v = pl_back_x_tap(c, row, bu, ix, iy, nkx);
             out[ix] = keep ? out[ix] + v : v;
         }
     }

@@ -8,8 +8,10 @@
  *   [10..13] inverse of G
  *   [14..15] half-widths (voxels) of the inverse image of a lens's [-1, 1]^2 box
  * A voxel (ix, iy) seen through aperture sample (i, j) meets the array plane at lens
- * index G (ix, iy) + o + H (i - c, j - c). With an axis-aligned array the off-diagonal
- * terms are exactly zero and the general evaluation equals the separable one bit for bit.
+ * index G (ix, iy) + o + H (i - c, j - c). The separable path needs G[1][0] = H[0][1] =
+ * H[1][0] = 0 (ky of the voxel row and the aperture row only; kx of the voxel row's shift
+ * G[0][1] iy, a hexagonal array's, and of the column), and then the general evaluation
+ * equals the separable one bit for bit.
  *
  * Performance note: PoCL's CPU driver (3.0, distro build) calls its builtins (floor,
  * fma, fabs, fmax, vload8, ...) as out-of-line functions, spilling vector registers at
@@ -77,10 +79,26 @@ inline float2 pl_lens_coord(__global const float *c, float2 o, float fx, float f
     return (float2)(c[0] * fx + (c[1] * fy + o.x), c[2] * fx + (c[3] * fy + o.y));
 }
 
-/* Separable path: kx of voxel column ix through aperture column offset bu. */
-inline float pl_kx(__global const float *c, float bu, int ix)
+/* Separable path: kx of voxel column ix at offset b = pl_kx_offset(c, bu, iy). */
+inline float pl_kx_at(__global const float *c, float b, int ix)
 {
-    return c[0] * (float)ix + (c[6] * bu + c[4]);
+    return c[0] * (float)ix + b;
+}
+
+/* Separable path: the kx of voxel column 0 of voxel row iy through aperture column offset
+ * bu. A hexagonal array's lens columns lean across the rows (G's c[1], docs/design.md
+ * §5.3), so the row shifts its lens columns by c[1] iy; H's c[7] is 0 by the aperture's
+ * sampling. With c[1] = 0 (a rectangular array) this is c[6] bu + c[4] exactly, and in
+ * every case the general path's sum in its own order (pl_lens_coord). */
+inline float pl_kx_offset(__global const float *c, float bu, int iy)
+{
+    return c[1] * (float)iy + (c[6] * bu + c[4]);
+}
+
+/* Separable path: kx of voxel (ix, iy) through aperture column offset bu. */
+inline float pl_kx(__global const float *c, float bu, int ix, int iy)
+{
+    return pl_kx_at(c, pl_kx_offset(c, bu, iy), ix);
 }
 
 /* Separable path: ky of voxel row iy through aperture row offset bv. */

@@ -230,23 +230,14 @@ def test_stages_for_rectangular_arrays_refuse_a_hexagonal_one(queue):
 
 
 # ---- reconstruction ---------------------------------------------------------------------
-def test_the_projector_takes_a_hexagonal_array_on_its_axial_lattice(queue):
-    """A hexagonal camera projects through its axial view (the lenses on the sheared
-    lattice ``q e1 + r e2``, NaN where the parallelogram has no lens): the general
-    kernels agree with the NumPy reference voxel by voxel, are adjoint, and send no
-    voxel more light than it has."""
+def _matches_reference(cam: Camera, grid, proj) -> None:
+    """``proj`` agrees with the NumPy reference voxel by voxel, sends no voxel more light
+    than it has, and is adjoint."""
     from helpers import assert_adjoint, assert_close_to_peak
     from tolerances import FOOTPRINT_TOTAL, WEIGHTS
 
-    from plenocl import Grid, Projector
     from plenocl.reference.weights import voxel_weights
 
-    cam = sensor_camera(12, 12, ml_rotation_deg=1.0)
-    cam = cam.with_centers(cam.ideal_microlens_centers())
-    grid = Grid((5, 7, 9), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-4.0, 4.0))
-    proj = Projector(cam, grid, queue)
-    assert proj.path == "general" and proj.camera.ml_layout == "axial"
-    assert proj.camera.ml_count == (17, 12)  # 12 + 5 columns of padding across 12 rows
     n = cam.pixels[0] * cam.pixels[1]
     for vox in [(2, 3, 4), (0, 5, 1), (4, 1, 7), (2, 0, 0), (4, 6, 8)]:
         ref = np.zeros(n)
@@ -259,6 +250,97 @@ def test_the_projector_takes_a_hexagonal_array_on_its_axial_lattice(queue):
         np.testing.assert_allclose(fwd.sum(), ref.sum(), rtol=FOOTPRINT_TOTAL)
         assert fwd.sum() <= 1.0 + 1e-5
     assert_adjoint(proj)
+
+
+@pytest.mark.parametrize("shift", [0.5, -0.5])
+def test_a_hexagonal_array_projects_separably_in_its_rows_frame(queue, shift):
+    """A hexagonal camera projects through its axial view (the lenses on the leaning
+    lattice ``q e1 + r e2``, NaN where the parallelogram has no lens). On a grid along
+    its rows (here turned 1°) the lens map is triangular and the aperture is sampled
+    along the lattice's two steps, so the separable kernels apply (docs/design.md §5.3):
+    they agree with the NumPy reference voxel by voxel, are adjoint, and send no voxel
+    more light than it has."""
+    from plenocl import Grid, Projector
+
+    cam = sensor_camera(12, 12, ml_rotation_deg=1.0, ml_odd_row_shift=shift)
+    cam = cam.with_centers(cam.ideal_microlens_centers())
+    grid = Grid((5, 7, 9), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-4.0, 4.0), rotation_deg=1.0)
+    proj = Projector(cam, grid, queue)
+    assert proj.path == "separable" and proj.camera.ml_layout == "axial"
+    assert proj.camera.ml_count == (17, 12)  # 12 + 5 columns of padding across 12 rows
+    assert proj.aperture.shear == pytest.approx(shift)
+    assert proj.aperture.squeeze == pytest.approx(ROW)
+    _matches_reference(cam, grid, proj)
+
+
+def test_the_rhombic_aperture_grid_samples_the_disc_along_the_lattice():
+    """The aperture of a hexagonal lattice (:meth:`ApertureGrid.for_lattice`): exactly
+    the rhombic lattice points inside the circle, each column contiguous, its ranges
+    those of the samples (asymmetric), the outermost columns or rows holding samples,
+    one sample per ``t step²`` of the aperture."""
+    from plenocl.projection.weighting import ApertureGrid
+
+    cam = sensor_camera(12, 12)
+    for shift in (0.5, -0.5):
+        ap = ApertureGrid.for_lattice(cam, 1.25, 0.0, shift, ROW)
+        i, j = ap.samples()
+        a, b = i - ap.center, j - ap.center
+        uv = ap.frame_uv()
+        np.testing.assert_allclose(uv, np.column_stack([a + shift * b, ROW * b]) * ap.step)
+        assert np.all((uv**2).sum(1) <= ap.radius**2)
+        k = np.arange(-ap.n, ap.n + 1)  # every lattice point near the disc, not only n x n
+        aa, bb = np.meshgrid(k, k, indexing="ij")
+        inside = ((aa + shift * bb) ** 2 + (ROW * bb) ** 2) * ap.step**2 <= ap.radius**2
+        assert inside.sum() == len(i)
+        lo, hi = ap.column_ranges()
+        assert np.array_equal(np.repeat(np.arange(ap.n), hi - lo + 1), i)
+        assert np.array_equal(j, np.concatenate([np.arange(x, y + 1) for x, y in zip(lo, hi)]))
+        outer = (hi[0] >= lo[0]) or np.any(j == 0)  # the grid is no wider than the disc
+        assert outer and np.any(lo + hi != ap.n - 1)
+        area = np.pi * ap.radius**2 / (ROW * ap.step**2)
+        assert abs(len(i) - area) < 0.05 * area
+
+
+def test_hexagonal_projector_variants_agree(queue):
+    """On the rhombic aperture's asymmetric columns, the GPU-style layout (one element
+    per work-item, per-column lens-row stage), the element forms of the lens-column
+    stage, the light field split into many column chunks, and the unfactorised kernels
+    all give the default's projection."""
+    from test_stress import _scratch_for_chunks
+
+    from plenocl import Grid, Projector
+
+    cam = sensor_camera(12, 12, ml_rotation_deg=1.0)
+    cam = cam.with_centers(cam.ideal_microlens_centers())
+    grid = Grid((5, 7, 9), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-4.0, 4.0), rotation_deg=1.0)
+    rng = np.random.default_rng(4)
+    vol = rng.random(grid.shape).astype(np.float32)
+    ref = Projector(cam, grid, queue)
+    img = rng.random(ref.image_shape).astype(np.float32)
+    others = [Projector(cam, grid, queue, vector_width=1, segment=1),
+              Projector(cam, grid, queue, gather_forward=True),
+              Projector(cam, grid, queue, scratch_bytes=_scratch_for_chunks(ref, 1.0)),
+              Projector(cam, grid, queue, method="direct")]
+    assert len(others[2].plan.columns) > 3
+    close = dict(rtol=1e-5, atol=1e-6)
+    for other in others:
+        np.testing.assert_allclose(other.forward(vol), ref.forward(vol), **close)
+        np.testing.assert_allclose(other.back(img), ref.back(img), **close)
+
+
+def test_a_hexagonal_array_across_a_sensor_axis_grid(queue):
+    """A grid in the sensor's axes across a 1° hexagonal array is projected through its
+    rows' frame and resampled (as a rotated rectangular array, docs/design.md §5.1);
+    ``general="exact"`` keeps the general kernels, which agree with the reference."""
+    from plenocl import Grid, Projector
+
+    cam = sensor_camera(12, 12, ml_rotation_deg=1.0)
+    cam = cam.with_centers(cam.ideal_microlens_centers())
+    grid = Grid((5, 7, 9), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-4.0, 4.0))
+    assert Projector(cam, grid, queue).path == "resampled"
+    exact = Projector(cam, grid, queue, general="exact")
+    assert exact.path == "general" and exact.aperture.shear == 0
+    _matches_reference(cam, grid, exact)
 
 
 def _particle_errors(cam: Camera, queue, seed: int) -> tuple[np.ndarray, int]:

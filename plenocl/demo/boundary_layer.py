@@ -65,9 +65,35 @@ class Scenario:
         return doc
 
 
-def scenario(size: str) -> Scenario:
+#: The microlens arrays the demo can be run with (``plenocl demo --camera``).
+LAYOUTS = ("rectangular", "hexagonal")
+
+
+def scenario(size: str, layout: str = "rectangular") -> Scenario:
     """The ``paper`` experiment (16 MP, 300 x 200 x 150 voxels over 55 x 35 x 20 mm) or its
-    ``small`` twin (850 x 850 px, 48 x 48 x 32 voxels over 6 x 6 x 4 mm)."""
+    ``small`` twin (850 x 850 px, 48 x 48 x 32 voxels over 6 x 6 x 4 mm), behind a
+    rectangular microlens array (the paper's) or a ``"hexagonal"`` one of the same pitch
+    filling the same sensor (:func:`hexagonal_twin`)."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    sc = _rectangular_scenario(size)
+    if layout == "hexagonal":
+        sc = replace(sc, camera=hexagonal_twin(sc.camera))
+    return sc
+
+
+def hexagonal_twin(cam: Camera) -> Camera:
+    """``cam`` with a hexagonal array of the same pitch on the same sensor: as many lenses
+    per row, and as many rows (``pitch·√3/2`` apart) as the sensor's height holds
+    (docs/design.md §2)."""
+    cols, rows = cam.ml_count
+    hex_rows = int(np.floor(rows / (np.sqrt(3) / 2)))
+    return replace(cam, ml_layout="hexagonal", ml_count=(cols, hex_rows),
+                   microlens_centers=None)
+
+
+def _rectangular_scenario(size: str) -> Scenario:
+    """The paper's camera and its ``small`` twin (:func:`scenario`)."""
     if size == "paper":
         return Scenario("paper", Camera.paper_16mp(),
                         Grid((150, 200, 300), x=(-27.5, 27.5), y=(-17.5, 17.5), z=(-10.0, 10.0)),
@@ -116,12 +142,15 @@ def seed_particles(sc: Scenario, flow: CameraFrameFlow, seed: int):
 
 
 def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0,
-                       figures: bool = True, log: Callable[[str], None] = print) -> dict:
+                       figures: bool = True, log: Callable[[str], None] = print,
+                       layout: str = "rectangular") -> dict:
     """Run the whole chain; outputs, intermediates and ``summary.json`` go to ``out_dir``.
 
-    Finished stages are skipped when the same run is started again.
+    ``layout``: the camera's microlens array, ``"rectangular"`` (the paper's) or
+    ``"hexagonal"`` (:func:`scenario`). Finished stages are skipped when the same run is
+    started again.
     """
-    sc = scenario(size)
+    sc = scenario(size, layout)
     flow = CameraFrameFlow(sc, seed)
     settings = chain_settings(sc)
     chain = {"supersample": settings.reconstruction.supersample,
@@ -328,7 +357,8 @@ def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
         rec[label] = {"recovered_fraction": rep.fraction, "ghost_fraction": rep.ghost_fraction,
                       "peaks": rep.found_peaks, "particles": rep.total}
     return {
-        "size": sc.size, "u_inf_m_s": U_INF, "dt_s": DT, "vectors": int(valid.size),
+        "size": sc.size, "layout": sc.camera.ml_layout, "u_inf_m_s": U_INF, "dt_s": DT,
+        "vectors": int(valid.size),
         "valid_fraction": float(valid.mean()),
         "velocity_rms_error": float(np.sqrt(np.mean(err[valid] ** 2)) / U_INF),
         "mean_profile_rms_error": float(np.sqrt(np.mean((prof_meas - prof_true) ** 2)) / U_INF),

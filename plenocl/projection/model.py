@@ -35,7 +35,8 @@ from .weighting import (
 
 __all__ = ["PATHS", "WeightingModel"]
 #: The factorised projector's paths: per-axis separable (the lens index map is
-#: axis-aligned) or general (a grid across a rotated array's lens rows).
+#: axis-aligned, or a hexagonal array's triangular map in its rows' frame) or general (a
+#: grid across a rotated array's lens rows).
 PATHS = ("separable", "general")
 
 
@@ -83,9 +84,10 @@ class WeightingModel:
         check_depth_range(camera, grid)
         self.camera, self.grid = camera, grid
         self.oversample, self.shear_tol = oversample, shear_tol
-        self.aperture = ApertureGrid.for_camera(camera, oversample, grid.rotation_deg)
         self.lens_map = lens_index_map(camera, shear_tol, grid.rotation_deg)
-        self.path = "separable" if self.lens_map.axis_aligned else "general"
+        self.path = "separable" if self.lens_map.triangular else "general"
+        self.aperture = ApertureGrid.for_lattice(camera, oversample, grid.rotation_deg,
+                                                 *self.lens_map.aperture_lattice())
         if self.path == "general" and warn:
             warn_general_path(camera, grid)
         self.coef = depth_coefficients(camera, grid, self.lens_map, self.aperture)

@@ -31,23 +31,23 @@ class Plan:
 class SampleColumns:
     """Where each aperture column's in-aperture samples sit in the flat sample list.
 
-    Column ``i`` holds samples ``j = lo[i] … n - 1 - lo[i]``, stored from flat index
-    ``offset[i]`` on (``i`` major, as :meth:`ApertureGrid.samples`).
+    Column ``i`` holds samples ``j = lo[i] … hi[i]`` (none when ``hi[i] < lo[i]``), stored
+    from flat index ``offset[i]`` on (``i`` major, as :meth:`ApertureGrid.samples`).
     """
 
     lo: np.ndarray
+    hi: np.ndarray
     offset: np.ndarray
-    n: int
 
     @classmethod
     def of(cls, aperture: ApertureGrid) -> SampleColumns:
         """The column layout of ``aperture``'s samples."""
         lo, hi = aperture.column_ranges()
-        return cls(lo, np.concatenate([[0], np.cumsum(hi - lo + 1)[:-1]]), aperture.n)
+        return cls(lo, hi, np.concatenate([[0], np.cumsum(hi - lo + 1)[:-1]]))
 
     def sample_range(self, i0: int, i1: int) -> tuple[int, int]:
         """Flat ``[s0, s1)`` of the samples of aperture columns ``[i0, i1)``."""
-        end = self.offset[i1 - 1] + (self.n - 1 - 2 * self.lo[i1 - 1]) + 1
+        end = self.offset[i1 - 1] + (self.hi[i1 - 1] - self.lo[i1 - 1]) + 1
         return int(self.offset[i0]), int(end)
 
 

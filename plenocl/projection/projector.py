@@ -30,7 +30,7 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl.array as cl_array
 
-from ..camera import AXIAL, Camera
+from ..camera import Camera
 from ..device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..grid import Grid
 from ..optics.lattice import separable_rotation_deg
@@ -207,8 +207,6 @@ class Projector:
         opts = self._options
         if opts["general"] == "exact" or self.method == "direct":
             return None
-        if self.camera.ml_layout == AXIAL:  # a hexagonal lattice: no frame is separable
-            return None
         if frame is None:
             angle = separable_rotation_deg(self.camera.microlens_centers, opts["shear_tol"])
             frame = Projector(self.camera, frame_grid(self.grid, angle), self.queue,
@@ -294,6 +292,7 @@ class Projector:
             "ij": cl_array.to_device(q, np.column_stack([i, j]).astype(np.int32)),
             "px": cl_array.to_device(q, self.model.pixel_offsets),
             "col_lo": cl_array.to_device(q, lo.astype(np.int32)),
+            "col_hi": cl_array.to_device(q, hi.astype(np.int32)),
             "col_off": cl_array.to_device(q, self._columns.offset.astype(np.int32)),
             "rnd": cl_array.to_device(q, rnd),
             "frac": cl_array.to_device(q, frac),
@@ -609,8 +608,8 @@ class Projector:
         else:
             self._k.launch("fwd_x_row", (int(ny), int(nzc)), *xargs)
         self._k.launch("fwd_y", (self.nseg, int(nky), nic), t_buf, light, self._d["coef"],
-                       self._d["col_lo"], self._d["col_off"], lenses.rows, ny, nkxp,
-                       i32(self.seg), i32(self.aperture.n), zc, nzc, i32(i0), i32(nic),
+                       self._d["col_lo"], self._d["col_hi"], self._d["col_off"], lenses.rows,
+                       ny, nkxp, i32(self.seg), zc, nzc, i32(i0), i32(nic),
                        i32(s0), i32(s1 - s0), self._ic, i32(not first))
 
     def light_to_image(self, light: cl_array.Array, out: cl_array.Array, i0: int, i1: int,
@@ -690,8 +689,8 @@ class Projector:
             columns = 1 if self.back_allcols else nic  # work-items across the columns
             self._k.launch("back_y", (self.nseg, int(ny), columns), light, t_buf,
                            self._d["coef"],
-                           self._d["col_lo"], self._d["col_off"], lenses.rows, ny, nky, nkxp,
-                           i32(self.seg), i32(self.aperture.n), zc, nzc, i32(i0), i32(nic),
+                           self._d["col_lo"], self._d["col_hi"], self._d["col_off"],
+                           lenses.rows, ny, nky, nkxp, i32(self.seg), zc, nzc, i32(i0), i32(nic),
                            i32(s0), i32(s1 - s0), self._ic)
         return t_buf
 

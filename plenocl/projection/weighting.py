@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import AXIAL, Camera
 from ..grid import Grid
 from ..optics.imaging import array_plane_positions
 from ..optics.lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
@@ -41,69 +41,107 @@ NO_LENS = -(1 << 30)
 
 @dataclass(frozen=True)
 class ApertureGrid:
-    """The plaid ``(u, v)`` sampling of the circular main-lens aperture (step 1).
+    """The ``(u, v)`` sampling of the circular main-lens aperture (step 1).
 
-    Sample ``(i, j)`` sits at ``(u, v) = R (i - c, j - c) step`` with ``c = (n - 1)/2``
-    and ``R`` the rotation of the reconstruction frame (``rotation_deg``, the grid's; 0:
-    the sensor's axes); only samples inside the aperture circle, ``|(i - c, j - c)| step
-    <= radius``, are kept. In the frame's own coordinates the samples are the plain plaid
-    grid ``(i - c, j - c) step``: a frame that follows the microlens rows samples the
-    aperture along them too.
+    Sample ``(i, j)`` sits at ``(u, v) = R (a + shear b, squeeze b) step`` with ``(a, b)
+    = (i - c, j - c)``, ``c = (n - 1)/2`` and ``R`` the rotation of the reconstruction
+    frame (``rotation_deg``, the grid's; 0: the sensor's axes); only samples inside the
+    aperture circle are kept. The paper's plaid grid is ``shear = 0, squeeze = 1`` (the
+    default); a hexagonal array's lens lattice takes the rhombic grid along its own two
+    lattice steps (:meth:`for_lattice`, docs/design.md §5.3), whose samples move the
+    light by whole steps along one lens index each, as the plaid grid does for a
+    rectangular array. In the frame's own coordinates the samples are ``(a + shear b,
+    squeeze b) step``: a frame that follows the microlens rows samples the aperture
+    along them too.
     """
 
     step: float
     n: int
     radius: float
     rotation_deg: float = 0.0
+    shear: float = 0.0
+    squeeze: float = 1.0
 
     @classmethod
     def for_camera(cls, camera: Camera, oversample: float = DEFAULT_OVERSAMPLE,
                    rotation_deg: float = 0.0) -> ApertureGrid:
-        """The grid whose step is one pixel's aperture footprint over ``oversample``."""
+        """The plaid grid whose step is one pixel's aperture footprint over ``oversample``."""
+        return cls.for_lattice(camera, oversample, rotation_deg)
+
+    @classmethod
+    def for_lattice(cls, camera: Camera, oversample: float = DEFAULT_OVERSAMPLE,
+                    rotation_deg: float = 0.0, shear: float = 0.0,
+                    squeeze: float = 1.0) -> ApertureGrid:
+        """The grid of step one pixel's aperture footprint over ``oversample`` along the
+        lattice steps ``(1, 0)`` and ``(shear, squeeze)``; ``n`` covers the aperture's
+        extent along both indices: the outermost columns or rows hold samples."""
         if not (math.isfinite(oversample) and oversample > 0):
             raise ValueError(f"oversample must be a positive number, got {oversample!r}")
         step = camera.pixel_pupil_footprint_mm / oversample
         radius = camera.exit_pupil_diameter_mm / 2
-        k = int(math.floor(radius / step + 1e-9))
-        # the outermost columns must hold a sample by the very test inside() applies
-        while k > 0 and ((0 - k) * step) ** 2 > radius**2:
+        reach = max(math.hypot(1.0, shear / squeeze), 1.0 / squeeze)  # |a|, |b| extents
+        k = int(math.floor(radius / step * reach + 1e-9))
+        probe = cls(step=step, n=2 * k + 1, radius=radius, shear=shear, squeeze=squeeze)
+        # the outermost columns (or, on a rhombic grid, rows) must hold a sample by the very
+        # test inside() applies; a rhombic grid may then have empty outer columns
+        while k > 0 and not (probe.inside()[0].any() or probe.inside()[:, 0].any()):
             k -= 1
-        return cls(step=step, n=2 * k + 1, radius=radius, rotation_deg=float(rotation_deg))
+            probe = cls(step=step, n=2 * k + 1, radius=radius, shear=shear, squeeze=squeeze)
+        return cls(step=step, n=2 * k + 1, radius=radius, rotation_deg=float(rotation_deg),
+                   shear=float(shear), squeeze=float(squeeze))
 
     @property
     def center(self) -> float:
         """Index ``c`` of the optical axis."""
         return (self.n - 1) / 2
 
+    @property
+    def basis(self) -> np.ndarray:
+        """``(2, 2)`` frame offset (in steps) per unit of ``(a, b)``, as columns."""
+        return np.array([[1.0, self.shear], [0.0, self.squeeze]])
+
     def coords(self) -> np.ndarray:
-        """Sample coordinates along one frame axis (mm)."""
+        """Sample indices' offsets ``(i - c) step`` along one axis (mm)."""
         return (np.arange(self.n) - self.center) * self.step
+
+    def _frame_points(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``(..., 2)`` frame coordinates (mm) of index offsets ``(a, b)``."""
+        a, b = np.broadcast_arrays(a, b)
+        return np.stack([a + self.shear * b, self.squeeze * b], -1) * self.step
 
     def inside(self) -> np.ndarray:
         """``(n, n)`` mask ``[i, j]`` of the samples inside the aperture circle."""
-        c = self.coords()
-        return c[:, None] ** 2 + c[None, :] ** 2 <= self.radius**2
+        c = np.arange(self.n) - self.center
+        p = self._frame_points(c[:, None], c[None, :])
+        return (p**2).sum(-1) <= self.radius**2
 
     def column_ranges(self) -> tuple[np.ndarray, np.ndarray]:
-        """For each ``i``, the inclusive ``j`` range ``[lo, hi]`` inside the aperture."""
-        mask = self.inside()  # a disc: each column's samples are contiguous, centre included
-        if not mask.any(axis=1).all():
+        """For each ``i``, the inclusive ``j`` range ``[lo, hi]`` inside the aperture
+        (a disc: each column's samples are contiguous; a rhombic grid's outer columns may
+        hold none, ``hi < lo``)."""
+        mask = self.inside()
+        some = mask.any(axis=1)
+        if self.shear == 0 and not some.all():
             raise ValueError("aperture grid has a column without samples; build it with "
                              "ApertureGrid.for_camera")
-        lo = np.argmax(mask, axis=1)
-        return lo, self.n - 1 - lo
+        lo = np.where(some, np.argmax(mask, axis=1), self.n)
+        hi = np.where(some, self.n - 1 - np.argmax(mask[:, ::-1], axis=1), self.n - 1)
+        return lo, hi
 
     def samples(self) -> tuple[np.ndarray, np.ndarray]:
         """Integer ``(i, j)`` of the in-aperture samples, ``i`` major, ``j`` minor."""
         i, j = np.nonzero(self.inside())
         return i, j
 
+    def frame_uv(self) -> np.ndarray:
+        """``(n_samples, 2)`` aperture coordinates (mm) of the samples in the frame."""
+        i, j = self.samples()
+        return self._frame_points(i - self.center, j - self.center)
+
     def sensor_uv(self) -> np.ndarray:
         """``(n_samples, 2)`` aperture coordinates ``(u, v)`` mm of the samples on the
-        sensor's axes, ``R (i - c, j - c) step``."""
-        i, j = self.samples()
-        frame = np.column_stack([i - self.center, j - self.center]) * self.step
-        return frame @ rotation_matrix(self.rotation_deg).T
+        sensor's axes."""
+        return self.frame_uv() @ rotation_matrix(self.rotation_deg).T
 
     def pixels_per_step(self, camera: Camera) -> float:
         """Sensor pixels per sample step behind a microlens, ``step f_ml / (d p_px)``."""
@@ -119,6 +157,8 @@ class ApertureGrid:
         """
         i, j = self.samples()
         b = np.column_stack([i - self.center, j - self.center])
+        if self.shear or self.squeeze != 1:
+            b = b @ self.basis.T
         if self.rotation_deg:
             b = b @ rotation_matrix(self.rotation_deg).T
         dug = np.float32(self.pixels_per_step(camera))
@@ -136,6 +176,22 @@ class LensIndexMap:
     def axis_aligned(self) -> bool:
         """Whether ``kx`` depends on ``x`` only and ``ky`` on ``y`` only."""
         return self.matrix[0, 1] == 0.0 and self.matrix[1, 0] == 0.0
+
+    @property
+    def triangular(self) -> bool:
+        """Whether ``ky`` depends on ``y`` only (``kx`` may lean across the rows: a
+        hexagonal array's lattice, docs/design.md §5.3)."""
+        return self.matrix[1, 0] == 0.0
+
+    def aperture_lattice(self) -> tuple[float, float]:
+        """``(shear, squeeze)`` of the aperture samples (:meth:`ApertureGrid.for_lattice`)
+        that move the light by equal whole steps of ``kx`` and ``ky`` each: ``(0, 1)``,
+        the plaid grid, for an axis-aligned map; for a triangular one the lattice's own
+        two steps, ``(-m01/m11, m00/m11)``."""
+        if self.axis_aligned or not self.triangular:
+            return 0.0, 1.0
+        m = self.matrix
+        return float(-m[0, 1] / m[1, 1]), float(m[0, 0] / m[1, 1])
 
     def __call__(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Fractional lens indices of array-plane points."""
@@ -156,7 +212,9 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     array, its rotation/shear terms are dropped (about the array's centre) and the map is
     axis-aligned: the separable projector path applies. A frame that follows the lens
     rows (:func:`plenocl.optics.lattice.separable_rotation_deg`) makes a rotated array
-    axis-aligned this way.
+    axis-aligned this way. A hexagonal array's axial lattice leans: in the frame of its
+    rows only the row index's drift is dropped, and the map is triangular (separable
+    with the rhombic aperture samples of :meth:`LensIndexMap.aperture_lattice`).
     """
     camera = camera.on_lens_lattice()  # a hexagonal array: its axial lattice (§5)
     cols, rows = camera.ml_count
@@ -168,11 +226,14 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     offset = -matrix @ fit[2]
     drift_x = abs(matrix[0, 1] / matrix[1, 1]) * rows
     drift_y = abs(matrix[1, 0] / matrix[0, 0]) * cols
-    if max(drift_x, drift_y) <= shear_tol:
+    leaning = camera.ml_layout == AXIAL and drift_y <= shear_tol
+    if max(drift_x, drift_y) <= shear_tol or leaning:
         ok = np.isfinite(pos).all(axis=-1)
         centre = pos[ok].mean(axis=0)
-        offset = offset + np.array([matrix[0, 1] * centre[1], matrix[1, 0] * centre[0]])
-        matrix = np.diag(np.diag(matrix))
+        keep = np.array([[1.0, float(leaning and drift_x > shear_tol)], [0.0, 1.0]])
+        drop = matrix * (1 - keep)  # the terms dropped, about the array's centre
+        offset = offset + drop @ centre
+        matrix = matrix * keep
     return LensIndexMap(matrix=matrix, offset=offset)
 
 
@@ -183,19 +244,23 @@ def depth_coefficients(camera: Camera, grid: Grid, lens_map: LensIndexMap,
 
     Voxel ``(ix, iy)`` of depth ``iz`` seen through aperture sample ``(i, j)`` meets the
     array plane at lens index ``G (ix, iy) + o + H (i - c, j - c)``; the row also holds
-    ``G⁻¹`` and the row sums of ``|G⁻¹|``.
+    ``G⁻¹`` and the row sums of ``|G⁻¹|``. A rhombic aperture grid's ``H`` is diagonal by
+    construction (:meth:`LensIndexMap.aperture_lattice`); its rounding residue is set to 0.
     """
     z = grid.axis_centers("z")
     alpha = camera.alpha(z)
     mag = camera.image_distance_at(z) / (camera.object_distance_mm + z)  # X' = -mag x
     _, dy, dx = grid.spacing
     m = lens_map.matrix
+    m_ap = m @ aperture.basis  # lens index per aperture step along each sample index
+    if aperture.shear:
+        m_ap[0, 1] = 0.0
     out = np.zeros((len(z), 16))
     for k in range(len(z)):
         scale = -mag[k] / alpha[k]
         g = m @ np.diag([scale * dx, scale * dy])
         o = m @ (scale * np.array([grid.x[0] + dx / 2, grid.y[0] + dy / 2])) + lens_map.offset
-        h = (1 - 1 / alpha[k]) * aperture.step * m
+        h = (1 - 1 / alpha[k]) * aperture.step * m_ap
         det = g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]
         ginv = np.array([[g[1, 1], -g[0, 1]], [-g[1, 0], g[0, 0]]]) / det
         out[k] = [*g.ravel(), *o, *h.ravel(), *ginv.ravel(), *np.abs(ginv).sum(axis=1)]

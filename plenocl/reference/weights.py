@@ -71,12 +71,13 @@ def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
     centre = [grid.axis_centers("x")[ix], grid.axis_centers("y")[iy], grid.axis_centers("z")[iz]]
     xp, yp, sip = camera.image_points(centre)[0]
     alpha = sip / camera.exit_pupil_distance_mm  # = camera.alpha(z): sip is d' (image_points)
-    # Step 1: plaid aperture samples inside the circle, along the frame's axes.
-    ap = ApertureGrid.for_camera(camera, oversample, grid.rotation_deg)
-    i, j = ap.samples()
-    u, v = (i - ap.center) * ap.step, (j - ap.center) * ap.step
-    # Step 2: the array-plane point, in lens index units, and its four lenses.
+    # Step 1: aperture samples inside the circle, along the frame's axes: the plaid grid,
+    # or along a hexagonal lattice's two steps (its lens map is triangular).
     lens_map = lens_index_map(camera, shear_tol, grid.rotation_deg)
+    ap = ApertureGrid.for_lattice(camera, oversample, grid.rotation_deg,
+                                  *lens_map.aperture_lattice())
+    u, v = ap.frame_uv().T
+    # Step 2: the array-plane point, in lens index units, and its four lenses.
     kxf, kyf = lens_map(u * (1 - 1 / alpha) + xp / alpha, v * (1 - 1 / alpha) + yp / alpha)
     u, v = ap.sensor_uv().T  # the same samples on the sensor's axes
     kx0, tx = _bilinear_corners(kxf)
