@@ -32,6 +32,31 @@ def test_small_demo_meets_the_accuracy_targets(demo_dir):
     assert win["lateral_voxels"] <= point["lateral_voxels"] + 1e-9
 
 
+def test_the_hexagonal_camera_demo_meets_the_same_targets(demo_dir, tmp_path, capsys):
+    """``plenocl demo --camera hexagonal``: the boundary layer behind a hexagonal array of
+    the same pitch on the same sensor (issue 29), calibrated, reconstructed, correlated
+    and fitted to its raw images end to end, meets the rectangular demo's targets."""
+    out = tmp_path / "hex"
+    assert main(["demo", "--camera", "hexagonal", "--out", str(out)]) == 0
+    assert "hexagonal array" in capsys.readouterr().out
+    s = json.loads((out / "summary.json").read_text())
+    rect = json.loads((demo_dir / "summary.json").read_text())
+    print({k: (s[k], rect[k]) for k in ("velocity_rms_error", "mean_profile_rms_error")},
+          s["lateral_depth_error"]["window_averaged"], s["recovery"])
+    assert s["layout"] == "hexagonal" and rect["layout"] == "rectangular"
+    assert s["mean_profile_rms_error"] <= 0.05 and s["velocity_rms_error"] <= 0.15
+    assert s["valid_fraction"] >= 0.9
+    win = s["lateral_depth_error"]["window_averaged"]
+    assert win["depth_voxels"] <= 3 * win["lateral_voxels"]
+    assert s["recovery"]["default_mlem"]["recovered_fraction"] > \
+        s["recovery"]["paper_mart"]["recovered_fraction"]
+
+
+def test_the_camera_option_belongs_to_the_boundary_layer_demo(tmp_path, capsys):
+    assert main(["demo", "particles", "--camera", "hexagonal", "--out", str(tmp_path)]) == 2
+    assert "boundary-layer demo only" in capsys.readouterr().err
+
+
 def test_demo_writes_field_figures_and_no_partial_files(demo_dir):
     for name in ("field.vti", "field.npz", "camera_calibrated.toml", "fig_profile.png",
                  "fig_streamwise.png", "fig_vorticity.png", "fig_vectors3d.png"):

@@ -138,11 +138,15 @@ def recording(queue):
 def test_track_follows_particles_and_smoothing_beats_each_frame(recording):
     """plenocl.track on ray-traced frames: most particles tracked, few ghosts, lateral
     steps within 0.1 voxel, and the smoothed tracks' depth steps better than the
-    measured positions'."""
+    measured positions'; its progress reported step by step."""
     from plenocl.bench.tracking_section import track_errors
 
     series, grid, proj = recording
-    tracks = plenocl.track(series.frames, proj, dt=1e-3)
+    calls = []
+    tracks = plenocl.track(series.frames, proj, dt=1e-3,
+                           progress=lambda done, total: calls.append((done, total)))
+    total = 6 * (1 + plenocl.TrackSettings().refits)  # each frame, then each refit
+    assert calls == [(k, total) for k in range(1, total + 1)]
     assert tracks.positions.shape[1:] == (6, 3) and tracks.dt == 1e-3
     assert np.all(tracks.lengths >= 4)
     row = track_errors(tracks, series.truth, grid, 1.0)

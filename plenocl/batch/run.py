@@ -94,7 +94,8 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     scheduler
         Address of an existing Dask scheduler to process the pairs on instead.
     progress
-        Show a progress bar (pairs done, pairs/s, time left; not for tracking).
+        Show a progress bar (pairs done, pairs/s, time left; with ``[tracking]``, the
+        frames' steps).
 
     Returns
     -------
@@ -106,7 +107,8 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     exp = load_experiment(config)
     out = Path(out) if out is not None else exp.base / exp["output"]["folder"]
     if exp.tracking is not None:
-        return run_tracking(exp, out, queue, log, workers=workers, scheduler=scheduler)
+        return run_tracking(exp, out, queue, log, workers=workers, scheduler=scheduler,
+                            progress=progress)
     plan = image_pairs(exp)
     check_cluster_device(queue, workers, scheduler)
     for path in remove_partial_files(out) if out.is_dir() else []:

@@ -32,6 +32,7 @@ from ..camera import load_camera
 from ..grid import Grid
 from ..io.atomic import write_json
 from ..io.files import read_image
+from ..io.progress import step_bar
 from ..pipeline.frames import load_frame
 from ..pipeline.resume import StageRunner
 from ..pipeline.track import TrackSettings, bin_tracks, track
@@ -88,10 +89,11 @@ class TrackJob:
 
 
 def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
-                 workers: int | None = None, scheduler: str | None = None
-                 ) -> TrackingSummary:
+                 workers: int | None = None, scheduler: str | None = None,
+                 progress: bool = True) -> TrackingSummary:
     """Track the experiment's frames (see the module notes); :func:`plenocl.run` calls it
-    for an experiment with an enabled ``[tracking]`` section.
+    for an experiment with an enabled ``[tracking]`` section. ``progress``: a bar over
+    the frames (in this process, on a terminal).
 
     Raises
     ------
@@ -114,7 +116,7 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     log(f"tracking {len(frames)} frames {opts.interval_s:g} s apart")
     t0 = time.perf_counter()
     _stage(runner, summary, "tracks", [TRACKS],
-           lambda: _track(job, queue, workers, scheduler))
+           lambda: _track(job, queue, workers, scheduler, progress))
     _stage(runner, summary, "field", [LINES, f"{STORE}/zarr.json"],
            lambda: _write_outputs(out, frames, opts, camera, grid, layout),
            {**opts.field_record(), "tracks": _digest(out / TRACKS)})  # new tracks: again
@@ -186,10 +188,12 @@ def _job(exp: Experiment, frames: dict[int, Path], out: Path, opts: TrackingOpti
                     device)
 
 
-def _track(job: TrackJob, queue, workers: int | None, scheduler: str | None) -> None:
-    """The job in this process, or as one task on a Dask cluster."""
+def _track(job: TrackJob, queue, workers: int | None, scheduler: str | None,
+           progress: bool) -> None:
+    """The job in this process (with a progress bar when ``progress``), or as one task
+    on a Dask cluster."""
     if not (workers or scheduler):
-        track_job(job, queue)
+        track_job(job, queue, bar=progress)
         return
     from .cluster import dask_client
 
@@ -199,13 +203,15 @@ def _track(job: TrackJob, queue, workers: int | None, scheduler: str | None) -> 
 
 def track_on_worker(job: TrackJob) -> dict[str, float]:
     """The Dask task: the job on this worker's device (the run's device name, else the
-    worker's ``PLENOCL_DEVICE``, else its default)."""
-    return track_job(job, job.device or os.environ.get("PLENOCL_DEVICE") or None)
+    worker's ``PLENOCL_DEVICE``, else its default), without a progress bar."""
+    return track_job(job, job.device or os.environ.get("PLENOCL_DEVICE") or None,
+                     bar=False)
 
 
-def track_job(job: TrackJob, device=None) -> dict[str, float]:
-    """Read every frame (all before any is tracked), track them, write ``tracks.npz``
-    atomically; returns seconds per step."""
+def track_job(job: TrackJob, device=None, bar: bool = True) -> dict[str, float]:
+    """Read every frame (all before any is tracked), track them (a progress bar over the
+    frames' steps on a terminal, ``bar``), write ``tracks.npz`` atomically; returns
+    seconds per step."""
     folder = Path(job.run_folder)
     camera = load_camera(folder / "camera_used.toml")
     grid = Grid.from_toml(folder / "grid_used.toml")
@@ -214,7 +220,9 @@ def track_job(job: TrackJob, device=None) -> dict[str, float]:
     t1 = time.perf_counter()
     from ..projection import Projector
 
-    tracks = track(frames, Projector(camera, grid, device), job.interval_s, job.settings)
+    with step_bar("frames (particles, then refits)", "frame", bar) as progress:
+        tracks = track(frames, Projector(camera, grid, device), job.interval_s, job.settings,
+                       progress=progress)
     t2 = time.perf_counter()
     tracks.save(folder / TRACKS)
     return {"read": t1 - t0, "track": t2 - t1, "write": time.perf_counter() - t2}

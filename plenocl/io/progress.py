@@ -53,3 +53,21 @@ def pair_bar(total: int, enabled: bool = True):
         yield advance
     finally:
         bar.close()
+
+
+@contextmanager
+def step_bar(desc: str, unit: str, enabled: bool = True):
+    """A progress bar for a callback ``progress(done, total)`` (e.g.
+    :func:`plenocl.track`'s), whose total it learns from the first call."""
+    bar = tqdm(desc=desc, unit=unit, disable=_disable(enabled), smoothing=0.1)
+
+    def progress(done: int, total: int) -> None:
+        if bar.total != total:
+            bar.total = total
+            bar.refresh()
+        bar.update(done - bar.n)
+
+    try:
+        yield progress
+    finally:
+        bar.close()

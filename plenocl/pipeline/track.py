@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -128,7 +129,8 @@ class FrameParticles:
 
 
 def track(frames, projector: ProjectionOperator, dt: float,
-          settings: TrackSettings | None = None, **options) -> Tracks:
+          settings: TrackSettings | None = None, *,
+          progress: Callable[[int, int], None] | None = None, **options) -> Tracks:
     """Track the particles of a time-resolved recording.
 
     Parameters
@@ -144,6 +146,9 @@ def track(frames, projector: ProjectionOperator, dt: float,
     settings
         :class:`TrackSettings` (``None``: the defaults); its fields may be given as
         keywords instead.
+    progress
+        Called as ``progress(done, total)`` after each frame's particles and each frame's
+        refit (``total``: the frames times one plus the refits), e.g. to draw a bar.
 
     Returns
     -------
@@ -153,19 +158,34 @@ def track(frames, projector: ProjectionOperator, dt: float,
     settings = with_keywords(TrackSettings, settings, options, "track")
     frames = _check_frames(frames, settings.min_length)
     dt = _check_dt(dt)
-    particles, first_step = _frame_particles(frames, projector, settings)
+    refits = settings.refits if settings.image_fit is not None else 0
+    steps = _Steps(progress, len(frames) * (1 + refits))
+    particles, first_step = _frame_particles(frames, projector, settings, steps)
     table = link([p.index for p in particles], settings.search, first_step, settings.gap)
     _warn_if_unlinked(table)
     table = table[(table >= 0).sum(axis=1) >= settings.min_length]
     tracks = Tracks.from_measured(*_gather(table, particles), dt, settings.window,
                                   settings.degree)
-    for _ in range(settings.refits if settings.image_fit is not None else 0):
-        tracks = _refit(tracks, frames, particles, projector, settings)
+    for _ in range(refits):
+        tracks = _refit(tracks, frames, particles, projector, settings, steps)
     return tracks
 
 
+class _Steps:
+    """The progress of :func:`track`: counts its steps and reports them."""
+
+    def __init__(self, progress: Callable[[int, int], None] | None, total: int) -> None:
+        self.progress, self.total, self.done = progress, total, 0
+
+    def advance(self) -> None:
+        """One more step done."""
+        self.done += 1
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
 def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projector,
-           settings: TrackSettings) -> Tracks:
+           settings: TrackSettings, steps: _Steps) -> Tracks:
     """Every tracked particle fitted to its frame again from its smoothed position, and
     the tracks smoothed again."""
     measured, sigma = np.full_like(tracks.measured, np.nan), np.full_like(tracks.measured, np.nan)
@@ -177,6 +197,7 @@ def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projec
                 0, tracks.positions[rows, k])
             measured[rows, k], sigma[rows, k] = fitted.positions, fitted.sigma
             intensity[rows, k] = fitted.intensities
+        steps.advance()
     return Tracks.from_measured(measured, sigma, intensity, tracks.dt, settings.window,
                                 settings.degree)
 
@@ -188,13 +209,14 @@ def _image_fit(raw, background, projector, settings: TrackSettings) -> ImageFit:
                     else [background])
 
 
-def _frame_particles(frames: list, projector, settings: TrackSettings):
+def _frame_particles(frames: list, projector, settings: TrackSettings, steps: _Steps):
     """Every frame's particles, and the first step's predictor (the correlation of the
     first two volumes, in voxel indices)."""
     particles, volumes = [], []
     for raw in frames:
         vol, info = run_reconstruction(raw, projector, settings.reconstruction)
         particles.append(_particles(raw, vol, info, projector, settings))
+        steps.advance()
         if len(volumes) < 2:
             volumes.append(vol)
     with warnings.catch_warnings():
