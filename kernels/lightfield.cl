@@ -7,15 +7,23 @@
  * off the sensor) and on the border. Interpolating value and validity together makes
  * every tap branch-free.
  *
- * Output pixel (i, j) of plane p sits at lens-index coordinates
- *   (kx, ky) = ((j + 0.5) / S - 0.5, (i + 0.5) / S - 0.5)    (S: supersampling)
- * and E = sum_n B(value * valid) / sum_n B(valid) over the 3 x 3 lenses nearest to
- * k + shift[p, n], B the quadratic B-spline weights: samples that do not exist carry no
- * weight; 0 where none does. The quadratic B-spline's second moment is 1/4 lens^2 at
+ * Output pixel (i, j) of plane p sits at lens coordinates
+ *   (a, b) = ((j + 0.5) / S - 0.5, (i + 0.5) / S - 0.5)    (S: supersampling)
+ * in the array's frame: b the lens row, a along it in pitches. Lens (kx, ky) sits at
+ * (kx + row_shift (ky mod 2), ky): row_shift is 0 for a rectangular array and the odd
+ * rows' shift (+-0.5) for a hexagonal one, whose views are staggered images.
+ * E = sum_n B(value * valid) / sum_n B(valid) over the 3 x 3 lenses nearest to
+ * (a, b) + shift[p, n]: the three rows nearest b, in each row the three lenses nearest
+ * a, B the quadratic B-spline weights across the rows times those along each row (a
+ * hexagonal row's weights from its own lens positions): samples that do not exist carry
+ * no weight; 0 where none does. The quadratic B-spline's second moment is 1/4 lens^2 at
  * every sub-lens phase (bilinear weights blur by t(1 - t), nothing at t = 0), so every
  * plane is smoothed alike and the plane the views reach unshifted (alpha = 1) is not
  * sharper than the others (a focal stack's sharpness is not biased towards z = 0).
- * The host prepares shift[p, n] = (1 - 1/alpha_p) L^-1 (u_n, v_n) in lens-index units.
+ * -D STAGGERED (a hexagonal array) takes each row's x weights from its own lens
+ * positions; without it (row_shift 0, a rectangular array) they are computed once.
+ * The host prepares shift[p, n] = (1 - 1/alpha_p) L^-1 (u_n, v_n) in lens units (L: the
+ * array-plane mm per unit of (a, b)).
  * One work-item per output pixel and plane; sizes are arguments.
  */
 
@@ -28,9 +36,10 @@ inline float3 bspline2(const float d)
 }
 
 __kernel void refocus(__global const float2 *views,   /* (nuv, ny + 2, nx + 2) */
-                      __global const float2 *shifts,  /* (planes, nuv), lens-index units */
+                      __global const float2 *shifts,  /* (planes, nuv), lens units */
                       const int nuv, const int nx, const int ny,
                       const int out_w, const int out_h, const float inv_supersample,
+                      const float row_shift,          /* odd lens rows' shift (lenses) */
                       __global float *out)            /* (planes, out_h, out_w) */
 {
     const int j = get_global_id(0), i = get_global_id(1), p = get_global_id(2);
@@ -45,15 +54,32 @@ __kernel void refocus(__global const float2 *views,   /* (nuv, ny + 2, nx + 2) *
     for (int n = 0; n < nuv; ++n) {
         const float2 s = shift[n];
         const float x = kx + s.x, y = ky + s.y;
-        const float cx = floor(x + 0.5f), cy = floor(y + 0.5f);  /* nearest node */
-        const int x0 = (int)cx, y0 = (int)cy;
+        const float cy = floor(y + 0.5f);  /* nearest row */
+        const int y0 = (int)cy;
+#ifdef STAGGERED
+        const int x_near = (int)floor(x + 0.5f);  /* a row's nearest lens is +-1 from it */
+        if (x_near < -2 || y0 < -1 || x_near > nx + 3 || y0 > ny + 2) continue;  /* all out */
+#else
+        const float cx = floor(x + 0.5f);  /* nearest lens, the same in every row */
+        const int x0 = (int)cx;
         if (x0 < -1 || y0 < -1 || x0 > nx + 2 || y0 > ny + 2) continue;  /* all taps out */
-        const float3 wx = bspline2(x - cx), wy = bspline2(y - cy);
-        const float wxs[3] = {wx.x, wx.y, wx.z}, wys[3] = {wy.x, wy.y, wy.z};
+        const float3 wx = bspline2(x - cx);
+        const float wxs[3] = {wx.x, wx.y, wx.z};
+#endif
+        const float3 wy = bspline2(y - cy);
+        const float wys[3] = {wy.x, wy.y, wy.z};
         const __global float2 *v = views + (size_t)n * view_size;
         for (int b = 0; b < 3; ++b) {
             const int yy = y0 + b - 1;
             if (yy < 0 || yy > ny + 1) continue;
+#ifdef STAGGERED
+            /* bordered row yy is lens row yy - 1: odd when yy is even */
+            const float xr = x - row_shift * (float)((yy + 1) & 1);
+            const float cx = floor(xr + 0.5f);  /* nearest lens of the row */
+            const int x0 = (int)cx;
+            const float3 wx = bspline2(xr - cx);
+            const float wxs[3] = {wx.x, wx.y, wx.z};
+#endif
             for (int a = 0; a < 3; ++a) {
                 const int xx = x0 + a - 1;
                 if (xx < 0 || xx > nx + 1) continue;

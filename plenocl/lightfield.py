@@ -3,8 +3,9 @@ computational refocusing (docs/design.md §2 and §4, paper §II).
 
 Coordinates
 -----------
-* Every pixel behind microlens ``k`` (the lens whose cell, one image pitch square
-  around ``c_k`` on the calibrated lattice, contains it) sits at offset ``δ`` (mm) from
+* Every pixel behind microlens ``k`` (the lens whose cell contains it: one image pitch
+  square around ``c_k`` on the calibrated lattice, a hexagonal array's hexagon of points
+  nearest ``c_k``; :mod:`plenocl.optics.ownership`) sits at offset ``δ`` (mm) from
   ``c_k`` and sees the aperture point ``u = -δ d / f_ml`` (same for ``v``; ``u`` on the
   exit pupil, ``d`` its distance from the array: ``s_i`` for a thin lens, docs/design.md
   §2); its spatial coordinate is the lens position on the array plane
@@ -15,23 +16,33 @@ Coordinates
   default step is one pixel's footprint on the aperture, ``p_px d / f_ml``; samples
   outside the circular aperture, off the sensor or behind a lens calibration missed
   are ``NaN``.
+* A hexagonal array's views keep the lenses' offset indices ``[ky, kx]``: a view is a
+  **staggered** image, its odd rows (1, 3, ...) ``odd_row_shift`` (±0.5) of a pitch along
+  the row from the even ones and the rows ``pitch·√3/2`` apart. Lens ``(kx, ky)`` has
+  the array-frame coordinates ``(a, b) = (kx + shift (ky mod 2), ky)``
+  (:meth:`plenocl.camera.Camera.lens_lattice_coords`; a rectangular array: ``(kx,
+  ky)``), and each lens sample's spatial position is that lens's on the lattice fitted
+  in ``(a, b)`` (:func:`lens_positions_mm`).
 
 Refocusing
 ----------
 A ray from aperture point ``u`` through the image point ``X'`` meets the array plane
 at ``x = u (1 - 1/α) + X'/α`` with ``α = d'/d`` (``d'``: the image point's distance from
 the exit pupil; a thin lens: ``s_i'/s_i``). The refocused image is sampled at
-the array plane on the microlens lattice: output pixel ``ξ`` (lens-index coordinates;
+the array plane on the microlens lattice: output pixel ``ξ`` (``(a, b)`` coordinates;
 ``supersample`` pixels per lens) collects, for every plaid sample ``(u, v)``, the light
-field at ``ξ + (1 - 1/α) L⁻¹ (u, v)`` (bilinear between the four nearest lenses;
-``L``: the lattice's lens-index-to-mm map, so a rotated array is handled), i.e.
+field at ``ξ + (1 - 1/α) L⁻¹ (u, v)`` (quadratic B-spline weights of the three nearest
+rows and, in each, of its three nearest lenses; ``L``: the lattice's ``(a, b)``-to-mm
+map, so a rotated array is handled), i.e.
 ``E(ξ) = Σ LF(u (1 - 1/α) + ξ, u) / Σ w`` — the paper's ``x'/α`` written as ``ξ`` so that
 every depth shares one field of view. Together with the bilinear ``(u, v)`` resampling
 this is the paper's 4-D interpolation. ``E`` is the weighted *mean* over the samples
 that exist (radiance-like: the same scale as a view; vignetted or missing samples do
 not darken the image). An object point ``(X, Y, z)`` refocused at its own depth appears
 at ``ξ = X'/α = -(s_i'/s_o') (d/d') X`` on the array plane (the main lens inverts it; a
-thin lens: ``-(s_i/s_o') X``).
+thin lens: ``-(s_i/s_o') X``). A hexagonal array's refocused image is a plain
+rectangular image of ``(a, b)``: its pixels are ``pitch / S`` wide and ``pitch·√3/2 / S``
+tall on the array plane (:meth:`LightField.output_positions_mm`).
 
 A point at depth ``z`` appears in the perspective view ``(u, v)`` at array-plane
 position ``X'/α + (1 - 1/α) u``: its parallax is ``(1 - 1/α)`` mm per mm of ``u``.
@@ -46,7 +57,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl.array as cl_array
 
-from .camera import Camera
+from .camera import AXIAL, Camera
 from .device import DeviceLike, get_queue
 from .optics.imaging import array_plane_positions, array_plane_scale
 from .optics.lattice import lattice_fit
@@ -66,8 +77,9 @@ def _centers(camera: Camera) -> np.ndarray:
 
 
 def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
-    """Affine least-squares map from lens index to image-centre pixels
-    (:func:`plenocl.optics.lattice.lattice_fit` of the camera's or the given centres).
+    """Affine least-squares map from the lenses' array-frame coordinates ``(a, b) = (kx +
+    shift (ky mod 2), ky)`` to image-centre pixels (a rectangular array: ``(kx, ky)``,
+    :func:`plenocl.optics.lattice.lattice_fit` of the camera's or the given centres).
 
     Parameters
     ----------
@@ -79,15 +91,38 @@ def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarra
     Returns
     -------
     numpy.ndarray
-        ``(3, 2)`` matrix ``M`` with ``(col, row) = [kx, ky, 1] @ M``.
+        ``(3, 2)`` matrix ``M`` with ``(col, row) = [a, b, 1] @ M``.
     """
-    return lattice_fit(camera.microlens_centers if centers is None else centers)
+    centers = camera.microlens_centers if centers is None else centers
+    if camera.ml_layout == "rectangular":
+        return lattice_fit(centers)
+    # a hexagonal array is affine in (a, b), not in (kx, ky): the same least squares on (a, b)
+    c = np.asarray(centers, dtype=np.float64)
+    ab = camera.lens_lattice_coords()
+    ok = np.isfinite(c).all(-1)
+    design = np.column_stack([ab[ok], np.ones(int(ok.sum()))])
+    if ok.sum() < 3 or np.linalg.matrix_rank(design) < 3:
+        raise ValueError(f"only {int(ok.sum())} microlens centres are known, or they are "
+                         "collinear: too few to fit the array layout; calibrate the camera "
+                         "with a white image that lights the whole array")
+    return np.linalg.lstsq(design, c[ok], rcond=None)[0]
 
 
 def lens_index_to_mm(camera: Camera) -> np.ndarray:
-    """``(2, 2)`` matrix ``L``: array-plane mm per unit of lens index, columns ``kx, ky``."""
+    """``(2, 2)`` matrix ``L``: array-plane mm per unit of the array-frame coordinates
+    ``(a, b)`` (columns; a rectangular array: per unit of lens index ``kx``, ``ky``; a
+    hexagonal one: ``a = kx + shift (ky mod 2)`` along the rows, ``b = ky`` across them,
+    ``pitch`` and ``pitch·√3/2`` long unrotated)."""
     model = lens_lattice(camera)
     return model[:2].T * camera.pixel_pitch_mm * array_plane_scale(camera)
+
+
+def lens_positions_mm(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
+    """``(rows, cols, 2)`` array-plane ``(x, y)`` mm of every lens on the fitted lattice:
+    the spatial coordinates of the light field's samples ``views[:, :, ky, kx]`` (a
+    hexagonal array's odd rows shifted along the row, :func:`lens_lattice`)."""
+    model = lens_lattice(camera, centers)
+    return array_plane_positions(camera, camera.lens_lattice_coords() @ model[:2] + model[2])
 
 
 # ---- per-pixel coordinates ----------------------------------------------------------------
@@ -225,7 +260,7 @@ class LightField:
         ``(H, W)`` raw sensor image (any numeric dtype).
     camera
         A calibrated camera (:func:`plenocl.calibrate`); an uncalibrated one uses its
-        nominal centres, with a warning.
+        nominal centres, with a warning. Rectangular or hexagonal microlens arrays.
     uv_step_mm
         Plaid spacing on the aperture (default: one pixel's footprint ``p_px d/f_ml``).
     queue
@@ -236,12 +271,16 @@ class LightField:
     u, v
         ``(nu,)``, ``(nv,)`` aperture coordinates (mm) of the plaid samples.
     views
-        ``(nv, nu, rows, cols)`` float32 samples (``NaN``: none), the sub-aperture views.
+        ``(nv, nu, rows, cols)`` float32 samples (``NaN``: none), the sub-aperture views,
+        indexed by the lenses' ``(ky, kx)``; a hexagonal array's are staggered images
+        (module notes; :func:`lens_positions_mm` gives each sample's position).
     """
 
     def __init__(self, raw_image, camera: Camera, *, uv_step_mm: float | None = None,
                  queue: DeviceLike = None) -> None:
-        camera.require_rectangular("the light field")
+        if camera.ml_layout == AXIAL:
+            raise ValueError("the light field takes the hexagonal camera itself, not its "
+                             "axial view (Camera.on_lens_lattice, the projector's)")
         self.camera = camera
         image = check_image(raw_image, camera, np.float32)
         self.centers = _centers(camera)
@@ -292,7 +331,7 @@ class LightField:
 
     # ---- refocusing ------------------------------------------------------------------
     def shifts(self, alpha) -> np.ndarray:
-        """Per-view shifts ``(planes, nv*nu, 2)`` in lens-index units for refocus ``α``.
+        """Per-view shifts ``(planes, nv*nu, 2)`` in lens units ``(a, b)`` for refocus ``α``.
 
         ``(1 - 1/α) L⁻¹ (u, v)``: where the ray through aperture sample ``(u, v)`` and
         output point ``ξ`` meets the array plane, relative to ``ξ``.
@@ -305,7 +344,8 @@ class LightField:
         return (1.0 - 1.0 / alpha)[:, None, None] * per_mm.T[None]
 
     def output_lens_coordinates(self, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        """Lens-index coordinates ``(kx, ky)`` (1-D each) of refocused-image pixel centres."""
+        """Array-frame lens coordinates ``(a, b)`` (1-D each) of refocused-image pixel
+        centres (a rectangular array: lens indices ``(kx, ky)``)."""
         rows, cols = self.shape
         return output_lens_coordinates(cols, rows, _supersample(supersample))
 
@@ -352,7 +392,7 @@ class LightField:
         Parameters
         ----------
         shifts
-            ``(planes, nv * nu, 2)`` shifts in lens-index units of each view (flattened
+            ``(planes, nv * nu, 2)`` shifts in lens units ``(a, b)`` of each view (flattened
             ``[iv, iu]``), as :meth:`shifts` returns them.
         supersample
             Output pixels per microlens along each axis.
@@ -373,7 +413,7 @@ class LightField:
         out.fill(np.float32(np.nan))
         k.launch("refocus", (out_w, out_h, planes), views, k.to_device(shifts), np.int32(nuv),
                  np.int32(cols), np.int32(rows), np.int32(out_w), np.int32(out_h),
-                 np.float32(1.0 / s), out)
+                 np.float32(1.0 / s), np.float32(self.camera.odd_row_shift), out)
         return out.get()
 
     def _device_state(self) -> tuple[KernelSet, cl_array.Array, np.ndarray]:
@@ -381,10 +421,13 @@ class LightField:
         once.
 
         The device copy is ``(value * valid, valid)`` pairs with a one-lens border of
-        zeros, the layout ``kernels/lightfield.cl`` interpolates without branches.
+        zeros, the layout ``kernels/lightfield.cl`` interpolates without branches; a
+        hexagonal array's kernel is its ``STAGGERED`` variant.
         """
         if not self._device:
-            kernels = KernelSet(get_queue(self._queue_arg), "lightfield.cl", ["refocus"])
+            staggered = ["-DSTAGGERED"] if self.camera.odd_row_shift else []
+            kernels = KernelSet(get_queue(self._queue_arg), "lightfield.cl", ["refocus"],
+                                options=staggered)
             flat = self.views.reshape(-1, *self.shape)
             used = np.flatnonzero(np.isfinite(flat).any(axis=(1, 2)))
             if len(used) == 0:
@@ -400,7 +443,8 @@ class LightField:
 
 def output_lens_coordinates(nx: int, ny: int, supersample: int = 1
                             ) -> tuple[np.ndarray, np.ndarray]:
-    """Lens-index coordinates ``(kx, ky)`` of the output pixel centres, 1-D each.
+    """Lens coordinates ``(a, b)`` (a rectangular array: ``(kx, ky)``) of the output pixel
+    centres, 1-D each.
 
     Output pixel ``j`` of ``nx * supersample`` sits at ``(j + 0.5) / S - 0.5``: with
     ``S = 1`` one output pixel per microlens, at its centre.

@@ -212,19 +212,23 @@ def test_a_wrong_hexagonal_count_or_stagger_is_refused(queue):
 
 
 def test_stages_for_rectangular_arrays_refuse_a_hexagonal_one(queue):
-    """The light field and the image fit name what plenocl does with a hexagonal camera
-    so far (and how to run a pair without the image fit) instead of treating it as a
-    rectangular one; so do they for the projector's axial view of it."""
+    """The image fit names what plenocl does with a hexagonal camera so far (and how to
+    run a pair without the image fit) instead of treating it as a rectangular one; so
+    does it for the projector's axial view of it. The light field and the pixels' lens
+    cells take a hexagonal camera (tests/test_hex_lightfield.py)."""
     from plenocl import LightField
+    from plenocl.optics.ownership import lens_owner
     from plenocl.optics.raybundle import RayBundle
 
     cam = sensor_camera(8, 8)
     for camera in (cam, cam.on_lens_lattice()):
-        for stage in (lambda c=camera: RayBundle.of(c),
-                      lambda c=camera: LightField(np.ones(c.pixels[::-1]), c, queue=queue)):
-            with pytest.raises(ValueError, match="hexagonal microlens arrays yet: .* "
-                               "reconstructs their volumes.*image_fit"):
-                stage()
+        with pytest.raises(ValueError, match="hexagonal microlens arrays yet: .* "
+                           "reconstructs their volumes.*image_fit"):
+            RayBundle.of(camera)
+        assert (lens_owner(camera) >= 0).mean() > 0.9
+    lf = LightField(np.ones(cam.pixels[::-1]), cam.with_centers(cam.ideal_microlens_centers()),
+                    queue=queue)
+    assert lf.shape == (8, 8) and np.nanmax(np.abs(lf.views - 1)) < 1e-6
     with pytest.raises(ValueError, match="axial view .* not a camera file"):
         cam.on_lens_lattice().to_dict()
 

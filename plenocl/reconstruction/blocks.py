@@ -19,11 +19,16 @@ def view_blocks(camera, n_per_axis: int) -> np.ndarray:
     microlens it lies behind: the lens of its lattice cell
     (:func:`plenocl.optics.ownership.pixel_lenses`; beyond the array, the nearest edge
     lens; a lens without a calibrated centre counts at its fitted lattice position).
+    A hexagonal array (or the projector's axial view of it, which MART gets) is taken
+    on its axial lattice, where it is affine: the pixels' cells are the lenses'
+    hexagons, the same for either camera.
     Views are grouped by ``(offset_x mod n, offset_y mod n)``.
     Vectorised over the sensor from the lattice fit; the NumPy reference
     (:func:`plenocl.reference.reconstruct.view_blocks`) searches the nearest centre per
-    pixel instead, and agrees except at cell borders of perturbed arrays.
+    pixel instead, and agrees except at cell borders of perturbed rectangular arrays
+    (a hexagonal array's cells are the nearest centre's: they agree).
     """
+    camera = camera.on_lens_lattice()
     w, h = camera.pixels
     kx, ky = pixel_lenses(camera, clamp=True)
     centres = np.asarray(camera.microlens_centers, dtype=np.float64)
