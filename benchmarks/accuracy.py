@@ -3,10 +3,13 @@ budget of issue 15, lateral and depth separately, as a function of seeding and d
 
     python benchmarks/accuracy.py [--seeding 0.01 0.02 0.05 0.1 0.2] [--lenses 96 64]
                                   [--motion uniform rotation] [--scenes 1]
+                                  [--layout rectangular hexagonal]
 
 Camera: the paper's optics (f = 50 mm, f/2.42, |M| = 0.66, 125 µm microlenses of
 f = 500 µm, 7.4 µm pixels, about 17 px per lens) on a window of ``--lenses`` microlenses
-(the full sensor has 289 x 193: the depth physics is the same, the run 9x shorter). Grid:
+(the full sensor has 289 x 193: the depth physics is the same, the run 9x shorter);
+``--layout hexagonal``: a hexagonal array of the same pitch on the same sensor (issue
+29), every layout given measured in the same run on the same grid. Grid:
 the paper's voxel, 0.183 x 0.175 x 0.133 mm, over 20 mm of depth (150 voxels). Motions:
 a uniform displacement of (2.3, -1.4, 1.7) voxels, and a solid-body rotation of 2 degrees
 about the lateral x axis through the volume's centre (particles move in y and in depth,
@@ -86,12 +89,20 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=1)
     parser.add_argument("--before", action="store_true",
                         help="also the chain with 30 MLEM iterations on the sub-voxels")
+    parser.add_argument("--layout", nargs="+", default=["rectangular"],
+                        choices=["rectangular", "hexagonal"])
     args = parser.parse_args()
     queue = get_queue()
-    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
+    for layout in args.layout:
+        cam, grid, proj = paper_setup(tuple(args.lenses), queue, layout)
+        run_layout(args, cam, grid, proj, queue)
+
+
+def run_layout(args, cam, grid, proj, queue) -> None:
+    """Every motion and seeding of ``args`` on one camera."""
     for name in args.motion:
-        print(f"\n{MOTIONS[name].name}: RMS displacement error (voxels unless stated) over "
-              "the valid vectors")
+        print(f"\n{MOTIONS[name].name}, {cam.ml_layout} array: RMS displacement error "
+              "(voxels unless stated) over the valid vectors")
         rows = []
         for k, ppm in enumerate(args.seeding):
             for scene in range(args.scenes):

@@ -52,10 +52,12 @@ ROWS = {"default": "default", "previous": "30 sub-voxel iterations",
         "baseline": "before (voxels, correlation)"}
 
 
-def paper_setup(lenses: tuple[int, int], queue) -> tuple[Camera, Grid, Projector]:
-    """:func:`paper_optics` on ``lenses`` microlenses with its projector on ``queue``; prints
-    the device, the load, the camera and the grid (a benchmark script's first lines)."""
-    cam, grid = paper_optics(lenses)
+def paper_setup(lenses: tuple[int, int], queue, layout: str = "rectangular"
+                ) -> tuple[Camera, Grid, Projector]:
+    """:func:`paper_optics` on ``lenses`` microlenses (``layout``) with its projector on
+    ``queue``; prints the device, the load, the camera and the grid (a benchmark script's
+    first lines)."""
+    cam, grid = paper_optics(lenses, layout)
     proj = Projector(cam, grid, queue)
     print(f"device: {queue.device.name.strip()}; load average {os.getloadavg()[0]:.2f}")
     print(f"camera: {cam.describe()}; {cam.pixels[0]} x {cam.pixels[1]} px")
@@ -64,13 +66,19 @@ def paper_setup(lenses: tuple[int, int], queue) -> tuple[Camera, Grid, Projector
     return cam, grid, proj
 
 
-def paper_optics(lenses: tuple[int, int]) -> tuple[Camera, Grid]:
+def paper_optics(lenses: tuple[int, int], layout: str = "rectangular"
+                 ) -> tuple[Camera, Grid]:
     """The paper's optics (f = 50 mm, f/2.42, |M| = 0.66, 125 µm lenses of f = 500 µm,
     7.4 µm pixels) on ``lenses`` microlenses, and the paper's voxel over 20 mm of depth
-    just inside their field of view."""
+    just inside their field of view. ``layout="hexagonal"``: a hexagonal array of the
+    same pitch on the same sensor (as many lenses per row, the rows ``pitch·√3/2`` apart:
+    ``lenses[1]·2/√3`` of them), the same grid."""
     pitch_px = 0.125 * (1 + 0.5 / (50.0 * 1.66)) / 0.0074
     pixels = tuple(int(np.ceil(n * pitch_px)) + 2 for n in lenses)
-    cam = Camera(50.0, 2.42, 0.66, 0.125, 0.5, lenses, 0.0074, pixels)
+    count = tuple(lenses)
+    if layout == "hexagonal":
+        count = (lenses[0], int(np.floor(lenses[1] * 2 / np.sqrt(3))))
+    cam = Camera(50.0, 2.42, 0.66, 0.125, 0.5, count, 0.0074, pixels, ml_layout=layout)
     half = [n * 0.125 / 0.66 / 2 * 0.96 for n in lenses]
     shape = (150, int(2 * half[1] / VOXEL_MM[1]), int(2 * half[0] / VOXEL_MM[0]))
     grid = Grid(shape, x=(-shape[2] * VOXEL_MM[0] / 2, shape[2] * VOXEL_MM[0] / 2),
