@@ -3,7 +3,8 @@
  * (X', Y', d') and by the intensity. NumPy twin: plenocl.optics.raybundle.RayBundle
  * (spots, render), float64 there, float32 here.
  *
- * Two kernels, both gathers without atomics:
+ * Two kernels (ray_spots_hex replaces ray_spots for a hexagonal array), both gathers
+ * without atomics:
  * - ray_spots: one work-item per (ray, particle), range (rays, particles). It traces the
  *   ray from the image point through its aperture sample to the array, takes the (up to)
  *   2 x 2 lenses that share it near a cell edge and writes one slot per lens choice: the
@@ -21,6 +22,14 @@
  *   only, in a fixed order (slot by slot, whatever the band), so the result is
  *   deterministic and the same for every band. It scans the slots' keys (4 bytes a slot)
  *   and reads a slot only near its band.
+ * - ray_spots_hex (with PL_HEXAGONAL): ray_spots for a hexagonal array, same range and
+ *   slots: the lens whose centre is nearest (the nearest corner of the axial lattice cell
+ *   that holds the point: the two rows around it) and the first three of its six
+ *   neighbours that share the ray near an edge or a vertex (at most three do,
+ *   plenocl.optics.hexcells), each share normalised over all of them. NumPy twin:
+ *   RayBundle on HexCells. The simulator's pl_lens_index (common.h) is not reused: it
+ *   searches the nominal array (pitch, rotation, offset) for the nearest lens alone,
+ *   while a ray's shares need the fitted lattice and the point's offset from the lens.
  * On a GPU both ranges are wide (rays x particles; band 1: rows x particles) and the
  * items of one particle read the same slots (cached broadcasts). On a CPU render_rows runs
  * in groups of one item (KernelSet's looping rule) with a particle's whole patch as its
@@ -30,6 +39,9 @@
  * recompiles. */
 #ifndef PL_DERIVATIVES
 #define PL_DERIVATIVES 1
+#endif
+#ifndef PL_HEXAGONAL
+#define PL_HEXAGONAL 0
 #endif
 
 #define PL_RAMP_FLOOR 1e-3f /* raybundle.RAMP_FLOOR */
@@ -260,3 +272,113 @@ __kernel void render_rows(__global const float *slots, __global const int *keys,
         }
     }
 }
+
+#if PL_HEXAGONAL
+#include "common.h" /* pl_ifloor */
+
+#define PL_HEX_RAMP_MAX 0.45f /* hexcells.HEX_RAMP_MAX */
+
+/* The nearest lens (axial indices q, r) of the fractional axial point (fq, fr): the
+ * nearest corner of its lattice cell in the metric gram = (G00, G01, G11) (pitches^2),
+ * the first on a tie (HexCells.nearest). */
+inline void pl_hex_nearest(float fq, float fr, float4 gram, int *q, int *r)
+{
+    int q0 = pl_ifloor(fq), r0 = pl_ifloor(fr);
+    float best = INFINITY;
+    for (int c = 0; c < 4; ++c) {
+        float a = fq - (float)(q0 + (c & 1)), b = fr - (float)(r0 + (c >> 1));
+        float d2 = a * a * gram.x + 2.0f * a * b * gram.y + b * b * gram.z;
+        if (d2 < best) {
+            best = d2;
+            *q = q0 + (c & 1);
+            *r = r0 + (c >> 1);
+        }
+    }
+}
+
+/* As ray_spots, on hexagonal cells (HexCells.shares). gram: pl_hex_nearest's metric;
+ * steps: the six neighbours' axial steps (q, r); table: per neighbour its squared length
+ * (pitches^2), the metric times the step (2) and d delta / d(x, y) (per mm, 2), where
+ * delta = length^2 / 2 - v . (metric step) is the point's distance (pitches) from the
+ * bisector with the nearest lens (v: the point's offset from it, axial units). A
+ * neighbour with delta < ramp gets the weight (ramp - delta) / (ramp + delta) against
+ * the nearest lens's 1; the shares are the weights over their sum. */
+__kernel void ray_spots_hex(__global const float *points, __global const float *aperture,
+                            int rays, __global const float *lenses, int rows, int cols,
+                            float l00, float l01, float l10, float l11, float l20,
+                            float l21, float d_p, float f_px, float spacing, float delta,
+                            float4 gauss, float4 gram, __global const int *steps,
+                            __global const float *table, __global float *slots,
+                            __global int *keys)
+{
+    int ray = get_global_id(0), p = get_global_id(1);
+    float s = points[3 * p + 2], rho = d_p / s;
+    float ux = aperture[2 * ray], uy = aperture[2 * ray + 1];
+    float ex = points[3 * p] - ux, ey = points[3 * p + 1] - uy;
+    float x = ux + ex * rho, y = uy + ey * rho;
+    float ramp = spacing * pl_abs(1.0f - rho);
+    float sgn = 1.0f - rho > 0.0f ? 1.0f : (1.0f - rho < 0.0f ? -1.0f : 0.0f);
+    float slope = spacing * sgn * d_p / (s * s);
+    if (ramp < PL_RAMP_FLOOR || ramp > PL_HEX_RAMP_MAX) {
+        ramp = ramp < PL_RAMP_FLOOR ? PL_RAMP_FLOOR : PL_HEX_RAMP_MAX;
+        slope = 0.0f;
+    }
+    float fq = x * l00 + y * l10 + l20, fr = x * l01 + y * l11 + l21;
+    int qa = 0, ra = 0;
+    pl_hex_nearest(fq, fr, gram, &qa, &ra);
+    float vq = fq - (float)qa, vr = fr - (float)ra;
+    /* the lens choices: the nearest (weight 1) and the first three lit neighbours; the
+     * weights' derivatives by x, y (mm) and the ramp, and their sums */
+    int lq[4] = {qa, 0, 0, 0}, lr[4] = {ra, 0, 0, 0}, n = 1;
+    float w[4] = {1.0f, 0.0f, 0.0f, 0.0f}, wx[4] = {0.0f}, wy[4] = {0.0f}, wr[4] = {0.0f};
+    float total = 1.0f, tx = 0.0f, ty = 0.0f, tr = 0.0f;
+    for (int j = 0; j < 6; ++j) {
+        __global const float *h = table + 5 * j;
+        float dl = 0.5f * h[0] - (vq * h[1] + vr * h[2]);
+        if (!(dl < ramp))
+            continue;
+        float den = ramp + dl, wj = (ramp - dl) / den;
+        float dd = -2.0f * ramp / (den * den), dr = 2.0f * dl / (den * den);
+        total += wj;
+        tx += dd * h[3];
+        ty += dd * h[4];
+        tr += dr;
+        if (n < 4) {
+            lq[n] = qa + steps[2 * j];
+            lr[n] = ra + steps[2 * j + 1];
+            w[n] = wj;
+            wx[n] = dd * h[3];
+            wy[n] = dd * h[4];
+            wr[n] = dr;
+            ++n;
+        }
+    }
+    float inv = 1.0f / total;
+    float dsx = -ex * d_p / (s * s), dsy = -ey * d_p / (s * s); /* d array point / d d' */
+    for (int i = 0; i < 4; ++i) {
+        long index = ((long)p * rays + ray) * 4 + i;
+        __global float *slot = slots + index * PL_SLOT;
+        keys[index] = PL_NO_KEY;
+        float lx = NAN, ly = NAN;
+        if (i < n && lq[i] >= 0 && lr[i] >= 0 && lq[i] < cols && lr[i] < rows) {
+            lx = lenses[2 * ((long)lr[i] * cols + lq[i])];
+            ly = lenses[2 * ((long)lr[i] * cols + lq[i]) + 1];
+        }
+        if (!(pl_finite(lx) && pl_finite(ly))) {
+            slot[2] = 0.0f;
+            continue;
+        }
+        float share = w[i] * inv;
+        float gx = (wx[i] - share * tx) * inv, gy = (wy[i] - share * ty) * inv;
+        slot[2] = share;
+        slot[3] = rho * gx;
+        slot[4] = rho * gy;
+        slot[5] = gx * dsx + gy * dsy + (wr[i] - share * tr) * inv * slope;
+        slot[6] = -f_px * ex / (s * s);
+        slot[7] = -f_px * ey / (s * s);
+        slot[0] = pl_spread(lx + f_px * ex / s, delta, gauss, slot + 8, slot + 13);
+        slot[1] = pl_spread(ly + f_px * ey / s, delta, gauss, slot + 18, slot + 23);
+        keys[index] = (int)slot[1];
+    }
+}
+#endif /* PL_HEXAGONAL */

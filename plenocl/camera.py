@@ -353,17 +353,6 @@ class Camera:
         hexagonal array."""
         return self.ml_pitch_mm * (1 if self.ml_layout == "rectangular" else math.sqrt(3) / 2)
 
-    def require_rectangular(self, what: str) -> None:
-        """Refuse a hexagonal array for a stage that handles rectangular ones only, naming
-        what plenocl does with hexagonal cameras so far."""
-        if self.ml_layout != "rectangular":
-            raise ValueError(
-                f"{what} does not handle hexagonal microlens arrays yet: plenocl simulates "
-                "hexagonal cameras, calibrates their white images and reconstructs their "
-                "volumes (docs/design.md §2, §3, §5); the light field and the image fit "
-                "need a rectangular array (process_pair(..., image_fit=None), [image_fit] "
-                "enabled = false)")
-
     def on_lens_lattice(self) -> Camera:
         """This camera with its lenses numbered on an affine lattice: itself for a
         rectangular array; for a hexagonal one its axial view (docs/design.md §5), the

@@ -211,24 +211,27 @@ def test_a_wrong_hexagonal_count_or_stagger_is_refused(queue):
                                                 microlens_centers=None))
 
 
-def test_stages_for_rectangular_arrays_refuse_a_hexagonal_one(queue):
-    """The image fit names what plenocl does with a hexagonal camera so far (and how to
-    run a pair without the image fit) instead of treating it as a rectangular one; so
-    does it for the projector's axial view of it. The light field and the pixels' lens
-    cells take a hexagonal camera (tests/test_hex_lightfield.py)."""
+def test_every_stage_takes_a_hexagonal_camera(queue):
+    """Every stage takes a hexagonal camera: the light field and the pixels' lens cells
+    (tests/test_hex_lightfield.py) and the image fit's ray bundle, which takes the axial
+    view (the projector's camera, which ``process_pair`` gives the fit) as that camera:
+    the same hexagonal cells (``tests/test_hex_imagefit.py``), not the view's rhombic
+    ones. The light field refuses the axial view, and the view is never a camera file."""
     from plenocl import LightField
     from plenocl.optics.ownership import lens_owner
     from plenocl.optics.raybundle import RayBundle
 
     cam = sensor_camera(8, 8)
-    for camera in (cam, cam.on_lens_lattice()):
-        with pytest.raises(ValueError, match="hexagonal microlens arrays yet: .* "
-                           "reconstructs their volumes.*image_fit"):
-            RayBundle.of(camera)
-        assert (lens_owner(camera) >= 0).mean() > 0.9
+    with pytest.raises(ValueError, match="the hexagonal camera itself, not its axial view"):
+        LightField(np.ones(cam.pixels[::-1]), cam.on_lens_lattice(), queue=queue)
+    assert (lens_owner(cam) >= 0).mean() > 0.9
     lf = LightField(np.ones(cam.pixels[::-1]), cam.with_centers(cam.ideal_microlens_centers()),
                     queue=queue)
     assert lf.shape == (8, 8) and np.nanmax(np.abs(lf.views - 1)) < 1e-6
+    own, view = RayBundle.of(cam), RayBundle.of(cam.on_lens_lattice())
+    assert own.cells is not None and view.cells is not None
+    np.testing.assert_array_equal(own.cells.model, view.cells.model)
+    np.testing.assert_array_equal(own.lenses, view.lenses)
     with pytest.raises(ValueError, match="axial view .* not a camera file"):
         cam.on_lens_lattice().to_dict()
 

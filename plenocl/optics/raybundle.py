@@ -13,7 +13,10 @@ Gaussian of the optics' blur, and a ray within a ramp of a cell edge is shared b
 the two lenses, so the image is a smooth function of ``X'``: its derivatives are exact
 and a Gauss-Newton fit can follow them. The lenses are the camera's calibrated centres
 (or its ideal ones) and their cells the affine lattice fitted to them
-(:class:`plenocl.optics.lattice.RectangularLattice`), as the projector's.
+(:class:`plenocl.optics.lattice.RectangularLattice`), as the projector's; a hexagonal
+array's cells are the hexagons around its lenses on the axial lattice fitted to them
+(:class:`plenocl.optics.hexcells.HexCells`), where a ray near an edge or a vertex is
+shared between two or three lenses.
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import erf
 
-from ..camera import Camera
+from ..camera import AXIAL, Camera
+from .hexcells import HEX_RAMP_MAX, HexCells
 from .lattice import RectangularLattice
 
 #: Golden angle of the sunflower pattern (radians).
@@ -87,7 +91,10 @@ class RayBundle:
 
     Build it with :meth:`of`; ``aperture`` holds the sampled aperture points (mm),
     ``lenses`` the lens centres on the array plane ``(rows, cols, 2)`` mm and
-    ``to_lattice`` the ``(3, 2)`` map ``[x, y, 1] @ to_lattice = (kx, ky)``.
+    ``to_lattice`` the ``(3, 2)`` map ``[x, y, 1] @ to_lattice = (kx, ky)``. For a
+    hexagonal array ``cells`` holds its hexagonal cells, and ``lenses`` and ``to_lattice``
+    are those of its axial view (:meth:`plenocl.Camera.on_lens_lattice`: indices
+    ``(q - q_min, r)``, NaN where the view has no lens); ``None`` for a rectangular one.
     """
 
     camera: Camera
@@ -95,24 +102,21 @@ class RayBundle:
     lenses: np.ndarray
     to_lattice: np.ndarray
     blur_px: float
+    cells: HexCells | None = None
 
     @classmethod
     def of(cls, camera: Camera, rays: int = 400, blur_px: float = 0.8) -> RayBundle:
         """The bundle of ``camera`` with ``rays`` aperture samples and the optics' blur
         (Gaussian standard deviation in pixels)."""
-        camera.require_rectangular("the image fit's ray bundle")
         if int(rays) != rays or rays < 16:
             raise ValueError(f"rays must be an integer >= 16, got {rays!r}")
         if not (np.isfinite(blur_px) and blur_px > 0):
             raise ValueError(f"blur_px must be a positive number of pixels, got {blur_px!r}")
-        centres = camera.microlens_centers
-        centres = camera.ideal_microlens_centers() if centres is None else centres
-        lenses = camera.px_to_mm(centres) / camera.lens_image_scale
-        fit = RectangularLattice.fit(lenses).model
+        lenses, fit, cells = _lens_cells(camera)
         inverse = np.linalg.inv(fit[:2])
         to_lattice = np.vstack([inverse, -fit[2] @ inverse])
         aperture = sunflower(int(rays)) * camera.exit_pupil_diameter_mm / 2
-        return cls(camera, aperture, lenses, to_lattice, float(blur_px))
+        return cls(camera, aperture, lenses, to_lattice, float(blur_px), cells)
 
     @property
     def rays(self) -> int:
@@ -141,6 +145,8 @@ class RayBundle:
         x = self.aperture[None] + e * rho[:, None, None]
         lat = x @ self.to_lattice[:2] + self.to_lattice[2]
         ramp, dramp = self._ramp(s_ip)
+        if self.cells is not None:
+            return self._hexagonal_spots(image_points, e, rho, lat, ramp, dramp)
         kx, *share_x = _shares(lat[..., 0], ramp[:, None])
         ky, *share_y = _shares(lat[..., 1], ramp[:, None])
         # lens choices (own, neighbour) per axis: (P, N, 2, 2)
@@ -157,16 +163,35 @@ class RayBundle:
                              [a[pid, ray, cx] for a in share_x],
                              [a[pid, ray, cy] for a in share_y], dramp[pid])
 
+    def _hexagonal_spots(self, image_points: np.ndarray, e: np.ndarray, rho: np.ndarray,
+                         lat: np.ndarray, ramp: np.ndarray, dramp: np.ndarray) -> Spots:
+        """:meth:`spots` on hexagonal cells: the nearest lens and the neighbours that
+        share a ray (:meth:`HexCells.shares`, the ramp cut to :data:`HEX_RAMP_MAX`)."""
+        cut = ramp > HEX_RAMP_MAX
+        ramp, dramp = np.where(cut, HEX_RAMP_MAX, ramp), np.where(cut, 0.0, dramp)
+        index, share, dshare_dx, dshare_dr = self.cells.shares(lat, ramp[:, None])
+        q, r = index[..., 0], index[..., 1]
+        rows, cols = self.lenses.shape[:2]
+        keep = (share > 0) & (q >= 0) & (r >= 0) & (q < cols) & (r < rows)
+        pid, ray, k = np.nonzero(keep)
+        centre = self.lenses[r[pid, ray, k], q[pid, ray, k]]
+        ok = np.isfinite(centre).all(axis=1)
+        pid, ray, k, centre = pid[ok], ray[ok], k[ok], centre[ok]
+        # the array point x = u + e rho moves by rho per X' and by -e d/d'^2 per d'
+        dx = dshare_dx[pid, ray, k]
+        dx_ds = -e[pid, ray] * self.camera.exit_pupil_distance_mm / image_points[pid, 2,
+                                                                                 None] ** 2
+        dweight = np.stack([rho[pid] * dx[:, 0], rho[pid] * dx[:, 1],
+                            (dx * dx_ds).sum(axis=1) + dshare_dr[pid, ray, k] * dramp[pid]])
+        return self._land(image_points, e, pid, ray, centre, share[pid, ray, k], dweight)
+
     def _landing(self, image_points, e, rho, pid, ray, centre, share_x, share_y,
                  dramp) -> Spots:
         """The sensor position of the chosen rays and the derivatives of position and
         lens share with respect to the image point."""
         cam = self.camera
-        pp, f = cam.pixel_pitch_mm, cam.ml_focal_length_mm
         s_ip = image_points[pid, 2]
         ee = e[pid, ray]
-        sensor = centre + f * ee / s_ip[:, None]
-        colrow = cam.mm_to_px(sensor)
         # lattice coordinates move with x = u + e rho: dx/dX' = rho, dx/dd' = -e d/d'^2
         inv = self.to_lattice[:2]
         dlat = [rho[pid, None] * inv[0], rho[pid, None] * inv[1],
@@ -174,7 +199,19 @@ class RayBundle:
         (wx, dwx, rwx), (wy, dwy, rwy) = share_x, share_y
         dweight = np.stack([dwx * wy * d[:, 0] + wx * dwy * d[:, 1] for d in dlat])
         dweight[2] += (rwx * wy + wx * rwy) * dramp  # the ramp widens with defocus
-        return Spots(pid, colrow[:, 0], colrow[:, 1], wx * wy, dweight, f / (s_ip * pp),
+        return self._land(image_points, e, pid, ray, centre, wx * wy, dweight)
+
+    def _land(self, image_points: np.ndarray, e: np.ndarray, pid: np.ndarray,
+              ray: np.ndarray, centre: np.ndarray, weight: np.ndarray,
+              dweight: np.ndarray) -> Spots:
+        """The chosen rays' sensor positions and their derivatives by the image point,
+        with their lens shares ``weight`` and its derivatives ``dweight`` ``(3, M)``."""
+        cam = self.camera
+        pp, f = cam.pixel_pitch_mm, cam.ml_focal_length_mm
+        s_ip = image_points[pid, 2]
+        ee = e[pid, ray]
+        colrow = cam.mm_to_px(centre + f * ee / s_ip[:, None])
+        return Spots(pid, colrow[:, 0], colrow[:, 1], weight, dweight, f / (s_ip * pp),
                      -f * ee[:, 0] / (s_ip**2 * pp), -f * ee[:, 1] / (s_ip**2 * pp))
 
     def patches(self, image_points: np.ndarray, margin: int = 3) -> Patches:
@@ -231,6 +268,21 @@ class RayBundle:
         elements = np.flatnonzero(reached)
         return elements, np.stack([np.bincount(compact, row[ok], minlength=len(elements))
                                    for row in rows])
+
+
+def _lens_cells(camera: Camera) -> tuple[np.ndarray, np.ndarray, HexCells | None]:
+    """The lens centres on the array plane ``(rows, cols, 2)`` mm (a hexagonal array's
+    axial view, NaN where it has no lens), the ``(3, 2)`` lattice fitted to them and a
+    hexagonal array's cells (``None`` for a rectangular one). The axial view itself (the
+    projector's camera, :meth:`Camera.on_lens_lattice`) is taken as its hexagonal array."""
+    hexagonal = camera.ml_layout in ("hexagonal", AXIAL)
+    centres = camera.on_lens_lattice().microlens_centers
+    centres = camera.ideal_microlens_centers() if centres is None else centres
+    lenses = camera.px_to_mm(centres) / camera.lens_image_scale
+    if hexagonal:
+        cells = HexCells.fit(lenses)
+        return lenses, cells.model, cells
+    return lenses, RectangularLattice.fit(lenses).model, None
 
 
 def _shares(coord: np.ndarray, ramp: np.ndarray):

@@ -3,8 +3,9 @@
 :class:`DeviceRayBundle` renders what :meth:`plenocl.optics.raybundle.RayBundle.render`
 renders, the particles' images on their patches and the derivatives by the image point
 and the intensity, with ``kernels/raybundle.cl`` in float32: one work-item per (ray,
-particle) traces the rays and their lens choices, one work-item per patch row (on a GPU)
-or per patch (on a CPU) gathers them. The NumPy :class:`RayBundle` stays the fit's
+particle) traces the rays and their lens choices (a hexagonal array's cells with
+``-DPL_HEXAGONAL``: ``ray_spots_hex``), one work-item per patch row (on a GPU) or per
+patch (on a CPU) gathers them. The NumPy :class:`RayBundle` stays the fit's
 renderer without a queue and the kernel's twin in the tests.
 """
 
@@ -21,7 +22,6 @@ from ..optics.raybundle import Patches, RayBundle
 from ..program import KernelSet
 
 i32, i64, f32 = np.int32, np.int64, np.float32
-_KERNELS = ("ray_spots", "render_rows")
 #: Floats per (particle, ray, lens choice) slot (``PL_SLOT`` of the kernel).
 SLOT = 28
 
@@ -78,12 +78,32 @@ class DeviceRayBundle:
         self._f_px = f32(cam.ml_focal_length_mm / cam.pixel_pitch_mm)
         self._optics = (*lattice, f32(cam.exit_pupil_distance_mm), self._f_px, f32(spacing),
                         *_spread_constants(bundle.blur_px))
+        if bundle.cells is not None:
+            self._optics += self._hexagonal_cells(k)
+
+    @property
+    def _spots(self) -> str:
+        """The kernel that traces the rays: ``ray_spots_hex`` on hexagonal cells."""
+        return "ray_spots" if self.bundle.cells is None else "ray_spots_hex"
+
+    def _hexagonal_cells(self, k: KernelSet) -> tuple:
+        """``ray_spots_hex``'s cell arguments: the metric, the neighbours' steps and their
+        table (``kernels/raybundle.cl``)."""
+        cells = self.bundle.cells
+        gram = cells.gram
+        along = cells.steps @ gram  # the metric times each step
+        table = np.column_stack([(along * cells.steps).sum(axis=1), along,
+                                 -(cells.steps @ cells.model[:2]) / cells.pitch**2])
+        return (cl.cltypes.make_float4(gram[0, 0], gram[0, 1], gram[1, 1], 0),
+                k.to_device(cells.steps.astype(i32)), k.to_device(table.astype(f32)))
 
     def _kernels(self, derivatives: bool) -> KernelSet:
         """The program of one variant (``-DPL_DERIVATIVES``), built on first use."""
         if derivatives not in self._programs:
+            hexagonal = int(self.bundle.cells is not None)
             self._programs[derivatives] = KernelSet(
-                self.queue, "raybundle.cl", _KERNELS, [f"-DPL_DERIVATIVES={int(derivatives)}"],
+                self.queue, "raybundle.cl", (self._spots, "render_rows"),
+                [f"-DPL_DERIVATIVES={int(derivatives)}", f"-DPL_HEXAGONAL={hexagonal}"],
                 looping=["render_rows"])
         return self._programs[derivatives]
 
@@ -144,7 +164,7 @@ class DeviceRayBundle:
         pts = k.to_device(points)
         slots, keys = self._slots(k, n)
         rows, cols = self.bundle.lenses.shape[:2]
-        spots = k.launch("ray_spots", (rays, n), pts, self._aperture, i32(rays),
+        spots = k.launch(self._spots, (rays, n), pts, self._aperture, i32(rays),
                          self._lenses, i32(rows), i32(cols), *self._optics, slots, keys)
         band = self.rows_per_item or max(int(patches.height.max()), 1)
         per = -(-patches.height // band)  # work-items per particle
