@@ -33,11 +33,11 @@ def test_small_demo_meets_the_accuracy_targets(demo_dir):
 
 
 def test_the_hexagonal_camera_demo_meets_the_same_targets(demo_dir, tmp_path, capsys):
-    """``plenocl demo --camera hexagonal``: the boundary layer behind a hexagonal array of
+    """``plenocl demo --layout hexagonal``: the boundary layer behind a hexagonal array of
     the same pitch on the same sensor (issue 29), calibrated, reconstructed, correlated
     and fitted to its raw images end to end, meets the rectangular demo's targets."""
     out = tmp_path / "hex"
-    assert main(["demo", "--camera", "hexagonal", "--out", str(out)]) == 0
+    assert main(["demo", "--layout", "hexagonal", "--out", str(out)]) == 0
     assert "hexagonal array" in capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
     rect = json.loads((demo_dir / "summary.json").read_text())
@@ -52,8 +52,8 @@ def test_the_hexagonal_camera_demo_meets_the_same_targets(demo_dir, tmp_path, ca
         s["recovery"]["paper_mart"]["recovered_fraction"]
 
 
-def test_the_camera_option_belongs_to_the_boundary_layer_demo(tmp_path, capsys):
-    assert main(["demo", "particles", "--camera", "hexagonal", "--out", str(tmp_path)]) == 2
+def test_the_layout_option_belongs_to_the_boundary_layer_demo(tmp_path, capsys):
+    assert main(["demo", "particles", "--layout", "hexagonal", "--out", str(tmp_path)]) == 2
     assert "boundary-layer demo only" in capsys.readouterr().err
 
 

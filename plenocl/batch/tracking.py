@@ -220,7 +220,7 @@ def track_job(job: TrackJob, device=None, bar: bool = True) -> dict[str, float]:
     t1 = time.perf_counter()
     from ..projection import Projector
 
-    with step_bar("frames (particles, then refits)", "frame", bar) as progress:
+    with step_bar("frames (particles, then refits)", "step", bar) as progress:
         tracks = track(frames, Projector(camera, grid, device), job.interval_s, job.settings,
                        progress=progress)
     t2 = time.perf_counter()

@@ -263,8 +263,8 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
 
 def demo_command(args: argparse.Namespace) -> int:
     """Run a built-in example."""
-    if args.camera != "rectangular" and args.name != "boundary-layer":
-        raise ValueError(f"--camera {args.camera} applies to the boundary-layer demo only; "
+    if args.layout != "rectangular" and args.name != "boundary-layer":
+        raise ValueError(f"--layout {args.layout} applies to the boundary-layer demo only; "
                          f"the {args.name} demo uses the paper's rectangular array")
     if args.name == "particles":
         from ..demo.particle_images import particle_demo
@@ -279,10 +279,10 @@ def demo_command(args: argparse.Namespace) -> int:
     from ..demo.boundary_layer import run_boundary_layer
 
     s = run_boundary_layer(args.size, args.out, queue=args.device, seed=args.seed,
-                           layout=args.camera)
+                           layout=args.layout)
     rec = s["recovery"]["default_mlem"]
     win = s["lateral_depth_error"]["window_averaged"]
-    print(f"boundary layer ({args.size}, {args.camera} array): velocity RMS error "
+    print(f"boundary layer ({args.size}, {args.layout} array): velocity RMS error "
           f"{100 * s['velocity_rms_error']:.1f}% of U∞ (lateral "
           f"{win['lateral_voxels']:.2f} voxel = {100 * win['lateral_u_inf']:.1f}%, depth "
           f"{win['depth_voxels']:.2f} voxel = {100 * win['depth_u_inf']:.1f}%, against the "
@@ -339,7 +339,7 @@ def add_demo_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--size", default="small", choices=["small", "paper"],
                    help="small: 850 x 850 px camera, minutes on 2 cores; paper: 16 MP, "
                         "300 x 200 x 150 voxels")
-    p.add_argument("--camera", default="rectangular", choices=["rectangular", "hexagonal"],
+    p.add_argument("--layout", default="rectangular", choices=["rectangular", "hexagonal"],
                    help="boundary-layer: the camera's microlens array, rectangular (the "
                         "paper's) or hexagonal, of the same pitch on the same sensor")
     p.add_argument("--out", default="plenocl_demo", help="output folder (resumable)")

@@ -65,7 +65,7 @@ class Scenario:
         return doc
 
 
-#: The microlens arrays the demo can be run with (``plenocl demo --camera``).
+#: The microlens arrays the demo can be run with (``plenocl demo --layout``).
 LAYOUTS = ("rectangular", "hexagonal")
 
 

@@ -156,6 +156,8 @@ def track(frames, projector: ProjectionOperator, dt: float,
         The tracks seen in at least ``settings.min_length`` frames.
     """
     settings = with_keywords(TrackSettings, settings, options, "track")
+    if progress is not None and not callable(progress):
+        raise TypeError(f"progress must be a callable progress(done, total), got {progress!r}")
     frames = _check_frames(frames, settings.min_length)
     dt = _check_dt(dt)
     refits = settings.refits if settings.image_fit is not None else 0

@@ -51,10 +51,11 @@ class WeightingModel:
         The reconstruction volume (its ``rotation_deg`` is the frame's).
     oversample
         Aperture samples per pixel footprint on the aperture, per axis
-        (:meth:`ApertureGrid.for_camera`).
+        (:meth:`ApertureGrid.for_lattice`).
     shear_tol
-        Lens-index drift across the array below which the lens index map counts as
-        axis-aligned (:func:`plenocl.projection.weighting.lens_index_map`).
+        Lens-index drift across the array below which the lens index map drops the
+        term (axis-aligned, or triangular for a hexagonal lattice:
+        :func:`plenocl.projection.weighting.lens_index_map`).
     warn
         Warn when the general (slower) path is taken.
 

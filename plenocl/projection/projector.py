@@ -9,8 +9,12 @@ through a light-field buffer ``L[ky, s, kx]``:
 
 * forward ``image = P (S vol)`` and back ``vol = Sᵀ (Pᵀ image)``, exact transposes;
 * with an axis-aligned microlens array (ideal or calibrated centres whose fitted layout
-  has no rotation) ``S`` factorises per axis and costs a few vectorisable row updates
-  per light-field row and depth; a rotated array uses a general (slower) path;
+  has no rotation in the grid's frame), or a hexagonal array's leaning lattice in its
+  rows' frame (a triangular lens map, the aperture sampled along the lattice's steps,
+  docs/design.md §5.3), ``S`` factorises per axis and costs a few vectorisable row
+  updates per light-field row and depth; a grid across the lens rows is projected
+  through the rows' frame and resampled, or with ``general="exact"`` on a general
+  (slower) path;
 * every kernel is a gather or a race-free scatter: results are deterministic (the
   optional ``back="atomic"`` scatter of the separable back projection excepted).
 

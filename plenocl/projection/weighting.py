@@ -2,8 +2,9 @@
 
 What a voxel's weight on a pixel depends on, apart from the kernels that sum it:
 
-* :class:`ApertureGrid`: the plaid ``(u, v)`` sampling of the circular main-lens aperture
-  (step 1 of the paper's weighting function);
+* :class:`ApertureGrid`: the sampling of the circular main-lens aperture (step 1 of the
+  paper's weighting function): the paper's plaid ``(u, v)`` grid, or a hexagonal
+  lattice's rhombic grid along its two steps;
 * :class:`LensIndexMap` / :func:`lens_index_map`: array-plane millimetres to fractional
   microlens index (step 2);
 * :func:`depth_coefficients`: per-depth affine coefficients of step 2 for a voxel grid,
@@ -77,6 +78,9 @@ class ApertureGrid:
         extent along both indices: the outermost columns or rows hold samples."""
         if not (math.isfinite(oversample) and oversample > 0):
             raise ValueError(f"oversample must be a positive number, got {oversample!r}")
+        if not (math.isfinite(shear) and math.isfinite(squeeze) and squeeze > 0):
+            raise ValueError("the aperture lattice needs a finite shear and a positive "
+                             f"squeeze, got {shear!r}, {squeeze!r}")
         step = camera.pixel_pupil_footprint_mm / oversample
         radius = camera.exit_pupil_diameter_mm / 2
         reach = max(math.hypot(1.0, shear / squeeze), 1.0 / squeeze)  # |a|, |b| extents
@@ -99,10 +103,6 @@ class ApertureGrid:
     def basis(self) -> np.ndarray:
         """``(2, 2)`` frame offset (in steps) per unit of ``(a, b)``, as columns."""
         return np.array([[1.0, self.shear], [0.0, self.squeeze]])
-
-    def coords(self) -> np.ndarray:
-        """Sample indices' offsets ``(i - c) step`` along one axis (mm)."""
-        return (np.arange(self.n) - self.center) * self.step
 
     def _frame_points(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """``(..., 2)`` frame coordinates (mm) of index offsets ``(a, b)``."""
@@ -233,7 +233,7 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
         keep = np.array([[1.0, float(leaning and drift_x > shear_tol)], [0.0, 1.0]])
         drop = matrix * (1 - keep)  # the terms dropped, about the array's centre
         offset = offset + drop @ centre
-        matrix = matrix * keep
+        matrix = np.where(keep > 0, matrix, 0.0)
     return LensIndexMap(matrix=matrix, offset=offset)
 
 
@@ -254,6 +254,10 @@ def depth_coefficients(camera: Camera, grid: Grid, lens_map: LensIndexMap,
     m = lens_map.matrix
     m_ap = m @ aperture.basis  # lens index per aperture step along each sample index
     if aperture.shear:
+        if abs(m_ap[0, 1]) > 1e-9 * abs(m_ap[0, 0]):
+            raise ValueError("the rhombic aperture grid does not belong to this lens map: "
+                             "build it with ApertureGrid.for_lattice(..., "
+                             "*lens_map.aperture_lattice())")
         m_ap[0, 1] = 0.0
     out = np.zeros((len(z), 16))
     for k in range(len(z)):

@@ -4,7 +4,8 @@ A voxel's column of the weight matrix, literally the paper's four steps:
 
 1. sample the main-lens aperture on a plaid ``(u, v)`` grid a little finer than one
    pixel's footprint on the aperture (``p_px d / f_ml``), keeping samples inside the
-   circular aperture;
+   circular aperture (a hexagonal array: a rhombic grid along its lattice's two steps,
+   docs/design.md §5.3);
 2. each sample meets the microlens-array plane at ``x = u (1 - 1/α) + X'/α``; in
    microlens index units it falls between four microlens centres, which get the
    bilinear weights ``(1 - t_x)(1 - t_y) … t_x t_y``;
