@@ -25,11 +25,11 @@ the calibration sees only the nominal camera (no rotation, no offset).
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import time
 
 from plenocl import Camera, get_queue
+from plenocl.bench.core import hexagonal_cut
 from plenocl.bench.lightfield_section import (
     CALIBRATION_CASES,
     box_centroids,
@@ -73,17 +73,6 @@ HEX_CASES = {
         dict(ml_rotation_deg=0.3), dict(EXPOSED, stop_f_number=2.0, vignetting=0.5,
                                         intensity=1e5, rays_per_lens=50000)),
 }
-
-
-def hexagonal(base: Camera, shift: float = 0.5) -> Camera:
-    """``base`` with a hexagonal array of the same pitch and columns, as many rows as its
-    sensor holds, the sensor's height cut to them (the outer rows' centres half a row
-    inside its edges, as the columns' are half a pitch inside)."""
-    row_px = base.microlens_image_pitch_mm * 3**0.5 / 2 / base.pixel_pitch_mm
-    rows = int((base.pixels[1] - 1) / row_px)
-    return dataclasses.replace(base, ml_layout="hexagonal", ml_count=(base.ml_count[0], rows),
-                               ml_odd_row_shift=shift, microlens_centers=None,
-                               pixels=(base.pixels[0], int(rows * row_px) + 1))
 
 
 def scale_camera(pitch_px: float, layout: str) -> Camera:
@@ -133,7 +122,7 @@ def main() -> None:
     print(f"{'case':46s} {'box cen.':>9s} {'win cen.':>9s} {'model':>7s} {'combined':>9s} "
           f"{'found':>12s} {'calib s':>8s}")
     cases = [(base, name, case) for name, case in CASES.items()]
-    cases += [(hexagonal(base, case[0].get("ml_odd_row_shift", 0.5)), name, case)
+    cases += [(hexagonal_cut(base, case[0].get("ml_odd_row_shift", 0.5)), name, case)
               for name, case in HEX_CASES.items()]
     cases += [] if args.skip_scales else scale_cases()
     for camera, name, (layout, sim) in cases:

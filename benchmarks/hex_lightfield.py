@@ -9,11 +9,10 @@ times, medians of repeated runs, both cameras in the same run.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from plenocl import Camera, get_queue
+from plenocl.bench.core import hexagonal_cut
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
 from plenocl.device import device_info
@@ -21,16 +20,6 @@ from plenocl.lightfield import LightField
 from plenocl.simulate import simulate_image
 
 ZS = np.round(np.arange(-3.0, 3.001, 0.1), 2)
-
-
-def hexagonal(base: Camera) -> Camera:
-    """``base`` with a hexagonal array of the same pitch and columns and as many rows as
-    its sensor holds, the sensor's height cut to them."""
-    row_px = base.microlens_image_pitch_mm * 3**0.5 / 2 / base.pixel_pitch_mm
-    rows = int((base.pixels[1] - 1) / row_px)
-    return dataclasses.replace(base, ml_layout="hexagonal", ml_count=(base.ml_count[0], rows),
-                               microlens_centers=None,
-                               pixels=(base.pixels[0], int(rows * row_px) + 1))
 
 
 def refocus_errors(cam: Camera, point: np.ndarray, queue) -> tuple[float, float]:
@@ -75,7 +64,7 @@ def main() -> None:
           f"{args.repeats}")
     print(f"{'array':12s} {'lenses':>8s} {'depth RMS mm':>12s} {'lateral RMS mm':>14s} "
           f"{'(pitch)':>8s} {'build s':>8s} {'9 planes s':>10s}")
-    for base in (Camera.synthetic_850(), hexagonal(Camera.synthetic_850())):
+    for base in (Camera.synthetic_850(), hexagonal_cut(Camera.synthetic_850())):
         print(row(base.with_centers(base.ideal_microlens_centers()), points, queue,
                   args.repeats))
 

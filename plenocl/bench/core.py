@@ -166,6 +166,17 @@ class BenchRun:
         return camera_for(self.cfg.camera)
 
 
+def hexagonal_cut(base: Camera, shift: float = 0.5) -> Camera:
+    """``base`` with a hexagonal array of the same pitch and columns, as many rows as its
+    sensor holds, the sensor's height cut to them (the outer rows' centres half a row
+    inside its edges, as the columns' are half a pitch inside); odd rows ``shift``."""
+    row_px = base.microlens_image_pitch_mm * 3**0.5 / 2 / base.pixel_pitch_mm
+    rows = int((base.pixels[1] - 1) / row_px)
+    return dataclasses.replace(base, ml_layout="hexagonal", ml_count=(base.ml_count[0], rows),
+                               ml_odd_row_shift=shift, microlens_centers=None,
+                               pixels=(base.pixels[0], int(rows * row_px) + 1))
+
+
 def host_peak_bytes(fn: Callable[[], object]) -> int:
     """Peak host memory (bytes, ``tracemalloc``) newly allocated during one call of ``fn()``."""
     tracemalloc.start()
