@@ -308,6 +308,25 @@ def test_the_rhombic_aperture_grid_samples_the_disc_along_the_lattice():
         assert abs(len(i) - area) < 0.05 * area
 
 
+def test_the_aperture_lattice_refuses_bad_steps_and_a_foreign_lens_map():
+    """A rhombic aperture grid needs a finite shear and a positive squeeze, and the depth
+    coefficients refuse one built for another lens map (its ``H`` would not be
+    diagonal: silently zeroing the term would give wrong weights)."""
+    from plenocl import Grid
+    from plenocl.projection.weighting import ApertureGrid, depth_coefficients, lens_index_map
+
+    cam = sensor_camera(12, 12)
+    for shear, squeeze in ((0.5, 0.0), (0.5, -1.0), (float("nan"), ROW), (0.5, float("inf"))):
+        with pytest.raises(ValueError, match="finite shear and a positive squeeze"):
+            ApertureGrid.for_lattice(cam, 1.25, 0.0, shear, squeeze)
+    grid = Grid((5, 7, 9), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-4.0, 4.0))
+    lens_map = lens_index_map(cam)
+    foreign = ApertureGrid.for_lattice(cam, 1.25, 0.0, -0.5, ROW)  # the other stagger
+    assert lens_map.aperture_lattice()[0] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="does not belong to this lens map"):
+        depth_coefficients(cam.on_lens_lattice(), grid, lens_map, foreign)
+
+
 def test_hexagonal_projector_variants_agree(queue):
     """On the rhombic aperture's asymmetric columns, the GPU-style layout (one element
     per work-item, per-column lens-row stage), the element forms of the lens-column
