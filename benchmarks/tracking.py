@@ -13,7 +13,9 @@ depth), exact ray tracing, 0.8 px blur, photon and read noise.
 ``plenocl.track`` on the whole series: per-step displacement errors (voxels) of the
 tracks seen in at least 4 frames, matched to the true particles, lateral (RMS over x
 and y) and depth, the focal zone (|z| < 2 mm) apart, both for the smoothed tracks and
-for the positions as each frame's fit measured them (what linking alone gives); the
+for the positions as each frame's fit measured them (what linking alone gives), and
+the same measured positions smoothed without the neighbours' depth prior ("own") and
+by the local lines that smoothed tracks before the state-space smoother ("poly"); the
 share of the true particles tracked, the share of ghost tracks, seconds per frame.
 Beside it: ``plenocl.process_pair`` on the first ``--pairs`` consecutive pairs (its
 vectors' errors against the same motion, seconds per frame = per pair / 2), and the
@@ -43,6 +45,8 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.tracking_section import simulate_series, track_errors  # noqa: E402
 from plenocl.demo.figures import tracks_figure  # noqa: E402
+from plenocl.pipeline import TrackSettings, smooth_tracks  # noqa: E402
+from plenocl.ptv import Tracks  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 
@@ -80,6 +84,10 @@ def _rows(motion: Motion, ppm: float, args, cam, grid, proj, queue) -> None:
         e = row[chain]
         _print(motion, ppm, "track " + chain[:3], e["lateral"], e["depth"], e["focal_depth"],
                f"{row['tracked']:7.0%} {row['ghosts']:6.0%}", row["seconds_per_frame"])
+    for label, other in _smoothers(tracks, proj).items():
+        e = track_errors(other, series.truth, grid, 0.0)["smoothed"]
+        _print(motion, ppm, label, e["lateral"], e["depth"], e["focal_depth"], "",
+               float("nan"))
     pairs = [process_pair(series.frames[k], series.frames[k + 1], proj)
              for k in range(min(args.pairs, args.frames - 1))]
     if not pairs:
@@ -91,6 +99,15 @@ def _rows(motion: Motion, ppm: float, args, cam, grid, proj, queue) -> None:
     field = bin_tracks(tracks, grid, window=ref.window, step=ref.step)
     binned = budget_errors(field, grid, motion)
     _print(motion, ppm, "binned", *_pooled([binned]), f"{binned['valid']:7.0%}", float("nan"))
+
+
+def _smoothers(tracks, proj) -> dict:
+    """The same measured positions smoothed otherwise: the state-space smoother without
+    the neighbours' prior ("own"), and the local lines over 7 frames that smoothed the
+    tracks before it ("poly")."""
+    args = (tracks.measured, tracks.measured_sigma, tracks.intensities, tracks.dt)
+    return {"track own": smooth_tracks(*args, proj, TrackSettings(neighbours=0)),
+            "track poly": Tracks.from_measured(*args, window=7, degree=1)}
 
 
 def _pooled(errors: list[dict]) -> tuple[float, float, float]:

@@ -822,6 +822,10 @@ INVALID = [
      "TrackSettings.gap must be an integer >= 0"),
     ("track-window", lambda c: TrackSettings(window=6), ValueError,
      "TrackSettings.window must be an odd number"),
+    ("track-acceleration", lambda c: TrackSettings(acceleration=0.0), ValueError,
+     "TrackSettings.acceleration must be a positive number"),
+    ("track-neighbours", lambda c: TrackSettings(neighbours=3), ValueError,
+     "TrackSettings.neighbours must be 0"),
     # calibrate
     ("calibrate-blank", _cal(lambda c: np.zeros((70, 70))), ValueError, "white image is blank"),
     ("calibrate-noise", _cal(lambda c: np.random.default_rng(0).random((70, 70))), ValueError,

@@ -7,7 +7,8 @@ its defaults) and its two-exposure reconstruction, motion-tracking enhancement
 from .mte import MTESettings, motion_tracking_enhancement
 from .pair import PairResult, process_pair
 from .settings import PairSettings
-from .track import TrackSettings, bin_tracks, track
+from .track import TrackSettings, bin_tracks, smooth_tracks, track
 
 __all__ = ["MTESettings", "PairResult", "PairSettings", "TrackSettings",
-           "bin_tracks", "motion_tracking_enhancement", "process_pair", "track"]
+           "bin_tracks", "motion_tracking_enhancement", "process_pair", "smooth_tracks",
+           "track"]

@@ -4,8 +4,9 @@
 Each frame is reconstructed (:func:`plenocl.reconstruct`'s chain), its volume's peaks
 are fitted to the frame's raw image (:class:`plenocl.piv.imagefit.ImageFit`), the
 particles of consecutive frames are linked (:func:`plenocl.ptv.link`; the first step
-predicted by the correlation of the first two volumes) and every track is smoothed by
-local polynomial fits weighted by the fit's variances (:func:`plenocl.ptv.smooth`).
+predicted by the correlation of the first two volumes) and every track is smoothed
+(:func:`smooth_tracks`: a constant-velocity state-space smoother weighted by the fit's
+variances, with its neighbours' depth velocity as a prior).
 :func:`bin_tracks` turns tracks into an Eulerian field on interrogation windows.
 """
 
@@ -32,7 +33,7 @@ from ..piv.tracking import (
     window_means,
 )
 from ..piv.validation import normalized_median_test, replace_outliers
-from ..ptv import Tracks, link
+from ..ptv import Tracks, link, neighbour_velocity, smooth, smooth_states
 from ..reconstruction import ProjectionOperator, ReconstructionSettings, run_reconstruction
 from ..vectorfield import PIVResult
 
@@ -79,6 +80,13 @@ class TrackSettings:
         smoothed track, and the tracks smoothed again (needs ``image_fit``).
     min_length
         Tracks seen in fewer frames are left out (>= 2).
+    acceleration
+        The state-space smoother's acceleration noise (voxels per frame², per axis): the
+        standard deviation of a particle's change of velocity over one frame.
+    neighbours
+        Tracks whose local linear velocity field is each track's depth velocity prior
+        (more than 4; 0: none). Near the focal plane a particle's own images barely
+        measure its depth, and the prior carries it there (docs/design.md §7.3).
     """
 
     reconstruction: ReconstructionSettings = field(default_factory=ReconstructionSettings)
@@ -91,6 +99,8 @@ class TrackSettings:
     degree: int = 1
     refits: int = 1
     min_length: int = 4
+    acceleration: float = 0.05
+    neighbours: int = 12
 
     def __post_init__(self) -> None:
         if isinstance(self.image_fit, bool):
@@ -113,6 +123,17 @@ class TrackSettings:
         if self.window < 3 or self.window % 2 == 0 or self.degree not in (0, 1, 2, 3):
             raise ValueError(f"TrackSettings.window must be an odd number of frames >= 3 and "
                              f"degree 0-3, got window={self.window}, degree={self.degree}")
+        self._check_smoother()
+
+    def _check_smoother(self) -> None:
+        """Refuse a state-space smoother that cannot run."""
+        if not (np.isfinite(self.acceleration) and self.acceleration > 0):
+            raise ValueError(f"TrackSettings.acceleration must be a positive number (voxels "
+                             f"per frame squared), got {self.acceleration!r}")
+        n = self.neighbours
+        if isinstance(n, bool) or int(n) != n or not (n == 0 or n > 4):
+            raise ValueError(f"TrackSettings.neighbours must be 0 (no velocity prior) or an "
+                             f"integer above 4 (a local linear field), got {n!r}")
 
 
 @dataclass
@@ -166,8 +187,7 @@ def track(frames, projector: ProjectionOperator, dt: float,
     table = link([p.index for p in particles], settings.search, first_step, settings.gap)
     _warn_if_unlinked(table)
     table = table[(table >= 0).sum(axis=1) >= settings.min_length]
-    tracks = Tracks.from_measured(*_gather(table, particles), dt, settings.window,
-                                  settings.degree)
+    tracks = smooth_tracks(*_gather(table, particles), dt, projector, settings)
     for _ in range(refits):
         tracks = _refit(tracks, frames, particles, projector, settings, steps)
     return tracks
@@ -200,8 +220,54 @@ def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projec
             measured[rows, k], sigma[rows, k] = fitted.positions, fitted.sigma
             intensity[rows, k] = fitted.intensities
         steps.advance()
-    return Tracks.from_measured(measured, sigma, intensity, tracks.dt, settings.window,
-                                settings.degree)
+    return smooth_tracks(measured, sigma, intensity, tracks.dt, projector, settings)
+
+
+def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray, dt: float,
+                  projector, settings: TrackSettings | None = None) -> Tracks:
+    """Tracks from their measured positions, smoothed as :func:`track` smooths them
+    (docs/design.md §7.3).
+
+    Local polynomial fits along each track (``settings.window``, ``.degree``) give its
+    accelerations and first velocities; with ``settings.neighbours`` the neighbouring
+    tracks' local linear field of those velocities is each track's depth velocity
+    prior (:func:`plenocl.ptv.neighbour_velocity`), its own velocity's variance raised
+    by the focal zone's systematic term (:meth:`~plenocl.piv.tracking.FocalZone.ambiguity`);
+    the constant-velocity state-space smoother (:func:`plenocl.ptv.smooth_states`,
+    acceleration noise ``settings.acceleration`` voxels per frame²) then gives the
+    positions and velocities.
+
+    Parameters
+    ----------
+    measured, sigma
+        Positions ``(n_tracks, n_frames, 3)`` mm and their standard deviations, NaN
+        where a track has no particle.
+    intensity
+        ``(n_tracks, n_frames)``.
+    dt
+        The time between frames.
+    projector
+        The recording's projector (its camera and grid: the focal zone and the voxel).
+    settings
+        :class:`TrackSettings` (``None``: the defaults).
+    """
+    settings = settings or TrackSettings()
+    grid = projector.grid
+    voxel = np.asarray(grid.spacing[::-1])
+    poly = smooth(measured, sigma, 1.0, settings.window, settings.degree)
+    prior = prior_sigma = None
+    if settings.neighbours:
+        depth = grid.to_index(np.nan_to_num(poly.positions).reshape(-1, 3))[:, 2]
+        own = poly.velocity_sigma.copy()
+        own[..., 2] = np.hypot(own[..., 2], FocalZone.of(projector.camera, grid).ambiguity(
+            depth.reshape(measured.shape[:2])) * voxel[2])
+        prior, prior_sigma = neighbour_velocity(poly.positions, poly.velocities, own, voxel,
+                                                settings.neighbours)
+        prior[..., :2] = np.nan  # laterally a track's own frames decide
+    fit = smooth_states(measured, sigma, settings.acceleration * voxel, prior, prior_sigma)
+    return Tracks(fit.positions, measured, sigma, intensity, fit.velocities / dt,
+                  poly.accelerations / dt**2, fit.position_sigma, fit.velocity_sigma / dt,
+                  poly.acceleration_sigma / dt**2, dt)
 
 
 def _image_fit(raw, background, projector, settings: TrackSettings) -> ImageFit:

@@ -26,7 +26,8 @@ class Tracks:
     Attributes
     ----------
     positions
-        The smoothed positions: each a local polynomial fit along its track.
+        The smoothed positions (:func:`plenocl.pipeline.smooth_tracks` in
+        :func:`plenocl.track`; local polynomial fits in :meth:`from_measured`).
     measured
         The positions each frame's fit to its raw image gave.
     measured_sigma
@@ -34,7 +35,8 @@ class Tracks:
     intensities
         Each particle's intensity (image units), ``(n_tracks, n_frames)``.
     velocities, accelerations
-        The fit's first and second derivative (NaN where the track is too short).
+        The smoother's velocities and the local polynomials' accelerations (NaN where
+        the track is too short, or with polynomials of degree 1).
     position_sigma, velocity_sigma, acceleration_sigma
         Their standard deviations.
     dt
