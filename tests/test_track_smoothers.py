@@ -166,3 +166,53 @@ def test_smooth_tracks_carries_the_focal_zone_by_the_neighbours_depth_prior_only
     assert zone.sum() > 50
     assert depth_rms(with_prior) < min(0.15, 0.5 * depth_rms(own))
     np.testing.assert_array_equal(with_prior.positions[..., :2], own.positions[..., :2])
+
+
+def test_state_smoother_matches_the_reference_on_a_long_series_and_skips_bad_frames():
+    """120 frames (the block elimination over the frames against the dense solve), a
+    frame whose deviation is infinite counting as missing, a lone particle without
+    velocity."""
+    _, _, measured, sigma = _tracks(n=6, frames=120, seed=8)
+    measured[:, :, :] = np.cumsum(np.random.default_rng(9).normal(0, 0.3, measured.shape),
+                                  axis=1)
+    sigma[0, 10] = np.inf
+    measured[5] = np.nan
+    measured[5, 7] = 1.0
+    fit = smooth_states(measured, sigma, 0.2)
+    cut = measured.copy()
+    cut[0, 10] = np.nan
+    ref = smooth_states_reference(cut, sigma, 0.2)
+    np.testing.assert_allclose(fit.positions[:5], ref[0][:5], atol=1e-8)
+    np.testing.assert_allclose(fit.velocities[:5], ref[1][:5], atol=1e-8)
+    np.testing.assert_allclose(fit.velocity_sigma[:5] / fit.birge, ref[3][:5], rtol=1e-8)
+    assert np.all(np.isnan(fit.positions[0, 10])) and np.all(np.isnan(fit.velocities[5]))
+
+
+def test_neighbours_leave_out_the_track_itself_when_tied_and_refuse_flat_neighbourhoods():
+    positions, velocities, scale = _field(n=60, frames=1, seed=10)
+    positions[1], velocities[1] = positions[0], velocities[0]   # two tracks at one place
+    sigma = np.full(velocities.shape, 0.01)
+    wrong = velocities.copy()
+    wrong[1] += 5.0                        # the second of the tied pair's own velocity
+    prior, _ = neighbour_velocity(positions, wrong, sigma, scale, 12)
+    np.testing.assert_allclose(prior[1], velocities[1], atol=1e-9)  # not its own (wrong)
+    flat = positions.copy()
+    flat[..., 2] = 1.0                     # every track in one depth plane
+    prior, prior_sd = neighbour_velocity(flat, velocities, sigma, scale, 12)
+    assert np.all(np.isnan(prior)) and np.all(np.isnan(prior_sd))
+
+
+def test_smooth_tracks_velocities_scale_with_the_frame_interval():
+    from types import SimpleNamespace
+
+    from plenocl.bench.accuracy_section import paper_optics
+    from plenocl.pipeline import smooth_tracks
+
+    cam, grid = paper_optics((24, 16))
+    truth, velocity, measured, sigma = _tracks(n=40, frames=8, seed=12)
+    proj = SimpleNamespace(camera=cam, grid=grid)
+    args = (measured, sigma, np.ones(measured.shape[:2]))
+    one, half = (smooth_tracks(*args, dt, proj) for dt in (1.0, 0.5))
+    np.testing.assert_allclose(half.velocities, 2 * one.velocities, rtol=1e-12)
+    np.testing.assert_allclose(half.velocity_sigma, 2 * one.velocity_sigma, rtol=1e-12)
+    np.testing.assert_array_equal(half.positions, one.positions)

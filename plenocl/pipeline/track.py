@@ -33,7 +33,7 @@ from ..piv.tracking import (
     window_means,
 )
 from ..piv.validation import normalized_median_test, replace_outliers
-from ..ptv import Tracks, link, neighbour_velocity, smooth, smooth_states
+from ..ptv import TrackFit, Tracks, link, neighbour_velocity, smooth, smooth_states
 from ..reconstruction import ProjectionOperator, ReconstructionSettings, run_reconstruction
 from ..vectorfield import PIVResult
 
@@ -131,7 +131,8 @@ class TrackSettings:
             raise ValueError(f"TrackSettings.acceleration must be a positive number (voxels "
                              f"per frame squared), got {self.acceleration!r}")
         n = self.neighbours
-        if isinstance(n, bool) or int(n) != n or not (n == 0 or n > 4):
+        whole = isinstance(n, (int, np.integer)) and not isinstance(n, bool)
+        if not whole or not (n == 0 or n > 4):
             raise ValueError(f"TrackSettings.neighbours must be 0 (no velocity prior) or an "
                              f"integer above 4 (a local linear field), got {n!r}")
 
@@ -224,15 +225,17 @@ def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projec
 
 
 def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray, dt: float,
-                  projector, settings: TrackSettings | None = None) -> Tracks:
+                  projector: ProjectionOperator, settings: TrackSettings | None = None
+                  ) -> Tracks:
     """Tracks from their measured positions, smoothed as :func:`track` smooths them
     (docs/design.md §7.3).
 
     Local polynomial fits along each track (``settings.window``, ``.degree``) give its
     accelerations and first velocities; with ``settings.neighbours`` the neighbouring
     tracks' local linear field of those velocities is each track's depth velocity
-    prior (:func:`plenocl.ptv.neighbour_velocity`), its own velocity's variance raised
-    by the focal zone's systematic term (:meth:`~plenocl.piv.tracking.FocalZone.ambiguity`);
+    prior (:func:`plenocl.ptv.neighbour_velocity`, each neighbour weighted by its
+    variance plus the focal zone's systematic depth term,
+    :meth:`~plenocl.piv.tracking.FocalZone.ambiguity`);
     the constant-velocity state-space smoother (:func:`plenocl.ptv.smooth_states`,
     acceleration noise ``settings.acceleration`` voxels per frame²) then gives the
     positions and velocities.
@@ -250,6 +253,12 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
         The recording's projector (its camera and grid: the focal zone and the voxel).
     settings
         :class:`TrackSettings` (``None``: the defaults).
+
+    Returns
+    -------
+    plenocl.ptv.Tracks
+        Velocities per unit of ``dt``; ``measured``, ``measured_sigma`` and the
+        intensities as given.
     """
     settings = settings or TrackSettings()
     grid = projector.grid
@@ -257,17 +266,31 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
     poly = smooth(measured, sigma, 1.0, settings.window, settings.degree)
     prior = prior_sigma = None
     if settings.neighbours:
-        depth = grid.to_index(np.nan_to_num(poly.positions).reshape(-1, 3))[:, 2]
-        own = poly.velocity_sigma.copy()
-        own[..., 2] = np.hypot(own[..., 2], FocalZone.of(projector.camera, grid).ambiguity(
-            depth.reshape(measured.shape[:2])) * voxel[2])
-        prior, prior_sigma = neighbour_velocity(poly.positions, poly.velocities, own, voxel,
-                                                settings.neighbours)
-        prior[..., :2] = np.nan  # laterally a track's own frames decide
+        prior, prior_sigma = _depth_prior(poly, projector, settings.neighbours)
     fit = smooth_states(measured, sigma, settings.acceleration * voxel, prior, prior_sigma)
     return Tracks(fit.positions, measured, sigma, intensity, fit.velocities / dt,
                   poly.accelerations / dt**2, fit.position_sigma, fit.velocity_sigma / dt,
                   poly.acceleration_sigma / dt**2, dt)
+
+
+def _depth_prior(poly: TrackFit, projector: ProjectionOperator, neighbours: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Each track's depth velocity (per frame) from its neighbours' local linear field
+    of the local lines' velocities, each neighbour weighted by its line's variance plus
+    the focal zone's systematic depth term (a neighbour near the focal plane counts
+    little); no lateral prior (NaN): laterally a track's own frames decide."""
+    grid = projector.grid
+    voxel = np.asarray(grid.spacing[::-1])
+    depth = grid.to_index(np.nan_to_num(poly.positions).reshape(-1, 3))[:, 2]
+    bias = FocalZone.of(projector.camera, grid).ambiguity(depth) * voxel[2]
+    own = np.hypot(poly.velocity_sigma[..., 2:], bias.reshape(poly.positions.shape[:2] + (1,)))
+    z, z_sigma = neighbour_velocity(poly.positions, poly.velocities[..., 2:], own, voxel,
+                                    neighbours)
+    prior = np.full(poly.velocities.shape, np.nan)
+    prior_sigma = np.full(poly.velocities.shape, np.nan)
+    prior[..., 2:], prior_sigma[..., 2:] = z, z_sigma
+    return prior, prior_sigma
+
 
 
 def _image_fit(raw, background, projector, settings: TrackSettings) -> ImageFit:

@@ -7,8 +7,14 @@ continuous time: the state's step has the covariance ``q² [[1/3, 1/2], [1/2, 1]
 frame). Each frame's fitted position measures ``p_j`` with its variance, and an
 optional prior (e.g. what the neighbouring tracks say, :mod:`.neighbours`) measures
 ``v_j``. The states are the weighted least-squares solution of all these at once (the
-Rauch-Tung-Striebel smoother's answer, solved directly: a track has a few dozen
-unknowns), their covariance the inverse normal matrix.
+Rauch-Tung-Striebel smoother's answer), their variances the diagonal of the inverse
+normal matrix.
+
+The normal matrix is block tridiagonal in the frames (2 x 2 blocks), so every track and
+axis is solved at once by block elimination over the frames and the variances come
+from the same factors (the selected inverse): time and memory grow with tracks x
+frames, not with the cube of a long track's length. Frames outside a track's span, with
+nothing measured, only extend its trajectory and change nothing within the span.
 
 Unlike local polynomial fits over sliding windows (:mod:`.smoothing`), the positions and
 the velocities are one consistent trajectory: a position that its frame's image places
@@ -25,7 +31,9 @@ import numpy as np
 
 #: The state step's covariance per frame for a unit acceleration noise (position,
 #: velocity).
-_STEP_COVARIANCE = np.array([[1.0 / 3.0, 1.0 / 2.0], [1.0 / 2.0, 1.0]])
+STEP_COVARIANCE = np.array([[1.0 / 3.0, 1.0 / 2.0], [1.0 / 2.0, 1.0]])
+#: The state's transition over one frame.
+TRANSITION = np.array([[1.0, 1.0], [0.0, 1.0]])
 
 
 @dataclass(frozen=True)
@@ -42,7 +50,7 @@ class StateFit:
     birge: np.ndarray
 
 
-def smooth_states(measured: np.ndarray, sigma: np.ndarray, acceleration,
+def smooth_states(measured: np.ndarray, sigma: np.ndarray, acceleration: float | np.ndarray,
                   prior: np.ndarray | None = None, prior_sigma: np.ndarray | None = None
                   ) -> StateFit:
     """Every track's constant-velocity smoothing.
@@ -52,7 +60,8 @@ def smooth_states(measured: np.ndarray, sigma: np.ndarray, acceleration,
     measured
         Positions ``(n_tracks, n_frames, 3)``, NaN where a track has no particle.
     sigma
-        Their standard deviations, the same shape (positive where measured).
+        Their standard deviations, the same shape; a frame counts where its position
+        and deviation are finite and the deviation positive on every axis.
     acceleration
         The acceleration noise ``q`` per axis ``(3,)`` (or one value): the standard
         deviation of a velocity's change over one frame, in position units per frame².
@@ -64,69 +73,37 @@ def smooth_states(measured: np.ndarray, sigma: np.ndarray, acceleration,
     Returns
     -------
     StateFit
-        Velocities in position units per frame (divide by the frame interval). Where the
-        residuals of all tracks together scatter more than the given deviations and the
-        acceleration noise say (the pooled reduced chi-square per axis above 1: the
-        fit's variances too small, or a flow that accelerates more than ``q``), the
-        standard deviations are scaled up by its square root (Birge's ratio).
+        Velocities in position units per frame (divide by the frame interval); NaN for
+        tracks with fewer than two frames. Where the residuals of all tracks together
+        scatter more than the given deviations and ``q`` say (the pooled reduced
+        chi-square per axis above 1: deviations stated too small, or a flow that
+        accelerates more than ``q``), the standard deviations are scaled up by its
+        square root (Birge's ratio).
     """
     q = np.broadcast_to(np.asarray(acceleration, float), (3,))
     if not np.all(np.isfinite(q) & (q > 0)):
         raise ValueError(f"the acceleration noise must be positive, got {acceleration!r}")
-    present = np.all(np.isfinite(measured), axis=2)
+    w, m = _weights(measured, sigma)
+    present = np.all(w > 0, axis=2)
+    pw, pm = _weights(prior, prior_sigma) if prior is not None else (np.zeros_like(w),) * 2
+    pw = np.where(_within_span(present)[..., None], pw, 0.0)  # a prior only where measured
+    rows = np.flatnonzero(present.sum(axis=1) >= 2)
     out = [np.full(measured.shape, np.nan) for _ in range(4)]
-    chi2, dof = np.zeros(3), np.zeros(3)
-    first, last = _spans(present)
-    for length in np.unique(last - first + 1):
-        rows = np.flatnonzero((last - first + 1 == length) & (length >= 2))
-        if len(rows):
-            c, d = _smooth_group(rows, first[rows], int(length), measured, sigma, q, prior,
-                                 prior_sigma, out)
-            chi2, dof = chi2 + c, dof + d
-    birge = np.sqrt(np.maximum(chi2 / np.maximum(dof, 1), 1.0))
-    for k, array in enumerate(out):
-        array[~present] = np.nan
-        if k >= 2:
-            array *= birge
+    birge = np.ones(3)
+    if len(rows):
+        states, variances, chi2 = _solve(w[rows], m[rows], pw[rows], pm[rows], q)
+        dof = np.sum((w[rows] > 0) + (pw[rows] > 0), axis=1) - 2     # (n, 3)
+        birge = np.sqrt(np.maximum(chi2.sum(axis=0) / np.maximum(dof.sum(axis=0), 1), 1.0))
+        for k, values in enumerate((states[..., 0], states[..., 1],
+                                    birge * np.sqrt(variances[..., 0]),
+                                    birge * np.sqrt(variances[..., 1]))):
+            out[k][rows] = np.where(present[rows, :, None], values, np.nan)
     return StateFit(*out, birge)
 
 
-def _spans(present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each track's first and last frame (-1 and -2 for a track without particles)."""
-    seen = present.any(axis=1)
-    first = np.where(seen, np.argmax(present, axis=1), -1)
-    last = np.where(seen, present.shape[1] - 1 - np.argmax(present[:, ::-1], axis=1), -2)
-    return first, last
-
-
-def _smooth_group(rows: np.ndarray, first: np.ndarray, length: int, measured, sigma,
-                  q: np.ndarray, prior, prior_sigma, out: list[np.ndarray]
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The tracks ``rows``, all spanning ``length`` frames from ``first``: one batched
-    solve of their ``2 length`` states per axis (into ``out``). Returns the group's
-    chi-square and degrees of freedom per axis."""
-    take = (rows[:, None], first[:, None] + np.arange(length))
-    w, m = _weights(measured[take], sigma[take])                       # (n, L, 3)
-    pw, pm = _weights(*((prior[take], prior_sigma[take]) if prior is not None
-                        else (np.full(w.shape, np.nan),) * 2))
-    normal = np.repeat(_dynamics(length)[None, None] / (q ** 2)[None, :, None, None],
-                       len(rows), axis=0)                                # (n, 3, 2L, 2L)
-    idx = np.arange(length)
-    normal[:, :, 2 * idx, 2 * idx] += np.moveaxis(w, 2, 1)
-    normal[:, :, 2 * idx + 1, 2 * idx + 1] += np.moveaxis(pw, 2, 1)
-    rhs = np.zeros(normal.shape[:3])
-    rhs[:, :, 0::2] = np.moveaxis(w * m, 2, 1)
-    rhs[:, :, 1::2] = np.moveaxis(pw * pm, 2, 1)
-    cov = np.linalg.inv(normal)
-    state = np.einsum("naij,naj->nai", cov, rhs)
-    var = np.diagonal(cov, axis1=2, axis2=3)
-    for k, values in enumerate((state[..., 0::2], state[..., 1::2],
-                                np.sqrt(var[..., 0::2]), np.sqrt(var[..., 1::2]))):
-        out[k][take] = np.moveaxis(values, 1, 2)
-    # At the optimum the weighted squared residuals are c - x·b (c: Σ w m², b: rhs).
-    chi2 = np.sum(w * m**2 + pw * pm**2, axis=1) - np.einsum("nai,nai->na", state, rhs)
-    dof = np.sum((w > 0) + (pw > 0), axis=1) - 2
-    return np.maximum(chi2, 0.0).sum(axis=0), dof.sum(axis=0).astype(float)
+def _within_span(present: np.ndarray) -> np.ndarray:
+    """Frames from each track's first measured frame to its last."""
+    return (np.cumsum(present, axis=1) > 0) & (np.cumsum(present[:, ::-1], axis=1) > 0)[:, ::-1]
 
 
 def _weights(values: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -137,14 +114,67 @@ def _weights(values: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndar
             np.where(ok, values, 0.0))
 
 
-def _dynamics(length: int) -> np.ndarray:
-    """The normal matrix ``(2L, 2L)`` of the state steps for a unit acceleration noise:
-    ``Dᵀ Q⁻¹ D`` with ``D`` the steps' residuals ``x_{j+1} - F x_j``."""
-    step_inv = np.linalg.inv(_STEP_COVARIANCE)
-    transition = np.array([[1.0, 1.0], [0.0, 1.0]])
-    normal = np.zeros((2 * length, 2 * length))
-    block = np.hstack([-transition, np.eye(2)])                     # (2, 4)
-    local = block.T @ step_inv @ block
-    for j in range(length - 1):
-        normal[2 * j:2 * j + 4, 2 * j:2 * j + 4] += local
-    return normal
+def _solve(w: np.ndarray, m: np.ndarray, pw: np.ndarray, pm: np.ndarray, q: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The least-squares states of tracks ``(n, frames, 3)`` (position and velocity
+    weights and values): states and their variances ``(n, frames, 3, 2)``, and the
+    chi-square per track and axis ``(n, 3)``."""
+    diagonal, upper = _blocks(w, pw, q)                  # (n, F, 3, 2, 2), (n, F-1, 3, 2, 2)
+    rhs = np.stack([w * m, pw * pm], axis=-1)            # (n, F, 3, 2)
+    pivots, forward = _eliminate(diagonal, upper, rhs)
+    states = _substitute(pivots, upper, forward)
+    variances = _selected_inverse(pivots, upper)
+    chi2 = np.sum(w * m**2 + pw * pm**2, axis=1) - np.einsum("nfak,nfak->na", states, rhs)
+    return states, variances, np.maximum(chi2, 0.0)
+
+
+def _blocks(w: np.ndarray, pw: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The normal matrix's diagonal and upper 2 x 2 blocks: each step's ``Dᵀ Q⁻¹ D``
+    (``D = [-F, I]`` the residual ``x_{j+1} - F x_j``) plus the measurements."""
+    n, frames, _ = w.shape
+    step = np.linalg.inv(STEP_COVARIANCE)[None] / (q**2)[:, None, None]  # (3, 2, 2)
+    before = np.einsum("ji,ajk,kl->ail", TRANSITION, step, TRANSITION)   # Fᵀ Q⁻¹ F
+    diagonal = np.zeros((n, frames, 3, 2, 2))
+    diagonal[:, :-1] += before
+    diagonal[:, 1:] += step
+    diagonal[..., 0, 0] += w
+    diagonal[..., 1, 1] += pw
+    upper = np.broadcast_to(-np.einsum("ji,ajk->aik", TRANSITION, step),
+                            (n, frames - 1, 3, 2, 2))                    # -Fᵀ Q⁻¹
+    return diagonal, upper
+
+
+def _eliminate(diagonal: np.ndarray, upper: np.ndarray, rhs: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Block forward elimination: the pivots' inverses ``D_j⁻¹`` and the eliminated
+    right-hand sides."""
+    inverse = np.empty_like(diagonal)
+    forward = np.empty_like(rhs)
+    inverse[:, 0], forward[:, 0] = np.linalg.inv(diagonal[:, 0]), rhs[:, 0]
+    for j in range(1, diagonal.shape[1]):
+        lower = np.swapaxes(upper[:, j - 1], -1, -2) @ inverse[:, j - 1]  # Bᵀ D⁻¹
+        inverse[:, j] = np.linalg.inv(diagonal[:, j] - lower @ upper[:, j - 1])
+        forward[:, j] = rhs[:, j] - np.einsum("naij,naj->nai", lower, forward[:, j - 1])
+    return inverse, forward
+
+
+def _substitute(inverse: np.ndarray, upper: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Block back substitution: the states."""
+    states = np.empty_like(forward)
+    states[:, -1] = np.einsum("naij,naj->nai", inverse[:, -1], forward[:, -1])
+    for j in range(forward.shape[1] - 2, -1, -1):
+        rest = forward[:, j] - np.einsum("naij,naj->nai", upper[:, j], states[:, j + 1])
+        states[:, j] = np.einsum("naij,naj->nai", inverse[:, j], rest)
+    return states
+
+
+def _selected_inverse(inverse: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The diagonal blocks of the normal matrix's inverse (the states' covariances),
+    from the elimination's factors: ``Σ_j = D_j⁻¹ + G_j Σ_{j+1} G_jᵀ``, ``G_j = D_j⁻¹
+    B_j``; their diagonals ``(n, frames, 3, 2)``."""
+    cov = np.empty_like(inverse)
+    cov[:, -1] = inverse[:, -1]
+    for j in range(inverse.shape[1] - 2, -1, -1):
+        gain = inverse[:, j] @ upper[:, j]
+        cov[:, j] = inverse[:, j] + gain @ cov[:, j + 1] @ np.swapaxes(gain, -1, -2)
+    return np.diagonal(cov, axis1=-2, axis2=-1)
