@@ -70,11 +70,12 @@ class TrackSettings:
     gap
         Frames a track may miss (a particle the reconstruction lost) and continue.
     window
-        Frames of each local polynomial fit along a track (odd, >= 3).
+        Frames of each local polynomial fit along a track (odd, >= 3): their velocities
+        make the neighbours' prior (docs/design.md §7.3).
     degree
-        The polynomial's degree (0-3): 1, a straight line over ``window`` frames, is
-        the default (measured, docs/design.md §7.3); 2 gives accelerations, for
-        particles that accelerate noticeably within ``window`` frames.
+        The local polynomials' degree (0-3; 1, a straight line over ``window`` frames,
+        measured). The tracks' positions, velocities and accelerations come from the
+        state-space smoother whatever the degree.
     refits
         Times every tracked particle is fitted to its raw image again, starting from its
         smoothed track, and the tracks smoothed again (needs ``image_fit``).
@@ -230,15 +231,15 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
     """Tracks from their measured positions, smoothed as :func:`track` smooths them
     (docs/design.md §7.3).
 
-    Local polynomial fits along each track (``settings.window``, ``.degree``) give its
-    accelerations and first velocities; with ``settings.neighbours`` the neighbouring
+    Local polynomial fits along each track (``settings.window``, ``.degree``) give
+    first velocities; with ``settings.neighbours`` the neighbouring
     tracks' local linear field of those velocities is each track's depth velocity
     prior (:func:`plenocl.ptv.neighbour_velocity`, each neighbour weighted by its
     variance plus the focal zone's systematic depth term,
     :meth:`~plenocl.piv.tracking.FocalZone.ambiguity`);
     the constant-velocity state-space smoother (:func:`plenocl.ptv.smooth_states`,
     acceleration noise ``settings.acceleration`` voxels per frame²) then gives the
-    positions and velocities.
+    positions, velocities and accelerations (the velocities' central differences).
 
     Parameters
     ----------
@@ -269,8 +270,8 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
         prior, prior_sigma = _depth_prior(poly, projector, settings.neighbours)
     fit = smooth_states(measured, sigma, settings.acceleration * voxel, prior, prior_sigma)
     return Tracks(fit.positions, measured, sigma, intensity, fit.velocities / dt,
-                  poly.accelerations / dt**2, fit.position_sigma, fit.velocity_sigma / dt,
-                  poly.acceleration_sigma / dt**2, dt)
+                  fit.accelerations / dt**2, fit.position_sigma, fit.velocity_sigma / dt,
+                  fit.acceleration_sigma / dt**2, dt)
 
 
 def _depth_prior(poly: TrackFit, projector: ProjectionOperator, neighbours: int

@@ -39,14 +39,17 @@ TRANSITION = np.array([[1.0, 1.0], [0.0, 1.0]])
 @dataclass(frozen=True)
 class StateFit:
     """What :func:`smooth_states` gives, each ``(n_tracks, n_frames, 3)`` and NaN where
-    the track has no particle: positions and velocities (per frame) and their standard
-    deviations; ``birge`` ``(3,)``, the factor per axis by which those deviations were
-    scaled up (the fit's pooled reduced chi-square's root, at least 1)."""
+    the track has no particle: positions, velocities (per frame) and accelerations (per
+    frame², the velocities' central differences, one-sided at a track's ends) and their
+    standard deviations; ``birge`` ``(3,)``, the factor per axis by which those
+    deviations were scaled up (the fit's pooled reduced chi-square's root, at least 1)."""
 
     positions: np.ndarray
     velocities: np.ndarray
+    accelerations: np.ndarray
     position_sigma: np.ndarray
     velocity_sigma: np.ndarray
+    acceleration_sigma: np.ndarray
     birge: np.ndarray
 
 
@@ -88,17 +91,45 @@ def smooth_states(measured: np.ndarray, sigma: np.ndarray, acceleration: float |
     pw, pm = _weights(prior, prior_sigma) if prior is not None else (np.zeros_like(w),) * 2
     pw = np.where(_within_span(present)[..., None], pw, 0.0)  # a prior only where measured
     rows = np.flatnonzero(present.sum(axis=1) >= 2)
-    out = [np.full(measured.shape, np.nan) for _ in range(4)]
+    out = [np.full(measured.shape, np.nan) for _ in range(6)]
     birge = np.ones(3)
     if len(rows):
-        states, variances, chi2 = _solve(w[rows], m[rows], pw[rows], pm[rows], q)
+        states, cov, chi2 = _solve(w[rows], m[rows], pw[rows], pm[rows], q)
         dof = np.sum((w[rows] > 0) + (pw[rows] > 0), axis=1) - 2     # (n, 3)
         birge = np.sqrt(np.maximum(chi2.sum(axis=0) / np.maximum(dof.sum(axis=0), 1), 1.0))
-        for k, values in enumerate((states[..., 0], states[..., 1],
-                                    birge * np.sqrt(variances[..., 0]),
-                                    birge * np.sqrt(variances[..., 1]))):
-            out[k][rows] = np.where(present[rows, :, None], values, np.nan)
+        accel, accel_var = _accelerations(states[..., 1], cov, _within_span(present[rows]))
+        for k, values in enumerate((states[..., 0], states[..., 1], accel,
+                                    np.sqrt(cov[0][..., 0, 0]), np.sqrt(cov[0][..., 1, 1]),
+                                    np.sqrt(accel_var))):
+            out[k][rows] = np.where(present[rows, :, None], values * (birge if k > 2 else 1),
+                                    np.nan)
     return StateFit(*out, birge)
+
+
+def _accelerations(velocity: np.ndarray, cov: tuple, span: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Accelerations ``(n, frames, 3)`` per frame² as the smoothed velocities' central
+    differences (one-sided at a track's first and last frame) and their variances,
+    from the states' covariances (``cov``: the diagonal blocks and those one and two
+    frames apart)."""
+    diagonal, lag1, lag2 = (c[..., 1, 1] for c in cov)
+    nan = np.full(velocity[:, :1].shape, np.nan)
+    central = np.concatenate([nan, (velocity[:, 2:] - velocity[:, :-2]) / 2, nan], axis=1)
+    central_var = np.concatenate(
+        [nan, (diagonal[:, 2:] + diagonal[:, :-2] - 2 * lag2) / 4, nan], axis=1)
+    step = velocity[:, 1:] - velocity[:, :-1]
+    step_var = diagonal[:, 1:] + diagonal[:, :-1] - 2 * lag1
+    forward = np.concatenate([step, nan], axis=1)
+    forward_var = np.concatenate([step_var, nan], axis=1)
+    backward = np.concatenate([nan, step], axis=1)
+    backward_var = np.concatenate([nan, step_var], axis=1)
+    inside = np.zeros_like(span)
+    inside[:, 1:-1] = span[:, :-2] & span[:, 2:]
+    first = span & ~np.concatenate([np.zeros_like(span[:, :1]), span[:, :-1]], axis=1)
+    inside, first = inside[..., None], first[..., None]
+    accel = np.where(inside, central, np.where(first, forward, backward))
+    var = np.where(inside, central_var, np.where(first, forward_var, backward_var))
+    return accel, np.maximum(var, 0.0)
 
 
 def _within_span(present: np.ndarray) -> np.ndarray:
@@ -115,17 +146,17 @@ def _weights(values: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _solve(w: np.ndarray, m: np.ndarray, pw: np.ndarray, pm: np.ndarray, q: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           ) -> tuple[np.ndarray, tuple, np.ndarray]:
     """The least-squares states of tracks ``(n, frames, 3)`` (position and velocity
-    weights and values): states and their variances ``(n, frames, 3, 2)``, and the
-    chi-square per track and axis ``(n, 3)``."""
+    weights and values): states ``(n, frames, 3, 2)``, their covariance blocks (see
+    :func:`_selected_inverse`), and the chi-square per track and axis ``(n, 3)``."""
     diagonal, upper = _blocks(w, pw, q)                  # (n, F, 3, 2, 2), (n, F-1, 3, 2, 2)
     rhs = np.stack([w * m, pw * pm], axis=-1)            # (n, F, 3, 2)
     pivots, forward = _eliminate(diagonal, upper, rhs)
     states = _substitute(pivots, upper, forward)
-    variances = _selected_inverse(pivots, upper)
+    cov = _selected_inverse(pivots, upper)
     chi2 = np.sum(w * m**2 + pw * pm**2, axis=1) - np.einsum("nfak,nfak->na", states, rhs)
-    return states, variances, np.maximum(chi2, 0.0)
+    return states, cov, np.maximum(chi2, 0.0)
 
 
 def _blocks(w: np.ndarray, pw: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -168,13 +199,21 @@ def _substitute(inverse: np.ndarray, upper: np.ndarray, forward: np.ndarray) -> 
     return states
 
 
-def _selected_inverse(inverse: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """The diagonal blocks of the normal matrix's inverse (the states' covariances),
-    from the elimination's factors: ``Σ_j = D_j⁻¹ + G_j Σ_{j+1} G_jᵀ``, ``G_j = D_j⁻¹
-    B_j``; their diagonals ``(n, frames, 3, 2)``."""
+def _selected_inverse(inverse: np.ndarray, upper: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The blocks of the normal matrix's inverse (the states' covariances) on its
+    diagonal and one and two frames off it, from the elimination's factors:
+    ``Σ_j = D_j⁻¹ + G_j Σ_{j+1} G_jᵀ`` and ``Σ_{j,j+k} = -G_j Σ_{j+1,j+k}`` with
+    ``G_j = D_j⁻¹ B_j``; ``(n, frames [- 1, - 2], 3, 2, 2)``."""
+    frames = inverse.shape[1]
     cov = np.empty_like(inverse)
+    lag1 = np.empty_like(inverse[:, :-1])
+    lag2 = np.empty_like(inverse[:, :max(frames - 2, 0)])
     cov[:, -1] = inverse[:, -1]
-    for j in range(inverse.shape[1] - 2, -1, -1):
+    for j in range(frames - 2, -1, -1):
         gain = inverse[:, j] @ upper[:, j]
+        lag1[:, j] = -gain @ cov[:, j + 1]
+        if j + 2 < frames:
+            lag2[:, j] = -gain @ lag1[:, j + 1]
         cov[:, j] = inverse[:, j] + gain @ cov[:, j + 1] @ np.swapaxes(gain, -1, -2)
-    return np.diagonal(cov, axis1=-2, axis2=-1)
+    return cov, lag1, lag2

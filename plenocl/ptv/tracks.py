@@ -35,8 +35,8 @@ class Tracks:
     intensities
         Each particle's intensity (image units), ``(n_tracks, n_frames)``.
     velocities, accelerations
-        The smoother's velocities and the local polynomials' accelerations (NaN where
-        the track is too short, or with polynomials of degree 1).
+        The smoother's first and second derivatives (NaN where the track is too
+        short).
     position_sigma, velocity_sigma, acceleration_sigma
         Their standard deviations.
     dt

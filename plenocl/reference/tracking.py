@@ -57,9 +57,10 @@ def smooth_states_reference(measured: np.ndarray, sigma: np.ndarray, acceleratio
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`plenocl.ptv.smooth_states` one track and axis at a time, as a dense
     least-squares problem written row by row (without its Birge scaling): positions,
-    velocities and their standard deviations, NaN where a track has no particle."""
+    velocities, accelerations (the velocities' central differences, one-sided at the
+    track's ends) and their standard deviations, NaN where a track has no particle."""
     q = np.broadcast_to(np.asarray(acceleration, float), (3,))
-    out = [np.full(measured.shape, np.nan) for _ in range(4)]
+    out = [np.full(measured.shape, np.nan) for _ in range(6)]
     step = np.linalg.cholesky(np.linalg.inv(np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]]))).T
     for i in range(measured.shape[0]):
         seen = np.flatnonzero(np.all(np.isfinite(measured[i]), axis=1))
@@ -83,11 +84,24 @@ def smooth_states_reference(measured: np.ndarray, sigma: np.ndarray, acceleratio
             a, b = np.array(rows), np.array(rhs)
             cov = np.linalg.inv(a.T @ a)
             x = cov @ a.T @ b
+            accel, accel_sd = _differences(x[1::2], cov[1::2, 1::2])
             keep = np.isfinite(measured[i, span, axis])
-            for k, values in enumerate((x[0::2], x[1::2], np.sqrt(np.diag(cov)[0::2]),
-                                        np.sqrt(np.diag(cov)[1::2]))):
+            for k, values in enumerate((x[0::2], x[1::2], accel, np.sqrt(np.diag(cov)[0::2]),
+                                        np.sqrt(np.diag(cov)[1::2]), accel_sd)):
                 out[k][i, span[keep], axis] = values[keep]
     return tuple(out)
+
+
+def _differences(v: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences of ``v`` (one-sided at its ends) and their standard
+    deviations from ``v``'s covariance ``cov``."""
+    accel, sd = np.empty(len(v)), np.empty(len(v))
+    for j in range(len(v)):
+        lo, hi = max(j - 1, 0), min(j + 1, len(v) - 1)
+        c = np.zeros(len(v))
+        c[hi], c[lo] = 1.0 / (hi - lo), -1.0 / (hi - lo)
+        accel[j], sd[j] = c @ v, np.sqrt(c @ cov @ c)
+    return accel, sd
 
 
 def _row(rows: list, rhs: list, column: int, length: int, value: float, sd: float) -> None:
