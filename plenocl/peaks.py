@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 __all__ = ["find_particles", "gaussian_subpixel"]
 
@@ -81,3 +82,43 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
         out[:, k] = pos[k] + gaussian_subpixel(minus, vals, plus)
     order = np.argsort(-vals)
     return out[order], vals[order]
+
+
+def merge_close(index: np.ndarray, intensities: np.ndarray, radius
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Which particles to keep when several lie within ``radius`` of each other: one
+    particle seen twice (two peaks of its depth-elongated image in a volume, each
+    fitted to the same raw image).
+
+    Greedy from the brightest: a particle keeps every not yet merged one within the
+    ellipsoid ``radius`` ``(x, y, z)`` around it (in the units of ``index``, e.g.
+    voxels) and takes its intensity.
+
+    Parameters
+    ----------
+    index
+        Positions ``(N, 3)`` as ``(x, y, z)``.
+    intensities
+        ``(N,)``.
+    radius
+        ``(x, y, z)`` half-axes; a zero on any axis merges nothing.
+
+    Returns
+    -------
+    keep, merged
+        The particles kept ``(N,)`` (bool) and every particle's intensity with those
+        it took (``(N,)``; meaningful where kept).
+    """
+    radius = np.asarray(radius, float)
+    merged = np.asarray(intensities, float).copy()
+    keep = np.ones(len(index), bool)
+    if len(index) < 2 or np.any(radius <= 0):
+        return keep, merged
+    scaled = np.asarray(index, float) / radius
+    tree = cKDTree(scaled)
+    for i in np.argsort(-merged, kind="stable"):
+        if keep[i]:
+            near = [j for j in tree.query_ball_point(scaled[i], 1.0) if j != i and keep[j]]
+            keep[near] = False
+            merged[i] += merged[near].sum()
+    return keep, merged

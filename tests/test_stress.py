@@ -826,6 +826,8 @@ INVALID = [
      "TrackSettings.acceleration must be a positive number"),
     ("track-neighbours", lambda c: TrackSettings(neighbours=3), ValueError,
      "TrackSettings.neighbours must be 0"),
+    ("track-merge", lambda c: TrackSettings(merge=(0.7, 0.7)), ValueError,
+     "TrackSettings.merge must be three distances"),
     # calibrate
     ("calibrate-blank", _cal(lambda c: np.zeros((70, 70))), ValueError, "white image is blank"),
     ("calibrate-noise", _cal(lambda c: np.random.default_rng(0).random((70, 70))), ValueError,

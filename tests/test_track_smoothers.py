@@ -233,3 +233,19 @@ def test_state_smoother_accelerations_follow_a_constantly_accelerating_particle(
                                rtol=0.05)
     np.testing.assert_allclose(fit.velocities[0, 2:-2], (a * t + v0)[2:-2], atol=0.005)
     assert np.all(fit.acceleration_sigma[0, 0] > fit.acceleration_sigma[0, 4])
+
+
+def test_particles_seen_twice_merge_into_the_brightest_and_distinct_ones_stay():
+    from plenocl.peaks import merge_close
+
+    index = np.array([[10.0, 10.0, 50.0],    # a particle
+                      [10.3, 9.8, 54.0],     # seen again 4 voxels deeper: merged
+                      [10.2, 10.5, 59.0],    # within the second's reach, not the first's
+                      [11.0, 10.0, 50.0],    # one voxel aside: another particle
+                      [30.0, 30.0, 20.0]])
+    intensity = np.array([5.0, 3.0, 2.0, 4.0, 1.0])
+    keep, merged = merge_close(index, intensity, (0.7, 0.7, 6.0))
+    np.testing.assert_array_equal(keep, [True, False, True, True, True])
+    assert merged[0] == 8.0 and merged[2] == 2.0 and merged[3] == 4.0
+    keep, merged = merge_close(index, intensity, (0.7, 0.7, 0.0))
+    assert keep.all() and np.array_equal(merged, intensity)

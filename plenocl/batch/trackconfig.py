@@ -11,7 +11,7 @@ Example::
     frame_interval_s = 1e-3              # between successive frames (s)
     min_length = 4                       # any TrackSettings option: threshold, search,
     window = 7                           # gap, window, degree, refits, min_length,
-    neighbours = 12                      # acceleration, neighbours
+    neighbours = 12                      # acceleration, neighbours, merge
     field_window = 16                    # the binned field's windows (voxels, or
                                          # [z, y, x]; 16 or the grid's size where smaller)
     field_step = 8                       # their spacing (default: half a window)

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..grid import Grid
 from ..options import with_keywords
-from ..peaks import find_particles
+from ..peaks import find_particles, merge_close
 from ..piv import PIVSettings, piv3d
 from ..piv.imagefit import ImageFit, ImageFitSettings
 from ..piv.tracking import (
@@ -40,6 +40,10 @@ from ..vectorfield import PIVResult
 #: Standard deviation (x, y, z voxels) of a volume's peak without the image fit: the
 #: reconstruction draws particles up to about a voxel towards the focal plane.
 PEAK_SIGMA_VOXELS = (0.1, 0.1, 1.0)
+#: Fitted particles of one frame closer than this ``(x, y, z)`` voxels are one particle
+#: seen twice (docs/design.md §7.3): about 0.7 of the paper optics' lateral and depth
+#: resolution (one microlens, 8.6 voxels).
+MERGE = (0.7, 0.7, 6.0)
 #: Below this share of a step's particles linked, the step is reported (a warning).
 LINKED_FLOOR = 0.2
 
@@ -84,6 +88,10 @@ class TrackSettings:
     acceleration
         The state-space smoother's acceleration noise (voxels per frame², per axis): the
         standard deviation of a particle's change of velocity over one frame.
+    merge
+        Fitted particles of one frame within this ellipsoid ``(x, y, z)`` voxels of a
+        brighter one are that particle seen twice (two peaks of its depth-elongated
+        image), merged into it; ``(0, 0, 0)``: none merged.
     neighbours
         Tracks whose local linear velocity field is each track's depth velocity prior
         (more than 4; 0: none). Near the focal plane a particle's own images barely
@@ -102,14 +110,12 @@ class TrackSettings:
     min_length: int = 4
     acceleration: float = 0.05
     neighbours: int = 12
+    merge: tuple[float, float, float] = MERGE
 
     def __post_init__(self) -> None:
         if isinstance(self.image_fit, bool):
             object.__setattr__(self, "image_fit", ImageFitSettings() if self.image_fit else None)
-        object.__setattr__(self, "search", tuple(float(s) for s in self.search))
-        if len(self.search) != 3 or not all(np.isfinite(s) and s > 0 for s in self.search):
-            raise ValueError(f"TrackSettings.search must be three positive distances "
-                             f"(x, y, z voxels), got {self.search}")
+        self._check_distances()
         if not 0 < self.threshold < 1:
             raise ValueError(f"TrackSettings.threshold must lie between 0 and 1 (a fraction "
                              f"of the volume's bright level), got {self.threshold}")
@@ -125,6 +131,17 @@ class TrackSettings:
             raise ValueError(f"TrackSettings.window must be an odd number of frames >= 3 and "
                              f"degree 0-3, got window={self.window}, degree={self.degree}")
         self._check_smoother()
+
+    def _check_distances(self) -> None:
+        """The search range and the merge radius as three floats, or refused."""
+        object.__setattr__(self, "search", tuple(float(s) for s in self.search))
+        object.__setattr__(self, "merge", tuple(float(s) for s in self.merge))
+        if len(self.search) != 3 or not all(np.isfinite(s) and s > 0 for s in self.search):
+            raise ValueError(f"TrackSettings.search must be three positive distances "
+                             f"(x, y, z voxels), got {self.search}")
+        if len(self.merge) != 3 or not all(np.isfinite(s) and s >= 0 for s in self.merge):
+            raise ValueError(f"TrackSettings.merge must be three distances >= 0 (x, y, z "
+                             f"voxels; 0 merges nothing), got {self.merge}")
 
     def _check_smoother(self) -> None:
         """Refuse a state-space smoother that cannot run."""
@@ -333,8 +350,10 @@ def _particles(raw, vol: np.ndarray, info, projector, settings: TrackSettings
                               np.ones(len(peaks)))
     known = None if info.background is None else (info.background, info.noise)
     fitted = _image_fit(raw, known, projector, settings).fit(0, grid.from_index(peaks))
-    return FrameParticles(fitted.positions, grid.to_index(fitted.positions), fitted.sigma,
-                          fitted.intensities, known)
+    index = grid.to_index(fitted.positions)
+    keep, intensities = merge_close(index, fitted.intensities, settings.merge)
+    return FrameParticles(fitted.positions[keep], index[keep], fitted.sigma[keep],
+                          intensities[keep], known)
 
 
 def _gather(table: np.ndarray, particles: list[FrameParticles]):
