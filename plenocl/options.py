@@ -12,6 +12,13 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 
+import numpy as np
+
+
+def is_integer(value) -> bool:
+    """An integer (Python's or NumPy's), and not a bool: what a count option takes."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
 
 def field_names(cls) -> list[str]:
     """The fields of a settings dataclass, in order."""

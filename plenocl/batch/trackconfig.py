@@ -32,9 +32,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
-
-from ..options import field_names, from_table, to_table
+from ..options import field_names, from_table, is_integer, to_table
 from ..pipeline.settings import PairSettings
 from ..pipeline.track import TrackSettings
 from ..units import check_dt
@@ -204,6 +202,6 @@ def _voxels(value, key: str, where: str) -> tuple[int, int, int] | None:
 
 
 def _count(value, key: str, least: int, where: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+    if not is_integer(value) or value < least:
         raise ValueError(f"{where} {key} must be an integer >= {least}, got {value!r}")
     return int(value)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..grid import Grid
-from ..options import with_keywords
+from ..options import is_integer, with_keywords
 from ..peaks import find_particles, merge_close
 from ..piv import PIVSettings, piv3d
 from ..piv.imagefit import ImageFit, ImageFitSettings
@@ -149,8 +149,7 @@ class TrackSettings:
             raise ValueError(f"TrackSettings.acceleration must be a positive number (voxels "
                              f"per frame squared), got {self.acceleration!r}")
         n = self.neighbours
-        whole = isinstance(n, (int, np.integer)) and not isinstance(n, bool)
-        if not whole or not (n == 0 or n > 4):
+        if not is_integer(n) or not (n == 0 or n > 4):
             raise ValueError(f"TrackSettings.neighbours must be 0 (no velocity prior) or an "
                              f"integer above 4 (a local linear field), got {n!r}")
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..options import is_integer
 from .fft import BACKENDS
 
 CORRELATIONS = ("auto", "fft")
@@ -75,17 +76,13 @@ def _check(s: PIVSettings) -> None:
     _check_counts(s)
 
 
-def _is_int(value) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
-
-
 def _check_counts(s: PIVSettings) -> None:
     """The counts and the FFT backend, checked when the settings are made (a batch's
     experiment file is refused before any pair, not in every worker)."""
-    if not _is_int(s.final_iterations) or s.final_iterations < 0:
+    if not is_integer(s.final_iterations) or s.final_iterations < 0:
         raise ValueError(f"final_iterations must be a non-negative integer (extra passes "
                          f"at the final window), got {s.final_iterations!r}")
-    if not _is_int(s.workers) or not (s.workers == -1 or s.workers >= 1):
+    if not is_integer(s.workers) or not (s.workers == -1 or s.workers >= 1):
         raise ValueError(f"workers must be -1 (all cores) or a positive integer, got "
                          f"{s.workers!r}")
     if s.fft is not None and s.fft not in BACKENDS:

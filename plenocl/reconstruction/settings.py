@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..options import is_integer
 from .supersample import MAX_SUPERSAMPLE
 
 METHODS = ("mlem", "smart", "mart")
@@ -103,7 +104,7 @@ class ReconstructionSettings:
     early_oversample: float | None = EARLY_OVERSAMPLE
 
     def __post_init__(self) -> None:
-        fine = _is_int(self.supersample) and self.supersample > 1
+        fine = is_integer(self.supersample) and self.supersample > 1
         if self.coarse_iterations is None:
             object.__setattr__(self, "coarse_iterations", COARSE_ITERATIONS if fine else 0)
         if fine and self.coarse_iterations and self.method == "mlem":
@@ -130,11 +131,6 @@ class ReconstructionSettings:
         return self.mart_blocks**2 if self.method == "mart" and self.mart_blocks > 1 else 1
 
 
-def _is_int(value) -> bool:
-    """An integer, and not a bool."""
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
-
 def _check_options(s: ReconstructionSettings) -> None:
     if s.threshold is not None and not np.isfinite(s.threshold):
         raise ValueError(f"threshold must be a finite number (image units) or None (from the "
@@ -151,7 +147,7 @@ def _check_options(s: ReconstructionSettings) -> None:
     _check_relax(s.method, s.relax)
     if s.mask_fraction is not None and not 0 <= s.mask_fraction <= 1:
         raise ValueError(f"mask_fraction must be in [0, 1] or None, got {s.mask_fraction!r}")
-    if not _is_int(s.supersample) or not 1 <= s.supersample <= MAX_SUPERSAMPLE:
+    if not is_integer(s.supersample) or not 1 <= s.supersample <= MAX_SUPERSAMPLE:
         raise ValueError(f"supersample must be an integer from 1 to {MAX_SUPERSAMPLE} (lateral "
                          f"sub-voxels per voxel and axis), got {s.supersample!r}")
     if (int(s.coarse_iterations) != s.coarse_iterations or s.coarse_iterations < 0
