@@ -33,7 +33,7 @@ from ..piv.tracking import (
     window_means,
 )
 from ..piv.validation import normalized_median_test, replace_outliers
-from ..ptv import TrackFit, Tracks, link, neighbour_velocity, smooth, smooth_states
+from ..ptv import Tracks, link, neighbour_velocity, smooth, smooth_states
 from ..reconstruction import ProjectionOperator, ReconstructionSettings, run_reconstruction
 from ..vectorfield import PIVResult
 
@@ -247,8 +247,8 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
     """Tracks from their measured positions, smoothed as :func:`track` smooths them
     (docs/design.md §7.3).
 
-    Local polynomial fits along each track (``settings.window``, ``.degree``) give
-    first velocities; with ``settings.neighbours`` the neighbouring
+    With ``settings.neighbours``, local polynomial fits along each track
+    (``settings.window``, ``.degree``) give first velocities, and the neighbouring
     tracks' local linear field of those velocities is each track's depth velocity
     prior (:func:`plenocl.ptv.neighbour_velocity`, each neighbour weighted by its
     variance plus the focal zone's systematic depth term,
@@ -278,36 +278,34 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
         intensities as given.
     """
     settings = settings or TrackSettings()
-    grid = projector.grid
-    voxel = np.asarray(grid.spacing[::-1])
-    poly = smooth(measured, sigma, 1.0, settings.window, settings.degree)
+    voxel = np.asarray(projector.grid.spacing[::-1])
     prior = prior_sigma = None
     if settings.neighbours:
-        prior, prior_sigma = _depth_prior(poly, projector, settings.neighbours)
+        prior, prior_sigma = _depth_prior(measured, sigma, projector, settings)
     fit = smooth_states(measured, sigma, settings.acceleration * voxel, prior, prior_sigma)
     return Tracks(fit.positions, measured, sigma, intensity, fit.velocities / dt,
                   fit.accelerations / dt**2, fit.position_sigma, fit.velocity_sigma / dt,
                   fit.acceleration_sigma / dt**2, dt)
 
 
-def _depth_prior(poly: TrackFit, projector: ProjectionOperator, neighbours: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _depth_prior(measured: np.ndarray, sigma: np.ndarray, projector: ProjectionOperator,
+                 settings: TrackSettings) -> tuple[np.ndarray, np.ndarray]:
     """Each track's depth velocity (per frame) from its neighbours' local linear field
     of the local lines' velocities, each neighbour weighted by its line's variance plus
     the focal zone's systematic depth term (a neighbour near the focal plane counts
     little); no lateral prior (NaN): laterally a track's own frames decide."""
+    poly = smooth(measured, sigma, 1.0, settings.window, settings.degree)
     grid = projector.grid
     voxel = np.asarray(grid.spacing[::-1])
     depth = grid.to_index(np.nan_to_num(poly.positions).reshape(-1, 3))[:, 2]
     bias = FocalZone.of(projector.camera, grid).ambiguity(depth) * voxel[2]
     own = np.hypot(poly.velocity_sigma[..., 2:], bias.reshape(poly.positions.shape[:2] + (1,)))
     z, z_sigma = neighbour_velocity(poly.positions, poly.velocities[..., 2:], own, voxel,
-                                    neighbours)
+                                    settings.neighbours)
     prior = np.full(poly.velocities.shape, np.nan)
     prior_sigma = np.full(poly.velocities.shape, np.nan)
     prior[..., 2:], prior_sigma[..., 2:] = z, z_sigma
     return prior, prior_sigma
-
 
 
 def _image_fit(raw, background, projector, settings: TrackSettings) -> ImageFit:

@@ -89,7 +89,8 @@ def smooth_states(measured: np.ndarray, sigma: np.ndarray, acceleration: float |
     w, m = _weights(measured, sigma)
     present = np.all(w > 0, axis=2)
     pw, pm = _weights(prior, prior_sigma) if prior is not None else (np.zeros_like(w),) * 2
-    pw = np.where(_within_span(present)[..., None], pw, 0.0)  # a prior only where measured
+    span = _within_span(present)
+    pw = np.where(span[..., None], pw, 0.0)  # a prior only where measured
     rows = np.flatnonzero(present.sum(axis=1) >= 2)
     out = [np.full(measured.shape, np.nan) for _ in range(6)]
     birge = np.ones(3)
@@ -97,7 +98,7 @@ def smooth_states(measured: np.ndarray, sigma: np.ndarray, acceleration: float |
         states, cov, chi2 = _solve(w[rows], m[rows], pw[rows], pm[rows], q)
         dof = np.sum((w[rows] > 0) + (pw[rows] > 0), axis=1) - 2     # (n, 3)
         birge = np.sqrt(np.maximum(chi2.sum(axis=0) / np.maximum(dof.sum(axis=0), 1), 1.0))
-        accel, accel_var = _accelerations(states[..., 1], cov, _within_span(present[rows]))
+        accel, accel_var = _accelerations(states[..., 1], cov, span[rows])
         for k, values in enumerate((states[..., 0], states[..., 1], accel,
                                     np.sqrt(cov[0][..., 0, 0]), np.sqrt(cov[0][..., 1, 1]),
                                     np.sqrt(accel_var))):
