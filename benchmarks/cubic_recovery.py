@@ -4,7 +4,7 @@ MLEM on 3 x 3 lateral sub-voxels per voxel), against the single-frame reconstruc
 the voxels themselves (``supersample=1``, ``reconstruct()``'s default before issue 28)
 and other sub-voxel schedules, on the same unseen scenes in the same run.
 
-    python benchmarks/cubic_recovery.py [--scenes 6] [--counts 20 60]
+    python benchmarks/cubic_recovery.py [--scenes 6] [--counts 20 60] [--fine 10 15 20 30]
 
 Camera: the 850 x 850 px synthetic camera (50 x 50 microlenses, M = 1, f/2); grid: the
 5 mm cube on 40^3 cubic voxels (0.125 mm: one microlens laterally, a quarter of the
@@ -51,7 +51,11 @@ def main() -> None:
     parser = script_parser(__doc__)
     parser.add_argument("--scenes", type=int, default=6)
     parser.add_argument("--counts", type=int, nargs="+", default=[20, 60])
+    parser.add_argument("--fine", type=int, nargs="*", default=[],
+                        help="also the default schedule with these many fine iterations")
     args = parser.parse_args()
+    settings = {**SETTINGS, **{f"default with {n} fine iterations":
+                               ReconstructionSettings(iterations=n) for n in args.fine}}
     queue = get_queue()
     cam = Camera.synthetic_850()
     proj = Projector(cam, CUBIC, queue)
@@ -60,12 +64,12 @@ def main() -> None:
     print(f"{'particles':>9s} {'reconstruction':36s} {'recovered':>9s} {'min':>5s} "
           f"{'ghosts':>6s} {'Q':>5s} {'s':>5s}")
     for count in args.counts:
-        stats = {label: [] for label in SETTINGS}
+        stats = {label: [] for label in settings}
         for k in range(args.scenes):
             pos, inten, img = particle_scene(cam, count, 1000 + k, blur_px=1.0, queue=queue)
             truth = render_particles(CUBIC, pos, inten)
-            for label, settings in SETTINGS.items():
-                vol, t = timed(functools.partial(reconstruct, img, proj, settings=settings), 1)
+            for label, chosen in settings.items():
+                vol, t = timed(functools.partial(reconstruct, img, proj, settings=chosen), 1)
                 rep = recovery(vol, CUBIC, pos)
                 stats[label].append((rep.fraction, rep.ghost_fraction, quality_q(vol, truth),
                                      t))
