@@ -1,9 +1,10 @@
 """``plenocl run experiment.toml``: every pair of an experiment, resumable, on this
 machine or a Dask cluster (docs/batch.md).
 
-The run checks the experiment file, calibrates the camera if a white image is given, and
-writes the configuration used (``experiment_used.toml``, a record with every pair setting
-resolved; ``camera_used.toml``, ``grid_used.toml``) before any pair. The pairs' settings
+The run checks the experiment file and that its output folder can be written in,
+calibrates the camera if a white image is given, and writes the configuration used
+(``experiment_used.toml``, a record with every pair setting resolved;
+``camera_used.toml``, ``grid_used.toml``) before any pair. The pairs' settings
 go to the workers as an object (:class:`~.worker.RunSettings`). Each pair's vector field
 goes atomically to ``OUT/pairs/pair_NNNNN.npz`` (and ``.vti`` on request): a rerun skips
 the pairs already there and says so; a pair that fails (unreadable, wrong size, NaN) is
@@ -27,6 +28,7 @@ from pathlib import Path
 
 from ..io.atomic import write_json
 from ..io.fields import field_metadata
+from ..io.outputs import check_output_folder
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..options import NONE
@@ -105,7 +107,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
         the tracking run's frames, tracks and stages run or skipped.
     """
     exp = load_experiment(config)
-    out = Path(out) if out is not None else exp.base / exp["output"]["folder"]
+    out = check_output_folder(out if out is not None else exp.base / exp["output"]["folder"])
     if exp.tracking is not None:
         return run_tracking(exp, out, queue, log, workers=workers, scheduler=scheduler,
                             progress=progress)
