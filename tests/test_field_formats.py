@@ -293,3 +293,47 @@ def test_cli_writes_tecplot_and_csv(tmp_path, capsys):
     _, zone, data = _read_tecplot(tmp_path / "f.dat")
     assert (zone["K"], zone["J"], zone["I"]) == arrays["velocity"].shape[1:]
     np.testing.assert_allclose(data[:, :3], table[:, :3], rtol=1e-9)
+
+
+# ------------------------------------------------------------------ batch runs
+
+def test_experiment_output_formats(tmp_path):
+    from plenocl.batch.config import output_formats
+
+    assert output_formats({"formats": ["dat", ".CSV"], "vti": True}) == (".dat", ".csv", ".vti")
+    assert output_formats({"formats": ["vti"], "vti": True}) == (".vti",)
+    with pytest.raises(ValueError, match=r"unknown format\(s\) \['xlsx'\]"):
+        output_formats({"formats": ["xlsx"], "vti": False})
+    with pytest.raises(ValueError, match="must be a list of format names"):
+        output_formats({"formats": "dat", "vti": False})
+
+
+def test_each_pair_is_written_in_the_asked_formats(tmp_path, field, monkeypatch):
+    """A run's worker writes each pair's field in ``[output] formats`` beside its .npz,
+    every copy holding the field the .npz holds (the chain itself replaced by a stub)."""
+    from types import SimpleNamespace
+
+    import plenocl.batch.worker as worker
+    from plenocl import Camera, Grid, PairSettings
+
+    Camera.synthetic_850().to_toml(tmp_path / "camera_used.toml")
+    Grid(shape=(24, 24, 40), x=(0.0, 2.0), y=(0.0, 2.4), z=(0.0, 4.8)).to_toml(
+        tmp_path / "grid_used.toml")
+    formats = (".dat", ".csv", ".vti")
+    proc = worker.PairProcessor(tmp_path, worker.RunSettings(PairSettings(), DT, formats))
+    monkeypatch.setattr(proc, "frame", lambda path: np.zeros((4, 4)))
+    monkeypatch.setattr(worker, "process_pair", lambda *args: SimpleNamespace(
+        piv=field, seconds={}, vol_a=None, vol_b=None))
+    for name in ("a.tif", "b.tif"):
+        (tmp_path / name).write_bytes(b"raw")
+    target = tmp_path / "pairs" / "pair_00000.npz"
+    outcome = proc(worker.PairTask(0, str(tmp_path / "a.tif"), str(tmp_path / "b.tif"),
+                                   str(target)))
+    assert outcome.error is None
+    assert sorted(p.name for p in target.parent.iterdir()) == [
+        "pair_00000.csv", "pair_00000.dat", "pair_00000.npz", "pair_00000.vti"]
+    arrays = read_field(target)
+    table = np.loadtxt(target.with_suffix(".csv"), delimiter=",", skiprows=1)
+    np.testing.assert_allclose(table[:, 3], arrays["velocity"][0].ravel(), rtol=1e-9)
+    _, zone, _ = _read_tecplot(target.with_suffix(".dat"))
+    assert (zone["K"], zone["J"], zone["I"]) == field.shape
