@@ -337,3 +337,28 @@ def test_each_pair_is_written_in_the_asked_formats(tmp_path, field, monkeypatch)
     np.testing.assert_allclose(table[:, 3], arrays["velocity"][0].ravel(), rtol=1e-9)
     _, zone, _ = _read_tecplot(target.with_suffix(".dat"))
     assert (zone["K"], zone["J"], zone["I"]) == field.shape
+
+
+def test_every_command_checks_its_outputs_first(tmp_path, capsys):
+    """Each command refuses an output it cannot write before reading any input (none of
+    the inputs named here exists)."""
+    missing = str(tmp_path / "missing")
+    cases = {
+        "volume": ["reconstruct", missing, "--camera", "synthetic", "--grid", missing],
+        "camera": ["calibrate", missing, "--camera", "synthetic"],
+        "focal stack": ["refocus", missing, "--camera", "synthetic", "--z", "0"],
+        "raw image": ["simulate", "--particles", missing],
+        "white image": ["white"],
+        "grid": ["grid", "--z", "-1", "1"],
+    }
+    for what, args in cases.items():
+        assert main([*args, "--out", str(tmp_path / "out.xyz")]) == 2, what
+        assert f"cannot tell the {what} format from 'out.xyz'" in capsys.readouterr().err
+    assert main(["calibrate", missing, "--camera", "synthetic", "--out",
+                 str(tmp_path / "c.toml"), "--diagnostic", str(tmp_path / "d.txt")]) == 2
+    assert "diagnostic figure format" in capsys.readouterr().err
+    (tmp_path / "note.txt").write_text("a file")
+    for command in ("demo", "bench"):
+        assert main([command, "--out", str(tmp_path / "note.txt" / "results")]) == 2
+        assert "is a file, not a folder" in capsys.readouterr().err
+    assert not (tmp_path / "out.xyz").exists()

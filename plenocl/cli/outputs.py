@@ -12,7 +12,7 @@ from ..io.fields import FIELD_FORMATS
 from ..io.files import VOLUME_FORMATS
 from ..io.outputs import check_output, check_output_folder
 
-__all__ = ["FILE_OUTPUTS", "FOLDER_OUTPUTS", "check_outputs"]
+__all__ = ["EXTRA_OUTPUTS", "FILE_OUTPUTS", "FOLDER_OUTPUTS", "check_outputs"]
 
 _TIFF = {".tif": "TIFF", ".tiff": "TIFF"}
 _TOML = {".toml": "TOML"}
@@ -24,11 +24,19 @@ FILE_OUTPUTS = {"piv": ("field", FIELD_FORMATS), "reconstruct": ("volume", VOLUM
                 "white": ("white image", _TIFF)}
 #: Commands whose ``--out`` is a folder of results.
 FOLDER_OUTPUTS = ("run", "demo", "bench")
+#: Further files a command writes, by option: what they hold and their formats.
+_FIGURE = {".png": "PNG", ".pdf": "PDF", ".svg": "SVG"}
+EXTRA_OUTPUTS = {"calibrate": {"diagnostic": ("diagnostic figure", _FIGURE),
+                               "centres_out": ("centres table", {".csv": "CSV"})}}
 
 
 def check_outputs(args: argparse.Namespace) -> None:
-    """Refuse (``ValueError``) an ``--out`` of the wrong format or in a folder that
-    cannot be written in, before the command starts."""
+    """Refuse (``ValueError``) an ``--out`` (or another output option of
+    :data:`EXTRA_OUTPUTS`) of the wrong format or in a folder that cannot be written in,
+    before the command starts."""
+    for option, (what, formats) in EXTRA_OUTPUTS.get(args.command, {}).items():
+        if getattr(args, option, None) is not None:
+            check_output(getattr(args, option), formats, what)
     out = getattr(args, "out", None)
     if out is None:
         return  # plenocl run without --out: the run checks its experiment's folder
