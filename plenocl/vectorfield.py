@@ -13,11 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .io.fields import AXES, FORMAT_VERSION
 from .optics.lattice import rotation_matrix
 
-__all__ = ["AXES", "FLAGS", "NOTES", "PIVResult", "Size3", "displacement_to_velocity",
-           "field_units", "q_criterion", "uncertainty", "velocity_gradient", "vorticity",
-           "voxel_size"]
+__all__ = ["AXES", "FLAGS", "FORMAT_VERSION", "NOTES", "PIVResult", "Size3",
+           "displacement_to_velocity", "field_units", "q_criterion", "uncertainty",
+           "velocity_gradient", "vorticity", "voxel_size"]
 
 Size3 = tuple[int, int, int]
 
@@ -29,14 +30,6 @@ NOTES = {"peak_ratio": "primary over secondary correlation peak of the final pas
                        "where that pass correlated directly at the lags around zero (the "
                        "default deformed passes), where no second peak is searched; "
                        "piv3d(min_peak_ratio=...) correlates the final pass by FFT"}
-
-#: Axis order and meaning of the stored arrays (also in every file's metadata).
-AXES = ("arrays (..., nz, ny, nx) on the vector grid, z slowest; vector components "
-        "(x, y, z); voxel_size_mm and origin_mm are (z, y, x) of the voxel grid (origin: "
-        "the centre of voxel 0); vector_origin_mm and vector_spacing_mm are (x, y, z) of "
-        "the vector grid, as in the .vti file")
-
-
 
 @dataclass
 class PIVResult:
@@ -178,13 +171,16 @@ class PIVResult:
     def _coordinate_arrays(self, size, origin_mm) -> dict[str, np.ndarray]:
         """Window centres (voxel and mm), the voxel and vector grids' geometry, window."""
         x_mm, y_mm, z_mm = self.positions_mm(size, origin_mm)
-        out = {"x": self.x, "y": self.y, "z": self.z, "x_mm": x_mm, "y_mm": y_mm,
-               "z_mm": z_mm, "voxel_size_mm": np.asarray(size),
-               "origin_mm": np.asarray(origin_mm, float), "window": np.asarray(self.window)}
-        out["vector_origin_mm"] = np.array([float(c[0]) for c in (x_mm, y_mm, z_mm)])
+        out = {"format_version": np.asarray(FORMAT_VERSION), "x": self.x, "y": self.y,
+               "z": self.z, "x_mm": x_mm, "y_mm": y_mm, "z_mm": z_mm,
+               "voxel_size_mm_xyz": np.asarray(size[::-1]),
+               "origin_mm_xyz": np.asarray(origin_mm, float)[::-1].copy(),
+               "window_xyz": np.asarray(self.window[::-1])}
+        out["vector_origin_mm_xyz"] = np.array([float(c[0]) for c in (x_mm, y_mm, z_mm)])
         # a single vector along an axis gets the voxel size as its spacing
-        out["vector_spacing_mm"] = np.array([float(np.diff(c[:2])[0]) if len(c) > 1 else v
-                                             for c, v in zip((x_mm, y_mm, z_mm), size[::-1])])
+        out["vector_spacing_mm_xyz"] = np.array(
+            [float(np.diff(c[:2])[0]) if len(c) > 1 else v
+             for c, v in zip((x_mm, y_mm, z_mm), size[::-1])])
         return out
 
     @staticmethod
@@ -206,8 +202,16 @@ class PIVResult:
         return cls(x=arrays["x"], y=arrays["y"], z=arrays["z"], u=u, v=v, w=w,
                    valid=arrays["valid"], peak_ratio=arrays["peak_ratio"],
                    outlier=arrays["outlier"], masked=arrays["masked"],
-                   window=tuple(int(s) for s in arrays.get("window", (0, 0, 0))),
+                   window=_window(arrays),
                    sigma_u=sigma[0], sigma_v=sigma[1], sigma_w=sigma[2])
+
+
+def _window(arrays) -> Size3:
+    """The final window ``(wz, wy, wx)`` of a field's arrays (``window_xyz``; ``window``,
+    already (z, y, x), in arrays of the first layout; ``(0, 0, 0)`` where none is stored)."""
+    if "window_xyz" in arrays:
+        return tuple(int(s) for s in np.asarray(arrays["window_xyz"])[::-1])
+    return tuple(int(s) for s in arrays.get("window", (0, 0, 0)))
 
 
 def voxel_size(voxel_size_mm) -> tuple[float, float, float]:
@@ -271,8 +275,9 @@ def field_units(with_dt: bool) -> dict[str, str]:
     units = {"x": "voxel", "y": "voxel", "z": "voxel", "x_mm": "mm", "y_mm": "mm",
              "z_mm": "mm", "displacement": "voxel", "peak_ratio": "1",
              "displacement_uncertainty": "voxel",
-             "voxel_size_mm": "mm", "origin_mm": "mm", "vector_origin_mm": "mm",
-             "vector_spacing_mm": "mm", "rotation_deg": "degree", "window": "voxel"}
+             "voxel_size_mm_xyz": "mm", "origin_mm_xyz": "mm", "vector_origin_mm_xyz": "mm",
+             "vector_spacing_mm_xyz": "mm", "rotation_deg": "degree", "window_xyz": "voxel",
+             "format_version": "1"}
     if with_dt:
         units.update(velocity="m s-1", velocity_uncertainty="m s-1", vorticity="s-1",
                      q_criterion="s-2", dt="s")

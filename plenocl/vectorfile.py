@@ -1,5 +1,6 @@
-"""A vector field as a file: :class:`plenocl.PIVResult` written with its geometry and
-read back (``.vti`` for ParaView, ``.npz``, ``.h5``).
+"""A vector field as a file: :class:`plenocl.PIVResult` written with its geometry
+(``.vti`` for ParaView, ``.npz``, ``.h5``, Tecplot ``.dat``, ``.csv``) and read back
+(``.npz``, ``.h5``).
 
 The result gives its arrays and metadata (:meth:`plenocl.PIVResult.arrays`,
 :meth:`~plenocl.PIVResult.metadata`); :mod:`plenocl.io.fields` writes and reads those
@@ -54,12 +55,14 @@ def _metadata(result: PIVResult, dt: float | None, metadata: dict | None) -> dic
 def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
                origin_mm=(0.0, 0.0, 0.0), dt: float | None = None, grid=None,
                metadata: dict | None = None) -> Path:
-    """Write a PIV result, choosing the format from the extension (.vti, .npz, .h5/.hdf5).
+    """Write a PIV result, choosing the format from the extension (.vti, .npz, .h5/.hdf5,
+    Tecplot ASCII .dat, .csv; :data:`plenocl.io.fields.FIELD_FORMATS`), atomically.
 
     Parameters
     ----------
     path
-        Output file; its suffix selects the format.
+        Output file; its suffix selects the format; its folder must be writable (both
+        checked before anything is computed: a ``ValueError`` otherwise).
     result
         Output of :func:`plenocl.piv3d`.
     voxel_size_mm
@@ -90,15 +93,16 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
 
 
 def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:
-    """Read a field written by :func:`save_field` to a ``.npz``.
+    """Read a field written by :func:`save_field` to a ``.npz`` or ``.h5`` (a file of the
+    first layout comes back in the current one, :func:`plenocl.io.fields.read_field`).
 
     Returns
     -------
     result : PIVResult
         The displacement field and flags (per-pass diagnostics are not stored).
     arrays : dict
-        Every stored array, including ``voxel_size_mm``, ``origin_mm`` and, if written,
-        ``dt`` and ``velocity``.
+        Every stored array, including ``voxel_size_mm_xyz``, ``origin_mm_xyz`` (both
+        (x, y, z)) and, if written, ``dt`` and ``velocity``.
     """
     arrays = read_field(path)
     return PIVResult.from_arrays(arrays, source=str(path)), arrays

@@ -392,7 +392,7 @@ def test_save_field_takes_the_volume_grid(tmp_path: Path, small_result):
     _, arrays = fieldio.read_npz(fieldio.save_field(tmp_path / "g.npz", small_result,
                                                     grid=grid, dt=1e-3))
     dz, dy, dx = grid.spacing
-    assert np.allclose(arrays["voxel_size_mm"], grid.spacing)
+    assert np.allclose(arrays["voxel_size_mm_xyz"], grid.spacing[::-1])   # (x, y, z)
     assert np.allclose(arrays["x_mm"], -7.0 + (small_result.x + 0.5) * dx)   # voxel centres
     assert np.allclose(arrays["z_mm"], 10.0 + (small_result.z + 0.5) * dz)
     assert np.allclose(arrays["velocity"][1], small_result.v * dy * 1e-3 / 1e-3)
@@ -434,10 +434,10 @@ def test_fields_describe_themselves(tmp_path: Path, small_result):
                                                     grid=grid, dt=1e-3))
     meta = json.loads(str(arrays["metadata"]))
     assert meta["units"]["velocity"] == "m s-1" and meta["units"]["x_mm"] == "mm"
-    assert "(x, y, z) of the vector grid" in meta["axes"]
-    assert arrays["vector_origin_mm"][0] == pytest.approx(arrays["x_mm"][0])
-    assert arrays["vector_origin_mm"][2] == pytest.approx(arrays["z_mm"][0])
-    assert arrays["vector_spacing_mm"][1] == pytest.approx(np.diff(arrays["y_mm"][:2])[0])
+    assert "every per-axis triple (x, y, z)" in meta["axes"]
+    assert arrays["vector_origin_mm_xyz"][0] == pytest.approx(arrays["x_mm"][0])
+    assert arrays["vector_origin_mm_xyz"][2] == pytest.approx(arrays["z_mm"][0])
+    assert arrays["vector_spacing_mm_xyz"][1] == pytest.approx(np.diff(arrays["y_mm"][:2])[0])
 
 
 def test_save_h5(tmp_path: Path, small_result):
@@ -465,8 +465,8 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path, small_result, monkeypat
 
 
 def test_save_field_rejects_unknown_extension(tmp_path: Path, small_result):
-    with pytest.raises(ValueError, match=r"\.vti"):
-        fieldio.save_field(tmp_path / "f.csv", small_result)
+    with pytest.raises(ValueError, match=r"\.vti .*\.dat .*\.csv"):
+        fieldio.save_field(tmp_path / "f.xyz", small_result)
 
 
 # ----------------------------------------------------------------------------- slow checks

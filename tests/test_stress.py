@@ -24,14 +24,16 @@ from plenocl import (
     Camera,
     Grid,
     LightField,
+    PIVResult,
     Projector,
     calibrate,
     reconstruct,
+    save_field,
     simulate_image,
     simulate_white_image,
 )
 from plenocl.calibration import import_centers
-from plenocl.io import read_image, read_particles
+from plenocl.io import read_field, read_image, read_particles
 from plenocl.pipeline import TrackSettings, track
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
@@ -584,6 +586,14 @@ def _particle_image(c):
     return simulate_image(c["cam"], pos, 1e4, 2000, queue=c["queue"])
 
 
+def _tiny_field() -> PIVResult:
+    """A 1 x 1 x 2 vector field."""
+    one = np.ones((1, 1, 2))
+    return PIVResult(x=np.array([8.0, 16.0]), y=np.array([8.0]), z=np.array([8.0]), u=one,
+                     v=one, w=one, valid=one > 0, peak_ratio=one, outlier=one < 0,
+                     masked=one < 0, window=(16, 16, 16))
+
+
 def _file(reader, name):
     return lambda c: reader(c["dir"] / name)
 
@@ -876,6 +886,13 @@ INVALID = [
     ("load-volume-missing", _file(load_volume, "nope.npy"), FileNotFoundError,
      "no such volume file"),
     ("load-volume-not-3d", _file(load_volume, "line.npy"), ValueError, "not a 3-D volume"),
+    ("save-field-format", lambda c: save_field(c["dir"] / "f.xyz", _tiny_field()), ValueError,
+     "cannot tell the field format from 'f.xyz'"),
+    ("save-field-folder-is-file",
+     lambda c: save_field(c["dir"] / "two_columns.csv" / "f.npz", _tiny_field()),
+     ValueError, "is a file, not a folder"),
+    ("read-field-table", _file(read_field, "two_columns.csv"), ValueError,
+     "reads fields back from .npz and .h5"),
 ]
 
 

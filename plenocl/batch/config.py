@@ -46,6 +46,8 @@ Example::
     [output]
     folder = "results"
     vti = false                          # also a ParaView .vti per pair
+    formats = []                         # more copies of each field beside its .npz:
+                                         # "vti", "h5", "dat" (Tecplot ASCII), "csv"
 
 A ``[tracking]`` section (:mod:`.trackconfig`) makes the run track the frames as one
 time-resolved recording instead of processing pairs.
@@ -74,7 +76,7 @@ SECTIONS = {
                "first_frame": None, "force_dt": False, "channel": None, "dark": None,
                "flat": None},
     "piv": {"ensemble": False},
-    "output": {"folder": "results", "vti": False},
+    "output": {"folder": "results", "vti": False, "formats": []},
 }
 
 
@@ -148,10 +150,31 @@ def _check(s: dict, path: Path, tracking: bool = False) -> None:
         if not isinstance(s[section][key], bool):
             raise ValueError(f"{path}: [{section}] {key} must be true or false, got "
                              f"{s[section][key]!r}")
+    output_formats(s["output"], path)
     if tracking:
         check_images_for_tracking(s["images"], s["piv"]["ensemble"], path)
     else:
         _check_times(s["images"], path)
+
+
+#: What ``[output] formats`` may list: the field formats written beside each ``.npz``.
+EXTRA_FORMATS = ("vti", "h5", "dat", "csv")
+
+
+def output_formats(output: dict, path: Path | str = "the experiment file") -> tuple[str, ...]:
+    """The suffixes (``".vti"``, ...) each field is written in beside its ``.npz``:
+    ``[output] formats``, with ``vti = true`` as ``"vti"``; a ``ValueError`` for a name
+    that is not one of :data:`EXTRA_FORMATS`."""
+    names = output["formats"]
+    if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+        raise ValueError(f"{path}: [output] formats must be a list of format names, e.g. "
+                         f"[\"dat\", \"csv\"], got {names!r}")
+    names = [n.lower().lstrip(".") for n in names] + (["vti"] if output["vti"] else [])
+    bad = [n for n in names if n not in EXTRA_FORMATS]
+    if bad:
+        raise ValueError(f"{path}: [output] formats: unknown format(s) {bad}; it takes "
+                         f"{list(EXTRA_FORMATS)} (each field's .npz is always written)")
+    return tuple(f".{n}" for n in dict.fromkeys(names))
 
 
 def _check_times(img: dict, path: Path) -> None:

@@ -18,9 +18,10 @@ from ..vectorfile import read_npz, save_field
 from .layout import finished_pairs, volume_file
 
 
-def ensemble_field(out: Path, dt: float, queue=None, vti: bool = False,
+def ensemble_field(out: Path, dt: float, queue=None, formats: tuple[str, ...] = (),
                    log=print) -> Path | None:
-    """Correlate the run's kept volume pairs as one ensemble; the field file written, or
+    """Correlate the run's kept volume pairs as one ensemble; the field file written
+    (``ensemble.npz``, and a copy in each of ``formats``' suffixes, e.g. ``".vti"``), or
     ``None`` when no pair kept its volumes."""
     fields = [path for _, path in finished_pairs(out) if volume_file(path).is_file()]
     if not fields:
@@ -35,8 +36,8 @@ def ensemble_field(out: Path, dt: float, queue=None, vti: bool = False,
     result = ensemble_piv(pairs, predictor, queue=get_queue(queue))
     grid = Grid.from_toml(out / "grid_used.toml")
     target = out / "ensemble.npz"
-    if vti:
-        save_field(target.with_suffix(".vti"), result, dt=dt, grid=grid)
+    for suffix in formats:
+        save_field(target.with_suffix(suffix), result, dt=dt, grid=grid)
     save_field(target, result, dt=dt, grid=grid)
     log(f"ensemble correlation of {len(fields)} pair(s): {result.valid.mean():.0%} valid "
         f"vectors, in {target}")

@@ -1,11 +1,13 @@
 """``plenocl run experiment.toml``: every pair of an experiment, resumable, on this
 machine or a Dask cluster (docs/batch.md).
 
-The run checks the experiment file, calibrates the camera if a white image is given, and
-writes the configuration used (``experiment_used.toml``, a record with every pair setting
-resolved; ``camera_used.toml``, ``grid_used.toml``) before any pair. The pairs' settings
+The run checks the experiment file and that its output folder can be written in,
+calibrates the camera if a white image is given, and writes the configuration used
+(``experiment_used.toml``, a record with every pair setting resolved;
+``camera_used.toml``, ``grid_used.toml``) before any pair. The pairs' settings
 go to the workers as an object (:class:`~.worker.RunSettings`). Each pair's vector field
-goes atomically to ``OUT/pairs/pair_NNNNN.npz`` (and ``.vti`` on request): a rerun skips
+goes atomically to ``OUT/pairs/pair_NNNNN.npz`` (and ``.vti``, ``.dat``, ``.csv``, ``.h5``
+on request, ``[output] formats``): a rerun skips
 the pairs already there and says so; a pair that fails (unreadable, wrong size, NaN) is
 logged with its reason and the run goes on. At the end, and after Ctrl-C, the finished
 pairs are gathered into ``OUT/timeseries.zarr`` with the ensemble mean and RMS
@@ -27,11 +29,12 @@ from pathlib import Path
 
 from ..io.atomic import write_json
 from ..io.fields import field_metadata
+from ..io.outputs import check_output_folder
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..options import NONE
 from ..pipeline.resume import pending
-from .config import Experiment, image_pairs, load_experiment
+from .config import Experiment, image_pairs, load_experiment, output_formats
 from .layout import finished_pairs, pair_file, remove_partial_files
 from .pairing import ImagePair, PairPlan, changed_since
 from .prepare import (
@@ -105,7 +108,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
         the tracking run's frames, tracks and stages run or skipped.
     """
     exp = load_experiment(config)
-    out = Path(out) if out is not None else exp.base / exp["output"]["folder"]
+    out = check_output_folder(out if out is not None else exp.base / exp["output"]["folder"])
     if exp.tracking is not None:
         return run_tracking(exp, out, queue, log, workers=workers, scheduler=scheduler,
                             progress=progress)
@@ -196,7 +199,7 @@ def _run_settings(exp: Experiment) -> RunSettings:
     """What every pair of the run shares, from the checked experiment file."""
     img = exp["images"]
     dark, flat = frame_corrections(exp)
-    return RunSettings(exp.pair, float(img["dt_s"]), bool(exp["output"]["vti"]),
+    return RunSettings(exp.pair, float(img["dt_s"]), output_formats(exp["output"]),
                        bool(exp["piv"]["ensemble"]), img["channel"], dark, flat)
 
 
@@ -246,7 +249,8 @@ def _ensemble(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> Pa
         return made
     from .ensemble_field import ensemble_field
 
-    return ensemble_field(out, exp["images"]["dt_s"], queue, exp["output"]["vti"], log)
+    return ensemble_field(out, exp["images"]["dt_s"], queue, output_formats(exp["output"]),
+                          log)
 
 
 def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:

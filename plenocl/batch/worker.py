@@ -42,8 +42,10 @@ class RunSettings:
         The chain's settings (:class:`plenocl.pipeline.PairSettings`).
     dt_s
         Time between the two exposures of a pair (s).
-    vti
-        Also write a ParaView ``.vti`` per pair.
+    formats
+        The suffixes each pair's field is also written in beside its ``.npz``
+        (``".vti"``, ``".h5"``, ``".dat"``, ``".csv"``;
+        :func:`plenocl.batch.config.output_formats`).
     keep_volumes
         Keep each pair's volumes beside its field (for the ensemble correlation).
     channel, dark, flat
@@ -53,7 +55,7 @@ class RunSettings:
 
     pair: PairSettings
     dt_s: float
-    vti: bool = False
+    formats: tuple[str, ...] = ()
     keep_volumes: bool = False
     channel: str | None = None
     dark: str | None = None
@@ -140,8 +142,8 @@ class PairProcessor:
         t0 = time.perf_counter()
         if run.keep_volumes:  # for the ensemble correlation at the end of the run
             write_volumes(volume_file(target), pair.vol_a, pair.vol_b)
-        if run.vti:
-            save_field(target.with_suffix(".vti"), pair.piv, dt=run.dt_s, grid=self.grid)
+        for suffix in run.formats:
+            save_field(target.with_suffix(suffix), pair.piv, dt=run.dt_s, grid=self.grid)
         # the .npz last: its presence marks the pair done; it names the two source files
         save_field(target, pair.piv, dt=run.dt_s, grid=self.grid,
                    metadata={"sources": sources, "pair": pair_index(target)})

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from .batch import add_run_parser
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser, add_refocus_parser
+from .outputs import check_outputs
 from .simulate import add_simulate_parsers
 from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 
@@ -117,6 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.verbose:
             _say_device(args)
         try:
+            check_outputs(args)  # before any work
             return int(args.func(args) or 0)
         except (ValueError, FileNotFoundError, MemoryError, RuntimeError) as exc:
             print(f"plenocl {args.command}: error: {exc}", file=sys.stderr)

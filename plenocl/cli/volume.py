@@ -239,7 +239,9 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
                    help="accept a --dt outside 0.1 µs to 1 s (refused by default as a "
                         "likely unit mistake: --dt is in seconds)")
     p.add_argument("--grid", default=None, help="grid TOML (default: stored in the .npz)")
-    p.add_argument("--out", required=True, help="output field: .vti (ParaView), .npz or .h5")
+    p.add_argument("--out", required=True,
+                   help="output field: .vti (ParaView; velocity its default vector), .npz, "
+                        ".h5, .dat (Tecplot ASCII) or .csv (one vector per row)")
     p.add_argument("--windows", type=int, nargs="+", default=None,
                    help="window size per pass (voxels; default: 48 32 24, each cut per axis "
                         "to what the volume holds)")

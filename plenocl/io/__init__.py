@@ -2,8 +2,10 @@
 
 - atomic writes (:mod:`.atomic`: any file, JSON, text) and TOML files (:mod:`.tomlfile`);
 - :mod:`.files`: images (TIFF/PNG/NPY), particle CSVs, volumes (NPZ/NPY/HDF5);
-- :mod:`.fields`: PIV fields' arrays (VTK ``.vti``, ``.npz``, ``.h5``; a
-  :class:`plenocl.PIVResult` as a file: :mod:`plenocl.vectorfile`);
+- :mod:`.fields`: PIV fields' arrays (VTK ``.vti``, ``.npz``, ``.h5``, and the tables of
+  :mod:`.fieldtables`, Tecplot ``.dat`` and ``.csv``; a :class:`plenocl.PIVResult` as a
+  file: :mod:`plenocl.vectorfile`);
+- :mod:`.outputs`: an output path's format and folder, checked before any work;
 - :mod:`.timeseries`, :mod:`.zarrstore`: Zarr stores that xarray opens (a batch's time
   series; named arrays with their dimensions, e.g. a tracking run's ``tracks.zarr``);
 - :mod:`.plotting`, :mod:`.progress`: figures and progress bars for the user.

@@ -1,8 +1,11 @@
-"""Writing and reading PIV vector fields: ``.vti`` (ParaView), ``.npz`` and ``.h5``.
+"""Writing and reading PIV vector fields: ``.vti`` (ParaView), ``.npz``, ``.h5`` and
+the tables Tecplot ``.dat`` and ``.csv`` (:mod:`.fieldtables`).
 
 Every writer is atomic (a temporary file beside the target, then ``os.replace``), so a
-crash never leaves a half-written field. Stored arrays, all on the vector grid
-``(nz', ny', nx')`` in array order:
+crash never leaves a half-written field. One axis rule holds for every stored array:
+gridded arrays are ``(..., nz', ny', nx')`` (array order, z slowest), while vector
+components and every per-axis triple are ``(x, y, z)``, each triple's name ending in
+``_xyz``. The arrays (``format_version`` 2):
 
 - ``displacement``: ``(3, nz', ny', nx')`` as ``(u, v, w)`` in voxels along x, y, z;
 - ``displacement_uncertainty``: ``(3, nz', ny', nx')``, the standard uncertainty of
@@ -11,13 +14,23 @@ crash never leaves a half-written field. Stored arrays, all on the vector grid
 - ``valid``, ``outlier``, ``masked`` (flags) and ``peak_ratio``;
 - ``velocity`` (m/s), ``vorticity`` (1/s) and ``q_criterion`` (1/s^2) when ``dt`` is
   given; without it ``vorticity`` and ``q_criterion`` are per ``dt`` (and per ``dt^2``);
-- coordinates: ``x``, ``y``, ``z`` (voxel-index units) and ``x_mm``, ``y_mm``, ``z_mm``.
+- coordinates: ``x``, ``y``, ``z`` (voxel-index units) and ``x_mm``, ``y_mm``, ``z_mm``;
+- triples: ``voxel_size_mm_xyz``, ``origin_mm_xyz`` (the centre of voxel 0),
+  ``window_xyz`` (the final window, voxels), ``vector_origin_mm_xyz`` and
+  ``vector_spacing_mm_xyz`` (the vector grid, as in the ``.vti`` file);
+- ``format_version``, ``rotation_deg`` and ``dt`` (s) as scalars.
+
+Files written before ``format_version`` (version 1) held ``voxel_size_mm``,
+``origin_mm`` and ``window`` in (z, y, x) order and ``vector_origin_mm``,
+``vector_spacing_mm`` in (x, y, z); :func:`read_field` returns them in the layout above.
 
 On a rotated grid (``rotation_deg``, stored too) the vector grid and ``displacement``
 follow the grid's axes, while ``velocity`` and ``vorticity`` are given in object space
 (the user's frame): their ``x``, ``y`` components are turned by the grid's rotation.
 
-In ``.vti`` files the image origin and spacing are the vector grid's, in mm.
+In ``.vti`` files the image origin and spacing are the vector grid's, in mm, and the
+velocity in m/s is the default (active) vector where ``dt`` is given, else the
+displacement in voxels.
 
 This module writes and reads those arrays and a JSON-ready metadata dict; it knows no
 vector-field type. :mod:`plenocl.vectorfile` turns a :class:`plenocl.PIVResult` into
@@ -33,19 +46,42 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
+from .fieldtables import write_csv, write_tecplot
+from .outputs import check_output
 
-__all__ = ["FIELD_FORMATS", "check_field_path", "field_metadata", "metadata_of",
+__all__ = ["AXES", "FIELD_FORMATS", "FORMAT_VERSION", "READABLE_FIELD_FORMATS",
+           "check_field_path", "current_layout", "field_metadata", "metadata_of",
            "read_field", "write_field", "write_h5", "write_npz", "write_vti"]
 
+#: The layout of the arrays a field file holds; files without ``format_version`` are
+#: version 1, where ``voxel_size_mm``, ``origin_mm`` and ``window`` were (z, y, x) (read
+#: back converted: :func:`plenocl.io.fields.read_field`).
+FORMAT_VERSION = 2
+
+#: Axis order and meaning of the stored arrays (also in every file's metadata).
+AXES = ("gridded arrays (..., nz, ny, nx) on the vector grid, z slowest, x fastest; "
+        "vector components and every per-axis triple (x, y, z), each triple's name ending "
+        "in _xyz: voxel_size_mm_xyz, origin_mm_xyz (the centre of voxel 0), window_xyz, "
+        "vector_origin_mm_xyz and vector_spacing_mm_xyz (the vector grid, as in the .vti "
+        "file)")
+
 #: The field file formats by suffix.
-FIELD_FORMATS = {".vti": "VTK ImageData (ParaView)", ".npz": "NumPy", ".h5": "HDF5",
-                 ".hdf5": "HDF5"}
+FIELD_FORMATS = {".vti": "VTK ImageData for ParaView", ".npz": "NumPy", ".h5": "HDF5",
+                 ".hdf5": "HDF5", ".dat": "Tecplot ASCII", ".csv": "CSV table"}
+#: The formats :func:`read_field` reads back (the others are for other programs).
+READABLE_FIELD_FORMATS = (".npz", ".h5", ".hdf5")
+#: Version-1 triples stored (z, y, x), by their version-2 names.
+_ZYX_V1 = {"voxel_size_mm": "voxel_size_mm_xyz", "origin_mm": "origin_mm_xyz",
+           "window": "window_xyz"}
+#: Version-1 triples already stored (x, y, z), by their version-2 names.
+_XYZ_V1 = {"vector_origin_mm": "vector_origin_mm_xyz",
+           "vector_spacing_mm": "vector_spacing_mm_xyz"}
 
 
 def write_field(path: str | Path, arrays: dict[str, np.ndarray],
                 metadata: dict | None = None) -> Path:
     """Write a vector field's ``arrays`` (the module notes), choosing the format from the
-    extension (.vti, .npz, .h5/.hdf5); ``metadata`` (JSON-ready; ``units`` and ``axes``
+    extension (:data:`FIELD_FORMATS`); ``metadata`` (JSON-ready; ``units`` and ``axes``
     become HDF5 attributes) is stored with ``.npz`` and ``.h5`` files.
 
     Returns
@@ -54,18 +90,22 @@ def write_field(path: str | Path, arrays: dict[str, np.ndarray],
         The file written.
     """
     path = check_field_path(path)
-    writers = {".vti": write_vti, ".npz": write_npz, ".h5": write_h5, ".hdf5": write_h5}
+    writers = {".vti": write_vti, ".npz": write_npz, ".h5": write_h5, ".hdf5": write_h5,
+               ".dat": _table(write_tecplot), ".csv": _table(write_csv)}
     writers[path.suffix.lower()](path, arrays, metadata or {})
     return path
 
 
+def _table(writer):
+    """A table writer called as the others are (tables hold no metadata)."""
+    return lambda path, arrays, metadata: writer(path, arrays)
+
+
 def check_field_path(path: str | Path) -> Path:
-    """``path`` as a ``Path``, or a ``ValueError`` when its suffix names no field format."""
-    path = Path(path)
-    if path.suffix.lower() not in FIELD_FORMATS:
-        raise ValueError(f"cannot tell the field format from {path.name!r}: use a .vti "
-                         f"(ParaView), .npz or .h5 file name")
-    return path
+    """``path`` as a ``Path``, or a ``ValueError`` when its suffix names no field format
+    (:data:`FIELD_FORMATS`) or its folder cannot be written in; call it before the work
+    that makes the field."""
+    return check_output(path, FIELD_FORMATS, "field")
 
 
 def write_npz(path, arrays: dict[str, np.ndarray], metadata: dict) -> None:
@@ -80,16 +120,65 @@ def metadata_of(arrays) -> dict:
 
 
 def field_metadata(path) -> dict:
-    """The JSON metadata of a field written by :func:`write_npz` (``{}`` without any),
-    without reading its arrays."""
-    with np.load(path) as data:
-        return metadata_of(data)
+    """The JSON metadata of a field written by :func:`write_npz` or :func:`write_h5`
+    (``{}`` without any), without reading its arrays."""
+    if _readable(path) == ".npz":
+        with np.load(path) as data:
+            return metadata_of(data)
+    import h5py
+
+    with h5py.File(path, "r") as fh:
+        return json.loads(fh.attrs.get("metadata", "{}"))
 
 
 def read_field(path) -> dict[str, np.ndarray]:
-    """Every array of a field written by :func:`write_npz` (``metadata``: its JSON text)."""
-    with np.load(path) as data:
-        return {name: data[name] for name in data.files}
+    """Every array of a field written by :func:`write_npz` or :func:`write_h5`
+    (``metadata``: its JSON text), in the layout of the module notes: a file of the first
+    layout (no ``format_version``) comes back converted."""
+    if _readable(path) == ".npz":
+        with np.load(path) as data:
+            arrays = {name: data[name] for name in data.files}
+    else:
+        arrays = _read_h5(path)
+    return current_layout(arrays)
+
+
+def _readable(path) -> str:
+    """The suffix of a field file :func:`read_field` reads; a ``ValueError`` for others."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in READABLE_FIELD_FORMATS:
+        raise ValueError(f"{Path(path).name}: plenocl reads fields back from .npz and .h5 "
+                         "files; .vti, .dat and .csv are written for ParaView, Tecplot and "
+                         "spreadsheets")
+    return ".npz" if suffix == ".npz" else ".h5"
+
+
+def _read_h5(path) -> dict[str, np.ndarray]:
+    import h5py
+
+    with h5py.File(path, "r") as fh:
+        arrays = {name: fh[name][()] for name in fh}
+        if "metadata" in fh.attrs:
+            arrays["metadata"] = np.asarray(fh.attrs["metadata"])
+    return arrays
+
+
+def current_layout(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A field's arrays in the layout of the module notes: those of a version-1 file
+    (no ``format_version``) with its (z, y, x) triples turned to (x, y, z) and every
+    triple renamed ``*_xyz``, its metadata's ``axes`` replaced and
+    ``converted_from_version`` 1 added; current arrays as they are."""
+    if "format_version" in arrays:
+        return arrays
+    out = {k: v for k, v in arrays.items() if k not in _ZYX_V1 and k not in _XYZ_V1}
+    out.update({new: np.asarray(arrays[old])[::-1].copy()
+                for old, new in _ZYX_V1.items() if old in arrays})
+    out.update({new: arrays[old] for old, new in _XYZ_V1.items() if old in arrays})
+    out["format_version"] = np.asarray(FORMAT_VERSION)
+    if "metadata" in arrays:
+        meta = {**metadata_of(arrays), "axes": AXES, "converted_from_version": 1}
+        out["metadata"] = np.asarray(json.dumps(meta))
+    return out
 
 
 def _vtk_order(arr: np.ndarray) -> np.ndarray:
@@ -107,8 +196,8 @@ def write_vti(path, arrays: dict[str, np.ndarray], metadata: dict | None = None)
         from pyevtk.hl import imageToVTK
     except ImportError as exc:  # pragma: no cover - pyevtk is a declared dependency
         raise ImportError("writing .vti needs pyevtk: pip install pyevtk") from exc
-    spacing = tuple(float(v) for v in arrays["vector_spacing_mm"])
-    origin = tuple(float(v) for v in arrays["vector_origin_mm"])
+    spacing = tuple(float(v) for v in arrays["vector_spacing_mm_xyz"])
+    origin = tuple(float(v) for v in arrays["vector_origin_mm_xyz"])
     with atomic_path(path) as tmp:
         written = imageToVTK(str(tmp.with_suffix("")), origin=origin, spacing=spacing,
                              pointData=_point_data(arrays))  # pyevtk appends ".vti"
@@ -118,9 +207,11 @@ def write_vti(path, arrays: dict[str, np.ndarray], metadata: dict | None = None)
 
 def _point_data(arrays: dict[str, np.ndarray]) -> dict:
     """The ``.vti`` point arrays: vectors as component tuples, Q, the flags (every
-    boolean array) and the peak ratio; per ``dt`` names where no ``dt`` was given."""
+    boolean array) and the peak ratio; per ``dt`` names where no ``dt`` was given. The
+    first vector array is the file's active vectors (pyevtk's rule, what ParaView shows
+    first): the velocity where there is one."""
     per = "_per_s" if "dt" in arrays else "_per_dt"
-    vectors = {"displacement_voxels": "displacement", "velocity_m_per_s": "velocity",
+    vectors = {"velocity_m_per_s": "velocity", "displacement_voxels": "displacement",
                "displacement_uncertainty_voxels": "displacement_uncertainty",
                "velocity_uncertainty_m_per_s": "velocity_uncertainty",
                "vorticity" + per: "vorticity"}
@@ -153,4 +244,5 @@ def write_h5(path, arrays: dict[str, np.ndarray], metadata: dict) -> None:
         fh.attrs["metadata"] = json.dumps(metadata)
         if "axes" in metadata:
             fh.attrs["axes"] = metadata["axes"]
-        fh.attrs["layout"] = "arrays (..., nz, ny, nx); displacement (u, v, w) in voxels"
+        fh.attrs["layout"] = ("arrays (..., nz, ny, nx); vector components and *_xyz "
+                              "triples (x, y, z); displacement (u, v, w) in voxels")

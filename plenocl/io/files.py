@@ -175,6 +175,11 @@ def _check_particle_header(path: Path) -> None:
                          "particle is lost")
 
 
+#: The volume file formats by suffix (:func:`write_volume`).
+VOLUME_FORMATS = {".npz": "NumPy, with the grid", ".npy": "NumPy, the array alone",
+                  ".h5": "HDF5, with the grid", ".hdf5": "HDF5, with the grid"}
+
+
 def write_volume(path: str | Path, vol: np.ndarray, meta: dict[str, np.ndarray]) -> None:
     """Write a volume atomically: ``.npy`` (the array alone), ``.npz`` or ``.h5`` (with
     the arrays of ``meta`` beside it; :mod:`plenocl.volumefile` puts the grid there).

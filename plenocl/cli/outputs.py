@@ -1,0 +1,47 @@
+"""What each command writes, checked before the command does any work: ``--out``'s
+extension names a format the command writes, and its folder can be written in
+(:func:`plenocl.io.outputs.check_output`); a command writing a folder of results gets
+that folder checked (:func:`plenocl.io.outputs.check_output_folder`).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ..io.fields import FIELD_FORMATS
+from ..io.files import VOLUME_FORMATS
+from ..io.outputs import check_output, check_output_folder
+
+__all__ = ["EXTRA_OUTPUTS", "FILE_OUTPUTS", "FOLDER_OUTPUTS", "check_outputs"]
+
+_TIFF = {".tif": "TIFF", ".tiff": "TIFF"}
+_TOML = {".toml": "TOML"}
+
+#: Commands whose ``--out`` is a file: what it holds and the formats it may be written in.
+FILE_OUTPUTS = {"piv": ("field", FIELD_FORMATS), "reconstruct": ("volume", VOLUME_FORMATS),
+                "calibrate": ("camera", _TOML), "grid": ("grid", _TOML),
+                "refocus": ("focal stack", _TIFF), "simulate": ("raw image", _TIFF),
+                "white": ("white image", _TIFF)}
+#: Commands whose ``--out`` is a folder of results.
+FOLDER_OUTPUTS = ("run", "demo", "bench")
+#: Further files a command writes, by option: what they hold and their formats.
+_FIGURE = {".png": "PNG", ".pdf": "PDF", ".svg": "SVG"}
+EXTRA_OUTPUTS = {"calibrate": {"diagnostic": ("diagnostic figure", _FIGURE),
+                               "centres_out": ("centres table", {".csv": "CSV"})}}
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse (``ValueError``) an ``--out`` (or another output option of
+    :data:`EXTRA_OUTPUTS`) of the wrong format or in a folder that cannot be written in,
+    before the command starts."""
+    for option, (what, formats) in EXTRA_OUTPUTS.get(args.command, {}).items():
+        if getattr(args, option, None) is not None:
+            check_output(getattr(args, option), formats, what)
+    out = getattr(args, "out", None)
+    if out is None:
+        return  # plenocl run without --out: the run checks its experiment's folder
+    if args.command in FILE_OUTPUTS:
+        what, formats = FILE_OUTPUTS[args.command]
+        check_output(out, formats, what)
+    elif args.command in FOLDER_OUTPUTS:
+        check_output_folder(out)

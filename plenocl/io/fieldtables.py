@@ -1,0 +1,75 @@
+"""A vector field as a table, one row per vector: Tecplot ASCII (``.dat``) and CSV.
+
+The rows run over the vector grid with x fastest, then y, then z (the order of the
+arrays ``(nz', ny', nx')`` flattened), and both formats hold the same columns:
+
+- ``x [mm]``, ``y [mm]``, ``z [mm]``: the vector's position, in the grid's frame as the
+  ``.vti`` file gives it;
+- ``u [m/s]``, ``v [m/s]``, ``w [m/s]``: the velocity in object space (only in fields
+  written with ``dt``);
+- ``u_voxel [voxel]``, ``v_voxel [voxel]``, ``w_voxel [voxel]``: the displacement along
+  the grid's axes;
+- ``valid``, ``outlier``, ``masked``: the flags as 1 or 0.
+
+Outliers hold their replaced values (``outlier`` 1, ``valid`` 0). Masked vectors have no
+value: the CSV gives them as ``nan`` (NumPy and pandas read it as NaN), the Tecplot file
+as 0 with ``masked`` 1 and ``valid`` 0, since Tecplot reads NaN poorly; blank them there
+by ``valid``. The Tecplot file is one ``ORDERED`` zone (``I``, ``J``, ``K`` = the vector
+counts along x, y, z; ``DATAPACKING=POINT``), its ``#`` lines say the same.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+
+__all__ = ["field_columns", "write_csv", "write_tecplot"]
+
+#: Number formats: ten significant digits for values, integers for the flags.
+_FLOAT, _FLAG = "%.10g", "%d"
+
+
+def field_columns(arrays: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, str]]:
+    """The table's columns (see the module notes) from a field's arrays: ``(header,
+    values flattened x fastest, number format)``."""
+    z, y, x = np.meshgrid(*(np.asarray(arrays[f"{a}_mm"], float) for a in "zyx"),
+                          indexing="ij")
+    cols = [(f"{a} [mm]", c.ravel(), _FLOAT) for a, c in zip("xyz", (x, y, z))]
+    if "velocity" in arrays:
+        cols += [(f"{a} [m/s]", np.asarray(c, float).ravel(), _FLOAT)
+                 for a, c in zip("uvw", arrays["velocity"])]
+    cols += [(f"{a}_voxel [voxel]", np.asarray(c, float).ravel(), _FLOAT)
+             for a, c in zip("uvw", arrays["displacement"])]
+    cols += [(flag, np.asarray(arrays[flag], bool).ravel().astype(np.int64), _FLAG)
+             for flag in ("valid", "outlier", "masked")]
+    return cols
+
+
+def write_csv(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write the field as CSV (one header line of ``name [unit]``, then one row per
+    vector; masked vectors as ``nan``), atomically."""
+    cols = field_columns(arrays)
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, np.column_stack([c[1] for c in cols]), delimiter=",",
+                   fmt=[c[2] for c in cols], header=",".join(c[0] for c in cols),
+                   comments="")
+
+
+def write_tecplot(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write the field as a Tecplot ASCII ``.dat`` file (one ordered zone, point data;
+    masked vectors as 0 with ``valid`` 0 and ``masked`` 1), atomically."""
+    cols = field_columns(arrays)
+    nz, ny, nx = np.shape(arrays["displacement"])[1:]
+    values = np.nan_to_num(np.column_stack([c[1] for c in cols]), nan=0.0)
+    head = "\n".join([
+        "# plenocl vector field: one row per vector, x fastest, then y, then z",
+        "# masked vectors are written as 0 with valid = 0 and masked = 1; outliers hold "
+        "their replaced values",
+        'TITLE = "plenocl vector field"',
+        "VARIABLES = " + " ".join(f'"{c[0]}"' for c in cols),
+        f'ZONE T="field", I={nx}, J={ny}, K={nz}, DATAPACKING=POINT'])
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, values, fmt=[c[2] for c in cols], header=head, comments="")
