@@ -64,22 +64,23 @@ def _disc_share(box: np.ndarray, diameter: float) -> float:
     return area / (math.pi * r * r)
 
 
-def _light_limit_mm(camera: Camera) -> float:
+def _light_limit_mm(box: np.ndarray, pitch: float) -> float:
     """Largest blur-disc diameter (mm) of which :data:`LIGHT_SHARE` still falls on the
-    array (the disc centred on the optical axis)."""
-    box = _array_box(camera)
-    lo, hi = 0.0, 4 * float(np.abs(box).max()) + camera.ml_pitch_mm
+    array ``box`` (the disc centred on the optical axis)."""
+    lo, hi = 0.0, 4 * float(np.abs(box).max()) + pitch
     for _ in range(50):
         mid = (lo + hi) / 2
         lo, hi = (mid, hi) if _disc_share(box, mid) >= LIGHT_SHARE else (lo, mid)
     return lo
 
 
-def _blur_limit(camera: Camera) -> float:
+def _blur_limit(camera: Camera, box: np.ndarray) -> float:
     """Largest ``|1 - 1/α|`` inside the resolved range: the tighter of the resolution
-    limit (``VIEW_LENSES · p_ml`` per pixel footprint on the pupil) and the light limit."""
+    limit (``VIEW_LENSES · p_ml`` per pixel footprint on the pupil) and the light limit
+    (``box``: :func:`_array_box`)."""
     resolution = VIEW_LENSES * camera.ml_pitch_mm / camera.pixel_pupil_footprint_mm
-    return min(resolution, _light_limit_mm(camera) / camera.exit_pupil_diameter_mm)
+    return min(resolution, _light_limit_mm(box, camera.ml_pitch_mm)
+               / camera.exit_pupil_diameter_mm)
 
 
 def _depth_of_alpha(camera: Camera, alpha: float) -> float:
@@ -99,7 +100,12 @@ def resolved_depth_range(camera: Camera) -> tuple[float, float]:
     ``z_near`` is at least the focal-length limit ``f - s_o`` (excluded: no real image
     there); ``z_far`` may be ``inf``.
     """
-    c = _blur_limit(camera)
+    return _resolved(camera, _array_box(camera))
+
+
+def _resolved(camera: Camera, box: np.ndarray) -> tuple[float, float]:
+    """:func:`resolved_depth_range` of the array ``box`` (:func:`_array_box`)."""
+    c = _blur_limit(camera, box)
     near = camera.focal_length_mm - camera.object_distance_mm
     if c < 1:
         near = _depth_of_alpha(camera, 1 / (1 - c))
@@ -109,9 +115,14 @@ def resolved_depth_range(camera: Camera) -> tuple[float, float]:
 def field_of_view_mm(camera: Camera, z: float) -> np.ndarray:
     """``[[x0, x1], [y0, y1]]`` object-space mm the array images at depth ``z`` (central
     rays; the main lens inverts the image)."""
+    return _field(camera, z, _array_box(camera))
+
+
+def _field(camera: Camera, z: float, box: np.ndarray) -> np.ndarray:
+    """:func:`field_of_view_mm` of the array ``box`` (:func:`_array_box`)."""
     scale = float(camera.alpha(z)) * (camera.object_distance_mm + z) / float(
         camera.image_distance_at(z))  # object mm per array-plane mm
-    return np.sort(-_array_box(camera) * scale, axis=1)
+    return np.sort(-box * scale, axis=1)
 
 
 def check_grid(camera: Camera, grid) -> None:
@@ -124,7 +135,8 @@ def check_grid(camera: Camera, grid) -> None:
         main lens's focal length, where no real image forms), or when no part of it lies
         in the field of view (:func:`field_of_view_mm`) at any of its depths.
     """
-    near, far = resolved_depth_range(camera)
+    box = _array_box(camera)
+    near, far = _resolved(camera, box)
     limit = camera.focal_length_mm - camera.object_distance_mm
     z0, z1 = grid.z
     span = f"this camera resolves z in [{near:.2f}, {far:.2f}] mm"
@@ -140,15 +152,15 @@ def check_grid(camera: Camera, grid) -> None:
             f"{VIEW_LENSES:g} microlenses per pixel's view, or less than {LIGHT_SHARE:.0%} of "
             "its light reaches the array; docs/design.md §2.1). Move the volume into that "
             "range (plenocl grid --z), or focus the camera on it ([main_lens] magnification)")
-    _check_lateral(camera, grid)
+    _check_lateral(camera, grid, box)
 
 
-def _check_lateral(camera: Camera, grid) -> None:
+def _check_lateral(camera: Camera, grid, box: np.ndarray) -> None:
     """Refuse a grid no part of which lies in the field of view at any of its depths."""
     gx, gy = np.meshgrid(grid.x, grid.y)
     wx, wy = grid.to_world(gx.ravel(), gy.ravel())  # the grid's four corners
     depths = np.linspace(grid.z[0], grid.z[1], 33)
-    fovs = [field_of_view_mm(camera, z) for z in depths]
+    fovs = [_field(camera, z, box) for z in depths]
     for fov in fovs:
         if (wx.max() >= fov[0, 0] and wx.min() <= fov[0, 1]
                 and wy.max() >= fov[1, 0] and wy.min() <= fov[1, 1]):
