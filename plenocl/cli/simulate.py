@@ -95,7 +95,8 @@ def cmd_grid(args: argparse.Namespace) -> int:
     if grid.shape[0] < THREE_LAYERS:
         print(f"note: {grid.shape[0]} voxels deep: PIV's final 24-voxel windows give fewer "
               f"than 3 layers of vectors in depth (at least {THREE_LAYERS} voxels give 3); "
-              "widen --z or give thinner voxels (--depth-voxel-mm)")
+              "widen --z (within the depths the camera resolves) or give thinner voxels "
+              "(--depth-voxel-mm)")
     return 0
 
 
