@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .io.tomlfile import read_toml, write_toml
+from .optics.depthrange import check_grid
 from .optics.lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
 
 
@@ -211,5 +212,7 @@ class Grid:
         if rotation_deg is None:
             rotation_deg = separable_rotation_deg(camera.on_lens_lattice().microlens_centers,
                                                   DEFAULT_SHEAR_TOL)
-        return cls((nz, ny, nx), (-nx * voxel / 2, nx * voxel / 2),
+        grid = cls((nz, ny, nx), (-nx * voxel / 2, nx * voxel / 2),
                    (-ny * voxel / 2, ny * voxel / 2), tuple(z), rotation_deg)
+        check_grid(camera, grid)
+        return grid

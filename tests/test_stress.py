@@ -34,6 +34,7 @@ from plenocl import (
 )
 from plenocl.calibration import import_centers
 from plenocl.io import read_field, read_image, read_particles
+from plenocl.optics.depthrange import resolved_depth_range
 from plenocl.pipeline import TrackSettings, track
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
@@ -75,7 +76,8 @@ def camera_and_grid(draw, layouts=("ideal", "ideal", "rotated", "perturbed")):
     The central voxel ``(nz//2, ny//2, nx//2)`` sits on the axis at a depth whose blur
     circle on the array has radius ``b`` lenses, ``b <= (min(count) - 1)/2 - 0.5``: every
     aperture sample then falls between two lenses that exist, and the sensor has at least
-    2 px of margin around the array, so none of its light is lost (weights sum to 1).
+    2 px of margin around the array, so none of its light is lost (weights sum to 1). The
+    grid's faces lie within the depths the camera resolves (a projector refuses others).
     """
     f = draw(st.floats(20.0, 100.0))
     mag = draw(st.floats(0.3, 2.0))
@@ -115,6 +117,8 @@ def camera_and_grid(draw, layouts=("ideal", "ideal", "rotated", "perturbed")):
     limit = f - cam.object_distance_mm  # z <= limit forms no real image
     dz = draw(st.floats(0.1, 3.0)) * cam.depth_resolution_mm
     dz = min(dz, 0.5 * (z_c - limit) / (nz // 2 + 0.5))  # keep the near face well beyond
+    near, far = resolved_depth_range(cam)  # and both faces within the depths it resolves
+    dz = min(dz, 0.99 * (z_c - near) / (nz // 2 + 0.5), 0.99 * (far - z_c) / (nz - nz // 2 - 0.5))
     z0 = z_c - (nz // 2 + 0.5) * dz
     half = [draw(st.floats(0.05, 1.2)) * n * p_ml / (2 * mag) for n in (cols, rows)]
     grid = Grid((nz, ny, nx), x=(-half[0], half[0]), y=(-half[1], half[1]), z=(z0, z0 + nz * dz))
@@ -697,6 +701,11 @@ INVALID = [
      "where the main lens forms no real image"),
     ("projector-outside-field-of-view", _proj(x=(10.0, 11.0)), ValueError,
      "entirely outside the camera's field of view"),
+    ("projector-depth-not-resolved", _proj(z=(200.0, 210.0)), ValueError,
+     r"reaches beyond the depths the camera resolves: this camera resolves z in \["),
+    ("grid-for-camera-depth-not-resolved",
+     lambda c: Grid.for_camera(c["cam"], (-2.0, 25.0)), ValueError,
+     r"reaches beyond the depths the camera resolves: this camera resolves z in \["),
     ("projector-method", _proj(method="sparse"), ValueError, "method must be one of"),
     ("lightfield-axial-view",
      lambda c: LightField(np.ones((70, 70)),

@@ -10,6 +10,7 @@ from pathlib import Path
 from ..camera import Camera
 from ..grid import Grid
 from ..io.tomlfile import write_toml
+from ..optics.depthrange import check_grid
 from ..version import __version__
 from .config import Experiment
 
@@ -42,10 +43,13 @@ def run_camera(exp: Experiment, queue, log) -> Camera:
 
 
 def run_grid(exp: Experiment, camera: Camera) -> Grid:
-    """The experiment's grid: its file, or fitted to the camera (``z_mm``)."""
+    """The experiment's grid: its file, or fitted to the camera (``z_mm``); refused before
+    any work when the camera cannot image it (:func:`plenocl.optics.depthrange.check_grid`)."""
     g = exp["grid"]
     if g["file"]:
-        return Grid.from_toml(exp.base / g["file"])
+        grid = Grid.from_toml(exp.base / g["file"])
+        check_grid(camera, grid)
+        return grid
     return Grid.for_camera(camera, tuple(g["z_mm"]), voxel_mm=g["voxel_mm"],
                            depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
 

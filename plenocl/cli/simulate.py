@@ -80,17 +80,23 @@ def cmd_white(args: argparse.Namespace) -> int:
 def cmd_grid(args: argparse.Namespace) -> int:
     """Write the grid that fits the camera's field of view (Grid.for_camera)."""
     from ..grid import Grid
+    from ..optics.depthrange import resolved_depth_range
 
-    grid = Grid.for_camera(load_camera(args.camera), tuple(args.z), voxel_mm=args.voxel_mm,
+    camera = load_camera(args.camera)
+    # refused before anything is written when the camera does not resolve args.z
+    grid = Grid.for_camera(camera, tuple(args.z), voxel_mm=args.voxel_mm,
                            depth_voxel_mm=args.depth_voxel_mm, fraction=args.fraction)
     grid.to_toml(args.out)
     dz, dy, dx = grid.spacing
+    near, far = resolved_depth_range(camera)
     print(f"wrote {args.out}: {grid.shape} voxels of {dz:.4g} x {dy:.4g} x {dx:.4g} mm "
-          f"(z, y, x), rotated {grid.rotation_deg:.4f} deg")
+          f"(z, y, x), rotated {grid.rotation_deg:.4f} deg; the camera resolves z in "
+          f"[{near:.2f}, {far:.2f}] mm")
     if grid.shape[0] < THREE_LAYERS:
         print(f"note: {grid.shape[0]} voxels deep: PIV's final 24-voxel windows give fewer "
               f"than 3 layers of vectors in depth (at least {THREE_LAYERS} voxels give 3); "
-              "widen --z or give thinner voxels (--depth-voxel-mm)")
+              "widen --z (within the depths the camera resolves) or give thinner voxels "
+              "(--depth-voxel-mm)")
     return 0
 
 
@@ -139,7 +145,8 @@ def add_simulate_parsers(sub) -> None:
     g = sub.add_parser("grid", help="write a grid file fitting the camera's field of view")
     g.add_argument("--camera", default=None, help="(calibrated) camera TOML file or preset")
     g.add_argument("--z", type=float, nargs=2, required=True, metavar=("Z0", "Z1"),
-                   help="depth range (mm, +z away from the camera)")
+                   help="depth range (mm, +z away from the camera), within the depths the "
+                        "camera resolves (refused otherwise, naming them)")
     g.add_argument("--out", required=True, help="grid TOML to write")
     g.add_argument("--voxel-mm", type=float, default=None,
                    help="lateral voxel (default: one microlens in object space)")

@@ -9,10 +9,13 @@
   robust background;
 - :mod:`.raybundle`: the camera's exact rays, a point particle's raw image and its
   derivatives (the image-space particle fit's forward model).
+- :mod:`.depthrange`: the depths the camera resolves, its field of view there, and the
+  one check of a grid against them (:func:`check_grid`).
 
 Device-free NumPy; it imports only the camera model.
 """
 
+from .depthrange import check_grid, field_of_view_mm, resolved_depth_range
 from .imaging import array_plane_positions, array_plane_scale
 from .lattice import DEFAULT_SHEAR_TOL, LensLattice, RectangularLattice, lattice_fit
 from .ownership import lens_owner, pixel_lenses
@@ -20,6 +23,6 @@ from .rawimage import check_image, check_pixel_mask, median_background, subtract
 from .raybundle import RayBundle
 
 __all__ = ["DEFAULT_SHEAR_TOL", "LensLattice", "RayBundle", "RectangularLattice",
-           "array_plane_positions", "array_plane_scale", "check_image", "check_pixel_mask",
-           "lattice_fit", "lens_owner", "median_background", "pixel_lenses",
-           "subtract_background"]
+           "array_plane_positions", "array_plane_scale", "check_grid", "check_image",
+           "check_pixel_mask", "field_of_view_mm", "lattice_fit", "lens_owner",
+           "median_background", "pixel_lenses", "resolved_depth_range", "subtract_background"]

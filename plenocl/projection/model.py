@@ -2,12 +2,13 @@
 read and every geometry check, built from a camera and a grid (docs/design.md §5).
 
 :class:`WeightingModel` assembles the pieces of :mod:`.weighting` in the order the
-projector needs them: the depth range check, the aperture samples, the lens index map
-and with it the path (separable, or general with a warning), the per-depth coefficients
-and the field-of-view check; the lens tables, the pixel offsets and the race-free lens
-colouring follow. Nothing here touches a device: :class:`plenocl.Projector` takes a model
-and only uploads its tables and launches kernels, and the model can be built and tested
-without OpenCL.
+projector needs them: the grid checked against the optics (the depths the camera resolves,
+its field of view: :func:`plenocl.optics.depthrange.check_grid`), the aperture samples, the
+lens index map and with it the path (separable, or general with a warning), the per-depth
+coefficients and the field-of-view check; the lens tables, the pixel offsets and the
+race-free lens colouring follow. Nothing here touches a device: :class:`plenocl.Projector`
+takes a model and only uploads its tables and launches kernels, and the model can be built
+and tested without OpenCL.
 """
 
 from __future__ import annotations
@@ -19,13 +20,13 @@ import numpy as np
 
 from ..camera import Camera
 from ..grid import Grid
+from ..optics.depthrange import check_grid
 from ..optics.lattice import DEFAULT_SHEAR_TOL, lattice_rotation_deg
 from .lenses import lens_reach
 from .weighting import (
     DEFAULT_OVERSAMPLE,
     NO_LENS,
     ApertureGrid,
-    check_depth_range,
     check_field_of_view,
     colour_stride,
     depth_coefficients,
@@ -62,9 +63,9 @@ class WeightingModel:
     Raises
     ------
     ValueError
-        When the grid reaches depths without a real image (:func:`check_depth_range`),
-        lies outside the field of view (:func:`check_field_of_view`), or ``oversample``
-        is not a positive number.
+        When the grid reaches beyond the depths the camera resolves or lies outside its
+        field of view (:func:`plenocl.optics.depthrange.check_grid`,
+        :func:`check_field_of_view`), or ``oversample`` is not a positive number.
 
     Attributes
     ----------
@@ -80,9 +81,9 @@ class WeightingModel:
 
     def __init__(self, camera: Camera, grid: Grid, oversample: float = DEFAULT_OVERSAMPLE,
                  shear_tol: float = DEFAULT_SHEAR_TOL, warn: bool = True) -> None:
+        check_grid(camera, grid)
         self.source_camera = camera
         camera = camera.on_lens_lattice()  # a hexagonal array: its axial view (§5)
-        check_depth_range(camera, grid)
         self.camera, self.grid = camera, grid
         self.oversample, self.shear_tol = oversample, shear_tol
         self.lens_map = lens_index_map(camera, shear_tol, grid.rotation_deg)

@@ -13,7 +13,8 @@ What a voxel's weight on a pixel depends on, apart from the kernels that sum it:
   (step 3);
 * :func:`colour_stride`: the lens stride at which microlens images never share a pixel
   (the race-free forward scatter);
-* :func:`check_depth_range` and :func:`check_field_of_view`: geometry that cannot image.
+* :func:`check_field_of_view`: a grid whose light reaches no lens (the depths and field
+  of view the camera resolves are checked before, :mod:`plenocl.optics.depthrange`).
 
 Nothing here touches a device. The NumPy reference (:mod:`plenocl.reference.weights`)
 shares these definitions and evaluates the model voxel by voxel, for clarity.
@@ -34,7 +35,7 @@ from ..optics.lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, r
 #: Aperture samples per pixel footprint on the aperture (``p_px d / f_ml``), per axis.
 DEFAULT_OVERSAMPLE = 1.25
 __all__ = ["DEFAULT_OVERSAMPLE", "DEFAULT_SHEAR_TOL", "NO_LENS", "ApertureGrid", "LensIndexMap",
-           "check_depth_range", "check_field_of_view", "colour_stride",
+           "check_field_of_view", "colour_stride",
            "depth_coefficients", "lens_index_map", "lens_tables"]
 #: Rounded-centre marker of a lens without a calibrated centre (PL_NO_LENS in projector.h).
 NO_LENS = -(1 << 30)
@@ -301,17 +302,6 @@ def colour_stride(camera: Camera, aperture: ApertureGrid, limit: int = 8) -> int
 
 
 # ---- geometry checks --------------------------------------------------------------------
-def check_depth_range(camera: Camera, grid: Grid) -> None:
-    """Fail when the grid reaches depths where the main lens forms no real image."""
-    limit = camera.focal_length_mm - camera.object_distance_mm
-    if grid.z[0] <= limit:
-        raise ValueError(
-            f"the grid's depth range z = {grid.z} mm reaches z <= f - s_o = {limit:.3f} mm, "
-            "where the main lens forms no real image; move the volume's near face beyond "
-            f"z = {limit:.3f} mm"
-        )
-
-
 def check_field_of_view(camera: Camera, grid: Grid, coef: np.ndarray,
                         aperture: ApertureGrid) -> None:
     """Fail when no voxel's light can reach any microlens (``coef``:

@@ -99,8 +99,11 @@ def _warn_if_outside(projector, solver: Solver, min_sensitivity: float) -> None:
     if fraction > OUTSIDE_WARN:
         warnings.warn(f"{fraction:.0%} of the grid's voxels send no more than "
                       f"{min_sensitivity:g} of their light to the sensor and are not "
-                      "reconstructed: the grid reaches beyond the camera's field of view; "
-                      "shrink it (Grid.for_camera fits the field of view)", stacklevel=6)
+                      "reconstructed: the grid reaches laterally beyond the camera's field "
+                      "of view at its depths (the depths themselves are within those the "
+                      "camera resolves: they were checked); narrow its x and y extents to that "
+                      "field (plenocl.optics.depthrange.field_of_view_mm; Grid.for_camera and "
+                      "plenocl grid fit it)", stacklevel=6)
 
 
 def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
