@@ -1,5 +1,5 @@
 """Where a run keeps each pair's files in its output folder (one place for the names);
-a pair is done when its field file exists (:func:`plenocl.pipeline.resume.pending`)."""
+a pair is done when its field file exists with the run's record (:mod:`.record`)."""
 
 from __future__ import annotations
 
