@@ -95,13 +95,15 @@ def field_record(record: dict, sources: dict, index: int) -> dict:
 @dataclass
 class Decision:
     """What a rerun does with one finished pair: ``action`` (:data:`SKIP`,
-    :data:`RESCALE`, :data:`CORRELATE`, :data:`REDO`), the changed entries, and for a
-    refusal the reason (``refused``)."""
+    :data:`RESCALE`, :data:`CORRELATE`, :data:`REDO`), the changed entries, why it cannot
+    be kept or remade as it is (``reason``), and that reason as a refusal (``refused``,
+    when the run was not told to redo such pairs)."""
 
     index: int
     action: str = SKIP
     changed: list[str] = field(default_factory=list)
     refused: str | None = None
+    reason: str | None = None
 
 
 def decide(pair: ImagePair | None, field_file: Path, volumes_file: Path, record: dict,
@@ -170,9 +172,7 @@ def kept_volumes(path: Path) -> str | None:
 
 def _refusal(k: int, why: str, redo: bool, changed: list[str] | None = None) -> Decision:
     """A pair that cannot be kept or remade as it is: redone when ``redo``."""
-    if redo:
-        return Decision(k, REDO, changed or [], None)
-    return Decision(k, REDO, changed or [], f"pair {k}: {why}")
+    return Decision(k, REDO, changed or [], None if redo else f"pair {k}: {why}", why)
 
 
 def refuse(decisions: list[Decision], out: Path) -> None:

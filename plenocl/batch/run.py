@@ -50,6 +50,7 @@ from .prepare import (
 from .record import (
     CORRELATE,
     DT,
+    FIELD_SECTIONS,
     REDO,
     RESCALE,
     SKIP,
@@ -238,17 +239,18 @@ def _report_decisions(changes: list[Decision], planned: set[int], settings: RunS
     groups: dict[tuple, list[int]] = {}
     for d in changes:
         action = d.action if d.action != REDO or d.index in planned else "remove"
-        groups.setdefault((action, tuple(d.changed)), []).append(d.index)
+        why = f"{name_changes(d.changed)} changed" if d.changed else ""
+        if d.reason is not None:
+            why = f"{d.reason} (--redo)"
+        groups.setdefault((action, why, tuple(d.changed)), []).append(d.index)
     what = {RESCALE: "velocities rescaled from the stored displacements (nothing "
                      "reconstructed or correlated)",
             CORRELATE: "correlating the kept volumes again (no reconstruction)",
             REDO: "redoing them (reconstruction included)",
             "remove": "removed: their frames are gone, they cannot be remade"}
-    for (action, changed), pairs in sorted(groups.items()):
-        why = f"{name_changes(changed)} changed" if changed else "redone (--redo)"
-        if action == REDO and changed and all(
-                n == DT or n.split(".")[0] in ("piv", "particles", "image_fit")
-                for n in changed):
+    for (action, why, changed), pairs in sorted(groups.items()):
+        if action == REDO and changed and not settings.pair.mte.cycles and all(
+                n == DT or n.split(".")[0] in FIELD_SECTIONS for n in changed):
             why += (" and no volumes of this reconstruction are kept"
                     + ("" if settings.keep_volumes else " ([piv] ensemble = false)"))
         log(f"{_count(pairs)}: {why}: {what[action]}")
