@@ -273,3 +273,12 @@ def test_a_tracking_rerun_leaves_only_results_of_its_record(tmp_path, monkeypatc
     assert again.processed == ["tracks", "field"]
     assert plenocl.Tracks.load(out / "tracks.npz").dt == 0.002
     assert recorded()["tracks"] != first["tracks"]
+
+
+def test_vti_asked_for_later_is_written_from_the_kept_field(done, monkeypatch):
+    _edit(done, 'folder = "results"', 'folder = "results"\nvti = true')
+    _no_reconstruction(monkeypatch)
+    s = plenocl.run(done / "experiment.toml", progress=False, log=lambda _: None)
+    assert s.skipped == [0] and s.processed == []
+    vti = (done / PAIR).with_suffix(".vti")
+    assert vti.is_file() and b"velocity_m_per_s" in vti.read_bytes()

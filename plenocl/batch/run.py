@@ -61,7 +61,14 @@ from .record import (
     store_record,
 )
 from .tracking import TrackingSummary, run_tracking
-from .worker import PairOutcome, PairProcessor, PairTask, RunSettings, rescale_field
+from .worker import (
+    PairOutcome,
+    PairProcessor,
+    PairTask,
+    RunSettings,
+    add_vti,
+    rescale_field,
+)
 
 
 @dataclass
@@ -199,6 +206,10 @@ def _apply(decisions: list[Decision], plan: PairPlan, out: Path, grid,
     replaces (its field, ``.vti`` and volumes of another reconstruction), rescale the
     fields whose ``dt_s`` alone changed, and remove the run's products built from the
     old pairs (``timeseries.zarr``, ``experiment_used.toml``: written again)."""
+    added = [d.index for d in decisions
+             if d.action == SKIP and add_vti(pair_file(out, d.index), grid, settings)]
+    if added:
+        log(f"{_count(added)}: .vti written from the kept field ([output] vti)")
     changes = [d for d in decisions if d.action != SKIP]
     if not changes:
         return

@@ -182,3 +182,15 @@ def rescale_field(target: Path, grid: Grid, settings: RunSettings) -> None:
     if settings.vti or vti.is_file():
         save_field(vti, res, dt=settings.dt_s, grid=grid)
     save_field(target, res, dt=settings.dt_s, grid=grid, metadata=meta)
+
+
+def add_vti(target: Path, grid: Grid, settings: RunSettings) -> bool:
+    """The ``.vti`` of a finished pair made with the run's record, written from its
+    ``.npz`` when the run writes them (``[output] vti``) and it has none; whether it
+    was written."""
+    vti = target.with_suffix(".vti")
+    if not settings.vti or vti.is_file():
+        return False
+    res, arrays = read_npz(target)
+    save_field(vti, res, dt=float(arrays["dt"]), grid=grid)
+    return True
