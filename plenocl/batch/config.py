@@ -62,6 +62,7 @@ from pathlib import Path
 from ..io.tomlfile import read_toml
 from ..pipeline.settings import PARTS, PairSettings
 from ..units import check_dt
+from .layout import COPY_SUFFIXES
 from .pairing import PAIRINGS, PairPlan, ab_pairs, listed_pairs, numbered_pairs
 from .trackconfig import TrackingOptions, check_images_for_tracking, tracking_options
 
@@ -158,7 +159,7 @@ def _check(s: dict, path: Path, tracking: bool = False) -> None:
 
 
 #: What ``[output] formats`` may list: the field formats written beside each ``.npz``.
-EXTRA_FORMATS = ("vti", "h5", "dat", "csv")
+EXTRA_FORMATS = tuple(suffix.lstrip(".") for suffix in COPY_SUFFIXES)
 
 
 def output_formats(output: dict, path: Path | str = "the experiment file") -> tuple[str, ...]:

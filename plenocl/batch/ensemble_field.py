@@ -1,7 +1,11 @@
 """The ensemble-correlation mean field of a run (``[piv] ensemble = true``): every
 finished pair whose volumes were kept, deformed by the mean of the pairs' own fields and
 correlated together (:func:`plenocl.piv.ensemble.ensemble_piv`), written to
-``OUT/ensemble.npz`` and gathered into the time-series store."""
+``OUT/ensemble.npz`` and gathered into the time-series store.
+
+The field records what it was made of (:func:`plenocl.batch.record.ensemble_record`: each
+pair's ``field`` digest and ``dt_s``); :func:`update_ensemble` keeps it while that is
+unchanged, rescales it when ``dt_s`` alone changed, and makes it again otherwise."""
 
 from __future__ import annotations
 
@@ -11,19 +15,70 @@ import numpy as np
 
 from ..device import get_queue
 from ..grid import Grid
+from ..io.fields import field_metadata
 from ..io.files import read_volumes
 from ..piv.ensemble import ensemble_piv
 from ..vectorfield import PIVResult
 from ..vectorfile import read_npz, save_field
-from .layout import finished_pairs, volume_file
+from .layout import field_copies, finished_pairs, volume_file
+from .record import ensemble_record, kept_volumes
+
+#: The ensemble field's file in a run's output folder.
+ENSEMBLE = "ensemble.npz"
+
+
+def update_ensemble(out: Path, fields: dict[int, tuple[Path, dict]], dt: float, queue=None,
+                    formats: tuple[str, ...] = (), log=print,
+                    wanted: bool = True) -> Path | None:
+    """The run's ensemble field made, kept or rescaled to match its pairs (see the module
+    notes); ``fields``: ``{pair: (field file, its metadata)}`` of the finished pairs.
+    Not ``wanted`` (ensemble off, or the run interrupted): an ensemble field that no
+    longer matches its pairs is removed, and said so. Returns the field, or ``None``."""
+    made = Path(out) / ENSEMBLE
+    usable = {k: (path, meta) for k, (path, meta) in fields.items()
+              if _volumes_digest(meta) is not None
+              and kept_volumes(volume_file(path)) == _volumes_digest(meta)}
+    record = ensemble_record({k: meta for k, (_, meta) in usable.items()}, dt)
+    old = field_metadata(made).get("record") if made.is_file() else None
+    if old == record:
+        if wanted:
+            log(f"ensemble correlation: no new pair and none changed, {made} kept")
+        return made
+    if not wanted:
+        if made.is_file():
+            made.unlink()
+            log(f"removed {made}: made from other pairs or another dt_s than those now here")
+        return None
+    if old is not None and old.get("pairs") == record["pairs"]:
+        _rescale(made, dt, formats, record)
+        log(f"ensemble correlation: dt_s changed, {made} rescaled")
+        return made
+    made.unlink(missing_ok=True)
+    return ensemble_field(out, dt, queue, formats, log, [path for path, _ in usable.values()],
+                          {"record": record})
+
+
+def _volumes_digest(meta: dict) -> str | None:
+    return meta.get("digests", {}).get("volumes")
+
+
+def _rescale(made: Path, dt: float, formats: tuple[str, ...], record: dict) -> None:
+    """The ensemble field written again for ``dt`` (its displacements kept)."""
+    res, _ = read_npz(made)
+    grid = Grid.from_toml(made.parent / "grid_used.toml")
+    for copy in field_copies(made, formats):
+        save_field(copy, res, dt=dt, grid=grid)
+    save_field(made, res, dt=dt, grid=grid, metadata={"record": record})
 
 
 def ensemble_field(out: Path, dt: float, queue=None, formats: tuple[str, ...] = (),
-                   log=print) -> Path | None:
-    """Correlate the run's kept volume pairs as one ensemble; the field file written
-    (``ensemble.npz``, and a copy in each of ``formats``' suffixes, e.g. ``".vti"``), or
-    ``None`` when no pair kept its volumes."""
-    fields = [path for _, path in finished_pairs(out) if volume_file(path).is_file()]
+                   log=print, fields: list[Path] | None = None,
+                   metadata: dict | None = None) -> Path | None:
+    """Correlate the run's kept volume pairs as one ensemble; the field file written, or
+    ``None`` when no pair kept its volumes. ``fields``: the pairs' field files (default:
+    every finished pair with kept volumes); ``metadata``: written with the field."""
+    if fields is None:
+        fields = [path for _, path in finished_pairs(out) if volume_file(path).is_file()]
     if not fields:
         log("ensemble correlation: no pair kept its volumes ([piv] ensemble was off when "
             "they were processed); skipped")
@@ -35,10 +90,10 @@ def ensemble_field(out: Path, dt: float, queue=None, formats: tuple[str, ...] = 
 
     result = ensemble_piv(pairs, predictor, queue=get_queue(queue))
     grid = Grid.from_toml(out / "grid_used.toml")
-    target = out / "ensemble.npz"
+    target = out / ENSEMBLE
     for suffix in formats:
         save_field(target.with_suffix(suffix), result, dt=dt, grid=grid)
-    save_field(target, result, dt=dt, grid=grid)
+    save_field(target, result, dt=dt, grid=grid, metadata=metadata)
     log(f"ensemble correlation of {len(fields)} pair(s): {result.valid.mean():.0%} valid "
         f"vectors, in {target}")
     return target

@@ -1,5 +1,5 @@
 """Where a run keeps each pair's files in its output folder (one place for the names);
-a pair is done when its field file exists (:func:`plenocl.pipeline.resume.pending`)."""
+a pair is done when its field file exists with the run's record (:mod:`.record`)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,17 @@ from ..pipeline import resume
 
 #: The folder of per-pair files inside a run's output folder.
 PAIRS = "pairs"
+
+
+#: The copies of a field a run may write beside its ``.npz`` (``[output] formats``).
+COPY_SUFFIXES = (".vti", ".h5", ".dat", ".csv")
+
+
+def field_copies(field_file: Path, formats: tuple[str, ...] = ()) -> list[Path]:
+    """The copies of a field beside it: those present, and those of ``formats`` (the
+    suffixes a run writes) whether present or not."""
+    return [field_file.with_suffix(s) for s in COPY_SUFFIXES
+            if s in formats or field_file.with_suffix(s).is_file()]
 
 
 def pair_file(out: Path, index: int) -> Path:

@@ -2,28 +2,33 @@
 machine or a Dask cluster (docs/batch.md).
 
 The run checks the experiment file and that its output folder can be written in,
-calibrates the camera if a white image is given, and writes the configuration used
-(``experiment_used.toml``, a record with every pair setting resolved;
-``camera_used.toml``, ``grid_used.toml``) before any pair. The pairs' settings
-go to the workers as an object (:class:`~.worker.RunSettings`). Each pair's vector field
-goes atomically to ``OUT/pairs/pair_NNNNN.npz`` (and ``.vti``, ``.dat``, ``.csv``, ``.h5``
-on request, ``[output] formats``): a rerun skips
-the pairs already there and says so; a pair that fails (unreadable, wrong size, NaN) is
-logged with its reason and the run goes on. At the end, and after Ctrl-C, the finished
-pairs are gathered into ``OUT/timeseries.zarr`` with the ensemble mean and RMS
-fluctuation (:mod:`plenocl.io.timeseries`), and ``summary.json`` reports pairs processed,
-skipped and failed, seconds per pair and the stage split.
+calibrates the camera if a white image is given, and decides what to do with the pairs a
+previous run left (:mod:`.record`: each field carries the record of everything that made
+it; a rerun skips the pairs made with the run's record, rescales those whose ``dt_s``
+alone changed, correlates kept volumes again for a changed ``[piv]``, redoes the pairs
+of a changed reconstruction, and refuses, before anything is changed, pairs of other
+images, another camera or grid or without a record, unless ``redo``). Then it writes the
+configuration used (``experiment_used.toml``, a record with every pair setting resolved;
+``camera_used.toml``, ``grid_used.toml``), which now describes every field in the
+folder. The pairs' settings go to the workers as an object
+(:class:`~.worker.RunSettings`). Each pair's vector field goes atomically to
+``OUT/pairs/pair_NNNNN.npz`` (and ``.vti``, ``.h5``, ``.dat``, ``.csv`` on request,
+``[output] formats``); a pair that fails (unreadable, wrong size, NaN) is logged with
+its reason and the run goes on. At the end, and after Ctrl-C, the finished pairs are
+gathered into ``OUT/timeseries.zarr`` with the ensemble mean and RMS fluctuation
+(:mod:`plenocl.io.timeseries`; the store records each pair's digest), and
+``summary.json`` reports pairs processed, skipped, rescaled, redone and failed, seconds
+per pair and the stage split.
 
 Pairs are made from frame numbers (:mod:`.pairing`): a missing frame is a gap, reported
-by name, never a shift of the later pairs. Each field records its two source files (name,
-size, SHA-256); a rerun whose files differ from those a finished pair was made from
-refuses to mix them. Files a killed run left half-written are removed first.
+by name, never a shift of the later pairs. Files a killed run left half-written are
+removed first.
 """
 
 from __future__ import annotations
 
+import shutil
 import time
-import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -33,10 +38,17 @@ from ..io.outputs import check_output_folder
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..options import NONE
-from ..pipeline.resume import pending
+from ..pipeline.resume import name_changes
 from .config import Experiment, image_pairs, load_experiment, output_formats
-from .layout import finished_pairs, pair_file, remove_partial_files
-from .pairing import ImagePair, PairPlan, changed_since
+from .ensemble_field import update_ensemble
+from .layout import (
+    field_copies,
+    finished_pairs,
+    pair_file,
+    remove_partial_files,
+    volume_file,
+)
+from .pairing import ImagePair, PairPlan
 from .prepare import (
     check_cluster_device,
     frame_corrections,
@@ -44,8 +56,28 @@ from .prepare import (
     run_grid,
     write_used_config,
 )
+from .record import (
+    CORRELATE,
+    DT,
+    FIELD_SECTIONS,
+    REDO,
+    RESCALE,
+    SKIP,
+    Decision,
+    decide,
+    refuse,
+    run_record,
+    store_record,
+)
 from .tracking import TrackingSummary, run_tracking
-from .worker import PairOutcome, PairProcessor, PairTask, RunSettings
+from .worker import (
+    PairOutcome,
+    PairProcessor,
+    PairTask,
+    RunSettings,
+    add_copies,
+    rescale_field,
+)
 
 
 @dataclass
@@ -55,6 +87,8 @@ class RunSummary:
     pairs: int = 0
     processed: list[int] = field(default_factory=list)
     skipped: list[int] = field(default_factory=list)
+    rescaled: list[int] = field(default_factory=list)
+    redone: list[int] = field(default_factory=list)
     failed: dict[int, str] = field(default_factory=dict)
     gaps: dict[int, str] = field(default_factory=dict)
     unpaired: list[str] = field(default_factory=list)
@@ -76,7 +110,7 @@ class RunSummary:
 
 def run(config: str | Path, out: str | Path | None = None, queue=None, log=print, *,
         workers: int | None = None, scheduler: str | None = None,
-        progress: bool = True) -> RunSummary | TrackingSummary:
+        progress: bool = True, redo: bool = False) -> RunSummary | TrackingSummary:
     """Process every image pair of an experiment file (see the module notes); with an
     enabled ``[tracking]`` section, track its frames instead
     (:func:`plenocl.batch.tracking.run_tracking`).
@@ -99,13 +133,25 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     progress
         Show a progress bar (pairs done, pairs/s, time left; with ``[tracking]``, the
         frames' steps).
+    redo
+        Redo the finished pairs a rerun would otherwise refuse (another camera or grid,
+        changed source files, fields without a record; :mod:`.record`) instead of
+        refusing (``plenocl run --redo``).
 
     Returns
     -------
     RunSummary or TrackingSummary
-        Pairs processed, skipped (already written), failed (with the reason) and left
+        Pairs processed, skipped (already written with the same record), rescaled (only
+        ``dt_s`` changed), redone (a setting changed), failed (with the reason) and left
         out for a missing frame (``gaps``), and each finished pair's source files; or
         the tracking run's frames, tracks and stages run or skipped.
+
+    Raises
+    ------
+    ValueError
+        A finished pair the run cannot keep or remake as it is (another camera or grid,
+        changed source files, a field without a record) without ``redo``: named, with
+        the way out, before anything is changed.
     """
     exp = load_experiment(config)
     out = check_output_folder(out if out is not None else exp.base / exp["output"]["folder"])
@@ -118,14 +164,17 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
         log(f"removed {path.name}, left half-written by an interrupted run")
     camera = run_camera(exp, queue, log)
     grid = run_grid(exp, camera)
-    _refuse_other_grid(out, grid)
-    _refuse_changed_inputs(plan, out)
-    write_used_config(exp, out, camera, grid, _pair_record(exp))
+    if not redo:
+        _refuse_other_grid(out, grid)
+    settings = _run_settings(exp, run_record(exp, camera, grid))
+    decisions = _decide(plan, out, settings.record, redo)
     summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),
                          workers=workers or (0 if scheduler else 1),
                          gaps=dict(plan.gaps), unpaired=list(plan.unpaired))
+    _apply(decisions, plan, out, grid, settings, summary, log)
+    write_used_config(exp, out, camera, grid, _pair_record(exp))
     _report_gaps(plan, log)
-    tasks = _tasks(plan.pairs, out, summary, log)
+    tasks = _tasks(plan.pairs, decisions, out, summary, log)
     t0 = time.perf_counter()
     with pair_bar(len(tasks), progress) as advance:
         def done(outcome: PairOutcome) -> None:
@@ -133,7 +182,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
             advance(outcome.error is not None)
 
         try:
-            _process(tasks, out, _run_settings(exp), queue, workers, scheduler, done)
+            _process(tasks, out, settings, queue, workers, scheduler, done)
         except KeyboardInterrupt:
             summary.interrupted = True
             log("interrupted: the pairs finished so far are kept; run again to go on")
@@ -150,40 +199,109 @@ def _report_gaps(plan: PairPlan, log) -> None:
         log(f"not in any pair: {why}")
 
 
-def _refuse_changed_inputs(plan: PairPlan, out: Path) -> None:
-    """A finished pair whose source files differ from the plan's refuses the run: its
-    field and the new pairs would mix two sets of inputs."""
+def _decide(plan: PairPlan, out: Path, record: dict, redo: bool) -> list[Decision]:
+    """What to do with each finished pair (:func:`.record.decide`); refuses, before
+    anything is changed, when a pair can be neither kept nor remade (unless ``redo``)."""
     planned = {p.index: p for p in plan.pairs}
-    changed = []
-    for k, path in finished_pairs(out):
-        pair = planned.get(k)
-        try:
-            recorded = field_metadata(path).get("sources", {})
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-            changed.append(f"pair {k}: {path.name} cannot be read ({exc})")
-            continue
-        if pair is None:
-            if recorded:
-                continue  # a frame removed after its pair was made: the field stays valid
-            changed.append(f"pair {k}: {path.name} exists but the images give no pair {k}")
-        elif (why := changed_since(recorded, pair)) is not None:
-            changed.append(f"pair {k}: {why}")
-    if changed:
-        raise ValueError(
-            f"{out} holds pairs made from other images than this run's: "
-            + "; ".join(changed[:5]) + (f"; and {len(changed) - 5} more" if len(changed) > 5
-                                        else "")
-            + ". Write this run to another folder (--out), or remove the old results")
+    decisions = [decide(planned.get(k), path, volume_file(path), record, redo)
+                 for k, path in finished_pairs(out)]
+    refuse(decisions, out)
+    return decisions
 
 
-def _tasks(pairs: list[ImagePair], out: Path, summary: RunSummary, log) -> list[PairTask]:
-    """The pairs still to do; those whose field exists are skipped, and said so."""
-    todo, done = pending(pairs, lambda pair: [pair_file(out, pair.index)])
-    summary.skipped.extend(pair.index for pair in done)
-    tasks = [PairTask(p.index, str(p.a), str(p.b), str(pair_file(out, p.index))) for p in todo]
+def _apply(decisions: list[Decision], plan: PairPlan, out: Path, grid,
+           settings: RunSettings, summary: RunSummary, log) -> None:
+    """Act on the decisions before any pair is processed: remove what a redone pair
+    replaces (its field, its copies and volumes of another reconstruction), rescale the
+    fields whose ``dt_s`` alone changed, and remove the run's products built from the
+    old pairs (``timeseries.zarr``, ``experiment_used.toml``: written again)."""
+    added = [d.index for d in decisions
+             if d.action == SKIP and add_copies(pair_file(out, d.index), grid, settings)]
+    if added:
+        log(f"{_count(added)}: {', '.join(settings.formats)} written from the kept field "
+            "([output] formats)")
+    changes = [d for d in decisions if d.action != SKIP]
+    if not changes:
+        return
+    for path in (out / "experiment_used.toml", out / "timeseries.zarr"):
+        _remove(path)
+    planned = {p.index for p in plan.pairs}
+    for d in changes:
+        target = pair_file(out, d.index)
+        if d.action == RESCALE:
+            rescale_field(target, grid, settings)
+            summary.rescaled.append(d.index)
+        else:  # made again: a pair that fails then leaves no field of other settings
+            _remove_pair(target, keep_volumes=d.action == CORRELATE)
+        if d.action in (REDO, CORRELATE) and d.index in planned:
+            summary.redone.append(d.index)
+    _report_decisions(changes, planned, settings, log)
+
+
+def _remove_pair(target: Path, keep_volumes: bool = False) -> None:
+    """A pair's field and its copies before it is made again, and its kept volumes unless
+    ``keep_volumes`` (they are correlated again)."""
+    volumes = () if keep_volumes else (volume_file(target),)
+    for path in (target, *field_copies(target), *volumes):
+        path.unlink(missing_ok=True)
+
+
+def _remove(path: Path) -> None:
+    """A file or a store folder, if there."""
+    if path.is_dir():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _report_decisions(changes: list[Decision], planned: set[int], settings: RunSettings,
+                      log) -> None:
+    """One line per kind of change: which pairs, what changed, what the run does."""
+    groups: dict[tuple, list[int]] = {}
+    for d in changes:
+        action = d.action if d.action != REDO or d.index in planned else "remove"
+        why = f"{name_changes(d.changed)} changed" if d.changed else ""
+        if d.reason is not None:
+            why = f"{d.reason} (--redo)"
+        groups.setdefault((action, why, tuple(d.changed)), []).append(d.index)
+    what = {RESCALE: "velocities rescaled from the stored displacements (nothing "
+                     "reconstructed or correlated)",
+            CORRELATE: "correlating the kept volumes again (no reconstruction)",
+            REDO: "redoing them (reconstruction included)",
+            "remove": "removed: their frames are gone, they cannot be remade"}
+    for (action, why, changed), pairs in sorted(groups.items()):
+        if action == REDO and changed and not settings.pair.mte.cycles and all(
+                n == DT or n.split(".")[0] in FIELD_SECTIONS for n in changed):
+            why += (" and no volumes of this reconstruction are kept"
+                    + ("" if settings.keep_volumes else " ([piv] ensemble = false)"))
+        log(f"{_count(pairs)}: {why}: {what[action]}")
+
+
+def _count(pairs: list[int]) -> str:
+    """``pair 3`` or ``4 pairs (0, 1, 2, ...)``."""
+    if len(pairs) == 1:
+        return f"pair {pairs[0]}"
+    shown = ", ".join(map(str, pairs[:6])) + (", ..." if len(pairs) > 6 else "")
+    return f"{len(pairs)} pairs ({shown})"
+
+
+def _tasks(pairs: list[ImagePair], decisions: list[Decision], out: Path,
+           summary: RunSummary, log) -> list[PairTask]:
+    """The pairs still to do: those without a field, and those to correlate again; the
+    others (made with the run's record, or rescaled) are skipped, and said so."""
+    mode = {d.index: d.action for d in decisions}
+    tasks = []
+    for p in pairs:
+        target = pair_file(out, p.index)
+        if mode.get(p.index) == CORRELATE:
+            tasks.append(PairTask(p.index, str(p.a), str(p.b), str(target), CORRELATE))
+        elif not target.is_file():
+            tasks.append(PairTask(p.index, str(p.a), str(p.b), str(target)))
+        elif mode.get(p.index) == SKIP:
+            summary.skipped.append(p.index)
     if summary.skipped:
-        log(f"{len(summary.skipped)} of {len(pairs)} pair(s) already done in "
-            f"{out / 'pairs'}: skipped")
+        log(f"{len(summary.skipped)} of {len(pairs)} pair(s) already done with these "
+            f"settings in {out / 'pairs'}: skipped")
     (out / "pairs").mkdir(parents=True, exist_ok=True)
     return tasks
 
@@ -195,12 +313,13 @@ def _pair_record(exp: Experiment) -> dict:
     return pair
 
 
-def _run_settings(exp: Experiment) -> RunSettings:
-    """What every pair of the run shares, from the checked experiment file."""
+def _run_settings(exp: Experiment, record: dict) -> RunSettings:
+    """What every pair of the run shares, from the checked experiment file, and the
+    run's record (:func:`.record.run_record`)."""
     img = exp["images"]
     dark, flat = frame_corrections(exp)
     return RunSettings(exp.pair, float(img["dt_s"]), output_formats(exp["output"]),
-                       bool(exp["piv"]["ensemble"]), img["channel"], dark, flat)
+                       bool(exp["piv"]["ensemble"]), img["channel"], dark, flat, record)
 
 
 def _process(tasks, out: Path, settings: RunSettings, queue, workers, scheduler,
@@ -237,20 +356,8 @@ def _refuse_other_grid(out: Path, grid) -> None:
 
         if Grid.from_toml(grid_file) != grid:
             raise ValueError(f"{out} holds pairs of another grid ({grid_file}); write this "
-                             f"run to another folder (--out) or remove the old results")
-
-
-def _ensemble(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> Path | None:
-    """The run's ensemble correlation; kept as it is when no pair was added since it was
-    made (a rerun that only skips finished pairs redoes nothing)."""
-    made = out / "ensemble.npz"
-    if not summary.processed and made.is_file():
-        log(f"ensemble correlation: no new pair, {made} kept")
-        return made
-    from .ensemble_field import ensemble_field
-
-    return ensemble_field(out, exp["images"]["dt_s"], queue, output_formats(exp["output"]),
-                          log)
+                             f"run to another folder (--out), redo every pair with --redo, "
+                             f"or remove the old results")
 
 
 def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:
@@ -261,20 +368,29 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
     summary.seconds_per_pair = (summary.wall_seconds / done) if done else 0.0
     interval = exp["images"]["pair_interval_s"]
     fields = finished_pairs(out)
-    summary.sources = {k: field_metadata(path).get("sources", {}) for k, path in fields}
-    ensemble = None
-    if fields and exp["piv"]["ensemble"] and not summary.interrupted:
-        ensemble = _ensemble(summary, exp, out, queue, log)
+    metas = {k: (path, field_metadata(path)) for k, path in fields}
+    summary.sources = {k: meta.get("sources", {}) for k, (_, meta) in metas.items()}
+    ensemble = update_ensemble(out, metas, exp["images"]["dt_s"], queue,
+                               output_formats(exp["output"]), log,
+                               wanted=bool(fields and exp["piv"]["ensemble"]
+                                           and not summary.interrupted))
+    if exp["piv"]["ensemble"]:
         summary.ensemble = None if ensemble is None else str(ensemble)
+    else:
+        ensemble = None
     if fields:
         store = write_timeseries(out / "timeseries.zarr",
                                  [(k, k * interval if interval else float(k), p)
                                   for k, p in fields], "s" if interval else "pair",
-                                 ensemble=ensemble)
+                                 ensemble=ensemble,
+                                 record=store_record({k: m for k, (_, m) in metas.items()},
+                                                     ensemble))
         summary.store = str(store)
     write_json(out / "summary.json", asdict(summary))
     log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
-        f"{len(summary.skipped)} already done, {len(summary.failed)} failed"
+        f"{len(summary.skipped)} already done"
+        + (f", {len(summary.rescaled)} rescaled to dt_s" if summary.rescaled else "")
+        + f", {len(summary.failed)} failed"
         + (f": {summary.failed}" if summary.failed else "")
         + (f", {len(summary.gaps)} not made for missing frames" if summary.gaps else "")
         + (f"; {len(fields)} in {out / 'timeseries.zarr'}" if fields else ""))

@@ -15,12 +15,16 @@ tracking) and ``field`` (the binned field, the ParaView file and the store), key
 the frames' content (name, size, SHA-256), the camera and grid used, the frame
 corrections and every setting; a rerun with the same skips both, any change runs both
 again, but a change of the binned field's options alone (the field stage's own key,
-with the digest of the tracks it bins) runs the field stage only.
+with the digest of the tracks it bins) runs the field stage only. The outputs of a
+stage to be done again are removed before it starts, and the store records both
+digests (its ``record`` attribute: ``tracks``, the configuration's, and ``field``, the
+field stage's key), so the results beside ``experiment_used.toml`` are always its.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -34,7 +38,7 @@ from ..io.atomic import write_json
 from ..io.files import read_image
 from ..io.progress import step_bar
 from ..pipeline.frames import load_frame
-from ..pipeline.resume import StageRunner
+from ..pipeline.resume import StageRunner, config_digest
 from ..pipeline.track import TrackSettings, bin_tracks, track
 from ..piv.tracking import FocalZone
 from ..ptv import Tracks
@@ -52,6 +56,8 @@ from .trackstore import write_track_store
 
 #: The files a tracking run writes in its output folder.
 TRACKS, LINES, STORE = "tracks.npz", "tracks.vtu", "tracks.zarr"
+#: The field stage's outputs (the store's own file marks it complete).
+FIELD_OUTPUTS = [LINES, f"{STORE}/zarr.json"]
 
 
 @dataclass
@@ -113,13 +119,15 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     summary = TrackingSummary(len(frames), list(frames),
                               workers=workers or (0 if scheduler else 1))
     job = _job(exp, frames, out, opts, queue if isinstance(queue, str) else None)
+    _remove_stale(runner, out, opts, log)
     log(f"tracking {len(frames)} frames {opts.interval_s:g} s apart")
     t0 = time.perf_counter()
     _stage(runner, summary, "tracks", [TRACKS],
            lambda: _track(job, queue, workers, scheduler, progress))
-    _stage(runner, summary, "field", [LINES, f"{STORE}/zarr.json"],
-           lambda: _write_outputs(out, frames, opts, camera, grid, layout),
-           {**opts.field_record(), "tracks": _digest(out / TRACKS)})  # new tracks: again
+    key = _field_key(out, opts)  # new tracks: again
+    record = {"tracks": runner.key, "field": config_digest(key)}
+    _stage(runner, summary, "field", FIELD_OUTPUTS,
+           lambda: _write_outputs(out, frames, opts, camera, grid, layout, record), key)
     summary.wall_seconds = time.perf_counter() - t0
     summary.tracks = len(Tracks.load(out / TRACKS).positions)
     summary.store = str(out / STORE)
@@ -127,6 +135,32 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     log(f"{summary.tracks} tracks over {len(frames)} frames in {out / TRACKS}, "
         f"{out / LINES} and {out / STORE}")
     return summary
+
+
+def _field_key(out: Path, opts: TrackingOptions) -> dict:
+    """The field stage's own key: the binned field's options and the tracks' digest."""
+    tracks = out / TRACKS
+    return {**opts.field_record(), "tracks": _digest(tracks) if tracks.is_file() else None}
+
+
+def _remove_stale(runner: StageRunner, out: Path, opts: TrackingOptions, log) -> None:
+    """The outputs of the stages this run does again, removed before it starts: a run
+    that fails leaves no tracks or field of another configuration beside its
+    ``experiment_used.toml``."""
+    stale = []
+    if not runner.done("tracks", [TRACKS]):
+        stale = [TRACKS, *FIELD_OUTPUTS]
+    elif not runner.done("field", FIELD_OUTPUTS, _field_key(out, opts)):
+        stale = FIELD_OUTPUTS
+    gone = [name for name in dict.fromkeys(n.split("/")[0] for n in stale)
+            if (out / name).exists()]
+    for name in gone:
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+        else:
+            (out / name).unlink()
+    if gone:
+        log(f"removed {', '.join(gone)}: made with another configuration, made again")
 
 
 def frame_series(exp: Experiment, opts: TrackingOptions) -> dict[int, Path]:
@@ -245,8 +279,9 @@ def read_frames(job: TrackJob, camera) -> list[np.ndarray]:
 
 
 def _write_outputs(out: Path, frames: dict[int, Path], opts: TrackingOptions, camera,
-                   grid: Grid, layout) -> None:
-    """The tracks' ParaView lines, their binned field and the store."""
+                   grid: Grid, layout, record: dict) -> None:
+    """The tracks' ParaView lines, their binned field and the store (with ``record``:
+    the digests of the tracks' configuration and of the field stage's key)."""
     tracks = Tracks.load(out / TRACKS)
     if not np.any(tracks.lengths >= 2):
         raise ValueError(f"no particle was tracked through {opts.settings.min_length} frames "
@@ -255,7 +290,7 @@ def _write_outputs(out: Path, frames: dict[int, Path], opts: TrackingOptions, ca
                          "min_length, or widen search (docs/errors.md)")
     tracks.save(out / LINES)
     fields = binned_fields(tracks, grid, opts, layout, FocalZone.of(camera, grid))
-    write_track_store(out / STORE, tracks, list(frames), fields, grid)
+    write_track_store(out / STORE, tracks, list(frames), fields, grid, record)
 
 
 def binned_fields(tracks: Tracks, grid: Grid, opts: TrackingOptions, layout,

@@ -41,14 +41,19 @@ COMPONENTS = ("u", "v", "w")
 
 
 def write_track_store(path: Path, tracks: Tracks, frame_numbers: Sequence[int],
-                      fields: Sequence[tuple[int, int, PIVResult]], grid: Grid) -> Path:
+                      fields: Sequence[tuple[int, int, PIVResult]], grid: Grid,
+                      record: dict | None = None) -> Path:
     """Write ``tracks`` (frames numbered ``frame_numbers``, ``tracks.dt`` s apart) and
     their binned ``fields`` (``(first frame, last frame, field)``, frames counted from
-    0) as the store (see the module notes)."""
+    0) as the store (see the module notes); ``record``: what made them (JSON-ready),
+    the store's ``record`` attribute."""
     variables = {**track_variables(tracks, frame_numbers),
                  **field_variables(fields, grid, tracks.dt, frame_numbers)}
-    return write_store(path, variables, {"title": "plenocl tracks", "source": "plenocl run",
-                                         "frame_interval_s": tracks.dt})
+    attrs = {"title": "plenocl tracks", "source": "plenocl run",
+             "frame_interval_s": tracks.dt}
+    if record is not None:
+        attrs["record"] = record
+    return write_store(path, variables, attrs)
 
 
 def track_variables(tracks: Tracks, frame_numbers: Sequence[int]) -> dict[str, Variable]:

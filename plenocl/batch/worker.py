@@ -12,7 +12,7 @@ Tasks carry only a :class:`PairTask` (file paths), never contexts or volumes.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +20,15 @@ import numpy as np
 from ..camera import load_camera
 from ..device import DeviceLike
 from ..grid import Grid
-from ..io.files import read_image, write_volumes
+from ..io.fields import field_metadata
+from ..io.files import read_image, read_volumes, volumes_metadata, write_volumes
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
-from ..vectorfile import save_field
-from .layout import pair_index, volume_file
+from ..pipeline.pair import correlate_volumes, known_backgrounds
+from ..vectorfile import read_npz, save_field
+from .layout import field_copies, pair_index, volume_file
 from .pairing import fingerprint
+from .record import CORRELATE, field_record
 
 #: The exceptions a bad pair raises (unreadable, wrong size, NaN, ...): logged, skipped.
 PAIR_ERRORS = (ValueError, OSError, TypeError)
@@ -51,6 +54,9 @@ class RunSettings:
     channel, dark, flat
         The frames' colour channel, and the absolute paths of the dark frame and flat
         field (``None``: none).
+    record
+        The run's record (:func:`plenocl.batch.record.run_record`), written with each
+        pair's field (``{}``: none, outside a run).
     """
 
     pair: PairSettings
@@ -60,16 +66,20 @@ class RunSettings:
     channel: str | None = None
     dark: str | None = None
     flat: str | None = None
+    record: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class PairTask:
-    """One pair to process: its index, its two images and the field file to write."""
+    """One pair to process: its index, its two images and the field file to write;
+    ``mode`` :data:`~plenocl.batch.record.CORRELATE` correlates its kept volumes again
+    instead of reconstructing (``"pair"``: the whole chain)."""
 
     index: int
     image_a: str
     image_b: str
     target: str
+    mode: str = "pair"
 
 
 @dataclass
@@ -125,7 +135,8 @@ class PairProcessor:
             sources = {"a": fingerprint(Path(task.image_a)),
                        "b": fingerprint(Path(task.image_b))}
             seconds = {"read": time.perf_counter() - t0}
-            seconds.update(self._process(raw_a, raw_b, Path(task.target), sources))
+            seconds.update(self._process(raw_a, raw_b, Path(task.target), sources,
+                                          task.mode))
         except PAIR_ERRORS as exc:
             name = f"{Path(task.image_a).name} + {Path(task.image_b).name}"
             return PairOutcome(task.index, {}, f"{name}: {exc}")
@@ -136,15 +147,50 @@ class PairProcessor:
         flat field of the experiment, the camera's region of interest."""
         return load_frame(path, self.camera, self.settings.channel, self.dark, self.flat)
 
-    def _process(self, raw_a, raw_b, target: Path, sources: dict) -> dict:
+    def _process(self, raw_a, raw_b, target: Path, sources: dict, mode: str) -> dict:
         run = self.settings
-        pair = process_pair(raw_a, raw_b, self.projector, run.pair)
+        meta = field_record(run.record, sources, pair_index(target))
+        if mode == CORRELATE:  # the kept volumes, made with the run's volumes digest
+            vol_a, vol_b = read_volumes(volume_file(target))
+            known = volumes_metadata(volume_file(target)).get("backgrounds")
+            res, seconds = correlate_volumes(raw_a, raw_b, vol_a, vol_b, self.projector,
+                                             run.pair, known)
+        else:
+            pair = process_pair(raw_a, raw_b, self.projector, run.pair)
+            res, seconds = pair.piv, pair.seconds
         t0 = time.perf_counter()
-        if run.keep_volumes:  # for the ensemble correlation at the end of the run
-            write_volumes(volume_file(target), pair.vol_a, pair.vol_b)
+        if mode != CORRELATE and run.keep_volumes:  # for the ensemble correlation
+            known = known_backgrounds(pair.info_a, pair.info_b)
+            write_volumes(volume_file(target), pair.vol_a, pair.vol_b,
+                          {"volumes": meta["digests"]["volumes"],
+                           "backgrounds": None if known is None else
+                           [[float(v) for v in bg] for bg in known]})
         for suffix in run.formats:
-            save_field(target.with_suffix(suffix), pair.piv, dt=run.dt_s, grid=self.grid)
+            save_field(target.with_suffix(suffix), res, dt=run.dt_s, grid=self.grid)
         # the .npz last: its presence marks the pair done; it names the two source files
-        save_field(target, pair.piv, dt=run.dt_s, grid=self.grid,
-                   metadata={"sources": sources, "pair": pair_index(target)})
-        return {**pair.seconds, "write": time.perf_counter() - t0}
+        # and carries the record of everything that made it
+        save_field(target, res, dt=run.dt_s, grid=self.grid, metadata=meta)
+        return {**seconds, "write": time.perf_counter() - t0}
+
+
+def rescale_field(target: Path, grid: Grid, settings: RunSettings) -> None:
+    """A finished pair's field written again for the run's ``dt_s`` (its displacements,
+    in voxels, are kept; the velocities follow), with the run's record; its copies
+    (``.vti``, ``.dat``, ...) too: those the run writes and those already there."""
+    res, _ = read_npz(target)
+    meta = field_record(settings.record, field_metadata(target)["sources"],
+                        pair_index(target))
+    for copy in field_copies(target, settings.formats):
+        save_field(copy, res, dt=settings.dt_s, grid=grid)
+    save_field(target, res, dt=settings.dt_s, grid=grid, metadata=meta)
+
+
+def add_copies(target: Path, grid: Grid, settings: RunSettings) -> list[str]:
+    """The copies (``[output] formats``) a finished pair made with the run's record
+    lacks, written from its ``.npz``; the suffixes written."""
+    missing = [s for s in settings.formats if not target.with_suffix(s).is_file()]
+    if missing:
+        res, arrays = read_npz(target)
+        for suffix in missing:
+            save_field(target.with_suffix(suffix), res, dt=float(arrays["dt"]), grid=grid)
+    return missing

@@ -12,7 +12,7 @@ def run_command(args: argparse.Namespace) -> int:
     from ..batch import run
 
     summary = run(args.experiment, args.out, queue=args.device, workers=args.workers,
-                  scheduler=args.scheduler, progress=not args.no_progress)
+                  scheduler=args.scheduler, progress=not args.no_progress, redo=args.redo)
     return summary.exit_status()
 
 
@@ -31,5 +31,9 @@ def add_run_parser(subparsers) -> argparse.ArgumentParser:
                        help="address of a running Dask scheduler (e.g. tcp://host:8786) to "
                             "process pairs on")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--redo", action="store_true",
+                   help="redo the finished pairs a rerun would refuse (another camera or "
+                        "grid, changed images, results without a record) instead of "
+                        "refusing; changed settings are redone without it")
     p.set_defaults(func=run_command)
     return p

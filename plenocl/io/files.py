@@ -237,15 +237,24 @@ def read_volume(path: str | Path) -> tuple[np.ndarray, dict]:
     return vol, meta
 
 
-def write_volumes(path: str | Path, vol_a: np.ndarray, vol_b: np.ndarray) -> None:
-    """Save a pair's two volumes to one compressed ``.npz`` (``vol_a``, ``vol_b``),
-    atomically."""
+def write_volumes(path: str | Path, vol_a: np.ndarray, vol_b: np.ndarray,
+                  metadata: dict | None = None) -> None:
+    """Save a pair's two volumes to one compressed ``.npz`` (``vol_a``, ``vol_b``, and
+    ``metadata``, a JSON-ready dict, when given), atomically."""
+    extra = {} if metadata is None else {"metadata": np.asarray(json.dumps(metadata))}
     with atomic_path(Path(path)) as tmp, tmp.open("wb") as fh:
         np.savez_compressed(fh, vol_a=np.asarray(vol_a, np.float32),
-                            vol_b=np.asarray(vol_b, np.float32))
+                            vol_b=np.asarray(vol_b, np.float32), **extra)
 
 
 def read_volumes(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """The two volumes written by :func:`write_volumes`."""
     with np.load(path) as data:
         return data["vol_a"], data["vol_b"]
+
+
+def volumes_metadata(path: str | Path) -> dict:
+    """The ``metadata`` written with :func:`write_volumes` (``{}`` without any), without
+    reading the volumes."""
+    with np.load(path) as data:
+        return json.loads(str(data["metadata"])) if "metadata" in data.files else {}

@@ -15,6 +15,9 @@
   ``valid_count``; with an ensemble correlation (``[piv] ensemble``), its mean field
   ``u_ensemble``, ``v_ensemble``, ``w_ensemble`` and ``valid_ensemble``.
 
+A batch run records what the store was built from as the group attribute ``record``
+(each pair's digest, the ensemble's; :func:`plenocl.batch.record.store_record`).
+
 ``xarray.open_zarr("timeseries.zarr")`` reads it with those names and units. The store
 is written beside its final place and moved there when complete, so a run stopped
 midway leaves the previous store (or none), never half of one.
@@ -34,7 +37,8 @@ COMPONENTS = ("u", "v", "w")
 
 
 def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]],
-                     time_units: str = "s", ensemble: str | Path | None = None) -> Path:
+                     time_units: str = "s", ensemble: str | Path | None = None,
+                     record: dict | None = None) -> Path:
     """Write the store (see the module notes) from ``(pair index, time, .npz path)``.
 
     Parameters
@@ -49,6 +53,9 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     ensemble
         Optional ensemble-correlation field (``.npz``, same grid): stored as
         ``u_ensemble``, ``v_ensemble``, ``w_ensemble`` and ``valid_ensemble``.
+    record
+        JSON-ready record of what the store was built from (a batch run: each pair's
+        digest), stored as the group attribute ``record``.
 
     Returns
     -------
@@ -84,6 +91,8 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     if ensemble is not None:
         _write_ensemble(group, read_field(ensemble), first, Path(ensemble))
     group.attrs.update({"title": "plenocl time series", "source": "plenocl run"})
+    if record is not None:
+        group.attrs["record"] = record
     return finish_store(partial, path)
 
 

@@ -5,10 +5,10 @@ its defaults) and its two-exposure reconstruction, motion-tracking enhancement
 ``track.py``)."""
 
 from .mte import MTESettings, motion_tracking_enhancement
-from .pair import PairResult, process_pair
+from .pair import PairResult, correlate_volumes, process_pair
 from .settings import PairSettings
 from .track import TrackSettings, bin_tracks, smooth_tracks, track
 
 __all__ = ["MTESettings", "PairResult", "PairSettings", "TrackSettings",
-           "bin_tracks", "motion_tracking_enhancement", "process_pair", "smooth_tracks",
-           "track"]
+           "bin_tracks", "correlate_volumes", "motion_tracking_enhancement", "process_pair",
+           "smooth_tracks", "track"]

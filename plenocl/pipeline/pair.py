@@ -103,33 +103,79 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         t0 = time.perf_counter()
         out[tag] = run_reconstruction(raw, projector, rec)
         seconds[f"reconstruct_{tag}"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
+    if not settings.mte.cycles:
+        res, more = correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector, settings,
+                                      known_backgrounds(info_a, info_b))
+        return PairResult(vol_a, vol_b, res, info_a, info_b, {**seconds, **more})
+    t0 = time.perf_counter()
 
     def correlate(a, b) -> PIVResult:
         return piv3d(a, b, settings.piv, queue=projector.queue)
 
     res = correlate(vol_a, vol_b)
     seconds["piv"] = time.perf_counter() - t0
-    if settings.mte.cycles:
-        vol_a, vol_b, res, infos, seconds["mte"] = motion_tracking_enhancement(
-            raw_a, raw_b, projector, vol_a, vol_b, res, rec, settings.mte, correlate)
-        info_a, info_b = infos
-    if settings.particles:
-        t0 = time.perf_counter()
-        fit = None
-        if settings.image_fit is not None:
-            fit = ImageFit(projector.camera, projector.grid, (raw_a, raw_b),
-                           settings.image_fit, queue=projector.queue,
-                           backgrounds=_known_backgrounds(info_a, info_b))
-        res = refine_with_particles(res, vol_a, vol_b,
-                                    focus=FocalZone.of(projector.camera, projector.grid),
-                                    fit=fit)
-        seconds["particles"] = time.perf_counter() - t0
+    vol_a, vol_b, res, infos, seconds["mte"] = motion_tracking_enhancement(
+        raw_a, raw_b, projector, vol_a, vol_b, res, rec, settings.mte, correlate)
+    info_a, info_b = infos
+    res = _with_particles(res, (raw_a, raw_b), (vol_a, vol_b), projector, settings,
+                          known_backgrounds(info_a, info_b), seconds)
     return PairResult(vol_a, vol_b, res, info_a, info_b, seconds)
 
 
-def _known_backgrounds(*infos: ReconstructionInfo) -> list | None:
+def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
+                      settings: PairSettings, backgrounds: list | None = None
+                      ) -> tuple[PIVResult, dict[str, float]]:
+    """The chain of :func:`process_pair` after its reconstruction, on two volumes made
+    earlier (a batch rerun whose PIV settings changed reuses its kept volumes).
+
+    Parameters
+    ----------
+    raw_a, raw_b
+        The raw images the volumes were reconstructed from (the particles' fit to them).
+    vol_a, vol_b
+        The two volumes, as :func:`process_pair` made them.
+    projector, settings
+        As :func:`process_pair`'s; motion-tracking enhancement (``settings.mte.cycles``)
+        remakes the volumes, so it is refused here.
+    backgrounds
+        The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
+        them), as :class:`plenocl.piv.imagefit.ImageFit` takes them.
+
+    Returns
+    -------
+    (PIVResult, dict)
+        The field and the seconds of ``piv`` and ``particles``.
+    """
+    if settings.mte.cycles:
+        raise ValueError("correlate_volumes: motion-tracking enhancement remakes the "
+                         "volumes; use process_pair")
+    t0 = time.perf_counter()
+    res = piv3d(vol_a, vol_b, settings.piv, queue=projector.queue)
+    seconds = {"piv": time.perf_counter() - t0}
+    res = _with_particles(res, (raw_a, raw_b), (vol_a, vol_b), projector, settings,
+                          backgrounds, seconds)
+    return res, seconds
+
+
+def _with_particles(res: PIVResult, raws, vols, projector, settings: PairSettings,
+                    backgrounds, seconds: dict) -> PIVResult:
+    """The particle refinement of the final field (``settings.particles``), its seconds
+    added to ``seconds``."""
+    if not settings.particles:
+        return res
+    t0 = time.perf_counter()
+    fit = None
+    if settings.image_fit is not None:
+        fit = ImageFit(projector.camera, projector.grid, raws, settings.image_fit,
+                       queue=projector.queue, backgrounds=backgrounds)
+    res = refine_with_particles(res, *vols, focus=FocalZone.of(projector.camera,
+                                                                projector.grid), fit=fit)
+    seconds["particles"] = time.perf_counter() - t0
+    return res
+
+
+def known_backgrounds(*infos: ReconstructionInfo) -> list | None:
     """The median and noise the reconstructions removed from the raw images, for the
     particle fit to reuse (``None`` when a reconstruction removed none)."""
     known = [(info.background, info.noise) for info in infos]

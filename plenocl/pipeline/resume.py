@@ -55,31 +55,38 @@ def remove_partial_files(*folders: Path) -> list[Path]:
     return left
 
 
-def _digest(config: dict | None) -> str | None:
+def config_digest(config: dict | None) -> str | None:
     """SHA-256 of a JSON-serialisable configuration (``None`` stays ``None``)."""
     if config is None:
         return None
     return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
 
 
-def _parts(config: dict) -> dict[str, str]:
+def config_parts(config: dict) -> dict[str, str]:
     """A digest of each entry of ``config``, and of each entry of its dictionaries
     (``"settings.tracking"``): what a changed configuration names."""
     parts = {}
     for key, value in config.items():
         if isinstance(value, dict) and value:
-            parts.update({f"{key}.{k}": _digest({"v": v}) for k, v in value.items()})
+            parts.update({f"{key}.{k}": config_digest({"v": v}) for k, v in value.items()})
         else:
-            parts[str(key)] = _digest({"v": value})
+            parts[str(key)] = config_digest({"v": value})
     return parts
 
 
-def _changed(old: dict | None, new: dict) -> str:
-    """The entries that differ between two :func:`_parts` (empty when unknown)."""
+def changed_keys(old: dict | None, new: dict) -> list[str]:
+    """The entries that differ between two :func:`config_parts`, sorted (empty when
+    ``old`` is unknown)."""
     if not old:
-        return ""
-    names = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
-    return ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
+        return []
+    return sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+
+
+def name_changes(names: Sequence[str], most: int = 6) -> str:
+    """Changed entries (:func:`changed_keys`) as text: the first ``most``, then a count."""
+    names = list(names)
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more"
+                                      if len(names) > most else "")
 
 
 class StageRunner:
@@ -102,16 +109,16 @@ class StageRunner:
         self.out.mkdir(parents=True, exist_ok=True)
         for path in remove_partial_files(self.out):
             log(f"removed {path.name}, left half-written by an interrupted run")
-        self.key = _digest(config)
+        self.key = config_digest(config)
         self.log = log
         self.state_path = self.out / "state.json"
-        self.state = {"config": self.key, "parts": _parts(config), "stages": {}}
+        self.state = {"config": self.key, "parts": config_parts(config), "stages": {}}
         if self.state_path.is_file():
             old = json.loads(self.state_path.read_text())
             if old.get("config") == self.key:
                 self.state = old
             else:
-                changed = _changed(old.get("parts"), self.state["parts"])
+                changed = name_changes(changed_keys(old.get("parts"), self.state["parts"]))
                 self.log(f"configuration changed{f' ({changed})' if changed else ''}: "
                          "running every stage again")
 
@@ -123,7 +130,7 @@ class StageRunner:
         """Whether stage ``name`` finished with the stage key ``key`` and its outputs are
         all present."""
         stage = self.state["stages"].get(name)
-        return (stage is not None and stage.get("key") == _digest(key)
+        return (stage is not None and stage.get("key") == config_digest(key)
                 and outputs_exist(self.path(o) for o in outputs))
 
     def run(self, name: str, outputs: Sequence[str], fn: Callable[[], None],
@@ -139,7 +146,7 @@ class StageRunner:
         fn()
         seconds = time.perf_counter() - t0
         self.state["stages"][name] = {"seconds": seconds, "outputs": list(outputs),
-                                      "key": _digest(key)}
+                                      "key": config_digest(key)}
         write_json(self.state_path, self.state, sort_keys=True)
         self.log(f"[{name}] {seconds:.1f} s")
         return seconds

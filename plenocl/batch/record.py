@@ -1,0 +1,209 @@
+"""What made each stored product of a pairs run, and what a rerun has to redo.
+
+Every pair's field carries a record (its metadata, :func:`field_record`): the sections
+of the experiment that made it, resolved (``images``: channel, dark frame and flat
+field by content, ``dt_s``; ``reconstruction``, ``mte``, ``piv``, ``particles``,
+``image_fit``), the calibrated camera's and the grid's digests, beside the two source
+files (name, size, SHA-256) it already names; and the digests of the stages: ``volumes``
+(the source files, camera, grid, frame corrections and the reconstruction's settings;
+with motion-tracking enhancement the PIV settings too, which it reconstructs with),
+``field`` (all but ``dt_s``) and ``record`` (everything). Kept volumes carry their
+``volumes`` digest.
+
+A rerun compares each finished pair's record with the run's (:func:`decide`), naming
+the changed entries as :func:`plenocl.pipeline.resume.changed_keys` does
+(``images.dt_s``, ``piv.windows``, ``reconstruction.iterations``, ``camera``):
+
+- nothing changed: the pair is skipped;
+- ``images.dt_s`` alone: the stored displacements (voxels) give the velocities again
+  (``rescale``), nothing is reconstructed or correlated;
+- ``piv``, ``particles`` or ``image_fit`` (and ``dt_s``): the kept volumes, when their
+  digest is the run's, are correlated again (``correlate``); otherwise the pair is redone;
+- anything else of the reconstruction (``reconstruction``, ``mte``, the frame
+  corrections): the pair is redone (``redo``);
+- the camera, the grid, the pair's source files, or a field without a record (written
+  before records, or unreadable): refused (:data:`REFUSE`) unless the run is told to
+  redo such pairs (``redo=True``, ``plenocl run --redo``).
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..io.fields import field_metadata
+from ..io.files import volumes_metadata
+from ..options import NONE
+from ..pipeline.resume import changed_keys, config_digest, config_parts, name_changes
+from .config import Experiment
+from .pairing import ImagePair, changed_since, fingerprint
+from .prepare import frame_corrections
+
+#: What a rerun does with a finished pair (see the module notes).
+SKIP, RESCALE, CORRELATE, REDO = "skip", "rescale", "correlate", "redo"
+#: The entries whose change refuses a rerun (without ``redo``): the results would be of
+#: another geometry.
+REFUSE = ("camera", "grid")
+#: The sections a correlation alone depends on (after the volumes).
+FIELD_SECTIONS = ("piv", "particles", "image_fit")
+#: The entry of the time between the exposures.
+DT = "images.dt_s"
+
+_UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile)
+
+
+def run_record(exp: Experiment, camera, grid) -> dict:
+    """The record every pair of this run shares (see the module notes): JSON-ready."""
+    dark, flat = frame_corrections(exp)
+    pair = exp.pair.to_dict(none=NONE)
+    images = {"channel": exp["images"]["channel"] or NONE,
+              "dark": _content(dark), "flat": _content(flat),
+              "dt_s": float(exp["images"]["dt_s"])}
+    return {"images": images, "camera": config_digest(camera.to_dict()),
+            "grid": config_digest(grid.to_dict()), **pair}
+
+
+def _content(path: str | None) -> str:
+    """A frame correction by its content's SHA-256 (``"none"``: none)."""
+    return fingerprint(Path(path))["sha256"] if path else NONE
+
+
+def stage_digests(record: dict, sources: dict) -> dict[str, str]:
+    """The ``volumes``, ``field`` and ``record`` digests of a pair's record and its
+    source files (``{"a": fingerprint, "b": fingerprint}``)."""
+    inputs = [sources[tag]["sha256"] for tag in "ab"]
+    field_part = {k: v for k, v in record.items() if k != "images"}
+    field_part["images"] = {k: v for k, v in record["images"].items() if k != "dt_s"}
+    volumes = {k: v for k, v in field_part.items() if k not in FIELD_SECTIONS}
+    if record["mte"].get("cycles"):  # the enhancement reconstructs with the correlation
+        volumes["piv"] = record["piv"]
+    return {"volumes": config_digest({"inputs": inputs, **volumes}),
+            "field": config_digest({"inputs": inputs, **field_part}),
+            "record": config_digest({"inputs": inputs, **record})}
+
+
+def field_record(record: dict, sources: dict, index: int) -> dict:
+    """The metadata a pair's field is written with: its two source files, its index, the
+    run's record and the stage digests (the first two alone without a record)."""
+    if not record:
+        return {"sources": sources, "pair": index}
+    return {"sources": sources, "pair": index, "record": record,
+            "digests": stage_digests(record, sources)}
+
+
+@dataclass
+class Decision:
+    """What a rerun does with one finished pair: ``action`` (:data:`SKIP`,
+    :data:`RESCALE`, :data:`CORRELATE`, :data:`REDO`), the changed entries, why it cannot
+    be kept or remade as it is (``reason``), and that reason as a refusal (``refused``,
+    when the run was not told to redo such pairs)."""
+
+    index: int
+    action: str = SKIP
+    changed: list[str] = field(default_factory=list)
+    refused: str | None = None
+    reason: str | None = None
+
+
+def decide(pair: ImagePair | None, field_file: Path, volumes_file: Path, record: dict,
+           redo: bool = False) -> Decision:
+    """What to do with the finished pair in ``field_file`` under the run's ``record``
+    (``pair``: the run's pair of that index, ``None`` when its frames are gone)."""
+    k = int(field_file.stem.removeprefix("pair_"))
+    try:
+        meta = field_metadata(field_file)
+    except _UNREADABLE as exc:
+        return _refusal(k, f"{field_file.name} cannot be read ({exc})", redo)
+    if pair is None:
+        if meta.get("sources"):  # a frame removed after its pair was made
+            return _without_images(k, meta, record, redo)
+        return _refusal(k, f"{field_file.name} exists but the images give no pair {k}", redo)
+    if (why := changed_since(meta.get("sources", {}), pair)) is not None:
+        return _refusal(k, why, redo)
+    if "record" not in meta:
+        return _refusal(k, "its field records no settings (written by an older plenocl)",
+                        redo)
+    changed = changed_keys(config_parts(meta["record"]), config_parts(record))
+    return _action(k, changed, meta, record, volumes_file, redo)
+
+
+def _without_images(k: int, meta: dict, record: dict, redo: bool) -> Decision:
+    """A finished pair whose frames are gone: kept while its record is the run's, else
+    it cannot be remade and is refused."""
+    if "record" not in meta:
+        return _refusal(k, "its field records no settings (written by an older plenocl) "
+                        "and its frames are gone", redo)
+    changed = changed_keys(config_parts(meta["record"]), config_parts(record))
+    if not changed:
+        return Decision(k)
+    if changed == [DT]:
+        return Decision(k, RESCALE, changed)
+    return _refusal(k, f"{name_changes(changed)} changed and its frames are gone", redo)
+
+
+def _action(k: int, changed: list[str], meta: dict, record: dict, volumes_file: Path,
+            redo: bool) -> Decision:
+    """The action for a pair whose record differs from the run's in ``changed``."""
+    if not changed:
+        return Decision(k)
+    if changed == [DT]:
+        return Decision(k, RESCALE, changed)
+    geometry = [name for name in changed if name in REFUSE]
+    if geometry:
+        return _refusal(k, f"the {' and '.join(geometry)} changed since it was made", redo,
+                        changed)
+    if all(name == DT or name.split(".")[0] in FIELD_SECTIONS for name in changed):
+        wanted = stage_digests(record, meta["sources"])["volumes"]
+        if not record["mte"].get("cycles") and kept_volumes(volumes_file) == wanted:
+            return Decision(k, CORRELATE, changed)
+    return Decision(k, REDO, changed)
+
+
+def kept_volumes(path: Path) -> str | None:
+    """The ``volumes`` digest of a pair's kept volumes (``None``: none, or unknown)."""
+    if not path.is_file():
+        return None
+    try:
+        return volumes_metadata(path).get("volumes")
+    except _UNREADABLE:
+        return None
+
+
+def _refusal(k: int, why: str, redo: bool, changed: list[str] | None = None) -> Decision:
+    """A pair that cannot be kept or remade as it is: redone when ``redo``."""
+    return Decision(k, REDO, changed or [], None if redo else f"pair {k}: {why}", why)
+
+
+def refuse(decisions: list[Decision], out: Path) -> None:
+    """Raise, naming the pairs and the way out, when any decision is a refusal."""
+    refused = [d.refused for d in decisions if d.refused]
+    if not refused:
+        return
+    raise ValueError(
+        f"{out} holds pairs made from other images, another camera or grid, or by an "
+        "older plenocl, which this run can neither keep nor remake: "
+        + "; ".join(refused[:5]) + (f"; and {len(refused) - 5} more" if len(refused) > 5
+                                    else "")
+        + ". Write this run to another folder (--out), or redo those pairs with --redo "
+        "(plenocl.run(..., redo=True)), or remove the old results")
+
+
+def ensemble_record(fields: dict[int, dict], dt_s: float) -> dict:
+    """What the ensemble correlation is made of: each pair's ``field`` digest (the pairs
+    whose volumes it correlates) and ``dt_s``."""
+    return {"pairs": {str(k): meta["digests"]["field"] for k, meta in sorted(fields.items())},
+            "dt_s": float(dt_s)}
+
+
+def store_record(fields: dict[int, dict], ensemble: Path | None = None) -> dict:
+    """The time-series store's record: each pair's ``record`` digest (``"none"`` for a
+    field without one), the ensemble field's record digest (``"none"``: none), and the
+    digest of both."""
+    pairs = {str(k): meta.get("digests", {}).get("record", NONE)
+             for k, meta in sorted(fields.items())}
+    made = NONE
+    if ensemble is not None:
+        made = config_digest(field_metadata(ensemble).get("record")) or NONE
+    return {"pairs": pairs, "ensemble": made,
+            "digest": config_digest({"pairs": pairs, "ensemble": made})}
