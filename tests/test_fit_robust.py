@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import json
 
 import numpy as np
 import pytest
 
 import plenocl
 from plenocl.bench.accuracy_section import paper_optics
+from plenocl.io import write_tiff
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.piv.tracking import pair_particles, refine_with_particles
@@ -238,3 +240,52 @@ def test_track_with_a_diverging_particle_returns_tracks_and_counts_it(recording,
     assert np.all(np.isfinite(tracks.positions[seen]))
     # the far peak of every frame, and the two diverged tracks' frames in the refit
     assert tracks.dropped >= frames + 2 * 4
+
+
+BATCH = """
+[camera]
+preset = "synthetic"
+[grid]
+z_mm = [-2.0, 2.0]
+fraction = 0.5
+[images]
+folder = "raw"
+pattern = "frame_*.tif"
+pairing = "sequence"
+dt_s = 1e-3
+[reconstruction]
+iterations = 10
+[piv]
+windows = [8]
+[output]
+folder = "results"
+"""
+
+
+def test_a_batch_run_reports_the_particles_each_pair_dropped(tmp_path, monkeypatch):
+    """The count a pair's fit dropped (here forced: 3 for every pair) reaches the run's
+    summary, ``summary.json`` and its last line."""
+    worker = importlib.import_module("plenocl.batch.worker")
+    real = worker.process_pair
+
+    def dropping(*args, **kwargs):
+        pair = real(*args, **kwargs)
+        pair.piv.refinement["dropped"] = 3
+        return pair
+
+    monkeypatch.setattr(worker, "process_pair", dropping)
+    (tmp_path / "raw").mkdir()
+    cam = plenocl.Camera.synthetic_850()
+    pos, inten = plenocl.random_particles(((-1.2, 1.2), (-1.2, 1.2), (-1.5, 1.5)), count=80,
+                                          seed=2, intensity=3e4)
+    for j, sign in enumerate((-0.5, 0.5)):
+        img = plenocl.simulate_image(cam, pos + sign * np.array([0.2, 0.0, 0.0]), inten,
+                                     1000, seed=j, read_noise=2.0, bit_depth=16)
+        write_tiff(tmp_path / "raw" / f"frame_{j:03d}.tif", img)
+    (tmp_path / "experiment.toml").write_text(BATCH)
+    lines = []
+    summary = plenocl.run(tmp_path / "experiment.toml", log=lines.append, progress=False)
+    assert summary.processed == [0] and summary.dropped_particles == {0: 3}
+    saved = json.loads((tmp_path / "results" / "summary.json").read_text())
+    assert saved["dropped_particles"] == {"0": 3}
+    assert "3 particle(s) dropped by the image fit in 1 pair(s)" in lines[-1]
