@@ -17,7 +17,7 @@ import plenocl
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.io import write_tiff
 from plenocl.piv import piv3d
-from plenocl.piv.imagefit import ImageFit, ImageFitSettings
+from plenocl.piv.imagefit import GRID_MARGIN_VOXELS, ImageFit, ImageFitSettings
 from plenocl.piv.tracking import pair_particles, refine_with_particles
 from plenocl.ptv import Tracks
 from plenocl.reference.simulate import trace_particles
@@ -26,18 +26,24 @@ CAM, GRID = paper_optics((32, 24))
 VOXEL = np.array([GRID.spacing[2], GRID.spacing[1], GRID.spacing[0]])  # (x, y, z) mm
 #: Starts no fit can keep: NaN, infinite, 66 mm in front of a 20 mm deep grid (beyond
 #: the camera's focal length: the depth that raised in issue 44), far behind it, and
-#: laterally outside it.
+#: laterally outside it and its margin.
 BAD_STARTS = np.array([[np.nan, 0.0, 0.0], [0.0, 0.0, np.inf], [0.1, 0.2, -76.0],
                        [0.0, 0.0, 65.0], [GRID.x[1] + 1.0, 0.0, 0.0],
-                       [0.0, GRID.y[0] - 0.5, 3.0]])
+                       [0.0, GRID.y[0] - 1.0, 3.0]])
 
 
-def _inside(points: np.ndarray) -> np.ndarray:
-    return np.all(np.isfinite(points), axis=1) & GRID.contains(np.nan_to_num(points))
+def _inside(points: np.ndarray, grid=GRID) -> np.ndarray:
+    """Finite and inside ``grid`` or within the fit's margin of its faces."""
+    index = grid.to_index(np.nan_to_num(points, nan=1e9, posinf=1e9, neginf=-1e9))
+    margin = np.asarray(GRID_MARGIN_VOXELS)
+    high = np.asarray(grid.shape[::-1]) - 0.5 + margin
+    return np.all(np.isfinite(points), axis=1) & np.all(
+        (index >= -0.5 - margin) & (index <= high), axis=1)
 
 
 def _check_kept(out, n: int) -> None:
-    """Every row either kept (finite, inside the grid) or dropped (NaN), and counted."""
+    """Every row either kept (finite, inside the grid or its margin) or dropped (NaN),
+    and counted."""
     assert out.positions.shape == (n, 3) and out.kept.shape == (n,)
     assert np.all(_inside(out.positions[out.kept]))
     assert np.all(np.isfinite(out.sigma[out.kept])) and np.all(out.intensities[out.kept] >= 0)
@@ -68,7 +74,8 @@ def test_bad_starts_are_dropped_and_counted_and_the_rest_converge(scene):
     true = start - np.array([0.3, -0.3, 1.5]) * VOXEL
     fit = ImageFit(CAM, GRID, [img], ImageFitSettings(rays=400))
     mixed = np.insert(start, [1, 2, 2, 4, 5, 6], BAD_STARTS, axis=0)
-    good = np.all(np.isfinite(mixed), axis=1) & GRID.contains(np.nan_to_num(mixed))
+    good = _inside(mixed)
+    assert np.count_nonzero(~good) == len(BAD_STARTS)
     out = fit.fit(0, mixed)
     _check_kept(out, len(mixed))
     np.testing.assert_array_equal(out.kept, good)
@@ -92,7 +99,7 @@ def test_only_bad_starts_give_no_particles_and_no_error(scene):
 
 def test_particles_on_the_grid_faces_stay_inside_or_are_dropped(scene):
     """Starts on every face of the grid (and its corners), where the image pulls some
-    out: each one kept inside the grid or dropped, never outside."""
+    out: each one kept inside the grid's margin or dropped, never beyond it."""
     _, img = scene
     lo = np.array([GRID.x[0], GRID.y[0], GRID.z[0]])
     hi = np.array([GRID.x[1], GRID.y[1], GRID.z[1]])
@@ -108,18 +115,20 @@ def test_particles_on_the_grid_faces_stay_inside_or_are_dropped(scene):
     _check_kept(out, len(faces))
 
 
-def test_particles_fitted_beyond_a_face_are_dropped():
-    """Particles 4 voxels behind the grid's far face, started on it: the image pulls
-    them out of the grid; those that leave it are dropped, none is returned outside."""
+def test_particles_fitted_beyond_the_margin_are_dropped():
+    """Particles 8 voxels behind the grid's far face, started just inside its margin
+    (4 voxels): the image pulls them out of it, and each is dropped."""
     rng = np.random.default_rng(3)
     true = np.column_stack([rng.uniform(-1.0, 1.0, 4), rng.uniform(-1.0, 1.0, 4),
-                            np.full(4, GRID.z[1] + 4 * VOXEL[2])])
+                            np.full(4, GRID.z[1] + 8 * VOXEL[2])])
     img = trace_particles(CAM, true, 4000.0, 40_000, seed=1, blur_px=0.8) + 20.0
     start = true.copy()
-    start[:, 2] = GRID.z[1] - 0.1 * VOXEL[2]
-    out = ImageFit(CAM, GRID, [img], ImageFitSettings(iterations=8)).fit(0, start)
+    start[:, 2] = GRID.z[1] + (GRID_MARGIN_VOXELS[2] - 0.2) * VOXEL[2]
+    fit = ImageFit(CAM, GRID, [img], ImageFitSettings(iterations=8))
+    assert fit.inside(start).all()
+    out = fit.fit(0, start)
     _check_kept(out, 4)
-    assert out.dropped >= 1  # the fit follows the image out of the grid
+    assert out.dropped == 4  # the fit follows the image out
 
 
 def test_device_fit_drops_the_same_bad_starts(scene, queue):
@@ -193,13 +202,13 @@ def test_tracks_keep_the_dropped_count_through_a_file(tmp_path):
 
 @pytest.fixture(scope="module")
 def recording(queue):
-    """Four frames at the paper's optics on 18 x 12 lenses, 0.2 particles per microlens
+    """Five frames at the paper's optics on 18 x 12 lenses, 0.2 particles per microlens
     moving uniformly, and the camera's projector."""
     from plenocl.bench.accuracy_section import UNIFORM
     from plenocl.bench.tracking_section import simulate_series
 
     cam, grid = paper_optics((18, 12))
-    series = simulate_series(cam, grid, 0.2, 4, 7, queue, UNIFORM, rays=1000)
+    series = simulate_series(cam, grid, 0.2, 5, 7, queue, UNIFORM, rays=1000)
     return series, grid, plenocl.Projector(cam, grid, queue)
 
 
@@ -236,7 +245,7 @@ def test_track_with_a_diverging_particle_returns_tracks_and_counts_it(recording,
     tracks = plenocl.track(series.frames, proj, dt=1e-3, reconstruction=quick)
     assert len(tracks.positions) >= 3 and np.all(tracks.lengths >= 4)
     seen = np.all(np.isfinite(tracks.measured), axis=2)
-    assert np.all(grid.contains(tracks.measured[seen]))
+    assert np.all(_inside(tracks.measured[seen], grid))
     assert np.all(np.isfinite(tracks.positions[seen]))
     # the far peak of every frame, and the two diverged tracks' frames in the refit
     assert tracks.dropped >= frames + 2 * 4

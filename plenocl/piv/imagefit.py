@@ -16,9 +16,9 @@ lit pixels (never below the camera's noise), so a particle crowded by others or 
 ghosts leans on its prior.
 
 One bad particle never ends a fit: each step is bounded (:data:`MAX_STEP_VOXELS`), and a
-particle that starts or steps outside the grid, or whose sums, step or intensity are not
-finite, is dropped (its rows NaN, :attr:`FittedParticles.kept` false) while the others
-go on without it.
+particle that starts or steps outside the grid and its margin (:data:`GRID_MARGIN_VOXELS`),
+or whose sums, step or intensity are not finite, is dropped (its rows NaN,
+:attr:`FittedParticles.kept` false) while the others go on without it.
 """
 
 from __future__ import annotations
@@ -39,6 +39,11 @@ from .fitsums import DeviceFitSums
 PRIOR_VOXELS = (0.15, 0.15, 1.3)
 #: Largest step of one iteration ``(x, y, z)`` voxels.
 MAX_STEP_VOXELS = (0.5, 0.5, 1.0)
+#: How far ``(x, y, z)`` voxels beyond the grid's outer faces a fitted particle may lie:
+#: the farthest the default 4 bounded steps carry a particle that starts inside. Real
+#: particles leaving the volume are fitted up to 3 voxels beyond its depth faces (the
+#: paper's optics, ``benchmarks/tracking.py``'s series); farther out a fit has diverged.
+GRID_MARGIN_VOXELS = (2.0, 2.0, 4.0)
 
 
 @dataclass(frozen=True)
@@ -183,13 +188,17 @@ class ImageFit:
         return FittedParticles(p, intensity, sigma, kept)
 
     def inside(self, positions: np.ndarray) -> np.ndarray:
-        """Which object-space ``positions`` ``(N, 3)`` mm the fit keeps: finite and
-        inside the grid (its outer faces included)."""
+        """Which object-space ``positions`` ``(N, 3)`` mm the fit keeps: finite, inside
+        the grid or within :data:`GRID_MARGIN_VOXELS` of its outer faces, and in front
+        of the main lens's focal length (where the camera forms an image)."""
         pts = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        finite = np.all(np.isfinite(pts), axis=1)
-        out = np.zeros(len(pts), bool)
-        out[finite] = self.grid.contains(pts[finite])
-        return out
+        out = np.all(np.isfinite(pts), axis=1)
+        index = self.grid.to_index(np.where(out[:, None], pts, 0.0))
+        margin = np.asarray(GRID_MARGIN_VOXELS)
+        high = np.asarray(self.grid.shape[::-1]) - 0.5 + margin  # (x, y, z)
+        out &= np.all((index >= -0.5 - margin) & (index <= high), axis=1)
+        camera = self.bundle.camera
+        return out & (pts[:, 2] > camera.focal_length_mm - camera.object_distance_mm)
 
     def _iterate(self, index: int, start: np.ndarray):
         """The Gauss-Newton iterations from ``start`` (inside the grid): positions,
