@@ -131,6 +131,34 @@ def test_particles_fitted_beyond_the_margin_are_dropped():
     assert out.dropped == 4  # the fit follows the image out
 
 
+def test_a_matrix_the_solver_refuses_drops_only_its_particle(scene, monkeypatch):
+    """NumPy's stacked solver refuses a whole stack for one singular matrix: the fit
+    then solves particle by particle (the same steps) and drops only the particle whose
+    own matrix is refused (here forced: the first one solved alone)."""
+    start, img = scene
+    fit = ImageFit(CAM, GRID, [img])
+    plain = fit.fit(0, start)
+    solve, alone = np.linalg.solve, []
+
+    def refusing(a, b):
+        if len(a) > 1:
+            raise np.linalg.LinAlgError("Singular matrix")
+        alone.append(1)
+        if len(alone) == 1:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return solve(a, b)
+
+    monkeypatch.setattr(np.linalg, "solve", refusing)
+    out = fit.fit(0, start)
+    _check_kept(out, len(start))
+    assert out.dropped == 1 and not out.kept[0]
+    true = start - np.array([0.3, -0.3, 1.5]) * VOXEL
+    err = _good_fit_errors(out, true[1:], out.kept)
+    assert err[:, 2].max() < 0.4 and err[:, :2].max() < 0.15, err
+    # the others barely move (the dropped particle has left their model image)
+    assert np.all(np.abs(out.positions[1:] - plain.positions[1:]) / VOXEL < 0.1)
+
+
 def test_device_fit_drops_the_same_bad_starts(scene, queue):
     start, img = scene
     mixed = np.vstack([start, BAD_STARTS])

@@ -92,8 +92,9 @@ class FittedParticles:
     Attributes
     ----------
     kept
-        ``(N,)``: false for a particle the fit dropped (it started or stepped outside
-        the grid, or its fit was not finite); its rows are NaN.
+        ``(N,)``: false for a particle the fit dropped (it started or stepped beyond
+        the grid's margin, :meth:`ImageFit.inside`, or its fit was not finite); its
+        rows are NaN.
     """
 
     positions: np.ndarray
@@ -173,9 +174,9 @@ class ImageFit:
         """Fit particles starting at object-space ``positions`` ``(N, 3)`` mm to exposure
         ``index``'s image; the intensities start from a linear least-squares fit.
 
-        A particle that starts outside the grid (or not finite), steps outside it, or
-        whose fit is not finite is dropped: NaN rows, ``kept`` false (see the module
-        notes); the others are fitted without it."""
+        A particle that starts or steps where :meth:`inside` refuses (beyond the grid's
+        margin, or not finite), or whose fit is not finite, is dropped: NaN rows,
+        ``kept`` false (see the module notes); the others are fitted without it."""
         start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         n = len(start)
         p, sigma = np.full((2, n, 3), np.nan)
