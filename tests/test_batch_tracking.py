@@ -96,7 +96,9 @@ def test_a_tracked_run_writes_tracks_and_field_that_follow_the_motion(recording)
     used = read_toml(out / "experiment_used.toml")
     assert used["tracking"]["frame_interval_s"] == INTERVAL_S
     assert used["tracking"]["min_length"] == 4 and "iterations" in used["reconstruction"]
-    assert json.loads((out / "summary.json").read_text())["frames"] == 6
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved["frames"] == 6
+    assert saved["dropped_particles"] == summary.dropped_particles == tracks.dropped
 
 
 def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recording,

@@ -90,6 +90,7 @@ class RunSummary:
     rescaled: list[int] = field(default_factory=list)
     redone: list[int] = field(default_factory=list)
     failed: dict[int, str] = field(default_factory=dict)
+    dropped_particles: dict[int, int] = field(default_factory=dict)
     gaps: dict[int, str] = field(default_factory=dict)
     unpaired: list[str] = field(default_factory=list)
     sources: dict[int, dict] = field(default_factory=dict)
@@ -344,6 +345,8 @@ def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:
         log(f"pair {outcome.index}: failed, skipped: {outcome.error}")
         return
     summary.processed.append(outcome.index)
+    if outcome.dropped:
+        summary.dropped_particles[outcome.index] = outcome.dropped
     for key, value in outcome.seconds.items():
         summary.stage_seconds[key] = summary.stage_seconds.get(key, 0.0) + value
 
@@ -393,4 +396,7 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
         + f", {len(summary.failed)} failed"
         + (f": {summary.failed}" if summary.failed else "")
         + (f", {len(summary.gaps)} not made for missing frames" if summary.gaps else "")
+        + (f", {sum(summary.dropped_particles.values())} particle(s) dropped by the image "
+           f"fit in {len(summary.dropped_particles)} pair(s)"
+           if summary.dropped_particles else "")
         + (f"; {len(fields)} in {out / 'timeseries.zarr'}" if fields else ""))

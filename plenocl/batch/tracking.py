@@ -67,6 +67,7 @@ class TrackingSummary:
     frames: int = 0
     frame_numbers: list[int] = field(default_factory=list)
     tracks: int = 0
+    dropped_particles: int = 0
     processed: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     stage_seconds: dict[str, float] = field(default_factory=dict)
@@ -129,11 +130,14 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     _stage(runner, summary, "field", FIELD_OUTPUTS,
            lambda: _write_outputs(out, frames, opts, camera, grid, layout, record), key)
     summary.wall_seconds = time.perf_counter() - t0
-    summary.tracks = len(Tracks.load(out / TRACKS).positions)
+    tracks = Tracks.load(out / TRACKS)
+    summary.tracks, summary.dropped_particles = len(tracks.positions), tracks.dropped
     summary.store = str(out / STORE)
     write_json(out / "summary.json", asdict(summary))
     log(f"{summary.tracks} tracks over {len(frames)} frames in {out / TRACKS}, "
-        f"{out / LINES} and {out / STORE}")
+        f"{out / LINES} and {out / STORE}"
+        + (f"; {tracks.dropped} particle(s) dropped by the image fit (left the grid or "
+           "not finite)" if tracks.dropped else ""))
     return summary
 
 

@@ -84,11 +84,14 @@ class PairTask:
 
 @dataclass
 class PairOutcome:
-    """What became of a :class:`PairTask`: ``error`` is None when the field was written."""
+    """What became of a :class:`PairTask`: ``error`` is None when the field was written;
+    ``dropped``: the particles the fit to the raw images dropped
+    (:attr:`plenocl.pipeline.PairResult.dropped`)."""
 
     index: int
     seconds: dict
     error: str | None = None
+    dropped: int = 0
 
 
 class PairProcessor:
@@ -135,19 +138,23 @@ class PairProcessor:
             sources = {"a": fingerprint(Path(task.image_a)),
                        "b": fingerprint(Path(task.image_b))}
             seconds = {"read": time.perf_counter() - t0}
-            seconds.update(self._process(raw_a, raw_b, Path(task.target), sources,
-                                          task.mode))
+            done, dropped = self._process(raw_a, raw_b, Path(task.target), sources,
+                                          task.mode)
+            seconds.update(done)
         except PAIR_ERRORS as exc:
             name = f"{Path(task.image_a).name} + {Path(task.image_b).name}"
             return PairOutcome(task.index, {}, f"{name}: {exc}")
-        return PairOutcome(task.index, seconds)
+        return PairOutcome(task.index, seconds, dropped=dropped)
 
     def frame(self, path: str) -> np.ndarray:
         """One raw frame as the camera sees it: its colour channel, the dark frame and
         flat field of the experiment, the camera's region of interest."""
         return load_frame(path, self.camera, self.settings.channel, self.dark, self.flat)
 
-    def _process(self, raw_a, raw_b, target: Path, sources: dict, mode: str) -> dict:
+    def _process(self, raw_a, raw_b, target: Path, sources: dict, mode: str
+                 ) -> tuple[dict, int]:
+        """The pair through the chain (or its kept volumes correlated again), its files
+        written: seconds per stage and the particles the fit dropped."""
         run = self.settings
         meta = field_record(run.record, sources, pair_index(target))
         if mode == CORRELATE:  # the kept volumes, made with the run's volumes digest
@@ -170,7 +177,8 @@ class PairProcessor:
         # the .npz last: its presence marks the pair done; it names the two source files
         # and carries the record of everything that made it
         save_field(target, res, dt=run.dt_s, grid=self.grid, metadata=meta)
-        return {**seconds, "write": time.perf_counter() - t0}
+        return ({**seconds, "write": time.perf_counter() - t0},
+                int(res.refinement.get("dropped", 0)))
 
 
 def rescale_field(target: Path, grid: Grid, settings: RunSettings) -> None:

@@ -115,6 +115,8 @@ def piv_command(args: argparse.Namespace) -> int:
                                                    settings.image_fit))
         log = res.refinement
         print(f"particle refinement: {log['pairs']} particle pairs, {log['vectors']} vectors"
+              + (f", {log['dropped']} particle(s) dropped by the image fit (left the grid "
+                 "or not finite)" if log.get("dropped") else "")
               + ("" if focus else "; without --camera the depth uncertainty has no "
                  "focal-zone term (docs/design.md §7.1)")
               + ("" if args.raw else "; without --raw the particles are the volumes' peaks, "

@@ -47,6 +47,13 @@ class PairResult:
     info_b: ReconstructionInfo
     seconds: dict[str, float] = field(default_factory=dict)
 
+    @property
+    def dropped(self) -> int:
+        """The particles the fit to the raw images dropped (their fit left the grid or
+        was not finite; docs/design.md §7.2): ``piv.refinement["dropped"]``, 0 without
+        the fit."""
+        return int(self.piv.refinement.get("dropped", 0))
+
 
 def process_pair(raw_a, raw_b, projector: ProjectionOperator,
                  settings: PairSettings | None = None, **parts) -> PairResult:

@@ -158,13 +158,15 @@ class TrackSettings:
 class FrameParticles:
     """One frame's particles: positions ``(N, 3)`` mm and voxel indices, their standard
     deviations ``(N, 3)`` mm and intensities ``(N,)``; the median and noise the
-    reconstruction removed from the frame (``None`` when it removed none)."""
+    reconstruction removed from the frame (``None`` when it removed none); the peaks
+    the fit to the raw image dropped (:class:`~plenocl.piv.imagefit.FittedParticles`)."""
 
     positions: np.ndarray
     index: np.ndarray
     sigma: np.ndarray
     intensities: np.ndarray
     background: tuple[float, float] | None = None
+    dropped: int = 0
 
 
 def track(frames, projector: ProjectionOperator, dt: float,
@@ -192,7 +194,9 @@ def track(frames, projector: ProjectionOperator, dt: float,
     Returns
     -------
     plenocl.ptv.Tracks
-        The tracks seen in at least ``settings.min_length`` frames.
+        The tracks seen in at least ``settings.min_length`` frames; ``dropped`` counts
+        the particles the fits to the raw images dropped (a fit that left the grid or
+        was not finite, docs/design.md §7.2), which the tracks miss.
     """
     settings = with_keywords(TrackSettings, settings, options, "track")
     if progress is not None and not callable(progress):
@@ -206,9 +210,13 @@ def track(frames, projector: ProjectionOperator, dt: float,
     _warn_if_unlinked(table)
     table = table[(table >= 0).sum(axis=1) >= settings.min_length]
     tracks = smooth_tracks(*_gather(table, particles), dt, projector, settings)
+    dropped = sum(part.dropped for part in particles)
     for _ in range(refits):
-        tracks = _refit(tracks, frames, particles, projector, settings, steps)
-    return tracks
+        tracks, lost = _refit(tracks, frames, particles, projector, settings, steps)
+        dropped += lost
+    if dropped:  # a refit's dropped particle may leave its track too short
+        tracks = tracks.longer_than(settings.min_length)
+    return dataclasses.replace(tracks, dropped=dropped)
 
 
 class _Steps:
@@ -225,11 +233,13 @@ class _Steps:
 
 
 def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projector,
-           settings: TrackSettings, steps: _Steps) -> Tracks:
+           settings: TrackSettings, steps: _Steps) -> tuple[Tracks, int]:
     """Every tracked particle fitted to its frame again from its smoothed position, and
-    the tracks smoothed again."""
+    the tracks smoothed again; and the particles the fits dropped (NaN: the track misses
+    that frame)."""
     measured, sigma = np.full_like(tracks.measured, np.nan), np.full_like(tracks.measured, np.nan)
     intensity = np.full_like(tracks.intensities, np.nan)
+    dropped = 0
     for k, (raw, part) in enumerate(zip(frames, particles)):
         rows = np.all(np.isfinite(tracks.measured[:, k]), axis=1)
         if rows.any():
@@ -237,8 +247,9 @@ def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projec
                 0, tracks.positions[rows, k])
             measured[rows, k], sigma[rows, k] = fitted.positions, fitted.sigma
             intensity[rows, k] = fitted.intensities
+            dropped += fitted.dropped
         steps.advance()
-    return smooth_tracks(measured, sigma, intensity, tracks.dt, projector, settings)
+    return smooth_tracks(measured, sigma, intensity, tracks.dt, projector, settings), dropped
 
 
 def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray, dt: float,
@@ -347,10 +358,12 @@ def _particles(raw, vol: np.ndarray, info, projector, settings: TrackSettings
                               np.ones(len(peaks)))
     known = None if info.background is None else (info.background, info.noise)
     fitted = _image_fit(raw, known, projector, settings).fit(0, grid.from_index(peaks))
-    index = grid.to_index(fitted.positions)
-    keep, intensities = merge_close(index, fitted.intensities, settings.merge)
-    return FrameParticles(fitted.positions[keep], index[keep], fitted.sigma[keep],
-                          intensities[keep], known)
+    ok = fitted.kept
+    positions, sigma = fitted.positions[ok], fitted.sigma[ok]
+    index = grid.to_index(positions)
+    keep, intensities = merge_close(index, fitted.intensities[ok], settings.merge)
+    return FrameParticles(positions[keep], index[keep], sigma[keep], intensities[keep],
+                          known, fitted.dropped)
 
 
 def _gather(table: np.ndarray, particles: list[FrameParticles]):

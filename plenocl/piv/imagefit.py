@@ -14,6 +14,11 @@ a particle lights one lens, the prior keeps the volume's position; far from it t
 image decides. Each pixel's noise is the residual's own scatter over the particle's
 lit pixels (never below the camera's noise), so a particle crowded by others or by
 ghosts leans on its prior.
+
+One bad particle never ends a fit: each step is bounded (:data:`MAX_STEP_VOXELS`), and a
+particle that starts or steps outside the grid and its margin (:data:`GRID_MARGIN_VOXELS`),
+or whose sums, step or intensity are not finite, is dropped (its rows NaN,
+:attr:`FittedParticles.kept` false) while the others go on without it.
 """
 
 from __future__ import annotations
@@ -34,6 +39,11 @@ from .fitsums import DeviceFitSums
 PRIOR_VOXELS = (0.15, 0.15, 1.3)
 #: Largest step of one iteration ``(x, y, z)`` voxels.
 MAX_STEP_VOXELS = (0.5, 0.5, 1.0)
+#: How far ``(x, y, z)`` voxels beyond the grid's outer faces a fitted particle may lie:
+#: the farthest the default 4 bounded steps carry a particle that starts inside. Real
+#: particles leaving the volume are fitted up to 3 voxels beyond its depth faces (the
+#: paper's optics, ``benchmarks/tracking.py``'s series); farther out a fit has diverged.
+GRID_MARGIN_VOXELS = (2.0, 2.0, 4.0)
 
 
 @dataclass(frozen=True)
@@ -76,11 +86,26 @@ class ImageFitSettings:
 @dataclass(frozen=True)
 class FittedParticles:
     """Fitted positions ``(N, 3)`` object-space mm, intensities ``(N,)`` (image units)
-    and the posterior standard deviation of each position ``(N, 3)`` mm."""
+    and the posterior standard deviation of each position ``(N, 3)`` mm, one row per
+    particle given to :meth:`ImageFit.fit`.
+
+    Attributes
+    ----------
+    kept
+        ``(N,)``: false for a particle the fit dropped (it started or stepped beyond
+        the grid's margin, :meth:`ImageFit.inside`, or its fit was not finite); its
+        rows are NaN.
+    """
 
     positions: np.ndarray
     intensities: np.ndarray
     sigma: np.ndarray
+    kept: np.ndarray
+
+    @property
+    def dropped(self) -> int:
+        """The number of particles the fit dropped."""
+        return int(np.count_nonzero(~self.kept))
 
 
 class ImageFit:
@@ -128,7 +153,8 @@ class ImageFit:
 
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
         """Peaks ``(N, 3)`` fractional voxel indices ``(ix, iy, iz)`` of exposure
-        ``index``'s volume refined against its raw image."""
+        ``index``'s volume refined against its raw image; NaN rows for the peaks the fit
+        dropped (:attr:`FittedParticles.kept`)."""
         if not len(peaks):
             return np.asarray(peaks, float).reshape(0, 3)
         fitted = self.fit(index, self.grid.from_index(peaks))
@@ -146,24 +172,62 @@ class ImageFit:
 
     def fit(self, index: int, positions: np.ndarray) -> FittedParticles:
         """Fit particles starting at object-space ``positions`` ``(N, 3)`` mm to exposure
-        ``index``'s image; the intensities start from a linear least-squares fit."""
+        ``index``'s image; the intensities start from a linear least-squares fit.
+
+        A particle that starts or steps where :meth:`inside` refuses (beyond the grid's
+        margin, or not finite), or whose fit is not finite, is dropped: NaN rows,
+        ``kept`` false (see the module notes); the others are fitted without it."""
+        start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        n = len(start)
+        p, sigma = np.full((2, n, 3), np.nan)
+        intensity = np.full(n, np.nan)
+        kept = self.inside(start)
+        if kept.any():
+            p[kept], intensity[kept], sigma[kept], still = self._iterate(index, start[kept])
+            kept[np.flatnonzero(kept)[~still]] = False
+        p[~kept], intensity[~kept], sigma[~kept] = np.nan, np.nan, np.nan
+        return FittedParticles(p, intensity, sigma, kept)
+
+    def inside(self, positions: np.ndarray) -> np.ndarray:
+        """Which object-space ``positions`` ``(N, 3)`` mm the fit keeps: finite, inside
+        the grid or within :data:`GRID_MARGIN_VOXELS` of its outer faces, and in front
+        of the main lens's focal length (where the camera forms an image)."""
+        pts = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        out = np.all(np.isfinite(pts), axis=1)
+        index = self.grid.to_index(np.where(out[:, None], pts, 0.0))
+        margin = np.asarray(GRID_MARGIN_VOXELS)
+        high = np.asarray(self.grid.shape[::-1]) - 0.5 + margin  # (x, y, z)
+        out &= np.all((index >= -0.5 - margin) & (index <= high), axis=1)
+        camera = self.bundle.camera
+        return out & (pts[:, 2] > camera.focal_length_mm - camera.object_distance_mm)
+
+    def _iterate(self, index: int, start: np.ndarray):
+        """The Gauss-Newton iterations from ``start`` (inside the grid): positions,
+        intensities, sigmas and which particles are still in the fit (the others' rows
+        hold where they were dropped)."""
         data, noise = self.images[index]
         prior = self._prior_mm()
-        start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         p, sigma = start.copy(), np.broadcast_to(prior, start.shape).copy()
         device = self.sums is not None and self.sums.fits(
             self.bundle.patches(self.bundle.camera.image_points(p)))
         intensity = (self._device_start(index, p) if device
                      else self._start_intensity(data, p))
+        live = np.isfinite(intensity)
         for _ in range(self.settings.iterations):
+            rows = np.flatnonzero(live)
+            if not len(rows):
+                break
             if device:
-                normal, rhs, scatter = self._device_sums(index, noise, p, intensity)
+                sums = self._device_sums(index, noise, p[rows], intensity[rows])
             else:
-                normal, rhs, scatter = self._host_sums(data, noise, p, intensity)
-            step, intensity_step, sigma = self._solve(normal, rhs, scatter, p - start, prior)
-            p += step
-            intensity = np.maximum(intensity + intensity_step, 0.0)
-        return FittedParticles(p, intensity, sigma)
+                sums = self._host_sums(data, noise, p[rows], intensity[rows])
+            step, intensity_step, sig = self._solve(*sums, p[rows] - start[rows], prior)
+            p[rows] += step
+            intensity[rows] = np.maximum(intensity[rows] + intensity_step, 0.0)
+            sigma[rows] = sig
+            live[rows] = (self.inside(p[rows]) & np.isfinite(intensity[rows])
+                          & np.all(np.isfinite(sig), axis=1))
+        return p, intensity, sigma, live
 
     def _prior_mm(self) -> np.ndarray:
         dz, dy, dx = self.grid.spacing
@@ -243,17 +307,21 @@ class ImageFit:
     def _solve(self, normal, rhs, scatter, offset, prior):
         """One damped Gauss-Newton step of every particle (position mm, intensity) and
         the posterior standard deviation of each position, from the sums at ``p``
-        (:meth:`_host_sums`) and ``offset = p - start``; chunk by chunk."""
+        (:meth:`_host_sums`) and ``offset = p - start``; chunk by chunk. A particle whose
+        sums are not finite gets NaN (the fit drops it) and leaves the others' alone."""
         n = len(offset)
-        steps, sigmas = np.zeros((n, 4)), np.zeros((n, 3))
-        normal = normal / scatter[:, None, None] ** 2
-        rhs = rhs / scatter[:, None] ** 2
+        steps, sigmas = np.full((n, 4), np.nan), np.full((n, 3), np.nan)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            normal = normal / scatter[:, None, None] ** 2
+            rhs = rhs / scatter[:, None] ** 2
         normal[:, :3, :3] += np.diag(1.0 / prior**2)
         rhs[:, :3] -= offset / prior**2
+        good = np.all(np.isfinite(normal), axis=(1, 2)) & np.all(np.isfinite(rhs), axis=1)
         for part in self._chunks(n):
-            sigmas[part] = np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal[part]), axis1=1,
-                                                      axis2=2)[:, :3]))
-            steps[part] = _damped_solve(normal[part], rhs[part], self.settings.damping)
+            rows = np.arange(part.start, part.stop)[good[part]]
+            if len(rows):
+                sigmas[rows], steps[rows] = _solve_each(normal[rows], rhs[rows],
+                                                        self.settings.damping)
         limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
         return np.clip(steps[:, :3], -limit, limit), steps[:, 3], sigmas
 
@@ -320,6 +388,31 @@ def _peaks(value: np.ndarray, pid: np.ndarray, n: int) -> np.ndarray:
     starts = np.flatnonzero(np.concatenate([[True], pid[1:] != pid[:-1]]))
     peak[pid[starts]] = np.maximum.reduceat(value, starts)
     return peak
+
+
+def _solve_each(normal: np.ndarray, rhs: np.ndarray, damping: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The posterior standard deviations ``(n, 3)`` and :func:`_damped_solve`'s steps
+    ``(n, 4)`` of finite normal equations, all at once; where NumPy's stacked solvers
+    refuse (one singular or unconverged matrix refuses the stack), particle by particle,
+    NaN for those that fail alone."""
+    try:
+        return _posterior_sigma(normal), _damped_solve(normal, rhs, damping)
+    except np.linalg.LinAlgError:
+        sigma, steps = np.full((len(normal), 3), np.nan), np.full((len(normal), 4), np.nan)
+        for k in range(len(normal)):
+            try:
+                sigma[k] = _posterior_sigma(normal[k:k + 1])[0]
+                steps[k] = _damped_solve(normal[k:k + 1], rhs[k:k + 1], damping)[0]
+            except np.linalg.LinAlgError:
+                sigma[k] = np.nan
+                continue
+        return sigma, steps
+
+
+def _posterior_sigma(normal: np.ndarray) -> np.ndarray:
+    """The position columns' standard deviations ``(n, 3)`` of normal matrices."""
+    return np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal), axis1=1, axis2=2)[:, :3]))
 
 
 def _damped_solve(normal: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:

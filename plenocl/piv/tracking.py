@@ -73,10 +73,12 @@ FOCAL_SYSTEMATIC = 0.087
 @dataclass(frozen=True)
 class ParticlePairs:
     """Matched particles: midpoints ``(N, 3)`` and displacements ``(N, 3)``, both as
-    ``(x, y, z)`` voxels."""
+    ``(x, y, z)`` voxels; ``dropped``: the peaks the fit to the raw images dropped
+    (:class:`plenocl.piv.imagefit.FittedParticles`), left out before pairing again."""
 
     midpoints: np.ndarray
     displacements: np.ndarray
+    dropped: int = 0
 
 
 def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
@@ -95,15 +97,20 @@ def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
                    threshold: float = 0.1, search=SEARCH,
                    fit: ImageFit | None = None) -> ParticlePairs:
     """Mutual nearest-neighbour pairs of the two volumes' peaks along ``field``; with
-    ``fit``, the paired peaks are refined against their raw images and paired again."""
+    ``fit``, the paired peaks are refined against their raw images and paired again
+    (the peaks the fit dropped left out, and counted)."""
     pa, _ = find_particles(vol_a, threshold)
     pb, _ = find_particles(vol_b, threshold)
     ia, ib = mutual_pairs(pa, pb, field, search)
+    dropped = 0
     if fit is not None and len(ia):
         pa[ia], pb[ib] = fit.refine_pair(pa[ia], pb[ib])
+        kept_a, kept_b = (np.all(np.isfinite(p), axis=1) for p in (pa, pb))
+        dropped = int(np.count_nonzero(~kept_a) + np.count_nonzero(~kept_b))
+        pa, pb = pa[kept_a], pb[kept_b]
         ia, ib = mutual_pairs(pa, pb, field, search)
     disp = pb[ib] - pa[ia]
-    return ParticlePairs(pa[ia] + disp / 2, disp)
+    return ParticlePairs(pa[ia] + disp / 2, disp, dropped)
 
 
 def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH
@@ -401,7 +408,9 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     correlation's vector and uncertainty. The refined field is validated as
     :func:`plenocl.piv3d` validates its last pass (normalised median test, outliers
     replaced by their neighbours' median, marked invalid, sigma NaN). ``refinement``
-    records the pairs found, the vectors refined and the outliers.
+    records the pairs found, the vectors refined, the outliers and the particles the
+    fit to the raw images dropped (``dropped``: their fit left the grid or was not
+    finite; docs/design.md §7.2).
     """
     pairs = pair_particles(vol_a, vol_b, field, threshold, search, fit)
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
@@ -419,6 +428,7 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
         comps[f"sigma_{c}"] = np.where(valid, np.where(use, error[n], sigma), np.nan)
     log = {"refinement": "particles", "pairs": len(pairs.midpoints),
            "vectors": int(use.sum()), "outliers": int(outlier.sum()),
-           "median_pairs": float(np.median(count[use])) if use.any() else 0.0}
+           "median_pairs": float(np.median(count[use])) if use.any() else 0.0,
+           "dropped": pairs.dropped}
     return dataclasses.replace(field, **comps, valid=valid, outlier=outlier,
                                refinement=log)

@@ -41,6 +41,10 @@ class Tracks:
         Their standard deviations.
     dt
         The time between frames.
+    dropped
+        The particles :func:`plenocl.track`'s fits to the raw images dropped, over every
+        frame and refit (their fit left the grid or was not finite; docs/design.md
+        §7.2): a track misses the frame where its particle was dropped.
     """
 
     positions: np.ndarray
@@ -53,6 +57,7 @@ class Tracks:
     velocity_sigma: np.ndarray
     acceleration_sigma: np.ndarray
     dt: float
+    dropped: int = 0
 
     @classmethod
     def from_measured(cls, measured: np.ndarray, sigma: np.ndarray,
@@ -85,6 +90,7 @@ class Tracks:
             with atomic_path(path) as tmp:
                 with open(tmp, "wb") as handle:
                     np.savez_compressed(handle, format=FORMAT, dt=self.dt,
+                                        dropped=self.dropped,
                                         **{name: getattr(self, name) for name in _PER_TRACK})
         elif path.suffix == ".vtu":
             write_vtu(path, *self._lines())
@@ -99,7 +105,9 @@ class Tracks:
             if "format" not in data.files or str(data["format"]) != FORMAT:
                 raise ValueError(f"{path} is not a plenocl tracks file (written by "
                                  "Tracks.save(... .npz))")
-            return cls(*(data[name] for name in _PER_TRACK), dt=float(data["dt"]))
+            dropped = int(data["dropped"]) if "dropped" in data.files else 0  # older files
+            return cls(*(data[name] for name in _PER_TRACK), dt=float(data["dt"]),
+                       dropped=dropped)
 
     def _lines(self) -> tuple[list[np.ndarray], dict[str, list[np.ndarray]]]:
         """Each track's smoothed positions as a line and its per-point arrays."""
@@ -118,7 +126,8 @@ class Tracks:
     def longer_than(self, frames: int) -> Tracks:
         """The tracks seen in at least ``frames`` frames."""
         keep = self.lengths >= frames
-        return Tracks(*(getattr(self, name)[keep] for name in _PER_TRACK), dt=self.dt)
+        return Tracks(*(getattr(self, name)[keep] for name in _PER_TRACK), dt=self.dt,
+                      dropped=self.dropped)
 
 
 _PER_TRACK = ("positions", "measured", "measured_sigma", "intensities", "velocities",
