@@ -269,7 +269,8 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
                                  ensemble=ensemble)
         summary.store = str(store)
     write_json(out / "summary.json", asdict(summary))
-    log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
+    each = f" ({summary.seconds_per_pair:.1f} s each)" if done else ""
+    log(f"{done} pair(s) processed{each}, "
         f"{len(summary.skipped)} already done, {len(summary.failed)} failed"
         + (f": {summary.failed}" if summary.failed else "")
         + (f", {len(summary.gaps)} not made for missing frames" if summary.gaps else "")

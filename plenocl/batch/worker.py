@@ -23,6 +23,7 @@ from ..grid import Grid
 from ..io.files import read_image, write_volumes
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
+from ..reconstruction import UnusableImageError
 from ..vectorfile import save_field
 from .layout import pair_index, volume_file
 from .pairing import fingerprint
@@ -125,8 +126,7 @@ class PairProcessor:
             seconds = {"read": time.perf_counter() - t0}
             seconds.update(self._process(raw_a, raw_b, Path(task.target), sources))
         except PAIR_ERRORS as exc:
-            name = f"{Path(task.image_a).name} + {Path(task.image_b).name}"
-            return PairOutcome(task.index, {}, f"{name}: {exc}")
+            return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {exc}")
         return PairOutcome(task.index, seconds)
 
     def frame(self, path: str) -> np.ndarray:
@@ -146,3 +146,11 @@ class PairProcessor:
         save_field(target, pair.piv, dt=run.dt_s, grid=self.grid,
                    metadata={"sources": sources, "pair": pair_index(target)})
         return {**pair.seconds, "write": time.perf_counter() - t0}
+
+
+def _culprit(task: PairTask, exc: Exception) -> str:
+    """The file a pair's error comes from: the image a reconstruction refused, else
+    both of the pair's."""
+    which = exc.which if isinstance(exc, UnusableImageError) else None
+    names = {"a": Path(task.image_a).name, "b": Path(task.image_b).name}
+    return names[which] if which in names else f"{names['a']} + {names['b']}"

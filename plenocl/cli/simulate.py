@@ -81,8 +81,11 @@ def cmd_grid(args: argparse.Namespace) -> int:
     """Write the grid that fits the camera's field of view (Grid.for_camera)."""
     from ..grid import Grid
 
-    grid = Grid.for_camera(load_camera(args.camera), tuple(args.z), voxel_mm=args.voxel_mm,
-                           depth_voxel_mm=args.depth_voxel_mm, fraction=args.fraction)
+    camera = load_camera(args.camera)
+    depth_voxel = args.depth_voxel_mm or min(camera.depth_resolution_mm / 2,
+                                             abs(args.z[1] - args.z[0]) / THREE_LAYERS)
+    grid = Grid.for_camera(camera, tuple(args.z), voxel_mm=args.voxel_mm,
+                           depth_voxel_mm=depth_voxel, fraction=args.fraction)
     grid.to_toml(args.out)
     dz, dy, dx = grid.spacing
     print(f"wrote {args.out}: {grid.shape} voxels of {dz:.4g} x {dy:.4g} x {dx:.4g} mm "
@@ -144,6 +147,8 @@ def add_simulate_parsers(sub) -> None:
     g.add_argument("--voxel-mm", type=float, default=None,
                    help="lateral voxel (default: one microlens in object space)")
     g.add_argument("--depth-voxel-mm", type=float, default=None,
-                   help="depth voxel (default: half the camera's depth resolution)")
+                   help="depth voxel (default: half the camera's depth resolution, "
+                        f"thinner where that leaves fewer than {THREE_LAYERS} voxels in "
+                        "depth, so the final windows give 3 layers of vectors)")
     g.add_argument("--fraction", type=float, default=1.0, help="fraction of the field of view")
     g.set_defaults(func=cmd_grid)
