@@ -91,7 +91,7 @@ def check_exposure(img: np.ndarray, name: str = "image", saturation: bool = True
         what = "blank" if high == 0 else "uniform"
         raise ValueError(f"{name} is {what}: every pixel is {float(high):.6g}, so it holds no "
                          "image; check the file, the exposure and the camera's trigger")
-    if saturation:
+    if saturation and high > 0:  # at or below zero: no light, said by the reconstruction
         share = float(np.count_nonzero(data == high)) / data.size
         if share > SATURATED_FRACTION:
             raise ValueError(f"{name} is saturated: {share:.0%} of its pixels are at its "

@@ -106,8 +106,9 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
 
 
 def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
-    """A non-negative raw image as it is (no background removed), checked and scaled to a
-    maximum of 1; returns it and the scale (:func:`preprocess` with ``background=None``)."""
+    """A raw image as it is (no background removed; pixels below zero clipped), checked
+    and scaled to a maximum of 1; returns it and the scale (:func:`preprocess` with
+    ``background=None``)."""
     img, scale, _ = preprocess(image, camera, None, 0.0)
     return img, scale
 
