@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pyopencl as cl
 
+from .icd import pip_runtime_libraries
+
 
 class KernelBuildError(RuntimeError):
     """An OpenCL program failed to build; the message carries file, options and log.
@@ -94,9 +96,14 @@ UNKNOWN_CPU = "unknown target CPU"
 
 
 def build_hint(log: str) -> str:
-    """A fix for the build failures a user can mend without touching plenocl."""
+    """A fix for the build failures a user can mend without touching plenocl; where
+    the fix, Intel's CPU runtime from pip, is installed already, only that it serves."""
     if UNKNOWN_CPU not in log:
         return ""
+    if pip_runtime_libraries():
+        return ("\n  note: this PoCL's LLVM does not know this processor (the PoCL 3.0 wheel "
+                "on an AMD Zen 5 CPU, say); Intel's CPU runtime, installed (the cpu extra), "
+                "builds plenocl's kernels and is the default here (`plenocl devices`)")
     return ("\n  hint: this PoCL's LLVM does not know this processor (the PoCL 3.0 wheel "
             "from PyPI, LLVM 14, on an AMD Zen 5 CPU, say) and so cannot compile any "
             "kernel. Install Intel's CPU runtime with pip, no root needed: "

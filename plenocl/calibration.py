@@ -57,6 +57,11 @@ from .optics.rawimage import check_image
 PITCH_TOLERANCE = 0.10
 #: Fraction of the expected lenses that must show a spot.
 MIN_FOUND_FRACTION = 0.25
+#: Of a white image's spots, at least this fraction have their nearest neighbour within
+#: REGULAR_SPREAD of the typical spacing (white images, stopped down or at full aperture,
+#: with vignetting or a third of the lenses dark: 0.79-1.0; particle images: 0.1-0.4).
+REGULAR_SHARE = 0.6
+REGULAR_SPREAD = 0.1
 #: Peaks (and centroids) closer than this many pitches are one spot.
 DUPLICATE_RADIUS = 0.25
 #: A spot must reach this fraction of the brightest spot around it.
@@ -795,10 +800,12 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     if kind == "full":
         flat = _flatten(img, pitch)
         peaks, strength = _detect_disks(flat, pitch)
+        _check_regular(peaks, "bright disks")
         _check_count(len(peaks), camera, "bright disks")
         cents, sigma, split = _disk_centroids(flat, peaks, pitch)
     else:
         peaks, strength = _detect_spots(img, pitch)
+        _check_regular(peaks, "bright spots")
         _check_count(len(peaks), camera, "bright spots")
         cents, sigma, split = _windowed_centroids(img, peaks, pitch)
     ok = np.isfinite(cents).all(1)
@@ -850,6 +857,25 @@ def _check_lattice(dev: np.ndarray, what: str) -> None:
             f"{ON_LATTICE:g} pitch of a node): this does not look like a white image. Image "
             "a uniform bright target with the main lens stopped down (e.g. f/16) or at full "
             "aperture, and check the exposure and the camera file's pitch")
+
+
+def _check_regular(peaks: np.ndarray, what: str) -> None:
+    """Refuse spots that are not spaced like a lattice's, whatever its pitch: a white
+    image's spots have their nearest neighbour one pitch away; a particle image's lie in
+    clusters (one per particle) at spacings that vary with each particle's depth."""
+    if len(peaks) < 8:
+        return  # too few to judge: the count check names the problem
+    dist = cKDTree(peaks).query(peaks, k=2)[0][:, 1]
+    typical = float(np.median(dist))
+    share = float(np.mean(np.abs(dist / typical - 1) <= REGULAR_SPREAD))
+    if share < REGULAR_SHARE:
+        raise ValueError(
+            f"this does not look like a white image: the {len(peaks)} {what} found are "
+            f"irregularly spaced (only {share:.0%} have their nearest neighbour within "
+            f"{REGULAR_SPREAD:.0%} of the typical {typical:.3g} px, where a white image's "
+            "lie on the microlens lattice): a particle image? Calibrate with a white image "
+            "of a uniform bright target, the main lens stopped down (e.g. f/16) or at full "
+            "aperture")
 
 
 def _check_count(n: int, camera: Camera, what: str) -> None:

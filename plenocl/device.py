@@ -5,7 +5,9 @@ A device is chosen explicitly (a :class:`pyopencl.Device`, ``Context`` or
 ``"NVIDIA"``), else from the ``PYOPENCL_CTX`` environment variable, else by
 default: the first device, in :func:`preference` order (GPUs, then PoCL, then Intel's
 CPU runtime), that builds plenocl's kernels. A device passed over because it cannot
-build them is named in a one-line :class:`DeviceFallbackWarning`. There is no global
+build them is named in a one-line :class:`DeviceFallbackWarning`, once per process,
+unless the fallback is the documented one between CPU runtimes
+(:func:`expected_fallback`; :func:`fallback_note` keeps it). There is no global
 "current device": every object that runs kernels takes a queue or builds one here.
 
 CPU runtimes installed by pip (Intel's, the ``intel`` extra) are registered with the
@@ -204,15 +206,48 @@ def building_devices() -> tuple[list[cl.Device], list[tuple[cl.Device, str]]]:
     return building, failing
 
 
+# The default choice's note when it passed a device over (None: it did not), and the
+# notes already warned about: each is said once per process.
+_FALLBACK: dict[str, str | None] = {"note": None}
+_SAID: set[str] = set()
+
+
+def fallback_note() -> str | None:
+    """What this process's default device choice passed over and why (``None``: the
+    first device built), also where no warning said it (``plenocl -v`` prints it)."""
+    return _FALLBACK["note"]
+
+
+def expected_fallback(chosen: cl.Device, passed_over: list[cl.Device]) -> bool:
+    """Whether passing ``passed_over`` for ``chosen`` is the documented choice: CPU
+    runtimes of :data:`CPU_PLATFORMS` only (PoCL's wheel cannot compile on a CPU its
+    LLVM does not know, AMD Zen 5 say, and Intel's runtime serves: README, "Choosing a
+    device"), which is not warned about."""
+    def known_cpu(dev: cl.Device) -> bool:
+        return is_cpu(dev) and dev.platform.name.strip() in CPU_PLATFORMS
+
+    return known_cpu(chosen) and all(known_cpu(dev) for dev in passed_over)
+
+
+def _say_fallback(chosen: cl.Device, passed_over: list[cl.Device], reasons: list[str]) -> None:
+    """Record the fallback; warn once per process unless it is the expected one."""
+    note = f"plenocl uses {_describe(chosen)}: " + "; ".join(reasons)
+    _FALLBACK["note"] = note
+    if note in _SAID or expected_fallback(chosen, passed_over):
+        return
+    _SAID.add(note)
+    warnings.warn(note, DeviceFallbackWarning, stacklevel=5)
+
+
 def _default_device() -> cl.Device:
-    passed = []
+    passed, skipped = [], []
     for dev in devices_by_preference():
         problem = build_problem(dev)
         if problem is None:
             if passed:
-                warnings.warn(f"plenocl uses {_describe(dev)}: " + "; ".join(passed),
-                              DeviceFallbackWarning, stacklevel=4)
+                _say_fallback(dev, skipped, passed)
             return dev
+        skipped.append(dev)
         passed.append(f"{_describe(dev)} cannot build its kernels ({problem})")
     raise NoOpenCLError(
         "no OpenCL device here builds plenocl's kernels: " + "; ".join(passed)

@@ -31,9 +31,15 @@ def check_dt(dt, what: str = "dt", force: bool = False, flag: str = "--force") -
     except (TypeError, ValueError):
         raise ValueError(f"{what} must be the time between the exposures in seconds "
                          f"(e.g. 175e-6), got {dt!r}") from None
-    if not (math.isfinite(value) and value > 0):
+    if not math.isfinite(value):
         raise ValueError(f"{what} must be the time between the exposures in seconds "
                          f"(e.g. 175e-6), got {dt!r}")
+    if value <= 0:
+        sign = "negative" if value < 0 else "zero"
+        raise ValueError(f"{what} = {value:g} s is {sign}: it must be positive, the time "
+                         "from the first exposure to the second in seconds (e.g. 175e-6); "
+                         "for a pair recorded the other way round, swap its two volumes "
+                         "or images")
     lo, hi = DT_RANGE_S
     if not force and not lo <= value <= hi:
         guess = f"; {value:g} µs would be {value * 1e-6:g}" if value > hi else ""

@@ -86,7 +86,7 @@ def test_bad_experiment_files_are_refused_before_any_work(tmp_path, change, mess
 
 
 def test_bad_values_are_named(tmp_path):
-    for old, new, message in (('dt_s = 1e-3', 'dt_s = -1', "dt_s must be"),
+    for old, new, message in (('dt_s = 1e-3', 'dt_s = -1', "dt_s = -1 s is negative"),
                               ('pairing = "sequence"', 'pairing = "odd"', "pairing must"),
                               ("iterations = 20", "iterations = -2", "iterations"),
                               ('dt_s = 1e-3', 'dt_s = 175', r"dt_s = 175 s .*175 µs would be"

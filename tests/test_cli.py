@@ -185,7 +185,9 @@ def test_ctrl_c_exits_130_with_one_line_and_warnings_print_once(tmp_path, capsys
 
     small_camera.to_toml(tmp_path / "cam.toml")
     Grid((4, 10, 12), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1, 1)).to_toml(tmp_path / "g.toml")
-    write_tiff(tmp_path / "raw.tif", np.ones(small_camera.pixels[::-1], np.uint16))
+    raw = np.ones(small_camera.pixels[::-1], np.uint16)
+    raw[::7, ::5] = 1000  # a few lit pixels: a blank frame is refused
+    write_tiff(tmp_path / "raw.tif", raw)
     args = ["reconstruct", str(tmp_path / "raw.tif"), "--camera", str(tmp_path / "cam.toml"),
             "--grid", str(tmp_path / "g.toml"), "--out", str(tmp_path / "v.npz"),
             "--iterations", "0"]
@@ -226,7 +228,7 @@ def _volumes(tmp_path, shape=(8, 10, 12)):
 
 @pytest.mark.parametrize("args, message", [
     (["--dt", "175"], r"--dt = 175 s .* 175 µs would be 0.000175.*--force"),
-    (["--dt", "0"], r"--dt must be the time between the exposures"),
+    (["--dt", "0"], r"--dt = 0 s is zero: it must be positive"),
     (["--dt", "1e-9"], r"outside what PIV uses"),
 ])
 def test_piv_refuses_an_implausible_dt_before_any_work(tmp_path, capsys, args, message):
@@ -291,8 +293,8 @@ def test_one_meaning_per_option_name(tmp_path, capsys):
 
 
 def test_grid_command_labels_its_sizes_in_their_order(tmp_path, capsys):
-    assert main(["grid", "--camera", "synthetic", "--z", "-2", "2", "--out",
-                 str(tmp_path / "g.toml")]) == 0
+    assert main(["grid", "--camera", "synthetic", "--z", "-2", "2", "--depth-voxel-mm",
+                 "0.25", "--out", str(tmp_path / "g.toml")]) == 0
     out = capsys.readouterr().out
     from plenocl import Grid
 

@@ -300,14 +300,13 @@ def test_a_dense_image_whose_threshold_darkens_every_pixel_is_not_silent(queue,
                                                                           small_camera):
     """A dense image (every pixel lit, the median far above the dark level): the default
     threshold, 4 x the MAD noise, lies above the brightest pixel. The user is told, with
-    the fix, instead of getting an empty volume and residual 1 alone; the fix works."""
+    the fix, by an error instead of an empty volume; the fix works."""
     grid = Grid((4, 6, 6), x=(-0.6, 0.6), y=(-0.6, 0.6), z=(-0.5, 0.5))
     proj = Projector(small_camera, grid, queue)
     image = np.random.default_rng(3).uniform(100, 200, proj.image_shape)
-    with pytest.warns(UserWarning, match=r"threshold .* is at or above the image's brightest "
+    with pytest.raises(ValueError, match=r"threshold .* is at or above the image's brightest "
                                          r"pixel.*--background none"):
-        vol = reconstruct(image, proj, iterations=2)
-    assert vol.max() == 0
+        reconstruct(image, proj, iterations=2)
     fixed = reconstruct(image, proj, iterations=2, background=None)
     assert fixed.max() > 0
 

@@ -167,9 +167,7 @@ def test_thousand_iterations_stay_finite(tiny, method, relax):
 
 
 @pytest.mark.parametrize("make", [
-    lambda im: np.zeros_like(im),
     lambda im: np.pad(np.ones((1, 1)), ((10, 40), (20, 30))) * 1e6,
-    lambda im: np.clip(im * 1e3, 0, 1.0) ** 0,  # saturated: all ones
     lambda im: im / im.max() * 1e-6,
     lambda im: im / im.max() * 1e6,
     lambda im: (im / im.max() * 255).astype(np.uint8),
@@ -181,6 +179,17 @@ def test_extreme_images_never_give_nan_or_inf(tiny, make):
     vol = reconstruct_voxels(make(image), proj, "mlem", iterations=20, start="mlos",
                              mask_fraction=0.5)
     assert np.all(np.isfinite(vol)) and vol.min() >= 0
+
+
+@pytest.mark.parametrize("make, message", [
+    (np.zeros_like, "blank: every pixel is 0"),
+    (lambda im: np.clip(im * 1e3, 0, 1.0) ** 0, "uniform: every pixel is 1"),  # saturated
+])
+def test_images_without_an_image_are_refused_not_reconstructed(tiny, make, message):
+    proj, _, image = tiny
+    with pytest.raises(ValueError, match=message):
+        reconstruct_voxels(make(image), proj, "mlem", iterations=20, start="mlos",
+                           mask_fraction=0.5)
 
 
 def test_dynamic_range_scales_linearly(tiny):
@@ -228,7 +237,7 @@ def test_bad_options_are_rejected(tiny, kwargs, message):
 @pytest.mark.parametrize("bad, message, kw", [
     (np.zeros((50, 51)), "does not match", {}),
     (np.full((51, 51), np.nan), r"NaN or Inf pixel\(s\), the first at row 0, column 0", {}),
-    (-np.ones((51, 51)), "negative", dict(background=None)),
+    (-np.ones((51, 51)), "uniform: every pixel is -1", dict(background=None)),
     (np.ones((51, 51)), "background must be", dict(background="mean")),
 ])
 def test_bad_images_are_rejected(tiny, bad, message, kw):
@@ -239,7 +248,7 @@ def test_bad_images_are_rejected(tiny, bad, message, kw):
 
 def test_the_median_background_and_noise_threshold_are_the_default(tiny):
     """A dark level with read noise (negative pixels after dark subtraction) reconstructs
-    as the clean image does, by default; an image without light warns."""
+    as the clean image does, by default; an image without light is refused."""
     proj, _, image = tiny
     clean = reconstruct_voxels(image, proj, "mlem", iterations=10)
     rng = np.random.default_rng(2)
@@ -247,8 +256,8 @@ def test_the_median_background_and_noise_threshold_are_the_default(tiny):
     assert noisy.min() < 0
     got = reconstruct_voxels(noisy, proj, "mlem", iterations=10)
     assert np.corrcoef(got.ravel(), clean.ravel())[0, 1] > 0.99
-    with pytest.warns(UserWarning, match="no light above its background"):
-        assert not reconstruct_voxels(np.full(image.shape, 7.0), proj, iterations=3).any()
+    with pytest.raises(ValueError, match="uniform: every pixel is 7"):
+        reconstruct_voxels(np.full(image.shape, 7.0), proj, iterations=3)
 
 
 @pytest.mark.parametrize("rotation, jitter", [(0.0, 0.0), (2.0, 0.0), (0.3, 0.2)])

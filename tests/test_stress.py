@@ -36,9 +36,16 @@ from plenocl.calibration import import_centers
 from plenocl.io import read_field, read_image, read_particles
 from plenocl.optics.depthrange import resolved_depth_range
 from plenocl.pipeline import TrackSettings, track
+from plenocl.pipeline.frames import load_frame
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
-from plenocl.reconstruction import FLOAT32_LIMIT, METHODS, preprocess, view_blocks
+from plenocl.reconstruction import (
+    FLOAT32_LIMIT,
+    METHODS,
+    UnusableImageError,
+    preprocess,
+    view_blocks,
+)
 from plenocl.reference.weights import ApertureGrid, voxel_weights, weight_matrix
 from plenocl.volumefile import load_volume
 
@@ -362,21 +369,29 @@ def test_reconstruct_is_finite_and_non_negative(tiny, tiny_perturbed, kind, dtyp
                                                 seed, start, mask_fraction, relax, iterations,
                                                 threshold, mart_blocks, skip_empty, perturbed):
     """Zero, single-pixel, flat, sparse and 30-decade images in uint8/uint16/float16/32/64,
-    every method and option mix: the volume is finite, non-negative, zero for a zero image,
-    and (MLEM, SMART) carries no more light than :func:`_sum_bound` allows."""
+    every method and option mix: the volume is finite, non-negative and (MLEM, SMART)
+    carries no more light than :func:`_sum_bound` allows; an image that cannot give a
+    volume (one value, saturated, no pixel above the threshold) is refused, and only such a
+    one."""
     proj = tiny_perturbed if perturbed else tiny[1]
     image = _make_image(proj.image_shape, kind, dtype, exponent, seed)
     peak = float(np.asarray(image, np.float64).max())
     sens = proj.back(np.ones(proj.image_shape, np.float32)).astype(np.float64)
+    _, scale, thr = preprocess(image, proj.camera, "median", threshold * peak)
+    unusable = np.mean(image == image.max()) > 0.5 or scale == 0 or thr >= 1  # one value,
+    # saturated (SATURATED_FRACTION), no light above the background or the threshold
     for method in METHODS:
-        vol = reconstruct(image, proj, method, iterations, relax, start=start,
-                          threshold=threshold * peak, mask_fraction=mask_fraction,
-                          skip_empty=skip_empty, mart_blocks=mart_blocks, supersample=1)
+        try:
+            vol = reconstruct(image, proj, method, iterations, relax, start=start,
+                              threshold=threshold * peak, mask_fraction=mask_fraction,
+                              skip_empty=skip_empty, mart_blocks=mart_blocks, supersample=1)
+        except UnusableImageError:
+            assert unusable, f"{method}: a usable image refused"
+            continue
+        assert not unusable, f"{method}: an image without light reconstructed"
         assert vol.shape == proj.shape and vol.dtype == np.float32
         assert np.isfinite(vol).all(), f"{method}: NaN/Inf voxels"
         assert vol.min() >= 0, f"{method}: negative voxel {vol.min()}"
-        if peak == 0:
-            assert not vol.any(), f"{method}: a zero image must give a zero volume"
         if method != "mart":
             total = float((sens * vol).sum())
             assert total <= _sum_bound(image, sens), (method, total)
@@ -482,12 +497,11 @@ def test_determinism(tiny, queue):
     assert _same_bits(proj.forward(vol), again.forward(vol))
     assert _same_bits(proj.back(img), proj.back(img))
     assert _same_bits(proj.back(img), again.back(img))
+    kw = dict(start="mlos", mask_fraction=0.5, supersample=1, background=None)  # a projection
     for method in METHODS:
-        one = reconstruct(img, proj, method, 5, start="mlos", mask_fraction=0.5, supersample=1)
-        assert _same_bits(one, reconstruct(img, proj, method, 5, start="mlos",
-                                           mask_fraction=0.5, supersample=1)), method
-        assert _same_bits(one, reconstruct(img, again, method, 5, start="mlos",
-                                           mask_fraction=0.5, supersample=1)), method
+        one = reconstruct(img, proj, method, 5, **kw)
+        assert one.any() and _same_bits(one, reconstruct(img, proj, method, 5, **kw)), method
+        assert _same_bits(one, reconstruct(img, again, method, 5, **kw)), method
     pos = rng.uniform(-0.2, 0.2, (5, 3))
     sims = [simulate_image(cam, pos, 1000.0, 3000, seed=9, blur_px=0.5, photon_noise=True,
                            bit_depth=12, queue=queue) for _ in range(2)]
@@ -596,6 +610,28 @@ def _tiny_field() -> PIVResult:
     return PIVResult(x=np.array([8.0, 16.0]), y=np.array([8.0]), z=np.array([8.0]), u=one,
                      v=one, w=one, valid=one > 0, peak_ratio=one, outlier=one < 0,
                      masked=one < 0, window=(16, 16, 16))
+
+
+def _saturated(image):
+    """Three quarters of the pixels at the brightest value."""
+    out = np.array(image, np.float64)
+    out.ravel()[: 3 * out.size // 4] = out.max()
+    return out
+
+
+def _dense(image):
+    """Every pixel lit (a dense image, no dark frame subtracted): the median is no dark
+    level and 4 x the MAD lies above the brightest pixel."""
+    return np.random.default_rng(3).uniform(100, 200, np.shape(image))
+
+
+def _frame(make, name):
+    """:func:`plenocl.pipeline.frames.load_frame` of the tiny camera's image made by
+    ``make`` and saved as ``name``."""
+    def call(c):
+        np.save(c["dir"] / name, make(c["img"]))
+        load_frame(c["dir"] / name, c["cam"])
+    return call
 
 
 def _file(reader, name):
@@ -750,8 +786,13 @@ INVALID = [
     ("reconstruct-image-nan", _rec(_with_nan), ValueError, "NaN or Inf"),
     ("reconstruct-image-inf", _rec(lambda i: np.full(i.shape, np.inf)), ValueError,
      "NaN or Inf"),
-    ("reconstruct-image-negative", _rec(lambda i: i - 1.0, background=None), ValueError,
-     "negative pixels"),
+    ("reconstruct-image-blank", _rec(np.zeros_like), ValueError,
+     "the image is blank: every pixel is 0"),
+    ("reconstruct-image-saturated", _rec(_saturated), ValueError, "the image is saturated"),
+    ("reconstruct-image-no-light", _rec(lambda i: -1.0 - i, background=None), ValueError,
+     "holds no light above its background, so the volume would be empty"),
+    ("reconstruct-image-all-dark", _rec(_dense), ValueError,
+     "every pixel counts as dark and the volume would be empty"),
     ("reconstruct-background", _rec(background="mean"), ValueError,
      "background must be 'median' or None"),
     ("reconstruct-image-bool", _rec(lambda i: i > 0), ValueError, "image must be numeric"),
@@ -892,6 +933,10 @@ INVALID = [
     ("read-image-channel", lambda c: read_image(c["dir"] / "colour.npy", channel="red"),
      ValueError, "channel must be one of"),
     ("read-image-stack", _file(read_image, "stack.npy"), ValueError, "expected one 2-D image"),
+    ("load-frame-blank", _frame(np.zeros_like, "blank.npy"), ValueError,
+     "blank.npy is blank: every pixel is 0"),
+    ("load-frame-saturated", _frame(_saturated, "bright.npy"), ValueError,
+     "bright.npy is saturated: 75% of its pixels"),
     ("load-volume-missing", _file(load_volume, "nope.npy"), FileNotFoundError,
      "no such volume file"),
     ("load-volume-not-3d", _file(load_volume, "line.npy"), ValueError, "not a 3-D volume"),

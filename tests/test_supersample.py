@@ -107,7 +107,7 @@ def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(
     """The fine iterations start from the coarse volume's support (grown by one voxel,
     flat) and stay on it; the coarse iterations run on the aperture sampled
     ``coarse_oversample`` times per pixel footprint (``None``: the projector's own); an
-    empty image gives an empty volume."""
+    empty image is refused."""
     cam, grid, proj = optics
     pos, inten = random_particles(((-1.3, 1.3), (-0.8, 0.8), (-8, 8)), count=6, seed=4,
                                   intensity=2e4)
@@ -122,10 +122,9 @@ def test_coarse_to_fine_starts_flat_on_the_grown_support_and_conserves_zeros(
     assert info.support_fraction == pytest.approx(grown.mean())
     assert not vol[~grown].any() and vol[grown].any()
     assert vol.sum() == pytest.approx(coarse.sum(), rel=0.1)
-    with pytest.warns(UserWarning, match="no light above its background"):
-        empty = reconstruct(np.full(img.shape, 20.0, np.float32), proj, supersample=2,
-                            coarse_iterations=2)
-    assert not empty.any() and empty.shape == grid.shape
+    with pytest.raises(ValueError, match="uniform: every pixel is 20"):
+        reconstruct(np.full(img.shape, 20.0, np.float32), proj, supersample=2,
+                    coarse_iterations=2)
 
 
 def test_a_sampled_projector_is_kept_and_its_own_adjoint(optics, queue):

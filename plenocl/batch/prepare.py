@@ -39,7 +39,8 @@ def run_camera(exp: Experiment, queue, log) -> Camera:
     img = exp["images"]
     dark = read_image(exp.base / img["dark"], img["channel"]) if img["dark"] else None
     # a white image is a flat field itself: the dark frame only
-    return calibrate(load_frame(exp.base / cam["white"], camera, img["channel"], dark), camera)
+    return calibrate(load_frame(exp.base / cam["white"], camera, img["channel"], dark,
+                                white=True), camera)
 
 
 def run_grid(exp: Experiment, camera: Camera) -> Grid:

@@ -390,7 +390,8 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
                                                      ensemble))
         summary.store = str(store)
     write_json(out / "summary.json", asdict(summary))
-    log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
+    each = f" ({summary.seconds_per_pair:.1f} s each)" if done else ""
+    log(f"{done} pair(s) processed{each}, "
         f"{len(summary.skipped)} already done"
         + (f", {len(summary.rescaled)} rescaled to dt_s" if summary.rescaled else "")
         + f", {len(summary.failed)} failed"

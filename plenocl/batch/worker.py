@@ -25,6 +25,7 @@ from ..io.files import read_image, read_volumes, volumes_metadata, write_volumes
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
 from ..pipeline.pair import correlate_volumes, known_backgrounds
+from ..reconstruction import UnusableImageError
 from ..vectorfile import read_npz, save_field
 from .layout import field_copies, pair_index, volume_file
 from .pairing import fingerprint
@@ -142,8 +143,7 @@ class PairProcessor:
                                           task.mode)
             seconds.update(done)
         except PAIR_ERRORS as exc:
-            name = f"{Path(task.image_a).name} + {Path(task.image_b).name}"
-            return PairOutcome(task.index, {}, f"{name}: {exc}")
+            return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {exc}")
         return PairOutcome(task.index, seconds, dropped=dropped)
 
     def frame(self, path: str) -> np.ndarray:
@@ -202,3 +202,11 @@ def add_copies(target: Path, grid: Grid, settings: RunSettings) -> list[str]:
         for suffix in missing:
             save_field(target.with_suffix(suffix), res, dt=float(arrays["dt"]), grid=grid)
     return missing
+
+
+def _culprit(task: PairTask, exc: Exception) -> str:
+    """The file a pair's error comes from: the image a reconstruction refused, else
+    both of the pair's."""
+    which = exc.which if isinstance(exc, UnusableImageError) else None
+    names = {"a": Path(task.image_a).name, "b": Path(task.image_b).name}
+    return names[which] if which in names else f"{names['a']} + {names['b']}"

@@ -44,7 +44,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
     if args.white is None:
         raise ValueError("give a white image, or --centres CSV to take the centres from "
                          "another tool's calibration")
-    white = read_frame(args, args.white, camera)
+    white = read_frame(args, args.white, camera, white=True)
     try:
         fit = find_centers(white, camera, method=getattr(args, "method", "combined"),
                            fill_missing=getattr(args, "fill_missing", False),

@@ -45,9 +45,11 @@ def camera_for_frames(args: argparse.Namespace, camera: Camera) -> Camera:
                      "leave --crop out (the camera cuts frames to its region itself)")
 
 
-def read_frame(args: argparse.Namespace, path, camera: Camera) -> np.ndarray:
+def read_frame(args: argparse.Namespace, path, camera: Camera, white: bool = False
+               ) -> np.ndarray:
     """One frame as ``camera`` sees it: read with ``--channel``, corrected by ``--dark``
-    and ``--flat``, cut to the camera's region of interest."""
+    and ``--flat``, cut to the camera's region of interest; a blank or (unless
+    ``white``) saturated frame is refused naming the file."""
     dark, flat = (read_image(name, args.channel) if name else None
                   for name in (args.dark, args.flat))
-    return load_frame(path, camera, args.channel, dark, flat)
+    return load_frame(path, camera, args.channel, dark, flat, white)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import re
 import sys
 import warnings
 from collections.abc import Sequence
@@ -47,6 +48,21 @@ DEVICE_HELP = ("OpenCL device name or type substring (default: PYOPENCL_CTX, els
                "`plenocl devices` shows which)")
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser that reads every number with a minus sign as a value, also in
+    exponent form (``--dt -175e-6``, which argparse alone takes for an option and answers
+    "expected one argument"): the value's own check then names its sign."""
+
+    def __init__(self, *args, **kw) -> None:
+        super().__init__(*args, **kw)
+        # argparse's own test (Python < 3.13) knows -1 and -.5 only
+        self._negative_number_matcher = NEGATIVE_NUMBER
+
+
+#: A number with a minus sign: an integer, a decimal, with or without an exponent.
+NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+
 class _DefaultsHelp(argparse.HelpFormatter):
     """Help that states each option's default, unless it is none or already stated."""
 
@@ -76,18 +92,18 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every registered subcommand."""
     from ..version import __version__
 
-    parser = argparse.ArgumentParser(prog="plenocl", description=" ".join(__doc__.split()),
-                                     formatter_class=_DefaultsHelp)
+    parser = _Parser(prog="plenocl", description=" ".join(__doc__.split()),
+                     formatter_class=_DefaultsHelp)
     parser.add_argument("--version", action="version", version=f"plenocl {__version__}")
     parser.add_argument("--device", default=None, help=DEVICE_HELP)
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     common.add_argument("--device", default=argparse.SUPPRESS, help=DEVICE_HELP)
     for p in (parser, common):  # before or after the subcommand
         loud = p.add_mutually_exclusive_group()
         loud.add_argument("-q", "--quiet", action="store_true",
                           default=False if p is parser else argparse.SUPPRESS,
                           help="print errors and warnings only: no progress, no results "
-                               "summary")
+                               "summary, no note of which device runs")
         loud.add_argument("-v", "--verbose", action="store_true",
                           default=False if p is parser else argparse.SUPPRESS,
                           help="also say which OpenCL device runs, and repeat each warning "
@@ -115,6 +131,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     with warnings.catch_warnings(), _quiet(args.quiet):
         warnings.showwarning = _warning_printer(args.command, once=not args.verbose)
+        if args.quiet:  # which device runs is no error: -v says it
+            from ..device import DeviceFallbackWarning
+
+            warnings.simplefilter("ignore", DeviceFallbackWarning)
         if args.verbose:
             _say_device(args)
         try:
@@ -164,10 +184,12 @@ def _quiet(quiet: bool):
 
 def _say_device(args: argparse.Namespace) -> None:
     """``-v``: the device the command's default choice gives (or the one named)."""
-    from ..device import create_context
+    from ..device import create_context, fallback_note
 
     if args.command in ("devices", "run"):
         return  # devices lists them all; a run's workers choose their own
     dev = create_context(args.device).devices[0]
     print(f"plenocl {args.command}: OpenCL device {dev.name.strip()} on "
           f"{dev.platform.name.strip()}", file=sys.stderr)
+    if args.device is None and fallback_note():
+        print(f"plenocl {args.command}: {fallback_note()}", file=sys.stderr)

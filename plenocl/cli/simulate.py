@@ -83,9 +83,11 @@ def cmd_grid(args: argparse.Namespace) -> int:
     from ..optics.depthrange import resolved_depth_range
 
     camera = load_camera(args.camera)
+    depth_voxel = args.depth_voxel_mm or min(camera.depth_resolution_mm / 2,
+                                             abs(args.z[1] - args.z[0]) / THREE_LAYERS)
     # refused before anything is written when the camera does not resolve args.z
     grid = Grid.for_camera(camera, tuple(args.z), voxel_mm=args.voxel_mm,
-                           depth_voxel_mm=args.depth_voxel_mm, fraction=args.fraction)
+                           depth_voxel_mm=depth_voxel, fraction=args.fraction)
     grid.to_toml(args.out)
     dz, dy, dx = grid.spacing
     near, far = resolved_depth_range(camera)
@@ -151,6 +153,8 @@ def add_simulate_parsers(sub) -> None:
     g.add_argument("--voxel-mm", type=float, default=None,
                    help="lateral voxel (default: one microlens in object space)")
     g.add_argument("--depth-voxel-mm", type=float, default=None,
-                   help="depth voxel (default: half the camera's depth resolution)")
+                   help="depth voxel (default: half the camera's depth resolution, "
+                        f"thinner where that leaves fewer than {THREE_LAYERS} voxels in "
+                        "depth, so the final windows give 3 layers of vectors)")
     g.add_argument("--fraction", type=float, default=1.0, help="fraction of the field of view")
     g.set_defaults(func=cmd_grid)

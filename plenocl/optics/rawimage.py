@@ -11,8 +11,13 @@ import numpy as np
 
 from ..camera import Camera
 
-__all__ = ["check_image", "check_pixel_mask", "check_shape", "median_and_noise",
+__all__ = ["SATURATED_FRACTION", "background_and_noise", "check_exposure", "check_image",
+           "check_pixel_mask", "check_shape", "dark_noise", "median_and_noise",
            "median_background", "subtract_background"]
+
+#: A frame with more than this fraction of its pixels at its brightest value is saturated
+#: (a particle image has a few per cent there at most).
+SATURATED_FRACTION = 0.5
 
 
 def check_pixel_mask(observed, camera: Camera) -> np.ndarray | None:
@@ -72,12 +77,64 @@ def check_shape(shape: tuple[int, ...], camera: Camera, name: str = "image") -> 
                      f"sensor{hint}")
 
 
+def check_exposure(img: np.ndarray, name: str = "image", saturation: bool = True,
+                   observed: np.ndarray | None = None) -> None:
+    """Refuse a frame that holds no image: every pixel one value (blank, or saturated
+    throughout) or, with ``saturation``, more than :data:`SATURATED_FRACTION` of the
+    ``observed`` pixels at the brightest value. ``name`` (e.g. the file's) starts the
+    message."""
+    data = np.asarray(img) if observed is None else np.asarray(img)[observed]
+    if not data.size:
+        return
+    low, high = data.min(), data.max()
+    if low == high:
+        what = "blank" if high == 0 else "uniform"
+        raise ValueError(f"{name} is {what}: every pixel is {float(high):.6g}, so it holds no "
+                         "image; check the file, the exposure and the camera's trigger")
+    if saturation and high > 0:  # at or below zero: no light, said by the reconstruction
+        share = float(np.count_nonzero(data == high)) / data.size
+        if share > SATURATED_FRACTION:
+            raise ValueError(f"{name} is saturated: {share:.0%} of its pixels are at its "
+                             f"brightest value {float(high):.6g}; lower the exposure, the "
+                             "gain or the illumination")
+
+
+def dark_noise(img: np.ndarray, observed: np.ndarray | None = None) -> float:
+    """The noise of a dark-subtracted image, from its pixels below zero: noise about the
+    removed dark level is symmetric, so those pixels mirrored (with the pixels at
+    exactly zero) are noise alone, whatever light the others hold; ``1.4826`` times
+    their median absolute value. 0 without pixels below zero."""
+    data = img if observed is None else img[observed]
+    below = np.sort(-data[data < 0])
+    zeros = int(np.count_nonzero(data == 0))
+    if not below.size:
+        return 0.0
+    k = (2 * below.size + zeros) // 2  # the median's rank in {below twice, zeros}
+    return 0.0 if k < zeros else 1.4826 * float(below[min((k - zeros) // 2, below.size - 1)])
+
+
+def background_and_noise(img: np.ndarray, observed: np.ndarray | None = None
+                         ) -> tuple[float, float]:
+    """The dark level and noise the default background removes: its median and
+    ``1.4826 MAD`` (:func:`median_and_noise`: at PIV seeding most pixels see no
+    particle), except for a dark-subtracted image (pixels below zero, its median not:
+    noise about the dark level already removed), which has level 0 and
+    :func:`dark_noise`, whatever a dense image's light does to the median. An image
+    whose median is below zero (a dark level over-subtracted) keeps its median."""
+    med, noise = median_and_noise(img, observed)
+    data = img if observed is None else img[observed]
+    if med >= 0 and data.size and data.min() < 0:
+        return 0.0, dark_noise(data)
+    return med, noise
+
+
 def subtract_background(image, known: tuple[float, float] | None = None
                         ) -> tuple[np.ndarray, float]:
     """Remove a camera's dark level and estimate its noise, robustly.
 
     At PIV seeding densities most pixels see no particle, so the median is the
-    background and the median absolute deviation the noise. Returns the float32 image
+    background and the median absolute deviation the noise; a dark-subtracted image
+    (pixels below zero) has background 0 (:func:`background_and_noise`). Returns the float32 image
     ``max(I - median, 0)`` and the noise standard deviation (a sensible ``threshold`` for
     :func:`plenocl.reconstruct` is 3 to 5 times it). ``known``: the ``(median, noise)``
     already measured on this image (a reconstruction's
@@ -86,7 +143,7 @@ def subtract_background(image, known: tuple[float, float] | None = None
     """
     img = np.asarray(image, dtype=np.float64)
     if known is None:
-        med, sigma = median_and_noise(img)
+        med, sigma = background_and_noise(img)
     else:
         med, sigma = (float(v) for v in known)
         if not (np.isfinite(med) and np.isfinite(sigma) and sigma >= 0):

@@ -10,15 +10,23 @@ import numpy as np
 
 from ..camera import Camera
 from ..io.files import read_image
+from ..optics.rawimage import check_exposure
 from ..sensor import correct_frame
 
 
 def load_frame(path, camera: Camera, channel: str | None = None,
-               dark: np.ndarray | None = None, flat: np.ndarray | None = None) -> np.ndarray:
+               dark: np.ndarray | None = None, flat: np.ndarray | None = None,
+               white: bool = False) -> np.ndarray:
     """Read ``path`` (:func:`plenocl.io.read_image` with ``channel``), correct it with
     ``dark`` and ``flat`` (:func:`plenocl.sensor.correct_frame`, when given) and cut it
-    to ``camera``'s sensor (:meth:`plenocl.Camera.fit_image`)."""
+    to ``camera``'s sensor (:meth:`plenocl.Camera.fit_image`).
+
+    A blank frame, or a saturated one (not for a ``white`` image, whose spots may all
+    be), is refused naming the file (:func:`plenocl.optics.rawimage.check_exposure`).
+    """
     image = read_image(path, channel)
-    if dark is not None or flat is not None:
-        image = correct_frame(image, dark, flat)
-    return camera.fit_image(image, Path(path).name)
+    raw = camera.fit_image(image, Path(path).name)  # the shape first
+    check_exposure(raw, Path(path).name, saturation=not white)
+    if dark is None and flat is None:
+        return raw
+    return camera.fit_image(correct_frame(image, dark, flat), Path(path).name)

@@ -17,7 +17,12 @@ from ..options import with_keywords
 from ..piv import PIVResult, piv3d
 from ..piv.imagefit import ImageFit
 from ..piv.tracking import FocalZone, refine_with_particles
-from ..reconstruction import ProjectionOperator, ReconstructionInfo, run_reconstruction
+from ..reconstruction import (
+    ProjectionOperator,
+    ReconstructionInfo,
+    UnusableImageError,
+    run_reconstruction,
+)
 from .mte import motion_tracking_enhancement
 from .settings import PairSettings
 
@@ -108,7 +113,10 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     seconds, out = {}, {}
     for tag, raw in (("a", raw_a), ("b", raw_b)):
         t0 = time.perf_counter()
-        out[tag] = run_reconstruction(raw, projector, rec)
+        try:
+            out[tag] = run_reconstruction(raw, projector, rec)
+        except UnusableImageError as exc:
+            raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
         seconds[f"reconstruct_{tag}"] = time.perf_counter() - t0
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
     if not settings.mte.cycles:

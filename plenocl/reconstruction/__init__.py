@@ -14,7 +14,13 @@
 """
 
 from .blocks import device_view_blocks, view_blocks
-from .images import FLOAT32_LIMIT, NOISE_SIGMAS, preprocess, scale_raw_image
+from .images import (
+    FLOAT32_LIMIT,
+    NOISE_SIGMAS,
+    UnusableImageError,
+    preprocess,
+    scale_raw_image,
+)
 from .operator import ProjectionOperator, RefinableOperator
 from .reconstruct import reconstruct, run_reconstruction
 from .settings import (
@@ -33,7 +39,7 @@ from .supersample import MAX_SUPERSAMPLE, bin_lateral, spread_lateral
 
 __all__ = ["COARSE_ITERATIONS", "CROP_BELOW", "DEFAULTS", "FINE_DEFAULTS", "FLOAT32_LIMIT",
            "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHODS", "NOISE_SIGMAS", "SUPERSAMPLE",
-           "SUPPORT", "UPDATES", "bin_lateral",
+           "SUPPORT", "UPDATES", "UnusableImageError", "bin_lateral",
            "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
            "RefinableOperator", "Solver",

@@ -5,12 +5,11 @@ prepared once for every run of a reconstruction (:class:`PreparedImage`)."""
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.rawimage import check_image, median_and_noise
+from ..optics.rawimage import background_and_noise, check_exposure, check_image, dark_noise
 from .operator import ProjectionOperator
 from .settings import ReconstructionSettings
 
@@ -26,6 +25,16 @@ NOISE_SIGMAS = 4.0
 BACKGROUNDS = ("median", None)
 
 
+class UnusableImageError(ValueError):
+    """The image cannot give a volume: blank, saturated, or without light above its
+    background or threshold (the volume would come out empty). ``which`` names the image
+    of a pair (``"a"``, ``"b"``) when known."""
+
+    def __init__(self, message: str, which: str | None = None) -> None:
+        super().__init__(message)
+        self.which = which
+
+
 def preprocess(image, camera, background: str | None = "median",
                threshold: float | None = None, observed: np.ndarray | None = None
                ) -> tuple[np.ndarray, float, float]:
@@ -37,12 +46,15 @@ def preprocess(image, camera, background: str | None = "median",
         The raw image and its camera (:func:`plenocl.optics.rawimage.check_image`).
     background
         ``"median"``: subtract the median (the camera's dark level at PIV seeding, where
-        most pixels see no particle), clipping at 0; ``None``: use the image as it is
-        (it must then be non-negative).
+        most pixels see no particle), clipping at 0; an image with pixels below zero but
+        not its median had its dark level subtracted already (a dark frame) and is
+        clipped at 0 instead, its noise measured from those pixels
+        (:func:`plenocl.optics.rawimage.background_and_noise`). ``None``: use the image
+        as it is, clipping pixels below zero (noise about a subtracted dark level).
     threshold
         Pixels at or below it (image units, after the background) are dark. ``None``:
-        :data:`NOISE_SIGMAS` times the noise (median absolute deviation) with the median
-        background, else 0.
+        :data:`NOISE_SIGMAS` times the noise: the median absolute deviation, or for a
+        dark-subtracted image the spread of its pixels below zero (0 when none is).
     observed
         Bool per pixel, ``False`` where the image holds no data: the background, noise
         and scale come from the other pixels, and these are set to 0 (the solver gives
@@ -59,24 +71,27 @@ def preprocess(image, camera, background: str | None = "median",
 
 
 def _preprocessed(image, camera, background: str | None, threshold: float | None,
-                  observed: np.ndarray | None) -> PreparedImage:
+                  observed: np.ndarray | None, exposure: bool = False) -> PreparedImage:
     """:func:`preprocess` as a :class:`PreparedImage` (no lit lenses), with the median
-    and noise it removed."""
+    and noise it removed; ``exposure``: a blank or saturated image is refused first."""
     img = check_image(image, camera)
+    if exposure:
+        try:
+            check_exposure(img, "the image", observed=observed)
+        except ValueError as exc:
+            raise UnusableImageError(str(exc)) from None
     if observed is not None:
         img = np.where(observed, img, 0.0)  # no data: no light, no statistics
     med = noise = None
     if background == "median":
-        med, noise = median_and_noise(img, observed)
-        img = np.clip(img - med, 0, None)
-        thr = NOISE_SIGMAS * noise if threshold is None else float(threshold)
+        med, noise = background_and_noise(img, observed)
     elif background is None:
-        if img.min() < 0:
-            raise ValueError("image has negative pixels; use background='median' (the "
-                             "default) or clip, e.g. np.clip(image - background, 0, None)")
-        thr = 0.0 if threshold is None else float(threshold)
+        if img.min() < 0:  # a dark frame subtracted: its noise below zero, clipped
+            med, noise = 0.0, dark_noise(img, observed)
     else:
         raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    img = np.clip(img - (med or 0.0), 0, None)
+    thr = NOISE_SIGMAS * (noise or 0.0) if threshold is None else float(threshold)
     if observed is not None:  # 0 - a negative median would give them light
         img = np.where(observed, img, 0.0)
     scale = float(img.max())
@@ -91,8 +106,9 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
 
 
 def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
-    """A non-negative raw image as it is (no background removed), checked and scaled to a
-    maximum of 1; returns it and the scale (:func:`preprocess` with ``background=None``)."""
+    """A raw image as it is (no background removed; pixels below zero clipped), checked
+    and scaled to a maximum of 1; returns it and the scale (:func:`preprocess` with
+    ``background=None``)."""
     img, scale, _ = preprocess(image, camera, None, 0.0)
     return img, scale
 
@@ -130,17 +146,19 @@ class PreparedImage:
 def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                   observed: np.ndarray | None = None) -> PreparedImage:
     """:func:`preprocess` with ``settings``' background and threshold, and the lit
-    lenses when ``settings.skip_dark``; warns when the volume will be empty."""
+    lenses when ``settings.skip_dark``. A blank or saturated image
+    (:func:`plenocl.optics.rawimage.check_exposure`), or one whose every pixel is dark
+    (the volume would be empty), is refused: :class:`UnusableImageError`."""
     prepared = _preprocessed(image, projector.camera, settings.background,
-                             settings.threshold, observed)
+                             settings.threshold, observed, exposure=True)
     if prepared.scale == 0:
-        warnings.warn("the image holds no light above its background: the volume is empty "
-                      "(check the exposure, the file, or background=None, --background none)",
-                      stacklevel=4)
-        return prepared
+        raise UnusableImageError(
+            "the image holds no light above its background, so the volume would be empty: "
+            "check the exposure and the file (or background=None, --background none, for an "
+            "image whose dark level is already removed)")
     if prepared.threshold >= 1.0:
-        _warn_all_dark(prepared.threshold * prepared.scale, prepared.scale,
-                       settings.threshold is None)
+        _refuse_all_dark(prepared.threshold * prepared.scale, prepared.scale,
+                         settings.threshold is None)
     if not settings.skip_dark:
         return prepared
     # lenses without data give no update either: skipped alike
@@ -148,13 +166,15 @@ def prepare_image(image, projector: ProjectionOperator, settings: Reconstruction
                                                                   prepared.threshold))
 
 
-def _warn_all_dark(threshold: float, peak: float, estimated: bool) -> None:
-    """Every pixel is at or below the dark-pixel threshold: the volume will be empty."""
+def _refuse_all_dark(threshold: float, peak: float, estimated: bool) -> None:
+    """Every pixel is at or below the dark-pixel threshold: the volume would be empty."""
     why = (f"the default, {NOISE_SIGMAS:g} x the noise estimated from the median absolute "
            "deviation, fails on a dense image whose median is not its background"
            if estimated else "the threshold given")
-    warnings.warn(f"the dark-pixel threshold {threshold:.4g} is at or above the image's "
-                  f"brightest pixel {peak:.4g} ({why}): every pixel counts as dark and the "
-                  "volume will be empty. Give a lower threshold (threshold=, --threshold), "
-                  "or subtract a dark frame and use background=None (--background none)",
-                  stacklevel=5)
+    raise UnusableImageError(
+        f"the dark-pixel threshold {threshold:.4g} is at or above the image's brightest "
+        f"pixel {peak:.4g} ({why}): every pixel counts as dark and the volume would be "
+        "empty. Subtract the camera's dark frame (--dark; its noise below zero then sets "
+        "the threshold), take the image as it is where its dark level is already removed "
+        "(background=None, --background none), or give a lower threshold (threshold=, "
+        "--threshold)")

@@ -447,10 +447,6 @@ def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings,
     """One run of the iterations on the projector's grid; the host volume in image units,
     summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``;
     ``spread``, ``device``: the first guess (:func:`_start_solver`)."""
-    if prepared.scale == 0:  # warned by prepare_image
-        nz, ny, nx = projector.grid.shape
-        return np.zeros((nz, ny // factor, nx // factor), np.float32), ReconstructionInfo(
-            settings.method)
     solver, vol, info = _iterations(prepared, projector, settings, callback, spread, device)
     return _to_host(solver, vol, prepared, info, factor, projector.grid.shape), info
 
@@ -494,6 +490,10 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     the voxels' scale a single resampling at the end would blur particles by up to a
     voxel).
     """
+    if isinstance(settings.start, str) and settings.start not in ("uniform", "mlos"):
+        raise ValueError("start must be 'uniform', 'mlos' or a volume array, got "
+                         f"{settings.start!r}")  # an option: checked before the image
+    _coarse_start(settings.start, projector.grid)
     observed = None if pixel_mask is None else check_pixel_mask(pixel_mask, projector.camera)
     if observed is not None and isinstance(settings.start, str) and settings.start == "mlos":
         raise ValueError("start='mlos' cannot use a pixel_mask (its geometric mean needs "

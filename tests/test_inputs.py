@@ -1,0 +1,303 @@
+"""Bad inputs named early and once (issue 44, part 2): blank and saturated frames refused
+by name, an empty volume an error, a dark frame's noise below zero clipped and measured,
+a particle image refused by calibrate, negative numbers on the command line, the device
+fallback said once (never under -q), and no misleading notes."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from helpers import lens_camera
+
+from plenocl import Camera, Grid, Projector, calibrate, reconstruct, simulate_image
+from plenocl.cli.main import main
+from plenocl.io import write_tiff
+from plenocl.optics.rawimage import dark_noise, median_and_noise
+from plenocl.reconstruction import (
+    NOISE_SIGMAS,
+    ReconstructionSettings,
+    UnusableImageError,
+    preprocess,
+)
+from plenocl.sensor import correct_frame
+from plenocl.volumefile import load_volume
+
+SMALL_GRID = Grid((6, 20, 24), x=(-0.72, 0.72), y=(-0.6, 0.6), z=(-0.5, 0.5))
+
+
+def _frames(tmp_path, camera):
+    """The camera, a grid, a blank, a saturated and a sparse frame, written as TIFFs."""
+    camera.to_toml(tmp_path / "cam.toml")
+    SMALL_GRID.to_toml(tmp_path / "grid.toml")
+    shape = camera.pixels[::-1]
+    sparse = np.full(shape, 10, np.uint16)
+    sparse[::7, ::5] = 1000
+    bright = sparse.copy()
+    bright.ravel()[: 2 * bright.size // 3] = 4095
+    for name, img in (("blank.tif", np.zeros(shape, np.uint16)), ("bright.tif", bright),
+                      ("sparse.tif", sparse)):
+        write_tiff(tmp_path / name, img)
+
+
+@pytest.mark.parametrize("name, message", [
+    ("blank.tif", "blank.tif is blank: every pixel is 0"),
+    ("bright.tif", "bright.tif is saturated: 67% of its pixels are at its brightest value"),
+])
+def test_blank_and_saturated_frames_are_refused_naming_the_file(tmp_path, capsys,
+                                                                 small_camera, name, message):
+    _frames(tmp_path, small_camera)
+    out = tmp_path / "v.npz"
+    rc = main(["reconstruct", str(tmp_path / name), "--camera", str(tmp_path / "cam.toml"),
+               "--grid", str(tmp_path / "grid.toml"), "--out", str(out)])
+    assert rc == 2 and message in capsys.readouterr().err and not out.exists()
+
+
+def test_a_blank_white_image_is_named_and_a_saturated_one_is_not_refused(tmp_path, capsys,
+                                                                         small_camera):
+    """calibrate names a blank file; a white image's spots may all be saturated, so its
+    saturation is not refused there (it fails later, if at all, for its own reasons)."""
+    _frames(tmp_path, small_camera)
+    base = ["--camera", str(tmp_path / "cam.toml"), "--out", str(tmp_path / "c.toml")]
+    assert main(["calibrate", str(tmp_path / "blank.tif"), *base]) == 2
+    assert "blank.tif is blank" in capsys.readouterr().err
+    main(["calibrate", str(tmp_path / "bright.tif"), *base])
+    assert "is saturated" not in capsys.readouterr().err
+
+
+def _dense_case(camera, seed: int = 0):
+    """A dense raw image (3000 particles: most pixels lit, as a real scene's) on a dark
+    level with fixed-pattern noise, its dark frame (the pattern with its own read noise),
+    and the clean image."""
+    rng = np.random.default_rng(seed)
+    n = 3000
+    pos = np.column_stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.5, 0.5, n),
+                           rng.uniform(-0.45, 0.45, n)])
+    clean = simulate_image(camera, pos, 2e4, 3000, seed=1, blur_px=0.5).astype(np.float64)
+    pattern = 100 + rng.normal(0, 5, clean.shape)
+    raw = np.rint(clean + pattern + rng.normal(0, 3, clean.shape))
+    dark = np.rint(pattern + rng.normal(0, 3, clean.shape))
+    return raw, dark, clean
+
+
+@pytest.fixture(scope="module")
+def dense(queue):
+    camera = lens_camera(12, 10)
+    return camera, Projector(camera, SMALL_GRID, queue), *_dense_case(camera)
+
+
+def test_the_noise_below_zero_is_the_noise_of_a_dark_subtracted_image():
+    """Noise about a subtracted dark level, under a scene lighting two thirds of the
+    pixels: the pixels below zero give the noise (the MAD of the whole image gives the
+    scene's spread); the zeros of integer counts are counted as noise too."""
+    rng = np.random.default_rng(4)
+    scene = np.where(rng.random((300, 300)) < 2 / 3, rng.uniform(50, 500, (300, 300)), 0.0)
+    image = scene + rng.normal(0, 3.0, scene.shape)
+    assert dark_noise(image) == pytest.approx(3.0, rel=0.05)
+    assert median_and_noise(image)[1] > 20 * 3.0
+    assert dark_noise(np.rint(image)) == pytest.approx(3.0, rel=0.1)
+    assert dark_noise(np.abs(image)) == 0.0  # nothing below zero: no estimate
+
+
+def test_a_dark_subtracted_image_is_clipped_and_thresholded_at_its_noise(dense):
+    """Either background: the pixels below zero are clipped (not refused), the threshold
+    is NOISE_SIGMAS times the noise measured after the subtraction (the true one is 3√2,
+    rounded counts)."""
+    camera, _, raw, dark, _ = dense
+    sub = correct_frame(raw, dark)
+    assert sub.min() < 0
+    for background in ("median", None):
+        img, scale, threshold = preprocess(sub, camera, background)
+        assert img.min() == 0 and img.max() == 1 and scale == sub.max()
+        assert threshold * scale == pytest.approx(NOISE_SIGMAS * 3 * 2 ** 0.5, rel=0.1)
+
+
+def test_a_dense_image_with_its_dark_frame_reconstructs_by_default(dense):
+    """The real camera's case (a dense image, its dark frame): the old default threshold,
+    4 x the MAD about the median, lies above the brightest pixel and every pixel would be
+    dark, which is now an error naming the fix; with the dark frame subtracted the
+    default reconstructs what the clean image gives."""
+    camera, proj, raw, dark, clean = dense
+    sub = correct_frame(raw, dark)
+    _, mad = median_and_noise(sub)
+    assert NOISE_SIGMAS * mad > sub.max()  # the old default: everything dark
+    with pytest.raises(UnusableImageError, match="every pixel counts as dark.*--dark"):
+        reconstruct(raw, proj, iterations=4, supersample=1)
+    vol = reconstruct(sub, proj, iterations=4, supersample=1)
+    ref = reconstruct(clean, proj, iterations=4, supersample=1, background=None)
+    assert vol.max() > 0 and np.corrcoef(vol.ravel(), ref.ravel())[0, 1] > 0.99
+
+
+def test_the_command_line_reconstructs_a_dense_image_with_its_dark_frame(tmp_path, capsys,
+                                                                          dense):
+    """--dark: the default works, and so does --background none (its negative pixels,
+    made by the subtraction, clipped); without the dark frame the command fails, exit 2,
+    and writes nothing."""
+    camera, _, raw, dark, _ = dense
+    camera.to_toml(tmp_path / "cam.toml")
+    SMALL_GRID.to_toml(tmp_path / "grid.toml")
+    write_tiff(tmp_path / "raw.tif", raw.astype(np.uint16))
+    write_tiff(tmp_path / "dark.tif", dark.astype(np.uint16))
+    base = [str(tmp_path / "raw.tif"), "--camera", str(tmp_path / "cam.toml"), "--grid",
+            str(tmp_path / "grid.toml"), "--iterations", "2", "--supersample", "1"]
+    for extra in ([], ["--background", "none"]):
+        out = tmp_path / f"v{len(extra)}.npz"
+        assert main(["reconstruct", *base, "--dark", str(tmp_path / "dark.tif"), *extra,
+                     "--out", str(out)]) == 0
+        assert load_volume(out)[0].max() > 0
+    assert "negative pixels" not in capsys.readouterr().err
+    assert main(["reconstruct", *base, "--out", str(tmp_path / "empty.npz")]) == 2
+    assert "volume would be empty" in capsys.readouterr().err
+    assert not (tmp_path / "empty.npz").exists()
+
+
+def test_a_pair_with_a_blank_exposure_names_that_image(dense):
+    """process_pair says which exposure cannot give a volume (``which``)."""
+    from plenocl.pipeline import process_pair
+
+    _, proj, raw, dark, _ = dense
+    with pytest.raises(UnusableImageError, match="raw_b: the image is blank") as err:
+        process_pair(correct_frame(raw, dark), np.zeros_like(raw), proj,
+                     reconstruction=ReconstructionSettings(iterations=1, supersample=1))
+    assert err.value.which == "b"
+
+
+def test_the_batch_records_each_failed_pair_with_the_files_name(tmp_path, small_camera):
+    """A blank or saturated frame fails its pair before any reconstruction, named; an
+    exposure the reconstruction refuses (all dark after the dark frame) names its own
+    file; no pair processed: no seconds per pair."""
+    from plenocl.batch.run import run
+    from plenocl.batch.worker import PairProcessor, PairTask, RunSettings
+    from plenocl.pipeline import PairSettings
+
+    raw_dir = tmp_path / "raw"
+    raw_dir.mkdir()
+    _frames(raw_dir, small_camera)
+    for k, name in enumerate(("blank.tif", "sparse.tif", "sparse.tif", "bright.tif")):
+        (raw_dir / f"frame_{k:03d}.tif").write_bytes((raw_dir / name).read_bytes())
+    (tmp_path / "experiment.toml").write_text(
+        f'[camera]\nfile = "{raw_dir / "cam.toml"}"\n[grid]\nfile = "{raw_dir / "grid.toml"}"'
+        '\n[images]\nfolder = "raw"\npattern = "frame_*.tif"\npairing = "sequence"\n'
+        'dt_s = 1e-3\n[output]\nfolder = "results"\n')
+    lines = []
+    summary = run(tmp_path / "experiment.toml", log=lines.append)
+    assert summary.processed == [] and sorted(summary.failed) == [0, 1]
+    assert "frame_000.tif is blank" in summary.failed[0]
+    assert "frame_003.tif is saturated" in summary.failed[1]
+    assert "0 pair(s) processed, " in lines[-1] and "s each" not in lines[-1]
+
+    settings = RunSettings(PairSettings(ReconstructionSettings(iterations=1, supersample=1)),
+                           1e-3, dark=str(raw_dir / "sparse.tif"))
+    worker = PairProcessor(tmp_path / "results", settings)
+    write_tiff(raw_dir / "brighter.tif", np.asarray(worker.dark * 2, np.uint16))
+    outcome = worker(PairTask(0, str(raw_dir / "brighter.tif"), str(raw_dir / "sparse.tif"),
+                              str(tmp_path / "results" / "pairs" / "x.npz")))
+    assert outcome.error.startswith("sparse.tif: raw_b: the image is blank"), outcome.error
+
+
+def test_a_particle_image_given_to_calibrate_is_not_a_white_image(tmp_path, capsys, queue):
+    """A particle image of the synthetic camera (the demo's) is refused as not a white
+    image, not blamed on the spot spacing or the camera file."""
+    cam = Camera.synthetic_850()
+    rng = np.random.default_rng(2)
+    pos = rng.uniform(-2.5, 2.5, (200, 3))
+    image = simulate_image(cam, pos, 3e4, 4000, seed=2, blur_px=0.5, background=20.0,
+                           read_noise=3.0, bit_depth=16, queue=queue)
+    with pytest.raises(ValueError, match="does not look like a white image: .* irregularly "
+                                         "spaced .* a particle image"):
+        calibrate(image, cam)
+    write_tiff(tmp_path / "raw_a.tif", image)
+    assert main(["calibrate", str(tmp_path / "raw_a.tif"), "--camera", "synthetic", "--out",
+                 str(tmp_path / "c.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "not look like a white image" in err and "camera file" not in err
+    assert "apart but the camera predicts" not in err
+
+
+def test_a_negative_number_in_exponent_form_reaches_its_check(tmp_path, capsys):
+    """--dt -175e-6 is read as a number (argparse took it for an option) and refused
+    by the value check naming its sign; negative depths parse in any form."""
+    rc = main(["piv", "a.npz", "b.npz", "--dt", "-175e-6", "--out", str(tmp_path / "f.npz")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "expected one argument" not in err
+    assert "--dt = -0.000175 s is negative: it must be positive" in err
+    assert main(["grid", "--camera", "synthetic", "--z", "-2.5e0", "-1E-1", "--out",
+                 str(tmp_path / "g.toml")]) == 0
+    assert Grid.from_toml(tmp_path / "g.toml").z == (-2.5, -0.1)
+
+
+def _fake_fallback(monkeypatch):
+    """The default device choice passes over a GPU that cannot build (not the expected
+    fallback), three times; the ``grid`` command runs it."""
+    from plenocl import device
+    from plenocl.cli import simulate
+
+    class Platform:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+    class Dev:
+        def __init__(self, name: str, kind: int, platform: str) -> None:
+            self.name, self.type, self.platform = name, kind, Platform(platform)
+
+    import pyopencl as cl
+
+    gpu = Dev("broken-gpu", cl.device_type.GPU, "Some GPU")
+    cpu = Dev("cpu", cl.device_type.CPU, device.CPU_PLATFORMS[0])
+    monkeypatch.setattr(device, "all_devices", lambda: [cpu, gpu])
+    monkeypatch.setattr(device, "build_problem",
+                        lambda d: "no compiler" if d is gpu else None)
+    monkeypatch.setattr(device, "_SAID", set())
+    monkeypatch.setattr(device, "_FALLBACK", {"note": None})
+    monkeypatch.setattr(simulate, "cmd_grid",
+                        lambda args: [device._default_device() for _ in range(3)] and 0)
+
+
+def test_the_device_fallback_is_said_once_and_not_under_quiet(monkeypatch, capsys):
+    from plenocl import device
+
+    _fake_fallback(monkeypatch)
+    args = ["grid", "--camera", "synthetic", "--z", "-1", "1", "--out", "unused.toml"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")  # a script's own filter: still said once
+        assert main(args) == 0 and main(args) == 0
+    err = capsys.readouterr().err
+    assert err.count("plenocl uses cpu") == 1 and "broken-gpu" in err
+    monkeypatch.setattr(device, "_SAID", set())  # a new process
+    assert main(["-q", *args]) == 0
+    assert "plenocl uses" not in capsys.readouterr().err
+
+
+def test_the_grid_commands_default_depth_voxel_gives_three_layers(tmp_path, capsys):
+    """The default depth voxel for --z -3 3 no longer triggers the command's own
+    'too shallow' note: it is made thinner where half the depth resolution would leave
+    fewer than THREE_LAYERS voxels, and stays that where the range is deep enough."""
+    from plenocl.cli.simulate import THREE_LAYERS
+
+    cam = Camera.synthetic_850()
+    assert main(["grid", "--camera", "synthetic", "--z", "-3", "3", "--out",
+                 str(tmp_path / "g.toml")]) == 0
+    assert "note:" not in capsys.readouterr().out
+    assert Grid.from_toml(tmp_path / "g.toml").shape[0] == THREE_LAYERS
+    deep = (THREE_LAYERS + 12) * cam.depth_resolution_mm / 2
+    assert main(["grid", "--camera", "synthetic", "--z", "0", str(deep), "--out",
+                 str(tmp_path / "d.toml")]) == 0
+    dz = Grid.from_toml(tmp_path / "d.toml").spacing[0]
+    assert dz == pytest.approx(cam.depth_resolution_mm / 2)
+
+
+def test_piv_prints_no_peak_ratio_note(tmp_path, capsys):
+    """A normal piv run ends with the field written, no note about NaN peak ratios."""
+    from plenocl.volumefile import save_volume
+
+    grid = Grid((32, 32, 32), x=(-1, 1), y=(-1, 1), z=(-1, 1))
+    rng = np.random.default_rng(1)
+    vol = np.zeros(grid.shape, np.float32)
+    vol[tuple(rng.integers(2, 30, (3, 400)))] = 1.0
+    save_volume(tmp_path / "a.npz", vol, grid)
+    save_volume(tmp_path / "b.npz", np.roll(vol, 1, axis=2), grid)
+    assert main(["piv", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--dt", "1e-3",
+                 "--no-particles", "--out", str(tmp_path / "f.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "wrote" in out and "NaN" not in out  # (the folder is named for the test)
