@@ -216,7 +216,7 @@ def _apply(decisions: list[Decision], plan: PairPlan, out: Path, grid,
     fields whose ``dt_s`` alone changed, and remove the run's products built from the
     old pairs (``timeseries.zarr``, ``experiment_used.toml``: written again)."""
     added = [d.index for d in decisions
-             if d.action == SKIP and add_copies(pair_file(out, d.index), grid, settings)]
+             if d.action == SKIP and add_copies(pair_file(out, d.index), grid, settings.formats)]
     if added:
         log(f"{_count(added)}: {', '.join(settings.formats)} written from the kept field "
             "([output] formats)")
