@@ -27,7 +27,6 @@ removed first.
 
 from __future__ import annotations
 
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -38,7 +37,7 @@ from ..io.outputs import check_output_folder
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..options import NONE
-from ..pipeline.resume import name_changes
+from ..pipeline.resume import name_changes, remove_outputs
 from .config import Experiment, image_pairs, load_experiment, output_formats
 from .ensemble_field import update_ensemble
 from .layout import (
@@ -223,8 +222,7 @@ def _apply(decisions: list[Decision], plan: PairPlan, out: Path, grid,
     changes = [d for d in decisions if d.action != SKIP]
     if not changes:
         return
-    for path in (out / "experiment_used.toml", out / "timeseries.zarr"):
-        _remove(path)
+    remove_outputs([out / "experiment_used.toml", out / "timeseries.zarr"])
     planned = {p.index for p in plan.pairs}
     for d in changes:
         target = pair_file(out, d.index)
@@ -242,16 +240,7 @@ def _remove_pair(target: Path, keep_volumes: bool = False) -> None:
     """A pair's field and its copies before it is made again, and its kept volumes unless
     ``keep_volumes`` (they are correlated again)."""
     volumes = () if keep_volumes else (volume_file(target),)
-    for path in (target, *field_copies(target), *volumes):
-        path.unlink(missing_ok=True)
-
-
-def _remove(path: Path) -> None:
-    """A file or a store folder, if there."""
-    if path.is_dir():
-        shutil.rmtree(path)
-    else:
-        path.unlink(missing_ok=True)
+    remove_outputs([target, *field_copies(target), *volumes])
 
 
 def _report_decisions(changes: list[Decision], planned: set[int], settings: RunSettings,

@@ -24,7 +24,6 @@ field stage's key), so the results beside ``experiment_used.toml`` are always it
 from __future__ import annotations
 
 import os
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -38,7 +37,7 @@ from ..io.atomic import write_json
 from ..io.files import read_image
 from ..io.progress import step_bar
 from ..pipeline.frames import load_frame
-from ..pipeline.resume import StageRunner, config_digest
+from ..pipeline.resume import StageRunner, config_digest, remove_outputs
 from ..pipeline.track import TrackSettings, bin_tracks, track
 from ..piv.tracking import FocalZone
 from ..ptv import Tracks
@@ -152,15 +151,10 @@ def _remove_stale(runner: StageRunner, out: Path, opts: TrackingOptions, log) ->
         stale = [TRACKS, *FIELD_OUTPUTS]
     elif not runner.done("field", FIELD_OUTPUTS, _field_key(out, opts)):
         stale = FIELD_OUTPUTS
-    gone = [name for name in dict.fromkeys(n.split("/")[0] for n in stale)
-            if (out / name).exists()]
-    for name in gone:
-        if (out / name).is_dir():
-            shutil.rmtree(out / name)
-        else:
-            (out / name).unlink()
+    gone = remove_outputs(out / name for name in dict.fromkeys(n.split("/")[0] for n in stale))
     if gone:
-        log(f"removed {', '.join(gone)}: made with another configuration, made again")
+        log(f"removed {', '.join(p.name for p in gone)}: made with another configuration, "
+            "made again")
 
 
 def frame_series(exp: Experiment, opts: TrackingOptions) -> dict[int, Path]:
