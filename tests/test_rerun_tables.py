@@ -60,7 +60,7 @@ def test_another_grid_is_refused_then_redone_with_redo(done, tmp_path_factory): 
     grid = plenocl.Grid.from_toml(done / "grid.toml")
     plenocl.Grid(grid.shape, grid.x, grid.y, (-1.4, 1.4), grid.rotation_deg).to_toml(
         done / "grid.toml")
-    with pytest.raises(ValueError, match="another grid"):
+    with pytest.raises(ValueError, match="pair 0: the grid changed since it was made"):
         plenocl.run(done / "experiment.toml", progress=False, log=lambda _: None)
     assert (done / PAIR).read_bytes() == field
     s = plenocl.run(done / "experiment.toml", progress=False, log=lambda _: None, redo=True)

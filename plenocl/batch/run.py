@@ -163,8 +163,6 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
         log(f"removed {path.name}, left half-written by an interrupted run")
     camera = run_camera(exp, queue, log)
     grid = run_grid(exp, camera)
-    if not redo:
-        _refuse_other_grid(out, grid)
     settings = _run_settings(exp, run_record(exp, camera, grid))
     decisions = _decide(plan, out, settings.record, redo)
     summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),
@@ -335,18 +333,6 @@ def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:
     summary.processed.append(outcome.index)
     for key, value in outcome.seconds.items():
         summary.stage_seconds[key] = summary.stage_seconds.get(key, 0.0) + value
-
-
-def _refuse_other_grid(out: Path, grid) -> None:
-    """A rerun refuses to mix pairs of another grid into the folder."""
-    grid_file = out / "grid_used.toml"
-    if grid_file.is_file() and finished_pairs(out):
-        from ..grid import Grid
-
-        if Grid.from_toml(grid_file) != grid:
-            raise ValueError(f"{out} holds pairs of another grid ({grid_file}); write this "
-                             f"run to another folder (--out), redo every pair with --redo, "
-                             f"or remove the old results")
 
 
 def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:
