@@ -251,6 +251,7 @@ def test_a_tracking_rerun_leaves_only_results_of_its_record(tmp_path, monkeypatc
         with xr.open_zarr(out / "tracks.zarr") as ds:
             assert ds.attrs["record"] == {"tracks": state["config"],
                                           "field": state["stages"]["field"]["key"]}
+            assert plenocl.Tracks.record_of(out / "tracks.npz") == {"tracks": state["config"]}
             return ds.attrs["record"]
 
     first = recorded()

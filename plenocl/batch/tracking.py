@@ -81,7 +81,8 @@ class TrackingSummary:
 @dataclass(frozen=True)
 class TrackJob:
     """The tracking of one run, from file paths to ``tracks.npz``: the unit of work in
-    this process or on a Dask worker."""
+    this process or on a Dask worker; ``config``: the run's configuration digest
+    (``state.json``'s), recorded in ``tracks.npz`` (``Tracks.record_of``)."""
 
     frames: tuple[str, ...]
     run_folder: str
@@ -91,6 +92,7 @@ class TrackJob:
     dark: str | None = None
     flat: str | None = None
     device: str | None = None
+    config: str | None = None
 
 
 def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
@@ -117,7 +119,8 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     runner = StageRunner(out, _config(exp, frames, out, opts), log)
     summary = TrackingSummary(len(frames), list(frames),
                               workers=workers or (0 if scheduler else 1))
-    job = _job(exp, frames, out, opts, queue if isinstance(queue, str) else None)
+    job = _job(exp, frames, out, opts, queue if isinstance(queue, str) else None,
+               runner.key)
     _remove_stale(runner, out, opts, log)
     log(f"tracking {len(frames)} frames {opts.interval_s:g} s apart")
     t0 = time.perf_counter()
@@ -209,11 +212,11 @@ def _digest(path: Path) -> str:
 
 
 def _job(exp: Experiment, frames: dict[int, Path], out: Path, opts: TrackingOptions,
-         device: str | None) -> TrackJob:
+         device: str | None, config: str | None = None) -> TrackJob:
     dark, flat = frame_corrections(exp)
     return TrackJob(tuple(str(p.resolve()) for p in frames.values()), str(out.resolve()),
                     opts.settings, opts.interval_s, exp["images"]["channel"], dark, flat,
-                    device)
+                    device, config)
 
 
 def _track(job: TrackJob, queue, workers: int | None, scheduler: str | None,
@@ -252,7 +255,7 @@ def track_job(job: TrackJob, device=None, bar: bool = True) -> dict[str, float]:
         tracks = track(frames, Projector(camera, grid, device), job.interval_s, job.settings,
                        progress=progress)
     t2 = time.perf_counter()
-    tracks.save(folder / TRACKS)
+    tracks.save(folder / TRACKS, None if job.config is None else {"tracks": job.config})
     return {"read": t1 - t0, "track": t2 - t1, "write": time.perf_counter() - t2}
 
 
