@@ -201,7 +201,8 @@ def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(exper
     (out / "pairs").mkdir(parents=True)
     (out / "pairs" / "pair_00000.npz").write_bytes(b"")
     plenocl.Grid((8, 8, 8), x=(-1, 1), y=(-1, 1), z=(-1, 1)).to_toml(out / "grid_used.toml")
-    with pytest.raises(ValueError, match="holds pairs of another grid"):
+    with pytest.raises(ValueError, match="holds pairs made from other images, another "
+                                         "camera or grid.*pair 0"):
         plenocl.run(experiment / "experiment.toml", out, progress=False)
     with pytest.raises(ValueError, match="must be a name each worker looks up"):
         plenocl.run(experiment / "experiment.toml", tmp_path / "w", queue=queue, workers=2)

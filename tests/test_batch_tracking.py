@@ -152,6 +152,7 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
                                 "frame_interval_s"),
     ("[mte]\ncycles = 1\n", r"\[mte\] belongs to the pair chain"),
     ("[piv]\nensemble = true\n", r"\[piv\] ensemble belongs to the pair chain"),
+    ("[output]\nformats = [\"csv\"]\n", r"\[output\] formats and vti \(\.csv\) are the copies"),
 ])
 def test_bad_tracking_experiments_are_refused_before_any_work(tmp_path, edit, message):
     section, line = edit.split("\n", 1)

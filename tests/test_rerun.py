@@ -251,6 +251,7 @@ def test_a_tracking_rerun_leaves_only_results_of_its_record(tmp_path, monkeypatc
         with xr.open_zarr(out / "tracks.zarr") as ds:
             assert ds.attrs["record"] == {"tracks": state["config"],
                                           "field": state["stages"]["field"]["key"]}
+            assert plenocl.Tracks.record_of(out / "tracks.npz") == {"tracks": state["config"]}
             return ds.attrs["record"]
 
     first = recorded()
@@ -276,9 +277,15 @@ def test_a_tracking_rerun_leaves_only_results_of_its_record(tmp_path, monkeypatc
 
 
 def test_vti_asked_for_later_is_written_from_the_kept_field(done, monkeypatch):
-    _edit(done, 'folder = "results"', 'folder = "results"\nvti = true')
+    _edit(done, 'folder = "results"', 'folder = "results"\nvti = true\nformats = ["csv"]')
     _no_reconstruction(monkeypatch)
     s = plenocl.run(done / "experiment.toml", progress=False, log=lambda _: None)
     assert s.skipped == [0] and s.processed == []
     vti = (done / PAIR).with_suffix(".vti")
     assert vti.is_file() and b"velocity_m_per_s" in vti.read_bytes()
+    # the kept ensemble field gets its copies too, with its own velocities
+    ensemble = done / "results" / "ensemble.npz"
+    assert ensemble.with_suffix(".vti").is_file()
+    table = np.genfromtxt(ensemble.with_suffix(".csv"), delimiter=",", names=True)
+    u = read_field(ensemble)["velocity"][0].ravel()
+    np.testing.assert_allclose(table["u_ms"], u, rtol=1e-9)

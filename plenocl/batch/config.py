@@ -151,9 +151,9 @@ def _check(s: dict, path: Path, tracking: bool = False) -> None:
         if not isinstance(s[section][key], bool):
             raise ValueError(f"{path}: [{section}] {key} must be true or false, got "
                              f"{s[section][key]!r}")
-    output_formats(s["output"], path)
+    formats = output_formats(s["output"], path)
     if tracking:
-        check_images_for_tracking(s["images"], s["piv"]["ensemble"], path)
+        check_images_for_tracking(s["images"], s["piv"]["ensemble"], path, formats)
     else:
         _check_times(s["images"], path)
 

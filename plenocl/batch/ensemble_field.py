@@ -19,9 +19,10 @@ from ..io.fields import field_metadata
 from ..io.files import read_volumes
 from ..piv.ensemble import ensemble_piv
 from ..vectorfield import PIVResult
-from ..vectorfile import read_npz, save_field
-from .layout import field_copies, finished_pairs, volume_file
+from ..vectorfile import read_npz
+from .layout import finished_pairs, volume_file
 from .record import ensemble_record, kept_volumes
+from .worker import add_copies, rewrite_field, save_with_copies
 
 #: The ensemble field's file in a run's output folder.
 ENSEMBLE = "ensemble.npz"
@@ -43,6 +44,7 @@ def update_ensemble(out: Path, fields: dict[int, tuple[Path, dict]], dt: float, 
     if old == record:
         if wanted:
             log(f"ensemble correlation: no new pair and none changed, {made} kept")
+            add_copies(made, Grid.from_toml(made.parent / "grid_used.toml"), formats)
         return made
     if not wanted:
         if made.is_file():
@@ -64,11 +66,8 @@ def _volumes_digest(meta: dict) -> str | None:
 
 def _rescale(made: Path, dt: float, formats: tuple[str, ...], record: dict) -> None:
     """The ensemble field written again for ``dt`` (its displacements kept)."""
-    res, _ = read_npz(made)
-    grid = Grid.from_toml(made.parent / "grid_used.toml")
-    for copy in field_copies(made, formats):
-        save_field(copy, res, dt=dt, grid=grid)
-    save_field(made, res, dt=dt, grid=grid, metadata={"record": record})
+    rewrite_field(made, Grid.from_toml(made.parent / "grid_used.toml"), dt, formats,
+                  {"record": record})
 
 
 def ensemble_field(out: Path, dt: float, queue=None, formats: tuple[str, ...] = (),
@@ -91,9 +90,7 @@ def ensemble_field(out: Path, dt: float, queue=None, formats: tuple[str, ...] = 
     result = ensemble_piv(pairs, predictor, queue=get_queue(queue))
     grid = Grid.from_toml(out / "grid_used.toml")
     target = out / ENSEMBLE
-    for suffix in formats:
-        save_field(target.with_suffix(suffix), result, dt=dt, grid=grid)
-    save_field(target, result, dt=dt, grid=grid, metadata=metadata)
+    save_with_copies(target, result, grid, dt, formats, metadata or {})
     log(f"ensemble correlation of {len(fields)} pair(s): {result.valid.mean():.0%} valid "
         f"vectors, in {target}")
     return target

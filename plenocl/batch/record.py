@@ -109,46 +109,35 @@ class Decision:
 def decide(pair: ImagePair | None, field_file: Path, volumes_file: Path, record: dict,
            redo: bool = False) -> Decision:
     """What to do with the finished pair in ``field_file`` under the run's ``record``
-    (``pair``: the run's pair of that index, ``None`` when its frames are gone)."""
+    (``pair``: the run's pair of that index, ``None`` when its frames are gone: such a
+    pair is kept or rescaled while its record allows, else it cannot be remade)."""
     k = int(field_file.stem.removeprefix("pair_"))
     try:
         meta = field_metadata(field_file)
     except _UNREADABLE as exc:
         return _refusal(k, f"{field_file.name} cannot be read ({exc})", redo)
-    if pair is None:
-        if meta.get("sources"):  # a frame removed after its pair was made
-            return _without_images(k, meta, record, redo)
+    if pair is None and not meta.get("sources"):
         return _refusal(k, f"{field_file.name} exists but the images give no pair {k}", redo)
-    if (why := changed_since(meta.get("sources", {}), pair)) is not None:
+    if pair is not None and (why := changed_since(meta.get("sources", {}), pair)) is not None:
         return _refusal(k, why, redo)
+    gone = "" if pair is not None else " and its frames are gone"
     if "record" not in meta:
-        return _refusal(k, "its field records no settings (written by an older plenocl)",
-                        redo)
-    changed = changed_keys(config_parts(meta["record"]), config_parts(record))
-    return _action(k, changed, meta, record, volumes_file, redo)
-
-
-def _without_images(k: int, meta: dict, record: dict, redo: bool) -> Decision:
-    """A finished pair whose frames are gone: kept while its record is the run's, else
-    it cannot be remade and is refused."""
-    if "record" not in meta:
-        return _refusal(k, "its field records no settings (written by an older plenocl) "
-                        "and its frames are gone", redo)
+        return _refusal(k, "its field records no settings (written by an older plenocl)"
+                        + gone, redo)
     changed = changed_keys(config_parts(meta["record"]), config_parts(record))
     if not changed:
         return Decision(k)
     if changed == [DT]:
         return Decision(k, RESCALE, changed)
-    return _refusal(k, f"{name_changes(changed)} changed and its frames are gone", redo)
+    if pair is None:
+        return _refusal(k, f"{name_changes(changed)} changed{gone}", redo)
+    return _action(k, changed, meta, record, volumes_file, redo)
 
 
 def _action(k: int, changed: list[str], meta: dict, record: dict, volumes_file: Path,
             redo: bool) -> Decision:
-    """The action for a pair whose record differs from the run's in ``changed``."""
-    if not changed:
-        return Decision(k)
-    if changed == [DT]:
-        return Decision(k, RESCALE, changed)
+    """The action for a pair whose record differs from the run's in ``changed`` (more
+    than ``dt_s``)."""
     geometry = [name for name in changed if name in REFUSE]
     if geometry:
         return _refusal(k, f"the {' and '.join(geometry)} changed since it was made", redo,

@@ -27,7 +27,6 @@ removed first.
 
 from __future__ import annotations
 
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -38,7 +37,7 @@ from ..io.outputs import check_output_folder
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..options import NONE
-from ..pipeline.resume import name_changes
+from ..pipeline.resume import name_changes, remove_outputs
 from .config import Experiment, image_pairs, load_experiment, output_formats
 from .ensemble_field import update_ensemble
 from .layout import (
@@ -165,8 +164,6 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
         log(f"removed {path.name}, left half-written by an interrupted run")
     camera = run_camera(exp, queue, log)
     grid = run_grid(exp, camera)
-    if not redo:
-        _refuse_other_grid(out, grid)
     settings = _run_settings(exp, run_record(exp, camera, grid))
     decisions = _decide(plan, out, settings.record, redo)
     summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),
@@ -217,15 +214,14 @@ def _apply(decisions: list[Decision], plan: PairPlan, out: Path, grid,
     fields whose ``dt_s`` alone changed, and remove the run's products built from the
     old pairs (``timeseries.zarr``, ``experiment_used.toml``: written again)."""
     added = [d.index for d in decisions
-             if d.action == SKIP and add_copies(pair_file(out, d.index), grid, settings)]
+             if d.action == SKIP and add_copies(pair_file(out, d.index), grid, settings.formats)]
     if added:
         log(f"{_count(added)}: {', '.join(settings.formats)} written from the kept field "
             "([output] formats)")
     changes = [d for d in decisions if d.action != SKIP]
     if not changes:
         return
-    for path in (out / "experiment_used.toml", out / "timeseries.zarr"):
-        _remove(path)
+    remove_outputs([out / "experiment_used.toml", out / "timeseries.zarr"])
     planned = {p.index for p in plan.pairs}
     for d in changes:
         target = pair_file(out, d.index)
@@ -243,16 +239,7 @@ def _remove_pair(target: Path, keep_volumes: bool = False) -> None:
     """A pair's field and its copies before it is made again, and its kept volumes unless
     ``keep_volumes`` (they are correlated again)."""
     volumes = () if keep_volumes else (volume_file(target),)
-    for path in (target, *field_copies(target), *volumes):
-        path.unlink(missing_ok=True)
-
-
-def _remove(path: Path) -> None:
-    """A file or a store folder, if there."""
-    if path.is_dir():
-        shutil.rmtree(path)
-    else:
-        path.unlink(missing_ok=True)
+    remove_outputs([target, *field_copies(target), *volumes])
 
 
 def _report_decisions(changes: list[Decision], planned: set[int], settings: RunSettings,
@@ -349,18 +336,6 @@ def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:
         summary.dropped_particles[outcome.index] = outcome.dropped
     for key, value in outcome.seconds.items():
         summary.stage_seconds[key] = summary.stage_seconds.get(key, 0.0) + value
-
-
-def _refuse_other_grid(out: Path, grid) -> None:
-    """A rerun refuses to mix pairs of another grid into the folder."""
-    grid_file = out / "grid_used.toml"
-    if grid_file.is_file() and finished_pairs(out):
-        from ..grid import Grid
-
-        if Grid.from_toml(grid_file) != grid:
-            raise ValueError(f"{out} holds pairs of another grid ({grid_file}); write this "
-                             f"run to another folder (--out), redo every pair with --redo, "
-                             f"or remove the old results")
 
 
 def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:

@@ -162,9 +162,11 @@ def _refuse_pair_parts(parts: Mapping, path: Path) -> None:
                          "[tracking] enabled = false to process pairs")
 
 
-def check_images_for_tracking(images: Mapping, ensemble: bool, path: Path) -> None:
-    """``[images]`` and ``[piv]`` keys that make no sense for a tracked recording: an
-    error naming the key and the fix."""
+def check_images_for_tracking(images: Mapping, ensemble: bool, path: Path,
+                              formats: tuple[str, ...] = ()) -> None:
+    """``[images]``, ``[piv]`` and ``[output]`` keys that make no sense for a tracked
+    recording (``formats``: the pair fields' copies, ``[output] formats`` and ``vti``):
+    an error naming the key and the fix."""
     if images["pairing"] not in ("sequence", "sliding"):
         raise ValueError(f"{path}: [tracking] follows the frames in the order of their "
                          f"numbers, so [images] pairing = {images['pairing']!r} does not "
@@ -179,6 +181,10 @@ def check_images_for_tracking(images: Mapping, ensemble: bool, path: Path) -> No
     if ensemble:
         raise ValueError(f"{path}: [piv] ensemble belongs to the pair chain; remove it "
                          "with [tracking] (the tracks' field is binned instead)")
+    if formats:
+        raise ValueError(f"{path}: [output] formats and vti ({', '.join(formats)}) are the "
+                         "copies of each pair's field, which a [tracking] run does not make "
+                         "(it writes tracks.npz, tracks.vtu and tracks.zarr): remove them")
 
 
 def _interval(value, images: Mapping, where: str) -> float:

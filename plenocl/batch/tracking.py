@@ -24,7 +24,6 @@ field stage's key), so the results beside ``experiment_used.toml`` are always it
 from __future__ import annotations
 
 import os
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -38,7 +37,7 @@ from ..io.atomic import write_json
 from ..io.files import read_image
 from ..io.progress import step_bar
 from ..pipeline.frames import load_frame
-from ..pipeline.resume import StageRunner, config_digest
+from ..pipeline.resume import StageRunner, config_digest, remove_outputs
 from ..pipeline.track import TrackSettings, bin_tracks, track
 from ..piv.tracking import FocalZone
 from ..ptv import Tracks
@@ -83,7 +82,8 @@ class TrackingSummary:
 @dataclass(frozen=True)
 class TrackJob:
     """The tracking of one run, from file paths to ``tracks.npz``: the unit of work in
-    this process or on a Dask worker."""
+    this process or on a Dask worker; ``config``: the run's configuration digest
+    (``state.json``'s), recorded in ``tracks.npz`` (``Tracks.record_of``)."""
 
     frames: tuple[str, ...]
     run_folder: str
@@ -93,6 +93,7 @@ class TrackJob:
     dark: str | None = None
     flat: str | None = None
     device: str | None = None
+    config: str | None = None
 
 
 def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
@@ -119,7 +120,8 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     runner = StageRunner(out, _config(exp, frames, out, opts), log)
     summary = TrackingSummary(len(frames), list(frames),
                               workers=workers or (0 if scheduler else 1))
-    job = _job(exp, frames, out, opts, queue if isinstance(queue, str) else None)
+    job = _job(exp, frames, out, opts, queue if isinstance(queue, str) else None,
+               runner.key)
     _remove_stale(runner, out, opts, log)
     log(f"tracking {len(frames)} frames {opts.interval_s:g} s apart")
     t0 = time.perf_counter()
@@ -156,15 +158,10 @@ def _remove_stale(runner: StageRunner, out: Path, opts: TrackingOptions, log) ->
         stale = [TRACKS, *FIELD_OUTPUTS]
     elif not runner.done("field", FIELD_OUTPUTS, _field_key(out, opts)):
         stale = FIELD_OUTPUTS
-    gone = [name for name in dict.fromkeys(n.split("/")[0] for n in stale)
-            if (out / name).exists()]
-    for name in gone:
-        if (out / name).is_dir():
-            shutil.rmtree(out / name)
-        else:
-            (out / name).unlink()
+    gone = remove_outputs(out / name for name in dict.fromkeys(n.split("/")[0] for n in stale))
     if gone:
-        log(f"removed {', '.join(gone)}: made with another configuration, made again")
+        log(f"removed {', '.join(p.name for p in gone)}: made with another configuration, "
+            "made again")
 
 
 def frame_series(exp: Experiment, opts: TrackingOptions) -> dict[int, Path]:
@@ -219,11 +216,11 @@ def _digest(path: Path) -> str:
 
 
 def _job(exp: Experiment, frames: dict[int, Path], out: Path, opts: TrackingOptions,
-         device: str | None) -> TrackJob:
+         device: str | None, config: str | None = None) -> TrackJob:
     dark, flat = frame_corrections(exp)
     return TrackJob(tuple(str(p.resolve()) for p in frames.values()), str(out.resolve()),
                     opts.settings, opts.interval_s, exp["images"]["channel"], dark, flat,
-                    device)
+                    device, config)
 
 
 def _track(job: TrackJob, queue, workers: int | None, scheduler: str | None,
@@ -262,7 +259,7 @@ def track_job(job: TrackJob, device=None, bar: bool = True) -> dict[str, float]:
         tracks = track(frames, Projector(camera, grid, device), job.interval_s, job.settings,
                        progress=progress)
     t2 = time.perf_counter()
-    tracks.save(folder / TRACKS)
+    tracks.save(folder / TRACKS, None if job.config is None else {"tracks": job.config})
     return {"read": t1 - t0, "track": t2 - t1, "write": time.perf_counter() - t2}
 
 

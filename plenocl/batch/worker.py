@@ -26,6 +26,7 @@ from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
 from ..pipeline.pair import correlate_volumes, known_backgrounds
 from ..reconstruction import UnusableImageError
+from ..vectorfield import PIVResult
 from ..vectorfile import read_npz, save_field
 from .layout import field_copies, pair_index, volume_file
 from .pairing import fingerprint
@@ -172,31 +173,42 @@ class PairProcessor:
                           {"volumes": meta["digests"]["volumes"],
                            "backgrounds": None if known is None else
                            [[float(v) for v in bg] for bg in known]})
-        for suffix in run.formats:
-            save_field(target.with_suffix(suffix), res, dt=run.dt_s, grid=self.grid)
-        # the .npz last: its presence marks the pair done; it names the two source files
-        # and carries the record of everything that made it
-        save_field(target, res, dt=run.dt_s, grid=self.grid, metadata=meta)
+        # the .npz names the two source files and carries the record of what made it
+        save_with_copies(target, res, self.grid, run.dt_s, run.formats, meta)
         return ({**seconds, "write": time.perf_counter() - t0},
                 int(res.refinement.get("dropped", 0)))
 
 
 def rescale_field(target: Path, grid: Grid, settings: RunSettings) -> None:
-    """A finished pair's field written again for the run's ``dt_s`` (its displacements,
-    in voxels, are kept; the velocities follow), with the run's record; its copies
-    (``.vti``, ``.dat``, ...) too: those the run writes and those already there."""
-    res, _ = read_npz(target)
+    """A finished pair's field written again for the run's ``dt_s`` with the run's record
+    (:func:`rewrite_field`)."""
     meta = field_record(settings.record, field_metadata(target)["sources"],
                         pair_index(target))
-    for copy in field_copies(target, settings.formats):
-        save_field(copy, res, dt=settings.dt_s, grid=grid)
-    save_field(target, res, dt=settings.dt_s, grid=grid, metadata=meta)
+    rewrite_field(target, grid, settings.dt_s, settings.formats, meta)
 
 
-def add_copies(target: Path, grid: Grid, settings: RunSettings) -> list[str]:
-    """The copies (``[output] formats``) a finished pair made with the run's record
-    lacks, written from its ``.npz``; the suffixes written."""
-    missing = [s for s in settings.formats if not target.with_suffix(s).is_file()]
+def rewrite_field(target: Path, grid: Grid, dt: float, formats: tuple[str, ...],
+                  metadata: dict) -> None:
+    """A stored field written again for ``dt`` (its displacements, in voxels, are kept;
+    the velocities follow) with ``metadata``; its copies too: those of ``formats`` and
+    those already there (``.vti``, ``.dat``, ...)."""
+    save_with_copies(target, read_npz(target)[0], grid, dt, formats, metadata)
+
+
+def save_with_copies(target: Path, res: PIVResult, grid: Grid, dt: float,
+                     formats: tuple[str, ...], metadata: dict) -> None:
+    """A field's ``.npz`` ``target`` with ``metadata``, and its copies: those of
+    ``formats`` and those already there. The ``.npz`` goes last: its presence marks the
+    product done."""
+    for copy in field_copies(target, formats):
+        save_field(copy, res, dt=dt, grid=grid)
+    save_field(target, res, dt=dt, grid=grid, metadata=metadata)
+
+
+def add_copies(target: Path, grid: Grid, formats: tuple[str, ...]) -> list[str]:
+    """The copies (``formats``, e.g. ``[output] formats``) a kept field lacks, written
+    from its ``.npz``; the suffixes written."""
+    missing = [s for s in formats if not target.with_suffix(s).is_file()]
     if missing:
         res, arrays = read_npz(target)
         for suffix in missing:

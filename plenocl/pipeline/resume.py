@@ -4,8 +4,8 @@ A piece of work is done when all its output files exist. Every file is written a
 (:func:`plenocl.io.atomic_path`), so a killed run leaves no half-written output, only
 temporary files, which :func:`remove_partial_files` deletes before a run goes on.
 
-- :func:`pending`: the items whose outputs are missing (a batch's pairs: a pair is done
-  when its field file exists);
+- :func:`remove_outputs`: results a run makes again, removed before it starts (a file or
+  a store folder);
 - :class:`StageRunner`: named stages in an output folder; a stage is done when its entry
   in ``state.json`` exists, was made with the same configuration, and its outputs exist
   (the demos).
@@ -19,11 +19,8 @@ import shutil
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import TypeVar
 
 from ..io.atomic import write_json
-
-T = TypeVar("T")
 
 
 def outputs_exist(paths: Iterable[str | Path]) -> bool:
@@ -32,27 +29,24 @@ def outputs_exist(paths: Iterable[str | Path]) -> bool:
     return all(Path(p).is_file() for p in paths)
 
 
-def pending(items: Iterable[T], outputs: Callable[[T], Sequence[str | Path]]
-            ) -> tuple[list[T], list[T]]:
-    """``(to do, done)``: the items whose ``outputs(item)`` are not all present, and those
-    whose outputs are (skipped when a run resumes)."""
-    todo, done = [], []
-    for item in items:
-        (done if outputs_exist(outputs(item)) else todo).append(item)
-    return todo, done
-
-
 def remove_partial_files(*folders: Path) -> list[Path]:
     """Delete what a killed run left half-written in ``folders``: the atomic writers'
     temporary files (``.<name>.*.part*``) and stores being written (``*.partial``)."""
     left = [path for folder in map(Path, folders)
             for pattern in (".*.part*", "*.partial") for path in folder.glob(pattern)]
-    for path in left:
+    return remove_outputs(left, ignore_errors=True)
+
+
+def remove_outputs(paths: Iterable[str | Path], ignore_errors: bool = False) -> list[Path]:
+    """Delete the files and store folders among ``paths`` that exist; those deleted
+    (``ignore_errors``: a folder that cannot be deleted whole is left as it is)."""
+    gone = [Path(p) for p in paths if Path(p).exists()]
+    for path in gone:
         if path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
+            shutil.rmtree(path, ignore_errors=ignore_errors)
         else:
             path.unlink(missing_ok=True)
-    return left
+    return gone
 
 
 def config_digest(config: dict | None) -> str | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,17 +81,19 @@ class Tracks:
         ``(n_tracks, n_frames - 1, 3)`` mm (NaN where either end is missing)."""
         return np.diff(self.positions, axis=1)
 
-    def save(self, path) -> Path:
-        """Write the tracks: ``.npz`` (every array and ``dt``, read back by :meth:`load`)
-        or ``.vtu`` (poly-lines for ParaView: each track through its smoothed positions,
-        with its velocity, speed, frame and track number per point; tracks with fewer
-        than two positions are left out). Written atomically."""
+    def save(self, path, record: dict | None = None) -> Path:
+        """Write the tracks: ``.npz`` (every array and ``dt``, read back by :meth:`load`,
+        and ``record``, JSON-ready, what made them: :meth:`record_of`) or ``.vtu``
+        (poly-lines for ParaView: each track through its smoothed positions, with its
+        velocity, speed, frame and track number per point; tracks with fewer than two
+        positions are left out). Written atomically."""
         path = Path(path)
         if path.suffix == ".npz":
+            extra = {} if record is None else {"record": np.asarray(json.dumps(record))}
             with atomic_path(path) as tmp:
                 with open(tmp, "wb") as handle:
                     np.savez_compressed(handle, format=FORMAT, dt=self.dt,
-                                        dropped=self.dropped,
+                                        dropped=self.dropped, **extra,
                                         **{name: getattr(self, name) for name in _PER_TRACK})
         elif path.suffix == ".vtu":
             write_vtu(path, *self._lines())
@@ -108,6 +111,12 @@ class Tracks:
             dropped = int(data["dropped"]) if "dropped" in data.files else 0  # older files
             return cls(*(data[name] for name in _PER_TRACK), dt=float(data["dt"]),
                        dropped=dropped)
+
+    @staticmethod
+    def record_of(path) -> dict:
+        """The ``record`` a ``.npz`` of :meth:`save` was written with (``{}``: none)."""
+        with np.load(path) as data:
+            return json.loads(str(data["record"])) if "record" in data.files else {}
 
     def _lines(self) -> tuple[list[np.ndarray], dict[str, list[np.ndarray]]]:
         """Each track's smoothed positions as a line and its per-point arrays."""
