@@ -50,6 +50,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .io.centres import read_centres
+from .lenscentres import fit_disks
 from .optics.lattice import axial_basis, axial_to_offset, offset_to_axial
 from .optics.rawimage import check_image
 
@@ -808,13 +809,45 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     _check_count(len(cents), camera, "well-formed spots")
     k, dev = _match(cents, camera)
     _check_lattice(dev, "disks" if kind == "full" else "spots")
-    if kind == "full" and method == "combined":  # the disks cannot resolve own offsets
-        method = "fit"
-    fit = _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
-                    fill_missing, interior=kind == "full")
-    if kind == "full" and method == "fit":
+    per_lens = kind == "full" and method == "combined"
+    fit = _assemble(camera, cents, split, k, dev, sigma, img.shape,
+                    "fit" if per_lens else method, degree, fill_missing,
+                    interior=kind == "full")
+    if kind == "full" and method != "centroid":
         fit = _cut_by_the_edge(fit, flat)
+    if per_lens:  # the lattice is the prior; each lens's own disk says where it is
+        fit = _follow_lenses(fit, img, camera, degree, fill_missing)
     return dataclasses.replace(fit, aperture=kind)
+
+
+def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
+                   fill_missing: bool) -> CenterFit:
+    """Full aperture, ``method="combined"``: every lens's disk fitted in the image
+    (:func:`plenocl.lenscentres.fit_disks`, started from the lattice model), the smooth
+    grid model refitted to those fits, and each centre moved from the model toward its
+    own fit by their uncertainties (:func:`_combine`): lenses cut by the sensor's edge or
+    with too little light keep the model."""
+    cols, rows = camera.ml_count
+    h, w = img.shape
+    c = prior.model
+    on = (c[..., 0] >= 0) & (c[..., 0] <= w - 1) & (c[..., 1] >= 0) & (c[..., 1] <= h - 1)
+    disks = fit_disks(img, prior.model, _pitch_px(camera), lit=prior.found | ~on)
+    local, noise = disks.centres, np.where(np.isfinite(disks.sigma), disks.sigma, np.nan)
+    measured = prior.found & np.isfinite(noise)
+    kk = camera.lens_lattice_coords().reshape(-1, 2)
+    flat = local.reshape(-1, 2)
+    deg = _choose_degree(kk, flat, (cols, rows), measured.ravel(), degree)
+    coef, use = _robust_fit(kk, flat, (cols, rows), deg, measured.ravel())
+    model = (_design(kk, (cols, rows), deg) @ coef).reshape(rows, cols, 2)
+    inlier = use.reshape(rows, cols) & measured
+    scatter = _lattice_scatter(local, model, noise, inlier)
+    trusted = _trusted(local, model, noise, scatter, inlier, measured) & measured
+    centers = _combine(model, local, np.nan_to_num(noise, nan=np.inf), scatter, trusted)
+    centers[~prior.found] = model[~prior.found] if fill_missing else np.nan
+    local[~measured] = np.nan
+    resid = np.hypot(*(local - model)[inlier].T)
+    return CenterFit(centers, local, model, prior.found, inlier, deg, *_layout(model, camera),
+                     float(np.sqrt(np.mean(resid**2))), "combined", noise, scatter)
 
 
 def _cut_by_the_edge(fit: CenterFit, flat: np.ndarray) -> CenterFit:
