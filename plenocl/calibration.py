@@ -1234,7 +1234,7 @@ def _residual_panel(fig, ax, fit: CenterFit) -> None:
     ax.set_xlabel("lens column kx")
     ax.set_ylabel("lens row ky")
     ax.set_title(f"centroid - grid model: {fit.residual_rms_px:.3f} px RMS (centres: "
-                 f"{fit.method})\ncentroid noise {float(np.median(fit.noise_px)):.3f} px, "
+                 f"{fit.method})\ncentroid noise {float(np.nanmedian(fit.noise_px)):.3f} px, "
                  f"lenses' scatter about the lattice {fit.lattice_scatter_px:.3f} px (per axis)",
                  fontsize=8)
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, label="offset (px)")
