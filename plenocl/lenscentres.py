@@ -32,10 +32,11 @@ from scipy.spatial import cKDTree
 
 #: Sweeps at most (measured: converged to 0.001 px in 6 on 17 px lenses).
 MAX_SWEEPS = 6
-#: Sweeps stop when no centre moves by more than this (px).
+#: A lens whose centre moves less than this (px), and whose neighbours' too, rests; the
+#: sweeps stop when all rest.
 CONVERGED_PX = 1e-3
 #: A lens needs this fraction of its window on the sensor to be fitted.
-MIN_ON_SENSOR = 0.5
+MIN_ON_SENSOR = 0.35
 #: Lenses per batch (bounds memory: a batch holds a few arrays of its windows' pixels).
 BATCH = 2048
 
@@ -106,7 +107,10 @@ def fit_disks(image: np.ndarray, prior: np.ndarray, pitch: float,
     st = _State(c0[on].copy(), np.zeros((len(idx), 3)), np.full(len(idx), r0),
                 np.full(len(idx), 1.0))
     st.amp[:, 0] = _inner_level(img, st.c, int(0.3 * pitch))
-    sigma = _sweeps(img, st, half, pitch, share[on] >= MIN_ON_SENSOR)
+    free = share[on] >= MIN_ON_SENSOR
+    doubt = _near(st.c[~free], 0.5 * pitch + 1.5, img.shape)
+    sigma = _sweeps(img, st, half, pitch, free, _whole(st.c, 0.5 * pitch + 1.0, img.shape),
+                    doubt)
     centres = np.full((*shape, 2), np.nan)
     sig = np.full(shape, np.inf)
     centres.reshape(-1, 2)[idx] = st.c
@@ -116,8 +120,8 @@ def fit_disks(image: np.ndarray, prior: np.ndarray, pitch: float,
     return DiskFit(centres, sig, float(np.median(st.r)), float(np.median(st.s)))
 
 
-def _sweeps(img: np.ndarray, st: _State, half: int, pitch: float,
-            free: np.ndarray) -> np.ndarray:
+def _sweeps(img: np.ndarray, st: _State, half: int, pitch: float, free: np.ndarray,
+            whole: np.ndarray, doubt: np.ndarray) -> np.ndarray:
     """Gauss-Newton sweeps until the centres settle; the centres' deviations.
 
     Each sweep updates the lenses colour by colour (no two touching lenses share a
@@ -125,40 +129,84 @@ def _sweeps(img: np.ndarray, st: _State, half: int, pitch: float,
     before it left it (Gauss-Seidel: updating every lens at once against the same model
     made touching lenses overcorrect each other and converge in ~20 sweeps instead of
     ~6). Every lens moves (a disk mostly off the sensor still shows its edge, and its
-    neighbours need it in its place); only ``free`` ones report a deviation."""
+    neighbours need it in its place); only ``free`` ones report a deviation. A disk the
+    sensor's edge cuts (not ``whole``) takes its radius and edge width from the whole
+    ones, and fits no falloff: with part of its edge missing they would trade with its
+    centre (0.16 px toward the edge, measured on a hexagonal array's last lenses). The
+    pixels ``doubt`` marks (where a disk mostly off the sensor, poorly placed by its
+    sliver, lies) are left out of the ``free`` lenses' fits (its misplaced edge moved
+    its neighbours by 0.2-0.6 px)."""
     start = st.c.copy()
     model = _render(img.shape, st, half, np.arange(len(st.c)))
     sigma = np.full(len(st.c), np.inf)
-    batches = [b for group in _colours(st.c, pitch) for b in _batches(group)]
+    pairs = _neighbour_pairs(st.c, pitch)
+    batches = [b for group in _colours(len(st.c), pairs, st.c) for b in _batches(group)]
+    active = np.ones(len(st.c), bool)
     for _ in range(MAX_SWEEPS):
-        move = np.zeros_like(st.c)
-        for sel in batches:
-            move[sel], sigma[sel] = _update_batch(img, model, st, sel, half, free[sel])
+        moved = np.zeros(len(st.c), bool)
+        for sel in (b[active[b]] for b in batches):
+            if len(sel) == 0:
+                continue
+            move, sigma[sel] = _update_batch(img, model, st, sel, half, whole[sel], doubt,
+                                             free[sel])
+            moved[sel] = np.abs(move).max(1) >= CONVERGED_PX
             lost = sel[np.abs(st.c[sel] - start[sel]).max(1) > 0.3 * pitch]
             if len(lost):
                 before = _render(img.shape, st, half, lost)
                 st.c[lost], sigma[lost] = start[lost], np.inf
                 model += _render(img.shape, st, half, lost) - before
-        if np.abs(move[free]).max(initial=0.0) < CONVERGED_PX:
+        _share_the_shape(img.shape, st, half, whole, model)
+        active = moved | ~whole  # the next sweep: lenses still moving, and their neighbours
+        active[pairs[moved[pairs[:, 0]], 1]] = active[pairs[moved[pairs[:, 1]], 0]] = True
+        if not moved[free].any():
             break
-        if free.any():  # a disk mostly off the sensor takes the others' shape
-            st.r[~free], st.s[~free] = np.median(st.r[free]), np.median(st.s[free])
     return np.where(free, sigma, np.inf)
 
 
-def _colours(c: np.ndarray, pitch: float) -> list[np.ndarray]:
-    """The lenses split into groups of which no two lie within 1.25 pitches (touching
-    disks): greedy colouring (2 groups for a rectangular array, 3 for a hexagonal one)."""
-    pairs = cKDTree(c).query_pairs(1.25 * pitch, output_type="ndarray")
-    near = [[] for _ in range(len(c))]
+def _share_the_shape(shape, st: _State, half: int, whole: np.ndarray,
+                     model: np.ndarray) -> None:
+    """The disks not ``whole`` take the whole ones' median radius and edge width (the
+    model image follows)."""
+    cut = np.flatnonzero(~whole)
+    if len(cut) == 0 or not whole.any():
+        return
+    before = _render(shape, st, half, cut)
+    st.r[cut], st.s[cut] = np.median(st.r[whole]), np.median(st.s[whole])
+    model += _render(shape, st, half, cut) - before
+
+
+def _near(c: np.ndarray, radius: float, shape: tuple[int, int]) -> np.ndarray:
+    """``(H, W)`` the pixels within ``radius`` of any of the points ``c``."""
+    out = np.zeros(shape, bool)
+    flat, inside, dx, dy = _window(c, int(math.ceil(radius)), shape)
+    out.ravel()[flat[inside & (dx * dx + dy * dy <= radius * radius)]] = True
+    return out
+
+
+def _whole(c: np.ndarray, radius: float, shape: tuple[int, int]) -> np.ndarray:
+    """Lenses whose disk (``radius`` px about ``c``) lies on the sensor entirely."""
+    h, w = shape
+    return ((c >= radius - 0.5) & (c <= np.array([w, h]) - 0.5 - radius)).all(1)
+
+
+def _neighbour_pairs(c: np.ndarray, pitch: float) -> np.ndarray:
+    """``(pairs, 2)`` indices of lenses within 1.25 pitches of each other (touching)."""
+    return cKDTree(c).query_pairs(1.25 * pitch, output_type="ndarray").reshape(-1, 2)
+
+
+def _colours(n: int, pairs: np.ndarray, c: np.ndarray) -> list[np.ndarray]:
+    """The ``n`` lenses split into groups of which no two are ``pairs`` (touching
+    disks), by greedy colouring (2 groups for a rectangular array, 3-4 for a hexagonal
+    one), each group in row-major order so that its batches are nearby lenses."""
+    near = [[] for _ in range(n)]
     for i, j in pairs:
         near[i].append(j)
         near[j].append(i)
-    colour = np.full(len(c), -1)
+    colour = np.full(n, -1)
     for i in np.lexsort((c[:, 0], c[:, 1])):
         taken = {colour[j] for j in near[i]}
         colour[i] = next(k for k in range(len(taken) + 1) if k not in taken)
-    order = np.lexsort((c[:, 0], np.rint(c[:, 1])))  # batches of nearby lenses
+    order = np.lexsort((c[:, 0], np.rint(c[:, 1])))
     return [order[colour[order] == k] for k in range(colour.max() + 1)]
 
 
@@ -238,16 +286,18 @@ def _batches(which: np.ndarray):
         yield which[start:start + BATCH]
 
 
-def _update_batch(img, model, st: _State, sel: np.ndarray, half: int, whole: np.ndarray):
+def _update_batch(img, model, st: _State, sel: np.ndarray, half: int, whole: np.ndarray,
+                  doubt: np.ndarray, free: np.ndarray):
     """One Gauss-Newton step of the lenses ``sel`` against the image minus all disks
     (``model``, brought up to date with their new disks); their centre moves and the
     centres' deviations (px, from the residuals and the normal equations). A lens not
-    ``whole`` on the sensor fits its centre and brightness only: with one side of its
-    edge cut, its radius and falloff would trade with its centre."""
+    ``whole`` on the sensor fits its centre and brightness only; a ``free`` one leaves
+    the pixels ``doubt`` marks out."""
     amp, r, s = st.amp[sel], st.r[sel], st.s[sel]
     flat, inside, dx, dy = _window(st.c[sel], half, img.shape)
     d, phi, rho, t = _disk(dx, dy, r, s)
     weight = inside & (rho <= (r + 3 * s + 1.0)[:, None, None])
+    weight &= ~(doubt.ravel()[flat] & free[:, None, None])
     err = np.where(weight, img.ravel()[flat] - model.ravel()[flat], 0.0)
     jac = _jacobian(d, phi, rho, t, dx, dy, amp, s, weight)
     jac[~whole, :, 3:] = 0.0
