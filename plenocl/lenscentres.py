@@ -7,16 +7,18 @@ disk's centroid in a window takes in its neighbours' edges and, with them, part 
 their offsets; and a brightness falloff across a disk pulls it toward the bright side.
 Here every disk is modelled instead::
 
-    image(x) ≈ b_k + Σ_j (a_j + g_j · (x - c_j)) D(|x - c_j|; r, s)
+    image(x) ≈ Σ_j (a_j + g_j · (x - c_j)) D(|x - c_j|; r_j, s_j)
 
-``D`` a blurred pillbox (``erfc`` edge of radius ``r`` and width ``s``), ``a_j`` a
-lens's brightness, ``g_j`` its falloff across the disk (vignetting), ``b_k`` the local
-background. Jacobi Gauss-Newton sweeps update every lens's ``(c, a, g, b)`` in its own
-window against the image minus all the disks rendered at their current estimates, so
-the neighbours' edges are explained by the neighbours. The disk's radius and edge width
-are shared by all lenses: fitted per lens in the first sweeps, then fixed to their
-medians. Each estimate's standard deviation comes from its residuals and its normal
-equations, so that calibration can weigh it against the smooth lattice model.
+``D`` a pillbox with a Gaussian-blurred edge (``erfc``) of radius ``r_j`` and width
+``s_j``, ``a_j`` a lens's brightness, ``g_j`` its linear falloff across the disk
+(vignetting); the image's black level is taken off first. Gauss-Newton steps update
+each lens's ``(c, a, g, r, s)`` in its own window against the image minus all the disks
+at their current estimates, so that the neighbours' edges are explained by the
+neighbours; the lenses are swept colour by colour (no two touching lenses share a
+colour), each batch seeing the disks as the batches before it left them. Disks the
+sensor's edge cuts take the others' radius and edge width. Each centre's deviation comes
+from its fit's residuals and normal equations, so that calibration can weigh it against
+the smooth grid model.
 
 Plain NumPy; calibration (:func:`plenocl.calibration.find_centers`) is its one caller.
 """
@@ -54,8 +56,8 @@ class DiskFit:
         ``(rows, cols)`` standard deviation (px, per axis) of each centre from the fit's
         residuals, ``inf`` where not fitted.
     radius_px, edge_px
-        The disks' radius and edge width (Gaussian standard deviation, pixel area
-        included) shared by all lenses.
+        The disks' median radius and edge width (the edge's Gaussian standard deviation,
+        the pixels' area included), px.
     """
 
     centres: np.ndarray
@@ -88,7 +90,8 @@ def fit_disks(image: np.ndarray, prior: np.ndarray, pitch: float,
         Microlens image pitch (px).
     lit
         Optional ``(rows, cols)`` lenses to fit (default: all); the others are neither
-        fitted nor rendered (dead lenses).
+        fitted nor rendered (dead lenses). Lenses with under ``MIN_ON_SENSOR`` of their
+        window on the sensor are fitted (their neighbours see them) but get no centre.
 
     Returns
     -------
@@ -98,15 +101,11 @@ def fit_disks(image: np.ndarray, prior: np.ndarray, pitch: float,
     img = img - _black_level(img)
     shape = prior.shape[:2]
     use = np.isfinite(prior).all(-1) & (np.ones(shape, bool) if lit is None else lit)
-    c0 = prior[use]
-    r0 = 0.45 * pitch
     half = int(math.ceil(0.5 * pitch + 3.0))
-    share = _on_sensor_share(c0, half, img.shape)
+    share = _on_sensor_share(prior[use], half, img.shape)
     on = share > 0  # every disk that reaches the sensor is rendered: its neighbours see it
     idx = np.flatnonzero(use.ravel())[on]
-    st = _State(c0[on].copy(), np.zeros((len(idx), 3)), np.full(len(idx), r0),
-                np.full(len(idx), 1.0))
-    st.amp[:, 0] = _inner_level(img, st.c, int(0.3 * pitch))
+    st = _initial_state(img, prior[use][on], pitch)
     free = share[on] >= MIN_ON_SENSOR
     doubt = _near(st.c[~free], 0.5 * pitch + 1.5, img.shape)
     sigma = _sweeps(img, st, half, pitch, free, _whole(st.c, 0.5 * pitch + 1.0, img.shape),
@@ -118,6 +117,15 @@ def fit_disks(image: np.ndarray, prior: np.ndarray, pitch: float,
     bad = ~np.isfinite(sig) | ~np.isfinite(centres).all(-1)
     centres[bad], sig[bad] = np.nan, np.inf
     return DiskFit(centres, sig, float(np.median(st.r)), float(np.median(st.s)))
+
+
+def _initial_state(img: np.ndarray, c: np.ndarray, pitch: float) -> _State:
+    """The lenses at their predicted centres ``c``, as bright as their centres' pixels,
+    without falloff, 0.45 pitch in radius with a 1 px edge."""
+    n = len(c)
+    st = _State(c.copy(), np.zeros((n, 3)), np.full(n, 0.45 * pitch), np.ones(n))
+    st.amp[:, 0] = _inner_level(img, st.c, int(0.3 * pitch))
+    return st
 
 
 def _sweeps(img: np.ndarray, st: _State, half: int, pitch: float, free: np.ndarray,
