@@ -94,9 +94,12 @@ class CenterFit:
         ``(rows, cols, 2)`` microlens image centres as ``(col, row)`` pixels, ``NaN``
         where no spot was found (unless filled from the model).
     centroids
-        ``(rows, cols, 2)`` raw spot centroids, ``NaN`` where no spot was found.
+        ``(rows, cols, 2)`` raw spot centroids, ``NaN`` where no spot was found; at full
+        aperture with ``method="combined"``, each lens's own disk fit
+        (:func:`plenocl.lenscentres.fit_disks`), ``NaN`` where it has none.
     model
-        ``(rows, cols, 2)`` grid-model prediction for every lens.
+        ``(rows, cols, 2)`` grid-model prediction for every lens (at full aperture with
+        ``method="combined"``: refitted to the per-lens disk fits).
     found
         ``(rows, cols)`` lenses with a matched spot.
     inlier
@@ -114,7 +117,8 @@ class CenterFit:
         ``"combined"``, ``"fit"`` or ``"centroid"``: where ``centers`` came from.
     noise_px
         ``(rows, cols)`` estimated centroid noise per axis (px), from the two
-        checkerboard halves of each spot's pixels.
+        checkerboard halves of each spot's pixels; at full aperture with
+        ``method="combined"``, each disk fit's deviation (``NaN`` where none).
     lattice_scatter_px
         Estimated RMS per axis (px) of the lenses' true offsets from the grid model
         (manufacturing errors), the centroid noise taken out.
@@ -764,8 +768,10 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         weighted by their uncertainties (a lens that really sits off the lattice keeps its
         offset, noise is smoothed); ``"fit"``: the global grid model's prediction for
         each found lens; ``"centroid"``: each spot's own centroid (the paper's method).
-        At full aperture ``"combined"`` is ``"fit"`` (touching disks' centroids carry
-        their neighbours' offsets, docs/design.md §3; ``CenterFit.method`` says so).
+        At full aperture ``"combined"`` fits each lens's disk with its neighbours'
+        (touching disks' centroids carry their neighbours' offsets) and weighs that fit
+        against the grid model refitted to all of them (docs/design.md §3); ``"fit"`` is
+        the grid model of the disks' centroids, the lattice alone.
     degree
         Grid-model polynomial degree: 1 (affine), 2, 3, or ``"auto"`` (affine unless
         a cubic distortion term is significant).
