@@ -82,6 +82,10 @@ DISK_WINDOW = 0.5
 #: 0.024 px toward the pixel grid, 1.5 px by 0.009).
 WINDOW_SCALE = 1.5
 WINDOW_MIN_PX = 1.5
+#: Microlens images (px) from which full-aperture calibration fits each lens's disk; on
+#: smaller ones the disk model's sampling error (0.06 px RMS at 7.7 px, rotated 2°)
+#: exceeds what it resolves, and ``method="combined"`` keeps the grid model.
+PER_LENS_MIN_PITCH_PX = 10.0
 
 
 @dataclass(frozen=True)
@@ -770,8 +774,9 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         each found lens; ``"centroid"``: each spot's own centroid (the paper's method).
         At full aperture ``"combined"`` fits each lens's disk with its neighbours'
         (touching disks' centroids carry their neighbours' offsets) and weighs that fit
-        against the grid model refitted to all of them (docs/design.md §3); ``"fit"`` is
-        the grid model of the disks' centroids, the lattice alone.
+        against the grid model refitted to all of them (docs/design.md §3; on lenses
+        under ``PER_LENS_MIN_PITCH_PX`` it is ``"fit"``); ``"fit"`` is the grid model of
+        the disks' centroids, the lattice alone.
     degree
         Grid-model polynomial degree: 1 (affine), 2, 3, or ``"auto"`` (affine unless
         a cubic distortion term is significant).
@@ -815,15 +820,18 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     _check_count(len(cents), camera, "well-formed spots")
     k, dev = _match(cents, camera)
     _check_lattice(dev, "disks" if kind == "full" else "spots")
-    per_lens = kind == "full" and method == "combined"
-    fit = _assemble(camera, cents, split, k, dev, sigma, img.shape,
-                    "fit" if per_lens else method, degree, fill_missing,
-                    interior=kind == "full")
+    if kind == "full" and method == "combined":  # the disks' centroids: the lattice only
+        per_lens, method = pitch >= PER_LENS_MIN_PITCH_PX, "fit"
+    else:
+        per_lens = False
+    fit = _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
+                    fill_missing, interior=kind == "full")
     if kind == "full" and method != "centroid":
         fit = _cut_by_the_edge(fit, flat)
     if per_lens:  # the lattice is the prior; each lens's own disk says where it is
         fit = _follow_lenses(fit, img, camera, degree, fill_missing)
     return dataclasses.replace(fit, aperture=kind)
+
 
 
 def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
