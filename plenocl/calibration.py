@@ -50,6 +50,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .io.centres import read_centres
+from .lenscentres import fit_disks
 from .optics.lattice import axial_basis, axial_to_offset, offset_to_axial
 from .optics.rawimage import check_image
 
@@ -86,6 +87,10 @@ DISK_WINDOW = 0.5
 #: 0.024 px toward the pixel grid, 1.5 px by 0.009).
 WINDOW_SCALE = 1.5
 WINDOW_MIN_PX = 1.5
+#: Microlens images (px) from which full-aperture calibration fits each lens's disk; on
+#: smaller ones the disk model's sampling error (0.06 px RMS at 7.7 px, rotated 2°)
+#: exceeds what it resolves, and ``method="combined"`` keeps the grid model.
+PER_LENS_MIN_PITCH_PX = 10.0
 
 
 @dataclass(frozen=True)
@@ -98,9 +103,12 @@ class CenterFit:
         ``(rows, cols, 2)`` microlens image centres as ``(col, row)`` pixels, ``NaN``
         where no spot was found (unless filled from the model).
     centroids
-        ``(rows, cols, 2)`` raw spot centroids, ``NaN`` where no spot was found.
+        ``(rows, cols, 2)`` raw spot centroids, ``NaN`` where no spot was found; at full
+        aperture with ``method="combined"``, each lens's own disk fit
+        (:func:`plenocl.lenscentres.fit_disks`), ``NaN`` where it has none.
     model
-        ``(rows, cols, 2)`` grid-model prediction for every lens.
+        ``(rows, cols, 2)`` grid-model prediction for every lens (at full aperture with
+        ``method="combined"``: refitted to the per-lens disk fits).
     found
         ``(rows, cols)`` lenses with a matched spot.
     inlier
@@ -118,7 +126,8 @@ class CenterFit:
         ``"combined"``, ``"fit"`` or ``"centroid"``: where ``centers`` came from.
     noise_px
         ``(rows, cols)`` estimated centroid noise per axis (px), from the two
-        checkerboard halves of each spot's pixels.
+        checkerboard halves of each spot's pixels; at full aperture with
+        ``method="combined"``, each disk fit's deviation (``NaN`` where none).
     lattice_scatter_px
         Estimated RMS per axis (px) of the lenses' true offsets from the grid model
         (manufacturing errors), the centroid noise taken out.
@@ -768,8 +777,11 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         weighted by their uncertainties (a lens that really sits off the lattice keeps its
         offset, noise is smoothed); ``"fit"``: the global grid model's prediction for
         each found lens; ``"centroid"``: each spot's own centroid (the paper's method).
-        At full aperture ``"combined"`` is ``"fit"`` (touching disks' centroids carry
-        their neighbours' offsets, docs/design.md §3; ``CenterFit.method`` says so).
+        At full aperture ``"combined"`` fits each lens's disk with its neighbours'
+        (touching disks' centroids carry their neighbours' offsets) and weighs that fit
+        against the grid model refitted to all of them (docs/design.md §3; on lenses
+        under ``PER_LENS_MIN_PITCH_PX`` it is ``"fit"``); ``"fit"`` is the grid model of
+        the disks' centroids, the lattice alone.
     degree
         Grid-model polynomial degree: 1 (affine), 2, 3, or ``"auto"`` (affine unless
         a cubic distortion term is significant).
@@ -815,13 +827,48 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     _check_count(len(cents), camera, "well-formed spots")
     k, dev = _match(cents, camera)
     _check_lattice(dev, "disks" if kind == "full" else "spots")
-    if kind == "full" and method == "combined":  # the disks cannot resolve own offsets
-        method = "fit"
+    if kind == "full" and method == "combined":  # the disks' centroids: the lattice only
+        per_lens, method = pitch >= PER_LENS_MIN_PITCH_PX, "fit"
+    else:
+        per_lens = False
     fit = _assemble(camera, cents, split, k, dev, sigma, img.shape, method, degree,
                     fill_missing, interior=kind == "full")
-    if kind == "full" and method == "fit":
+    if kind == "full" and method != "centroid":
         fit = _cut_by_the_edge(fit, flat)
+    if per_lens:  # the lattice is the prior; each lens's own disk says where it is
+        fit = _follow_lenses(fit, img, camera, degree, fill_missing)
     return dataclasses.replace(fit, aperture=kind)
+
+
+
+def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
+                   fill_missing: bool) -> CenterFit:
+    """Full aperture, ``method="combined"``: every lens's disk fitted in the image
+    (:func:`plenocl.lenscentres.fit_disks`, started from the lattice model), the smooth
+    grid model refitted to those fits, and each centre moved from the model toward its
+    own fit by their uncertainties (:func:`_combine`): lenses cut by the sensor's edge or
+    with too little light keep the model."""
+    cols, rows = camera.ml_count
+    h, w = img.shape
+    c = prior.model
+    on = (c[..., 0] >= 0) & (c[..., 0] <= w - 1) & (c[..., 1] >= 0) & (c[..., 1] <= h - 1)
+    disks = fit_disks(img, prior.model, _pitch_px(camera), lit=prior.found | ~on)
+    local, noise = disks.centres, np.where(np.isfinite(disks.sigma), disks.sigma, np.nan)
+    measured = prior.found & np.isfinite(noise)
+    kk = camera.lens_lattice_coords().reshape(-1, 2)
+    flat = local.reshape(-1, 2)
+    deg = _choose_degree(kk, flat, (cols, rows), measured.ravel(), degree)
+    coef, use = _robust_fit(kk, flat, (cols, rows), deg, measured.ravel())
+    model = (_design(kk, (cols, rows), deg) @ coef).reshape(rows, cols, 2)
+    inlier = use.reshape(rows, cols) & measured
+    scatter = _lattice_scatter(local, model, noise, inlier)
+    trusted = _trusted(local, model, noise, scatter, inlier, measured) & measured
+    centers = _combine(model, local, np.nan_to_num(noise, nan=np.inf), scatter, trusted)
+    centers[~prior.found] = model[~prior.found] if fill_missing else np.nan
+    local[~measured] = np.nan
+    resid = np.hypot(*(local - model)[inlier].T)
+    return CenterFit(centers, local, model, prior.found, inlier, deg, *_layout(model, camera),
+                     float(np.sqrt(np.mean(resid**2))), "combined", noise, scatter)
 
 
 def _cut_by_the_edge(fit: CenterFit, flat: np.ndarray) -> CenterFit:
@@ -1227,7 +1274,7 @@ def _residual_panel(fig, ax, fit: CenterFit) -> None:
     ax.set_xlabel("lens column kx")
     ax.set_ylabel("lens row ky")
     ax.set_title(f"centroid - grid model: {fit.residual_rms_px:.3f} px RMS (centres: "
-                 f"{fit.method})\ncentroid noise {float(np.median(fit.noise_px)):.3f} px, "
+                 f"{fit.method})\ncentroid noise {float(np.nanmedian(fit.noise_px)):.3f} px, "
                  f"lenses' scatter about the lattice {fit.lattice_scatter_px:.3f} px (per axis)",
                  fontsize=8)
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, label="offset (px)")

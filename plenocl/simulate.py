@@ -317,3 +317,40 @@ def centre_shift_px(camera: Camera, lens_shift_mm) -> np.ndarray:
     is displaced by ``lens_shift_mm`` on the array plane: ``(1 + f_ml/d) / p_px`` times."""
     d = np.asarray(lens_shift_mm, dtype=np.float64)
     return d * camera.lens_image_scale / camera.pixel_pitch_mm
+
+
+def lens_displacements_mm(camera: Camera, *, jitter_px: float = 0.0,
+                          distortion_px: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Per-lens displacements (``lens_shift_mm`` of :func:`simulate_white_image`) that
+    move the microlens image centres off the ideal lattice as a real camera's are.
+
+    Parameters
+    ----------
+    camera
+        The camera (its true layout).
+    jitter_px
+        RMS (px, per axis) of independent random offsets of the centres (lens placement).
+    distortion_px
+        A radial distortion of the centres about the optical axis, ``Δc = D (r/r_max)² (c
+        - axis)/r_max`` (the main lens's pupil distortion, ``k1 r³``): ``D`` px at the
+        lens farthest from the axis, outward for ``D > 0`` (pincushion), inward for ``D < 0``.
+    seed
+        Seed of the jitter.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(rows, cols, 2)`` mm on the array plane; the true image centres are
+        ``camera.ideal_microlens_centers() + centre_shift_px(camera, shift)``.
+    """
+    for name, value in (("jitter_px", jitter_px), ("distortion_px", distortion_px)):
+        if not np.isfinite(value):
+            raise ValueError(f"{name} must be a finite number of pixels, got {value!r}")
+    if jitter_px < 0:
+        raise ValueError(f"jitter_px must be >= 0 (px RMS), got {jitter_px!r}")
+    pos = camera.microlens_positions_mm() * camera.lens_image_scale / camera.pixel_pitch_mm
+    r = np.hypot(pos[..., 0], pos[..., 1])
+    r_max = max(float(r.max()), 1e-12)
+    move = distortion_px * (r / r_max)[..., None] ** 2 * pos / r_max
+    move = move + np.random.default_rng(seed).normal(0.0, jitter_px, pos.shape)
+    return move * camera.pixel_pitch_mm / camera.lens_image_scale

@@ -524,10 +524,12 @@ def test_full_aperture_white_images_are_calibrated(queue, aperture):
     assert fit.found[_on_sensor(cam)].mean() >= 0.97
     assert _rms(_errors(fit.centers, cam.ideal_microlens_centers())) <= TARGET_RMS_PX
     model = find_centers(white, _nominal(cam), method="fit")
-    assert model.aperture == "full"
-    # the disks' centroids cannot resolve the lenses' own offsets: combined is the model
-    assert fit.method == "fit" and np.array_equal(fit.centers, model.centers, equal_nan=True)
-    assert _rms(_errors(fit.centroids, cam.ideal_microlens_centers())) > _rms(
+    assert model.aperture == "full" and model.method == "fit"
+    # combined: each lens's own disk fit, weighed against the lattice (its own tests:
+    # tests/test_calibration_lenses.py); the raw disk centroids stay worse than either
+    assert fit.method == "combined"
+    raw = find_centers(white, _nominal(cam), method="centroid")
+    assert _rms(_errors(raw.centers, cam.ideal_microlens_centers())) > _rms(
         _errors(fit.centers, cam.ideal_microlens_centers()))
 
 

@@ -47,6 +47,7 @@ from plenocl.reconstruction import (
     view_blocks,
 )
 from plenocl.reference.weights import ApertureGrid, voxel_weights, weight_matrix
+from plenocl.simulate import lens_displacements_mm
 from plenocl.volumefile import load_volume
 
 
@@ -732,6 +733,8 @@ INVALID = [
      r"lens_shift_mm must be a finite \(4, 4, 2\) array"),
     ("white-lens-shift-too-large", _white(lens_shift_mm=np.full((4, 4, 2), 0.04)), ValueError,
      "more than a quarter of the"),
+    ("lens-displacements-jitter", lambda c: lens_displacements_mm(c["cam"], jitter_px=-0.2),
+     ValueError, r"jitter_px must be >= 0"),
     # Projector
     ("projector-depth-not-imageable", _proj(z=(-60.0, 1.0)), ValueError,
      "where the main lens forms no real image"),

@@ -135,7 +135,8 @@ def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
                    help="PNG of the found centres and the residual map (each lens's centroid "
                         "against the grid model)")
     p.add_argument("--method", choices=list(METHODS), default="combined",
-                   help="combined: grid model and each lens's centroid weighted by their "
+                   help="combined: grid model and each lens's centroid (at full aperture: "
+                        "its disk fitted with its neighbours') weighted by their "
                         "uncertainties (default); fit: grid model only; centroid: raw "
                         "centroids (the paper's)")
     p.add_argument("--fill-missing", action="store_true",

@@ -1,0 +1,142 @@
+"""Full-aperture calibration follows each lens (issue 44, deliverable 3): white images
+at the main lens's own f-number whose lenses sit off the lattice (0.2 px RMS jitter and
+a radial distortion of the main lens) are calibrated to each lens's own centre
+``c_k`` (docs/design.md §3), against the simulator's truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from helpers import lens_camera
+
+from plenocl import Camera, get_queue
+from plenocl.calibration import find_centers
+from plenocl.lenscentres import fit_disks
+from plenocl.simulate import centre_shift_px, lens_displacements_mm, simulate_white_image
+
+TARGET_RMS_PX = 0.05
+JITTER_PX = 0.2
+DISTORTION_PX = 1.5
+#: A camera's exposure: ~2000 of 4096 counts in a disk, photon and read noise.
+EXPOSURE = dict(photon_noise=True, read_noise=3.0, bit_depth=12, intensity=4e5,
+                rays_per_lens=100_000)
+
+
+def _camera(layout: str, cols: int = 14, rows: int = 12) -> Camera:
+    """~17 px per lens, rotated 0.3°; the sensor cut to the array."""
+    row_px = 16.98 * (3**0.5 / 2 if layout == "hexagonal" else 1.0)
+    return lens_camera(cols, rows, (int(cols * 16.98) + 1, int(rows * row_px) + 1),
+                       ml_layout=layout, ml_rotation_deg=0.3)
+
+
+def _nominal(cam: Camera) -> Camera:
+    return dataclasses.replace(cam, ml_rotation_deg=0.0)
+
+
+def _shifted(cam: Camera, jitter: float = JITTER_PX, distortion: float = DISTORTION_PX):
+    """Lens displacements (mm), the true centres, and the jitter's part of them (px)."""
+    shift = lens_displacements_mm(cam, jitter_px=jitter, distortion_px=distortion, seed=4)
+    smooth = lens_displacements_mm(cam, distortion_px=distortion)
+    truth = cam.ideal_microlens_centers() + centre_shift_px(cam, shift)
+    return shift, truth, centre_shift_px(cam, shift - smooth)
+
+
+def _rms(centres: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.sqrt(np.nanmean(((centres - truth) ** 2).sum(-1))))
+
+
+@pytest.fixture(scope="module", params=[
+    pytest.param(("rectangular", 0.0), id="rect"),
+    pytest.param(("rectangular", 0.5), id="rect-vignetted", marks=pytest.mark.slow),
+    pytest.param(("hexagonal", 0.0), id="hex", marks=pytest.mark.slow),
+    pytest.param(("hexagonal", 0.5), id="hex-vignetted")])
+def jittered(request):
+    """The camera, the true centres, the jitter's part of them, and the calibration
+    (default and lattice-only) of its white image. Calibration is host code: the image
+    is simulated once, on the default device."""
+    layout, vignetting = request.param
+    cam = _camera(layout)
+    shift, truth, jitter = _shifted(cam)
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, vignetting=vignetting,
+                                 lens_shift_mm=shift, seed=7, queue=get_queue(), **EXPOSURE)
+    return (cam, truth, jitter, find_centers(white, _nominal(cam)),
+            find_centers(white, _nominal(cam), method="fit"))
+
+
+def test_each_lens_is_found_within_the_target(jittered):
+    """≤ 0.05 px RMS (2-D) on every found lens, where the lattice alone (``method="fit"``)
+    is off by the lenses' jitter and the distortion."""
+    cam, truth, _, fit, lattice = jittered
+    assert fit.aperture == "full" and fit.method == "combined"
+    assert fit.found.mean() >= 0.97
+    assert _rms(fit.centers, truth) <= TARGET_RMS_PX
+    assert _rms(lattice.centers, truth) > 4 * _rms(fit.centers, truth)
+
+
+def test_the_estimate_follows_the_jitter(jittered):
+    """Each centre's offset from the smooth model is the lens's own: it correlates with
+    the true jitter (the distortion is the model's), and the lenses' scatter about the
+    lattice is measured as the simulated 0.2 px."""
+    cam, truth, jitter, fit, _ = jittered
+    own = (fit.centers - fit.model)[fit.found]
+    true = (truth - fit.model)[fit.found]
+    assert np.corrcoef(own.ravel(), true.ravel())[0, 1] > 0.97
+    assert np.corrcoef(own.ravel(), jitter[fit.found].ravel())[0, 1] > 0.9
+    assert fit.lattice_scatter_px == pytest.approx(JITTER_PX, rel=0.25)
+    assert fit.degree == 3  # the radial distortion is found: cubic in the lens position
+
+
+def test_the_estimated_uncertainty_is_the_actual_one(jittered):
+    """The per-lens deviations (``noise_px``) the fit reports match the per-lens
+    estimates' actual errors (per axis), so the weighting against the lattice is right."""
+    _, truth, _, fit, _ = jittered
+    actual = _rms(fit.centroids, truth) / np.sqrt(2)
+    assert float(np.nanmedian(fit.noise_px)) == pytest.approx(actual, rel=0.4)
+
+
+def test_lenses_cut_by_the_sensor_edge_fall_back_to_the_prior():
+    """A disk mostly beyond the sensor's edge is not fitted (``NaN``, infinite deviation,
+    so calibration keeps the model's centre for it); its neighbours, which see it in
+    their windows, stay within the target."""
+    cam = _camera("rectangular")
+    shift, truth, _ = _shifted(cam)
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, lens_shift_mm=shift,
+                                 seed=7, queue=get_queue(), **EXPOSURE).astype(float)
+    pitch = cam.pixels_per_microlens
+    cut = white[:, : int(truth[:, -1, 0].min()) - 5]  # the last column: centres 5 px off
+    disks = fit_disks(cut, truth, pitch)
+    assert np.isnan(disks.centres[:, -1]).all() and np.isinf(disks.sigma[:, -1]).all()
+    assert _rms(disks.centres[:, -2], truth[:, -2]) <= TARGET_RMS_PX
+    assert _rms(disks.centres[:, :-1], truth[:, :-1]) <= TARGET_RMS_PX
+
+
+def test_a_noisy_image_leans_on_the_lattice():
+    """A dim image (a tenth of the light, 8 bits): each lens's own fit is noisier, and the
+    combination, weighing it against the lattice by both uncertainties, is better than
+    either alone."""
+    cam = _camera("hexagonal")
+    shift, truth, _ = _shifted(cam, jitter=0.05)
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, lens_shift_mm=shift,
+                                 photon_noise=True, read_noise=2.0, bit_depth=8,
+                                 intensity=4e4, rays_per_lens=20_000, seed=9, queue=get_queue())
+    fit = find_centers(white, _nominal(cam))
+    own, model = _rms(fit.centroids, truth), _rms(fit.model[fit.found], truth[fit.found])
+    assert _rms(fit.centers, truth) < min(own, model)
+
+
+def test_the_lens_displacements_are_what_they_say():
+    """``distortion_px`` moves the lens farthest from the axis that far outward, radially;
+    ``jitter_px`` is the RMS per axis of the rest."""
+    cam = lens_camera(30, 20)
+    ideal = cam.ideal_microlens_centers()
+    axis = np.array(cam.pixels) / 2 - 0.5
+    move = centre_shift_px(cam, lens_displacements_mm(cam, distortion_px=2.0))
+    radius = np.hypot(*(ideal - axis).transpose(2, 0, 1))
+    far = np.unravel_index(np.argmax(radius), radius.shape)
+    np.testing.assert_allclose(move[far], 2.0 * (ideal[far] - axis) / radius[far], atol=1e-9)
+    outward = ((ideal - axis) * move).sum(-1)
+    assert (outward >= -1e-12).all()
+    jitter = centre_shift_px(cam, lens_displacements_mm(cam, jitter_px=0.2, seed=1))
+    assert float(np.sqrt(np.mean(jitter**2))) == pytest.approx(0.2, rel=0.05)
