@@ -9,7 +9,8 @@ goes atomically to ``OUT/pairs/pair_NNNNN.npz`` (and ``.vti`` on request): a rer
 the pairs already there and says so; a pair that fails (unreadable, wrong size, NaN) is
 logged with its reason and the run goes on. At the end, and after Ctrl-C, the finished
 pairs are gathered into ``OUT/timeseries.zarr`` with the ensemble mean and RMS
-fluctuation (:mod:`plenocl.io.timeseries`), and ``summary.json`` reports pairs processed,
+fluctuation (:mod:`plenocl.io.timeseries`), its summary figures go to ``OUT/figures/``
+(:func:`plenocl.plot.batch_figures`), and ``summary.json`` reports pairs processed,
 skipped and failed, seconds per pair and the stage split.
 
 Pairs are made from frame numbers (:mod:`.pairing`): a missing frame is a gap, reported
@@ -63,6 +64,7 @@ class RunSummary:
     interrupted: bool = False
     store: str | None = None
     ensemble: str | None = None
+    figures: list[str] = field(default_factory=list)
 
     def exit_status(self) -> int:
         """The command's exit status: 130 when interrupted, 1 when a pair failed, else 0."""
@@ -249,9 +251,23 @@ def _ensemble(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> Pa
     return ensemble_field(out, exp["images"]["dt_s"], queue, exp["output"]["vti"], log)
 
 
+def _figures(store: Path, folder: Path, log) -> list[str]:
+    """The store's summary figures (:func:`plenocl.plot.batch_figures`) in ``folder``; a
+    figure that cannot be drawn is reported, and the run's results stand."""
+    from ..plot import batch_figures
+
+    try:
+        written = batch_figures(store, folder)
+    except (ValueError, OSError, RuntimeError) as exc:
+        log(f"summary figures not written: {exc}")
+        return []
+    log(f"summary figures: {', '.join(p.name for p in written)} in {folder}")
+    return [str(p) for p in written]
+
+
 def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:
     """The ensemble correlation if asked for (not after Ctrl-C); gather every finished
-    pair into the store; write ``summary.json``."""
+    pair into the store and draw its summary figures; write ``summary.json``."""
     done = len(summary.processed)
     summary.processed.sort()
     summary.seconds_per_pair = (summary.wall_seconds / done) if done else 0.0
@@ -268,6 +284,7 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
                                   for k, p in fields], "s" if interval else "pair",
                                  ensemble=ensemble)
         summary.store = str(store)
+        summary.figures = _figures(store, out / "figures", log)
     write_json(out / "summary.json", asdict(summary))
     log(f"{done} pair(s) processed ({summary.seconds_per_pair:.1f} s each), "
         f"{len(summary.skipped)} already done, {len(summary.failed)} failed"
