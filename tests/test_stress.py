@@ -35,6 +35,7 @@ from plenocl.io import read_image, read_particles
 from plenocl.pipeline import TrackSettings, track
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
+from plenocl.plot import PlotOptions, plot_file
 from plenocl.reconstruction import FLOAT32_LIMIT, METHODS, preprocess, view_blocks
 from plenocl.reference.weights import ApertureGrid, voxel_weights, weight_matrix
 from plenocl.volumefile import load_volume
@@ -876,6 +877,18 @@ INVALID = [
     ("load-volume-missing", _file(load_volume, "nope.npy"), FileNotFoundError,
      "no such volume file"),
     ("load-volume-not-3d", _file(load_volume, "line.npy"), ValueError, "not a 3-D volume"),
+    # plenocl plot
+    ("plot-missing", _file(plot_file, "nope.npz"), FileNotFoundError, "no such file or store"),
+    ("plot-unknown-file", _file(plot_file, "two_columns.csv"), ValueError,
+     "cannot plot 'two_columns.csv'"),
+    ("plot-figure-format", lambda c: plot_file(c["dir"] / "stack.npy", c["dir"] / "s.jpg"),
+     ValueError, r"name it \.png \(PNG\) or \.pdf"),
+    ("plot-view", lambda c: plot_file(c["dir"] / "stack.npy", c["dir"] / "s.png",
+                                      PlotOptions(view="probe")),
+     ValueError, "is a volume; its views are projection, slices"),
+    ("plot-plane-outside", lambda c: plot_file(c["dir"] / "stack.npy", c["dir"] / "s.png",
+                                               PlotOptions(view="slices", at=[99.0])),
+     ValueError, "a plane at 99 voxel is outside the grid"),
 ]
 
 

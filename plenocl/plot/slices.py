@@ -33,7 +33,16 @@ def colour_limits(*fields: np.ndarray, symmetric: bool = False) -> tuple[float, 
         lim = float(np.percentile(np.abs(both), 99)) or 1.0
         return -lim, lim
     lo, hi = (float(v) for v in np.percentile(both, [1, 99]))
-    return lo, hi if hi > lo else lo + 1e-12
+    return widened(lo, hi)
+
+
+def widened(lo: float, hi: float) -> tuple[float, float]:
+    """``(lo, hi)``, or a range of ±5 % about it where the values are (nearly) one: a
+    uniform field gets one colour and readable ticks."""
+    if hi - lo > 1e-6 * max(abs(lo), abs(hi)) and hi > lo:
+        return lo, hi
+    pad = 0.05 * abs(lo) or 0.5
+    return lo - pad, lo + pad
 
 
 def _panel_grid(n: int, columns: int, width: float, height: float):
@@ -45,9 +54,13 @@ def _panel_grid(n: int, columns: int, width: float, height: float):
 
 def _panel_shape(data: VectorData, axis: str) -> tuple[float, float]:
     """Width and height (inches) of one panel that keeps the plane's aspect ratio."""
+    return 3.6, 2.4 * _aspect(data, axis) + 0.75
+
+
+def _aspect(data: VectorData, axis: str) -> float:
+    """A plane's height over its width (within 0.3 to 1.5)."""
     h, v = (np.ptp(data.coordinate(a)) or 1.0 for a in IN_PLANE[axis])
-    ratio = float(np.clip(v / h, 0.3, 1.5))
-    return 3.6, 2.4 * ratio + 0.75
+    return float(np.clip(v / h, 0.3, 1.5))
 
 
 def contour(ax, h, v, values, limits, cmap: str):
@@ -74,7 +87,8 @@ def arrows(ax, h, v, comp_h, comp_v, unit: str, max_per_side: int = ARROWS_PER_S
     spacing = step * min(abs(float(np.diff(h[:2])[0])) if len(h) > 1 else 1.0,
                          abs(float(np.diff(v[:2])[0])) if len(v) > 1 else 1.0)
     q = ax.quiver(hh[sl], vv[sl], comp_h[sl], comp_v[sl], angles="xy", scale_units="xy",
-                  scale=ref / (0.9 * spacing), width=0.004, color="k", pivot="middle")
+                  scale=ref / (0.9 * spacing), width=0.005, headwidth=4, headlength=5,
+                  color="k", pivot="middle")
     if key:
         ax.quiverkey(q, 0.80, 1.03, ref, f"{ref:g} {unit}", labelpos="E",
                      coordinates="axes", fontproperties={"size": 7})
@@ -101,8 +115,8 @@ def slices_figure(path: str | Path, data: VectorData, axis: str = "z",
     if values is None:
         values, value_label = data.component(component), data.label(component)
     picks = plane_indices(data.coordinate(axis), at, count)
-    width, height = _panel_shape(data, axis)
-    plt, fig, axes = _panel_grid(1, len(picks), width, height)
+    width, _ = _panel_shape(data, axis)
+    plt, fig, axes = _panel_grid(1, len(picks), width, width * _aspect(data, axis) + 0.4)
     limits = colour_limits(values)
     for col, k in enumerate(picks):
         ax = axes[0, col]
@@ -113,7 +127,14 @@ def slices_figure(path: str | Path, data: VectorData, axis: str = "z",
         pos = data.coordinate(axis)[k]
         _style(ax, data, axis, f"{data.label(axis).split(' (')[0]} = {pos:.2f} mm")
     fig.colorbar(filled, ax=axes, label=value_label, shrink=0.8)
+    _note_gaps(fig, values)
     return save_figure(fig, path)
+
+
+def _note_gaps(fig, values: np.ndarray) -> None:
+    """Say what the grey areas are, where there are any."""
+    if not np.isfinite(values).all():
+        fig.suptitle("grey: no valid vector (or no whole derivative stencil)", fontsize=8)
 
 
 def comparison_figure(path: str | Path, data: VectorData, measured: np.ndarray,
@@ -147,4 +168,5 @@ def comparison_figure(path: str | Path, data: VectorData, measured: np.ndarray,
             _style(axes[row, col], data, axis, f"{name}\n{pos}")
     fig.colorbar(filled, ax=axes[:, :2], label=value_label, shrink=0.8, location="left")
     fig.colorbar(err_fill, ax=axes[:, 2], label=f"plenocl - truth ({unit})", shrink=0.8)
+    _note_gaps(fig, measured)
     return save_figure(fig, path)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.plotting import pyplot, save_figure
+from .slices import widened
 
 #: Tracks drawn at most (the longest first): more make a tangle.
 MAX_TRACKS = 2000
@@ -36,6 +37,7 @@ def tracks_figure(path: str | Path, positions: np.ndarray, velocities: np.ndarra
     ax = fig.add_subplot(projection="3d")
     lines = Line3DCollection(segments, cmap="viridis", linewidths=1.1)
     lines.set_array(np.asarray(speeds))
+    lines.set_clim(*widened(float(np.min(speeds)), float(np.max(speeds))))
     ax.add_collection3d(lines)
     every = np.concatenate(segments)
     lo, hi = every.min(axis=0), every.max(axis=0)

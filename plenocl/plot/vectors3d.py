@@ -11,6 +11,7 @@ import numpy as np
 from ..io.plotting import pyplot, save_figure
 from .data import VectorData
 from .planes import reference_speed, thinning_step
+from .slices import widened
 
 #: Arrows of a 3-D vector figure, at most.
 MAX_ARROWS = 300
@@ -85,7 +86,7 @@ def vectors_figure(path: str | Path, data: VectorData, colour: str = "speed",
     cmap = "coolwarm" if colour != "speed" and lo < 0 < hi else "viridis"
     if cmap == "coolwarm":
         lo, hi = -max(-lo, hi), max(-lo, hi)
-    norm = plt.Normalize(lo, hi if hi > lo else lo + 1e-12)
+    norm = plt.Normalize(*widened(lo, hi))
     rgba = plt.get_cmap(cmap)(norm(col))
     ax.quiver(*points.T, *(vectors * scale).T, colors=np.concatenate(
         [rgba, np.repeat(rgba, 2, axis=0)]), linewidth=1.3, arrow_length_ratio=0.3)
