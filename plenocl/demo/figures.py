@@ -13,7 +13,7 @@ import numpy as np
 from ..io.plotting import pyplot, save_png
 from ..plot.data import VectorData
 from ..plot.derivatives import vorticity_magnitude
-from ..plot.slices import comparison_figure
+from ..plot.slices import DERIVATIVE_GAPS, comparison_figure
 from ..plot.vectors3d import isosurface_figure, vectors_figure
 
 #: The figures :func:`boundary_layer_figures` writes.
@@ -53,7 +53,8 @@ def boundary_layer_figures(out: Path, fields, z_wall: float, summary: dict,
     vort_m, vort_t = (vorticity_magnitude(f.velocity, f.valid, f.x, f.y, f.z)
                       for f in (measured, truth))
     comparison_figure(out / "fig_vorticity.png", measured, vort_m, vort_t,
-                      "vorticity magnitude |ω| (1/s)", "x", truth_label=label)
+                      "vorticity magnitude |ω| (1/s)", "x", truth_label=label,
+                      gap_note=DERIVATIVE_GAPS)
     levels = [round(f * u_inf, 2) for f in (0.6, 0.75, 0.9)]
     isosurface_figure(out / "fig_iso_velocity.png", measured, measured.component("v"),
                       levels, measured.label("v"),
@@ -73,7 +74,8 @@ def fluctuations(data: VectorData) -> VectorData:
     counts = data.valid.sum(axis=(1, 2))
     means = np.where(counts > 0, np.nansum(vel, axis=(2, 3)) / np.maximum(counts, 1), 0.0)
     return replace(data.with_velocity(data.velocity - means[:, :, None, None]),
-                   component_labels=tuple(f"{c}'" for c in data.component_labels))
+                   component_labels=tuple(c.replace(" ", "' ", 1) if " " in c else f"{c}'"
+                                          for c in data.component_labels))
 
 
 def profile_figure(path: Path, depth: np.ndarray, summary: dict, u_inf: float) -> None:

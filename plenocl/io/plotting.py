@@ -40,9 +40,11 @@ def check_figure_path(path: str | Path) -> Path:
 
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     """Write ``fig`` as PNG or PDF (by the suffix, :func:`check_figure_path`) atomically
-    and close it."""
+    and close it; a figure with a layout engine (``constrained_layout``) is saved as laid
+    out, others cropped to their contents (which draws them twice)."""
     path = check_figure_path(path)
+    tight = None if fig.get_layout_engine() is not None else "tight"
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=FIGURE_FORMATS[path.suffix.lower()])
+        fig.savefig(tmp, dpi=dpi, bbox_inches=tight, format=FIGURE_FORMATS[path.suffix.lower()])
     pyplot().close(fig)
     return path

@@ -123,7 +123,7 @@ def plot_file(path: str | Path, out: str | Path | None = None,
 def _field(out: Path, data, view: str, opt: PlotOptions) -> Path:
     from .derivatives import vorticity_magnitude
     from .profiles import profile_figure
-    from .slices import slices_figure
+    from .slices import DERIVATIVE_GAPS, slices_figure
     from .vectors3d import default_levels, isosurface_figure, vectors_figure
 
     if view == "slices":
@@ -138,7 +138,8 @@ def _field(out: Path, data, view: str, opt: PlotOptions) -> Path:
                              "(plenocl piv --dt)")
         mag = vorticity_magnitude(data.velocity, data.valid, data.x, data.y, data.z)
         return slices_figure(out, data, opt.axis, at=opt.at, values=mag,
-                             value_label="vorticity magnitude |ω| (1/s)")
+                             value_label="vorticity magnitude |ω| (1/s)",
+                             gap_note=DERIVATIVE_GAPS)
     values = data.component(opt.component)
     return isosurface_figure(out, data, values, default_levels(values),
                              data.label(opt.component))

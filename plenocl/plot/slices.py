@@ -20,7 +20,10 @@ from .planes import (
 )
 
 #: Arrows per side of a slice, at most.
-ARROWS_PER_SIDE = 16
+ARROWS_PER_SIDE = 12
+#: What the grey areas of a figure are: no vector, or (derivatives) no whole stencil.
+VECTOR_GAPS = "grey: no valid vector"
+DERIVATIVE_GAPS = "grey: no valid vector there (derivatives use no invalid neighbour)"
 
 
 def colour_limits(*fields: np.ndarray, symmetric: bool = False) -> tuple[float, float]:
@@ -106,10 +109,12 @@ def _style(ax, data: VectorData, axis: str, title: str) -> None:
 def slices_figure(path: str | Path, data: VectorData, axis: str = "z",
                   component: str = "speed", at: Sequence[float] | None = None,
                   count: int = 3, values: np.ndarray | None = None,
-                  value_label: str | None = None, vectors: bool = True) -> Path:
+                  value_label: str | None = None, vectors: bool = True,
+                  gap_note: str = VECTOR_GAPS) -> Path:
     """Contour slices normal to ``axis`` (the vector planes nearest ``at`` mm, or
     ``count`` spread evenly) of a component (or ``values`` ``(nz, ny, nx)`` named
-    ``value_label``), with the in-plane vectors thinned and a labelled reference arrow.
+    ``value_label``), with the in-plane vectors thinned and a labelled reference arrow;
+    ``gap_note`` says what grey (NaN) areas are.
     """
     axis = check_axis(axis)
     if values is None:
@@ -127,24 +132,26 @@ def slices_figure(path: str | Path, data: VectorData, axis: str = "z",
         pos = data.coordinate(axis)[k]
         _style(ax, data, axis, f"{data.label(axis).split(' (')[0]} = {pos:.2f} mm")
     fig.colorbar(filled, ax=axes, label=value_label, shrink=0.8)
-    _note_gaps(fig, values)
+    _note_gaps(fig, values, gap_note)
     return save_figure(fig, path)
 
 
-def _note_gaps(fig, values: np.ndarray) -> None:
+def _note_gaps(fig, values: np.ndarray, note: str) -> None:
     """Say what the grey areas are, where there are any."""
     if not np.isfinite(values).all():
-        fig.suptitle("grey: no valid vector (or no whole derivative stencil)", fontsize=8)
+        fig.suptitle(note, fontsize=8)
 
 
 def comparison_figure(path: str | Path, data: VectorData, measured: np.ndarray,
                       truth: np.ndarray, value_label: str, axis: str = "x",
                       count: int = 3, truth_label: str = "truth",
-                      vectors: VectorData | None = None) -> Path:
+                      vectors: VectorData | None = None,
+                      gap_note: str = VECTOR_GAPS) -> Path:
     """Measured, true and their difference (measured - truth) on ``count`` vector planes
     normal to ``axis``: one colour scale for the first two, a symmetric one for the
     difference, the RMS difference of each plane in its title; ``vectors`` (the measured
-    field) adds its in-plane arrows to the measured panels."""
+    field) adds its in-plane arrows to the measured panels; ``gap_note`` says what grey
+    (NaN) areas are."""
     axis = check_axis(axis)
     coord = data.coordinate(axis)
     inner = coord[1:-1] if len(coord) > count + 1 else coord  # faces: one-sided derivatives
@@ -168,5 +175,5 @@ def comparison_figure(path: str | Path, data: VectorData, measured: np.ndarray,
             _style(axes[row, col], data, axis, f"{name}\n{pos}")
     fig.colorbar(filled, ax=axes[:, :2], label=value_label, shrink=0.8, location="left")
     fig.colorbar(err_fill, ax=axes[:, 2], label=f"plenocl - truth ({unit})", shrink=0.8)
-    _note_gaps(fig, measured)
+    _note_gaps(fig, measured, gap_note)
     return save_figure(fig, path)
