@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from plenocl.batch.trackstore import track_variables
 from plenocl.cli.main import main
 from plenocl.grid import Grid
 from plenocl.io.timeseries import write_timeseries
+from plenocl.io.zarrstore import write_store
 from plenocl.plot import PlotOptions, VectorData, batch_figures, plot_file, read_vector_field
 from plenocl.plot.derivatives import derivative, vorticity
 from plenocl.plot.planes import plane_indices, thinning_step
@@ -68,6 +70,7 @@ def files(tmp_path_factory):
     tracks = Tracks.from_measured(measured, np.full(measured.shape, 1e-3),
                                   np.ones(measured.shape[:2]), dt=1e-3, window=5)
     tracks.save(d / "tracks.npz")
+    write_store(d / "tracks.zarr", track_variables(tracks, range(6)))  # a tracking run's
     fields = []
     for k in range(3):
         invalid = [(slice(None), slice(0, 2))] if k == 2 else []
@@ -158,6 +161,7 @@ def test_a_field_read_back_keeps_its_coordinates_and_velocity(files):
     ("vol.npz", [], "projection"),
     ("vol.npz", ["--view", "slices", "--axis", "x", "--at", "0"], "slices"),
     ("tracks.npz", [], "tracks"),
+    ("tracks.zarr", [], "tracks"),
     ("timeseries.zarr", [], "mean"),
     ("timeseries.zarr", ["--view", "probe", "--probe", "1.0", "1.0", "2.0"], "probe"),
     ("timeseries.zarr", ["--view", "valid"], "valid"),
