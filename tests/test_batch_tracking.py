@@ -96,7 +96,10 @@ def test_a_tracked_run_writes_tracks_and_field_that_follow_the_motion(recording)
     used = read_toml(out / "experiment_used.toml")
     assert used["tracking"]["frame_interval_s"] == INTERVAL_S
     assert used["tracking"]["min_length"] == 4 and "iterations" in used["reconstruction"]
-    assert json.loads((out / "summary.json").read_text())["frames"] == 6
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 6
+    assert summary["figures"] == [str(out / "figures" / "tracks.png")]
+    assert (out / "figures" / "tracks.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recording,
