@@ -58,14 +58,15 @@ def boundary_layer_figures(out: Path, fields, z_wall: float, summary: dict,
     levels = [round(f * u_inf, 2) for f in (0.6, 0.75, 0.9)]
     isosurface_figure(out / "fig_iso_velocity.png", measured, measured.component("v"),
                       levels, measured.label("v"),
-                      "iso-surfaces of the streamwise velocity (0.6, 0.75, 0.9 U∞)")
+                      "iso-surfaces of the streamwise velocity (0.6, 0.75, 0.9 U∞)",
+                      arrows=150)
     vort_levels = [float(f"{v:.2g}") for v in np.nanpercentile(vort_m, [50, 75, 90])]
     isosurface_figure(out / "fig_iso_vorticity.png", measured, vort_m, vort_levels,
                       "|ω| (1/s)", "iso-surfaces of the vorticity magnitude "
                       "(its 50th, 75th, 90th percentiles)")
     vectors_figure(out / "fig_vectors3d.png", fluctuations(measured), colour="v",
                    title="velocity fluctuations about the mean profile (each wall-parallel "
-                         "plane's mean removed), to scale")
+                         "plane's mean removed)")
 
 
 def fluctuations(data: VectorData) -> VectorData:

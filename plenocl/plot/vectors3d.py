@@ -55,31 +55,36 @@ def _label3d(ax, data: VectorData) -> None:
 
 
 def _reference_arrow(ax, data: VectorData, ref: float, scale: float) -> None:
-    """A reference arrow along x at the top corner with its label above its middle
+    """A reference arrow along x at the top corner with its label before its tail
     (clear of the arrow and its head)."""
     x0, y0, z0 = float(np.min(data.x)), float(np.min(data.y)), float(np.max(data.z))
     length = ref * scale
     ax.quiver([x0], [y0], [z0], [length], [0], [0], color="k", linewidth=1.8,
               arrow_length_ratio=0.25)
-    lift = 0.08 * (float(np.ptp(data.z)) or 1.0)
-    ax.text(x0 + 0.5 * length, y0, z0 + lift, f"{ref:g} {data.unit}", fontsize=8,
-            ha="center", va="bottom")
+    # +x runs to the right in the default view: the label ends left of the tail
+    ax.text(x0, y0, z0, f"{ref:g} {data.unit}  ", fontsize=8, ha="right", va="center")
+
+
+def arrow_scale(data: VectorData, vectors: np.ndarray, step: int) -> tuple[float, float]:
+    """A round reference speed for ``vectors`` and the arrows' scale (mm per unit of
+    velocity) that draws it 0.9 of the thinned vectors' spacing long."""
+    ref = reference_speed(np.linalg.norm(vectors, axis=1))
+    spacing = step * min((abs(float(c[1] - c[0])) for c in (data.x, data.y, data.z)
+                          if len(c) > 1), default=1.0)
+    return ref, 0.9 * spacing / ref
 
 
 def vectors_figure(path: str | Path, data: VectorData, colour: str = "speed",
                    max_arrows: int = MAX_ARROWS, title: str | None = None) -> Path:
     """The field's vectors in 3-D, thinned to at most ``max_arrows``, to scale, coloured
     by ``colour`` (a component or the speed) with a colour bar, and a reference arrow
-    labelled beside its tip."""
+    labelled before its tail."""
     plt, fig, ax = _axes3d(data)
     points, vectors, step = thinned(data, max_arrows)
     if not len(points):
         raise ValueError("the field has no valid vector to draw")
+    ref, scale = arrow_scale(data, vectors, step)
     mags = np.linalg.norm(vectors, axis=1)
-    ref = reference_speed(mags)
-    spacing = step * min(abs(float(c[1] - c[0])) for c in (data.x, data.y, data.z)
-                         if len(c) > 1)
-    scale = 0.9 * spacing / ref  # mm of arrow per unit of velocity
     col = mags if colour == "speed" else vectors[:, "uvw".index(colour)]
     lo, hi = (-1, 1) if not col.size else (float(np.percentile(col, 2)),
                                             float(np.percentile(col, 98)))
@@ -93,9 +98,13 @@ def vectors_figure(path: str | Path, data: VectorData, colour: str = "speed",
     _reference_arrow(ax, data, ref, scale)
     fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.6, pad=0.12,
                  label=data.label(colour))
-    every = "every vector" if step == 1 else f"one vector in {step} along each axis"
-    ax.set_title(title or f"{len(points)} vectors ({every}), to scale", fontsize=9)
+    count = f"{len(points)} vectors ({_every(step)}), to scale"
+    ax.set_title(f"{title}\n{count}" if title else count, fontsize=9)
     return save_figure(fig, path)
+
+
+def _every(step: int) -> str:
+    return "every vector" if step == 1 else f"one vector in {step} along each axis"
 
 
 def _filled(values: np.ndarray) -> np.ndarray:
@@ -130,9 +139,11 @@ def isosurfaces(values: np.ndarray, levels: Sequence[float], data: VectorData):
 
 def isosurface_figure(path: str | Path, data: VectorData, values: np.ndarray,
                       levels: Sequence[float], value_label: str,
-                      title: str | None = None) -> Path:
+                      title: str | None = None, arrows: int = 0) -> Path:
     """Iso-surfaces of ``values`` at ``levels`` (semi-transparent, one colour each, in
-    a legend with their values)."""
+    a legend with their values); with ``arrows``, the field's vectors thinned to at most
+    that many drawn over them in black, to scale, with a reference arrow (the paper's
+    Fig. 14)."""
     from matplotlib.patches import Patch
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
@@ -148,6 +159,14 @@ def isosurface_figure(path: str | Path, data: VectorData, values: np.ndarray,
                              + ("" if len(tris) else " (not reached)")))
     ax.legend(handles=handles, title=value_label, fontsize=7, title_fontsize=8,
               loc="upper left", bbox_to_anchor=(0.0, 1.0))
+    if arrows:
+        points, vectors, step = thinned(data, arrows)
+        if len(points):
+            ref, scale = arrow_scale(data, vectors, step)
+            ax.quiver(*points.T, *(vectors * scale).T, color="k", linewidth=0.7,
+                      arrow_length_ratio=0.3)
+            _reference_arrow(ax, data, ref, scale)
+            title = (title or "") + f"\n{len(points)} vectors ({_every(step)}), to scale"
     ax.set_title(title or f"iso-surfaces of {value_label}", fontsize=9)
     return save_figure(fig, path)
 
