@@ -60,10 +60,11 @@ def boundary_layer_figures(out: Path, fields, z_wall: float, summary: dict,
                       levels, measured.label("v"),
                       "iso-surfaces of the streamwise velocity (0.6, 0.75, 0.9 U∞)",
                       arrows=150)
-    vort_levels = [float(f"{v:.2g}") for v in np.nanpercentile(vort_m, [50, 75, 90])]
+    # the strongest tenth to third of the field: lower levels fill the volume
+    vort_levels = [float(f"{v:.2g}") for v in np.nanpercentile(vort_m, [70, 85, 95])]
     isosurface_figure(out / "fig_iso_vorticity.png", measured, vort_m, vort_levels,
                       "|ω| (1/s)", "iso-surfaces of the vorticity magnitude "
-                      "(its 50th, 75th, 90th percentiles)")
+                      "(its 70th, 85th, 95th percentiles)")
     vectors_figure(out / "fig_vectors3d.png", fluctuations(measured), colour="v",
                    title="velocity fluctuations about the mean profile (each wall-parallel "
                          "plane's mean removed)")

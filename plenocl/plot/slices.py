@@ -97,6 +97,11 @@ def arrows(ax, h, v, comp_h, comp_v, unit: str, max_per_side: int = ARROWS_PER_S
                      coordinates="axes", fontproperties={"size": 7})
 
 
+def _where(data: VectorData, axis: str, pos: float) -> str:
+    """``"x spanwise = 1.25 mm"`` (never ``-0.00``)."""
+    return f"{data.label(axis).split(' (')[0]} = {round(float(pos), 2) + 0.0:.2f} mm"
+
+
 def _style(ax, data: VectorData, axis: str, title: str) -> None:
     h_axis, v_axis = IN_PLANE[axis]
     ax.set_xlabel(data.label(h_axis), fontsize=8)
@@ -130,7 +135,7 @@ def slices_figure(path: str | Path, data: VectorData, axis: str = "z",
         if vectors:
             arrows(ax, h, v, ch, cv, data.unit)
         pos = data.coordinate(axis)[k]
-        _style(ax, data, axis, f"{data.label(axis).split(' (')[0]} = {pos:.2f} mm")
+        _style(ax, data, axis, _where(data, axis, pos))
     fig.colorbar(filled, ax=axes, label=value_label, shrink=0.8)
     _note_gaps(fig, values, gap_note)
     return save_figure(fig, path)
@@ -162,7 +167,7 @@ def comparison_figure(path: str | Path, data: VectorData, measured: np.ndarray,
     err_limits = colour_limits(error, symmetric=True)
     for row, k in enumerate(picks):
         h, v, ch, cv = in_plane_components(vectors or data, axis, k)
-        pos = f"{data.label(axis).split(' (')[0]} = {data.coordinate(axis)[k]:.2f} mm"
+        pos = _where(data, axis, data.coordinate(axis)[k])
         filled = contour(axes[row, 0], h, v, take_plane(measured, axis, k), limits, "viridis")
         if vectors is not None:
             arrows(axes[row, 0], h, v, ch, cv, vectors.unit, key=row == 0)
