@@ -126,7 +126,8 @@ def test_thinning_caps_the_arrow_count_with_the_smallest_step(cap):
 def test_slices_are_vector_planes_and_a_plane_outside_is_refused():
     coord = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
     assert plane_indices(coord, [0.2, -0.9, 1.2]) == [2, 0, 4]
-    assert plane_indices(coord) == [0, 2, 4]
+    assert plane_indices(coord) == [1, 2, 3]  # inside the faces
+    assert plane_indices(coord[:4]) == [0, 2, 3] and plane_indices(coord, count=2) == [1, 3]
     with pytest.raises(ValueError, match=r"outside the grid, which spans -1 to 1 mm"):
         plane_indices(coord, [1.5])
 

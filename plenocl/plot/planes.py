@@ -17,11 +17,13 @@ IN_PLANE = {"z": ("x", "y"), "y": ("x", "z"), "x": ("y", "z")}
 def plane_indices(coord: np.ndarray, at: Sequence[float] | None = None,
                   count: int = 3, unit: str = "mm") -> list[int]:
     """Indices of the planes nearest to the positions ``at`` (in ``unit``), or ``count``
-    planes spread evenly from the first to the last; a position outside the grid is
-    refused with the range the grid spans."""
+    planes spread evenly over the grid, inside its faces where it has more than
+    ``count + 1`` (a face's vectors and derivatives are the least certain); a position
+    outside the grid is refused with the range the grid spans."""
     coord = np.asarray(coord, float)
     if at is None:
-        return [int(i) for i in np.unique(np.linspace(0, len(coord) - 1,
+        first, last = (1, len(coord) - 2) if len(coord) > count + 1 else (0, len(coord) - 1)
+        return [int(i) for i in np.unique(np.linspace(first, last,
                                                       min(count, len(coord))).round())]
     lo, hi = float(coord.min()), float(coord.max())
     half = 0.5 * abs(float(coord[1] - coord[0])) if len(coord) > 1 else 0.0

@@ -158,9 +158,7 @@ def comparison_figure(path: str | Path, data: VectorData, measured: np.ndarray,
     field) adds its in-plane arrows to the measured panels; ``gap_note`` says what grey
     (NaN) areas are."""
     axis = check_axis(axis)
-    coord = data.coordinate(axis)
-    inner = coord[1:-1] if len(coord) > count + 1 else coord  # faces: one-sided derivatives
-    picks = [int(np.argmin(np.abs(coord - c))) for c in inner[plane_indices(inner, None, count)]]
+    picks = plane_indices(data.coordinate(axis), None, count)
     plt, fig, axes = _panel_grid(len(picks), 3, *_panel_shape(data, axis))
     limits = colour_limits(measured, truth)
     error = measured - truth
