@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.plotting import pyplot, save_figure
-from .data import COMPONENTS, VectorData, check_axis, check_component
+from .data import VectorData, check_axis, check_component
 
 #: A colour per component, the same in every figure.
 COLOURS = {"u": "tab:blue", "v": "tab:red", "w": "tab:green", "speed": "k"}
@@ -56,4 +56,4 @@ def profile_figure(path: str | Path, data: VectorData, axis: str = "z",
     return save_figure(fig, path)
 
 
-__all__ = ["COMPONENTS", "plane_means", "profile_figure"]
+__all__ = ["COLOURS", "plane_means", "profile_figure"]
