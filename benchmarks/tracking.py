@@ -44,8 +44,8 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.tracking_section import simulate_series, track_errors  # noqa: E402
-from plenocl.demo.figures import tracks_figure  # noqa: E402
 from plenocl.pipeline import TrackSettings, smooth_tracks  # noqa: E402
+from plenocl.plot.tracks import tracks_figure  # noqa: E402
 from plenocl.ptv import Tracks  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
@@ -78,7 +78,7 @@ def _rows(motion: Motion, ppm: float, args, cam, grid, proj, queue) -> None:
     tracks = track(series.frames, proj, dt=1.0)
     row = track_errors(tracks, series.truth, grid, time.perf_counter() - t0)
     if args.figure:
-        tracks_figure(Path(args.figure), tracks, "mm per frame")
+        tracks_figure(Path(args.figure), tracks.positions, tracks.velocities, "mm per frame")
         args.figure = None
     for chain in ("smoothed", "measured"):
         e = row[chain]

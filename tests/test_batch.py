@@ -13,6 +13,7 @@ from plenocl.batch import load_experiment
 from plenocl.cli.main import main
 from plenocl.io import write_tiff
 from plenocl.io.tomlfile import read_toml
+from plenocl.plot import SUMMARY_FIGURES
 from plenocl.vectorfile import read_npz
 
 EXPERIMENT = """
@@ -64,6 +65,9 @@ def test_run_processes_pairs_skips_finished_ones_and_reports_failures(experiment
     used = read_toml(out / "experiment_used.toml")
     assert used["run"]["plenocl_version"] == plenocl.__version__
     assert used["reconstruction"]["iterations"] == 20 and used["images"]["dt_s"] == 1e-3
+    # the run's summary figures (tests/test_plot.py checks what they draw)
+    assert sorted(p.name for p in (out / "figures").iterdir()) == sorted(SUMMARY_FIGURES)
+    assert sorted(summary["figures"]) == sorted(str(out / "figures" / n) for n in SUMMARY_FIGURES)
     # a rerun redoes nothing that was finished
     summary2 = plenocl.run(experiment / "experiment.toml")
     assert summary2.skipped == [0, 1] and summary2.processed == [] and 2 in summary2.failed

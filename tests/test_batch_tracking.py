@@ -99,6 +99,8 @@ def test_a_tracked_run_writes_tracks_and_field_that_follow_the_motion(recording)
     saved = json.loads((out / "summary.json").read_text())
     assert saved["frames"] == 6
     assert saved["dropped_particles"] == summary.dropped_particles == tracks.dropped
+    assert saved["figures"] == [str(out / "figures" / "tracks.png")]
+    assert (out / "figures" / "tracks.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recording,

@@ -58,8 +58,11 @@ def test_the_layout_option_belongs_to_the_boundary_layer_demo(tmp_path, capsys):
 
 
 def test_demo_writes_field_figures_and_no_partial_files(demo_dir):
-    for name in ("field.vti", "field.npz", "camera_calibrated.toml", "fig_profile.png",
-                 "fig_streamwise.png", "fig_vorticity.png", "fig_vectors3d.png"):
+    from plenocl.demo.figures import FIGURES
+
+    for name in ("field.vti", "field.npz", "camera_calibrated.toml", *FIGURES):
+        assert (demo_dir / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" or \
+            not name.endswith(".png"), name
         assert (demo_dir / name).stat().st_size > 0, name
     assert not list(demo_dir.glob(".*.part*"))
     assert "<ImageData" in (demo_dir / "field.vti").read_text(errors="ignore")[:2000]

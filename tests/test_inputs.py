@@ -167,6 +167,7 @@ def test_the_batch_records_each_failed_pair_with_the_files_name(tmp_path, small_
     """A blank or saturated frame fails its pair before any reconstruction, named; an
     exposure the reconstruction refuses (all dark after the dark frame) names its own
     file; no pair processed: no seconds per pair."""
+    from plenocl.batch.layout import pair_file
     from plenocl.batch.run import run
     from plenocl.batch.worker import PairProcessor, PairTask, RunSettings
     from plenocl.pipeline import PairSettings
@@ -192,7 +193,7 @@ def test_the_batch_records_each_failed_pair_with_the_files_name(tmp_path, small_
     worker = PairProcessor(tmp_path / "results", settings)
     write_tiff(raw_dir / "brighter.tif", np.asarray(worker.dark * 2, np.uint16))
     outcome = worker(PairTask(0, str(raw_dir / "brighter.tif"), str(raw_dir / "sparse.tif"),
-                              str(tmp_path / "results" / "pairs" / "x.npz")))
+                              str(pair_file(tmp_path / "results", 0))))
     assert outcome.error.startswith("sparse.tif: raw_b: the image is blank"), outcome.error
 
 

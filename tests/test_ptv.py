@@ -262,10 +262,10 @@ def test_tracks_files_round_trip_and_open_as_poly_lines(tmp_path):
 
 
 def test_the_tracks_figure_is_written(tmp_path):
-    from plenocl.demo.figures import tracks_figure
+    from plenocl.plot.tracks import plot_tracks
 
     grid, tracks = _grid_tracks(lambda p: np.tile([0.1, 0.0, 0.05], (len(p), 1)), n=30)
-    tracks_figure(tmp_path / "tracks.png", tracks)
+    plot_tracks(tmp_path / "tracks.png", tracks)
     assert (tmp_path / "tracks.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

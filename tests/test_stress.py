@@ -39,6 +39,7 @@ from plenocl.pipeline import TrackSettings, track
 from plenocl.pipeline.frames import load_frame
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
+from plenocl.plot import PlotOptions, plot_file
 from plenocl.reconstruction import (
     FLOAT32_LIMIT,
     METHODS,
@@ -950,6 +951,18 @@ INVALID = [
      ValueError, "is a file, not a folder"),
     ("read-field-table", _file(read_field, "two_columns.csv"), ValueError,
      "reads fields back from .npz and .h5"),
+    # plenocl plot
+    ("plot-missing", _file(plot_file, "nope.npz"), FileNotFoundError, "no such file or store"),
+    ("plot-unknown-file", _file(plot_file, "two_columns.csv"), ValueError,
+     "cannot plot 'two_columns.csv'"),
+    ("plot-figure-format", lambda c: plot_file(c["dir"] / "stack.npy", c["dir"] / "s.jpg"),
+     ValueError, r"name it \.png \(PNG\) or \.pdf"),
+    ("plot-view", lambda c: plot_file(c["dir"] / "stack.npy", c["dir"] / "s.png",
+                                      PlotOptions(view="probe")),
+     ValueError, "is a volume; its views are projection, slices"),
+    ("plot-plane-outside", lambda c: plot_file(c["dir"] / "stack.npy", c["dir"] / "s.png",
+                                               PlotOptions(view="slices", at=[99.0])),
+     ValueError, "a plane at 99 voxel is outside the grid"),
 ]
 
 

@@ -16,7 +16,8 @@ folder. The pairs' settings go to the workers as an object
 ``[output] formats``); a pair that fails (unreadable, wrong size, NaN) is logged with
 its reason and the run goes on. At the end, and after Ctrl-C, the finished pairs are
 gathered into ``OUT/timeseries.zarr`` with the ensemble mean and RMS fluctuation
-(:mod:`plenocl.io.timeseries`; the store records each pair's digest), and
+(:mod:`plenocl.io.timeseries`; the store records each pair's digest), its summary
+figures go to ``OUT/figures/`` (:func:`plenocl.plot.batch_figures`), and
 ``summary.json`` reports pairs processed, skipped, rescaled, redone and failed, seconds
 per pair and the stage split.
 
@@ -100,6 +101,7 @@ class RunSummary:
     interrupted: bool = False
     store: str | None = None
     ensemble: str | None = None
+    figures: list[str] = field(default_factory=list)
 
     def exit_status(self) -> int:
         """The command's exit status: 130 when interrupted, 1 when a pair failed, else 0."""
@@ -338,9 +340,23 @@ def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:
         summary.stage_seconds[key] = summary.stage_seconds.get(key, 0.0) + value
 
 
+def _figures(store: Path, folder: Path, log) -> list[str]:
+    """The store's summary figures (:func:`plenocl.plot.batch_figures`) in ``folder``; a
+    figure that cannot be drawn is reported, and the run's results stand."""
+    from ..plot import batch_figures
+
+    try:
+        written = batch_figures(store, folder)
+    except (ValueError, OSError, RuntimeError) as exc:
+        log(f"summary figures not written: {exc}")
+        return []
+    log(f"summary figures: {', '.join(p.name for p in written)} in {folder}")
+    return [str(p) for p in written]
+
+
 def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None:
     """The ensemble correlation if asked for (not after Ctrl-C); gather every finished
-    pair into the store; write ``summary.json``."""
+    pair into the store and draw its summary figures; write ``summary.json``."""
     done = len(summary.processed)
     summary.processed.sort()
     summary.seconds_per_pair = (summary.wall_seconds / done) if done else 0.0
@@ -364,6 +380,7 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
                                  record=store_record({k: m for k, (_, m) in metas.items()},
                                                      ensemble))
         summary.store = str(store)
+        summary.figures = _figures(store, out / "figures", log)
     write_json(out / "summary.json", asdict(summary))
     each = f" ({summary.seconds_per_pair:.1f} s each)" if done else ""
     log(f"{done} pair(s) processed{each}, "

@@ -8,7 +8,8 @@ job: in this process, or as one task on a Dask cluster (``--workers``/``--schedu
 tracking is sequential, so one worker runs it). The run writes ``OUT/tracks.npz``
 (:meth:`plenocl.Tracks.save`), ``OUT/tracks.vtu`` (ParaView poly-lines) and
 ``OUT/tracks.zarr`` (the tracks and their binned field, :mod:`.trackstore`), each
-atomically, and ``summary.json``.
+atomically, ``OUT/figures/tracks.png`` (the tracks coloured by speed) and
+``summary.json``.
 
 Resume is :class:`plenocl.pipeline.resume.StageRunner`'s: two stages, ``tracks`` (the
 tracking) and ``field`` (the binned field, the ParaView file and the store), keyed on
@@ -73,6 +74,7 @@ class TrackingSummary:
     wall_seconds: float = 0.0
     workers: int = 1
     store: str | None = None
+    figures: list[str] = field(default_factory=list)
 
     def exit_status(self) -> int:
         """The command's exit status: 0 (a tracking run that fails raises instead)."""
@@ -135,6 +137,7 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     tracks = Tracks.load(out / TRACKS)
     summary.tracks, summary.dropped_particles = len(tracks.positions), tracks.dropped
     summary.store = str(out / STORE)
+    summary.figures = _figures(out, log)
     write_json(out / "summary.json", asdict(summary))
     log(f"{summary.tracks} tracks over {len(frames)} frames in {out / TRACKS}, "
         f"{out / LINES} and {out / STORE}"
@@ -277,6 +280,20 @@ def read_frames(job: TrackJob, camera) -> list[np.ndarray]:
                              f"interval: replace {Path(path).name}, or track the frames "
                              "before or after it ([images] first_frame, pattern)") from exc
     return frames
+
+
+def _figures(out: Path, log) -> list[str]:
+    """The tracks in 3-D, coloured by speed (``OUT/figures/tracks.png``); a figure that
+    cannot be drawn is reported, and the run's results stand."""
+    from ..plot.tracks import plot_tracks
+
+    try:
+        path = plot_tracks(out / "figures" / "tracks.png", Tracks.load(out / TRACKS))
+    except (ValueError, OSError, RuntimeError) as exc:
+        log(f"tracks figure not written: {exc}")
+        return []
+    log(f"tracks figure: {path}")
+    return [str(path)]
 
 
 def _write_outputs(out: Path, frames: dict[int, Path], opts: TrackingOptions, camera,

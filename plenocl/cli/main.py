@@ -1,5 +1,5 @@
 """The ``plenocl`` command line: devices | simulate | calibrate | refocus | reconstruct |
-piv | run | demo | bench (and white, grid)."""
+piv | run | plot | demo | bench (and white, grid)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from .batch import add_run_parser
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser, add_refocus_parser
 from .outputs import check_outputs
+from .plot import add_plot_parser
 from .simulate import add_simulate_parsers
 from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 
@@ -120,6 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_reconstruct_parser(sub)
     add_piv_parser(sub)
     add_run_parser(sub)
+    add_plot_parser(sub)
     add_demo_parser(sub)
     add_bench_parser(sub)
     return parser
@@ -186,8 +188,8 @@ def _say_device(args: argparse.Namespace) -> None:
     """``-v``: the device the command's default choice gives (or the one named)."""
     from ..device import create_context, fallback_note
 
-    if args.command in ("devices", "run"):
-        return  # devices lists them all; a run's workers choose their own
+    if args.command in ("devices", "run", "plot"):
+        return  # devices lists them all; a run's workers choose their own; plot uses none
     dev = create_context(args.device).devices[0]
     print(f"plenocl {args.command}: OpenCL device {dev.name.strip()} on "
           f"{dev.platform.name.strip()}", file=sys.stderr)

@@ -167,13 +167,14 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     run.run("reconstruction_mart", ["vol_a_mart.npz"],
             lambda: _stage_mart(run, sc, cam, queue))
     run.run("piv", ["field.npz", "field.vti"], lambda: _stage_piv(run, sc, cam, settings, queue))
-    summary = evaluate(run, sc, flow)
+    truths = field_truths(run.out / "field.npz", sc, flow)  # the flow's slow part, once
+    summary = evaluate(run, sc, flow, truths)
     if figures:
-        from .figures import boundary_layer_figures
+        from .figures import FIGURES, boundary_layer_figures
 
-        field = run.out / "field.npz"
-        run.run("figures", ["fig_profile.png"],
-                lambda: boundary_layer_figures(run.out, _averaged_fields(field, sc, flow),
+        meas, _, averaged, valid, coords = truths
+        run.run("figures", list(FIGURES),
+                lambda: boundary_layer_figures(run.out, (meas, averaged, valid, coords),
                                                sc.z_wall, summary, U_INF))
     summary["seconds"] = run.timings
     write_json(run.path("summary.json"), summary, sort_keys=True)
@@ -293,13 +294,15 @@ def measured_and_true(field: Path, sc: Scenario, flow: CameraFrameFlow):
     return meas, true, res.valid & np.all(np.isfinite(meas), 0), (x, y, z)
 
 
-def _averaged_fields(field: Path, sc: Scenario, flow: CameraFrameFlow):
+def field_truths(field: Path, sc: Scenario, flow: CameraFrameFlow):
     """:func:`measured_and_true` with the truth averaged over each final window (what a
-    window measures, and what the headline lateral and depth errors compare with)."""
+    window measures, and what the headline lateral and depth errors compare with):
+    ``(measured, point truth, window-averaged truth, valid, (x, y, z))``."""
     from ..vectorfile import read_npz
 
-    meas, _, valid, coords = measured_and_true(field, sc, flow)
-    return meas, window_averaged(read_npz(field)[0].window, coords, sc, flow), valid, coords
+    meas, true, valid, coords = measured_and_true(field, sc, flow)
+    averaged = window_averaged(read_npz(field)[0].window, coords, sc, flow)
+    return meas, true, averaged, valid, coords
 
 
 def window_averaged(window, coords, sc: Scenario, flow: CameraFrameFlow, n: int = 3):
@@ -335,14 +338,13 @@ def lateral_depth_errors(meas, truths: dict, valid, sc: Scenario) -> dict:
     return out
 
 
-def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow) -> dict:
-    """Errors against the truth, as fractions of ``U∞``, and the reconstruction's recovery."""
-    from ..vectorfile import read_npz
-
-    field = run.out / "field.npz"
-    meas, true, valid, coords = measured_and_true(field, sc, flow)
+def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow, truths=None) -> dict:
+    """Errors against the truth, as fractions of ``U∞``, and the reconstruction's
+    recovery; ``truths``: :func:`field_truths` of the run's field, if already known."""
+    if truths is None:
+        truths = field_truths(run.out / "field.npz", sc, flow)
+    meas, true, averaged, valid, coords = truths
     z = coords[2]
-    averaged = window_averaged(read_npz(field)[0].window, coords, sc, flow)
     err = np.sqrt(np.sum((meas - true) ** 2, axis=0))
     prof_meas = np.array([np.mean(meas[1, k][valid[k]]) for k in range(len(z))])
     prof_spread = np.array([np.std(meas[1, k][valid[k]]) for k in range(len(z))])

@@ -24,6 +24,7 @@ from ..flows import displace
 from ..io.atomic import write_json
 from ..particles import random_particles
 from ..pipeline import TrackSettings, bin_tracks, process_pair, track
+from ..plot.tracks import plot_tracks
 from ..projection import Projector
 from ..simulate import simulate_image
 from ..vectorfile import save_field
@@ -37,7 +38,6 @@ from .boundary_layer import (
     sensor_options,
     window_averaged,
 )
-from .figures import tracks_figure
 
 #: Frames of the recording.
 FRAMES = 8
@@ -62,7 +62,7 @@ def run_tracking(out_dir: str | Path, frames: int = FRAMES, queue=None, seed: in
     seconds = time.perf_counter() - t0
     tracks.save(out / "tracks.npz")
     tracks.save(out / "tracks.vtu")
-    tracks_figure(out / "fig_tracks.png", tracks, "mm/s")
+    plot_tracks(out / "fig_tracks.png", tracks)
     mid = frames // 2 - 1
     pair = process_pair(images[mid], images[mid + 1], proj, chain_settings(sc))
     field = bin_tracks(tracks, sc.grid, window=pair.piv.window, step=pair.piv.step)

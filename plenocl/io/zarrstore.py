@@ -70,3 +70,26 @@ def finish_store(partial: Path, path: Path) -> Path:
     os.replace(partial, path)
     shutil.rmtree(old, ignore_errors=True)
     return path
+
+
+def read_store(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
+    """Every array of a store written by :func:`write_store` or
+    :func:`plenocl.io.timeseries.write_timeseries`, by name, and the store's attributes
+    with each array's under ``"arrays"`` (``attrs["arrays"]["time"]["units"]``).
+
+    Raises
+    ------
+    ValueError
+        When ``path`` is no Zarr store (a folder with ``zarr.json``).
+    """
+    import zarr
+
+    path = Path(path)
+    if not (path / "zarr.json").is_file():
+        raise ValueError(f"{path} is not a Zarr store (a folder holding zarr.json, as "
+                         "plenocl run writes: timeseries.zarr, tracks.zarr)")
+    group = zarr.open_group(path, mode="r")
+    members = dict(group.arrays())
+    arrays = {name: np.asarray(arr[...]) for name, arr in members.items()}
+    return arrays, {**dict(group.attrs),
+                    "arrays": {name: dict(arr.attrs) for name, arr in members.items()}}

@@ -1,0 +1,119 @@
+"""What the figures draw: a vector field on its grid in physical units
+(:class:`VectorData`), read from a field file or a batch's store through
+:mod:`plenocl.io`'s readers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+#: The axes of a field, in the order of its vector components.
+AXES = ("x", "y", "z")
+#: The components a figure can colour by.
+COMPONENTS = ("u", "v", "w", "speed")
+
+
+@dataclass(frozen=True)
+class VectorData:
+    """A vector field ready to draw.
+
+    Attributes
+    ----------
+    x, y, z
+        1-D coordinates of the vector grid (mm), each monotonic.
+    velocity
+        ``(3, nz, ny, nx)`` components along x, y, z in ``unit``; NaN where unknown.
+    valid
+        ``(nz, ny, nx)``: the vectors to draw (valid and finite).
+    unit
+        ``"m/s"``, or ``"voxel"`` for a displacement field written without ``dt``.
+    axis_labels
+        Label of each axis, x y z (e.g. ``"y streamwise (mm)"``).
+    component_labels
+        Name of each component, u v w.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    velocity: np.ndarray
+    valid: np.ndarray
+    unit: str = "m/s"
+    axis_labels: tuple[str, str, str] = ("x (mm)", "y (mm)", "z (mm)")
+    component_labels: tuple[str, str, str] = ("u", "v", "w")
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        shape = (len(self.z), len(self.y), len(self.x))
+        if self.velocity.shape != (3, *shape) or self.valid.shape != shape:
+            raise ValueError(f"velocity {self.velocity.shape} and valid {self.valid.shape} do "
+                             f"not match the grid's {shape} (z, y, x) vectors")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Vector-grid shape ``(nz, ny, nx)``."""
+        return self.valid.shape
+
+    def coordinate(self, axis: str) -> np.ndarray:
+        """The 1-D coordinates (mm) along ``axis`` (``"x"``, ``"y"`` or ``"z"``)."""
+        return {"x": self.x, "y": self.y, "z": self.z}[check_axis(axis)]
+
+    def label(self, name: str) -> str:
+        """Label of an axis (``"x"``...) or a component (``"u"``... ``"speed"``) with units."""
+        if name in AXES:
+            return self.axis_labels[AXES.index(name)]
+        comp = "speed |V|" if name == "speed" else self.component_labels[COMPONENTS.index(name)]
+        return f"{comp} ({self.unit})"
+
+    def component(self, name: str) -> np.ndarray:
+        """``(nz, ny, nx)`` values of a component (or the speed), NaN where not valid."""
+        name = check_component(name)
+        vel = np.where(self.valid, self.velocity, np.nan)
+        if name == "speed":
+            return np.sqrt(np.sum(vel**2, axis=0))
+        return vel[COMPONENTS.index(name)]
+
+    def with_velocity(self, velocity: np.ndarray, valid: np.ndarray | None = None) -> VectorData:
+        """The same grid and labels with other vectors (e.g. fluctuations, the truth)."""
+        return replace(self, velocity=np.asarray(velocity, float),
+                       valid=self.valid if valid is None else valid)
+
+
+def check_axis(axis: str) -> str:
+    """``axis`` if it is one of x, y, z, else a ``ValueError`` naming them."""
+    if axis not in AXES:
+        raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
+    return axis
+
+
+def check_component(name: str) -> str:
+    """``name`` if it is one of u, v, w, speed, else a ``ValueError`` naming them."""
+    if name not in COMPONENTS:
+        raise ValueError(f"component must be one of {COMPONENTS}, got {name!r}")
+    return name
+
+
+def read_vector_field(path: str | Path) -> VectorData:
+    """A field written by :func:`plenocl.vectorfile.save_field` (``.npz``): velocities in
+    m/s where it was written with ``dt``, else displacements in voxels."""
+    from ..vectorfile import read_npz
+
+    res, arrays = read_npz(path)
+    coords = [np.asarray(arrays[f"{a}_mm"], float) for a in AXES]
+    if "velocity" in arrays:
+        vel, unit = np.asarray(arrays["velocity"], float), "m/s"
+    else:
+        vel, unit = np.stack([res.u, res.v, res.w]).astype(float), "voxel"
+    valid = np.asarray(res.valid, bool) & np.all(np.isfinite(vel), axis=0)
+    return VectorData(*coords, velocity=vel, valid=valid, unit=unit)
+
+
+def store_field(arrays: dict[str, np.ndarray], prefix: str = "mean") -> VectorData:
+    """A batch store's ensemble field (``u_mean``... or ``u_ensemble``... by ``prefix``),
+    valid where it has a value."""
+    vel = np.stack([np.asarray(arrays[f"{c}_{prefix}"], float) for c in "uvw"])
+    valid = np.all(np.isfinite(vel), axis=0)
+    return VectorData(*(np.asarray(arrays[a], float) for a in AXES), velocity=vel,
+                      valid=valid, unit="m/s")

@@ -1,0 +1,230 @@
+"""Figures of a user's own results: ``plenocl plot`` for fields, volumes, tracks and a
+batch's store, the batch's summary figures, and the derivatives behind the vorticity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plenocl.batch.trackstore import track_variables
+from plenocl.cli.main import main
+from plenocl.grid import Grid
+from plenocl.io.timeseries import write_timeseries
+from plenocl.io.zarrstore import write_store
+from plenocl.plot import PlotOptions, VectorData, batch_figures, plot_file, read_vector_field
+from plenocl.plot.derivatives import derivative, vorticity
+from plenocl.plot.planes import plane_indices, thinning_step
+from plenocl.plot.profiles import plane_means
+from plenocl.plot.timeseries import SUMMARY_FIGURES, nearest_vector
+from plenocl.plot.vectors3d import isosurfaces, thinned
+from plenocl.ptv import Tracks
+from plenocl.vectorfield import PIVResult
+from plenocl.vectorfile import save_field
+from plenocl.volumefile import save_volume
+
+PNG = b"\x89PNG\r\n\x1a\n"
+VOXEL = (0.2, 0.1, 0.1)  # (dz, dy, dx) mm
+DT = 1e-3
+
+
+def _result(shape=(4, 5, 6), flow=None, invalid=()) -> PIVResult:
+    """A field on a vector grid 4 voxels apart whose displacement (voxels) is
+    ``flow(x, y, z)`` of the window centres (voxel units)."""
+    nz, ny, nx = shape
+    x, y, z = (np.arange(n) * 4.0 + 8.0 for n in (nx, ny, nz))
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    u, v, w = flow(xx, yy, zz) if flow else (np.full(shape, 1.0), np.full(shape, 2.0),
+                                             np.full(shape, 0.5))
+    valid = np.ones(shape, bool)
+    for index in invalid:
+        valid[index] = False
+    return PIVResult(x=x, y=y, z=z, u=u, v=v, w=w, valid=valid,
+                     peak_ratio=np.full(shape, np.nan), outlier=~valid,
+                     masked=np.zeros(shape, bool), window=(8, 8, 8))
+
+
+def _data(shape, spacing, velocity) -> VectorData:
+    """A :class:`VectorData` on coordinates ``spacing`` (dx, dy, dz) mm apart, from
+    ``velocity(x, y, z)`` (mm) in m/s."""
+    nz, ny, nx = shape
+    x, y, z = (np.arange(n) * s - 0.3 for n, s in zip((nx, ny, nz), spacing))
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    return VectorData(x, y, z, velocity=np.stack(velocity(xx, yy, zz)),
+                      valid=np.ones(shape, bool))
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A field, a field without dt, a volume with its grid, tracks and a store of three
+    pairs (the last with a quarter of its vectors invalid)."""
+    d = tmp_path_factory.mktemp("plot")
+    save_field(d / "field.npz", _result(), VOXEL, dt=DT)
+    save_field(d / "nodt.npz", _result(), VOXEL)
+    grid = Grid((6, 8, 10), x=(-1.0, 1.0), y=(-0.8, 0.8), z=(-0.6, 0.6))
+    vol = np.zeros(grid.shape, np.float32)
+    vol[3, 4, 5] = 7.0
+    save_volume(d / "vol.npz", vol, grid)
+    t = np.arange(6)[None, :, None] * 1e-3
+    start = np.random.default_rng(1).uniform(-1, 1, (5, 1, 3))
+    measured = start + t * np.array([0.4e3, 0.0, 0.1e3])  # mm: 0.4 m/s along x
+    tracks = Tracks.from_measured(measured, np.full(measured.shape, 1e-3),
+                                  np.ones(measured.shape[:2]), dt=1e-3, window=5)
+    tracks.save(d / "tracks.npz")
+    write_store(d / "tracks.zarr", track_variables(tracks, range(6)))  # a tracking run's
+    fields = []
+    for k in range(3):
+        invalid = [(slice(None), slice(0, 2))] if k == 2 else []
+        path = d / f"pair_{k}.npz"
+        save_field(path, _result(invalid=invalid), VOXEL, dt=DT)
+        fields.append((k, 0.1 * k, path))
+    write_timeseries(d / "timeseries.zarr", fields)
+    return d
+
+
+def test_vorticity_of_solid_body_rotation_is_twice_its_rate_and_zero_when_uniform():
+    omega = 150.0  # 1/s
+    shape, spacing = (5, 7, 9), (0.25, 0.4, 0.3)
+
+    def rotation(x, y, z):  # m/s from mm
+        return -omega * y * 1e-3, omega * x * 1e-3, np.zeros_like(x)
+
+    data = _data(shape, spacing, rotation)
+    valid = data.valid.copy()
+    valid[2, 3, 4] = False  # the stencils around it fall back, never use it
+    wx, wy, wz = vorticity(data.velocity, valid, data.x, data.y, data.z)
+    assert np.isnan(wz[2, 3, 4]) and np.isfinite(wz[valid]).all()
+    np.testing.assert_allclose(wz[valid], 2 * omega, rtol=1e-9)
+    np.testing.assert_allclose([wx[valid], wy[valid]], 0.0, atol=1e-9)
+    uniform = _data(shape, spacing, lambda x, y, z: (np.full_like(x, 3.0), np.ones_like(x),
+                                                     np.zeros_like(x)))
+    np.testing.assert_allclose(vorticity(uniform.velocity, uniform.valid, uniform.x,
+                                         uniform.y, uniform.z), 0.0, atol=1e-9)
+
+
+def test_the_least_squares_derivative_passes_a_fifth_of_the_noise_of_a_central_one():
+    """On independent noise of variance s², the least-squares stencil's derivative has
+    variance s² / (10 h²), the central difference's s² / (2 h²)."""
+    noise = np.random.default_rng(0).normal(size=(200, 400))
+    h = 0.5
+    d_ls = derivative(noise, h, axis=1)[:, 2:-2]
+    d_c = (noise[:, 2:] - noise[:, :-2])[:, 1:-1] / (2 * h)
+    assert np.var(d_ls) * h**2 == pytest.approx(0.1, rel=0.03)
+    assert np.var(d_c) * h**2 == pytest.approx(0.5, rel=0.03)
+    assert np.isfinite(derivative(noise, h, axis=1)).all()  # ends: one-sided stencils
+
+
+@pytest.mark.parametrize("cap", [1, 10, 57, 300])
+def test_thinning_caps_the_arrow_count_with_the_smallest_step(cap):
+    data = _data((12, 20, 30), (0.1, 0.1, 0.1), lambda x, y, z: (x, y, z))
+    points, vectors, step = thinned(data, cap)
+    assert 0 < len(points) <= cap and vectors.shape == points.shape
+    if step > 1:  # one step less would draw more than the cap
+        assert np.prod([len(range(0, n, step - 1)) for n in data.shape]) > cap
+    assert thinning_step((4, 4), 16) == 1 and thinning_step((8, 8), 16) == 2
+
+
+def test_slices_are_vector_planes_and_a_plane_outside_is_refused():
+    coord = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+    assert plane_indices(coord, [0.2, -0.9, 1.2]) == [2, 0, 4]
+    assert plane_indices(coord) == [1, 2, 3]  # inside the faces
+    assert plane_indices(coord[:4]) == [0, 2, 3] and plane_indices(coord, count=2) == [1, 3]
+    with pytest.raises(ValueError, match=r"outside the grid, which spans -1 to 1 mm"):
+        plane_indices(coord, [1.5])
+
+
+def test_plane_means_and_isosurfaces_follow_the_field():
+    data = _data((6, 5, 4), (0.2, 0.2, 0.3), lambda x, y, z: (0 * x, 2.0 * z + 0 * x, 0 * x))
+    v = data.component("v")
+    v[0, 0, 0] = np.nan  # an invalid vector is left out of its plane's mean
+    mean, std, count = plane_means(v, "z")
+    np.testing.assert_allclose(mean, 2.0 * data.z)
+    np.testing.assert_allclose(std, 0.0, atol=1e-12)
+    assert count.tolist() == [19, 20, 20, 20, 20, 20]
+    (tris,) = isosurfaces(data.component("v"), [2.0 * 0.5], data)  # the plane z = 0.5 mm
+    np.testing.assert_allclose(tris[..., 2], 0.5, atol=1e-9)
+
+
+def test_a_field_read_back_keeps_its_coordinates_and_velocity(files):
+    data = read_vector_field(files / "field.npz")
+    assert data.unit == "m/s" and data.shape == (4, 5, 6)
+    dx = 0.1e-3 / DT  # m/s per voxel along x
+    np.testing.assert_allclose(data.velocity[0], 1.0 * dx)
+    np.testing.assert_allclose(np.diff(data.x), 0.4)  # 4 voxels of 0.1 mm
+    assert read_vector_field(files / "nodt.npz").unit == "voxel"
+
+
+@pytest.mark.parametrize("name, args, kind", [
+    ("field.npz", [], "slices"),
+    ("field.npz", ["--view", "profile", "--axis", "y"], "profile"),
+    ("field.npz", ["--view", "vectors", "--max-arrows", "20"], "vectors"),
+    ("field.npz", ["--view", "vorticity", "--axis", "x", "--at", "1.0"], "vorticity"),
+    ("field.npz", ["--view", "iso", "--component", "u"], "iso"),
+    ("vol.npz", [], "projection"),
+    ("vol.npz", ["--view", "slices", "--axis", "x", "--at", "0"], "slices"),
+    ("tracks.npz", [], "tracks"),
+    ("tracks.zarr", [], "tracks"),
+    ("timeseries.zarr", [], "mean"),
+    ("timeseries.zarr", ["--view", "probe", "--probe", "1.0", "1.0", "2.0"], "probe"),
+    ("timeseries.zarr", ["--view", "valid"], "valid"),
+    ("timeseries.zarr", ["--view", "profile"], "profile"),
+])
+def test_plot_draws_each_kind_of_file(files, tmp_path, capsys, name, args, kind):
+    import imageio.v3 as iio
+
+    assert main(["plot", str(files / name), *args, "--out", str(tmp_path / "f.png")]) == 0
+    assert "wrote" in capsys.readouterr().out
+    data = (tmp_path / "f.png").read_bytes()
+    assert data[:8] == PNG
+    height, width = iio.imread(tmp_path / "f.png").shape[:2]
+    assert 200 < width < 2500 and 200 < height < 2500
+    assert not list(tmp_path.glob(".*part*"))  # written atomically, nothing left over
+
+
+def test_plot_writes_pdf_and_names_its_default_output(files, tmp_path):
+    out = plot_file(files / "field.npz", tmp_path / "slices.pdf", PlotOptions(axis="y"))
+    assert out.read_bytes()[:5] == b"%PDF-"
+    default = plot_file(files / "vol.npz")
+    assert default == files / "vol_projection.png" and default.read_bytes()[:8] == PNG
+
+
+@pytest.mark.parametrize("name, args, message", [
+    ("field.npz", ["--out", "f.jpg"], r"name it \.png \(PNG\) or \.pdf"),
+    ("field.npz", ["--view", "probe"], "is a field; its views are slices"),
+    ("nodt.npz", ["--view", "vorticity"], "vorticity needs velocities"),
+    ("field.npz", ["--at", "50"], "outside the grid"),
+    ("timeseries.zarr", ["--view", "probe", "--probe", "0", "0", "90"], "outside the vectors"),
+    ("pair_0.npz.missing", [], "no such file or store"),
+])
+def test_plot_refuses_bad_input_with_a_clear_message(files, capsys, name, args, message):
+    import re
+
+    assert main(["plot", str(files / name), *args]) == 2
+    assert re.search(message, capsys.readouterr().err)
+
+
+def test_plot_refuses_files_it_cannot_draw(tmp_path, capsys):
+    (tmp_path / "raw.tif").write_bytes(b"II*\x00")
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    assert main(["plot", str(tmp_path / "raw.tif")]) == 2
+    assert "cannot plot 'raw.tif'" in capsys.readouterr().err
+    assert main(["plot", str(tmp_path / "other.npz")]) == 2
+    assert "holds no vector field, tracks or volume" in capsys.readouterr().err
+    save_field(tmp_path / "field.h5", _result(), VOXEL, dt=DT)  # fields are plotted from .npz
+    assert main(["plot", str(tmp_path / "field.h5")]) == 2
+    assert "holds no volume; plenocl plot reads vector fields from .npz" in \
+        capsys.readouterr().err
+
+
+def test_batch_figures_are_written_from_the_store(files, tmp_path):
+    written = batch_figures(files / "timeseries.zarr", tmp_path / "figures")
+    assert sorted(p.name for p in written) == sorted(SUMMARY_FIGURES)
+    assert all(p.read_bytes()[:8] == PNG for p in written)
+    from plenocl.io.zarrstore import read_store
+
+    arrays, attrs = read_store(files / "timeseries.zarr")
+    assert attrs["arrays"]["time"]["units"] == "s"
+    iz, iy, ix = nearest_vector(arrays, (arrays["x"][3] + 0.1, arrays["y"][1], arrays["z"][2]))
+    assert (iz, iy, ix) == (2, 1, 3)
+    # the last pair lost two of five rows: its valid fraction, as the figure shows it
+    fraction = arrays["valid"].reshape(3, -1).mean(axis=1)
+    np.testing.assert_allclose(fraction, [1.0, 1.0, 0.6])
