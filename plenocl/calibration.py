@@ -15,7 +15,8 @@ Calibration finds those spots to sub-pixel accuracy and matches each to its lens
    vectors, the sub-pitch shift from the phase of the lattice coordinates, the
    whole-pitch shift from the extent of the array on the sensor.
 4. **Fit** a global grid model (affine: pitch, rotation, shear, shift; optionally a
-   cubic polynomial for distortion, chosen by an F-test) to the matched centroids,
+   cubic polynomial for distortion, chosen by an F-test; a hexagonal array's odd rows'
+   own offset) to the matched centroids,
    robustly. Its prediction carries the information of all spots instead of one
    lens's few noisy photons, but a real array's lenses also sit off any lattice by
    manufacturing errors of a fraction of a pixel.

@@ -180,3 +180,19 @@ def test_odd_rows_offset_by_046_pitch_are_followed():
     error = (lattice.centers - truth)[..., 0]
     assert error[0::2].mean() * error[1::2].mean() < 0  # alternating by row
     assert _rms(lattice.centers, truth) > 4 * _rms(fit.centers, truth)
+
+
+def test_odd_rows_offset_by_046_pitch_stopped_down():
+    """The same offset stopped down (17 px lenses, f/16 spots, 0.1 px jitter): the grid
+    model alone (``method="fit"``) follows the odd rows, off by the jitter only, and the
+    lenses' scatter about it is measured as the jitter."""
+    jitter = 0.1
+    cam = _camera("hexagonal", cols=16, rows=18)
+    shift = _odd_rows(cam, -0.04) + lens_displacements_mm(cam, jitter_px=jitter, seed=4)
+    truth = cam.ideal_microlens_centers() + centre_shift_px(cam, shift)
+    white = simulate_white_image(cam, lens_shift_mm=shift, seed=3, queue=get_queue(),
+                                 photon_noise=True, intensity=1e4, rays_per_lens=20_000)
+    lattice = find_centers(white, _nominal(cam), method="fit")
+    assert lattice.aperture == "stopped" and lattice.found.all()
+    assert _rms(lattice.centers, truth) <= 1.25 * np.sqrt(2) * jitter
+    assert lattice.lattice_scatter_px == pytest.approx(jitter, rel=0.25)
