@@ -865,9 +865,10 @@ def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
                    fill_missing: bool) -> CenterFit:
     """Full aperture, ``method="combined"``: every lens's disk fitted in the image
     (:func:`plenocl.lenscentres.fit_disks`, started from the lattice model), the smooth
-    grid model refitted to those fits, and each centre moved from the model toward its
-    own fit by their uncertainties (:func:`_combine`): lenses cut by the sensor's edge or
-    with too little light keep the model."""
+    grid model refitted to those fits (of the lenses whose neighbours were all found:
+    a disk the sensor's edge cuts is fitted less surely), and each centre moved from the
+    model toward its own fit by their uncertainties (:func:`_combine`): lenses cut by the
+    sensor's edge or with too little light keep the model."""
     cols, rows = camera.ml_count
     h, w = img.shape
     c = prior.model
@@ -875,7 +876,9 @@ def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
     disks = fit_disks(img, prior.model, _pitch_px(camera), lit=prior.found | ~on)
     local, noise = disks.centres, np.where(np.isfinite(disks.sigma), disks.sigma, np.nan)
     measured = prior.found & np.isfinite(noise)
-    deg, use, model = _grid_model(camera, local.reshape(-1, 2), measured.ravel(), degree)
+    inner = measured & _surrounded(prior.found, camera, rings=1)
+    fitted = inner if inner.sum() >= MIN_INTERIOR else measured  # disks the edge cuts: biased
+    deg, use, model = _grid_model(camera, local.reshape(-1, 2), fitted.ravel(), degree)
     inlier = use.reshape(rows, cols) & measured
     scatter = _lattice_scatter(local, model, noise, inlier)
     trusted = _trusted(local, model, noise, scatter, inlier, measured) & measured

@@ -10,6 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 from helpers import OPTICS, lens_camera
+from scipy import ndimage
 
 from plenocl import Camera, get_queue
 from plenocl.calibration import find_centers
@@ -196,3 +197,20 @@ def test_odd_rows_offset_by_046_pitch_stopped_down():
     assert lattice.aperture == "stopped" and lattice.found.all()
     assert _rms(lattice.centers, truth) <= 1.25 * np.sqrt(2) * jitter
     assert lattice.lattice_scatter_px == pytest.approx(jitter, rel=0.25)
+
+
+def test_correlated_noise_is_counted():
+    """A white image whose noise is correlated between neighbouring pixels (the dim
+    image of :func:`test_a_noisy_image_leans_on_the_lattice` blurred by 0.7 px, as a
+    resampled image is; lenses on the lattice): each fit's reported deviation is its
+    actual error, not the fraction the residuals' independent pixels would say, so the
+    combination leans on the lattice instead of following the noise."""
+    cam = _camera("hexagonal")
+    truth = cam.ideal_microlens_centers()
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, photon_noise=True,
+                                 read_noise=2.0, bit_depth=8, intensity=4e4,
+                                 rays_per_lens=20_000, seed=9, queue=get_queue())
+    fit = find_centers(ndimage.gaussian_filter(white.astype(float), 0.7), _nominal(cam))
+    actual = _rms(fit.centroids, truth) / np.sqrt(2)
+    assert float(np.nanmedian(fit.noise_px)) == pytest.approx(actual, rel=0.3)
+    assert _rms(fit.centers, truth) <= 0.5 * _rms(fit.centroids, truth)
