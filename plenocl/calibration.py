@@ -15,7 +15,8 @@ Calibration finds those spots to sub-pixel accuracy and matches each to its lens
    vectors, the sub-pitch shift from the phase of the lattice coordinates, the
    whole-pitch shift from the extent of the array on the sensor.
 4. **Fit** a global grid model (affine: pitch, rotation, shear, shift; optionally a
-   cubic polynomial for distortion, chosen by an F-test) to the matched centroids,
+   cubic polynomial for distortion, chosen by an F-test; a hexagonal array's odd rows'
+   own offset) to the matched centroids,
    robustly. Its prediction carries the information of all spots instead of one
    lens's few noisy photons, but a real array's lenses also sit off any lattice by
    manufacturing errors of a fraction of a pixel.
@@ -709,18 +710,24 @@ def _whole_pitch_shift(base: np.ndarray, cols: int, rows: int) -> np.ndarray:
 
 
 # ---- 4. grid model ------------------------------------------------------------------
-def _design(k: np.ndarray, shape: tuple[int, int], degree: int) -> np.ndarray:
-    """Polynomial terms of the normalised lens index, up to total ``degree``."""
+def _design(k: np.ndarray, shape: tuple[int, int], degree: int,
+            stagger: bool = False) -> np.ndarray:
+    """Polynomial terms of the normalised lens index, up to total ``degree``; with
+    ``stagger`` (a hexagonal array) also the odd rows' own offset from the even ones
+    (``ky`` odd): a real array's odd rows may sit off the camera file's half pitch (0.46
+    pitch in issue 44 finding 3), which no smooth function of the position represents."""
     cols, rows = shape
     a = (k[:, 0] - (cols - 1) / 2) / max(1.0, (cols - 1) / 2)
     b = (k[:, 1] - (rows - 1) / 2) / max(1.0, (rows - 1) / 2)
     terms = [a**i * b**j for n in range(degree + 1) for j in range(n + 1) for i in [n - j]]
+    if stagger:
+        terms.append(np.rint(k[:, 1]) % 2)
     return np.column_stack(terms)
 
 
-def _robust_fit(k, c, shape, degree, use):
+def _robust_fit(k, c, shape, degree, use, stagger: bool = False):
     """Least-squares polynomial fit with iterative outlier rejection; returns coef, use."""
-    design = _design(k, shape, degree)
+    design = _design(k, shape, degree, stagger)
     for _ in range(5):
         coef, *_ = np.linalg.lstsq(design[use], c[use], rcond=None)
         resid = np.hypot(*(design @ coef - c).T)
@@ -732,7 +739,7 @@ def _robust_fit(k, c, shape, degree, use):
     return coef, use
 
 
-def _choose_degree(k, c, shape, use, degree) -> int:
+def _choose_degree(k, c, shape, use, degree, stagger: bool = False) -> int:
     """Affine unless ``degree`` says otherwise or, for ``"auto"``, a cubic model is both
     significantly better (F-test) and differs from the affine one by a relevant amount
     (a sub-pixel-phase bias of the centroids must not pass for distortion)."""
@@ -740,14 +747,15 @@ def _choose_degree(k, c, shape, use, degree) -> int:
         if degree not in (1, 2, 3):
             raise ValueError(f"degree must be 1, 2, 3 or 'auto', got {degree!r}")
         return int(degree)
-    p1, p3 = 2 * _design(k[:1], shape, 1).shape[1], 2 * _design(k[:1], shape, 3).shape[1]
-    common = _robust_fit(k, c, shape, 1, use)[1] & _robust_fit(k, c, shape, 3, use)[1]
+    p1, p3 = (2 * _design(k[:1], shape, d, stagger).shape[1] for d in (1, 3))
+    common = (_robust_fit(k, c, shape, 1, use, stagger)[1]
+              & _robust_fit(k, c, shape, 3, use, stagger)[1])
     n = 2 * int(common.sum())
     if n <= 3 * p3:
         return 1
     rss, models = [], []
     for deg in (1, 3):
-        design = _design(k, shape, deg)
+        design = _design(k, shape, deg, stagger)
         coef, *_ = np.linalg.lstsq(design[common], c[common], rcond=None)
         rss.append(float(((design[common] @ coef - c[common]) ** 2).sum()))
         models.append(design @ coef)
@@ -757,6 +765,18 @@ def _choose_degree(k, c, shape, use, degree) -> int:
     effect = float(np.sqrt(np.mean(np.sum((models[1] - models[0]) ** 2, axis=1))))
     significant = stats.f.sf(f_stat, p3 - p1, n - p3) < DISTORTION_P_VALUE
     return 3 if significant and effect > DISTORTION_MIN_PX else 1
+
+
+def _grid_model(camera: Camera, c: np.ndarray, use: np.ndarray, degree):
+    """The robust grid model of the centres ``c`` (``(rows·cols, 2)``, the lenses ``use``
+    fitted): its degree, the lenses it kept and its ``(rows, cols, 2)`` prediction. A
+    hexagonal array's model also fits its odd rows' offset (:func:`_design`)."""
+    cols, rows = camera.ml_count
+    kk = camera.lens_lattice_coords().reshape(-1, 2)  # affine in the lens positions
+    stagger = camera.ml_layout == "hexagonal"
+    deg = _choose_degree(kk, c, (cols, rows), use, degree, stagger)
+    coef, use = _robust_fit(kk, c, (cols, rows), deg, use, stagger)
+    return deg, use, (_design(kk, (cols, rows), deg, stagger) @ coef).reshape(rows, cols, 2)
 
 
 # ---- public -------------------------------------------------------------------------
@@ -845,9 +865,10 @@ def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
                    fill_missing: bool) -> CenterFit:
     """Full aperture, ``method="combined"``: every lens's disk fitted in the image
     (:func:`plenocl.lenscentres.fit_disks`, started from the lattice model), the smooth
-    grid model refitted to those fits, and each centre moved from the model toward its
-    own fit by their uncertainties (:func:`_combine`): lenses cut by the sensor's edge or
-    with too little light keep the model."""
+    grid model refitted to those fits (of the lenses whose neighbours were all found:
+    a disk the sensor's edge cuts is fitted less surely), and each centre moved from the
+    model toward its own fit by their uncertainties (:func:`_combine`): lenses cut by the
+    sensor's edge or with too little light keep the model."""
     cols, rows = camera.ml_count
     h, w = img.shape
     c = prior.model
@@ -855,11 +876,9 @@ def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
     disks = fit_disks(img, prior.model, _pitch_px(camera), lit=prior.found | ~on)
     local, noise = disks.centres, np.where(np.isfinite(disks.sigma), disks.sigma, np.nan)
     measured = prior.found & np.isfinite(noise)
-    kk = camera.lens_lattice_coords().reshape(-1, 2)
-    flat = local.reshape(-1, 2)
-    deg = _choose_degree(kk, flat, (cols, rows), measured.ravel(), degree)
-    coef, use = _robust_fit(kk, flat, (cols, rows), deg, measured.ravel())
-    model = (_design(kk, (cols, rows), deg) @ coef).reshape(rows, cols, 2)
+    inner = measured & _surrounded(prior.found, camera, rings=1)
+    fitted = inner if inner.sum() >= MIN_INTERIOR else measured  # disks the edge cuts: biased
+    deg, use, model = _grid_model(camera, local.reshape(-1, 2), fitted.ravel(), degree)
     inlier = use.reshape(rows, cols) & measured
     scatter = _lattice_scatter(local, model, noise, inlier)
     trusted = _trusted(local, model, noise, scatter, inlier, measured) & measured
@@ -961,7 +980,6 @@ def _assemble(camera, cents, split, k, dev, sigma, shape, method, degree,
     cols, rows = camera.ml_count
     grid = _lens_grid(camera, cents, k, dev)
     found = np.isfinite(grid).all(-1)
-    kk = camera.lens_lattice_coords().reshape(-1, 2)  # affine in the lens positions
     c = grid.reshape(-1, 2)
     margin = 3 * sigma + 1
     h, w = shape
@@ -972,9 +990,7 @@ def _assemble(camera, cents, split, k, dev, sigma, shape, method, degree,
     if interior:
         inner = use & _surrounded(found, camera, rings=2).ravel()
         use = inner if inner.sum() >= MIN_INTERIOR else use
-    deg = _choose_degree(kk, c, (cols, rows), use, degree)
-    coef, use = _robust_fit(kk, c, (cols, rows), deg, use)
-    model = (_design(kk, (cols, rows), deg) @ coef).reshape(rows, cols, 2)
+    deg, use, model = _grid_model(camera, c, use, degree)
     found = _drop_far_spots(found, grid, model, _pitch_px(camera))
     grid[~found] = np.nan
     inlier = use.reshape(rows, cols) & found

@@ -17,7 +17,8 @@ at their current estimates, so that the neighbours' edges are explained by the
 neighbours; the lenses are swept colour by colour (no two touching lenses share a
 colour), each batch seeing the disks as the batches before it left them. Disks the
 sensor's edge cuts take the others' radius and edge width. Each centre's deviation comes
-from its fit's residuals and normal equations, so that calibration can weigh it against
+from its fit's residuals and normal equations (scaled up where the image's noise is
+correlated between neighbouring pixels), so that calibration can weigh it against
 the smooth grid model.
 
 Plain NumPy; calibration (:func:`plenocl.calibration.find_centers`) is its one caller.
@@ -168,7 +169,22 @@ def _sweeps(img: np.ndarray, st: _State, half: int, pitch: float, free: np.ndarr
         active[pairs[moved[pairs[:, 0]], 1]] = active[pairs[moved[pairs[:, 1]], 0]] = True
         if not moved[free].any():
             break
-    return np.where(free, sigma, np.inf)
+    return np.where(free, sigma * _correlation_factor(img - model), np.inf)
+
+
+def _correlation_factor(resid: np.ndarray) -> float:
+    """How much more a centre's deviation is than the fit's residuals say when the
+    image's noise is correlated between neighbouring pixels (a resampled or blurred
+    image): ``√(1 + 2 Σ ρ)`` over the residuals' correlation ``ρ`` with the 4 next
+    pixels (along the rows, the columns and the two diagonals), at least 1."""
+    r = resid - resid.mean()
+    var = float((r * r).mean())
+    if var <= 0:
+        return 1.0
+    lags = [(r[:, 1:], r[:, :-1]), (r[1:], r[:-1]), (r[1:, 1:], r[:-1, :-1]),
+            (r[1:, :-1], r[:-1, 1:])]
+    rho = sum(float((a * b).mean()) for a, b in lags) / var
+    return math.sqrt(max(1.0 + 2.0 * rho, 1.0))
 
 
 def _share_the_shape(shape, st: _State, half: int, whole: np.ndarray,
