@@ -19,6 +19,10 @@ pitch (rows 0.866 pitch apart, odd rows half a pitch along; as many columns, as 
 rows as the sensor holds, and the sensor's height cut to them), stopped down and at full
 aperture.
 
+Odd-rows row (issue 44, ``--skip-odd-rows`` leaves it out): a hexagonal array of 65 px
+lenses whose odd rows sit 0.46 pitch from the even ones while the camera file says 0.5,
+0.2 px jitter, full aperture, the lattice alone beside the per-lens default.
+
 The truth is ``camera.ideal_microlens_centers()`` of the camera that made the image;
 the calibration sees only the nominal camera (no rotation, no offset).
 
@@ -181,6 +185,45 @@ def per_lens_rows(lenses: int, seeds: int, queue) -> None:
                   f"{int(found):5d}/{int(total):<4d} {t_lat:9.2f} {t_comb:10.2f}")
 
 
+def odd_rows_camera(cols: int = 11, rows: int = 12) -> Camera:
+    """Issue 44 finding 3's array: the synthetic optics with 65 px lenses, hexagonal,
+    rotated 0.3 degrees, the sensor cut to the array."""
+    syn = Camera.synthetic_850()
+    pixel = syn.pixel_pitch_mm * syn.pixels_per_microlens / 65.0
+    return dataclasses.replace(
+        syn, ml_count=(cols, rows), ml_layout="hexagonal", ml_odd_row_shift=0.5,
+        pixels=(int((cols + 0.5) * 65) + 1, int(rows * 65 * 3**0.5 / 2) + 1),
+        pixel_pitch_mm=pixel, ml_rotation_deg=0.3, microlens_centers=None, calibrated=False)
+
+
+def run_odd_rows(seed: int, queue) -> tuple:
+    """RMS (px, 2-D) of the lattice alone and of the per-lens default on the odd-rows
+    array (its odd rows 0.46 pitch from the even ones, 0.2 px jitter), and the lens
+    scatter the default reads."""
+    cam = odd_rows_camera()
+    turn = np.radians(cam.ml_rotation_deg)
+    shift = np.zeros((cam.ml_count[1], cam.ml_count[0], 2))
+    shift[1::2] = -0.04 * cam.ml_pitch_mm * np.array([np.cos(turn), np.sin(turn)])
+    shift += lens_displacements_mm(cam, jitter_px=0.2, seed=seed)
+    truth = cam.ideal_microlens_centers() + centre_shift_px(cam, shift)
+    white = simulate_white_image(cam, stop_f_number=cam.f_number, lens_shift_mm=shift,
+                                 seed=seed, queue=queue,
+                                 **dict(FULL_EXPOSURE, intensity=6e6, rays_per_lens=200_000))
+    nominal = dataclasses.replace(cam, ml_rotation_deg=0.0)
+    lattice = find_centers(white, nominal, method="fit")
+    fit = find_centers(white, nominal)
+    return rms(lattice.centers, truth), rms(fit.centers, truth), fit.lattice_scatter_px
+
+
+def odd_rows_row(seeds: int, queue) -> None:
+    """Print the odd-rows row (module docstring)."""
+    runs = [run_odd_rows(seed, queue) for seed in range(seeds)]
+    lat, comb, scatter = (statistics.median(r[i] for r in runs) for i in range(3))
+    print(f"\nhexagonal, 65 px lenses, odd rows 0.46 pitch off (the camera file: 0.5), "
+          f"0.2 px jitter, full aperture; median over {seeds} seeds: lattice {lat:.4f} px, "
+          f"per-lens {comb:.4f} px (2-D RMS); lens scatter read {scatter:.3f} px (true 0.2)")
+
+
 def paper_timing(queue) -> None:
     """Time the full-aperture calibration of the paper's camera, lattice and per-lens."""
     cam = Camera.paper_16mp()
@@ -221,7 +264,8 @@ def existing_rows(base: Camera, args, queue) -> None:
 def main() -> None:
     parser = script_parser(__doc__, {"scales": "leave out the 720 px scale rows",
                                      "per-lens": "leave out the full-aperture per-lens rows",
-                                     "stopped": "leave out the rows before the per-lens ones"})
+                                     "stopped": "leave out the rows before the per-lens ones",
+                                     "odd-rows": "leave out the 0.46-pitch odd-rows row"})
     parser.add_argument("--camera", choices=["synthetic", "paper"], default="synthetic")
     parser.add_argument("--seeds", type=int, default=3, help="images per case")
     parser.add_argument("--lenses", type=int, default=30,
@@ -235,6 +279,8 @@ def main() -> None:
         existing_rows(base, args, queue)
     if not args.skip_per_lens:
         per_lens_rows(args.lenses, args.seeds, queue)
+    if not args.skip_odd_rows:
+        odd_rows_row(args.seeds, queue)
     if args.paper_timing:
         paper_timing(queue)
 
