@@ -40,7 +40,7 @@ from plenocl.demo.boundary_layer import (  # noqa: E402
 )
 from plenocl.io import read_image  # noqa: E402
 from plenocl.piv.imagefit import ImageFit  # noqa: E402
-from plenocl.piv.tracking import FocalZone, refine_with_particles  # noqa: E402
+from plenocl.piv.tracking import FocalZone, SightLines, refine_with_particles  # noqa: E402
 from plenocl.vectorfile import save_field  # noqa: E402
 from plenocl.volumefile import load_volume  # noqa: E402
 
@@ -86,7 +86,8 @@ def main() -> None:
     for label, fit in (("**default** (particles fitted to the raw images)",
                         ImageFit(cam, sc.grid, raws)), ("particles not fitted", None)):
         t0 = time.perf_counter()
-        res = refine_with_particles(corr, vol_a, vol_b, focus=focus, fit=fit)
+        res = refine_with_particles(corr, vol_a, vol_b, focus=focus, fit=fit,
+                                    sight=SightLines.of(sc.camera, sc.grid))
         rows[label] = (res, time.perf_counter() - t0)
     rows["correlation only (sub-voxels)"] = (corr, t_corr)
     t0 = time.perf_counter()

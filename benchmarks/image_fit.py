@@ -42,7 +42,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings  # noqa: E402
-from plenocl.piv.tracking import FocalZone, refine_with_particles  # noqa: E402
+from plenocl.piv.tracking import FocalZone, SightLines, refine_with_particles  # noqa: E402
 
 VARIANTS = {"default": ImageFitSettings(), "rays200": ImageFitSettings(rays=200),
             "it4": ImageFitSettings(iterations=4),
@@ -88,7 +88,8 @@ def particle_stage(run: tuple[str, str], scene, pair, optics: tuple, queue):
     device, host_sums = RENDERERS[renderer]
     fit = ImageFit(cam, grid, (scene.raw_a, scene.raw_b), VARIANTS[name],
                    queue=queue if device else None, host_sums=host_sums)
-    return refine_with_particles(pair.piv, pair.vol_a, pair.vol_b, focus=focus, fit=fit)
+    return refine_with_particles(pair.piv, pair.vol_a, pair.vol_b, focus=focus, fit=fit,
+                                 sight=SightLines.of(cam, grid))
 
 
 def time_runs(runs: list, repeat: int, call) -> dict:

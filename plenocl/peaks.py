@@ -122,3 +122,58 @@ def merge_close(index: np.ndarray, intensities: np.ndarray, radius
             keep[near] = False
             merged[i] += merged[near].sum()
     return keep, merged
+
+
+def merge_along_lines(points: np.ndarray, values: np.ndarray, directions: np.ndarray,
+                      along: float, across: float) -> tuple[np.ndarray, np.ndarray]:
+    """Merge the peaks of one particle stretched along a line into one.
+
+    A reconstructed particle is a ridge along its line of sight, several voxels long
+    (the camera reads depth several times less precisely than lateral position), and the
+    ridge often holds two or three local maxima: off the optical axis, where the line
+    leans across the grid, a particle 20-25 mm off the axis at the paper's optics gives
+    2.1 peaks on average (docs/design.md §7.4). Greedy from the brightest, each peak takes
+    every peak not yet merged that lies within ``along`` of it along its line and within
+    ``across`` of that line, and moves to their value-weighted mean position (the
+    ridge's centre, between its maxima).
+
+    Parameters
+    ----------
+    points
+        Peak positions ``(N, 3)`` in an isotropic unit (e.g. mm).
+    values
+        Peak values ``(N,)`` (the weights; positive).
+    directions
+        Unit vectors ``(N, 3)`` of each peak's line.
+    along, across
+        The merge reach along and across the line (the unit of ``points``).
+
+    Returns
+    -------
+    keep, positions
+        Which peaks remain ``(N,)`` and every peak's position ``(N, 3)``, merged where
+        kept.
+    """
+    pts = np.asarray(points, float).reshape(-1, 3)
+    w = np.asarray(values, float)
+    keep = np.ones(len(pts), bool)
+    out = pts.copy()
+    if len(pts) < 2 or along <= 0:
+        return keep, out
+    tree = cKDTree(pts)
+    for i in np.argsort(-w, kind="stable"):
+        if not keep[i]:
+            continue
+        near = np.array([j for j in tree.query_ball_point(pts[i], max(along, across))
+                         if j != i and keep[j]], int)
+        if not len(near):
+            continue
+        d = pts[near] - pts[i]
+        t = d @ directions[i]
+        off = np.linalg.norm(d - t[:, None] * directions[i], axis=1)
+        near = near[(np.abs(t) <= along) & (off <= across)]
+        if len(near):
+            group = np.append(near, i)
+            out[i] = np.average(pts[group], axis=0, weights=w[group])
+            keep[near] = False
+    return keep, out

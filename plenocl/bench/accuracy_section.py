@@ -28,7 +28,7 @@ from ..metrics import quality_q, recovery, render_particles
 from ..particles import random_particles
 from ..pipeline import process_pair
 from ..piv.multipass import piv3d
-from ..piv.tracking import FocalZone, refine_with_particles
+from ..piv.tracking import FocalZone, SightLines, refine_with_particles
 from ..projection import Projector
 from ..reconstruction import ReconstructionSettings
 from ..simulate import simulate_image
@@ -212,7 +212,8 @@ def budget_row(cam: Camera, grid: Grid, proj, ppm: float, seed: int, queue,
         "reconstruct": seconds, "piv": time.perf_counter() - t0}), scene, grid, motion)
     t0 = time.perf_counter()
     unfitted = refine_with_particles(correlation, pair.vol_a, pair.vol_b,
-                                     focus=FocalZone.of(cam, grid))
+                                     focus=FocalZone.of(cam, grid),
+                                     sight=SightLines.of(cam, grid))
     row["volume_particles"] = pair_row(dataclasses.replace(pair, piv=unfitted, seconds={
         "reconstruct": seconds, "piv": pair.seconds["piv"],
         "particles": time.perf_counter() - t0}), scene, grid, motion)

@@ -90,7 +90,7 @@ def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
     from ..pipeline.settings import PairSettings
     from ..piv import PIVSettings, piv3d
-    from ..piv.tracking import FocalZone, refine_with_particles
+    from ..piv.tracking import FocalZone, SightLines, refine_with_particles
     from ..units import check_dt
     from ..vectorfile import save_field
     from ..volumefile import load_volume
@@ -108,7 +108,8 @@ def piv_command(args: argparse.Namespace) -> int:
     if settings.particles:
         camera = load_camera(args.camera) if args.camera else None
         focus = FocalZone.of(camera, grid) if camera else None
-        res = refine_with_particles(res, vol_a, vol_b, focus=focus,
+        sight = SightLines.of(camera, grid) if camera else None
+        res = refine_with_particles(res, vol_a, vol_b, focus=focus, sight=sight,
                                     fit=_image_fit(args.raw, camera, grid, args.channel,
                                                    settings.image_fit))
         log = res.refinement

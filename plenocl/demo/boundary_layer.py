@@ -262,7 +262,7 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettin
     from ..io.files import read_image
     from ..piv.imagefit import ImageFit
     from ..piv.multipass import piv3d
-    from ..piv.tracking import FocalZone, refine_with_particles
+    from ..piv.tracking import FocalZone, SightLines, refine_with_particles
     from ..vectorfile import save_field
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
@@ -272,6 +272,7 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettin
     raws = [read_image(run.path(f"raw_{tag}.tif")) for tag in "ab"]
     res = refine_with_particles(piv3d(vol_a, vol_b, settings.piv, queue=queue), vol_a, vol_b,
                                 focus=FocalZone.of(sc.camera, sc.grid),
+                                sight=SightLines.of(sc.camera, sc.grid),
                                 fit=ImageFit(cam, sc.grid, raws, settings.image_fit))
     for name in ("field.npz", "field.vti"):
         save_field(run.path(name), res, dt=DT, grid=sc.grid)

@@ -11,6 +11,8 @@
   derivatives (the image-space particle fit's forward model).
 - :mod:`.depthrange`: the depths the camera resolves, its field of view there, and the
   one check of a grid against them (:func:`check_grid`).
+- :mod:`.sightline`: the lines of sight, along which the camera places a point worst,
+  and the frames and priors that lean with them off the axis.
 
 Device-free NumPy; it imports only the camera model.
 """
@@ -21,8 +23,10 @@ from .lattice import DEFAULT_SHEAR_TOL, LensLattice, RectangularLattice, lattice
 from .ownership import lens_owner, pixel_lenses
 from .rawimage import check_image, check_pixel_mask, median_background, subtract_background
 from .raybundle import RayBundle
+from .sightline import line_of_sight, sight_frames, sight_information
 
 __all__ = ["DEFAULT_SHEAR_TOL", "LensLattice", "RayBundle", "RectangularLattice",
            "array_plane_positions", "array_plane_scale", "check_grid", "check_image",
            "check_pixel_mask", "field_of_view_mm", "lattice_fit", "lens_owner",
-           "median_background", "pixel_lenses", "resolved_depth_range", "subtract_background"]
+           "line_of_sight", "median_background", "pixel_lenses", "resolved_depth_range",
+           "sight_frames", "sight_information", "subtract_background"]

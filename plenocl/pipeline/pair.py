@@ -16,7 +16,7 @@ import numpy as np
 from ..options import with_keywords
 from ..piv import PIVResult, piv3d
 from ..piv.imagefit import ImageFit
-from ..piv.tracking import FocalZone, refine_with_particles
+from ..piv.tracking import FocalZone, SightLines, refine_with_particles
 from ..reconstruction import (
     ProjectionOperator,
     ReconstructionInfo,
@@ -184,8 +184,9 @@ def _with_particles(res: PIVResult, raws, vols, projector, settings: PairSetting
     if settings.image_fit is not None:
         fit = ImageFit(projector.camera, projector.grid, raws, settings.image_fit,
                        queue=projector.queue, backgrounds=backgrounds)
-    res = refine_with_particles(res, *vols, focus=FocalZone.of(projector.camera,
-                                                                projector.grid), fit=fit)
+    camera, grid = projector.camera, projector.grid
+    res = refine_with_particles(res, *vols, focus=FocalZone.of(camera, grid), fit=fit,
+                                sight=SightLines.of(camera, grid))
     seconds["particles"] = time.perf_counter() - t0
     return res
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
+from ..optics.sightline import line_of_sight, sight_frames, sight_information
 from ..threads import thread_count
 from .devicebundle import DeviceRayBundle
 from .fitsums import DeviceFitSums
@@ -207,6 +208,7 @@ class ImageFit:
         hold where they were dropped)."""
         data, noise = self.images[index]
         prior = self._prior_mm()
+        frames = sight_frames(line_of_sight(self.bundle.camera, start))
         p, sigma = start.copy(), np.broadcast_to(prior, start.shape).copy()
         device = self.sums is not None and self.sums.fits(
             self.bundle.patches(self.bundle.camera.image_points(p)))
@@ -221,7 +223,8 @@ class ImageFit:
                 sums = self._device_sums(index, noise, p[rows], intensity[rows])
             else:
                 sums = self._host_sums(data, noise, p[rows], intensity[rows])
-            step, intensity_step, sig = self._solve(*sums, p[rows] - start[rows], prior)
+            step, intensity_step, sig = self._solve(*sums, p[rows] - start[rows], prior,
+                                                    frames[rows])
             p[rows] += step
             intensity[rows] = np.maximum(intensity[rows] + intensity_step, 0.0)
             sigma[rows] = sig
@@ -304,18 +307,23 @@ class ImageFit:
             scatter[part] = _residual_noise(rows[0], residual, pid, patches, noise)
         return normal, rhs, scatter
 
-    def _solve(self, normal, rhs, scatter, offset, prior):
+    def _solve(self, normal, rhs, scatter, offset, prior, frames):
         """One damped Gauss-Newton step of every particle (position mm, intensity) and
         the posterior standard deviation of each position, from the sums at ``p``
-        (:meth:`_host_sums`) and ``offset = p - start``; chunk by chunk. A particle whose
-        sums are not finite gets NaN (the fit drops it) and leaves the others' alone."""
+        (:meth:`_host_sums`) and ``offset = p - start``; chunk by chunk. The prior
+        ``prior`` ``(lateral, lateral, along)`` mm and the step bound hold in each
+        particle's line-of-sight frame ``frames`` ``(n, 3, 3)``
+        (:func:`plenocl.optics.sightline.sight_frames`): off the axis the uncertain
+        depth leans with the line. A particle whose sums are not finite gets NaN (the
+        fit drops it) and leaves the others' alone."""
         n = len(offset)
         steps, sigmas = np.full((n, 4), np.nan), np.full((n, 3), np.nan)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             normal = normal / scatter[:, None, None] ** 2
             rhs = rhs / scatter[:, None] ** 2
-        normal[:, :3, :3] += np.diag(1.0 / prior**2)
-        rhs[:, :3] -= offset / prior**2
+        information = sight_information(frames, prior)
+        normal[:, :3, :3] += information
+        rhs[:, :3] -= np.einsum("nij,nj->ni", information, offset)
         good = np.all(np.isfinite(normal), axis=(1, 2)) & np.all(np.isfinite(rhs), axis=1)
         for part in self._chunks(n):
             rows = np.arange(part.start, part.stop)[good[part]]
@@ -323,7 +331,8 @@ class ImageFit:
                 sigmas[rows], steps[rows] = _solve_each(normal[rows], rhs[rows],
                                                         self.settings.damping)
         limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
-        return np.clip(steps[:, :3], -limit, limit), steps[:, 3], sigmas
+        local = np.clip(np.einsum("nji,nj->ni", frames, steps[:, :3]), -limit, limit)
+        return np.einsum("nij,nj->ni", frames, local), steps[:, 3], sigmas
 
 
 def _backgrounds(backgrounds, n: int) -> list:

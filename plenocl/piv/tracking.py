@@ -1,30 +1,36 @@
-"""Particle refinement of a correlation field (docs/design.md §7.1): the particles of the
-two reconstructed volumes, matched with the correlation's displacement as predictor,
-averaged per interrogation window.
+"""Particle refinement of a correlation field (docs/design.md §7.1, §7.4): the particles
+of the two reconstructed volumes, matched with the correlation's displacement as
+predictor, averaged per interrogation window.
 
 A reconstructed volume places each particle within about 0.1 voxel laterally, but the
 correlation of whole windows also sees every ghost and the particles' irregular,
 depth-elongated shapes, and it reads the displacement about three times less precisely
-(``benchmarks/accuracy.py``). Here each peak of the first volume (local maxima above
-``threshold`` of the volume's maximum, 3-point Gaussian sub-voxel positions) is sent
-along the predicted displacement and paired with the nearest peak of the second volume
+(``benchmarks/accuracy.py``). Here each volume's particles are its peaks above
+``threshold`` of a robust peak level (:func:`volume_particles`); with the camera's lines
+of sight (:class:`SightLines`) the peaks of one particle stretched along its line are
+merged and centred on the ridge they sit on. Each particle of the first volume is sent
+along the predicted displacement and paired with the nearest of the second volume
 within ``search`` voxels (x, y, z); only mutual nearest neighbours are kept (a ghost
-rarely has a partner both ways). Each window of the correlation's final grid then takes
-the mean displacement of the pairs whose midpoints lie in it, each first moved to the
-window's centre along the local displacement gradient (a least-squares linear fit to the
-pairs in the window grown to twice its size, where it holds at least
-:data:`GRADIENT_PAIRS`; otherwise none), after leaving out pairs farther than ``search``
-from the window's median. Without that step, a gradient across a sparse window would
-bias its mean by where its few particles happen to lie. The vector's uncertainty
-(:func:`window_estimate`) adds in quadrature the half-width of the mean's 68.3 %
-confidence interval (the standard error times Student's t quantile for the pairs it
-holds: 1.32 for 3 pairs, 1.05 for 11), the systematic depth error of pairs in the
-camera's focal zone (:class:`FocalZone`), which err together, and the particles'
-reconstructed depth position carried through the local gradient. Windows with fewer
-than ``min_pairs`` pairs keep the correlation's vector. The refined field is validated
-like the correlation's last pass (normalised median test, outliers replaced): a cluster
-of failed windows at a face of the volume can survive the correlation's test and the
-refinement, which follows it.
+rarely has a partner both ways). The predictor is the correlation refined once by these
+pairs (:func:`repredicted`): where the correlation errs beyond the search its windows
+would find no pairs. Each window of the correlation's final grid then takes the mean
+displacement of the pairs whose midpoints lie in it, each first moved to the window's
+centre along the local displacement gradient (a least-squares linear fit to the pairs in
+the window grown to twice its size, where it holds at least :data:`GRADIENT_PAIRS`;
+otherwise none), after leaving out pairs farther than ``search`` from the window's
+median. Without that step, a gradient across a sparse window would bias its mean by
+where its few particles happen to lie. With the camera's :class:`FocalZone`, the depth
+component comes from the pairs that see depth (:func:`seen_depth`; interpolated in
+depth across the blind zone at the focal plane), and with its lines of sight the blind
+pairs' lateral motion is read across their lines (:meth:`SightLines.unseen_along_sight`).
+The vector's uncertainty (:func:`window_estimate`) adds in quadrature the half-width of
+the mean's 68.3 % confidence interval (the standard error times Student's t quantile for
+the pairs it holds: 1.32 for 3 pairs, 1.05 for 11), the systematic depth error of pairs
+in the camera's focal zone, which err together, and the particles' reconstructed depth
+position carried through the local gradient. Windows with fewer than ``min_pairs`` pairs
+keep the predictor's vector. The refined field is validated like the correlation's last
+pass (normalised median test, outliers replaced): a cluster of failed windows at a face
+of the volume can survive the correlation's test and the refinement, which follows it.
 """
 
 from __future__ import annotations
@@ -35,11 +41,12 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import stats
+from scipy import ndimage, stats
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
-from ..peaks import find_particles
+from ..optics.sightline import line_of_sight, sight_frames
+from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
 from .validation import normalized_median_test, replace_outliers
 
@@ -68,6 +75,13 @@ FITTED_POSITION_SIGMA = (0.0, 0.0, 0.3)
 #: about 68 % of the depth errors of windows within 2 mm of the focal plane lie within
 #: one sigma (docs/design.md §7.1).
 FOCAL_SYSTEMATIC = 0.087
+#: Within this many depth resolutions of the focal plane a pair's depth displacement is
+#: not used (:meth:`FocalZone.sees_depth`): both exposures' particles there are drawn to
+#: the same depth, their ``dz`` 1.0-1.4 voxel short of a 1.7-voxel motion at the paper's
+#: optics, and a window that holds a few of them inherits it. Measured at the paper's
+#: full size (``benchmarks/field_size.py``): 1.0 leaves windows at 0.45 voxel RMS in
+#: depth, 1.5 at 0.31; docs/design.md §7.4.
+DEPTH_BLIND = 1.5
 
 
 @dataclass(frozen=True)
@@ -95,12 +109,21 @@ def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
 
 def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
                    threshold: float = 0.1, search=SEARCH,
-                   fit: ImageFit | None = None) -> ParticlePairs:
+                   fit: ImageFit | None = None, sight: SightLines | None = None
+                   ) -> ParticlePairs:
     """Mutual nearest-neighbour pairs of the two volumes' peaks along ``field``; with
-    ``fit``, the paired peaks are refined against their raw images and paired again
-    (the peaks the fit dropped left out, and counted)."""
-    pa, _ = find_particles(vol_a, threshold)
-    pb, _ = find_particles(vol_b, threshold)
+    ``sight``, each particle's peaks along its line of sight merged first
+    (:meth:`SightLines.merge`); with ``fit``, the paired peaks are refined against their
+    raw images and paired again (the peaks the fit dropped left out, and counted)."""
+    pa, pb = (volume_particles(v, threshold, sight) for v in (vol_a, vol_b))
+    return pair_peaks(pa, pb, field, search, fit)
+
+
+def pair_peaks(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH,
+               fit: ImageFit | None = None) -> ParticlePairs:
+    """:func:`pair_particles` of the two volumes' particles ``pa``, ``pb`` ``(N, 3)``
+    ``(x, y, z)`` voxels (copied, not changed)."""
+    pa, pb = np.array(pa, float), np.array(pb, float)
     ia, ib = mutual_pairs(pa, pb, field, search)
     dropped = 0
     if fit is not None and len(ia):
@@ -111,6 +134,24 @@ def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
         ia, ib = mutual_pairs(pa, pb, field, search)
     disp = pb[ib] - pa[ia]
     return ParticlePairs(pa[ia] + disp / 2, disp, dropped)
+
+
+def volume_particles(vol: np.ndarray, threshold: float = 0.1,
+                     sight: SightLines | None = None) -> np.ndarray:
+    """A volume's particles ``(N, 3)`` ``(x, y, z)`` voxels, brightest first: its peaks
+    above ``threshold`` of the robust peak level (:func:`plenocl.peaks.find_particles`
+    with ``reference="robust"``: a high quantile of the peaks, which does not grow with
+    the volume as its maximum does; at the paper's full size the maximum kept 80-83 % of
+    the particles, the quantile 84-92 %, against 88 % on a 96 x 64 camera); with
+    ``sight``, the peaks along one line of sight merged (:meth:`SightLines.merge`) and
+    centred on their ridge (:meth:`SightLines.centres`)."""
+    peaks, values = find_particles(vol, threshold, reference="robust")
+    if sight is None:
+        return peaks
+    peaks = sight.merge(peaks, values)[0]
+    for _ in range(CENTRE_PASSES):
+        peaks = sight.centres(vol, peaks)
+    return peaks
 
 
 def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH
@@ -172,6 +213,11 @@ class FocalZone:
         dz = grid.spacing[0]
         return cls(plane=-grid.z[0] / dz - 0.5, resolution=camera.depth_resolution_mm / dz)
 
+    def sees_depth(self, z: np.ndarray) -> np.ndarray:
+        """Whether the camera measures depth at depth index ``z``: farther from the plane
+        than :data:`DEPTH_BLIND` resolutions (docs/design.md §7.4)."""
+        return np.abs(np.asarray(z, float) - self.plane) >= DEPTH_BLIND * self.resolution
+
     def ambiguity(self, z: np.ndarray) -> np.ndarray:
         """A pair's systematic depth uncertainty (voxels) at depth index ``z``:
         :data:`FOCAL_SYSTEMATIC` times the resolution at the plane, falling linearly to
@@ -180,6 +226,108 @@ class FocalZone:
         reach = np.clip(1.0 - np.abs(np.asarray(z, float) - self.plane)
                         / (2.0 * self.resolution), 0.0, None)
         return FOCAL_SYSTEMATIC * self.resolution * reach
+
+
+#: How far across its line of sight (voxels, lateral) a peak may lie from a brighter one
+#: for :class:`SightLines` to take it as the same particle: the duplicates of a
+#: reconstructed particle lie within 0.15 voxel of one line (docs/design.md §7.4).
+SIGHT_ACROSS = 1.0
+#: The tube around a particle's line of sight whose intensity centroid places it along
+#: the line (:meth:`SightLines.centres`): its radius (lateral voxels) and the passes (each
+#: centred on the last). At the paper's full size the pairs' depth error falls from 1.14
+#: (the merged peaks) to 0.95 voxel RMS (``benchmarks/field_size.py``).
+TUBE_RADIUS = 2.0
+CENTRE_PASSES = 2
+#: Samples along the tube per depth resolution each way (about one per depth voxel).
+TUBE_STEPS = 8
+
+
+@dataclass(frozen=True)
+class SightLines:
+    """Where a volume's peaks are one particle stretched along its line of sight
+    (:mod:`plenocl.optics.sightline`): peaks within the camera's depth resolution of a
+    brighter one along that line, and within :data:`SIGHT_ACROSS` lateral voxel of it,
+    are merged into it (:func:`plenocl.peaks.merge_along_lines`).
+
+    Attributes
+    ----------
+    camera, grid
+        The camera (its lines of sight and depth resolution) and the volumes' grid.
+    """
+
+    camera: Camera
+    grid: Grid
+
+    @classmethod
+    def of(cls, camera: Camera, grid: Grid) -> SightLines:
+        """The lines of sight of ``camera`` through ``grid``."""
+        return cls(camera, grid)
+
+    def merge(self, peaks: np.ndarray, values: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """The peaks ``(N, 3)`` ``(x, y, z)`` voxels and their values, each particle's
+        peaks along its line of sight merged into the brightest at their value-weighted
+        mean position (brightest first, as :func:`plenocl.peaks.find_particles`)."""
+        if len(peaks) < 2:
+            return peaks, values
+        mm = self.grid.from_index(peaks)
+        across = SIGHT_ACROSS * float(np.mean(self.grid.spacing[1:]))
+        keep, moved = merge_along_lines(mm, values, line_of_sight(self.camera, mm),
+                                        self.camera.depth_resolution_mm, across)
+        return self.grid.to_index(moved[keep]), values[keep]
+
+    def unseen_along_sight(self, pairs: ParticlePairs, depth: PIVResult,
+                           focus: FocalZone) -> ParticlePairs:
+        """``pairs`` with the displacement of each pair the camera does not see in
+        depth (:meth:`FocalZone.sees_depth`) moved along its line of sight until its
+        depth component is ``depth``'s ``w`` at its midpoint (:func:`predicted`).
+
+        Such a pair's two particles are placed at about the same depth along their
+        lines of sight whatever their motion in depth, and off the axis that error
+        leans into the lateral components too (``r / s_o`` of it: 0.2 voxel of a
+        1.7-voxel motion 20 mm off the axis); the lateral motion across the line is
+        measured, the motion along it is taken from the pairs that see depth."""
+        blind = ~focus.sees_depth(pairs.midpoints[:, 2])
+        if not blind.any():
+            return pairs
+        mid, disp = pairs.midpoints[blind], pairs.displacements[blind].copy()
+        mm = self.grid.from_index(mid)
+        along = self.grid.to_index(mm + line_of_sight(self.camera, mm)) - mid  # voxels
+        shift = predicted(depth, mid)[:, 2] - disp[:, 2]
+        disp += along * (shift / along[:, 2])[:, None]
+        out = pairs.displacements.copy()
+        out[blind] = disp
+        return dataclasses.replace(pairs, displacements=out)
+
+    def centres(self, vol: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+        """The particles ``peaks`` ``(N, 3)`` ``(x, y, z)`` voxels moved along their lines
+        of sight to the intensity centroid of ``vol`` in a tube around each line
+        (:data:`TUBE_RADIUS` lateral voxels, as long as the camera's depth resolution each
+        way; trilinear samples every half voxel across and :data:`TUBE_STEPS` per resolution
+        along).
+
+        A reconstructed particle's ridge along its line holds lobes that a peak sits on;
+        its centroid is the ridge's centre. Only the position along the line moves: across
+        it the peak's sub-voxel fit is the sharper estimate."""
+        if not len(peaks):
+            return np.asarray(peaks, float).reshape(0, 3)
+        mm = self.grid.from_index(peaks)
+        frames = sight_frames(line_of_sight(self.camera, mm))
+        lateral = float(np.mean(self.grid.spacing[1:]))
+        g = np.arange(-TUBE_RADIUS, TUBE_RADIUS + 1e-9, 0.5) * lateral
+        a = np.arange(-1.0, 1.0 + 1e-9, 1.0 / TUBE_STEPS) * self.camera.depth_resolution_mm
+        u, v, t = np.meshgrid(g, g, a, indexing="ij")
+        inside = u**2 + v**2 <= (TUBE_RADIUS * lateral) ** 2
+        local = np.stack([u[inside], v[inside], t[inside]], axis=1)  # (S, 3)
+        points = mm[:, None, :] + np.matmul(frames, local.T).transpose(0, 2, 1)
+        index = self.grid.to_index(points.reshape(-1, 3))
+        values = ndimage.map_coordinates(np.asarray(vol, np.float32), index[:, ::-1].T,
+                                         order=1, mode="constant").reshape(len(mm), -1)
+        values = np.maximum(values, 0.0)
+        total = values.sum(axis=1)
+        along = values @ local[:, 2] / np.maximum(total, 1e-30)
+        moved = mm + frames[:, :, 2] * along[:, None]  # along the line only
+        return self.grid.to_index(np.where(total[:, None] > 0, moved, mm))
 
 
 @functools.cache
@@ -396,10 +544,90 @@ def _estimates(d: np.ndarray, depth: np.ndarray, keep: np.ndarray, grad: np.ndar
     return mean, np.sqrt(random ** 2 + systematic ** 2 + position ** 2)
 
 
+def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int = 3,
+                search=SEARCH, focus: FocalZone | None = None) -> PIVResult:
+    """``field`` refined by the volumes' particles ``pa``, ``pb`` as they are (paired
+    along ``field``; :func:`with_window_means`): the predictor of the pairing that the
+    fit to the raw images follows, and the field of the windows it leaves without
+    pairs. Where a correlation errs by more than the search range (off the axis its
+    depth error reaches 3-4 voxels in places, ``benchmarks/field_size.py``) its windows
+    find no pairs along it, and would keep it; along this field they find them."""
+    pairs = pair_peaks(pa, pb, field, search)
+    mean, error, _ = window_means(pairs, field, min_pairs, search, focus)
+    return with_window_means(field, mean, error)[0]
+
+
+def with_window_means(field: PIVResult, mean: np.ndarray, error: np.ndarray
+                      ) -> tuple[PIVResult, np.ndarray]:
+    """``field`` with the windows where ``mean`` ``(3, nz, ny, nx)`` is finite replaced
+    by it and ``error`` (their uncertainty), then validated as :func:`plenocl.piv3d`
+    validates its last pass (normalised median test, outliers replaced by their
+    neighbours' median, marked invalid, sigma NaN); and which windows took ``mean``."""
+    use = np.isfinite(mean[0]) & ~field.masked
+    vectors = np.stack([np.where(use, mean[n], getattr(field, c))
+                        for n, c in enumerate("uvw")])
+    outlier = normalized_median_test(vectors, ignore=field.masked)
+    vectors = np.where(field.masked, vectors, replace_outliers(vectors, outlier | field.masked))
+    valid = (field.valid | use) & ~outlier & ~field.masked
+    comps = {c: vectors[n] for n, c in enumerate("uvw")}
+    for n, c in enumerate("uvw"):
+        sigma = getattr(field, f"sigma_{c}")
+        sigma = np.full(field.u.shape, np.nan) if sigma is None else sigma
+        comps[f"sigma_{c}"] = np.where(valid, np.where(use, error[n], sigma), np.nan)
+    outlier = outlier | (field.outlier & ~use)
+    return dataclasses.replace(field, **comps, valid=valid, outlier=outlier), use
+
+
+def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.ndarray,
+               sigma_w: np.ndarray, min_pairs: int = 3, search=SEARCH,
+               position_sigma=POSITION_SIGMA) -> tuple[np.ndarray, np.ndarray]:
+    """The depth component of every window ``(nz, ny, nx)`` and its uncertainty from
+    the pairs that see depth (:meth:`FocalZone.sees_depth`) alone.
+
+    A window with at least ``min_pairs`` of them takes their mean (:func:`window_means`).
+    A window within the blind zone without them takes the linear interpolation in depth
+    between the nearest such windows above and below in its column (the nearest one at
+    an end), with the interpolated uncertainty and half the two values' difference
+    added in quadrature; others keep ``w`` and ``sigma_w`` (all their pairs' mean).
+    """
+    seeing = focus.sees_depth(pairs.midpoints[:, 2])
+    subset = ParticlePairs(pairs.midpoints[seeing], pairs.displacements[seeing])
+    mean, error, _ = window_means(subset, field, min_pairs, search, focus, position_sigma)
+    seen, seen_sigma = mean[2], error[2]
+    fill, fill_sigma = _depth_interpolation(seen, seen_sigma, field.z)
+    blind = ~focus.sees_depth(field.z)[:, None, None]
+    out = np.where(np.isfinite(seen), seen, np.where(blind & np.isfinite(w), fill, w))
+    out_sigma = np.where(np.isfinite(seen), seen_sigma,
+                         np.where(blind & np.isfinite(w), fill_sigma, sigma_w))
+    return out, out_sigma
+
+
+def _depth_interpolation(w: np.ndarray, sigma: np.ndarray, z: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Per column ``(y, x)`` of ``w`` ``(nz, ny, nx)`` (NaN: missing), the linear
+    interpolation in ``z`` between the finite values, their uncertainty interpolated
+    likewise with half the bracketing values' difference added in quadrature; NaN in a
+    column without any."""
+    nz = len(z)
+    fill, fill_sigma = np.full((2, *w.shape), np.nan)
+    flat_w, flat_s = w.reshape(nz, -1), sigma.reshape(nz, -1)
+    out_w, out_s = fill.reshape(nz, -1), fill_sigma.reshape(nz, -1)
+    for col in np.flatnonzero(np.isfinite(flat_w).any(axis=0)):
+        have = np.flatnonzero(np.isfinite(flat_w[:, col]))
+        values, sig = flat_w[have, col], np.nan_to_num(flat_s[have, col])
+        upper = np.clip(np.searchsorted(z[have], z), 0, len(have) - 1)
+        lower = np.clip(upper - 1, 0, len(have) - 1)
+        out_w[:, col] = np.interp(z, z[have], values)
+        out_s[:, col] = np.hypot(np.interp(z, z[have], sig),
+                                 np.abs(values[upper] - values[lower]) / 2)
+    return fill, fill_sigma
+
+
 def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray,
                           threshold: float = 0.1, min_pairs: int = 3,
                           search=SEARCH, focus: FocalZone | None = None,
-                          fit: ImageFit | None = None) -> PIVResult:
+                          fit: ImageFit | None = None,
+                          sight: SightLines | None = None) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -412,23 +640,24 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     fit to the raw images dropped (``dropped``: their fit left the grid or was not
     finite; docs/design.md §7.2).
     """
-    pairs = pair_particles(vol_a, vol_b, field, threshold, search, fit)
+    pa, pb = (volume_particles(v, threshold, sight) for v in (vol_a, vol_b))
+    predictor = repredicted(field, pa, pb, min_pairs, search, focus)
+    pairs = pair_peaks(pa, pb, predictor, search, fit)
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
     mean, error, count = window_means(pairs, field, min_pairs, search, focus, position)
-    use = np.isfinite(mean[0]) & ~field.masked
-    vectors = np.stack([np.where(use, mean[n], getattr(field, c))
-                        for n, c in enumerate("uvw")])
-    outlier = normalized_median_test(vectors, ignore=field.masked)
-    vectors = np.where(field.masked, vectors, replace_outliers(vectors, outlier | field.masked))
-    valid = (field.valid | use) & ~outlier & ~field.masked
-    comps = {c: vectors[n] for n, c in enumerate("uvw")}
-    for n, c in enumerate("uvw"):
-        sigma = getattr(field, f"sigma_{c}")
-        sigma = np.full(field.u.shape, np.nan) if sigma is None else sigma
-        comps[f"sigma_{c}"] = np.where(valid, np.where(use, error[n], sigma), np.nan)
+    if focus is not None:
+        mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs,
+                                       search, position)
+        if sight is not None:
+            depth = dataclasses.replace(field, w=np.where(np.isfinite(mean[2]), mean[2],
+                                                          predictor.w))
+            pairs = sight.unseen_along_sight(pairs, depth, focus)
+            lateral, lateral_error, count = window_means(pairs, field, min_pairs, search,
+                                                         focus, position)
+            mean[:2], error[:2] = lateral[:2], lateral_error[:2]
+    refined, use = with_window_means(predictor, mean, error)
     log = {"refinement": "particles", "pairs": len(pairs.midpoints),
-           "vectors": int(use.sum()), "outliers": int(outlier.sum()),
+           "vectors": int(use.sum()), "outliers": int(np.count_nonzero(refined.outlier)),
            "median_pairs": float(np.median(count[use])) if use.any() else 0.0,
            "dropped": pairs.dropped}
-    return dataclasses.replace(field, **comps, valid=valid, outlier=outlier,
-                               refinement=log)
+    return dataclasses.replace(refined, refinement=log)

@@ -1,0 +1,54 @@
+"""The field-size benchmark's bookkeeping (plenocl/bench/fieldsize.py): matching found
+positions to the truth and splitting errors by distance from the axis and by depth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plenocl.bench.fieldsize import (
+    MATCH,
+    RADII_MM,
+    ZONES_MM,
+    SizeSplit,
+    Stage,
+    matched,
+    off_axis_ratio,
+    split_table,
+)
+
+
+def test_each_true_position_takes_its_nearest_found_one_within_the_match_ellipsoid():
+    truth = np.array([[10.0, 10.0, 10.0], [20.0, 20.0, 20.0], [30.0, 30.0, 30.0]])
+    found = np.array([[20.5, 20.0, 22.0], [10.2, 9.9, 10.5], [30.0, 31.5, 30.0]])
+    it, ifound = matched(found, truth)
+    assert it.tolist() == [0, 1] and ifound.tolist() == [1, 0]  # the third is 1.5 off in y
+    assert MATCH[1] < 1.5
+    assert matched(np.zeros((0, 3)), truth)[0].size == 0
+
+
+def test_errors_split_by_radius_and_depth_zone_into_their_own_bins():
+    rng = np.random.default_rng(2)
+    r = rng.uniform(0, 30, 3000)
+    phi = rng.uniform(0, 2 * np.pi, 3000)
+    z = rng.uniform(-10, 10, 3000)
+    where = np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+    err = np.zeros((3000, 3))
+    err[:, 0] = r / 10           # lateral error grows with the radius
+    err[:, 2] = np.abs(z) < 2    # depth error 1 in the focal zone only
+    st = Stage("test", where, err)
+    rows = st.by_radius()
+    assert len(rows) == len(RADII_MM)
+    lateral = [row[0] for row in rows]
+    assert np.all(np.diff(lateral) > 0)
+    assert rows[0][0] == pytest.approx(np.sqrt(np.mean((r[r < 5] / 10) ** 2) / 2))
+    zones = st.by_zone()
+    assert len(zones) == len(ZONES_MM)
+    assert zones[0][1] == pytest.approx(1.0) and zones[1][1] == zones[2][1] == 0.0
+    assert sum(n for *_, n in zones) == 3000
+    assert off_axis_ratio(st)[0] == pytest.approx(rows[4][0] / rows[0][0])
+    split = SizeSplit((10, 8), (4, 5, 6), 3000, [st], [1.0] * 6, [0.9] * 6, 1.0)
+    text = split_table(split)
+    assert "10 x 8 lenses" in text and text.count("\n") == 4
+    assert Stage("few", where[:2], err[:2]).rms()[2] == 2
+    assert np.isnan(Stage("few", where[:2], err[:2]).rms()[0])

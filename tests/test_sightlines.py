@@ -1,0 +1,202 @@
+"""Lines of sight (plenocl/optics/sightline.py) and the stages that lean with them: a
+particle's peaks merged and centred along its line (plenocl/peaks.py,
+plenocl/piv/tracking.py ``SightLines``), the depth the focal zone does not see taken from
+the pairs that see it, and the pairing's refined predictor (docs/design.md §7.4)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from plenocl import Camera, Grid, piv3d
+from plenocl.metrics import render_particles
+from plenocl.optics.sightline import line_of_sight, sight_frames, sight_information
+from plenocl.peaks import find_particles, merge_along_lines
+from plenocl.piv.tracking import (
+    DEPTH_BLIND,
+    FocalZone,
+    ParticlePairs,
+    SightLines,
+    pair_particles,
+    predicted,
+    refine_with_particles,
+    seen_depth,
+    window_means,
+)
+
+#: The paper's optics on a small array (the lines of sight do not depend on its size).
+CAMERA = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (40, 30), 0.0074, (700, 530))
+#: A grid 20 mm off the axis in x, 12 in y, voxels as the paper's.
+OFF_AXIS = Grid((60, 24, 24), x=(17.8, 22.2), y=(9.9, 14.1), z=(-4.0, 4.0))
+
+
+def test_a_line_of_sight_holds_the_points_that_image_on_one_chief_ray():
+    """Every object point on a line of sight images onto one image-space ray through the
+    rear principal point: X'/d' and Y'/d' are the same all along it."""
+    start = np.array([[20.0, -12.0, -3.0]])
+    d = line_of_sight(CAMERA, start)[0]
+    assert np.linalg.norm(d) == pytest.approx(1.0) and d[2] > 0
+    pts = start + np.linspace(-8, 8, 9)[:, None] * d
+    img = CAMERA.image_points(pts)
+    slope = img[:, :2] / img[:, 2:]
+    np.testing.assert_allclose(slope, np.tile(slope[0], (9, 1)), atol=1e-12)
+    assert np.allclose(line_of_sight(CAMERA, [[0.0, 0.0, 5.0]]), [0, 0, 1])
+
+
+def test_sight_frames_are_rotations_onto_the_lines_and_the_identity_on_the_axis():
+    rng = np.random.default_rng(1)
+    d = line_of_sight(CAMERA, rng.uniform([-30, -20, -10], [30, 20, 10], (50, 3)))
+    frames = sight_frames(d)
+    np.testing.assert_allclose(frames @ frames.transpose(0, 2, 1),
+                               np.broadcast_to(np.eye(3), frames.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(frames), np.ones(len(d)), atol=1e-12)
+    np.testing.assert_allclose(frames[:, :, 2], d, atol=1e-12)
+    np.testing.assert_allclose(sight_frames(np.array([[0.0, 0, 1]]))[0], np.eye(3), atol=1e-15)
+
+
+def test_sight_information_is_narrow_across_the_line_and_wide_along_it():
+    d = line_of_sight(CAMERA, [[25.0, 10.0, 0.0]])
+    info = sight_information(sight_frames(d), np.array([0.1, 0.1, 2.0]))[0]
+    w, v = np.linalg.eigh(info)
+    assert w == pytest.approx([0.25, 100.0, 100.0])
+    assert abs(v[:, 0] @ d[0]) == pytest.approx(1.0)  # the weak direction is the line
+    on_axis = sight_information(np.eye(3)[None], np.array([0.1, 0.2, 2.0]))[0]
+    np.testing.assert_allclose(on_axis, np.diag([100.0, 25.0, 0.25]))
+
+
+def test_peaks_along_one_line_merge_at_their_weighted_centre_and_others_stay():
+    d = np.array([0.2, 0.1, 1.0]) / np.linalg.norm([0.2, 0.1, 1.0])
+    base = np.array([5.0, 5.0, 5.0])
+    across = np.array([1.0, -2.0, 0.0]) / np.sqrt(5.0)  # perpendicular to d
+    pts = np.array([base, base + 3 * d, base - 9 * d, base + 1.5 * across, base + 40 * d])
+    vals = np.array([1.0, 0.5, 0.9, 0.8, 0.7])
+    keep, out = merge_along_lines(pts, vals, np.tile(d, (5, 1)), along=4.0, across=1.0)
+    assert keep.tolist() == [True, False, True, True, True]
+    np.testing.assert_allclose(out[0], (pts[0] + 0.5 * pts[1]) / 1.5)
+    np.testing.assert_allclose(out[2:], pts[2:])
+
+
+def tilted_ridge(grid: Grid, centre_mm: np.ndarray, along_sigma: float, lateral_sigma: float
+                 ) -> np.ndarray:
+    """A particle as a reconstruction makes it: a Gaussian ridge along its line of sight
+    (sigmas in mm), sampled at the voxel centres of ``grid``."""
+    nz, ny, nx = grid.shape
+    iz, iy, ix = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    pts = grid.from_index(np.stack([ix.ravel(), iy.ravel(), iz.ravel()], axis=1)) - centre_mm
+    d = line_of_sight(CAMERA, centre_mm[None])[0]
+    t = pts @ d
+    perp = np.linalg.norm(pts - t[:, None] * d, axis=1)
+    v = np.exp(-0.5 * (t / along_sigma) ** 2 - 0.5 * (perp / lateral_sigma) ** 2)
+    v *= 1.0 + 0.35 * np.cos(2 * np.pi * t / 0.4)  # lobes along the ridge, as MLEM leaves
+    return v.reshape(grid.shape).astype(np.float32)
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (0.07, -0.05, 0.04), (0.11, 0.06, -0.05)])
+def test_a_ridge_off_the_axis_is_one_particle_at_its_centre(offset):
+    """20 mm off the axis a ridge 1 mm long along its leaning line of sight holds several
+    local maxima; merged along the line and centred in its tube it is one particle, within
+    0.15 depth voxel of its centre whatever its lateral phase on the voxel grid."""
+    centre = np.array([20.0, 12.0, 0.0]) + np.array(offset)
+    vol = tilted_ridge(OFF_AXIS, centre, along_sigma=0.35, lateral_sigma=0.1)
+    peaks, values = find_particles(vol, 0.1)
+    sight = SightLines.of(CAMERA, OFF_AXIS)
+    merged, _ = sight.merge(peaks, values)
+    assert len(peaks) >= 2 and len(merged) == 1
+    centred = sight.centres(vol, sight.centres(vol, merged))
+    err = (centred - OFF_AXIS.to_index(centre[None]))[0]
+    assert abs(err[2]) < 0.15 and np.all(np.abs(err[:2]) < 0.05)
+
+
+def test_the_blind_zone_spans_the_set_number_of_resolutions():
+    zone = FocalZone(plane=50.0, resolution=8.0)
+    reach = DEPTH_BLIND * 8.0
+    assert zone.sees_depth([50 - reach - 0.01, 50 + reach + 0.01]).all()
+    assert not zone.sees_depth([50.0, 50 + reach - 0.01, 50 - reach + 0.01]).any()
+
+
+GRID = Grid((48, 40, 56), x=(0, 56), y=(0, 40), z=(0, 48))  # 1 mm = 1 voxel
+SHIFT = np.array([1.6, -0.7, 2.2])  # (x, y, z) voxels
+
+
+@pytest.fixture(scope="module")
+def field():
+    rng = np.random.default_rng(3)
+    pos = rng.uniform([3, 3, 3], [53, 37, 45], (150, 3))
+    a = render_particles(GRID, pos + 0.5, 1.0, sigma_vox=0.8)
+    b = render_particles(GRID, pos + SHIFT + 0.5, 1.0, sigma_vox=0.8)
+    return a, b, piv3d(a, b, windows=(24, 16))
+
+
+def collapsing_pairs(rng, zone: FocalZone, n: int = 4000) -> ParticlePairs:
+    """Pairs moved by SHIFT throughout GRID, except that those the camera does not see in
+    depth report no depth motion (both drawn to the same depth)."""
+    mid = rng.uniform([0, 0, 0], [56, 40, 48], (n, 3))
+    disp = np.tile(SHIFT, (n, 1)) + rng.normal(0, 0.05, (n, 3))
+    disp[~zone.sees_depth(mid[:, 2]), 2] = 0.0
+    return ParticlePairs(mid, disp)
+
+
+def test_windows_take_depth_from_the_pairs_that_see_it_and_interpolate_across_the_zone(field):
+    """Blind pairs' depth (collapsed to 0) biases the plain window means by up to the
+    whole motion; from the seeing pairs, with the blind zone interpolated, every window
+    is within 0.1 voxel of the truth."""
+    res = field[2]
+    zone = FocalZone(plane=24.0, resolution=4.0)
+    pairs = collapsing_pairs(np.random.default_rng(4), zone)
+    mean, error, _ = window_means(pairs, res, focus=zone)
+    ok = np.isfinite(mean[2])
+    assert np.abs(mean[2][ok] - SHIFT[2]).max() > 1.0
+    w, sigma = seen_depth(pairs, res, zone, mean[2], error[2])
+    assert np.isfinite(w[ok]).all() and np.isfinite(sigma[ok]).all()
+    np.testing.assert_allclose(w[ok], SHIFT[2], atol=0.1)
+
+
+def test_a_blind_pair_off_the_axis_moves_along_its_line_to_the_seen_depth(field):
+    """Off the axis a blind pair's depth error leans into its lateral components along
+    the line of sight; moved along the line to the seen depth, its lateral motion is the
+    true one."""
+    grid = Grid((48, 40, 56), x=(14.0, 24.0), y=(8.0, 16.0), z=(-5.0, 5.0))
+    sight = SightLines.of(CAMERA, grid)
+    zone = FocalZone.of(CAMERA, grid)
+    mid = np.array([[28.0, 20.0, zone.plane + 1.0], [28.0, 20.0, 2.0]])
+    mm = grid.from_index(mid)
+    along = grid.to_index(mm + line_of_sight(CAMERA, mm)) - mid  # voxels per mm along
+    truth = np.array([1.2, -0.6, 2.0])
+    error = np.array([-2.0, 0.7])  # depth error along the line (voxels of z)
+    disp = truth + along * (error / along[:, 2])[:, None]
+    assert np.abs(disp[:, :2] - truth[:2]).max() > 0.02
+    pairs = ParticlePairs(mid, disp)
+    depth = dataclasses.replace(field[2], w=np.full(field[2].u.shape, truth[2]))  # same shape
+    moved = sight.unseen_along_sight(pairs, depth, zone)
+    np.testing.assert_allclose(moved.displacements[0], truth, atol=1e-9)  # blind: moved
+    np.testing.assert_allclose(moved.displacements[1], disp[1])  # sees depth: kept
+    assert predicted(depth, mid)[0, 2] == pytest.approx(truth[2])
+
+
+def test_windows_a_correlation_misses_by_more_than_the_search_are_refined(field):
+    """A block of windows whose correlation errs by 5 voxels in depth (beyond the search)
+    finds no pairs along it; along the predictor refined by the volumes' pairs it does,
+    and the refined field is right there."""
+    a, b, res = field
+    bad = dataclasses.replace(res, w=res.w.copy())
+    block = (slice(3, 5), slice(2, 4), slice(4, 6))
+    bad.w[block] += 5.0
+    plain = pair_particles(a, b, bad)
+    assert len(plain.midpoints) < len(pair_particles(a, b, res).midpoints)
+    refined = refine_with_particles(bad, a, b)
+    assert refined.valid[block].all()
+    np.testing.assert_allclose(refined.w[block], SHIFT[2], atol=0.3)
+
+
+def test_an_empty_volume_refines_nothing_with_the_lines_of_sight(field):
+    """No peaks: nothing merged, centred or paired; the field keeps its vectors."""
+    a, b, res = field
+    sight = SightLines.of(CAMERA, GRID)
+    empty = refine_with_particles(res, np.zeros_like(a), b, sight=sight,
+                                  focus=FocalZone(plane=24.0, resolution=4.0))
+    assert empty.refinement["pairs"] == 0 and empty.refinement["vectors"] == 0
+    same = ~empty.outlier
+    np.testing.assert_array_equal(empty.u[same], res.u[same])
+    assert sight.centres(a, np.zeros((0, 3))).shape == (0, 3)
