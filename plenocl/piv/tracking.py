@@ -584,21 +584,25 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     """The depth component of every window ``(nz, ny, nx)`` and its uncertainty from
     the pairs that see depth (:meth:`FocalZone.sees_depth`) alone.
 
-    A window with at least ``min_pairs`` of them takes their mean (:func:`window_means`).
-    A window within the blind zone without them takes the linear interpolation in depth
-    between the nearest such windows above and below in its column (the nearest one at
-    an end), with the interpolated uncertainty and half the two values' difference
-    added in quadrature; others keep ``w`` and ``sigma_w`` (all their pairs' mean).
+    A window centred where the camera sees depth, with at least ``min_pairs`` such
+    pairs, takes their mean (:func:`window_means`). A window centred in the blind zone
+    takes the linear interpolation in depth between the nearest such windows above and
+    below in its column (the nearest one at an end), with the interpolated uncertainty
+    and half the two values' difference added in quadrature: its own seeing pairs lie at
+    its faces, and carried to its centre along their gradient they missed the small
+    demo's boundary layer by more (8.3 % of U∞ against 7.6 %). Others keep ``w`` and
+    ``sigma_w`` (all their pairs' mean).
     """
     seeing = focus.sees_depth(pairs.midpoints[:, 2])
     subset = ParticlePairs(pairs.midpoints[seeing], pairs.displacements[seeing])
     mean, error, _ = window_means(subset, field, min_pairs, search, focus, position_sigma)
-    seen, seen_sigma = mean[2], error[2]
-    fill, fill_sigma = _depth_interpolation(seen, seen_sigma, field.z)
     blind = ~focus.sees_depth(field.z)[:, None, None]
-    out = np.where(np.isfinite(seen), seen, np.where(blind & np.isfinite(w), fill, w))
-    out_sigma = np.where(np.isfinite(seen), seen_sigma,
-                         np.where(blind & np.isfinite(w), fill_sigma, sigma_w))
+    seen = np.where(blind, np.nan, mean[2])
+    seen_sigma = np.where(blind, np.nan, error[2])
+    fill, fill_sigma = _depth_interpolation(seen, seen_sigma, field.z)
+    filled = blind & np.isfinite(w) & np.isfinite(fill)
+    out = np.where(np.isfinite(seen), seen, np.where(filled, fill, w))
+    out_sigma = np.where(np.isfinite(seen), seen_sigma, np.where(filled, fill_sigma, sigma_w))
     return out, out_sigma
 
 
