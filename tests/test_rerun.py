@@ -171,6 +171,23 @@ def test_a_changed_piv_table_correlates_the_kept_volumes_again(done, monkeypatch
     assert ensemble["pairs"]["0"] == field_metadata(done / PAIR)["digests"]["field"]
 
 
+def test_a_field_of_an_earlier_refinement_method_is_correlated_again(done, monkeypatch):
+    """The particle refinement changed (``plenocl.piv.tracking.METHOD``) with the same
+    settings: the kept volumes are correlated again, never the old field kept."""
+    import plenocl.batch.record as record_module
+
+    volumes = (done / VOLUMES).read_bytes()
+    monkeypatch.setattr(record_module, "REFINEMENT_METHOD", "a later method")
+    with monkeypatch.context() as patch:
+        _no_reconstruction(patch)
+        said = []
+        s = plenocl.run(done / "experiment.toml", progress=False, log=said.append)
+    assert s.processed == [0] and s.redone == [0]
+    assert any("refinement.method changed" in m and "kept volumes" in m for m in said)
+    assert (done / VOLUMES).read_bytes() == volumes
+    assert field_metadata(done / PAIR)["record"]["refinement"]["method"] == "a later method"
+
+
 @pytest.mark.parametrize("old, new, changed, action", [
     ("iterations = 6", "iterations = 4", "reconstruction.iterations", "redoing"),
     ("windows = [12, 8]\nensemble = true", "windows = [8]\nensemble = false", "piv.windows",

@@ -36,6 +36,7 @@ from ..io.fields import field_metadata
 from ..io.files import volumes_metadata
 from ..options import NONE
 from ..pipeline.resume import changed_keys, config_digest, config_parts, name_changes
+from ..piv.tracking import METHOD as REFINEMENT_METHOD
 from .config import Experiment
 from .pairing import ImagePair, changed_since, fingerprint
 from .prepare import frame_corrections
@@ -45,8 +46,10 @@ SKIP, RESCALE, CORRELATE, REDO = "skip", "rescale", "correlate", "redo"
 #: The entries whose change refuses a rerun (without ``redo``): the results would be of
 #: another geometry.
 REFUSE = ("camera", "grid")
-#: The sections a correlation alone depends on (after the volumes).
-FIELD_SECTIONS = ("piv", "particles", "image_fit")
+#: The sections a correlation alone depends on (after the volumes); ``refinement``: the
+#: particle refinement's method (:data:`plenocl.piv.tracking.METHOD`), so that a rerun
+#: after it changed re-correlates instead of keeping the earlier method's fields.
+FIELD_SECTIONS = ("piv", "particles", "image_fit", "refinement")
 #: The entry of the time between the exposures.
 DT = "images.dt_s"
 
@@ -61,7 +64,8 @@ def run_record(exp: Experiment, camera, grid) -> dict:
               "dark": _content(dark), "flat": _content(flat),
               "dt_s": float(exp["images"]["dt_s"])}
     return {"images": images, "camera": config_digest(camera.to_dict()),
-            "grid": config_digest(grid.to_dict()), **pair}
+            "grid": config_digest(grid.to_dict()), **pair,
+            "refinement": {"method": REFINEMENT_METHOD}}
 
 
 def _content(path: str | None) -> str:

@@ -57,6 +57,11 @@ if TYPE_CHECKING:
     from ..grid import Grid
     from .imagefit import ImageFit
 
+#: The particle refinement's method, recorded with every batch field
+#: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
+#: fields an earlier method made from the same settings. Change it whenever the
+#: refinement makes a different field from the same settings.
+METHOD = "lines of sight, seen depth (issue 45, 2026-11-28)"
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
 #: Fewest pairs in the doubled window for a displacement-gradient fit (12 unknowns).
