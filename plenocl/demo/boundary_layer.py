@@ -25,6 +25,7 @@ from ..particles import particles_per_microlens, random_particles
 from ..pipeline.resume import StageRunner
 from ..pipeline.settings import PairSettings
 from ..piv.settings import PIVSettings
+from ..piv.tracking import METHOD as REFINEMENT_METHOD
 from ..reconstruction import ReconstructionSettings
 from ..volumefile import load_volume, save_volume
 
@@ -154,7 +155,7 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     flow = CameraFrameFlow(sc, seed)
     settings = chain_settings(sc)
     chain = {"supersample": settings.reconstruction.supersample,
-             "refinement": "particles fitted to the raw images"}
+             "refinement": f"particles fitted to the raw images; {REFINEMENT_METHOD}"}
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: _stage_particles(run, sc, flow, seed))
