@@ -93,6 +93,19 @@ def _no_reconstruction(monkeypatch):
     monkeypatch.setattr(worker, "process_pair", refuse)
 
 
+def _rerun(folder, monkeypatch=None):
+    """``plenocl.run`` of ``folder``'s experiment again: its summary and the lines it
+    logged; with ``monkeypatch``, any reconstruction fails the test (the kept volumes
+    must serve)."""
+    said = []
+    if monkeypatch is None:
+        return plenocl.run(folder / "experiment.toml", progress=False, log=said.append), said
+    with monkeypatch.context() as patch:
+        _no_reconstruction(patch)
+        s = plenocl.run(folder / "experiment.toml", progress=False, log=said.append)
+    return s, said
+
+
 def _record_matches_the_run(folder):
     """The field's record is the run's, and experiment_used.toml names the same."""
     exp = load_experiment(folder / "experiment.toml")
@@ -111,9 +124,7 @@ def test_a_changed_dt_rescales_the_stored_velocities_and_nothing_else(done, monk
     ensemble = read_field(done / "results" / "ensemble.npz")
     volumes = (done / VOLUMES).read_bytes()
     _edit(done, f"dt_s = {DT}", "dt_s = 2.5e-3")
-    _no_reconstruction(monkeypatch)
-    said = []
-    s = plenocl.run(done / "experiment.toml", progress=False, log=said.append)
+    s, said = _rerun(done, monkeypatch)
     assert s.rescaled == [0] and s.processed == [] and s.skipped == []
     assert any("images.dt_s changed" in m and "rescaled" in m for m in said)
     after = read_field(done / PAIR)
@@ -154,10 +165,7 @@ def test_a_changed_piv_table_correlates_the_kept_volumes_again(done, monkeypatch
     volumes = (done / VOLUMES).read_bytes()
     old = read_field(done / PAIR)
     _edit(done, "windows = [12, 8]", "windows = [10]")
-    with monkeypatch.context() as patch:
-        _no_reconstruction(patch)
-        said = []
-        s = plenocl.run(done / "experiment.toml", progress=False, log=said.append)
+    s, said = _rerun(done, monkeypatch)
     assert s.processed == [0] and s.redone == [0]
     assert any("piv.windows changed" in m and "kept volumes" in m for m in said)
     assert (done / VOLUMES).read_bytes() == volumes
@@ -178,10 +186,7 @@ def test_a_field_of_an_earlier_refinement_method_is_correlated_again(done, monke
 
     volumes = (done / VOLUMES).read_bytes()
     monkeypatch.setattr(record_module, "REFINEMENT_METHOD", "a later method")
-    with monkeypatch.context() as patch:
-        _no_reconstruction(patch)
-        said = []
-        s = plenocl.run(done / "experiment.toml", progress=False, log=said.append)
+    s, said = _rerun(done, monkeypatch)
     assert s.processed == [0] and s.redone == [0]
     assert any("refinement.method changed" in m and "kept volumes" in m for m in said)
     assert (done / VOLUMES).read_bytes() == volumes
@@ -198,8 +203,7 @@ def test_a_changed_reconstruction_or_piv_without_volumes_redoes_the_pair(
     if "ensemble = false" in new:
         (done / VOLUMES).unlink()  # as a run without the ensemble keeps none
     _edit(done, old, new)
-    said = []
-    s = plenocl.run(done / "experiment.toml", progress=False, log=said.append)
+    s, said = _rerun(done)
     assert s.processed == [0] and s.redone == [0]
     assert any(changed in m and action in m for m in said), said
     fresh = _fresh(done, tmp_path_factory)
@@ -295,8 +299,7 @@ def test_a_tracking_rerun_leaves_only_results_of_its_record(tmp_path, monkeypatc
 
 def test_vti_asked_for_later_is_written_from_the_kept_field(done, monkeypatch):
     _edit(done, 'folder = "results"', 'folder = "results"\nvti = true\nformats = ["csv"]')
-    _no_reconstruction(monkeypatch)
-    s = plenocl.run(done / "experiment.toml", progress=False, log=lambda _: None)
+    s, _ = _rerun(done, monkeypatch)
     assert s.skipped == [0] and s.processed == []
     vti = (done / PAIR).with_suffix(".vti")
     assert vti.is_file() and b"velocity_m_per_s" in vti.read_bytes()

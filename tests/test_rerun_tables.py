@@ -12,8 +12,8 @@ from test_rerun import (  # noqa: F401  (the fixtures)
     VOLUMES,
     _edit,
     _fresh,
-    _no_reconstruction,
     _record_matches_the_run,
+    _rerun,
     done,
     frames,
 )
@@ -33,10 +33,7 @@ def test_a_changed_particles_table_correlates_the_kept_volumes_again(done, monke
                                                                      tmp_path_factory):
     volumes = (done / VOLUMES).read_bytes()
     _edit(done, "[particles]\nenabled = false", "[particles]\nenabled = true")
-    with monkeypatch.context() as patch:
-        _no_reconstruction(patch)
-        said = []
-        s = plenocl.run(done / "experiment.toml", progress=False, log=said.append)
+    s, said = _rerun(done, monkeypatch)
     assert s.processed == [0] and s.redone == [0]
     assert any("particles.enabled changed" in m and "kept volumes" in m for m in said), said
     assert (done / VOLUMES).read_bytes() == volumes
@@ -47,8 +44,7 @@ def test_a_changed_particles_table_correlates_the_kept_volumes_again(done, monke
 def test_a_dark_frame_added_redoes_the_pair(done, tmp_path_factory):  # noqa: F811
     write_tiff(done / "dark.tif", np.full((408, 408), 40, np.uint16))
     _edit(done, 'pattern = "frame_*.tif"', 'pattern = "frame_*.tif"\ndark = "dark.tif"')
-    said = []
-    s = plenocl.run(done / "experiment.toml", progress=False, log=said.append)
+    s, said = _rerun(done)
     assert s.processed == [0] and s.redone == [0]
     assert any("images.dark changed" in m and "redoing" in m for m in said), said
     _same_field(done, _fresh(done, tmp_path_factory))
