@@ -138,18 +138,28 @@ UNIFORM = Motion("uniform")
 ROTATION = Motion("rotation about x", np.radians(2.0))
 
 
+def vector_errors(res, grid: Grid, motion: Motion = UNIFORM
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The valid vectors of ``res``: their window centres ``(n, 3)`` (x, y, z) mm and
+    their errors ``(n, 3)`` (x, y, z) voxels against the motion's displacement there."""
+    ok = res.valid
+    truth = motion.displacement(res, grid)
+    err = np.stack([getattr(res, c)[ok] - t[ok] for c, t in zip("uvw", truth)], axis=1)
+    x, y, z = window_centres_mm(res, grid)
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    return np.stack([xx[ok], yy[ok], zz[ok]], axis=1), err
+
+
 def budget_errors(res, grid: Grid, motion: Motion = UNIFORM) -> dict:
     """RMS errors (voxels) of the valid vectors against the motion's displacement: lateral
     (RMS over x and y), depth, depth by zone (in focus |z| < 2 mm, near, far), bias."""
-    ok = res.valid
-    truth = motion.displacement(res, grid)
-    err = [getattr(res, c)[ok] - t[ok] for c, t in zip("uvw", truth)]
-    z_mm = np.broadcast_to(window_centres_mm(res, grid)[2][:, None, None], res.u.shape)[ok]
-    out = {"lateral": float(np.sqrt(np.mean(err[0] ** 2 + err[1] ** 2) / 2)),
-           "depth": float(np.sqrt(np.mean(err[2] ** 2))), "valid": float(ok.mean()),
-           "bias": tuple(float(np.mean(e)) for e in err)}
+    where, err = vector_errors(res, grid, motion)
+    z_mm = where[:, 2]
+    out = {"lateral": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2) / 2)),
+           "depth": float(np.sqrt(np.mean(err[:, 2] ** 2))), "valid": float(res.valid.mean()),
+           "bias": tuple(float(np.mean(e)) for e in err.T)}
     for zone, sel in (("in focus", np.abs(z_mm) < 2), ("near", z_mm < -2), ("far", z_mm > 2)):
-        out[zone] = float(np.sqrt(np.mean(err[2][sel] ** 2))) if sel.any() else float("nan")
+        out[zone] = float(np.sqrt(np.mean(err[sel, 2] ** 2))) if sel.any() else float("nan")
     return out
 
 

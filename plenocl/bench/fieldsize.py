@@ -41,7 +41,7 @@ from ..piv.tracking import (
     repredicted,
     volume_particles,
 )
-from .accuracy_section import UNIFORM, Motion, budget_scene, window_centres_mm
+from .accuracy_section import UNIFORM, Motion, budget_scene, vector_errors
 
 #: Distance from the optical axis (mm) of the radial bins; the last is open.
 RADII_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)
@@ -106,13 +106,7 @@ def pair_stage(name: str, pairs, grid, scene) -> Stage:
 def field_stage(name: str, res, grid, motion: Motion = UNIFORM) -> Stage:
     """The errors of the valid vectors of ``res`` at their window centres against
     ``motion``."""
-    x, y, z = window_centres_mm(res, grid)
-    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
-    ok = res.valid
-    truth = motion.displacement(res, grid)
-    err = np.stack([res.u[ok] - truth[0][ok], res.v[ok] - truth[1][ok],
-                    res.w[ok] - truth[2][ok]], axis=1)
-    return Stage(name, np.stack([xx[ok], yy[ok], zz[ok]], axis=1), err)
+    return Stage(name, *vector_errors(res, grid, motion))
 
 
 @dataclass
