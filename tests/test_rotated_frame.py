@@ -4,14 +4,22 @@ the frame and object space."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import tolerances as tol
 from helpers import ROTATED, assert_adjoint, assert_close_to_peak, lens_camera
 
 from plenocl import Camera, Grid, Projector, simulate_image
+from plenocl.bench.realarray import agreement, sparse_volume
 from plenocl.metrics import recovery
-from plenocl.optics.lattice import lattice_rotation_deg, separable_rotation_deg
+from plenocl.optics.lattice import (
+    RectangularLattice,
+    lattice_fit,
+    lattice_rotation_deg,
+    separable_rotation_deg,
+)
 from plenocl.reconstruction import reconstruct
 from plenocl.reference.simulate import trace_particles
 from plenocl.reference.weights import voxel_weights
@@ -137,8 +145,9 @@ def test_reconstruction_in_the_rotated_frame_finds_the_particles(queue):
 
 def test_a_grid_across_the_lens_rows_is_resampled_or_says_it_is_slow(queue):
     """Never a silent 12x: a sensor-axis grid on a rotated array is projected through the
-    lens-row frame quietly; where no frame makes the array separable (a sheared fit of
-    jittered centres) it warns with the fix; the grid Grid.for_camera gives stays quiet."""
+    lens-row frame quietly, a sheared array too (jittered centres: the rows' frame makes
+    its map triangular); a frame that is not separable warns with the cause (the rows'
+    turn, the columns' skew) and the fix; the grid Grid.for_camera gives stays quiet."""
     import warnings
 
     cam = lens_camera(12, 10, **ROTATED)
@@ -151,5 +160,81 @@ def test_a_grid_across_the_lens_rows_is_resampled_or_says_it_is_slow(queue):
     rng = np.random.default_rng(7)
     sheared = cam.with_centers(cam.microlens_centers
                                + rng.uniform(-0.3, 0.3, cam.microlens_centers.shape))
-    with pytest.warns(UserWarning, match=r"against this grid's axes.*general path"):
-        assert Projector(sheared, sensor_axes, queue).path == "general"
+    skew = RectangularLattice.fit(sheared.microlens_centers).skew_deg
+    assert abs(skew) > 1e-3  # drifts more than shear_tol lenses across the rows
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        proj = Projector(sheared, sensor_axes, queue)
+        assert proj.path == "resampled" and proj.frame.path == "separable"
+        assert not proj.frame.lens_map.axis_aligned and proj.frame.lens_map.triangular
+        exact = Projector(sheared, sensor_axes, queue, general="exact")
+    with pytest.warns(UserWarning, match=rf"turned [+-]\d+\.\d+° against this grid's axes "
+                      rf"and its columns {skew:+.4f}° off square.*general path"):
+        assert Projector(sheared, sensor_axes, queue, frame=exact).path == "general"
+
+
+def _sheared_camera(skew_deg: float = 0.05) -> Camera:
+    """The 12 x 10 camera calibrated on an array whose columns lean ``skew_deg`` off square
+    to its level rows (a real array's lattice: rows and columns 0.005° off square across
+    20 rows drift 0.002 lenses, above ``shear_tol``)."""
+    cam = lens_camera(ml_offset_mm=ROTATED["ml_offset_mm"])
+    centres = cam.microlens_centers.copy()
+    rows = centres.shape[0]
+    pitch = lattice_fit(centres)[1, 1]
+    lean = np.tan(np.radians(skew_deg)) * pitch * (np.arange(rows) - (rows - 1) / 2)
+    centres[..., 0] += lean[:, None]
+    return cam.with_centers(centres)
+
+
+def test_sheared_array_is_separable_and_exact(queue):
+    """A calibrated rectangular array whose columns are not square to its rows runs the
+    separable path in its rows' frame (the columns' lean kept in the map, the aperture
+    samples leaning with it), exact against the NumPy weighting function, equal to the
+    general kernels on the same model, and adjoint."""
+    cam = _sheared_camera()
+    assert RectangularLattice.fit(cam.microlens_centers).skew_deg == pytest.approx(0.05)
+    grid = _frame_grid(cam)
+    proj = Projector(cam, grid, queue)
+    lens_map = proj.lens_map
+    assert proj.path == "separable" and lens_map.triangular and not lens_map.axis_aligned
+    assert abs(lens_map.matrix[0, 1] / lens_map.matrix[1, 1]) * 10 > 1e-3  # kept: > tol
+    assert proj.aperture.shear == pytest.approx(-lens_map.matrix[0, 1] / lens_map.matrix[0, 0])
+    general = copy.copy(proj.model)
+    general.path = "general"
+    kernels = Projector(cam, grid, queue, model=general, general="exact")
+    assert kernels.path == "general"
+    n = cam.pixels[0] * cam.pixels[1]
+    for vox in VOXELS:
+        idx, w = voxel_weights(cam, grid, *vox)
+        ref = np.bincount(idx, w, minlength=n)
+        onehot = np.zeros(grid.shape, np.float32)
+        onehot[vox] = 1.0
+        assert_close_to_peak(proj.forward(onehot).ravel(), ref, tol.WEIGHTS, vox)
+    rng = np.random.default_rng(3)
+    vol = rng.random(grid.shape).astype(np.float32)
+    img = rng.random(proj.image_shape).astype(np.float32)
+    np.testing.assert_allclose(proj.forward(vol), kernels.forward(vol), rtol=tol.RECOMPUTED,
+                               atol=tol.RECOMPUTED_FLOOR * vol.sum())
+    np.testing.assert_allclose(proj.back(img), kernels.back(img), rtol=tol.RECOMPUTED,
+                               atol=tol.RECOMPUTED_FLOOR * img.sum())
+    assert_adjoint(proj)
+
+
+def test_sheared_array_agrees_with_the_square_aperture_samples(queue):
+    """The leaning aperture samples of a sheared array's separable path against the square
+    samples of the general path it took before: the same light (totals within float32),
+    placed alike: the images and their lens images' centroids differ by under a tenth of
+    what the square samples differ from four times finer ones (the model's own sampling
+    error)."""
+    cam = _sheared_camera()
+    grid = _frame_grid(cam)
+    separable = Projector(cam, grid, queue)
+    square = Projector(cam, grid, queue, shear_tol=-1.0, general="exact")  # no term dropped
+    assert square.path == "general" and square.aperture.shear == 0.0
+    fine = Projector(cam, grid, queue, shear_tol=-1.0, general="exact",
+                     oversample=4 * square.model.oversample)
+    vol = sparse_volume(grid, 12, seed=8)
+    a, b, f = separable.forward(vol), square.forward(vol), fine.forward(vol)
+    now, sampling = agreement(a, b, cam), agreement(b, f, cam)
+    assert now.total < tol.FOOTPRINT_TOTAL
+    assert now.peak < 0.1 * sampling.peak and now.centroid_px < 0.1 * sampling.centroid_px

@@ -206,3 +206,11 @@ class RectangularLattice:
     def rotation_deg(self) -> float:
         """Rotation (degrees, counter-clockwise) of the lens rows against the x axis."""
         return math.degrees(math.atan2(self.model[0, 1], self.model[0, 0]))
+
+    @property
+    def skew_deg(self) -> float:
+        """How far (degrees) the lens columns are off square to the rows: 0 for a
+        rectangular lattice, 30 for a hexagonal array's offset rows seen as columns."""
+        row, col = self.model[0], self.model[1]
+        cos = float(row @ col) / (math.hypot(*row) * math.hypot(*col))
+        return math.degrees(math.asin(max(-1.0, min(1.0, cos))))

@@ -18,10 +18,10 @@ from functools import cached_property
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import AXIAL, Camera
 from ..grid import Grid
 from ..optics.depthrange import check_grid
-from ..optics.lattice import DEFAULT_SHEAR_TOL, lattice_rotation_deg
+from ..optics.lattice import DEFAULT_SHEAR_TOL, RectangularLattice
 from .lenses import lens_reach
 from .weighting import (
     DEFAULT_OVERSAMPLE,
@@ -130,13 +130,17 @@ class WeightingModel:
 
 
 def warn_general_path(camera: Camera, grid: Grid) -> None:
-    """Say that a grid across a rotated array's lens rows takes the general path, and
-    what makes it fast: never a silent slow-down (README, Performance: 12.5x at the
-    paper's size for a 0.15° array)."""
-    angle = lattice_rotation_deg(camera.microlens_centers)
+    """Say that a grid across the array's lens rows takes the general path, why (the
+    rows' turn against the grid's axes, and for a rectangular array how far its columns
+    are off square to its rows) and what makes it fast: never a silent slow-down
+    (README, Performance: 12.5x at the paper's size for a 0.15° array)."""
+    lattice = RectangularLattice.fit(camera.microlens_centers)
+    angle = lattice.rotation_deg
+    skew = "" if camera.ml_layout == AXIAL else (
+        f" and its columns {lattice.skew_deg:+.4f}° off square to them")
     warnings.warn(
-        f"the microlens array is turned {angle - grid.rotation_deg:+.4f}° against this "
-        "grid's axes: the projector takes its general path, up to about 12x slower than "
-        "a grid along the lens rows. Grid.for_camera (plenocl grid) gives that frame; "
-        f"a grid file does with rotation_deg = {angle:.4f} (velocities are written in "
-        "object space either way)", stacklevel=4)
+        f"the microlens rows are turned {angle - grid.rotation_deg:+.4f}° against this "
+        f"grid's axes{skew}: the projector takes its general path, up to about 12x slower "
+        "than a grid along the lens rows. Grid.for_camera (plenocl grid) gives that "
+        f"frame; a grid file does with rotation_deg = {angle:.4f} (velocities are written "
+        "in object space either way)", stacklevel=4)

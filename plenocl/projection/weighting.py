@@ -172,6 +172,9 @@ class LensIndexMap:
 
     matrix: np.ndarray  # (2, 2): d(kx, ky) / d(x, y)
     offset: np.ndarray  # (2,)
+    #: A hexagonal array's axial lattice: the aperture samples step along the lattice's
+    #: own two steps (rows squeezed); a rectangular array's keep the pixel's step in ``y``.
+    lattice_steps: bool = False
 
     @property
     def axis_aligned(self) -> bool:
@@ -181,18 +184,22 @@ class LensIndexMap:
     @property
     def triangular(self) -> bool:
         """Whether ``ky`` depends on ``y`` only (``kx`` may lean across the rows: a
-        hexagonal array's lattice, docs/design.md §5.3)."""
+        hexagonal array's lattice, docs/design.md §5.3, or a rectangular array whose
+        columns are not quite square to its rows, §5.4)."""
         return self.matrix[1, 0] == 0.0
 
     def aperture_lattice(self) -> tuple[float, float]:
         """``(shear, squeeze)`` of the aperture samples (:meth:`ApertureGrid.for_lattice`)
-        that move the light by equal whole steps of ``kx`` and ``ky`` each: ``(0, 1)``,
-        the plaid grid, for an axis-aligned map; for a triangular one the lattice's own
-        two steps, ``(-m01/m11, m00/m11)``."""
+        along which ``kx`` moves with the sample column only: ``(0, 1)``, the plaid grid,
+        for an axis-aligned map; for a triangular one the columns lean with the lattice:
+        a hexagonal array's own two steps, ``(-m01/m11, m00/m11)`` (equal whole steps of
+        ``kx`` and ``ky``), a leaning rectangular array's ``(-m01/m00, 1)``."""
         if self.axis_aligned or not self.triangular:
             return 0.0, 1.0
         m = self.matrix
-        return float(-m[0, 1] / m[1, 1]), float(m[0, 0] / m[1, 1])
+        if self.lattice_steps:
+            return float(-m[0, 1] / m[1, 1]), float(m[0, 0] / m[1, 1])
+        return float(-m[0, 1] / m[0, 0]), 1.0
 
     def __call__(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Fractional lens indices of array-plane points."""
@@ -213,9 +220,13 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     array, its rotation/shear terms are dropped (about the array's centre) and the map is
     axis-aligned: the separable projector path applies. A frame that follows the lens
     rows (:func:`plenocl.optics.lattice.separable_rotation_deg`) makes a rotated array
-    axis-aligned this way. A hexagonal array's axial lattice leans: in the frame of its
-    rows only the row index's drift is dropped, and the map is triangular (separable
-    with the rhombic aperture samples of :meth:`LensIndexMap.aperture_lattice`).
+    axis-aligned this way. Where only the rows are level (the row index drifts by at most
+    ``shear_tol``) but the columns lean, only the row index's drift is dropped and the
+    map is triangular: separable with the rhombic aperture samples of
+    :meth:`LensIndexMap.aperture_lattice`. That is a hexagonal array's axial lattice in
+    its rows' frame, and a calibrated rectangular array whose columns are not quite
+    square to its rows (a real array: 0.005° off is a drift of 0.002 lenses across 20
+    rows; docs/design.md §5.4), so no real calibration falls to the general path.
     """
     camera = camera.on_lens_lattice()  # a hexagonal array: its axial lattice (§5)
     cols, rows = camera.ml_count
@@ -227,15 +238,14 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     offset = -matrix @ fit[2]
     drift_x = abs(matrix[0, 1] / matrix[1, 1]) * rows
     drift_y = abs(matrix[1, 0] / matrix[0, 0]) * cols
-    leaning = camera.ml_layout == AXIAL and drift_y <= shear_tol
-    if max(drift_x, drift_y) <= shear_tol or leaning:
+    if drift_y <= shear_tol:  # the rows are level in this frame
         ok = np.isfinite(pos).all(axis=-1)
         centre = pos[ok].mean(axis=0)
-        keep = np.array([[1.0, float(leaning and drift_x > shear_tol)], [0.0, 1.0]])
+        keep = np.array([[1.0, float(drift_x > shear_tol)], [0.0, 1.0]])
         drop = matrix * (1 - keep)  # the terms dropped, about the array's centre
         offset = offset + drop @ centre
         matrix = np.where(keep > 0, matrix, 0.0)
-    return LensIndexMap(matrix=matrix, offset=offset)
+    return LensIndexMap(matrix=matrix, offset=offset, lattice_steps=camera.ml_layout == AXIAL)
 
 
 # ---- projector tables -------------------------------------------------------------------
