@@ -3,6 +3,7 @@ each reconstruction setting, every setting on the same scene in the same run.
 
     python benchmarks/paper_pair.py [--settings previous fullaperture default] [--lenses 289 193]
                                     [--seeding 0.05] [--motion uniform] [--bit-depth 16]
+                                    [--profile]
 
 Camera: the paper's optics on the whole 16 MP sensor (289 x 193 microlenses,
 4914 x 3282 px); grid: the paper's 300 x 200 x 150 voxels (``paper_optics``, as in
@@ -16,6 +17,12 @@ the particles the first volume recovered. The refined projector (the fine iterat
 the coarse-sampled ones (the coarse and the early fine iterations) and their
 sensitivities are built before the rows (a batch builds them once per worker) and their
 time printed, so no row pays for them and the order of the rows does not matter.
+
+``--profile``: everything runs on a queue with profiling enabled, and after the rows the
+first setting's pair runs once more under :class:`plenocl.bench.clprofile.OpenCLProfile`,
+which prints per stage the wall seconds, the seconds inside OpenCL calls, the host's own
+work outside them, the kernels' device seconds (profiling events), the launches and the
+megabytes moved each way, then the bytes a pair moved against its two raw images.
 """
 
 from __future__ import annotations
@@ -26,6 +33,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import pyopencl as cl  # noqa: E402
+
 from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
     PREVIOUS_SETTINGS,
@@ -35,6 +44,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
     pair_row,
     paper_setup,
 )
+from plenocl.bench.clprofile import OpenCLProfile, split_lines  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
@@ -71,8 +81,13 @@ def main() -> None:
     parser.add_argument("--bit-depth", type=int, default=None,
                         help="raw images as a camera's integers (e.g. 16) instead of float "
                              "counts")
+    parser.add_argument("--profile", action="store_true",
+                        help="then the first setting's pair once more, profiled")
     args = parser.parse_args()
     queue = get_queue()
+    if args.profile:
+        queue = cl.CommandQueue(queue.context, queue.device,
+                                properties=cl.command_queue_properties.PROFILING_ENABLE)
     cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     motion = MOTIONS[args.motion]
     scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion,
@@ -100,6 +115,24 @@ def main() -> None:
               f"{s['reconstruct_b']:6.1f} {s['piv']:5.1f} {s.get('particles', 0):6.1f} | "
               f"{e['lateral']:7.3f} {e['depth']:6.3f} {e['valid']:6.0%} "
               f"{row['recovered']:6.0%}", flush=True)
+    if args.profile:
+        profile_pair(scene, proj, SETTINGS[args.settings[0]])
+
+
+def profile_pair(scene, proj, rec) -> None:
+    """One pair of ``scene`` with reconstruction settings ``rec``, profiled: its split
+    and the bytes it moved against the raw images'."""
+    with OpenCLProfile() as prof:
+        pair = process_pair(scene.raw_a, scene.raw_b, proj,
+                            **({} if rec is None else {"reconstruction": rec}))
+        proj.queue.finish()
+    split = prof.split(pair.spans)
+    print("\n".join(split_lines(split)))
+    moved_in = sum(s.h2d_bytes for s in split.values())
+    moved_out = sum(s.d2h_bytes for s in split.values())
+    raws = scene.raw_a.nbytes + scene.raw_b.nbytes
+    print(f"bytes moved: {moved_in / 1e6:.1f} MB to the device ({moved_in / raws:.1f}x the "
+          f"two raw images' {raws / 1e6:.1f} MB), {moved_out / 1e6:.1f} MB back")
 
 
 if __name__ == "__main__":

@@ -75,3 +75,51 @@ __kernel void deform(__global const float *coeffs, int pz, int py, int px,
     }
     out[v] = sum;
 }
+
+/* The cubic B-spline prefilter along one axis, in place: each line of the volume turned
+ * into its interpolating B-spline coefficients with the mirror boundary (SciPy twin:
+ * scipy.ndimage.spline_filter1d(order=3, mode="mirror"), which plenocl.piv.interpolate
+ * .prepare applies to the zero-padded volume axis by axis; the device deformer filters
+ * the same padded volume here, z then y then x, instead of on the host).
+ *
+ * The filter is the gain 6 then a causal and an anticausal first-order recursion with
+ * the pole z = sqrt(3) - 2, started as SciPy starts them for a mirrored line (the causal
+ * start sums z^i over the line, truncated at PL_HORIZON terms, where z^i < 1e-18: exact
+ * in float32).
+ *
+ * Parallel structure: one work-item per line over a 2-D range of the other two axes
+ * (line start = gid0 * s0 + gid1 * s1, elements `stride` apart); each walks its line
+ * three times, serially (the recursion), with no shared state. Along y and z the
+ * neighbouring work-items read neighbouring x (coalesced on a GPU); along x each walks
+ * a contiguous row (cache lines on a CPU, strided across work-items on a GPU). */
+#define PL_POLE (-0.2679491924311227f)
+#define PL_HORIZON 32
+
+__kernel void spline_prefilter(__global float *coeffs, int n, int stride, int s0, int s1)
+{
+    __global float *c = coeffs + (long)get_global_id(0) * s0 + (long)get_global_id(1) * s1;
+    const float z = PL_POLE, gain = (1.0f - PL_POLE) * (1.0f - 1.0f / PL_POLE);
+    if (n < 2)
+        return;
+    for (int i = 0; i < n; ++i)
+        c[(long)i * stride] *= gain;
+    /* causal start, mirror boundary: c0 + sum z^i (c_i + z^(n-1) c_(n-1-i)), over
+     * 1 - z^(2(n-1)) */
+    float zn1 = 1.0f;
+    for (int i = 0; i < n - 1 && i < PL_HORIZON; ++i)
+        zn1 *= z;
+    if (n - 1 > PL_HORIZON)
+        zn1 = 0.0f;
+    float c0 = c[0] + zn1 * c[(long)(n - 1) * stride], zi = z;
+    for (int i = 1; i < n - 1 && i < PL_HORIZON; ++i) {
+        c0 += zi * (c[(long)i * stride] + zn1 * c[(long)(n - 1 - i) * stride]);
+        zi *= z;
+    }
+    c[0] = c0 / (1.0f - zn1 * zn1);
+    for (int i = 1; i < n; ++i)
+        c[(long)i * stride] += z * c[(long)(i - 1) * stride];
+    const long last = (long)(n - 1) * stride;
+    c[last] = (z * c[last - stride] + c[last]) * z / (z * z - 1.0f);
+    for (int i = n - 2; i >= 0; --i)
+        c[(long)i * stride] = z * (c[(long)(i + 1) * stride] - c[(long)i * stride]);
+}

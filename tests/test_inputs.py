@@ -302,3 +302,25 @@ def test_piv_prints_no_peak_ratio_note(tmp_path, capsys):
                  "--no-particles", "--out", str(tmp_path / "f.npz")]) == 0
     out = capsys.readouterr().out
     assert "wrote" in out and "NaN" not in out  # (the folder is named for the test)
+
+
+@pytest.mark.parametrize("n", [1 << 16, (1 << 16) + 1, 300_001, 1_000_000])
+def test_exact_median_is_numpys(n):
+    """The bracketed median equals NumPy's exactly: odd and even counts, float noise,
+    heavy ties, a bright tail, NaN (NumPy's NaN) and an order that defeats the strided
+    sample (the bracket misses: NumPy's median of the whole)."""
+    from plenocl.optics.rawimage import BRACKET_SAMPLE, exact_median
+
+    rng = np.random.default_rng(n)
+    noisy = rng.poisson(20, n) + rng.normal(0, 1, n)
+    noisy[rng.random(n) < 0.03] += 3000
+    ties = rng.poisson(3, n).astype(np.float64)
+    stride = n // BRACKET_SAMPLE
+    fooled = np.ones(n)
+    fooled[::stride] = 0.0  # every sampled value 0, the median 1
+    fooled[1::2] = 2.0
+    with_nan = noisy.copy()
+    with_nan[n // 3] = np.nan
+    for data in (noisy, ties, fooled, -noisy, noisy.reshape(-1, 2) if n % 2 == 0 else noisy):
+        assert exact_median(data) == float(np.median(data))
+    assert np.isnan(exact_median(with_nan))

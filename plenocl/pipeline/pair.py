@@ -9,6 +9,8 @@ available on their own (:func:`plenocl.reconstruct`, :func:`plenocl.piv3d`).
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,6 +45,9 @@ class PairResult:
         Wall time per stage: ``reconstruct_a``, ``reconstruct_b``, ``piv`` (the
         single-frame correlation), ``mte`` (every cycle, its correlations included) and
         ``particles`` (the particle refinement, the fit to the raw images included).
+    spans
+        Each stage's ``(start, end)`` on :func:`time.perf_counter`'s clock (what a
+        profile attributes to it: :class:`plenocl.bench.clprofile.OpenCLProfile`).
     """
 
     vol_a: np.ndarray
@@ -51,6 +56,24 @@ class PairResult:
     info_a: ReconstructionInfo
     info_b: ReconstructionInfo
     seconds: dict[str, float] = field(default_factory=dict)
+    spans: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+class StageClock:
+    """The wall time of each stage of a pair: ``seconds`` per stage name, and its
+    ``spans`` (start and end on :func:`time.perf_counter`'s clock)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.spans: dict[str, tuple[float, float]] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        """Time the ``with`` block as stage ``name``."""
+        start = time.perf_counter()
+        yield
+        end = time.perf_counter()
+        self.seconds[name], self.spans[name] = end - start, (start, end)
 
     @property
     def dropped(self) -> int:
@@ -110,37 +133,36 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     """
     settings = with_keywords(PairSettings, settings, parts, "process_pair")
     rec = settings.reconstruction
-    seconds, out = {}, {}
+    clock, out = StageClock(), {}
     for tag, raw in (("a", raw_a), ("b", raw_b)):
-        t0 = time.perf_counter()
-        try:
-            out[tag] = run_reconstruction(raw, projector, rec)
-        except UnusableImageError as exc:
-            raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
-        seconds[f"reconstruct_{tag}"] = time.perf_counter() - t0
+        with clock.stage(f"reconstruct_{tag}"):
+            try:
+                out[tag] = run_reconstruction(raw, projector, rec)
+            except UnusableImageError as exc:
+                raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
     if not settings.mte.cycles:
-        res, more = correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector, settings,
-                                      known_backgrounds(info_a, info_b))
-        return PairResult(vol_a, vol_b, res, info_a, info_b, {**seconds, **more})
-    t0 = time.perf_counter()
+        res, _ = correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector, settings,
+                                   known_backgrounds(info_a, info_b), clock)
+        return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
     def correlate(a, b) -> PIVResult:
         return piv3d(a, b, settings.piv, queue=projector.queue)
 
-    res = correlate(vol_a, vol_b)
-    seconds["piv"] = time.perf_counter() - t0
-    vol_a, vol_b, res, infos, seconds["mte"] = motion_tracking_enhancement(
-        raw_a, raw_b, projector, vol_a, vol_b, res, rec, settings.mte, correlate)
+    with clock.stage("piv"):
+        res = correlate(vol_a, vol_b)
+    with clock.stage("mte"):
+        vol_a, vol_b, res, infos, _ = motion_tracking_enhancement(
+            raw_a, raw_b, projector, vol_a, vol_b, res, rec, settings.mte, correlate)
     info_a, info_b = infos
     res = _with_particles(res, (raw_a, raw_b), (vol_a, vol_b), projector, settings,
-                          known_backgrounds(info_a, info_b), seconds)
-    return PairResult(vol_a, vol_b, res, info_a, info_b, seconds)
+                          known_backgrounds(info_a, info_b), clock)
+    return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
 
 def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
-                      settings: PairSettings, backgrounds: list | None = None
-                      ) -> tuple[PIVResult, dict[str, float]]:
+                      settings: PairSettings, backgrounds: list | None = None,
+                      clock: StageClock | None = None) -> tuple[PIVResult, dict[str, float]]:
     """The chain of :func:`process_pair` after its reconstruction, on two volumes made
     earlier (a batch rerun whose PIV settings changed reuses its kept volumes).
 
@@ -156,38 +178,40 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
     backgrounds
         The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
         them), as :class:`plenocl.piv.imagefit.ImageFit` takes them.
+    clock
+        The :class:`StageClock` to time the stages on (``None``: a new one).
 
     Returns
     -------
     (PIVResult, dict)
-        The field and the seconds of ``piv`` and ``particles``.
+        The field and the seconds of ``piv`` and ``particles`` (with any stages
+        ``clock`` timed before).
     """
     if settings.mte.cycles:
         raise ValueError("correlate_volumes: motion-tracking enhancement remakes the "
                          "volumes; use process_pair")
-    t0 = time.perf_counter()
-    res = piv3d(vol_a, vol_b, settings.piv, queue=projector.queue)
-    seconds = {"piv": time.perf_counter() - t0}
+    clock = clock or StageClock()
+    with clock.stage("piv"):
+        res = piv3d(vol_a, vol_b, settings.piv, queue=projector.queue)
     res = _with_particles(res, (raw_a, raw_b), (vol_a, vol_b), projector, settings,
-                          backgrounds, seconds)
-    return res, seconds
+                          backgrounds, clock)
+    return res, clock.seconds
 
 
 def _with_particles(res: PIVResult, raws, vols, projector, settings: PairSettings,
-                    backgrounds, seconds: dict) -> PIVResult:
-    """The particle refinement of the final field (``settings.particles``), its seconds
-    added to ``seconds``."""
+                    backgrounds, clock: StageClock) -> PIVResult:
+    """The particle refinement of the final field (``settings.particles``), timed as
+    the stage ``particles`` on ``clock``."""
     if not settings.particles:
         return res
-    t0 = time.perf_counter()
-    fit = None
-    if settings.image_fit is not None:
-        fit = ImageFit(projector.camera, projector.grid, raws, settings.image_fit,
-                       queue=projector.queue, backgrounds=backgrounds)
-    camera, grid = projector.camera, projector.grid
-    res = refine_with_particles(res, *vols, focus=FocalZone.of(camera, grid), fit=fit,
-                                sight=SightLines.of(camera, grid))
-    seconds["particles"] = time.perf_counter() - t0
+    with clock.stage("particles"):
+        fit = None
+        if settings.image_fit is not None:
+            fit = ImageFit(projector.camera, projector.grid, raws, settings.image_fit,
+                           queue=projector.queue, backgrounds=backgrounds)
+        camera, grid = projector.camera, projector.grid
+        res = refine_with_particles(res, *vols, focus=FocalZone.of(camera, grid), fit=fit,
+                                    sight=SightLines.of(camera, grid))
     return res
 
 

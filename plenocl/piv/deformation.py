@@ -53,16 +53,32 @@ class DeviceDeformer:
             raise ValueError(f"device deformation supports deform_order 1 and 3, got {order}; "
                              "use queue=False for the quintic B-spline (host)")
         self.order = order
-        self.kernels = KernelSet(get_queue(queue), "deform.cl", ["deform"],
-                                 options=[f"-DORDER={order}"])
+        self.kernels = KernelSet(get_queue(queue), "deform.cl",
+                                 ["deform", "spline_prefilter"], options=[f"-DORDER={order}"],
+                                 looping=["spline_prefilter"])
 
     def prepare(self, vol: np.ndarray):
-        """The padded, filtered volume (host :func:`~plenocl.piv.interpolate.prepare`), on the
-        device."""
-        coeffs = prepare(vol, self.order)
-        check_fits(self.kernels.queue, 4 * (2 * coeffs.size + 4 * np.asarray(vol).size),
+        """The padded, filtered volume (:func:`~plenocl.piv.interpolate.prepare`, the host
+        reference) on the device: padded on the host, B-spline filtered on the device
+        (``spline_prefilter``, axis by axis as SciPy)."""
+        padded = np.pad(np.asarray(vol, np.float32), MARGIN)
+        check_fits(self.kernels.queue, 4 * (2 * padded.size + 4 * np.asarray(vol).size),
                    "PIV volume deformation")
-        return self.kernels.to_device(coeffs)
+        coeffs = self.kernels.to_device(padded)
+        if self.order == 3:
+            self.prefilter(coeffs)
+        return coeffs
+
+    def prefilter(self, coeffs) -> None:
+        """Turn a padded device volume into its cubic B-spline coefficients in place
+        (``scipy.ndimage.spline_filter(mode="mirror")``): z, then y, then x."""
+        pz, py, px = coeffs.shape
+        plane = py * px
+        for n, stride, size, steps in ((pz, plane, (px, py), (1, px)),
+                                       (py, px, (px, pz), (1, plane)),
+                                       (px, 1, (py, pz), (px, plane))):
+            self.kernels.launch("spline_prefilter", size, coeffs, np.int32(n),
+                                np.int32(stride), *map(np.int32, steps))
 
     def field(self, displacement: np.ndarray):
         """A dense predictor ``(3, nz, ny, nx)`` copied to the device once, for both

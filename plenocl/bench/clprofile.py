@@ -1,0 +1,174 @@
+"""Where a chain's time goes between the host and the OpenCL device (issue 46).
+
+:class:`OpenCLProfile` records, while active, every OpenCL call the process makes through
+pyopencl: kernel launches (``enqueue_nd_range_kernel``, which every pyopencl kernel call
+and array operation goes through), copies (``enqueue_copy``: bytes each way), fills and
+the waits (``CommandQueue.finish``, ``Event.wait``, ``wait_for_events``), each with the
+wall time spent inside the call. :meth:`OpenCLProfile.split` then attributes them to
+stages by their time spans (:attr:`plenocl.pipeline.PairResult.spans`): per stage the
+wall time, the time inside OpenCL calls (launching, copying, waiting for the device),
+the host's own work outside them (the stage's wall time less that: NumPy, SciPy and
+Python, what a faster device cannot shorten), the kernels' device seconds from their
+profiling events (on a queue made with profiling enabled; ``None`` otherwise) and the
+bytes moved each way.
+
+It wraps pyopencl's module functions for the duration of a ``with`` block only and puts
+them back after, so nothing outside a benchmark sees it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyopencl as cl
+from pyopencl import _cl
+
+__all__ = ["OpenCLProfile", "StageProfile"]
+
+
+@dataclass
+class _Call:
+    """One OpenCL call: its kind, wall span, bytes moved and event."""
+
+    kind: str  # "kernel", "h2d", "d2h", "d2d", "fill", "wait"
+    start: float
+    end: float
+    nbytes: int = 0
+    event: object = None
+
+
+@dataclass
+class StageProfile:
+    """One stage's split (seconds; bytes)."""
+
+    wall: float
+    opencl: float = 0.0
+    kernel: float | None = None
+    launches: int = 0
+    h2d_bytes: int = 0
+    d2h_bytes: int = 0
+    calls: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def host(self) -> float:
+        """The host's own work: wall time outside OpenCL calls."""
+        return max(self.wall - self.opencl, 0.0)
+
+
+def _direction(dest, src) -> str:
+    """``h2d``, ``d2h`` or ``d2d`` of an ``enqueue_copy``."""
+    dev_dest = isinstance(dest, cl.MemoryObjectHolder)
+    dev_src = isinstance(src, cl.MemoryObjectHolder)
+    return "d2d" if dev_dest and dev_src else ("h2d" if dev_dest else "d2h")
+
+
+def _host_bytes(obj) -> int:
+    """Bytes of a host buffer (an array or anything with the buffer protocol)."""
+    try:
+        return int(np.asarray(obj).nbytes) if not isinstance(obj, memoryview) else obj.nbytes
+    except (TypeError, ValueError):
+        return 0
+
+
+class OpenCLProfile:
+    """Record the process's OpenCL calls inside a ``with`` block (module docstring)."""
+
+    def __init__(self) -> None:
+        self.calls: list[_Call] = []
+        self._saved: list[tuple[object, str, object]] = []
+
+    def _record(self, kind: str, fn: Callable, nbytes: Callable | None = None) -> Callable:
+        calls = self.calls
+
+        def wrapped(*args, **kwargs):
+            t0 = time.perf_counter()
+            out = fn(*args, **kwargs)
+            call = _Call(kind, t0, time.perf_counter(), event=out)
+            if nbytes is not None:
+                call.kind, call.nbytes = nbytes(*args, **kwargs)
+            calls.append(call)
+            return out
+        return wrapped
+
+    def _patch(self, owner, name: str, kind: str, nbytes: Callable | None = None) -> None:
+        fn = getattr(owner, name)
+        self._saved.append((owner, name, fn))
+        setattr(owner, name, self._record(kind, fn, nbytes))
+
+    def __enter__(self) -> OpenCLProfile:
+        def copy_bytes(queue, dest, src, **kwargs):
+            way = _direction(dest, src)
+            host = {"h2d": src, "d2h": dest}.get(way)
+            return way, 0 if host is None else _host_bytes(host)
+
+        self._patch(_cl, "enqueue_nd_range_kernel", "kernel")
+        self._patch(cl, "enqueue_copy", "copy", copy_bytes)
+        self._patch(cl, "enqueue_fill_buffer", "fill")
+        self._patch(cl, "wait_for_events", "wait")
+        self._patch(cl.CommandQueue, "finish", "wait")
+        self._patch(cl.Event, "wait", "wait")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for owner, name, fn in reversed(self._saved):
+            setattr(owner, name, fn)
+        self._saved.clear()
+
+    def split(self, spans: dict[str, tuple[float, float]]) -> dict[str, StageProfile]:
+        """Each stage's :class:`StageProfile` from the calls that started within its
+        span; call it after the device finished (the events' times are read here)."""
+        out = {name: StageProfile(wall=end - start) for name, (start, end) in spans.items()}
+        for call in self.calls:
+            for name, (start, end) in spans.items():
+                if start <= call.start < end:
+                    self._add(out[name], call)
+                    break
+        return out
+
+    @staticmethod
+    def _add(stage: StageProfile, call: _Call) -> None:
+        stage.opencl += call.end - call.start
+        stage.calls[call.kind] = stage.calls.get(call.kind, 0) + 1
+        if call.kind == "h2d":
+            stage.h2d_bytes += call.nbytes
+        elif call.kind == "d2h":
+            stage.d2h_bytes += call.nbytes
+        elif call.kind == "kernel":
+            stage.launches += 1
+            seconds = _event_seconds(call.event)
+            if seconds is not None:
+                stage.kernel = (stage.kernel or 0.0) + seconds
+
+
+def _event_seconds(event) -> float | None:
+    """A finished event's device seconds, ``None`` without profiling information."""
+    try:
+        return (event.profile.end - event.profile.start) * 1e-9
+    except (AttributeError, cl.Error):
+        return None
+
+
+def split_lines(split: dict[str, StageProfile]) -> list[str]:
+    """The split as a table of text lines, one per stage and their total: wall, OpenCL
+    calls, host, kernel seconds, launches and MB each way."""
+    head = (f"{'stage':14s} {'wall s':>7s} {'in CL s':>8s} {'host s':>7s} {'kernel s':>9s} "
+            f"{'launches':>8s} {'MB in':>8s} {'MB out':>8s}")
+    rows = [head]
+    total = StageProfile(wall=0.0)
+    for name, st in {**split, "total": total}.items():
+        if name != "total":
+            total.wall += st.wall
+            total.opencl += st.opencl
+            total.launches += st.launches
+            total.h2d_bytes += st.h2d_bytes
+            total.d2h_bytes += st.d2h_bytes
+            if st.kernel is not None:
+                total.kernel = (total.kernel or 0.0) + st.kernel
+        kernel = "n/a" if st.kernel is None else f"{st.kernel:.3f}"
+        rows.append(f"{name:14s} {st.wall:7.3f} {st.opencl:8.3f} {st.host:7.3f} "
+                    f"{kernel:>9s} {st.launches:8d} {st.h2d_bytes / 1e6:8.1f} "
+                    f"{st.d2h_bytes / 1e6:8.1f}")
+    return rows

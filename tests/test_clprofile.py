@@ -1,0 +1,80 @@
+"""The OpenCL profile of the benchmarks (plenocl.bench.clprofile) and the stage spans of a
+pair it attributes calls to."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cl_array
+import pytest
+
+from plenocl.bench.clprofile import OpenCLProfile, split_lines
+from plenocl.pipeline.pair import StageClock
+
+
+def _profiling_queue(queue) -> cl.CommandQueue:
+    return cl.CommandQueue(queue.context, queue.device,
+                           properties=cl.command_queue_properties.PROFILING_ENABLE)
+
+
+def test_profile_counts_bytes_launches_and_host_time(queue):
+    """Bytes each way are the arrays copied, launches the kernels run, the kernels' device
+    time comes from their events, and a stage's host work is its wall time less the time
+    inside OpenCL calls (a sleep between calls is host work)."""
+    pq = _profiling_queue(queue)
+    host = np.arange(250_000, dtype=np.float32)
+    clock = StageClock()
+    with OpenCLProfile() as prof:
+        with clock.stage("up"):
+            dev = cl_array.to_device(pq, host)
+            time.sleep(0.05)
+        with clock.stage("work"):
+            for _ in range(3):
+                dev *= 2.0
+            pq.finish()
+        with clock.stage("down"):
+            back = dev.get()
+    assert np.array_equal(back, host * 8)
+    split = prof.split(clock.spans)
+    assert split["up"].h2d_bytes == host.nbytes and split["up"].d2h_bytes == 0
+    assert split["down"].d2h_bytes == host.nbytes and split["down"].h2d_bytes == 0
+    assert split["work"].launches == 3 and split["up"].launches == 0
+    assert split["work"].kernel is not None and 0 < split["work"].kernel <= split["work"].wall
+    assert split["up"].host >= 0.05 > split["up"].opencl
+    assert split["up"].wall == pytest.approx(clock.seconds["up"])
+    lines = split_lines(split)
+    assert lines[-1].split()[0] == "total" and len(lines) == 5
+
+
+def test_profile_restores_pyopencl(queue):
+    """Outside the block every pyopencl function is its own again, on an error too."""
+    before = (cl.enqueue_copy, cl.CommandQueue.finish, cl.Event.wait, cl.wait_for_events)
+    with pytest.raises(RuntimeError), OpenCLProfile():
+        assert cl.enqueue_copy is not before[0]
+        raise RuntimeError("inside")
+    assert (cl.enqueue_copy, cl.CommandQueue.finish, cl.Event.wait,
+            cl.wait_for_events) == before
+
+
+@pytest.mark.filterwarnings("ignore:the final windows")  # a tiny volume: one vector
+def test_a_pairs_stage_spans_follow_each_other(queue, small_camera):
+    """process_pair's spans are ordered, disjoint and as long as its seconds."""
+    from plenocl import Grid, Projector, process_pair, simulate_image
+
+    grid = Grid((24, 24, 24), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-1.0, 1.0))
+    proj = Projector(small_camera, grid, queue)
+    rng = np.random.default_rng(2)
+    pos = np.column_stack([rng.uniform(-0.5, 0.5, 30), rng.uniform(-0.4, 0.4, 30),
+                           rng.uniform(-0.8, 0.8, 30)])
+    raws = [simulate_image(small_camera, pos + shift, 2e4, 500, seed=k, queue=queue)
+            for k, shift in enumerate((0.0, 0.05))]
+    pair = process_pair(*raws, proj, image_fit=None)
+    names = list(pair.spans)
+    assert names[:3] == ["reconstruct_a", "reconstruct_b", "piv"]
+    assert set(names) == set(pair.seconds)
+    ends = [pair.spans[n] for n in names]
+    assert all(a[1] <= b[0] for a, b in zip(ends, ends[1:]))
+    for n in names:
+        assert pair.spans[n][1] - pair.spans[n][0] == pytest.approx(pair.seconds[n])
