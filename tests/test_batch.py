@@ -172,8 +172,12 @@ def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_sto
 def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
     from plenocl.demo.time_series import run_time_series
 
-    s = run_time_series(tmp_path, pairs=2, queue=queue, log=lambda m: None)
+    told = []
+    s = run_time_series(tmp_path, pairs=2, queue=queue, log=told.append)
     assert s["processed"] == 2 and not s["failed"]
+    # the closing line gives the throughput a user plans a campaign by
+    per_hour = f"{3600 / s['seconds_per_pair']:.0f} pairs per hour"
+    assert any(m.startswith("2 pair(s) processed") and per_hour in m for m in told), told[-3:]
     assert len(list((tmp_path / "raw").glob("frame_*.tif"))) == 4
     assert load_experiment(tmp_path / "experiment.toml")["images"]["pair_interval_s"] > 0
     # the small demo measures the boundary layer to within about 10 % of U∞ per component

@@ -382,7 +382,9 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
         summary.store = str(store)
         summary.figures = _figures(store, out / "figures", log)
     write_json(out / "summary.json", asdict(summary))
-    each = f" ({summary.seconds_per_pair:.1f} s each)" if done else ""
+    each = (f" ({summary.seconds_per_pair:.1f} s each, "
+            f"{3600 / summary.seconds_per_pair:.0f} pairs per hour)"
+            if done and summary.seconds_per_pair > 0 else "")
     log(f"{done} pair(s) processed{each}, "
         f"{len(summary.skipped)} already done"
         + (f", {len(summary.rescaled)} rescaled to dt_s" if summary.rescaled else "")
