@@ -19,34 +19,11 @@
  * On a GPU PL_GROUP is wide (a group's items read adjacent elements of a row); on a CPU
  * it is 1 (one item loops over its particle's patch; KernelSet's looping rule). Sizes are
  * arguments: a new particle count, patch or sensor never recompiles. */
-#ifndef PL_GROUP
-#define PL_GROUP 64
-#endif
+#include "groupreduce.h" /* PL_GROUP, pl_group_sum, pl_group_max */
 
 #define PL_NORMALS 16 /* floats per particle out of normal_sums, layout below */
 /* 0-9 J^T J upper triangle row by row (00 01 02 03 11 12 13 22 23 33), 10-13 J^T r,
  * 14 lit elements, 15 sum of their squared residuals */
-
-/* The sum (largest = 0) or the largest (1) of each item's v over the work-group, by a
- * tree in local memory; every item gets it. */
-inline float pl_group_reduce(__local float *scratch, float v, int largest)
-{
-    int lid = get_local_id(0);
-    scratch[lid] = v;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int stride = PL_GROUP / 2; stride > 0; stride >>= 1) {
-        if (lid < stride) {
-            const float a = scratch[lid], b = scratch[lid + stride];
-            scratch[lid] = largest ? fmax(a, b) : a + b;
-        }
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    float out = scratch[0];
-    barrier(CLK_LOCAL_MEM_FENCE);
-    return out;
-}
-#define pl_group_sum(scratch, v) pl_group_reduce(scratch, v, 0)
-#define pl_group_max(scratch, v) pl_group_reduce(scratch, v, 1)
 
 /* The patch rows of particle p that lie on the sensor: *rows_on, *cols_on. */
 inline void pl_on_sensor(int p, __global const int *col0, __global const int *row0,

@@ -143,6 +143,12 @@ class Grid:
         lo = np.array([self.x[0], self.y[0], self.z[0]])
         return (pts - lo) / np.array([dx, dy, dz]) - 0.5
 
+    def index_jacobian(self) -> np.ndarray:
+        """``(3, 3)`` ``d (ix, iy, iz) / d (x, y, z)``: an object-space offset (mm) as a
+        fractional voxel-index offset (:meth:`to_index` is affine)."""
+        dz, dy, dx = self.spacing
+        return (self.to_frame(np.eye(3)) / np.array([dx, dy, dz])).T
+
     def from_index(self, index_xyz) -> np.ndarray:
         """Object-space points ``(N, 3)`` of fractional voxel indices ``(ix, iy, iz)``
         (the inverse of :meth:`to_index`)."""

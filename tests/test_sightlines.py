@@ -25,6 +25,7 @@ from plenocl.piv.tracking import (
     seen_depth,
     window_means,
 )
+from plenocl.piv.tube import DeviceTubeSums, host_tube_sums
 
 #: The paper's optics on a small array (the lines of sight do not depend on its size).
 CAMERA = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (40, 30), 0.0074, (700, 530))
@@ -107,6 +108,37 @@ def test_a_ridge_off_the_axis_is_one_particle_at_its_centre(offset):
     centred = sight.centres(vol, sight.centres(vol, merged))
     err = (centred - OFF_AXIS.to_index(centre[None]))[0]
     assert abs(err[2]) < 0.15 and np.all(np.abs(err[:2]) < 0.05)
+
+
+@pytest.mark.parametrize("group", [None, 1, 8])
+def test_the_tube_sums_on_the_device_are_scipys(queue, group):
+    """kernels/sightline.cl against map_coordinates: tubes inside, across the faces and
+    wholly outside an awkward volume with negative values (clipped), on one item per
+    particle and on groups; the centres they give within 1e-4 voxel of the host's."""
+    rng = np.random.default_rng(4)
+    vol = rng.normal(0.2, 1.0, (13, 9, 17)).astype(np.float32)
+    sight = SightLines.of(CAMERA, OFF_AXIS)
+    centre = np.vstack([rng.uniform(-2, [19, 11, 15], (40, 3)), [[-30.0, 4.0, 5.0]]])
+    frames = rng.normal(0, 3.0, (41, 3, 3))
+    local = sight.tube_offsets()
+    device = DeviceTubeSums(queue, group)
+    want = host_tube_sums(vol, centre, frames, local)
+    got = device(vol, centre, frames, local)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+    assert np.all(want[-1] == 0) and np.count_nonzero(want[:-1, 0] > 0) > 30  # out; in
+    assert device(vol, centre[:0], frames[:0], local).shape == (0, 2)
+    ridge = tilted_ridge(OFF_AXIS, np.array([20.0, 12.0, 0.3]), 0.35, 0.1)
+    peaks, _ = find_particles(ridge, 0.1)
+    on_device = dataclasses.replace(sight, sums=device)
+    assert np.abs(on_device.centres(ridge, peaks) - sight.centres(ridge, peaks)).max() < 1e-4
+
+
+def test_the_index_jacobian_moves_points_as_to_index_does():
+    grid = Grid((5, 6, 7), x=(-1.0, 2.0), y=(0.0, 1.5), z=(-2.0, 1.0), rotation_deg=17.0)
+    rng = np.random.default_rng(1)
+    p, d = rng.normal(0, 1, (10, 3)), rng.normal(0, 1, (10, 3))
+    np.testing.assert_allclose(grid.to_index(p + d) - grid.to_index(p),
+                               d @ grid.index_jacobian().T, atol=1e-12)
 
 
 def test_the_blind_zone_spans_the_set_number_of_resolutions():

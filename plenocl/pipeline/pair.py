@@ -211,7 +211,7 @@ def _with_particles(res: PIVResult, raws, vols, projector, settings: PairSetting
                            queue=projector.queue, backgrounds=backgrounds)
         camera, grid = projector.camera, projector.grid
         res = refine_with_particles(res, *vols, focus=FocalZone.of(camera, grid), fit=fit,
-                                    sight=SightLines.of(camera, grid))
+                                    sight=SightLines.of(camera, grid, projector.queue))
     return res
 
 

@@ -41,13 +41,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import stats
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
+from .tube import DeviceTubeSums, host_tube_sums
 from .validation import normalized_median_test, replace_outliers
 
 if TYPE_CHECKING:
@@ -262,11 +263,15 @@ class SightLines:
 
     camera: Camera
     grid: Grid
+    #: The tube sums of :meth:`centres` (:class:`plenocl.piv.tube.DeviceTubeSums` on a
+    #: device; ``None``: SciPy on the host).
+    sums: DeviceTubeSums | None = dataclasses.field(default=None, compare=False, repr=False)
 
     @classmethod
-    def of(cls, camera: Camera, grid: Grid) -> SightLines:
-        """The lines of sight of ``camera`` through ``grid``."""
-        return cls(camera, grid)
+    def of(cls, camera: Camera, grid: Grid, queue=None) -> SightLines:
+        """The lines of sight of ``camera`` through ``grid``; their tube sums on
+        ``queue``'s device (``None``: on the host)."""
+        return cls(camera, grid, None if queue is None else DeviceTubeSums(queue))
 
     def merge(self, peaks: np.ndarray, values: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -318,21 +323,23 @@ class SightLines:
             return np.asarray(peaks, float).reshape(0, 3)
         mm = self.grid.from_index(peaks)
         frames = sight_frames(line_of_sight(self.camera, mm))
+        to_voxels = self.grid.index_jacobian() @ frames  # local mm -> voxel index
+        sums = (self.sums or host_tube_sums)(vol, self.grid.to_index(mm), to_voxels,
+                                             self.tube_offsets())
+        along = sums[:, 1] / np.maximum(sums[:, 0], 1e-30)
+        moved = mm + frames[:, :, 2] * along[:, None]  # along the line only
+        return self.grid.to_index(np.where(sums[:, :1] > 0, moved, mm))
+
+    def tube_offsets(self) -> np.ndarray:
+        """``(S, 3)`` the tube's sample offsets ``(u, v, t)`` (mm) in a line's frame: every
+        half lateral voxel across within :data:`TUBE_RADIUS`, :data:`TUBE_STEPS` per depth
+        resolution along, one resolution each way."""
         lateral = float(np.mean(self.grid.spacing[1:]))
         g = np.arange(-TUBE_RADIUS, TUBE_RADIUS + 1e-9, 0.5) * lateral
         a = np.arange(-1.0, 1.0 + 1e-9, 1.0 / TUBE_STEPS) * self.camera.depth_resolution_mm
         u, v, t = np.meshgrid(g, g, a, indexing="ij")
         inside = u**2 + v**2 <= (TUBE_RADIUS * lateral) ** 2
-        local = np.stack([u[inside], v[inside], t[inside]], axis=1)  # (S, 3)
-        points = mm[:, None, :] + np.matmul(frames, local.T).transpose(0, 2, 1)
-        index = self.grid.to_index(points.reshape(-1, 3))
-        values = ndimage.map_coordinates(np.asarray(vol, np.float32), index[:, ::-1].T,
-                                         order=1, mode="constant").reshape(len(mm), -1)
-        values = np.maximum(values, 0.0)
-        total = values.sum(axis=1)
-        along = values @ local[:, 2] / np.maximum(total, 1e-30)
-        moved = mm + frames[:, :, 2] * along[:, None]  # along the line only
-        return self.grid.to_index(np.where(total[:, None] > 0, moved, mm))
+        return np.stack([u[inside], v[inside], t[inside]], axis=1)
 
 
 @functools.cache

@@ -90,10 +90,11 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
             med, noise = 0.0, dark_noise(img, observed)
     else:
         raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
-    img = np.clip(img - (med or 0.0), 0, None)
+    # in place on check_image's own float64 copy: no 16 MP temporaries
+    np.maximum(np.subtract(img, med or 0.0, out=img), 0.0, out=img)
     thr = NOISE_SIGMAS * (noise or 0.0) if threshold is None else float(threshold)
     if observed is not None:  # 0 - a negative median would give them light
-        img = np.where(observed, img, 0.0)
+        img[~observed] = 0.0
     scale = float(img.max())
     if scale > FLOAT32_LIMIT:
         raise ValueError(f"image maximum {scale:.10g} is above {FLOAT32_LIMIT:.10g}, the "
@@ -101,8 +102,9 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
                          "by a constant (the volume scales with it)")
     if scale == 0:
         return PreparedImage(img.astype(np.float32), 0.0, thr, observed, None, med, noise)
-    return PreparedImage((img / scale).astype(np.float32), scale, thr / scale, observed,
-                         None, med, noise)
+    out = np.empty(img.shape, np.float32)
+    np.divide(img, scale, out=out, casting="same_kind")
+    return PreparedImage(out, scale, thr / scale, observed, None, med, noise)
 
 
 def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:

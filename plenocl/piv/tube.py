@@ -1,0 +1,81 @@
+"""The sums behind a particle's centroid along its line of sight (docs/design.md §7.4):
+trilinear samples of a volume over a tube around each particle's line, their total and
+their total weighted by the position along the line
+(:meth:`plenocl.piv.tracking.SightLines.centres`).
+
+:func:`host_tube_sums` computes them with SciPy's ``map_coordinates`` (the reference);
+:class:`DeviceTubeSums` with ``kernels/sightline.cl`` on an OpenCL device, one work-group
+per particle, the samples taken where they are needed instead of as a ``(particles,
+samples, 3)`` array of coordinates on the host.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from ..device import is_cpu
+from ..program import KernelSet
+
+__all__ = ["DeviceTubeSums", "host_tube_sums", "tube_points"]
+
+#: Work-items per particle on a GPU (a power of two; 1 on a CPU).
+GPU_GROUP = 64
+
+
+def tube_points(centre: np.ndarray, frames: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """``(N, S, 3)`` voxel indices ``(x, y, z)`` of the samples: ``centre`` ``(N, 3)``
+    plus each particle's frame ``(N, 3, 3)`` (local offset to index offset) times the
+    local offsets ``(S, 3)``."""
+    return centre[:, None, :] + np.einsum("nij,sj->nsi", frames, local)
+
+
+def host_tube_sums(vol: np.ndarray, centre: np.ndarray, frames: np.ndarray,
+                   local: np.ndarray) -> np.ndarray:
+    """``(N, 2)``: per particle the sum of the samples (trilinear, 0 outside the volume,
+    clipped at 0) and their sum weighted by ``local[:, 2]``, the position along the
+    line; the samples at :func:`tube_points`."""
+    n = len(centre)
+    if not n:
+        return np.zeros((0, 2))
+    index = tube_points(centre, frames, local).reshape(-1, 3)
+    values = ndimage.map_coordinates(np.asarray(vol, np.float32), index[:, ::-1].T,
+                                     order=1, mode="constant").reshape(n, -1)
+    values = np.maximum(values, 0.0)
+    return np.column_stack([values.sum(axis=1), values @ local[:, 2]])
+
+
+class DeviceTubeSums:
+    """:func:`host_tube_sums` on ``queue``'s device (``kernels/sightline.cl``).
+
+    Parameters
+    ----------
+    queue
+        The device's queue.
+    group
+        Work-items per particle (a power of two); ``None``: 1 on a CPU,
+        :data:`GPU_GROUP` elsewhere.
+    """
+
+    def __init__(self, queue, group: int | None = None) -> None:
+        self.group = (1 if is_cpu(queue.device) else GPU_GROUP) if group is None else group
+        if self.group < 1 or self.group & (self.group - 1):
+            raise ValueError(f"group must be a power of two, got {group!r}")
+        self._k = KernelSet(queue, "sightline.cl", ["tube_sums"], [f"-DPL_GROUP={self.group}"],
+                            looping=["tube_sums"])
+
+    def __call__(self, vol: np.ndarray, centre: np.ndarray, frames: np.ndarray,
+                 local: np.ndarray) -> np.ndarray:
+        """As :func:`host_tube_sums` (float32 sums, as float64)."""
+        n = len(centre)
+        if not n:
+            return np.zeros((0, 2))
+        vol = np.asarray(vol, np.float32)
+        nz, ny, nx = vol.shape
+        out = self._k.array(2 * n)
+        dev = [self._k.to_device(np.asarray(a, np.float32))
+               for a in (vol, centre, frames, local)]
+        self._k.launch("tube_sums", (n * self.group,), dev[0], np.int32(nz), np.int32(ny),
+                       np.int32(nx), *dev[1:], np.int32(len(local)), out,
+                       local_size=(self.group,))
+        return out.get().reshape(n, 2).astype(np.float64)
