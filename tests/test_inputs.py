@@ -306,9 +306,9 @@ def test_piv_prints_no_peak_ratio_note(tmp_path, capsys):
 
 @pytest.mark.parametrize("n", [1 << 16, (1 << 16) + 1, 300_001, 1_000_000])
 def test_exact_median_is_numpys(n):
-    """The bracketed median equals NumPy's exactly: odd and even counts, float noise,
-    heavy ties, a bright tail, NaN (NumPy's NaN) and an order that defeats the strided
-    sample (the bracket misses: NumPy's median of the whole)."""
+    """The bracketed median, and median absolute deviation, equal NumPy's exactly: odd and
+    even counts, float noise, heavy ties, a bright tail, NaN (NumPy's NaN) and an order
+    that defeats the strided sample (the bracket misses: NumPy's median of the whole)."""
     from plenocl.optics.rawimage import BRACKET_SAMPLE, exact_median
 
     rng = np.random.default_rng(n)
@@ -323,4 +323,7 @@ def test_exact_median_is_numpys(n):
     with_nan[n // 3] = np.nan
     for data in (noisy, ties, fooled, -noisy, noisy.reshape(-1, 2) if n % 2 == 0 else noisy):
         assert exact_median(data) == float(np.median(data))
-    assert np.isnan(exact_median(with_nan))
+        centre = float(np.median(data))  # the median absolute deviation, and off-centre
+        for c in (centre, centre + 0.37):
+            assert exact_median(data, centre=c) == float(np.median(np.abs(data - c)))
+    assert np.isnan(exact_median(with_nan)) and np.isnan(exact_median(with_nan, 1.0))

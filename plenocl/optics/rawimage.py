@@ -167,7 +167,7 @@ def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None
         order = np.argsort(dist, kind="stable")
         return med, 1.4826 * _multiset_median(dist[order], hist[order])
     med = exact_median(data)
-    return med, 1.4826 * exact_median(np.abs(data - med))
+    return med, 1.4826 * exact_median(data, centre=med)
 
 
 #: Below this many values :func:`exact_median` is NumPy's median itself.
@@ -176,31 +176,51 @@ BRACKET_FROM = 1 << 16
 BRACKET_SAMPLE = 4096
 
 
-def exact_median(data: np.ndarray) -> float:
-    """:func:`numpy.median` of ``data`` (flattened), exactly, without sorting it all.
+#: Values :func:`exact_median` takes at a time in its counting pass (cache-sized pieces,
+#: no image-sized temporaries).
+BRACKET_CHUNK = 1 << 18
+
+
+def exact_median(data: np.ndarray, centre: float | None = None) -> float:
+    """:func:`numpy.median` of ``data`` (flattened), or with ``centre`` of ``|data -
+    centre|`` (the median absolute deviation), exactly, without sorting it all.
 
     A strided sample of :data:`BRACKET_SAMPLE` values brackets the median between two of
     its order statistics some four standard deviations of the sample's rank apart; one
-    pass counts the values below, inside and above the bracket, and only those inside
-    (about 6 % of them) are partially sorted for the middle rank(s). Where the bracket
-    misses (an adversarial order) or a value is NaN, NumPy's median of the whole: the
-    same result either way, 3-5x faster on a 16 MP frame.
+    pass, :data:`BRACKET_CHUNK` values at a time, counts the values below, inside and
+    above the bracket and keeps those inside (about 6 %), which alone are partially sorted
+    for the middle rank(s). Where the bracket misses (an adversarial order) or a value is
+    NaN, NumPy's median of the whole: the same result either way, 3-5x faster on a 16 MP
+    frame, and without a frame-sized array of deviations.
     """
     flat = np.asarray(data, dtype=np.float64).ravel()
     n = flat.size
     if n < BRACKET_FROM:
-        return float(np.median(flat))
-    sample = np.sort(flat[:: n // BRACKET_SAMPLE])
+        return float(np.median(_values(flat, centre)))
+    sample = np.sort(_values(flat[:: n // BRACKET_SAMPLE], centre))
     m, spread = sample.size, 2 * int(np.sqrt(sample.size))
     lo, hi = sample[max(m // 2 - spread, 0)], sample[min(m // 2 + spread, m - 1)]
-    below = int(np.count_nonzero(flat < lo))
-    inside = flat[(flat >= lo) & (flat <= hi)]
-    above = int(np.count_nonzero(flat > hi))
+    below = above = 0
+    inside = []
+    for start in range(0, n, BRACKET_CHUNK):
+        part = _values(flat[start:start + BRACKET_CHUNK], centre)
+        below += int(np.count_nonzero(part < lo))
+        above += int(np.count_nonzero(part > hi))
+        inside.append(part[(part >= lo) & (part <= hi)])
+    inside = np.concatenate(inside)
     k0, k1 = (n - 1) // 2 - below, n // 2 - below
     if below + inside.size + above != n or k0 < 0 or k1 >= inside.size:  # NaN, or missed
-        return float(np.median(flat))
+        return float(np.median(_values(flat, centre)))
     part = np.partition(inside, (k0, k1))
     return float(np.mean(part[[k0, k1]]))
+
+
+def _values(flat: np.ndarray, centre: float | None) -> np.ndarray:
+    """``flat`` itself, or ``|flat - centre|`` (float64, as NumPy computes it)."""
+    if centre is None:
+        return flat
+    out = np.subtract(flat, centre)
+    return np.abs(out, out=out)
 
 
 #: The widest span of integer levels :func:`median_and_noise` histograms (a 24-bit
