@@ -58,6 +58,13 @@ class PairResult:
     seconds: dict[str, float] = field(default_factory=dict)
     spans: dict[str, tuple[float, float]] = field(default_factory=dict)
 
+    @property
+    def dropped(self) -> int:
+        """The particles the fit to the raw images dropped (their fit left the grid or
+        was not finite; docs/design.md §7.2): ``piv.refinement["dropped"]``, 0 without
+        the fit."""
+        return int(self.piv.refinement.get("dropped", 0))
+
 
 class StageClock:
     """The wall time of each stage of a pair: ``seconds`` per stage name, and its
@@ -74,13 +81,6 @@ class StageClock:
         yield
         end = time.perf_counter()
         self.seconds[name], self.spans[name] = end - start, (start, end)
-
-    @property
-    def dropped(self) -> int:
-        """The particles the fit to the raw images dropped (their fit left the grid or
-        was not finite; docs/design.md §7.2): ``piv.refinement["dropped"]``, 0 without
-        the fit."""
-        return int(self.piv.refinement.get("dropped", 0))
 
 
 def process_pair(raw_a, raw_b, projector: ProjectionOperator,
