@@ -28,7 +28,7 @@ from plenocl.bench.scripts import script_parser
 from plenocl.bench.stages import device_pair
 from plenocl.bench.timing import median_time, timed
 from plenocl.demo.boundary_layer import run_boundary_layer
-from plenocl.device import build_problem, devices_by_preference, is_cpu
+from plenocl.opencl.device import build_problem, devices_by_preference, is_cpu
 from plenocl.projection import Projector
 from plenocl.reconstruction import reconstruct
 from plenocl.simulate import simulate_image

@@ -15,8 +15,8 @@ from plenocl import Camera, get_queue
 from plenocl.bench.core import hexagonal_cut
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
-from plenocl.device import device_info
 from plenocl.lightfield import LightField
+from plenocl.opencl.device import device_info
 from plenocl.simulate import simulate_image
 
 ZS = np.round(np.arange(-3.0, 3.001, 0.1), 2)

@@ -22,8 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from plenocl import Camera, Grid, get_queue, random_particles
-from plenocl.device import device_info
 from plenocl.metrics import quality_q, recovery, render_particles
+from plenocl.opencl.device import device_info
 from plenocl.projection import Projector
 from plenocl.reconstruction import DEFAULTS, METHODS, reconstruct
 from plenocl.simulate import simulate_image

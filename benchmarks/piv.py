@@ -234,7 +234,7 @@ def boundary_layer(seed: int) -> None:
 def device_choice(repeats: int, seed: int) -> None:
     """``piv3d`` on its own (default device, as every stage) against the host deformation
     it used before without ``queue=`` and the queue ``process_pair`` passes, one pair."""
-    from plenocl.device import get_queue
+    from plenocl.opencl.device import get_queue
 
     shape = (100, 150, 200)
     pair = flows.volume_pair(shape, flows.Uniform((2.3, -1.4, 0.7)), density=0.001,
@@ -264,7 +264,7 @@ def window_sums(repeats: int, seed: int) -> None:
     before) and on ``piv3d``'s device (``DeviceSums``, ``kernels/windowsums.cl``), alone
     on the final pass's grid and inside ``piv3d`` (same device deformation), at the
     paper's volume size, interleaved in one process."""
-    from plenocl.device import get_queue
+    from plenocl.opencl.device import get_queue
     from plenocl.piv import multipass
     from plenocl.piv.correlation import window_grid
     from plenocl.piv.devicesums import DeviceSums

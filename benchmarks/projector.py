@@ -26,7 +26,7 @@ from plenocl.bench.scripts import script_parser
 from plenocl.bench.sparse import matrix_bytes
 from plenocl.bench.stages import csr_case, device_pair, projector_bytes
 from plenocl.bench.timing import median_time
-from plenocl.device import device_info
+from plenocl.opencl.device import device_info
 from plenocl.projection import Projector
 from plenocl.reconstruction import ReconstructionSettings
 from plenocl.reconstruction.reconstruct import run_reconstruction

@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import paper_optics  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
-from plenocl.build import kernel_dir  # noqa: E402
+from plenocl.opencl.build import kernel_dir  # noqa: E402
 from plenocl.optics.raybundle import Patches, RayBundle  # noqa: E402
 from plenocl.piv.devicebundle import DeviceRayBundle  # noqa: E402
 

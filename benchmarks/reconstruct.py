@@ -26,8 +26,8 @@ from plenocl.bench.core import particle_scene
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.sparse import matrix_bytes, weight_matrix
 from plenocl.bench.timing import run_times
-from plenocl.device import device_info
 from plenocl.metrics import quality_q, recovery, render_particles
+from plenocl.opencl.device import device_info
 from plenocl.projection import Projector
 from plenocl.reconstruction import METHODS, reconstruct
 from plenocl.reference import reconstruct as ref
@@ -215,7 +215,7 @@ def relax_cost(queue, repeats: int, n: int = 81_000_000) -> None:
     μ = 1.5 (a square root) and at μ = 1.3 (``pow``), taking turns; medians."""
     import pyopencl.array as cla
 
-    from plenocl.program import KernelSet
+    from plenocl.opencl.program import KernelSet
 
     kernels = KernelSet(queue, "solver.cl", ("update_mlem",))
     rng = np.random.default_rng(0)

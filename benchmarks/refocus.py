@@ -15,8 +15,8 @@ from plenocl import Camera, get_queue
 from plenocl.bench.lightfield_section import scipy_shift_and_add
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
-from plenocl.device import device_info
 from plenocl.lightfield import LightField
+from plenocl.opencl.device import device_info
 from plenocl.reference.refocus import refocus_views
 from plenocl.simulate import simulate_image
 

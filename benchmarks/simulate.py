@@ -11,7 +11,7 @@ import numpy as np
 from plenocl import Camera, get_queue, reference
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
-from plenocl.device import device_info
+from plenocl.opencl.device import device_info
 from plenocl.particles import random_particles
 from plenocl.simulate import Simulator
 

@@ -21,7 +21,7 @@ import numpy as np
 from plenocl import Camera, Grid, Projector, get_queue, random_particles, simulate_image
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
-from plenocl.device import device_info
+from plenocl.opencl.device import device_info
 from plenocl.reconstruction import reconstruct
 
 

@@ -4,9 +4,9 @@ from . import flows, metrics
 from .batch import run
 from .calibration import calibrate
 from .camera import PRESETS, Camera
-from .device import DeviceInfo, NoOpenCLError, create_context, describe_devices, get_queue
 from .grid import Grid
 from .lightfield import LightField
+from .opencl.device import DeviceInfo, NoOpenCLError, create_context, describe_devices, get_queue
 from .particles import random_particles
 from .pipeline import (
     MTESettings,

@@ -58,12 +58,12 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from .camera import AXIAL, Camera
-from .device import DeviceLike, get_queue
+from .opencl.device import DeviceLike, get_queue
+from .opencl.program import KernelSet
 from .optics.imaging import array_plane_positions, array_plane_scale
 from .optics.lattice import lattice_fit
 from .optics.ownership import lens_owner
 from .optics.rawimage import check_image
-from .program import KernelSet
 
 
 # ---- lattice --------------------------------------------------------------------------

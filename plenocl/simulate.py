@@ -15,8 +15,8 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from .camera import Camera
-from .device import DeviceLike, device_info, get_queue
-from .program import KernelSet
+from .opencl.device import DeviceLike, device_info, get_queue
+from .opencl.program import KernelSet
 from .sensor import SensorModel
 
 #: Rays one work-item traces; the rest of the parallelism is over sources.
@@ -91,7 +91,7 @@ class Simulator:
         The camera; its physical array layout (rotation, offset) is traced.
     queue
         An OpenCL queue, context, device or device-name substring (see
-        :func:`plenocl.device.get_queue`); ``None`` picks one.
+        :func:`plenocl.opencl.device.get_queue`); ``None`` picks one.
     """
 
     def __init__(self, camera: Camera, queue: DeviceLike = None) -> None:

@@ -3,17 +3,17 @@ kernels, one command queue per device for the whole session (like pyopencl's own
 
 Every test that takes the ``queue`` fixture (directly or through a module fixture) is
 parametrized over the devices under test; its id names the device (``[Intel_OpenCL-...]``).
-The devices under test are, in :func:`plenocl.device.devices_by_preference` order:
+The devices under test are, in :func:`plenocl.opencl.device.devices_by_preference` order:
 
 - ``PYOPENCL_TEST`` set (pyopencl's syntax, ``"0:0,1;intel"``): those devices;
-- else ``PYOPENCL_CTX`` set: that one device (what :func:`plenocl.device.get_queue` picks);
+- else ``PYOPENCL_CTX`` set: that one device (what :func:`plenocl.opencl.device.get_queue` picks);
 - else every device whose driver builds plenocl's kernels.
 
 An explicitly chosen device is tested even when it cannot build (the tests then fail and
 say why). A device left out because it cannot build is named with its driver's reason in
 the report header and in a short summary at the end of the run (shown under ``-q`` too):
 never a silent skip. With no building device at all, the kernel tests fail with
-:class:`plenocl.device.NoOpenCLError`.
+:class:`plenocl.opencl.device.NoOpenCLError`.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import re
 import pyopencl as cl
 import pytest
 
-from plenocl.device import NoOpenCLError, building_devices, devices_by_preference, get_queue
+from plenocl.opencl.device import NoOpenCLError, building_devices, devices_by_preference, get_queue
 
 
 @functools.cache

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 
 from plenocl.bench.agreement import TOLERANCES, agreement, agreement_table, stage_difference
-from plenocl.device import get_queue
+from plenocl.opencl.device import get_queue
 
 
 def test_differences_detect_changes():
@@ -40,7 +40,7 @@ def test_two_queues_on_one_device_agree(queue):
 def _building_devices(env: dict) -> list[str]:
     """The devices that build plenocl's kernels under ``env``, probed independently of
     ``devices --agree`` (one build each, in a fresh process)."""
-    probe = ("from plenocl.device import building_devices\n"
+    probe = ("from plenocl.opencl.device import building_devices\n"
              "for d in building_devices()[0]:\n"
              "    print(d.name.strip())")
     out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,

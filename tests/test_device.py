@@ -13,8 +13,8 @@ import pyopencl as cl
 import pytest
 
 import plenocl
-from plenocl import device
-from plenocl.program import (
+from plenocl.opencl import device
+from plenocl.opencl.program import (
     KernelBuildError,
     KernelSet,
     build_hint,
@@ -70,7 +70,7 @@ def test_build_failure_reports_file_options_and_log(queue):
 def test_unknown_cpu_build_failure_names_the_fix(monkeypatch):
     """The fix, Intel's runtime from pip, is suggested only where it is missing; where it
     is installed the note says it serves instead."""
-    import plenocl.build as build
+    import plenocl.opencl.build as build
 
     log = "error: unknown target CPU 'generic'\nDevice pthread-AMD EPYC failed to build"
     monkeypatch.setattr(build, "pip_runtime_libraries", lambda: [])
@@ -89,7 +89,7 @@ def test_kernels_found_from_installed_package_and_from_checkout():
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         filter(None, [str(checkout), os.environ.get("PYTHONPATH")]))}
     out = subprocess.run([sys.executable, "-c",
-                          "import plenocl.program as p; print(p.kernel_dir())"],
+                          "import plenocl.opencl.program as p; print(p.kernel_dir())"],
                          cwd=checkout, env=env, capture_output=True, text=True, check=True)
     assert Path(out.stdout.strip()) == checkout / "kernels"
 
@@ -260,7 +260,7 @@ def test_pocl_that_cannot_build_falls_back_to_intels_runtime_quietly(tmp_path):
             "except plenocl.NoOpenCLError as e:\n    print('REFUSED', e)")
     out = _run(code, POCL_EXTRA_BUILD_FLAGS="-plenocl-test-bad-option",
                OCL_ICD_VENDORS="", PLENOCL_PIP_RUNTIMES="1")
-    from plenocl.icd import pip_runtime_libraries
+    from plenocl.opencl.icd import pip_runtime_libraries
 
     if pip_runtime_libraries():
         assert "USING Intel(R) OpenCL" in out.stdout, out.stdout + out.stderr

@@ -12,7 +12,7 @@ import tolerances as tol
 from helpers import traced_fit_scene
 
 from plenocl.bench.accuracy_section import paper_optics
-from plenocl.build import kernel_dir
+from plenocl.opencl.build import kernel_dir
 from plenocl.optics.raybundle import RayBundle, _spread
 from plenocl.piv.devicebundle import DeviceRayBundle, _spread_constants
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings

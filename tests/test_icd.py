@@ -1,4 +1,4 @@
-"""Registration of pip-installed OpenCL runtimes with the loader (plenocl.icd)."""
+"""Registration of pip-installed OpenCL runtimes with the loader (plenocl.opencl.icd)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from plenocl import icd
+from plenocl.opencl import icd
 
 
 def test_vendor_files_keep_the_system_drivers_and_add_each_library_once(tmp_path):
@@ -36,7 +36,7 @@ def test_vendors_folder_is_written_once_per_content_and_reused(tmp_path):
 
 
 def _platforms_in_child(**env) -> dict:
-    code = ("import json, os, pyopencl as cl\nfrom plenocl import icd\n"
+    code = ("import json, os, pyopencl as cl\nfrom plenocl.opencl import icd\n"
             "libs = [str(p) for p in icd.register_pip_runtimes()]\n"
             "print(json.dumps({'libs': libs, 'vendors': os.environ.get('OCL_ICD_VENDORS'), "
             "'platforms': [p.name.strip() for p in cl.get_platforms()]}))")

@@ -231,8 +231,8 @@ def test_a_negative_number_in_exponent_form_reaches_its_check(tmp_path, capsys):
 def _fake_fallback(monkeypatch):
     """The default device choice passes over a GPU that cannot build (not the expected
     fallback), three times; the ``grid`` command runs it."""
-    from plenocl import device
     from plenocl.cli import simulate
+    from plenocl.opencl import device
 
     class Platform:
         def __init__(self, name: str) -> None:
@@ -256,7 +256,7 @@ def _fake_fallback(monkeypatch):
 
 
 def test_the_device_fallback_is_said_once_and_not_under_quiet(monkeypatch, capsys):
-    from plenocl import device
+    from plenocl.opencl import device
 
     _fake_fallback(monkeypatch)
     args = ["grid", "--camera", "synthetic", "--z", "-1", "1", "--out", "unused.toml"]

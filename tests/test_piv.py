@@ -549,7 +549,7 @@ def test_a_volume_too_thin_for_three_vector_layers_is_said_with_the_fix():
     depth (no gradient, all-NaN peak ratios) and used to say nothing."""
     import warnings
 
-    from plenocl.device import DeviceFallbackWarning
+    from plenocl.opencl.device import DeviceFallbackWarning
 
     rng = np.random.default_rng(0)
     a = (rng.random((16, 40, 40)) > 0.995).astype(np.float32)

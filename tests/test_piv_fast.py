@@ -65,7 +65,7 @@ def test_deformers_follow_the_device_choice(queue):
 
 def test_without_a_device_the_deformer_names_the_host(monkeypatch):
     """No OpenCL device: the default choice's error also says how to deform on the host."""
-    from plenocl.device import NoOpenCLError
+    from plenocl.opencl.device import NoOpenCLError
     from plenocl.piv import deformation
 
     def none(*args, **kwargs):

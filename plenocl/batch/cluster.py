@@ -21,7 +21,7 @@ from contextlib import contextmanager
 
 from distributed import Client, LocalCluster, WorkerPlugin, as_completed, get_worker
 
-from ..threads import thread_count
+from ..opencl.threads import thread_count
 from .worker import PairOutcome, PairProcessor, PairTask, RunSettings
 
 PLUGIN = "plenocl"

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..device import get_queue
 from ..grid import Grid
 from ..io.fields import field_metadata
 from ..io.files import read_volumes
+from ..opencl.device import get_queue
 from ..piv.ensemble import ensemble_piv
 from ..vectorfield import PIVResult
 from ..vectorfile import read_npz

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import load_camera
-from ..device import DeviceLike
 from ..grid import Grid
 from ..io.fields import field_metadata
 from ..io.files import read_image, read_volumes, volumes_metadata, write_volumes
+from ..opencl.device import DeviceLike
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
 from ..pipeline.pair import correlate_volumes, known_backgrounds

@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..device import DeviceLike, device_info, get_queue
 from ..io.atomic import write_text
+from ..opencl.device import DeviceLike, device_info, get_queue
 from ..version import __version__
 from .accuracy_section import section_accuracy
 from .core import SIZES, BenchRun, bench_sizes, loglog_slope, md_table, pareto_front, repeats_text
@@ -126,7 +126,7 @@ def run_report(size: str, out_dir: str | Path, repeats: int | None = None,
         Runs per timing (the median is reported) for every section; by default per size
         (``ci``: 3 for cheap stages, 2 for reconstruction, skipping and PIV).
     queue
-        OpenCL queue, device or name substring (:func:`plenocl.device.get_queue`).
+        OpenCL queue, device or name substring (:func:`plenocl.opencl.device.get_queue`).
     log
         Progress messages (``print`` by default).
 

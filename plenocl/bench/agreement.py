@@ -40,9 +40,9 @@ import numpy as np
 import pyopencl as cl
 
 from ..camera import Camera
-from ..device import device_info, devices_by_preference, get_queue
 from ..grid import Grid
-from ..program import KernelBuildError, build_hint
+from ..opencl.device import device_info, devices_by_preference, get_queue
+from ..opencl.program import KernelBuildError, build_hint
 
 #: stage -> (description of the difference, tolerance)
 TOLERANCES: dict[str, tuple[str, float]] = {

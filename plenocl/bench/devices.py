@@ -6,7 +6,7 @@ import os
 import subprocess
 import sys
 
-from ..device import all_devices, get_queue
+from ..opencl.device import all_devices, get_queue
 from .agreement import TOLERANCES, agreement, agreement_table
 from .core import BenchRun
 

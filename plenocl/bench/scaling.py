@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device import device_info
 from ..grid import Grid
+from ..opencl.device import device_info
 from ..particles import random_particles
 from ..projection.projector import Projector
 from ..reconstruction import reconstruct

@@ -23,7 +23,7 @@ from .volume import add_demo_parser, add_piv_parser, add_reconstruct_parser
 def cmd_devices(args: argparse.Namespace) -> int:
     """List OpenCL platforms and devices; with ``--agree``, compare them (exit 1 when a
     stage differs by more than its tolerance)."""
-    from ..device import building_devices, describe_devices, get_queue
+    from ..opencl.device import building_devices, describe_devices, get_queue
 
     print(describe_devices())
     if not args.agree:
@@ -134,7 +134,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings(), _quiet(args.quiet):
         warnings.showwarning = _warning_printer(args.command, once=not args.verbose)
         if args.quiet:  # which device runs is no error: -v says it
-            from ..device import DeviceFallbackWarning
+            from ..opencl.device import DeviceFallbackWarning
 
             warnings.simplefilter("ignore", DeviceFallbackWarning)
         if args.verbose:
@@ -186,7 +186,7 @@ def _quiet(quiet: bool):
 
 def _say_device(args: argparse.Namespace) -> None:
     """``-v``: the device the command's default choice gives (or the one named)."""
-    from ..device import create_context, fallback_note
+    from ..opencl.device import create_context, fallback_note
 
     if args.command in ("devices", "run", "plot"):
         return  # devices lists them all; a run's workers choose their own; plot uses none

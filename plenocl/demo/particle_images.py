@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..device import DeviceLike
 from ..io.files import atomic_path, write_particles, write_tiff
+from ..opencl.device import DeviceLike
 from ..particles import particles_per_microlens, random_particles
 from ..simulate import simulate_image
 

@@ -4,7 +4,7 @@ Sources are real ``.cl`` files. They are found next to the package in an install
 wheel (``plenocl/kernels``) and in the top-level ``kernels/`` folder of a source
 checkout. The folder is always passed as ``-I`` so kernels use ``#include``. Each
 program is built once per (context, file, options). This module needs no device
-choice, so :mod:`plenocl.device` can use it to check that a device builds kernels.
+choice, so :mod:`plenocl.opencl.device` can use it to check that a device builds kernels.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ class KernelBuildError(RuntimeError):
 
 def kernel_dir() -> Path:
     """The folder holding the ``.cl`` sources (installed wheel first, then checkout)."""
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parent.parent  # the plenocl package
     for candidate in (here / "kernels", here.parent / "kernels"):
         if (candidate / "common.h").is_file():
             return candidate
@@ -117,7 +117,7 @@ def probe_build(context: cl.Context) -> str | None:
     """Build one of plenocl's kernels for ``context``: ``None`` if it builds, else why not.
 
     The probe is the deformation kernel (small, and built by every PIV run), so a
-    context that passes and is kept (:func:`plenocl.device.create_context` keeps the
+    context that passes and is kept (:func:`plenocl.opencl.device.create_context` keeps the
     default device's) keeps its program in the cache.
     """
     try:

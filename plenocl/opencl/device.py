@@ -11,7 +11,7 @@ unless the fallback is the documented one between CPU runtimes
 "current device": every object that runs kernels takes a queue or builds one here.
 
 CPU runtimes installed by pip (Intel's, the ``intel`` extra) are registered with the
-OpenCL loader before platforms are first listed (:mod:`plenocl.icd`).
+OpenCL loader before platforms are first listed (:mod:`plenocl.opencl.icd`).
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ its ICD file names the path of the machine it was built on, so the loader never 
 loader would have read (the system's and the environment's own) and one naming each
 pip-installed runtime by its real path, and points
 ``OCL_ICD_VENDORS`` at it. It must run before the process first lists OpenCL platforms
-(the loader reads its configuration once); :mod:`plenocl.device` calls it before every
+(the loader reads its configuration once); :mod:`plenocl.opencl.device` calls it before every
 listing, so plenocl's own entry points need nothing else. A user's own
 ``OCL_ICD_VENDORS`` is respected and left alone; ``PLENOCL_PIP_RUNTIMES=0`` turns the
 registration off.

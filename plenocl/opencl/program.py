@@ -1,6 +1,6 @@
 """Launch the OpenCL kernels of ``kernels/``: fetch each once, bind them to a queue.
 
-Programs are found and built by :mod:`plenocl.build` (once per context, file and
+Programs are found and built by :mod:`plenocl.opencl.build` (once per context, file and
 options); each kernel is fetched once with ``cl.Kernel``.
 
 :class:`KernelSet` is the one kernel-launch layer of plenocl: the kernels of one

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device import DeviceLike, NoOpenCLError, check_fits, get_queue
-from ..program import KernelSet
+from ..opencl.device import DeviceLike, NoOpenCLError, check_fits, get_queue
+from ..opencl.program import KernelSet
 from .interpolate import MARGIN, deform, prepare
 
 

@@ -17,9 +17,9 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.cltypes
 
-from ..device import is_cpu
+from ..opencl.device import is_cpu
+from ..opencl.program import KernelSet
 from ..optics.raybundle import Patches, RayBundle
-from ..program import KernelSet
 
 i32, i64, f32 = np.int32, np.int64, np.float32
 #: Floats per (particle, ray, lens choice) slot (``PL_SLOT`` of the kernel).

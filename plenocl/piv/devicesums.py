@@ -17,8 +17,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from ..device import DeviceLike, check_fits, get_queue
-from ..program import KernelSet
+from ..opencl.device import DeviceLike, check_fits, get_queue
+from ..opencl.program import KernelSet
 from .correlation import WindowGrid
 from .deformation import DeviceDeformer
 from .direct import axis_taps, margin

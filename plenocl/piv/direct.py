@@ -40,8 +40,8 @@ import numpy as np
 from scipy import ndimage
 from threadpoolctl import threadpool_limits
 
+from ..opencl.threads import thread_count
 from ..peaks import gaussian_subpixel
-from ..threads import thread_count
 from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 
 #: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order; index 13 is zero.
@@ -50,7 +50,7 @@ CENTRE = 13
 
 
 def parallel_sums(function, items) -> list:
-    """``function`` over ``items`` on :func:`plenocl.threads.thread_count` threads, each
+    """``function`` over ``items`` on :func:`plenocl.opencl.threads.thread_count` threads, each
     with a single-threaded BLAS: every window sum is then computed by one thread in one
     order, so the results do not depend on the number of threads (a serial run and Dask
     workers with fewer threads each give the same fields, bit for bit), while the sums

@@ -16,7 +16,7 @@ import threading
 import numpy as np
 import scipy.fft
 
-from ..threads import thread_count
+from ..opencl.threads import thread_count
 
 try:  # wheels exist for the common platforms; SciPy's pocketfft otherwise
     import pyfftw

@@ -16,9 +16,9 @@ import threading
 import numpy as np
 import pyopencl.array as cl_array
 
-from ..device import is_cpu
+from ..opencl.device import is_cpu
+from ..opencl.program import KernelSet
 from ..optics.raybundle import Patches
-from ..program import KernelSet
 from .devicebundle import DeviceRayBundle
 
 i32, i64, f32 = np.int32, np.int64, np.float32

@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..opencl.threads import thread_count
 from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
 from ..optics.sightline import line_of_sight, sight_frames, sight_information
-from ..threads import thread_count
 from .devicebundle import DeviceRayBundle
 from .fitsums import DeviceFitSums
 

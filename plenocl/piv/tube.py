@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from ..device import is_cpu
-from ..program import KernelSet
+from ..opencl.device import is_cpu
+from ..opencl.program import KernelSet
 
 __all__ = ["DeviceTubeSums", "host_tube_sums", "tube_points"]
 

@@ -35,10 +35,10 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..camera import Camera
-from ..device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..grid import Grid
+from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
+from ..opencl.program import KernelSet
 from ..optics.lattice import separable_rotation_deg
-from ..program import KernelSet
 from .lenses import LensSet, lens_set, lit_lenses
 from .model import WeightingModel, warn_general_path
 from .plan import Plan, SampleColumns, depth_chunks, make_plan, runs
@@ -84,7 +84,7 @@ class Projector:
         The camera (its calibrated or ideal ``microlens_centers``) and the volume: the
         :class:`~plenocl.projection.model.WeightingModel` is built from them.
     queue
-        A ``pyopencl.CommandQueue`` or anything :func:`plenocl.device.get_queue` accepts.
+        A ``pyopencl.CommandQueue`` or anything :func:`plenocl.opencl.device.get_queue` accepts.
     oversample
         Aperture samples per pixel footprint on the aperture (``p_px d / f_ml``, ``d``:
         the exit pupil's distance from the array), per axis. Integer values sample the

@@ -21,8 +21,8 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..grid import Grid
+from ..opencl.program import KernelSet
 from ..optics.lattice import rotation_matrix
-from ..program import KernelSet
 from .plan import runs
 
 i32, f32 = np.int32, np.float32

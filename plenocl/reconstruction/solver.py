@@ -12,7 +12,7 @@ import functools
 import numpy as np
 import pyopencl.array as cla
 
-from ..program import KernelSet
+from ..opencl.program import KernelSet
 from .operator import ProjectionOperator
 from .supersample import LateralBinning
 

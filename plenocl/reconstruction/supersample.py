@@ -17,7 +17,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..program import KernelSet
+from ..opencl.program import KernelSet
 
 #: Largest accepted factor (memory and time grow as its square).
 MAX_SUPERSAMPLE = 4
