@@ -42,7 +42,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings  # noqa: E402
-from plenocl.piv.tracking import FocalZone, SightLines, refine_with_particles  # noqa: E402
+from plenocl.piv.refinement import FocalZone, SightLines, refine_with_particles  # noqa: E402
 
 VARIANTS = {"default": ImageFitSettings(), "rays200": ImageFitSettings(rays=200),
             "it4": ImageFitSettings(iterations=4),

@@ -34,7 +34,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.metrics import quality_q, recovery  # noqa: E402
 from plenocl.pipeline import MTESettings, motion_tracking_enhancement, process_pair  # noqa: E402
-from plenocl.piv.tracking import refine_with_particles  # noqa: E402
+from plenocl.piv.refinement import refine_with_particles  # noqa: E402
 from plenocl.reconstruction import ReconstructionSettings  # noqa: E402
 
 VARIANTS = {"geometric": MTESettings(cycles=1), "mean": MTESettings(cycles=1, combine="mean"),

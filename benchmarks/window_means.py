@@ -1,4 +1,4 @@
-"""The particle refinement's per-window means (``plenocl.piv.tracking.window_means``,
+"""The particle refinement's per-window means (``plenocl.piv.refinement.window_means``,
 docs/design.md §7.1), batched over the windows that hold the same number of pairs,
 against the per-window loop over ``local_gradient``, ``near_median`` and
 ``window_estimate`` (``window_means_reference``) on the same pairs in the same run;
@@ -29,8 +29,8 @@ import numpy as np
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
 from plenocl.piv import PIVResult
-from plenocl.piv.tracking import FocalZone, ParticlePairs, window_means  # noqa: E402
-from plenocl.reference.tracking import window_means_reference
+from plenocl.piv.refinement import FocalZone, ParticlePairs, window_means  # noqa: E402
+from plenocl.reference.refinement import window_means_reference
 
 SHAPE = (150, 200, 300)  # (z, y, x) voxels
 WINDOW, STEP = 32, 8

@@ -1,6 +1,6 @@
 """Peaks with sub-voxel positions: the three-point Gaussian fit (correlation peaks in
 :mod:`plenocl.piv`) and a volume's particles as local maxima (used by the reconstruction
-metrics and by the particle refinement of :mod:`plenocl.piv.tracking`)."""
+metrics and by the particle refinement of :mod:`plenocl.piv.refinement`)."""
 
 from __future__ import annotations
 

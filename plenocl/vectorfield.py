@@ -64,7 +64,7 @@ class PIVResult:
         read from files written before it existed.
     refinement
         What refined the field after the correlation (``{}``: nothing): for the particle
-        refinement (:func:`plenocl.piv.tracking.refine_with_particles`) the particle
+        refinement (:func:`plenocl.piv.refinement.refine_with_particles`) the particle
         pairs found, the vectors refined and their median pair count.
     """
 

@@ -1,5 +1,5 @@
 """One bad particle never ends a run (issue 44): the fit to the raw images
-(plenocl/piv/imagefit.py) and the particle refinement (plenocl/piv/tracking.py) started
+(plenocl/piv/imagefit.py) and the particle refinement (plenocl/piv/refinement.py) started
 from bad positions (outside the grid, far in depth, NaN, on the grid's faces) drop those
 particles, count them and fit the rest; plenocl.track with a diverging particle returns
 its tracks and counts it."""
@@ -18,7 +18,7 @@ from plenocl.bench.accuracy_section import paper_optics
 from plenocl.io import write_tiff
 from plenocl.piv import piv3d
 from plenocl.piv.imagefit import GRID_MARGIN_VOXELS, ImageFit, ImageFitSettings
-from plenocl.piv.tracking import pair_particles, refine_with_particles
+from plenocl.piv.refinement import pair_particles, refine_with_particles
 from plenocl.ptv import Tracks
 from plenocl.reference.simulate import trace_particles
 

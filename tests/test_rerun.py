@@ -180,7 +180,7 @@ def test_a_changed_piv_table_correlates_the_kept_volumes_again(done, monkeypatch
 
 
 def test_a_field_of_an_earlier_refinement_method_is_correlated_again(done, monkeypatch):
-    """The particle refinement changed (``plenocl.piv.tracking.METHOD``) with the same
+    """The particle refinement changed (``plenocl.piv.refinement.METHOD``) with the same
     settings: the kept volumes are correlated again, never the old field kept."""
     import plenocl.batch.record as record_module
 

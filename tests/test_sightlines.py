@@ -1,6 +1,6 @@
 """Lines of sight (plenocl/optics/sightline.py) and the stages that lean with them: a
 particle's peaks merged and centred along its line (plenocl/peaks.py,
-plenocl/piv/tracking.py ``SightLines``), the depth the focal zone does not see taken from
+plenocl/piv/refinement.py ``SightLines``), the depth the focal zone does not see taken from
 the pairs that see it, and the pairing's refined predictor (docs/design.md §7.4)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from plenocl import Camera, Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.optics.sightline import line_of_sight, sight_frames, sight_information
 from plenocl.peaks import find_particles, merge_along_lines
-from plenocl.piv.tracking import (
+from plenocl.piv.refinement import (
     DEPTH_BLIND,
     FocalZone,
     ParticlePairs,

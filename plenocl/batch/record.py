@@ -36,7 +36,7 @@ from ..io.fields import field_metadata
 from ..io.files import volumes_metadata
 from ..options import NONE
 from ..pipeline.resume import changed_keys, config_digest, config_parts, name_changes
-from ..piv.tracking import METHOD as REFINEMENT_METHOD
+from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from .config import Experiment
 from .pairing import ImagePair, changed_since, fingerprint
 from .prepare import frame_corrections
@@ -47,7 +47,7 @@ SKIP, RESCALE, CORRELATE, REDO = "skip", "rescale", "correlate", "redo"
 #: another geometry.
 REFUSE = ("camera", "grid")
 #: The sections a correlation alone depends on (after the volumes); ``refinement``: the
-#: particle refinement's method (:data:`plenocl.piv.tracking.METHOD`), so that a rerun
+#: particle refinement's method (:data:`plenocl.piv.refinement.METHOD`), so that a rerun
 #: after it changed re-correlates instead of keeping the earlier method's fields.
 FIELD_SECTIONS = ("piv", "particles", "image_fit", "refinement")
 #: The entry of the time between the exposures.

@@ -40,7 +40,7 @@ from ..io.progress import step_bar
 from ..pipeline.frames import load_frame
 from ..pipeline.resume import StageRunner, config_digest, remove_outputs
 from ..pipeline.track import TrackSettings, bin_tracks, track
-from ..piv.tracking import FocalZone
+from ..piv.refinement import FocalZone
 from ..ptv import Tracks
 from .config import Experiment
 from .pairing import fingerprint, numbered_series

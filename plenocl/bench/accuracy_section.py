@@ -28,7 +28,7 @@ from ..metrics import quality_q, recovery, render_particles
 from ..particles import random_particles
 from ..pipeline import process_pair
 from ..piv.multipass import piv3d
-from ..piv.tracking import FocalZone, SightLines, refine_with_particles
+from ..piv.refinement import FocalZone, SightLines, refine_with_particles
 from ..projection import Projector
 from ..reconstruction import ReconstructionSettings
 from ..simulate import simulate_image

@@ -8,7 +8,7 @@ displacement, or the rotation about x). The
 chain runs as ``process_pair`` runs it, and every stage is compared with the truth:
 
 - **volume**: the first volume's particles (its peaks, those along one line of sight
-  merged and centred, :class:`plenocl.piv.tracking.SightLines`) against the true
+  merged and centred, :class:`plenocl.piv.refinement.SightLines`) against the true
   particles within :data:`MATCH` voxels: position error; also the raw peaks per true
   particle and the share recovered;
 - **paired**: the particle pairs of the two volumes (along the refined predictor), each
@@ -33,7 +33,7 @@ from ..peaks import find_particles
 from ..pipeline import process_pair
 from ..pipeline.pair import known_backgrounds
 from ..piv.imagefit import ImageFit
-from ..piv.tracking import (
+from ..piv.refinement import (
     FocalZone,
     SightLines,
     pair_peaks,

@@ -90,7 +90,7 @@ def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
     from ..pipeline.settings import PairSettings
     from ..piv import PIVSettings, piv3d
-    from ..piv.tracking import FocalZone, SightLines, refine_with_particles
+    from ..piv.refinement import FocalZone, SightLines, refine_with_particles
     from ..units import check_dt
     from ..vectorfile import save_field
     from ..volumefile import load_volume

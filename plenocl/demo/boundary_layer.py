@@ -24,8 +24,8 @@ from ..metrics import recovery
 from ..particles import particles_per_microlens, random_particles
 from ..pipeline.resume import StageRunner
 from ..pipeline.settings import PairSettings
+from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from ..piv.settings import PIVSettings
-from ..piv.tracking import METHOD as REFINEMENT_METHOD
 from ..reconstruction import ReconstructionSettings
 from ..volumefile import load_volume, save_volume
 
@@ -263,7 +263,7 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettin
     from ..io.files import read_image
     from ..piv.imagefit import ImageFit
     from ..piv.multipass import piv3d
-    from ..piv.tracking import FocalZone, SightLines, refine_with_particles
+    from ..piv.refinement import FocalZone, SightLines, refine_with_particles
     from ..vectorfile import save_field
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))

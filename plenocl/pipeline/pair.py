@@ -18,7 +18,7 @@ import numpy as np
 from ..options import with_keywords
 from ..piv import PIVResult, piv3d
 from ..piv.imagefit import ImageFit
-from ..piv.tracking import FocalZone, SightLines, refine_with_particles
+from ..piv.refinement import FocalZone, SightLines, refine_with_particles
 from ..reconstruction import (
     ProjectionOperator,
     ReconstructionInfo,
@@ -114,7 +114,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
           time, combine, reconstruct again from that guess and correlate (off by
           default).
         - ``particles``: refine the correlation's final field with the volumes'
-          particles (:func:`plenocl.piv.tracking.refine_with_particles`,
+          particles (:func:`plenocl.piv.refinement.refine_with_particles`,
           docs/design.md §7.1): each window's displacement becomes the mean of its
           matched particle pairs, and its uncertainty their standard error with the
           systematic depth term of the pairs near the camera's focal plane, whose depth

@@ -24,7 +24,7 @@ from ..options import is_integer, with_keywords
 from ..peaks import find_particles, merge_close
 from ..piv import PIVSettings, piv3d
 from ..piv.imagefit import ImageFit, ImageFitSettings
-from ..piv.tracking import (
+from ..piv.refinement import (
     FITTED_POSITION_SIGMA,
     SEARCH,
     FocalZone,
@@ -263,7 +263,7 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
     tracks' local linear field of those velocities is each track's depth velocity
     prior (:func:`plenocl.ptv.neighbour_velocity`, each neighbour weighted by its
     variance plus the focal zone's systematic depth term,
-    :meth:`~plenocl.piv.tracking.FocalZone.ambiguity`);
+    :meth:`~plenocl.piv.refinement.FocalZone.ambiguity`);
     the constant-velocity state-space smoother (:func:`plenocl.ptv.smooth_states`,
     acceleration noise ``settings.acceleration`` voxels per frame²) then gives the
     positions, velocities and accelerations (the velocities' central differences).
@@ -425,7 +425,7 @@ def bin_tracks(tracks: Tracks, grid: Grid, window=(16, 16, 16), step=None, frame
     Each step of a track from frame ``k`` to ``k + 1`` (of its smoothed positions) is a
     sample at its midpoint, like a particle pair of the pair chain, and the windows
     average them as the pair chain's particle refinement does
-    (:func:`plenocl.piv.tracking.window_means`, §7.1): samples farther than the search
+    (:func:`plenocl.piv.refinement.window_means`, §7.1): samples farther than the search
     range from their window's median are left out, the rest moved to the window's centre
     along the local gradient, and the uncertainty is the standard error with Student's
     t (with ``focus``, the focal zone's systematic depth term too). Windows of
@@ -448,7 +448,7 @@ def bin_tracks(tracks: Tracks, grid: Grid, window=(16, 16, 16), step=None, frame
     min_samples
         Fewest samples for a vector.
     focus
-        The camera's focal zone (:meth:`plenocl.piv.tracking.FocalZone.of`), for the
+        The camera's focal zone (:meth:`plenocl.piv.refinement.FocalZone.of`), for the
         systematic depth term of the uncertainty.
     """
     template = _windows(grid, window, step)

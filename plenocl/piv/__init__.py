@@ -9,7 +9,7 @@
 - :mod:`.settings`: :class:`PIVSettings` (every option of :func:`piv3d`, checked once);
 - :mod:`.multipass`: :func:`piv3d`; its result :class:`plenocl.vectorfield.PIVResult`
   (velocities, gradients, the arrays written to files) lives in the model layer;
-- :mod:`.tracking`: the refinement by the volumes' matched particle pairs;
+- :mod:`.refinement`: the refinement by the volumes' matched particle pairs;
 - :mod:`.imagefit`: those particles fitted to the raw images (the camera's rays:
   :mod:`plenocl.optics.raybundle`).
 """

@@ -1,7 +1,7 @@
 """The sums behind a particle's centroid along its line of sight (docs/design.md §7.4):
 trilinear samples of a volume over a tube around each particle's line, their total and
 their total weighted by the position along the line
-(:meth:`plenocl.piv.tracking.SightLines.centres`).
+(:meth:`plenocl.piv.refinement.SightLines.centres`).
 
 :func:`host_tube_sums` computes them with SciPy's ``map_coordinates`` (the reference);
 :class:`DeviceTubeSums` with ``kernels/sightline.cl`` on an OpenCL device, one work-group

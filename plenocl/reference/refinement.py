@@ -1,6 +1,6 @@
-"""NumPy twin of :func:`plenocl.piv.tracking.window_means`: the per-window loop over
-:func:`~plenocl.piv.tracking.local_gradient`, :func:`~plenocl.piv.tracking.near_median`
-and :func:`~plenocl.piv.tracking.window_estimate`, written for clarity; the batched
+"""NumPy twin of :func:`plenocl.piv.refinement.window_means`: the per-window loop over
+:func:`~plenocl.piv.refinement.local_gradient`, :func:`~plenocl.piv.refinement.near_median`
+and :func:`~plenocl.piv.refinement.window_estimate`, written for clarity; the batched
 production code is tested and timed against it (``benchmarks/window_means.py``)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..piv.tracking import (
+from ..piv.refinement import (
     POSITION_SIGMA,
     SEARCH,
     FocalZone,
@@ -24,7 +24,7 @@ def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: in
                            search=SEARCH, focus: FocalZone | None = None,
                            position_sigma=POSITION_SIGMA
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`plenocl.piv.tracking.window_means` one window at a time: the readable
+    """:func:`plenocl.piv.refinement.window_means` one window at a time: the readable
     reference that it is
     tested and timed against (``benchmarks/window_means.py``)."""
     shape = field.u.shape

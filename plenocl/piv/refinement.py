@@ -390,7 +390,7 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
     :func:`window_estimate`), its uncertainty, and the pair counts.
 
-    The same as :func:`plenocl.reference.tracking.window_means_reference`, the
+    The same as :func:`plenocl.reference.refinement.window_means_reference`, the
     per-window loop over
     :func:`local_gradient`, :func:`near_median` and :func:`window_estimate`, computed for
     all windows holding the same number of pairs at once: about 5 times faster at the

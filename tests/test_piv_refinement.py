@@ -1,4 +1,4 @@
-"""Particle refinement of a correlation field (plenocl/piv/tracking.py): pairing the two
+"""Particle refinement of a correlation field (plenocl/piv/refinement.py): pairing the two
 volumes' particles along the predictor, per-window means and their uncertainty."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 from plenocl import Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.piv import PIVResult
-from plenocl.piv.tracking import (
+from plenocl.piv.refinement import (
     FITTED_POSITION_SIGMA,
     FOCAL_SYSTEMATIC,
     GRADIENT_PAIRS,
@@ -23,7 +23,7 @@ from plenocl.piv.tracking import (
     window_estimate,
     window_means,
 )
-from plenocl.reference.tracking import window_means_reference
+from plenocl.reference.refinement import window_means_reference
 
 GRID = Grid((48, 40, 56), x=(0, 56), y=(0, 40), z=(0, 48))  # 1 mm = 1 voxel
 SHIFT = np.array([1.6, -0.7, 2.2])  # (x, y, z) voxels
@@ -265,7 +265,7 @@ def test_window_means_equal_the_per_window_loop(case, focus, min_pairs):
 def test_a_flat_scatter_takes_the_minimum_norm_gradient():
     """Pairs on one plane leave the depth gradient undetermined: as lstsq, the batched
     fit shares the offset between the constant and the depth slope (minimum norm)."""
-    from plenocl.piv.tracking import _fit_gradients, local_gradient
+    from plenocl.piv.refinement import _fit_gradients, local_gradient
 
     rng = np.random.default_rng(2)
     mid = np.column_stack([rng.uniform(0, 20, (40, 2)), np.full(40, 7.0)])
