@@ -4,6 +4,8 @@
 #ifndef PLENOCL_COMMON_H
 #define PLENOCL_COMMON_H
 
+#include "arith.h" /* pl_floori, pl_atomic_addf */
+
 #define PLENOCL_TWO_PI 6.283185307179586f
 
 /* 32-bit integer finaliser ("lowbias32", C. Wellons): a bijection with good avalanche. */
@@ -42,12 +44,6 @@ inline float pl_uniform(uint word)
     return (float)(word >> 8) * (1.0f / 16777216.0f);
 }
 
-/* floor() as plain arithmetic: PoCL 3 calls its builtin out of line in hot loops. */
-inline int pl_ifloor(float x)
-{
-    int i = (int)x;
-    return i - (x < (float)i);
-}
 
 /* Microlens geometry on the array plane (docs/design.md §2), rotation (c, s) and offset.
  * A rectangular array has row = pitch and odd = 0; a hexagonal one row = pitch sqrt(3)/2
@@ -69,16 +65,16 @@ inline int pl_lens_index(const pl_mla m, float x, float y, int *kx, int *ky)
     float b = -m.s * dx + m.c * dy;
     int ix, iy;
     if (m.odd == 0.0f) {
-        ix = pl_ifloor(a / m.pitch + 0.5f * (float)m.nx);
-        iy = pl_ifloor(b / m.pitch + 0.5f * (float)m.ny);
+        ix = pl_floori(a / m.pitch + 0.5f * (float)m.nx);
+        iy = pl_floori(b / m.pitch + 0.5f * (float)m.ny);
     } else {
         /* hexagonal: the nearest centre lies in one of the two rows around the point */
         float fy = b / m.row + 0.5f * (float)(m.ny - 1), best = INFINITY;
-        int r0 = pl_ifloor(fy);
+        int r0 = pl_floori(fy);
         ix = iy = -1;
         for (int r = r0; r <= r0 + 1; ++r) {
             float fx = a / m.pitch + 0.5f * (float)(m.nx - 1) - m.odd * (float)(r & 1);
-            int k = pl_ifloor(fx + 0.5f);
+            int k = pl_floori(fx + 0.5f);
             float ex = (fx - (float)k) * m.pitch, ey = (fy - (float)r) * m.row;
             float d2 = ex * ex + ey * ey;
             if (d2 < best) { best = d2; ix = k; iy = r; }
@@ -101,8 +97,8 @@ inline float2 pl_lens_center(const pl_mla m, int kx, int ky)
 /* Flat pixel index of sensor point (x, y) mm, -1 off the sensor. */
 inline int pl_pixel_index(float x, float y, float pixel_pitch, int width, int height)
 {
-    int col = pl_ifloor(x / pixel_pitch + 0.5f * (float)width);
-    int row = pl_ifloor(y / pixel_pitch + 0.5f * (float)height);
+    int col = pl_floori(x / pixel_pitch + 0.5f * (float)width);
+    int row = pl_floori(y / pixel_pitch + 0.5f * (float)height);
     if (col < 0 || row < 0 || col >= width || row >= height) return -1;
     return row * width + col;
 }
@@ -121,12 +117,7 @@ inline void pl_accumulate(volatile __global pl_acc_t *img, int idx, pl_acc_t q)
 typedef float pl_acc_t;
 inline void pl_accumulate(volatile __global pl_acc_t *img, int idx, pl_acc_t q)
 {
-    volatile __global uint *p = (volatile __global uint *)(img + idx);
-    uint old = *p, assumed;
-    do {
-        assumed = old;
-        old = atomic_cmpxchg(p, assumed, as_uint(as_float(assumed) + q));
-    } while (old != assumed);
+    pl_atomic_addf(img + idx, q);
 }
 #endif
 

@@ -43,22 +43,7 @@ typedef float pl_vec;
 
 #define PL_NO_LENS (-1073741824)   /* lens_rnd.x of a lens calibration missed (NaN centre) */
 
-inline float pl_abs(float x) { return x < 0.0f ? -x : x; }
-inline int pl_mini(int a, int b) { return a < b ? a : b; }
-inline int pl_maxi(int a, int b) { return a > b ? a : b; }
-
-/* floor and ceil as integers, for |x| < 2^31 */
-inline int pl_floori(float x)
-{
-    const int i = (int)x;
-    return (float)i > x ? i - 1 : i;
-}
-
-inline int pl_ceili(float x)
-{
-    const int i = (int)x;
-    return (float)i < x ? i + 1 : i;
-}
+#include "arith.h" /* pl_abs, pl_mini, pl_maxi, pl_floori, pl_ceili, pl_atomic_addf */
 
 /* Linear-interpolation (hat) weight of a point at signed distance d. */
 inline float pl_tent(float d)
@@ -133,17 +118,6 @@ inline void pl_zero(__global float *out, int n)
     __global pl_vec *o = (__global pl_vec *)out;
     for (int m = 0; m < n; ++m)
         o[m] = (pl_vec)(0.0f);
-}
-
-/* Float atomic add by a compare-and-swap loop (the scatter variants only). */
-inline void pl_atomic_addf(volatile __global float *p, float q)
-{
-    volatile __global uint *u = (volatile __global uint *)p;
-    uint old = *u, assumed;
-    do {
-        assumed = old;
-        old = atomic_cmpxchg(u, assumed, as_uint(as_float(assumed) + q));
-    } while (old != assumed);
 }
 
 /* The 4 bilinear pixel taps (paper §III.A step 3) of an aperture sample that lands d

@@ -53,7 +53,7 @@
 
 /* Plain-arithmetic stand-ins for builtins (kernels/projector.h's performance note: PoCL's
  * CPU driver calls rint, clamp, fabs, sign, isfinite, erf ... out of line). */
-inline float pl_abs(float x) { return x < 0.0f ? -x : x; }
+#include "arith.h" /* pl_abs */
 inline float pl_clamp01(float x) { return x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x); }
 /* rint (ties to even) for |x| < 2^22: adding and taking away 1.5 * 2^23 rounds at the
  * units (no -cl-fast-relaxed-math, so the compiler keeps both operations) */
@@ -274,7 +274,7 @@ __kernel void render_rows(__global const float *slots, __global const int *keys,
 }
 
 #if PL_HEXAGONAL
-#include "common.h" /* pl_ifloor */
+#include "common.h" /* pl_floori */
 
 #define PL_HEX_RAMP_MAX 0.45f /* hexcells.HEX_RAMP_MAX */
 
@@ -283,7 +283,7 @@ __kernel void render_rows(__global const float *slots, __global const int *keys,
  * the first on a tie (HexCells.nearest). */
 inline void pl_hex_nearest(float fq, float fr, float4 gram, int *q, int *r)
 {
-    int q0 = pl_ifloor(fq), r0 = pl_ifloor(fr);
+    int q0 = pl_floori(fq), r0 = pl_floori(fr);
     float best = INFINITY;
     for (int c = 0; c < 4; ++c) {
         float a = fq - (float)(q0 + (c & 1)), b = fr - (float)(r0 + (c >> 1));
