@@ -30,6 +30,7 @@ within 4.9e-7 of their peaks. docs/design.md §7.2 has the rest.
 from __future__ import annotations
 
 import importlib.util
+import re
 import subprocess
 import sys
 import time
@@ -45,7 +46,7 @@ sys.path.insert(0, str(ROOT))
 from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import paper_optics  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
-from plenocl.opencl.build import kernel_dir  # noqa: E402
+from plenocl.opencl.program import KernelSet  # noqa: E402
 from plenocl.optics.raybundle import Patches, RayBundle  # noqa: E402
 from plenocl.piv.devicebundle import DeviceRayBundle  # noqa: E402
 
@@ -139,33 +140,19 @@ def report(derivatives: bool, timed: dict, rows: dict) -> None:
               f"{wall:7.3f} s  diff {max(diff):.1e}")
 
 
-class _SourceKernels:
-    """The two kernels of one program built from source, with the calls a renderer's
-    launcher makes (``launch`` returning and recording its event, ``array``,
-    ``to_device``)."""
+class _SourceKernels(KernelSet):
+    """The two kernels of a revision's ``raybundle.cl`` (built from its text against
+    today's headers), each launch's event recorded."""
 
     def __init__(self, queue, source: str, derivatives: bool) -> None:
-        self.queue = queue
-        options = [f"-I{kernel_dir()}", "-cl-fp32-correctly-rounded-divide-sqrt",
-                   f"-DPL_DERIVATIVES={int(derivatives)}"]
-        program = cl.Program(queue.context, source).build(options=options)
-        self.kernels = {name: cl.Kernel(program, name) for name in KERNELS}
+        super().__init__(queue, "raybundle.cl", KERNELS, [f"-DPL_DERIVATIVES={int(derivatives)}"],
+                         looping=["render_rows"], source=source)
         self.events: list[cl.Event] = []
 
     def launch(self, name, global_size, *args, local_size=None):
-        cpu = bool(self.queue.device.type & cl.device_type.CPU)
-        if local_size is None and cpu and name == "render_rows":
-            local_size = (1,) * len(global_size)
-        args = [a.data if isinstance(a, cl_array.Array) else a for a in args]
-        event = self.kernels[name](self.queue, tuple(global_size), local_size, *args)
+        event = super().launch(name, global_size, *args, local_size=local_size)
         self.events.append(event)
         return event
-
-    def array(self, shape, dtype=np.float32):
-        return cl_array.empty(self.queue, shape, dtype)
-
-    def to_device(self, host):
-        return cl_array.to_device(self.queue, np.ascontiguousarray(host))
 
 
 class _Baseline:
@@ -189,8 +176,11 @@ def baseline_renderer(revision: str, bundle: RayBundle, queue) -> _Baseline:
 
     spec = importlib.util.spec_from_loader("plenocl.piv.baseline_bundle", loader=None)
     module = importlib.util.module_from_spec(spec)
-    exec(compile(show("plenocl/piv/devicebundle.py"), f"{revision}:devicebundle.py", "exec"),
-         module.__dict__)
+    code = show("plenocl/piv/devicebundle.py")
+    # revisions before the OpenCL layer's folder (issue 48) import it from the package root
+    code = re.sub(r"from \.\.(device|program|build|icd|threads) import",
+                  r"from ..opencl.\1 import", code)
+    exec(compile(code, f"{revision}:devicebundle.py", "exec"), module.__dict__)
     source = show("kernels/raybundle.cl")
     programs = {d: _SourceKernels(queue, source, d) for d in (True, False)}
 

@@ -123,6 +123,30 @@ def test_kernel_set_launches_with_arrays_and_the_cpu_rule(queue):
         KernelSet(queue, "solver.cl", ["row_extent"], looping=["ratio"])
 
 
+def test_a_kernel_set_builds_a_source_text_against_todays_headers(queue):
+    """``source=`` builds a file's text from elsewhere (a revision a benchmark compares),
+    its ``#include`` served by today's headers, cached by its text: another text under the
+    same name is another program."""
+    from plenocl.opencl.build import kernel_dir
+
+    text = (kernel_dir() / "sightline.cl").read_text()
+    doubled = text.replace("out[2 * p] = total;", "out[2 * p] = 2.0f * total;")
+    assert doubled != text
+    vol = np.ones((4, 4, 4), np.float32)
+    sums = []
+    for source in (text, doubled):
+        ks = KernelSet(queue, "sightline.cl", ["tube_sums"], ["-DPL_GROUP=1"],
+                       looping=["tube_sums"], source=source)
+        out = ks.array(2)
+        ks.launch("tube_sums", (1,), ks.to_device(vol), np.int32(4), np.int32(4),
+                  np.int32(4), ks.to_device(np.full(3, 1.5, np.float32)),
+                  ks.to_device(np.eye(3, dtype=np.float32)),
+                  ks.to_device(np.zeros((1, 3), np.float32)), np.int32(1), out,
+                  local_size=(1,))
+        sums.append(out.get()[0])
+    assert sums == [1.0, 2.0]
+
+
 # ---- the default device: preference order, build probe, fallback -------------------------
 class FakePlatform:
     def __init__(self, name: str) -> None:

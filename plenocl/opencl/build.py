@@ -49,9 +49,14 @@ _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def build_program(
-    context: cl.Context, filename: str, options: Sequence[str] = ()
+    context: cl.Context, filename: str, options: Sequence[str] = (),
+    source: str | None = None,
 ) -> cl.Program:
     """Build ``kernels/<filename>`` for ``context`` once and cache it.
+
+    ``source``: that file's text from elsewhere (a benchmark building a git revision's
+    kernel against today's; its ``#include`` still finds today's headers), cached by its
+    text.
 
     Raises
     ------
@@ -59,11 +64,12 @@ def build_program(
         With the file, the build options and the compiler log.
     """
     programs = _CACHE.setdefault(context, {})
-    key = (filename, tuple(options))
+    key = (filename, tuple(options), source)
     if key in programs:
         return programs[key]
     folder = kernel_dir()
-    source = (folder / filename).read_text()
+    if source is None:
+        source = (folder / filename).read_text()
     opts = [f"-I{folder}", "-cl-fp32-correctly-rounded-divide-sqrt", *options]
     try:
         program = _compile(context, source, opts)

@@ -44,6 +44,8 @@ class KernelSet:
         rays, a chunk of a reduction). On a CPU they get work-groups of one item, so
         that PoCL spreads the items over all cores instead of running a group as one
         thread; element-wise kernels keep the driver's choice.
+    source
+        The file's text from elsewhere (:func:`plenocl.opencl.build.build_program`).
 
     Attributes
     ----------
@@ -53,13 +55,15 @@ class KernelSet:
     """
 
     def __init__(self, queue: cl.CommandQueue, filename: str, names: Sequence[str],
-                 options: Sequence[str] = (), looping: Sequence[str] = ()) -> None:
+                 options: Sequence[str] = (), looping: Sequence[str] = (),
+                 source: str | None = None) -> None:
         unknown = set(looping) - set(names)
         if unknown:
             raise ValueError(f"looping kernels {sorted(unknown)} are not among {list(names)}")
         self.queue = queue
         self.is_cpu = is_cpu(queue.device)
-        self._kernels = fetch_kernels(build_program(queue.context, filename, options), names)
+        program = build_program(queue.context, filename, options, source)
+        self._kernels = fetch_kernels(program, names)
         self._looping = frozenset(looping)
 
     def launch(self, name: str, global_size: Sequence[int], *args,
