@@ -33,8 +33,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import pyopencl as cl  # noqa: E402
-
 from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import (  # noqa: E402
     PREVIOUS_SETTINGS,
@@ -84,10 +82,7 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true",
                         help="then the first setting's pair once more, profiled")
     args = parser.parse_args()
-    queue = get_queue()
-    if args.profile:
-        queue = cl.CommandQueue(queue.context, queue.device,
-                                properties=cl.command_queue_properties.PROFILING_ENABLE)
+    queue = get_queue(profiling=args.profile)
     cam, grid, proj = paper_setup(tuple(args.lenses), queue)
     motion = MOTIONS[args.motion]
     scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion,

@@ -10,20 +10,16 @@ import pyopencl as cl
 import pyopencl.array as cl_array
 import pytest
 
+from plenocl import get_queue
 from plenocl.bench.clprofile import OpenCLProfile, split_lines
-from plenocl.pipeline.pair import StageClock
-
-
-def _profiling_queue(queue) -> cl.CommandQueue:
-    return cl.CommandQueue(queue.context, queue.device,
-                           properties=cl.command_queue_properties.PROFILING_ENABLE)
+from plenocl.pipeline import StageClock
 
 
 def test_profile_counts_bytes_launches_and_host_time(queue):
     """Bytes each way are the arrays copied, launches the kernels run, the kernels' device
     time comes from their events, and a stage's host work is its wall time less the time
     inside OpenCL calls (a sleep between calls is host work)."""
-    pq = _profiling_queue(queue)
+    pq = get_queue(queue, profiling=True)
     host = np.arange(250_000, dtype=np.float32)
     clock = StageClock()
     with OpenCLProfile() as prof:

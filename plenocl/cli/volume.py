@@ -89,8 +89,8 @@ def _pixel_mask(args: argparse.Namespace, camera):
 def piv_command(args: argparse.Namespace) -> int:
     """Correlate two volumes and write the velocity field."""
     from ..pipeline.settings import PairSettings
-    from ..piv import PIVSettings, piv3d
-    from ..piv.refinement import FocalZone, SightLines, refine_with_particles
+    from ..pipeline.velocity import refined_field
+    from ..piv import PIVSettings
     from ..units import check_dt
     from ..vectorfile import save_field
     from ..volumefile import load_volume
@@ -104,19 +104,15 @@ def piv_command(args: argparse.Namespace) -> int:
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, grid_b = load_volume(args.vol_b)
     grid = _volume_grid(args, (grid_a, grid_b), (vol_a.shape, vol_b.shape))
-    res = piv3d(vol_a, vol_b, settings.piv, queue=args.device)
+    camera = load_camera(args.camera) if args.camera else None
+    raws = [load_frame(path, camera, args.channel) for path in args.raw] if args.raw else None
+    res = refined_field(vol_a, vol_b, grid, settings, args.device, camera=camera, raws=raws)
     if settings.particles:
-        camera = load_camera(args.camera) if args.camera else None
-        focus = FocalZone.of(camera, grid) if camera else None
-        sight = SightLines.of(camera, grid) if camera else None
-        res = refine_with_particles(res, vol_a, vol_b, focus=focus, sight=sight,
-                                    fit=_image_fit(args.raw, camera, grid, args.channel,
-                                                   settings.image_fit))
         log = res.refinement
         print(f"particle refinement: {log['pairs']} particle pairs, {log['vectors']} vectors"
               + (f", {log['dropped']} particle(s) dropped by the image fit (left the grid "
                  "or not finite)" if log.get("dropped") else "")
-              + ("" if focus else "; without --camera the depth uncertainty has no "
+              + ("" if camera else "; without --camera the depth uncertainty has no "
                  "focal-zone term (docs/design.md §7.1)")
               + ("" if args.raw else "; without --raw the particles are the volumes' peaks, "
                  "not fitted to the raw images (docs/design.md §7.2)"))
@@ -155,18 +151,6 @@ def _volume_grid(args: argparse.Namespace, grids, shapes):
                              f"{tuple(grid.shape)} (z, y, x): give the grid it was "
                              "reconstructed on")
     return grid
-
-
-def _image_fit(raw: list[str] | None, camera, grid, channel: str | None = None,
-               settings=None):
-    """The image-space particle fit of the raw images ``raw`` with ``settings``
-    (:class:`~plenocl.piv.imagefit.ImageFitSettings`; ``None`` without the images)."""
-    if not raw:
-        return None
-    from ..piv.imagefit import ImageFit
-
-    return ImageFit(camera, grid, [load_frame(path, camera, channel) for path in raw],
-                    settings)
 
 
 def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:

@@ -155,7 +155,8 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     flow = CameraFrameFlow(sc, seed)
     settings = chain_settings(sc)
     chain = {"supersample": settings.reconstruction.supersample,
-             "refinement": f"particles fitted to the raw images; {REFINEMENT_METHOD}"}
+             "refinement": "particles fitted to the raw images on the device, the calibrated "
+                           f"camera's lines of sight (issue 48); {REFINEMENT_METHOD}"}
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: _stage_particles(run, sc, flow, seed))
@@ -261,20 +262,15 @@ def _stage_mart(run, sc, cam, queue) -> None:
 def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettings,
                queue) -> None:
     from ..io.files import read_image
-    from ..piv.imagefit import ImageFit
-    from ..piv.multipass import piv3d
-    from ..piv.refinement import FocalZone, SightLines, refine_with_particles
+    from ..pipeline.velocity import refined_field
     from ..vectorfile import save_field
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
     vol_b, _ = load_volume(run.path("vol_b.npz"))
     # process_pair's correlation: the field refined by the volumes' particle pairs, each
-    # particle first fitted to its raw image with the calibrated camera
+    # particle first fitted to its raw image, all with the calibrated camera
     raws = [read_image(run.path(f"raw_{tag}.tif")) for tag in "ab"]
-    res = refine_with_particles(piv3d(vol_a, vol_b, settings.piv, queue=queue), vol_a, vol_b,
-                                focus=FocalZone.of(sc.camera, sc.grid),
-                                sight=SightLines.of(sc.camera, sc.grid),
-                                fit=ImageFit(cam, sc.grid, raws, settings.image_fit))
+    res = refined_field(vol_a, vol_b, sc.grid, settings, queue, camera=cam, raws=raws)
     for name in ("field.npz", "field.vti"):
         save_field(run.path(name), res, dt=DT, grid=sc.grid)
 

@@ -1,14 +1,16 @@
 """The default chain for one image pair (docs/design.md §9): :func:`process_pair`
 (``pair.py``), its settings (:class:`PairSettings`, ``settings.py``, the single home of
 its defaults) and its two-exposure reconstruction, motion-tracking enhancement
-(``mte.py``); particles tracked through a time-resolved recording (:func:`track`,
-``track.py``)."""
+(``mte.py``); two volumes to their refined velocity field (:func:`refined_field`,
+``velocity.py``: the one composition of the pair, the ``piv`` command and the demo);
+particles tracked through a time-resolved recording (:func:`track`, ``track.py``)."""
 
 from .mte import MTESettings, motion_tracking_enhancement
 from .pair import PairResult, correlate_volumes, process_pair
 from .settings import PairSettings
 from .track import TrackSettings, bin_tracks, smooth_tracks, track
+from .velocity import StageClock, refine_particles, refined_field
 
-__all__ = ["MTESettings", "PairResult", "PairSettings", "TrackSettings",
+__all__ = ["MTESettings", "PairResult", "PairSettings", "StageClock", "TrackSettings",
            "bin_tracks", "correlate_volumes", "motion_tracking_enhancement", "process_pair",
-           "smooth_tracks", "track"]
+           "refine_particles", "refined_field", "smooth_tracks", "track"]

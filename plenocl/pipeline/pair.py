@@ -8,17 +8,12 @@ available on their own (:func:`plenocl.reconstruct`, :func:`plenocl.piv3d`).
 
 from __future__ import annotations
 
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..options import with_keywords
 from ..piv import PIVResult, piv3d
-from ..piv.imagefit import ImageFit
-from ..piv.refinement import FocalZone, SightLines, refine_with_particles
 from ..reconstruction import (
     ProjectionOperator,
     ReconstructionInfo,
@@ -27,6 +22,7 @@ from ..reconstruction import (
 )
 from .mte import motion_tracking_enhancement
 from .settings import PairSettings
+from .velocity import StageClock, refine_particles, refined_field
 
 
 @dataclass
@@ -64,23 +60,6 @@ class PairResult:
         was not finite; docs/design.md §7.2): ``piv.refinement["dropped"]``, 0 without
         the fit."""
         return int(self.piv.refinement.get("dropped", 0))
-
-
-class StageClock:
-    """The wall time of each stage of a pair: ``seconds`` per stage name, and its
-    ``spans`` (start and end on :func:`time.perf_counter`'s clock)."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-        self.spans: dict[str, tuple[float, float]] = {}
-
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        """Time the ``with`` block as stage ``name``."""
-        start = time.perf_counter()
-        yield
-        end = time.perf_counter()
-        self.seconds[name], self.spans[name] = end - start, (start, end)
 
 
 def process_pair(raw_a, raw_b, projector: ProjectionOperator,
@@ -155,8 +134,9 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         vol_a, vol_b, res, infos, _ = motion_tracking_enhancement(
             raw_a, raw_b, projector, vol_a, vol_b, res, rec, settings.mte, correlate)
     info_a, info_b = infos
-    res = _with_particles(res, (raw_a, raw_b), (vol_a, vol_b), projector, settings,
-                          known_backgrounds(info_a, info_b), clock)
+    res = refine_particles(res, vol_a, vol_b, projector.grid, settings, projector.queue,
+                           camera=projector.camera, raws=(raw_a, raw_b),
+                           backgrounds=known_backgrounds(info_a, info_b), clock=clock)
     return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
 
@@ -191,28 +171,10 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
         raise ValueError("correlate_volumes: motion-tracking enhancement remakes the "
                          "volumes; use process_pair")
     clock = clock or StageClock()
-    with clock.stage("piv"):
-        res = piv3d(vol_a, vol_b, settings.piv, queue=projector.queue)
-    res = _with_particles(res, (raw_a, raw_b), (vol_a, vol_b), projector, settings,
-                          backgrounds, clock)
+    res = refined_field(vol_a, vol_b, projector.grid, settings, projector.queue,
+                        camera=projector.camera, raws=(raw_a, raw_b), backgrounds=backgrounds,
+                        clock=clock)
     return res, clock.seconds
-
-
-def _with_particles(res: PIVResult, raws, vols, projector, settings: PairSettings,
-                    backgrounds, clock: StageClock) -> PIVResult:
-    """The particle refinement of the final field (``settings.particles``), timed as
-    the stage ``particles`` on ``clock``."""
-    if not settings.particles:
-        return res
-    with clock.stage("particles"):
-        fit = None
-        if settings.image_fit is not None:
-            fit = ImageFit(projector.camera, projector.grid, raws, settings.image_fit,
-                           queue=projector.queue, backgrounds=backgrounds)
-        camera, grid = projector.camera, projector.grid
-        res = refine_with_particles(res, *vols, focus=FocalZone.of(camera, grid), fit=fit,
-                                    sight=SightLines.of(camera, grid, projector.queue))
-    return res
 
 
 def known_backgrounds(*infos: ReconstructionInfo) -> list | None:

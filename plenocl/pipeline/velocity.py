@@ -1,0 +1,110 @@
+"""Two volumes to their velocity field: the one composition that :func:`process_pair`,
+the ``plenocl piv`` command and the boundary-layer demo share (issue 48).
+
+:func:`refined_field` correlates the volumes (:func:`plenocl.piv3d`) and, with the
+particle switch, refines the field by the volumes' matched particles
+(:func:`refine_particles`): with a camera, by its focal zone and lines of sight
+(docs/design.md §7.1, §7.4), and with the raw images, each particle first fitted to its
+image (§7.2).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from ..camera import Camera
+from ..grid import Grid
+from ..opencl.device import DeviceLike, get_queue
+from ..piv import PIVResult, piv3d
+from ..piv.imagefit import ImageFit
+from ..piv.refinement import FocalZone, SightLines, refine_with_particles
+from .settings import PairSettings
+
+__all__ = ["StageClock", "refine_particles", "refined_field"]
+
+
+class StageClock:
+    """The wall time of each stage of a pair: ``seconds`` per stage name, and its
+    ``spans`` (start and end on :func:`time.perf_counter`'s clock)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.spans: dict[str, tuple[float, float]] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        """Time the ``with`` block as stage ``name``."""
+        start = time.perf_counter()
+        yield
+        end = time.perf_counter()
+        self.seconds[name], self.spans[name] = end - start, (start, end)
+
+
+def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: DeviceLike = None,
+                  *, camera: Camera | None = None, raws=None, backgrounds=None,
+                  clock: StageClock | None = None) -> PIVResult:
+    """The velocity field of two volumes: ``settings.piv``'s correlation, refined by the
+    particles (:func:`refine_particles`) where ``settings.particles`` asks.
+
+    Parameters
+    ----------
+    vol_a, vol_b
+        The two volumes ``(nz, ny, nx)`` on ``grid``.
+    grid
+        Their grid.
+    settings
+        The pair's settings (:class:`plenocl.pipeline.PairSettings`: ``piv``,
+        ``particles``, ``image_fit``).
+    queue
+        Where PIV's deformation and sums and the refinement's tube sums run (``None``:
+        the default device; ``False``: the host).
+    camera, raws, backgrounds
+        As :func:`refine_particles`.
+    clock
+        The :class:`StageClock` timing the stages ``piv`` and ``particles``.
+    """
+    clock = clock or StageClock()
+    with clock.stage("piv"):
+        res = piv3d(vol_a, vol_b, settings.piv, queue=queue)
+    return refine_particles(res, vol_a, vol_b, grid, settings, queue, camera=camera,
+                            raws=raws, backgrounds=backgrounds, clock=clock)
+
+
+def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSettings,
+                     queue: DeviceLike = None, *, camera: Camera | None = None, raws=None,
+                     backgrounds=None, clock: StageClock | None = None) -> PIVResult:
+    """``res`` refined by the volumes' matched particles
+    (:func:`plenocl.piv.refinement.refine_with_particles`) where ``settings.particles``
+    asks, timed as the stage ``particles``; ``res`` itself otherwise.
+
+    Parameters
+    ----------
+    camera
+        The (calibrated) camera: its focal zone (the depth uncertainty's systematic
+        term) and lines of sight (a particle's peaks merged and centred along its line).
+        ``None``: neither.
+    raws
+        The two raw images the volumes were reconstructed from: with ``camera`` and
+        ``settings.image_fit``, each particle is first fitted to its image
+        (:class:`plenocl.piv.imagefit.ImageFit`). ``None``: the volumes' peaks as they
+        are.
+    backgrounds
+        The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
+        them).
+    """
+    if not settings.particles:
+        return res
+    clock = clock or StageClock()
+    with clock.stage("particles"):
+        fit = focus = sight = None
+        if camera is not None:
+            if raws is not None and settings.image_fit is not None:
+                fit = ImageFit(camera, grid, raws, settings.image_fit,
+                               queue=None if queue is False else queue,
+                               backgrounds=backgrounds)
+            focus = FocalZone.of(camera, grid)
+            sight = SightLines.of(camera, grid, None if queue is False else get_queue(queue))
+        res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight)
+    return res
