@@ -97,15 +97,7 @@ def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarra
     if camera.ml_layout == "rectangular":
         return lattice_fit(centers)
     # a hexagonal array is affine in (a, b), not in (kx, ky): the same least squares on (a, b)
-    c = np.asarray(centers, dtype=np.float64)
-    ab = camera.lens_lattice_coords()
-    ok = np.isfinite(c).all(-1)
-    design = np.column_stack([ab[ok], np.ones(int(ok.sum()))])
-    if ok.sum() < 3 or np.linalg.matrix_rank(design) < 3:
-        raise ValueError(f"only {int(ok.sum())} microlens centres are known, or they are "
-                         "collinear: too few to fit the array layout; calibrate the camera "
-                         "with a white image that lights the whole array")
-    return np.linalg.lstsq(design, c[ok], rcond=None)[0]
+    return lattice_fit(centers, camera.lens_lattice_coords())
 
 
 def lens_index_to_mm(camera: Camera) -> np.ndarray:

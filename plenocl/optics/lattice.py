@@ -30,15 +30,20 @@ def rotation_matrix(degrees: float) -> np.ndarray:
     return np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
 
 
-def lattice_fit(centres: np.ndarray) -> np.ndarray:
+def lattice_fit(centres: np.ndarray, coords: np.ndarray | None = None) -> np.ndarray:
     """Affine least-squares fit of a lens lattice: ``(3, 2)`` ``M`` with
-    ``centre(kx, ky) = [kx, ky, 1] @ M``.
+    ``centre(kx, ky) = [kx, ky, 1] @ M``, or ``[a, b, 1] @ M`` in given lattice
+    coordinates.
 
     Parameters
     ----------
     centres
         ``(rows, cols, 2)`` positions of the lenses ``[ky, kx]`` in any length unit;
         ``NaN`` entries (missing lenses) are ignored.
+    coords
+        Optional ``(rows, cols, 2)`` lattice coordinates ``(a, b)`` of the lenses in which
+        the array is affine (a hexagonal array's,
+        :meth:`plenocl.camera.Camera.lens_lattice_coords`); ``None``: ``(kx, ky)``.
 
     Raises
     ------
@@ -47,9 +52,11 @@ def lattice_fit(centres: np.ndarray) -> np.ndarray:
     """
     c = np.asarray(centres, dtype=np.float64)
     rows, cols = c.shape[:2]
-    ky, kx = np.mgrid[0:rows, 0:cols]
+    if coords is None:
+        ky, kx = np.mgrid[0:rows, 0:cols]
+        coords = np.stack([kx, ky], axis=-1)
     ok = np.isfinite(c).all(axis=-1)
-    design = np.column_stack([kx[ok], ky[ok], np.ones(int(ok.sum()))])
+    design = np.column_stack([np.asarray(coords, np.float64)[ok], np.ones(int(ok.sum()))])
     if ok.sum() < 3 or np.linalg.matrix_rank(design) < 3:
         raise ValueError(f"only {int(ok.sum())} microlens centres are known, or they are "
                          "collinear: too few to fit the array layout; calibrate the camera "
