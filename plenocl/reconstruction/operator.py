@@ -96,6 +96,25 @@ class RefinableOperator(ProjectionOperator, Protocol):
         reconstruction computes once, on this one."""
 
 
+@runtime_checkable
+class FramedOperator(ProjectionOperator, Protocol):
+    """A :class:`ProjectionOperator` that may project its grid through another frame's
+    operator (:class:`plenocl.Projector` on a grid across a rotated array's lens rows,
+    docs/design.md §5.1): a supersampled reconstruction then iterates on ``frame``'s grid
+    and resamples once (``None``: no frame, the operator's own grid)."""
+
+    frame: ProjectionOperator | None
+
+
+@runtime_checkable
+class PlannedOperator(ProjectionOperator, Protocol):
+    """A :class:`ProjectionOperator` that keeps a volume in device slabs by a plan
+    (:class:`plenocl.projection.plan.Plan`: ``plan.slabs``, their depth ranges): two
+    with the same slabs share volumes."""
+
+    plan: Any
+
+
 class SampledOperator(ProjectionOperator, Protocol):
     """A :class:`ProjectionOperator` that can also resample the main-lens aperture: the
     coarse iterations of a coarse-to-fine reconstruction and its first sub-voxel ones run

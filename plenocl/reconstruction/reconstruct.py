@@ -42,7 +42,7 @@ from ..optics.rawimage import check_pixel_mask
 from ..options import with_keywords
 from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
-from .operator import ProjectionOperator
+from .operator import FramedOperator, PlannedOperator, ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
 from .supersample import bin_lateral
@@ -360,8 +360,9 @@ def _same_slabs(a, b) -> bool:
     """Whether two projectors on one grid keep a volume in the same device slabs (their
     plans' depth ranges: a volume of one is then a volume of the other); ``False`` for
     operators without a plan."""
-    plans = [getattr(getattr(op, "plan", None), "slabs", None) for op in (a, b)]
-    return plans[0] is not None and list(plans[0]) == list(plans[1] or [])
+    if not (isinstance(a, PlannedOperator) and isinstance(b, PlannedOperator)):
+        return False
+    return list(a.plan.slabs) == list(b.plan.slabs)
 
 
 def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
@@ -500,7 +501,8 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     if observed is not None and isinstance(settings.start, str) and settings.start == "mlos":
         raise ValueError("start='mlos' cannot use a pixel_mask (its geometric mean needs "
                          "every pixel): use start='uniform' (the default)")
-    if getattr(projector, "frame", None) is not None and settings.supersample > 1:
+    if (isinstance(projector, FramedOperator) and projector.frame is not None
+            and settings.supersample > 1):
         return _in_frame(image, projector, settings, callback, observed)
     return _run(image, projector, settings, callback, observed)
 
