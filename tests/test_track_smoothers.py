@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from plenocl.ptv import neighbour_velocity, smooth_states
-from plenocl.reference.refinement import smooth_states_reference
+from plenocl.reference.tracking import smooth_states_reference
 
 
 def _tracks(n=40, frames=9, seed=0, noise=0.05):
