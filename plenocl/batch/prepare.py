@@ -1,7 +1,8 @@
 """What every run of an experiment file makes before its work: the camera (calibrated
 from a white image if one is given), the grid, and the record of the configuration used
 in the output folder (``experiment_used.toml``, ``camera_used.toml``, ``grid_used.toml``);
-shared by the pairs' run (:mod:`.run`) and the tracking run (:mod:`.tracking`)."""
+shared by the pairs' run (:mod:`plenocl.batch.run`) and the tracking run
+(:mod:`plenocl.batch.tracking`)."""
 
 from __future__ import annotations
 

@@ -68,7 +68,7 @@ def paper_setup(lenses: tuple[int, int], queue, layout: str = "rectangular"
 
 def paper_optics(lenses: tuple[int, int], layout: str = "rectangular"
                  ) -> tuple[Camera, Grid]:
-    """The paper's optics (f = 50 mm, f/2.42, |M| = 0.66, 125 µm lenses of f = 500 µm,
+    """The paper's optics (f = 50 mm, f/2.42, ``|M| = 0.66``, 125 µm lenses of f = 500 µm,
     7.4 µm pixels) on ``lenses`` microlenses, and the paper's voxel over 20 mm of depth
     just inside their field of view. ``layout="hexagonal"``: a hexagonal array of the
     same pitch on the same sensor (as many lenses per row, the rows ``pitch·√3/2`` apart:
@@ -152,7 +152,7 @@ def vector_errors(res, grid: Grid, motion: Motion = UNIFORM
 
 def budget_errors(res, grid: Grid, motion: Motion = UNIFORM) -> dict:
     """RMS errors (voxels) of the valid vectors against the motion's displacement: lateral
-    (RMS over x and y), depth, depth by zone (in focus |z| < 2 mm, near, far), bias."""
+    (RMS over x and y), depth, depth by zone (in focus ``|z| < 2`` mm, near, far), bias."""
     where, err = vector_errors(res, grid, motion)
     z_mm = where[:, 2]
     out = {"lateral": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2) / 2)),

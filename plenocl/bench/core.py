@@ -17,7 +17,7 @@ from ..simulate import Simulator, simulate_image
 
 SIZES = ("ci", "small", "paper")
 Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
-#: (label, method, iterations, relax, options) of a reconstruction setting.
+# A type: (label, method, iterations, relax, options) of a reconstruction setting.
 ReconSetting = tuple[str, str, int, float, dict]
 #: The report's solver rows run on the voxels themselves: they compare methods, iteration
 #: counts and skipping options on one grid (``reconstruct()``'s default is coarse-to-fine

@@ -19,7 +19,7 @@ chain runs as ``process_pair`` runs it, and every stage is compared with the tru
 - **vectors**: the final field (``process_pair``'s).
 
 Errors are RMS lateral (over x and y) / depth in voxels, over everything and by distance
-from the optical axis (mm) and by depth (|z| in mm: the focal zone within 2 mm).
+from the optical axis (mm) and by depth (``|z|`` in mm: the focal zone within 2 mm).
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ from .accuracy_section import UNIFORM, Motion, budget_scene, vector_errors
 
 #: Distance from the optical axis (mm) of the radial bins; the last is open.
 RADII_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)
-#: Depth zones, |z| (mm): the focal zone, the middle, the faces.
+#: Depth zones, ``|z|`` (mm): the focal zone, the middle, the faces.
 ZONES_MM = ((0.0, 2.0), (2.0, 6.0), (6.0, np.inf))
 #: A found particle (or a pair's midpoint) is a true one within this ellipsoid (x, y, z
 #: voxels).

@@ -25,7 +25,7 @@ from .accuracy_section import Motion
 MATCH = (1.0, 1.0, 3.0)
 #: Tracks evaluated: those seen in at least this many frames (issue 30).
 MIN_FRAMES = 4
-#: The focal zone reported apart: |z| below this (mm) at the step's midpoint.
+#: The focal zone reported apart: ``|z|`` below this (mm) at the step's midpoint.
 FOCAL_ZONE_MM = 2.0
 
 

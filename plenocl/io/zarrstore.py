@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-#: One array of a store: its dimension names, its values and its attributes.
+# A type: one array of a store: its dimension names, its values and its attributes.
 Variable = tuple[tuple[str, ...], np.ndarray, dict]
 
 

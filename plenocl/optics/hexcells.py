@@ -6,7 +6,7 @@ simulator traces it, design.md §2). The lenses are numbered on the array's axia
 (:meth:`plenocl.Camera.on_lens_lattice`), an affine lattice fitted to the centres, so
 the nearest centre lies at a corner of the lattice cell ``floor(q), floor(r)`` that
 holds ``x`` (the two rows around the point). Near a cell edge the ray is shared, so the
-image is smooth in ``x``: each neighbour ``j`` of the nearest lens ``a`` gets the weight
+image is smooth in ``x``: each neighbour ``j`` of the nearest lens ``a`` gets the weight::
 
     W_j = (R - δ_j) / (R + δ_j) for δ_j < R (else 0),   δ_j = (|x - j|² - |x - a|²) / (2p²)
 

@@ -302,7 +302,7 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
                             weighting: float | None, corr: DirectCorrelation,
                             sums: SumEngine | None = None) -> np.ndarray:
     """Standard uncertainty of each window's sub-voxel displacement from the statistics
-    of its correlation (Wieneke 2015, *Meas. Sci. Technol.* 26 074002), per axis.
+    of its correlation (Wieneke 2015, Measurement Science and Technology 26, 074002), per axis.
 
     On volumes deformed to a residual below a voxel, the fitted offset along an axis ``e``
     comes from the asymmetry ``C(+e) - C(-e)`` of the correlation. With the weight at

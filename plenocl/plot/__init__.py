@@ -9,7 +9,7 @@ demos'): matplotlib on the Agg backend, imported only when a figure is drawn.
 - :mod:`.profiles`: mean profiles along an axis;
 - :mod:`.vectors3d`: 3-D vectors thinned so they read, iso-surfaces;
 - :mod:`.timeseries`: a batch's probe, valid fraction per pair, its summary figures;
-- :mod:`.tracks`, :mod:`.volume`: tracks and reconstructed volumes;
+- :mod:`plenocl.plot.tracks`, :mod:`.volume`: tracks and reconstructed volumes;
 - :mod:`.files`: :func:`plot_file`, a file told apart by its content and drawn.
 """
 

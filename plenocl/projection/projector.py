@@ -53,7 +53,8 @@ _KERNELS = ("fwd_x", "fwd_x_row", "fwd_y", "fwd_gen", "fwd_gen_gather", "fwd_pix
 _ELEMENTWISE = ("fwd_gen_gather", "fwd_x", "back_x")
 METHODS = ("factorised", "direct")
 #: How a grid across a rotated array's lens rows is projected: through the lens-row
-#: frame and a bilinear resampling (fast, :mod:`.resample`), or by the general kernels.
+#: frame and a bilinear resampling (fast, :mod:`plenocl.projection.resample`), or by the
+#: general kernels.
 GENERAL_MODES = ("resample", "exact")
 #: Back projections of the separable path: a deterministic gather, or a float-atomic scatter.
 BACK_MODES = ("gather", "atomic")

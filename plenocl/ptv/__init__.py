@@ -2,7 +2,7 @@
 linked into tracks (:mod:`.linking`), each track smoothed by local polynomial fits
 (:mod:`.smoothing`) and by a constant-velocity state-space smoother (:mod:`.statespace`)
 with its neighbours' velocity as a prior (:mod:`.neighbours`), the result held by
-:class:`Tracks` (:mod:`.tracks`).
+:class:`Tracks` (:mod:`plenocl.ptv.tracks`).
 
 Plain NumPy and SciPy, no device: the driver that finds each frame's particles
 (reconstruction and the fit to the raw image) is :func:`plenocl.pipeline.track`.
