@@ -39,7 +39,7 @@ NO_OPENCL_HELP = (
 )
 
 #: CPU platforms by preference; platforms not named come after. ``benchmarks/drivers.py``
-#: found PoCL and Intel's runtime equally fast on plenocl's kernels (README,
+#: found PoCL and Intel's runtime equally fast on plenocl's kernels (docs/results.md,
 #: "Performance"), so the open one comes first and Intel's runtime serves where PoCL's
 #: wheel cannot compile (AMD Zen 5: its LLVM 14 does not know the CPU).
 CPU_PLATFORMS = ("Portable Computing Language", "Intel(R) OpenCL")

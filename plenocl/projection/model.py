@@ -133,7 +133,7 @@ def warn_general_path(camera: Camera, grid: Grid) -> None:
     """Say that a grid across the array's lens rows takes the general path, why (the
     rows' turn against the grid's axes, and for a rectangular array how far its columns
     are off square to its rows) and what makes it fast: never a silent slow-down
-    (README, Performance: 12.5x at the paper's size for a 0.15° array)."""
+    (docs/results.md, Performance: 12.5x at the paper's size for a 0.15° array)."""
     lattice = RectangularLattice.fit(camera.microlens_centers)
     angle = lattice.rotation_deg
     skew = "" if camera.ml_layout == AXIAL else (
