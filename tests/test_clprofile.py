@@ -1,5 +1,6 @@
-"""The OpenCL profile of the benchmarks (plenocl.bench.clprofile) and the stage spans of a
-pair it attributes calls to."""
+"""The OpenCL profile of the benchmarks (plenocl.bench.clprofile), the stage spans of a
+pair it attributes calls to, and the one composition of volumes to a refined field
+(plenocl.pipeline.refined_field) that times those stages."""
 
 from __future__ import annotations
 
@@ -74,3 +75,31 @@ def test_a_pairs_stage_spans_follow_each_other(queue, small_camera):
     assert all(a[1] <= b[0] for a, b in zip(ends, ends[1:]))
     for n in names:
         assert pair.spans[n][1] - pair.spans[n][0] == pytest.approx(pair.seconds[n])
+
+
+@pytest.mark.filterwarnings("ignore:the final windows")  # a tiny volume: one vector
+def test_refined_field_is_the_pairs_composition(queue, small_camera):
+    """process_pair's field is refined_field's on its volumes (the one composition the
+    piv command and the demo call too), bit for bit; without the particle switch it is
+    the correlation alone."""
+    from plenocl import Grid, Projector, process_pair, simulate_image
+    from plenocl.pipeline import PairSettings, refined_field
+    from plenocl.pipeline.pair import known_backgrounds
+    from plenocl.piv import piv3d
+
+    grid = Grid((24, 24, 24), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-1.0, 1.0))
+    proj = Projector(small_camera, grid, queue)
+    rng = np.random.default_rng(3)
+    pos = np.column_stack([rng.uniform(-0.5, 0.5, 40), rng.uniform(-0.4, 0.4, 40),
+                           rng.uniform(-0.8, 0.8, 40)])
+    raws = [simulate_image(small_camera, pos + shift, 2e4, 500, seed=k, queue=queue)
+            for k, shift in enumerate((0.0, 0.04))]
+    pair = process_pair(*raws, proj)
+    settings = PairSettings()
+    again = refined_field(pair.vol_a, pair.vol_b, grid, settings, queue, camera=small_camera,
+                          raws=raws, backgrounds=known_backgrounds(pair.info_a, pair.info_b))
+    for name in ("u", "v", "w", "valid"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(pair.piv, name))
+    assert again.refinement == pair.piv.refinement
+    plain = refined_field(pair.vol_a, pair.vol_b, grid, PairSettings(particles=False), queue)
+    np.testing.assert_array_equal(plain.u, piv3d(pair.vol_a, pair.vol_b, queue=queue).u)
