@@ -55,18 +55,26 @@ def test_profile_restores_pyopencl(queue):
             cl.wait_for_events) == before
 
 
+def _small_pair(queue, camera, count: int, shift: float, seed: int):
+    """A projector on a 24-voxel cube and two raw images of ``count`` particles moved by
+    ``shift`` mm along every axis."""
+    from plenocl import Grid, Projector, simulate_image
+
+    grid = Grid((24, 24, 24), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-1.0, 1.0))
+    rng = np.random.default_rng(seed)
+    pos = np.column_stack([rng.uniform(-0.5, 0.5, count), rng.uniform(-0.4, 0.4, count),
+                           rng.uniform(-0.8, 0.8, count)])
+    raws = [simulate_image(camera, pos + d, 2e4, 500, seed=k, queue=queue)
+            for k, d in enumerate((0.0, shift))]
+    return Projector(camera, grid, queue), raws
+
+
 @pytest.mark.filterwarnings("ignore:the final windows")  # a tiny volume: one vector
 def test_a_pairs_stage_spans_follow_each_other(queue, small_camera):
     """process_pair's spans are ordered, disjoint and as long as its seconds."""
-    from plenocl import Grid, Projector, process_pair, simulate_image
+    from plenocl import process_pair
 
-    grid = Grid((24, 24, 24), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-1.0, 1.0))
-    proj = Projector(small_camera, grid, queue)
-    rng = np.random.default_rng(2)
-    pos = np.column_stack([rng.uniform(-0.5, 0.5, 30), rng.uniform(-0.4, 0.4, 30),
-                           rng.uniform(-0.8, 0.8, 30)])
-    raws = [simulate_image(small_camera, pos + shift, 2e4, 500, seed=k, queue=queue)
-            for k, shift in enumerate((0.0, 0.05))]
+    proj, raws = _small_pair(queue, small_camera, 30, 0.05, seed=2)
     pair = process_pair(*raws, proj, image_fit=None)
     names = list(pair.spans)
     assert names[:3] == ["reconstruct_a", "reconstruct_b", "piv"]
@@ -82,18 +90,13 @@ def test_refined_field_is_the_pairs_composition(queue, small_camera):
     """process_pair's field is refined_field's on its volumes (the one composition the
     piv command and the demo call too), bit for bit; without the particle switch it is
     the correlation alone."""
-    from plenocl import Grid, Projector, process_pair, simulate_image
+    from plenocl import process_pair
     from plenocl.pipeline import PairSettings, refined_field
     from plenocl.pipeline.pair import known_backgrounds
     from plenocl.piv import piv3d
 
-    grid = Grid((24, 24, 24), x=(-0.6, 0.6), y=(-0.5, 0.5), z=(-1.0, 1.0))
-    proj = Projector(small_camera, grid, queue)
-    rng = np.random.default_rng(3)
-    pos = np.column_stack([rng.uniform(-0.5, 0.5, 40), rng.uniform(-0.4, 0.4, 40),
-                           rng.uniform(-0.8, 0.8, 40)])
-    raws = [simulate_image(small_camera, pos + shift, 2e4, 500, seed=k, queue=queue)
-            for k, shift in enumerate((0.0, 0.04))]
+    proj, raws = _small_pair(queue, small_camera, 40, 0.04, seed=3)
+    grid = proj.grid
     pair = process_pair(*raws, proj)
     settings = PairSettings()
     again = refined_field(pair.vol_a, pair.vol_b, grid, settings, queue, camera=small_camera,
