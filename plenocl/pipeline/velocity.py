@@ -58,8 +58,8 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
         The pair's settings (:class:`plenocl.pipeline.PairSettings`: ``piv``,
         ``particles``, ``image_fit``).
     queue
-        Where PIV's deformation and sums and the refinement's tube sums run (``None``:
-        the default device; ``False``: the host).
+        Where PIV's deformation and sums, the image fit and the refinement's tube sums
+        run (``None``: the default device; ``False``: the host).
     camera, raws, backgrounds
         As :func:`refine_particles`.
     clock
@@ -100,11 +100,11 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
     with clock.stage("particles"):
         fit = focus = sight = None
         if camera is not None:
+            device = None if queue is False else get_queue(queue)  # None: the host
             if raws is not None and settings.image_fit is not None:
-                fit = ImageFit(camera, grid, raws, settings.image_fit,
-                               queue=None if queue is False else queue,
+                fit = ImageFit(camera, grid, raws, settings.image_fit, queue=device,
                                backgrounds=backgrounds)
             focus = FocalZone.of(camera, grid)
-            sight = SightLines.of(camera, grid, None if queue is False else get_queue(queue))
+            sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight)
     return res
