@@ -15,25 +15,25 @@ Calibration finds those spots to sub-pixel accuracy and matches each to its lens
    vectors, the sub-pitch shift from the phase of the lattice coordinates, the
    whole-pitch shift from the extent of the array on the sensor.
 4. **Fit** a global grid model (affine: pitch, rotation, shear, shift; optionally a
-   cubic polynomial for distortion, chosen by an F-test; a hexagonal array"s odd rows"
+   cubic polynomial for distortion, chosen by an F-test; a hexagonal array's odd rows'
    own offset) to the matched centroids,
    robustly. Its prediction carries the information of all spots instead of one
-   lens"s few noisy photons, but a real array"s lenses also sit off any lattice by
+   lens's few noisy photons, but a real array's lenses also sit off any lattice by
    manufacturing errors of a fraction of a pixel.
-5. **Combine** the model and each lens"s own centroid by their uncertainties
-   (``method="combined"``, the default): each centroid"s noise is measured from the
-   image itself (the two checkerboard halves of a spot"s pixels see independent noise),
-   the lenses" true scatter about the lattice is what the centroids scatter beyond that
+5. **Combine** the model and each lens's own centroid by their uncertainties
+   (``method="combined"``, the default): each centroid's noise is measured from the
+   image itself (the two checkerboard halves of a spot's pixels see independent noise),
+   the lenses' true scatter about the lattice is what the centroids scatter beyond that
    noise, and each centre moves from the model toward its centroid by
    ``τ² / (τ² + σ_k²)``. ``method="fit"`` keeps the model only, ``method="centroid"``
-   the raw centroids (the paper"s method).
+   the raw centroids (the paper's method).
 
 White images are taken as they come: negative pixels (read noise after a dark frame is
 subtracted) are used as they are, the background is estimated locally (gradients,
 stray light), hot pixels are removed, dim vignetted edges and saturated spots are kept.
 
 Shifts of the array of up to half a microlens-image pitch are matched without
-ambiguity; larger ones are resolved by the array"s edge when it is visible on the
+ambiguity; larger ones are resolved by the array's edge when it is visible on the
 sensor. Rotations of a few degrees (any angle within ±45° in principle) are handled.
 
 The package follows those steps: :mod:`.checks`, :mod:`.spots` (1-2), :mod:`.disks`
