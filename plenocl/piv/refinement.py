@@ -319,16 +319,15 @@ class SightLines:
         A reconstructed particle's ridge along its line holds lobes that a peak sits on;
         its centroid is the ridge's centre. Only the position along the line moves: across
         it the peak's sub-voxel fit is the sharper estimate."""
+        peaks = np.asarray(peaks, float).reshape(-1, 3)
         if not len(peaks):
-            return np.asarray(peaks, float).reshape(0, 3)
-        mm = self.grid.from_index(peaks)
-        frames = sight_frames(line_of_sight(self.camera, mm))
-        to_voxels = self.grid.index_jacobian() @ frames  # local mm -> voxel index
-        sums = (self.sums or host_tube_sums)(vol, self.grid.to_index(mm), to_voxels,
-                                             self.tube_offsets())
-        along = sums[:, 1] / np.maximum(sums[:, 0], 1e-30)
-        moved = mm + frames[:, :, 2] * along[:, None]  # along the line only
-        return self.grid.to_index(np.where(sums[:, :1] > 0, moved, mm))
+            return peaks
+        lines = line_of_sight(self.camera, self.grid.from_index(peaks))
+        to_voxels = self.grid.index_jacobian() @ sight_frames(lines)  # local mm -> index
+        sums = (self.sums or host_tube_sums)(vol, peaks, to_voxels, self.tube_offsets())
+        lit = sums[:, 0] > 0
+        along = np.where(lit, sums[:, 1] / np.where(lit, sums[:, 0], 1.0), 0.0)
+        return peaks + to_voxels[:, :, 2] * along[:, None]  # along the line only
 
     def tube_offsets(self) -> np.ndarray:
         """``(S, 3)`` the tube's sample offsets ``(u, v, t)`` (mm) in a line's frame: every
