@@ -42,7 +42,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
     pair_row,
     paper_setup,
 )
-from plenocl.bench.clprofile import OpenCLProfile, split_lines  # noqa: E402
+from plenocl.bench.clprofile import OpenCLProfile, split_lines, total_profile  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
@@ -123,8 +123,8 @@ def profile_pair(scene, proj, rec) -> None:
         proj.queue.finish()
     split = prof.split(pair.spans)
     print("\n".join(split_lines(split)))
-    moved_in = sum(s.h2d_bytes for s in split.values())
-    moved_out = sum(s.d2h_bytes for s in split.values())
+    total = total_profile(split)
+    moved_in, moved_out = total.h2d_bytes, total.d2h_bytes
     raws = scene.raw_a.nbytes + scene.raw_b.nbytes
     print(f"bytes moved: {moved_in / 1e6:.1f} MB to the device ({moved_in / raws:.1f}x the "
           f"two raw images' {raws / 1e6:.1f} MB), {moved_out / 1e6:.1f} MB back")

@@ -12,7 +12,7 @@ import pyopencl.array as cl_array
 import pytest
 
 from plenocl import get_queue
-from plenocl.bench.clprofile import OpenCLProfile, split_lines
+from plenocl.bench.clprofile import OpenCLProfile, split_lines, total_profile
 from plenocl.pipeline import StageClock
 
 
@@ -43,6 +43,9 @@ def test_profile_counts_bytes_launches_and_host_time(queue):
     assert split["up"].wall == pytest.approx(clock.seconds["up"])
     lines = split_lines(split)
     assert lines[-1].split()[0] == "total" and len(lines) == 5
+    total = total_profile(split)
+    assert total.h2d_bytes == total.d2h_bytes == host.nbytes and total.launches == 3
+    assert total.wall == pytest.approx(sum(clock.seconds.values()))
 
 
 def test_profile_restores_pyopencl(queue):

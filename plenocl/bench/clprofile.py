@@ -26,7 +26,7 @@ import numpy as np
 import pyopencl as cl
 from pyopencl import _cl
 
-__all__ = ["OpenCLProfile", "StageProfile"]
+__all__ = ["OpenCLProfile", "StageProfile", "split_lines", "total_profile"]
 
 
 @dataclass
@@ -68,7 +68,7 @@ def _direction(dest, src) -> str:
 def _host_bytes(obj) -> int:
     """Bytes of a host buffer (an array or anything with the buffer protocol)."""
     try:
-        return int(np.asarray(obj).nbytes) if not isinstance(obj, memoryview) else obj.nbytes
+        return int(np.asarray(obj).nbytes)
     except (TypeError, ValueError):
         return 0
 
@@ -151,22 +151,27 @@ def _event_seconds(event) -> float | None:
         return None
 
 
+def total_profile(split: dict[str, StageProfile]) -> StageProfile:
+    """The stages of ``split`` added up (kernel seconds ``None`` where no stage has
+    them)."""
+    stages = split.values()
+    kernels = [st.kernel for st in stages if st.kernel is not None]
+    return StageProfile(wall=sum(st.wall for st in stages),
+                        opencl=sum(st.opencl for st in stages),
+                        kernel=sum(kernels) if kernels else None,
+                        launches=sum(st.launches for st in stages),
+                        h2d_bytes=sum(st.h2d_bytes for st in stages),
+                        d2h_bytes=sum(st.d2h_bytes for st in stages))
+
+
 def split_lines(split: dict[str, StageProfile]) -> list[str]:
-    """The split as a table of text lines, one per stage and their total: wall, OpenCL
-    calls, host, kernel seconds, launches and MB each way."""
+    """The split as a table of text lines, one per stage and their total
+    (:func:`total_profile`): wall, OpenCL calls, host, kernel seconds, launches and MB
+    each way."""
     head = (f"{'stage':14s} {'wall s':>7s} {'in CL s':>8s} {'host s':>7s} {'kernel s':>9s} "
             f"{'launches':>8s} {'MB in':>8s} {'MB out':>8s}")
     rows = [head]
-    total = StageProfile(wall=0.0)
-    for name, st in {**split, "total": total}.items():
-        if name != "total":
-            total.wall += st.wall
-            total.opencl += st.opencl
-            total.launches += st.launches
-            total.h2d_bytes += st.h2d_bytes
-            total.d2h_bytes += st.d2h_bytes
-            if st.kernel is not None:
-                total.kernel = (total.kernel or 0.0) + st.kernel
+    for name, st in {**split, "total": total_profile(split)}.items():
         kernel = "n/a" if st.kernel is None else f"{st.kernel:.3f}"
         rows.append(f"{name:14s} {st.wall:7.3f} {st.opencl:8.3f} {st.host:7.3f} "
                     f"{kernel:>9s} {st.launches:8d} {st.h2d_bytes / 1e6:8.1f} "
