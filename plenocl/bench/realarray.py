@@ -49,14 +49,19 @@ def lens_centroid_shift(a: np.ndarray, b: np.ndarray, owner: np.ndarray) -> floa
     """Largest shift (pixels) between the light centroids of two images' lens images
     (``owner``: :func:`plenocl.optics.ownership.lens_owner`; the lenses holding at least
     1e-3 of ``b``'s brightest lens)."""
-    light = np.bincount(owner[owner >= 0], b[owner >= 0])
-    rows, cols = np.indices(a.shape)
-    shift = 0.0
-    for lens in np.flatnonzero(light > 1e-3 * light.max()):
-        m = owner == lens
-        for c in (rows[m], cols[m]):
-            shift = max(shift, abs(np.average(c, weights=a[m]) - np.average(c, weights=b[m])))
-    return shift
+    inside = owner >= 0
+    lens, rows, cols = owner[inside], *(c[inside] for c in np.indices(a.shape))
+
+    def centroids(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w = img[inside]
+        light = np.bincount(lens, w)
+        means = [np.bincount(lens, w * c) / np.where(light > 0, light, 1.0) for c in (rows, cols)]
+        return light, np.stack(means)
+
+    light, at_b = centroids(b)
+    at_a = centroids(a)[1]
+    lit = light > 1e-3 * light.max()
+    return float(np.abs(at_a[:, lit] - at_b[:, lit]).max())
 
 
 @dataclass(frozen=True)
