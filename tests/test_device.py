@@ -291,3 +291,18 @@ def test_pocl_that_cannot_build_falls_back_to_intels_runtime_quietly(tmp_path):
         assert "DeviceFallbackWarning" not in out.stderr, out.stderr
     else:
         assert "REFUSED" in out.stdout and "plenocl[cpu]" in out.stdout, out.stdout
+
+
+def test_the_per_particle_group_size_is_a_checked_power_of_two(queue):
+    """One rule for the per-particle reductions' work-groups (the fit's sums, the tube
+    sums): 1 item on a CPU, GPU_GROUP elsewhere, a given size only if a power of two."""
+    from plenocl.opencl.program import GPU_GROUP, group_size
+    from plenocl.piv.tube import DeviceTubeSums
+
+    cpu = bool(queue.device.type & cl.device_type.CPU)
+    assert group_size(queue) == (1 if cpu else GPU_GROUP) and group_size(queue, 8) == 8
+    for bad in (0, 3, 12):
+        with pytest.raises(ValueError, match="power of two"):
+            group_size(queue, bad)
+    with pytest.raises(ValueError, match="power of two"):
+        DeviceTubeSums(queue, 6)

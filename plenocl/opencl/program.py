@@ -20,13 +20,27 @@ import pyopencl.array as cl_array
 from .build import UNKNOWN_CPU, KernelBuildError, build_hint, build_program, kernel_dir
 from .device import is_cpu
 
-__all__ = ["UNKNOWN_CPU", "KernelBuildError", "KernelSet", "build_hint", "build_program",
-           "fetch_kernels", "kernel_dir"]
+__all__ = ["GPU_GROUP", "UNKNOWN_CPU", "KernelBuildError", "KernelSet", "build_hint",
+           "build_program", "fetch_kernels", "group_size", "kernel_dir"]
+
+#: Work-items per particle of the per-particle reductions (``kernels/groupreduce.h``) on
+#: a GPU, where a group's items share one particle's work; a power of two.
+GPU_GROUP = 64
 
 
 def fetch_kernels(program: cl.Program, names: Sequence[str]) -> dict[str, cl.Kernel]:
     """Fetch each named kernel once (``cl.Kernel(prg, name)``)."""
     return {name: cl.Kernel(program, name) for name in names}
+
+
+def group_size(queue: cl.CommandQueue, group: int | None = None) -> int:
+    """The work-group size ``PL_GROUP`` of a per-particle reduction on ``queue``'s device:
+    ``group`` where given (a power of two), else 1 on a CPU (one item loops over the
+    particle) and :data:`GPU_GROUP` elsewhere."""
+    size = (1 if is_cpu(queue.device) else GPU_GROUP) if group is None else int(group)
+    if size < 1 or size & (size - 1):
+        raise ValueError(f"group must be a power of two, got {group!r}")
+    return size
 
 
 class KernelSet:

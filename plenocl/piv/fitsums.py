@@ -17,14 +17,12 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..opencl.device import is_cpu
-from ..opencl.program import KernelSet
+from ..opencl.program import KernelSet, group_size
 from ..optics.raybundle import Patches
 from .devicebundle import DeviceRayBundle
 
 i32, i64, f32 = np.int32, np.int64, np.float32
 _KERNELS = ("patch_model", "normal_sums", "unit_sums")
-#: Work-items per particle of the sums on a GPU (a power of two; 1 on a CPU).
-GPU_GROUP = 64
 #: Sensor columns per work-item of the model image: one on a GPU, a run on a CPU.
 MODEL_BLOCK = {False: 1, True: 256}
 
@@ -40,7 +38,7 @@ class DeviceFitSums:
         Particles rendered at once (bounds the rays' scratch memory).
     group
         Work-items per particle of the sums (a power of two); ``None``: 1 on a CPU,
-        :data:`GPU_GROUP` elsewhere.
+        :data:`plenocl.opencl.program.GPU_GROUP` elsewhere.
 
     Notes
     -----
@@ -56,9 +54,7 @@ class DeviceFitSums:
         self.renderer = renderer
         self.chunk = int(chunk)
         cpu = is_cpu(renderer.queue.device)
-        self.group = (1 if cpu else GPU_GROUP) if group is None else int(group)
-        if self.group < 1 or self.group & (self.group - 1):
-            raise ValueError(f"group must be a power of two, got {group!r}")
+        self.group = group_size(renderer.queue, group)
         self._k = KernelSet(renderer.queue, "imagefit.cl", _KERNELS,
                             [f"-DPL_GROUP={self.group}"], looping=["patch_model"])
         self._block = MODEL_BLOCK[cpu]

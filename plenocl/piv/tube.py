@@ -14,14 +14,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from ..opencl.device import is_cpu
-from ..opencl.program import KernelSet
+from ..opencl.program import KernelSet, group_size
 
 __all__ = ["DeviceTubeSums", "host_tube_sums", "tube_points"]
-
-#: Work-items per particle on a GPU (a power of two; 1 on a CPU).
-GPU_GROUP = 64
-
 
 def tube_points(centre: np.ndarray, frames: np.ndarray, local: np.ndarray) -> np.ndarray:
     """``(N, S, 3)`` voxel indices ``(x, y, z)`` of the samples: ``centre`` ``(N, 3)``
@@ -54,13 +49,11 @@ class DeviceTubeSums:
         The device's queue.
     group
         Work-items per particle (a power of two); ``None``: 1 on a CPU,
-        :data:`GPU_GROUP` elsewhere.
+        :data:`plenocl.opencl.program.GPU_GROUP` elsewhere.
     """
 
     def __init__(self, queue, group: int | None = None) -> None:
-        self.group = (1 if is_cpu(queue.device) else GPU_GROUP) if group is None else group
-        if self.group < 1 or self.group & (self.group - 1):
-            raise ValueError(f"group must be a power of two, got {group!r}")
+        self.group = group_size(queue, group)
         self._k = KernelSet(queue, "sightline.cl", ["tube_sums"], [f"-DPL_GROUP={self.group}"],
                             looping=["tube_sums"])
 
