@@ -20,7 +20,7 @@
  * every sub-lens phase (bilinear weights blur by t(1 - t), nothing at t = 0), so every
  * plane is smoothed alike and the plane the views reach unshifted (alpha = 1) is not
  * sharper than the others (a focal stack's sharpness is not biased towards z = 0).
- * -D STAGGERED (a hexagonal array) takes each row's x weights from its own lens
+ * -D PL_STAGGERED=1 (a hexagonal array; 0 otherwise) takes each row's x weights from its own lens
  * positions; without it (row_shift 0, a rectangular array) they are computed once.
  * The host prepares shift[p, n] = (1 - 1/alpha_p) L^-1 (u_n, v_n) in lens units (L: the
  * array-plane mm per unit of (a, b)).
@@ -56,7 +56,7 @@ __kernel void refocus(__global const float2 *views,   /* (nuv, ny + 2, nx + 2) *
         const float x = kx + s.x, y = ky + s.y;
         const float cy = floor(y + 0.5f);  /* nearest row */
         const int y0 = (int)cy;
-#ifdef STAGGERED
+#if PL_STAGGERED
         const int x_near = (int)floor(x + 0.5f);  /* a row's nearest lens is +-1 from it */
         if (x_near < -2 || y0 < -1 || x_near > nx + 3 || y0 > ny + 2) continue;  /* all out */
 #else
@@ -72,7 +72,7 @@ __kernel void refocus(__global const float2 *views,   /* (nuv, ny + 2, nx + 2) *
         for (int b = 0; b < 3; ++b) {
             const int yy = y0 + b - 1;
             if (yy < 0 || yy > ny + 1) continue;
-#ifdef STAGGERED
+#if PL_STAGGERED
             /* bordered row yy is lens row yy - 1: odd when yy is even */
             const float xr = x - row_shift * (float)((yy + 1) & 1);
             const float cx = floor(xr + 0.5f);  /* nearest lens of the row */

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera.lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
 from .io.tomlfile import read_toml, write_toml
 from .optics.depthrange import check_grid
-from .optics.lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
 
 
 def _extent(name: str, value) -> tuple[float, float]:

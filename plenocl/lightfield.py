@@ -57,11 +57,11 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl.array as cl_array
 
-from .camera import AXIAL, Camera
+from .camera import Camera
+from .camera.lattice import lattice_fit
 from .opencl.device import DeviceLike, get_queue
 from .opencl.program import KernelSet
 from .optics.imaging import array_plane_positions, array_plane_scale
-from .optics.lattice import lattice_fit
 from .optics.ownership import lens_owner
 from .optics.rawimage import check_image
 
@@ -79,7 +79,7 @@ def _centers(camera: Camera) -> np.ndarray:
 def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarray:
     """Affine least-squares map from the lenses' array-frame coordinates ``(a, b) = (kx +
     shift (ky mod 2), ky)`` to image-centre pixels (a rectangular array: ``(kx, ky)``,
-    :func:`plenocl.optics.lattice.lattice_fit` of the camera's or the given centres).
+    :func:`plenocl.camera.lattice.lattice_fit` of the camera's or the given centres).
 
     Parameters
     ----------
@@ -94,9 +94,7 @@ def lens_lattice(camera: Camera, centers: np.ndarray | None = None) -> np.ndarra
         ``(3, 2)`` matrix ``M`` with ``(col, row) = [a, b, 1] @ M``.
     """
     centers = camera.microlens_centers if centers is None else centers
-    if camera.ml_layout == "rectangular":
-        return lattice_fit(centers)
-    # a hexagonal array is affine in (a, b), not in (kx, ky): the same least squares on (a, b)
+    # affine in the array-frame (a, b) (a rectangular array: (kx, ky) itself)
     return lattice_fit(centers, camera.lens_lattice_coords())
 
 
@@ -270,9 +268,8 @@ class LightField:
 
     def __init__(self, raw_image, camera: Camera, *, uv_step_mm: float | None = None,
                  queue: DeviceLike = None) -> None:
-        if camera.ml_layout == AXIAL:
-            raise ValueError("the light field takes the hexagonal camera itself, not its "
-                             "axial view (Camera.on_lens_lattice, the projector's)")
+        camera.layout.require_array("the light field takes the hexagonal camera itself, not "
+                                    "its axial view (Camera.on_lens_lattice, the projector's)")
         self.camera = camera
         image = check_image(raw_image, camera, np.float32)
         self.centers = _centers(camera)
@@ -417,7 +414,7 @@ class LightField:
         hexagonal array's kernel is its ``STAGGERED`` variant.
         """
         if not self._device:
-            staggered = ["-DSTAGGERED"] if self.camera.odd_row_shift else []
+            staggered = [f"-DPL_STAGGERED={int(self.camera.layout.staggered)}"]
             kernels = KernelSet(get_queue(self._queue_arg), "lightfield.cl", ["refocus"],
                                 options=staggered)
             flat = self.views.reshape(-1, *self.shape)

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .camera.lattice import rotation_matrix
 from .io.fields import AXES, FORMAT_VERSION
-from .optics.lattice import rotation_matrix
 
 __all__ = ["AXES", "FLAGS", "FORMAT_VERSION", "NOTES", "PIVResult", "Size3",
            "displacement_to_velocity", "field_units", "q_criterion", "uncertainty",

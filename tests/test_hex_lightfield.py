@@ -13,9 +13,9 @@ from helpers import lens_camera
 from scipy.spatial import cKDTree
 
 from plenocl import Camera, Grid, Projector
+from plenocl.camera.lattice import RectangularLattice
 from plenocl.lightfield import LightField, lens_lattice, lens_positions_mm, pixel_coordinates
 from plenocl.metrics import matched_errors
-from plenocl.optics.lattice import RectangularLattice
 from plenocl.optics.ownership import lens_owner, pixel_lenses
 from plenocl.reconstruction import reconstruct, view_blocks
 from plenocl.reference import reconstruct as ref

@@ -7,7 +7,7 @@ import pytest
 from helpers import lens_camera
 
 from plenocl import Grid
-from plenocl.optics.lattice import lattice_fit, lattice_residual
+from plenocl.camera.lattice import lattice_fit, lattice_residual
 from plenocl.projection.plan import SampleColumns, column_chunks, depth_chunks, make_plan, runs
 from plenocl.projection.weighting import (
     ApertureGrid,

@@ -13,13 +13,13 @@ from helpers import ROTATED, assert_adjoint, assert_close_to_peak, lens_camera
 
 from plenocl import Camera, Grid, Projector, simulate_image
 from plenocl.bench.realarray import agreement, sparse_volume
-from plenocl.metrics import recovery
-from plenocl.optics.lattice import (
+from plenocl.camera.lattice import (
     RectangularLattice,
     lattice_fit,
     lattice_rotation_deg,
     separable_rotation_deg,
 )
+from plenocl.metrics import recovery
 from plenocl.reconstruction import reconstruct
 from plenocl.reference.simulate import trace_particles
 from plenocl.reference.weights import voxel_weights

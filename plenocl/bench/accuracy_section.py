@@ -75,10 +75,8 @@ def paper_optics(lenses: tuple[int, int], layout: str = "rectangular"
     ``lenses[1]·2/√3`` of them), the same grid."""
     pitch_px = 0.125 * (1 + 0.5 / (50.0 * 1.66)) / 0.0074
     pixels = tuple(int(np.ceil(n * pitch_px)) + 2 for n in lenses)
-    count = tuple(lenses)
-    if layout == "hexagonal":
-        count = (lenses[0], int(np.floor(lenses[1] * 2 / np.sqrt(3))))
-    cam = Camera(50.0, 2.42, 0.66, 0.125, 0.5, count, 0.0074, pixels, ml_layout=layout)
+    cam = Camera(50.0, 2.42, 0.66, 0.125, 0.5, tuple(lenses), 0.0074, pixels
+                 ).with_layout(layout)
     half = [n * 0.125 / 0.66 / 2 * 0.96 for n in lenses]
     shape = (150, int(2 * half[1] / VOXEL_MM[1]), int(2 * half[0] / VOXEL_MM[0]))
     grid = Grid(shape, x=(-shape[2] * VOXEL_MM[0] / 2, shape[2] * VOXEL_MM[0] / 2),

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
+from ..camera.lattice import RectangularLattice
 from ..grid import Grid
-from ..optics.lattice import RectangularLattice
 from ..optics.ownership import lens_owner
 
-#: ``plenocl calibrate`` of plenoptomos' white image (2026-11-28): ``centre(kx, ky) =
+#: ``plenocl calibrate`` of plenoptomos' white image: ``centre(kx, ky) =
 #: [kx, ky, 1] @ LETTERS_LATTICE`` in pixels, and the centroids' scatter about it.
 LETTERS_LATTICE = np.array([[48.23439974, 0.11127139],
                             [-0.1068504, 48.23478689],

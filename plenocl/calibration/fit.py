@@ -5,7 +5,6 @@ model and each lens's centroid combined by their uncertainties), :func:`calibrat
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 from pathlib import Path
 
@@ -380,7 +379,7 @@ def _surrounded(found: np.ndarray, camera: Camera, rings: int = 1) -> np.ndarray
     outer ones."""
     xy = camera.lens_lattice_coords() * [1.0, camera.ml_row_pitch_mm / camera.ml_pitch_mm]
     flat = xy.reshape(-1, 2)
-    want = 6 if camera.ml_layout == "hexagonal" else 4
+    want = camera.layout.neighbours
     # each lens and its neighbours; a missing neighbour (beyond the array) is index n
     dist, near = cKDTree(flat).query(flat, k=want + 1, distance_upper_bound=1.01)
     complete = np.isfinite(dist).all(1)
@@ -400,10 +399,7 @@ def _layout(model: np.ndarray, camera: Camera) -> tuple:
     """Rotation (deg), pitch along the array axes (px) and shift of the array centre."""
     ax = np.nanmean(np.diff(model, axis=1), axis=(0, 1))
     ay = np.nanmean(np.diff(model, axis=0), axis=(0, 1))  # hexagonal: the mean row step
-    if camera.ml_layout == "hexagonal":
-        rot = math.degrees(math.atan2(ax[1], ax[0]))
-    else:
-        rot = math.degrees(math.atan2(ax[1] - ay[0], ax[0] + ay[1]))
+    rot = camera.layout.rotation_deg(ax, ay)
     shift = model.reshape(-1, 2).mean(0) - camera.ideal_microlens_centers().reshape(-1, 2).mean(0)
     return rot, (float(np.hypot(*ax)), float(np.hypot(*ay))), (float(shift[0]), float(shift[1]))
 

@@ -79,7 +79,7 @@ def grid_model(camera: Camera, c: np.ndarray, use: np.ndarray, degree):
     hexagonal array's model also fits its odd rows' offset (:func:`_design`)."""
     cols, rows = camera.ml_count
     kk = camera.lens_lattice_coords().reshape(-1, 2)  # affine in the lens positions
-    stagger = camera.ml_layout == "hexagonal"
+    stagger = camera.layout.staggered
     deg = _choose_degree(kk, c, (cols, rows), use, degree, stagger)
     coef, use = _robust_fit(kk, c, (cols, rows), deg, use, stagger)
     return deg, use, (_design(kk, (cols, rows), deg, stagger) @ coef).reshape(rows, cols, 2)

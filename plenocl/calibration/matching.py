@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..camera import Camera
-from ..optics.lattice import axial_basis, axial_to_offset, offset_to_axial
+from ..camera.lattice import axial_basis, axial_to_offset, offset_to_axial
 from .checks import image_pitch_px
 
 #: Relative pitch error (measured vs the camera's) above which calibration refuses.
@@ -46,8 +46,7 @@ def match_lattice(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarr
     in the initial pitch or rotation never accumulates across a large array.
     """
     cols, rows = camera.ml_count
-    hexagonal = camera.ml_layout == "hexagonal"
-    pitch, rot = _lattice_frame(pts, image_pitch_px(camera), 6 if hexagonal else 4)
+    pitch, rot = _lattice_frame(pts, image_pitch_px(camera), camera.layout.neighbours)
     centre = camera.ideal_microlens_centers().reshape(-1, 2).mean(0)
     c, s = math.cos(rot), math.sin(rot)
     basis = axial_basis(camera.odd_row_shift, camera.ml_row_pitch_mm / camera.ml_pitch_mm)
@@ -63,7 +62,7 @@ def match_lattice(pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarr
     f = _fractional_index(pts, model)
     base = np.rint(f).astype(np.int64)
     dev = np.abs(f - base).max(1)
-    if hexagonal:
+    if camera.layout.hexagonal:
         k = _hexagonal_indices(base, dev <= 0.3, model, camera, pitch)
     else:
         k = base + _lens_count_and_shift(base[dev <= 0.3], pts[dev <= 0.3], model, camera,

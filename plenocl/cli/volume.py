@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import warnings
 
-from ..camera import load_camera
+from ..camera import LAYOUTS, load_camera
 from ..io.files import CHANNELS
 from ..pipeline.frames import load_frame
 from ..projection.weighting import DEFAULT_OVERSAMPLE
@@ -247,7 +247,7 @@ def add_piv_parser(subparsers) -> argparse.ArgumentParser:
 
 def demo_command(args: argparse.Namespace) -> int:
     """Run a built-in example."""
-    if args.layout != "rectangular" and args.name != "boundary-layer":
+    if args.layout is not None and args.name != "boundary-layer":
         raise ValueError(f"--layout {args.layout} applies to the boundary-layer demo only; "
                          f"the {args.name} demo uses the paper's rectangular array")
     if args.name == "particles":
@@ -263,10 +263,10 @@ def demo_command(args: argparse.Namespace) -> int:
     from ..demo.boundary_layer import run_boundary_layer
 
     s = run_boundary_layer(args.size, args.out, queue=args.device, seed=args.seed,
-                           layout=args.layout)
+                           layout=args.layout or "rectangular")
     rec = s["recovery"]["default_mlem"]
     win = s["lateral_depth_error"]["window_averaged"]
-    print(f"boundary layer ({args.size}, {args.layout} array): velocity RMS error "
+    print(f"boundary layer ({args.size}, {s['layout']} array): velocity RMS error "
           f"{100 * s['velocity_rms_error']:.1f}% of U∞ (lateral "
           f"{win['lateral_voxels']:.2f} voxel = {100 * win['lateral_u_inf']:.1f}%, depth "
           f"{win['depth_voxels']:.2f} voxel = {100 * win['depth_u_inf']:.1f}%, against the "
@@ -323,9 +323,10 @@ def add_demo_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--size", default="small", choices=["small", "paper"],
                    help="small: 850 x 850 px camera, minutes on 2 cores; paper: 16 MP, "
                         "300 x 200 x 150 voxels")
-    p.add_argument("--layout", default="rectangular", choices=["rectangular", "hexagonal"],
+    p.add_argument("--layout", default=None, choices=list(LAYOUTS),
                    help="boundary-layer: the camera's microlens array, rectangular (the "
-                        "paper's) or hexagonal, of the same pitch on the same sensor")
+                        "paper's, the default) or hexagonal, of the same pitch on the same "
+                        "sensor")
     p.add_argument("--out", default="plenocl_demo", help="output folder (resumable)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pairs", type=int, default=6, help="time-series: pairs to write")

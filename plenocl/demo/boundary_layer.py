@@ -66,31 +66,13 @@ class Scenario:
         return doc
 
 
-#: The microlens arrays the demo can be run with (``plenocl demo --layout``).
-LAYOUTS = ("rectangular", "hexagonal")
-
-
 def scenario(size: str, layout: str = "rectangular") -> Scenario:
     """The ``paper`` experiment (16 MP, 300 x 200 x 150 voxels over 55 x 35 x 20 mm) or its
     ``small`` twin (850 x 850 px, 48 x 48 x 32 voxels over 6 x 6 x 4 mm), behind a
     rectangular microlens array (the paper's) or a ``"hexagonal"`` one of the same pitch
-    filling the same sensor (:func:`hexagonal_twin`)."""
-    if layout not in LAYOUTS:
-        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    filling the same sensor (:meth:`plenocl.camera.Camera.with_layout`)."""
     sc = _rectangular_scenario(size)
-    if layout == "hexagonal":
-        sc = replace(sc, camera=hexagonal_twin(sc.camera))
-    return sc
-
-
-def hexagonal_twin(cam: Camera) -> Camera:
-    """``cam`` with a hexagonal array of the same pitch on the same sensor: as many lenses
-    per row, and as many rows (``pitch·√3/2`` apart) as the sensor's height holds
-    (docs/design.md §2)."""
-    cols, rows = cam.ml_count
-    hex_rows = int(np.floor(rows / (np.sqrt(3) / 2)))
-    return replace(cam, ml_layout="hexagonal", ml_count=(cols, hex_rows),
-                   microlens_centers=None)
+    return replace(sc, camera=sc.camera.with_layout(layout))
 
 
 def _rectangular_scenario(size: str) -> Scenario:

@@ -1,7 +1,5 @@
 """The camera's optics as a model every stage shares (docs/design.md §2).
 
-- :mod:`.lattice`: the microlens lattice (:class:`LensLattice`, :class:`RectangularLattice`
-  and the affine fit of the calibrated centres);
 - :mod:`.imaging`: the imaging relation ``c_k = x_k (1 + f_ml/d)`` between a lens's
   array-plane position and its image centre on the sensor;
 - :mod:`.ownership`: which lens a sensor pixel lies behind;
@@ -14,19 +12,19 @@
 - :mod:`.sightline`: the lines of sight, along which the camera places a point worst,
   and the frames and priors that lean with them off the axis.
 
-Device-free NumPy; it imports only the camera model.
+Device-free NumPy; it imports only the camera model (:mod:`plenocl.camera`, whose
+:mod:`~plenocl.camera.lattice` holds the array's layout and fitted lattice).
 """
 
 from .depthrange import check_grid, field_of_view_mm, resolved_depth_range
 from .imaging import array_plane_positions, array_plane_scale
-from .lattice import DEFAULT_SHEAR_TOL, LensLattice, RectangularLattice, lattice_fit
 from .ownership import lens_owner, pixel_lenses
 from .rawimage import check_image, check_pixel_mask, median_background, subtract_background
 from .raybundle import RayBundle
 from .sightline import line_of_sight, sight_frames, sight_information
 
-__all__ = ["DEFAULT_SHEAR_TOL", "LensLattice", "RayBundle", "RectangularLattice",
+__all__ = ["RayBundle",
            "array_plane_positions", "array_plane_scale", "check_grid", "check_image",
-           "check_pixel_mask", "field_of_view_mm", "lattice_fit", "lens_owner",
+           "check_pixel_mask", "field_of_view_mm", "lens_owner",
            "line_of_sight", "median_background", "pixel_lenses", "resolved_depth_range",
            "sight_frames", "sight_information", "subtract_background"]

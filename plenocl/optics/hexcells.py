@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lattice import lattice_fit
+from ..camera.lattice import lattice_fit
 
 #: Widest ramp (pitches) of the hexagonal cells: beyond half a pitch a fourth neighbour
 #: or a lens beyond the neighbours would get a share, so wider ramps are cut to this.

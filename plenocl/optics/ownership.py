@@ -6,7 +6,7 @@ around the lens's centre on the lattice fitted to the calibrated image centres,
 pixel's centre. A hexagonal array (docs/design.md §2): to the lens whose calibrated
 image centre is nearest, its hexagonal cell as the simulator draws it (a lens
 calibration missed counts at its position on the lattice fitted in axial indices,
-:func:`plenocl.optics.lattice.offset_to_axial`, where the array is affine). The
+:func:`plenocl.camera.lattice.offset_to_axial`, where the array is affine). The
 projector's axial view of a hexagonal array (:meth:`plenocl.camera.Camera.on_lens_lattice`,
 layout ``"axial"``) gets the same hexagonal cells, numbered by the view's axial indices.
 The light field (:func:`lens_owner`: ``-1`` beyond the array) and MART's view blocks
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..camera import AXIAL, Camera
-from .lattice import RectangularLattice, axial_to_offset, lattice_fit, offset_to_axial
+from ..camera import Camera
+from ..camera.lattice import RectangularLattice, lattice_fit, offset_to_axial
 
 __all__ = ["lens_owner", "pixel_lenses"]
 
@@ -55,7 +55,7 @@ def pixel_lenses(camera: Camera, centres: np.ndarray | None = None, clamp: bool 
         -1)``).
     """
     centres = camera.microlens_centers if centres is None else centres
-    if camera.ml_layout == "rectangular":
+    if not camera.layout.hexagonal:
         lattice = RectangularLattice.fit(centres)
         kx, ky = lattice.cells(*camera.pixels)
         if clamp:
@@ -94,21 +94,16 @@ class _AxialLenses:
 def _axial_lenses(camera: Camera, centres: np.ndarray) -> _AxialLenses:
     """The lenses of a hexagonal camera (offset indices) or of its axial view, on the
     axial lattice."""
-    rows = centres.shape[0]
-    if camera.ml_layout == AXIAL:
-        cols = centres.shape[1] - (rows - 1) // 2  # the view pads (rows - 1) // 2 columns
-    else:
-        cols = centres.shape[1]
+    layout = camera.layout
+    cols, rows = layout.array_count
     ky, kx = np.mgrid[0:rows, 0:cols]
-    q = offset_to_axial(np.stack([kx, ky], -1), camera.odd_row_shift)[..., 0]
+    q = offset_to_axial(np.stack([kx, ky], -1), layout.odd_row_shift)[..., 0]
     q_min = int(q.min())
     real = np.zeros((rows + 2, int(q.max()) - q_min + 3), bool)
     real[ky + 1, q - q_min + 1] = True
-    if camera.ml_layout == AXIAL:
-        axial = centres
-    else:
-        axial = np.full((rows, real.shape[1] - 2, 2), np.nan)
-        axial[ky, q - q_min] = centres
+    own = layout.from_axial(np.stack([q, ky], -1))  # each lens in the camera's numbering
+    axial = np.full((rows, real.shape[1] - 2, 2), np.nan)
+    axial[ky, q - q_min] = centres[own[..., 1], own[..., 0]]
     model = lattice_fit(axial)
     rr, qq = np.mgrid[-1:rows + 1, -1:real.shape[1] - 1]
     table = np.stack([qq, rr, np.ones_like(qq)], -1) @ model
@@ -159,10 +154,8 @@ def _hexagonal_cells(camera: Camera, centres: np.ndarray, clamp: bool
     if clamp and beyond.any():  # the nearest edge lens
         index[beyond] = _nearest_real(lenses, np.argwhere(beyond)[:, ::-1])
     r, q = np.divmod(index, lenses.real.shape[1])
-    q, r = q - 1, r - 1
-    if camera.ml_layout != AXIAL:
-        k = axial_to_offset(np.stack([q + lenses.q_min, r], -1), camera.odd_row_shift)
-        q, r = k[..., 0], k[..., 1]
+    k = camera.layout.from_axial(np.stack([q - 1 + lenses.q_min, r - 1], -1))
+    q, r = k[..., 0], k[..., 1]
     if not clamp:
         q[beyond], r[beyond] = -1, -1
     return q.astype(np.int32), r.astype(np.int32)

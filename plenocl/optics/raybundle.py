@@ -13,7 +13,7 @@ Gaussian of the optics' blur, and a ray within a ramp of a cell edge is shared b
 the two lenses, so the image is a smooth function of ``X'``: its derivatives are exact
 and a Gauss-Newton fit can follow them. The lenses are the camera's calibrated centres
 (or its ideal ones) and their cells the affine lattice fitted to them
-(:class:`plenocl.optics.lattice.RectangularLattice`), as the projector's; a hexagonal
+(:class:`plenocl.camera.lattice.RectangularLattice`), as the projector's; a hexagonal
 array's cells are the hexagons around its lenses on the axial lattice fitted to them
 (:class:`plenocl.optics.hexcells.HexCells`), where a ray near an edge or a vertex is
 shared between two or three lenses.
@@ -26,9 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import erf
 
-from ..camera import AXIAL, Camera
+from ..camera import Camera
+from ..camera.lattice import RectangularLattice
 from .hexcells import HEX_RAMP_MAX, HexCells
-from .lattice import RectangularLattice
 
 #: Golden angle of the sunflower pattern (radians).
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
@@ -275,11 +275,10 @@ def _lens_cells(camera: Camera) -> tuple[np.ndarray, np.ndarray, HexCells | None
     axial view, NaN where it has no lens), the ``(3, 2)`` lattice fitted to them and a
     hexagonal array's cells (``None`` for a rectangular one). The axial view itself (the
     projector's camera, :meth:`Camera.on_lens_lattice`) is taken as its hexagonal array."""
-    hexagonal = camera.ml_layout in ("hexagonal", AXIAL)
     centres = camera.on_lens_lattice().microlens_centers
     centres = camera.ideal_microlens_centers() if centres is None else centres
     lenses = camera.px_to_mm(centres) / camera.lens_image_scale
-    if hexagonal:
+    if camera.layout.hexagonal:
         cells = HexCells.fit(lenses)
         return lenses, cells.model, cells
     return lenses, RectangularLattice.fit(lenses).model, None

@@ -18,10 +18,10 @@ from functools import cached_property
 
 import numpy as np
 
-from ..camera import AXIAL, Camera
+from ..camera import Camera
+from ..camera.lattice import DEFAULT_SHEAR_TOL, RectangularLattice
 from ..grid import Grid
 from ..optics.depthrange import check_grid
-from ..optics.lattice import DEFAULT_SHEAR_TOL, RectangularLattice
 from .lenses import lens_reach
 from .weighting import (
     DEFAULT_OVERSAMPLE,
@@ -136,8 +136,7 @@ def warn_general_path(camera: Camera, grid: Grid) -> None:
     (docs/results.md, Performance: 12.5x at the paper's size for a 0.15° array)."""
     lattice = RectangularLattice.fit(camera.microlens_centers)
     angle = lattice.rotation_deg
-    skew = "" if camera.ml_layout == AXIAL else (
-        f" and its columns {lattice.skew_deg:+.4f}° off square to them")
+    skew = camera.layout.column_note(lattice)
     warnings.warn(
         f"the microlens rows are turned {angle - grid.rotation_deg:+.4f}° against this "
         f"grid's axes{skew}: the projector takes its general path, up to about 12x slower "

@@ -35,10 +35,10 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..camera import Camera
+from ..camera.lattice import separable_rotation_deg
 from ..grid import Grid
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
-from ..optics.lattice import separable_rotation_deg
 from .factorised import FactorisedStages
 from .lenses import LensSet, lens_set, lit_lenses
 from .model import WeightingModel, warn_general_path

@@ -20,9 +20,9 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import pyopencl.array as cl_array
 
+from ..camera.lattice import rotation_matrix
 from ..grid import Grid
 from ..opencl.program import KernelSet
-from ..optics.lattice import rotation_matrix
 from .plan import runs
 
 i32, f32 = np.int32, np.float32

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import AXIAL, Camera
+from ..camera import Camera
+from ..camera.lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
 from ..grid import Grid
 from ..optics.imaging import array_plane_positions
-from ..optics.lattice import DEFAULT_SHEAR_TOL, lattice_fit, lattice_residual, rotation_matrix
 
 #: Aperture samples per pixel footprint on the aperture (``p_px d / f_ml``), per axis.
 DEFAULT_OVERSAMPLE = 1.25
@@ -219,7 +219,7 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
     layout, seen from that frame, drifts by at most ``shear_tol`` lenses across the whole
     array, its rotation/shear terms are dropped (about the array's centre) and the map is
     axis-aligned: the separable projector path applies. A frame that follows the lens
-    rows (:func:`plenocl.optics.lattice.separable_rotation_deg`) makes a rotated array
+    rows (:func:`plenocl.camera.lattice.separable_rotation_deg`) makes a rotated array
     axis-aligned this way. Where only the rows are level (the row index drifts by at most
     ``shear_tol``) but the columns lean, only the row index's drift is dropped and the
     map is triangular: separable with the rhombic aperture samples of
@@ -245,7 +245,7 @@ def lens_index_map(camera: Camera, shear_tol: float = DEFAULT_SHEAR_TOL,
         drop = matrix * (1 - keep)  # the terms dropped, about the array's centre
         offset = offset + drop @ centre
         matrix = np.where(keep > 0, matrix, 0.0)
-    return LensIndexMap(matrix=matrix, offset=offset, lattice_steps=camera.ml_layout == AXIAL)
+    return LensIndexMap(matrix=matrix, offset=offset, lattice_steps=camera.layout.is_view)
 
 
 # ---- projector tables -------------------------------------------------------------------

@@ -7,7 +7,7 @@ import weakref
 import numpy as np
 import pyopencl.array as cla
 
-from ..optics.lattice import RectangularLattice
+from ..camera.lattice import RectangularLattice
 from ..optics.ownership import pixel_lenses
 from .operator import ProjectionOperator
 

@@ -50,7 +50,7 @@ def _lens_lookup(cam: Camera, x: np.ndarray, y: np.ndarray):
     dx, dy = x - cam.ml_offset_mm[0], y - cam.ml_offset_mm[1]
     a, b = c * dx + s * dy, -s * dx + c * dy
     nx, ny = cam.ml_count
-    if cam.ml_layout == "hexagonal":
+    if cam.layout.hexagonal:
         kx, ky = _nearest_hexagonal(cam, a, b)
     else:
         kx = np.floor(a / cam.ml_pitch_mm + nx / 2).astype(np.int64)
@@ -82,7 +82,7 @@ def _cell_points(cam: Camera, u1: np.ndarray, u2: np.ndarray):
     the pitch x row rectangle, for a hexagonal array its four corners outside the hexagon
     folded into the tips (``pl_cell_point`` in kernels/simulate.cl)."""
     a, b = (u1 - 0.5) * cam.ml_pitch_mm, (u2 - 0.5) * cam.ml_row_pitch_mm
-    if cam.ml_layout != "hexagonal":
+    if not cam.layout.hexagonal:
         return a, b
     outside = np.abs(b) > (cam.ml_pitch_mm - np.abs(a)) / np.sqrt(3)
     a = np.where(outside, np.copysign(cam.ml_pitch_mm / 2, a) - a, a)

@@ -14,13 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.tomlfile import read_toml, write_toml
-from .options import refuse_unknown
+from ..io.tomlfile import read_toml, write_toml
+from ..options import refuse_unknown
+from .lattice import LensLayout, lens_layout
 
-#: The microlens layouts a camera may have (docs/design.md §2).
-LAYOUTS = ("rectangular", "hexagonal")
-#: A hexagonal array's axial view (:meth:`Camera.on_lens_lattice`), for the projector only.
-AXIAL = "axial"
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80
 #: Microlens images wider than their pitch by more than this fraction trigger a warning.
@@ -118,6 +115,7 @@ class Camera:
     principal_plane_separation_mm: float = 0.0
     ml_layout: str = "rectangular"
     ml_odd_row_shift: float | None = None
+    layout: LensLayout = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "f_number", "magnification", "ml_pitch_mm",
@@ -130,7 +128,8 @@ class Camera:
             raise ValueError("microlens rotation and offset must be finite numbers")
         object.__setattr__(self, "ml_rotation_deg", rot)
         object.__setattr__(self, "ml_offset_mm", off)
-        self._check_layout()
+        object.__setattr__(self, "layout", lens_layout(self.ml_layout, self.ml_count,
+                                                       self.ml_odd_row_shift))
         object.__setattr__(self, "principal_plane_separation_mm", _finite(
             "principal_plane_separation_mm", self.principal_plane_separation_mm))
         if self.crop_origin is not None:
@@ -140,30 +139,17 @@ class Camera:
         object.__setattr__(self, "microlens_centers", self._validated_centers())
 
     # ---- validation -------------------------------------------------------------
-    def _check_layout(self) -> None:
-        if self.ml_layout not in (*LAYOUTS, AXIAL):
-            raise ValueError(f"microlens layout must be one of {LAYOUTS}, got "
-                             f"{self.ml_layout!r} ([microlens_array] layout)")
-        allowed = (0.0,) if self.ml_layout == "rectangular" else (0.5, -0.5)
-        if self.ml_odd_row_shift is not None and self.ml_odd_row_shift not in allowed:
-            raise ValueError(f"odd_row_shift must be one of {allowed} (pitches) for a "
-                             f"{self.ml_layout} array, got {self.ml_odd_row_shift!r}")
-
     @property
     def odd_row_shift(self) -> float:
         """How far (pitches, along the row) the odd rows of lenses sit from the even ones:
         0 for a rectangular array, ``ml_odd_row_shift`` (default +0.5) for a hexagonal one."""
-        if self.ml_layout == "rectangular":
-            return 0.0
-        return 0.5 if self.ml_odd_row_shift is None else float(self.ml_odd_row_shift)
+        return self.layout.odd_row_shift
 
     def _check_sensor_covers_array(self) -> None:
         # the array's lenses are those whose image centre lies on the sensor (design.md
         # §2): the outermost centres (of the even rows), a pitch inside the array's
-        # edges, fit on the sensor (a hexagonal array's axial view pads its rows)
-        if self.ml_layout == AXIAL:
-            return
-        mla = np.array(self.ml_count) * [self.ml_pitch_mm, self.ml_row_pitch_mm]
+        # edges, fit on the sensor (a hexagonal array's axial view: the array's own)
+        mla = np.array(self.layout.array_count) * [self.ml_pitch_mm, self.ml_row_pitch_mm]
         sensor = np.array(self.pixels) * self.pixel_pitch_mm
         if np.any(mla - [self.ml_pitch_mm, self.ml_row_pitch_mm] > sensor * (1 + 1e-9)):
             raise ValueError(
@@ -351,7 +337,7 @@ class Camera:
     def ml_row_pitch_mm(self) -> float:
         """Distance between neighbouring rows of lenses: the pitch, or ``pitch·√3/2`` for a
         hexagonal array."""
-        return self.ml_pitch_mm * (1 if self.ml_layout == "rectangular" else math.sqrt(3) / 2)
+        return self.ml_pitch_mm * self.layout.row_ratio
 
     def on_lens_lattice(self) -> Camera:
         """This camera with its lenses numbered on an affine lattice: itself for a
@@ -360,26 +346,13 @@ class Camera:
         no lens of the array, so that the weighting function and projector, written for
         (possibly sheared) affine lattices, take it as it is. Only for them: the view is
         not simulated, written or calibrated."""
-        if self.ml_layout != "hexagonal":
-            return self
-        from .optics.lattice import offset_to_axial
-
-        cols, rows = self.ml_count
-        ky, kx = np.mgrid[0:rows, 0:cols]
-        q = offset_to_axial(np.stack([kx, ky], -1), self.odd_row_shift)[..., 0]
-        width = int(q.max() - q.min()) + 1
-        centres = np.full((rows, width, 2), np.nan)
-        centres[ky, q - q.min()] = self.microlens_centers
-        return replace(self, ml_layout=AXIAL, ml_count=(width, rows),
-                       ml_odd_row_shift=self.odd_row_shift, microlens_centers=centres)
+        return self.layout.lattice_view(self)
 
     def lens_lattice_coords(self) -> np.ndarray:
         """``(rows, cols, 2)`` position of every lens in the array's own frame, in pitches
         along the rows and rows down: ``(kx + shift·(ky odd), ky)`` (``shift``:
         :attr:`odd_row_shift`, 0 for a rectangular array)."""
-        cols, rows = self.ml_count
-        ky, kx = np.mgrid[0:rows, 0:cols].astype(np.float64)
-        return np.stack([kx + self.odd_row_shift * (ky % 2), ky], -1)
+        return self.layout.lattice_coords()
 
     def microlens_positions_mm(self) -> np.ndarray:
         """Microlens centres on the array plane, ``(rows, cols, 2)`` as ``(x, y)`` mm."""
@@ -408,6 +381,17 @@ class Camera:
         cr = np.asarray(colrow, dtype=np.float64)
         size = np.array(self.pixels, dtype=np.float64)
         return (cr + 0.5 - size / 2) * self.pixel_pitch_mm
+
+    def with_layout(self, name: str, odd_row_shift: float | None = None) -> Camera:
+        """This camera with a ``name`` array (:data:`LAYOUTS`) of the same pitch on the same
+        sensor, uncalibrated: as many lenses per row, and as many rows as the array's
+        height holds (a hexagonal array's rows lie ``pitch·√3/2`` apart; docs/design.md
+        §2)."""
+        layout = lens_layout(name, self.ml_count, odd_row_shift, view=False)
+        cols, rows = self.ml_count
+        count = (cols, layout.rows_within(rows * self.layout.row_ratio))
+        return replace(self, ml_layout=name, ml_count=count, ml_odd_row_shift=odd_row_shift,
+                       microlens_centers=None, calibrated=False)
 
     def with_centers(self, centers: np.ndarray) -> Camera:
         """A copy with calibrated microlens image centres."""
@@ -463,14 +447,6 @@ class Camera:
             f"{100 * self.microlens_image_fill:.1f}%"
         )
 
-    def _layout_keys(self) -> dict:
-        if self.ml_layout == AXIAL:
-            raise ValueError("a hexagonal array's axial view (Camera.on_lens_lattice) is "
-                             "the projector's, not a camera file: write the camera itself")
-        if self.ml_layout == "rectangular":
-            return {}
-        return {"layout": self.ml_layout, "odd_row_shift": self.odd_row_shift}
-
     @property
     def is_thin_lens(self) -> bool:
         """Whether the main lens is the thin one (``m_p = 1``, no principal-plane gap)."""
@@ -487,7 +463,7 @@ class Camera:
             lens["principal_plane_separation_mm"] = self.principal_plane_separation_mm
         doc = {
             "main_lens": lens,
-            "microlens_array": {**self._layout_keys(), "pitch_mm": self.ml_pitch_mm,
+            "microlens_array": {**self.layout.file_keys(), "pitch_mm": self.ml_pitch_mm,
                                 "focal_length_mm": self.ml_focal_length_mm,
                                 "count": list(self.ml_count),
                                 "rotation_deg": self.ml_rotation_deg,
@@ -578,10 +554,11 @@ def _check_keys(doc: dict, source: str) -> None:
         refuse_unknown(given, keys, lambda bad, section=section, keys=keys:
                        f"{source}: unknown key(s) {bad} in [{section}]; it takes "
                        f"{list(keys)} (docs/design.md §2)")
-    layout = doc.get("microlens_array", {}).get("layout", "rectangular")
-    if layout not in LAYOUTS:  # the axial view is the projector's, never a file's
-        raise ValueError(f"{source}: microlens layout must be one of {LAYOUTS}, got "
-                         f"{layout!r} ([microlens_array] layout)")
+    mla = doc.get("microlens_array", {})
+    try:  # the axial view is the projector's, never a file's
+        lens_layout(mla.get("layout", "rectangular"), (1, 1), view=False)
+    except ValueError as exc:
+        raise ValueError(f"{source}: {exc}") from None
 
 
 def load_camera(spec: str | Path | None) -> Camera:

@@ -15,7 +15,8 @@ Plain NumPy on arrays of centres; it imports nothing else of plenocl, so every s
 from __future__ import annotations
 
 import math
-from typing import Protocol, runtime_checkable
+from dataclasses import dataclass, replace
+from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -221,3 +222,213 @@ class RectangularLattice:
         row, col = self.model[0], self.model[1]
         cos = float(row @ col) / (math.hypot(*row) * math.hypot(*col))
         return math.degrees(math.asin(max(-1.0, min(1.0, cos))))
+
+
+# ---- the array's layout -----------------------------------------------------------------
+#: The microlens layouts a camera may have (docs/design.md §2).
+LAYOUTS = ("rectangular", "hexagonal")
+#: A hexagonal array's axial view (:meth:`plenocl.camera.Camera.on_lens_lattice`), for
+#: the projector only: never a camera file's layout.
+AXIAL = "axial"
+
+
+@dataclass(frozen=True)
+class LensLayout:
+    """How an array's lenses are placed and numbered: the one object every stage asks
+    about the layout (docs/design.md §2), held by the camera (``Camera.layout``).
+
+    Lenses are numbered ``(kx, ky)``, ``kx`` along a row and ``ky`` the row; rows lie
+    ``row_ratio`` pitches apart, and the odd rows (1, 3, ...) are shifted along the row
+    by ``odd_row_shift`` pitches. In axial indices ``(q, r)`` (:func:`offset_to_axial`)
+    every layout is an affine lattice. Use :func:`lens_layout` to make one.
+
+    Parameters
+    ----------
+    count
+        ``(columns, rows)`` of the numbering.
+    odd_row_shift
+        The odd rows' shift along the row, pitches.
+    """
+
+    count: tuple[int, int]
+    odd_row_shift: float = 0.0
+
+    #: The layout's name in a camera file (``[microlens_array] layout``).
+    name: ClassVar[str] = "rectangular"
+    #: Distance between neighbouring rows, in pitches.
+    row_ratio: ClassVar[float] = 1.0
+    #: Lattice neighbours of an inner lens.
+    neighbours: ClassVar[int] = 4
+    #: Whether a pixel or ray belongs to the lens whose centre is nearest (a hexagonal
+    #: cell) rather than to the lattice cell around it (a parallelogram).
+    hexagonal: ClassVar[bool] = False
+    #: Whether this is a hexagonal array's axial view, the projector's numbering.
+    is_view: ClassVar[bool] = False
+
+    @property
+    def staggered(self) -> bool:
+        """Whether the odd rows sit off the even ones (a hexagonal array)."""
+        return self.odd_row_shift != 0.0
+
+    @property
+    def array_count(self) -> tuple[int, int]:
+        """``(columns, rows)`` of the array itself (an axial view numbers more columns)."""
+        return self.count
+
+    def lattice_coords(self) -> np.ndarray:
+        """``(rows, cols, 2)`` position of every lens in the array's own frame, in
+        pitches along the rows and rows down: ``(kx + shift·(ky odd), ky)``."""
+        cols, rows = self.count
+        ky, kx = np.mgrid[0:rows, 0:cols].astype(np.float64)
+        return np.stack([kx + self.odd_row_shift * (ky % 2), ky], -1)
+
+    def to_axial(self, k: np.ndarray) -> np.ndarray:
+        """Axial indices ``(q, r)`` of lenses numbered ``(kx, ky)`` by this layout."""
+        return offset_to_axial(k, self.odd_row_shift)
+
+    def from_axial(self, qr: np.ndarray) -> np.ndarray:
+        """This layout's ``(kx, ky)`` of axial indices ``(q, r)``: the inverse of
+        :meth:`to_axial`."""
+        return axial_to_offset(qr, self.odd_row_shift)
+
+    def rows_within(self, height_pitches: float) -> int:
+        """How many rows of lenses fit in ``height_pitches`` pitches."""
+        return int(np.floor(height_pitches / self.row_ratio))
+
+    def file_keys(self) -> dict:
+        """The ``[microlens_array]`` keys that say this layout in a camera file (none for
+        the default rectangular array)."""
+        return {}
+
+    def require_array(self, message: str) -> None:
+        """Raise ``ValueError(message)`` if this is the projector's axial view, which only
+        the weighting function and projector take."""
+
+    def lattice_view(self, camera):
+        """``camera`` with its lenses numbered on an affine lattice
+        (:meth:`plenocl.camera.Camera.on_lens_lattice`): the camera itself."""
+        return camera
+
+    def rotation_deg(self, row_step: np.ndarray, column_step: np.ndarray) -> float:
+        """Rotation (degrees) of the array from its mean steps (pixels) along a row and
+        from row to row: the mean of the two axes' turns."""
+        ax, ay = row_step, column_step
+        return math.degrees(math.atan2(ax[1] - ay[0], ax[0] + ay[1]))
+
+    def column_note(self, lattice: RectangularLattice) -> str:
+        """What a message about the array's turn adds about its columns: how far off
+        square to the rows they are."""
+        return f" and its columns {lattice.skew_deg:+.4f}° off square to them"
+
+
+@dataclass(frozen=True)
+class RectangularLayout(LensLayout):
+    """A rectangular array: the base class's rules, rows one pitch apart, no shift."""
+
+
+@dataclass(frozen=True)
+class HexagonalLayout(LensLayout):
+    """A hexagonal array: rows ``pitch·√3/2`` apart, the odd rows shifted by ±1/2 pitch;
+    a lens owns the points nearest its centre (docs/design.md §2)."""
+
+    odd_row_shift: float = 0.5
+    name: ClassVar[str] = "hexagonal"
+    row_ratio: ClassVar[float] = math.sqrt(3) / 2
+    neighbours: ClassVar[int] = 6
+    hexagonal: ClassVar[bool] = True
+
+    def file_keys(self) -> dict:
+        """``layout`` and ``odd_row_shift``."""
+        return {"layout": self.name, "odd_row_shift": self.odd_row_shift}
+
+    def lattice_view(self, camera):
+        """``camera``'s axial view (docs/design.md §5): the lenses at axial indices
+        ``(q - q_min, r)``, ``NaN`` where the parallelogram holds no lens."""
+        cols, rows = self.count
+        ky, kx = np.mgrid[0:rows, 0:cols]
+        q = offset_to_axial(np.stack([kx, ky], -1), self.odd_row_shift)[..., 0]
+        width = int(q.max() - q.min()) + 1
+        centres = np.full((rows, width, 2), np.nan)
+        centres[ky, q - q.min()] = camera.microlens_centers
+        return replace(camera, ml_layout=AXIAL, ml_count=(width, rows),
+                       ml_odd_row_shift=self.odd_row_shift, microlens_centers=centres)
+
+    def rotation_deg(self, row_step: np.ndarray, column_step: np.ndarray) -> float:
+        """Rotation (degrees) of the rows alone: the step from row to row is not square
+        to them."""
+        return math.degrees(math.atan2(row_step[1], row_step[0]))
+
+    def column_note(self, lattice: RectangularLattice) -> str:
+        """Nothing: a hexagonal array's columns are not square to its rows."""
+        return ""
+
+
+@dataclass(frozen=True)
+class AxialView(HexagonalLayout):
+    """A hexagonal array numbered by its axial indices, ``(q - q_min, r)``: the
+    projector's affine view of it (:meth:`plenocl.camera.Camera.on_lens_lattice`), whose
+    ``count`` pads each row to the parallelogram (``NaN`` centres where it holds no
+    lens). Only the weighting function and projector take it."""
+
+    name: ClassVar[str] = AXIAL
+    is_view: ClassVar[bool] = True
+
+    @property
+    def array_count(self) -> tuple[int, int]:
+        """``(columns, rows)`` of the hexagonal array the view stands for."""
+        width, rows = self.count
+        return width - (rows - 1) // 2, rows
+
+    @property
+    def q_min(self) -> int:
+        """The axial index ``q`` of the view's first column."""
+        rows = self.count[1]
+        first = np.stack([np.zeros(rows, np.int64), np.arange(rows)], -1)
+        return int(offset_to_axial(first, self.odd_row_shift)[:, 0].min())
+
+    def to_axial(self, k: np.ndarray) -> np.ndarray:
+        """Axial indices of the view's ``(column, row)``: ``(column + q_min, row)``."""
+        return np.asarray(k, dtype=np.int64) + [self.q_min, 0]
+
+    def from_axial(self, qr: np.ndarray) -> np.ndarray:
+        """The view's ``(column, row)`` of axial indices."""
+        return np.asarray(qr, dtype=np.int64) - [self.q_min, 0]
+
+    def file_keys(self) -> dict:
+        """Refused: the view is the projector's, not a camera file."""
+        raise ValueError("a hexagonal array's axial view (Camera.on_lens_lattice) is the "
+                         "projector's, not a camera file: write the camera itself")
+
+    def require_array(self, message: str) -> None:
+        """Raise ``ValueError(message)``: this is the axial view."""
+        raise ValueError(message)
+
+    def lattice_view(self, camera):
+        """The view itself."""
+        return camera
+
+
+_LAYOUTS = {cls.name: cls for cls in (RectangularLayout, HexagonalLayout, AxialView)}
+
+
+def lens_layout(name: str, count: tuple[int, int], odd_row_shift: float | None = None,
+                *, view: bool = True) -> LensLayout:
+    """The layout called ``name`` (:data:`LAYOUTS`; ``"axial"`` too unless ``view`` is
+    false) of an array of ``count`` ``(columns, rows)`` lenses.
+
+    Raises
+    ------
+    ValueError
+        For an unknown layout, or an odd-row shift the layout cannot have (a rectangular
+        array's is 0; a hexagonal one's +0.5, the default, or -0.5).
+    """
+    cls = _LAYOUTS.get(name) if (view or name != AXIAL) else None
+    if cls is None:
+        raise ValueError(f"microlens layout must be one of {LAYOUTS}, got {name!r} "
+                         "([microlens_array] layout)")
+    allowed = (0.0,) if cls is RectangularLayout else (0.5, -0.5)
+    if odd_row_shift is not None and odd_row_shift not in allowed:
+        raise ValueError(f"odd_row_shift must be one of {allowed} (pitches) for a "
+                         f"{name} array, got {odd_row_shift!r}")
+    shift = allowed[0] if odd_row_shift is None else float(odd_row_shift)
+    return cls(count=tuple(count), odd_row_shift=shift)
