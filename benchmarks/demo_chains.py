@@ -41,7 +41,7 @@ from plenocl.demo.boundary_layer import (  # noqa: E402
 from plenocl.io import read_image  # noqa: E402
 from plenocl.piv.imagefit import ImageFit  # noqa: E402
 from plenocl.piv.refinement import FocalZone, SightLines, refine_with_particles  # noqa: E402
-from plenocl.vectorfile import save_field  # noqa: E402
+from plenocl.vectorfield import save_field  # noqa: E402
 from plenocl.volumefile import load_volume  # noqa: E402
 
 

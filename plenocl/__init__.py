@@ -22,7 +22,7 @@ from .projection import Projector
 from .ptv import Tracks
 from .reconstruction import ReconstructionSettings, reconstruct
 from .simulate import Simulator, simulate_image, simulate_white_image
-from .vectorfile import read_npz, save_field
+from .vectorfield import read_npz, save_field
 from .version import __version__
 from .volumefile import load_volume, save_volume
 

@@ -2,19 +2,24 @@
 (:class:`PIVResult`, what :func:`plenocl.piv3d` returns), its derived flow quantities
 (velocity, gradient, vorticity, Q-criterion) and the arrays and metadata a file of it
 holds (:meth:`PIVResult.arrays`, :meth:`PIVResult.metadata`), including the turn of
-vectors on a rotated grid into object space. :mod:`plenocl.io.fields` writes and reads
-those arrays; it knows no PIV algorithm.
+vectors on a rotated grid into object space; and the field as a file, written with its
+geometry (:func:`save_field`: ``.vti`` for ParaView, ``.npz``, ``.h5``, Tecplot ``.dat``,
+``.csv``) and read back (:func:`read_npz`: ``.npz``, ``.h5``). :mod:`plenocl.io.fieldformat`
+writes and reads those arrays (and lists them); it knows no PIV algorithm and no
+vector-field type.
 """
 
 from __future__ import annotations
 
+import json
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from .camera.lattice import rotation_matrix
-from .io.fields import AXES, FORMAT_VERSION
+from .io.fieldformat import AXES, FORMAT_VERSION, check_field_path, read_field, write_field
 
 __all__ = ["AXES", "FLAGS", "FORMAT_VERSION", "NOTES", "PIVResult", "Size3",
            "displacement_to_velocity", "field_units", "q_criterion", "uncertainty",
@@ -138,7 +143,7 @@ class PIVResult:
 
     def arrays(self, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0), dt: float | None = None,
                rotation_deg: float = 0.0) -> dict[str, np.ndarray]:
-        """Every array a field file stores, keyed by name (see :mod:`plenocl.io.fields`).
+        """Every array a field file stores, keyed by name (see :mod:`plenocl.io.fieldformat`).
 
         Parameters
         ----------
@@ -312,3 +317,92 @@ def _to_object_space(components, rotation_deg: float) -> np.ndarray:
         r = rotation_matrix(rotation_deg)
         cx, cy = r[0, 0] * cx + r[0, 1] * cy, r[1, 0] * cx + r[1, 1] * cy
     return np.stack([cx, cy, cz])
+
+
+# ---- the field as a file ---------------------------------------------------------------
+def grid_geometry(grid) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """A grid's voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm
+    (what :meth:`plenocl.PIVResult.arrays` takes)."""
+    spacing = tuple(float(s) for s in grid.spacing)
+    lows = (grid.z[0], grid.y[0], grid.x[0])
+    return spacing, tuple(lo + 0.5 * s for lo, s in zip(lows, spacing))
+
+
+def _geometry(voxel_size_mm, origin_mm, grid):
+    """Voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm."""
+    if grid is not None:
+        return grid_geometry(grid)
+    origin = tuple(float(o) for o in np.broadcast_to(np.asarray(origin_mm, float), (3,)))
+    return voxel_size(voxel_size_mm), origin
+
+
+def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
+                 dt: float | None = None, rotation_deg: float = 0.0,
+                 metadata: dict | None = None) -> dict[str, np.ndarray]:
+    """All arrays :func:`save_field` writes to a ``.npz``, keyed by name: the field's own
+    (:meth:`plenocl.PIVResult.arrays`) and a JSON ``metadata`` entry, its
+    :meth:`~plenocl.PIVResult.metadata` with ``metadata``'s entries; the parameters are
+    :func:`save_field`'s."""
+    out = result.arrays(voxel_size_mm, origin_mm, dt, rotation_deg)
+    out["metadata"] = np.asarray(json.dumps(_metadata(result, dt, metadata)))
+    return out
+
+
+def _metadata(result: PIVResult, dt: float | None, metadata: dict | None) -> dict:
+    return {**(metadata or {}), **result.metadata(dt)}
+
+
+def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
+               origin_mm=(0.0, 0.0, 0.0), dt: float | None = None, grid=None,
+               metadata: dict | None = None) -> Path:
+    """Write a PIV result, choosing the format from the extension (.vti, .npz, .h5/.hdf5,
+    Tecplot ASCII .dat, .csv; :data:`plenocl.io.fieldformat.FIELD_FORMATS`), atomically.
+
+    Parameters
+    ----------
+    path
+        Output file; its suffix selects the format; its folder must be writable (both
+        checked before anything is computed: a ``ValueError`` otherwise).
+    result
+        Output of :func:`plenocl.piv3d`.
+    voxel_size_mm
+        Scalar or ``(dz, dy, dx)`` in mm.
+    origin_mm
+        ``(z0, y0, x0)``: the centre of voxel ``(0, 0, 0)`` in mm.
+    dt
+        Time between the volumes (s); adds velocity in m/s and vorticity in 1/s.
+    grid
+        Optional :class:`plenocl.Grid` of the volumes; overrides ``voxel_size_mm`` and
+        ``origin_mm`` (its extents are the volume's outer faces); on a rotated grid the
+        velocity and vorticity are written in object space (:mod:`plenocl.io.fieldformat`).
+    metadata
+        JSON-ready entries stored with the field (``.npz``, ``.h5``; a batch run records
+        each pair's source files here), read back by
+        :func:`plenocl.io.fieldformat.field_metadata`.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    path = check_field_path(path)
+    size, origin = _geometry(voxel_size_mm, origin_mm, grid)
+    rotation = 0.0 if grid is None else grid.rotation_deg
+    return write_field(path, result.arrays(size, origin, dt, rotation),
+                       _metadata(result, dt, metadata))
+
+
+def read_npz(path) -> tuple[PIVResult, dict[str, np.ndarray]]:
+    """Read a field written by :func:`save_field` to a ``.npz`` or ``.h5`` (a file of the
+    first layout comes back in the current one, :func:`plenocl.io.fieldformat.read_field`).
+
+    Returns
+    -------
+    result : PIVResult
+        The displacement field and flags (per-pass diagnostics are not stored).
+    arrays : dict
+        Every stored array, including ``voxel_size_mm_xyz``, ``origin_mm_xyz`` (both
+        (x, y, z)) and, if written, ``dt`` and ``velocity``.
+    """
+    arrays = read_field(path)
+    return PIVResult.from_arrays(arrays, source=str(path)), arrays

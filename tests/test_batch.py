@@ -14,7 +14,7 @@ from plenocl.cli.main import main
 from plenocl.io import write_tiff
 from plenocl.io.tomlfile import read_toml
 from plenocl.plot import SUMMARY_FIGURES
-from plenocl.vectorfile import read_npz
+from plenocl.vectorfield import read_npz
 
 EXPERIMENT = """
 [camera]

@@ -437,7 +437,7 @@ def test_a_region_of_interest_is_recorded_and_frames_are_cut_alike(tmp_path, que
 def test_dark_frame_and_flat_field_even_out_the_sensor():
     """frame = dark + gain * signal, flat = dark + gain * level: correcting gives the
     signal times the mean gain's level, whatever each pixel's gain and dark level."""
-    from plenocl.sensor import correct_frame
+    from plenocl.simulate.sensor import correct_frame
 
     rng = np.random.default_rng(2)
     dark = rng.uniform(90, 110, (20, 30))

@@ -14,7 +14,7 @@ from scipy import ndimage, special
 
 from plenocl import Camera, get_queue
 from plenocl.calibration import find_centers
-from plenocl.lenscentres import fit_disks
+from plenocl.calibration.lenscentres import fit_disks
 from plenocl.simulate import centre_shift_px, lens_displacements_mm, simulate_white_image
 
 TARGET_RMS_PX = 0.05

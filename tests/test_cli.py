@@ -136,7 +136,7 @@ def test_a_whole_experiment_from_the_command_line(tmp_path, capsys):
     the command line: the field moves the way the particles were moved."""
     from plenocl import random_particles
     from plenocl.io import write_particles
-    from plenocl.vectorfile import read_npz
+    from plenocl.vectorfield import read_npz
 
     d = tmp_path
     assert main(["white", "--out", str(d / "white.tif"), "--photon-noise"]) == 0

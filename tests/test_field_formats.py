@@ -14,9 +14,9 @@ import pytest
 
 from plenocl import PIVResult
 from plenocl.cli.main import main
-from plenocl.io.fields import AXES, read_field
+from plenocl.io.fieldformat import AXES, read_field
 from plenocl.io.outputs import check_output_folder
-from plenocl.vectorfile import read_npz, save_field
+from plenocl.vectorfield import read_npz, save_field
 
 #: An anisotropic field: a different voxel size, window, step and count along each axis.
 SIZE_ZYX = (0.2, 0.1, 0.05)        # (dz, dy, dx) mm, as Grid.spacing

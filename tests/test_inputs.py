@@ -21,7 +21,7 @@ from plenocl.reconstruction import (
     UnusableImageError,
     preprocess,
 )
-from plenocl.sensor import correct_frame
+from plenocl.simulate.sensor import correct_frame
 from plenocl.volumefile import load_volume
 
 SMALL_GRID = Grid((6, 20, 24), x=(-0.72, 0.72), y=(-0.6, 0.6), z=(-0.5, 0.5))

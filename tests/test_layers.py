@@ -88,7 +88,7 @@ def test_no_stage_imports_another_stage():
 
 def test_files_layer_knows_no_stage():
     """io/ writes and reads arrays and numbers: it imports nothing of plenocl outside
-    itself (no stage, and no model either: ``vectorfile``, ``volumefile`` sit above it)."""
+    itself (no stage, and no model either: ``vectorfield``, ``volumefile`` sit above it)."""
     bad = [f"{s} -> {t}" for s, t, _ in _edges()
            if s.startswith("plenocl.io") and not t.startswith("plenocl.io")]
     assert not bad, "io/ imports from outside io/: " + "; ".join(bad)

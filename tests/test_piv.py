@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from plenocl import flows
-from plenocl import vectorfile as fieldio
+from plenocl import vectorfield as fieldio
 from plenocl.piv import PIVResult, piv3d
 from plenocl.piv.correlation import correlate, fit_peaks, window_fraction, window_grid
 from plenocl.piv.interpolate import resample

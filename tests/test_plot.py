@@ -18,8 +18,7 @@ from plenocl.plot.profiles import plane_means
 from plenocl.plot.timeseries import SUMMARY_FIGURES, nearest_vector
 from plenocl.plot.vectors3d import isosurfaces, thinned
 from plenocl.ptv import Tracks
-from plenocl.vectorfield import PIVResult
-from plenocl.vectorfile import save_field
+from plenocl.vectorfield import PIVResult, save_field
 from plenocl.volumefile import save_volume
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -17,7 +17,7 @@ from plenocl.batch.prepare import run_camera, run_grid
 from plenocl.batch.record import run_record
 from plenocl.cli.main import main
 from plenocl.io import write_tiff
-from plenocl.io.fields import field_metadata, read_field
+from plenocl.io.fieldformat import field_metadata, read_field
 from plenocl.io.files import read_volumes
 from plenocl.io.tomlfile import read_toml
 

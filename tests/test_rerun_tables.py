@@ -20,7 +20,7 @@ from test_rerun import (  # noqa: F401  (the fixtures)
 
 import plenocl
 from plenocl.io import write_tiff
-from plenocl.io.fields import read_field
+from plenocl.io.fieldformat import read_field
 
 
 def _same_field(folder, fresh):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import tolerances as tol
 
-import plenocl.simulate as simmod
+import plenocl.simulate.raytrace as simmod
 from plenocl import Camera, reference
 from plenocl.simulate import Simulator, simulate_image, simulate_white_image
 

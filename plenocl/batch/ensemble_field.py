@@ -14,12 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from ..grid import Grid
-from ..io.fields import field_metadata
+from ..io.fieldformat import field_metadata
 from ..io.files import read_volumes
 from ..opencl.device import get_queue
 from ..piv.ensemble import ensemble_piv
-from ..vectorfield import PIVResult
-from ..vectorfile import read_npz
+from ..vectorfield import PIVResult, read_npz
 from .layout import finished_pairs, volume_file
 from .record import ensemble_record, kept_volumes
 from .worker import add_copies, rewrite_field, save_with_copies

@@ -32,7 +32,7 @@ import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..io.fields import field_metadata
+from ..io.fieldformat import field_metadata
 from ..io.files import volumes_metadata
 from ..options import NONE
 from ..pipeline.resume import changed_keys, config_digest, config_parts, name_changes

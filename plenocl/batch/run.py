@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..io.atomic import write_json
-from ..io.fields import field_metadata
+from ..io.fieldformat import field_metadata
 from ..io.outputs import check_output_folder
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries

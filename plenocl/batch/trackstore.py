@@ -26,8 +26,7 @@ import numpy as np
 from ..grid import Grid
 from ..io.zarrstore import Variable, write_store
 from ..ptv import Tracks
-from ..vectorfield import PIVResult
-from ..vectorfile import field_arrays, grid_geometry
+from ..vectorfield import PIVResult, field_arrays, grid_geometry
 
 #: Tracks' per-frame vectors in the store: name, Tracks attribute, unit, scale from
 #: the tracks' mm (per second) to the unit.

@@ -19,15 +19,14 @@ import numpy as np
 
 from ..camera import load_camera
 from ..grid import Grid
-from ..io.fields import field_metadata
+from ..io.fieldformat import field_metadata
 from ..io.files import read_image, read_volumes, volumes_metadata, write_volumes
 from ..opencl.device import DeviceLike
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_frame
 from ..pipeline.pair import correlate_volumes, known_backgrounds
 from ..reconstruction import UnusableImageError
-from ..vectorfield import PIVResult
-from ..vectorfile import read_npz, save_field
+from ..vectorfield import PIVResult, read_npz, save_field
 from .layout import field_copies, pair_index, volume_file
 from .pairing import fingerprint
 from .record import CORRELATE, field_record

@@ -14,7 +14,6 @@ from scipy.spatial import cKDTree
 
 from ..camera import Camera
 from ..io.centres import read_centres
-from ..lenscentres import fit_disks
 from .checks import image_pitch_px, validate_image
 from .diagnostics import save_diagnostic, save_failure_diagnostic
 from .disks import (
@@ -24,6 +23,7 @@ from .disks import (
     flatten_disks,
 )
 from .gridmodel import grid_model
+from .lenscentres import fit_disks
 from .matching import match_lattice
 from .result import CenterFit
 from .spots import (

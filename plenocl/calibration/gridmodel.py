@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from ..camera import Camera
+from ..camera import Camera, LensLayout
 
 #: F-test p-value below which the cubic grid model replaces the affine one.
 DISTORTION_P_VALUE = 1e-3
@@ -17,23 +17,22 @@ DISTORTION_MIN_PX = 0.05
 
 
 def _design(k: np.ndarray, shape: tuple[int, int], degree: int,
-            stagger: bool = False) -> np.ndarray:
-    """Polynomial terms of the normalised lens index, up to total ``degree``; with
-    ``stagger`` (a hexagonal array) also the odd rows' own offset from the even ones
-    (``ky`` odd): a real array's odd rows may sit off the camera file's half pitch (0.46
-    pitch in issue 44 finding 3), which no smooth function of the position represents."""
+            layout: LensLayout) -> np.ndarray:
+    """Polynomial terms of the normalised lens index, up to total ``degree``, and the
+    ``layout``'s own terms (:meth:`~plenocl.camera.LensLayout.row_offset_terms`: a
+    hexagonal array's odd rows' own offset from the even ones, which may sit off the
+    camera file's half pitch, 0.46 pitch in issue 44 finding 3, and which no smooth
+    function of the position represents)."""
     cols, rows = shape
     a = (k[:, 0] - (cols - 1) / 2) / max(1.0, (cols - 1) / 2)
     b = (k[:, 1] - (rows - 1) / 2) / max(1.0, (rows - 1) / 2)
     terms = [a**i * b**j for n in range(degree + 1) for j in range(n + 1) for i in [n - j]]
-    if stagger:
-        terms.append(np.rint(k[:, 1]) % 2)
-    return np.column_stack(terms)
+    return np.column_stack(terms + layout.row_offset_terms(k[:, 1]))
 
 
-def _robust_fit(k, c, shape, degree, use, stagger: bool = False):
+def _robust_fit(k, c, shape, degree, use, layout: LensLayout):
     """Least-squares polynomial fit with iterative outlier rejection; returns coef, use."""
-    design = _design(k, shape, degree, stagger)
+    design = _design(k, shape, degree, layout)
     for _ in range(5):
         coef, *_ = np.linalg.lstsq(design[use], c[use], rcond=None)
         resid = np.hypot(*(design @ coef - c).T)
@@ -45,7 +44,7 @@ def _robust_fit(k, c, shape, degree, use, stagger: bool = False):
     return coef, use
 
 
-def _choose_degree(k, c, shape, use, degree, stagger: bool = False) -> int:
+def _choose_degree(k, c, shape, use, degree, layout: LensLayout) -> int:
     """Affine unless ``degree`` says otherwise or, for ``"auto"``, a cubic model is both
     significantly better (F-test) and differs from the affine one by a relevant amount
     (a sub-pixel-phase bias of the centroids must not pass for distortion)."""
@@ -53,15 +52,15 @@ def _choose_degree(k, c, shape, use, degree, stagger: bool = False) -> int:
         if degree not in (1, 2, 3):
             raise ValueError(f"degree must be 1, 2, 3 or 'auto', got {degree!r}")
         return int(degree)
-    p1, p3 = (2 * _design(k[:1], shape, d, stagger).shape[1] for d in (1, 3))
-    common = (_robust_fit(k, c, shape, 1, use, stagger)[1]
-              & _robust_fit(k, c, shape, 3, use, stagger)[1])
+    p1, p3 = (2 * _design(k[:1], shape, d, layout).shape[1] for d in (1, 3))
+    common = (_robust_fit(k, c, shape, 1, use, layout)[1]
+              & _robust_fit(k, c, shape, 3, use, layout)[1])
     n = 2 * int(common.sum())
     if n <= 3 * p3:
         return 1
     rss, models = [], []
     for deg in (1, 3):
-        design = _design(k, shape, deg, stagger)
+        design = _design(k, shape, deg, layout)
         coef, *_ = np.linalg.lstsq(design[common], c[common], rcond=None)
         rss.append(float(((design[common] @ coef - c[common]) ** 2).sum()))
         models.append(design @ coef)
@@ -79,7 +78,7 @@ def grid_model(camera: Camera, c: np.ndarray, use: np.ndarray, degree):
     hexagonal array's model also fits its odd rows' offset (:func:`_design`)."""
     cols, rows = camera.ml_count
     kk = camera.lens_lattice_coords().reshape(-1, 2)  # affine in the lens positions
-    stagger = camera.layout.staggered
-    deg = _choose_degree(kk, c, (cols, rows), use, degree, stagger)
-    coef, use = _robust_fit(kk, c, (cols, rows), deg, use, stagger)
-    return deg, use, (_design(kk, (cols, rows), deg, stagger) @ coef).reshape(rows, cols, 2)
+    layout = camera.layout
+    deg = _choose_degree(kk, c, (cols, rows), use, degree, layout)
+    coef, use = _robust_fit(kk, c, (cols, rows), deg, use, layout)
+    return deg, use, (_design(kk, (cols, rows), deg, layout) @ coef).reshape(rows, cols, 2)

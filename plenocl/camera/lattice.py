@@ -300,6 +300,11 @@ class LensLayout:
         the default rectangular array)."""
         return {}
 
+    def row_offset_terms(self, ky: np.ndarray) -> list[np.ndarray]:
+        """The terms a calibration's grid model adds for this layout's rows, given the
+        lenses' row indices: none (a hexagonal array: its odd rows' own offset)."""
+        return []
+
     def require_array(self, message: str) -> None:
         """Raise ``ValueError(message)`` if this is the projector's axial view, which only
         the weighting function and projector take."""
@@ -340,6 +345,11 @@ class HexagonalLayout(LensLayout):
     def file_keys(self) -> dict:
         """``layout`` and ``odd_row_shift``."""
         return {"layout": self.name, "odd_row_shift": self.odd_row_shift}
+
+    def row_offset_terms(self, ky: np.ndarray) -> list[np.ndarray]:
+        """The odd rows' own offset from the even ones (1 on an odd row): a real array's
+        odd rows may sit off the nominal half pitch."""
+        return [np.rint(ky) % 2]
 
     def lattice_view(self, camera):
         """``camera``'s axial view (docs/design.md §5): the lenses at axial indices

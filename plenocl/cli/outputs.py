@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..io.fields import FIELD_FORMATS
+from ..io.fieldformat import FIELD_FORMATS
 from ..io.files import VOLUME_FORMATS
 from ..io.outputs import check_output, check_output_folder
 

@@ -92,7 +92,7 @@ def piv_command(args: argparse.Namespace) -> int:
     from ..pipeline.velocity import refined_field
     from ..piv import PIVSettings
     from ..units import check_dt
-    from ..vectorfile import save_field
+    from ..vectorfield import save_field
     from ..volumefile import load_volume
 
     if args.raw and not args.camera:

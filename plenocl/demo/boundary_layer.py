@@ -245,7 +245,7 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettin
                queue) -> None:
     from ..io.files import read_image
     from ..pipeline.velocity import refined_field
-    from ..vectorfile import save_field
+    from ..vectorfield import save_field
 
     vol_a, _ = load_volume(run.path("vol_a.npz"))
     vol_b, _ = load_volume(run.path("vol_b.npz"))
@@ -260,7 +260,7 @@ def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettin
 def measured_and_true(field: Path, sc: Scenario, flow: CameraFrameFlow):
     """Measured and true velocity (m/s, camera frame, ``(3, nz', ny', nx')``) of a field
     file (``.npz``), the valid mask and the window-centre coordinates (mm)."""
-    from ..vectorfile import read_npz
+    from ..vectorfield import read_npz
 
     res, _ = read_npz(field)
     dz, dy, dx = sc.grid.spacing
@@ -278,7 +278,7 @@ def field_truths(field: Path, sc: Scenario, flow: CameraFrameFlow):
     """:func:`measured_and_true` with the truth averaged over each final window (what a
     window measures, and what the headline lateral and depth errors compare with):
     ``(measured, point truth, window-averaged truth, valid, (x, y, z))``."""
-    from ..vectorfile import read_npz
+    from ..vectorfield import read_npz
 
     meas, true, valid, coords = measured_and_true(field, sc, flow)
     averaged = window_averaged(read_npz(field)[0].window, coords, sc, flow)

@@ -27,7 +27,7 @@ from ..pipeline import TrackSettings, bin_tracks, process_pair, track
 from ..plot.tracks import plot_tracks
 from ..projection import Projector
 from ..simulate import simulate_image
-from ..vectorfile import save_field
+from ..vectorfield import save_field
 from .boundary_layer import (
     DT,
     U_INF,

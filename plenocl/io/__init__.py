@@ -4,7 +4,7 @@
 - :mod:`.files`: images (TIFF/PNG/NPY), particle CSVs, volumes (NPZ/NPY/HDF5);
 - :mod:`.fields`: PIV fields' arrays (VTK ``.vti``, ``.npz``, ``.h5``, and the tables of
   :mod:`.fieldtables`, Tecplot ``.dat`` and ``.csv``; a :class:`plenocl.PIVResult` as a
-  file: :mod:`plenocl.vectorfile`);
+  file: :mod:`plenocl.vectorfield`);
 - :mod:`.outputs`: an output path's format and folder, checked before any work;
 - :mod:`.timeseries`, :mod:`.zarrstore`: Zarr stores that xarray opens (a batch's time
   series; named arrays with their dimensions, e.g. a tracking run's ``tracks.zarr``);
@@ -12,7 +12,7 @@
 """
 
 from .atomic import atomic_path, write_json, write_text
-from .fields import read_field, write_field
+from .fieldformat import read_field, write_field
 from .files import (
     read_image,
     read_particles,

@@ -1,7 +1,7 @@
 """The time series of a batch run as one chunked Zarr store, readable by xarray.
 
 :func:`write_timeseries` gathers per-pair vector fields (``.npz`` files of
-:func:`plenocl.vectorfile.save_field`) into ``timeseries.zarr``:
+:func:`plenocl.vectorfield.save_field`) into ``timeseries.zarr``:
 
 - coordinates ``time`` (s, or pair numbers where the pair interval is unknown), ``z``,
   ``y``, ``x`` (mm, the vector grid's centres) and ``pair`` (the pair's index in the run);
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fields import metadata_of, read_field
+from .fieldformat import metadata_of, read_field
 from .zarrstore import finish_store, partial_store
 
 COMPONENTS = ("u", "v", "w")

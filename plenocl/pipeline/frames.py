@@ -11,14 +11,14 @@ import numpy as np
 from ..camera import Camera
 from ..io.files import read_image
 from ..optics.rawimage import check_exposure
-from ..sensor import correct_frame
+from ..simulate.sensor import correct_frame
 
 
 def load_frame(path, camera: Camera, channel: str | None = None,
                dark: np.ndarray | None = None, flat: np.ndarray | None = None,
                white: bool = False) -> np.ndarray:
     """Read ``path`` (:func:`plenocl.io.read_image` with ``channel``), correct it with
-    ``dark`` and ``flat`` (:func:`plenocl.sensor.correct_frame`, when given) and cut it
+    ``dark`` and ``flat`` (:func:`plenocl.simulate.sensor.correct_frame`, when given) and cut it
     to ``camera``'s sensor (:meth:`plenocl.Camera.fit_image`).
 
     A blank frame, or a saturated one (not for a ``white`` image, whose spots may all

@@ -96,9 +96,9 @@ def check_component(name: str) -> str:
 
 
 def read_vector_field(path: str | Path) -> VectorData:
-    """A field written by :func:`plenocl.vectorfile.save_field` (``.npz``): velocities in
+    """A field written by :func:`plenocl.vectorfield.save_field` (``.npz``): velocities in
     m/s where it was written with ``dt``, else displacements in voxels."""
-    from ..vectorfile import read_npz
+    from ..vectorfield import read_npz
 
     res, arrays = read_npz(path)
     coords = [np.asarray(arrays[f"{a}_mm"], float) for a in AXES]

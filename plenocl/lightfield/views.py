@@ -57,13 +57,13 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl.array as cl_array
 
-from .camera import Camera
-from .camera.lattice import lattice_fit
-from .opencl.device import DeviceLike, get_queue
-from .opencl.program import KernelSet
-from .optics.imaging import array_plane_positions, array_plane_scale
-from .optics.ownership import lens_owner
-from .optics.rawimage import check_image
+from ..camera import Camera
+from ..camera.lattice import lattice_fit
+from ..opencl.device import DeviceLike, get_queue
+from ..opencl.program import KernelSet
+from ..optics.imaging import array_plane_positions, array_plane_scale
+from ..optics.ownership import lens_owner
+from ..optics.rawimage import check_image
 
 
 # ---- lattice --------------------------------------------------------------------------

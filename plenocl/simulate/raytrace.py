@@ -14,9 +14,9 @@ import warnings
 import numpy as np
 import pyopencl.array as cl_array
 
-from .camera import Camera
-from .opencl.device import DeviceLike, device_info, get_queue
-from .opencl.program import KernelSet
+from ..camera import Camera
+from ..opencl.device import DeviceLike, device_info, get_queue
+from ..opencl.program import KernelSet
 from .sensor import SensorModel
 
 #: Rays one work-item traces; the rest of the parallelism is over sources.

@@ -33,7 +33,7 @@ velocity in m/s is the default (active) vector where ``dt`` is given, else the
 displacement in voxels.
 
 This module writes and reads those arrays and a JSON-ready metadata dict; it knows no
-vector-field type. :mod:`plenocl.vectorfile` turns a :class:`plenocl.PIVResult` into
+vector-field type. :mod:`plenocl.vectorfield` turns a :class:`plenocl.PIVResult` into
 them (:meth:`plenocl.PIVResult.arrays`) and back.
 """
 
@@ -55,7 +55,7 @@ __all__ = ["AXES", "FIELD_FORMATS", "FORMAT_VERSION", "READABLE_FIELD_FORMATS",
 
 #: The layout of the arrays a field file holds; files without ``format_version`` are
 #: version 1, where ``voxel_size_mm``, ``origin_mm`` and ``window`` were (z, y, x) (read
-#: back converted: :func:`plenocl.io.fields.read_field`).
+#: back converted: :func:`plenocl.io.fieldformat.read_field`).
 FORMAT_VERSION = 2
 
 #: Axis order and meaning of the stored arrays (also in every file's metadata).
