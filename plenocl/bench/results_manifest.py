@@ -1,0 +1,165 @@
+"""What ``docs/results.md`` shows: the benchmark runs of ``python
+benchmarks/results_page.py`` (:mod:`plenocl.bench.results`), in page order.
+
+Each entry's options keep the whole manifest within about 40 minutes on 2 CPU cores
+with PoCL (``--list`` prints the estimates; the figures the scripts' docstrings and the
+hand-kept page quoted before set them): the error budget on the reduced 96 x 64-lens
+camera at one seeding, one pair at the paper's full size as the headline, the projector
+without its stored-matrix comparison of 122 M weights and the slow reconstructions of
+the rotated array, and two images per calibration case instead of three. Each method
+paragraph says what is measured and against which baseline; the figures and the date
+come from the run itself.
+"""
+
+from __future__ import annotations
+
+from .results import Entry
+
+__all__ = ["MANIFEST"]
+
+#: Every entry of the page, in page order within each section.
+MANIFEST: tuple[Entry, ...] = (
+    Entry(
+        "demo", "Accuracy",
+        "The built-in example (`plenocl demo`)",
+        "The README's first command, the boundary-layer demo on the small camera (850 x 850 "
+        "px behind 50 x 50 lenses, 48 x 48 x 32 voxels), run in a fresh folder so nothing "
+        "is resumed: the velocity RMS error of the valid vectors against the truth averaged "
+        "over each final window, lateral and in depth, the mean profile's error, and the "
+        "particles the default reconstruction recovers beside the paper's MART on the same "
+        "images (the baseline).",
+        ("benchmarks/demo_run.py",), 2.0),
+    Entry(
+        "accuracy", "Accuracy",
+        "Error budget at the paper's optics, 96 x 64 microlenses",
+        "The velocity error of the default chain (`plenocl.process_pair`) at the paper's "
+        "optics and voxel (0.183 x 0.175 x 0.133 mm, 20 mm of depth) on a 96 x 64-lens "
+        "window of its 16 MP sensor, at 0.05 particles per microlens, for a uniform "
+        "displacement and a solid-body rotation about the lateral x axis: RMS error of the "
+        "valid vectors against the true displacement at the window centres, lateral and in "
+        "depth (in voxels; in focus, near and far apart), from ray-traced raw images with "
+        "0.8 px blur, photon and read noise. On the same images in the same run: PIV of "
+        "volumes rendered from the true particles (what the windows alone cannot resolve), "
+        "the default without the particles' fit to the raw images, its volumes correlated "
+        "without the particle refinement, and the baseline, the chain before (voxels "
+        "reconstructed and correlated); with each reconstruction's quality (Q, particles "
+        "recovered, ghost intensity) and seconds per pair.",
+        ("benchmarks/accuracy.py", "--lenses", "96", "64", "--seeding", "0.05"), 4.0),
+    Entry(
+        "paper-pair", "Performance",
+        "One pair at the paper's full size",
+        "One image pair through `plenocl.process_pair` at the paper's size: the whole "
+        "16 MP sensor (289 x 193 microlenses) and 300 x 200 x 150 voxels, 0.05 particles per "
+        "microlens, uniform displacement. Per reconstruction setting, on the same two raw "
+        "images in the same run: the seconds of each stage (both reconstructions, PIV, the "
+        "particle refinement with its fit to the raw images), the lateral and depth RMS "
+        "error of the valid vectors and the particles recovered. The default "
+        "(coarse-to-fine MLEM with coarser aperture sampling in the coarse and early "
+        "iterations) runs beside its baseline, the same iterations all on the projector's "
+        "full aperture sampling (`fullaperture`). The projectors and their sensitivities are "
+        "built once before the rows, as a batch worker does, and timed apart.",
+        ("benchmarks/paper_pair.py", "--settings", "default", "fullaperture"), 5.0),
+    Entry(
+        "projector", "Performance",
+        "Projector throughput and roofline",
+        "Matrix-free forward and back projection, device-resident, medians of repeats. "
+        "Small cubic grids on the 850 x 850 px camera against `scipy.sparse` CSR products "
+        "of the same weights (the fixed cost per call); the paper's experiment (16 MP, "
+        "300 x 200 x 150 voxels) in weights per second against the most a stored matrix "
+        "could stream at this device's measured copy bandwidth (8 bytes per weight); the "
+        "array rotated 0.15° on a sensor-axis grid, on a lens-row grid and with calibrated "
+        "centres, against the axis-aligned array and against the general kernels that "
+        "projected rotated arrays before. The stored-matrix comparison at 122 M weights, the "
+        "rotated array's reconstructions and the scratch-size comparison are left out here "
+        "(`benchmarks/projector.py` without `--skip-*` runs them).",
+        ("benchmarks/projector.py", "--skip-stored", "--skip-reconstruction",
+         "--skip-scratch", "--repeats", "3"), 4.0),
+    Entry(
+        "real-array", "Performance",
+        "A real calibrated microlens array",
+        "The lattice `plenocl calibrate` found on cicwi/plenoptomos' white image (27 x 20 "
+        "lenses, the columns slightly off square to the rows) with the grid `plenocl grid` "
+        "writes for it: forward + back projection on the projector's fast path against the "
+        "ideal lattice (the baseline) and against the general kernels every calibrated "
+        "array took before, medians of repeats; then its images and a short MLEM "
+        "reconstruction against the general path's, on the same weighting model.",
+        ("benchmarks/real_array.py",), 1.0),
+    Entry(
+        "refocus", "Performance",
+        "Refocusing at 16 MP",
+        "A focal stack of 9 planes from one simulated raw image of the paper's camera by "
+        "the OpenCL kernel (quadratic B-spline weights), against SciPy's shift-and-add "
+        "(`scipy.ndimage.map_coordinates`, the same weights, one call per view) and the "
+        "NumPy reference, on the same light field in the same run: median seconds, planes "
+        "per second and taps per second; the light field's resampling timed apart.",
+        ("benchmarks/refocus.py", "--camera", "paper", "--repeats", "3"), 2.0),
+    Entry(
+        "piv", "Performance",
+        "3-D PIV on synthetic volumes",
+        "`piv3d` with its defaults on synthetic volume pairs (Gaussian particles of 1 "
+        "voxel) with known displacement fields, 96³ voxels, one repeat: RMS vector error "
+        "over the interior and seconds per vector, against openpiv-python's 3-D PIV on the "
+        "same volumes where it is installed (the `bench` extra); the deformation on the "
+        "OpenCL device against SciPy's on the host, the direct correlation's window sums on "
+        "the device against the host's, peak locking, and the deformation's interpolation "
+        "orders.",
+        ("benchmarks/piv.py", "--quick"), 2.0),
+    Entry(
+        "host-work", "Performance",
+        "Host work moved to the device",
+        "Data of the paper's size (a 150 x 200 x 286 voxel particle volume, a 16 MP image): "
+        "the deformation's cubic B-spline prefilter on the device against SciPy's, the "
+        "particles' tube sums along their lines of sight on the device against SciPy's "
+        "`map_coordinates`, the image's median and noise by a bracketed selection against "
+        "NumPy's medians, and the support's dilation by separable maxima against SciPy's "
+        "`binary_dilation`: each against the code it replaced on the same data in the same "
+        "process, medians of repeats and the largest difference of the results.",
+        ("benchmarks/host_work.py",), 1.5),
+    Entry(
+        "drivers", "Performance",
+        "CPU OpenCL drivers side by side",
+        "Every CPU OpenCL driver the loader lists (PoCL, Intel's CPU runtime, a system "
+        "PoCL), in plenocl's default order, in one process: forward + back projection and "
+        "5 MLEM iterations at the paper's size (medians of repeats, each driver's volume "
+        "against the first driver's), and the small boundary-layer demo end to end with its "
+        "velocity error. The drivers are each other's baseline.",
+        ("benchmarks/drivers.py",), 4.0),
+    Entry(
+        "tracking", "Tracking",
+        "Particles tracked through time",
+        "The paper's optics on 96 x 64 lenses, 8 ray-traced frames at 0.05 particles per "
+        "microlens (0.8 px blur, photon and read noise), a uniform motion and a rotation "
+        "about the lateral x axis. `plenocl.track` on each series: per-step displacement "
+        "errors (voxels, lateral and depth, the focal zone apart) of the tracks seen in 4 "
+        "or more frames, the share of particles tracked, ghost tracks and seconds per "
+        "frame. Baselines from the same frames: the measured positions smoothed without the "
+        "neighbours' depth prior and by local lines, each frame's fit alone, and the pair "
+        "chain (`plenocl.process_pair`) on the first pairs; and the tracks binned into the "
+        "pair chain's windows (`plenocl.bin_tracks`).",
+        ("benchmarks/tracking.py",), 3.5),
+    Entry(
+        "calibration", "Calibration",
+        "Microlens centres from white images",
+        "Centre RMS error (px) against the simulator's truth on white images of the "
+        "850 x 850 px camera: clean, noisy, rotated and shifted, vignetted with lenses "
+        "missing, saturated, lenses off the lattice, dark-subtracted, hexagonal arrays, and "
+        "720 px images at other projects' scales. The paper's plain box centroid (the "
+        "baseline), plenocl's windowed centroid, the grid model and the default (the two "
+        "combined by their uncertainties), from the same detection in the same run, with "
+        "each calibration's time. Then full-aperture images with every lens off its node "
+        "(jitter and a radial distortion): the lattice alone against the per-lens default; "
+        "and a hexagonal array whose odd rows sit off the camera file's shift. Medians over "
+        "two images per case.",
+        ("benchmarks/calibration.py", "--seeds", "2"), 5.0),
+    Entry(
+        "agreement", "Agreement",
+        "Agreement across devices",
+        "The same small workloads (forward and back projection, refocusing, simulated "
+        "images, MLEM volumes) on every OpenCL device this machine shows that builds "
+        "plenocl's kernels, each compared with the results of the first in plenocl's "
+        "preference order (the default device) against stated tolerances "
+        "(`plenocl.bench.agreement`); it exits non-zero beyond them. With a single device "
+        "there is nothing to compare; `POCL_DEVICES=\"pthread basic\"` adds PoCL's serial "
+        "driver to its threaded one.",
+        ("-m", "plenocl", "devices", "--agree"), 1.0),
+)
