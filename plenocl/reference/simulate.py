@@ -50,13 +50,25 @@ def _lens_lookup(cam: Camera, x: np.ndarray, y: np.ndarray):
     dx, dy = x - cam.ml_offset_mm[0], y - cam.ml_offset_mm[1]
     a, b = c * dx + s * dy, -s * dx + c * dy
     nx, ny = cam.ml_count
-    if cam.layout.hexagonal:
-        kx, ky = _nearest_hexagonal(cam, a, b)
-    else:
-        kx = np.floor(a / cam.ml_pitch_mm + nx / 2).astype(np.int64)
-        ky = np.floor(b / cam.ml_pitch_mm + ny / 2).astype(np.int64)
+    kx, ky = _layout_rules(cam)[0](cam, a, b)
     inside = (kx >= 0) & (ky >= 0) & (kx < nx) & (ky < ny)
     return np.clip(kx, 0, nx - 1), np.clip(ky, 0, ny - 1), inside
+
+
+def _layout_rules(cam: Camera):
+    """The simulate kernel's two layouts (``pl_lens_index`` and ``pl_cell_point`` in
+    kernels/common.h and kernels/simulate.cl): which lens holds an array-frame point, and
+    a cell's uniform points."""
+    if cam.layout.hexagonal:
+        return _nearest_hexagonal, _hexagon
+    return _rectangular_cell, _rectangle
+
+
+def _rectangular_cell(cam: Camera, a: np.ndarray, b: np.ndarray):
+    """Lens ``(kx, ky)`` of a rectangular array whose pitch-square cell holds ``(a, b)``."""
+    nx, ny = cam.ml_count
+    return (np.floor(a / cam.ml_pitch_mm + nx / 2).astype(np.int64),
+            np.floor(b / cam.ml_pitch_mm + ny / 2).astype(np.int64))
 
 
 def _nearest_hexagonal(cam: Camera, a: np.ndarray, b: np.ndarray):
@@ -82,8 +94,16 @@ def _cell_points(cam: Camera, u1: np.ndarray, u2: np.ndarray):
     the pitch x row rectangle, for a hexagonal array its four corners outside the hexagon
     folded into the tips (``pl_cell_point`` in kernels/simulate.cl)."""
     a, b = (u1 - 0.5) * cam.ml_pitch_mm, (u2 - 0.5) * cam.ml_row_pitch_mm
-    if not cam.layout.hexagonal:
-        return a, b
+    return _layout_rules(cam)[1](cam, a, b)
+
+
+def _rectangle(cam: Camera, a: np.ndarray, b: np.ndarray):
+    """A rectangular array's cell is the rectangle itself."""
+    return a, b
+
+
+def _hexagon(cam: Camera, a: np.ndarray, b: np.ndarray):
+    """The rectangle's four corners outside the (pointy-top) hexagon folded into its tips."""
     outside = np.abs(b) > (cam.ml_pitch_mm - np.abs(a)) / np.sqrt(3)
     a = np.where(outside, np.copysign(cam.ml_pitch_mm / 2, a) - a, a)
     b = np.where(outside, np.copysign(cam.ml_row_pitch_mm, b) - b, b)
