@@ -1,9 +1,9 @@
 """What ``docs/results.md`` shows: the benchmark runs of ``python
 benchmarks/results_page.py`` (:mod:`plenocl.bench.results`), in page order.
 
-Each entry's options keep the whole manifest within about 40 minutes on 2 CPU cores
-with PoCL (``--list`` prints the estimates; the figures the scripts' docstrings and the
-hand-kept page quoted before set them): the error budget on the reduced 96 x 64-lens
+Each entry's options keep the whole manifest near 20 minutes on 2 CPU cores
+with PoCL (``--list`` prints the estimates, each entry's wall time on such a machine,
+rounded up): the error budget on the reduced 96 x 64-lens
 camera at one seeding, one pair at the paper's full size as the headline, the projector
 without its stored-matrix comparison of 122 M weights and the slow reconstructions of
 the rotated array, and two images per calibration case instead of three. Each method
@@ -28,7 +28,7 @@ MANIFEST: tuple[Entry, ...] = (
         "over each final window, lateral and in depth, the mean profile's error, and the "
         "particles the default reconstruction recovers beside the paper's MART on the same "
         "images (the baseline).",
-        ("benchmarks/demo_run.py",), 2.0),
+        ("benchmarks/demo_run.py",), 0.5),
     Entry(
         "accuracy", "Accuracy",
         "Error budget at the paper's optics, 96 x 64 microlenses",
@@ -44,7 +44,7 @@ MANIFEST: tuple[Entry, ...] = (
         "without the particle refinement, and the baseline, the chain before (voxels "
         "reconstructed and correlated); with each reconstruction's quality (Q, particles "
         "recovered, ghost intensity) and seconds per pair.",
-        ("benchmarks/accuracy.py", "--lenses", "96", "64", "--seeding", "0.05"), 4.0),
+        ("benchmarks/accuracy.py", "--lenses", "96", "64", "--seeding", "0.05"), 1.0),
     Entry(
         "paper-pair", "Performance",
         "One pair at the paper's full size",
@@ -58,7 +58,7 @@ MANIFEST: tuple[Entry, ...] = (
         "iterations) runs beside its baseline, the same iterations all on the projector's "
         "full aperture sampling (`fullaperture`). The projectors and their sensitivities are "
         "built once before the rows, as a batch worker does, and timed apart.",
-        ("benchmarks/paper_pair.py", "--settings", "default", "fullaperture"), 5.0),
+        ("benchmarks/paper_pair.py", "--settings", "default", "fullaperture"), 2.5),
     Entry(
         "projector", "Performance",
         "Projector throughput and roofline",
@@ -73,7 +73,7 @@ MANIFEST: tuple[Entry, ...] = (
         "rotated array's reconstructions and the scratch-size comparison are left out here "
         "(`benchmarks/projector.py` without `--skip-*` runs them).",
         ("benchmarks/projector.py", "--skip-stored", "--skip-reconstruction",
-         "--skip-scratch", "--repeats", "3"), 4.0),
+         "--skip-scratch", "--repeats", "3"), 3.0),
     Entry(
         "real-array", "Performance",
         "A real calibrated microlens array",
@@ -83,7 +83,7 @@ MANIFEST: tuple[Entry, ...] = (
         "ideal lattice (the baseline) and against the general kernels every calibrated "
         "array took before, medians of repeats; then its images and a short MLEM "
         "reconstruction against the general path's, on the same weighting model.",
-        ("benchmarks/real_array.py",), 1.0),
+        ("benchmarks/real_array.py",), 0.5),
     Entry(
         "refocus", "Performance",
         "Refocusing at 16 MP",
@@ -92,7 +92,7 @@ MANIFEST: tuple[Entry, ...] = (
         "(`scipy.ndimage.map_coordinates`, the same weights, one call per view) and the "
         "NumPy reference, on the same light field in the same run: median seconds, planes "
         "per second and taps per second; the light field's resampling timed apart.",
-        ("benchmarks/refocus.py", "--camera", "paper", "--repeats", "3"), 2.0),
+        ("benchmarks/refocus.py", "--camera", "paper", "--repeats", "3"), 1.5),
     Entry(
         "piv", "Performance",
         "3-D PIV on synthetic volumes",
@@ -103,7 +103,7 @@ MANIFEST: tuple[Entry, ...] = (
         "OpenCL device against SciPy's on the host, the direct correlation's window sums on "
         "the device against the host's, peak locking, and the deformation's interpolation "
         "orders.",
-        ("benchmarks/piv.py", "--quick"), 2.0),
+        ("benchmarks/piv.py", "--quick"), 1.5),
     Entry(
         "host-work", "Performance",
         "Host work moved to the device",
@@ -114,7 +114,7 @@ MANIFEST: tuple[Entry, ...] = (
         "NumPy's medians, and the support's dilation by separable maxima against SciPy's "
         "`binary_dilation`: each against the code it replaced on the same data in the same "
         "process, medians of repeats and the largest difference of the results.",
-        ("benchmarks/host_work.py",), 1.5),
+        ("benchmarks/host_work.py",), 0.5),
     Entry(
         "drivers", "Performance",
         "CPU OpenCL drivers side by side",
@@ -123,7 +123,7 @@ MANIFEST: tuple[Entry, ...] = (
         "5 MLEM iterations at the paper's size (medians of repeats, each driver's volume "
         "against the first driver's), and the small boundary-layer demo end to end with its "
         "velocity error. The drivers are each other's baseline.",
-        ("benchmarks/drivers.py",), 4.0),
+        ("benchmarks/drivers.py",), 1.5),
     Entry(
         "tracking", "Tracking",
         "Particles tracked through time",
@@ -136,7 +136,7 @@ MANIFEST: tuple[Entry, ...] = (
         "neighbours' depth prior and by local lines, each frame's fit alone, and the pair "
         "chain (`plenocl.process_pair`) on the first pairs; and the tracks binned into the "
         "pair chain's windows (`plenocl.bin_tracks`).",
-        ("benchmarks/tracking.py",), 3.5),
+        ("benchmarks/tracking.py",), 1.5),
     Entry(
         "calibration", "Calibration",
         "Microlens centres from white images",
@@ -150,7 +150,7 @@ MANIFEST: tuple[Entry, ...] = (
         "(jitter and a radial distortion): the lattice alone against the per-lens default; "
         "and a hexagonal array whose odd rows sit off the camera file's shift. Medians over "
         "two images per case.",
-        ("benchmarks/calibration.py", "--seeds", "2"), 5.0),
+        ("benchmarks/calibration.py", "--seeds", "2"), 6.0),
     Entry(
         "agreement", "Agreement",
         "Agreement across devices",
