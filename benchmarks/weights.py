@@ -24,7 +24,8 @@ aperture sampling (the baseline), the same with the voxel integrated over 3 x 3 
 sub-voxels (the default reconstruction's grid, docs/design.md §6.4), the aperture sampled
 four times as finely (the model's own sampling error), and each of the 3 x 3 sub-voxels
 alone against particles spread through it alone (what the default reconstruction's
-weights must match). A weighting true to the
+weights must match); then the same with the lens weights that integrate the voxel's
+extent (``Projector(lens_weights="extent")``, issue 47). A weighting true to the
 camera would reach ``corr`` near 1 and ``dark`` near 0 at every depth.
 """
 
@@ -151,24 +152,30 @@ def main() -> int:
     print(f"voxels of {VOXEL_MM} mm, {len(PLACES)} places across a lens per depth, "
           f"{PARTICLES} particles x {args.rays} rays each; dark: below {DARK:g} of the peak")
     blurs = [0.0, *args.blur]
-    rows = (("paper's weights (baseline)", 1, 1.0), ("3 x 3 sub-voxels", 3, 1.0),
-            ("aperture sampled 4x finer", 1, 4.0))
+    rows = (("paper's weights (baseline)", "paper", 1, 1.0),
+            ("3 x 3 sub-voxels", "paper", 3, 1.0),
+            ("aperture sampled 4x finer", "paper", 1, 4.0),
+            ("extent weights", "extent", 1, 1.0),
+            ("extent, 3 x 3 sub-voxels", "extent", 3, 1.0))
     head = "  ".join(f"corr {b:g}px  dark {b:g}px" for b in blurs)
     print(f"{'z mm':>6s}  {'weights':28s} {head}  {'model px':>8s} {'traced px':>9s}")
     pitch = camera.ml_pitch_mm / camera.magnification  # a lens's width in object space
     for z in args.depths:
         grids = [depth_grid(z, place, pitch) for place in PLACES]
-        bases = [Projector(camera, grid, queue) for grid in grids]
+        bases = {w: [Projector(camera, grid, queue, lens_weights=w) for grid in grids]
+                 for w in ("paper", "extent")}
         images = {b: [traced(camera, voxel_box(grid), args.rays, b, k, queue)
                       for k, grid in enumerate(grids)] for b in blurs}
-        for label, factor, finer in rows:
+        for label, weights, factor, finer in rows:
             models = [footprint(base.sampled(base.oversample * finer), factor)
-                      for base in bases]
+                      for base in bases[weights]]
             print_row(z, label, [[agreement(m, i) for m, i in zip(models, images[b])]
                                  for b in blurs])
-        print_row(z, "a 3 x 3 sub-voxel alone", [
-            [a for k, base in enumerate(bases) for a in subvoxels_alone(base, args.rays, b, k)]
-            for b in blurs])
+        for weights, label in (("paper", "a 3 x 3 sub-voxel alone"),
+                               ("extent", "extent, a sub-voxel alone")):
+            print_row(z, label, [[a for k, base in enumerate(bases[weights])
+                                  for a in subvoxels_alone(base, args.rays, b, k)]
+                                 for b in blurs])
     return 0
 
 

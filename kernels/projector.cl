@@ -54,11 +54,12 @@ __kernel void fwd_x(__global const float *restrict vol, __global float *restrict
     float acc = 0.0f;
     if (kx < nkx) {
         const float b = pl_kx_offset(c, bu, iy);
+        const float iw = pl_lens_iw(c).x;
         const int2 r = pl_hat_range(c[10], b, (float)kx, nx);
         for (int ix = r.x; ix <= r.y; ++ix) {
             const float kxf = pl_kx_at(c, b, ix);
             const int kx0 = pl_floori(kxf);
-            const float tx = kxf - (float)kx0;
+            const float tx = pl_lens_t(kxf - (float)kx0, iw);
             const float w = kx0 == kx ? 1.0f - tx : (kx0 + 1 == kx ? tx : 0.0f);
             acc += w * row[ix];
         }
@@ -79,6 +80,7 @@ __kernel void fwd_x_row(__global const float *restrict vol, __global float *rest
     __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
     __global float *base = T + ((size_t)izl * nic * ny + iy) * nkxp;
     const size_t stride = (size_t)ny * nkxp;  /* from one column's T row to the next */
+    const float iw = pl_lens_iw(c).x;
     for (int il = 0; il < nic; ++il)
         pl_zero(base + il * stride, nkxp / PL_VW);
     for (int ix = 0; ix < nx; ++ix) {
@@ -87,7 +89,7 @@ __kernel void fwd_x_row(__global const float *restrict vol, __global float *rest
         for (int il = 0; il < nic; ++il) {
             const float kxf = pl_kx(c, (float)(i0 + il) - ic, ix, iy);
             const int kx0 = pl_floori(kxf);
-            const float tx = kxf - (float)kx0;
+            const float tx = pl_lens_t(kxf - (float)kx0, iw);
             __global float *out = base + il * stride;
             if (kx0 >= 0 && kx0 < nkx) out[kx0] += (1.0f - tx) * e;
             if (kx0 + 1 >= 0 && kx0 + 1 < nkx) out[kx0 + 1] += tx * e;
@@ -116,6 +118,7 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
             pl_zero(rows + (size_t)(j - lo) * nkxp, seg);
     for (int izl = 0; izl < nzc; ++izl) {
         __global const float *c = coef + 16 * (zc0 + izl);
+        const float iwy = pl_lens_iw(c).y;
         __global const float *src = T + (size_t)(izl * nic + il) * ny * nkxp + off;
         for (int j = lo; j <= hi; ++j) {
             const float bv = (float)j - ic;
@@ -124,7 +127,8 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
             int pending = -1;  /* a row with a positive weight waiting for a partner */
             float wp = 0.0f;
             for (int iy = r.x; iy <= r.y + 1; ++iy) {
-                const float w = iy <= r.y ? pl_tent(pl_ky(c, bv, iy) - (float)ky) : 0.0f;
+                const float w = iy <= r.y ? pl_lens_tent(pl_ky(c, bv, iy) - (float)ky, iwy)
+                                          : 0.0f;
                 if (w <= 0.0f && !(iy > r.y && pending >= 0)) continue;
                 if (pending < 0) {
                     pending = iy;
@@ -160,7 +164,7 @@ __kernel void fwd_gen(__global const float *restrict vol, __global float *restri
             pl_zero(plane + ky * stride, nkxp / PL_VW);
     for (int izl = 0; izl < nzc; ++izl) {
         __global const float *c = coef + 16 * (zc0 + izl);
-        const float2 o = pl_sample_offset(c, bu, bv);
+        const float2 o = pl_sample_offset(c, bu, bv), iw = pl_lens_iw(c);
         __global const float *slice = vol + (size_t)(zc0 + izl - zv0) * ny * nx;
         for (int iy = 0; iy < ny; ++iy)
             for (int ix = 0; ix < nx; ++ix) {
@@ -168,7 +172,8 @@ __kernel void fwd_gen(__global const float *restrict vol, __global float *restri
                 if (e == 0.0f) continue;  /* sparse volumes: most voxels are zero */
                 const float2 p = pl_lens_coord(c, o, (float)ix, (float)iy);
                 const int kx = pl_floori(p.x), ky = pl_floori(p.y);
-                const float dx = p.x - (float)kx, dy = p.y - (float)ky;
+                const float dx = pl_lens_t(p.x - (float)kx, iw.x);
+                const float dy = pl_lens_t(p.y - (float)ky, iw.y);
                 const int x0 = pl_mini(pl_maxi(kx, 0), nkx - 1);
                 const int x1 = pl_mini(pl_maxi(kx + 1, 0), nkx - 1);
                 const int y0 = pl_mini(pl_maxi(ky, 0), nky - 1);
@@ -205,7 +210,7 @@ __kernel void fwd_gen_gather(__global const float *restrict vol, __global float 
     float acc = accumulate ? *out : 0.0f;
     for (int izl = 0; izl < nzc; ++izl) {
         __global const float *c = coef + 16 * (zc0 + izl);
-        const float2 o = pl_sample_offset(c, bu, bv);
+        const float2 o = pl_sample_offset(c, bu, bv), iw = pl_lens_iw(c);
         const float rx = (float)kx - o.x, ry = (float)ky - o.y;
         const float fx = c[10] * rx + c[11] * ry, fy = c[12] * rx + c[13] * ry;
         const int xa = pl_maxi(pl_floori(fx - c[14] - 1e-3f), 0);
@@ -219,7 +224,8 @@ __kernel void fwd_gen_gather(__global const float *restrict vol, __global float 
                 if (e == 0.0f) continue;
                 const float2 p = pl_lens_coord(c, o, (float)ix, (float)iy);
                 const int fkx = pl_floori(p.x), fky = pl_floori(p.y);
-                const float dx = p.x - (float)fkx, dy = p.y - (float)fky;
+                const float dx = pl_lens_t(p.x - (float)fkx, iw.x);
+                const float dy = pl_lens_t(p.y - (float)fky, iw.y);
                 const float ex = kx == fkx ? (1.0f - dx) * e : (kx == fkx + 1 ? dx * e : 0.0f);
                 const float wy = ky == fky ? 1.0f - dy : (ky == fky + 1 ? dy : 0.0f);
                 if (ex != 0.0f && wy != 0.0f) acc += wy * ex;
@@ -301,8 +307,9 @@ inline int pl_back_y_taps(__global const float *c, float bv, int iy, int nky,
 {
     const float kyf = pl_ky(c, bv, iy);
     const int ky0 = pl_floori(kyf);
-    *w0 = ky0 < 0 || ky0 >= nky ? 0.0f : 1.0f - (kyf - (float)ky0);
-    *w1 = ky0 + 1 < 0 || ky0 + 1 >= nky ? 0.0f : kyf - (float)ky0;
+    const float ty = pl_lens_t(kyf - (float)ky0, pl_lens_iw(c).y);
+    *w0 = ky0 < 0 || ky0 >= nky ? 0.0f : 1.0f - ty;
+    *w1 = ky0 + 1 < 0 || ky0 + 1 >= nky ? 0.0f : ty;
     if (*w0 == 0.0f && *w1 == 0.0f) return 0;
     *ka = pl_mini(pl_maxi(ky0, 0), nky - 1);
     *kb = pl_mini(pl_maxi(ky0 + 1, 0), nky - 1);
@@ -391,7 +398,7 @@ inline float pl_back_x_tap(__global const float *c, __global const float *row, f
 {
     const float kxf = pl_kx(c, bu, ix, iy);
     const int kx0 = pl_floori(kxf);
-    const float tx = kxf - (float)kx0;
+    const float tx = pl_lens_t(kxf - (float)kx0, pl_lens_iw(c).x);
     const int k0 = pl_mini(pl_maxi(kx0, 0), nkx - 1);
     const int k1 = pl_mini(pl_maxi(kx0 + 1, 0), nkx - 1);
     const float w0 = kx0 == k0 ? 1.0f - tx : 0.0f, w1 = kx0 + 1 == k1 ? tx : 0.0f;
@@ -486,12 +493,14 @@ __kernel void back_gen(__global const float *restrict L, __global float *restric
     for (int sl = 0; sl < ns; ++sl) {
         const int2 ij = sample_ij[s0 + sl];
         const float2 o = pl_sample_offset(c, (float)ij.x - ic, (float)ij.y - ic);
+        const float2 iw = pl_lens_iw(c);
         const int keep = accumulate || sl > 0;
         __global const float *ls = L + (size_t)sl * nkxp;
         for (int ix = 0; ix < nx; ++ix) {
             const float2 p = pl_lens_coord(c, o, (float)ix, (float)iy);
             const int kx = pl_floori(p.x), ky = pl_floori(p.y);
-            const float dx = p.x - (float)kx, dy = p.y - (float)ky;
+            const float dx = pl_lens_t(p.x - (float)kx, iw.x);
+            const float dy = pl_lens_t(p.y - (float)ky, iw.y);
             const int x0 = pl_mini(pl_maxi(kx, 0), nkx - 1);
             const int x1 = pl_mini(pl_maxi(kx + 1, 0), nkx - 1);
             const int y0 = pl_mini(pl_maxi(ky, 0), nky - 1);
@@ -523,7 +532,7 @@ __kernel void voxel_footprint(__global const int4 *restrict voxels, __global int
     const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)v.x, (float)v.y);
     int id[16];
     float w[16];
-    pl_sample_products(p, sample_px[s], lens_rnd, lens_frac, nkx, nky, width, height, id, w);
+    pl_sample_products(p, sample_px[s], pl_lens_iw(c), lens_rnd, lens_frac, nkx, nky, width, height, id, w);
     const size_t base = ((size_t)vb * ns + s) * 16;
     for (int e = 0; e < 16; ++e) {
         idx[base + e] = id[e];
@@ -551,7 +560,7 @@ __kernel void fwd_direct(__global const float *restrict vol, volatile __global f
         const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
         int id[16];
         float w[16];
-        pl_sample_products(p, sample_px[s], lens_rnd, lens_frac, nkx, nky, width, height, id, w);
+        pl_sample_products(p, sample_px[s], pl_lens_iw(c), lens_rnd, lens_frac, nkx, nky, width, height, id, w);
         for (int k = 0; k < 16; ++k)
             if (id[k] >= 0 && w[k] > 0.0f) pl_atomic_addf(image + id[k], w[k] * e);
     }
@@ -576,7 +585,7 @@ __kernel void back_direct(__global const float *restrict image, __global float *
         const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
         int id[16];
         float w[16];
-        pl_sample_products(p, sample_px[s], lens_rnd, lens_frac, nkx, nky, width, height, id, w);
+        pl_sample_products(p, sample_px[s], pl_lens_iw(c), lens_rnd, lens_frac, nkx, nky, width, height, id, w);
         for (int k = 0; k < 16; ++k)
             if (id[k] >= 0) acc += w[k] * image[id[k]];
     }
@@ -602,7 +611,7 @@ __kernel void back_y_scatter(__global const float *restrict L, volatile __global
         const int2 r = pl_hat_range(c[13], c[9] * bv + c[5], (float)ky, ny);
         volatile __global float *dst = T + (size_t)(izl * nic + ij.x - i0) * ny * nkxp + k0;
         for (int iy = r.x; iy <= r.y; ++iy) {
-            const float w = pl_tent(pl_ky(c, bv, iy) - (float)ky);
+            const float w = pl_lens_tent(pl_ky(c, bv, iy) - (float)ky, pl_lens_iw(c).y);
             if (w > 0.0f)
                 for (int m = 0; m < seg * PL_VW; ++m)
                     if (src[m] != 0.0f) pl_atomic_addf(dst + (size_t)iy * nkxp + m, w * src[m]);

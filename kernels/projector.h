@@ -40,6 +40,9 @@ typedef float pl_vec;
 #define PL_BACK_ALLCOLS 0  /* 1: a back_y work-item covers every column of a chunk (CPUs) */
 #endif
 #define PL_PAIRS 128  /* (aperture row, depth) weights back_y lists at a time */
+#ifndef PL_LENS_EXTENT
+#define PL_LENS_EXTENT 0  /* 1: lens weights integrate the voxel's extent (issue 47) */
+#endif
 
 #define PL_NO_LENS (-1073741824)   /* lens_rnd.x of a lens calibration missed (NaN centre) */
 
@@ -50,6 +53,45 @@ inline float pl_tent(float d)
 {
     const float w = 1.0f - pl_abs(d);
     return w > 0.0f ? w : 0.0f;
+}
+
+/* The lens weights' inverse widths (x, y) at depth coefficients c: 1, the paper's bilinear
+ * weights; with PL_LENS_EXTENT the inverse of the voxel's width in lens indices (the row
+ * sums of |G|), at least 1: a voxel narrower than a lens (a sub-voxel) shares a ray
+ * between two lenses only where its extent straddles their cells' edge. */
+inline float2 pl_lens_iw(__global const float *c)
+{
+#if PL_LENS_EXTENT
+    const float wx = pl_abs(c[0]) + pl_abs(c[1]), wy = pl_abs(c[2]) + pl_abs(c[3]);
+    return (float2)(wx < 1.0f ? 1.0f / wx : 1.0f, wy < 1.0f ? 1.0f / wy : 1.0f);
+#else
+    return (float2)(1.0f, 1.0f);
+#endif
+}
+
+/* The upper lens's share of a point at k0 + t between lenses k0 and k0 + 1: the paper's
+ * t; with PL_LENS_EXTENT the share of a box 1/iw wide centred there in lens k0 + 1's cell
+ * [k0 + 1/2, k0 + 3/2] (t itself, to the bit, for iw = 1). */
+inline float pl_lens_t(float t, float iw)
+{
+#if PL_LENS_EXTENT
+    const float s = 0.5f + (t - 0.5f) * iw;
+    return iw == 1.0f ? t : (s < 0.0f ? 0.0f : (s > 1.0f ? 1.0f : s));
+#else
+    return t;
+#endif
+}
+
+/* A lens's weight at signed distance d from the point: pl_tent, or with PL_LENS_EXTENT
+ * the share of the box in its cell (pl_lens_t's, from either side). */
+inline float pl_lens_tent(float d, float iw)
+{
+#if PL_LENS_EXTENT
+    const float s = 0.5f + (0.5f - pl_abs(d)) * iw;
+    return iw == 1.0f ? pl_tent(d) : (s < 0.0f ? 0.0f : (s > 1.0f ? 1.0f : s));
+#else
+    return pl_tent(d);
+#endif
 }
 
 /* Lens index of voxel (0, 0) through aperture sample offsets (bu, bv) = (i - c, j - c). */
@@ -143,12 +185,12 @@ inline void pl_pixel_taps(int2 r, float2 f, float2 d, int width, int height, int
 
 /* The 16 products (paper §III.A steps 2-3) of one aperture sample of a voxel whose
  * sample meets the array at fractional lens index p. idx[e] = -1 for lost products. */
-inline void pl_sample_products(float2 p, float2 d,
+inline void pl_sample_products(float2 p, float2 d, float2 iw,
                                __global const int2 *lens_rnd, __global const float2 *lens_frac,
                                int nkx, int nky, int width, int height, int *idx, float *w)
 {
     const int fx = pl_floori(p.x), fy = pl_floori(p.y);
-    const float tx = p.x - (float)fx, ty = p.y - (float)fy;
+    const float tx = pl_lens_t(p.x - (float)fx, iw.x), ty = pl_lens_t(p.y - (float)fy, iw.y);
     for (int a = 0; a < 4; ++a) {
         const int kx = fx + (a & 1), ky = fy + (a >> 1);
         const float wl = ((a & 1) ? tx : 1.0f - tx) * ((a >> 1) ? ty : 1.0f - ty);

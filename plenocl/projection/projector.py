@@ -56,6 +56,10 @@ METHODS = ("factorised", "direct")
 #: frame and a bilinear resampling (fast, :mod:`plenocl.projection.resample`), or by the
 #: general kernels.
 GENERAL_MODES = ("resample", "exact")
+#: How an aperture sample's light is shared between the two lenses around the point where
+#: it meets the array (``lens_weights``): the paper's bilinear weights, or the share of
+#: the voxel's own extent in each lens's cell (issue 47; the same for a voxel a lens wide).
+LENS_WEIGHTS = ("paper", "extent")
 #: Back projections of the separable path: a deterministic gather, or a float-atomic scatter.
 BACK_MODES = ("gather", "atomic")
 #: Bounds of the automatic scratch size (each of the light-field and intermediate buffers):
@@ -132,6 +136,12 @@ class Projector(FactorisedStages):
     frame
         The lens-row frame's projector to resample through (its grid shares this grid's
         depth planes and covers it laterally); built when ``None`` and needed.
+    lens_weights
+        ``"paper"`` (default): the paper's bilinear weights between the two lenses around
+        the point where an aperture sample meets the array, whatever the voxel's size;
+        ``"extent"``: the share of the voxel's lateral extent, projected through the
+        sample onto the array, in each lens's cell (the paper's weights for a voxel one
+        lens wide, narrower for a sub-voxel; ``benchmarks/weights.py``).
 
     Attributes
     ----------
@@ -158,13 +168,17 @@ class Projector(FactorisedStages):
                  max_alloc_bytes: int | None = None, scratch_bytes: int | None = None,
                  vector_width: int | None = None, segment: int | None = None,
                  gather_forward: bool | None = None, general: str = "resample",
-                 model: WeightingModel | None = None, frame: Projector | None = None) -> None:
+                 model: WeightingModel | None = None, frame: Projector | None = None,
+                 lens_weights: str = "paper") -> None:
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if back not in BACK_MODES:
             raise ValueError(f"back must be one of {BACK_MODES}, got {back!r}")
         if general not in GENERAL_MODES:
             raise ValueError(f"general must be one of {GENERAL_MODES}, got {general!r}")
+        if lens_weights not in LENS_WEIGHTS:
+            raise ValueError(f"lens_weights must be one of {LENS_WEIGHTS}, got "
+                             f"{lens_weights!r}")
         if model is None:
             model = WeightingModel(camera, grid, oversample, shear_tol, warn=False)
         elif camera not in (model.camera, model.source_camera) or model.grid != grid:
@@ -172,11 +186,12 @@ class Projector(FactorisedStages):
         # a hexagonal array's lenses on its axial lattice (Camera.on_lens_lattice)
         camera = model.camera
         self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
+        self.lens_weights = lens_weights
         self._options = dict(oversample=model.oversample, shear_tol=model.shear_tol,
                              method=method, back=back, max_alloc_bytes=max_alloc_bytes,
                              scratch_bytes=scratch_bytes, vector_width=vector_width,
                              segment=segment, gather_forward=gather_forward,
-                             general=general)
+                             general=general, lens_weights=lens_weights)
         self.queue = get_queue(queue)
         self._refined: dict[int, Projector] = {}
         self._sampled: dict[float, Projector] = {}
@@ -192,7 +207,8 @@ class Projector(FactorisedStages):
         # every projector kernel but the element ones (_ELEMENTWISE) loops over a row, a
         # sample's plane or a lens's samples
         self._k = KernelSet(self.queue, "projector.cl", _KERNELS,
-                            [f"-DPL_VW={self.vw}", f"-DPL_BACK_ALLCOLS={int(self.back_allcols)}"],
+                            [f"-DPL_VW={self.vw}", f"-DPL_BACK_ALLCOLS={int(self.back_allcols)}",
+                             f"-DPL_LENS_EXTENT={int(lens_weights == 'extent')}"],
                             looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()

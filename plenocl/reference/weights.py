@@ -8,7 +8,9 @@ A voxel's column of the weight matrix, literally the paper's four steps:
    docs/design.md §5.3);
 2. each sample meets the microlens-array plane at ``x = u (1 - 1/α) + X'/α``; in
    microlens index units it falls between four microlens centres, which get the
-   bilinear weights ``(1 - t_x)(1 - t_y) … t_x t_y``;
+   bilinear weights ``(1 - t_x)(1 - t_y) … t_x t_y`` (``lens_weights="extent"``: ``t``
+   replaced by the share of a box as wide as the voxel, in lens units, centred on the
+   point, that lies in the upper lens's cell);
 3. behind each of those microlenses the sample's ``(u, v)`` lands at the sensor point
    ``c_k - u f_ml / d`` (``c_k``: that lens's calibrated image centre), between four
    pixel centres with bilinear weights ``(1 - t_u)(1 - t_v) … t_u t_v``;
@@ -32,6 +34,7 @@ from ..projection.weighting import (
     DEFAULT_OVERSAMPLE,
     DEFAULT_SHEAR_TOL,
     ApertureGrid,
+    depth_coefficients,
     lens_index_map,
 )
 
@@ -44,9 +47,16 @@ def _bilinear_corners(f: np.ndarray):
     return f0.astype(np.int64), f - f0
 
 
+def _box_share(t: np.ndarray, width: float) -> np.ndarray:
+    """The share of a box ``width`` lens units wide centred at ``k0 + t`` that lies in lens
+    ``k0 + 1``'s cell ``[k0 + 1/2, k0 + 3/2]`` (``width`` at most 1; ``t`` itself at 1)."""
+    return np.clip(0.5 + (t - 0.5) / width, 0.0, 1.0)
+
+
 def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
                   oversample: float = DEFAULT_OVERSAMPLE,
-                  shear_tol: float = DEFAULT_SHEAR_TOL) -> tuple[np.ndarray, np.ndarray]:
+                  shear_tol: float = DEFAULT_SHEAR_TOL,
+                  lens_weights: str = "paper") -> tuple[np.ndarray, np.ndarray]:
     """One voxel's weights: sorted flat pixel indices (int64) and weights (float64).
 
     Parameters
@@ -59,6 +69,8 @@ def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
         Aperture samples per pixel footprint on the aperture, per axis.
     shear_tol
         See :func:`lens_index_map`.
+    lens_weights
+        ``"paper"`` (bilinear) or ``"extent"`` (the voxel's width, :class:`plenocl.Projector`).
 
     Returns
     -------
@@ -83,6 +95,10 @@ def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
     u, v = ap.sensor_uv().T  # the same samples on the sensor's axes
     kx0, tx = _bilinear_corners(kxf)
     ky0, ty = _bilinear_corners(kyf)
+    if lens_weights == "extent":  # the voxel's width in lens indices: |G|'s row sums
+        g = depth_coefficients(camera, grid, lens_map, ap)[iz, 0:4].reshape(2, 2)
+        width = np.minimum(np.abs(g).sum(axis=1), 1.0)
+        tx, ty = _box_share(tx, width[0]), _box_share(ty, width[1])
     pix, wts = [], []
     for dkx in (0, 1):
         for dky in (0, 1):
