@@ -394,11 +394,11 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
 
 /* Voxel (ix, iy)'s two lens taps in the T row of aperture column offset bu. */
 inline float pl_back_x_tap(__global const float *c, __global const float *row, float bu,
-                           int ix, int iy, int nkx)
+                           int ix, int iy, int nkx, float iw)
 {
     const float kxf = pl_kx(c, bu, ix, iy);
     const int kx0 = pl_floori(kxf);
-    const float tx = pl_lens_t(kxf - (float)kx0, pl_lens_iw(c).x);
+    const float tx = pl_lens_t(kxf - (float)kx0, iw);
     const int k0 = pl_mini(pl_maxi(kx0, 0), nkx - 1);
     const int k1 = pl_mini(pl_maxi(kx0 + 1, 0), nkx - 1);
     const float w0 = kx0 == k0 ? 1.0f - tx : 0.0f, w1 = kx0 + 1 == k1 ? tx : 0.0f;
@@ -411,8 +411,10 @@ inline float pl_back_x_sum(__global const float *c, __global const float *base,
                            size_t stride, int ix, int iy, int nkx, int i0, int nic, float ic,
                            float v)
 {
+    const float iw = pl_lens_iw(c).x;
     for (int il = 0; il < nic; ++il)
-        v += pl_back_x_tap(c, base + (size_t)il * stride, (float)(i0 + il) - ic, ix, iy, nkx);
+        v += pl_back_x_tap(c, base + (size_t)il * stride, (float)(i0 + il) - ic, ix, iy, nkx,
+                           iw);
     return v;
 }
 
@@ -467,12 +469,13 @@ __kernel void back_x_row(__global const float *restrict T, __global float *restr
         }
         return;
     }
+    const float iw = pl_lens_iw(c).x;
     for (int il = 0; il < nic; ++il) {  /* column by column: a vectorisable row loop */
         const float bu = (float)(i0 + il) - ic;
         const int keep = accumulate || il > 0;
         __global const float *row = base + (size_t)il * ny * nkxp;
         for (int ix = 0; ix < nx; ++ix) {
-            const float v = pl_back_x_tap(c, row, bu, ix, iy, nkx);
+            const float v = pl_back_x_tap(c, row, bu, ix, iy, nkx, iw);
             out[ix] = keep ? out[ix] + v : v;
         }
     }
@@ -609,9 +612,10 @@ __kernel void back_y_scatter(__global const float *restrict L, volatile __global
     for (int izl = 0; izl < nzc; ++izl) {
         __global const float *c = coef + 16 * (zc0 + izl);
         const int2 r = pl_hat_range(c[13], c[9] * bv + c[5], (float)ky, ny);
+        const float iwy = pl_lens_iw(c).y;
         volatile __global float *dst = T + (size_t)(izl * nic + ij.x - i0) * ny * nkxp + k0;
         for (int iy = r.x; iy <= r.y; ++iy) {
-            const float w = pl_lens_tent(pl_ky(c, bv, iy) - (float)ky, pl_lens_iw(c).y);
+            const float w = pl_lens_tent(pl_ky(c, bv, iy) - (float)ky, iwy);
             if (w > 0.0f)
                 for (int m = 0; m < seg * PL_VW; ++m)
                     if (src[m] != 0.0f) pl_atomic_addf(dst + (size_t)iy * nkxp + m, w * src[m]);
