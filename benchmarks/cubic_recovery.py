@@ -5,6 +5,7 @@ the voxels themselves (``supersample=1``, ``reconstruct()``'s default before iss
 and other sub-voxel schedules, on the same unseen scenes in the same run.
 
     python benchmarks/cubic_recovery.py [--scenes 6] [--counts 20 60] [--fine 10 15 20 30]
+                                        [--lens-weights paper extent]
 
 Camera: the 850 x 850 px synthetic camera (50 x 50 microlenses, M = 1, f/2); grid: the
 5 mm cube on 40^3 cubic voxels (0.125 mm: one microlens laterally, a quarter of the
@@ -13,7 +14,8 @@ faces), ray traced with 20,000 rays each and a 1 px particle blur, seeds 1000 + 
 by no test). Recovery: a peak within 1 voxel laterally and 2 in depth of a true
 particle, one to one; ghosts: the share of intensity farther than (2, 4) voxels from
 every particle; Q against the true particles rendered as Gaussians; seconds per
-reconstruction.
+reconstruction. ``--lens-weights``: each reconstruction with each of the projector's lens
+weights (``Projector(lens_weights=...)``, issue 47), the paper's first.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from plenocl.bench.core import particle_scene  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
+from plenocl.projection.projector import LENS_WEIGHTS  # noqa: E402
 from plenocl.reconstruction import ReconstructionSettings, reconstruct  # noqa: E402
 
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
@@ -53,29 +56,33 @@ def main() -> None:
     parser.add_argument("--counts", type=int, nargs="+", default=[20, 60])
     parser.add_argument("--fine", type=int, nargs="*", default=[],
                         help="also the default schedule with these many fine iterations")
+    parser.add_argument("--lens-weights", nargs="+", choices=LENS_WEIGHTS,
+                        default=["paper"], help="the projector's lens weights to compare")
     args = parser.parse_args()
     settings = {**SETTINGS, **{f"default with {n} fine iterations":
                                ReconstructionSettings(iterations=n) for n in args.fine}}
     queue = get_queue()
     cam = Camera.synthetic_850()
-    proj = Projector(cam, CUBIC, queue)
+    projectors = {w: Projector(cam, CUBIC, queue, lens_weights=w) for w in args.lens_weights}
+    runs = {(label if w == "paper" else f"{label}, {w} weights"): (chosen, projectors[w])
+            for label, chosen in settings.items() for w in args.lens_weights}
     print(f"device: {queue.device.name.strip()}; grid {CUBIC.shape}, voxel "
           f"{CUBIC.spacing[0]:.3f} mm; {args.scenes} scenes per count")
-    print(f"{'particles':>9s} {'reconstruction':36s} {'recovered':>9s} {'min':>5s} "
+    print(f"{'particles':>9s} {'reconstruction':50s} {'recovered':>9s} {'min':>5s} "
           f"{'ghosts':>6s} {'Q':>5s} {'s':>5s}")
     for count in args.counts:
-        stats = {label: [] for label in settings}
+        stats = {label: [] for label in runs}
         for k in range(args.scenes):
             pos, inten, img = particle_scene(cam, count, 1000 + k, blur_px=1.0, queue=queue)
             truth = render_particles(CUBIC, pos, inten)
-            for label, chosen in settings.items():
+            for label, (chosen, proj) in runs.items():
                 vol, t = timed(functools.partial(reconstruct, img, proj, settings=chosen), 1)
                 rep = recovery(vol, CUBIC, pos)
                 stats[label].append((rep.fraction, rep.ghost_fraction, quality_q(vol, truth),
                                      t))
         for label, rows in stats.items():
             a = np.array(rows)
-            print(f"{count:9d} {label:36s} {a[:, 0].mean():9.1%} {a[:, 0].min():5.0%} "
+            print(f"{count:9d} {label:50s} {a[:, 0].mean():9.1%} {a[:, 0].min():5.0%} "
                   f"{a[:, 1].mean():6.1%} {a[:, 2].mean():5.2f} {np.median(a[:, 3]):5.1f}",
                   flush=True)
 
