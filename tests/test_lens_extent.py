@@ -4,14 +4,17 @@ at least a lens wide, and narrower footprints for a voxel narrower than a lens."
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import tolerances as tol
 from helpers import assert_adjoint, assert_close_to_peak
 
-from plenocl import Grid
+from plenocl import Grid, simulate_image
 from plenocl.projection import Projector
 from plenocl.projection.model import WeightingModel
+from plenocl.reconstruction import ReconstructionSettings, reconstruct
 from plenocl.reference.weights import voxel_weights
 
 #: Voxels 0.40-0.47 of a lens wide (in lens indices) at the three depths.
@@ -114,3 +117,34 @@ def test_refined_and_sampled_projectors_keep_the_lens_weights(fine):
 def test_unknown_lens_weights_are_refused(small_camera, queue):
     with pytest.raises(ValueError, match="lens_weights must be one of"):
         Projector(small_camera, FINE, queue, lens_weights="box")
+
+
+def test_the_settings_and_the_projector_name_the_same_lens_weights():
+    from plenocl.projection.projector import LENS_WEIGHTS
+    from plenocl.reconstruction.settings import LENS_WEIGHTS as NAMED
+
+    assert NAMED == LENS_WEIGHTS
+    with pytest.raises(ValueError, match="lens_weights must be one of"):
+        ReconstructionSettings(lens_weights="box")
+
+
+def test_weighted_projectors_are_built_once(fine):
+    paper = fine["paper"]
+    assert paper.weighted("paper") is paper
+    assert paper.weighted("extent") is paper.weighted("extent")
+    assert paper.weighted("extent").lens_weights == "extent"
+
+
+def test_the_settings_choose_the_lens_weights(small_camera, queue, fine):
+    """``reconstruct(..., lens_weights="extent")`` on the paper's projector is the
+    reconstruction on the extent projector, and differs from the paper's."""
+    rng = np.random.default_rng(5)
+    pos = np.column_stack([rng.uniform(-0.5, 0.5, 6), rng.uniform(-0.4, 0.4, 6),
+                           rng.uniform(-3.0, 3.0, 6)])
+    image = simulate_image(small_camera, pos, 1e4, 2000, seed=5, queue=queue)
+    settings = ReconstructionSettings(supersample=1, iterations=5)
+    named = reconstruct(image, fine["paper"], settings=replace(settings, lens_weights="extent"))
+    built = reconstruct(image, fine["extent"], settings=settings)
+    paper = reconstruct(image, fine["paper"], settings=settings)
+    np.testing.assert_array_equal(named, built)
+    assert np.abs(named - paper).max() > 1e-3 * paper.max()

@@ -195,6 +195,7 @@ class Projector(FactorisedStages):
         self.queue = get_queue(queue)
         self._refined: dict[int, Projector] = {}
         self._sampled: dict[float, Projector] = {}
+        self._weighted: dict[str, Projector] = {}
         self.model = model
         self.resampler: FrameResampler | None = None
         self.frame = self._frame_projector(frame) if model.path == "general" else None
@@ -629,6 +630,20 @@ class Projector(FactorisedStages):
                 self.camera, self.grid, self.queue,
                 **{**self._options, "oversample": oversample}, frame=frame)
         return self._sampled[oversample]
+
+    def weighted(self, lens_weights: str) -> Projector:
+        """A projector for this grid with ``lens_weights`` (:data:`LENS_WEIGHTS`; same
+        camera, queue and other options; a resampled grid's through its frame's), built
+        once per value and kept: what a reconstruction whose settings name the lens
+        weights runs on. ``self`` at this projector's own."""
+        if lens_weights == self.lens_weights:
+            return self
+        if lens_weights not in self._weighted:
+            frame = None if self.frame is None else self.frame.weighted(lens_weights)
+            self._weighted[lens_weights] = Projector(
+                self.camera, self.grid, self.queue,
+                **{**self._options, "lens_weights": lens_weights}, frame=frame)
+        return self._weighted[lens_weights]
 
     def cropped(self, box: tuple[slice, slice, slice]) -> Projector:
         """A projector for the sub-grid ``vol[box]`` (same camera, queue and options).

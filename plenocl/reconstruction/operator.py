@@ -127,3 +127,15 @@ class SampledOperator(ProjectionOperator, Protocol):
     def sampled(self, oversample: float) -> ProjectionOperator:
         """The same operator with ``oversample`` aperture samples per pixel footprint,
         kept per value (itself at its own value)."""
+
+
+class WeightedOperator(ProjectionOperator, Protocol):
+    """A :class:`ProjectionOperator` that can also change how an aperture sample's light
+    is shared between lenses (``lens_weights``: the paper's bilinear weights, or the
+    voxel's extent; :class:`plenocl.Projector` is one): a reconstruction whose settings
+    name the lens weights runs on :meth:`weighted`."""
+
+    lens_weights: str
+
+    def weighted(self, lens_weights: str) -> ProjectionOperator:
+        """The same operator with ``lens_weights``, kept per value (itself at its own)."""

@@ -221,6 +221,12 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         sampled ``early_oversample`` times per pixel footprint (default 0.9: about half
         the samples), the rest on the refined projector itself from their volume;
         ``early_oversample=None`` or ``early_iterations=0``: all on the projector's own.
+    lens_weights
+        How an aperture sample's light is shared between lenses: ``"paper"`` (the
+        paper's bilinear weights) or ``"extent"`` (the voxel's extent in each lens's
+        cell; docs/design.md §6.4), on :meth:`plenocl.Projector.weighted`, built once per
+        projector; ``None`` (default): the projector's own (``Projector(lens_weights=)``,
+        the paper's by default).
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
         ``False`` stops the reconstruction. Coarse-to-fine: the coarse iterations come
@@ -259,6 +265,18 @@ def _refined(projector, factor: int):
         raise MemoryError(f"{err}; supersample={factor} reconstructs on {factor * factor}x "
                           "the grid's voxels: a smaller factor (supersample=1, --supersample "
                           "1, is the grid itself) needs less") from err
+
+
+def _weighted(projector, lens_weights: str | None):
+    """The projector with ``lens_weights`` (:meth:`plenocl.Projector.weighted`; ``None``:
+    itself), refused with a clear error for an operator that cannot change them."""
+    if lens_weights is None:
+        return projector
+    if not hasattr(projector, "weighted"):  # a WeightedOperator (see .operator)
+        raise ValueError(f"lens_weights={lens_weights!r} needs a projector that can change "
+                         "its lens weights (plenocl.Projector.weighted); leave lens_weights "
+                         "None with this operator")
+    return projector.weighted(lens_weights)
 
 
 def _sampled(projector, oversample: float | None):
@@ -497,6 +515,7 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
         raise ValueError("start must be 'uniform', 'mlos' or a volume array, got "
                          f"{settings.start!r}")  # an option: checked before the image
     _coarse_start(settings.start, projector.grid)
+    projector = _weighted(projector, settings.lens_weights)
     observed = None if pixel_mask is None else check_pixel_mask(pixel_mask, projector.camera)
     if observed is not None and isinstance(settings.start, str) and settings.start == "mlos":
         raise ValueError("start='mlos' cannot use a pixel_mask (its geometric mean needs "

@@ -30,6 +30,9 @@ FINE_DEFAULTS = (7, 1.5)
 #: iterations the volume of 10 at μ = 1; μ = 2 oscillates); SMART and MART take the
 #: paper's ``0 < μ <= 1``.
 MLEM_MAX_RELAX = 2.0
+#: The lens weights a reconstruction may name (``lens_weights``; the projector's
+#: ``plenocl.projection.projector.LENS_WEIGHTS``, which a test keeps equal).
+LENS_WEIGHTS = ("paper", "extent")
 
 
 @dataclass
@@ -102,6 +105,7 @@ class ReconstructionSettings:
     coarse_oversample: float | None = COARSE_OVERSAMPLE
     early_iterations: int = EARLY_ITERATIONS
     early_oversample: float | None = EARLY_OVERSAMPLE
+    lens_weights: str | None = None
 
     def __post_init__(self) -> None:
         fine = is_integer(self.supersample) and self.supersample > 1
@@ -175,6 +179,9 @@ def _check_options(s: ReconstructionSettings) -> None:
         if not (np.isfinite(s.ratio_floor) and 0 < s.ratio_floor < 1):
             raise ValueError(f"ratio_floor must be in (0, 1) or None (the literal form), got "
                              f"{s.ratio_floor!r}")
+    if s.lens_weights is not None and s.lens_weights not in LENS_WEIGHTS:
+        raise ValueError(f"lens_weights must be one of {LENS_WEIGHTS} or None (the "
+                         f"projector's own), got {s.lens_weights!r}")
     if not 0 <= s.min_sensitivity < 1:
         raise ValueError(f"min_sensitivity must be in [0, 1), got {s.min_sensitivity!r}")
 
