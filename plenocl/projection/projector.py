@@ -193,9 +193,7 @@ class Projector(FactorisedStages):
                              segment=segment, gather_forward=gather_forward,
                              general=general, lens_weights=lens_weights)
         self.queue = get_queue(queue)
-        self._refined: dict[int, Projector] = {}
-        self._sampled: dict[float, Projector] = {}
-        self._weighted: dict[str, Projector] = {}
+        self._variants: dict[tuple, Projector] = {}
         self.model = model
         self.resampler: FrameResampler | None = None
         self.frame = self._frame_projector(frame) if model.path == "general" else None
@@ -605,11 +603,8 @@ class Projector(FactorisedStages):
         ``frame.refined(f)``)."""
         if factor == 1:
             return self
-        if factor not in self._refined:
-            frame = None if self.frame is None else self.frame.refined(factor)
-            self._refined[factor] = Projector(self.camera, self.grid.refined(factor),
-                                              self.queue, **self._options, frame=frame)
-        return self._refined[factor]
+        frame = None if self.frame is None else self.frame.refined(factor)
+        return self._kept(("refined", factor), frame, self.grid.refined(factor))
 
     @property
     def oversample(self) -> float:
@@ -624,12 +619,8 @@ class Projector(FactorisedStages):
         this projector's own value."""
         if oversample == self.oversample:
             return self
-        if oversample not in self._sampled:
-            frame = None if self.frame is None else self.frame.sampled(oversample)
-            self._sampled[oversample] = Projector(
-                self.camera, self.grid, self.queue,
-                **{**self._options, "oversample": oversample}, frame=frame)
-        return self._sampled[oversample]
+        frame = None if self.frame is None else self.frame.sampled(oversample)
+        return self._kept(("oversample", oversample), frame, oversample=oversample)
 
     def weighted(self, lens_weights: str) -> Projector:
         """A projector for this grid with ``lens_weights`` (:data:`LENS_WEIGHTS`; same
@@ -638,12 +629,19 @@ class Projector(FactorisedStages):
         weights runs on. ``self`` at this projector's own."""
         if lens_weights == self.lens_weights:
             return self
-        if lens_weights not in self._weighted:
-            frame = None if self.frame is None else self.frame.weighted(lens_weights)
-            self._weighted[lens_weights] = Projector(
-                self.camera, self.grid, self.queue,
-                **{**self._options, "lens_weights": lens_weights}, frame=frame)
-        return self._weighted[lens_weights]
+        frame = None if self.frame is None else self.frame.weighted(lens_weights)
+        return self._kept(("lens_weights", lens_weights), frame, lens_weights=lens_weights)
+
+    def _kept(self, key: tuple, frame: Projector | None, grid: Grid | None = None,
+              **changes) -> Projector:
+        """The projector of ``grid`` (default: this one's) with this one's options but
+        ``changes``, through ``frame``, built on the first call with ``key`` and kept:
+        :meth:`refined`, :meth:`sampled` and :meth:`weighted` share it."""
+        if key not in self._variants:
+            self._variants[key] = Projector(self.camera, self.grid if grid is None else grid,
+                                            self.queue, **{**self._options, **changes},
+                                            frame=frame)
+        return self._variants[key]
 
     def cropped(self, box: tuple[slice, slice, slice]) -> Projector:
         """A projector for the sub-grid ``vol[box]`` (same camera, queue and options).
