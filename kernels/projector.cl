@@ -530,12 +530,13 @@ __kernel void voxel_footprint(__global const int4 *restrict voxels, __global int
     const int s = get_global_id(0), vb = get_global_id(1);
     const int4 v = voxels[vb];
     __global const float *c = coef + 16 * v.z;
+    const float2 iw = pl_lens_iw(c);
     const int2 ij = sample_ij[s];
     const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
     const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)v.x, (float)v.y);
     int id[16];
     float w[16];
-    pl_sample_products(p, sample_px[s], pl_lens_iw(c), lens_rnd, lens_frac, nkx, nky, width, height, id, w);
+    pl_sample_products(p, sample_px[s], iw, lens_rnd, lens_frac, nkx, nky, width, height, id, w);
     const size_t base = ((size_t)vb * ns + s) * 16;
     for (int e = 0; e < 16; ++e) {
         idx[base + e] = id[e];
@@ -557,13 +558,15 @@ __kernel void fwd_direct(__global const float *restrict vol, volatile __global f
     const float e = vol[((size_t)izl * ny + iy) * nx + ix] * scale;
     if (e == 0.0f) return;
     __global const float *c = coef + 16 * (zv0 + izl);
+    const float2 iw = pl_lens_iw(c);
     for (int s = 0; s < ns; ++s) {
         const int2 ij = sample_ij[s];
         const float bu = (float)ij.x - ic, bv = (float)ij.y - ic;
         const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
         int id[16];
         float w[16];
-        pl_sample_products(p, sample_px[s], pl_lens_iw(c), lens_rnd, lens_frac, nkx, nky, width, height, id, w);
+        pl_sample_products(p, sample_px[s], iw, lens_rnd, lens_frac, nkx, nky, width, height,
+                           id, w);
         for (int k = 0; k < 16; ++k)
             if (id[k] >= 0 && w[k] > 0.0f) pl_atomic_addf(image + id[k], w[k] * e);
     }
@@ -581,6 +584,7 @@ __kernel void back_direct(__global const float *restrict image, __global float *
 {
     const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
     __global const float *c = coef + 16 * (zv0 + izl);
+    const float2 iw = pl_lens_iw(c);
     float acc = 0.0f;
     for (int s = 0; s < ns; ++s) {
         const int2 ij = sample_ij[s];
@@ -588,7 +592,8 @@ __kernel void back_direct(__global const float *restrict image, __global float *
         const float2 p = pl_lens_coord(c, pl_sample_offset(c, bu, bv), (float)ix, (float)iy);
         int id[16];
         float w[16];
-        pl_sample_products(p, sample_px[s], pl_lens_iw(c), lens_rnd, lens_frac, nkx, nky, width, height, id, w);
+        pl_sample_products(p, sample_px[s], iw, lens_rnd, lens_frac, nkx, nky, width, height,
+                           id, w);
         for (int k = 0; k < 16; ++k)
             if (id[k] >= 0) acc += w[k] * image[id[k]];
     }
