@@ -44,6 +44,7 @@ from .core import SIZES, BenchRun, bench_sizes, loglog_slope, md_table, pareto_f
 from .devices import section_devices
 from .lightfield_section import section_calibration, section_refocus
 from .piv_section import piv_flows, section_piv
+from .results import describe_cpu
 from .scaling import section_scaling
 from .stages import section_projector, section_reconstruction, section_simulator, section_skipping
 
@@ -66,20 +67,14 @@ SECTIONS: tuple[tuple[str, Callable[[BenchRun], str]], ...] = (
 
 
 def _machine() -> str:
-    """CPU model and core count, memory, OS."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    """CPU model and core count (:func:`.results.describe_cpu`), memory, OS."""
+    cpu = describe_cpu()
     try:
         mem = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM"
     except (ValueError, OSError, AttributeError):
         mem = ""
-    return f"{os.cpu_count()} CPU cores ({model}){mem}, {platform.system()} {platform.release()}"
+    return (f"{cpu['cores']} CPU cores ({cpu['model']}){mem}, {platform.system()} "
+            f"{platform.release()}")
 
 
 def _load() -> str:
