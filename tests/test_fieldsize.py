@@ -14,6 +14,7 @@ from plenocl.bench.fieldsize import (
     Stage,
     matched,
     off_axis_ratio,
+    pooled,
     split_table,
 )
 
@@ -52,3 +53,24 @@ def test_errors_split_by_radius_and_depth_zone_into_their_own_bins():
     assert "10 x 8 lenses" in text and text.count("\n") == 4
     assert Stage("few", where[:2], err[:2]).rms()[2] == 2
     assert np.isnan(Stage("few", where[:2], err[:2]).rms()[0])
+
+
+def test_pooled_scenes_take_each_bins_rms_over_all_their_entries():
+    rng = np.random.default_rng(5)
+
+    def scene(scale: float, n: int) -> SizeSplit:
+        where = np.column_stack([rng.uniform(-30, 30, (n, 2)), rng.uniform(-10, 10, n)])
+        st = Stage("vectors", where, rng.normal(0, scale, (n, 3)))
+        return SizeSplit((10, 8), (4, 5, 6), n, [st], [1.0 + scale] * 6, [scale] * 6, 2.0)
+
+    one, two = scene(0.1, 400), scene(0.3, 1200)
+    both = pooled([one, two])
+    assert both.particles == 1600 and both.seconds == 4.0
+    assert both.peaks_per_particle == pytest.approx([1.2] * 6)
+    err = np.concatenate([one.stages[0].error, two.stages[0].error])
+    lat, dep, n = both.stages[0].rms()
+    assert n == 1600 and dep == pytest.approx(np.sqrt(np.mean(err[:, 2] ** 2)))
+    # weighted by entries, not the mean of the two scenes' RMS
+    assert dep != pytest.approx((one.stages[0].rms()[1] + two.stages[0].rms()[1]) / 2, rel=1e-3)
+    with pytest.raises(ValueError, match="at least one"):
+        pooled([])
