@@ -3,15 +3,19 @@
  * corners of a grid, as three passes (x, then y, then z). NumPy twin:
  * plenocl.piv.direct.HostSums (three matrix products per sum, BLAS on the host).
  *
- * Taps: per axis a table of 6 rows of T floats, the weight W(q + s/2) of lags
- * s = -1, 0, 1 (rows 0-2) and its square (rows 3-5); tap t of a window with low corner L
- * (unpadded voxels) weighs voxel L - margin + t. Every voxel outside the volume is zero.
+ * Lags: -PL_ZREACH ... PL_ZREACH in z (-D define: plenocl.piv.direct.REACH[0], 2), -1, 0,
+ * 1 in y and x: NZLAG x 3 x 3 (45) lags.
+ *
+ * Taps: per axis a table of 2 n rows of T floats, the weight W(q + s/2) of its n lags
+ * (rows 0 to n - 1; n = 3 in x and y, NZLAG in z) and its square (rows n to 2 n - 1);
+ * tap t of a window with low corner L (unpadded voxels) weighs voxel L - margin + t.
+ * Every voxel outside the volume is zero.
  *
  * Parallel structure: one work-item per output sum, no atomics, no shared state.
  *  - pair_rows, spread_rows (x pass): one work-item per (x corner, y, z) row segment of the
  *    volume; it loops over the T taps, reads the segment of a and the segments of b in the
  *    neighbouring rows once, and forms the fields (products a(q) b(q + s), differences)
- *    on the fly, writing NPAIR (39) or NSPREAD (27) sums. Neighbouring items read
+ *    on the fly, writing NPAIR (57) or NSPREAD (27) sums. Neighbouring items read
  *    overlapping segments of the same rows (caches serve them).
  *  - axis_sums (y and z passes): one work-item per (inner index, corner, outer index x
  *    output field); it loops over T taps along the middle axis of its source field.
@@ -20,7 +24,11 @@
  * Each sum is one work-item's loop in tap order: the results do not depend on the device's
  * work-group size or core count. */
 
-#define NPAIR 39    /* a, a^2, b, b^2 at 3 x lags each; a(q) b(q + s) at 27 lags */
+#ifndef PL_ZREACH
+#define PL_ZREACH 2
+#endif
+#define NZLAG (2 * PL_ZREACH + 1)
+#define NPAIR (12 + 9 * NZLAG) /* a, a^2, b, b^2 at 3 x lags each; a(q) b(q + s) at 45 lags */
 #define NSPREAD 27  /* 9 fields of the uncertainty's asymmetry per axis e */
 
 inline float pl_hsum(float8 v)
@@ -29,7 +37,8 @@ inline float pl_hsum(float8 v)
     return (h.x + h.z) + (h.y + h.w);
 }
 
-/* The row kernels read padded volumes (one zero plane and row on every side in z and y,
+/* The row kernels read padded volumes (PL_ZREACH zero planes on each side in z, one row
+ * on each side in y,
  * enough zeros in x that every 8-float chunk of taps stays inside: see
  * plenocl.piv.devicesums.DeviceSums) and taps rows of `chunks` 8-float chunks (zeros
  * beyond the T taps), so their inner loops have no bounds checks and run as 8-wide vector
@@ -39,7 +48,7 @@ inline float pl_hsum(float8 v)
 
 /* x pass of the correlation sums. Output field f at out[((f nz + z) ny + y) cx + c]:
  * f = sx (a), 3 + sx (a^2), 6 + sx (b at x + sx - 1), 9 + sx (b^2 at x + sx - 1),
- * 12 + (sz 3 + sy) 3 + sx (a(z, y, x) b(z + sz - 1, y + sy - 1, x + sx - 1)). */
+ * 12 + (sz 3 + sy) 3 + sx (a(z, y, x) b(z + sz - PL_ZREACH, y + sy - 1, x + sx - 1)). */
 __kernel void pair_rows(__global const float *a, __global const float *b,
                         int nz, int ny, int py, int px, int start, int step, int cx,
                         int chunks, __global const float *taps,
@@ -48,7 +57,7 @@ __kernel void pair_rows(__global const float *a, __global const float *b,
     int c = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
     int len = 8 * chunks;
     long x0 = start + c * step;
-    long row = ((long)(z + 1) * py + (y + 1)) * px + x0;
+    long row = ((long)(z + PL_ZREACH) * py + (y + 1)) * px + x0;
     __global const float *arow = a + row, *brow = b + row;
     long plane = (long)nz * ny * cx, at = ((long)z * ny + y) * cx + c;
     for (int s = 0; s < 3; ++s) {
@@ -68,8 +77,8 @@ __kernel void pair_rows(__global const float *a, __global const float *b,
         out[(6 + s) * plane + at] = pl_hsum(sb);
         out[(9 + s) * plane + at] = pl_hsum(sbb);
     }
-    for (int dz = 0; dz < 3; ++dz) {   /* 9 independent sums (y lag, x lag) per plane */
-        __global const float *lag = brow + (long)(dz - 1) * py * px - px - 1;
+    for (int dz = 0; dz < NZLAG; ++dz) { /* 9 independent sums (y lag, x lag) per plane */
+        __global const float *lag = brow + (long)(dz - PL_ZREACH) * py * px - px - 1;
         float8 acc[9];
         for (int f = 0; f < 9; ++f) acc[f] = 0.0f;
         for (int k = 0; k < chunks; ++k) {
@@ -98,7 +107,7 @@ __kernel void spread_rows(__global const float *a, __global const float *b,
     int c = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
     int len = 8 * chunks;
     long x0 = start + c * step;
-    long row = ((long)(z + 1) * py + (y + 1)) * px + x0;
+    long row = ((long)(z + PL_ZREACH) * py + (y + 1)) * px + x0;
     long plane = (long)nz * ny * cx, at = ((long)z * ny + y) * cx + c;
     for (int e = 0; e < 3; ++e) {
         long next = e == 0 ? (long)py * px : (e == 1 ? px : 1);

@@ -14,6 +14,7 @@ from plenocl.piv.correlation import window_grid
 from plenocl.piv.deformation import DeviceDeformer, HostDeformer
 from plenocl.piv.devicesums import DeviceSums, sums_for
 from plenocl.piv.direct import (
+    LAGS,
     HostSums,
     correlate_direct,
     correlation_uncertainty,
@@ -22,8 +23,10 @@ from plenocl.piv.direct import (
 )
 
 #: (shape, window, overlap, weighting): odd sizes, a volume thinner than the x taps, a
-#: step of 1, top-hat windows and weights reaching far past every face.
+#: step of 1, top-hat windows, weights reaching far past every face and a volume no
+#: deeper than the depth lags.
 CASES = [((13, 17, 22), (8, 9, 10), 0.5, 0.35),
+         ((5, 13, 17), (5, 8, 9), 0.5, 0.6),
          ((11, 25, 9), (9, 8, 8), 0.75, 0.8),
          ((20, 21, 23), (10, 12, 8), 0.5, 0.5),
          ((12, 10, 31), (9, 9, 11), 0.9, 0.35),
@@ -55,7 +58,7 @@ def test_correlation_sums_match_the_host(device_sums, shape, size, overlap, weig
     got = device_sums.correlation_sums(a, b, grid, weighting)
     want = HostSums().correlation_sums(a, b, grid, weighting)
     for g, w in zip(got, want):
-        assert g.shape == (27, *grid.count)
+        assert g.shape == (len(LAGS), *grid.count)
         _close(g, w)
     s_a, s_b, raw_a, raw_b, products = got
     assert np.all(raw_a > 0) and np.all(raw_b > 0) and np.all(products > 0)

@@ -4,7 +4,7 @@
 matrix products per sum on the host: every weighted window sum of
 :func:`plenocl.piv.direct.correlate_direct` and of
 :func:`plenocl.piv.direct.correlation_uncertainty`, evaluated at the window corners only.
-A row kernel (x) forms the fields (products of the two volumes at the 27 lags,
+A row kernel (x) forms the fields (products of the two volumes at the 45 lags,
 differences of neighbours) as it sums them, so no field is ever stored whole; a generic
 axis kernel then sums the y and z axes. Both engines return float32 sums of the same
 shapes, equal to float32 rounding (each kernel sum is one work-item's loop in tap order,
@@ -21,19 +21,24 @@ from ..opencl.device import DeviceLike, check_fits, get_queue
 from ..opencl.program import KernelSet
 from .correlation import WindowGrid
 from .deformation import DeviceDeformer
-from .direct import axis_taps, margin
+from .direct import AXIS_LAGS, CUBE, LAGS, REACH, axis_taps, margin
 
-#: Sums the row kernels write per row segment (``NPAIR``, ``NSPREAD`` in the kernel).
-PAIR_FIELDS, SPREAD_FIELDS = 39, 27
+#: Sums the row kernels write per row segment (``NPAIR``, ``NSPREAD`` in the kernel):
+#: ``a``, ``a^2``, ``b``, ``b^2`` at the 3 x lags, then the products at the 9 (y, x) lags of
+#: each depth lag; the uncertainty's 9 fields per axis.
+PAIR_FIELDS, SPREAD_FIELDS = 12 + 9 * CUBE[0], 27
+#: The lags of the uncertainty's sums along every axis (lag zero and its neighbours).
+UNIT_LAGS = (-1, 0, 1)
 
 _KERNELS = ["pair_rows", "spread_rows", "axis_sums"]
 
 
-def tap_table(size: int, weighting: float | None, width: int = 0) -> np.ndarray:
-    """``(6, width)`` float32: the weight of lags -1, 0, 1 along one axis
+def tap_table(size: int, weighting: float | None, width: int = 0,
+              lags=UNIT_LAGS) -> np.ndarray:
+    """``(2 len(lags), width)`` float32: the weight of ``lags`` along one axis
     (:func:`plenocl.piv.direct.axis_taps`, the rows of ``WindowSums``) and their squares,
     zeros beyond the ``size + 2 margin`` taps (``width``, at least that, by default)."""
-    rows = [axis_taps(size, weighting, -0.5 * s) for s in (-1, 0, 1)]
+    rows = [axis_taps(size, weighting, -0.5 * s) for s in lags]
     table = np.array(rows + [r ** 2 for r in rows], np.float32)
     return np.pad(table, [(0, 0), (0, max(0, width - table.shape[1]))])
 
@@ -41,15 +46,16 @@ def tap_table(size: int, weighting: float | None, width: int = 0) -> np.ndarray:
 def pair_fields() -> tuple[np.ndarray, np.ndarray]:
     """``(source, tap row, offset)`` of every output of the y and z passes of the
     correlation sums: ``a``, ``a^2`` (first window), ``b``, ``b^2`` (second window,
-    offset by its lag) at the lags of each axis, then the 27 products at their own lag.
-    The z pass leaves them in :data:`plenocl.piv.direct.LAGS` order, 27 per quantity."""
+    offset by its lag) at the lags of each axis, then the products at their own lag.
+    The z pass leaves them in :data:`plenocl.piv.direct.LAGS` order, 45 per quantity."""
+    nz, (rz, ry) = CUBE[0], REACH[:2]
     y, z = [], []
     for q in range(4):
         second = q >= 2
-        y += [(3 * q + sx, sy, sy - 1 if second else 0) for sy in range(3) for sx in range(3)]
-        z += [(9 * q + j, sz, sz - 1 if second else 0) for sz in range(3) for j in range(9)]
-    y += [(12 + p, (p // 3) % 3, 0) for p in range(27)]
-    z += [(36 + p, p // 9, 0) for p in range(27)]
+        y += [(3 * q + sx, sy, sy - ry if second else 0) for sy in range(3) for sx in range(3)]
+        z += [(9 * q + j, sz, sz - rz if second else 0) for sz in range(nz) for j in range(9)]
+    y += [(12 + p, (p // 3) % 3, 0) for p in range(len(LAGS))]
+    z += [(36 + p, p // 9, 0) for p in range(len(LAGS))]
     return np.array(y, np.int32), np.array(z, np.int32)
 
 
@@ -73,16 +79,18 @@ class DeviceSums:
 
     def __init__(self, queue: DeviceLike) -> None:
         self.kernels = KernelSet(get_queue(queue), "windowsums.cl", _KERNELS,
+                                 options=[f"-DPL_ZREACH={REACH[0]}"],
                                  looping=["pair_rows", "spread_rows"])
         self._pair = [self.kernels.to_device(f) for f in pair_fields()]
         self._spread = [self.kernels.to_device(f) for f in spread_fields()]
 
     def correlation_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                          weighting: float | None) -> tuple[np.ndarray, ...]:
-        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(27, *grid.count)`` float32, as
+        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(45, *grid.count)`` float32, as
         :meth:`plenocl.piv.direct.HostSums.correlation_sums`."""
-        out = self._sums("pair_rows", PAIR_FIELDS, self._pair, vol_a, vol_b, grid, weighting)
-        s_a, raw_a, s_b, raw_b, products = out.reshape(5, 27, *grid.count)
+        out = self._sums("pair_rows", PAIR_FIELDS, self._pair, vol_a, vol_b, grid, weighting,
+                         AXIS_LAGS[0])
+        s_a, raw_a, s_b, raw_b, products = out.reshape(5, len(LAGS), *grid.count)
         return s_a, s_b, raw_a, raw_b, products
 
     def spread_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
@@ -90,18 +98,19 @@ class DeviceSums:
         """``(3, 9, *grid.count)`` float32, as
         :meth:`plenocl.piv.direct.HostSums.spread_sums`."""
         out = self._sums("spread_rows", SPREAD_FIELDS, self._spread, vol_a, vol_b, grid,
-                         weighting)
+                         weighting, UNIT_LAGS)
         return out.reshape(3, 9, *grid.count)
 
     def _sums(self, rows: str, nfields: int, fields, vol_a, vol_b, grid: WindowGrid,
-              weighting: float | None) -> np.ndarray:
-        """The x pass ``rows`` of both volumes, then the y and z passes with ``fields``."""
+              weighting: float | None, zlags) -> np.ndarray:
+        """The x pass ``rows`` of both volumes, then the y and z passes with ``fields``
+        (the z pass's tap rows those of ``zlags``)."""
         nz, ny, nx = np.shape(vol_a)
         cz, cy, cx = grid.count
         mx = margin(grid.size[2], weighting)
         chunks = -(-(grid.size[2] + 2 * mx) // 8)      # 8-float chunks of the x taps
         width = nx + 2 * (mx + 1) + 8 * chunks - (grid.size[2] + 2 * mx)
-        check_fits(self.kernels.queue, 4 * (2 * (nz + 2) * (ny + 2) * width
+        check_fits(self.kernels.queue, 4 * (2 * (nz + 2 * REACH[0]) * (ny + 2) * width
                                             + nfields * nz * ny * cx
                                             + fields[0].shape[0] * nz * cy * cx),
                    "the direct correlation's window sums")
@@ -112,26 +121,29 @@ class DeviceSums:
         self.kernels.launch(rows, (cx, ny, nz), a, b,
                             *_ints(nz, ny, ny + 2, width, grid.offset[2] + 1, grid.step[2],
                                    cx, chunks), tx, *extra, x)
-        y = self._axis(x, nz, ny, cx, grid, weighting, 1, fields[0])
-        return self._axis(y, 1, nz, cy * cx, grid, weighting, 0, fields[1]).get()
+        y = self._axis(x, nz, ny, cx, grid, weighting, 1, fields[0], UNIT_LAGS)
+        return self._axis(y, 1, nz, cy * cx, grid, weighting, 0, fields[1], zlags).get()
 
     def _padded(self, vol: np.ndarray, left: int, width: int):
-        """``vol`` on the device inside zeros: one plane and row on every side in z and y,
-        ``left`` voxels before each row, rows ``width`` long (the row kernels' layout)."""
+        """``vol`` on the device inside zeros: the farthest depth lag's planes on each side
+        in z, one row on each side in y, ``left`` voxels before each row, rows ``width``
+        long (the row kernels' layout)."""
         host = np.ascontiguousarray(vol, np.float32)
         nz, ny, nx = host.shape
-        out = cl_array.zeros(self.kernels.queue, (nz + 2, ny + 2, width), np.float32)
-        cl.enqueue_copy(self.kernels.queue, out.data, host, buffer_origin=(4 * left, 1, 1),
+        rz = REACH[0]
+        out = cl_array.zeros(self.kernels.queue, (nz + 2 * rz, ny + 2, width), np.float32)
+        cl.enqueue_copy(self.kernels.queue, out.data, host, buffer_origin=(4 * left, 1, rz),
                         host_origin=(0, 0, 0), region=(4 * nx, ny, nz),
                         buffer_pitches=(4 * width, 4 * width * (ny + 2)),
                         host_pitches=(4 * nx, 4 * nx * ny))
         return out
 
     def _axis(self, source, outer: int, n: int, inner: int, grid: WindowGrid,
-              weighting: float | None, axis: int, fields):
-        """One y or z pass: ``(len(fields), outer, count, inner)`` on the device."""
+              weighting: float | None, axis: int, fields, lags):
+        """One y or z pass: ``(len(fields), outer, count, inner)`` on the device, the tap
+        rows those of ``lags``."""
         count, size = grid.count[axis], grid.size[axis]
-        taps = self.kernels.to_device(tap_table(size, weighting))
+        taps = self.kernels.to_device(tap_table(size, weighting, lags=lags))
         out = self.kernels.array((fields.shape[0], outer, count, inner))
         self.kernels.launch("axis_sums", (inner, count, outer * fields.shape[0]), source,
                             *_ints(outer, n, inner, grid.offset[axis], grid.step[axis], count,

@@ -1,9 +1,14 @@
-"""Direct (non-FFT) correlation of every window at the 27 lags around zero.
+"""Direct (non-FFT) correlation of every window at the 45 lags around zero.
 
 After the first pass the volumes are deformed by the predictor, so the residual
-displacement of most windows is below one voxel and only the lags ``s`` in
-``{-1, 0, 1}^3`` are needed to locate and fit the peak. For a window with low corner
-``L`` the normalised correlation at lag ``s`` is the weighted Pearson coefficient
+displacement of most windows is below one voxel laterally and only the lags ``s`` of
+:data:`AXIS_LAGS` are needed to locate and fit the peak: ``{-1, 0, 1}`` across and
+``{-2, ..., 2}`` in depth, where a plenoptic camera reads positions worst and the residual
+after a deformation is often a voxel or more (at the paper's full size, more than half
+the windows of the first deformed pass peak one voxel off in depth and none laterally;
+design.md §7.5), so that a peak one voxel off in depth is still fitted here. For a
+window with low corner ``L`` the normalised correlation at lag ``s`` is the weighted
+Pearson coefficient
 
     r(s) = cov(s) / sqrt(var_a(s) var_b(s)),
     cov(s) = S_s[a(L + q) b(L + q + s)] - S_s[a(L + q)] S_s[b(L + q + s)] / S_s[1],
@@ -21,10 +26,11 @@ depend on the thread count; :class:`plenocl.piv.devicesums.DeviceSums` runs the 
 on an OpenCL device (``kernels/windowsums.cl``, banded instead of dense, each sum one
 work-item's loop), which ``piv3d`` uses beside its device deformer.
 
-:func:`correlate_direct` returns the 27 coefficients per window; :func:`fit_direct`
+:func:`correlate_direct` returns the 45 coefficients per window; :func:`fit_direct`
 locates the peak and fits it per axis with the same three-point Gaussian as the FFT path
-(:func:`plenocl.peaks.gaussian_subpixel`); :func:`correlate_deformed` sends
-windows whose peak is off the centre lag or weak to the FFT;
+(:func:`plenocl.peaks.gaussian_subpixel`) where its neighbours are among the lags (the
+peak at zero laterally and within one voxel in depth); :func:`correlate_deformed` sends
+the other windows, and weak ones, to the FFT;
 :func:`correlation_uncertainty` estimates each vector's uncertainty. The plain
 per-window twin is :func:`plenocl.reference.direct.correlate_windows`.
 """
@@ -44,9 +50,16 @@ from ..opencl.threads import thread_count
 from ..peaks import gaussian_subpixel
 from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 
-#: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order; index 13 is zero.
-LAGS = np.array(list(itertools.product((-1, 0, 1), repeat=3)))
-CENTRE = 13
+#: The lags of each axis ``(z, y, x)``: two voxels either way in depth, one across.
+AXIS_LAGS = ((-2, -1, 0, 1, 2), (-1, 0, 1), (-1, 0, 1))
+#: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order (45 of them).
+LAGS = np.array(list(itertools.product(*AXIS_LAGS)))
+#: The index of lag zero in :data:`LAGS`.
+CENTRE = int(np.flatnonzero((LAGS == 0).all(axis=1))[0])
+#: The lags per axis and the farthest lag of each axis (voxels): the coefficients
+#: reshaped to ``(*CUBE, ...)`` hold lag zero at index ``REACH``.
+CUBE = tuple(len(lags) for lags in AXIS_LAGS)
+REACH = tuple(max(lags) for lags in AXIS_LAGS)
 
 
 def parallel_sums(function, items) -> list:
@@ -91,16 +104,16 @@ def _corner_matrix(n: int, corners: np.ndarray, taps: np.ndarray) -> np.ndarray:
 
 def lag_weight_sums(grid: WindowGrid, weighting: float | None, power: int = 1) -> np.ndarray:
     """``sum_q W(q + s/2)`` (to ``power``) per lag of :data:`LAGS`: the sum of a window's
-    weights, ``(27,)``."""
-    per_axis = [np.array([(axis_taps(w, weighting, -0.5 * s) ** power).sum()
-                          for s in (-1, 0, 1)]) for w in grid.size]
+    weights, ``(45,)``."""
+    per_axis = [np.array([(axis_taps(w, weighting, -0.5 * s) ** power).sum() for s in lags])
+                for w, lags in zip(grid.size, AXIS_LAGS)]
     return np.array([per_axis[0][i] * per_axis[1][j] * per_axis[2][k]
-                     for i, j, k in LAGS + 1])
+                     for i, j, k in LAGS + REACH])
 
 
 class WindowSums:
-    """Weighted window sums at every window corner of a grid, for the lags in
-    ``{-1, 0, 1}`` per axis, of volumes padded with zeros (:meth:`pad`).
+    """Weighted window sums at every window corner of a grid, for the lags of
+    :data:`AXIS_LAGS`, of volumes padded with zeros (:meth:`pad`).
 
     The weight of lag ``s`` sits at the midpoint between the two windows compared,
     ``W(q + s/2)`` for the first window's voxel ``q``, so that neither volume is
@@ -128,51 +141,54 @@ class WindowSums:
         self.grid, self.shape = grid, tuple(shape)
         self.margins = tuple(margin(w, weighting) for w in grid.size)
         corners = [o + s * np.arange(c) for o, s, c in zip(grid.offset, grid.step, grid.count)]
-        lags = (-1, 0, 1)
-        padded = [n + 2 * m + 2 for n, m in zip(shape, self.margins)]
+        #: zeros on each face: the weight's margin and the farthest lag
+        self.pads = tuple(m + r for m, r in zip(self.margins, REACH))
+        padded = [n + 2 * p for n, p in zip(shape, self.pads)]
         # the weight W(q + s/2) per axis and lag, the same for both windows
-        taps = [[axis_taps(w, weighting, -0.5 * s) ** power for s in lags] for w in grid.size]
-        self._first = [[_corner_matrix(n, c + 1, t) for t in axis]
-                       for n, c, axis in zip(padded, corners, taps)]
-        self._second = [[_corner_matrix(n, c + 1 + s, t) for s, t in zip(lags, axis)]
-                        for n, c, axis in zip(padded, corners, taps)]
+        taps = [[axis_taps(w, weighting, -0.5 * s) ** power for s in lags]
+                for w, lags in zip(grid.size, AXIS_LAGS)]
+        self._first = [[_corner_matrix(n, c + r, t) for t in axis]
+                       for n, c, r, axis in zip(padded, corners, REACH, taps)]
+        self._second = [[_corner_matrix(n, c + r + s, t) for s, t in zip(lags, axis)]
+                        for n, c, r, lags, axis in zip(padded, corners, REACH, AXIS_LAGS, taps)]
         #: ``sum_q W(q + s/2)`` per lag of :data:`LAGS`.
         self.weight_sums = lag_weight_sums(grid, weighting, power)
 
     def pad(self, vol: np.ndarray) -> np.ndarray:
-        """``vol`` with ``margin + 1`` voxels of zeros on every face (float32)."""
-        return np.pad(np.asarray(vol, np.float32), [(m + 1, m + 1) for m in self.margins])
+        """``vol`` with ``margin + reach`` voxels of zeros on every face (float32)."""
+        return np.pad(np.asarray(vol, np.float32), [(p, p) for p in self.pads])
 
     def inner(self, padded: np.ndarray) -> np.ndarray:
         """The view of a padded volume holding the unpadded voxels."""
-        return padded[tuple(slice(m + 1, m + 1 + n) for m, n in zip(self.margins, self.shape))]
+        return padded[tuple(slice(p, p + n) for p, n in zip(self.pads, self.shape))]
 
     def shifted(self, padded: np.ndarray, shift) -> np.ndarray:
         """The view of a padded volume at the unpadded voxels shifted by ``shift``."""
-        return padded[tuple(slice(m + 1 + s, m + 1 + s + n)
-                            for m, n, s in zip(self.margins, self.shape, shift))]
+        return padded[tuple(slice(p + s, p + s + n)
+                            for p, n, s in zip(self.pads, self.shape, shift))]
 
     def first(self, padded: np.ndarray) -> np.ndarray:
-        """``sum_q W(q + s/2) f(L + q)`` for every lag: ``(27, *count)``."""
+        """``sum_q W(q + s/2) f(L + q)`` for every lag: ``(45, *count)``."""
         return self._lagged(padded, self._first)
 
     def second(self, padded: np.ndarray) -> np.ndarray:
-        """``sum_q W(q - s/2) f(L + s + q)`` for every lag: ``(27, *count)``."""
+        """``sum_q W(q - s/2) f(L + s + q)`` for every lag: ``(45, *count)``."""
         return self._lagged(padded, self._second)
 
     def product(self, vol: np.ndarray, shift) -> np.ndarray:
         """``sum_q W(q + s/2) f(L + q)`` for one lag ``shift`` of an unpadded volume (zero
         outside, as a product with a padded volume is)."""
-        rows = [slice(m + 1, m + 1 + n) for m, n in zip(self.margins, self.shape)]
-        mz, my, mx = (axis[s + 1][r] for axis, s, r in zip(self._first, shift, rows))
+        rows = [slice(p, p + n) for p, n in zip(self.pads, self.shape)]
+        mz, my, mx = (axis[s + reach][r]
+                      for axis, s, reach, r in zip(self._first, shift, REACH, rows))
         return self._apply(np.asarray(vol, np.float32), mz, my, mx)
 
     def _lagged(self, padded: np.ndarray, axes) -> np.ndarray:
         mz, my, mx = (np.concatenate(axis, axis=1) for axis in axes)
-        out = self._apply(padded, mz, my, mx)  # (3 cz, 3 cy, 3 cx)
-        cz, cy, cx = self.grid.count
-        out = out.reshape(3, cz, 3, cy, 3, cx).transpose(0, 2, 4, 1, 3, 5)
-        return out.reshape(27, cz, cy, cx)
+        out = self._apply(padded, mz, my, mx)  # (5 cz, 3 cy, 3 cx)
+        (cz, cy, cx), (lz, ly, lx) = self.grid.count, CUBE
+        out = out.reshape(lz, cz, ly, cy, lx, cx).transpose(0, 2, 4, 1, 3, 5)
+        return out.reshape(len(LAGS), cz, cy, cx)
 
     @staticmethod
     def _apply(vol: np.ndarray, mz, my, mx) -> np.ndarray:
@@ -187,9 +203,9 @@ class DirectCorrelation:
     """What :func:`correlate_direct` measured, per window (arrays shaped ``grid.count``
     after the first axis)."""
 
-    r: np.ndarray          # (27, ...) weighted Pearson coefficients at LAGS
-    cov: np.ndarray        # (27, ...) the weighted covariances, r = cov / norm
-    var_a: np.ndarray      # (27, ...) the windows' weighted variances (sums, not means)
+    r: np.ndarray          # (45, ...) weighted Pearson coefficients at LAGS
+    cov: np.ndarray        # (45, ...) the weighted covariances, r = cov / norm
+    var_a: np.ndarray      # (45, ...) the windows' weighted variances (sums, not means)
     var_b: np.ndarray
     mean_a: np.ndarray     # weighted means of the two windows at lag zero
     mean_b: np.ndarray
@@ -219,7 +235,7 @@ class HostSums:
 
     def correlation_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                          weighting: float | None) -> tuple[np.ndarray, ...]:
-        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(27, *grid.count)`` float32: the
+        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(45, *grid.count)`` float32: the
         first window's sums of ``a`` and ``a^2``, the second's of ``b`` and ``b^2``, and
         the sums of ``a(q) b(q + s)``, at every lag ``s`` of :data:`LAGS`."""
         sums = WindowSums(np.shape(vol_a), grid, weighting)
@@ -258,7 +274,7 @@ class HostSums:
 def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                      weighting: float | None, sums: SumEngine | None = None
                      ) -> DirectCorrelation:
-    """Normalised correlation of every window of ``grid`` at the 27 :data:`LAGS`.
+    """Normalised correlation of every window of ``grid`` at the 45 :data:`LAGS`.
 
     Parameters
     ----------
@@ -280,7 +296,7 @@ def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     """
     engine = HostSums() if sums is None else sums
     s_a, s_b, raw_a, raw_b, products = engine.correlation_sums(vol_a, vol_b, grid, weighting)
-    n = lag_weight_sums(grid, weighting).reshape(27, 1, 1, 1)
+    n = lag_weight_sums(grid, weighting).reshape(len(LAGS), 1, 1, 1)
     var_a = raw_a - s_a * s_a / n
     var_b = raw_b - s_b * s_b / n
     cov = products - s_a * s_b / n
@@ -330,18 +346,18 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
     raw = (HostSums() if sums is None else sums).spread_sums(vol_a, vol_b, grid, weighting)
     factors = correlated_factors(vol_a, vol_b, grid, weighting)
     count = float(np.prod([w + 2 * margin(w, weighting) for w in grid.size]))
-    cube = corr.r.reshape(3, 3, 3, *corr.r.shape[1:])
+    cube = corr.r.reshape(*CUBE, *corr.r.shape[1:])
     norm = corr.norm.reshape(cube.shape)
     sigma = np.full((3, *grid.count), np.nan)
     for axis, factor in enumerate(factors):
         total, spread = _asymmetry(raw[axis], corr)
         half = 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
-        lo, hi = [1, 1, 1], [1, 1, 1]
-        lo[axis], hi[axis] = 0, 2
+        lo, hi = list(REACH), list(REACH)
+        lo[axis], hi[axis] = REACH[axis] - 1, REACH[axis] + 1
         lo, hi = tuple(lo), tuple(hi)
         d_lo, d_hi = half / np.maximum(norm[lo], 1e-30), half / np.maximum(norm[hi], 1e-30)
-        up = gaussian_subpixel(cube[lo] - d_lo, cube[1, 1, 1], cube[hi] + d_hi)
-        down = gaussian_subpixel(cube[lo] + d_lo, cube[1, 1, 1], cube[hi] - d_hi)
+        up = gaussian_subpixel(cube[lo] - d_lo, cube[REACH], cube[hi] + d_hi)
+        down = gaussian_subpixel(cube[lo] + d_lo, cube[REACH], cube[hi] - d_hi)
         sigma[axis] = np.where(corr.signal, 0.5 * np.abs(up - down), np.nan)
     return sigma
 
@@ -409,25 +425,39 @@ def _asymmetry(raw: np.ndarray, corr: DirectCorrelation):
 
 
 def fit_direct(r: np.ndarray):
-    """Peak of the 27 coefficients per window and its sub-voxel position.
+    """Peak of the 45 coefficients per window and its sub-voxel position.
+
+    The highest coefficient is fitted per axis where its neighbours are among the lags:
+    at zero laterally and within one voxel of zero in depth.
 
     Returns
     -------
     displacement : numpy.ndarray
-        ``(3, *count)`` ``(dz, dy, dx)`` in voxels, within ``[-0.5, 0.5]`` per axis where
-        the peak is at the centre lag.
+        ``(3, *count)`` ``(dz, dy, dx)`` in voxels: the peak's lag plus its offset within
+        ``[-0.5, 0.5]`` per axis, where ``fitted``.
     peak : numpy.ndarray
-        The coefficient at lag zero.
-    centred : numpy.ndarray
-        Bool: the highest coefficient is at lag zero (else the window needs the FFT).
+        The coefficient at the peak's lag (at lag zero where not ``fitted``).
+    fitted : numpy.ndarray
+        Bool: the peak could be fitted (else the window needs the FFT).
     """
-    cube = r.reshape(3, 3, 3, *r.shape[1:])
-    centre = cube[1, 1, 1]
-    centred = np.argmax(r, axis=0) == CENTRE
-    disp = np.stack([gaussian_subpixel(cube[0, 1, 1], centre, cube[2, 1, 1]),
-                     gaussian_subpixel(cube[1, 0, 1], centre, cube[1, 2, 1]),
-                     gaussian_subpixel(cube[1, 1, 0], centre, cube[1, 1, 2])])
-    return disp, centre, centred
+    shape = r.shape[1:]
+    lag = LAGS[np.argmax(r, axis=0)].reshape(-1, 3)
+    fitted = (lag[:, 1] == 0) & (lag[:, 2] == 0) & (np.abs(lag[:, 0]) < REACH[0])
+    cube = r.reshape(*CUBE, -1)
+    k = np.where(fitted, lag[:, 0], 0) + REACH[0]      # the peak's (or zero's) depth index
+    w, (cy, cx) = np.arange(k.size), REACH[1:]
+    peak = cube[k, cy, cx, w]
+    disp = np.stack([k - REACH[0] + gaussian_subpixel(cube[k - 1, cy, cx, w], peak,
+                                                      cube[k + 1, cy, cx, w]),
+                     gaussian_subpixel(cube[k, cy - 1, cx, w], peak, cube[k, cy + 1, cx, w]),
+                     gaussian_subpixel(cube[k, cy, cx - 1, w], peak, cube[k, cy, cx + 1, w])])
+    return disp.reshape(3, *shape), peak.reshape(shape), fitted.reshape(shape)
+
+
+def off_centre(r: np.ndarray) -> np.ndarray:
+    """Windows whose highest coefficient is not at lag zero: the correlation's statistics
+    (:func:`correlation_uncertainty`) hold at the centre lag only."""
+    return np.argmax(r, axis=0) != CENTRE
 
 
 #: A window whose correlation at lag zero is below this fraction of the pass's median is
@@ -448,9 +478,9 @@ def weak_peaks(peak: np.ndarray, signal: np.ndarray) -> np.ndarray:
 def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                        weighting: float | None, uncertainty: bool = False,
                        sums: SumEngine | None = None, **fft_options) -> Correlation:
-    """Correlate deformed volumes directly at the 27 lags, and by FFT
+    """Correlate deformed volumes directly at the 45 lags, and by FFT
     (:func:`plenocl.piv.correlation.correlate`, with ``fft_options``) only the windows
-    whose peak lies beyond one voxel or is weak (:func:`weak_peaks`).
+    whose peak :func:`fit_direct` cannot fit or is weak (:func:`weak_peaks`).
 
     Parameters
     ----------
@@ -469,18 +499,18 @@ def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     sigma = (correlation_uncertainty(vol_a, vol_b, grid, weighting, direct, sums)
              if uncertainty else None)
     signal = direct.signal
-    disp, peak, centred = fit_direct(direct.r)
+    disp, peak, fitted = fit_direct(direct.r)
     ratio = np.full(grid.count, np.nan)
-    far = signal & (~centred | weak_peaks(peak, signal))
+    far = signal & (~fitted | weak_peaks(peak, signal))
     if far.any():
         weight = None if weighting is None else gaussian_weight(grid.size, weighting)
         wide = correlate(vol_a, vol_b, grid, weight=weight, select=far, **fft_options)
         disp[:, far], peak[far], ratio[far] = (wide.displacement[:, far], wide.peak[far],
                                                wide.peak_ratio[far])
-        signal = signal & (centred | wide.signal)
+        signal = signal & (fitted | wide.signal)
     disp[:, ~signal] = 0.0
-    if sigma is not None:
-        sigma[:, far | ~signal] = np.nan  # the statistics hold at the centre lag only
+    if sigma is not None:  # the statistics hold at the centre lag only
+        sigma[:, far | ~signal | off_centre(direct.r)] = np.nan
     return Correlation(disp, np.where(signal, peak, 0.0), ratio, signal, sigma)
 
 
@@ -488,9 +518,9 @@ def deformed_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                          weighting: float | None, sums: SumEngine | None = None
                          ) -> np.ndarray:
     """:func:`correlation_uncertainty` on its own (for a pass correlated by FFT):
-    ``(3, *grid.count)`` voxels, NaN where the residual exceeds a voxel; the window sums
+    ``(3, *grid.count)`` voxels, NaN where the peak is off lag zero; the window sums
     on ``sums`` (as :func:`correlate_deformed`)."""
     direct = correlate_direct(vol_a, vol_b, grid, weighting, sums)
     sigma = correlation_uncertainty(vol_a, vol_b, grid, weighting, direct, sums)
-    sigma[:, ~fit_direct(direct.r)[2]] = np.nan
+    sigma[:, off_centre(direct.r)] = np.nan
     return sigma

@@ -2,7 +2,7 @@
 correlations rather than from their averaged vectors.
 
 Every pair is deformed by the same predictor (the mean field), correlated directly at the
-27 lags around zero (:mod:`plenocl.piv.direct`), and the windows' weighted sums
+45 lags around zero (:mod:`plenocl.piv.direct`), and the windows' weighted sums
 (covariances and variances) are added over the pairs before the coefficients are formed
 and fitted. True particles correlate at the same lag in every pair and add up; ghosts,
 noise and unmatched particles do not. This is the standard remedy where each pair holds
@@ -21,7 +21,7 @@ from ..vectorfield import PIVResult
 from .correlation import window_grid
 from .deformation import make_deformer
 from .devicesums import sums_for
-from .direct import CENTRE, LAGS, correlate_direct, fit_direct, pearson
+from .direct import CENTRE, LAGS, correlate_direct, fit_direct, off_centre, pearson
 from .interpolate import resample
 from .validation import normalized_median_test, replace_outliers
 
@@ -110,8 +110,9 @@ def _fit_ensemble(totals, grid, base, final: bool) -> PIVResult:
     the last pass it is invalid and replaced from its neighbours."""
     cov, var_a, var_b = totals
     r = pearson(cov, var_a, var_b)
-    disp, _, centred = fit_direct(r)
-    best = np.argmax(r, axis=0)           # off-centre: move by the best lag, refit next pass
+    disp, _, _ = fit_direct(r)
+    centred = ~off_centre(r)              # fitted at lag zero only: a sparse ensemble's
+    best = np.argmax(r, axis=0)           # peak elsewhere moves by its lag, refit next pass
     disp = np.where(centred, disp, LAGS[best].transpose(3, 0, 1, 2))
     signal = (var_a[CENTRE] > 0) & (var_b[CENTRE] > 0)
     total = base + disp

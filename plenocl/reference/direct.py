@@ -19,19 +19,20 @@ def _taps(size: int, weighting, centre_shift: float) -> np.ndarray:
 
 
 def correlate_windows(vol_a, vol_b, grid, weighting):
-    """Weighted Pearson coefficient of every window of ``grid`` at the 27 lags
-    ``s`` in ``{-1, 0, 1}^3`` (C order): ``a`` over the window (and the weight's margin)
-    at corner ``L``, ``b`` over the same voxels moved by ``s``, both weighted by
-    ``W(q + s/2)``; zero outside the volumes.
+    """Weighted Pearson coefficient of every window of ``grid`` at the 45 lags
+    ``s`` in ``{-2, ..., 2} x {-1, 0, 1}^2`` ``(sz, sy, sx)`` (C order): ``a`` over the
+    window (and the weight's margin) at corner ``L``, ``b`` over the same voxels moved by
+    ``s``, both weighted by ``W(q + s/2)``; zero outside the volumes.
 
-    Returns ``(27, *grid.count)``.
+    Returns ``(45, *grid.count)``.
     """
     margins = [_taps(n, weighting, 0.0)[1] for n in grid.size]
-    pad = max(margins) + 1
+    pad = max(margins) + 2
     a = np.pad(np.asarray(vol_a, np.float64), pad)
     b = np.pad(np.asarray(vol_b, np.float64), pad)
-    out = np.zeros((27, *grid.count))
-    for k, lag in enumerate(itertools.product((-1, 0, 1), repeat=3)):
+    lags = list(itertools.product((-2, -1, 0, 1, 2), (-1, 0, 1), (-1, 0, 1)))
+    out = np.zeros((len(lags), *grid.count))
+    for k, lag in enumerate(lags):
         taps = [_taps(n, weighting, -0.5 * s)[0] for n, s in zip(grid.size, lag)]
         weight = taps[0][:, None, None] * taps[1][None, :, None] * taps[2]
         for index in np.ndindex(*grid.count):
