@@ -10,7 +10,7 @@ UTC date, OpenCL device, CPU, commit, plenocl version) goes to ``results/NAME.js
 beside the page, and the page is rewritten from every record there after each entry, so
 entries not rerun keep their last record. ``--only`` reruns some entries, ``--page-only``
 rebuilds the page from the records alone, ``--list`` prints the manifest with each
-entry's expected run time (about 30 minutes in all on 2 CPU cores with PoCL). The
+entry's expected run time (about 40 minutes in all on 2 CPU cores with PoCL). The
 device is the one the scripts pick: ``PYOPENCL_CTX``, else plenocl's default. A failing
 entry is recorded and marked on the page, the others still run, and the command exits 1.
 See :mod:`plenocl.bench.results`.
