@@ -8,6 +8,7 @@ each, grids of at most 6 x 7 x 7 voxels, a handful of examples per property.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import warnings
@@ -33,6 +34,7 @@ from plenocl import (
     simulate_white_image,
 )
 from plenocl.calibration import import_centers
+from plenocl.camera import Pose
 from plenocl.io import read_field, read_image, read_particles
 from plenocl.optics.depthrange import resolved_depth_range
 from plenocl.pipeline import TrackSettings, track
@@ -671,6 +673,8 @@ INVALID = [
      r"odd_row_shift must be one of \(0.5, -0.5\)"),
     ("camera-pupil-magnification", _cam(pupil_magnification=0.0), ValueError,
      "pupil_magnification must be a positive finite number"),
+    ("camera-pose-nan", lambda c: Pose((0.0, NAN, 0.0), (0.0, 0.0, 0.0)), ValueError,
+     r"\[pose\] rotation_deg must be three finite numbers"),
     ("camera-principal-planes-nan", _cam(principal_plane_separation_mm=NAN), ValueError,
      "principal_plane_separation_mm must be a finite number"),
     ("camera-centers-shape", _cam(microlens_centers=np.zeros((3, 3, 2))), ValueError,
@@ -737,6 +741,10 @@ INVALID = [
     ("lens-displacements-jitter", lambda c: lens_displacements_mm(c["cam"], jitter_px=-0.2),
      ValueError, r"jitter_px must be >= 0"),
     # Projector
+    ("projector-posed-camera", lambda c: Projector(
+        dataclasses.replace(c["cam"], pose=Pose((0.0, 20.0, 0.0), (0.0, 0.0, 0.0))),
+        Grid((3, 4, 4), (-0.2, 0.2), (-0.2, 0.2), (-1.0, 1.0)), c["queue"]), ValueError,
+     "does not take a posed camera yet"),
     ("projector-depth-not-imageable", _proj(z=(-60.0, 1.0)), ValueError,
      "where the main lens forms no real image"),
     ("projector-outside-field-of-view", _proj(x=(10.0, 11.0)), ValueError,

@@ -5,7 +5,8 @@ layout and lattice, its TOML files.
 - :mod:`.lattice`: the array's layout (:class:`LensLayout`: rectangular, hexagonal, and a
   hexagonal array's axial view, the one object every stage asks about the layout, held
   as ``Camera.layout``) and the lattice fitted to calibrated centres
-  (:class:`RectangularLattice`, :func:`lattice_fit`).
+  (:class:`RectangularLattice`, :func:`lattice_fit`);
+- :mod:`.pose`: where the camera stands in the world (:class:`Pose`, ``Camera.pose``).
 
 Plain NumPy; it imports nothing of plenocl's stages, so every stage builds on it.
 """
@@ -24,8 +25,9 @@ from .lattice import (
     lens_layout,
 )
 from .model import CAMERA_KEYS, OVERLAP_WARN, PRESETS, UNDERFILL_WARN, Camera, load_camera
+from .pose import Pose, require_world_frame, rotation_matrix
 
 __all__ = ["AXIAL", "CAMERA_KEYS", "DEFAULT_SHEAR_TOL", "LAYOUTS", "OVERLAP_WARN", "PRESETS",
            "UNDERFILL_WARN", "AxialView", "Camera", "HexagonalLayout", "LensLattice",
-           "LensLayout", "RectangularLattice", "RectangularLayout", "lattice_fit",
-           "lens_layout", "load_camera"]
+           "LensLayout", "Pose", "RectangularLattice", "RectangularLayout", "lattice_fit",
+           "lens_layout", "load_camera", "require_world_frame", "rotation_matrix"]

@@ -17,6 +17,7 @@ import numpy as np
 from ..io.tomlfile import read_toml, write_toml
 from ..options import refuse_unknown
 from .lattice import LensLayout, lens_layout
+from .pose import POSE_KEYS, Pose
 
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80
@@ -96,6 +97,10 @@ class Camera:
         entrance pupil's, ``m_p``, and the distance from the front principal plane to
         the rear one (positive when the rear lies nearer the sensor). The defaults,
         1 and 0, are the thin lens.
+    pose
+        Where the camera stands in the world (:class:`plenocl.camera.pose.Pose`: a world
+        point ``X`` is ``R X + t`` in the camera's frame; docs/design.md §2.2). ``None``
+        (the default): the camera's frame is the world's.
     """
 
     focal_length_mm: float
@@ -116,6 +121,7 @@ class Camera:
     ml_layout: str = "rectangular"
     ml_odd_row_shift: float | None = None
     layout: LensLayout = field(init=False, repr=False)
+    pose: Pose | None = None
 
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "f_number", "magnification", "ml_pitch_mm",
@@ -134,6 +140,9 @@ class Camera:
             "principal_plane_separation_mm", self.principal_plane_separation_mm))
         if self.crop_origin is not None:
             object.__setattr__(self, "crop_origin", _origin(self.crop_origin))
+        if self.pose is not None and not isinstance(self.pose, Pose):
+            raise TypeError(f"pose must be a plenocl.camera.Pose or None, got "
+                            f"{type(self.pose).__name__}")
         self._check_sensor_covers_array()
         self._check_fill()
         object.__setattr__(self, "microlens_centers", self._validated_centers())
@@ -311,8 +320,11 @@ class Camera:
     def image_points(self, points_xyz) -> np.ndarray:
         """Image-space ``(X', Y', d')`` of object points ``(N, 3)``: the lateral image
         position ``-(s_i'/s_o') (X, Y)`` and the image's distance from the exit pupil
-        (:meth:`pupil_distance_at`; a thin lens: ``s_i'``)."""
+        (:meth:`pupil_distance_at`; a thin lens: ``s_i'``). The points are in the world's
+        frame: a posed camera takes them into its own first (:attr:`pose`)."""
         pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        if self.pose is not None:
+            pts = self.pose.to_camera(pts)
         s_ip = self.image_distance_at(pts[:, 2])
         scale = -s_ip / (self.object_distance_mm + pts[:, 2])
         return np.column_stack([pts[:, 0] * scale, pts[:, 1] * scale, self._from_pupil(s_ip)])
@@ -445,6 +457,9 @@ class Camera:
             f"{self.ml_count[0]}x{self.ml_count[1]} "
             f"microlenses, {self.pixels_per_microlens:.2f} px each, image fill "
             f"{100 * self.microlens_image_fill:.1f}%"
+            + ("" if self.pose is None else
+               f"; posed: rotation {list(self.pose.rotation_deg)} deg, translation "
+               f"{list(self.pose.translation_mm)} mm")
         )
 
     @property
@@ -476,6 +491,8 @@ class Camera:
             c = self.microlens_centers
             doc["calibration"] = {"centers_col": c[..., 0].tolist(),
                                   "centers_row": c[..., 1].tolist()}
+        if self.pose is not None:
+            doc["pose"] = self.pose.to_dict()
         return doc
 
     @classmethod
@@ -506,6 +523,8 @@ class Camera:
             kwargs["microlens_centers"] = np.stack(
                 [np.array(cal["centers_col"], float), np.array(cal["centers_row"], float)], -1)
             kwargs["calibrated"] = True
+        if "pose" in doc:
+            kwargs["pose"] = Pose.from_dict(doc["pose"], source)
         return cls(**kwargs)
 
     @classmethod
@@ -539,6 +558,7 @@ CAMERA_KEYS = {
                         "layout", "odd_row_shift"),
     "sensor": ("pixel_pitch_mm", "pixels", "crop_origin"),
     "calibration": ("centers_col", "centers_row"),
+    "pose": POSE_KEYS,
 }
 
 

@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, require_world_frame
 
 __all__ = ["LIGHT_SHARE", "VIEW_LENSES", "check_grid", "field_of_view_mm",
            "resolved_depth_range"]
@@ -133,8 +133,11 @@ def check_grid(camera: Camera, grid) -> None:
     ValueError
         When the grid's depth extent reaches beyond :func:`resolved_depth_range` (or to the
         main lens's focal length, where no real image forms), or when no part of it lies
-        in the field of view (:func:`field_of_view_mm`) at any of its depths.
+        in the field of view (:func:`field_of_view_mm`) at any of its depths, or when the
+        camera is posed (:func:`plenocl.camera.pose.require_world_frame`).
     """
+    require_world_frame(camera, "projecting a grid (the projectors, Grid.for_camera, "
+                        "process_pair, reconstruct, the batch)")
     box = _array_box(camera)
     near, far = _resolved(camera, box)
     limit = camera.focal_length_mm - camera.object_distance_mm

@@ -23,10 +23,16 @@ __all__ = ["line_of_sight", "sight_frames", "sight_information"]
 
 def line_of_sight(camera: Camera, points_xyz) -> np.ndarray:
     """Unit vectors ``(N, 3)`` ``(x, y, z)`` along the lines of sight through object
-    points ``(N, 3)`` mm (away from the camera, ``z`` component positive)."""
+    points ``(N, 3)`` mm (away from the camera: ``z`` component positive in the camera's
+    frame). The points and the vectors are in the world's frame: a posed camera
+    (:attr:`plenocl.Camera.pose`) takes the points into its frame and turns the vectors
+    back."""
     pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
-    ray = pts + np.array([0.0, 0.0, camera.object_distance_mm])
-    return ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    pose = camera.pose
+    local = pts if pose is None else pose.to_camera(pts)
+    ray = local + np.array([0.0, 0.0, camera.object_distance_mm])
+    ray = ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    return ray if pose is None else ray @ pose.matrix   # R^T v, row by row
 
 
 def sight_frames(directions: np.ndarray) -> np.ndarray:

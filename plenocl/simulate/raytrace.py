@@ -38,7 +38,9 @@ def _validate_particles(camera: Camera, positions, intensities) -> tuple[np.ndar
         raise ValueError("positions and intensities must be finite (found NaN or Inf)")
     if np.any(intens < 0):
         raise ValueError("intensities must be >= 0 (counts per particle)")
-    camera.image_distance_at(pos[:, 2])  # raises for depths that form no real image
+    # raises for depths that form no real image (in the camera's frame: Camera.pose)
+    camera.image_distance_at(pos[:, 2] if camera.pose is None
+                             else camera.pose.to_camera(pos)[:, 2])
     return pos, intens
 
 
@@ -205,7 +207,9 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
     camera
         The camera (its physical microlens layout is traced).
     positions
-        ``(N, 3)`` particle positions ``(x, y, z)`` in mm (object space, docs/design.md §1).
+        ``(N, 3)`` particle positions ``(x, y, z)`` in mm (object space, docs/design.md §1),
+        in the world's frame: a posed camera (``camera.pose``) sees each at
+        ``pose.to_camera(position)`` (:meth:`plenocl.Camera.image_points`).
     intensities
         Counts each particle sends through the aperture (scalar or ``(N,)``).
     rays_per_particle, seed

@@ -1,0 +1,112 @@
+"""Where a camera stands in the world: its pose (docs/design.md §2.2, issue 49).
+
+A world point ``X`` (mm) maps into the camera's own frame as ``R X + t``, with
+``R = Rz Ry Rx`` the product of right-handed rotations about the world's axes by the
+pose's ``rotation_deg`` ``(rx, ry, rz)`` (``Rx`` applied first) and ``t`` its
+``translation_mm``. The camera's own frame is the one every stage works in today: the
+optical axis along ``z``, the nominal focal plane at ``z = 0``, the main lens's front
+principal point at ``(0, 0, -s_o)``. A camera without a pose stands at the world frame
+(``R = I``, ``t = 0``), and its results are those of a camera before poses existed.
+
+Plain NumPy, as the rest of :mod:`plenocl.camera`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["POSE_KEYS", "Pose", "require_world_frame", "rotation_matrix"]
+
+#: The keys of a camera file's ``[pose]`` section.
+POSE_KEYS = ("rotation_deg", "translation_mm")
+
+
+def rotation_matrix(rotation_deg) -> np.ndarray:
+    """``Rz Ry Rx`` ``(3, 3)`` for right-handed rotations ``(rx, ry, rz)`` (degrees) about
+    the world's x, y and z axes, applied in that order."""
+    rx, ry, rz = np.radians(np.asarray(rotation_deg, float))
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    about_x = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    about_y = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    about_z = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    return about_z @ about_y @ about_x
+
+
+def _triple(name: str, value) -> tuple[float, float, float]:
+    """Three finite numbers, or a ValueError naming ``name``."""
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"[pose] {name} must be three numbers (x, y, z), got {value!r}"
+                         ) from None
+    if len(out) != 3 or not all(map(math.isfinite, out)):
+        raise ValueError(f"[pose] {name} must be three finite numbers (x, y, z), got "
+                         f"{value!r}")
+    return out
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A camera's pose: ``X_camera = R X_world + t`` (module documentation).
+
+    Parameters
+    ----------
+    rotation_deg
+        ``(rx, ry, rz)``: right-handed rotations about the world's x, y and z axes, in
+        degrees, applied in that order (``R = Rz Ry Rx``).
+    translation_mm
+        ``t``, the world origin's position in the camera's frame (mm).
+    """
+
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    translation_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rotation_deg", _triple("rotation_deg", self.rotation_deg))
+        object.__setattr__(self, "translation_mm",
+                           _triple("translation_mm", self.translation_mm))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """``R`` ``(3, 3)``."""
+        return rotation_matrix(self.rotation_deg)
+
+    def to_camera(self, points_xyz) -> np.ndarray:
+        """World points ``(N, 3)`` (mm) in the camera's frame: ``R X + t``."""
+        pts = np.asarray(points_xyz, float).reshape(-1, 3)
+        return pts @ self.matrix.T + np.asarray(self.translation_mm)
+
+    def to_world(self, points_xyz) -> np.ndarray:
+        """Points ``(N, 3)`` of the camera's frame (mm) in the world: ``R^T (X - t)``."""
+        pts = np.asarray(points_xyz, float).reshape(-1, 3)
+        return (pts - np.asarray(self.translation_mm)) @ self.matrix
+
+    def to_dict(self) -> dict:
+        """The camera file's ``[pose]`` section."""
+        return {"rotation_deg": list(self.rotation_deg),
+                "translation_mm": list(self.translation_mm)}
+
+    @classmethod
+    def from_dict(cls, doc: dict, source: str = "camera") -> Pose:
+        """The pose of a camera file's ``[pose]`` section; both keys are needed."""
+        missing = [key for key in POSE_KEYS if key not in doc]
+        if missing:
+            raise ValueError(f"{source}: [pose] lacks {', '.join(missing)} (both "
+                             "rotation_deg = [rx, ry, rz] and translation_mm = [tx, ty, tz]; "
+                             "docs/design.md §2.2); leave [pose] out for a camera at the "
+                             "world frame")
+        return cls(doc["rotation_deg"], doc["translation_mm"])
+
+
+def require_world_frame(camera, what: str) -> None:
+    """Refuse a posed camera where ``what`` works in the camera's own frame only."""
+    if getattr(camera, "pose", None) is not None:
+        raise ValueError(
+            f"{what} does not take a posed camera yet (the camera file's [pose]): it works "
+            "in the camera's own frame, and projecting a grid through a posed camera comes "
+            "with several cameras in one reconstruction (issue 49). Leave [pose] out to "
+            "place the camera at the world frame, or express the grid and the particles in "
+            "the camera's frame (Pose.to_camera)")
