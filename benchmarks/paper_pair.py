@@ -13,7 +13,9 @@ camera's 16-bit integers, whose median takes a histogram), moved by the motion. 
 setting runs ``plenocl.process_pair`` on the same two raw images; the table gives the
 seconds of each stage (both reconstructions, PIV, the particle refinement with its fit
 to the raw images), the lateral and depth RMS error (voxels) of the valid vectors, and
-the particles the first volume recovered. The refined projector (the fine iterations),
+the particles the first volume recovered; then how many windows each PIV pass
+correlated by FFT (``PIVResult.passes``' ``fft_windows``: the first pass all of them, a
+deformed pass those its direct lags could not fit). The refined projector (the fine iterations),
 the coarse-sampled ones (the coarse and the early fine iterations) and their
 sensitivities are built before the rows (a batch builds them once per worker) and their
 time printed, so no row pays for them and the order of the rows does not matter.
@@ -100,6 +102,7 @@ def main() -> None:
     print(f"{scene.count} particles ({args.seeding} per microlens), {motion.name}")
     print(f"{'setting':10s} {'total s':>8s} {'rec a':>6s} {'rec b':>6s} {'piv':>5s} "
           f"{'part.':>6s} | {'lateral':>7s} {'depth':>6s} {'valid':>6s} {'recov':>6s}")
+    by_fft = []
     for name in args.settings:
         rec = SETTINGS[name]
         pair = process_pair(scene.raw_a, scene.raw_b, proj,
@@ -110,6 +113,9 @@ def main() -> None:
               f"{s['reconstruct_b']:6.1f} {s['piv']:5.1f} {s.get('particles', 0):6.1f} | "
               f"{e['lateral']:7.3f} {e['depth']:6.3f} {e['valid']:6.0%} "
               f"{row['recovered']:6.0%}", flush=True)
+        by_fft.append(f"{name} {[p['fft_windows'] for p in pair.piv.passes]}")
+    print(f"PIV windows correlated by FFT per pass (of {pair.piv.passes[-1]['vectors']} in "
+          f"the last): {'; '.join(by_fft)}")
     if args.profile:
         profile_pair(scene, proj, SETTINGS[args.settings[0]])
 

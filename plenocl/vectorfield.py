@@ -60,7 +60,8 @@ class PIVResult:
     window
         Final window size ``(wz, wy, wx)``.
     passes
-        Per-pass diagnostics (window, step, vector count, outliers, seconds).
+        Per-pass diagnostics (window, step, vector count, how it correlated and the
+        windows it correlated by FFT, outliers, seconds).
     sigma_u, sigma_v, sigma_w
         Standard uncertainty (voxels) of each valid vector's components, from the
         statistics of the final pass's correlation on the deformed volumes

@@ -79,6 +79,9 @@ def test_a_peak_a_voxel_off_in_depth_is_fitted_without_the_fft(monkeypatch):
     rms = np.sqrt(np.mean((disp - truth) ** 2, axis=(1, 2, 3)))
     rms_fft = np.sqrt(np.mean((fft.displacement - truth) ** 2, axis=(1, 2, 3)))
     assert np.all(rms < 0.06) and rms.mean() <= rms_fft.mean() + 0.005, (rms, rms_fft)
+    res = piv3d(pair.vol_a, pair.vol_b, windows=(32, 24))   # each pass says how many
+    assert [p["fft_windows"] for p in res.passes][1:] == [0, 0, 0]
+    assert res.passes[0]["fft_windows"] == res.passes[0]["vectors"]   # the first: all
     sent = []
     monkeypatch.setattr(direct, "correlate", lambda *a, select, **k: sent.append(select))
     direct.correlate_deformed(pair.vol_a, pair.vol_b, grid, 0.35)
@@ -98,6 +101,7 @@ def test_piv3d_direct_passes_equal_the_fft_passes_in_accuracy(queue):
     assert [p["correlation"] for p in results["auto"].passes] == ["fft", "direct", "direct",
                                                                   "direct"]
     assert {p["correlation"] for p in results["fft"].passes} == {"fft"}
+    assert all(p["fft_windows"] == p["vectors"] for p in results["fft"].passes)
     errors = {}
     for mode, res in results.items():
         errors[mode] = np.array([np.sqrt(np.mean((c - s) ** 2))

@@ -266,8 +266,10 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
                   and not (final and opts.min_peak_ratio is not None))
         state = _run_pass(a, b, (deformer, *coeffs), state, size, overlap, mask, pad, weight,
                           opts, direct, final, sums)
+        # a direct pass gives a peak ratio only to the windows it sent to the FFT
+        by_fft = int((~np.isnan(state.peak_ratio)).sum()) if direct else state.invalid.size
         log.append({"window": size, "overlap": overlap, "vectors": state.invalid.size,
-                    "correlation": "direct" if direct else "fft",
+                    "correlation": "direct" if direct else "fft", "fft_windows": by_fft,
                     "outliers": int(state.outlier.sum()), "invalid": int(state.invalid.sum()),
                     "seconds": time.perf_counter() - t0})
     result = _result(state, schedule[-1][0], log)
