@@ -193,6 +193,21 @@ def test_a_field_of_an_earlier_refinement_method_is_correlated_again(done, monke
     assert field_metadata(done / PAIR)["record"]["refinement"]["method"] == "a later method"
 
 
+def test_a_field_of_an_earlier_correlation_method_is_correlated_again(done, monkeypatch):
+    """The correlation changed (``plenocl.piv.direct.METHOD``: the 45 depth lags of issue
+    46) with the same settings: the kept volumes are correlated again."""
+    import plenocl.batch.record as record_module
+
+    volumes = (done / VOLUMES).read_bytes()
+    monkeypatch.setattr(record_module, "CORRELATION_METHOD", "a later correlation")
+    s, said = _rerun(done, monkeypatch)
+    assert s.processed == [0] and s.redone == [0]
+    assert any("correlation.method changed" in m and "kept volumes" in m for m in said)
+    assert (done / VOLUMES).read_bytes() == volumes
+    assert (field_metadata(done / PAIR)["record"]["correlation"]["method"]
+            == "a later correlation")
+
+
 @pytest.mark.parametrize("old, new, changed, action", [
     ("iterations = 6", "iterations = 4", "reconstruction.iterations", "redoing"),
     ("windows = [12, 8]\nensemble = true", "windows = [8]\nensemble = false", "piv.windows",

@@ -36,6 +36,7 @@ from ..io.fieldformat import field_metadata
 from ..io.files import volumes_metadata
 from ..options import NONE
 from ..pipeline.resume import changed_keys, config_digest, config_parts, name_changes
+from ..piv.direct import METHOD as CORRELATION_METHOD
 from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from .config import Experiment
 from .pairing import ImagePair, changed_since, fingerprint
@@ -46,10 +47,11 @@ SKIP, RESCALE, CORRELATE, REDO = "skip", "rescale", "correlate", "redo"
 #: The entries whose change refuses a rerun (without ``redo``): the results would be of
 #: another geometry.
 REFUSE = ("camera", "grid")
-#: The sections a correlation alone depends on (after the volumes); ``refinement``: the
-#: particle refinement's method (:data:`plenocl.piv.refinement.METHOD`), so that a rerun
-#: after it changed re-correlates instead of keeping the earlier method's fields.
-FIELD_SECTIONS = ("piv", "particles", "image_fit", "refinement")
+#: The sections a correlation alone depends on (after the volumes); ``correlation`` and
+#: ``refinement``: the correlation's and the particle refinement's methods
+#: (:data:`plenocl.piv.direct.METHOD`, :data:`plenocl.piv.refinement.METHOD`), so that a
+#: rerun after either changed re-correlates instead of keeping the earlier method's fields.
+FIELD_SECTIONS = ("piv", "correlation", "particles", "image_fit", "refinement")
 #: The entry of the time between the exposures.
 DT = "images.dt_s"
 
@@ -65,6 +67,7 @@ def run_record(exp: Experiment, camera, grid) -> dict:
               "dt_s": float(exp["images"]["dt_s"])}
     return {"images": images, "camera": config_digest(camera.to_dict()),
             "grid": config_digest(grid.to_dict()), **pair,
+            "correlation": {"method": CORRELATION_METHOD},
             "refinement": {"method": REFINEMENT_METHOD}}
 
 
@@ -82,6 +85,7 @@ def stage_digests(record: dict, sources: dict) -> dict[str, str]:
     volumes = {k: v for k, v in field_part.items() if k not in FIELD_SECTIONS}
     if record["mte"].get("cycles"):  # the enhancement reconstructs with the correlation
         volumes["piv"] = record["piv"]
+        volumes["correlation"] = record.get("correlation")
     return {"volumes": config_digest({"inputs": inputs, **volumes}),
             "field": config_digest({"inputs": inputs, **field_part}),
             "record": config_digest({"inputs": inputs, **record})}

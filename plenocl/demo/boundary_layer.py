@@ -24,6 +24,7 @@ from ..metrics import recovery
 from ..particles import particles_per_microlens, random_particles
 from ..pipeline.resume import StageRunner
 from ..pipeline.settings import PairSettings
+from ..piv.direct import METHOD as CORRELATION_METHOD
 from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from ..piv.settings import PIVSettings
 from ..reconstruction import ReconstructionSettings
@@ -138,7 +139,8 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     settings = chain_settings(sc)
     chain = {"supersample": settings.reconstruction.supersample,
              "refinement": "particles fitted to the raw images on the device, the calibrated "
-                           f"camera's lines of sight (issue 48); {REFINEMENT_METHOD}"}
+                           f"camera's lines of sight (issue 48); {REFINEMENT_METHOD}",
+             "correlation": CORRELATION_METHOD}
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: _stage_particles(run, sc, flow, seed))

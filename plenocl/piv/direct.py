@@ -50,6 +50,11 @@ from ..opencl.threads import thread_count
 from ..peaks import gaussian_subpixel
 from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 
+#: The correlation's method, recorded with every batch field
+#: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
+#: fields an earlier method made from the same settings. Change it whenever the
+#: correlation makes a different field from the same settings.
+METHOD = "direct at 45 lags, two in depth (issue 46, 2026-11-28)"
 #: The lags of each axis ``(z, y, x)``: two voxels either way in depth, one across.
 AXIS_LAGS = ((-2, -1, 0, 1, 2), (-1, 0, 1), (-1, 0, 1))
 #: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order (45 of them).
