@@ -179,33 +179,21 @@ def test_a_changed_piv_table_correlates_the_kept_volumes_again(done, monkeypatch
     assert ensemble["pairs"]["0"] == field_metadata(done / PAIR)["digests"]["field"]
 
 
-def test_a_field_of_an_earlier_refinement_method_is_correlated_again(done, monkeypatch):
-    """The particle refinement changed (``plenocl.piv.refinement.METHOD``) with the same
+@pytest.mark.parametrize("name, section", [("REFINEMENT_METHOD", "refinement"),
+                                           ("CORRELATION_METHOD", "correlation")])
+def test_a_field_of_an_earlier_method_is_correlated_again(done, monkeypatch, name, section):
+    """The particle refinement (``plenocl.piv.refinement.METHOD``) or the correlation
+    (``plenocl.piv.direct.METHOD``: the 45 depth lags of issue 46) changed with the same
     settings: the kept volumes are correlated again, never the old field kept."""
     import plenocl.batch.record as record_module
 
     volumes = (done / VOLUMES).read_bytes()
-    monkeypatch.setattr(record_module, "REFINEMENT_METHOD", "a later method")
+    monkeypatch.setattr(record_module, name, f"a later {section}")
     s, said = _rerun(done, monkeypatch)
     assert s.processed == [0] and s.redone == [0]
-    assert any("refinement.method changed" in m and "kept volumes" in m for m in said)
+    assert any(f"{section}.method changed" in m and "kept volumes" in m for m in said)
     assert (done / VOLUMES).read_bytes() == volumes
-    assert field_metadata(done / PAIR)["record"]["refinement"]["method"] == "a later method"
-
-
-def test_a_field_of_an_earlier_correlation_method_is_correlated_again(done, monkeypatch):
-    """The correlation changed (``plenocl.piv.direct.METHOD``: the 45 depth lags of issue
-    46) with the same settings: the kept volumes are correlated again."""
-    import plenocl.batch.record as record_module
-
-    volumes = (done / VOLUMES).read_bytes()
-    monkeypatch.setattr(record_module, "CORRELATION_METHOD", "a later correlation")
-    s, said = _rerun(done, monkeypatch)
-    assert s.processed == [0] and s.redone == [0]
-    assert any("correlation.method changed" in m and "kept volumes" in m for m in said)
-    assert (done / VOLUMES).read_bytes() == volumes
-    assert (field_metadata(done / PAIR)["record"]["correlation"]["method"]
-            == "a later correlation")
+    assert field_metadata(done / PAIR)["record"][section]["method"] == f"a later {section}"
 
 
 @pytest.mark.parametrize("old, new, changed, action", [
