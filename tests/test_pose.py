@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from plenocl import Grid, simulate_image
-from plenocl.camera import Camera, Pose, rotation_matrix
+from plenocl.camera import Camera, Pose, pose_rotation
 from plenocl.projection import Projector
 
 
@@ -18,13 +18,13 @@ def _small(pose: Pose | None = None) -> Camera:
 
 def test_rotations_are_right_handed_about_the_world_axes_x_first():
     x, y, z = np.eye(3)
-    np.testing.assert_allclose(rotation_matrix((90, 0, 0)) @ y, z, atol=1e-15)
-    np.testing.assert_allclose(rotation_matrix((0, 90, 0)) @ z, x, atol=1e-15)
-    np.testing.assert_allclose(rotation_matrix((0, 0, 90)) @ x, y, atol=1e-15)
+    np.testing.assert_allclose(pose_rotation((90, 0, 0)) @ y, z, atol=1e-15)
+    np.testing.assert_allclose(pose_rotation((0, 90, 0)) @ z, x, atol=1e-15)
+    np.testing.assert_allclose(pose_rotation((0, 0, 90)) @ x, y, atol=1e-15)
     angles = (12.0, -31.0, 47.0)
-    composed = (rotation_matrix((0, 0, angles[2])) @ rotation_matrix((0, angles[1], 0))
-                @ rotation_matrix((angles[0], 0, 0)))
-    r = rotation_matrix(angles)
+    composed = (pose_rotation((0, 0, angles[2])) @ pose_rotation((0, angles[1], 0))
+                @ pose_rotation((angles[0], 0, 0)))
+    r = pose_rotation(angles)
     np.testing.assert_allclose(r, composed, atol=1e-15)
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-15)
     assert np.linalg.det(r) == pytest.approx(1.0)

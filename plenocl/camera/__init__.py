@@ -25,9 +25,9 @@ from .lattice import (
     lens_layout,
 )
 from .model import CAMERA_KEYS, OVERLAP_WARN, PRESETS, UNDERFILL_WARN, Camera, load_camera
-from .pose import Pose, require_world_frame, rotation_matrix
+from .pose import Pose, pose_rotation, require_world_frame
 
 __all__ = ["AXIAL", "CAMERA_KEYS", "DEFAULT_SHEAR_TOL", "LAYOUTS", "OVERLAP_WARN", "PRESETS",
            "UNDERFILL_WARN", "AxialView", "Camera", "HexagonalLayout", "LensLattice",
            "LensLayout", "Pose", "RectangularLattice", "RectangularLayout", "lattice_fit",
-           "lens_layout", "load_camera", "require_world_frame", "rotation_matrix"]
+           "lens_layout", "load_camera", "pose_rotation", "require_world_frame"]

@@ -18,21 +18,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["POSE_KEYS", "Pose", "require_world_frame", "rotation_matrix"]
+from .lattice import rotation_matrix
+
+__all__ = ["POSE_KEYS", "Pose", "pose_rotation", "require_world_frame"]
 
 #: The keys of a camera file's ``[pose]`` section.
 POSE_KEYS = ("rotation_deg", "translation_mm")
 
 
-def rotation_matrix(rotation_deg) -> np.ndarray:
+def pose_rotation(rotation_deg) -> np.ndarray:
     """``Rz Ry Rx`` ``(3, 3)`` for right-handed rotations ``(rx, ry, rz)`` (degrees) about
-    the world's x, y and z axes, applied in that order."""
-    rx, ry, rz = np.radians(np.asarray(rotation_deg, float))
-    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
-    about_x = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
-    about_y = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
-    about_z = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
-    return about_z @ about_y @ about_x
+    the world's x, y and z axes, applied in that order: each the counter-clockwise plane
+    rotation (:func:`plenocl.camera.lattice.rotation_matrix`) of the next two axes in
+    cyclic order, (y, z), (z, x), (x, y)."""
+    r = np.eye(3)
+    for axis, degrees in enumerate(rotation_deg):
+        plane = [(axis + 1) % 3, (axis + 2) % 3]
+        turn = np.eye(3)
+        turn[np.ix_(plane, plane)] = rotation_matrix(float(degrees))
+        r = turn @ r
+    return r
 
 
 def _triple(name: str, value) -> tuple[float, float, float]:
@@ -72,7 +77,7 @@ class Pose:
     @property
     def matrix(self) -> np.ndarray:
         """``R`` ``(3, 3)``."""
-        return rotation_matrix(self.rotation_deg)
+        return pose_rotation(self.rotation_deg)
 
     def to_camera(self, points_xyz) -> np.ndarray:
         """World points ``(N, 3)`` (mm) in the camera's frame: ``R X + t``."""
@@ -103,7 +108,7 @@ class Pose:
 
 def require_world_frame(camera, what: str) -> None:
     """Refuse a posed camera where ``what`` works in the camera's own frame only."""
-    if getattr(camera, "pose", None) is not None:
+    if camera.pose is not None:
         raise ValueError(
             f"{what} does not take a posed camera yet (the camera file's [pose]): it works "
             "in the camera's own frame, and projecting a grid through a posed camera comes "
