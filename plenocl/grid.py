@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera.lattice import DEFAULT_SHEAR_TOL, separable_rotation_deg
+from .camera.lattice import DEFAULT_SHEAR_TOL, rotation_matrix, separable_rotation_deg
 from .io.tomlfile import read_toml, write_toml
 from .optics.depthrange import check_grid
 
@@ -73,17 +73,13 @@ class Grid:
                              f"got {rot!r}")
         object.__setattr__(self, "rotation_deg", float(rot))
 
-    def _rotation(self) -> np.ndarray:
-        t = math.radians(self.rotation_deg)
-        return np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
-
     def to_world(self, vx, vy) -> tuple[np.ndarray, np.ndarray]:
         """Object-space ``x``, ``y`` components of vectors given along the grid's axes
         (``R (vx, vy)``; unchanged for an unrotated grid)."""
         vx, vy = np.asarray(vx, dtype=np.float64), np.asarray(vy, dtype=np.float64)
         if not self.rotation_deg:
             return vx, vy
-        r = self._rotation()
+        r = rotation_matrix(self.rotation_deg)
         return r[0, 0] * vx + r[0, 1] * vy, r[1, 0] * vx + r[1, 1] * vy
 
     def to_frame(self, points_xyz) -> np.ndarray:
@@ -92,7 +88,7 @@ class Grid:
         if not self.rotation_deg:
             return pts
         out = pts.copy()
-        out[:, :2] = pts[:, :2] @ self._rotation()
+        out[:, :2] = pts[:, :2] @ rotation_matrix(self.rotation_deg)
         return out
 
     def refined(self, factor: int) -> Grid:
