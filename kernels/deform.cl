@@ -123,3 +123,29 @@ __kernel void spline_prefilter(__global float *coeffs, int n, int stride, int s0
     for (int i = n - 2; i >= 0; --i)
         c[(long)i * stride] = z * (c[(long)(i + 1) * stride] - c[(long)i * stride]);
 }
+
+/* One axis of the predictor's tensor-product resampling (plenocl.piv.interpolate
+ * .resample, which multiplies the field by a weight matrix along x, then y, then z):
+ * out[o, t, i] = sum_s w[t, s] src[o, s, i] for a source of `outer` x nsrc x `inner`
+ * elements and weights w of ntgt x nsrc (cubic-spline or linear interpolation weights with
+ * linear extrapolation, plenocl.piv.interpolate.cubic_weights / linear_weights). The
+ * device deformer resamples the window-centre field onto the voxels here, so the dense
+ * predictor is made on the device instead of on the host and uploaded every pass.
+ * NumPy twin: plenocl.piv.interpolate.resample.
+ *
+ * Parallel structure: one work-item per output element over a 3-D range (i, t, o); each
+ * loops over the nsrc source nodes (tens) in order, reading one weight row and one source
+ * column. No atomics, no shared state; neighbouring items (i) read neighbouring source
+ * elements, coalesced on a GPU where inner > 1 (the y and z passes, most of the work). */
+__kernel void resample_axis(__global const float *src, int nsrc,
+                            __global const float *w, __global float *out)
+{
+    const int i = get_global_id(0), t = get_global_id(1), o = get_global_id(2);
+    const int inner = get_global_size(0), ntgt = get_global_size(1);
+    __global const float *s = src + (long)o * nsrc * inner + i;
+    __global const float *row = w + (long)t * nsrc;
+    float acc = 0.0f;
+    for (int k = 0; k < nsrc; ++k)
+        acc += row[k] * s[(long)k * inner];
+    out[((long)o * ntgt + t) * inner + i] = acc;
+}

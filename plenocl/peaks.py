@@ -4,11 +4,13 @@ metrics and by the particle refinement of :mod:`plenocl.piv.refinement`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-__all__ = ["find_particles", "gaussian_subpixel"]
+__all__ = ["find_particles", "gaussian_subpixel", "host_maxima"]
 
 
 def gaussian_subpixel(c_minus: np.ndarray, c0: np.ndarray, c_plus: np.ndarray) -> np.ndarray:
@@ -38,7 +40,8 @@ CANDIDATE = 0.01
 
 
 def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int = 1,
-                   reference: str = "max") -> tuple[np.ndarray, np.ndarray]:
+                   reference: str = "max", maxima: Callable | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Local maxima above ``threshold`` times a reference level, with sub-voxel positions.
 
     ``reference="max"``: the volume's maximum. ``"robust"``: the brightest local maximum
@@ -48,6 +51,10 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
     not hide the rest. At the paper's optics with 0.2 particles per microlens a maximum
     30 times the typical particle's kept 40-136 peaks of about 1,200 particles
     (design.md §7.3).
+
+    ``maxima``: where the local maxima are found, a function of ``(vol, floor,
+    min_separation)`` as :func:`host_maxima` (the default;
+    :class:`plenocl.piv.devicepeaks.DeviceMaxima` on a device, the same maxima).
 
     Returns fractional voxel indices ``(N, 3)`` as ``(ix, iy, iz)`` and peak values,
     brightest first. Positions use a three-point Gaussian fit along each axis.
@@ -60,16 +67,20 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
     vmax = float(v.max()) if v.size else 0.0
     if vmax <= 0:
         return np.zeros((0, 3)), np.zeros(0)
-    size = 2 * min_separation + 1
-    maxima = v == ndimage.maximum_filter(v, size=size, mode="constant")
+    # every level below is above this floor (the robust level exceeds CANDIDATE * vmax)
+    floor = threshold * vmax * (min(1.0, CANDIDATE) if reference == "robust" else 1.0)
+    if reference == "robust":
+        floor = min(floor, CANDIDATE * vmax)
+    flat = (maxima or host_maxima)(v, floor - abs(floor) * 1e-6, min_separation)
+    values = v.reshape(-1)[flat]
     level = vmax
     if reference == "robust":
-        bright = np.sort(v[maxima & (v > CANDIDATE * vmax)])[::-1]
+        bright = np.sort(values[values > CANDIDATE * vmax])[::-1]
         aside = max(ROBUST_MIN, int(np.ceil(ROBUST_SHARE * len(bright))))
         level = float(bright[min(aside, len(bright) - 1)])
-    peaks = maxima & (v > threshold * level)
-    iz, iy, ix = np.nonzero(peaks)
-    vals = v[iz, iy, ix]
+    keep = values > threshold * level
+    iz, iy, ix = np.unravel_index(flat[keep], v.shape)
+    vals = values[keep]
     pad = np.pad(v, 1)
     pos = [ix, iy, iz]
     out = np.empty((len(vals), 3))
@@ -82,6 +93,16 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
         out[:, k] = pos[k] + gaussian_subpixel(minus, vals, plus)
     order = np.argsort(-vals)
     return out[order], vals[order]
+
+
+def host_maxima(vol: np.ndarray, floor: float, reach: int = 1) -> np.ndarray:
+    """The flat indices (C order, ascending) of ``vol``'s voxels above ``floor`` that no
+    voxel within ``reach`` per axis exceeds (``scipy.ndimage.maximum_filter``, 0 beyond
+    the faces): the candidates of :func:`find_particles`, and the reference of
+    ``kernels/peaks.cl``."""
+    v = np.asarray(vol, np.float32)
+    peak = v == ndimage.maximum_filter(v, size=2 * reach + 1, mode="constant")
+    return np.flatnonzero(peak & (v > np.float32(floor)))
 
 
 def merge_close(index: np.ndarray, intensities: np.ndarray, radius
@@ -160,20 +181,34 @@ def merge_along_lines(points: np.ndarray, values: np.ndarray, directions: np.nda
     out = pts.copy()
     if len(pts) < 2 or along <= 0:
         return keep, out
-    tree = cKDTree(pts)
+    start, reach = _line_neighbours(pts, np.asarray(directions, float), along, across)
     for i in np.argsort(-w, kind="stable"):
         if not keep[i]:
             continue
-        near = np.array([j for j in tree.query_ball_point(pts[i], max(along, across))
-                         if j != i and keep[j]], int)
-        if not len(near):
-            continue
-        d = pts[near] - pts[i]
-        t = d @ directions[i]
-        off = np.linalg.norm(d - t[:, None] * directions[i], axis=1)
-        near = near[(np.abs(t) <= along) & (off <= across)]
+        near = reach[start[i]:start[i + 1]]
+        near = near[keep[near]]
         if len(near):
             group = np.append(near, i)
             out[i] = np.average(pts[group], axis=0, weights=w[group])
             keep[near] = False
     return keep, out
+
+
+def _line_neighbours(pts: np.ndarray, directions: np.ndarray, along: float, across: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """For every peak ``i``, the other peaks within ``along`` of it along its line
+    ``directions[i]`` and within ``across`` of that line, as a CSR table: peak ``i``'s
+    are ``reach[start[i]:start[i + 1]]``, in the order of the tree's ball query (all
+    peaks' queries at once, then one vectorised test, instead of one query and one
+    test per peak in :func:`merge_along_lines`' greedy loop)."""
+    lists = cKDTree(pts).query_ball_point(pts, max(along, across), return_sorted=False)
+    counts = np.fromiter((len(n) for n in lists), int, len(lists))
+    owner = np.repeat(np.arange(len(pts)), counts)
+    other = np.fromiter((j for n in lists for j in n), int, int(counts.sum()))
+    d = pts[other] - pts[owner]
+    line = directions[owner]
+    t = np.einsum("ij,ij->i", d, line)
+    off = np.linalg.norm(d - t[:, None] * line, axis=1)
+    ok = (other != owner) & (np.abs(t) <= along) & (off <= across)
+    start = np.concatenate([[0], np.cumsum(np.bincount(owner[ok], minlength=len(pts)))])
+    return start, other[ok]

@@ -47,6 +47,31 @@ def test_spline_prefilter_kernel_matches_scipy(queue, shape):
         assert np.array_equal(DeviceDeformer(queue, 1).prepare(vol).get(), prepare(vol, 1))
 
 
+@pytest.mark.parametrize("kind", ["cubic", "linear"])
+@pytest.mark.parametrize("counts, shape", [((3, 4, 5), (13, 17, 21)), ((1, 2, 7), (5, 9, 40)),
+                                           ((6, 3, 2), (31, 8, 7))])
+def test_predictor_kernel_matches_the_host_resampling(queue, kind, counts, shape):
+    """The dense predictor made on the device (``resample_axis``, x, y, then z) is the
+    host's tensor-product resampling within float32, on awkward sizes: fewer than three
+    centres on an axis (linear there), centres not starting at the first voxel, and
+    voxels beyond the outermost centres (extrapolated linearly)."""
+    rng = np.random.default_rng(sum(counts) + sum(shape))
+    field = rng.normal(0.0, 2.0, (3, *counts))
+    source = tuple(np.sort(rng.uniform(1.0, n - 2.0, c)) + np.arange(c) * 1e-3
+                   for c, n in zip(counts, shape))
+    want = HostDeformer(3).predictor(field, source, shape, kind)
+    got = DeviceDeformer(queue, 3).predictor(field, source, shape, kind).get()
+    assert got.shape == want.shape == (3, *shape)
+    np.testing.assert_allclose(got, want, atol=tol.PIV_TWIN * float(np.abs(want).max()))
+    if kind == "linear" and min(counts) >= 2:  # a linear field stays linear, beyond too
+        z, y, x = np.meshgrid(*source, indexing="ij")
+        plane = np.stack([0.5 * z - 0.2 * y + 0.1 * x + 1.0] * 3)
+        zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in shape), indexing="ij")
+        exact = 0.5 * zz - 0.2 * yy + 0.1 * xx + 1.0
+        dense = DeviceDeformer(queue, 3).predictor(plane, source, shape, kind).get()
+        np.testing.assert_allclose(dense[0], exact, atol=1e-4 * float(np.abs(exact).max()))
+
+
 def test_device_deformer_refuses_the_quintic_spline(queue):
     with pytest.raises(ValueError, match="queue=False"):
         DeviceDeformer(queue, 5)

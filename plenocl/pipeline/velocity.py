@@ -18,6 +18,7 @@ from ..camera import Camera
 from ..grid import Grid
 from ..opencl.device import DeviceLike, get_queue
 from ..piv import PIVResult, piv3d
+from ..piv.devicepeaks import DeviceMaxima
 from ..piv.imagefit import ImageFit
 from ..piv.refinement import FocalZone, SightLines, refine_with_particles
 from .settings import PairSettings
@@ -58,8 +59,9 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
         The pair's settings (:class:`plenocl.pipeline.PairSettings`: ``piv``,
         ``particles``, ``image_fit``).
     queue
-        Where PIV's deformation and sums, the image fit and the refinement's tube sums
-        run (``None``: the default device; ``False``: the host).
+        Where PIV's deformation, predictor and sums, the image fit and the refinement's
+        local maxima and tube sums run (``None``: the default device; ``False``: the
+        host).
     camera, raws, backgrounds
         As :func:`refine_particles`.
     clock
@@ -99,12 +101,14 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
     clock = clock or StageClock()
     with clock.stage("particles"):
         fit = focus = sight = None
+        device = None if queue is False else get_queue(queue)  # None: the host
+        maxima = None if device is None else DeviceMaxima(device)
         if camera is not None:
-            device = None if queue is False else get_queue(queue)  # None: the host
             if raws is not None and settings.image_fit is not None:
                 fit = ImageFit(camera, grid, raws, settings.image_fit, queue=device,
                                backgrounds=backgrounds)
             focus = FocalZone.of(camera, grid)
             sight = SightLines.of(camera, grid, device)
-        res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight)
+        res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
+                                    maxima=maxima)
     return res

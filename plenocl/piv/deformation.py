@@ -14,7 +14,7 @@ import numpy as np
 
 from ..opencl.device import DeviceLike, NoOpenCLError, check_fits, get_queue
 from ..opencl.program import KernelSet
-from .interpolate import MARGIN, deform, prepare
+from .interpolate import MARGIN, axis_weights, deform, prepare, resample
 
 
 class HostDeformer:
@@ -30,6 +30,14 @@ class HostDeformer:
     def field(self, displacement: np.ndarray) -> np.ndarray:
         """A dense predictor ``(3, nz, ny, nx)`` ready for :meth:`__call__` (itself)."""
         return displacement
+
+    def predictor(self, field: np.ndarray, source: tuple[np.ndarray, ...],
+                  shape: tuple[int, int, int], kind: str = "cubic") -> np.ndarray:
+        """The dense predictor of ``field`` ``(3, *counts)`` (window centres ``source``,
+        ``(z, y, x)``) on every voxel of a volume of ``shape``, ready for
+        :meth:`__call__`: :func:`plenocl.piv.interpolate.resample` in float32."""
+        voxels = tuple(np.arange(n, dtype=float) for n in shape)
+        return resample(field, source, voxels, kind, np.float32)
 
     def __call__(self, prepared: np.ndarray, displacement: np.ndarray,
                  factor: float) -> np.ndarray:
@@ -54,8 +62,9 @@ class DeviceDeformer:
                              "use queue=False for the quintic B-spline (host)")
         self.order = order
         self.kernels = KernelSet(get_queue(queue), "deform.cl",
-                                 ["deform", "spline_prefilter"], options=[f"-DORDER={order}"],
-                                 looping=["spline_prefilter"])
+                                 ["deform", "spline_prefilter", "resample_axis"],
+                                 options=[f"-DORDER={order}"],
+                                 looping=["spline_prefilter", "resample_axis"])
 
     def prepare(self, vol: np.ndarray):
         """The padded, filtered volume (:func:`~plenocl.piv.interpolate.prepare`, the host
@@ -85,9 +94,28 @@ class DeviceDeformer:
         volumes of a pass."""
         return self.kernels.to_device(np.asarray(displacement, np.float32))
 
+    def predictor(self, field: np.ndarray, source: tuple[np.ndarray, ...],
+                  shape: tuple[int, int, int], kind: str = "cubic"):
+        """:meth:`HostDeformer.predictor` made on the device (``resample_axis``, x then y
+        then z, as the host's tensor products): only the window-centre field and the
+        three weight matrices are uploaded, not the dense predictor."""
+        out = self.kernels.to_device(np.ascontiguousarray(field, np.float32))
+        for axis in (3, 2, 1):
+            weights = axis_weights(kind, source[axis - 1], np.arange(shape[axis - 1],
+                                                                     dtype=float))
+            ntgt, nsrc = weights.shape
+            dims = list(out.shape)
+            inner, outer = int(np.prod(dims[axis + 1:])), int(np.prod(dims[:axis]))
+            dims[axis] = ntgt
+            step = self.kernels.array(tuple(dims))
+            self.kernels.launch("resample_axis", (inner, ntgt, outer), out, np.int32(nsrc),
+                                self.kernels.to_device(weights.astype(np.float32)), step)
+            out = step
+        return out
+
     def __call__(self, prepared, displacement, factor: float) -> np.ndarray:
         """``vol(p + factor * displacement(p))`` for every voxel, float32, on the device;
-        ``displacement`` from :meth:`field`."""
+        ``displacement`` from :meth:`field` or :meth:`predictor`."""
         shape = displacement.shape[1:]
         out = self.kernels.array(shape)
         pz, py, px = prepared.shape

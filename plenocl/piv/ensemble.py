@@ -89,9 +89,7 @@ def _ensemble_pass(pairs: PairSource, field, centres, window, overlap, weighting
         shape = np.shape(vol_a)
         if grid is None:
             grid = window_grid(shape, window, overlap)
-            voxels = tuple(np.arange(n, dtype=float) for n in shape)
-            dense = deformer.field(resample(np.nan_to_num(field), centres, voxels,
-                                            "cubic", np.float32))
+            dense = deformer.predictor(np.nan_to_num(field), centres, shape)
             base = resample(np.nan_to_num(field), centres, grid.centres)
         da = deformer(deformer.prepare(vol_a), dense, -0.5)
         db = deformer(deformer.prepare(vol_b), dense, +0.5)

@@ -84,14 +84,19 @@ def resample(field: np.ndarray, source: tuple[np.ndarray, ...],
     numpy.ndarray
         ``(C, len(tz), len(ty), len(tx))``.
     """
-    if kind not in ("cubic", "linear"):
-        raise ValueError(f"predictor interpolation must be 'cubic' or 'linear', got {kind!r}")
-    weights = cubic_weights if kind == "cubic" else linear_weights
     out = np.asarray(field, dtype)
     for axis in (3, 2, 1):
-        w = weights(source[axis - 1], target[axis - 1]).astype(dtype)
+        w = axis_weights(kind, source[axis - 1], target[axis - 1]).astype(dtype)
         out = np.moveaxis(np.tensordot(out, w, axes=([axis], [1])), -1, axis)
     return np.ascontiguousarray(out)
+
+
+def axis_weights(kind: str, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The weight matrix ``(len(target), len(source))`` of one axis of :func:`resample`:
+    :func:`cubic_weights` for ``kind="cubic"``, :func:`linear_weights` for ``"linear"``."""
+    if kind not in ("cubic", "linear"):
+        raise ValueError(f"predictor interpolation must be 'cubic' or 'linear', got {kind!r}")
+    return (cubic_weights if kind == "cubic" else linear_weights)(source, target)
 
 
 def prepare(vol: np.ndarray, order: int) -> np.ndarray:

@@ -17,16 +17,17 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from ..options import with_keywords
+from ..peaks import host_maxima
 from ..vectorfield import PIVResult, Size3
 from .correlation import correlate, gaussian_weight, window_fraction, window_grid
 from .deformation import make_deformer
+from .devicepeaks import DeviceMaxima
 from .devicesums import sums_for
 from .direct import correlate_deformed, deformed_uncertainty
 from .interpolate import resample
@@ -157,15 +158,17 @@ def auto_windows(shape, max_displacement: float | None = None,
     return tuple(tuple(min(w, f) for f in fit) for w in schedule)
 
 
-def count_particles(vol: np.ndarray, threshold: float = 0.1) -> int:
+def count_particles(vol: np.ndarray, threshold: float = 0.1,
+                    maxima: Callable | None = None) -> int:
     """Local maxima above ``threshold`` of the volume's maximum: about the particles (and
-    ghosts) a reconstructed volume holds."""
+    ghosts) a reconstructed volume holds; found by ``maxima``
+    (:func:`plenocl.peaks.host_maxima`, the default, or a device's
+    :class:`plenocl.piv.devicepeaks.DeviceMaxima`)."""
     v = np.asarray(vol, np.float32)
     top = float(v.max()) if v.size else 0.0
     if top <= 0:
         return 0
-    peaks = (v == ndimage.maximum_filter(v, size=3, mode="constant")) & (v > threshold * top)
-    return int(peaks.sum())
+    return len((maxima or host_maxima)(v, threshold * top))
 
 
 def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue=None,
@@ -247,15 +250,16 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
                          f"{b.shape}")
     opts = with_keywords(PIVSettings, settings, keywords, "piv3d")
     windows, weighting = opts.windows, opts.weighting
+    deformer = make_deformer(opts.deform_order, queue)
+    sums = sums_for(deformer)
     if windows is None:
-        windows = auto_windows(a.shape, particles=count_particles(a))
+        maxima = None if sums is None else DeviceMaxima(sums.kernels.queue)
+        windows = auto_windows(a.shape, particles=count_particles(a, maxima=maxima))
     schedule = _schedule(a.shape, windows, opts.overlaps, opts.final_iterations)
     mask = _check_mask(mask, a.shape)
     if mask is not None:
         a, b = (np.where(mask, np.float32(0), v) for v in (a, b))
-    deformer = make_deformer(opts.deform_order, queue)
     coeffs = (deformer.prepare(a), deformer.prepare(b))
-    sums = sums_for(deformer)
     state, log = None, []
     for k, (size, overlap) in enumerate(schedule):
         t0 = time.perf_counter()
@@ -313,10 +317,8 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
     if prev is None:
         da, db, base = a, b, 0.0
     else:
-        voxels = tuple(np.arange(n, dtype=float) for n in a.shape)
-        dense = resample(prev.field, prev.centres, voxels, opts.predictor, np.float32)
         deformer, coeff_a, coeff_b = prepared
-        dense = deformer.field(dense)
+        dense = deformer.predictor(prev.field, prev.centres, a.shape, opts.predictor)
         da = deformer(coeff_a, dense, -0.5)
         db = deformer(coeff_b, dense, +0.5)
         base = resample(prev.field, prev.centres, centres, opts.predictor)

@@ -52,7 +52,7 @@ from .tube import DeviceTubeSums, host_tube_sums
 from .validation import normalized_median_test, replace_outliers
 
 if TYPE_CHECKING:
-    from collections.abc import Iterator
+    from collections.abc import Callable, Iterator
 
     from ..camera import Camera
     from ..grid import Grid
@@ -143,15 +143,18 @@ def pair_peaks(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH,
 
 
 def volume_particles(vol: np.ndarray, threshold: float = 0.1,
-                     sight: SightLines | None = None) -> np.ndarray:
+                     sight: SightLines | None = None, maxima: Callable | None = None
+                     ) -> np.ndarray:
     """A volume's particles ``(N, 3)`` ``(x, y, z)`` voxels, brightest first: its peaks
     above ``threshold`` of the robust peak level (:func:`plenocl.peaks.find_particles`
     with ``reference="robust"``: a high quantile of the peaks, which does not grow with
     the volume as its maximum does; at the paper's full size the maximum kept 80-83 % of
     the particles, the quantile 84-92 %, against 88 % on a 96 x 64 camera); with
     ``sight``, the peaks along one line of sight merged (:meth:`SightLines.merge`) and
-    centred on their ridge (:meth:`SightLines.centres`)."""
-    peaks, values = find_particles(vol, threshold, reference="robust")
+    centred on their ridge (:meth:`SightLines.centres`). ``maxima``: where the local
+    maxima are found (:func:`plenocl.peaks.find_particles`' ``maxima``; ``None``: the
+    host)."""
+    peaks, values = find_particles(vol, threshold, reference="robust", maxima=maxima)
     if sight is None:
         return peaks
     peaks = sight.merge(peaks, values)[0]
@@ -642,7 +645,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                           threshold: float = 0.1, min_pairs: int = 3,
                           search=SEARCH, focus: FocalZone | None = None,
                           fit: ImageFit | None = None,
-                          sight: SightLines | None = None) -> PIVResult:
+                          sight: SightLines | None = None,
+                          maxima: Callable | None = None) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -653,9 +657,10 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     replaced by their neighbours' median, marked invalid, sigma NaN). ``refinement``
     records the pairs found, the vectors refined, the outliers and the particles the
     fit to the raw images dropped (``dropped``: their fit left the grid or was not
-    finite; docs/design.md §7.2).
+    finite; docs/design.md §7.2). ``maxima``: where the volumes' local maxima are found
+    (:func:`volume_particles`).
     """
-    pa, pb = (volume_particles(v, threshold, sight) for v in (vol_a, vol_b))
+    pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
     predictor = repredicted(field, pa, pb, min_pairs, search, focus)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
