@@ -8,6 +8,7 @@ the flows' parameters (displacement, axes, centres) are drawn from the seed.
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from plenocl import vectorfield as fieldio
 from plenocl.piv import PIVResult, piv3d
 from plenocl.piv.correlation import correlate, fit_peaks, window_fraction, window_grid
 from plenocl.piv.interpolate import resample
-from plenocl.piv.validation import normalized_median_test, replace_outliers
+from plenocl.piv.validation import nan_median, normalized_median_test, replace_outliers
 
 CASES = [((70, 90, 80), 20251), ((64, 72, 66), 777)]   # (nz, ny, nx), seed
 LIMITS = {"uniform": 0.05, "rotation": 0.10, "oseen": 0.15}
@@ -117,6 +118,24 @@ def test_cubic_deformation_beats_trilinear():
 def _rotation_field(shape=(7, 8, 9)):
     zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in shape), indexing="ij")
     return np.stack([0.3 * xx - 0.2 * yy, 0.5 * xx + 0.1 * zz, -0.4 * yy + 0.25 * zz])
+
+
+@pytest.mark.parametrize("shape", [(26, 2), (26, 3, 4, 5, 6), (7, 40)])
+def test_nan_median_is_numpys_nanmedian_bit_for_bit(shape):
+    """The validation's median of the neighbours is NumPy's ``nanmedian`` exactly: odd
+    and even counts of finite values, columns without any (NaN, no warning), ties."""
+    rng = np.random.default_rng(len(shape))
+    values = np.round(rng.normal(size=shape), 1)  # ties
+    values[rng.random(shape) < 0.3] = np.nan
+    values[:, 0] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # NumPy's all-NaN slice warning
+        want = np.nanmedian(values, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = nan_median(values)
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.isnan(got[0]).all() and np.isfinite(got[1:]).any()
 
 
 def test_median_test_flags_injected_outliers_and_replacement_restores_them():

@@ -11,8 +11,6 @@ a linear continuation rather than against nothing (docs/design.md §7). Arrays a
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 
@@ -34,6 +32,20 @@ def _neighbours(field: np.ndarray) -> np.ndarray:
                 if (dz, dy, dx) != (1, 1, 1):
                     out.append(padded[:, dz:dz + nz, dy:dy + ny, dx:dx + nx])
     return np.stack(out)
+
+
+def nan_median(values: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(values, axis=0)``, bit for bit (NaN where a column has no finite
+    value, without a warning), for a short first axis (the 26 neighbours): one sort
+    along it (NaN sorts last) and the mean of the middle two of each column's finite
+    values; NumPy's ``nanmedian`` takes a masked array's median there, about five times
+    slower."""
+    ordered = np.sort(values, axis=0)
+    count = np.count_nonzero(~np.isnan(values), axis=0)
+    low = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0)[None], 0)[0]
+    high = np.take_along_axis(ordered, (count // 2)[None], 0)[0]
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, (low + high) / 2, np.nan)
 
 
 def normalized_median_test(field: np.ndarray, eps: float = 0.1, threshold: float = 2.0,
@@ -61,10 +73,8 @@ def normalized_median_test(field: np.ndarray, eps: float = 0.1, threshold: float
     if ignore is not None and ignore.any():
         data[:, ignore] = np.nan
     nbr = _neighbours(data)
-    with warnings.catch_warnings():   # vectors whose neighbours are all ignored
-        warnings.simplefilter("ignore", RuntimeWarning)
-        median = np.nanmedian(nbr, axis=0)
-        r_m = np.nanmedian(np.abs(nbr - median), axis=0)
+    median = nan_median(nbr)  # NaN for vectors whose neighbours are all ignored
+    r_m = nan_median(np.abs(nbr - median))
     with np.errstate(invalid="ignore"):
         norm = np.sqrt(np.sum(((data - median) / (r_m + eps)) ** 2, axis=0))
         flags = norm > threshold
@@ -99,10 +109,7 @@ def replace_outliers(field: np.ndarray, bad: np.ndarray, max_sweeps: int = 50) -
     for _ in range(max_sweeps):
         if not todo.any():
             break
-        nbr = _neighbours(out)[:, :, todo]
-        with warnings.catch_warnings():  # all-NaN neighbourhoods inside clusters
-            warnings.simplefilter("ignore", RuntimeWarning)
-            fill = np.nanmedian(nbr, axis=0)
+        fill = nan_median(_neighbours(out)[:, :, todo])  # NaN inside clusters
         ok = np.all(np.isfinite(fill), axis=0)
         where = np.flatnonzero(todo.ravel())[ok]
         out.reshape(out.shape[0], -1)[:, where] = fill[:, ok]
