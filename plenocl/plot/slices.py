@@ -68,14 +68,20 @@ def _aspect(data: VectorData, axis: str) -> float:
 
 def contour(ax, h, v, values, limits, cmap: str):
     """Filled contours of ``values`` ``(vertical, horizontal)`` on the plane, on a grey
-    background where there is no valid vector."""
+    background where there is no valid vector; a plane one vector thin along either
+    axis (a thin volume's field), which has no contours, as cells of the same colours."""
     ax.set_facecolor("0.85")
     from matplotlib.ticker import MaxNLocator
 
     levels = MaxNLocator(nbins=14).tick_values(*limits)
-    shown = np.clip(values, levels[0], levels[-1])
-    return ax.contourf(h, v, np.ma.masked_invalid(shown), levels=levels, cmap=cmap,
-                       extend="neither")
+    shown = np.ma.masked_invalid(np.clip(values, levels[0], levels[-1]))
+    if min(np.shape(values)) < 2:
+        from matplotlib.colors import BoundaryNorm
+        from matplotlib.pyplot import get_cmap
+
+        norm = BoundaryNorm(levels, get_cmap(cmap).N)
+        return ax.pcolormesh(h, v, shown, cmap=cmap, norm=norm, shading="nearest")
+    return ax.contourf(h, v, shown, levels=levels, cmap=cmap, extend="neither")
 
 
 def arrows(ax, h, v, comp_h, comp_v, unit: str, max_per_side: int = ARROWS_PER_SIDE,
