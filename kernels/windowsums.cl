@@ -3,8 +3,8 @@
  * corners of a grid, as three passes (x, then y, then z). NumPy twin:
  * plenocl.piv.direct.HostSums (three matrix products per sum, BLAS on the host).
  *
- * Lags: -PL_ZREACH ... PL_ZREACH in z (-D define: plenocl.piv.direct.REACH[0], 2), -1, 0,
- * 1 in y and x: NZLAG x 3 x 3 (45) lags.
+ * Lags: -PL_ZREACH ... PL_ZREACH in z (-D define: plenocl.piv.direct.REACH[0], 3), -1, 0,
+ * 1 in y and x: NZLAG x 3 x 3 (63) lags.
  *
  * Taps: per axis a table of 2 n rows of T floats, the weight W(q + s/2) of its n lags
  * (rows 0 to n - 1; n = 3 in x and y, NZLAG in z) and its square (rows n to 2 n - 1);
@@ -15,7 +15,7 @@
  *  - pair_rows, spread_rows (x pass): one work-item per (x corner, y, z) row segment of the
  *    volume; it loops over the T taps, reads the segment of a and the segments of b in the
  *    neighbouring rows once, and forms the fields (products a(q) b(q + s), differences)
- *    on the fly, writing NPAIR (57) or NSPREAD (27) sums. Neighbouring items read
+ *    on the fly, writing NPAIR (75) or NSPREAD (27) sums. Neighbouring items read
  *    overlapping segments of the same rows (caches serve them).
  *  - axis_sums (y and z passes): one work-item per (inner index, corner, outer index x
  *    output field); it loops over T taps along the middle axis of its source field.
@@ -25,10 +25,10 @@
  * work-group size or core count. */
 
 #ifndef PL_ZREACH
-#define PL_ZREACH 2
+#define PL_ZREACH 3
 #endif
 #define NZLAG (2 * PL_ZREACH + 1)
-#define NPAIR (12 + 9 * NZLAG) /* a, a^2, b, b^2 at 3 x lags each; a(q) b(q + s) at 45 lags */
+#define NPAIR (12 + 9 * NZLAG) /* a, a^2, b, b^2 at 3 x lags each; a(q) b(q + s) at 63 lags */
 #define NSPREAD 27  /* 9 fields of the uncertainty's asymmetry per axis e */
 
 inline float pl_hsum(float8 v)

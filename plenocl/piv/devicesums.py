@@ -4,7 +4,7 @@
 matrix products per sum on the host: every weighted window sum of
 :func:`plenocl.piv.direct.correlate_direct` and of
 :func:`plenocl.piv.direct.correlation_uncertainty`, evaluated at the window corners only.
-A row kernel (x) forms the fields (products of the two volumes at the 45 lags,
+A row kernel (x) forms the fields (products of the two volumes at the 63 lags,
 differences of neighbours) as it sums them, so no field is ever stored whole; a generic
 axis kernel then sums the y and z axes. Both engines return float32 sums of the same
 shapes, equal to float32 rounding (each kernel sum is one work-item's loop in tap order,
@@ -47,7 +47,7 @@ def pair_fields() -> tuple[np.ndarray, np.ndarray]:
     """``(source, tap row, offset)`` of every output of the y and z passes of the
     correlation sums: ``a``, ``a^2`` (first window), ``b``, ``b^2`` (second window,
     offset by its lag) at the lags of each axis, then the products at their own lag.
-    The z pass leaves them in :data:`plenocl.piv.direct.LAGS` order, 45 per quantity."""
+    The z pass leaves them in :data:`plenocl.piv.direct.LAGS` order, 63 per quantity."""
     nz, (rz, ry) = CUBE[0], REACH[:2]
     y, z = [], []
     for q in range(4):
@@ -86,7 +86,7 @@ class DeviceSums:
 
     def correlation_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                          weighting: float | None) -> tuple[np.ndarray, ...]:
-        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(45, *grid.count)`` float32, as
+        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(63, *grid.count)`` float32, as
         :meth:`plenocl.piv.direct.HostSums.correlation_sums`."""
         out = self._sums("pair_rows", PAIR_FIELDS, self._pair, vol_a, vol_b, grid, weighting,
                          AXIS_LAGS[0])

@@ -1,12 +1,13 @@
-"""Direct (non-FFT) correlation of every window at the 45 lags around zero.
+"""Direct (non-FFT) correlation of every window at the 63 lags around zero.
 
 After the first pass the volumes are deformed by the predictor, so the residual
 displacement of most windows is below one voxel laterally and only the lags ``s`` of
 :data:`AXIS_LAGS` are needed to locate and fit the peak: ``{-1, 0, 1}`` across and
-``{-2, ..., 2}`` in depth, where a plenoptic camera reads positions worst and the residual
-after a deformation is often a voxel or more (at the paper's full size, more than half
-the windows of the first deformed pass peak one voxel off in depth and none laterally;
-design.md §7.5), so that a peak one voxel off in depth is still fitted here. For a
+``{-3, ..., 3}`` in depth, where a plenoptic camera reads positions worst and the residual
+after a deformation is often a voxel or two (at the paper's full size, more than half
+the windows of the first deformed pass peak one voxel off in depth and none laterally,
+and a tenth two voxels off; design.md §7.5), so that a peak up to two voxels off in
+depth is still fitted here. For a
 window with low corner ``L`` the normalised correlation at lag ``s`` is the weighted
 Pearson coefficient
 
@@ -26,10 +27,10 @@ depend on the thread count; :class:`plenocl.piv.devicesums.DeviceSums` runs the 
 on an OpenCL device (``kernels/windowsums.cl``, banded instead of dense, each sum one
 work-item's loop), which ``piv3d`` uses beside its device deformer.
 
-:func:`correlate_direct` returns the 45 coefficients per window; :func:`fit_direct`
+:func:`correlate_direct` returns the 63 coefficients per window; :func:`fit_direct`
 locates the peak and fits it per axis with the same three-point Gaussian as the FFT path
 (:func:`plenocl.peaks.gaussian_subpixel`) where its neighbours are among the lags (the
-peak at zero laterally and within one voxel in depth); :func:`correlate_deformed` sends
+peak at zero laterally and within two voxels in depth); :func:`correlate_deformed` sends
 the other windows, and weak ones, to the FFT;
 :func:`correlation_uncertainty` estimates each vector's uncertainty. The plain
 per-window twin is :func:`plenocl.reference.direct.correlate_windows`.
@@ -54,10 +55,10 @@ from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: correlation makes a different field from the same settings.
-METHOD = "direct at 45 lags, two in depth (issue 46, 2026-11-28)"
-#: The lags of each axis ``(z, y, x)``: two voxels either way in depth, one across.
-AXIS_LAGS = ((-2, -1, 0, 1, 2), (-1, 0, 1), (-1, 0, 1))
-#: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order (45 of them).
+METHOD = "direct at 63 lags, three in depth (issue 46, 2026-11-28 evening)"
+#: The lags of each axis ``(z, y, x)``: three voxels either way in depth, one across.
+AXIS_LAGS = ((-3, -2, -1, 0, 1, 2, 3), (-1, 0, 1), (-1, 0, 1))
+#: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order (63 of them).
 LAGS = np.array(list(itertools.product(*AXIS_LAGS)))
 #: The index of lag zero in :data:`LAGS`.
 CENTRE = int(np.flatnonzero((LAGS == 0).all(axis=1))[0])
@@ -109,7 +110,7 @@ def _corner_matrix(n: int, corners: np.ndarray, taps: np.ndarray) -> np.ndarray:
 
 def lag_weight_sums(grid: WindowGrid, weighting: float | None, power: int = 1) -> np.ndarray:
     """``sum_q W(q + s/2)`` (to ``power``) per lag of :data:`LAGS`: the sum of a window's
-    weights, ``(45,)``."""
+    weights, ``(63,)``."""
     per_axis = [np.array([(axis_taps(w, weighting, -0.5 * s) ** power).sum() for s in lags])
                 for w, lags in zip(grid.size, AXIS_LAGS)]
     return np.array([per_axis[0][i] * per_axis[1][j] * per_axis[2][k]
@@ -173,11 +174,11 @@ class WindowSums:
                             for p, n, s in zip(self.pads, self.shape, shift))]
 
     def first(self, padded: np.ndarray) -> np.ndarray:
-        """``sum_q W(q + s/2) f(L + q)`` for every lag: ``(45, *count)``."""
+        """``sum_q W(q + s/2) f(L + q)`` for every lag: ``(63, *count)``."""
         return self._lagged(padded, self._first)
 
     def second(self, padded: np.ndarray) -> np.ndarray:
-        """``sum_q W(q - s/2) f(L + s + q)`` for every lag: ``(45, *count)``."""
+        """``sum_q W(q - s/2) f(L + s + q)`` for every lag: ``(63, *count)``."""
         return self._lagged(padded, self._second)
 
     def product(self, vol: np.ndarray, shift) -> np.ndarray:
@@ -208,9 +209,9 @@ class DirectCorrelation:
     """What :func:`correlate_direct` measured, per window (arrays shaped ``grid.count``
     after the first axis)."""
 
-    r: np.ndarray          # (45, ...) weighted Pearson coefficients at LAGS
-    cov: np.ndarray        # (45, ...) the weighted covariances, r = cov / norm
-    var_a: np.ndarray      # (45, ...) the windows' weighted variances (sums, not means)
+    r: np.ndarray          # (63, ...) weighted Pearson coefficients at LAGS
+    cov: np.ndarray        # (63, ...) the weighted covariances, r = cov / norm
+    var_a: np.ndarray      # (63, ...) the windows' weighted variances (sums, not means)
     var_b: np.ndarray
     mean_a: np.ndarray     # weighted means of the two windows at lag zero
     mean_b: np.ndarray
@@ -240,7 +241,7 @@ class HostSums:
 
     def correlation_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                          weighting: float | None) -> tuple[np.ndarray, ...]:
-        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(45, *grid.count)`` float32: the
+        """``(s_a, s_b, raw_a, raw_b, products)``, each ``(63, *grid.count)`` float32: the
         first window's sums of ``a`` and ``a^2``, the second's of ``b`` and ``b^2``, and
         the sums of ``a(q) b(q + s)``, at every lag ``s`` of :data:`LAGS`."""
         sums = WindowSums(np.shape(vol_a), grid, weighting)
@@ -279,7 +280,7 @@ class HostSums:
 def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                      weighting: float | None, sums: SumEngine | None = None
                      ) -> DirectCorrelation:
-    """Normalised correlation of every window of ``grid`` at the 45 :data:`LAGS`.
+    """Normalised correlation of every window of ``grid`` at the 63 :data:`LAGS`.
 
     Parameters
     ----------
@@ -430,10 +431,10 @@ def _asymmetry(raw: np.ndarray, corr: DirectCorrelation):
 
 
 def fit_direct(r: np.ndarray):
-    """Peak of the 45 coefficients per window and its sub-voxel position.
+    """Peak of the 63 coefficients per window and its sub-voxel position.
 
     The highest coefficient is fitted per axis where its neighbours are among the lags:
-    at zero laterally and within one voxel of zero in depth.
+    at zero laterally and within two voxels of zero in depth.
 
     Returns
     -------
@@ -483,7 +484,7 @@ def weak_peaks(peak: np.ndarray, signal: np.ndarray) -> np.ndarray:
 def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                        weighting: float | None, uncertainty: bool = False,
                        sums: SumEngine | None = None, **fft_options) -> Correlation:
-    """Correlate deformed volumes directly at the 45 lags, and by FFT
+    """Correlate deformed volumes directly at the 63 lags, and by FFT
     (:func:`plenocl.piv.correlation.correlate`, with ``fft_options``) only the windows
     whose peak :func:`fit_direct` cannot fit or is weak (:func:`weak_peaks`).
 

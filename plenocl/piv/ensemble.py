@@ -2,7 +2,7 @@
 correlations rather than from their averaged vectors.
 
 Every pair is deformed by the same predictor (the mean field), correlated directly at the
-45 lags around zero (:mod:`plenocl.piv.direct`), and the windows' weighted sums
+63 lags around zero (:mod:`plenocl.piv.direct`), and the windows' weighted sums
 (covariances and variances) are added over the pairs before the coefficients are formed
 and fitted. True particles correlate at the same lag in every pair and add up; ghosts,
 noise and unmatched particles do not. This is the standard remedy where each pair holds

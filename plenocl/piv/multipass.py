@@ -231,10 +231,10 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         ``"fftw"`` (default where pyfftw is installed) or ``"scipy"`` (the reference).
     correlation
         ``"auto"`` (default): the deformed passes correlate each window directly at the
-        45 lags around zero, one voxel across and two in depth (:mod:`plenocl.piv.direct`:
+        63 lags around zero, one voxel across and three in depth (:mod:`plenocl.piv.direct`:
         linear, not circular, with the Gaussian weight centred between the two windows;
         about 3x faster than the FFT and more accurate for sub-voxel residuals), and by
-        FFT only the windows whose peak cannot be fitted there (off laterally or two
+        FFT only the windows whose peak cannot be fitted there (off laterally or three
         voxels off in depth). The first pass, top-hat windows (``weighting=None``)
         and, when ``min_peak_ratio`` is given, the final iteration (which then needs the
         secondary peak) use the FFT. ``"fft"``: every pass by FFT.

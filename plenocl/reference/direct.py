@@ -19,18 +19,19 @@ def _taps(size: int, weighting, centre_shift: float) -> np.ndarray:
 
 
 def correlate_windows(vol_a, vol_b, grid, weighting):
-    """Weighted Pearson coefficient of every window of ``grid`` at the 45 lags
+    """Weighted Pearson coefficient of every window of ``grid`` at the 63 lags
     ``s`` in ``{-2, ..., 2} x {-1, 0, 1}^2`` ``(sz, sy, sx)`` (C order): ``a`` over the
     window (and the weight's margin) at corner ``L``, ``b`` over the same voxels moved by
     ``s``, both weighted by ``W(q + s/2)``; zero outside the volumes.
 
-    Returns ``(45, *grid.count)``.
+    Returns ``(63, *grid.count)``.
     """
     margins = [_taps(n, weighting, 0.0)[1] for n in grid.size]
-    pad = max(margins) + 2
+    depth_lags = (-3, -2, -1, 0, 1, 2, 3)
+    pad = max(margins) + max(depth_lags)
     a = np.pad(np.asarray(vol_a, np.float64), pad)
     b = np.pad(np.asarray(vol_b, np.float64), pad)
-    lags = list(itertools.product((-2, -1, 0, 1, 2), (-1, 0, 1), (-1, 0, 1)))
+    lags = list(itertools.product(depth_lags, (-1, 0, 1), (-1, 0, 1)))
     out = np.zeros((len(lags), *grid.count))
     for k, lag in enumerate(lags):
         taps = [_taps(n, weighting, -0.5 * s)[0] for n, s in zip(grid.size, lag)]
