@@ -147,10 +147,10 @@ class ImageFit:
         self.sums = (None if queue is None or host_sums
                      else DeviceFitSums(self.renderer, self.settings.chunk))
         self.grid = grid
-        self.images, self._device_images = [], {}
+        self.images, self._device_images, self._host_images = [], {}, {}
         for raw, known in zip(images, _backgrounds(backgrounds, len(images)), strict=True):
             img, noise = subtract_background(check_image(raw, camera), known)
-            self.images.append((img.astype(np.float64).ravel(), max(noise, 1e-12)))
+            self.images.append((img.ravel(), max(noise, 1e-12)))  # float32
 
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
         """Peaks ``(N, 3)`` fractional voxel indices ``(ix, iy, iz)`` of exposure
@@ -206,12 +206,13 @@ class ImageFit:
         """The Gauss-Newton iterations from ``start`` (inside the grid): positions,
         intensities, sigmas and which particles are still in the fit (the others' rows
         hold where they were dropped)."""
-        data, noise = self.images[index]
+        noise = self.images[index][1]
         prior = self._prior_mm()
         frames = sight_frames(line_of_sight(self.bundle.camera, start))
         p, sigma = start.copy(), np.broadcast_to(prior, start.shape).copy()
         device = self.sums is not None and self.sums.fits(
             self.bundle.patches(self.bundle.camera.image_points(p)))
+        data = None if device else self._host_image(index)
         intensity = (self._device_start(index, p) if device
                      else self._start_intensity(data, p))
         live = np.isfinite(intensity)
@@ -265,6 +266,13 @@ class ImageFit:
         pts = self.bundle.camera.image_points(p)
         sums = self.sums.unit_sums(self._device_image(index), pts, self.bundle.patches(pts))
         return np.maximum(sums[:, 0] / np.maximum(sums[:, 1], 1e-30), 0.0)
+
+    def _host_image(self, index: int) -> np.ndarray:
+        """Exposure ``index``'s background-free image as float64 (made once, for the
+        host's sums only: the device takes the float32 image as it is)."""
+        if index not in self._host_images:
+            self._host_images[index] = self.images[index][0].astype(np.float64)
+        return self._host_images[index]
 
     def _device_image(self, index: int):
         """Exposure ``index``'s image on the device (uploaded once)."""
