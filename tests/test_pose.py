@@ -95,8 +95,22 @@ def test_a_posed_camera_images_world_particles_where_it_sees_them(queue):
     plain = simulate_image(_small(), local, 1e4, **kw)
     assert posed.sum() > 0
     np.testing.assert_allclose(posed, plain, atol=1e-3 * plain.max())
-    with pytest.raises(ValueError, match="no\\s+real image"):
+    with pytest.raises(ValueError, match="behind its main lens's front focal plane"):
         simulate_image(_small(pose), pose.to_world([[0.0, 0.0, -60.0]]), 1e4, **kw)
+
+
+def test_a_pose_that_puts_the_particles_behind_the_camera_is_named_with_the_fix():
+    """A camera turned half round about x looks away from the world's particles: the
+    error names the pose, how many points, the depth they reach in the camera's frame
+    and what to check; the same points through the unposed camera are imaged."""
+    turned = Pose((180.0, 0.0, 0.0), (0.0, 0.0, -60.0))
+    world = np.array([[0.1, 0.0, 1.0], [0.0, -0.2, -0.5], [0.2, 0.1, 0.0]])
+    with pytest.raises(ValueError, match=r"\(rotation_deg \[180.0, 0.0, 0.0\], translation_mm "
+                                         r"\[0.0, 0.0, -60.0\]\) puts 3 of 3 points .*"
+                                         r"turned 180 degrees looks away") as err:
+        _small(turned).image_points(world)
+    assert "-61.000 mm or less" in str(err.value)
+    assert np.all(np.isfinite(_small().image_points(world)))
 
 
 def test_projecting_through_a_posed_camera_is_refused_until_it_is_built(queue):

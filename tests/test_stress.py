@@ -715,6 +715,10 @@ INVALID = [
      "forms no real image"),
     ("simulate-depth-at-focal-length", _sim(positions=((0.0, 0.0, -50.0),)), ValueError,
      "forms no real image"),
+    ("simulate-pose-looks-away", lambda c: simulate_image(
+        dataclasses.replace(c["cam"], pose=Pose((180.0, 0.0, 0.0), (0.0, 0.0, -60.0))),
+        np.zeros((1, 3)), 1000.0, rays_per_particle=100, queue=c["queue"]), ValueError,
+     r"camera's pose .* puts 1 of 1 points .* behind its main lens's front focal plane"),
     ("simulate-rays-zero", _sim(rays_per_particle=0), ValueError,
      "rays must be a positive integer"),
     ("simulate-rays-fraction", _sim(rays_per_particle=1.5), ValueError,

@@ -325,6 +325,7 @@ class Camera:
         pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
         if self.pose is not None:
             pts = self.pose.to_camera(pts)
+            self.pose.check_in_front(pts[:, 2], self.focal_length_mm - self.object_distance_mm)
         s_ip = self.image_distance_at(pts[:, 2])
         scale = -s_ip / (self.object_distance_mm + pts[:, 2])
         return np.column_stack([pts[:, 0] * scale, pts[:, 1] * scale, self._from_pupil(s_ip)])

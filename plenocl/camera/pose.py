@@ -89,6 +89,22 @@ class Pose:
         pts = np.asarray(points_xyz, float).reshape(-1, 3)
         return (pts - np.asarray(self.translation_mm)) @ self.matrix
 
+    def check_in_front(self, camera_z, nearest: float) -> None:
+        """Refuse points whose depth in the camera's frame ``camera_z`` (mm) is at or
+        below ``nearest`` (the camera's ``f - s_o``: at or behind the main lens's front
+        focal plane, where it forms no image): the pose puts them behind the camera."""
+        z = np.asarray(camera_z, float)
+        behind = ~(z > nearest)
+        if behind.any():
+            raise ValueError(
+                f"the camera's pose (rotation_deg {list(self.rotation_deg)}, translation_mm "
+                f"{list(self.translation_mm)}) puts {int(behind.sum())} of {z.size} points at "
+                f"a depth of {float(np.nanmin(z)):.3f} mm or less in the camera's frame, at or "
+                f"behind its main lens's front focal plane (z = {nearest:.3f} mm), where it "
+                "forms no image: the camera looks along its frame's +z, and X_camera = R "
+                "X_world + t (docs/design.md §2.2); check the pose's rotation (a camera "
+                "turned 180 degrees looks away) and the sign of its translation")
+
     def to_dict(self) -> dict:
         """The camera file's ``[pose]`` section."""
         return {"rotation_deg": list(self.rotation_deg),

@@ -39,8 +39,10 @@ def _validate_particles(camera: Camera, positions, intensities) -> tuple[np.ndar
     if np.any(intens < 0):
         raise ValueError("intensities must be >= 0 (counts per particle)")
     # raises for depths that form no real image (in the camera's frame: Camera.pose)
-    camera.image_distance_at(pos[:, 2] if camera.pose is None
-                             else camera.pose.to_camera(pos)[:, 2])
+    if camera.pose is None:
+        camera.image_distance_at(pos[:, 2])
+    else:
+        camera.image_points(pos)
     return pos, intens
 
 
