@@ -281,11 +281,11 @@ def test_the_refined_projector_lights_the_lenses_the_coarse_one_does(optics, sce
 
 def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
         optics, scene, monkeypatch):
-    """One preprocessing and one lit-lens search for both runs; the fine volume is the one
-    of two separate reconstructions (the coarse one, then the fine one from its flat
-    support spread on the host), binned on the device: equal to the rounding of the
-    start's spreading on the device (one product instead of two quotients per
-    sub-voxel), carried through the iterations."""
+    """One preprocessing, one lit-lens search and one upload of the image for both runs;
+    the fine volume is the one of two separate reconstructions (the coarse one, then the
+    fine one from its flat support spread on the host), binned on the device: equal to
+    the rounding of the start's spreading on the device (one product instead of two
+    quotients per sub-voxel), carried through the iterations."""
     cam, grid, proj = optics
     coarse = reconstruct(scene, proj.sampled(COARSE_OVERSAMPLE), iterations=4,
                          supersample=1)
@@ -310,9 +310,14 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
                         counted("_preprocessed", images_module._preprocessed))
     monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
     monkeypatch.setattr(Solver, "binned_to_host", binned_to_host)
+    uploads, to_device = [], images_module.cla.to_device
+    monkeypatch.setattr(images_module.cla, "to_device",
+                        lambda queue, host, *a, **k: uploads.append(np.shape(host))
+                        or to_device(queue, host, *a, **k))
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, relax=1.0, early_oversample=None, return_info=True)
     assert calls["_preprocessed"] == 1 and calls["lit_lenses"] == 1
+    assert uploads.count(scene.shape) == 1  # the image goes to the device once, not per run
     assert info.cropped_shape is not None  # the fine run cropped itself before binning
     peak = float(fine.max())
     np.testing.assert_allclose(calls["fine"][0], fine, rtol=tol.ITERATED,

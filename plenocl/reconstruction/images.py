@@ -8,6 +8,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+import pyopencl.array as cla
 
 from ..optics.rawimage import background_and_noise, check_exposure, check_image, dark_noise
 from .operator import ProjectionOperator
@@ -143,6 +144,17 @@ class PreparedImage:
     lit: np.ndarray | None = None
     background: float | None = None
     noise: float | None = None
+    #: The image's device copies by queue (:meth:`on_device`): uploaded once, not once
+    #: per run (a coarse-to-fine reconstruction's three runs read the same image).
+    _device: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+
+    def on_device(self, queue):
+        """:attr:`image` on ``queue``'s device, uploaded at the first call (the solver
+        only reads it)."""
+        key = queue.int_ptr
+        if key not in self._device:
+            self._device[key] = cla.to_device(queue, self.image)
+        return self._device[key]
 
 
 def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,

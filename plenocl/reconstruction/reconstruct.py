@@ -418,7 +418,7 @@ def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSe
     solver = Solver(projector, settings.min_sensitivity, prepared.lit,
                     observed=prepared.observed)
     _warn_if_outside(projector, solver, settings.min_sensitivity)
-    img = cla.to_device(solver.queue, prepared.image)
+    img = prepared.on_device(solver.queue)
     if device is not None:
         vol = device
     elif spread is None:
