@@ -12,7 +12,7 @@
  * Parallel structure: one work-item per voxel over a 3-D range (x, y, z); each reads its
  * (2 reach + 1)^3 neighbourhood (neighbouring items read neighbouring voxels: caches on a
  * CPU, coalesced on a GPU) and stops at the first larger one. Only candidates touch the
- * counter (atomic_inc): a few per thousand voxels of a particle volume above the floors
+ * counter (atomic_inc): under one voxel in a thousand of a particle volume above the floors
  * plenocl uses, so the atomic is not a contended hot spot. Sizes are arguments. */
 __kernel void local_maxima(__global const float *v, int nz, int ny, int nx, int reach,
                            float floor, volatile __global int *count,
