@@ -249,3 +249,27 @@ def test_a_field_one_vector_thin_is_drawn_in_every_view(tmp_path, shape):
 def _saved(folder, field: PIVResult, name: str = "thin.npz"):
     save_field(folder / name, field, VOXEL, dt=DT)
     return folder / name
+
+
+def test_a_thin_plane_is_drawn_as_cells_of_its_values():
+    """A plane one vector thin has no contours: its values are cells centred on the
+    vectors, as wide as their spacing and, across the single row, as tall (not a line of
+    zero height that shows only the background)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from plenocl.plot.slices import contour
+
+    fig, ax = plt.subplots()
+    try:
+        mesh = contour(ax, np.array([0.0, 1.0, 2.0]), np.array([5.0]),
+                       np.array([[0.1, 0.2, np.nan]]), (0.0, 0.4), "viridis")
+        corners = mesh.get_coordinates()
+        np.testing.assert_allclose(corners[0, :, 0], [-0.5, 0.5, 1.5, 2.5])
+        np.testing.assert_allclose(corners[:, 0, 1], [4.5, 5.5])
+        shown = np.ma.masked_invalid(mesh.get_array())
+        np.testing.assert_allclose(shown.compressed(), [0.1, 0.2])  # the NaN stays grey
+    finally:
+        plt.close(fig)

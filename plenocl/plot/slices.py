@@ -80,8 +80,24 @@ def contour(ax, h, v, values, limits, cmap: str):
         from matplotlib.pyplot import get_cmap
 
         norm = BoundaryNorm(levels, get_cmap(cmap).N)
-        return ax.pcolormesh(h, v, shown, cmap=cmap, norm=norm, shading="nearest")
+        step = _spacing(h) or _spacing(v) or 1.0
+        return ax.pcolormesh(_cell_edges(h, step), _cell_edges(v, step), shown, cmap=cmap,
+                             norm=norm, shading="flat")
     return ax.contourf(h, v, shown, levels=levels, cmap=cmap, extend="neither")
+
+
+def _spacing(coords) -> float:
+    """The spacing of a plane's vector coordinates (0 for a single one)."""
+    c = np.asarray(coords, float)
+    return float(np.median(np.abs(np.diff(c)))) if len(c) > 1 else 0.0
+
+
+def _cell_edges(coords, step: float) -> np.ndarray:
+    """The edges of the cells centred on ``coords``: half-way between neighbours, half
+    a spacing beyond the ends (``step`` where a single coordinate has no neighbour)."""
+    c = np.asarray(coords, float)
+    half = 0.5 * (_spacing(c) or step)
+    return np.concatenate([[c[0] - half], 0.5 * (c[1:] + c[:-1]), [c[-1] + half]])
 
 
 def arrows(ax, h, v, comp_h, comp_v, unit: str, max_per_side: int = ARROWS_PER_SIDE,
