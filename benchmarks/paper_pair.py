@@ -3,7 +3,7 @@ each reconstruction setting, every setting on the same scene in the same run.
 
     python benchmarks/paper_pair.py [--settings previous fullaperture default] [--lenses 289 193]
                                     [--seeding 0.05] [--motion uniform] [--bit-depth 16]
-                                    [--profile]
+                                    [--profile] [--host-profile N]
 
 Camera: the paper's optics on the whole 16 MP sensor (289 x 193 microlenses,
 4914 x 3282 px); grid: the paper's 300 x 200 x 150 voxels (``paper_optics``, as in
@@ -25,6 +25,8 @@ first setting's pair runs once more under :class:`plenocl.bench.clprofile.OpenCL
 which prints per stage the wall seconds, the seconds inside OpenCL calls, the host's own
 work outside them, the kernels' device seconds (profiling events), the launches and the
 megabytes moved each way, then the bytes a pair moved against its two raw images.
+``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
+functions of most own time (on a GPU, where the host's work goes; docs/design.md §7.5).
 """
 
 from __future__ import annotations
@@ -83,6 +85,9 @@ def main() -> None:
                              "counts")
     parser.add_argument("--profile", action="store_true",
                         help="then the first setting's pair once more, profiled")
+    parser.add_argument("--host-profile", type=int, default=0, metavar="N",
+                        help="then the first setting's pair once more under cProfile: its "
+                             "N functions of most own time (where the host's work goes)")
     args = parser.parse_args()
     queue = get_queue(profiling=args.profile)
     cam, grid, proj = paper_setup(tuple(args.lenses), queue)
@@ -118,6 +123,8 @@ def main() -> None:
           f"the last): {'; '.join(by_fft)}")
     if args.profile:
         profile_pair(scene, proj, SETTINGS[args.settings[0]])
+    if args.host_profile:
+        host_profile(scene, proj, SETTINGS[args.settings[0]], args.host_profile)
 
 
 def profile_pair(scene, proj, rec) -> None:
@@ -134,6 +141,22 @@ def profile_pair(scene, proj, rec) -> None:
     raws = scene.raw_a.nbytes + scene.raw_b.nbytes
     print(f"bytes moved: {moved_in / 1e6:.1f} MB to the device ({moved_in / raws:.1f}x the "
           f"two raw images' {raws / 1e6:.1f} MB), {moved_out / 1e6:.1f} MB back")
+
+
+def host_profile(scene, proj, rec, count: int) -> None:
+    """One pair of ``scene`` under cProfile: the ``count`` functions of most own time."""
+    import cProfile
+    import io
+    import pstats
+
+    profiler = cProfile.Profile()
+    profiler.enable()
+    process_pair(scene.raw_a, scene.raw_b, proj, **({} if rec is None else {"reconstruction": rec}))
+    proj.queue.finish()
+    profiler.disable()
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(count)
+    print(text.getvalue())
 
 
 if __name__ == "__main__":
