@@ -77,8 +77,9 @@ def main() -> None:
             print(f"seed {seed}: " + split_table(splits[-1]), "\n", flush=True)
             summary.append(summary_line(splits[-1], f"seed {seed}"))
         if len(splits) > 1:
-            print(f"seeds {args.seeds} pooled: " + split_table(pooled(splits)), "\n", flush=True)
-            summary.append(summary_line(pooled(splits), "pooled"))
+            together = pooled(splits)
+            print(f"seeds {args.seeds} pooled: " + split_table(together), "\n", flush=True)
+            summary.append(summary_line(together, "pooled"))
     print("\n".join(summary))
 
 

@@ -68,9 +68,7 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
     if vmax <= 0:
         return np.zeros((0, 3)), np.zeros(0)
     # every level below is above this floor (the robust level exceeds CANDIDATE * vmax)
-    floor = threshold * vmax * (min(1.0, CANDIDATE) if reference == "robust" else 1.0)
-    if reference == "robust":
-        floor = min(floor, CANDIDATE * vmax)
+    floor = vmax * (CANDIDATE * min(threshold, 1.0) if reference == "robust" else threshold)
     flat = (maxima or host_maxima)(v, floor - abs(floor) * 1e-6, min_separation)
     values = v.reshape(-1)[flat]
     level = vmax

@@ -7,9 +7,8 @@ displacement of most windows is below one voxel laterally and only the lags ``s`
 after a deformation is often a voxel or two (at the paper's full size, more than half
 the windows of the first deformed pass peak one voxel off in depth and none laterally,
 and a tenth two voxels off; design.md §7.5), so that a peak up to two voxels off in
-depth is still fitted here. For a
-window with low corner ``L`` the normalised correlation at lag ``s`` is the weighted
-Pearson coefficient
+depth is still fitted here. For a window with low corner ``L`` the normalised
+correlation at lag ``s`` is the weighted Pearson coefficient
 
     r(s) = cov(s) / sqrt(var_a(s) var_b(s)),
     cov(s) = S_s[a(L + q) b(L + q + s)] - S_s[a(L + q)] S_s[b(L + q + s)] / S_s[1],
@@ -191,7 +190,7 @@ class WindowSums:
 
     def _lagged(self, padded: np.ndarray, axes) -> np.ndarray:
         mz, my, mx = (np.concatenate(axis, axis=1) for axis in axes)
-        out = self._apply(padded, mz, my, mx)  # (5 cz, 3 cy, 3 cx)
+        out = self._apply(padded, mz, my, mx)  # (lz cz, ly cy, lx cx): lags by corners
         (cz, cy, cx), (lz, ly, lx) = self.grid.count, CUBE
         out = out.reshape(lz, cz, ly, cy, lx, cx).transpose(0, 2, 4, 1, 3, 5)
         return out.reshape(len(LAGS), cz, cy, cx)

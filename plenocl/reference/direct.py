@@ -20,7 +20,7 @@ def _taps(size: int, weighting, centre_shift: float) -> np.ndarray:
 
 def correlate_windows(vol_a, vol_b, grid, weighting):
     """Weighted Pearson coefficient of every window of ``grid`` at the 63 lags
-    ``s`` in ``{-2, ..., 2} x {-1, 0, 1}^2`` ``(sz, sy, sx)`` (C order): ``a`` over the
+    ``s`` in ``{-3, ..., 3} x {-1, 0, 1}^2`` ``(sz, sy, sx)`` (C order): ``a`` over the
     window (and the weight's margin) at corner ``L``, ``b`` over the same voxels moved by
     ``s``, both weighted by ``W(q + s/2)``; zero outside the volumes.
 

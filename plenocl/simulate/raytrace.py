@@ -38,11 +38,7 @@ def _validate_particles(camera: Camera, positions, intensities) -> tuple[np.ndar
         raise ValueError("positions and intensities must be finite (found NaN or Inf)")
     if np.any(intens < 0):
         raise ValueError("intensities must be >= 0 (counts per particle)")
-    # raises for depths that form no real image (in the camera's frame: Camera.pose)
-    if camera.pose is None:
-        camera.image_distance_at(pos[:, 2])
-    else:
-        camera.image_points(pos)
+    camera.image_points(pos)  # raises for depths (in the camera's frame) with no real image
     return pos, intens
 
 
