@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera.lattice import DEFAULT_SHEAR_TOL, rotation_matrix, separable_rotation_deg
+from .camera.pose import require_world_frame
 from .io.tomlfile import read_toml, write_toml
 from .optics.depthrange import check_grid
 
@@ -155,6 +156,13 @@ class Grid:
         wx, wy = self.to_world(pts[:, 0], pts[:, 1])
         return np.column_stack([wx, wy, pts[:, 2]])
 
+    def corners(self, margin: float = 0.0) -> np.ndarray:
+        """The eight corners ``(8, 3)`` (mm) of the volume's outer faces, moved out by
+        ``margin`` voxels on every side."""
+        lo, hi = -0.5 - margin, np.array(self.shape[::-1], float) - 0.5 + margin
+        pick = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], bool)
+        return self.from_index(np.where(pick, hi, lo))
+
     def contains(self, points_xyz) -> np.ndarray:
         """Whether each object-space point lies inside the volume."""
         pts = self.to_frame(points_xyz)
@@ -205,6 +213,7 @@ class Grid:
         keeps the sensor's axes. A hexagonal array's field is its columns' pitch by its
         rows' (``pitch·√3/2``), and its axes follow its rows.
         """
+        require_world_frame(camera, "Grid.for_camera")
         voxel = voxel_mm or camera.ml_pitch_mm / camera.magnification
         dvox = depth_voxel_mm or camera.depth_resolution_mm / 2
         w, h = (n * step / camera.magnification * fraction for n, step in

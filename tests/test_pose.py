@@ -113,12 +113,15 @@ def test_a_pose_that_puts_the_particles_behind_the_camera_is_named_with_the_fix(
     assert np.all(np.isfinite(_small().image_points(world)))
 
 
-def test_projecting_through_a_posed_camera_is_refused_until_it_is_built(queue):
+def test_a_projector_takes_a_posed_camera_and_grid_for_camera_its_own_frame_only(queue):
+    """A world grid is projected through the pose (tests/test_posed_projector.py);
+    ``Grid.for_camera`` fits a grid in the camera's own frame, so a posed camera is
+    refused there with the way to get one."""
     cam = _small(Pose((0.0, 20.0, 0.0), (0.0, 0.0, 0.0)))
     grid = Grid.for_camera(_small(), z=(-1.0, 1.0))
-    with pytest.raises(ValueError, match=r"posed camera.*\[pose\]"):
-        Projector(cam, grid, queue)
-    with pytest.raises(ValueError, match=r"\[pose\]"):
+    assert Projector(cam, grid, queue).path == "posed"
+    with pytest.raises(ValueError, match=r"Grid.for_camera works in the camera's own frame.*"
+                                         r"camera.with_pose\(None\)"):
         Grid.for_camera(cam, z=(-1.0, 1.0))
 
 

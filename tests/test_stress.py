@@ -745,10 +745,14 @@ INVALID = [
     ("lens-displacements-jitter", lambda c: lens_displacements_mm(c["cam"], jitter_px=-0.2),
      ValueError, r"jitter_px must be >= 0"),
     # Projector
-    ("projector-posed-camera", lambda c: Projector(
+    ("grid-for-camera-posed", lambda c: Grid.for_camera(
         dataclasses.replace(c["cam"], pose=Pose((0.0, 20.0, 0.0), (0.0, 0.0, 0.0))),
+        (-1.0, 1.0)), ValueError, r"works in the camera's own frame and does not take a "
+     r"posed camera"),
+    ("projector-posed-grid-aside", lambda c: Projector(
+        dataclasses.replace(c["cam"], pose=Pose((0.0, 0.0, 0.0), (40.0, 0.0, 0.0))),
         Grid((3, 4, 4), (-0.2, 0.2), (-0.2, 0.2), (-1.0, 1.0)), c["queue"]), ValueError,
-     "does not take a posed camera yet"),
+     r"seen through the camera's pose .* entirely outside the camera's field of view"),
     ("projector-depth-not-imageable", _proj(z=(-60.0, 1.0)), ValueError,
      "where the main lens forms no real image"),
     ("projector-outside-field-of-view", _proj(x=(10.0, 11.0)), ValueError,

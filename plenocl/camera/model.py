@@ -406,6 +406,10 @@ class Camera:
         return replace(self, ml_layout=name, ml_count=count, ml_odd_row_shift=odd_row_shift,
                        microlens_centers=None, calibrated=False)
 
+    def with_pose(self, pose: Pose | None) -> Camera:
+        """A copy standing at ``pose`` (``None``: the world frame, the camera's own)."""
+        return replace(self, pose=pose)
+
     def with_centers(self, centers: np.ndarray) -> Camera:
         """A copy with calibrated microlens image centres."""
         return replace(self, microlens_centers=np.asarray(centers, float), calibrated=True)

@@ -126,8 +126,8 @@ def require_world_frame(camera, what: str) -> None:
     """Refuse a posed camera where ``what`` works in the camera's own frame only."""
     if camera.pose is not None:
         raise ValueError(
-            f"{what} does not take a posed camera yet (the camera file's [pose]): it works "
-            "in the camera's own frame, and projecting a grid through a posed camera comes "
-            "with several cameras in one reconstruction (issue 49). Leave [pose] out to "
-            "place the camera at the world frame, or express the grid and the particles in "
-            "the camera's frame (Pose.to_camera)")
+            f"{what} works in the camera's own frame and does not take a posed camera (the "
+            "camera file's [pose]): give it the camera without its pose "
+            "(camera.with_pose(None)) and carry the result into the world with "
+            "Pose.to_world, or give the world grid yourself (projectors, reconstruct and "
+            "process_pair take a posed camera with a world grid; docs/design.md §2.2)")

@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from ..camera import Camera, require_world_frame
+from ..camera import Camera
 
 __all__ = ["LIGHT_SHARE", "VIEW_LENSES", "check_grid", "field_of_view_mm",
            "resolved_depth_range"]
@@ -133,11 +133,13 @@ def check_grid(camera: Camera, grid) -> None:
     ValueError
         When the grid's depth extent reaches beyond :func:`resolved_depth_range` (or to the
         main lens's focal length, where no real image forms), or when no part of it lies
-        in the field of view (:func:`field_of_view_mm`) at any of its depths, or when the
-        camera is posed (:func:`plenocl.camera.pose.require_world_frame`).
+        in the field of view (:func:`field_of_view_mm`) at any of its depths. A posed
+        camera's (world) grid is checked as its bounding box in the camera's frame
+        (:func:`_check_posed`).
     """
-    require_world_frame(camera, "projecting a grid (the projectors, Grid.for_camera, "
-                        "process_pair, reconstruct, the batch)")
+    if camera.pose is not None:
+        _check_posed(camera, grid)
+        return
     box = _array_box(camera)
     near, far = _resolved(camera, box)
     limit = camera.focal_length_mm - camera.object_distance_mm
@@ -156,6 +158,38 @@ def check_grid(camera: Camera, grid) -> None:
             "its light reaches the array; docs/design.md §2.1). Move the volume into that "
             "range (plenocl grid --z), or focus the camera on it ([main_lens] magnification)")
     _check_lateral(camera, grid, box)
+
+
+class _CameraBox:
+    """An axis-aligned box in the camera's frame, as :func:`check_grid` reads a grid."""
+
+    rotation_deg = 0.0
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        self.x, self.y, self.z = ((float(a), float(b)) for a, b in zip(lo, hi, strict=True))
+
+    @staticmethod
+    def to_world(vx, vy):
+        return np.asarray(vx), np.asarray(vy)
+
+
+def _check_posed(camera: Camera, grid) -> None:
+    """:func:`check_grid` of a world grid seen by a posed camera: its corners in front of
+    the camera (:meth:`plenocl.camera.Pose.check_in_front`), and their bounding box in
+    the camera's frame within the depths it resolves and its field of view."""
+    pose = camera.pose
+    pts = pose.to_camera(grid.corners())
+    pose.check_in_front(pts[:, 2], camera.focal_length_mm - camera.object_distance_mm)
+    box = _CameraBox(pts.min(axis=0), pts.max(axis=0))
+    try:
+        check_grid(camera.with_pose(None), box)
+    except ValueError as exc:
+        raise ValueError(
+            f"seen through the camera's pose (rotation_deg {list(pose.rotation_deg)}, "
+            f"translation_mm {list(pose.translation_mm)}; docs/design.md §2.2) the world "
+            f"grid spans x = ({box.x[0]:.3f}, {box.x[1]:.3f}), y = ({box.y[0]:.3f}, "
+            f"{box.y[1]:.3f}), z = ({box.z[0]:.3f}, {box.z[1]:.3f}) mm in the camera's "
+            f"frame, and there {exc}") from None
 
 
 def _check_lateral(camera: Camera, grid, box: np.ndarray) -> None:

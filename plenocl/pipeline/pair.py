@@ -111,6 +111,8 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         Both volumes, the displacement field, the reconstructions' info and stage times.
     """
     settings = with_keywords(PairSettings, settings, parts, "process_pair")
+    if isinstance(projector, (list, tuple)):  # several cameras (docs/design.md §6.7)
+        return _several_cameras(raw_a, raw_b, list(projector), settings)
     rec = settings.reconstruction
     clock, out = StageClock(), {}
     for tag, raw in (("a", raw_a), ("b", raw_b)):
@@ -137,6 +139,34 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     res = refine_particles(res, vol_a, vol_b, projector.grid, settings, projector.queue,
                            camera=projector.camera, raws=(raw_a, raw_b),
                            backgrounds=known_backgrounds(info_a, info_b), clock=clock)
+    return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
+
+
+def _several_cameras(raws_a, raws_b, projectors: list, settings: PairSettings
+                     ) -> PairResult:
+    """:func:`process_pair` of several cameras (docs/design.md §6.7): each exposure
+    reconstructed from every camera's image at once, the volumes correlated and refined
+    by their particles; the particles are not fitted to the raw images (the fit is one
+    camera's: ``settings.image_fit`` is not applied, ``PairResult.dropped`` is 0)."""
+    for name, raws in (("raw_a", raws_a), ("raw_b", raws_b)):
+        if not isinstance(raws, (list, tuple)) or len(raws) != len(projectors):
+            raise ValueError(f"several cameras: {name} must be a list of one raw image per "
+                             f"projector ({len(projectors)})")
+    if settings.mte.cycles:
+        raise ValueError("motion-tracking enhancement takes one camera; set mte cycles to "
+                         "0 with several cameras")
+    if len(projectors) == 1:
+        return process_pair(raws_a[0], raws_b[0], projectors[0], settings)
+    clock, out = StageClock(), {}
+    for tag, raws in (("a", raws_a), ("b", raws_b)):
+        with clock.stage(f"reconstruct_{tag}"):
+            try:
+                out[tag] = run_reconstruction(list(raws), projectors, settings.reconstruction)
+            except UnusableImageError as exc:
+                raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
+    (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
+    grid, queue = projectors[0].grid, projectors[0].queue
+    res = refined_field(vol_a, vol_b, grid, settings, queue, clock=clock)
     return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
 

@@ -39,10 +39,12 @@ from ..camera.lattice import separable_rotation_deg
 from ..grid import Grid
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
+from ..optics.depthrange import check_grid
 from .factorised import FactorisedStages
 from .lenses import LensSet, lens_set, lit_lenses
 from .model import WeightingModel, warn_general_path
 from .plan import Plan, SampleColumns, make_plan, runs
+from .posed import PoseResampler, one_slab, posed_frame_grid
 from .resample import FrameResampler, frame_grid
 from .weighting import DEFAULT_OVERSAMPLE, DEFAULT_SHEAR_TOL, ApertureGrid, LensIndexMap
 
@@ -179,26 +181,37 @@ class Projector(FactorisedStages):
         if lens_weights not in LENS_WEIGHTS:
             raise ValueError(f"lens_weights must be one of {LENS_WEIGHTS}, got "
                              f"{lens_weights!r}")
-        if model is None:
-            model = WeightingModel(camera, grid, oversample, shear_tol, warn=False)
-        elif camera not in (model.camera, model.source_camera) or model.grid != grid:
-            raise ValueError("the weighting model belongs to another camera or grid")
-        # a hexagonal array's lenses on its axial lattice (Camera.on_lens_lattice)
-        camera = model.camera
-        self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
-        self.lens_weights = lens_weights
-        self._options = dict(oversample=model.oversample, shear_tol=model.shear_tol,
+        self._options = dict(oversample=oversample, shear_tol=shear_tol,
                              method=method, back=back, max_alloc_bytes=max_alloc_bytes,
                              scratch_bytes=scratch_bytes, vector_width=vector_width,
                              segment=segment, gather_forward=gather_forward,
                              general=general, lens_weights=lens_weights)
         self.queue = get_queue(queue)
+        self.resampler: FrameResampler | PoseResampler | None = None
+        self.pose = camera.pose
+        if self.pose is not None:  # a world grid: through the camera's own frame (.posed)
+            frame = self._posed_frame(camera, grid, frame, model)
+            model = frame.model
+        elif model is None:
+            model = WeightingModel(camera, grid, oversample, shear_tol, warn=False)
+        elif camera not in (model.camera, model.source_camera) or model.grid != grid:
+            raise ValueError("the weighting model belongs to another camera or grid")
+        # a hexagonal array's lenses on its axial lattice (Camera.on_lens_lattice)
+        camera = model.camera.with_pose(self.pose)
+        self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
+        self.lens_weights = lens_weights
+        self._options.update(oversample=model.oversample, shear_tol=model.shear_tol)
         self._variants: dict[tuple, Projector] = {}
         self.model = model
-        self.resampler: FrameResampler | None = None
-        self.frame = self._frame_projector(frame) if model.path == "general" else None
+        if self.pose is None:
+            self.frame = self._frame_projector(frame) if model.path == "general" else None
+        else:
+            self.frame = frame
         self._layout(vector_width, segment)
         self.plan = self._make_plan(max_alloc_bytes, scratch_bytes)
+        if self.pose is not None:
+            one_slab(self.plan.slabs)
+            one_slab(self.frame.plan.slabs)
         width, height = camera.pixels
         check_fits(self.queue, grid.nbytes + 4 * width * height + self.plan.scratch_bytes
                    + 16 * camera.ml_count[0] * camera.ml_count[1],
@@ -211,6 +224,33 @@ class Projector(FactorisedStages):
                             looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
+
+    def _posed_frame(self, camera: Camera, grid: Grid, frame: Projector | None,
+                     model: WeightingModel | None) -> Projector:
+        """The separable projector of the posed camera's frame grid
+        (:func:`.posed.posed_frame_grid`, ``frame`` when given) through which the world
+        ``grid`` is projected, and its :class:`.posed.PoseResampler`."""
+        if model is not None or self._options["method"] == "direct":
+            raise ValueError("a posed camera's grid is projected through the camera's own "
+                             "frame: it takes neither a prebuilt weighting model nor the "
+                             "direct method")
+        check_grid(camera, grid)
+        own = camera.with_pose(None)
+        if frame is None:
+            angle = separable_rotation_deg(own.on_lens_lattice().microlens_centers,
+                                           self._options["shear_tol"])
+            frame = Projector(own, posed_frame_grid(grid, camera.pose, angle), self.queue,
+                              **{**self._options, "general": "exact"})
+        if frame.path != "separable":
+            raise ValueError(f"the posed camera's frame grid {frame.grid} does not project "
+                             "on the separable path; build it along the lens rows "
+                             "(posed_frame_grid)")
+        check_fits(self.queue, 2 * grid.nbytes + 3 * frame.grid.nbytes,
+                   f"resampling the world grid {grid.shape} onto the posed camera's frame "
+                   f"grid {frame.grid.shape}")
+        self.resampler = PoseResampler(self.queue, grid, frame.grid, camera.pose)
+        self._frame_slabs: dict[str, list[cl_array.Array]] = {}
+        return frame
 
     def _frame_projector(self, frame: Projector | None) -> Projector | None:
         """The lens-row frame's separable projector through which this grid is projected
@@ -249,6 +289,8 @@ class Projector(FactorisedStages):
     def path(self) -> str:
         """``"separable"``, ``"general"`` (a grid across the array's lens rows, general
         kernels) or ``"resampled"`` (such a grid projected through the lens-row frame)."""
+        if self.pose is not None:
+            return "posed"
         return "resampled" if self.frame is not None else self.model.path
 
     @property
@@ -497,7 +539,7 @@ class Projector(FactorisedStages):
         frame_vol = self._frame_volume("forward")
         self.resampler.to_frame(slabs, self.plan.slabs, frame_vol, self.frame.plan.slabs,
                                  active)
-        return self.frame.forward_device(frame_vol, out, active, lenses)
+        return self.frame.forward_device(frame_vol, out, self._frame_active(active), lenses)
 
     def _resampled_back(self, image: cl_array.Array, slabs, active: np.ndarray,
                         lenses: LensSet, support) -> list[cl_array.Array]:
@@ -510,16 +552,25 @@ class Projector(FactorisedStages):
             support = self._as_slabs(support)
             frame_support = self._frame_volume("support")
             self.resampler.to_frame(support, own, frame_support, frame, active)
-        back = self.frame.back_device(image, self._frame_volume("back"), active, lenses,
-                                      frame_support)
+        back = self.frame.back_device(image, self._frame_volume("back"),
+                                      self._frame_active(active), lenses, frame_support)
         self.resampler.from_frame(back, frame, slabs, own, active, support)
         return slabs
+
+    def _frame_active(self, active: np.ndarray) -> np.ndarray:
+        """The frame's planes that read this grid's ``active`` planes (the same planes,
+        but for a posed camera's tilted frame)."""
+        if self.pose is None:
+            return active
+        return self.resampler.frame_active(active)
 
     def volume_to_frame(self, vol: np.ndarray) -> np.ndarray:
         """``S vol``: a host volume on this grid resampled onto the lens-row frame's grid
         (:attr:`frame`, a grid across the array's lens rows only; docs/design.md §5.1)."""
         self._need_frame()
         out = self.frame.empty_volume()
+        for slab in out:  # a tilted frame's planes beyond the grid are not written
+            slab.fill(0.0)
         self.resampler.to_frame(self.volume_to_device(vol), self.plan.slabs, out,
                                  self.frame.plan.slabs, np.ones(self.shape[0], bool))
         return self.frame.volume_to_host(out)
@@ -586,10 +637,15 @@ class Projector(FactorisedStages):
     def _resampled_footprints(self, vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`footprint_entries` of ``A_frame S``: each voxel's frame voxels (its
         column of ``S``), their products scaled by its weight in them."""
-        ab, w = self.resampler.columns(vox[:, 2], vox[:, 1])
-        n, k = w.shape
-        frame_vox = np.column_stack([np.repeat(vox[:, 0], k), ab[..., 1].ravel(),
-                                     ab[..., 0].ravel()])
+        if self.pose is not None:
+            frame_vox, w = self.resampler.columns(vox)
+            n, k = w.shape
+            frame_vox = frame_vox.reshape(-1, 3)
+        else:
+            ab, w = self.resampler.columns(vox[:, 2], vox[:, 1])
+            n, k = w.shape
+            frame_vox = np.column_stack([np.repeat(vox[:, 0], k), ab[..., 1].ravel(),
+                                         ab[..., 0].ravel()])
         idx, wts = self.frame.footprint_entries(frame_vox)
         wts = wts * w.reshape(-1, 1).astype(np.float32)
         idx = np.where(wts > 0, idx, -1)

@@ -42,6 +42,7 @@ from ..optics.rawimage import check_pixel_mask
 from ..options import with_keywords
 from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
+from .joint import run_joint
 from .operator import FramedOperator, PlannedOperator, ProjectionOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
@@ -514,6 +515,8 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     if isinstance(settings.start, str) and settings.start not in ("uniform", "mlos"):
         raise ValueError("start must be 'uniform', 'mlos' or a volume array, got "
                          f"{settings.start!r}")  # an option: checked before the image
+    if isinstance(image, (list, tuple)):  # several cameras (docs/design.md §6.7)
+        return _several(image, projector, settings, callback, pixel_mask)
     _coarse_start(settings.start, projector.grid)
     projector = _weighted(projector, settings.lens_weights)
     observed = None if pixel_mask is None else check_pixel_mask(pixel_mask, projector.camera)
@@ -524,6 +527,23 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
             and settings.supersample > 1):
         return _in_frame(image, projector, settings, callback, observed)
     return _run(image, projector, settings, callback, observed)
+
+
+def _several(images, projectors, settings: ReconstructionSettings, callback, pixel_mask
+             ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """:func:`run_reconstruction` of one image per camera, on one projector per camera
+    (one camera: the single camera's reconstruction itself)."""
+    if not isinstance(projectors, (list, tuple)):
+        raise TypeError("several images need a list of projectors, one per camera (in the "
+                        f"images' order), got {type(projectors).__name__}")
+    if len(images) == 1 and len(projectors) == 1:
+        return run_reconstruction(images[0], projectors[0], settings, callback, pixel_mask)
+    if pixel_mask is not None or not (isinstance(settings.start, str)
+                                      and settings.start == "uniform"):
+        raise ValueError("several cameras reconstruct from a uniform start over every "
+                         "pixel: pixel_mask and start volumes are for one camera")
+    projectors = [_weighted(p, settings.lens_weights) for p in projectors]
+    return run_joint(images, projectors, settings, callback)
 
 
 def _run(image, projector, settings: ReconstructionSettings, callback, observed,

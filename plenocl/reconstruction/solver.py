@@ -116,9 +116,10 @@ class Solver:
         """An element-wise kernel over ``n`` items (``n`` is its last argument)."""
         self._k.launch(name, (n,), *args, np.int32(n))
 
-    def update_voxels(self, name: str, vol, b, *scalars) -> None:
-        """Run a voxel kernel ``name(vol, b, sens, *scalars, n)`` on every slab."""
-        for v, bb, s in zip(vol, b, self.sens):
+    def update_voxels(self, name: str, vol, b, *scalars, sens=None) -> None:
+        """Run a voxel kernel ``name(vol, b, sens, *scalars, n)`` on every slab, with this
+        solver's sensitivity or ``sens`` (device slabs like ``vol``: several cameras')."""
+        for v, bb, s in zip(vol, b, self.sens if sens is None else sens):
             self._run(name, v.size, v, bb, s, *scalars)
 
     def row_extent(self, vol) -> np.ndarray:

@@ -47,3 +47,35 @@ def resample_volume(vol: np.ndarray, grid: Grid, frame: Grid) -> np.ndarray:
     s = resample_matrix(grid, frame)
     _, fny, fnx = frame.shape
     return np.stack([(s @ plane.ravel()).reshape(fny, fnx) for plane in vol])
+
+
+def resample_matrix_3d(grid: Grid, frame: Grid, pose, normalised: bool = True
+                       ) -> sparse.csr_matrix:
+    """``S`` of a posed camera (``kernels/resample.cl``'s ``to_frame_3d``):
+    ``(frame.size, grid.size)`` trilinear weights, flat C order, of the world ``grid``'s
+    voxels at every frame voxel's centre (the frame lies in the camera's frame: its points
+    go into the world through ``pose``); taps outside ``grid`` are dropped; columns
+    normalised to sum to 1 (or the raw taps, ``normalised=False``)."""
+    nz, ny, nx = grid.shape
+    fnz, fny, fnx = frame.shape
+    rows, cols, weights = [], [], []
+    for c in range(fnz):
+        for b in range(fny):
+            for a in range(fnx):
+                world = pose.to_world(frame.from_index([[a, b, c]]))
+                p = grid.to_index(world)[0]
+                base = np.floor(p).astype(int)
+                frac = p - base
+                for corner in np.ndindex(2, 2, 2):  # (x, y, z) offsets
+                    x, y, z = base + corner
+                    w = np.prod([f if o else 1 - f for f, o in zip(frac, corner, strict=True)])
+                    if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz and w > 0:
+                        rows.append((c * fny + b) * fnx + a)
+                        cols.append((z * ny + y) * nx + x)
+                        weights.append(w)
+    s = sparse.csr_matrix((weights, (rows, cols)), shape=(fnz * fny * fnx, nz * ny * nx))
+    if not normalised:
+        return s
+    sums = np.asarray(s.sum(axis=0)).ravel()
+    return sparse.csr_matrix(s @ sparse.diags(np.where(sums > 0, 1 / np.maximum(sums, 1e-300),
+                                                       0.0)))

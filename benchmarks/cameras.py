@@ -1,0 +1,91 @@
+"""Several plenoptic cameras in one reconstruction (docs/design.md §6.7, issue 49): one
+camera, the same camera turned, and two cameras either side of the axis, on the same
+world particles at the paper's optics and voxel, in the same run: ``process_pair``'s
+vectors (lateral and depth RMS error over the valid vectors), the first volume's
+particles recovered and ghosts, and seconds per pair.
+
+    python benchmarks/cameras.py [--lenses 116 78] [--apart 25] [--seeds 1]
+                                 [--seeding 0.05]
+
+Cameras: the paper's optics (``paper_optics``), each looking at the world origin (the
+grid's centre), turned about the world's y axis; two cameras ``--apart`` degrees apart
+stand at plus and minus half of it. Scene: ``budget_scene``'s particles (0.8 px blur,
+photon and read noise), uniform motion, each camera's images ray traced from the same
+world particles. The single camera runs the default chain (its particles fitted to its
+raw images); several cameras run the joint reconstruction, the correlation and the
+particle refinement without the fit (one camera's, for now). Errors are in the world
+grid's voxels (x, y lateral; z depth, the axis the cameras' optical axes straddle).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from plenocl import get_queue, process_pair, simulate_image
+from plenocl.bench.accuracy_section import SHIFT_VOX, budget_scene, paper_optics
+from plenocl.bench.scripts import script_parser
+from plenocl.camera import Pose
+from plenocl.metrics import recovery
+from plenocl.projection import Projector
+
+#: How ``budget_scene`` traces its images (the other cameras' the same way).
+TRACE = dict(rays_per_particle=2000, blur_px=0.8, photon_noise=True, background=20.0,
+             read_noise=3.0)
+
+
+def errors(piv) -> tuple[float, float, float]:
+    """Lateral and depth RMS error (world voxels) of the valid vectors, and their share."""
+    ok = piv.valid
+    err = [piv.u[ok] - SHIFT_VOX[0], piv.v[ok] - SHIFT_VOX[1], piv.w[ok] - SHIFT_VOX[2]]
+    lateral = np.sqrt(np.mean(err[0] ** 2 + err[1] ** 2) / 2)
+    return float(lateral), float(np.sqrt(np.mean(err[2] ** 2))), float(ok.mean())
+
+
+def setups(apart: float) -> list[tuple[str, list[float | None]]]:
+    """Each row's cameras as turns about y (``None``: unposed)."""
+    half = apart / 2
+    return [("one camera (baseline)", [None]), (f"one camera turned {half:g} deg", [half]),
+            (f"two cameras {apart:g} deg apart", [-half, half])]
+
+
+def main() -> None:
+    parser = script_parser(__doc__)
+    parser.add_argument("--lenses", type=int, nargs=2, default=[116, 78])
+    parser.add_argument("--apart", type=float, default=25.0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1])
+    parser.add_argument("--seeding", type=float, default=0.05)
+    args = parser.parse_args()
+    queue = get_queue()
+    camera, grid = paper_optics(tuple(args.lenses))
+    print(f"device: {queue.device.name.strip()}; {args.lenses[0]} x {args.lenses[1]} "
+          f"lenses, world grid {grid.shape} (z, y, x), {args.seeding} particles per "
+          "microlens; errors in world voxels")
+    projectors = {}
+    for seed in args.seeds:
+        print(f"\nseed {seed}\n{'cameras':30s} {'lateral':>8s} {'depth':>6s} {'valid':>6s} "
+              f"{'recov':>6s} {'ghosts':>6s} {'s/pair':>7s}")
+        scene = budget_scene(camera, grid, args.seeding, seed, queue)
+        for label, turns in setups(args.apart):
+            cams = [camera.with_pose(None if t is None else Pose((0.0, t, 0.0), (0, 0, 0)))
+                    for t in turns]
+            projs = [projectors.setdefault(t, Projector(c, grid, queue))
+                     for t, c in zip(turns, cams, strict=True)]
+            raws = [[simulate_image(c, p, 2e4, seed=100 * seed + 10 * k + j, queue=queue,
+                                    **TRACE) for j, p in enumerate((scene.pa, scene.pb))]
+                    for k, c in enumerate(cams)]
+            t0 = time.perf_counter()
+            if len(cams) == 1:
+                pair = process_pair(raws[0][0], raws[0][1], projs[0])
+            else:
+                pair = process_pair([r[0] for r in raws], [r[1] for r in raws], projs)
+            seconds = time.perf_counter() - t0
+            lateral, depth, valid = errors(pair.piv)
+            rep = recovery(pair.vol_a, grid, scene.pa)
+            print(f"{label:30s} {lateral:8.3f} {depth:6.3f} {valid:6.0%} {rep.fraction:6.0%} "
+                  f"{rep.ghost_fraction:6.0%} {seconds:7.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,177 @@
+"""A world grid seen by a posed camera, projected through the camera's own frame
+(docs/design.md §5.5, issue 49).
+
+A camera file's ``[pose]`` places the camera in a world frame shared with other cameras
+(:class:`plenocl.camera.Pose`: ``X_camera = R X_world + t``). The separable projector
+needs a grid in the camera's own frame, its axes along the lens rows; a world grid is
+tilted against it in three dimensions. Its projector applies ``A_frame S``: ``S``
+interpolates the world volume trilinearly at the voxel centres of a *frame grid* in the
+camera's frame with the same voxel size (:func:`posed_frame_grid`), each world voxel's
+taps normalised to sum to 1 (light conserved), and ``A_frame`` is that grid's separable
+projector; the back projection is ``Sᵀ A_frameᵀ``, its exact transpose. The lateral
+resampling of :mod:`plenocl.projection.resample` is the special case without a tilt;
+``kernels/resample.cl`` (``to_frame_3d``, ``from_frame_3d``) holds ``S`` and ``Sᵀ``, and
+:func:`plenocl.reference.resample.resample_matrix_3d` is the NumPy twin.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyopencl.array as cl_array
+
+from ..camera import Pose
+from ..camera.lattice import rotation_matrix
+from ..grid import Grid
+from ..opencl.program import KernelSet
+from .plan import runs
+from .resample import SlabRanges, Slabs
+
+i32, f32 = np.int32, np.float32
+
+
+def posed_frame_grid(grid: Grid, pose: Pose, rotation_deg: float) -> Grid:
+    """The grid in the camera's frame, its lateral axes turned by ``rotation_deg`` (the
+    lens rows), that holds every voxel of the world ``grid``'s interpolation: the same
+    voxel size, covering ``grid`` grown by one voxel on every side, snapped to whole
+    voxels about its centre."""
+    dz, dy, dx = grid.spacing
+    camera_pts = pose.to_camera(grid.corners(1.0))
+    turned = camera_pts.copy()
+    turned[:, :2] = camera_pts[:, :2] @ rotation_matrix(rotation_deg)  # Rᵀ x, as rows
+    lo, hi = turned.min(axis=0), turned.max(axis=0)
+    centre = (lo + hi) / 2
+    n = [math.ceil((hi[k] - lo[k]) / step - 1e-9) for k, step in enumerate((dx, dy, dz))]
+    ext = [(centre[k] - n[k] * step / 2, centre[k] + n[k] * step / 2)
+           for k, step in enumerate((dx, dy, dz))]
+    return Grid((n[2], n[1], n[0]), *ext, rotation_deg=rotation_deg)
+
+
+def pose_index_map(frame: Grid, grid: Grid, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """``(M, t)``: the world ``grid``'s fractional index ``M (a, b, c) + t`` of the frame
+    voxel ``(a, b, c)``'s centre (float64; the frame lies in the camera's frame)."""
+    abc = np.vstack([np.zeros(3), np.eye(3)])
+    p = grid.to_index(pose.to_world(frame.from_index(abc)))
+    return (p[1:] - p[0]).T, p[0]
+
+
+class PoseResampler:
+    """``S`` and ``Sᵀ`` between a world grid and a posed camera's frame grid, on one
+    queue; the interface of :class:`plenocl.projection.resample.FrameResampler`.
+
+    ``S`` interpolates trilinearly with each world voxel's taps normalised to sum to 1
+    over the frame (:attr:`norm` holds the sums before). Both volumes are one device
+    slab each (a posed camera's grid must fit one allocation).
+
+    Parameters
+    ----------
+    queue
+        The projector's queue.
+    grid, frame
+        The world grid and the frame grid (:func:`posed_frame_grid`).
+    pose
+        The camera's pose.
+    """
+
+    def __init__(self, queue, grid: Grid, frame: Grid, pose: Pose) -> None:
+        self.grid, self.frame, self.pose = grid, frame, pose
+        self._k = KernelSet(queue, "resample.cl", ("to_frame_3d", "from_frame_3d"))
+        m, t = pose_index_map(frame, grid, pose)
+        inv = np.linalg.inv(m)
+        self.matrix, self.offset = m, t
+        self._map = self._k.to_device(np.concatenate([m.ravel(), t]).astype(f32))
+        self._inv = self._k.to_device(np.concatenate([inv.ravel(), -inv @ t]).astype(f32))
+        reach = np.abs(inv).sum(axis=1) * (1 + 1e-6)  # |a - q_a| < reach, rounding spared
+        self._reach = self._k.to_device(reach.astype(f32))
+        self._counts = tuple(i32(math.ceil(2 * r)) for r in reach)
+        self._planes = self._planes_read()
+        self.norm = self._column_sums()
+        self._norm = self._k.to_device(np.where(self.norm > 0, 1 / self.norm, 0)
+                                       .astype(np.float32))
+
+    def _planes_read(self) -> np.ndarray:
+        """``(fnz, 2)``: the first and last world planes each frame plane's taps read."""
+        fnz, fny, fnx = self.frame.shape
+        corners = np.array([[a, b, 0.0] for a in (0, fnx - 1) for b in (0, fny - 1)])
+        z = corners @ self.matrix[2] + self.offset[2]
+        z = z[None, :] + np.arange(fnz)[:, None] * self.matrix[2, 2]
+        lo = np.floor(z.min(axis=1) - 1e-4).astype(int)
+        return np.column_stack([lo, np.floor(z.max(axis=1) + 1e-4).astype(int) + 1])
+
+    def frame_active(self, active: np.ndarray) -> np.ndarray:
+        """Bool per frame plane: does it read an ``active`` world plane?"""
+        nz = self.grid.shape[0]
+        on = np.concatenate([[0], np.cumsum(np.asarray(active, bool))])
+        lo, hi = np.clip(self._planes[:, 0], 0, nz), np.clip(self._planes[:, 1] + 1, 0, nz)
+        return on[hi] > on[lo]
+
+    def _column_sums(self) -> np.ndarray:
+        """``(nz, ny, nx)`` float64: each world voxel's trilinear taps summed over the
+        frame (the unnormalised ``Sᵀ 1``, on the device)."""
+        ones = self._k.to_device(np.ones(self.frame.shape, np.float32))
+        out = self._k.array(self.grid.shape)
+        unit = self._k.to_device(np.ones(self.grid.shape, np.float32))
+        self._from_frame(ones, out, np.ones(self.grid.shape[0], bool), None, unit)
+        return out.get().astype(np.float64)
+
+    def to_frame(self, vol: Slabs, vol_slabs: SlabRanges, out: Slabs, out_slabs: SlabRanges,
+                 active: np.ndarray) -> None:
+        """``out = S vol`` on the frame planes that read an active plane (the others are
+        left as they are)."""
+        (user,), (frame,) = one_slab(vol, vol_slabs), one_slab(out, out_slabs)
+        unz, uny, unx = self.grid.shape
+        _, fny, fnx = self.frame.shape
+        for c0, c1 in runs(self.frame_active(active)):
+            self._k.launch("to_frame_3d", (fnx, fny, c1 - c0), user, self._norm, i32(unx),
+                           i32(uny), i32(unz), frame, i32(fnx), i32(fny), i32(c0), self._map)
+
+    def from_frame(self, frame_vol: Slabs, frame_slabs: SlabRanges, out: Slabs,
+                   out_slabs: SlabRanges, active: np.ndarray, support: Slabs | None = None
+                   ) -> None:
+        """``out = Sᵀ frame_vol`` on the active planes (the others are left as they are);
+        0 without computing it where ``support`` (slabs like ``out``) is 0."""
+        (frame,), (user,) = one_slab(frame_vol, frame_slabs), one_slab(out, out_slabs)
+        sup = None if support is None else one_slab(support, out_slabs)[0]
+        self._from_frame(frame, user, active, sup, self._norm)
+
+    def _from_frame(self, frame: cl_array.Array, user: cl_array.Array, active: np.ndarray,
+                    support: cl_array.Array | None, norm: cl_array.Array) -> None:
+        """:meth:`from_frame` on single arrays, each world voxel's sum scaled by ``norm``."""
+        _, uny, unx = self.grid.shape
+        fnz, fny, fnx = self.frame.shape
+        sup = (user, i32(0)) if support is None else (support, i32(1))
+        for z0, z1 in runs(np.asarray(active, bool)):
+            self._k.launch("from_frame_3d", (unx, uny, z1 - z0), frame, i32(fnx), i32(fny),
+                           i32(fnz), user, norm, *sup, i32(unx), i32(uny), i32(z0),
+                           self._map, self._inv, self._reach, *self._counts)
+
+    def columns(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The columns of ``S`` (normalised) of world voxels ``(N, 3)`` ``(iz, iy, ix)``,
+        on the host: frame voxels ``(N, K, 3)`` as ``(c, b, a)`` and their weights
+        ``(N, K)`` (``K`` candidates per voxel, unused ones at ``(0, 0, 0)``, weight 0)."""
+        vox = np.asarray(voxels, np.int64).reshape(-1, 3)
+        user = vox[:, ::-1].astype(np.float64)
+        inv = np.linalg.inv(self.matrix)
+        reach = self._reach.get().astype(np.float64)
+        start = np.floor(user @ inv.T - inv @ self.offset - reach).astype(np.int64) + 1
+        steps = np.stack(np.meshgrid(*(np.arange(int(n)) for n in self._counts),
+                                     indexing="ij"), axis=-1).reshape(-1, 3)
+        abc = start[:, None, :] + steps[None]
+        p = abc @ self.matrix.T + self.offset
+        w = np.prod(np.maximum(0.0, 1.0 - np.abs(p - user[:, None, :])), axis=-1)
+        shape = np.array(self.frame.shape[::-1])
+        w[np.any((abc < 0) | (abc >= shape), axis=-1)] = 0
+        w = w / self.norm[vox[:, 0], vox[:, 1], vox[:, 2]][:, None]
+        return np.where(w[..., None] > 0, abc[..., ::-1], 0), w
+
+
+def one_slab(slabs, ranges: SlabRanges | None = None):
+    """``slabs`` (device slabs, or a plan's depth ranges) when they are one slab (and
+    ``ranges`` too), else an error naming the fix."""
+    if len(slabs) != 1 or (ranges is not None and len(ranges) != 1):
+        raise ValueError(f"a posed camera's grid is projected as one device buffer, got "
+                         f"{len(slabs)} depth slabs: the volume is larger than the device's "
+                         "largest allocation; use a coarser or smaller grid, or a device "
+                         "with more memory")
+    return slabs

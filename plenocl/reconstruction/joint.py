@@ -1,0 +1,200 @@
+"""One volume from several plenoptic cameras' images (docs/design.md §6.7, issue 49).
+
+Each camera has its own projector (its pose carries the shared world grid into its
+frame, :mod:`plenocl.projection.posed`); the system is every camera's pixels at once,
+``Σ_j w^c_ij E_j = I^c_i``. MLEM over all of them updates a voxel by the mean of its
+ratios over every camera's pixels, ``E ← E (Σ_c A_cᵀ r_c / Σ_c s_c)^μ`` with
+``s_c = A_cᵀ 1``; SMART likewise with the log ratios. **Choice**: the images share one
+scale (the brightest of them is 1), so the cameras' counts keep their ratio: a particle
+is as bright in every camera's units, as it is for identical cameras; each image keeps
+its own background, noise and dark-pixel threshold. A voxel is reconstructed when the
+light it sends to all the sensors together is above ``min_sensitivity``.
+
+The schedule is the single camera's (§6.5): coarse iterations on the voxels, their
+support, the sub-voxel iterations within it, summed back onto the grid. Each camera's
+:class:`plenocl.reconstruction.solver.Solver` holds its image's kernels and lit lenses;
+:class:`JointSolver` adds their back projections.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from .images import PreparedImage, prepare_image
+from .settings import ReconstructionInfo, ReconstructionSettings
+from .solver import Solver
+
+
+class JointSolver:
+    """The solvers of several cameras on one grid, with their summed sensitivity.
+
+    Parameters
+    ----------
+    projectors
+        One operator per camera, all on the same grid and device slabs.
+    prepared
+        Each camera's prepared image (its lit lenses select what its projections touch).
+    factors
+        Each image's factor into the shared scale (its own scale over the shared one).
+    min_sensitivity
+        Voxels whose summed sensitivity is at or below it stay 0.
+    """
+
+    def __init__(self, projectors: Sequence, prepared: Sequence[PreparedImage],
+                 factors: Sequence[float], min_sensitivity: float) -> None:
+        self.solvers = [Solver(p, min_sensitivity, im.lit) for p, im in
+                        zip(projectors, prepared, strict=True)]
+        first = self.solvers[0]
+        self.proj, self.queue = first.proj, first.queue
+        self.images = [im.on_device(self.queue) * np.float32(f)
+                       for im, f in zip(prepared, factors, strict=True)]
+        self.thresholds = [im.threshold * f for im, f in zip(prepared, factors, strict=True)]
+        self.sens = self._added([s.sens for s in self.solvers])
+        self.smin = first.smin
+
+    @staticmethod
+    def _added(volumes: Sequence[list]) -> list:
+        """The slab-wise sum of several device volumes (a new volume)."""
+        out = [s.copy() for s in volumes[0]]
+        for vol in volumes[1:]:
+            for o, s in zip(out, vol, strict=True):
+                o += s
+        return out
+
+    def uniform_start(self) -> list:
+        """A constant volume whose projections carry the images' light."""
+        light = sum(s.total(img) for s, img in zip(self.solvers, self.images, strict=True))
+        total = sum(self.solvers[0].total(s) for s in self.sens)
+        vol = self.proj.empty_volume()
+        for v in vol:
+            v.fill(light / max(total, 1e-30))
+        return vol
+
+    def update(self, vol: list, relax: float, log_ratio: bool) -> float:
+        """One simultaneous update over every camera's pixels; returns ``‖P - I‖`` over
+        all of them before it."""
+        backs, resid = [], 0.0
+        for solver, img, thr in zip(self.solvers, self.images, self.thresholds, strict=True):
+            fwd, back = solver.projections(log_ratio)
+            proj = fwd(vol)
+            resid += solver.total(proj, img)
+            backs.append(back(solver.ratio(img, proj, thr, log_ratio), support=vol))
+        b = self._added(backs)
+        if log_ratio:
+            self.solvers[0].update_voxels("update_exp", vol, b, np.float32(relax), self.smin,
+                                          np.int32(1), sens=self.sens)
+        else:
+            self.solvers[0].update_voxels("update_mlem", vol, b, np.float32(relax),
+                                          self.smin, sens=self.sens)
+        return resid ** 0.5
+
+
+def check_cameras(images: Sequence, projectors: Sequence) -> None:
+    """One image per projector, at least one, all projectors on one grid and device."""
+    if len(images) != len(projectors) or not projectors:
+        raise ValueError(f"several cameras need one image per projector: got "
+                         f"{len(images)} image(s) and {len(projectors)} projector(s)")
+    grid, queue = projectors[0].grid, projectors[0].queue
+    for k, proj in enumerate(projectors[1:], start=2):
+        if proj.grid != grid:
+            raise ValueError(f"projector {k}'s grid {proj.grid} is not projector 1's "
+                             f"{grid}: every camera projects the same world grid")
+        if proj.queue.context != queue.context:
+            raise ValueError(f"projector {k} runs on another OpenCL context than projector "
+                             "1: build every camera's projector on one queue")
+
+
+def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSettings,
+              callback: Callable[[int, float], bool | None] | None = None
+              ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """:func:`plenocl.reconstruct` of several cameras' images (module documentation):
+    MLEM or SMART, on the voxels or coarse-to-fine on sub-voxels with the single
+    camera's schedule (coarse and early iterations on coarser aperture samplings)."""
+    check_cameras(images, projectors)
+    if settings.method not in ("mlem", "smart"):
+        raise ValueError(f"several cameras reconstruct with 'mlem' or 'smart', got "
+                         f"{settings.method!r} (block MART's views are one camera's)")
+    t0 = time.perf_counter()
+    prepared = [prepare_image(img, p, settings) for img, p in zip(images, projectors,
+                                                                  strict=True)]
+    scale = max(im.scale for im in prepared)
+    run = _Run(prepared, [im.scale / scale for im in prepared], settings, callback)
+    f = settings.supersample
+    if f == 1:
+        solver, vol = run.iterate(projectors, settings.iterations)
+        out = solver.proj.volume_to_host(vol)
+    else:
+        solver, coarse = run.iterate(_sampled(projectors, settings.coarse_oversample),
+                                     settings.coarse_iterations)
+        host = solver.proj.volume_to_host(coarse)
+        keep = _support(host, settings.support)
+        start = np.where(keep, np.float32(host[keep].mean() if keep.any() else 0), 0)
+        refined = [p.refined(f) for p in projectors]
+        early = min(settings.early_iterations, settings.iterations - 1)
+        solver, vol = run.iterate(_sampled(refined, settings.early_oversample), early,
+                                  spread=(start.astype(np.float32), f))
+        solver, vol = run.iterate(refined, settings.iterations - early, device=vol)
+        out = solver.solvers[0].binned_to_host(vol, f, projectors[0].grid.shape)
+        run.info.supersample, run.info.coarse_iterations = f, settings.coarse_iterations
+        run.info.support_fraction = float(keep.mean())
+    out *= np.float32(scale)
+    run.info.seconds = time.perf_counter() - t0
+    run.info.active_fraction = float(np.count_nonzero(out)) / out.size
+    return out, run.info
+
+
+def _sampled(projectors: Sequence, oversample: float | None) -> list:
+    """Each projector on ``oversample`` aperture samples per pixel footprint where that is
+    coarser than its own and it can resample (the coarse-to-fine schedule's coarse and
+    early iterations, docs/design.md §6.5); itself otherwise."""
+    return [p.sampled(oversample) if (oversample is not None and hasattr(p, "sampled")
+                                      and oversample < p.oversample) else p
+            for p in projectors]
+
+
+def _support(coarse: np.ndarray, support: float) -> np.ndarray:
+    """The coarse voxels brighter than ``support`` times the brightest, grown by one
+    voxel in every direction (docs/design.md §6.5)."""
+    peak = float(coarse.max())
+    if peak <= 0:
+        return np.zeros(coarse.shape, bool)
+    return ndimage.maximum_filter(coarse > support * peak, size=3, mode="constant", cval=0)
+
+
+class _Run:
+    """The iterations of one joint reconstruction: its images, settings, callback and
+    info, counted across its phases."""
+
+    def __init__(self, prepared, factors, settings: ReconstructionSettings, callback):
+        self.prepared, self.factors, self.settings = prepared, factors, settings
+        self.callback = callback
+        self.info = ReconstructionInfo(settings.method)
+        self.norm = max(float(np.sqrt(sum((f * np.linalg.norm(im.image)) ** 2 for im, f in
+                                          zip(prepared, factors, strict=True)))), 1e-30)
+
+    def iterate(self, projectors, iterations: int, spread=None, device=None):
+        """``iterations`` joint updates from a uniform start, ``spread`` (a coarser
+        volume's support shared over the sub-voxels) or a ``device`` volume of the same
+        slabs; returns the solver and its volume."""
+        solver = JointSolver(projectors, self.prepared, self.factors,
+                             self.settings.min_sensitivity)
+        if device is not None:
+            vol = device
+        elif spread is not None:
+            vol = solver.solvers[0].spread_start(*spread)
+        else:
+            vol = solver.uniform_start()
+        for _ in range(iterations if not self.info.stopped else 0):
+            resid = solver.update(vol, self.settings.relax,
+                                  self.settings.method == "smart") / self.norm
+            self.info.residuals.append(resid)
+            self.info.iterations += 1
+            if self.callback is not None and self.callback(self.info.iterations,
+                                                           resid) is False:
+                self.info.stopped = True
+                break
+        return solver, vol
