@@ -146,8 +146,8 @@ def _several_cameras(raws_a, raws_b, projectors: list, settings: PairSettings
                      ) -> PairResult:
     """:func:`process_pair` of several cameras (docs/design.md §6.7): each exposure
     reconstructed from every camera's image at once, the volumes correlated and refined
-    by their particles; the particles are not fitted to the raw images (the fit is one
-    camera's: ``settings.image_fit`` is not applied, ``PairResult.dropped`` is 0)."""
+    by their particles, fitted to every camera's raw images at once
+    (:class:`plenocl.piv.jointfit.JointImageFit`)."""
     for name, raws in (("raw_a", raws_a), ("raw_b", raws_b)):
         if not isinstance(raws, (list, tuple)) or len(raws) != len(projectors):
             raise ValueError(f"several cameras: {name} must be a list of one raw image per "
@@ -166,7 +166,12 @@ def _several_cameras(raws_a, raws_b, projectors: list, settings: PairSettings
                 raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
     grid, queue = projectors[0].grid, projectors[0].queue
-    res = refined_field(vol_a, vol_b, grid, settings, queue, clock=clock)
+    known = [known_backgrounds(*pair) for pair in zip(info_a.cameras, info_b.cameras,
+                                                        strict=True)]
+    res = refined_field(vol_a, vol_b, grid, settings, queue,
+                        camera=[p.camera for p in projectors],
+                        raws=[[a, b] for a, b in zip(raws_a, raws_b, strict=True)],
+                        backgrounds=known, clock=clock)
     return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
 

@@ -20,6 +20,7 @@ from ..opencl.device import DeviceLike, get_queue
 from ..piv import PIVResult, piv3d
 from ..piv.devicepeaks import DeviceMaxima
 from ..piv.imagefit import ImageFit
+from ..piv.jointfit import JointImageFit
 from ..piv.refinement import FocalZone, SightLines, refine_with_particles
 from .settings import PairSettings
 
@@ -75,8 +76,8 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
 
 
 def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSettings,
-                     queue: DeviceLike = None, *, camera: Camera | None = None, raws=None,
-                     backgrounds=None, clock: StageClock | None = None) -> PIVResult:
+                     queue: DeviceLike = None, *, camera: Camera | list | None = None,
+                     raws=None, backgrounds=None, clock: StageClock | None = None) -> PIVResult:
     """``res`` refined by the volumes' matched particles
     (:func:`plenocl.piv.refinement.refine_with_particles`) where ``settings.particles``
     asks, timed as the stage ``particles``; ``res`` itself otherwise.
@@ -86,15 +87,17 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
     camera
         The (calibrated) camera: its focal zone (the depth uncertainty's systematic
         term) and lines of sight (a particle's peaks merged and centred along its line).
-        ``None``: neither.
+        ``None``: neither. A list: several cameras (docs/design.md §6.7), whose joint
+        fit (:class:`plenocl.piv.jointfit.JointImageFit`) refines the particles; no
+        focal zone or line of sight then (depth is seen).
     raws
         The two raw images the volumes were reconstructed from: with ``camera`` and
         ``settings.image_fit``, each particle is first fitted to its image
         (:class:`plenocl.piv.imagefit.ImageFit`). ``None``: the volumes' peaks as they
-        are.
+        are. Several cameras: per camera, its two raw images.
     backgrounds
         The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
-        them).
+        them); several cameras: per camera, its two or ``None``.
     """
     if not settings.particles:
         return res
@@ -103,7 +106,11 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
         fit = focus = sight = None
         device = None if queue is False else get_queue(queue)  # None: the host
         maxima = None if device is None else DeviceMaxima(device)
-        if camera is not None:
+        if isinstance(camera, (list, tuple)):  # several cameras: their joint fit
+            if raws is not None and settings.image_fit is not None:
+                fit = JointImageFit(camera, grid, raws, settings.image_fit, queue=device,
+                                    backgrounds=backgrounds)
+        elif camera is not None:
             if raws is not None and settings.image_fit is not None:
                 fit = ImageFit(camera, grid, raws, settings.image_fit, queue=device,
                                backgrounds=backgrounds)

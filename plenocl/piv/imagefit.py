@@ -233,6 +233,35 @@ class ImageFit:
                           & np.all(np.isfinite(sig), axis=1))
         return p, intensity, sigma, live
 
+    def _on_device(self, p: np.ndarray) -> bool:
+        """Whether the sums of particles at ``p`` run on the device (a queue, device
+        sums, and their rows fit one buffer)."""
+        return self.sums is not None and self.sums.fits(
+            self.bundle.patches(self.bundle.camera.image_points(p)))
+
+    def start_intensities(self, index: int, p: np.ndarray) -> np.ndarray:
+        """Each particle's intensity at object-space ``p`` ``(n, 3)`` mm by linear least
+        squares against exposure ``index``'s image alone (the fit's start)."""
+        if self._on_device(p):
+            return self._device_start(index, p)
+        return self._start_intensity(self._host_image(index), p)
+
+    def normal_equations(self, index: int, p: np.ndarray, intensity: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every particle's Gauss-Newton sums at ``p`` ``(n, 3)`` mm and ``intensity``
+        against exposure ``index``'s image (each against the image minus all the others):
+        ``J^T J`` ``(n, 4, 4)`` and ``J^T r`` ``(n, 4)`` over (x, y, z mm, intensity),
+        and the residual's scatter ``(n,)``, not yet divided by it (what several
+        cameras' joint fit adds up, :mod:`plenocl.piv.jointfit`)."""
+        noise = self.images[index][1]
+        if self._on_device(p):
+            return self._device_sums(index, noise, p, intensity)
+        return self._host_sums(self._host_image(index), noise, p, intensity)
+
+    def prior_mm(self) -> np.ndarray:
+        """The prior's standard deviations ``(lateral, lateral, along)`` mm."""
+        return self._prior_mm()
+
     def _prior_mm(self) -> np.ndarray:
         dz, dy, dx = self.grid.spacing
         return np.asarray(PRIOR_VOXELS) * np.array([dx, dy, dz])

@@ -142,6 +142,8 @@ def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSe
         run.info.supersample, run.info.coarse_iterations = f, settings.coarse_iterations
         run.info.support_fraction = float(keep.mean())
     out *= np.float32(scale)
+    run.info.cameras = [ReconstructionInfo(settings.method, background=im.background,
+                                           noise=im.noise) for im in prepared]
     run.info.seconds = time.perf_counter() - t0
     run.info.active_fraction = float(np.count_nonzero(out)) / out.size
     return out, run.info

@@ -39,7 +39,9 @@ LENS_WEIGHTS = ("paper", "extent")
 class ReconstructionInfo:
     """What a reconstruction did: iterations, residual history, time, masking;
     ``stopped``: the callback ended it; ``background`` and ``noise``: the median and
-    noise (image units) the median background removed (``None`` without it)."""
+    noise (image units) the median background removed (``None`` without it); ``cameras``:
+    several cameras' reconstruction, each camera's own (its background and noise), in
+    the images' order (empty for one camera)."""
 
     method: str
     iterations: int = 0
@@ -56,6 +58,7 @@ class ReconstructionInfo:
     support_fraction: float = 1.0
     background: float | None = None
     noise: float | None = None
+    cameras: list[ReconstructionInfo] = field(default_factory=list)
 
 
 #: Aperture samples per pixel footprint of a coarse-to-fine reconstruction's coarse
