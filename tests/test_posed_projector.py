@@ -33,7 +33,7 @@ def _camera(pose: Pose | None = None, **changes):
 
 
 def test_the_frame_grid_holds_the_world_grid_in_the_camera_frame():
-    frame = posed_frame_grid(GRID, TILTED, 0.0)
+    frame = posed_frame_grid(GRID, _camera(TILTED), 0.0)
     np.testing.assert_allclose(frame.spacing, GRID.spacing, rtol=1e-12)
     idx = np.stack(np.meshgrid(*(np.arange(-1, n + 1) for n in GRID.shape[::-1]),
                                indexing="ij"), -1).reshape(-1, 3).astype(float)

@@ -21,31 +21,59 @@ import math
 import numpy as np
 import pyopencl.array as cl_array
 
-from ..camera import Pose
+from ..camera import Camera, Pose
 from ..camera.lattice import rotation_matrix
 from ..grid import Grid
 from ..opencl.program import KernelSet
+from ..optics.depthrange import field_of_view_mm
 from .plan import runs
 from .resample import SlabRanges, Slabs
 
 i32, f32 = np.int32, np.float32
 
 
-def posed_frame_grid(grid: Grid, pose: Pose, rotation_deg: float) -> Grid:
-    """The grid in the camera's frame, its lateral axes turned by ``rotation_deg`` (the
-    lens rows), that holds every voxel of the world ``grid``'s interpolation: the same
-    voxel size, covering ``grid`` grown by one voxel on every side, snapped to whole
-    voxels about its centre."""
+def posed_frame_grid(grid: Grid, camera: Camera, rotation_deg: float) -> Grid:
+    """The grid in the posed ``camera``'s own frame, its lateral axes turned by
+    ``rotation_deg`` (the lens rows), that holds every voxel of the world ``grid``'s
+    interpolation the camera can see: the same voxel size, covering ``grid`` grown by
+    one voxel on every side, cut laterally to the camera's field of view over those
+    depths (:func:`plenocl.optics.depthrange.field_of_view_mm`, also grown by one voxel:
+    a tilted grid's corners reach beyond it, where no light reaches the sensor), snapped
+    to whole voxels about its centre."""
     dz, dy, dx = grid.spacing
-    camera_pts = pose.to_camera(grid.corners(1.0))
+    turn = rotation_matrix(rotation_deg)
+    camera_pts = camera.pose.to_camera(grid.corners(1.0))
     turned = camera_pts.copy()
-    turned[:, :2] = camera_pts[:, :2] @ rotation_matrix(rotation_deg)  # Rᵀ x, as rows
+    turned[:, :2] = camera_pts[:, :2] @ turn  # Rᵀ x, as rows
     lo, hi = turned.min(axis=0), turned.max(axis=0)
-    centre = (lo + hi) / 2
-    n = [math.ceil((hi[k] - lo[k]) / step - 1e-9) for k, step in enumerate((dx, dy, dz))]
-    ext = [(centre[k] - n[k] * step / 2, centre[k] + n[k] * step / 2)
-           for k, step in enumerate((dx, dy, dz))]
-    return Grid((n[2], n[1], n[0]), *ext, rotation_deg=rotation_deg)
+    steps = np.array([dx, dy, dz])
+    n = np.ceil((hi - lo) / steps - 1e-9).astype(int)
+    lo = (lo + hi) / 2 - n * steps / 2  # whole voxels about the box's centre
+    seen_lo, seen_hi = _field_box(camera.with_pose(None), lo[2], lo[2] + n[2] * steps[2],
+                                  turn)
+    # whole voxels off each side beyond the field (and a voxel's margin): the voxels
+    # kept stay where the uncut grid has them
+    cut_lo = np.clip(np.floor((seen_lo - steps[:2] - lo[:2]) / steps[:2]), 0, None)
+    cut_hi = np.clip(np.floor((lo[:2] + n[:2] * steps[:2] - seen_hi - steps[:2])
+                              / steps[:2]), 0, None)
+    lo[:2] += cut_lo * steps[:2]
+    n[:2] -= (cut_lo + cut_hi).astype(int)
+    if np.any(n < 1):  # check_grid refuses such a grid first
+        raise ValueError("the posed camera sees no part of the grid")
+    ext = [(lo[k], lo[k] + n[k] * steps[k]) for k in range(3)]
+    return Grid((int(n[2]), int(n[1]), int(n[0])), *ext, rotation_deg=rotation_deg)
+
+
+def _field_box(camera: Camera, z0: float, z1: float, turn: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The lateral box (in the frame turned by ``turn``) holding the camera's field of
+    view at every depth in ``[z0, z1]`` (sampled at 17 depths and its ends)."""
+    corners = []
+    for z in np.linspace(z0, z1, 17):
+        (x0, x1), (y0, y1) = field_of_view_mm(camera, float(z))
+        corners += [[x0, y0], [x0, y1], [x1, y0], [x1, y1]]
+    turned = np.asarray(corners) @ turn
+    return turned.min(axis=0), turned.max(axis=0)
 
 
 def pose_index_map(frame: Grid, grid: Grid, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
@@ -87,8 +115,9 @@ class PoseResampler:
         self._counts = tuple(i32(math.ceil(2 * r)) for r in reach)
         self._planes = self._planes_read()
         self.norm = self._column_sums()
-        self._norm = self._k.to_device(np.where(self.norm > 0, 1 / self.norm, 0)
-                                       .astype(np.float32))
+        inverse = np.divide(1.0, self.norm, out=np.zeros_like(self.norm),
+                            where=self.norm > 0)  # a voxel no frame voxel reads: 0
+        self._norm = self._k.to_device(inverse.astype(np.float32))
 
     def _planes_read(self) -> np.ndarray:
         """``(fnz, 2)``: the first and last world planes each frame plane's taps read."""

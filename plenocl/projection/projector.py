@@ -239,7 +239,7 @@ class Projector(FactorisedStages):
         if frame is None:
             angle = separable_rotation_deg(own.on_lens_lattice().microlens_centers,
                                            self._options["shear_tol"])
-            frame = Projector(own, posed_frame_grid(grid, camera.pose, angle), self.queue,
+            frame = Projector(own, posed_frame_grid(grid, camera, angle), self.queue,
                               **{**self._options, "general": "exact"})
         if frame.path != "separable":
             raise ValueError(f"the posed camera's frame grid {frame.grid} does not project "
@@ -493,7 +493,8 @@ class Projector(FactorisedStages):
 
     def back_device(self, image: cl_array.Array, out: VolumeLike | None = None,
                     active: np.ndarray | None = None, lenses: LensSet | None = None,
-                    support: VolumeLike | None = None) -> list[cl_array.Array]:
+                    support: VolumeLike | None = None, reuse_forward: bool = False
+                    ) -> list[cl_array.Array]:
         """Back projection of a device image into device slabs (returned).
 
         ``active`` (bool per depth slice) computes only those slices; the others are 0.
@@ -503,7 +504,10 @@ class Projector(FactorisedStages):
         its zero voxels may be left out, the result there is then 0 (what a
         multiplicative update needs: a zero voxel stays zero); the separable path skips
         them in the rows where they are the majority, the general and direct paths
-        compute them.
+        compute them. ``reuse_forward``: ``support`` is the volume this projector's last
+        :meth:`forward_device` projected, unchanged since (an iteration's order): a
+        resampled grid's frame then takes that projection's resampled volume as its
+        support instead of resampling ``support`` again (the same zero voxels).
         """
         _check_device(image, self.image_shape, "image")
         slabs = self.empty_volume() if out is None else self._as_slabs(out)
@@ -514,7 +518,8 @@ class Projector(FactorisedStages):
             for a, b in runs(~active[z0:z1]):
                 slab[a:b].fill(0.0)
         if self.frame is not None:
-            return self._resampled_back(image, slabs, active, lenses, support)
+            return self._resampled_back(image, slabs, active, lenses, support,
+                                        reuse_forward)
         if self.method == "direct":
             for (z0, _), slab in zip(self.plan.slabs, slabs, strict=True):
                 self._direct("back_direct", image, slab, z0)
@@ -542,16 +547,21 @@ class Projector(FactorisedStages):
         return self.frame.forward_device(frame_vol, out, self._frame_active(active), lenses)
 
     def _resampled_back(self, image: cl_array.Array, slabs, active: np.ndarray,
-                        lenses: LensSet, support) -> list[cl_array.Array]:
+                        lenses: LensSet, support, reuse_forward: bool = False
+                        ) -> list[cl_array.Array]:
         """``slabs = Sᵀ A_frameᵀ image`` on the active planes; a support is resampled onto
         the frame (its zero frame voxels touch no support voxel, so skipping them there is
-        exact here too)."""
+        exact here too), or with ``reuse_forward`` the last forward projection's
+        resampled volume is (:meth:`back_device`)."""
         own, frame = self.plan.slabs, self.frame.plan.slabs
         frame_support = None
         if support is not None:
             support = self._as_slabs(support)
-            frame_support = self._frame_volume("support")
-            self.resampler.to_frame(support, own, frame_support, frame, active)
+            if reuse_forward and "forward" in self._frame_slabs:
+                frame_support = self._frame_volume("forward")
+            else:
+                frame_support = self._frame_volume("support")
+                self.resampler.to_frame(support, own, frame_support, frame, active)
         back = self.frame.back_device(image, self._frame_volume("back"),
                                       self._frame_active(active), lenses, frame_support)
         self.resampler.from_frame(back, frame, slabs, own, active, support)

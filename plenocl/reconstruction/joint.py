@@ -25,6 +25,7 @@ import numpy as np
 from scipy import ndimage
 
 from .images import PreparedImage, prepare_image
+from .operator import FramedOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import Solver
 
@@ -82,7 +83,11 @@ class JointSolver:
             fwd, back = solver.projections(log_ratio)
             proj = fwd(vol)
             resid += solver.total(proj, img)
-            backs.append(back(solver.ratio(img, proj, thr, log_ratio), support=vol))
+            # the support is the volume just projected: a resampled grid reuses its frame
+            # volume (Projector.back_device's reuse_forward)
+            framed = isinstance(solver.proj, FramedOperator) and solver.proj.frame is not None
+            reuse = {"reuse_forward": True} if framed else {}
+            backs.append(back(solver.ratio(img, proj, thr, log_ratio), support=vol, **reuse))
         b = self._added(backs)
         if log_ratio:
             self.solvers[0].update_voxels("update_exp", vol, b, np.float32(relax), self.smin,

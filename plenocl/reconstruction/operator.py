@@ -101,7 +101,10 @@ class FramedOperator(ProjectionOperator, Protocol):
     """A :class:`ProjectionOperator` that may project its grid through another frame's
     operator (:class:`plenocl.Projector` on a grid across a rotated array's lens rows,
     docs/design.md §5.1): a supersampled reconstruction then iterates on ``frame``'s grid
-    and resamples once (``None``: no frame, the operator's own grid)."""
+    and resamples once (``None``: no frame, the operator's own grid). Its
+    ``back_device`` takes ``reuse_forward=True`` when ``support`` is the volume of its
+    last forward projection, unchanged since: the frame's support is then that
+    projection's resampled volume (the same zero voxels), not resampled again."""
 
     frame: ProjectionOperator | None
 
