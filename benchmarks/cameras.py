@@ -84,9 +84,9 @@ def main() -> None:
                 print(f"camera turned {t or 0:g} deg: its projectors (refined, sampled) "
                       f"and sensitivities built once ({projectors[t].path}): "
                       f"{time.perf_counter() - t0:.1f} s")
+    rows: dict[str, list[tuple]] = {}
     for seed in args.seeds:
-        print(f"\nseed {seed}\n{'cameras':30s} {'lateral':>8s} {'depth':>6s} {'valid':>6s} "
-              f"{'recov':>6s} {'ghosts':>6s} {'s/pair':>7s}")
+        print(f"\nseed {seed}\n{HEADER}")
         scene = budget_scene(camera, grid, args.seeding, seed, queue)
         for label, turns in setups(args.apart):
             cams = [camera.with_pose(None if t is None else Pose((0.0, t, 0.0), (0, 0, 0)))
@@ -101,10 +101,26 @@ def main() -> None:
             else:
                 pair = process_pair([r[0] for r in raws], [r[1] for r in raws], projs)
             seconds = time.perf_counter() - t0
-            lateral, depth, valid = errors(pair.piv)
             rep = recovery(pair.vol_a, grid, scene.pa)
-            print(f"{label:30s} {lateral:8.3f} {depth:6.3f} {valid:6.0%} {rep.fraction:6.0%} "
-                  f"{rep.ghost_fraction:6.0%} {seconds:7.1f}", flush=True)
+            row = (*errors(pair.piv), rep.fraction, rep.ghost_fraction, seconds)
+            rows.setdefault(label, []).append(row)
+            print(line(label, *row), flush=True)
+    print(f"\nRMS over the {len(args.seeds)} scene(s) (errors; the rest their mean)\n{HEADER}")
+    for label, runs in rows.items():
+        table = np.array(runs)
+        print(line(label, *np.sqrt(np.mean(table[:, :2] ** 2, axis=0)),
+                   *table[:, 2:].mean(axis=0)))
+
+
+HEADER = (f"{'cameras':30s} {'lateral':>8s} {'depth':>6s} {'valid':>6s} {'recov':>6s} "
+          f"{'ghosts':>6s} {'s/pair':>7s}")
+
+
+def line(label: str, lateral: float, depth: float, valid: float, recovered: float,
+         ghosts: float, seconds: float) -> str:
+    """One row of the table."""
+    return (f"{label:30s} {lateral:8.3f} {depth:6.3f} {valid:6.0%} {recovered:6.0%} "
+            f"{ghosts:6.0%} {seconds:7.1f}")
 
 
 if __name__ == "__main__":
