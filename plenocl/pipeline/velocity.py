@@ -114,7 +114,9 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
             if raws is not None and settings.image_fit is not None:
                 fit = ImageFit(camera, grid, raws, settings.image_fit, queue=device,
                                backgrounds=backgrounds)
-            focus = FocalZone.of(camera, grid)
+            # the focal zone lies along the grid's z: a posed camera's is tilted in the
+            # world grid, so its pairs are not told apart by it (docs/design.md §5.5)
+            focus = FocalZone.of(camera, grid) if camera.pose is None else None
             sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
                                     maxima=maxima)
