@@ -16,6 +16,7 @@ from helpers import assert_adjoint, assert_close_to_peak, lens_camera
 from plenocl import Grid, Projector, process_pair, simulate_image
 from plenocl.camera import Pose
 from plenocl.metrics import recovery
+from plenocl.optics import field_of_view_mm
 from plenocl.peaks import find_particles
 from plenocl.piv.settings import PIVSettings
 from plenocl.projection.posed import posed_frame_grid
@@ -32,17 +33,26 @@ def _camera(pose: Pose | None = None, **changes):
     return lens_camera(pose=pose, **changes)
 
 
-def test_the_frame_grid_holds_the_world_grid_in_the_camera_frame():
-    frame = posed_frame_grid(GRID, _camera(TILTED), 0.0)
+def test_the_frame_grid_holds_what_the_camera_sees_of_the_world_grid():
+    """Every world voxel, and one beyond, that lies in the camera's field of view sits
+    inside the frame grid and gets taps summing near 1; the frame is cut to that field
+    (whole voxels: its centres stay on the uncut frame's lattice)."""
+    camera = _camera(TILTED)
+    frame = posed_frame_grid(GRID, camera, 0.0)
     np.testing.assert_allclose(frame.spacing, GRID.spacing, rtol=1e-12)
     idx = np.stack(np.meshgrid(*(np.arange(-1, n + 1) for n in GRID.shape[::-1]),
                                indexing="ij"), -1).reshape(-1, 3).astype(float)
-    inside = frame.to_index(TILTED.to_camera(GRID.from_index(idx)))
+    own = TILTED.to_camera(GRID.from_index(idx))
+    fields = np.array([field_of_view_mm(camera.with_pose(None), z) for z in own[:, 2]])
+    seen = np.all((own[:, :2] >= fields[:, :, 0]) & (own[:, :2] <= fields[:, :, 1]), axis=1)
+    assert 0.3 < seen.mean() < 1.0  # the test grid reaches beyond the field
+    inside = frame.to_index(own[seen])
     assert (inside >= -0.5).all() and (inside <= np.array(frame.shape[::-1]) - 0.5).all()
-    # every world voxel's taps reach the frame: none is lost before normalising
     sums = np.asarray(resample_matrix_3d(GRID, frame, TILTED, normalised=False)
-                      .sum(axis=0)).ravel()
-    assert sums.min() > 0.5 and sums.max() < 1.5
+                      .sum(axis=0)).ravel().reshape(GRID.shape)
+    centres = (idx >= 0).all(axis=1) & (idx < np.array(GRID.shape[::-1])).all(axis=1)
+    ix, iy, iz = idx[seen & centres].astype(int).T
+    assert sums[iz, iy, ix].min() > 0.5 and sums.max() < 1.5
 
 
 @pytest.mark.parametrize("pose", [TILTED, Pose((0.0, 25.0, 0.0), (0.0, 0.0, 0.0))])

@@ -196,8 +196,9 @@ class Projector(FactorisedStages):
             model = WeightingModel(camera, grid, oversample, shear_tol, warn=False)
         elif camera not in (model.camera, model.source_camera) or model.grid != grid:
             raise ValueError("the weighting model belongs to another camera or grid")
-        # a hexagonal array's lenses on its axial lattice (Camera.on_lens_lattice)
-        camera = model.camera.with_pose(self.pose)
+        # a hexagonal array's lenses on its axial lattice (Camera.on_lens_lattice; a
+        # posed camera's view keeps its pose, a rectangular array is itself)
+        camera = model.camera if self.pose is None else camera.on_lens_lattice()
         self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
         self.lens_weights = lens_weights
         self._options.update(oversample=model.oversample, shear_tol=model.shear_tol)
