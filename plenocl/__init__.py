@@ -14,6 +14,7 @@ from .pipeline import (
     PairSettings,
     TrackSettings,
     bin_tracks,
+    calibrate_pose,
     process_pair,
     track,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "__version__",
     "bin_tracks",
     "calibrate",
+    "calibrate_pose",
     "create_context",
     "describe_devices",
     "flows",

@@ -178,16 +178,8 @@ class ImageFit:
         A particle that starts or steps where :meth:`inside` refuses (beyond the grid's
         margin, or not finite), or whose fit is not finite, is dropped: NaN rows,
         ``kept`` false (see the module notes); the others are fitted without it."""
-        start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        n = len(start)
-        p, sigma = np.full((2, n, 3), np.nan)
-        intensity = np.full(n, np.nan)
-        kept = self.inside(start)
-        if kept.any():
-            p[kept], intensity[kept], sigma[kept], still = self._iterate(index, start[kept])
-            kept[np.flatnonzero(kept)[~still]] = False
-        p[~kept], intensity[~kept], sigma[~kept] = np.nan, np.nan, np.nan
-        return FittedParticles(p, intensity, sigma, kept)
+        return fit_where_inside(positions, self.inside,
+                                lambda start: self._iterate(index, start))
 
     def inside(self, positions: np.ndarray) -> np.ndarray:
         """Which object-space ``positions`` ``(N, 3)`` mm the fit keeps: finite, inside
@@ -370,6 +362,23 @@ class ImageFit:
         limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
         local = np.clip(np.einsum("nji,nj->ni", frames, steps[:, :3]), -limit, limit)
         return np.einsum("nij,nj->ni", frames, local), steps[:, 3], sigmas
+
+
+def fit_where_inside(positions: np.ndarray, inside, iterate) -> FittedParticles:
+    """A fit's :class:`FittedParticles` from ``positions`` ``(N, 3)`` mm: ``iterate``
+    (start -> positions, intensities, sigmas, still in) runs on the positions ``inside``
+    keeps; the others, and those it drops, get NaN rows and ``kept`` false (one camera's
+    fit and several cameras' share it)."""
+    start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    n = len(start)
+    p, sigma = np.full((2, n, 3), np.nan)
+    intensity = np.full(n, np.nan)
+    kept = inside(start)
+    if kept.any():
+        p[kept], intensity[kept], sigma[kept], still = iterate(start[kept])
+        kept[np.flatnonzero(kept)[~still]] = False
+    p[~kept], intensity[~kept], sigma[~kept] = np.nan, np.nan, np.nan
+    return FittedParticles(p, intensity, sigma, kept)
 
 
 def _backgrounds(backgrounds, n: int) -> list:

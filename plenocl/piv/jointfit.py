@@ -18,7 +18,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .imagefit import MAX_STEP_VOXELS, PRIOR_VOXELS, FittedParticles, ImageFit, ImageFitSettings
+from .imagefit import (
+    MAX_STEP_VOXELS,
+    PRIOR_VOXELS,
+    FittedParticles,
+    ImageFit,
+    ImageFitSettings,
+    fit_where_inside,
+)
 
 
 class JointImageFit:
@@ -71,16 +78,8 @@ class JointImageFit:
         """Fit particles starting at world ``positions`` ``(N, 3)`` mm to every camera's
         image of exposure ``index``; the intensities (their mean over the cameras) start
         from each camera's linear least squares. Dropped particles: NaN rows."""
-        start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        n = len(start)
-        p, sigma = np.full((2, n, 3), np.nan)
-        intensity = np.full(n, np.nan)
-        kept = self.inside(start)
-        if kept.any():
-            p[kept], intensity[kept], sigma[kept], still = self._iterate(index, start[kept])
-            kept[np.flatnonzero(kept)[~still]] = False
-        p[~kept], intensity[~kept], sigma[~kept] = np.nan, np.nan, np.nan
-        return FittedParticles(p, intensity, sigma, kept)
+        return fit_where_inside(positions, self.inside,
+                                lambda start: self._iterate(index, start))
 
     def _iterate(self, index: int, start: np.ndarray):
         """The joint Gauss-Newton iterations from ``start``: positions, mean intensities,

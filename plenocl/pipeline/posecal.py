@@ -1,0 +1,180 @@
+"""A camera's pose from images of a dot target at known world positions (docs/design.md
+§2.3, issue 49 item 4).
+
+Each dot is a point of light; one plenoptic camera locates it in its own frame from its
+raw image, well across its line of sight and less well along it. Starting from a guessed
+pose (the setup as built, within a few tenths of a millimetre and about a degree), every
+known dot is carried into the camera's frame, fitted to the raw image from there
+(:class:`plenocl.piv.imagefit.ImageFit`: the camera's exact rays, each dot's position and
+its posterior standard deviation), and the pose is the rigid motion that carries the
+world dots onto the fitted ones, each residual divided by its standard deviation
+(Gauss-Newton on the rotation vector and translation, SciPy's ``least_squares``). The fit
+starts from the guess's prediction and its prior pulls towards it, so the two steps
+alternate until the pose stops moving: at the fixed point the prediction is the fit. The
+residuals are reported as image points on the sensor (pixels): where the calibrated pose
+puts each dot against where its image puts it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ..camera import Camera, Pose
+from ..grid import Grid
+from ..optics.depthrange import field_of_view_mm
+from ..piv.imagefit import ImageFit, ImageFitSettings
+
+#: Alternations of the dots' fit and the pose's at most, and the pose change (degrees,
+#: mm) below which they stop.
+POSE_ROUNDS = 6
+POSE_TOLERANCE = (1e-4, 1e-5)
+#: How far (mm) beyond the dots the fit's grid reaches (its margin and voxel size only).
+GRID_MARGIN_MM = 1.0
+
+
+@dataclass(frozen=True)
+class PoseCalibration:
+    """A calibrated pose and how well it explains the target's images.
+
+    Attributes
+    ----------
+    pose
+        The pose found (:class:`plenocl.camera.Pose`).
+    residual_px
+        RMS distance (sensor pixels) between each dot's image point under ``pose`` and
+        under its fitted position, over the dots kept.
+    dots
+        The dots used (the fit dropped the others: outside the view, not finite).
+    rounds
+        Alternations run.
+    """
+
+    pose: Pose
+    residual_px: float
+    dots: int
+    rounds: int
+
+
+def calibrate_pose(camera: Camera, images, targets, guess: Pose,
+                   settings: ImageFitSettings | None = None, queue=None) -> PoseCalibration:
+    """The pose of ``camera`` from its images of a dot target.
+
+    Parameters
+    ----------
+    camera
+        The calibrated camera (its pose, if any, is ignored: ``guess`` starts it).
+    images
+        Its raw images, one per target position.
+    targets
+        Per image, the dots' world positions ``(N_k, 3)`` mm.
+    guess
+        The pose as built: within about a degree and a few tenths of a millimetre.
+    settings, queue
+        The dots' fit (:class:`plenocl.piv.imagefit.ImageFitSettings`; its device).
+
+    Returns
+    -------
+    PoseCalibration
+    """
+    own = camera.with_pose(None)
+    points = [np.asarray(t, float).reshape(-1, 3) for t in targets]
+    if len(points) != len(images) or not points or not sum(map(len, points)) >= 3:
+        raise ValueError("calibrate_pose needs one array of dot positions per image and at "
+                         "least 3 dots in all")
+    pose, rounds = guess, 0
+    while rounds < POSE_ROUNDS:
+        rounds += 1
+        world, fitted, sigma = _fitted_dots(own, images, points, pose, settings, queue)
+        new = _solve_pose(world, fitted, sigma, pose)
+        turn, shift = _pose_change(pose, new)
+        pose = new
+        if turn < POSE_TOLERANCE[0] and shift < POSE_TOLERANCE[1]:
+            break
+    residual = _residual_px(own, pose, world, fitted)
+    return PoseCalibration(pose, residual, len(world), rounds)
+
+
+def _fitted_dots(own: Camera, images, points, pose: Pose, settings, queue):
+    """Every dot's world position, its position fitted in the camera's frame from the
+    pose's prediction, and the fit's standard deviations, over the dots the fit kept."""
+    world, fitted, sigma = [], [], []
+    for image, dots in zip(images, points, strict=True):
+        start = pose.to_camera(dots)
+        seen = _in_view(own, start)
+        if not seen.any():
+            continue
+        fit = ImageFit(own, _grid_around(own, start[seen]), [image], settings, queue=queue)
+        out = fit.fit(0, start[seen])
+        kept = out.kept & (out.intensities > 0)  # a dot with no light found: not there
+        world.append(dots[seen][kept])
+        fitted.append(out.positions[kept])
+        sigma.append(out.sigma[kept])
+    if not world:
+        world = fitted = sigma = [np.zeros((0, 3))]
+    world, fitted, sigma = (np.concatenate(a) for a in (world, fitted, sigma))
+    if len(world) < 3:
+        raise ValueError(f"only {len(world)} of the target's dots could be fitted: check "
+                         "that the guessed pose puts them in the camera's view")
+    return world, fitted, np.maximum(sigma, 1e-6)
+
+
+def _in_view(camera: Camera, pts: np.ndarray) -> np.ndarray:
+    """Which camera-frame points lie in the camera's field of view at their depth."""
+    out = np.zeros(len(pts), bool)
+    for k, (x, y, z) in enumerate(pts):
+        (x0, x1), (y0, y1) = field_of_view_mm(camera, float(z))
+        out[k] = x0 <= x <= x1 and y0 <= y <= y1
+    return out
+
+
+def _grid_around(camera: Camera, pts: np.ndarray) -> Grid:
+    """A grid of the camera's voxels holding ``pts`` and a margin (the fit's margin and
+    prior scale)."""
+    voxel = camera.ml_pitch_mm / camera.magnification
+    dvox = camera.depth_resolution_mm / 2
+    lo, hi = pts.min(axis=0) - GRID_MARGIN_MM, pts.max(axis=0) + GRID_MARGIN_MM
+    shape = [max(1, int(np.ceil((hi[k] - lo[k]) / step))) for k, step in
+             enumerate((voxel, voxel, dvox))]
+    hi = lo + np.array(shape) * np.array([voxel, voxel, dvox])
+    return Grid(tuple(shape[::-1]), (lo[0], hi[0]), (lo[1], hi[1]), (lo[2], hi[2]))
+
+
+def _as_pose(params: np.ndarray) -> Pose:
+    """The pose of a rotation vector and translation ``(6,)``."""
+    rx, ry, rz = Rotation.from_rotvec(params[:3]).as_euler("xyz", degrees=True)
+    return Pose((rx, ry, rz), tuple(params[3:]))
+
+
+def _solve_pose(world: np.ndarray, fitted: np.ndarray, sigma: np.ndarray, start: Pose
+                ) -> Pose:
+    """The rigid motion carrying ``world`` onto ``fitted`` (camera frame), each
+    component's residual divided by its standard deviation, from ``start``."""
+    rotvec = Rotation.from_matrix(start.matrix).as_rotvec()
+
+    def residuals(params):
+        moved = world @ Rotation.from_rotvec(params[:3]).as_matrix().T + params[3:]
+        return ((moved - fitted) / sigma).ravel()
+
+    found = least_squares(residuals, np.concatenate([rotvec, start.translation_mm]),
+                          method="lm")
+    return _as_pose(found.x)
+
+
+def _pose_change(a: Pose, b: Pose) -> tuple[float, float]:
+    """The angle (degrees) and translation (mm) between two poses."""
+    turn = Rotation.from_matrix(b.matrix @ a.matrix.T).magnitude()
+    return float(np.degrees(turn)), float(np.linalg.norm(np.subtract(b.translation_mm,
+                                                                       a.translation_mm)))
+
+
+def _residual_px(own: Camera, pose: Pose, world: np.ndarray, fitted: np.ndarray) -> float:
+    """RMS sensor distance (pixels) between the dots' image points under ``pose`` and
+    under their fitted positions."""
+    predicted = own.image_points(pose.to_camera(world))[:, :2]
+    found = own.image_points(fitted)[:, :2]
+    return float(np.sqrt(np.mean(np.sum((predicted - found) ** 2, axis=1)))
+                 / own.pixel_pitch_mm)
