@@ -16,6 +16,7 @@ from .pipeline import (
     bin_tracks,
     calibrate_pose,
     process_pair,
+    self_calibrate,
     track,
 )
 from .piv import PIVResult, PIVSettings, piv3d
@@ -60,6 +61,7 @@ __all__ = [
     "read_npz",
     "reconstruct",
     "run",
+    "self_calibrate",
     "save_field",
     "save_volume",
     "simulate_image",

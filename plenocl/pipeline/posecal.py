@@ -26,7 +26,11 @@ from scipy.spatial.transform import Rotation
 from ..camera import Camera, Pose
 from ..grid import Grid
 from ..optics.depthrange import field_of_view_mm
+from ..peaks import find_particles
 from ..piv.imagefit import ImageFit, ImageFitSettings
+from ..piv.jointfit import JointImageFit
+from ..projection import Projector
+from ..reconstruction import reconstruct
 
 #: Alternations of the dots' fit and the pose's at most, and the pose change (degrees,
 #: mm) below which they stop.
@@ -47,6 +51,9 @@ class PoseCalibration:
     residual_px
         RMS distance (sensor pixels) between each dot's image point under ``pose`` and
         under its fitted position, over the dots kept.
+    start_residual_px
+        The same under the guessed pose, with the first round's fits (the disparity
+        the calibration started from).
     dots
         The dots used (the fit dropped the others: outside the view, not finite).
     rounds
@@ -57,6 +64,7 @@ class PoseCalibration:
     residual_px: float
     dots: int
     rounds: int
+    start_residual_px: float = float("nan")
 
 
 def calibrate_pose(camera: Camera, images, targets, guess: Pose,
@@ -85,17 +93,19 @@ def calibrate_pose(camera: Camera, images, targets, guess: Pose,
     if len(points) != len(images) or not points or not sum(map(len, points)) >= 3:
         raise ValueError("calibrate_pose needs one array of dot positions per image and at "
                          "least 3 dots in all")
-    pose, rounds = guess, 0
+    pose, rounds, start = guess, 0, float("nan")
     while rounds < POSE_ROUNDS:
         rounds += 1
         world, fitted, sigma = _fitted_dots(own, images, points, pose, settings, queue)
+        if rounds == 1:
+            start = _residual_px(own, pose, world, fitted)
         new = _solve_pose(world, fitted, sigma, pose)
         turn, shift = _pose_change(pose, new)
         pose = new
         if turn < POSE_TOLERANCE[0] and shift < POSE_TOLERANCE[1]:
             break
     residual = _residual_px(own, pose, world, fitted)
-    return PoseCalibration(pose, residual, len(world), rounds)
+    return PoseCalibration(pose, residual, len(world), rounds, start)
 
 
 def _fitted_dots(own: Camera, images, points, pose: Pose, settings, queue):
@@ -178,3 +188,144 @@ def _residual_px(own: Camera, pose: Pose, world: np.ndarray, fitted: np.ndarray)
     found = own.image_points(fitted)[:, :2]
     return float(np.sqrt(np.mean(np.sum((predicted - found) ** 2, axis=1)))
                  / own.pixel_pitch_mm)
+
+
+#: A particle of the reconstruction takes part in self-calibration when the joint fit
+#: finds at least this fraction of the median particle's intensity (ghosts are dimmer).
+SELF_MIN_INTENSITY = 0.3
+#: Each round moves a camera this many times the way to the pose its particles give.
+SELF_STEP = 1.8
+#: The disparity map's regions: the sensor cut into this many parts per axis (their
+#: mean disparity vectors are the systematic disparity; Wieneke 2008).
+DISPARITY_REGIONS = 2
+
+
+@dataclass(frozen=True)
+class SelfCalibration:
+    """Several cameras' poses refined from their particle images.
+
+    Attributes
+    ----------
+    cameras
+        The cameras with their refined poses (the first one's as given: it holds the
+        world frame).
+    disparity_px
+        Per round (the first before any change), per camera, the systematic disparity
+        (sensor pixels): the RMS over the sensor's regions (:data:`DISPARITY_REGIONS`
+        per axis) of the mean vector from where the camera's own image puts the
+        particles to where the particles fitted to every camera's images lie in it.
+    scatter_px
+        The same rounds' RMS disparity of single particles (the fits' noise included).
+    particles
+        The particles the last round used.
+    """
+
+    cameras: list[Camera]
+    disparity_px: list[list[float]]
+    scatter_px: list[list[float]]
+    particles: int
+
+
+def self_calibrate(cameras, images, grid: Grid, rounds: int = 8,
+                   settings: ImageFitSettings | None = None, queue=None) -> SelfCalibration:
+    """Refine the poses of several cameras from their images of the particles themselves
+    (volume self-calibration after Wieneke 2008; docs/design.md §2.3).
+
+    Each exposure's volume is reconstructed from every camera's image; its particles
+    (those the fit to every camera's image at once finds at least
+    :data:`SELF_MIN_INTENSITY` of the median intensity: ghosts are dimmer) are located in
+    the world by that joint fit, and each camera after the first takes the pose that
+    carries all exposures' particles onto its own images (:func:`calibrate_pose` with the
+    particles as its target); the particles are fitted again with the new poses,
+    ``rounds`` times. The first camera holds the world frame. What the particles cannot
+    tell (a motion of a camera their positions absorb) is left as it is: the cameras end
+    consistent with each other, their disparities at the fits' noise, which more
+    exposures (more particles per region) lower.
+
+    Parameters
+    ----------
+    cameras
+        The posed, calibrated cameras (at least two).
+    images
+        Per camera, its raw images of the same exposures (a list, one image per
+        exposure, in the same order for every camera; or one image).
+    grid
+        The world grid to reconstruct on.
+    rounds
+        Rounds of refitting the poses and the particles.
+    settings, queue
+        The particles' fit and the device.
+    """
+    per_camera = [list(i) if isinstance(i, (list, tuple)) else [i] for i in images]
+    if len(cameras) < 2 or len(per_camera) != len(cameras):
+        raise ValueError("self-calibration needs two or more cameras and their images, "
+                         "one list per camera")
+    if len({len(i) for i in per_camera}) != 1:
+        raise ValueError("self-calibration needs every camera's images of the same "
+                         "exposures: lists of one length")
+    cams = list(cameras)
+    exposures = list(zip(*per_camera, strict=True))  # per exposure, every camera's image
+    projectors = [Projector(c, grid, queue) for c in cams]
+    worlds = [grid.from_index(find_particles(reconstruct(list(e), projectors))[0])
+              for e in exposures]
+    systematic, scatter = [], []
+    for round_ in range(rounds + 1):
+        worlds = [_joint_particles(cams, e, grid, w, settings, queue, select=round_ == 0)
+                  for e, w in zip(exposures, worlds, strict=True)]
+        maps = [disparity(c, imgs, worlds, settings, queue) for c, imgs in
+                zip(cams, per_camera, strict=True)]
+        systematic.append([m[0] for m in maps])
+        scatter.append([m[1] for m in maps])
+        if round_ == rounds:
+            break
+        cams = [cams[0]] + [c.with_pose(_extrapolated(c.pose or Pose(), calibrate_pose(
+            c, imgs, worlds, c.pose or Pose(), settings, queue).pose, SELF_STEP))
+                            for c, imgs in zip(cams[1:], per_camera[1:], strict=True)]
+    return SelfCalibration(cams, systematic, scatter, sum(map(len, worlds)))
+
+
+def _extrapolated(old: Pose, new: Pose, factor: float) -> Pose:
+    """``old`` moved ``factor`` times the way to ``new`` (rotation vector and
+    translation): the particles' joint positions take part of a camera's error each
+    round, so the plain step falls short."""
+    turn = Rotation.from_matrix(new.matrix @ old.matrix.T).as_rotvec() * factor
+    rotvec = (Rotation.from_rotvec(turn) * Rotation.from_matrix(old.matrix)).as_rotvec()
+    shift = np.asarray(old.translation_mm) + factor * np.subtract(new.translation_mm,
+                                                                  old.translation_mm)
+    return _as_pose(np.concatenate([rotvec, shift]))
+
+
+def _joint_particles(cams, images, grid: Grid, world: np.ndarray, settings, queue,
+                     select: bool) -> np.ndarray:
+    """The particles fitted to every camera's image from ``world`` (mm); with
+    ``select``, only those at least :data:`SELF_MIN_INTENSITY` of the median bright."""
+    fit = JointImageFit(cams, grid, [[img] for img in images], settings, queue=queue)
+    found = fit.fit(0, world)
+    keep = found.kept
+    if select and keep.any():
+        keep &= found.intensities >= SELF_MIN_INTENSITY * np.median(found.intensities[keep])
+    if keep.sum() < 3:
+        raise ValueError(f"self-calibration found {int(keep.sum())} particles in every "
+                         "camera's view: too few; check the poses and the grid")
+    return found.positions[keep]
+
+
+def disparity(camera: Camera, images, worlds, settings: ImageFitSettings | None = None,
+              queue=None) -> tuple[float, float]:
+    """The systematic and the single-particle RMS disparity (sensor pixels) of a posed
+    camera over its ``images``: from where each image puts particles near that
+    exposure's world positions ``worlds`` (each fitted from its prediction) to where
+    the pose puts them (see :class:`SelfCalibration`)."""
+    own, pose = camera.with_pose(None), camera.pose or Pose()
+    placed, fitted, _ = _fitted_dots(own, images, worlds, pose, settings, queue)
+    predicted = own.image_points(pose.to_camera(placed))[:, :2]
+    vectors = (predicted - own.image_points(fitted)[:, :2]) / own.pixel_pitch_mm
+    cols, rows = own.pixels
+    pixel = own.mm_to_px(predicted)
+    region = (np.clip((pixel[:, 0] / cols * DISPARITY_REGIONS).astype(int), 0,
+                      DISPARITY_REGIONS - 1) * DISPARITY_REGIONS
+              + np.clip((pixel[:, 1] / rows * DISPARITY_REGIONS).astype(int), 0,
+                        DISPARITY_REGIONS - 1))
+    means = [vectors[region == k].mean(axis=0) for k in np.unique(region)]
+    return (float(np.sqrt(np.mean(np.sum(np.square(means), axis=1)))),
+            float(np.sqrt(np.mean(np.sum(vectors ** 2, axis=1)))))
