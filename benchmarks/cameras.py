@@ -4,12 +4,13 @@ world particles at the paper's optics and voxel, in the same run: ``process_pair
 vectors (lateral and depth RMS error over the valid vectors), the first volume's
 particles recovered and ghosts, and seconds per pair.
 
-    python benchmarks/cameras.py [--lenses 116 78] [--apart 25] [--seeds 1]
-                                 [--seeding 0.05]
+    python benchmarks/cameras.py [--lenses 116 78] [--apart 25 [10 40 ...]] [--three]
+                                 [--seeds 1] [--seeding 0.05]
 
 Cameras: the paper's optics (``paper_optics``), each looking at the world origin (the
 grid's centre), turned about the world's y axis; two cameras ``--apart`` degrees apart
-stand at plus and minus half of it. Scene: ``budget_scene``'s particles (0.8 px blur,
+stand at plus and minus half of it (each separation given); three cameras (``--three``)
+at minus, zero and plus the first separation. Scene: ``budget_scene``'s particles (0.8 px blur,
 photon and read noise), uniform motion, each camera's images ray traced from the same
 world particles. Each row runs ``process_pair``'s default chain (several cameras: the
 joint reconstruction, and the particles fitted to every camera's raw images at once).
@@ -55,17 +56,24 @@ def built(proj: Projector) -> Projector:
     return proj
 
 
-def setups(apart: float) -> list[tuple[str, list[float | None]]]:
-    """Each row's cameras as turns about y (``None``: unposed)."""
-    half = apart / 2
-    return [("one camera (baseline)", [None]), (f"one camera turned {half:g} deg", [half]),
-            (f"two cameras {apart:g} deg apart", [-half, half])]
+def setups(apart: list[float], three: bool) -> list[tuple[str, list[float | None]]]:
+    """Each row's cameras as turns about y (``None``: unposed): one camera, the first
+    separation's one camera turned, two cameras at each separation, and (``three``)
+    three cameras at minus, zero and plus the first separation."""
+    first = apart[0] / 2
+    rows = [("one camera (baseline)", [None]), (f"one camera turned {first:g} deg", [first])]
+    rows += [(f"two cameras {a:g} deg apart", [-a / 2, a / 2]) for a in apart]
+    if three:
+        rows.append((f"three cameras {apart[0]:g} deg apart", [-apart[0], 0.0, apart[0]]))
+    return rows
 
 
 def main() -> None:
     parser = script_parser(__doc__)
     parser.add_argument("--lenses", type=int, nargs=2, default=[116, 78])
-    parser.add_argument("--apart", type=float, default=25.0)
+    parser.add_argument("--apart", type=float, nargs="+", default=[25.0])
+    parser.add_argument("--three", action="store_true",
+                        help="also three cameras, the first separation apart")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1])
     parser.add_argument("--seeding", type=float, default=0.05)
     args = parser.parse_args()
@@ -75,7 +83,7 @@ def main() -> None:
           f"lenses, world grid {grid.shape} (z, y, x), {args.seeding} particles per "
           "microlens; errors in world voxels")
     projectors = {}
-    for _, turns in setups(args.apart):
+    for _, turns in setups(args.apart, args.three):
         for t in turns:
             if t not in projectors:
                 t0 = time.perf_counter()
@@ -88,7 +96,7 @@ def main() -> None:
     for seed in args.seeds:
         print(f"\nseed {seed}\n{HEADER}")
         scene = budget_scene(camera, grid, args.seeding, seed, queue)
-        for label, turns in setups(args.apart):
+        for label, turns in setups(args.apart, args.three):
             cams = [camera.with_pose(None if t is None else Pose((0.0, t, 0.0), (0, 0, 0)))
                     for t in turns]
             projs = [projectors[t] for t in turns]

@@ -214,6 +214,9 @@ def test_several_cameras_refuse_what_they_cannot_do(queue):
     with pytest.raises(ValueError, match=r"projector 2's grid .* every camera projects the "
                                          r"same world grid"):
         reconstruct([img, img], [projs[0], other])
+    with pytest.raises(ValueError, match=r"another OpenCL queue than projector 1: build "
+                                         r"every camera's projector on one queue"):
+        reconstruct([img, img], [projs[0], Projector(cams[1], grid)])
     with pytest.raises(ValueError, match=r"'mlem' or 'smart', got 'mart'"):
         reconstruct([img, img], projs, method="mart", supersample=1)
     with pytest.raises(ValueError, match="pixel_mask and start volumes are for one camera"):

@@ -143,7 +143,7 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
              "correlation": CORRELATION_METHOD}
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
-            lambda: _stage_particles(run, sc, flow, seed))
+            lambda: stage_particles(run, sc, flow, seed))
     run.run("calibration", ["white.tif", "camera_calibrated.toml"],
             lambda: _stage_calibration(run, sc, seed, queue))
     run.run("images", ["raw_a.tif", "raw_b.tif"], lambda: _stage_images(run, sc, seed, queue))
@@ -167,7 +167,8 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     return summary
 
 
-def _stage_particles(run: StageRunner, sc: Scenario, flow, seed: int) -> None:
+def stage_particles(run: StageRunner, sc: Scenario, flow, seed: int) -> None:
+    """The particles of both exposures (``particles_a.csv``, ``particles_b.csv``)."""
     pos_a, pos_b, inten = seed_particles(sc, flow, seed)
     write_particles(run.path("particles_a.csv"), pos_a, inten)
     write_particles(run.path("particles_b.csv"), pos_b, inten)

@@ -99,7 +99,7 @@ class JointSolver:
 
 
 def check_cameras(images: Sequence, projectors: Sequence) -> None:
-    """One image per projector, at least one, all projectors on one grid and device."""
+    """One image per projector, at least one, all projectors on one grid and queue."""
     if len(images) != len(projectors) or not projectors:
         raise ValueError(f"several cameras need one image per projector: got "
                          f"{len(images)} image(s) and {len(projectors)} projector(s)")
@@ -108,9 +108,10 @@ def check_cameras(images: Sequence, projectors: Sequence) -> None:
         if proj.grid != grid:
             raise ValueError(f"projector {k}'s grid {proj.grid} is not projector 1's "
                              f"{grid}: every camera projects the same world grid")
-        if proj.queue.context != queue.context:
-            raise ValueError(f"projector {k} runs on another OpenCL context than projector "
-                             "1: build every camera's projector on one queue")
+        if proj.queue is not queue:
+            raise ValueError(f"projector {k} runs on another OpenCL queue than projector 1: "
+                             "build every camera's projector on one queue (q = "
+                             "plenocl.get_queue(); plenocl.Projector(camera, grid, q))")
 
 
 def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSettings,
