@@ -189,25 +189,14 @@ class Projector(FactorisedStages):
         self.queue = get_queue(queue)
         self.resampler: FrameResampler | PoseResampler | None = None
         self.pose = camera.pose
-        if self.pose is not None:  # a world grid: through the camera's own frame (.posed)
-            frame = self._posed_frame(camera, grid, frame, model)
-            model = frame.model
-        elif model is None:
-            model = WeightingModel(camera, grid, oversample, shear_tol, warn=False)
-        elif camera not in (model.camera, model.source_camera) or model.grid != grid:
-            raise ValueError("the weighting model belongs to another camera or grid")
+        self.method, self.back_mode, self.lens_weights = method, back, lens_weights
+        model, frame = self._model_and_frame(camera, grid, model, frame)
         # a hexagonal array's lenses on its axial lattice (Camera.on_lens_lattice; a
         # posed camera's view keeps its pose, a rectangular array is itself)
         camera = model.camera if self.pose is None else camera.on_lens_lattice()
-        self.camera, self.grid, self.method, self.back_mode = camera, grid, method, back
-        self.lens_weights = lens_weights
+        self.camera, self.grid, self.model, self.frame = camera, grid, model, frame
         self._options.update(oversample=model.oversample, shear_tol=model.shear_tol)
         self._variants: dict[tuple, Projector] = {}
-        self.model = model
-        if self.pose is None:
-            self.frame = self._frame_projector(frame) if model.path == "general" else None
-        else:
-            self.frame = frame
         self._layout(vector_width, segment)
         self.plan = self._make_plan(max_alloc_bytes, scratch_bytes)
         if self.pose is not None:
@@ -225,6 +214,25 @@ class Projector(FactorisedStages):
                             looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
+
+    def _model_and_frame(self, camera: Camera, grid: Grid, model: WeightingModel | None,
+                         frame: Projector | None
+                         ) -> tuple[WeightingModel, Projector | None]:
+        """The weighting model and the frame projected through: a posed camera's frame
+        grid (:meth:`_posed_frame`, its model the frame's), a grid across the lens rows'
+        frame (:meth:`_frame_projector`), or the grid itself (``None``)."""
+        if self.pose is not None:  # a world grid: through the camera's own frame (.posed)
+            frame = self._posed_frame(camera, grid, frame, model)
+            return frame.model, frame
+        opts = self._options
+        if model is None:
+            model = WeightingModel(camera, grid, opts["oversample"], opts["shear_tol"],
+                                   warn=False)
+        elif camera not in (model.camera, model.source_camera) or model.grid != grid:
+            raise ValueError("the weighting model belongs to another camera or grid")
+        self.camera, self.grid, self.model = model.camera, grid, model
+        opts.update(oversample=model.oversample, shear_tol=model.shear_tol)
+        return model, self._frame_projector(frame) if model.path == "general" else None
 
     def _posed_frame(self, camera: Camera, grid: Grid, frame: Projector | None,
                      model: WeightingModel | None) -> Projector:
