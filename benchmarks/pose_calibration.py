@@ -30,12 +30,6 @@ from plenocl.pipeline.posecal import self_calibrate
 NOISE = dict(blur_px=0.8, photon_noise=True, background=20.0, read_noise=3.0)
 
 
-def angle_deg(a: Pose, b: Pose) -> float:
-    """The angle between two poses' rotations (degrees)."""
-    cos = (np.trace(b.matrix @ a.matrix.T) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-
-
 def target_row(cam, queue) -> None:
     """The dot target's calibration of one camera."""
     true = Pose((2.0, -12.0, 1.0), (0.1, -0.15, 0.2))
@@ -48,9 +42,9 @@ def target_row(cam, queue) -> None:
                              **NOISE) for k, dots in enumerate(plates)]
     t0 = time.perf_counter()
     found = calibrate_pose(cam, images, plates, guess, queue=queue)
-    shift = np.linalg.norm(np.subtract(found.pose.translation_mm, true.translation_mm))
-    print(f"dot target: guess off {angle_deg(true, guess):.3f} deg; found off "
-          f"{angle_deg(true, found.pose):.4f} deg and {shift:.4f} mm; residual "
+    shift = true.shift_mm(found.pose)
+    print(f"dot target: guess off {true.turn_deg(guess):.3f} deg; found off "
+          f"{true.turn_deg(found.pose):.4f} deg and {shift:.4f} mm; residual "
           f"{found.residual_px:.2f} px (at the guess {found.start_residual_px:.2f}); "
           f"{found.dots} dots, {found.rounds} rounds, {time.perf_counter() - t0:.1f} s")
 
@@ -84,8 +78,8 @@ def self_rows(cam, exposures: int, error: float, queue) -> None:
         label = "start" if k == 0 else f"round {k}"
         print(f"{label:20s} {sys_px[0]:6.3f} {sys_px[1]:6.3f} | {one_px[0]:6.3f} "
               f"{one_px[1]:6.3f}")
-    print(f"{seconds:.1f} s; camera 2's pose off the truth {angle_deg(true[1], wrong):.3f} "
-          f"deg before, {angle_deg(true[1], found.cameras[1].pose):.3f} after (what the "
+    print(f"{seconds:.1f} s; camera 2's pose off the truth {true[1].turn_deg(wrong):.3f} "
+          f"deg before, {true[1].turn_deg(found.cameras[1].pose):.3f} after (what the "
           "particles cannot tell stays)")
 
 

@@ -138,3 +138,14 @@ def test_lines_of_sight_turn_with_the_pose():
     towards = world - principal
     np.testing.assert_allclose(posed, towards / np.linalg.norm(towards, axis=1)[:, None],
                                atol=1e-12)
+
+
+def test_the_turn_and_shift_between_two_poses():
+    a = Pose((0.0, 10.0, 0.0), (1.0, 2.0, 3.0))
+    b = Pose((0.0, 12.5, 0.0), (1.0, 2.0, 3.5))
+    assert a.turn_deg(b) == pytest.approx(2.5, abs=1e-9)
+    assert b.turn_deg(a) == pytest.approx(2.5, abs=1e-9) and a.turn_deg(a) < 1e-6
+    assert a.shift_mm(b) == pytest.approx(0.5)
+    # about another axis too: the rotation's angle, whatever its axis
+    assert Pose((3.0, 4.0, 0.0), (0, 0, 0)).turn_deg(Pose((0.0, 0.0, 0.0), (0, 0, 0))) == \
+        pytest.approx(np.degrees(np.arccos((np.trace(pose_rotation((3.0, 4.0, 0.0))) - 1) / 2)))

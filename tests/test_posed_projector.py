@@ -219,6 +219,8 @@ def test_several_cameras_refuse_what_they_cannot_do(queue):
         reconstruct([img, img], [projs[0], Projector(cams[1], grid)])
     with pytest.raises(ValueError, match=r"'mlem' or 'smart', got 'mart'"):
         reconstruct([img, img], projs, method="mart", supersample=1)
+    with pytest.raises(ValueError, match="tol and mask_fraction are one camera's"):
+        reconstruct([img, img], projs, tol=1e-3)
     with pytest.raises(ValueError, match="pixel_mask and start volumes are for one camera"):
         reconstruct([img, img], projs, pixel_mask=np.ones(img.shape, bool))
     with pytest.raises(ValueError, match=r"raw_b must be a list of one raw image per "

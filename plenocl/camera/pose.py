@@ -89,6 +89,15 @@ class Pose:
         pts = np.asarray(points_xyz, float).reshape(-1, 3)
         return (pts - np.asarray(self.translation_mm)) @ self.matrix
 
+    def turn_deg(self, other: Pose) -> float:
+        """The angle (degrees) of the rotation that carries this pose's onto ``other``'s."""
+        cos = (np.trace(other.matrix @ self.matrix.T) - 1.0) / 2.0
+        return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+    def shift_mm(self, other: Pose) -> float:
+        """The distance (mm) between this pose's translation and ``other``'s."""
+        return float(np.linalg.norm(np.subtract(other.translation_mm, self.translation_mm)))
+
     def check_in_front(self, camera_z, nearest: float) -> None:
         """Refuse points whose depth in the camera's frame ``camera_z`` (mm) is at or
         below ``nearest`` (the camera's ``f - s_o``: at or behind the main lens's front

@@ -147,7 +147,7 @@ def _evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow, cams: list[
 
     pos_a, _ = read_particles(run.path("particles_a.csv"))
     inside = pos_a[sc.grid.contains(pos_a)]
-    out = {"apart_deg": _angle_deg(poses[0], poses[1]), "u_inf_m_s": U_INF, "dt_s": DT,
+    out = {"apart_deg": poses[0].turn_deg(poses[1]), "u_inf_m_s": U_INF, "dt_s": DT,
            "fields": {}}
     for label, field, vol in (("two_cameras", "field.npz", "vol_a.npz"),
                               ("camera_1_alone", "field_camera_1.npz", "vol_a_camera_1.npz")):
@@ -158,15 +158,6 @@ def _evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow, cams: list[
                                    sc)["window_averaged"],
             "valid_fraction": float(valid.mean()), "recovered_fraction": rep.fraction,
             "ghost_fraction": rep.ghost_fraction}
-    out["pose_errors"] = [
-        {"angle_deg": _angle_deg(c.pose, p),
-         "translation_mm": float(np.linalg.norm(np.subtract(c.pose.translation_mm,
-                                                            p.translation_mm)))}
-        for c, p in zip(cams, poses, strict=True)]
+    out["pose_errors"] = [{"angle_deg": c.pose.turn_deg(p), "translation_mm": c.pose.shift_mm(p)}
+                          for c, p in zip(cams, poses, strict=True)]
     return out
-
-
-def _angle_deg(a: Pose, b: Pose) -> float:
-    """The angle between two poses' rotations (degrees)."""
-    cos = (np.trace(b.matrix @ a.matrix.T) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))

@@ -100,7 +100,7 @@ def calibrate_pose(camera: Camera, images, targets, guess: Pose,
         if rounds == 1:
             start = _residual_px(own, pose, world, fitted)
         new = _solve_pose(world, fitted, sigma, pose)
-        turn, shift = _pose_change(pose, new)
+        turn, shift = pose.turn_deg(new), pose.shift_mm(new)
         pose = new
         if turn < POSE_TOLERANCE[0] and shift < POSE_TOLERANCE[1]:
             break
@@ -172,13 +172,6 @@ def _solve_pose(world: np.ndarray, fitted: np.ndarray, sigma: np.ndarray, start:
     found = least_squares(residuals, np.concatenate([rotvec, start.translation_mm]),
                           method="lm")
     return _as_pose(found.x)
-
-
-def _pose_change(a: Pose, b: Pose) -> tuple[float, float]:
-    """The angle (degrees) and translation (mm) between two poses."""
-    turn = Rotation.from_matrix(b.matrix @ a.matrix.T).magnitude()
-    return float(np.degrees(turn)), float(np.linalg.norm(np.subtract(b.translation_mm,
-                                                                       a.translation_mm)))
 
 
 def _residual_px(own: Camera, pose: Pose, world: np.ndarray, fitted: np.ndarray) -> float:

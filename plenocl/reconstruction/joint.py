@@ -27,7 +27,7 @@ from scipy import ndimage
 from .images import PreparedImage, prepare_image
 from .operator import FramedOperator
 from .settings import ReconstructionInfo, ReconstructionSettings
-from .solver import Solver
+from .solver import RATIO_MIN, Solver
 
 
 class JointSolver:
@@ -75,9 +75,10 @@ class JointSolver:
             v.fill(light / max(total, 1e-30))
         return vol
 
-    def update(self, vol: list, relax: float, log_ratio: bool) -> float:
-        """One simultaneous update over every camera's pixels; returns ``‖P - I‖`` over
-        all of them before it."""
+    def update(self, vol: list, relax: float, log_ratio: bool, floor: float = RATIO_MIN
+               ) -> float:
+        """One simultaneous update over every camera's pixels (SMART's ratios floored at
+        ``floor``); returns ``‖P - I‖`` over all of them before it."""
         backs, resid = [], 0.0
         for solver, img, thr in zip(self.solvers, self.images, self.thresholds, strict=True):
             fwd, back = solver.projections(log_ratio)
@@ -87,7 +88,8 @@ class JointSolver:
             # volume (Projector.back_device's reuse_forward)
             framed = isinstance(solver.proj, FramedOperator) and solver.proj.frame is not None
             reuse = {"reuse_forward": True} if framed else {}
-            backs.append(back(solver.ratio(img, proj, thr, log_ratio), support=vol, **reuse))
+            backs.append(back(solver.ratio(img, proj, thr, log_ratio, floor=floor),
+                              support=vol, **reuse))
         b = self._added(backs)
         if log_ratio:
             self.solvers[0].update_voxels("update_exp", vol, b, np.float32(relax), self.smin,
@@ -124,6 +126,9 @@ def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSe
     if settings.method not in ("mlem", "smart"):
         raise ValueError(f"several cameras reconstruct with 'mlem' or 'smart', got "
                          f"{settings.method!r} (block MART's views are one camera's)")
+    if settings.tol is not None or settings.mask_fraction is not None:
+        raise ValueError("several cameras run every iteration over every pixel: tol and "
+                         "mask_fraction are one camera's; leave them None")
     t0 = time.perf_counter()
     prepared = [prepare_image(img, p, settings) for img, p in zip(images, projectors,
                                                                   strict=True)]
@@ -197,8 +202,9 @@ class _Run:
         else:
             vol = solver.uniform_start()
         for _ in range(iterations if not self.info.stopped else 0):
-            resid = solver.update(vol, self.settings.relax,
-                                  self.settings.method == "smart") / self.norm
+            floor = self.settings.ratio_floor
+            resid = solver.update(vol, self.settings.relax, self.settings.method == "smart",
+                                  RATIO_MIN if floor is None else floor) / self.norm
             self.info.residuals.append(resid)
             self.info.iterations += 1
             if self.callback is not None and self.callback(self.info.iterations,
