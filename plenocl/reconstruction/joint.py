@@ -22,10 +22,10 @@ import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy import ndimage
 
 from .images import PreparedImage, prepare_image
 from .operator import FramedOperator
+from .schedule import coarse_support, sampled_operator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import RATIO_MIN, Solver
 
@@ -142,16 +142,17 @@ def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSe
         solver, coarse = run.iterate(_sampled(projectors, settings.coarse_oversample),
                                      settings.coarse_iterations)
         host = solver.proj.volume_to_host(coarse)
-        keep = _support(host, settings.support)
-        start = np.where(keep, np.float32(host[keep].mean() if keep.any() else 0), 0)
+        start, support = coarse_support(host, settings)
+        if start is None:  # no light in the coarse volume: nothing to refine
+            start = np.zeros(host.shape, np.float32)
         refined = [p.refined(f) for p in projectors]
         early = min(settings.early_iterations, settings.iterations - 1)
         solver, vol = run.iterate(_sampled(refined, settings.early_oversample), early,
-                                  spread=(start.astype(np.float32), f))
+                                  spread=(start, f))
         solver, vol = run.iterate(refined, settings.iterations - early, device=vol)
         out = solver.solvers[0].binned_to_host(vol, f, projectors[0].grid.shape)
         run.info.supersample, run.info.coarse_iterations = f, settings.coarse_iterations
-        run.info.support_fraction = float(keep.mean())
+        run.info.support_fraction = support
     out *= np.float32(scale)
     run.info.cameras = [ReconstructionInfo(settings.method, background=im.background,
                                            noise=im.noise) for im in prepared]
@@ -161,21 +162,9 @@ def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSe
 
 
 def _sampled(projectors: Sequence, oversample: float | None) -> list:
-    """Each projector on ``oversample`` aperture samples per pixel footprint where that is
-    coarser than its own and it can resample (the coarse-to-fine schedule's coarse and
-    early iterations, docs/design.md §6.5); itself otherwise."""
-    return [p.sampled(oversample) if (oversample is not None and hasattr(p, "sampled")
-                                      and oversample < p.oversample) else p
-            for p in projectors]
-
-
-def _support(coarse: np.ndarray, support: float) -> np.ndarray:
-    """The coarse voxels brighter than ``support`` times the brightest, grown by one
-    voxel in every direction (docs/design.md §6.5)."""
-    peak = float(coarse.max())
-    if peak <= 0:
-        return np.zeros(coarse.shape, bool)
-    return ndimage.maximum_filter(coarse > support * peak, size=3, mode="constant", cval=0)
+    """Each projector on ``oversample`` aperture samples per pixel footprint where
+    :func:`.schedule.sampled_operator` gives one; itself otherwise."""
+    return [sampled_operator(p, oversample) or p for p in projectors]
 
 
 class _Run:

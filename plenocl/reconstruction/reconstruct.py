@@ -36,7 +36,6 @@ from collections.abc import Callable
 
 import numpy as np
 import pyopencl.array as cla
-from scipy import ndimage
 
 from ..optics.rawimage import check_pixel_mask
 from ..options import with_keywords
@@ -44,6 +43,7 @@ from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
 from .joint import run_joint
 from .operator import FramedOperator, PlannedOperator, ProjectionOperator
+from .schedule import coarse_support, sampled_operator
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
 from .supersample import bin_lateral
@@ -280,17 +280,6 @@ def _weighted(projector, lens_weights: str | None):
     return projector.weighted(lens_weights)
 
 
-def _sampled(projector, oversample: float | None):
-    """The projector with its aperture sampled ``oversample`` times per pixel footprint
-    (:meth:`plenocl.Projector.sampled`; the coarse and the early sub-voxel iterations of
-    a coarse-to-fine reconstruction) when that is coarser than its own and the operator
-    can resample; ``None`` otherwise (``oversample`` ``None`` included)."""
-    if (oversample is None or not hasattr(projector, "sampled")
-            or oversample >= projector.oversample):
-        return None
-    return projector.sampled(oversample)
-
-
 def _coarse_start(start, grid) -> np.ndarray | None:
     """A start volume given on the grid (the fine run spreads it over the sub-voxels on
     the device), checked for its shape; ``None`` for a named start."""
@@ -322,10 +311,10 @@ def _supersampled(prepared: PreparedImage, projector, refined,
     if settings.coarse_iterations and start is None:
         coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                               iterations=settings.coarse_iterations)
-        sampled = _sampled(projector, settings.coarse_oversample)
+        sampled = sampled_operator(projector, settings.coarse_oversample)
         coarse, coarse_info = _solve(prepared, projector if sampled is None else sampled,
                                      coarse_settings, callback)
-        start, support = _coarse_support(coarse, settings)
+        start, support = coarse_support(coarse, settings)
         if not support:  # nothing to refine: the image holds no light (warned)
             coarse_info.support_fraction = 0.0
             return np.zeros(projector.grid.shape, np.float32), coarse_info
@@ -351,11 +340,12 @@ def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings
                   spread: tuple[np.ndarray, int]) -> tuple[np.ndarray, ReconstructionInfo]:
     """The sub-voxel iterations from the coarse support (docs/design.md §6.5): the first
     ``early_iterations`` (leaving at least one) on the aperture sampled
-    ``early_oversample`` times per pixel footprint when :func:`_sampled` gives that
-    projector, the rest on the refined projector from their volume (handed over on the
-    device when both keep it in the same slabs and the early run did not crop it)."""
+    ``early_oversample`` times per pixel footprint when
+    :func:`.schedule.sampled_operator` gives that projector, the rest on the refined
+    projector from their volume (handed over on the device when both keep it in the same
+    slabs and the early run did not crop it)."""
     early = min(settings.early_iterations, fine.iterations - 1)
-    sampled = _sampled(refined, settings.early_oversample) if early > 0 else None
+    sampled = sampled_operator(refined, settings.early_oversample) if early > 0 else None
     if sampled is None:
         return _solve(prepared, refined, fine, callback, factor=factor, spread=spread)
     first = dataclasses.replace(fine, iterations=early)
@@ -382,29 +372,6 @@ def _same_slabs(a, b) -> bool:
     if not (isinstance(a, PlannedOperator) and isinstance(b, PlannedOperator)):
         return False
     return list(a.plan.slabs) == list(b.plan.slabs)
-
-
-def _coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
-                    ) -> tuple[np.ndarray | None, float]:
-    """The start of a coarse-to-fine reconstruction's sub-voxels (docs/design.md §6.5) on
-    the coarse grid (the fine run spreads it), and the fraction of the grid it covers
-    (``None`` and 0 for an empty volume).
-
-    The voxels brighter than ``support`` times the brightest one, grown by one voxel in
-    every direction, are the support. Its sub-voxels start flat, at the coarse volume's
-    mean over the support (the coarse intensities carry the voxel basis's depth errors);
-    every other sub-voxel starts at zero and, the updates being multiplicative, stays
-    there.
-    """
-    peak = float(coarse.max())
-    if peak <= 0:
-        return None, 0.0
-    # a binary dilation by the 3 x 3 x 3 box, as three separable 1-D maxima (2.6x
-    # SciPy's binary_dilation on the paper's grid, the same mask)
-    keep = ndimage.maximum_filter(coarse > settings.support * peak, size=3,
-                                  mode="constant", cval=0)
-    flat = np.where(keep, np.float32(coarse[keep].mean()), np.float32(0))
-    return flat, float(keep.mean())
 
 
 def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSettings,

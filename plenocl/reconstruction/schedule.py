@@ -1,0 +1,45 @@
+"""The coarse-to-fine schedule's shared pieces (docs/design.md §6.5): the coarser aperture
+sampling of the coarse and early iterations, and the coarse volume's support that starts
+the sub-voxels; one camera's reconstruction (``reconstruct.py``) and several cameras'
+(``joint.py``) both run them."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from .settings import ReconstructionSettings
+
+
+def sampled_operator(projector, oversample: float | None):
+    """The projector with its aperture sampled ``oversample`` times per pixel footprint
+    (:meth:`plenocl.Projector.sampled`; the coarse and the early sub-voxel iterations of
+    a coarse-to-fine reconstruction) when that is coarser than its own and the operator
+    can resample; ``None`` otherwise (``oversample`` ``None`` included)."""
+    if (oversample is None or not hasattr(projector, "sampled")
+            or oversample >= projector.oversample):
+        return None
+    return projector.sampled(oversample)
+
+
+def coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
+                   ) -> tuple[np.ndarray | None, float]:
+    """The start of a coarse-to-fine reconstruction's sub-voxels (docs/design.md §6.5) on
+    the coarse grid (the fine run spreads it), and the fraction of the grid it covers
+    (``None`` and 0 for an empty volume).
+
+    The voxels brighter than ``support`` times the brightest one, grown by one voxel in
+    every direction, are the support. Its sub-voxels start flat, at the coarse volume's
+    mean over the support (the coarse intensities carry the voxel basis's depth errors);
+    every other sub-voxel starts at zero and, the updates being multiplicative, stays
+    there.
+    """
+    peak = float(coarse.max())
+    if peak <= 0:
+        return None, 0.0
+    # a binary dilation by the 3 x 3 x 3 box, as three separable 1-D maxima (2.6x
+    # SciPy's binary_dilation on the paper's grid, the same mask)
+    keep = ndimage.maximum_filter(coarse > settings.support * peak, size=3,
+                                  mode="constant", cval=0)
+    flat = np.where(keep, np.float32(coarse[keep].mean()), np.float32(0))
+    return flat, float(keep.mean())
