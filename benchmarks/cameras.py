@@ -5,7 +5,7 @@ vectors (lateral and depth RMS error over the valid vectors), the first volume's
 particles recovered and ghosts, and seconds per pair.
 
     python benchmarks/cameras.py [--lenses 116 78] [--apart 25 [10 40 ...]] [--three]
-                                 [--seeds 1] [--seeding 0.05]
+                                 [--fine-iterations 5 4] [--seeds 1] [--seeding 0.05]
 
 Cameras: the paper's optics (``paper_optics``), each looking at the world origin (the
 grid's centre), turned about the world's y axis; two cameras ``--apart`` degrees apart
@@ -31,6 +31,7 @@ from plenocl.bench.scripts import script_parser
 from plenocl.camera import Pose
 from plenocl.metrics import recovery
 from plenocl.projection import Projector
+from plenocl.reconstruction import ReconstructionSettings
 from plenocl.reconstruction.settings import COARSE_OVERSAMPLE, EARLY_OVERSAMPLE, SUPERSAMPLE
 
 #: How ``budget_scene`` traces its images (the other cameras' the same way).
@@ -72,6 +73,9 @@ def main() -> None:
     parser = script_parser(__doc__)
     parser.add_argument("--lenses", type=int, nargs=2, default=[116, 78])
     parser.add_argument("--apart", type=float, nargs="+", default=[25.0])
+    parser.add_argument("--fine-iterations", type=int, nargs="*", default=[],
+                        help="also the first separation's two cameras with these many "
+                             "sub-voxel iterations (the default schedule has 7)")
     parser.add_argument("--three", action="store_true",
                         help="also three cameras, the first separation apart")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1])
@@ -108,11 +112,14 @@ def main() -> None:
                 pair = process_pair(raws[0][0], raws[0][1], projs[0])
             else:
                 pair = process_pair([r[0] for r in raws], [r[1] for r in raws], projs)
-            seconds = time.perf_counter() - t0
-            rep = recovery(pair.vol_a, grid, scene.pa)
-            row = (*errors(pair.piv), rep.fraction, rep.ghost_fraction, seconds)
-            rows.setdefault(label, []).append(row)
-            print(line(label, *row), flush=True)
+            record(rows, label, pair, scene, grid, time.perf_counter() - t0)
+            if len(cams) == 2 and turns[1] == args.apart[0] / 2:
+                for n in args.fine_iterations:
+                    t0 = time.perf_counter()
+                    pair = process_pair([r[0] for r in raws], [r[1] for r in raws], projs,
+                                        reconstruction=ReconstructionSettings(iterations=n))
+                    record(rows, f"{label}, {n} it.", pair, scene, grid,
+                           time.perf_counter() - t0)
     print(f"\nRMS over the {len(args.seeds)} scene(s) (errors; the rest their mean)\n{HEADER}")
     for label, runs in rows.items():
         table = np.array(runs)
@@ -120,14 +127,22 @@ def main() -> None:
                    *table[:, 2:].mean(axis=0)))
 
 
-HEADER = (f"{'cameras':30s} {'lateral':>8s} {'depth':>6s} {'valid':>6s} {'recov':>6s} "
+def record(rows: dict, label: str, pair, scene, grid, seconds: float) -> None:
+    """One pair's row: printed, and kept under ``label`` for the pooled table."""
+    rep = recovery(pair.vol_a, grid, scene.pa)
+    row = (*errors(pair.piv), rep.fraction, rep.ghost_fraction, seconds)
+    rows.setdefault(label, []).append(row)
+    print(line(label, *row), flush=True)
+
+
+HEADER = (f"{'cameras':32s} {'lateral':>8s} {'depth':>6s} {'valid':>6s} {'recov':>6s} "
           f"{'ghosts':>6s} {'s/pair':>7s}")
 
 
 def line(label: str, lateral: float, depth: float, valid: float, recovered: float,
          ghosts: float, seconds: float) -> str:
     """One row of the table."""
-    return (f"{label:30s} {lateral:8.3f} {depth:6.3f} {valid:6.0%} {recovered:6.0%} "
+    return (f"{label:32s} {lateral:8.3f} {depth:6.3f} {valid:6.0%} {recovered:6.0%} "
             f"{ghosts:6.0%} {seconds:7.1f}")
 
 
