@@ -109,66 +109,105 @@ __kernel void from_frame(__global const float *frame, int fnx, int fny, int fz0,
  * frame voxel (a, b, c) sits at the user's fractional index p = M (a, b, c) + t (M: 3 x 3,
  * the pose and both grids' steps), and takes the trilinear interpolation of the user's
  * volume there, each user voxel's value scaled by `norm` (its taps' inverse sum over the
- * frame: light conserved). Both volumes are one slab each. map: M row-major then t (12
- * floats); inv: M^-1 then -M^-1 t; reach: the candidates' half-widths (3 floats).
+ * frame: light conserved). Both volumes are one slab each.
+ *
+ * Fixed point: p is computed in 64-bit integers with 32 fractional bits (PL_FX_ONE):
+ * map holds M's columns (the steps of p along a, b and c) and t, each rounded to that
+ * grid (12 longs). Integer sums are exact in any order, so to_frame_3d (p from its
+ * index) and from_frame_3d (p stepped from a candidate box's corner) find the same
+ * floor and fraction for a frame voxel, and so the same taps: the two kernels are
+ * transposes weight for weight (float32's roundings aside in the sums), and p carries
+ * no float32 rounding at large indices. start: where a user voxel's candidate box
+ * starts, as rows of M^-1 then -M^-1 t - reach (reach: the box's half-widths), in the
+ * same fixed point: the box's corner is floor(start X) + 1 along each axis.
  *
  * Parallel structure: one work-item per output voxel over a 3-D range (x, y, planes),
  * both ways, as above: to_frame_3d reads its eight taps; from_frame_3d gathers the frame
  * voxels whose taps hold its user voxel (na x nb x nc candidates, the same count for
- * every item) with to_frame_3d's own arithmetic. No atomics, no shared state. */
+ * every item). No atomics, no shared state. */
 
-/* Trilinear tap weight of user index i for a frame voxel at fractional index p along one
- * axis, from f = p - floor(p): 1 - f at floor(p), f at floor(p) + 1, else 0; to_frame_3d
- * computes the same two values once per axis, so the two kernels are transposes weight
- * for weight, to the bit. */
-inline float pl_tap3(float p, int i)
+#define PL_FX_ONE 4294967296.0f
+
+typedef struct {
+    long x, y, z;
+} pl_fx3;
+
+/* p's fraction, p - floor(p), from its low 32 bits. */
+inline float pl_fx_frac(long p)
 {
-    const int i0 = (int)floor(p);
-    const float f = p - (float)i0;
-    return i == i0 ? 1.0f - f : (i == i0 + 1 ? f : 0.0f);
+    return (float)(uint)(p & 0xffffffffL) * (1.0f / PL_FX_ONE);
 }
 
-inline float3 pl_user_index3(__global const float *m, int a, int b, int c)
+/* p = t + a A + b B + c C (map: A, B, C, t). */
+inline pl_fx3 pl_fx_index(__global const long *map, int a, int b, int c)
 {
-    return (float3)(m[0] * a + m[1] * b + m[2] * c + m[9],
-                    m[3] * a + m[4] * b + m[5] * c + m[10],
-                    m[6] * a + m[7] * b + m[8] * c + m[11]);
+    pl_fx3 p = {map[9] + a * map[0] + b * map[3] + c * map[6],
+                map[10] + a * map[1] + b * map[4] + c * map[7],
+                map[11] + a * map[2] + b * map[5] + c * map[8]};
+    return p;
 }
 
-/* frame[c][b][a] = S user for frame planes c in [c_lo, c_lo + range(2)). The eight taps
- * unrolled: a tap outside the user's grid reads voxel 0 with weight 0. */
+/* Tap weight of user index i for a frame voxel at fixed-point index p along one axis:
+ * 1 - f at floor(p), f at floor(p) + 1, else 0 (to_frame_3d's two values). */
+inline float pl_fx_tap(long p, int i)
+{
+    const int d = i - (int)(p >> 32);
+    const float f = pl_fx_frac(p);
+    return d == 0 ? 1.0f - f : (d == 1 ? f : 0.0f);
+}
+
+/* The user's voxel u scaled by its norm. */
+inline float pl_scaled(__global const float *user, __global const float *norm, size_t u)
+{
+    return user[u] * norm[u];
+}
+
+/* frame[c][b][a] = S user for frame planes c in [c_lo, c_lo + range(2)). Inside the
+ * user's grid the eight taps are read straight and interpolated axis by axis; at its
+ * faces a tap outside reads voxel 0 with weight 0. */
 __kernel void to_frame_3d(__global const float *user, __global const float *norm,
                           int unx, int uny, int unz, __global float *frame, int fnx, int fny,
-                          int c_lo, __global const float *map)
+                          int c_lo, __global const long *map)
 {
     int a = get_global_id(0), b = get_global_id(1), c = c_lo + (int)get_global_id(2);
     if (a >= fnx)
         return;
-    float3 p = pl_user_index3(map, a, b, c);
-    int x0 = (int)floor(p.x), y0 = (int)floor(p.y), z0 = (int)floor(p.z);
-    float fx = p.x - (float)x0, fy = p.y - (float)y0, fz = p.z - (float)z0;
-    float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy}, wz[2] = {1.0f - fz, fz};
+    pl_fx3 p = pl_fx_index(map, a, b, c);
+    int x0 = (int)(p.x >> 32), y0 = (int)(p.y >> 32), z0 = (int)(p.z >> 32);
+    float fx = pl_fx_frac(p.x), fy = pl_fx_frac(p.y), fz = pl_fx_frac(p.z);
+    float gx = 1.0f - fx, gy = 1.0f - fy, gz = 1.0f - fz;
     float sum = 0.0f;
-    if (x0 >= -1 && x0 < unx && y0 >= -1 && y0 < uny && z0 >= -1 && z0 < unz) {
+    if (x0 >= 0 && x0 + 1 < unx && y0 >= 0 && y0 + 1 < uny && z0 >= 0 && z0 + 1 < unz) {
+        size_t u = ((size_t)z0 * uny + y0) * unx + x0, sy = unx, sz = (size_t)uny * unx;
+        float lo = gy * (gx * pl_scaled(user, norm, u) + fx * pl_scaled(user, norm, u + 1))
+                 + fy * (gx * pl_scaled(user, norm, u + sy)
+                         + fx * pl_scaled(user, norm, u + sy + 1));
+        u += sz;
+        float hi = gy * (gx * pl_scaled(user, norm, u) + fx * pl_scaled(user, norm, u + 1))
+                 + fy * (gx * pl_scaled(user, norm, u + sy)
+                         + fx * pl_scaled(user, norm, u + sy + 1));
+        sum = gz * lo + fz * hi;
+    } else if (x0 >= -1 && x0 < unx && y0 >= -1 && y0 < uny && z0 >= -1 && z0 < unz) {
+        float wx[2] = {gx, fx}, wy[2] = {gy, fy}, wz[2] = {gz, fz};
         for (int k = 0; k < 8; k++) {
             int x = x0 + (k & 1), y = y0 + ((k >> 1) & 1), z = z0 + (k >> 2);
             bool in = x >= 0 && x < unx && y >= 0 && y < uny && z >= 0 && z < unz;
             size_t u = in ? ((size_t)z * uny + y) * unx + x : 0;
-            float w = wx[k & 1] * wy[(k >> 1) & 1] * wz[k >> 2];
-            sum += in ? w * (user[u] * norm[u]) : 0.0f;
+            sum += in ? wz[k >> 2] * (wy[(k >> 1) & 1] * (wx[k & 1] * pl_scaled(user, norm, u)))
+                      : 0.0f;
         }
     }
     frame[((size_t)c * fny + b) * fnx + a] = sum;
 }
 
 /* user[z][y][x] = S^T frame for user planes z in [z_lo, z_lo + range(2)); with
- * use_support, voxels where support is 0 are written 0 unread. */
+ * use_support, voxels where support is 0 are written 0 unread. The candidates' p is
+ * stepped from the box's corner by map's columns. */
 __kernel void from_frame_3d(__global const float *frame, int fnx, int fny, int fnz,
                             __global float *user, __global const float *norm,
                             __global const float *support, int use_support,
-                            int unx, int uny, int z_lo, __global const float *map,
-                            __global const float *inv, __global const float *reach,
-                            int na, int nb, int nc)
+                            int unx, int uny, int z_lo, __global const long *map,
+                            __global const long *start, int na, int nb, int nc)
 {
     int x = get_global_id(0), y = get_global_id(1), z = z_lo + (int)get_global_id(2);
     if (x >= unx)
@@ -178,23 +217,30 @@ __kernel void from_frame_3d(__global const float *frame, int fnx, int fny, int f
         user[out] = 0.0f;
         return;
     }
-    int a0 = (int)floor(inv[0] * x + inv[1] * y + inv[2] * z + inv[9] - reach[0]) + 1;
-    int b0 = (int)floor(inv[3] * x + inv[4] * y + inv[5] * z + inv[10] - reach[1]) + 1;
-    int c0 = (int)floor(inv[6] * x + inv[7] * y + inv[8] * z + inv[11] - reach[2]) + 1;
+    int a0 = (int)((start[9] + x * start[0] + y * start[1] + z * start[2]) >> 32) + 1;
+    int b0 = (int)((start[10] + x * start[3] + y * start[4] + z * start[5]) >> 32) + 1;
+    int c0 = (int)((start[11] + x * start[6] + y * start[7] + z * start[8]) >> 32) + 1;
+    const pl_fx3 A = {map[0], map[1], map[2]}, B = {map[3], map[4], map[5]};
+    const pl_fx3 C = {map[6], map[7], map[8]};
+    pl_fx3 r = pl_fx_index(map, a0, b0, c0);
     float sum = 0.0f;
     for (int k = 0; k < nc; k++) {
         int c = c0 + k;
+        pl_fx3 q = r;
         for (int j = 0; j < nb; j++) {
             int b = b0 + j;
+            pl_fx3 p = q;
             for (int i = 0; i < na; i++) {
                 int a = a0 + i;
-                float3 p = pl_user_index3(map, a, b, c);
-                float w = pl_tap3(p.x, x) * pl_tap3(p.y, y) * pl_tap3(p.z, z);
+                float w = pl_fx_tap(p.z, z) * (pl_fx_tap(p.y, y) * pl_fx_tap(p.x, x));
                 bool inside = a >= 0 && a < fnx && b >= 0 && b < fny && c >= 0 && c < fnz;
                 size_t f = inside ? ((size_t)c * fny + b) * fnx + a : 0;
                 sum += inside ? w * frame[f] : 0.0f;
+                p.x += A.x; p.y += A.y; p.z += A.z;
             }
+            q.x += B.x; q.y += B.y; q.z += B.z;
         }
+        r.x += C.x; r.y += C.y; r.z += C.z;
     }
     user[out] = sum * norm[out];
 }

@@ -4,7 +4,7 @@
  * Inf ever leaves a kernel. Sizes are arguments; one build serves every shape.
  *
  * Parallel structure: one work-item per pixel (ratio, prepare_image) or per voxel
- * (update_*, mlos, mask_dark); partial_sums is the first level of a deterministic
+ * (update_*, mlos, mask_dark, add_into); partial_sums is the first level of a deterministic
  * two-level reduction (1024 work-items, each a strided or contiguous run; the host adds
  * their partial sums in double precision); row_extent has one work-item per volume row.
  * No atomics anywhere. */
@@ -77,6 +77,16 @@ __kernel void update_exp(__global float *vol, __global const float *b,
     if (s <= smin || !(e > 0.0f)) { vol[j] = 0.0f; return; }
     float x = relax * b[j] / (by_sens ? s : 1.0f);
     vol[j] = pl_clean(e * exp(clamp(x, -PL_EXP_CLAMP, PL_EXP_CLAMP)));
+}
+
+/* a += b: several cameras' back projections summed (reconstruction/joint.py). A plain
+ * kernel, one item per voxel: pyopencl's Array arithmetic loops each work-item over a
+ * strided range, which PoCL runs 50-70x slower on a paper-size sub-voxel volume. */
+__kernel void add_into(__global float *a, __global const float *b, int n)
+{
+    const int j = get_global_id(0);
+    if (j >= n) return;
+    a[j] += b[j];
 }
 
 /* MLOS first guess: the weighted geometric mean of the pixels a voxel reaches,

@@ -120,7 +120,7 @@ def test_two_cameras_see_the_boundary_layer_sharper_in_depth(tmp_path, capsys):
     """``plenocl demo --cameras 2``: two cameras 25 degrees apart, each calibrated from
     its white image and its pose from a dot target (within 0.05 degree and 0.02 mm),
     measure the boundary layer with a smaller depth error than the first camera alone on
-    the same particles, recovering more of them."""
+    the same particles, recovering more of them; the demo's figures are drawn."""
     out = tmp_path / "two"
     assert main(["demo", "--cameras", "2", "--out", str(out)]) == 0
     assert "two cameras 25 deg apart" in capsys.readouterr().out
@@ -129,6 +129,12 @@ def test_two_cameras_see_the_boundary_layer_sharper_in_depth(tmp_path, capsys):
     assert two["depth_voxels"] < 0.8 * one["depth_voxels"], s["fields"]
     assert two["valid_fraction"] >= 0.9
     assert two["recovered_fraction"] > one["recovered_fraction"]
+    # the mean profile within the single camera demo's bound, and its figures drawn
+    assert two["mean_profile_rms_error"] <= 0.05, two
+    from plenocl.demo.figures import FIGURES
+
+    for name in FIGURES:
+        assert (out / name).stat().st_size > 10_000, name
     for pose in s["pose_errors"]:
         assert pose["angle_deg"] < 0.05 and pose["translation_mm"] < 0.02, s["pose_errors"]
     assert main(["demo", "--cameras", "2", "--size", "paper", "--out", str(out)]) == 2

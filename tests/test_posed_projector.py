@@ -73,6 +73,37 @@ def test_the_resampling_kernels_match_the_numpy_twin(queue, pose):
         np.array([[0, 0, 0], [3, 4, 5], [6, 8, 10]]))[1].sum(axis=1), 1.0, rtol=1e-5)
 
 
+@pytest.mark.parametrize("pose", [TILTED, Pose((0.0, 25.0, 0.0), (0.0, 0.0, 0.0)),
+                                  Pose((0.0, -12.5, 0.0), (0.0, 0.0, 0.0))])
+def test_the_transpose_finds_every_tap_and_the_kernels_are_transposes(queue, pose):
+    """``Sᵀ`` gathers each world voxel's frame voxels from a box of ``counts`` candidates
+    (``candidate_box``; a turn about y alone leaves y's two candidates, ``2 reach`` whole):
+    every tap of the float64 twin lies in it (but its round-off's, below 1e-9, where a
+    pose puts frame and world planes on each other), and ``to_frame_3d`` and
+    ``from_frame_3d`` are each other's transposes to float32 rounding."""
+    proj = Projector(_camera(pose), GRID, queue)
+    rs = proj.resampler
+    if pose is not TILTED:
+        assert rs.counts[1] == 2
+    s = resample_matrix_3d(GRID, proj.frame.grid, pose).tocsc()
+    fnz, fny, fnx = proj.frame.grid.shape
+    for col in range(0, s.shape[1], 7):
+        span = slice(s.indptr[col], s.indptr[col + 1])
+        rows = s.indices[span][s.data[span] > 1e-9]
+        c, b, a = np.unravel_index(rows, (fnz, fny, fnx))
+        vox = np.array(np.unravel_index(col, GRID.shape))
+        first = ((vox[::-1] @ rs.fixed_start[:9].reshape(3, 3).T + rs.fixed_start[9:])
+                 >> 32) + 1
+        for axis, got in enumerate((a, b, c)):
+            assert (got >= first[axis]).all() and (got < first[axis] + rs.counts[axis]).all()
+    rng = np.random.default_rng(8)
+    vol = rng.random(GRID.shape).astype(np.float32)
+    frame_vol = rng.random(proj.frame.grid.shape).astype(np.float32)
+    forward = np.dot(proj.volume_to_frame(vol).ravel(), frame_vol.ravel().astype(np.float64))
+    back = np.dot(vol.ravel(), proj.volume_from_frame(frame_vol).ravel().astype(np.float64))
+    assert abs(forward - back) <= 1e-6 * abs(forward)
+
+
 def test_the_posed_operator_is_adjoint_and_skips_planes_exactly(queue):
     proj = Projector(_camera(TILTED), GRID, queue)
     assert_adjoint(proj)

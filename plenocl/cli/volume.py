@@ -296,7 +296,7 @@ def _two_cameras(args: argparse.Namespace) -> int:
           f"{100 * two['recovered_fraction']:.0f}% of particles recovered; the first camera "
           f"alone {one['lateral_voxels']:.3f} / {one['depth_voxels']:.3f} voxel, "
           f"{100 * one['recovered_fraction']:.0f}%; poses calibrated within {poses}; "
-          f"outputs in {args.out}/ (summary.json, field.vti)")
+          f"outputs in {args.out}/ (summary.json, field.vti, fig_*.png)")
     return 0
 
 

@@ -327,13 +327,7 @@ def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow, truths=None)
     if truths is None:
         truths = field_truths(run.out / "field.npz", sc, flow)
     meas, true, averaged, valid, coords = truths
-    z = coords[2]
     err = np.sqrt(np.sum((meas - true) ** 2, axis=0))
-    prof_meas = np.array([np.mean(meas[1, k][valid[k]]) for k in range(len(z))])
-    prof_spread = np.array([np.std(meas[1, k][valid[k]]) for k in range(len(z))])
-    prof_true = np.array([np.mean(true[1, k][valid[k]]) for k in range(len(z))])
-    analytic = flow.mean_streamwise(z) / 1e3
-    z_dense = np.linspace(sc.z_wall, float(z.min()), 60)  # from the wall up
     pos_a, _ = read_particles(run.path("particles_a.csv"))
     inside = pos_a[sc.grid.contains(pos_a)]
     rec = {}
@@ -346,14 +340,30 @@ def evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow, truths=None)
         "vectors": int(valid.size),
         "valid_fraction": float(valid.mean()),
         "velocity_rms_error": float(np.sqrt(np.mean(err[valid] ** 2)) / U_INF),
-        "mean_profile_rms_error": float(np.sqrt(np.mean((prof_meas - prof_true) ** 2)) / U_INF),
-        "mean_profile_rms_error_vs_analytic":
-            float(np.sqrt(np.mean((prof_meas - analytic) ** 2)) / U_INF),
+        **mean_profile(truths, sc, flow),
         "component_rms_error": {c: float(np.sqrt(np.mean((meas[i] - true[i])[valid] ** 2))
                                          / U_INF) for i, c in enumerate("xyz")},
         "lateral_depth_error": lateral_depth_errors(
             meas, {"point": true, "window_averaged": averaged}, valid, sc),
         "recovery": rec,
+    }
+
+
+def mean_profile(truths, sc: Scenario, flow: CameraFrameFlow) -> dict:
+    """The streamwise mean profile of a field's valid vectors (``truths``:
+    :func:`field_truths`) beside the truth at the same vectors and the analytic profile:
+    its RMS errors as fractions of ``U∞``, and the profiles the figures draw."""
+    meas, true, _, valid, coords = truths
+    z = coords[2]
+    prof_meas = np.array([np.mean(meas[1, k][valid[k]]) for k in range(len(z))])
+    prof_spread = np.array([np.std(meas[1, k][valid[k]]) for k in range(len(z))])
+    prof_true = np.array([np.mean(true[1, k][valid[k]]) for k in range(len(z))])
+    analytic = flow.mean_streamwise(z) / 1e3
+    z_dense = np.linspace(sc.z_wall, float(z.min()), 60)  # from the wall up
+    return {
+        "mean_profile_rms_error": float(np.sqrt(np.mean((prof_meas - prof_true) ** 2)) / U_INF),
+        "mean_profile_rms_error_vs_analytic":
+            float(np.sqrt(np.mean((prof_meas - analytic) ** 2)) / U_INF),
         "profile_dense": {"wall_distance_mm": (sc.z_wall - z_dense).tolist(),
                           "analytic": (flow.mean_streamwise(z_dense) / 1e3).tolist()},
         "profile": {"z_mm": z.tolist(), "wall_distance_mm": (sc.z_wall - z).tolist(),

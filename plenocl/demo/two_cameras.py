@@ -37,6 +37,7 @@ from .boundary_layer import (
     chain_settings,
     field_truths,
     lateral_depth_errors,
+    mean_profile,
     scenario,
     sensor_options,
     stage_particles,
@@ -53,9 +54,11 @@ def true_poses(apart: float) -> list[Pose]:
 
 
 def run_two_cameras(out_dir: str | Path, queue=None, seed: int = 0, apart: float = 25.0,
-                    log: Callable[[str], None] = print) -> dict:
+                    figures: bool = True, log: Callable[[str], None] = print) -> dict:
     """Run the two-camera chain; outputs and ``summary.json`` go to ``out_dir``
-    (finished stages are skipped when the same run is started again)."""
+    (finished stages are skipped when the same run is started again), and with
+    ``figures`` the single camera demo's figures of the two cameras' field
+    (:data:`plenocl.demo.figures.FIGURES`)."""
     sc = scenario("small")
     flow = CameraFrameFlow(sc, seed)
     queue = get_queue(queue)  # one queue: the two cameras' projectors share it
@@ -72,7 +75,15 @@ def run_two_cameras(out_dir: str | Path, queue=None, seed: int = 0, apart: float
     cams = [Camera.from_toml(run.path(f"camera_{k}.toml")) for k in (1, 2)]
     run.run("piv", ["field.npz", "field_camera_1.npz", "vol_a.npz"],
             lambda: _stage_piv(run, sc, cams, queue))
-    summary = _evaluate(run, sc, flow, cams, poses)
+    summary, truths = _evaluate(run, sc, flow, cams, poses)
+    if figures:
+        from .figures import FIGURES, boundary_layer_figures
+
+        profile = mean_profile(truths, sc, flow)
+        meas, _, averaged, valid, coords = truths
+        run.run("figures", list(FIGURES),
+                lambda: boundary_layer_figures(run.out, (meas, averaged, valid, coords),
+                                               sc.z_wall, profile, U_INF))
     summary["seconds"] = run.timings
     write_json(run.path("summary.json"), summary, sort_keys=True)
     return summary
@@ -140,24 +151,28 @@ def _stage_piv(run: StageRunner, sc: Scenario, cams: list[Camera], queue) -> Non
 
 
 def _evaluate(run: StageRunner, sc: Scenario, flow: CameraFrameFlow, cams: list[Camera],
-              poses: list[Pose]) -> dict:
-    """Both fields' errors against the window-averaged truth, the poses' errors and the
-    particles the first volumes recover."""
+              poses: list[Pose]) -> tuple[dict, tuple]:
+    """Both fields' errors against the window-averaged truth and their mean profiles' RMS
+    errors, the poses' errors and the particles the first volumes recover; and the two
+    cameras' field beside its truths (:func:`field_truths`)."""
     from ..volumefile import load_volume
 
     pos_a, _ = read_particles(run.path("particles_a.csv"))
     inside = pos_a[sc.grid.contains(pos_a)]
     out = {"apart_deg": poses[0].turn_deg(poses[1]), "u_inf_m_s": U_INF, "dt_s": DT,
            "fields": {}}
+    kept = {}
     for label, field, vol in (("two_cameras", "field.npz", "vol_a.npz"),
                               ("camera_1_alone", "field_camera_1.npz", "vol_a_camera_1.npz")):
-        meas, _, averaged, valid, _ = field_truths(run.out / field, sc, flow)
+        truths = kept[label] = field_truths(run.out / field, sc, flow)
+        meas, _, averaged, valid, _ = truths
         rep = recovery(load_volume(run.path(vol))[0], sc.grid, inside)
         out["fields"][label] = {
             **lateral_depth_errors(meas, {"window_averaged": averaged}, valid,
                                    sc)["window_averaged"],
+            "mean_profile_rms_error": mean_profile(truths, sc, flow)["mean_profile_rms_error"],
             "valid_fraction": float(valid.mean()), "recovered_fraction": rep.fraction,
             "ghost_fraction": rep.ghost_fraction}
     out["pose_errors"] = [{"angle_deg": c.pose.turn_deg(p), "translation_mm": c.pose.shift_mm(p)}
                           for c, p in zip(cams, poses, strict=True)]
-    return out
+    return out, kept["two_cameras"]

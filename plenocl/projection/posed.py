@@ -84,6 +84,38 @@ def pose_index_map(frame: Grid, grid: Grid, pose: Pose) -> tuple[np.ndarray, np.
     return (p[1:] - p[0]).T, p[0]
 
 
+#: The fixed-point scale of the kernels' frame-to-world map (``PL_FX_ONE``: 32 bits of
+#: fraction in 64-bit integers).
+FX_ONE = 2.0 ** 32
+
+
+def fixed_point_map(matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """The kernels' map (``kernels/resample.cl``): ``matrix``'s columns (the steps of the
+    world index along the frame's ``a``, ``b`` and ``c``) then ``offset``, as int64 with
+    32 fractional bits. Entries within 1e-9 of a whole number are taken whole, so that a
+    whole-voxel shift or a quarter turn resamples exactly (taps exactly 1 and 0)."""
+    values = np.concatenate([np.asarray(matrix, np.float64).T.ravel(),
+                             np.asarray(offset, np.float64)])
+    whole = np.round(values)
+    values = np.where(np.abs(values - whole) < 1e-9, whole, values)
+    return np.round(values * FX_ONE).astype(np.int64)
+
+
+def candidate_box(matrix: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """Where ``Sᵀ`` looks for the frame voxels whose taps hold a world voxel ``X``: the
+    box from ``floor(start X) + 1`` (``start``: the rows of ``M⁻¹`` then
+    ``-M⁻¹ t - reach``, in the kernels' fixed point) with ``counts`` candidates along
+    ``a``, ``b``, ``c``. A tap holds ``X`` only where ``|p - X| < 1`` on every axis, so
+    its frame position ``q = M⁻¹ (X - t)`` is within ``reach = Σ|M⁻¹ row|`` (open), which
+    holds at most ``ceil(2 reach)`` whole numbers; the fixed point's start errs by about
+    1e-7 voxel, so a candidate it could leave out weighs less than float32 resolves."""
+    inv = np.linalg.inv(matrix)
+    reach = np.abs(inv).sum(axis=1)
+    start = np.concatenate([inv.ravel(), -inv @ offset - reach])
+    counts = tuple(i32(math.ceil(2 * r - 1e-6)) for r in reach)
+    return np.round(start * FX_ONE).astype(np.int64), counts
+
+
 class PoseResampler:
     """``S`` and ``Sᵀ`` between a world grid and a posed camera's frame grid, on one
     queue; the interface of :class:`plenocl.projection.resample.FrameResampler`.
@@ -106,13 +138,11 @@ class PoseResampler:
         self.grid, self.frame, self.pose = grid, frame, pose
         self._k = KernelSet(queue, "resample.cl", ("to_frame_3d", "from_frame_3d"))
         m, t = pose_index_map(frame, grid, pose)
-        inv = np.linalg.inv(m)
         self.matrix, self.offset = m, t
-        self._map = self._k.to_device(np.concatenate([m.ravel(), t]).astype(f32))
-        self._inv = self._k.to_device(np.concatenate([inv.ravel(), -inv @ t]).astype(f32))
-        reach = np.abs(inv).sum(axis=1) * (1 + 1e-6)  # |a - q_a| < reach, rounding spared
-        self._reach = self._k.to_device(reach.astype(f32))
-        self._counts = tuple(i32(math.ceil(2 * r)) for r in reach)
+        self.fixed_map = fixed_point_map(m, t)
+        self._map = self._k.to_device(self.fixed_map)
+        self.fixed_start, self.counts = candidate_box(m, t)
+        self._start = self._k.to_device(self.fixed_start)
         self._planes = self._planes_read()
         self.norm = self._column_sums()
         inverse = np.divide(1.0, self.norm, out=np.zeros_like(self.norm),
@@ -173,7 +203,7 @@ class PoseResampler:
         for z0, z1 in runs(np.asarray(active, bool)):
             self._k.launch("from_frame_3d", (unx, uny, z1 - z0), frame, i32(fnx), i32(fny),
                            i32(fnz), user, norm, *sup, i32(unx), i32(uny), i32(z0),
-                           self._map, self._inv, self._reach, *self._counts)
+                           self._map, self._start, *self.counts)
 
     def columns(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The columns of ``S`` (normalised) of world voxels ``(N, 3)`` ``(iz, iy, ix)``,
@@ -181,13 +211,13 @@ class PoseResampler:
         ``(N, K)`` (``K`` candidates per voxel, unused ones at ``(0, 0, 0)``, weight 0)."""
         vox = np.asarray(voxels, np.int64).reshape(-1, 3)
         user = vox[:, ::-1].astype(np.float64)
-        inv = np.linalg.inv(self.matrix)
-        reach = self._reach.get().astype(np.float64)
-        start = np.floor(user @ inv.T - inv @ self.offset - reach).astype(np.int64) + 1
-        steps = np.stack(np.meshgrid(*(np.arange(int(n)) for n in self._counts),
+        fs = self.fixed_start  # the kernel's box, in its fixed point
+        start = ((vox[:, ::-1] @ fs[:9].reshape(3, 3).T + fs[9:]) >> 32) + 1
+        steps = np.stack(np.meshgrid(*(np.arange(int(n)) for n in self.counts),
                                      indexing="ij"), axis=-1).reshape(-1, 3)
         abc = start[:, None, :] + steps[None]
-        p = abc @ self.matrix.T + self.offset
+        fx = self.fixed_map  # the kernels' own p, exact in float64 (< 2^53)
+        p = (abc @ fx[:9].reshape(3, 3) + fx[9:]) / FX_ONE
         w = np.prod(np.maximum(0.0, 1.0 - np.abs(p - user[:, None, :])), axis=-1)
         shape = np.array(self.frame.shape[::-1])
         w[np.any((abc < 0) | (abc >= shape), axis=-1)] = 0

@@ -54,17 +54,14 @@ class JointSolver:
         self.images = [im.on_device(self.queue) * np.float32(f)
                        for im, f in zip(prepared, factors, strict=True)]
         self.thresholds = [im.threshold * f for im, f in zip(prepared, factors, strict=True)]
-        self.sens = self._added([s.sens for s in self.solvers])
+        self.sens = self._added([[s.copy() for s in solver.sens] for solver in self.solvers])
         self.smin = first.smin
 
-    @staticmethod
-    def _added(volumes: Sequence[list]) -> list:
-        """The slab-wise sum of several device volumes (a new volume)."""
-        out = [s.copy() for s in volumes[0]]
+    def _added(self, volumes: Sequence[list]) -> list:
+        """The slab-wise sum of several device volumes, into the first."""
         for vol in volumes[1:]:
-            for o, s in zip(out, vol, strict=True):
-                o += s
-        return out
+            self.solvers[0].add_into(volumes[0], vol)
+        return volumes[0]
 
     def uniform_start(self) -> list:
         """A constant volume whose projections carry the images' light."""

@@ -17,7 +17,7 @@ from .operator import ProjectionOperator
 from .supersample import LateralBinning
 
 _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
-            "partial_sums", "row_extent")
+            "partial_sums", "row_extent", "add_into")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
 #: The literal methods' ratio floor (kernels/solver.cl PL_RATIO_MIN: log -13.8).
@@ -121,6 +121,11 @@ class Solver:
         solver's sensitivity or ``sens`` (device slabs like ``vol``: several cameras')."""
         for v, bb, s in zip(vol, b, self.sens if sens is None else sens):
             self._run(name, v.size, v, bb, s, *scalars)
+
+    def add_into(self, out, vol) -> None:
+        """``out += vol`` slab by slab (device slabs of one plan), on the device."""
+        for o, v in zip(out, vol, strict=True):
+            self._run("add_into", o.size, o, v)
 
     def row_extent(self, vol) -> np.ndarray:
         """First and last non-zero ``x`` of every row ``(nz, ny, 2)`` int32, computed on
