@@ -42,6 +42,34 @@ def test_simulate_writes_16_bit_tiff_and_truth(tmp_path, small_camera):
     np.testing.assert_allclose(truth, pos)
 
 
+def test_simulate_several_cameras_writes_each_cameras_pair_in_its_folder(tmp_path,
+                                                                           small_camera):
+    """``--camera`` with several files: each posed camera's images of the same world
+    particles in ``camK/`` beside ``--out`` (the same names: the batch's frame numbers),
+    each the Python simulator's image through that camera's pose, the truth once."""
+    from plenocl import simulate_image
+    from plenocl.camera import Pose
+
+    cams = [small_camera.with_pose(Pose((0.0, t, 0.0), (0.0, 0.0, 0.0))) for t in (-12.5, 12.5)]
+    for k, cam in enumerate(cams, start=1):
+        cam.to_toml(tmp_path / f"cam{k}.toml")
+    pos = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 1.0]])
+    write_particles(tmp_path / "p.csv", pos, [3e4, 3e4])
+    rc = main(["simulate", "--camera", str(tmp_path / "cam1.toml"), str(tmp_path / "cam2.toml"),
+               "--particles", str(tmp_path / "p.csv"), "--out", str(tmp_path / "raw.tif"),
+               "--rays", "500", "--velocity", "0.5", "0", "0", "--dt", "1e-3", "--seed", "4"])
+    assert rc == 0
+    truth_a, _ = read_particles(tmp_path / "raw_a_particles.csv")
+    images = {}
+    for k, cam in enumerate(cams, start=1):
+        for tag in "ab":
+            images[k, tag] = tifffile.imread(tmp_path / f"cam{k}" / f"raw_{tag}.tif")
+        expected = simulate_image(cam, truth_a, 3e4, 500, 4 + k - 1, bit_depth=16)
+        np.testing.assert_array_equal(images[k, "a"], expected)
+    assert not np.array_equal(images[1, "a"], images[2, "a"])  # two views
+    assert not list(tmp_path.glob("raw_*.tif"))  # each camera's images in its folder
+
+
 def test_simulate_reports_bad_files_clearly(tmp_path, capsys):
     (tmp_path / "p.csv").write_text("x_mm,y_mm\n1,2\n")
     rc = main(["simulate", "--particles", str(tmp_path / "p.csv"), "--out",

@@ -6,6 +6,8 @@ displaced pairs, white images and grid files from the command line.
     plenocl simulate --camera cam.toml --particles p.csv --out raw.tif
     plenocl simulate --camera cam.toml --particles p.csv --velocity 4.5 0 0 --dt 175e-6 \
         --out raw.tif                                 # raw_a.tif and raw_b.tif
+    plenocl simulate --camera cam1.toml cam2.toml --particles p.csv --out raw.tif
+                                                      # cam1/raw.tif, cam2/raw.tif
     plenocl white --camera cam.toml --out white.tif
     plenocl grid --camera cam_cal.toml --z -2 2 --out grid.toml
 """
@@ -23,15 +25,19 @@ from ..units import check_displacement, check_dt
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Simulate the raw image of the particles in a CSV file (16-bit TIFF); with a flow,
-    the pair of images ``dt`` apart, the particles at ``-dt/2`` and ``+dt/2``."""
+    the pair of images ``dt`` apart, the particles at ``-dt/2`` and ``+dt/2``. Several
+    cameras (each file's ``[pose]`` placing it in the world the particles are given in,
+    docs/design.md §2.2): each camera's images in its folder ``camK`` (K from 1) beside
+    ``OUT``, the same particles seen by all."""
     from ..flows import SolidBodyRotation, Uniform, displace
     from ..io.files import read_particles, write_particles
 
-    cam = load_camera(args.camera)
+    cams = [load_camera(c) for c in (args.camera or [None])]
+    cam = cams[0]
     positions, intensities = read_particles(args.particles)
     out = Path(args.out)
     if args.velocity is None and args.omega is None:
-        _simulate_one(args, cam, out, positions, intensities)
+        _simulate_cameras(args, cams, out, positions, intensities)
         write_particles(out.with_name(out.stem + "_particles.csv"), positions, intensities)
         return 0
     if args.dt is None:
@@ -45,16 +51,37 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for tag, sign in (("a", -0.5), ("b", 0.5)):
         moved = displace(positions, flow, sign * args.dt)
         path = out.with_name(f"{out.stem}_{tag}{out.suffix}")
-        _simulate_one(args, cam, path, moved, intensities)
+        _simulate_cameras(args, cams, path, moved, intensities)
         write_particles(path.with_name(path.stem + "_particles.csv"), moved, intensities)
     return 0
 
 
-def _simulate_one(args, cam, out: Path, positions, intensities) -> None:
+def _simulate_cameras(args, cams: list, out: Path, positions, intensities) -> None:
+    """Each camera's image of the particles: ``out`` for one camera; for several, in
+    each camera's folder ``camK`` beside it (``K`` from 1; the names, and so their frame
+    numbers, are the same in every folder, as the batch pairs them: docs/batch.md),
+    camera ``K``'s ray sampling seeded ``seed + K - 1``."""
+    if len(cams) == 1:
+        _simulate_one(args, cams[0], out, positions, intensities, args.seed)
+        return
+    for k, cam in enumerate(cams, start=1):
+        _simulate_one(args, cam, camera_image_path(out, k), positions, intensities,
+                      args.seed + k - 1)
+
+
+def camera_image_path(out: Path, k: int) -> Path:
+    """Camera ``k``'s image of ``out`` (``run/raw_a.tif`` → ``run/cam2/raw_a.tif``),
+    its folder made."""
+    folder = out.parent / f"cam{k}"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / out.name
+
+
+def _simulate_one(args, cam, out: Path, positions, intensities, seed: int) -> None:
     from ..io.files import write_tiff
     from ..simulate import simulate_image
 
-    image = simulate_image(cam, positions, intensities, args.rays, args.seed,
+    image = simulate_image(cam, positions, intensities, args.rays, seed,
                            blur_px=args.blur, background=args.background,
                            photon_noise=args.photon_noise, read_noise=args.read_noise,
                            bit_depth=16, queue=args.device)
@@ -106,9 +133,16 @@ def cmd_grid(args: argparse.Namespace) -> int:
 THREE_LAYERS = 48
 
 
-def _camera_and_noise(p, sensor_noise: bool = True) -> None:
-    p.add_argument("--camera", default=None,
-                   help="camera TOML file or preset (synthetic, paper); default synthetic")
+def _camera_and_noise(p, sensor_noise: bool = True, several: bool = False) -> None:
+    if several:
+        p.add_argument("--camera", default=None, nargs="+",
+                       help="camera TOML file or preset (synthetic, paper); default "
+                            "synthetic; several files: several cameras, each placed by "
+                            "its [pose], camera K writing into the folder camK beside "
+                            "OUT")
+    else:
+        p.add_argument("--camera", default=None,
+                       help="camera TOML file or preset (synthetic, paper); default synthetic")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the ray sampling (the same seed gives the same image)")
     if sensor_noise:
@@ -120,7 +154,7 @@ def add_simulate_parsers(sub) -> None:
     """Register ``simulate``, ``white`` and ``grid``."""
     p = sub.add_parser("simulate", help="simulate a raw plenoptic image of particles, or a "
                                         "displaced pair")
-    _camera_and_noise(p)
+    _camera_and_noise(p, several=True)
     p.add_argument("--particles", required=True,
                    help="CSV with header x_mm,y_mm,z_mm[,intensity] (counts per particle)")
     p.add_argument("--out", required=True, help="output 16-bit TIFF (a pair: OUT_a, OUT_b)")

@@ -24,6 +24,7 @@ from ..options import is_integer, with_keywords
 from ..peaks import find_particles, merge_close
 from ..piv import PIVSettings, piv3d
 from ..piv.imagefit import ImageFit, ImageFitSettings
+from ..piv.jointfit import JointImageFit
 from ..piv.refinement import (
     FITTED_POSITION_SIGMA,
     SEARCH,
@@ -158,18 +159,19 @@ class TrackSettings:
 class FrameParticles:
     """One frame's particles: positions ``(N, 3)`` mm and voxel indices, their standard
     deviations ``(N, 3)`` mm and intensities ``(N,)``; the median and noise the
-    reconstruction removed from the frame (``None`` when it removed none); the peaks
-    the fit to the raw image dropped (:class:`~plenocl.piv.imagefit.FittedParticles`)."""
+    reconstruction removed from each camera's frame (``None`` when it removed none); the
+    peaks the fit to the raw images dropped
+    (:class:`~plenocl.piv.imagefit.FittedParticles`)."""
 
     positions: np.ndarray
     index: np.ndarray
     sigma: np.ndarray
     intensities: np.ndarray
-    background: tuple[float, float] | None = None
+    background: list[tuple[float, float]] | None = None
     dropped: int = 0
 
 
-def track(frames, projector: ProjectionOperator, dt: float,
+def track(frames, projector: ProjectionOperator | list, dt: float,
           settings: TrackSettings | None = None, *,
           progress: Callable[[int, int], None] | None = None, **options) -> Tracks:
     """Track the particles of a time-resolved recording.
@@ -179,9 +181,14 @@ def track(frames, projector: ProjectionOperator, dt: float,
     frames
         The raw images, one per frame at a constant interval (a sequence of
         ``(rows, cols)`` arrays of the projector's camera, or one ``(frames, rows,
-        cols)`` array), at least ``settings.min_length`` of them.
+        cols)`` array), at least ``settings.min_length`` of them. Several cameras: one
+        such sequence per camera, frame ``k`` of each taken at the same instant.
     projector
-        A :class:`plenocl.Projector` (reused for every frame).
+        A :class:`plenocl.Projector` (reused for every frame); several cameras: a list
+        of them, one per camera, on one world grid and queue (docs/design.md §6.7): each
+        frame is one joint reconstruction, its particles are fitted to every camera's
+        image at once (:class:`plenocl.piv.jointfit.JointImageFit`), and no focal zone
+        weighs the neighbours' depth prior (the cameras see depth).
     dt
         The time between frames (velocities are mm per unit of ``dt``).
     settings
@@ -201,18 +208,18 @@ def track(frames, projector: ProjectionOperator, dt: float,
     settings = with_keywords(TrackSettings, settings, options, "track")
     if progress is not None and not callable(progress):
         raise TypeError(f"progress must be a callable progress(done, total), got {progress!r}")
-    frames = _check_frames(frames, settings.min_length)
+    recording = Recording(frames, projector, settings.min_length)
     dt = _check_dt(dt)
     refits = settings.refits if settings.image_fit is not None else 0
-    steps = _Steps(progress, len(frames) * (1 + refits))
-    particles, first_step = _frame_particles(frames, projector, settings, steps)
+    steps = _Steps(progress, len(recording.frames) * (1 + refits))
+    particles, first_step = _frame_particles(recording, settings, steps)
     table = link([p.index for p in particles], settings.search, first_step, settings.gap)
     _warn_if_unlinked(table)
     table = table[(table >= 0).sum(axis=1) >= settings.min_length]
     tracks = smooth_tracks(*_gather(table, particles), dt, projector, settings)
     dropped = sum(part.dropped for part in particles)
     for _ in range(refits):
-        tracks, lost = _refit(tracks, frames, particles, projector, settings, steps)
+        tracks, lost = _refit(tracks, recording, particles, settings, steps)
         dropped += lost
     if dropped:  # a refit's dropped particle may leave its track too short
         tracks = tracks.longer_than(settings.min_length)
@@ -232,7 +239,7 @@ class _Steps:
             self.progress(self.done, self.total)
 
 
-def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projector,
+def _refit(tracks: Tracks, recording: Recording, particles: list[FrameParticles],
            settings: TrackSettings, steps: _Steps) -> tuple[Tracks, int]:
     """Every tracked particle fitted to its frame again from its smoothed position, and
     the tracks smoothed again; and the particles the fits dropped (NaN: the track misses
@@ -240,20 +247,22 @@ def _refit(tracks: Tracks, frames: list, particles: list[FrameParticles], projec
     measured, sigma = np.full_like(tracks.measured, np.nan), np.full_like(tracks.measured, np.nan)
     intensity = np.full_like(tracks.intensities, np.nan)
     dropped = 0
-    for k, (raw, part) in enumerate(zip(frames, particles)):
+    for k, part in enumerate(particles):
         rows = np.all(np.isfinite(tracks.measured[:, k]), axis=1)
         if rows.any():
-            fitted = _image_fit(raw, part.background, projector, settings).fit(
+            fitted = recording.image_fit(k, part.background, settings.image_fit).fit(
                 0, tracks.positions[rows, k])
             measured[rows, k], sigma[rows, k] = fitted.positions, fitted.sigma
             intensity[rows, k] = fitted.intensities
             dropped += fitted.dropped
         steps.advance()
-    return smooth_tracks(measured, sigma, intensity, tracks.dt, projector, settings), dropped
+    return (smooth_tracks(measured, sigma, intensity, tracks.dt, recording.operator,
+                          settings), dropped)
 
 
 def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray, dt: float,
-                  projector: ProjectionOperator, settings: TrackSettings | None = None
+                  projector: ProjectionOperator | list,
+                  settings: TrackSettings | None = None
                   ) -> Tracks:
     """Tracks from their measured positions, smoothed as :func:`track` smooths them
     (docs/design.md §7.3).
@@ -278,7 +287,8 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
     dt
         The time between frames.
     projector
-        The recording's projector (its camera and grid: the focal zone and the voxel).
+        The recording's projector (its camera and grid: the focal zone and the voxel);
+        several cameras' list of them (their world grid; no focal zone).
     settings
         :class:`TrackSettings` (``None``: the defaults).
 
@@ -289,28 +299,35 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
         intensities as given.
     """
     settings = settings or TrackSettings()
-    voxel = np.asarray(projector.grid.spacing[::-1])
+    projectors = list(projector) if isinstance(projector, (list, tuple)) else [projector]
+    grid = projectors[0].grid
+    voxel = np.asarray(grid.spacing[::-1])
     prior = prior_sigma = None
     if settings.neighbours:
-        prior, prior_sigma = _depth_prior(measured, sigma, projector, settings)
+        camera = projectors[0].camera
+        focus = (FocalZone.of(camera, grid) if len(projectors) == 1 and camera.pose is None
+                 else None)  # a posed camera's focal plane is tilted in the world grid
+        prior, prior_sigma = _depth_prior(measured, sigma, grid, focus, settings)
     fit = smooth_states(measured, sigma, settings.acceleration * voxel, prior, prior_sigma)
     return Tracks(fit.positions, measured, sigma, intensity, fit.velocities / dt,
                   fit.accelerations / dt**2, fit.position_sigma, fit.velocity_sigma / dt,
                   fit.acceleration_sigma / dt**2, dt)
 
 
-def _depth_prior(measured: np.ndarray, sigma: np.ndarray, projector: ProjectionOperator,
-                 settings: TrackSettings) -> tuple[np.ndarray, np.ndarray]:
+def _depth_prior(measured: np.ndarray, sigma: np.ndarray, grid: Grid,
+                 focus: FocalZone | None, settings: TrackSettings
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Each track's depth velocity (per frame) from its neighbours' local linear field
     of the local lines' velocities, each neighbour weighted by its line's variance plus
     the focal zone's systematic depth term (a neighbour near the focal plane counts
-    little); no lateral prior (NaN): laterally a track's own frames decide."""
+    little; ``focus`` ``None``: none); no lateral prior (NaN): laterally a track's own
+    frames decide."""
     poly = smooth(measured, sigma, 1.0, settings.window, settings.degree)
-    grid = projector.grid
     voxel = np.asarray(grid.spacing[::-1])
     depth = grid.to_index(np.nan_to_num(poly.positions).reshape(-1, 3))[:, 2]
-    bias = FocalZone.of(projector.camera, grid).ambiguity(depth) * voxel[2]
-    own = np.hypot(poly.velocity_sigma[..., 2:], bias.reshape(poly.positions.shape[:2] + (1,)))
+    bias = 0.0 if focus is None else focus.ambiguity(depth) * voxel[2]
+    own = np.hypot(poly.velocity_sigma[..., 2:],
+                   np.reshape(bias, poly.positions.shape[:2] + (1,)) if focus is not None else 0.0)
     z, z_sigma = neighbour_velocity(poly.positions, poly.velocities[..., 2:], own, voxel,
                                     settings.neighbours)
     prior = np.full(poly.velocities.shape, np.nan)
@@ -319,26 +336,20 @@ def _depth_prior(measured: np.ndarray, sigma: np.ndarray, projector: ProjectionO
     return prior, prior_sigma
 
 
-def _image_fit(raw, background, projector, settings: TrackSettings) -> ImageFit:
-    """The fit of particles to one frame (its background as the reconstruction found it)."""
-    return ImageFit(projector.camera, projector.grid, [raw], settings.image_fit,
-                    queue=projector.queue, backgrounds=None if background is None
-                    else [background])
-
-
-def _frame_particles(frames: list, projector, settings: TrackSettings, steps: _Steps):
+def _frame_particles(recording: Recording, settings: TrackSettings, steps: _Steps):
     """Every frame's particles, and the first step's predictor (the correlation of the
     first two volumes, in voxel indices)."""
     particles, volumes = [], []
-    for raw in frames:
-        vol, info = run_reconstruction(raw, projector, settings.reconstruction)
-        particles.append(_particles(raw, vol, info, projector, settings))
+    for k in range(len(recording.frames)):
+        vol, info = run_reconstruction(recording.images(k), recording.operator,
+                                       settings.reconstruction)
+        particles.append(_particles(recording, k, vol, info, settings))
         steps.advance()
         if len(volumes) < 2:
             volumes.append(vol)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the window-count notes of a field used once
-        field_01 = piv3d(volumes[0], volumes[1], settings.piv, queue=projector.queue)
+        field_01 = piv3d(volumes[0], volumes[1], settings.piv, queue=recording.queue)
 
     def first_step(points: np.ndarray) -> np.ndarray:
         return predicted(field_01, points + predicted(field_01, points) / 2)
@@ -346,18 +357,18 @@ def _frame_particles(frames: list, projector, settings: TrackSettings, steps: _S
     return particles, first_step
 
 
-def _particles(raw, vol: np.ndarray, info, projector, settings: TrackSettings
-               ) -> FrameParticles:
-    """A volume's peaks, fitted to the frame's raw image when ``settings.image_fit``."""
-    grid = projector.grid
+def _particles(recording: Recording, k: int, vol: np.ndarray, info,
+               settings: TrackSettings) -> FrameParticles:
+    """Frame ``k``'s volume's peaks, fitted to its raw images when ``settings.image_fit``."""
+    grid = recording.grid
     peaks, _ = find_particles(vol, settings.threshold, reference="robust")
     voxel = np.asarray(grid.spacing[::-1])
     if settings.image_fit is None or not len(peaks):
         sigma = np.broadcast_to(np.asarray(PEAK_SIGMA_VOXELS) * voxel, peaks.shape)
         return FrameParticles(grid.from_index(peaks), peaks, sigma.copy(),
                               np.ones(len(peaks)))
-    known = None if info.background is None else (info.background, info.noise)
-    fitted = _image_fit(raw, known, projector, settings).fit(0, grid.from_index(peaks))
+    known = recording.backgrounds(info)
+    fitted = recording.image_fit(k, known, settings.image_fit).fit(0, grid.from_index(peaks))
     ok = fitted.kept
     positions, sigma = fitted.positions[ok], fitted.sigma[ok]
     index = grid.to_index(positions)
@@ -377,6 +388,72 @@ def _gather(table: np.ndarray, particles: list[FrameParticles]):
         sigma[rows, k] = part.sigma[table[rows, k]]
         intensity[rows, k] = part.intensities[table[rows, k]]
     return measured, sigma, intensity
+
+
+class Recording:
+    """The frames of one camera's recording or of several cameras' (docs/design.md
+    §6.7), checked, with what each frame reconstructs from and is fitted to.
+
+    Parameters
+    ----------
+    frames
+        :func:`track`'s frames (several cameras: one sequence per camera).
+    projector
+        :func:`track`'s projector, or several cameras' list of them.
+    min_length
+        The fewest frames a recording may have.
+    """
+
+    def __init__(self, frames, projector, min_length: int) -> None:
+        self.several = isinstance(projector, (list, tuple))
+        self.projectors = list(projector) if self.several else [projector]
+        if not self.several:
+            self.frames = [[f] for f in _check_frames(frames, min_length)]
+        else:
+            self.frames = _camera_frames(frames, self.projectors, min_length)
+        self.operator = projector
+        self.grid, self.queue = self.projectors[0].grid, self.projectors[0].queue
+
+    def images(self, k: int):
+        """Frame ``k``'s raw image; several cameras': the list of them."""
+        return list(self.frames[k]) if self.several else self.frames[k][0]
+
+    def backgrounds(self, info) -> list | None:
+        """Each camera's ``(median, noise)`` its reconstruction of a frame removed
+        (``info``: its :class:`plenocl.reconstruction.ReconstructionInfo`), or ``None``
+        when none was removed."""
+        infos = info.cameras if self.several else [info]
+        if any(i.background is None for i in infos):
+            return None
+        return [(i.background, i.noise) for i in infos]
+
+    def image_fit(self, k: int, backgrounds: list | None, settings: ImageFitSettings):
+        """The fit of particles to frame ``k``'s raw images (each camera's
+        ``backgrounds`` as its reconstruction found them; ``None``: estimated)."""
+        if self.several:
+            return JointImageFit([p.camera for p in self.projectors], self.grid,
+                                 [[raw] for raw in self.frames[k]], settings, queue=self.queue,
+                                 backgrounds=None if backgrounds is None
+                                 else [[bg] for bg in backgrounds])
+        return ImageFit(self.projectors[0].camera, self.grid, self.frames[k], settings,
+                        queue=self.queue, backgrounds=backgrounds)
+
+
+def _camera_frames(frames, projectors: list, min_length: int) -> list[tuple]:
+    """Several cameras' frames as one tuple per frame (camera by camera), refused when
+    the cameras' counts differ or a camera's frames are too few or of different shapes."""
+    per_camera = list(frames)
+    if len(per_camera) != len(projectors) or not projectors:
+        raise ValueError(f"several cameras need one sequence of frames per projector: got "
+                         f"{len(per_camera)} sequence(s) for {len(projectors)} projector(s)")
+    checked = [_check_frames(f, min_length) for f in per_camera]
+    counts = [len(f) for f in checked]
+    for c, count in enumerate(counts[1:], start=2):
+        if count != counts[0]:
+            raise ValueError(f"camera {c} has {count} frames but camera 1 has {counts[0]}: "
+                             "frame k of every camera must be taken at the same instant; "
+                             "give every camera the same frames")
+    return list(zip(*checked, strict=True))
 
 
 def _check_frames(frames, min_length: int) -> list:
