@@ -75,7 +75,16 @@ def test_run_processes_pairs_skips_finished_ones_and_reports_failures(experiment
 
 @pytest.mark.parametrize("change, message", [
     ("[camera]\npreset = 'synthetic'\nlens = 3\n", r"unknown key\(s\) \['lens'\] in \[camera\]"),
-    ("[cameras]\n", r"unknown section\(s\) \['cameras'\]"),
+    ("[cameras]\n", r"one \[\[cameras\]\] table each"),
+    ("[cameras]\npreset = 'synthetic'\n", r"one \[\[cameras\]\] table each"),
+    ("[[cameras]]\npreset = 'synthetic'\nfolder = 'a'\n[[cameras]]\nfolder = 'b'\n",
+     r"\[\[cameras\]\] 2 needs exactly one of file or preset"),
+    ("[[cameras]]\npreset = 'synthetic'\nfolder = 'a'\nzoom = 2\n[[cameras]]\n"
+     "preset = 'synthetic'\nfolder = 'b'\n",
+     r"unknown key\(s\) \['zoom'\] in \[\[cameras\]\] 1"),
+    ("[camera]\npreset = 'synthetic'\n[[cameras]]\npreset = 'synthetic'\nfolder = 'a'\n"
+     "[[cameras]]\npreset = 'synthetic'\nfolder = 'b'\n",
+     r"\[camera\] and \[\[cameras\]\] together"),
     ("[camera]\n", "exactly one of file or preset"),
     ("[output]\nvti = 'yes'\n[camera]\npreset = 'synthetic'\n", "vti must be true or false"),
     ("[piv]\nensemble = 1\n[camera]\npreset = 'synthetic'\n",

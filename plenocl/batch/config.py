@@ -49,6 +49,22 @@ Example::
     formats = []                         # more copies of each field beside its .npz:
                                          # "vti", "h5", "dat" (Tecplot ASCII), "csv"
 
+Several cameras (docs/design.md §6.7) replace ``[camera]`` by one ``[[cameras]]`` table
+each, naming its camera (a file whose ``[pose]`` places it in the world, or a preset),
+an optional white image and the folder of its images; ``[images]`` pairs every folder by
+the same rule, and a pair is made where every camera has it, matched by its frame
+numbers (:func:`plenocl.batch.pairing.matched_pairs`)::
+
+    [[cameras]]
+    file = "cam1.toml"
+    white = "white_1.tif"                # optional, as [camera] white
+    folder = "raw/cam1"
+    [[cameras]]
+    file = "cam2.toml"
+    folder = "raw/cam2"
+    [grid]
+    file = "grid.toml"                   # the world grid every camera sees
+
 A ``[tracking]`` section (:mod:`.trackconfig`) makes the run track the frames as one
 time-resolved recording instead of processing pairs.
 """
@@ -63,7 +79,14 @@ from ..io.tomlfile import read_toml
 from ..pipeline.settings import PARTS, PairSettings
 from ..units import check_dt
 from .layout import COPY_SUFFIXES
-from .pairing import PAIRINGS, PairPlan, ab_pairs, listed_pairs, numbered_pairs
+from .pairing import (
+    PAIRINGS,
+    PairPlan,
+    ab_pairs,
+    listed_pairs,
+    matched_pairs,
+    numbered_pairs,
+)
 from .trackconfig import TrackingOptions, check_images_for_tracking, tracking_options
 
 #: Keys each section of an experiment file may hold, with their defaults (None: required
@@ -81,16 +104,26 @@ SECTIONS = {
 }
 
 
+#: Keys of each ``[[cameras]]`` table (several cameras): its camera (a file placed by its
+#: ``[pose]``, or a preset), an optional white image, and the folder of its images.
+CAMERA_KEYS = {"file": None, "preset": None, "white": None, "folder": None}
+#: The array of tables of several cameras.
+CAMERAS = "cameras"
+
+
 @dataclass(frozen=True)
 class Experiment:
     """A validated experiment file: every section's values with defaults filled in, the
     folder relative paths are resolved against, and each pair's settings; with an
-    enabled ``[tracking]`` section, its options (the run tracks the frames instead)."""
+    enabled ``[tracking]`` section, its options (the run tracks the frames instead);
+    with several cameras, each ``[[cameras]]`` table (defaults filled in; empty: one
+    camera, ``[camera]``)."""
 
     sections: dict = field(compare=False)
     base: Path = Path(".")
     pair: PairSettings = field(default_factory=PairSettings)
     tracking: TrackingOptions | None = None
+    cameras: tuple[dict, ...] = field(default=(), compare=False)
 
     def __getitem__(self, section: str) -> dict:
         return self.sections[section]
@@ -106,10 +139,11 @@ def load_experiment(path: str | Path) -> Experiment:
     """Read and check an experiment file; every unknown or bad key is an error naming it."""
     path = Path(path)
     doc = read_toml(path)
-    unknown = set(doc) - set(SECTIONS) - set(PAIR_SECTIONS) - {TRACKING}
+    unknown = set(doc) - set(SECTIONS) - set(PAIR_SECTIONS) - {TRACKING, CAMERAS}
     if unknown:
         raise ValueError(f"{path}: unknown section(s) {sorted(unknown)}; the sections are "
-                         f"{list(dict.fromkeys([*SECTIONS, *PAIR_SECTIONS, TRACKING]))}")
+                         f"{list(dict.fromkeys([*SECTIONS, *PAIR_SECTIONS, TRACKING]))} "
+                         f"and [[{CAMERAS}]]")
     batch, pair = _split(doc)
     sections = {}
     for name, defaults in SECTIONS.items():
@@ -119,10 +153,48 @@ def load_experiment(path: str | Path) -> Experiment:
             raise ValueError(f"{path}: unknown key(s) {sorted(bad)} in [{name}]; it takes "
                              f"{list(defaults)}")
         sections[name] = {**defaults, **given}
-    tracking = tracking_options(doc.get(TRACKING), pair, sections["images"], path)
-    _check(sections, path, tracking is not None)
+    table = doc.get(TRACKING)
+    cameras = _cameras(doc, path, isinstance(table, Mapping) and table.get("enabled", True)
+                       is not False)
+    tracking = tracking_options(table, pair, sections["images"], path)
+    _check(sections, path, tracking is not None, several=bool(cameras))
     return Experiment(sections, path.parent, PairSettings.from_dict(pair, source=str(path)),
-                      tracking)
+                      tracking, cameras)
+
+
+def _cameras(doc: dict, path: Path, tracking: bool) -> tuple[dict, ...]:
+    """The ``[[cameras]]`` tables checked, defaults filled in (``()``: one camera)."""
+    tables = doc.get(CAMERAS)
+    if tables is None:
+        return ()
+    how = ("several cameras take one [[cameras]] table each (file or preset, folder, "
+           "optional white)")
+    if not (isinstance(tables, list) and len(tables) >= 2
+            and all(isinstance(t, Mapping) for t in tables)):
+        raise ValueError(f"{path}: {how}, at least two; one camera is [camera]")
+    if "camera" in doc:
+        raise ValueError(f"{path}: [camera] and [[cameras]] together: {how}; leave out "
+                         "[camera]")
+    if tracking:
+        raise ValueError(f"{path}: [tracking] follows one camera's recording; track "
+                         "several cameras' frames with plenocl.track([frames_1, ...], "
+                         "[projector_1, ...], dt) (docs/usage.md)")
+    out = []
+    for k, table in enumerate(tables, start=1):
+        bad = set(table) - set(CAMERA_KEYS)
+        if bad:
+            raise ValueError(f"{path}: unknown key(s) {sorted(bad)} in [[cameras]] "
+                             f"{k}; it takes {list(CAMERA_KEYS)}")
+        cam = {**CAMERA_KEYS, **table}
+        if len([key for key in ("file", "preset") if cam[key]]) != 1 \
+                or not isinstance(cam["folder"], str):
+            raise ValueError(f"{path}: [[cameras]] {k} needs exactly one of file or preset, "
+                             "and the folder of its images")
+        out.append(cam)
+    if "folder" in doc.get("images", {}):
+        raise ValueError(f"{path}: [images] folder with [[cameras]]: each camera's images "
+                         "are in the folder its [[cameras]] table names; leave it out")
+    return tuple(out)
 
 
 def _split(doc: dict) -> tuple[dict, dict]:
@@ -137,10 +209,11 @@ def _split(doc: dict) -> tuple[dict, dict]:
     return batch, pair
 
 
-def _check(s: dict, path: Path, tracking: bool = False) -> None:
-    """Every section's values (``tracking``: the pair keys refused instead of needed)."""
+def _check(s: dict, path: Path, tracking: bool = False, several: bool = False) -> None:
+    """Every section's values (``tracking``: the pair keys refused instead of needed;
+    ``several``: the cameras are ``[[cameras]]``'s, checked apart)."""
     cam = [k for k in ("file", "preset") if s["camera"][k]]
-    if len(cam) != 1:
+    if not several and len(cam) != 1:
         raise ValueError(f"{path}: [camera] needs exactly one of file or preset (the "
                          f"camera, calibrated from `white` if given), got {cam or 'none'}")
     if bool(s["grid"]["file"]) == bool(s["grid"]["z_mm"]):
@@ -233,11 +306,24 @@ def image_pairs(exp: Experiment) -> PairPlan:
     Raises
     ------
     ValueError
-        When no pair can be made (naming the folder, pattern and pairing), or when frame
+        When no pair can be made (naming the folder, pattern and pairing; several
+        cameras: no pair that every camera has, naming each pair's gap), or when frame
         names do not give frame numbers.
     """
+    if not exp.cameras:
+        return _folder_pairs(exp, exp["images"]["folder"])
+    plan = matched_pairs([_folder_pairs(exp, cam["folder"]) for cam in exp.cameras])
+    if not plan.pairs:
+        gaps = "; ".join(f"pair {k}: {why}" for k, why in plan.gaps.items())
+        raise ValueError(f"no image pair that every camera has (pairs are matched by frame "
+                         f"number): {gaps}")
+    return plan
+
+
+def _folder_pairs(exp: Experiment, name: str) -> PairPlan:
+    """The pairs of one folder of images (:func:`image_pairs`)."""
     img = exp["images"]
-    folder = exp.base / img["folder"]
+    folder = exp.base / name
     files = sorted(f for f in folder.glob(img["pattern"]) if f.is_file())
     if img["pairing"] == "list":
         plan = listed_pairs(img["pairs"], folder)

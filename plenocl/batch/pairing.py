@@ -32,11 +32,13 @@ PAIRINGS = ("sequence", "sliding", "ab", "list")
 
 @dataclass(frozen=True)
 class ImagePair:
-    """Pair ``index`` of a run and its two image files."""
+    """Pair ``index`` of a run and its two image files; with several cameras, those of
+    the first camera, and ``others`` the other cameras' ``(a, b)`` in their order."""
 
     index: int
     a: Path
     b: Path
+    others: tuple[tuple[Path, Path], ...] = ()
 
 
 @dataclass
@@ -168,6 +170,32 @@ def ab_pairs(files: list[Path], a_suffix: str, b_suffix: str, first_frame: int |
     return plan
 
 
+def matched_pairs(plans: list[PairPlan]) -> PairPlan:
+    """Several cameras' plans (each camera's folder paired by the same rule) as one:
+    a pair is made where every camera has it, matched by its index (its frame numbers),
+    never by position; a pair some camera lacks is a gap naming the camera and why."""
+    first, *rest = plans
+    by_camera = [{p.index: p for p in plan.pairs} for plan in rest]
+    plan = PairPlan([], {k: f"camera 1: {why}" for k, why in first.gaps.items()})
+    for pair in first.pairs:
+        missing = [c for c, pairs in enumerate(by_camera, start=2) if pair.index not in pairs]
+        if missing:
+            plan.gaps[pair.index] = "; ".join(
+                f"camera {c}: {rest[c - 2].gaps.get(pair.index, 'no such pair')}"
+                for c in missing)
+        else:
+            plan.pairs.append(ImagePair(pair.index, pair.a, pair.b, tuple(
+                (pairs[pair.index].a, pairs[pair.index].b) for pairs in by_camera)))
+    made = {p.index for p in first.pairs}
+    for c, pairs in enumerate(by_camera, start=2):
+        for k in sorted(set(pairs) - made - set(plan.gaps)):
+            plan.gaps[k] = f"camera 1: no such pair (camera {c} has it)"
+    plan.unpaired = [f"camera {c}: {why}" for c, other in enumerate(plans, start=1)
+                     for why in other.unpaired]
+    plan.gaps = dict(sorted(plan.gaps.items()))
+    return plan
+
+
 def listed_pairs(pairs: list, folder: Path) -> PairPlan:
     """The plan of ``list`` pairing: ``[[a, b], ...]`` relative to ``folder``."""
     plan = PairPlan([])
@@ -208,9 +236,34 @@ def same_file(recorded: dict, path: Path) -> bool:
     return fingerprint(path)["sha256"] == recorded.get("sha256")
 
 
+def pair_sources(pair: ImagePair) -> dict:
+    """The fingerprints of a pair's files: ``{"a": .., "b": ..}``, and with several
+    cameras ``"cameras"``: the other cameras' ``{"a": .., "b": ..}`` in their order."""
+    sources = {"a": fingerprint(pair.a), "b": fingerprint(pair.b)}
+    if pair.others:
+        sources["cameras"] = [{"a": fingerprint(a), "b": fingerprint(b)}
+                              for a, b in pair.others]
+    return sources
+
+
 def changed_since(recorded: dict, pair: ImagePair) -> str | None:
-    """Why ``pair``'s files are not those ``recorded`` (``{"a": .., "b": ..}``), or None."""
-    for tag, path in (("a", pair.a), ("b", pair.b)):
+    """Why ``pair``'s files are not those ``recorded`` (:func:`pair_sources`), or None."""
+    others = recorded.get("cameras", [])
+    if len(others) != len(pair.others):
+        return (f"it was made from {len(others) + 1} camera(s)' images, the run has "
+                f"{len(pair.others) + 1}")
+    files = [(recorded, "", pair.a, pair.b)] + [
+        (rec, f"camera {c}'s ", a, b)
+        for c, (rec, (a, b)) in enumerate(zip(others, pair.others, strict=True), start=2)]
+    for rec, whose, a, b in files:
+        if (why := _changed_files(rec, a, b)) is not None:
+            return whose + why
+    return None
+
+
+def _changed_files(recorded: dict, path_a: Path, path_b: Path) -> str | None:
+    """Why the two files are not those ``recorded`` (``{"a": .., "b": ..}``), or None."""
+    for tag, path in (("a", path_a), ("b", path_b)):
         rec = recorded.get(tag)
         if rec is None:
             return "its field records no source files (written by an older plenocl)"

@@ -23,12 +23,20 @@ def check_cluster_device(queue, workers: int | None, scheduler: str | None) -> N
                          "worker looks up (e.g. 'cpu' or 'NVIDIA'), not an OpenCL object")
 
 
-def run_camera(exp: Experiment, queue, log) -> Camera:
-    """The experiment's camera, calibrated from its white image when one is given (the
-    white image read as a frame: its channel and dark frame, not the flat field)."""
+def run_cameras(exp: Experiment, queue, log) -> list[Camera]:
+    """The experiment's cameras (:func:`run_camera`; several: each ``[[cameras]]``
+    table's, its pose kept through its calibration)."""
+    tables = exp.cameras or (exp["camera"],)
+    return [run_camera(exp, queue, log, table) for table in tables]
+
+
+def run_camera(exp: Experiment, queue, log, cam: dict | None = None) -> Camera:
+    """The experiment's camera (``cam``: a ``[[cameras]]`` table instead of
+    ``[camera]``), calibrated from its white image when one is given (the white image
+    read as a frame: its channel and dark frame, not the flat field)."""
     from ..camera import load_camera
 
-    cam = exp["camera"]
+    cam = exp["camera"] if cam is None else cam
     camera = load_camera(exp.base / cam["file"] if cam["file"] else cam["preset"])
     if not cam["white"]:
         return camera
@@ -40,20 +48,25 @@ def run_camera(exp: Experiment, queue, log) -> Camera:
     img = exp["images"]
     dark = read_image(exp.base / img["dark"], img["channel"]) if img["dark"] else None
     # a white image is a flat field itself: the dark frame only
-    return calibrate(load_frame(exp.base / cam["white"], camera, img["channel"], dark,
-                                white=True), camera)
+    calibrated = calibrate(load_frame(exp.base / cam["white"], camera, img["channel"], dark,
+                                      white=True), camera.with_pose(None))
+    return calibrated.with_pose(camera.pose)  # a calibration finds the lenses, not the pose
 
 
-def run_grid(exp: Experiment, camera: Camera) -> Grid:
-    """The experiment's grid: its file, or fitted to the camera (``z_mm``); refused before
-    any work when the camera cannot image it (:func:`plenocl.optics.depthrange.check_grid`)."""
+def run_grid(exp: Experiment, camera: Camera | list[Camera]) -> Grid:
+    """The experiment's grid: its file, or fitted to the camera (``z_mm``; several
+    cameras: the first, unposed); refused before any work when a camera cannot image it
+    (:func:`plenocl.optics.depthrange.check_grid`)."""
+    cameras = list(camera) if isinstance(camera, (list, tuple)) else [camera]
     g = exp["grid"]
     if g["file"]:
         grid = Grid.from_toml(exp.base / g["file"])
-        check_grid(camera, grid)
-        return grid
-    return Grid.for_camera(camera, tuple(g["z_mm"]), voxel_mm=g["voxel_mm"],
-                           depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
+    else:
+        grid = Grid.for_camera(cameras[0], tuple(g["z_mm"]), voxel_mm=g["voxel_mm"],
+                               depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
+    for cam in cameras:
+        check_grid(cam, grid)
+    return grid
 
 
 def frame_corrections(exp: Experiment) -> tuple[str | None, str | None]:
@@ -63,11 +76,21 @@ def frame_corrections(exp: Experiment) -> tuple[str | None, str | None]:
                  for k in ("dark", "flat"))
 
 
-def write_used_config(exp: Experiment, out: Path, camera: Camera, grid: Grid,
+def camera_files(count: int) -> list[str]:
+    """The names of a run's cameras as written in its folder: ``camera_used.toml``, or
+    ``camera_K_used.toml`` (``K`` from 1) for several cameras."""
+    if count == 1:
+        return ["camera_used.toml"]
+    return [f"camera_{k}_used.toml" for k in range(1, count + 1)]
+
+
+def write_used_config(exp: Experiment, out: Path, camera: Camera | list[Camera], grid: Grid,
                       settings: dict) -> None:
     """The configuration used (a record, not read back: the work gets its settings as an
-    object), the camera and the grid, beside the results. ``settings``: the resolved
-    settings' sections (a pair's, or the tracking's), over the file's own."""
+    object), the camera(s) (:func:`camera_files`) and the grid, beside the results.
+    ``settings``: the resolved settings' sections (a pair's, or the tracking's), over
+    the file's own."""
+    cameras = list(camera) if isinstance(camera, (list, tuple)) else [camera]
     out.mkdir(parents=True, exist_ok=True)
     used = {name: {k: v for k, v in values.items() if v is not None}
             for name, values in {**exp.sections, **settings}.items()}
@@ -77,6 +100,11 @@ def write_used_config(exp: Experiment, out: Path, camera: Camera, grid: Grid,
             used["images"][key] = value
     used["run"] = {"plenocl_version": __version__,
                    "grid_shape": list(grid.shape), "grid_rotation_deg": grid.rotation_deg}
+    if exp.cameras:
+        used.pop("camera", None)
+        used["cameras"] = [{k: v for k, v in cam.items() if v is not None}
+                           for cam in exp.cameras]
     write_toml(out / "experiment_used.toml", used)
-    camera.to_toml(out / "camera_used.toml")
+    for cam, name in zip(cameras, camera_files(len(cameras)), strict=True):
+        cam.to_toml(out / name)
     grid.to_toml(out / "grid_used.toml")

@@ -59,13 +59,17 @@ _UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile)
 
 
 def run_record(exp: Experiment, camera, grid) -> dict:
-    """The record every pair of this run shares (see the module notes): JSON-ready."""
+    """The record every pair of this run shares (see the module notes): JSON-ready.
+    ``camera``: the camera, or several cameras' list (their digests' list: a camera
+    more or less, or one moved, is another geometry)."""
     dark, flat = frame_corrections(exp)
     pair = exp.pair.to_dict(none=NONE)
     images = {"channel": exp["images"]["channel"] or NONE,
               "dark": _content(dark), "flat": _content(flat),
               "dt_s": float(exp["images"]["dt_s"])}
-    return {"images": images, "camera": config_digest(camera.to_dict()),
+    digest = (config_digest([c.to_dict() for c in camera]) if isinstance(camera, list)
+              else config_digest(camera.to_dict()))
+    return {"images": images, "camera": digest,
             "grid": config_digest(grid.to_dict()), **pair,
             "correlation": {"method": CORRELATION_METHOD},
             "refinement": {"method": REFINEMENT_METHOD}}
@@ -78,8 +82,10 @@ def _content(path: str | None) -> str:
 
 def stage_digests(record: dict, sources: dict) -> dict[str, str]:
     """The ``volumes``, ``field`` and ``record`` digests of a pair's record and its
-    source files (``{"a": fingerprint, "b": fingerprint}``)."""
-    inputs = [sources[tag]["sha256"] for tag in "ab"]
+    source files (:func:`plenocl.batch.pairing.pair_sources`: ``{"a": fingerprint,
+    "b": fingerprint}``, several cameras' others under ``"cameras"``)."""
+    inputs = [files[tag]["sha256"] for files in [sources, *sources.get("cameras", [])]
+              for tag in "ab"]
     field_part = {k: v for k, v in record.items() if k != "images"}
     field_part["images"] = {k: v for k, v in record["images"].items() if k != "dt_s"}
     volumes = {k: v for k, v in field_part.items() if k not in FIELD_SECTIONS}

@@ -52,7 +52,7 @@ from .pairing import ImagePair, PairPlan
 from .prepare import (
     check_cluster_device,
     frame_corrections,
-    run_camera,
+    run_cameras,
     run_grid,
     write_used_config,
 )
@@ -164,9 +164,10 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     check_cluster_device(queue, workers, scheduler)
     for path in remove_partial_files(out) if out.is_dir() else []:
         log(f"removed {path.name}, left half-written by an interrupted run")
-    camera = run_camera(exp, queue, log)
+    cameras = run_cameras(exp, queue, log)
+    camera = cameras if exp.cameras else cameras[0]  # several: joint (design.md §6.7)
     grid = run_grid(exp, camera)
-    settings = _run_settings(exp, run_record(exp, camera, grid))
+    settings = _run_settings(exp, run_record(exp, camera, grid), len(cameras))
     decisions = _decide(plan, out, settings.record, redo)
     summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),
                          workers=workers or (0 if scheduler else 1),
@@ -283,10 +284,12 @@ def _tasks(pairs: list[ImagePair], decisions: list[Decision], out: Path,
     tasks = []
     for p in pairs:
         target = pair_file(out, p.index)
+        others = tuple((str(a), str(b)) for a, b in p.others)
         if mode.get(p.index) == CORRELATE:
-            tasks.append(PairTask(p.index, str(p.a), str(p.b), str(target), CORRELATE))
+            tasks.append(PairTask(p.index, str(p.a), str(p.b), str(target), CORRELATE,
+                                  others))
         elif not target.is_file():
-            tasks.append(PairTask(p.index, str(p.a), str(p.b), str(target)))
+            tasks.append(PairTask(p.index, str(p.a), str(p.b), str(target), others=others))
         elif mode.get(p.index) == SKIP:
             summary.skipped.append(p.index)
     if summary.skipped:
@@ -303,13 +306,14 @@ def _pair_record(exp: Experiment) -> dict:
     return pair
 
 
-def _run_settings(exp: Experiment, record: dict) -> RunSettings:
-    """What every pair of the run shares, from the checked experiment file, and the
-    run's record (:func:`.record.run_record`)."""
+def _run_settings(exp: Experiment, record: dict, cameras: int = 1) -> RunSettings:
+    """What every pair of the run shares, from the checked experiment file, the run's
+    record (:func:`.record.run_record`) and its number of cameras."""
     img = exp["images"]
     dark, flat = frame_corrections(exp)
     return RunSettings(exp.pair, float(img["dt_s"]), output_formats(exp["output"]),
-                       bool(exp["piv"]["ensemble"]), img["channel"], dark, flat, record)
+                       bool(exp["piv"]["ensemble"]), img["channel"], dark, flat, record,
+                       cameras)
 
 
 def _process(tasks, out: Path, settings: RunSettings, queue, workers, scheduler,

@@ -28,7 +28,8 @@ from ..pipeline.pair import correlate_volumes, known_backgrounds
 from ..reconstruction import UnusableImageError
 from ..vectorfield import PIVResult, read_npz, save_field
 from .layout import field_copies, pair_index, volume_file
-from .pairing import fingerprint
+from .pairing import ImagePair, pair_sources
+from .prepare import camera_files
 from .record import CORRELATE, field_record
 
 #: The exceptions a bad pair raises (unreadable, wrong size, NaN, ...): logged, skipped.
@@ -58,6 +59,9 @@ class RunSettings:
     record
         The run's record (:func:`plenocl.batch.record.run_record`), written with each
         pair's field (``{}``: none, outside a run).
+    cameras
+        The run's cameras (several: one joint reconstruction of every camera's images,
+        docs/design.md §6.7; their files :func:`plenocl.batch.prepare.camera_files`).
     """
 
     pair: PairSettings
@@ -68,19 +72,28 @@ class RunSettings:
     dark: str | None = None
     flat: str | None = None
     record: dict = field(default_factory=dict)
+    cameras: int = 1
 
 
 @dataclass(frozen=True)
 class PairTask:
     """One pair to process: its index, its two images and the field file to write;
     ``mode`` :data:`~plenocl.batch.record.CORRELATE` correlates its kept volumes again
-    instead of reconstructing (``"pair"``: the whole chain)."""
+    instead of reconstructing (``"pair"``: the whole chain); several cameras: the first
+    camera's two images, and ``others`` the other cameras' ``(a, b)`` in their order."""
 
     index: int
     image_a: str
     image_b: str
     target: str
     mode: str = "pair"
+    others: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def pair(self) -> ImagePair:
+        """The task's images as an :class:`~plenocl.batch.pairing.ImagePair`."""
+        return ImagePair(self.index, Path(self.image_a), Path(self.image_b),
+                         tuple((Path(a), Path(b)) for a, b in self.others))
 
 
 @dataclass
@@ -101,8 +114,9 @@ class PairProcessor:
     Parameters
     ----------
     run_folder
-        The run's output folder, holding ``camera_used.toml`` and ``grid_used.toml``
-        (written by :func:`plenocl.batch.run` before any pair).
+        The run's output folder, holding ``camera_used.toml`` (several cameras: each
+        ``camera_K_used.toml``) and ``grid_used.toml`` (written by
+        :func:`plenocl.batch.run` before any pair).
     settings
         What every pair of the run shares.
     device
@@ -114,7 +128,8 @@ class PairProcessor:
                  device: DeviceLike = None) -> None:
         folder = Path(run_folder)
         self.settings = settings
-        self.camera = load_camera(folder / "camera_used.toml")
+        self.cameras = [load_camera(folder / name) for name in camera_files(settings.cameras)]
+        self.camera = self.cameras[0]
         self.grid = Grid.from_toml(folder / "grid_used.toml")
         self.dark, self.flat = (read_image(path, settings.channel) if path else None
                                 for path in (settings.dark, settings.flat))
@@ -123,11 +138,17 @@ class PairProcessor:
 
     @property
     def projector(self):
-        """The projector of every pair, made on first use."""
+        """The projector of every pair, made on first use; several cameras: the list of
+        theirs, on one queue."""
         if self._projector is None:
+            from ..opencl.device import get_queue
             from ..projection import Projector
 
-            self._projector = Projector(self.camera, self.grid, self.device)
+            if len(self.cameras) == 1:
+                self._projector = Projector(self.camera, self.grid, self.device)
+            else:
+                queue = get_queue(self.device)
+                self._projector = [Projector(c, self.grid, queue) for c in self.cameras]
         return self._projector
 
     def __call__(self, task: PairTask) -> PairOutcome:
@@ -135,9 +156,8 @@ class PairProcessor:
         returned, not raised, so that the run goes on."""
         t0 = time.perf_counter()
         try:
-            raw_a, raw_b = self.frame(task.image_a), self.frame(task.image_b)
-            sources = {"a": fingerprint(Path(task.image_a)),
-                       "b": fingerprint(Path(task.image_b))}
+            raw_a, raw_b = self._frames(task)
+            sources = pair_sources(task.pair)
             seconds = {"read": time.perf_counter() - t0}
             done, dropped = self._process(raw_a, raw_b, Path(task.target), sources,
                                           task.mode)
@@ -146,10 +166,23 @@ class PairProcessor:
             return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {exc}")
         return PairOutcome(task.index, seconds, dropped=dropped)
 
-    def frame(self, path: str) -> np.ndarray:
-        """One raw frame as the camera sees it: its colour channel, the dark frame and
-        flat field of the experiment, the camera's region of interest."""
-        return load_frame(path, self.camera, self.settings.channel, self.dark, self.flat)
+    def frame(self, path: str, camera: int = 0) -> np.ndarray:
+        """One raw frame as camera ``camera`` (its index) sees it: its colour channel,
+        the dark frame and flat field of the experiment, the camera's region of
+        interest."""
+        return load_frame(path, self.cameras[camera], self.settings.channel, self.dark,
+                          self.flat)
+
+    def _frames(self, task: PairTask):
+        """The pair's two raw frames; several cameras: two lists, camera by camera."""
+        if len(self.cameras) == 1:
+            return self.frame(task.image_a), self.frame(task.image_b)
+        files = [(task.image_a, task.image_b), *task.others]
+        if len(files) != len(self.cameras):
+            raise ValueError(f"pair {task.index} names {len(files)} camera(s)' images, the "
+                             f"run has {len(self.cameras)} cameras")
+        frames = [(self.frame(a, c), self.frame(b, c)) for c, (a, b) in enumerate(files)]
+        return [f[0] for f in frames], [f[1] for f in frames]
 
     def _process(self, raw_a, raw_b, target: Path, sources: dict, mode: str
                  ) -> tuple[dict, int]:
@@ -167,11 +200,9 @@ class PairProcessor:
             res, seconds = pair.piv, pair.seconds
         t0 = time.perf_counter()
         if mode != CORRELATE and run.keep_volumes:  # for the ensemble correlation
-            known = known_backgrounds(pair.info_a, pair.info_b)
             write_volumes(volume_file(target), pair.vol_a, pair.vol_b,
                           {"volumes": meta["digests"]["volumes"],
-                           "backgrounds": None if known is None else
-                           [[float(v) for v in bg] for bg in known]})
+                           "backgrounds": pair_backgrounds(pair)})
         # the .npz names the two source files and carries the record of what made it
         save_with_copies(target, res, self.grid, run.dt_s, run.formats, meta)
         return ({**seconds, "write": time.perf_counter() - t0},
@@ -215,9 +246,23 @@ def add_copies(target: Path, grid: Grid, formats: tuple[str, ...]) -> list[str]:
     return missing
 
 
+def pair_backgrounds(pair) -> list | None:
+    """The median and noise each reconstruction of a :class:`plenocl.pipeline.PairResult`
+    removed, as kept volumes record them: ``[[median, noise], ...]`` per exposure, or
+    per camera such a list (several cameras); ``None`` where one removed none."""
+    infos = ([(pair.info_a, pair.info_b)] if not pair.info_a.cameras
+             else list(zip(pair.info_a.cameras, pair.info_b.cameras, strict=True)))
+    known = [known_backgrounds(*two) for two in infos]
+    if any(k is None for k in known):
+        return None
+    lists = [[[float(v) for v in bg] for bg in k] for k in known]
+    return lists if pair.info_a.cameras else lists[0]
+
+
 def _culprit(task: PairTask, exc: Exception) -> str:
     """The file a pair's error comes from: the image a reconstruction refused, else
-    both of the pair's."""
+    the pair's (several cameras: every camera's)."""
     which = exc.which if isinstance(exc, UnusableImageError) else None
-    names = {"a": Path(task.image_a).name, "b": Path(task.image_b).name}
+    files = [(task.image_a, task.image_b), *task.others]
+    names = {tag: " + ".join(Path(f[i]).name for f in files) for i, tag in enumerate("ab")}
     return names[which] if which in names else f"{names['a']} + {names['b']}"

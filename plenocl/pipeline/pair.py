@@ -165,13 +165,10 @@ def _several_cameras(raws_a, raws_b, projectors: list, settings: PairSettings
             except UnusableImageError as exc:
                 raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
-    grid, queue = projectors[0].grid, projectors[0].queue
     known = [known_backgrounds(*pair) for pair in zip(info_a.cameras, info_b.cameras,
                                                         strict=True)]
-    res = refined_field(vol_a, vol_b, grid, settings, queue,
-                        camera=[p.camera for p in projectors],
-                        raws=[[a, b] for a, b in zip(raws_a, raws_b, strict=True)],
-                        backgrounds=known, clock=clock)
+    res, _ = correlate_volumes(raws_a, raws_b, vol_a, vol_b, projectors, settings, known,
+                               clock)
     return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
 
@@ -184,15 +181,18 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
     Parameters
     ----------
     raw_a, raw_b
-        The raw images the volumes were reconstructed from (the particles' fit to them).
+        The raw images the volumes were reconstructed from (the particles' fit to them);
+        several cameras: each a list, camera by camera.
     vol_a, vol_b
         The two volumes, as :func:`process_pair` made them.
     projector, settings
-        As :func:`process_pair`'s; motion-tracking enhancement (``settings.mte.cycles``)
-        remakes the volumes, so it is refused here.
+        As :func:`process_pair`'s (several cameras: a list of projectors);
+        motion-tracking enhancement (``settings.mte.cycles``) remakes the volumes, so it
+        is refused here.
     backgrounds
         The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
-        them), as :class:`plenocl.piv.imagefit.ImageFit` takes them.
+        them), as :class:`plenocl.piv.imagefit.ImageFit` takes them; several cameras:
+        per camera such a list or ``None``.
     clock
         The :class:`StageClock` to time the stages on (``None``: a new one).
 
@@ -206,9 +206,16 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
         raise ValueError("correlate_volumes: motion-tracking enhancement remakes the "
                          "volumes; use process_pair")
     clock = clock or StageClock()
-    res = refined_field(vol_a, vol_b, projector.grid, settings, projector.queue,
-                        camera=projector.camera, raws=(raw_a, raw_b), backgrounds=backgrounds,
-                        clock=clock)
+    if isinstance(projector, (list, tuple)):  # several cameras: their joint fit
+        first = projector[0]
+        res = refined_field(vol_a, vol_b, first.grid, settings, first.queue,
+                            camera=[p.camera for p in projector],
+                            raws=[[a, b] for a, b in zip(raw_a, raw_b, strict=True)],
+                            backgrounds=backgrounds, clock=clock)
+    else:
+        res = refined_field(vol_a, vol_b, projector.grid, settings, projector.queue,
+                            camera=projector.camera, raws=(raw_a, raw_b),
+                            backgrounds=backgrounds, clock=clock)
     return res, clock.seconds
 
 
