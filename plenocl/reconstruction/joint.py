@@ -51,10 +51,13 @@ class JointSolver:
                         zip(projectors, prepared, strict=True)]
         first = self.solvers[0]
         self.proj, self.queue = first.proj, first.queue
-        self.images = [im.on_device(self.queue) * np.float32(f)
+        # the brightest image is the shared scale itself: its device copy serves as it is
+        self.images = [im.on_device(self.queue) * np.float32(f) if f != 1.0
+                       else im.on_device(self.queue)
                        for im, f in zip(prepared, factors, strict=True)]
         self.thresholds = [im.threshold * f for im, f in zip(prepared, factors, strict=True)]
-        self.sens = self._added([[s.copy() for s in solver.sens] for solver in self.solvers])
+        self.sens = self._added([[s.copy() for s in first.sens]]
+                                + [solver.sens for solver in self.solvers[1:]])
         self.smin = first.smin
 
     def _added(self, volumes: Sequence[list]) -> list:
