@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import plenocl
-from plenocl import Camera, random_particles, simulate_image
+from plenocl import Camera, random_particles, simulate_image, simulate_white_image
 from plenocl.batch import load_experiment
 from plenocl.camera import Pose
 from plenocl.io import write_tiff
@@ -23,6 +23,7 @@ file = "cam1.toml"
 folder = "raw1"
 [[cameras]]
 file = "cam2.toml"
+white = "white_2.tif"
 folder = "raw2"
 [grid]
 z_mm = [-2.0, 2.0]
@@ -42,9 +43,11 @@ TURN = 20.0
 
 
 @pytest.fixture(scope="module")
-def two_cameras(tmp_path_factory, queue):
+def two_cameras(tmp_path_factory):
     """Three pairs moved 0.25 mm along x (0.25 m/s over 1 ms) seen by two cameras
-    ``TURN`` degrees apart, the second camera's frame 3 missing."""
+    ``TURN`` degrees apart, the second camera's frame 3 missing; the second camera's
+    white image, to calibrate it from (on the default device, as the run itself: the
+    batch is tested once, not per device)."""
     d = tmp_path_factory.mktemp("cams")
     cams = [Camera.synthetic_850(),
             Camera.synthetic_850().with_pose(Pose((0.0, TURN, 0.0), (0.0, 0.0, 0.0)))]
@@ -58,17 +61,19 @@ def two_cameras(tmp_path_factory, queue):
             for j, sign in enumerate((-0.5, 0.5)):
                 img = simulate_image(cam, pos + sign * shift, inten, 3000,
                                      seed=100 * c + 10 * k + j, read_noise=2.0,
-                                     bit_depth=16, queue=queue)
+                                     bit_depth=16)
                 write_tiff(d / f"raw{c}" / f"frame_{2 * k + j:03d}.tif", img)
     (d / "raw2" / "frame_003.tif").unlink()
+    write_tiff(d / "white_2.tif", simulate_white_image(cams[1], seed=3, bit_depth=16))
     (d / "experiment.toml").write_text(EXPERIMENT)
     return d
 
 
 def test_two_cameras_run_matches_frames_by_number_and_resumes(two_cameras):
     """Pairs 0 and 2 are made from both cameras' frames of the same numbers, pair 1
-    (camera 2's frame 3 missing) is a gap naming the camera and the frame; the fields
-    measure the motion, record every camera's source files, and a rerun skips them."""
+    (camera 2's frame 3 missing) is a gap naming the camera and the frame; the second
+    camera is calibrated from its white image and keeps its pose; the fields measure the
+    motion, record every camera's source files, and a rerun skips them."""
     said = []
     s = plenocl.run(two_cameras / "experiment.toml", log=said.append, progress=False)
     assert s.processed == [0, 2] and not s.failed and list(s.gaps) == [1]
@@ -82,8 +87,9 @@ def test_two_cameras_run_matches_frames_by_number_and_resumes(two_cameras):
         src = s.sources[k]
         names = [(f["a"]["name"], f["b"]["name"]) for f in [src, *src["cameras"]]]
         assert names == [(f"frame_{2 * k:03d}.tif", f"frame_{2 * k + 1:03d}.tif")] * 2
-    assert (read_toml(out / "camera_2_used.toml")["pose"]["rotation_deg"]
-            == pytest.approx([0.0, TURN, 0.0]))
+    second = read_toml(out / "camera_2_used.toml")  # calibrated, its pose kept
+    assert second["pose"]["rotation_deg"] == pytest.approx([0.0, TURN, 0.0])
+    assert "calibration" in second
     assert (out / "camera_1_used.toml").is_file() and not (out / "camera_used.toml").exists()
     used = read_toml(out / "experiment_used.toml")
     assert [c["folder"] for c in used["cameras"]] == ["raw1", "raw2"]
@@ -98,7 +104,7 @@ def test_a_changed_frame_of_the_second_camera_refuses_the_rerun(two_cameras, tmp
     and refuses, before anything is changed."""
     import shutil
 
-    for name in ("cam1.toml", "cam2.toml", "experiment.toml"):
+    for name in ("cam1.toml", "cam2.toml", "white_2.tif", "experiment.toml"):
         shutil.copy(two_cameras / name, tmp_path / name)
     for folder in ("raw1", "raw2", "results"):
         shutil.copytree(two_cameras / folder, tmp_path / folder)
