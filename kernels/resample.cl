@@ -163,8 +163,9 @@ inline float pl_scaled(__global const float *user, __global const float *norm, s
 }
 
 /* frame[c][b][a] = S user for frame planes c in [c_lo, c_lo + range(2)). Inside the
- * user's grid the eight taps are read straight and interpolated axis by axis; at its
- * faces a tap outside reads voxel 0 with weight 0. */
+ * user's grid the eight taps are read straight and interpolated axis by axis (four where
+ * y's fraction is 0: a pose that keeps the world's y on whole voxels, the same branch for
+ * every item); at its faces a tap outside reads voxel 0 with weight 0. */
 __kernel void to_frame_3d(__global const float *user, __global const float *norm,
                           int unx, int uny, int unz, __global float *frame, int fnx, int fny,
                           int c_lo, __global const long *map)
@@ -177,7 +178,17 @@ __kernel void to_frame_3d(__global const float *user, __global const float *norm
     float fx = pl_fx_frac(p.x), fy = pl_fx_frac(p.y), fz = pl_fx_frac(p.z);
     float gx = 1.0f - fx, gy = 1.0f - fy, gz = 1.0f - fz;
     float sum = 0.0f;
-    if (x0 >= 0 && x0 + 1 < unx && y0 >= 0 && y0 + 1 < uny && z0 >= 0 && z0 + 1 < unz) {
+    bool inside = x0 >= 0 && x0 + 1 < unx && y0 >= 0 && y0 + 1 < uny && z0 >= 0
+                  && z0 + 1 < unz;
+    if (inside && fy == 0.0f) {
+        /* y on whole voxels (a pose that keeps the world's y: the same for every item):
+         * the y0 + 1 taps weigh 0, and the four left are the eight's sum exactly */
+        size_t u = ((size_t)z0 * uny + y0) * unx + x0, sz = (size_t)uny * unx;
+        float lo = gx * pl_scaled(user, norm, u) + fx * pl_scaled(user, norm, u + 1);
+        u += sz;
+        float hi = gx * pl_scaled(user, norm, u) + fx * pl_scaled(user, norm, u + 1);
+        sum = gz * lo + fz * hi;
+    } else if (inside) {
         size_t u = ((size_t)z0 * uny + y0) * unx + x0, sy = unx, sz = (size_t)uny * unx;
         float lo = gy * (gx * pl_scaled(user, norm, u) + fx * pl_scaled(user, norm, u + 1))
                  + fy * (gx * pl_scaled(user, norm, u + sy)

@@ -33,7 +33,7 @@ pattern = "frame_*.tif"
 pairing = "sequence"
 dt_s = 1e-3
 [reconstruction]
-iterations = 20
+iterations = 7
 [output]
 folder = "results"
 """

@@ -261,7 +261,7 @@ def test_run_refuses_an_unwritable_output_folder_before_work(tmp_path, monkeypat
     import importlib
 
     batch_run = importlib.import_module("plenocl.batch.run")   # the module, not run()
-    monkeypatch.setattr(batch_run, "run_camera", _fail_if_called)
+    monkeypatch.setattr(batch_run, "run_cameras", _fail_if_called)
     (tmp_path / "experiment.toml").write_text(
         '[camera]\npreset = "synthetic"\n[grid]\nz_mm = [-2.0, 2.0]\n[images]\n'
         'folder = "raw"\ndt_s = 1e-3\n[output]\nfolder = "results"\n')

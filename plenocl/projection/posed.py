@@ -89,15 +89,20 @@ def pose_index_map(frame: Grid, grid: Grid, pose: Pose) -> tuple[np.ndarray, np.
 FX_ONE = 2.0 ** 32
 
 
+def _whole_snapped(values) -> np.ndarray:
+    """``values`` (float64) with entries within 1e-9 of a whole number taken whole."""
+    values = np.asarray(values, np.float64)
+    whole = np.round(values)
+    return np.where(np.abs(values - whole) < 1e-9, whole, values)
+
+
 def fixed_point_map(matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """The kernels' map (``kernels/resample.cl``): ``matrix``'s columns (the steps of the
     world index along the frame's ``a``, ``b`` and ``c``) then ``offset``, as int64 with
     32 fractional bits. Entries within 1e-9 of a whole number are taken whole, so that a
     whole-voxel shift or a quarter turn resamples exactly (taps exactly 1 and 0)."""
-    values = np.concatenate([np.asarray(matrix, np.float64).T.ravel(),
-                             np.asarray(offset, np.float64)])
-    whole = np.round(values)
-    values = np.where(np.abs(values - whole) < 1e-9, whole, values)
+    values = _whole_snapped(np.concatenate([np.asarray(matrix, np.float64).T.ravel(),
+                                            np.asarray(offset, np.float64)]))
     return np.round(values * FX_ONE).astype(np.int64)
 
 
@@ -105,15 +110,27 @@ def candidate_box(matrix: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, t
     """Where ``Sᵀ`` looks for the frame voxels whose taps hold a world voxel ``X``: the
     box from ``floor(start X) + 1`` (``start``: the rows of ``M⁻¹`` then
     ``-M⁻¹ t - reach``, in the kernels' fixed point) with ``counts`` candidates along
-    ``a``, ``b``, ``c``. A tap holds ``X`` only where ``|p - X| < 1`` on every axis, so
-    its frame position ``q = M⁻¹ (X - t)`` is within ``reach = Σ|M⁻¹ row|`` (open), which
-    holds at most ``ceil(2 reach)`` whole numbers; the fixed point's start errs by about
-    1e-7 voxel, so a candidate it could leave out weighs less than float32 resolves."""
-    inv = np.linalg.inv(matrix)
+    ``a``, ``b``, ``c``.
+
+    A tap holds ``X`` only where ``|p - X| < 1`` on every axis, so its frame position
+    ``q = M⁻¹ (X - t)`` is within ``reach = Σ|M⁻¹ row|`` (open), which holds at most
+    ``ceil(2 reach)`` whole numbers; a candidate at that distance exactly has every
+    ``|p - X|`` at 1, and weight 0. Where a row of ``M⁻¹`` and its start are whole
+    numbers (an axis the pose leaves along the world's, on whole voxels: a turn about y
+    keeps y), ``q - reach`` is whole for every ``X``, both ends fall on whole numbers and
+    the open interval holds ``2 reach - 1`` (one candidate for a unit row). Elsewhere
+    the fixed point's start errs by about 1e-7 voxel, so a candidate it could leave out
+    weighs less than float32 resolves."""
+    inv = _whole_snapped(np.linalg.inv(matrix))
     reach = np.abs(inv).sum(axis=1)
-    start = np.concatenate([inv.ravel(), -inv @ offset - reach])
-    counts = tuple(i32(math.ceil(2 * r - 1e-6)) for r in reach)
-    return np.round(start * FX_ONE).astype(np.int64), counts
+    start = _whole_snapped(np.concatenate([inv.ravel(), -inv @ _whole_snapped(offset)
+                                           - reach]))
+    counts = []
+    for k, r in enumerate(reach):
+        row = np.append(inv[k], start[9 + k])
+        on_whole = np.all(row == np.round(row)) and 2 * r == round(2 * r)
+        counts.append(i32(round(2 * r) - 1 if on_whole else math.ceil(2 * r - 1e-6)))
+    return np.round(start * FX_ONE).astype(np.int64), tuple(counts)
 
 
 class PoseResampler:
