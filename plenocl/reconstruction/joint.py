@@ -4,7 +4,10 @@ Each camera has its own projector (its pose carries the shared world grid into i
 frame, :mod:`plenocl.projection.posed`); the system is every camera's pixels at once,
 ``Σ_j w^c_ij E_j = I^c_i``. MLEM over all of them updates a voxel by the mean of its
 ratios over every camera's pixels, ``E ← E (Σ_c A_cᵀ r_c / Σ_c s_c)^μ`` with
-``s_c = A_cᵀ 1``; SMART likewise with the log ratios. **Choice**: the images share one
+``s_c = A_cᵀ 1``; SMART likewise with the log ratios. The paper's block MART visits the
+cameras in turn, each camera's view blocks in its own order, each block a fresh
+projection: ``E_j ← E_j Π_i r_i^(μ w_ij)`` over that block's pixels, so every camera's
+pixels update the volume once per iteration. **Choice**: the images share one
 scale (the brightest of them is 1), so the cameras' counts keep their ratio: a particle
 is as bright in every camera's units, as it is for identical cameras; each image keeps
 its own background, noise and dark-pixel threshold. A voxel is reconstructed when the
@@ -23,6 +26,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
 from .operator import FramedOperator
 from .schedule import coarse_support, sampled_operator
@@ -99,6 +103,30 @@ class JointSolver:
                                           self.smin, sens=self.sens)
         return resid ** 0.5
 
+    def update_mart(self, vol: list, relax: float, floor: float, blocks: Sequence,
+                    n_blocks: int) -> float:
+        """One block-MART iteration (module documentation): camera by camera, each of
+        its ``n_blocks`` view blocks (``blocks``: each camera's block map, ``None`` for
+        one block) with a fresh projection; a voxel stays 0 where the cameras' summed
+        sensitivity is at or below ``min_sensitivity`` (a voxel one camera does not see
+        is the other's to update). Returns ``‖P - I‖`` over every camera's pixels, each
+        camera's taken before its first block."""
+        resid = 0.0
+        for solver, img, thr, blk in zip(self.solvers, self.images, self.thresholds, blocks,
+                                         strict=True):
+            fwd, back = solver.projections(log_ratio=True)
+            proj = fwd(vol)
+            resid += solver.total(proj, img)
+            for k in range(n_blocks):
+                if k:
+                    proj = fwd(vol, out=proj)
+                ratio = solver.ratio(img, proj, thr, True, blk, -1 if blk is None else k,
+                                     floor)
+                solver.update_voxels("update_exp", vol, back(ratio, support=vol),
+                                     np.float32(relax), self.smin, np.int32(0),
+                                     sens=self.sens)
+        return resid ** 0.5
+
 
 def check_cameras(images: Sequence, projectors: Sequence) -> None:
     """One image per projector, at least one, all projectors on one grid and queue."""
@@ -120,12 +148,10 @@ def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSe
               callback: Callable[[int, float], bool | None] | None = None
               ) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`plenocl.reconstruct` of several cameras' images (module documentation):
-    MLEM or SMART, on the voxels or coarse-to-fine on sub-voxels with the single
-    camera's schedule (coarse and early iterations on coarser aperture samplings)."""
+    MLEM, SMART or block MART, on the voxels or coarse-to-fine on sub-voxels with the
+    single camera's schedule (coarse and early iterations on coarser aperture
+    samplings)."""
     check_cameras(images, projectors)
-    if settings.method not in ("mlem", "smart"):
-        raise ValueError(f"several cameras reconstruct with 'mlem' or 'smart', got "
-                         f"{settings.method!r} (block MART's views are one camera's)")
     if settings.tol is not None or settings.mask_fraction is not None:
         raise ValueError("several cameras run every iteration over every pixel: tol and "
                          "mask_fraction are one camera's; leave them None")
@@ -190,10 +216,11 @@ class _Run:
             vol = solver.solvers[0].spread_start(*spread)
         else:
             vol = solver.uniform_start()
+        st = self.settings
+        blocks = [device_view_blocks(p, st.mart_blocks) if st.n_blocks > 1 else None
+                  for p in projectors] if st.method == "mart" else None
         for _ in range(iterations if not self.info.stopped else 0):
-            floor = self.settings.ratio_floor
-            resid = solver.update(vol, self.settings.relax, self.settings.method == "smart",
-                                  RATIO_MIN if floor is None else floor) / self.norm
+            resid = self._step(solver, vol, blocks) / self.norm
             self.info.residuals.append(resid)
             self.info.iterations += 1
             if self.callback is not None and self.callback(self.info.iterations,
@@ -201,3 +228,12 @@ class _Run:
                 self.info.stopped = True
                 break
         return solver, vol
+
+    def _step(self, solver: JointSolver, vol: list, blocks: list | None) -> float:
+        """One iteration of the settings' method (``blocks``: each camera's view blocks,
+        block MART's; ``None`` for MLEM and SMART); returns ``‖P - I‖``."""
+        st = self.settings
+        floor = RATIO_MIN if st.ratio_floor is None else st.ratio_floor
+        if blocks is not None:
+            return solver.update_mart(vol, st.relax, floor, blocks, st.n_blocks)
+        return solver.update(vol, st.relax, st.method == "smart", floor)

@@ -127,11 +127,14 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
     ----------
     image
         Raw image ``(rows, cols)`` matching the projector's camera; uint8, uint16 or float;
-        finite and non-negative.
+        finite and non-negative. Several cameras (docs/design.md §6.7): a list of images,
+        one per camera, with a list of projectors in the same order; one volume from all
+        of them (MLEM, SMART or block MART over every camera's pixels).
     projector
         A :class:`plenocl.Projector` for the camera and grid (its queue runs the solver),
         or any :class:`plenocl.reconstruction.operator.ProjectionOperator` (one that
-        cannot refine its grid with ``supersample=1``).
+        cannot refine its grid with ``supersample=1``); several cameras: their posed
+        projectors, on one world grid and one queue.
     settings
         Every option from ``method`` to ``support`` below as one
         :class:`ReconstructionSettings` (``None``: the defaults). The options may instead
