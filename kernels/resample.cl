@@ -124,7 +124,11 @@ __kernel void from_frame(__global const float *frame, int fnx, int fny, int fz0,
  * Parallel structure: one work-item per output voxel over a 3-D range (x, y, planes),
  * both ways, as above: to_frame_3d reads its eight taps; from_frame_3d gathers the frame
  * voxels whose taps hold its user voxel (na x nb x nc candidates, the same count for
- * every item). No atomics, no shared state. */
+ * every item). No atomics, no shared state. With b_outer / y_outer the range is (x,
+ * planes, y) instead: for a pose that keeps the world's y (a turn about y) the items of
+ * one y row, run together, read one row of the other volume's (x, z) plane, which stays
+ * in cache where a frame plane's tilted footprint through hundreds of world planes does
+ * not (the whole sensor's grids). */
 
 #define PL_FX_ONE 4294967296.0f
 
@@ -168,9 +172,10 @@ inline float pl_scaled(__global const float *user, __global const float *norm, s
  * every item); at its faces a tap outside reads voxel 0 with weight 0. */
 __kernel void to_frame_3d(__global const float *user, __global const float *norm,
                           int unx, int uny, int unz, __global float *frame, int fnx, int fny,
-                          int c_lo, __global const long *map)
+                          int c_lo, __global const long *map, int b_outer)
 {
-    int a = get_global_id(0), b = get_global_id(1), c = c_lo + (int)get_global_id(2);
+    int a = get_global_id(0);
+    int b = get_global_id(b_outer ? 2 : 1), c = c_lo + (int)get_global_id(b_outer ? 1 : 2);
     if (a >= fnx)
         return;
     pl_fx3 p = pl_fx_index(map, a, b, c);
@@ -218,9 +223,10 @@ __kernel void from_frame_3d(__global const float *frame, int fnx, int fny, int f
                             __global float *user, __global const float *norm,
                             __global const float *support, int use_support,
                             int unx, int uny, int z_lo, __global const long *map,
-                            __global const long *start, int na, int nb, int nc)
+                            __global const long *start, int na, int nb, int nc, int y_outer)
 {
-    int x = get_global_id(0), y = get_global_id(1), z = z_lo + (int)get_global_id(2);
+    int x = get_global_id(0);
+    int y = get_global_id(y_outer ? 2 : 1), z = z_lo + (int)get_global_id(y_outer ? 1 : 2);
     if (x >= unx)
         return;
     size_t out = ((size_t)z * uny + y) * unx + x;

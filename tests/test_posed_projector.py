@@ -81,7 +81,8 @@ def test_the_transpose_finds_every_tap_and_the_kernels_are_transposes(queue, pos
     and one where the frame's y planes lie on the world's):
     every tap of the float64 twin lies in it (but its round-off's, below 1e-9, where a
     pose puts frame and world planes on each other), and ``to_frame_3d`` and
-    ``from_frame_3d`` are each other's transposes to float32 rounding."""
+    ``from_frame_3d`` are each other's transposes to float32 rounding, the same whichever
+    order their items run in."""
     proj = Projector(_camera(pose), GRID, queue)
     rs = proj.resampler
     if pose is not TILTED:
@@ -101,9 +102,15 @@ def test_the_transpose_finds_every_tap_and_the_kernels_are_transposes(queue, pos
     rng = np.random.default_rng(8)
     vol = rng.random(GRID.shape).astype(np.float32)
     frame_vol = rng.random(proj.frame.grid.shape).astype(np.float32)
-    forward = np.dot(proj.volume_to_frame(vol).ravel(), frame_vol.ravel().astype(np.float64))
-    back = np.dot(vol.ravel(), proj.volume_from_frame(frame_vol).ravel().astype(np.float64))
+    resampled, gathered = proj.volume_to_frame(vol), proj.volume_from_frame(frame_vol)
+    forward = np.dot(resampled.ravel(), frame_vol.ravel().astype(np.float64))
+    back = np.dot(vol.ravel(), gathered.ravel().astype(np.float64))
     assert abs(forward - back) <= 1e-6 * abs(forward)
+    # y rows outermost (a pose that keeps y: for the cache) or not: the same numbers
+    assert rs.rows_outer == (pose is not TILTED)
+    rs.rows_outer = not rs.rows_outer
+    np.testing.assert_array_equal(proj.volume_to_frame(vol), resampled)
+    np.testing.assert_array_equal(proj.volume_from_frame(frame_vol), gathered)
 
 
 def test_the_posed_operator_is_adjoint_and_skips_planes_exactly(queue):

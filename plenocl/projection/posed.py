@@ -160,6 +160,9 @@ class PoseResampler:
         self._map = self._k.to_device(self.fixed_map)
         self.fixed_start, self.counts = candidate_box(m, t)
         self._start = self._k.to_device(self.fixed_start)
+        # a pose that keeps the world's y: each y row's items run together (the kernels'
+        # b_outer / y_outer: their reads stay in cache)
+        self.rows_outer = bool(np.allclose(m[[0, 2], 1], 0.0) and np.allclose(m[1, [0, 2]], 0.0))
         self._planes = self._planes_read()
         self.norm = self._column_sums()
         inverse = np.divide(1.0, self.norm, out=np.zeros_like(self.norm),
@@ -198,9 +201,12 @@ class PoseResampler:
         (user,), (frame,) = one_slab(vol, vol_slabs), one_slab(out, out_slabs)
         unz, uny, unx = self.grid.shape
         _, fny, fnx = self.frame.shape
+        outer = self.rows_outer
         for c0, c1 in runs(self.frame_active(active)):
-            self._k.launch("to_frame_3d", (fnx, fny, c1 - c0), user, self._norm, i32(unx),
-                           i32(uny), i32(unz), frame, i32(fnx), i32(fny), i32(c0), self._map)
+            size = (fnx, c1 - c0, fny) if outer else (fnx, fny, c1 - c0)
+            self._k.launch("to_frame_3d", size, user, self._norm, i32(unx), i32(uny),
+                           i32(unz), frame, i32(fnx), i32(fny), i32(c0), self._map,
+                           i32(outer))
 
     def from_frame(self, frame_vol: Slabs, frame_slabs: SlabRanges, out: Slabs,
                    out_slabs: SlabRanges, active: np.ndarray, support: Slabs | None = None
@@ -217,10 +223,12 @@ class PoseResampler:
         _, uny, unx = self.grid.shape
         fnz, fny, fnx = self.frame.shape
         sup = (user, i32(0)) if support is None else (support, i32(1))
+        outer = self.rows_outer
         for z0, z1 in runs(np.asarray(active, bool)):
-            self._k.launch("from_frame_3d", (unx, uny, z1 - z0), frame, i32(fnx), i32(fny),
-                           i32(fnz), user, norm, *sup, i32(unx), i32(uny), i32(z0),
-                           self._map, self._start, *self.counts)
+            size = (unx, z1 - z0, uny) if outer else (unx, uny, z1 - z0)
+            self._k.launch("from_frame_3d", size, frame, i32(fnx), i32(fny), i32(fnz), user,
+                           norm, *sup, i32(unx), i32(uny), i32(z0), self._map, self._start,
+                           *self.counts, i32(outer))
 
     def columns(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The columns of ``S`` (normalised) of world voxels ``(N, 3)`` ``(iz, iy, ix)``,
