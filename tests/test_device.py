@@ -306,3 +306,24 @@ def test_the_per_particle_group_size_is_a_checked_power_of_two(queue):
             group_size(queue, bad)
     with pytest.raises(ValueError, match="power of two"):
         DeviceTubeSums(queue, 6)
+
+
+def test_fill_sets_whole_arrays_and_leading_slices_only(queue):
+    """``plenocl.opencl.arrays.fill`` (the driver's fill): a whole array, a slice along
+    the first axis (its neighbours untouched), float32 and int32, NaN; a non-contiguous
+    view is refused by name."""
+    import pyopencl.array as cla
+
+    from plenocl.opencl.arrays import fill
+
+    vol = cla.to_device(queue, np.arange(7 * 5 * 3, dtype=np.float32).reshape(7, 5, 3))
+    want = vol.get()
+    fill(vol[2:5], 1.5)
+    want[2:5] = 1.5
+    np.testing.assert_array_equal(vol.get(), want)
+    assert np.isnan(fill(vol, np.nan).get()).all()
+    counts = fill(cla.empty(queue, 11, np.int32), 0)
+    np.testing.assert_array_equal(counts.get(), np.zeros(11, np.int32))
+    fill(vol[3:3], 2.0)  # empty: nothing enqueued
+    with pytest.raises(ValueError, match="contiguous device array"):
+        fill(vol[:, 1], 0.0)

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl.array as cl_array
 
+from ..opencl.arrays import fill
 from .lenses import LensSet
 from .plan import depth_chunks
 
@@ -119,7 +120,7 @@ class FactorisedStages:
         nkx, nky, nkxp = self._lens_args()
         n = (s1 - s0) * int(nky) * self.nkxp
         light = self._buffer("L", n)
-        light[:n].fill(0.0)
+        fill(light[:n], 0.0)
         if lenses.count:
             sps = (s1 - s0) if self._k.is_cpu else 1  # samples per work-item
             self._k.launch("back_pix", (lenses.count, -(-(s1 - s0) // sps)), image, light,
@@ -166,7 +167,7 @@ class FactorisedStages:
         ny, nic = self._grid_args()[1], i1 - i0
         t_buf = self._buffer("T", int(nzc) * nic * int(ny) * self.nkxp)
         if self.back_mode == "atomic":
-            t_buf[:int(nzc) * nic * int(ny) * self.nkxp].fill(0.0)
+            fill(t_buf[:int(nzc) * nic * int(ny) * self.nkxp], 0.0)
             self._k.launch("back_y_scatter", (self.nseg, int(nky), s1 - s0), light, t_buf,
                            self._d["coef"], self._d["ij"], ny, nkxp, i32(self.seg), zc, nzc,
                            i32(i0), i32(nic), i32(s0), self._ic)

@@ -37,6 +37,7 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..camera.lattice import separable_rotation_deg
 from ..grid import Grid
+from ..opencl.arrays import fill
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
 from ..optics.depthrange import check_grid
@@ -433,7 +434,7 @@ class Projector(FactorisedStages):
         slabs are shared: do not write to them."""
         if self._sensitivity is None:
             ones = self.empty_image()
-            ones.fill(1.0)
+            fill(ones, 1.0)
             self._sensitivity = self.back_device(ones)
         return self._sensitivity
 
@@ -488,11 +489,11 @@ class Projector(FactorisedStages):
         if self.frame is not None:
             return self._resampled_forward(slabs, out, active, lenses)
         if self.method == "direct":
-            out.fill(0.0)
+            fill(out, 0.0)
             for (z0, _), slab in zip(self.plan.slabs, slabs, strict=True):
                 self._direct("fwd_direct", slab, out, z0)
             return out
-        out.fill(0.0)
+        fill(out, 0.0)
         if not active.any() or not lenses.count:
             return out
         for i0, i1 in self.plan.columns:
@@ -525,7 +526,7 @@ class Projector(FactorisedStages):
         lenses = self._lenses(lenses)
         for (z0, z1), slab in zip(self.plan.slabs, slabs, strict=True):
             for a, b in runs(~active[z0:z1]):
-                slab[a:b].fill(0.0)
+                fill(slab[a:b], 0.0)
         if self.frame is not None:
             return self._resampled_back(image, slabs, active, lenses, support,
                                         reuse_forward)
@@ -589,7 +590,7 @@ class Projector(FactorisedStages):
         self._need_frame()
         out = self.frame.empty_volume()
         for slab in out:  # a tilted frame's planes beyond the grid are not written
-            slab.fill(0.0)
+            fill(slab, 0.0)
         self.resampler.to_frame(self.volume_to_device(vol), self.plan.slabs, out,
                                  self.frame.plan.slabs, np.ones(self.shape[0], bool))
         return self.frame.volume_to_host(out)

@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from ..opencl.arrays import fill
 from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
 from .operator import FramedOperator
@@ -76,7 +77,7 @@ class JointSolver:
         total = sum(self.solvers[0].total(s) for s in self.sens)
         vol = self.proj.empty_volume()
         for v in vol:
-            v.fill(light / max(total, 1e-30))
+            fill(v, light / max(total, 1e-30))
         return vol
 
     def update(self, vol: list, relax: float, log_ratio: bool, floor: float = RATIO_MIN

@@ -12,6 +12,7 @@ import functools
 import numpy as np
 import pyopencl.array as cla
 
+from ..opencl.arrays import fill
 from ..opencl.program import KernelSet
 from .operator import ProjectionOperator
 from .supersample import LateralBinning
@@ -173,7 +174,7 @@ class Solver:
             # the projection of a volume of ones carries 1ᵀ A 1 = Σ sensitivity
             total = sum(self.total(s) for s in self.sens)
             for v in vol:
-                v.fill(self.total(img) / max(total, 1e-30))
+                fill(v, self.total(img) / max(total, 1e-30))
         elif kind == "mlos":
             _, logimg = self._dark_and_log(img, threshold, max(threshold, 1e-6))
             self.update_voxels("mlos", vol, self.proj.back_device(logimg), self.smin)
