@@ -156,15 +156,21 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     truths = field_truths(run.out / "field.npz", sc, flow)  # the flow's slow part, once
     summary = evaluate(run, sc, flow, truths)
     if figures:
-        from .figures import FIGURES, boundary_layer_figures
-
-        meas, _, averaged, valid, coords = truths
-        run.run("figures", list(FIGURES),
-                lambda: boundary_layer_figures(run.out, (meas, averaged, valid, coords),
-                                               sc.z_wall, summary, U_INF))
+        stage_figures(run, sc, truths, summary)
     summary["seconds"] = run.timings
     write_json(run.path("summary.json"), summary, sort_keys=True)
     return summary
+
+
+def stage_figures(run: StageRunner, sc: Scenario, truths, profile: dict) -> None:
+    """The demo's figures (:data:`plenocl.demo.figures.FIGURES`) of a field beside its
+    truths (:func:`field_truths`); ``profile`` holds :func:`mean_profile`'s entries."""
+    from .figures import FIGURES, boundary_layer_figures
+
+    meas, _, averaged, valid, coords = truths
+    run.run("figures", list(FIGURES),
+            lambda: boundary_layer_figures(run.out, (meas, averaged, valid, coords),
+                                           sc.z_wall, profile, U_INF))
 
 
 def stage_particles(run: StageRunner, sc: Scenario, flow, seed: int) -> None:

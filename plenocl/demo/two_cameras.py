@@ -40,6 +40,7 @@ from .boundary_layer import (
     mean_profile,
     scenario,
     sensor_options,
+    stage_figures,
     stage_particles,
 )
 
@@ -77,13 +78,7 @@ def run_two_cameras(out_dir: str | Path, queue=None, seed: int = 0, apart: float
             lambda: _stage_piv(run, sc, cams, queue))
     summary, truths = _evaluate(run, sc, flow, cams, poses)
     if figures:
-        from .figures import FIGURES, boundary_layer_figures
-
-        profile = mean_profile(truths, sc, flow)
-        meas, _, averaged, valid, coords = truths
-        run.run("figures", list(FIGURES),
-                lambda: boundary_layer_figures(run.out, (meas, averaged, valid, coords),
-                                               sc.z_wall, profile, U_INF))
+        stage_figures(run, sc, truths, mean_profile(truths, sc, flow))
     summary["seconds"] = run.timings
     write_json(run.path("summary.json"), summary, sort_keys=True)
     return summary

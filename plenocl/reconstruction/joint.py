@@ -32,7 +32,7 @@ from .images import PreparedImage, prepare_image
 from .operator import FramedOperator
 from .schedule import coarse_support, sampled_operator
 from .settings import ReconstructionInfo, ReconstructionSettings
-from .solver import RATIO_MIN, Solver
+from .solver import RATIO_MIN, Solver, update_mart
 
 
 class JointSolver:
@@ -106,26 +106,17 @@ class JointSolver:
 
     def update_mart(self, vol: list, relax: float, floor: float, blocks: Sequence,
                     n_blocks: int) -> float:
-        """One block-MART iteration (module documentation): camera by camera, each of
-        its ``n_blocks`` view blocks (``blocks``: each camera's block map, ``None`` for
-        one block) with a fresh projection; a voxel stays 0 where the cameras' summed
+        """One block-MART iteration (module documentation): camera by camera, the single
+        camera's block sweep (:func:`.solver.update_mart`; ``blocks``: each camera's
+        block map, ``None`` for one block), a voxel staying 0 where the cameras' summed
         sensitivity is at or below ``min_sensitivity`` (a voxel one camera does not see
         is the other's to update). Returns ``‖P - I‖`` over every camera's pixels, each
         camera's taken before its first block."""
         resid = 0.0
         for solver, img, thr, blk in zip(self.solvers, self.images, self.thresholds, blocks,
                                          strict=True):
-            fwd, back = solver.projections(log_ratio=True)
-            proj = fwd(vol)
-            resid += solver.total(proj, img)
-            for k in range(n_blocks):
-                if k:
-                    proj = fwd(vol, out=proj)
-                ratio = solver.ratio(img, proj, thr, True, blk, -1 if blk is None else k,
-                                     floor)
-                solver.update_voxels("update_exp", vol, back(ratio, support=vol),
-                                     np.float32(relax), self.smin, np.int32(0),
-                                     sens=self.sens)
+            resid += update_mart(solver, vol, img, None, relax, thr, blk, n_blocks, floor,
+                                 sens=self.sens) ** 2
         return resid ** 0.5
 
 

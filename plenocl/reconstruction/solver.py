@@ -289,10 +289,12 @@ def update_smart(solver: Solver, vol, img, active, relax: float, threshold: floa
 
 
 def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float,
-                blocks=None, n_blocks: int = 1, ratio_floor: float | None = None) -> float:
+                blocks=None, n_blocks: int = 1, ratio_floor: float | None = None,
+                sens=None) -> float:
     """Block MART: one multiplicative update per block of views, each with a fresh
     projection (``r`` floored at ``ratio_floor``); returns ``‖P - I‖`` before the first
-    block."""
+    block. ``sens``: the sensitivity whose voxels at or below ``min_sensitivity`` stay 0
+    (``None``: the solver's; several cameras: their sum)."""
     floor = RATIO_MIN if ratio_floor is None else ratio_floor
     fwd, back = solver.projections(log_ratio=True)
     proj = fwd(vol, active=active)
@@ -303,7 +305,7 @@ def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float
         lr = solver.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk,
                           floor)
         solver.update_voxels("update_exp", vol, back(lr, active=active, support=vol),
-                             np.float32(relax), solver.smin, np.int32(0))
+                             np.float32(relax), solver.smin, np.int32(0), sens=sens)
     return resid
 
 
