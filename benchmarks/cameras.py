@@ -6,6 +6,7 @@ particles recovered and ghosts, and seconds per pair.
 
     python benchmarks/cameras.py [--lenses 116 78] [--apart 25 [10 40 ...]] [--three]
                                  [--fine-iterations 5 4] [--seeds 1] [--seeding 0.05]
+                                 [--repeats 1]
 
 Cameras: the paper's optics (``paper_optics``), each looking at the world origin (the
 grid's centre), turned about the world's y axis; two cameras ``--apart`` degrees apart
@@ -15,19 +16,22 @@ photon and read noise), uniform motion, each camera's images ray traced from the
 world particles. Each row runs ``process_pair``'s default chain (several cameras: the
 joint reconstruction, and the particles fitted to every camera's raw images at once).
 Each camera's projectors are built once before the rows, as a batch worker does, and
-timed apart. Errors are in the world grid's voxels (x, y lateral; z depth, the axis the
+timed apart; ``--repeats`` times each pair that many times (the median; the same
+vectors each time). Errors are in the world grid's voxels (x, y lateral; z depth, the axis the
 cameras' optical axes straddle).
 """
 
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 
 from plenocl import get_queue, process_pair, simulate_image
 from plenocl.bench.accuracy_section import SHIFT_VOX, budget_scene, paper_optics
 from plenocl.bench.scripts import script_parser
+from plenocl.bench.timing import timed
 from plenocl.camera import Pose
 from plenocl.metrics import recovery
 from plenocl.projection import Projector
@@ -80,6 +84,8 @@ def main() -> None:
                         help="also three cameras, the first separation apart")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1])
     parser.add_argument("--seeding", type=float, default=0.05)
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="time each pair this many times: the median")
     args = parser.parse_args()
     queue = get_queue()
     camera, grid = paper_optics(tuple(args.lenses))
@@ -107,12 +113,8 @@ def main() -> None:
             raws = [[simulate_image(c, p, 2e4, seed=100 * seed + 10 * k + j, queue=queue,
                                     **TRACE) for j, p in enumerate((scene.pa, scene.pb))]
                     for k, c in enumerate(cams)]
-            t0 = time.perf_counter()
-            if len(cams) == 1:
-                pair = process_pair(raws[0][0], raws[0][1], projs[0])
-            else:
-                pair = process_pair([r[0] for r in raws], [r[1] for r in raws], projs)
-            record(rows, label, pair, scene, grid, time.perf_counter() - t0)
+            pair, seconds = timed(partial(run_pair, raws, projs), args.repeats)
+            record(rows, label, pair, scene, grid, seconds)
             if len(cams) == 2 and turns[1] == args.apart[0] / 2:
                 for n in args.fine_iterations:
                     t0 = time.perf_counter()
@@ -125,6 +127,14 @@ def main() -> None:
         table = np.array(runs)
         print(line(label, *np.sqrt(np.mean(table[:, :2] ** 2, axis=0)),
                    *table[:, 2:].mean(axis=0)))
+
+
+def run_pair(raws: list, projs: list):
+    """``process_pair``'s default chain on each camera's two raw images (``raws[k]``),
+    one camera's or several cameras' at once."""
+    if len(projs) == 1:
+        return process_pair(raws[0][0], raws[0][1], projs[0])
+    return process_pair([r[0] for r in raws], [r[1] for r in raws], projs)
 
 
 def record(rows: dict, label: str, pair, scene, grid, seconds: float) -> None:

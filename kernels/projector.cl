@@ -28,6 +28,13 @@
  * `seg` vectors of a row (a whole row on a CPU, so it stays in cache; one element on a
  * GPU, for coalesced access).
  *
+ * The separable kernels take a plane extent (xr: each plane's voxel columns [x0, x1);
+ * span: per plane and aperture column, the T-row vectors those columns reach; plenocl/
+ * projection/extent.py): a posed camera's frame grid is 0 beyond its tilted band, so
+ * fwd_x_row splats the band's voxels, fwd_y and back_y update the spans' vectors, back_x
+ * computes the band's voxels (0 beyond), each adding what it adds without an extent in
+ * the same order. A projector's own extent is the whole grid (every column, whole rows).
+ *
  * The direct kernels (voxel_footprint, fwd_direct, back_direct) evaluate the 16 products
  * per sample per voxel without the factorisation: one voxel's column, and the
  * unfactorised baseline the benchmark measures. */
@@ -43,7 +50,8 @@
 __kernel void fwd_x(__global const float *restrict vol, __global float *restrict T,
                     __global const float *restrict coef,
                     int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
-                    float ic)
+                    float ic, __global const int2 *restrict xr,
+                    __global const int2 *restrict span, int ncols)
 {
     const int kx = get_global_id(0), iy = get_global_id(1), q = get_global_id(2);
     if (kx >= nkxp) return;
@@ -51,8 +59,9 @@ __kernel void fwd_x(__global const float *restrict vol, __global float *restrict
     __global const float *c = coef + 16 * (zc0 + izl);
     const float bu = (float)i - ic;
     __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
+    const int2 sp = pl_seg_span(span, ncols, zc0 + izl, i, 0, nkxp / PL_VW);
     float acc = 0.0f;
-    if (kx < nkx) {
+    if (kx < nkx && kx >= sp.x * PL_VW && kx < sp.y * PL_VW) {  /* else 0: beyond the extent */
         const float b = pl_kx_offset(c, bu, iy);
         const float iw = pl_lens_iw(c).x;
         const int2 r = pl_hat_range(c[10], b, (float)kx, nx);
@@ -73,17 +82,21 @@ __kernel void fwd_x(__global const float *restrict vol, __global float *restrict
 __kernel void fwd_x_row(__global const float *restrict vol, __global float *restrict T,
                     __global const float *restrict coef,
                     int nx, int ny, int nkx, int nkxp, int zv0, int zc0, int i0, int nic,
-                    float ic)
+                    float ic, __global const int2 *restrict xr,
+                    __global const int2 *restrict span, int ncols)
 {
     const int iy = get_global_id(0), izl = get_global_id(1);
+    const int2 cols = xr[zc0 + izl];  /* the row's voxels beyond them are 0 */
     __global const float *c = coef + 16 * (zc0 + izl);
     __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
     __global float *base = T + ((size_t)izl * nic * ny + iy) * nkxp;
     const size_t stride = (size_t)ny * nkxp;  /* from one column's T row to the next */
     const float iw = pl_lens_iw(c).x;
-    for (int il = 0; il < nic; ++il)
-        pl_zero(base + il * stride, nkxp / PL_VW);
-    for (int ix = 0; ix < nx; ++ix) {
+    for (int il = 0; il < nic; ++il) {  /* the spans (fwd_y reads nothing beyond) */
+        const int2 m = pl_seg_span(span, ncols, zc0 + izl, i0 + il, 0, nkxp / PL_VW);
+        if (m.y > m.x) pl_zero(base + il * stride + m.x * PL_VW, m.y - m.x);
+    }
+    for (int ix = cols.x; ix < cols.y; ++ix) {
         const float e = row[ix];
         if (e == 0.0f) continue;  /* sparse volumes: most voxels are zero */
         for (int il = 0; il < nic; ++il) {
@@ -106,7 +119,8 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
                     __global const int *restrict col_hi, __global const int *restrict col_off,
                     __global const uchar *restrict rows_lit,
                     int ny, int nkxp, int seg, int zc0, int nzc, int i0, int nic, int s0,
-                    int nsc, float ic, int accumulate)
+                    int nsc, float ic, int accumulate, __global const int2 *restrict span,
+                    int ncols)
 {
     const int t = get_global_id(0), ky = get_global_id(1), il = get_global_id(2);
     if (!rows_lit[ky]) return;  /* no listed lens: fwd_pix never reads this row */
@@ -119,11 +133,14 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
     for (int izl = 0; izl < nzc; ++izl) {
         __global const float *c = coef + 16 * (zc0 + izl);
         const float iwy = pl_lens_iw(c).y;
-        __global const float *src = T + (size_t)(izl * nic + il) * ny * nkxp + off;
+        const int2 m = pl_seg_span(span, ncols, zc0 + izl, i, t, seg);  /* T's lit part */
+        if (m.y <= m.x) continue;
+        const size_t mo = (size_t)m.x * PL_VW;
+        __global const float *src = T + (size_t)(izl * nic + il) * ny * nkxp + off + mo;
         for (int j = lo; j <= hi; ++j) {
             const float bv = (float)j - ic;
             const int2 r = pl_hat_range(c[13], c[9] * bv + c[5], (float)ky, ny);
-            __global float *out = rows + (size_t)(j - lo) * nkxp;
+            __global float *out = rows + (size_t)(j - lo) * nkxp + mo;
             int pending = -1;  /* a row with a positive weight waiting for a partner */
             float wp = 0.0f;
             for (int iy = r.x; iy <= r.y + 1; ++iy) {
@@ -136,7 +153,7 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
                     continue;
                 }
                 pl_axpy2(out, src + (size_t)pending * nkxp,
-                         src + (size_t)(w > 0.0f ? iy : pending) * nkxp, wp, w, seg);
+                         src + (size_t)(w > 0.0f ? iy : pending) * nkxp, wp, w, m.y - m.x);
                 pending = -1;
             }
         }
@@ -322,7 +339,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
                      __global const int *restrict col_hi, __global const int *restrict col_off,
                      __global const uchar *restrict rows_lit,
                      int ny, int nky, int nkxp, int seg, int zc0, int nzc, int i0, int nic,
-                     int s0, int nsc, float ic)
+                     int s0, int nsc, float ic, __global const int2 *restrict span, int ncols)
 {
     const int t = get_global_id(0), iy = get_global_id(1);
     const size_t off = (size_t)t * seg * PL_VW;
@@ -334,10 +351,13 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
     }
     const size_t ostride = (size_t)ny * nkxp;  /* from one column's T row to the next */
     __global float *out = T + (size_t)iy * nkxp + off;  /* (izl, il): + (izl nic + il) */
-    for (int q = 0; q < nzc * nic; ++q)
-        pl_zero(out + q * ostride, seg);
-    int je[PL_PAIRS], ez[PL_PAIRS], ia[PL_PAIRS], ib[PL_PAIRS];
+    for (int q = 0; q < nzc * nic; ++q) {  /* the spans (back_x reads nothing beyond) */
+        const int2 m = pl_seg_span(span, ncols, zc0 + q / nic, i0 + q % nic, t, seg);
+        if (m.y > m.x) pl_zero(out + q * ostride + m.x * PL_VW, m.y - m.x);
+    }
+    int je[PL_PAIRS], ez[PL_PAIRS], ia[PL_PAIRS], ib[PL_PAIRS], es[PL_PAIRS];
     float wa[PL_PAIRS], wb[PL_PAIRS];
+    __global const int2 *spans = span + i0;  /* (plane, column i0 + il): es + il */
     for (int j = jmin, izl = 0; j <= jmax;) {
         int cnt = 0;  /* list (j, depth) pairs, depth fastest: a column's L rows stay in L1 */
         for (; j <= jmax && cnt < PL_PAIRS; izl = izl + 1 < nzc ? izl + 1 : 0, j += izl == 0) {
@@ -348,6 +368,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
                 continue;
             je[cnt] = j;
             ez[cnt] = izl * nic;
+            es[cnt] = (zc0 + izl) * ncols;
             ia[cnt] = ka * nsc + j;  /* L row of (ka, j) less the column's offset */
             ib[cnt] = kb * nsc + j;
             wa[cnt] = w0;
@@ -356,10 +377,16 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
         for (int il = 0; il < nic; ++il) {
             const int i = i0 + il, lo = col_lo[i], hi = col_hi[i];
             __global const float *col = L + (long)(col_off[i] - s0 - lo) * nkxp + off;
-            for (int e = 0; e < cnt; ++e)
-                if (je[e] >= lo && je[e] <= hi)
-                    pl_axpy2(out + (ez[e] + il) * ostride, col + (size_t)ia[e] * nkxp,
-                             col + (size_t)ib[e] * nkxp, wa[e], wb[e], seg);
+            for (int e = 0; e < cnt; ++e) {
+                if (je[e] < lo || je[e] > hi)
+                    continue;
+                /* the T row's part that the extent's voxels read (the rest stays 0); a
+                 * CPU's row is one segment (t = 0) */
+                const int2 m = ncols ? spans[es[e] + il] : (int2)(0, seg);
+                pl_axpy2(out + (ez[e] + il) * ostride + m.x * PL_VW,
+                         col + (size_t)ia[e] * nkxp + m.x * PL_VW,
+                         col + (size_t)ib[e] * nkxp + m.x * PL_VW, wa[e], wb[e], m.y - m.x);
+            }
         }
     }
 }
@@ -369,7 +396,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
                      __global const int *restrict col_hi, __global const int *restrict col_off,
                      __global const uchar *restrict rows_lit,
                      int ny, int nky, int nkxp, int seg, int zc0, int nzc, int i0, int nic,
-                     int s0, int nsc, float ic)
+                     int s0, int nsc, float ic, __global const int2 *restrict span, int ncols)
 {
     const int t = get_global_id(0), iy = get_global_id(1), il = get_global_id(2);
     const int i = i0 + il, lo = col_lo[i], hi = col_hi[i];
@@ -378,15 +405,17 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
     for (int izl = 0; izl < nzc; ++izl) {
         __global const float *c = coef + 16 * (zc0 + izl);
         __global float *out = T + ((size_t)(izl * nic + il) * ny + iy) * nkxp + off;
-        pl_zero(out, seg);
+        const int2 m = pl_seg_span(span, ncols, zc0 + izl, i, t, seg);  /* what back_x reads */
+        if (m.y <= m.x) continue;
+        pl_zero(out + m.x * PL_VW, m.y - m.x);
         for (int j = lo; j <= hi; ++j) {
             int ka, kb;
             float w0, w1;
             if (!pl_back_y_taps(c, (float)j - ic, iy, nky, rows_lit, &ka, &kb, &w0, &w1))
                 continue;
-            __global const float *src = col + (size_t)(j - lo) * nkxp;
-            pl_axpy2(out, src + (size_t)ka * nsc * nkxp, src + (size_t)kb * nsc * nkxp, w0, w1,
-                     seg);
+            __global const float *src = col + (size_t)(j - lo) * nkxp + m.x * PL_VW;
+            pl_axpy2(out + m.x * PL_VW, src + (size_t)ka * nsc * nkxp,
+                     src + (size_t)kb * nsc * nkxp, w0, w1, m.y - m.x);
         }
     }
 }
@@ -430,12 +459,14 @@ inline float pl_back_x_sum(__global const float *c, __global const float *base,
 __kernel void back_x(__global const float *restrict T, __global float *restrict vol,
                      __global const float *restrict coef, __global const float *restrict sup,
                      int use_support, int nx, int ny, int nkx, int nkxp, int zv0, int zc0,
-                     int i0, int nic, float ic, int accumulate)
+                     int i0, int nic, float ic, int accumulate,
+                     __global const int2 *restrict xr)
 {
     const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
     if (ix >= nx) return;
     const size_t at = ((size_t)(zc0 + izl - zv0) * ny + iy) * nx + ix;
-    if (use_support && sup[at] == 0.0f) {
+    const int2 cols = xr[zc0 + izl];
+    if ((use_support && sup[at] == 0.0f) || ix < cols.x || ix >= cols.y) {
         if (!accumulate) vol[at] = 0.0f;
         return;
     }
@@ -447,7 +478,8 @@ __kernel void back_x(__global const float *restrict T, __global float *restrict 
 __kernel void back_x_row(__global const float *restrict T, __global float *restrict vol,
                          __global const float *restrict coef, __global const float *restrict sup,
                          int use_support, int nx, int ny, int nkx, int nkxp, int zv0, int zc0,
-                         int i0, int nic, float ic, int accumulate)
+                         int i0, int nic, float ic, int accumulate,
+                         __global const int2 *restrict xr)
 {
     const int iy = get_global_id(0), izl = get_global_id(1);
     __global const float *c = coef + 16 * (zc0 + izl);
@@ -455,11 +487,16 @@ __kernel void back_x_row(__global const float *restrict T, __global float *restr
     __global float *out = vol + at;
     __global const float *s = sup + at;
     __global const float *base = T + (size_t)izl * nic * ny * nkxp + (size_t)iy * nkxp;
+    const int2 cols = xr[zc0 + izl];  /* beyond them: 0 (or left, accumulating) */
+    if (!accumulate) {
+        for (int ix = 0; ix < cols.x; ++ix) out[ix] = 0.0f;
+        for (int ix = cols.y; ix < nx; ++ix) out[ix] = 0.0f;
+    }
     int lit = 0;
     if (use_support)
-        for (int ix = 0; ix < nx; ++ix) lit += s[ix] != 0.0f;
-    if (use_support && 2 * lit < nx) {  /* a sparse row: voxel by voxel, skipping zeros */
-        for (int ix = 0; ix < nx; ++ix) {
+        for (int ix = cols.x; ix < cols.y; ++ix) lit += s[ix] != 0.0f;
+    if (use_support && 2 * lit < cols.y - cols.x) {  /* sparse: voxel by voxel, skipping zeros */
+        for (int ix = cols.x; ix < cols.y; ++ix) {
             if (s[ix] == 0.0f) {
                 if (!accumulate) out[ix] = 0.0f;
                 continue;
@@ -474,7 +511,7 @@ __kernel void back_x_row(__global const float *restrict T, __global float *restr
         const float bu = (float)(i0 + il) - ic;
         const int keep = accumulate || il > 0;
         __global const float *row = base + (size_t)il * ny * nkxp;
-        for (int ix = 0; ix < nx; ++ix) {
+        for (int ix = cols.x; ix < cols.y; ++ix) {
             const float v = pl_back_x_tap(c, row, bu, ix, iy, nkx, iw);
             out[ix] = keep ? out[ix] + v : v;
         }

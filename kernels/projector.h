@@ -155,6 +155,20 @@ inline void pl_axpy2(__global float *out, __global const float *a, __global cons
         o[m] = o[m] + s0 * va[m] + s1 * vb[m];
 }
 
+/* A volume known to be zero outside a lateral extent per plane (a posed camera's frame
+ * grid, docs/design.md §5.5): plane z's voxel columns [xr.x, xr.y) and, for aperture
+ * column i, the T-row vectors [span.x, span.y) that those columns reach (host:
+ * plenocl/projection/extent.py; ncols = 0: the whole extent, every row whole, no span
+ * read). This is the part of segment t (seg vectors from t seg) that the span holds,
+ * from the segment's start. */
+inline int2 pl_seg_span(__global const int2 *span, int ncols, int z, int i, int t, int seg)
+{
+    if (ncols == 0)
+        return (int2)(0, seg);
+    const int2 s = span[z * ncols + i];
+    return (int2)(pl_maxi(s.x - t * seg, 0), pl_mini(s.y - t * seg, seg));
+}
+
 inline void pl_zero(__global float *out, int n)
 {
     __global pl_vec *o = (__global pl_vec *)out;

@@ -128,7 +128,10 @@ __kernel void from_frame(__global const float *frame, int fnx, int fny, int fz0,
  * planes, y) instead: for a pose that keeps the world's y (a turn about y) the items of
  * one y row, run together, read one row of the other volume's (x, z) plane, which stays
  * in cache where a frame plane's tilted footprint through hundreds of world planes does
- * not (the whole sensor's grids). */
+ * not (the whole sensor's grids). CPUs run the transpose as from_frame_3d_row, one
+ * work-item per user row (y, z) along it: a sparse support's zero voxels then cost a
+ * read each. to_frame_3d skips the frame voxels beyond each plane's columns (those that
+ * reach the user's grid). */
 
 #define PL_FX_ONE 4294967296.0f
 
@@ -166,18 +169,26 @@ inline float pl_scaled(__global const float *user, __global const float *norm, s
     return user[u] * norm[u];
 }
 
-/* frame[c][b][a] = S user for frame planes c in [c_lo, c_lo + range(2)). Inside the
- * user's grid the eight taps are read straight and interpolated axis by axis (four where
- * y's fraction is 0: a pose that keeps the world's y on whole voxels, the same branch for
- * every item); at its faces a tap outside reads voxel 0 with weight 0. */
+/* frame[c][b][a] = S user for frame planes c in [c_lo, c_lo + range(2)); 0 without
+ * computing it beyond the plane's columns cols[c] (PoseResampler.frame_columns: no voxel
+ * there has a tap in the grid). Inside the user's grid the eight taps are read straight
+ * and interpolated axis by axis (four where y's fraction is 0: a pose that keeps the
+ * world's y on whole voxels, the same branch for every item); at its faces a tap outside
+ * reads voxel 0 with weight 0. */
 __kernel void to_frame_3d(__global const float *user, __global const float *norm,
                           int unx, int uny, int unz, __global float *frame, int fnx, int fny,
-                          int c_lo, __global const long *map, int b_outer)
+                          int c_lo, __global const long *map, int b_outer,
+                          __global const int2 *cols)
 {
     int a = get_global_id(0);
     int b = get_global_id(b_outer ? 2 : 1), c = c_lo + (int)get_global_id(b_outer ? 1 : 2);
     if (a >= fnx)
         return;
+    const int2 reach = cols[c];
+    if (a < reach.x || a >= reach.y) {
+        frame[((size_t)c * fny + b) * fnx + a] = 0.0f;
+        return;
+    }
     pl_fx3 p = pl_fx_index(map, a, b, c);
     int x0 = (int)(p.x >> 32), y0 = (int)(p.y >> 32), z0 = (int)(p.z >> 32);
     float fx = pl_fx_frac(p.x), fy = pl_fx_frac(p.y), fz = pl_fx_frac(p.z);
@@ -216,24 +227,13 @@ __kernel void to_frame_3d(__global const float *user, __global const float *norm
     frame[((size_t)c * fny + b) * fnx + a] = sum;
 }
 
-/* user[z][y][x] = S^T frame for user planes z in [z_lo, z_lo + range(2)); with
- * use_support, voxels where support is 0 are written 0 unread. The candidates' p is
- * stepped from the box's corner by map's columns. */
-__kernel void from_frame_3d(__global const float *frame, int fnx, int fny, int fnz,
-                            __global float *user, __global const float *norm,
-                            __global const float *support, int use_support,
-                            int unx, int uny, int z_lo, __global const long *map,
-                            __global const long *start, int na, int nb, int nc, int y_outer)
+/* S^T frame at user voxel (x, y, z), before its norm: the sum over the candidate box's
+ * frame voxels (its corner floor(start X) + 1, na x nb x nc of them, p stepped from the
+ * corner by map's columns) of each one's tap weight for the voxel times its value. */
+inline float pl_gathered(__global const float *frame, int fnx, int fny, int fnz,
+                         __global const long *map, __global const long *start,
+                         int na, int nb, int nc, int x, int y, int z)
 {
-    int x = get_global_id(0);
-    int y = get_global_id(y_outer ? 2 : 1), z = z_lo + (int)get_global_id(y_outer ? 1 : 2);
-    if (x >= unx)
-        return;
-    size_t out = ((size_t)z * uny + y) * unx + x;
-    if (use_support && support[out] == 0.0f) {
-        user[out] = 0.0f;
-        return;
-    }
     int a0 = (int)((start[9] + x * start[0] + y * start[1] + z * start[2]) >> 32) + 1;
     int b0 = (int)((start[10] + x * start[3] + y * start[4] + z * start[5]) >> 32) + 1;
     int c0 = (int)((start[11] + x * start[6] + y * start[7] + z * start[8]) >> 32) + 1;
@@ -259,5 +259,49 @@ __kernel void from_frame_3d(__global const float *frame, int fnx, int fny, int f
         }
         r.x += C.x; r.y += C.y; r.z += C.z;
     }
-    user[out] = sum * norm[out];
+    return sum;
+}
+
+/* user[z][y][x] = S^T frame for user planes z in [z_lo, z_lo + planes) (pl_gathered,
+ * times the voxel's norm); with use_support, voxels where support is 0 are written 0
+ * unread. from_frame_3d (GPUs): one work-item per user voxel over (x, y, planes), or
+ * (x, planes, y) with y_outer. from_frame_3d_row (CPUs): one per user row (y, z), along
+ * it, so that a sparse support's zero voxels cost a read each (a CPU driver runs an
+ * element kernel's items as vectors, whose every lane pays for one lit voxel). The
+ * same numbers either way. */
+__kernel void from_frame_3d(__global const float *frame, int fnx, int fny, int fnz,
+                            __global float *user, __global const float *norm,
+                            __global const float *support, int use_support,
+                            int unx, int uny, int z_lo, __global const long *map,
+                            __global const long *start, int na, int nb, int nc, int y_outer)
+{
+    int x = get_global_id(0);
+    int y = get_global_id(y_outer ? 2 : 1), z = z_lo + (int)get_global_id(y_outer ? 1 : 2);
+    if (x >= unx)
+        return;
+    size_t out = ((size_t)z * uny + y) * unx + x;
+    if (use_support && support[out] == 0.0f) {
+        user[out] = 0.0f;
+        return;
+    }
+    user[out] = pl_gathered(frame, fnx, fny, fnz, map, start, na, nb, nc, x, y, z)
+                * norm[out];
+}
+
+__kernel void from_frame_3d_row(__global const float *frame, int fnx, int fny, int fnz,
+                                __global float *user, __global const float *norm,
+                                __global const float *support, int use_support,
+                                int unx, int uny, int z_lo, __global const long *map,
+                                __global const long *start, int na, int nb, int nc,
+                                int y_outer)
+{
+    const int y = get_global_id(0), z = z_lo + (int)get_global_id(1);
+    const size_t row = ((size_t)z * uny + y) * unx;
+    for (int x = 0; x < unx; x++) {
+        const size_t out = row + x;
+        user[out] = use_support && support[out] == 0.0f
+                    ? 0.0f
+                    : pl_gathered(frame, fnx, fny, fnz, map, start, na, nb, nc, x, y, z)
+                      * norm[out];
+    }
 }

@@ -16,6 +16,7 @@ from helpers import assert_adjoint, assert_close_to_peak, lens_camera
 from plenocl import Grid, Projector, process_pair, simulate_image
 from plenocl.camera import Pose
 from plenocl.metrics import recovery
+from plenocl.opencl.device import is_cpu
 from plenocl.optics import field_of_view_mm
 from plenocl.peaks import find_particles
 from plenocl.piv.settings import PIVSettings
@@ -106,11 +107,71 @@ def test_the_transpose_finds_every_tap_and_the_kernels_are_transposes(queue, pos
     forward = np.dot(resampled.ravel(), frame_vol.ravel().astype(np.float64))
     back = np.dot(vol.ravel(), gathered.ravel().astype(np.float64))
     assert abs(forward - back) <= 1e-6 * abs(forward)
-    # y rows outermost (a pose that keeps y: for the cache) or not: the same numbers
+    # y rows outermost (a pose that keeps y: for the cache) or not, the transpose by
+    # world rows (CPUs) or by voxels (GPUs), with a support or not: the same numbers
     assert rs.rows_outer == (pose is not TILTED)
+    assert rs.row_form == is_cpu(queue.device)
     rs.rows_outer = not rs.rows_outer
     np.testing.assert_array_equal(proj.volume_to_frame(vol), resampled)
     np.testing.assert_array_equal(proj.volume_from_frame(frame_vol), gathered)
+    support = np.where(rng.random(GRID.shape) < 0.3, vol, 0).astype(np.float32)
+    frame_dev = proj.frame.volume_to_device(frame_vol)
+    on_support = {}
+    for form in (True, False):
+        rs.row_form = form
+        out = proj.empty_volume()
+        rs.from_frame(frame_dev, proj.frame.plan.slabs, out, proj.plan.slabs,
+                      np.ones(GRID.shape[0], bool), proj.volume_to_device(support))
+        on_support[form] = proj.volume_to_host(out)
+        np.testing.assert_array_equal(proj.volume_from_frame(frame_vol), gathered)
+    np.testing.assert_array_equal(on_support[True], on_support[False])
+    np.testing.assert_array_equal(on_support[True], np.where(support != 0, gathered, 0))
+
+
+@pytest.mark.parametrize("forms", [{}, {"gather_forward": True, "segment": 1,
+                                         "vector_width": 1}])
+@pytest.mark.parametrize("pose", [TILTED, Pose((0.0, 25.0, 0.0), (0.0, 0.0, 0.0))])
+def test_the_frame_extent_changes_no_number_inside_it(queue, pose, forms):
+    """A frame plane's columns (``frame_columns``) hold every frame voxel with a tap in
+    the world grid and one column more each side; the separable kernels told of them
+    (``Projector.extent``: the row kernels (CPUs) and the element ones (GPUs), several
+    column chunks, segments of one vector) project a volume that is 0 beyond them to the
+    same image bit for bit, and back-project the same numbers inside them (0 beyond),
+    with a support too."""
+    proj = Projector(_camera(pose), GRID, queue, scratch_bytes=2**14, **forms)
+    frame, cols = proj.frame, proj.resampler.frame_columns
+    fnz, fny, fnx = frame.shape
+    taps = resample_matrix_3d(GRID, frame.grid, pose).tocsr()
+    lit = np.zeros(frame.shape, bool).ravel()
+    lit[np.unique(taps.nonzero()[0][np.abs(taps.data) > 1e-9])] = True
+    lit = lit.reshape(frame.shape)
+    a = np.arange(fnx)
+    band = (a >= cols[:, 0, None]) & (a < cols[:, 1, None])  # (fnz, fnx)
+    assert not (lit & ~band[:, None, :]).any()  # every tap inside
+    for c in np.flatnonzero(lit.any(axis=(1, 2))):
+        hull = np.flatnonzero(lit[c].any(axis=0))
+        assert cols[c, 0] >= max(hull[0] - 2, 0) and cols[c, 1] <= min(hull[-1] + 3, fnx)
+    assert (cols[:, 1] - cols[:, 0]).min() < fnx  # the tilt cuts planes
+    extent = frame.extent(cols)
+    assert len(frame.plan.columns) > 1
+    rng = np.random.default_rng(21)
+    vol = np.where(rng.random(GRID.shape) < 0.15, rng.random(GRID.shape), 0).astype(np.float32)
+    resampled = proj.volume_to_frame(vol)
+    inside = np.broadcast_to(band[:, None, :], frame.shape)
+    assert resampled[inside].any() and not resampled[~inside].any()
+    dev = frame.volume_to_device(resampled)
+    np.testing.assert_array_equal(frame.forward_device(dev, extent=extent).get(),
+                                  frame.forward_device(dev).get())
+    image = cla.to_device(queue, rng.random(proj.image_shape, dtype=np.float32))
+    full = frame.volume_to_host(frame.back_device(image))
+    part = frame.volume_to_host(frame.back_device(image, extent=extent))
+    np.testing.assert_array_equal(part[inside], full[inside])
+    assert not part[~inside].any() and full[~inside].any()
+    if forms:
+        assert (extent.spans[..., 1] - extent.spans[..., 0]).min() < frame.nkxp  # cut rows
+    sup = frame.back_device(image, support=dev, extent=extent)
+    on = inside & (resampled != 0)
+    np.testing.assert_array_equal(frame.volume_to_host(sup)[on], full[on])
 
 
 def test_the_posed_operator_is_adjoint_and_skips_planes_exactly(queue):

@@ -17,6 +17,7 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..opencl.arrays import fill
+from .extent import PlaneExtent
 from .lenses import LensSet
 from .plan import depth_chunks
 
@@ -52,11 +53,13 @@ class FactorisedStages:
         return f32(self.aperture.center)
 
     def volume_to_light(self, slabs: Sequence[cl_array.Array], i0: int, i1: int,
-                        active: np.ndarray | None = None, lenses: LensSet | None = None
-                        ) -> cl_array.Array:
+                        active: np.ndarray | None = None, lenses: LensSet | None = None,
+                        extent: PlaneExtent | None = None) -> cl_array.Array:
         """``L = S vol`` for the samples of aperture columns ``[i0, i1)`` (a chunk of
-        :attr:`plan` ``.columns``), the active slices only (at least one)."""
+        :attr:`plan` ``.columns``), the active slices only (at least one), the volume 0
+        beyond ``extent`` (the separable path reads only inside it)."""
         active, lenses = self._active(active), self._lenses(lenses)
+        extent = self.whole_extent if extent is None else extent
         s0, s1 = self._columns.sample_range(i0, i1)
         nkx, nky, nkxp = self._lens_args()
         light = self._buffer("L", (s1 - s0) * int(nky) * self.nkxp)
@@ -71,7 +74,8 @@ class FactorisedStages:
                                    *self._grid_args(), nkx, nky, nkxp, *zargs, i32(s0),
                                    i32(s1 - s0), self._ic, i32(not first))
                 else:
-                    self._separable_forward(slab, light, zargs, i0, i1, s0, s1, first, lenses)
+                    self._separable_forward(slab, light, zargs, (i0, i1, s0, s1), first,
+                                            lenses, extent)
                 first = False
         return light
 
@@ -79,16 +83,19 @@ class FactorisedStages:
         _, ny, nx = self.shape
         return i32(nx), i32(ny)
 
-    def _separable_forward(self, slab, light, zargs, i0: int, i1: int, s0: int, s1: int,
-                           first: bool, lenses: LensSet) -> None:
-        """``fwd_x`` then ``fwd_y`` for one depth chunk: voxel rows onto lens columns, then
-        onto lens rows."""
+    def _separable_forward(self, slab, light, zargs, chunk: tuple[int, int, int, int],
+                           first: bool, lenses: LensSet, extent: PlaneExtent) -> None:
+        """``fwd_x`` then ``fwd_y`` for one depth chunk and the aperture columns and
+        samples ``chunk`` = ``(i0, i1, s0, s1)``: voxel rows onto lens columns, then onto
+        lens rows."""
         z0, zc, nzc = zargs
+        i0, i1, s0, s1 = chunk
+        bounds = self._span_args(extent)
         nkx, nky, nkxp = self._lens_args()
         (nx, ny), nic = self._grid_args(), i1 - i0
         t_buf = self._buffer("T", int(nzc) * nic * int(ny) * self.nkxp)
         xargs = (slab, t_buf, self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
-                 self._ic)
+                 self._ic, extent.device_columns, *bounds)
         if self.gather_forward:
             self._k.launch("fwd_x", (_rounded(self.nkxp), int(ny), int(nzc) * nic), *xargs)
         else:
@@ -96,7 +103,7 @@ class FactorisedStages:
         self._k.launch("fwd_y", (self.nseg, int(nky), nic), t_buf, light, self._d["coef"],
                        self._d["col_lo"], self._d["col_hi"], self._d["col_off"], lenses.rows,
                        ny, nkxp, i32(self.seg), zc, nzc, i32(i0), i32(nic),
-                       i32(s0), i32(s1 - s0), self._ic, i32(not first))
+                       i32(s0), i32(s1 - s0), self._ic, i32(not first), *bounds)
 
     def light_to_image(self, light: cl_array.Array, out: cl_array.Array, i0: int, i1: int,
                        lenses: LensSet | None = None) -> None:
@@ -132,11 +139,14 @@ class FactorisedStages:
     def light_to_volume(self, light: cl_array.Array, slab: cl_array.Array, z0: int, z1: int,
                         i0: int, i1: int, accumulate: bool, active: np.ndarray | None = None,
                         lenses: LensSet | None = None,
-                        support: cl_array.Array | None = None) -> None:
+                        support: cl_array.Array | None = None,
+                        extent: PlaneExtent | None = None) -> None:
         """``slab (+)= Sᵀ L`` for the slab ``[z0, z1)`` and aperture columns ``[i0, i1)``,
         active slices only; with ``support`` (a slab like ``slab``), the separable path
-        leaves out its zero voxels (0 there, or unchanged when accumulating)."""
+        leaves out its zero voxels (0 there, or unchanged when accumulating), and those
+        beyond ``extent`` too."""
         active, lenses = self._active(active), self._lenses(lenses)
+        extent = self.whole_extent if extent is None else extent
         s0, s1 = self._columns.sample_range(i0, i1)
         nkx, nky, nkxp = self._lens_args()
         acc = i32(accumulate)
@@ -147,22 +157,24 @@ class FactorisedStages:
                                self._d["coef"], self._d["ij"], *self._grid_args(), nkx, nky,
                                nkxp, zargs[0], zargs[1], i32(s0), i32(s1 - s0), self._ic, acc)
                 continue
-            t_buf = self._light_to_rows(light, zargs, i0, i1, s0, s1, lenses)
+            t_buf = self._light_to_rows(light, zargs, (i0, i1, s0, s1), lenses, extent)
             (nx, ny), nic = self._grid_args(), i1 - i0
             sup = (i32(0), slab) if support is None else (i32(1), support)
             xargs = (t_buf, slab, self._d["coef"], sup[1], sup[0], nx, ny, nkx, nkxp,
-                     *zargs[:2], i32(i0), i32(nic), self._ic, acc)
+                     *zargs[:2], i32(i0), i32(nic), self._ic, acc, extent.device_columns)
             if self.gather_forward:
                 self._k.launch("back_x", (_rounded(int(nx)), int(ny), nzc), *xargs)
             else:
                 self._k.launch("back_x_row", (int(ny), nzc), *xargs)
 
-    def _light_to_rows(self, light, zargs, i0: int, i1: int, s0: int, s1: int,
-                       lenses: LensSet) -> cl_array.Array:
-        """The separable back projection's lens-row stage for one depth chunk: the
-        intermediate ``T[(iz, i)][iy][kx]``, by gather (``back_y``) or atomic scatter
-        (``back_y_scatter``)."""
+    def _light_to_rows(self, light, zargs, chunk: tuple[int, int, int, int],
+                       lenses: LensSet, extent: PlaneExtent) -> cl_array.Array:
+        """The separable back projection's lens-row stage for one depth chunk and the
+        aperture columns and samples ``chunk`` = ``(i0, i1, s0, s1)``: the intermediate
+        ``T[(iz, i)][iy][kx]``, by gather (``back_y``, the extent's spans only; 0 beyond
+        them) or atomic scatter (``back_y_scatter``, every row)."""
         _, zc, nzc = zargs
+        i0, i1, s0, s1 = chunk
         _, nky, nkxp = self._lens_args()
         ny, nic = self._grid_args()[1], i1 - i0
         t_buf = self._buffer("T", int(nzc) * nic * int(ny) * self.nkxp)
@@ -177,8 +189,14 @@ class FactorisedStages:
                            self._d["coef"],
                            self._d["col_lo"], self._d["col_hi"], self._d["col_off"],
                            lenses.rows, ny, nky, nkxp, i32(self.seg), zc, nzc, i32(i0), i32(nic),
-                           i32(s0), i32(s1 - s0), self._ic)
+                           i32(s0), i32(s1 - s0), self._ic, *self._span_args(extent))
         return t_buf
+
+    def _span_args(self, extent: PlaneExtent) -> tuple:
+        """The kernels' ``span, ncols`` of ``extent``: ``ncols`` 0 for the whole extent
+        (every row whole; the kernels then read no span)."""
+        whole = extent is self.whole_extent
+        return extent.device_spans, i32(0 if whole else extent.n_columns)
 
     def _direct(self, name: str, src: cl_array.Array, dst: cl_array.Array, z0: int) -> None:
         nkx, nky, _ = self._lens_args()

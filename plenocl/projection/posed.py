@@ -84,6 +84,40 @@ def pose_index_map(frame: Grid, grid: Grid, pose: Pose) -> tuple[np.ndarray, np.
     return (p[1:] - p[0]).T, p[0]
 
 
+def frame_columns(frame_shape: tuple[int, int, int], grid_shape: tuple[int, int, int],
+                  matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``(fnz, 2)`` int: each frame plane's voxel columns ``[a0, a1)`` whose trilinear
+    taps can reach the world grid, one column more each side (``a0 == a1``: none).
+
+    A frame voxel ``(a, b, c)`` has a tap in the grid only where its world index
+    ``p = M (a, b, c) + t`` lies within ``(-1, n)`` on every axis; for each ``(b, c)``
+    that bounds ``a`` to an open interval, and a plane's columns are the hull over ``b``.
+    The extra column each side absorbs the kernels' fixed-point rounding."""
+    fnz, fny, fnx = frame_shape
+    n = np.array(grid_shape[::-1], np.float64)  # (nx, ny, nz): p's axes
+    b, c = np.meshgrid(np.arange(fny), np.arange(fnz), indexing="xy")  # (fnz, fny)
+    lo, hi = np.full(b.shape, -np.inf), np.full(b.shape, np.inf)
+    for k in range(3):
+        m = matrix[k, 0]
+        rest = matrix[k, 1] * b + matrix[k, 2] * c + offset[k]
+        if abs(m) < 1e-12:  # this axis does not change along a
+            outside = (rest <= -1) | (rest >= n[k])
+            lo[outside], hi[outside] = np.inf, -np.inf
+            continue
+        ends = np.stack([(-1 - rest) / m, (n[k] - rest) / m])
+        lo, hi = np.maximum(lo, ends.min(axis=0)), np.minimum(hi, ends.max(axis=0))
+    # the open interval's whole numbers run from floor(lo) + 1 to ceil(hi) - 1: one more
+    # each side
+    first, last = np.floor(lo), np.ceil(hi)
+    seen = last >= first
+    out = np.zeros((fnz, 2), np.int64)
+    for z in np.flatnonzero(seen.any(axis=1)):
+        a0 = int(np.clip(first[z][seen[z]].min(), 0, fnx))
+        a1 = int(np.clip(last[z][seen[z]].max() + 1, 0, fnx))
+        out[z] = (a0, max(a0, a1))
+    return out
+
+
 #: The fixed-point scale of the kernels' frame-to-world map (``PL_FX_ONE``: 32 bits of
 #: fraction in 64-bit integers).
 FX_ONE = 2.0 ** 32
@@ -153,7 +187,12 @@ class PoseResampler:
 
     def __init__(self, queue, grid: Grid, frame: Grid, pose: Pose) -> None:
         self.grid, self.frame, self.pose = grid, frame, pose
-        self._k = KernelSet(queue, "resample.cl", ("to_frame_3d", "from_frame_3d"))
+        self._k = KernelSet(queue, "resample.cl",
+                            ("to_frame_3d", "from_frame_3d", "from_frame_3d_row"),
+                            looping=("from_frame_3d_row",))
+        #: ``Sᵀ`` by world rows (a work-item along each: CPUs) or by voxels (GPUs); the
+        #: same numbers either way
+        self.row_form = self._k.is_cpu
         m, t = pose_index_map(frame, grid, pose)
         self.matrix, self.offset = m, t
         self.fixed_map = fixed_point_map(m, t)
@@ -163,6 +202,8 @@ class PoseResampler:
         # a pose that keeps the world's y: each y row's items run together (the kernels'
         # b_outer / y_outer: their reads stay in cache)
         self.rows_outer = bool(np.allclose(m[[0, 2], 1], 0.0) and np.allclose(m[1, [0, 2]], 0.0))
+        self.frame_columns = frame_columns(frame.shape, grid.shape, m, t)
+        self._columns = self._k.to_device(self.frame_columns.astype(np.int32))
         self._planes = self._planes_read()
         self.norm = self._column_sums()
         inverse = np.divide(1.0, self.norm, out=np.zeros_like(self.norm),
@@ -206,7 +247,7 @@ class PoseResampler:
             size = (fnx, c1 - c0, fny) if outer else (fnx, fny, c1 - c0)
             self._k.launch("to_frame_3d", size, user, self._norm, i32(unx), i32(uny),
                            i32(unz), frame, i32(fnx), i32(fny), i32(c0), self._map,
-                           i32(outer))
+                           i32(outer), self._columns)
 
     def from_frame(self, frame_vol: Slabs, frame_slabs: SlabRanges, out: Slabs,
                    out_slabs: SlabRanges, active: np.ndarray, support: Slabs | None = None
@@ -225,10 +266,14 @@ class PoseResampler:
         sup = (user, i32(0)) if support is None else (support, i32(1))
         outer = self.rows_outer
         for z0, z1 in runs(np.asarray(active, bool)):
-            size = (unx, z1 - z0, uny) if outer else (unx, uny, z1 - z0)
-            self._k.launch("from_frame_3d", size, frame, i32(fnx), i32(fny), i32(fnz), user,
-                           norm, *sup, i32(unx), i32(uny), i32(z0), self._map, self._start,
-                           *self.counts, i32(outer))
+            if self.row_form:
+                name, size = "from_frame_3d_row", (uny, z1 - z0)
+            else:
+                name = "from_frame_3d"
+                size = (unx, z1 - z0, uny) if outer else (unx, uny, z1 - z0)
+            self._k.launch(name, size, frame, i32(fnx), i32(fny), i32(fnz), user, norm, *sup,
+                           i32(unx), i32(uny), i32(z0), self._map, self._start, *self.counts,
+                           i32(outer))
 
     def columns(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The columns of ``S`` (normalised) of world voxels ``(N, 3)`` ``(iz, iy, ix)``,

@@ -41,6 +41,7 @@ from ..opencl.arrays import fill
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
 from ..optics.depthrange import check_grid
+from .extent import PlaneExtent, lens_spans, whole_columns
 from .factorised import FactorisedStages
 from .lenses import LensSet, lens_set, lit_lenses
 from .model import WeightingModel, warn_general_path
@@ -260,6 +261,8 @@ class Projector(FactorisedStages):
                    f"grid {frame.grid.shape}")
         self.resampler = PoseResampler(self.queue, grid, frame.grid, camera.pose)
         self._frame_slabs: dict[str, list[cl_array.Array]] = {}
+        # the frame's planes are 0 beyond the tilted grid's band: projected inside it only
+        self._frame_extent = frame.extent(self.resampler.frame_columns)
         return frame
 
     def _frame_projector(self, frame: Projector | None) -> Projector | None:
@@ -280,6 +283,7 @@ class Projector(FactorisedStages):
             return None
         self.resampler = FrameResampler(self.queue, self.grid, frame.grid)
         self._frame_slabs: dict[str, list[cl_array.Array]] = {}
+        self._frame_extent = None  # a lateral turn: the frame's planes are the grid's
         check_fits(self.queue, 3 * frame.grid.nbytes, f"resampling the {self.grid.shape} "
                    f"grid onto the {frame.grid.shape} grid of the lens rows")
         return frame
@@ -366,6 +370,22 @@ class Projector(FactorisedStages):
         self._scratch: dict[str, cl_array.Array] = {}
         self._sensitivity: list[cl_array.Array] | None = None
         self.all_lenses = self.lens_set(self.model.present)
+        nz, _, nx = self.shape
+        whole = np.tile(np.array([0, self.nkxp // self.vw]), (nz, len(lo), 1))
+        self.whole_extent = PlaneExtent.upload(q, whole_columns(nz, nx), whole)
+
+    def extent(self, columns: np.ndarray) -> PlaneExtent:
+        """The :class:`plenocl.projection.extent.PlaneExtent` of a volume that is 0 beyond
+        each plane's voxel columns ``columns`` (``(nz, 2)``, ``[x0, x1)``), for the
+        ``extent`` argument of :meth:`forward_device` and :meth:`back_device`."""
+        nz, ny, nx = self.shape
+        columns = np.asarray(columns, np.int64)
+        if columns.shape != (nz, 2) or np.any(columns < 0) or np.any(columns > nx):
+            raise ValueError(f"columns must be ({nz}, 2) voxel column ranges within "
+                             f"[0, {nx}], got shape {columns.shape}")
+        bu = np.arange(len(self._columns.lo)) - self.aperture.center
+        spans = lens_spans(self.coef, columns, bu, ny, self.camera.ml_count[0], self.vw)
+        return PlaneExtent.upload(self.queue, columns, spans)
 
     def _buffer(self, name: str, n: int) -> cl_array.Array:
         """A scratch buffer of at least ``n`` floats, kept between calls."""
@@ -471,15 +491,16 @@ class Projector(FactorisedStages):
 
     # ---- device API -------------------------------------------------------------------
     def forward_device(self, vol: VolumeLike, out: cl_array.Array | None = None,
-                       active: np.ndarray | None = None, lenses: LensSet | None = None
-                       ) -> cl_array.Array:
+                       active: np.ndarray | None = None, lenses: LensSet | None = None,
+                       extent: PlaneExtent | None = None) -> cl_array.Array:
         """Forward projection of device slabs (or one device volume) into ``out``.
 
         Nothing is copied to the host; operations are enqueued on ``self.queue``.
         ``active`` (bool per depth slice) skips slices known to be zero. ``lenses`` (a
         :meth:`lens_set`) projects onto those microlenses only: the image is exact at
         every pixel they alone can reach (all lit pixels, for :meth:`lit_lenses`) and 0
-        behind the others.
+        behind the others. ``extent`` (an :meth:`extent`): the volume is 0 beyond it, and
+        the separable path reads it only inside.
         """
         slabs = self._as_slabs(vol)
         active = self._active(active)
@@ -497,14 +518,14 @@ class Projector(FactorisedStages):
         if not active.any() or not lenses.count:
             return out
         for i0, i1 in self.plan.columns:
-            light = self.volume_to_light(slabs, i0, i1, active, lenses)
+            light = self.volume_to_light(slabs, i0, i1, active, lenses, extent)
             self.light_to_image(light, out, i0, i1, lenses)
         return out
 
     def back_device(self, image: cl_array.Array, out: VolumeLike | None = None,
                     active: np.ndarray | None = None, lenses: LensSet | None = None,
-                    support: VolumeLike | None = None, reuse_forward: bool = False
-                    ) -> list[cl_array.Array]:
+                    support: VolumeLike | None = None, reuse_forward: bool = False,
+                    extent: PlaneExtent | None = None) -> list[cl_array.Array]:
         """Back projection of a device image into device slabs (returned).
 
         ``active`` (bool per depth slice) computes only those slices; the others are 0.
@@ -518,6 +539,8 @@ class Projector(FactorisedStages):
         :meth:`forward_device` projected, unchanged since (an iteration's order): a
         resampled grid's frame then takes that projection's resampled volume as its
         support instead of resampling ``support`` again (the same zero voxels).
+        ``extent`` (an :meth:`extent`): only the voxels inside it are wanted; the
+        separable path computes those alone and writes 0 beyond them.
         """
         _check_device(image, self.image_shape, "image")
         slabs = self.empty_volume() if out is None else self._as_slabs(out)
@@ -537,7 +560,8 @@ class Projector(FactorisedStages):
         for n, (i0, i1) in enumerate(self.plan.columns):
             light = self.image_to_light(image, i0, i1, lenses)
             for (z0, z1), slab, s in zip(self.plan.slabs, slabs, sup, strict=True):
-                self.light_to_volume(light, slab, z0, z1, i0, i1, n > 0, active, lenses, s)
+                self.light_to_volume(light, slab, z0, z1, i0, i1, n > 0, active, lenses, s,
+                                     extent)
         return slabs
 
     # ---- a grid across the lens rows, through the lens-row frame (.resample) -------------
@@ -554,7 +578,8 @@ class Projector(FactorisedStages):
         frame_vol = self._frame_volume("forward")
         self.resampler.to_frame(slabs, self.plan.slabs, frame_vol, self.frame.plan.slabs,
                                  active)
-        return self.frame.forward_device(frame_vol, out, self._frame_active(active), lenses)
+        return self.frame.forward_device(frame_vol, out, self._frame_active(active), lenses,
+                                         self._frame_extent)
 
     def _resampled_back(self, image: cl_array.Array, slabs, active: np.ndarray,
                         lenses: LensSet, support, reuse_forward: bool = False
@@ -573,7 +598,8 @@ class Projector(FactorisedStages):
                 frame_support = self._frame_volume("support")
                 self.resampler.to_frame(support, own, frame_support, frame, active)
         back = self.frame.back_device(image, self._frame_volume("back"),
-                                      self._frame_active(active), lenses, frame_support)
+                                      self._frame_active(active), lenses, frame_support,
+                                      extent=self._frame_extent)
         self.resampler.from_frame(back, frame, slabs, own, active, support)
         return slabs
 
