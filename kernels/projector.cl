@@ -86,7 +86,7 @@ __kernel void fwd_x_row(__global const float *restrict vol, __global float *rest
                     __global const int2 *restrict span, int ncols)
 {
     const int iy = get_global_id(0), izl = get_global_id(1);
-    const int2 cols = xr[zc0 + izl];  /* the row's voxels beyond them are 0 */
+    const int2 cols = pl_columns(xr, zc0 + izl, nx);  /* the row's voxels beyond them are 0 */
     __global const float *c = coef + 16 * (zc0 + izl);
     __global const float *row = vol + ((size_t)(zc0 + izl - zv0) * ny + iy) * nx;
     __global float *base = T + ((size_t)izl * nic * ny + iy) * nkxp;
@@ -382,7 +382,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
                     continue;
                 /* the T row's part that the extent's voxels read (the rest stays 0); a
                  * CPU's row is one segment (t = 0) */
-                const int2 m = ncols ? spans[es[e] + il] : (int2)(0, seg);
+                const int2 m = PL_EXTENT && ncols ? spans[es[e] + il] : (int2)(0, seg);
                 pl_axpy2(out + (ez[e] + il) * ostride + m.x * PL_VW,
                          col + (size_t)ia[e] * nkxp + m.x * PL_VW,
                          col + (size_t)ib[e] * nkxp + m.x * PL_VW, wa[e], wb[e], m.y - m.x);
@@ -465,7 +465,7 @@ __kernel void back_x(__global const float *restrict T, __global float *restrict 
     const int ix = get_global_id(0), iy = get_global_id(1), izl = get_global_id(2);
     if (ix >= nx) return;
     const size_t at = ((size_t)(zc0 + izl - zv0) * ny + iy) * nx + ix;
-    const int2 cols = xr[zc0 + izl];
+    const int2 cols = pl_columns(xr, zc0 + izl, nx);
     if ((use_support && sup[at] == 0.0f) || ix < cols.x || ix >= cols.y) {
         if (!accumulate) vol[at] = 0.0f;
         return;
@@ -487,7 +487,7 @@ __kernel void back_x_row(__global const float *restrict T, __global float *restr
     __global float *out = vol + at;
     __global const float *s = sup + at;
     __global const float *base = T + (size_t)izl * nic * ny * nkxp + (size_t)iy * nkxp;
-    const int2 cols = xr[zc0 + izl];  /* beyond them: 0 (or left, accumulating) */
+    const int2 cols = pl_columns(xr, zc0 + izl, nx);  /* beyond them: 0 (or left, accumulating) */
     if (!accumulate) {
         for (int ix = 0; ix < cols.x; ++ix) out[ix] = 0.0f;
         for (int ix = cols.y; ix < nx; ++ix) out[ix] = 0.0f;

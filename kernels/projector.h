@@ -43,6 +43,9 @@ typedef float pl_vec;
 #ifndef PL_LENS_EXTENT
 #define PL_LENS_EXTENT 0  /* 1: lens weights integrate the voxel's extent (issue 47) */
 #endif
+#ifndef PL_EXTENT
+#define PL_EXTENT 0  /* 1: the separable kernels keep to a plane extent (pl_seg_span) */
+#endif
 
 #define PL_NO_LENS (-1073741824)   /* lens_rnd.x of a lens calibration missed (NaN centre) */
 
@@ -155,6 +158,12 @@ inline void pl_axpy2(__global float *out, __global const float *a, __global cons
         o[m] = o[m] + s0 * va[m] + s1 * vb[m];
 }
 
+/* Plane z's voxel columns [x0, x1) of the extent below (all nx without PL_EXTENT). */
+inline int2 pl_columns(__global const int2 *xr, int z, int nx)
+{
+    return PL_EXTENT ? xr[z] : (int2)(0, nx);
+}
+
 /* A volume known to be zero outside a lateral extent per plane (a posed camera's frame
  * grid, docs/design.md §5.5): plane z's voxel columns [xr.x, xr.y) and, for aperture
  * column i, the T-row vectors [span.x, span.y) that those columns reach (host:
@@ -163,7 +172,7 @@ inline void pl_axpy2(__global float *out, __global const float *a, __global cons
  * from the segment's start. */
 inline int2 pl_seg_span(__global const int2 *span, int ncols, int z, int i, int t, int seg)
 {
-    if (ncols == 0)
+    if (!PL_EXTENT || ncols == 0)
         return (int2)(0, seg);
     const int2 s = span[z * ncols + i];
     return (int2)(pl_maxi(s.x - t * seg, 0), pl_mini(s.y - t * seg, seg));

@@ -96,11 +96,12 @@ class FactorisedStages:
         t_buf = self._buffer("T", int(nzc) * nic * int(ny) * self.nkxp)
         xargs = (slab, t_buf, self._d["coef"], nx, ny, nkx, nkxp, z0, zc, i32(i0), i32(nic),
                  self._ic, extent.device_columns, *bounds)
+        k = self._kernels(extent)
         if self.gather_forward:
-            self._k.launch("fwd_x", (_rounded(self.nkxp), int(ny), int(nzc) * nic), *xargs)
+            k.launch("fwd_x", (_rounded(self.nkxp), int(ny), int(nzc) * nic), *xargs)
         else:
-            self._k.launch("fwd_x_row", (int(ny), int(nzc)), *xargs)
-        self._k.launch("fwd_y", (self.nseg, int(nky), nic), t_buf, light, self._d["coef"],
+            k.launch("fwd_x_row", (int(ny), int(nzc)), *xargs)
+        k.launch("fwd_y", (self.nseg, int(nky), nic), t_buf, light, self._d["coef"],
                        self._d["col_lo"], self._d["col_hi"], self._d["col_off"], lenses.rows,
                        ny, nkxp, i32(self.seg), zc, nzc, i32(i0), i32(nic),
                        i32(s0), i32(s1 - s0), self._ic, i32(not first), *bounds)
@@ -162,10 +163,11 @@ class FactorisedStages:
             sup = (i32(0), slab) if support is None else (i32(1), support)
             xargs = (t_buf, slab, self._d["coef"], sup[1], sup[0], nx, ny, nkx, nkxp,
                      *zargs[:2], i32(i0), i32(nic), self._ic, acc, extent.device_columns)
+            k = self._kernels(extent)
             if self.gather_forward:
-                self._k.launch("back_x", (_rounded(int(nx)), int(ny), nzc), *xargs)
+                k.launch("back_x", (_rounded(int(nx)), int(ny), nzc), *xargs)
             else:
-                self._k.launch("back_x_row", (int(ny), nzc), *xargs)
+                k.launch("back_x_row", (int(ny), nzc), *xargs)
 
     def _light_to_rows(self, light, zargs, chunk: tuple[int, int, int, int],
                        lenses: LensSet, extent: PlaneExtent) -> cl_array.Array:
@@ -185,7 +187,7 @@ class FactorisedStages:
                            i32(i0), i32(nic), i32(s0), self._ic)
         else:
             columns = 1 if self.back_allcols else nic  # work-items across the columns
-            self._k.launch("back_y", (self.nseg, int(ny), columns), light, t_buf,
+            self._kernels(extent).launch("back_y", (self.nseg, int(ny), columns), light, t_buf,
                            self._d["coef"],
                            self._d["col_lo"], self._d["col_hi"], self._d["col_off"],
                            lenses.rows, ny, nky, nkxp, i32(self.seg), zc, nzc, i32(i0), i32(nic),

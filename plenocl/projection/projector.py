@@ -210,10 +210,8 @@ class Projector(FactorisedStages):
                    f"projecting a {grid.shape} grid onto the {width} x {height} sensor")
         # every projector kernel but the element ones (_ELEMENTWISE) loops over a row, a
         # sample's plane or a lens's samples
-        self._k = KernelSet(self.queue, "projector.cl", _KERNELS,
-                            [f"-DPL_VW={self.vw}", f"-DPL_BACK_ALLCOLS={int(self.back_allcols)}",
-                             f"-DPL_LENS_EXTENT={int(lens_weights == 'extent')}"],
-                            looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
+        self._k = self._kernel_set(extent=False)
+        self._k_extent: KernelSet | None = None  # built by the first extent()
         self.gather_forward = (not self._k.is_cpu) if gather_forward is None else gather_forward
         self._upload_tables()
 
@@ -373,6 +371,23 @@ class Projector(FactorisedStages):
         nz, _, nx = self.shape
         whole = np.tile(np.array([0, self.nkxp // self.vw]), (nz, len(lo), 1))
         self.whole_extent = PlaneExtent.upload(q, whole_columns(nz, nx), whole)
+
+    def _kernel_set(self, extent: bool) -> KernelSet:
+        """The projector's kernels; with ``extent`` the separable ones keep to a
+        :class:`PlaneExtent` (``PL_EXTENT``: without it they take whole rows, unread)."""
+        return KernelSet(self.queue, "projector.cl", _KERNELS,
+                         [f"-DPL_VW={self.vw}", f"-DPL_BACK_ALLCOLS={int(self.back_allcols)}",
+                          f"-DPL_LENS_EXTENT={int(self.lens_weights == 'extent')}",
+                          f"-DPL_EXTENT={int(extent)}"],
+                         looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
+
+    def _kernels(self, extent: PlaneExtent) -> KernelSet:
+        """The kernel set that runs ``extent`` (the plain one for the whole extent)."""
+        if extent is self.whole_extent:
+            return self._k
+        if self._k_extent is None:
+            self._k_extent = self._kernel_set(extent=True)
+        return self._k_extent
 
     def extent(self, columns: np.ndarray) -> PlaneExtent:
         """The :class:`plenocl.projection.extent.PlaneExtent` of a volume that is 0 beyond
