@@ -33,7 +33,8 @@
  * projection/extent.py): a posed camera's frame grid is 0 beyond its tilted band, so
  * fwd_x_row splats the band's voxels, fwd_y and back_y update the spans' vectors, back_x
  * computes the band's voxels (0 beyond), each adding what it adds without an extent in
- * the same order. A projector's own extent is the whole grid (every column, whole rows).
+ * the same order. Those kernels are built with PL_EXTENT; a projector's own extent is the
+ * whole grid, run by its kernels built without it, which read no extent.
  *
  * The direct kernels (voxel_footprint, fwd_direct, back_direct) evaluate the 16 products
  * per sample per voxel without the factorisation: one voxel's column, and the
@@ -382,7 +383,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
                     continue;
                 /* the T row's part that the extent's voxels read (the rest stays 0); a
                  * CPU's row is one segment (t = 0) */
-                const int2 m = PL_EXTENT && ncols ? spans[es[e] + il] : (int2)(0, seg);
+                const int2 m = PL_EXTENT ? spans[es[e] + il] : (int2)(0, seg);
                 pl_axpy2(out + (ez[e] + il) * ostride + m.x * PL_VW,
                          col + (size_t)ia[e] * nkxp + m.x * PL_VW,
                          col + (size_t)ib[e] * nkxp + m.x * PL_VW, wa[e], wb[e], m.y - m.x);

@@ -167,12 +167,12 @@ inline int2 pl_columns(__global const int2 *xr, int z, int nx)
 /* A volume known to be zero outside a lateral extent per plane (a posed camera's frame
  * grid, docs/design.md §5.5): plane z's voxel columns [xr.x, xr.y) and, for aperture
  * column i, the T-row vectors [span.x, span.y) that those columns reach (host:
- * plenocl/projection/extent.py; ncols = 0: the whole extent, every row whole, no span
+ * plenocl/projection/extent.py; without PL_EXTENT every row is whole and no span is
  * read). This is the part of segment t (seg vectors from t seg) that the span holds,
  * from the segment's start. */
 inline int2 pl_seg_span(__global const int2 *span, int ncols, int z, int i, int t, int seg)
 {
-    if (!PL_EXTENT || ncols == 0)
+    if (!PL_EXTENT)
         return (int2)(0, seg);
     const int2 s = span[z * ncols + i];
     return (int2)(pl_maxi(s.x - t * seg, 0), pl_mini(s.y - t * seg, seg));

@@ -33,8 +33,9 @@ def _rounded(n: int) -> int:
 
 class FactorisedStages:
     """The factorised path's kernel launches (module docstring), mixed into
-    :class:`plenocl.Projector`, whose attributes they read (``_k``, ``_d``, ``plan``,
-    ``path``, ``nkxp``, ``seg``, ``nseg``, ``gather_forward``, ``back_mode``, ...).
+    :class:`plenocl.Projector`, whose attributes they read (``_k``, ``_kernels``, ``_d``,
+    ``plan``, ``path``, ``nkxp``, ``seg``, ``nseg``, ``gather_forward``, ``back_mode``,
+    ...).
     The light field they return or take is the projector's scratch buffer
     ``L[ky][s - s0][kx]``, reused by the next call."""
 
@@ -194,11 +195,11 @@ class FactorisedStages:
                            i32(s0), i32(s1 - s0), self._ic, *self._span_args(extent))
         return t_buf
 
-    def _span_args(self, extent: PlaneExtent) -> tuple:
-        """The kernels' ``span, ncols`` of ``extent``: ``ncols`` 0 for the whole extent
-        (every row whole; the kernels then read no span)."""
-        whole = extent is self.whole_extent
-        return extent.device_spans, i32(0 if whole else extent.n_columns)
+    @staticmethod
+    def _span_args(extent: PlaneExtent) -> tuple:
+        """The kernels' ``span, ncols`` of ``extent`` (read only by the kernels built with
+        ``PL_EXTENT``, :meth:`_kernels`)."""
+        return extent.device_spans, i32(extent.n_columns)
 
     def _direct(self, name: str, src: cl_array.Array, dst: cl_array.Array, z0: int) -> None:
         nkx, nky, _ = self._lens_args()
