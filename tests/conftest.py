@@ -12,8 +12,10 @@ The devices under test are, in :func:`plenocl.opencl.device.devices_by_preferenc
 An explicitly chosen device is tested even when it cannot build (the tests then fail and
 say why). A device left out because it cannot build is named with its driver's reason in
 the report header and in a short summary at the end of the run (shown under ``-q`` too):
-never a silent skip. With no building device at all, the kernel tests fail with
-:class:`plenocl.opencl.device.NoOpenCLError`.
+never a silent skip. A test marked ``one_device`` (an end-to-end run: a batch, a demo, a
+benchmark report) runs once, on PoCL when it is under test (:func:`baseline_index`): its
+kernels are tested on every device by the others. With no building device at all, the
+kernel tests fail with :class:`plenocl.opencl.device.NoOpenCLError`.
 """
 
 from __future__ import annotations
@@ -70,10 +72,24 @@ def _devices_or_none() -> tuple[list[cl.Device | None], list[str]]:
     return devices, ids
 
 
+def baseline_index(devices: list[cl.Device | None]) -> int:
+    """The device a ``one_device`` test runs on: PoCL, the CPU driver every user has from
+    pip, when it is under test, else the first (most preferred) device."""
+    for n, device in enumerate(devices):
+        if device is not None and "Portable Computing Language" in device.platform.name:
+            return n
+    return 0
+
+
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
-    """Run every test that needs a queue once per device under test."""
+    """Run every test that needs a queue once per device under test; a test marked
+    ``one_device`` (an end-to-end run whose kernels the other tests check on every device,
+    and whose drivers ``tests/test_agreement.py`` compares) once, on the baseline device."""
     if "queue" in metafunc.fixturenames:
         devices, ids = _devices_or_none()
+        if metafunc.definition.get_closest_marker("one_device"):
+            keep = baseline_index(devices)
+            devices, ids = devices[keep:keep + 1], ids[keep:keep + 1]
         metafunc.parametrize("queue", devices, ids=ids, indirect=True)
 
 

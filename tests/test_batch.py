@@ -54,6 +54,7 @@ def experiment(tmp_path_factory, queue):
     return d
 
 
+@pytest.mark.one_device
 def test_run_processes_pairs_skips_finished_ones_and_reports_failures(experiment, capsys):
     assert main(["run", str(experiment / "experiment.toml")]) == 1  # one pair failed
     out = experiment / "results"
@@ -115,6 +116,7 @@ def test_bad_values_are_named(tmp_path):
     assert load_experiment(tmp_path / "e.toml")["images"]["dt_s"] == 2.5  # forced: real
 
 
+@pytest.mark.one_device
 def test_dask_workers_give_the_serial_fields_and_a_store_xarray_reads(experiment, tmp_path):
     serial = plenocl.run(experiment / "experiment.toml", tmp_path / "serial", progress=False)
     dask = plenocl.run(experiment / "experiment.toml", tmp_path / "dask", workers=2,
@@ -149,6 +151,7 @@ def test_dask_workers_give_the_serial_fields_and_a_store_xarray_reads(experiment
     assert float(np.nanmedian(ds.u_mean.values)) == pytest.approx(0.25, rel=0.1)
 
 
+@pytest.mark.one_device
 def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_store(
         experiment, tmp_path, monkeypatch):
     out = tmp_path / "r"
@@ -178,6 +181,7 @@ def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_sto
     assert not (out / "timeseries.zarr.partial").exists()
 
 
+@pytest.mark.one_device
 def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
     from plenocl.demo.time_series import run_time_series
 
@@ -241,6 +245,7 @@ def _copy_experiment(experiment, dest, drop=()):
     return dest / "experiment.toml"
 
 
+@pytest.mark.one_device
 def test_a_missing_frame_is_reported_and_no_pair_mixes_exposures(experiment, tmp_path):
     """frame_002 deleted: pair 1 is not made and is named; pair 0 keeps frames 0 + 1 and
     pair 2 frames 4 + 5 (not 3 + 4); each field, the store and summary.json name their
@@ -264,6 +269,7 @@ def test_a_missing_frame_is_reported_and_no_pair_mixes_exposures(experiment, tmp
     assert list(ds.source_b_sha256.values) == [src["b"]["sha256"]]
 
 
+@pytest.mark.one_device
 def test_a_rerun_refuses_inputs_that_changed_since(experiment, tmp_path):
     exp = _copy_experiment(experiment, tmp_path, drop=[2, 3, 4, 5])
     assert plenocl.run(exp, progress=False).processed == [0]
@@ -274,6 +280,7 @@ def test_a_rerun_refuses_inputs_that_changed_since(experiment, tmp_path):
     assert plenocl.run(exp, tmp_path / "elsewhere", progress=False).processed == [0]
 
 
+@pytest.mark.one_device
 def test_a_sigkilled_run_rerun_equals_an_uninterrupted_one(experiment, tmp_path):
     """Killed with SIGKILL after its first field, then rerun: every field equals the
     uninterrupted run's bit for bit, and the half-written files of the kill are gone."""
@@ -313,6 +320,7 @@ def test_a_sigkilled_run_rerun_equals_an_uninterrupted_one(experiment, tmp_path)
             assert same, (key, got[key], want[key]) if key == "metadata" else key
 
 
+@pytest.mark.one_device
 def test_a_run_applies_the_dark_frame_and_flat_field_of_the_experiment(experiment, tmp_path):
     """Frames recorded through an uneven gain and dark level, with the dark frame and flat
     field in [images]: the run's field is the one of the clean frames."""

@@ -24,6 +24,7 @@ SECTIONS = ("## Simulator", "## Calibration", "## Refocusing", "## Projector",
 PLOTS = ("recon_pareto.png", "piv_pareto.png", "scaling.png")
 
 
+@pytest.mark.one_device
 def test_report_regenerates_from_one_call(tmp_path, queue):
     messages = []
     path = run_report("test", tmp_path / "bench", queue=queue, log=messages.append)

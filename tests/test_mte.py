@@ -76,6 +76,7 @@ def test_the_geometric_combination_keeps_only_what_both_exposures_light():
     np.testing.assert_allclose(combine_volumes(a, b, "min"), [0, 0, 1, 2])
 
 
+@pytest.mark.one_device
 def test_process_pair_with_mte_refines_both_volumes_and_the_field(queue):
     """One MTE cycle after the single frame: new volumes from ``mte.iterations`` each,
     a field that still finds the imposed displacement, and its time in ``seconds``;

@@ -26,6 +26,7 @@ def sparse_pairs():
     return _sparse_scene(20)
 
 
+@pytest.mark.one_device
 def test_ensemble_correlation_beats_averaged_vectors(queue):
     """Over three sparse scenes, the ensemble's mean field errs 15 % less than the
     average of the pairs' vectors (RMS over the scenes), and keeps nine in ten vectors

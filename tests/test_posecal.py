@@ -54,6 +54,7 @@ def test_bad_targets_are_named(target, queue):
         calibrate_pose(CAM, images, plates, away, queue=queue)
 
 
+@pytest.mark.one_device
 def test_self_calibration_removes_a_second_cameras_disparity(queue):
     """Two cameras 25 degrees apart, the second's pose wrong by about a pixel of
     disparity: a few rounds of self-calibration bring both cameras' systematic disparity

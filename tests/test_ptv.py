@@ -166,6 +166,7 @@ def test_track_follows_particles_and_smoothing_beats_each_frame(recording, one_c
                                atol=0.2 * 0.133)
 
 
+@pytest.mark.one_device
 def test_track_with_two_cameras_sees_the_steps_sharper_in_depth(recording, one_camera, queue):
     """plenocl.track with two cameras 25 degrees apart (docs/design.md §6.7) on the same
     particles, each camera's frames ray traced: one joint volume per frame, its particles
