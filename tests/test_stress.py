@@ -865,6 +865,8 @@ INVALID = [
      "geometric-mean methods"),
     ("reconstruct-ratio-floor-range", _rec(method="mart", ratio_floor=1.0), ValueError,
      r"ratio_floor must be in \(0, 1\)"),
+    ("reconstruct-smooth-range", _rec(smooth_px=10.0), ValueError,
+     "smooth_px must be a Gaussian's standard deviation"),
     # piv3d
     ("piv-shape-mismatch", _piv(b=lambda v: v[:-1]), ValueError, "must have the same shape"),
     ("piv-nan", _piv(a=lambda v: np.where(v > 0.5, np.nan, v)), ValueError, "NaN/Inf values"),

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyopencl.array as cla
+from scipy import ndimage
 
 from ..optics.rawimage import background_and_noise, check_exposure, check_image, dark_noise
 from .operator import ProjectionOperator
@@ -37,8 +38,8 @@ class UnusableImageError(ValueError):
 
 
 def preprocess(image, camera, background: str | None = "median",
-               threshold: float | None = None, observed: np.ndarray | None = None
-               ) -> tuple[np.ndarray, float, float]:
+               threshold: float | None = None, observed: np.ndarray | None = None,
+               smooth_px: float | None = None) -> tuple[np.ndarray, float, float]:
     """The one preprocessing of the API and the command line.
 
     Parameters
@@ -60,6 +61,12 @@ def preprocess(image, camera, background: str | None = "median",
         Bool per pixel, ``False`` where the image holds no data: the background, noise
         and scale come from the other pixels, and these are set to 0 (the solver gives
         them no weight; :class:`plenocl.reconstruction.Solver`).
+    smooth_px
+        A Gaussian's standard deviation (pixels) to smooth the image with after its
+        background is removed and before it is clipped and thresholded
+        (:func:`smooth_image`; docs/design.md §6.2). The background and noise are the
+        raw image's; the default threshold follows the noise the smoothing leaves
+        (:func:`smoothing_gain`). ``None``: no smoothing.
 
     Returns
     -------
@@ -67,12 +74,51 @@ def preprocess(image, camera, background: str | None = "median",
         The float32 image scaled to a maximum of 1, the scale (0 for an image without
         light) and the threshold in the scaled units.
     """
-    prepared = _preprocessed(image, camera, background, threshold, observed)
+    prepared = _preprocessed(image, camera, background, threshold, observed,
+                             smooth_px=smooth_px)
     return prepared.image, prepared.scale, prepared.threshold
 
 
+def gaussian_taps(sigma: float) -> np.ndarray:
+    """The normalised 1-D Gaussian of standard deviation ``sigma`` (pixels), sampled at
+    whole pixels out to 4 sigma (at least one pixel each side)."""
+    reach = max(1, int(np.ceil(4.0 * sigma)))
+    taps = np.exp(-0.5 * (np.arange(-reach, reach + 1) / sigma) ** 2)
+    return taps / taps.sum()
+
+
+def smoothing_gain(sigma: float) -> float:
+    """The factor by which :func:`smooth_image` scales pixel-independent noise: the
+    2-D kernel's Euclidean norm, ``Σ g²`` of the 1-D taps (0.28 at 1 px)."""
+    return float(np.sum(gaussian_taps(sigma) ** 2))
+
+
+def smooth_image(img: np.ndarray, sigma: float, observed: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """``img`` smoothed by a separable Gaussian (:func:`gaussian_taps`), edges reflected.
+
+    With ``observed`` (bool per pixel, ``False`` where the image holds no data) the
+    smoothing is normalised over the observed pixels alone (``G(I m) / G(m)``), so no
+    pixel without data darkens its neighbours; those pixels come out 0.
+    """
+    taps = gaussian_taps(sigma)
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        a = ndimage.correlate1d(a, taps, axis=0, mode="reflect")
+        return ndimage.correlate1d(a, taps, axis=1, mode="reflect")
+
+    if observed is None:
+        return blur(img)
+    weight = blur(observed.astype(img.dtype))
+    out = blur(np.where(observed, img, 0.0))
+    np.divide(out, weight, out=out, where=weight > 0)
+    out[~observed] = 0.0
+    return out
+
+
 def _preprocessed(image, camera, background: str | None, threshold: float | None,
-                  observed: np.ndarray | None, exposure: bool = False) -> PreparedImage:
+                  observed: np.ndarray | None, exposure: bool = False,
+                  smooth_px: float | None = None) -> PreparedImage:
     """:func:`preprocess` as a :class:`PreparedImage` (no lit lenses), with the median
     and noise it removed; ``exposure``: a blank or saturated image is refused first."""
     img = check_image(image, camera)
@@ -92,8 +138,12 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     else:
         raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     # in place on check_image's own float64 copy: no 16 MP temporaries
-    np.maximum(np.subtract(img, med or 0.0, out=img), 0.0, out=img)
-    thr = NOISE_SIGMAS * (noise or 0.0) if threshold is None else float(threshold)
+    np.subtract(img, med or 0.0, out=img)
+    gain = 1.0
+    if smooth_px is not None:  # noise averaged before clipping: no bias from the clip
+        img, gain = smooth_image(img, smooth_px, observed), smoothing_gain(smooth_px)
+    np.maximum(img, 0.0, out=img)
+    thr = NOISE_SIGMAS * gain * (noise or 0.0) if threshold is None else float(threshold)
     if observed is not None:  # 0 - a negative median would give them light
         img[~observed] = 0.0
     scale = float(img.max())
@@ -164,7 +214,8 @@ def prepare_image(image, projector: ProjectionOperator, settings: Reconstruction
     (:func:`plenocl.optics.rawimage.check_exposure`), or one whose every pixel is dark
     (the volume would be empty), is refused: :class:`UnusableImageError`."""
     prepared = _preprocessed(image, projector.camera, settings.background,
-                             settings.threshold, observed, exposure=True)
+                             settings.threshold, observed, exposure=True,
+                             smooth_px=settings.smooth_px)
     if prepared.scale == 0:
         raise UnusableImageError(
             "the image holds no light above its background, so the volume would be empty: "

@@ -231,6 +231,14 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         cell; docs/design.md §6.4), on :meth:`plenocl.Projector.weighted`, built once per
         projector; ``None`` (default): the projector's own (``Projector(lens_weights=)``,
         the paper's by default).
+    smooth_px
+        Smooth the raw image by a Gaussian of this standard deviation (pixels, up to
+        ``settings.MAX_SMOOTH_PX``) after its median is removed and before it is
+        thresholded (:func:`plenocl.reconstruction.images.smooth_image`); the default
+        threshold follows the noise the smoothing leaves, and ``info.background`` and
+        ``info.noise`` stay the raw image's. ``None`` (default): no smoothing. 1 px keeps
+        the paper's MART from losing a noisy image's dim particle pixels to its dark
+        threshold (docs/design.md §6.2).
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
         ``False`` stops the reconstruction. Coarse-to-fine: the coarse iterations come

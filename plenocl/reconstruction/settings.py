@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +34,9 @@ MLEM_MAX_RELAX = 2.0
 #: The lens weights a reconstruction may name (``lens_weights``; the projector's
 #: ``plenocl.projection.projector.LENS_WEIGHTS``, which a test keeps equal).
 LENS_WEIGHTS = ("paper", "extent")
+#: Largest image smoothing accepted (``smooth_px``, pixels): a particle image's size; wider
+#: smoothing would carry light across a microlens image (17 px at the paper's camera).
+MAX_SMOOTH_PX = 4.0
 
 
 @dataclass
@@ -109,6 +113,7 @@ class ReconstructionSettings:
     early_iterations: int = EARLY_ITERATIONS
     early_oversample: float | None = EARLY_OVERSAMPLE
     lens_weights: str | None = None
+    smooth_px: float | None = None
 
     def __post_init__(self) -> None:
         fine = is_integer(self.supersample) and self.supersample > 1
@@ -185,6 +190,12 @@ def _check_options(s: ReconstructionSettings) -> None:
     if s.lens_weights is not None and s.lens_weights not in LENS_WEIGHTS:
         raise ValueError(f"lens_weights must be one of {LENS_WEIGHTS} or None (the "
                          f"projector's own), got {s.lens_weights!r}")
+    if s.smooth_px is not None and not (
+            isinstance(s.smooth_px, numbers.Real) and not isinstance(s.smooth_px, bool)
+            and np.isfinite(s.smooth_px) and 0 < s.smooth_px <= MAX_SMOOTH_PX):
+        raise ValueError(f"smooth_px must be a Gaussian's standard deviation in pixels, "
+                         f"0 < smooth_px <= {MAX_SMOOTH_PX:g} (about the particle images' "
+                         f"size), or None (no smoothing), got {s.smooth_px!r}")
     if not 0 <= s.min_sensitivity < 1:
         raise ValueError(f"min_sensitivity must be in [0, 1), got {s.min_sensitivity!r}")
 
