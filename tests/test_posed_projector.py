@@ -266,33 +266,38 @@ def _two_cameras(queue):
     return cams, grid, [Projector(c, grid, queue) for c in cams]
 
 
-def _peak_error(vol: np.ndarray, grid: Grid, pos: np.ndarray) -> float:
-    """RMS distance (voxels) from each true particle to the nearest peak of the volume."""
+def _peak_distances(vol: np.ndarray, grid: Grid, pos: np.ndarray) -> np.ndarray:
+    """Distance (voxels) from each true particle to the nearest peak of the volume."""
     peaks = find_particles(vol, threshold=0.1)[0]
     truth = grid.to_index(pos)
-    near = np.linalg.norm(peaks[None] - truth[:, None], axis=2).min(axis=1)
-    return float(np.sqrt(np.mean(near ** 2)))
+    return np.linalg.norm(peaks[None] - truth[:, None], axis=2).min(axis=1)
 
 
 @pytest.mark.parametrize("supersample", [1, 3])
 def test_two_cameras_place_particles_better_than_either_alone(queue, supersample):
-    """The same world particles seen by two cameras 30 degrees apart: the joint volume
-    recovers more of them than each camera's own volume, its peaks nearer the particles
-    (on these particles, 0.62-0.67 voxel against 1.2-1.7), and carries their light."""
+    """The same world particles seen by two cameras 30 degrees apart, two scenes of ten:
+    the joint volume recovers more of them than each camera's own volume, its peaks
+    nearer the particles (RMS over both scenes, on these particles 0.55-0.69 voxel
+    against 1.0-1.4), and carries their light."""
     cams, grid, projs = _two_cameras(queue)
-    pos = np.random.default_rng(6).uniform([-0.5, -0.4, -0.8], [0.5, 0.4, 0.8], (10, 3))
-    imgs = [simulate_image(c, pos, 2e4, 20000, seed=k, blur_px=0.8, queue=queue)
-            for k, c in enumerate(cams)]
-    joint, info = reconstruct(imgs, projs, supersample=supersample, return_info=True)
-    assert info.iterations == (30 if supersample == 1 else 11)
-    assert np.all(np.isfinite(joint)) and joint.min() >= 0
-    alone = [reconstruct(img, p, supersample=supersample)
-             for img, p in zip(imgs, projs, strict=True)]
-    found = recovery(joint, grid, pos).fraction
-    assert found >= 0.8 and found > max(recovery(v, grid, pos).fraction for v in alone)
-    assert _peak_error(joint, grid, pos) < 0.7 * min(_peak_error(v, grid, pos) for v in alone)
-    totals = [v.sum() for v in alone]
-    assert min(totals) * 0.7 < joint.sum() < max(totals) * 1.3
+    near, found = {"joint": [], 0: [], 1: []}, {"joint": 0.0, 0: 0.0, 1: 0.0}
+    for seed in (6, 7):
+        pos = np.random.default_rng(seed).uniform([-0.5, -0.4, -0.8], [0.5, 0.4, 0.8], (10, 3))
+        imgs = [simulate_image(c, pos, 2e4, 20000, seed=k, blur_px=0.8, queue=queue)
+                for k, c in enumerate(cams)]
+        joint, info = reconstruct(imgs, projs, supersample=supersample, return_info=True)
+        assert info.iterations == (30 if supersample == 1 else 11)
+        assert np.all(np.isfinite(joint)) and joint.min() >= 0
+        alone = [reconstruct(img, p, supersample=supersample)
+                 for img, p in zip(imgs, projs, strict=True)]
+        totals = [v.sum() for v in alone]
+        assert min(totals) * 0.7 < joint.sum() < max(totals) * 1.3
+        for key, vol in (("joint", joint), (0, alone[0]), (1, alone[1])):
+            found[key] += recovery(vol, grid, pos).fraction / 2
+            near[key].append(_peak_distances(vol, grid, pos))
+    assert found["joint"] >= 0.8 and found["joint"] > max(found[0], found[1]), found
+    rms = {k: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for k, v in near.items()}
+    assert rms["joint"] < 0.7 * min(rms[0], rms[1]), rms
 
 
 def test_block_mart_of_two_cameras_explains_both_views(queue):
