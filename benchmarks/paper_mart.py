@@ -38,7 +38,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import Camera, Grid, Projector, get_queue, random_particles  # noqa: E402
+from plenocl import Camera, Grid, Projector, get_queue  # noqa: E402
+from plenocl.bench.core import particle_scene  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import quality_q, recovery, render_particles  # noqa: E402
@@ -66,12 +67,12 @@ def rows(smooth: float) -> dict[str, tuple[str, ReconstructionSettings]]:
 
 
 def scene_images(camera: Camera, count: int, seed: int, queue):
-    """The particles, their truth volume, and the blurred and the noisy raw image."""
-    pos, inten = random_particles(((-2.3, 2.3),) * 3, count=count, seed=seed, intensity=1e4)
-    kw = dict(rays_per_particle=20000, seed=seed, blur_px=1.0, queue=queue)
-    images = {"1 px blur": simulate_image(camera, pos, inten, **kw),
-              "1 px blur, noisy": simulate_image(camera, pos, inten, photon_noise=True,
-                                                 background=20.0, read_noise=3.0, **kw)}
+    """The particles, their truth volume, and the blurred (:func:`particle_scene`, the
+    workload of ``benchmarks/cubic_recovery.py``) and the noisy raw image."""
+    pos, inten, blurred = particle_scene(camera, count, seed, blur_px=1.0, queue=queue)
+    noisy = simulate_image(camera, pos, inten, 20000, seed=seed, blur_px=1.0, queue=queue,
+                           photon_noise=True, background=20.0, read_noise=3.0)
+    images = {"1 px blur": blurred, "1 px blur, noisy": noisy}
     return pos, render_particles(GRID, pos, inten), images
 
 
