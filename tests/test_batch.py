@@ -360,6 +360,7 @@ def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
     from plenocl.batch import worker
     from plenocl.pipeline import MTESettings, PairSettings
     from plenocl.pipeline.settings import PARTS
+    from plenocl.projection.projector import DEFAULT_LENS_WEIGHTS
 
     text = (EXPERIMENT.replace("iterations = 20", "iterations = 20\ntol = 0.01")
             .replace('folder = "raw"', f'folder = "{(experiment / "raw").as_posix()}"')
@@ -372,6 +373,8 @@ def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
     assert expected.image_fit.rays == 200 and expected.piv.windows == (24,)
     assert expected.piv.weighting is None  # "none": TOML has no null
     assert expected.reconstruction.tol == 0.01 and expected.reconstruction.supersample == 3
+    # the default lens weights named, so that a record says which weights made its volumes
+    assert expected.reconstruction.lens_weights == DEFAULT_LENS_WEIGHTS == "extent"
     got = []
 
     def fake(raw_a, raw_b, projector, settings):

@@ -128,6 +128,19 @@ def test_the_settings_and_the_projector_name_the_same_lens_weights():
         ReconstructionSettings(lens_weights="box")
 
 
+def test_the_default_is_the_extent_weights_and_settings_name_it(small_camera, queue):
+    """A projector left to its default has the extent weights; a pair's settings left to
+    the projector's name them (what a stored record digests), and keep a named choice."""
+    from plenocl.pipeline import PairSettings
+    from plenocl.projection.projector import DEFAULT_LENS_WEIGHTS
+
+    assert Projector(small_camera, FINE, queue).lens_weights == DEFAULT_LENS_WEIGHTS == "extent"
+    assert PairSettings().reconstruction.lens_weights is None
+    assert PairSettings().with_named_weights().reconstruction.lens_weights == "extent"
+    paper = PairSettings(reconstruction=ReconstructionSettings(lens_weights="paper"))
+    assert paper.with_named_weights() is paper
+
+
 def test_weighted_projectors_are_built_once(fine):
     paper = fine["paper"]
     assert paper.weighted("paper") is paper

@@ -200,6 +200,8 @@ def test_a_field_of_an_earlier_method_is_correlated_again(done, monkeypatch, nam
     ("iterations = 6", "iterations = 4", "reconstruction.iterations", "redoing"),
     ("iterations = 6", "iterations = 6\nsmooth_px = 1.0", "reconstruction.smooth_px",
      "redoing"),
+    ("iterations = 6", "iterations = 6\nlens_weights = 'paper'",
+     "reconstruction.lens_weights", "redoing"),
     ("windows = [12, 8]\nensemble = true", "windows = [8]\nensemble = false", "piv.windows",
      "no volumes of this reconstruction are kept"),
 ])

@@ -158,8 +158,9 @@ def load_experiment(path: str | Path) -> Experiment:
                        is not False)
     tracking = tracking_options(table, pair, sections["images"], path)
     _check(sections, path, tracking is not None, several=bool(cameras))
-    return Experiment(sections, path.parent, PairSettings.from_dict(pair, source=str(path)),
-                      tracking, cameras)
+    # the weights named, so that each pair's record says which made its volumes
+    settings = PairSettings.from_dict(pair, source=str(path)).with_named_weights()
+    return Experiment(sections, path.parent, settings, tracking, cameras)
 
 
 def _cameras(doc: dict, path: Path, tracking: bool) -> tuple[dict, ...]:

@@ -136,8 +136,9 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
     """
     sc = scenario(size, layout)
     flow = CameraFrameFlow(sc, seed)
-    settings = chain_settings(sc)
+    settings = chain_settings(sc).with_named_weights()
     chain = {"supersample": settings.reconstruction.supersample,
+             "lens_weights": settings.reconstruction.lens_weights,
              "refinement": "particles fitted to the raw images on the device, the calibrated "
                            f"camera's lines of sight (issue 48); {REFINEMENT_METHOD}",
              "correlation": CORRELATION_METHOD}
@@ -242,12 +243,13 @@ def _stage_reconstruction(run, sc, cam, settings: ReconstructionSettings, queue)
 
 
 def _stage_mart(run, sc, cam, queue) -> None:
-    """The paper's solver for comparison: 5 MART iterations at μ = 1 on the voxels
-    themselves (first exposure)."""
+    """The paper's method for comparison: 5 MART iterations at μ = 1 on the voxels
+    themselves, with the paper's lens weights (first exposure)."""
     from ..projection.projector import Projector
 
     _reconstruct_file(run, sc, Projector(cam, sc.grid, queue), "a",
-                      ReconstructionSettings("mart", 5, 1.0, supersample=1), "_mart")
+                      ReconstructionSettings("mart", 5, 1.0, supersample=1,
+                                             lens_weights="paper"), "_mart")
 
 
 def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettings,

@@ -63,8 +63,9 @@ def run_two_cameras(out_dir: str | Path, queue=None, seed: int = 0, apart: float
     sc = scenario("small")
     flow = CameraFrameFlow(sc, seed)
     queue = get_queue(queue)  # one queue: the two cameras' projectors share it
+    weights = chain_settings(sc).with_named_weights().reconstruction.lens_weights
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "apart_deg": apart,
-                                "cameras": 2}, log)
+                                "cameras": 2, "lens_weights": weights}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: stage_particles(run, sc, flow, seed))
     poses = true_poses(apart)

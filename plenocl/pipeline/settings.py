@@ -6,11 +6,12 @@ dicts (an experiment file's sections, docs/batch.md). Its reconstruction's defau
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ..options import field_names, from_table, refuse_unknown, to_table
 from ..piv.imagefit import ImageFitSettings
 from ..piv.settings import PIVSettings
+from ..projection.projector import DEFAULT_LENS_WEIGHTS
 from ..reconstruction import ReconstructionSettings
 from .mte import MTESettings
 
@@ -61,6 +62,17 @@ class PairSettings:
         if not isinstance(self.particles, bool):
             raise ValueError(f"PairSettings.particles must be true or false, got "
                              f"{self.particles!r}")
+
+    def with_named_weights(self) -> PairSettings:
+        """These settings with the reconstruction's lens weights named: ``None`` (the
+        projector's own) becomes the projector's default,
+        :data:`~plenocl.projection.projector.DEFAULT_LENS_WEIGHTS`. A stored result's
+        digest then names the weights that made its volumes, and a rerun after the
+        default changed redoes them instead of keeping the other weights' volumes."""
+        if self.reconstruction.lens_weights is not None:
+            return self
+        return replace(self, reconstruction=replace(self.reconstruction,
+                                                    lens_weights=DEFAULT_LENS_WEIGHTS))
 
     def to_dict(self, none=None) -> dict:
         """The settings as nested plain dicts, the shape :meth:`from_dict` reads: one

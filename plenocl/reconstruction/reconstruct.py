@@ -230,7 +230,7 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         paper's bilinear weights) or ``"extent"`` (the voxel's extent in each lens's
         cell; docs/design.md §6.4), on :meth:`plenocl.Projector.weighted`, built once per
         projector; ``None`` (default): the projector's own (``Projector(lens_weights=)``,
-        the paper's by default).
+        the extent weights by default).
     smooth_px
         Smooth the raw image by a Gaussian of this standard deviation (pixels, up to
         ``settings.MAX_SMOOTH_PX``) after its median is removed and before it is

@@ -56,7 +56,7 @@ def _box_share(t: np.ndarray, width: float) -> np.ndarray:
 def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
                   oversample: float = DEFAULT_OVERSAMPLE,
                   shear_tol: float = DEFAULT_SHEAR_TOL,
-                  lens_weights: str = "paper") -> tuple[np.ndarray, np.ndarray]:
+                  lens_weights: str = "extent") -> tuple[np.ndarray, np.ndarray]:
     """One voxel's weights: sorted flat pixel indices (int64) and weights (float64).
 
     Parameters
@@ -70,7 +70,8 @@ def voxel_weights(camera: Camera, grid: Grid, iz: int, iy: int, ix: int,
     shear_tol
         See :func:`lens_index_map`.
     lens_weights
-        ``"paper"`` (bilinear) or ``"extent"`` (the voxel's width, :class:`plenocl.Projector`).
+        ``"extent"`` (default: the voxel's width, as :class:`plenocl.Projector`'s
+        default) or ``"paper"`` (bilinear).
 
     Returns
     -------
