@@ -13,10 +13,13 @@ from plenocl.piv.refinement import (
     FITTED_POSITION_SIGMA,
     FOCAL_SYSTEMATIC,
     GRADIENT_PAIRS,
+    KEEP_FLOOR,
     ONE_SIGMA,
     POSITION_SIGMA,
+    SPREAD,
     FocalZone,
     ParticlePairs,
+    near_median,
     pair_particles,
     predicted,
     refine_with_particles,
@@ -241,14 +244,16 @@ def awkward_pairs(case: str, rng) -> ParticlePairs:
 @pytest.mark.parametrize("case", ["sparse", "outliers", "plane", "line", "faces", "empty"])
 @pytest.mark.parametrize("focus", [None, FocalZone(plane=12.0, resolution=5.0)])
 @pytest.mark.parametrize("min_pairs", [2, 3])
-def test_window_means_equal_the_per_window_loop(case, focus, min_pairs):
+@pytest.mark.parametrize("spread", [SPREAD, None])
+def test_window_means_equal_the_per_window_loop(case, focus, min_pairs, spread):
     """The batched window means against the per-window loop over local_gradient,
     near_median and window_estimate: the same counts, to float64 rounding the same
-    means and uncertainties (rank-deficient fits take lstsq's minimum-norm solution)."""
+    means and uncertainties (rank-deficient fits take lstsq's minimum-norm solution),
+    with the robust rule and with the search range alone."""
     pairs = awkward_pairs(case, np.random.default_rng(len(case)))
     field = grid_field()
-    got = window_means(pairs, field, min_pairs, focus=focus)
-    want = window_means_reference(pairs, field, min_pairs, focus=focus)
+    got = window_means(pairs, field, min_pairs, focus=focus, spread=spread)
+    want = window_means_reference(pairs, field, min_pairs, focus=focus, spread=spread)
     np.testing.assert_array_equal(got[2], want[2])
     for a, b in zip(got[:2], want[:2]):
         np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
@@ -256,10 +261,44 @@ def test_window_means_equal_the_per_window_loop(case, focus, min_pairs):
     if case == "sparse":  # windows with just enough pairs, and too few
         assert (want[2] == min_pairs).any() and np.isnan(want[0][0]).any()
     if case in ("outliers", "plane", "line"):  # gradient fits and pairs left out
-        full = window_means_reference(pairs, field, min_pairs, search=(99.0,) * 3)[2]
+        full = window_means_reference(pairs, field, min_pairs, search=(99.0,) * 3,
+                                      spread=None)[2]
         assert (want[2] >= GRADIENT_PAIRS).any() and (want[2] < full).any()
     if case == "empty":
         assert not want[2].any() and np.isnan(want[0]).all()
+
+
+def test_near_median_leaves_out_a_stray_pair_and_keeps_an_honest_spread():
+    """One pair 0.4 voxel off among pairs that agree within 0.02 is left out (the search
+    range alone keeps it); a pair within the floor of the median is always kept; and
+    pairs that scatter widely are kept as a Gaussian's 3 sigma keeps them."""
+    rng = np.random.default_rng(3)
+    shift = np.array([2.3, -1.4, 1.7])
+    d = shift + rng.normal(0, 0.02, (12, 3))
+    d[0, 0] += 0.4
+    assert not near_median(d)[0] and near_median(d)[1:].all()
+    assert near_median(d, spread=None).all()
+    tight = shift + rng.normal(0, 1e-4, (12, 3))
+    tight[0] += 0.9 * np.asarray(KEEP_FLOOR)
+    assert near_median(tight).all()
+    wide = shift + rng.normal(0, [0.3, 0.3, 0.9], (4000, 3))
+    kept = near_median(wide).mean()
+    assert 0.98 < kept < 0.997  # 3 sigma per component: 0.9973 ** 3 = 0.992
+
+
+def test_a_stray_pair_moves_its_window_by_less_than_with_the_search_range_alone():
+    """A window of ten pairs at the true shift, one of them 0.5 voxel off laterally: the
+    robust mean is the shift, the search range's mean is 0.05 off."""
+    rng = np.random.default_rng(4)
+    field = grid_field()
+    centre = np.array([field.x[1], field.y[1], field.z[1]], float)
+    mid = centre + rng.uniform(-1.0, 1.0, (10, 3))
+    disp = np.tile([2.3, -1.4, 1.7], (10, 1)) + rng.normal(0, 0.01, (10, 3))
+    disp[0, 0] += 0.5
+    pairs = ParticlePairs(mid, disp)
+    robust = window_means(pairs, field, 3)[0][:, 1, 1, 1]
+    boxed = window_means(pairs, field, 3, spread=None)[0][:, 1, 1, 1]
+    assert abs(robust[0] - 2.3) < 0.01 < 0.04 < abs(boxed[0] - 2.3)
 
 
 def test_a_flat_scatter_takes_the_minimum_norm_gradient():

@@ -530,8 +530,10 @@ def bin_tracks(tracks: Tracks, grid: Grid, window=(16, 16, 16), step=None, frame
     """
     template = _windows(grid, window, step)
     samples = _steps(tracks, grid, frames)
+    # every sample within the search range of its window's median, as before the pairs'
+    # robust window means (a track's steps are already smoothed; not measured with them)
     mean, error, count = window_means(samples, template, min_samples, SEARCH, focus,
-                                      FITTED_POSITION_SIGMA)
+                                      FITTED_POSITION_SIGMA, spread=None)
     use = np.isfinite(mean[0])
     outlier = normalized_median_test(np.where(use, mean, 0.0), ignore=~use) & use
     vectors = np.where(use, replace_outliers(np.where(use, mean, 0.0), outlier | ~use), np.nan)

@@ -21,7 +21,7 @@ from ..piv import PIVResult, piv3d
 from ..piv.devicepeaks import DeviceMaxima
 from ..piv.imagefit import ImageFit
 from ..piv.jointfit import JointImageFit
-from ..piv.refinement import FocalZone, SightLines, refine_with_particles
+from ..piv.refinement import SPREAD, FocalZone, SightLines, refine_with_particles
 from .settings import PairSettings
 
 __all__ = ["StageClock", "refine_particles", "refined_field"]
@@ -77,7 +77,8 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
 
 def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSettings,
                      queue: DeviceLike = None, *, camera: Camera | list | None = None,
-                     raws=None, backgrounds=None, clock: StageClock | None = None) -> PIVResult:
+                     raws=None, backgrounds=None, clock: StageClock | None = None,
+                     spread: float | None = SPREAD) -> PIVResult:
     """``res`` refined by the volumes' matched particles
     (:func:`plenocl.piv.refinement.refine_with_particles`) where ``settings.particles``
     asks, timed as the stage ``particles``; ``res`` itself otherwise.
@@ -98,6 +99,9 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
     backgrounds
         The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
         them); several cameras: per camera, its two or ``None``.
+    spread
+        The pairs each window keeps (:func:`plenocl.piv.refinement.near_median`;
+        ``None``: the refinement before 2026-11-29, all within the search range).
     """
     if not settings.particles:
         return res
@@ -119,5 +123,5 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
             focus = FocalZone.of(camera, grid) if camera.pose is None else None
             sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
-                                    maxima=maxima)
+                                    maxima=maxima, spread=spread)
     return res

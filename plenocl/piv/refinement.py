@@ -62,9 +62,20 @@ if TYPE_CHECKING:
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: refinement makes a different field from the same settings.
-METHOD = "lines of sight, seen depth (issue 45, 2026-11-28)"
+METHOD = "lines of sight, seen depth, robust window means (2026-11-29)"
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
+#: A window keeps the pairs whose displacement (moved to its centre) lies within this
+#: many robust standard deviations (1.4826 times the median absolute deviation) of the
+#: window's median, per component (:func:`near_median`): one particle in a hundred
+#: whose fit to the raw images ends 0.3-0.5 voxel off would otherwise move a window of
+#: ten pairs by a few hundredths (docs/design.md §7.1).
+SPREAD = 3.0
+#: ... and never leaves out a pair within this distance (x, y, z voxels) of the median:
+#: about twice the scatter of fitted particles' displacements at the paper's optics
+#: (median 0.011, 90th percentile 0.034 voxel laterally), so that a window whose pairs
+#: agree closely keeps its ordinary spread.
+KEEP_FLOOR = (0.1, 0.1, 0.3)
 #: Fewest pairs in the doubled window for a displacement-gradient fit (12 unknowns).
 GRADIENT_PAIRS = 12
 #: The upper quantile of a one-sigma (68.3 %) two-sided interval.
@@ -180,21 +191,23 @@ def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH
     return ia, to_b[ia]
 
 
-def near_median(d: np.ndarray, search=SEARCH) -> np.ndarray:
-    """Which displacements ``d`` ``(n, 3)`` lie within ``search`` (x, y, z voxels) of
-    their median, per component: the pairs a window or a gradient fit keeps."""
+def near_median(d: np.ndarray, search=SEARCH, spread: float | None = SPREAD) -> np.ndarray:
+    """Which displacements ``d`` ``(n, 3)`` lie near their median, per component: within
+    ``search`` (x, y, z voxels) and within ``spread`` robust standard deviations (1.4826
+    times the median absolute deviation; never nearer than :data:`KEEP_FLOOR`): the
+    pairs a window or a gradient fit keeps. ``spread=None``: ``search`` alone."""
     if not len(d):
         return np.zeros(0, bool)
-    return np.all(np.abs(d - np.median(d, axis=0)) <= search, axis=1)
+    return _near_medians(d[None], search, spread)[0]
 
 
 def local_gradient(pairs: ParticlePairs, near: list[int], centre: np.ndarray,
-                   search=SEARCH) -> np.ndarray:
+                   search=SEARCH, spread: float | None = SPREAD) -> np.ndarray:
     """The displacement gradient ``(3, 3)`` (component, x/y/z) fitted by least squares to
-    the pairs ``near`` (those within ``search`` of their median), or zeros with fewer
-    than :data:`GRADIENT_PAIRS` of them."""
+    the pairs ``near`` (those :func:`near_median` keeps), or zeros with fewer than
+    :data:`GRADIENT_PAIRS` of them."""
     d = pairs.displacements[near]
-    keep = near_median(d, search)
+    keep = near_median(d, search, spread)
     if np.count_nonzero(keep) < GRADIENT_PAIRS:
         return np.zeros((3, 3))
     offsets = pairs.midpoints[near][keep] - centre
@@ -386,7 +399,8 @@ WELL_POSED = 1e-4
 
 
 def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH,
-                 focus: FocalZone | None = None, position_sigma=POSITION_SIGMA
+                 focus: FocalZone | None = None, position_sigma=POSITION_SIGMA,
+                 spread: float | None = SPREAD
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window of ``field``'s grid: the displacement of its pairs at the window's
     centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
@@ -412,10 +426,10 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     busy = np.bincount(win, minlength=count.size) >= min_pairs
     near_win, near = _box_members(points, axes, 2.0)
     grad = _local_gradients(pairs, near_win[busy[near_win]], near[busy[near_win]],
-                            centres, search)
+                            centres, search, spread)
     inside = busy[win]
     n, m, e = _window_estimates(pairs, win[inside], member[inside], centres, grad,
-                                min_pairs, search, focus, position_sigma)
+                                min_pairs, search, focus, position_sigma, spread)
     count.reshape(-1)[busy] = n[busy]
     use = busy & (n >= max(min_pairs, 1))
     mean.reshape(3, -1)[:, use], error.reshape(3, -1)[:, use] = m[use].T, e[use].T
@@ -474,21 +488,27 @@ def _by_count(window: np.ndarray, size: int) -> Iterator[tuple[np.ndarray, np.nd
         yield which, start[which, None] + np.arange(n)
 
 
-def _near_medians(d: np.ndarray, search=SEARCH) -> np.ndarray:
+def _near_medians(d: np.ndarray, search=SEARCH, spread: float | None = SPREAD) -> np.ndarray:
     """:func:`near_median` of each of ``g`` windows at once: ``d`` ``(g, n, 3)`` gives
     ``(g, n)``."""
-    return np.all(np.abs(d - np.median(d, axis=1, keepdims=True)) <= search, axis=2)
+    off = np.abs(d - np.median(d, axis=1, keepdims=True))
+    reach = np.broadcast_to(np.asarray(search, float), off.shape[:1] + (1, 3))
+    if spread is not None:
+        robust = spread * 1.4826 * np.median(off, axis=1, keepdims=True)
+        reach = np.minimum(reach, np.maximum(robust, KEEP_FLOOR))
+    return np.all(off <= reach, axis=2)
 
 
 def _local_gradients(pairs: ParticlePairs, window: np.ndarray, near: np.ndarray,
-                     centres: np.ndarray, search=SEARCH) -> np.ndarray:
+                     centres: np.ndarray, search=SEARCH, spread: float | None = SPREAD
+                     ) -> np.ndarray:
     """:func:`local_gradient` of every window ``(W, 3, 3)`` (zeros where it fits none),
     from the pairs ``near`` each doubled window holds (flat, sorted by ``window``)."""
     grad = np.zeros((len(centres), 3, 3))
     both = np.hstack([pairs.midpoints, pairs.displacements])
     for which, rows in _by_count(window, len(centres)):
         pos = both[near[rows]]  # (g, n, 6): midpoint, displacement
-        keep = _near_medians(pos[..., 3:], search)
+        keep = _near_medians(pos[..., 3:], search, spread)
         fit = np.count_nonzero(keep, axis=1) >= GRADIENT_PAIRS
         if fit.any():
             pos = pos[fit]
@@ -520,7 +540,8 @@ def _fit_gradients(pos: np.ndarray, keep: np.ndarray) -> np.ndarray:
 
 def _window_estimates(pairs: ParticlePairs, window: np.ndarray, inside: np.ndarray,
                       centres: np.ndarray, grad: np.ndarray, min_pairs: int, search=SEARCH,
-                      focus: FocalZone | None = None, position_sigma=POSITION_SIGMA
+                      focus: FocalZone | None = None, position_sigma=POSITION_SIGMA,
+                      spread: float | None = SPREAD
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window: the pairs kept ``(W,)`` and, where at least ``min_pairs`` (and 1),
     :func:`window_estimate`'s mean and uncertainty ``(W, 3)`` (NaN elsewhere) of the
@@ -531,7 +552,7 @@ def _window_estimates(pairs: ParticlePairs, window: np.ndarray, inside: np.ndarr
         mid = pairs.midpoints[inside[rows]]
         offsets = mid - centres[which, None]
         d = pairs.displacements[inside[rows]] - offsets @ grad[which].transpose(0, 2, 1)
-        keep = _near_medians(d, search)
+        keep = _near_medians(d, search, spread)
         count[which] = np.count_nonzero(keep, axis=1)
         use = count[which] >= max(min_pairs, 1)
         mean[which[use]], error[which[use]] = _estimates(
@@ -559,7 +580,8 @@ def _estimates(d: np.ndarray, depth: np.ndarray, keep: np.ndarray, grad: np.ndar
 
 
 def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int = 3,
-                search=SEARCH, focus: FocalZone | None = None) -> PIVResult:
+                search=SEARCH, focus: FocalZone | None = None,
+                spread: float | None = SPREAD) -> PIVResult:
     """``field`` refined by the volumes' particles ``pa``, ``pb`` as they are (paired
     along ``field``; :func:`with_window_means`): the predictor of the pairing that the
     fit to the raw images follows, and the field of the windows it leaves without
@@ -567,7 +589,7 @@ def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int
     depth error reaches 3-4 voxels in places, ``benchmarks/field_size.py``) its windows
     find no pairs along it, and would keep it; along this field they find them."""
     pairs = pair_peaks(pa, pb, field, search)
-    mean, error, _ = window_means(pairs, field, min_pairs, search, focus)
+    mean, error, _ = window_means(pairs, field, min_pairs, search, focus, spread=spread)
     return with_window_means(field, mean, error)[0]
 
 
@@ -594,7 +616,8 @@ def with_window_means(field: PIVResult, mean: np.ndarray, error: np.ndarray
 
 def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.ndarray,
                sigma_w: np.ndarray, min_pairs: int = 3, search=SEARCH,
-               position_sigma=POSITION_SIGMA) -> tuple[np.ndarray, np.ndarray]:
+               position_sigma=POSITION_SIGMA, spread: float | None = SPREAD
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The depth component of every window ``(nz, ny, nx)`` and its uncertainty from
     the pairs that see depth (:meth:`FocalZone.sees_depth`) alone.
 
@@ -609,7 +632,8 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     """
     seeing = focus.sees_depth(pairs.midpoints[:, 2])
     subset = ParticlePairs(pairs.midpoints[seeing], pairs.displacements[seeing])
-    mean, error, _ = window_means(subset, field, min_pairs, search, focus, position_sigma)
+    mean, error, _ = window_means(subset, field, min_pairs, search, focus, position_sigma,
+                                  spread)
     blind = ~focus.sees_depth(field.z)[:, None, None]
     seen = np.where(blind, np.nan, mean[2])
     seen_sigma = np.where(blind, np.nan, error[2])
@@ -646,7 +670,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                           search=SEARCH, focus: FocalZone | None = None,
                           fit: ImageFit | None = None,
                           sight: SightLines | None = None,
-                          maxima: Callable | None = None) -> PIVResult:
+                          maxima: Callable | None = None,
+                          spread: float | None = SPREAD) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -658,22 +683,25 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     records the pairs found, the vectors refined, the outliers and the particles the
     fit to the raw images dropped (``dropped``: their fit left the grid or was not
     finite; docs/design.md §7.2). ``maxima``: where the volumes' local maxima are found
-    (:func:`volume_particles`).
+    (:func:`volume_particles`). ``spread``: the pairs each window keeps
+    (:func:`near_median`; ``None``: all within ``search`` of the window's median, the
+    refinement before 2026-11-29).
     """
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
-    predictor = repredicted(field, pa, pb, min_pairs, search, focus)
+    predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
-    mean, error, count = window_means(pairs, field, min_pairs, search, focus, position)
+    mean, error, count = window_means(pairs, field, min_pairs, search, focus, position,
+                                      spread)
     if focus is not None:
         mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs,
-                                       search, position)
+                                       search, position, spread)
         if sight is not None:
             depth = dataclasses.replace(field, w=np.where(np.isfinite(mean[2]), mean[2],
                                                           predictor.w))
             pairs = sight.unseen_along_sight(pairs, depth, focus)
             lateral, lateral_error, count = window_means(pairs, field, min_pairs, search,
-                                                         focus, position)
+                                                         focus, position, spread)
             mean[:2], error[:2] = lateral[:2], lateral_error[:2]
     refined, use = with_window_means(predictor, mean, error)
     log = {"refinement": "particles", "pairs": len(pairs.midpoints),

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 from ..piv.refinement import (
     POSITION_SIGMA,
     SEARCH,
+    SPREAD,
     FocalZone,
     ParticlePairs,
     local_gradient,
@@ -22,7 +23,7 @@ from ..vectorfield import PIVResult
 
 def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3,
                            search=SEARCH, focus: FocalZone | None = None,
-                           position_sigma=POSITION_SIGMA
+                           position_sigma=POSITION_SIGMA, spread: float | None = SPREAD
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`plenocl.piv.refinement.window_means` one window at a time: the readable
     reference that it is
@@ -41,9 +42,9 @@ def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: in
     reach = tree.query_ball_point(centres[busy] / half, 2.0, p=np.inf) if busy else []
     for w, near in zip(busy, reach):
         (k, j, i), centre, inside = np.unravel_index(w, shape), centres[w], windows[w]
-        grad = local_gradient(pairs, near, centre, search)
+        grad = local_gradient(pairs, near, centre, search, spread)
         d = pairs.displacements[inside] - (pairs.midpoints[inside] - centre) @ grad.T
-        keep = near_median(d, search)
+        keep = near_median(d, search, spread)
         count[k, j, i] = np.count_nonzero(keep)
         if count[k, j, i] >= min_pairs:
             mean[:, k, j, i], error[:, k, j, i] = window_estimate(
