@@ -33,7 +33,6 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
-from plenocl.projection import Projector  # noqa: E402
 
 MOTIONS = {"uniform": UNIFORM, "rotation": ROTATION}
 WEIGHTS = ("paper", "extent")
@@ -56,8 +55,8 @@ def main() -> int:
                         default=list(MOTIONS))
     args = parser.parse_args()
     queue = get_queue()
-    cam, grid, paper = paper_setup(tuple(args.lenses), queue)
-    projectors = {"paper": paper, "extent": Projector(cam, grid, queue, lens_weights="extent")}
+    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
+    projectors = {w: proj.weighted(w) for w in ("paper", "extent")}
     head = f"{'weights':18s} {'lateral':>8s} {'depth':>7s} {'focus':>7s} {'recov':>7s} " \
            f"{'ghosts':>7s} {'s/pair':>7s}"
     for name in args.motion:

@@ -75,7 +75,7 @@ def solvers(proj: Projector, count: int) -> None:
 def main() -> None:
     queue = get_queue()
     print(f"device: {device_info(queue).name}")
-    proj = Projector(Camera.synthetic_850(), GRID, queue)
+    proj = Projector(Camera.synthetic_850(), GRID, queue, lens_weights="paper")  # its model
     print(f"850 x 850 px camera, grid {GRID.shape} over a 5 mm cube\n")
     footprints(proj)
     print(f"\n{'particles':>9s} {'image':24s} {'method':16s} {'it':>4s} {'recov':>6s} "

@@ -92,7 +92,7 @@ MANIFEST: tuple[Entry, ...] = (
         "particle refinement (the fit to the raw images, the pairing, the window means) "
         "run twice on the same volumes: each window keeping the pairs within 3 robust "
         "standard deviations of its median (the default), and keeping every pair within "
-        "the search range (the baseline, the refinement before 2026-11-29): the RMS error "
+        "the search range (the baseline, the refinement before): the RMS error "
         "of the valid vectors, the valid share, and the RMS over every vector, the "
         "outliers' replacements included.",
         ("benchmarks/robust_means.py",), 4.0),
