@@ -69,6 +69,8 @@ SETTINGS = {  # before: 30 MLEM iterations on the sub-voxels from a uniform volu
                                            relax=1.5, support=0.01, coarse_oversample=None,
                                            early_oversample=None),
     "default": None,
+    # the default with the paper's bilinear lens weights (the default until 2026-11-29)
+    "paperweights": ReconstructionSettings(lens_weights="paper"),
     "voxels": ReconstructionSettings(supersample=1),
 }
 
