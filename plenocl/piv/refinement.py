@@ -18,11 +18,13 @@ displacement of the pairs whose midpoints lie in it, each first moved to the win
 centre along the local displacement gradient (a least-squares linear fit to the pairs in
 the window grown to twice its size, where it holds at least :data:`GRADIENT_PAIRS`;
 otherwise none), after leaving out pairs farther than ``search`` from the window's
-median. Without that step, a gradient across a sparse window would bias its mean by
-where its few particles happen to lie. With the camera's :class:`FocalZone`, the depth
-component comes from the pairs that see depth (:func:`seen_depth`; interpolated in
-depth across the blind zone at the focal plane), and with its lines of sight the blind
-pairs' lateral motion is read across their lines (:meth:`SightLines.unseen_along_sight`).
+median or, per component, more than :data:`SPREAD` robust standard deviations from it
+(:func:`near_median`: a fit gone astray). Without the gradient step, a gradient across
+a sparse window would bias its mean by where its few particles happen to lie. With the
+camera's :class:`FocalZone`, the depth component comes from the pairs that see depth
+(:func:`seen_depth`; interpolated in depth across the blind zone at the focal plane),
+and with its lines of sight the blind pairs' lateral motion is read across their lines
+(:meth:`SightLines.unseen_along_sight`).
 The vector's uncertainty (:func:`window_estimate`) adds in quadrature the half-width of
 the mean's 68.3 % confidence interval (the standard error times Student's t quantile for
 the pairs it holds: 1.32 for 3 pairs, 1.05 for 11), the systematic depth error of pairs
@@ -71,6 +73,8 @@ SEARCH = (1.0, 1.0, 3.0)
 #: whose fit to the raw images ends 0.3-0.5 voxel off would otherwise move a window of
 #: ten pairs by a few hundredths (docs/design.md §7.1).
 SPREAD = 3.0
+#: A normal distribution's standard deviation over its median absolute deviation.
+MAD_SIGMA = 1.4826
 #: ... and never leaves out a pair within this distance (x, y, z voxels) of the median:
 #: about twice the scatter of fitted particles' displacements at the paper's optics
 #: (median 0.011, 90th percentile 0.034 voxel laterally), so that a window whose pairs
@@ -494,7 +498,7 @@ def _near_medians(d: np.ndarray, search=SEARCH, spread: float | None = SPREAD) -
     off = np.abs(d - np.median(d, axis=1, keepdims=True))
     reach = np.broadcast_to(np.asarray(search, float), off.shape[:1] + (1, 3))
     if spread is not None:
-        robust = spread * 1.4826 * np.median(off, axis=1, keepdims=True)
+        robust = spread * MAD_SIGMA * np.median(off, axis=1, keepdims=True)
         reach = np.minimum(reach, np.maximum(robust, KEEP_FLOOR))
     return np.all(off <= reach, axis=2)
 
