@@ -202,7 +202,12 @@ def near_median(d: np.ndarray, search=SEARCH, spread: float | None = SPREAD) -> 
     pairs a window or a gradient fit keeps. ``spread=None``: ``search`` alone."""
     if not len(d):
         return np.zeros(0, bool)
-    return _near_medians(d[None], search, spread)[0]
+    off = np.abs(d - np.median(d, axis=0))
+    reach = np.asarray(search, float)
+    if spread is not None:
+        robust = spread * MAD_SIGMA * np.median(off, axis=0)
+        reach = np.minimum(reach, np.maximum(robust, KEEP_FLOOR))
+    return np.all(off <= reach, axis=1)
 
 
 def local_gradient(pairs: ParticlePairs, near: list[int], centre: np.ndarray,
@@ -496,7 +501,7 @@ def _near_medians(d: np.ndarray, search=SEARCH, spread: float | None = SPREAD) -
     """:func:`near_median` of each of ``g`` windows at once: ``d`` ``(g, n, 3)`` gives
     ``(g, n)``."""
     off = np.abs(d - np.median(d, axis=1, keepdims=True))
-    reach = np.broadcast_to(np.asarray(search, float), off.shape[:1] + (1, 3))
+    reach = np.asarray(search, float)
     if spread is not None:
         robust = spread * MAD_SIGMA * np.median(off, axis=1, keepdims=True)
         reach = np.minimum(reach, np.maximum(robust, KEEP_FLOOR))
