@@ -1,6 +1,8 @@
-"""The particle refinement's robust window means (docs/design.md §7.1) against the search
-range alone (the refinement before 2026-11-29), on the same volumes, fits and pairs in
-the same run: one camera and two cameras 25 degrees apart at the paper's optics.
+"""The particle refinement's window means (docs/design.md §7.1): weighted by the pairs'
+fitted uncertainties (the default) against the robust rule with the pairs alike (the
+default of the early morning of 2026-11-29) and the search range alone with the pairs
+alike (the refinement before it), on the same volumes, fits and pairs in the same run:
+one camera and two cameras 25 degrees apart at the paper's optics.
 
     python benchmarks/robust_means.py [--lenses 116 78] [--seeds 1 2 3] [--seeding 0.05]
 
@@ -8,11 +10,11 @@ Scenes and cameras as ``benchmarks/cameras.py`` (``budget_scene``: 0.8 px blur, 
 and read noise, uniform motion; each camera's images ray traced from the same world
 particles). Each pair is reconstructed and correlated once (``process_pair`` without
 the particle refinement); the refinement (the fit to the raw images, the pairing and the
-window means, ``plenocl.pipeline.velocity.refine_particles``) then runs twice on it:
-with the default ``spread`` and with ``spread=None``. Errors: RMS of the valid vectors
-against the true displacement, lateral and depth, in the world grid's voxels, the valid
-share, and the RMS over every vector that is not masked (the outliers' replacements
-included: a refinement that only flagged more vectors would not gain there).
+window means, ``plenocl.pipeline.velocity.refine_particles``) then runs once per rule
+of :data:`RULES` on it. Errors: RMS of the valid vectors against the true
+displacement, lateral and depth, in the world grid's voxels, the valid share, and the
+RMS over every vector that is not masked (the outliers' replacements included: a
+refinement that only flagged more vectors would not gain there).
 """
 
 from __future__ import annotations
@@ -27,17 +29,21 @@ from plenocl.camera import Pose
 from plenocl.pipeline import PairSettings
 from plenocl.pipeline.pair import known_backgrounds
 from plenocl.pipeline.velocity import refine_particles
-from plenocl.piv.refinement import SPREAD
+from plenocl.piv.refinement import ROBUST_SPREAD
 from plenocl.projection import Projector
 
 #: The rows: each camera's turn about y (``None``: unposed).
 SETUPS = {"one camera": [None], "two cameras 25 deg apart": [-12.5, 12.5]}
-#: The window means compared: the default first.
-SPREADS = {f"robust (spread {SPREAD:g})": SPREAD, "search range alone (before)": None}
+#: The window means compared (``refine_particles``' ``spread`` and ``weighted``): the
+#: default first.
+RULES = {"fit-weighted (default)": dict(spread=None, weighted=True),
+         f"robust (spread {ROBUST_SPREAD:g}), alike": dict(spread=ROBUST_SPREAD,
+                                                           weighted=False),
+         "search range alone, alike": dict(spread=None, weighted=False)}
 
 
 def refined_both(raws: list, projs: list) -> dict[str, tuple]:
-    """One pair's volumes and correlation, refined with each of :data:`SPREADS`."""
+    """One pair's volumes and correlation, refined with each of :data:`RULES`."""
     several = len(projs) > 1
     args = (([r[0] for r in raws], [r[1] for r in raws], projs) if several
             else (raws[0][0], raws[0][1], projs[0]))
@@ -50,10 +56,10 @@ def refined_both(raws: list, projs: list) -> dict[str, tuple]:
     else:
         cams, back, images = projs[0].camera, known_backgrounds(pair.info_a, pair.info_b), raws[0]
     rows = {}
-    for label, spread in SPREADS.items():
+    for label, rule in RULES.items():
         piv = refine_particles(pair.piv, pair.vol_a, pair.vol_b, projs[0].grid,
                                PairSettings(), projs[0].queue, camera=cams, raws=images,
-                               backgrounds=back, spread=spread)
+                               backgrounds=back, **rule)
         rows[label] = (*errors(piv), *every_vector(piv))
     return rows
 

@@ -17,7 +17,13 @@ import plenocl
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.io import write_tiff
 from plenocl.piv import piv3d
-from plenocl.piv.imagefit import GRID_MARGIN_VOXELS, ImageFit, ImageFitSettings
+from plenocl.piv.imagefit import (
+    GRID_MARGIN_VOXELS,
+    PRIOR_VOXELS,
+    ImageFit,
+    ImageFitSettings,
+    RefinedPeaks,
+)
 from plenocl.piv.refinement import pair_particles, refine_with_particles
 from plenocl.ptv import Tracks
 from plenocl.reference.simulate import trace_particles
@@ -180,7 +186,7 @@ class _DroppingFit:
             peaks = np.array(peaks, float)
             peaks[:: self.every] = np.nan
             self.dropped += len(peaks[:: self.every])
-            out.append(peaks)
+            out.append(RefinedPeaks(peaks, np.where(np.isnan(peaks), np.nan, 0.02)))
         return tuple(out)
 
 
@@ -209,6 +215,11 @@ def test_refinement_leaves_out_and_counts_the_particles_the_fit_dropped():
     assert np.all(np.isfinite(pairs.midpoints)) and np.all(np.isfinite(pairs.displacements))
     assert len(pairs.displacements) >= 0.6 * 60
     np.testing.assert_allclose(np.median(pairs.displacements, axis=0), shift, atol=0.1)
+    # each pair's uncertainty: its two fits' (0.02 voxel each) in quadrature, or with the
+    # prior where a peak paired only after the fit
+    fitted = np.isclose(pairs.sigma, np.hypot(0.02, 0.02)).all(axis=1)
+    assert fitted.mean() > 0.5
+    assert np.all(pairs.sigma[~fitted] >= PRIOR_VOXELS[0])
     refined = refine_with_particles(field, a, b, fit=_DroppingFit(every=5))
     assert refined.refinement["dropped"] == fit.dropped
     assert refine_with_particles(field, a, b).refinement["dropped"] == 0

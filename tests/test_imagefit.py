@@ -166,3 +166,19 @@ def test_per_particle_peaks_match_the_unsorted_form():
             np.maximum.at(want, ids, value)
             np.testing.assert_array_equal(_peaks(value, ids, n), want)
     assert not _peaks(np.zeros(0), np.zeros(0, int), 3).any()
+
+
+def test_refined_peaks_carry_the_fits_uncertainty_in_voxels():
+    """``refine_pair`` returns each fit's posterior standard deviation on the grid (mm
+    over the voxel size), and it says what the window means weigh by: a particle in the
+    focal plane, whose image is one lens, is placed laterally several times less surely
+    than one out of focus, whose image spans lenses (about 0.13 against 0.004 voxel)."""
+    true = np.array([[0.2, 0.1, 0.0], [-0.4, 0.3, -6.0]])
+    fit = ImageFit(CAM, GRID, [noisy_image(true, 6)] * 2, ImageFitSettings(rays=400))
+    peaks = GRID.to_index(true + np.array([0.2, -0.2, 0.5]) * VOXEL)
+    first, second = fit.refine_pair(peaks, peaks)
+    want = fit.fit(0, GRID.from_index(peaks))
+    np.testing.assert_allclose(first.sigma, want.sigma / VOXEL, rtol=1e-9)
+    np.testing.assert_allclose(first.positions, GRID.to_index(want.positions), rtol=1e-9)
+    np.testing.assert_allclose(second.sigma, first.sigma, rtol=1e-9)  # the same image
+    assert np.all(first.sigma[0, :2] > 10 * first.sigma[1, :2]), first.sigma

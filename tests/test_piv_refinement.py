@@ -3,6 +3,8 @@ volumes' particles along the predictor, per-window means and their uncertainty."
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,7 @@ from plenocl.piv.refinement import (
     KEEP_FLOOR,
     ONE_SIGMA,
     POSITION_SIGMA,
-    SPREAD,
+    ROBUST_SPREAD,
     FocalZone,
     ParticlePairs,
     near_median,
@@ -244,13 +246,19 @@ def awkward_pairs(case: str, rng) -> ParticlePairs:
 @pytest.mark.parametrize("case", ["sparse", "outliers", "plane", "line", "faces", "empty"])
 @pytest.mark.parametrize("focus", [None, FocalZone(plane=12.0, resolution=5.0)])
 @pytest.mark.parametrize("min_pairs", [2, 3])
-@pytest.mark.parametrize("spread", [SPREAD, None])
-def test_window_means_equal_the_per_window_loop(case, focus, min_pairs, spread):
+@pytest.mark.parametrize("spread, weighted", [(ROBUST_SPREAD, False), (None, False),
+                                              (None, True), (ROBUST_SPREAD, True)])
+def test_window_means_equal_the_per_window_loop(case, focus, min_pairs, spread, weighted):
     """The batched window means against the per-window loop over local_gradient,
     near_median and window_estimate: the same counts, to float64 rounding the same
     means and uncertainties (rank-deficient fits take lstsq's minimum-norm solution),
-    with the robust rule and with the search range alone."""
-    pairs = awkward_pairs(case, np.random.default_rng(len(case)))
+    with the robust rule and with the search range alone, each with the pairs alike and
+    weighted by uncertainties spread over two orders of magnitude."""
+    rng = np.random.default_rng(len(case))
+    pairs = awkward_pairs(case, rng)
+    if weighted:
+        sigma = 10 ** rng.uniform(-2.5, -0.5, pairs.displacements.shape)
+        pairs = dataclasses.replace(pairs, sigma=sigma)
     field = grid_field()
     got = window_means(pairs, field, min_pairs, focus=focus, spread=spread)
     want = window_means_reference(pairs, field, min_pairs, focus=focus, spread=spread)
@@ -276,13 +284,14 @@ def test_near_median_leaves_out_a_stray_pair_and_keeps_an_honest_spread():
     shift = np.array([2.3, -1.4, 1.7])
     d = shift + rng.normal(0, 0.02, (12, 3))
     d[0, 0] += 0.4
-    assert not near_median(d)[0] and near_median(d)[1:].all()
-    assert near_median(d, spread=None).all()
+    assert not near_median(d, spread=ROBUST_SPREAD)[0]
+    assert near_median(d, spread=ROBUST_SPREAD)[1:].all()
+    assert near_median(d).all()  # the default: the search range alone
     tight = shift + rng.normal(0, 1e-4, (12, 3))
     tight[0] += 0.9 * np.asarray(KEEP_FLOOR)
-    assert near_median(tight).all()
+    assert near_median(tight, spread=ROBUST_SPREAD).all()
     wide = shift + rng.normal(0, [0.3, 0.3, 0.9], (4000, 3))
-    kept = near_median(wide).mean()
+    kept = near_median(wide, spread=ROBUST_SPREAD).mean()
     assert 0.98 < kept < 0.997  # 3 sigma per component: 0.9973 ** 3 = 0.992
 
 
@@ -296,9 +305,32 @@ def test_a_stray_pair_moves_its_window_by_less_than_with_the_search_range_alone(
     disp = np.tile([2.3, -1.4, 1.7], (10, 1)) + rng.normal(0, 0.01, (10, 3))
     disp[0, 0] += 0.5
     pairs = ParticlePairs(mid, disp)
-    robust = window_means(pairs, field, 3)[0][:, 1, 1, 1]
+    robust = window_means(pairs, field, 3, spread=ROBUST_SPREAD)[0][:, 1, 1, 1]
     boxed = window_means(pairs, field, 3, spread=None)[0][:, 1, 1, 1]
     assert abs(robust[0] - 2.3) < 0.01 < 0.04 < abs(boxed[0] - 2.3)
+
+
+def test_a_pair_its_fit_doubts_weighs_less_in_its_window():
+    """Ten pairs at the true shift whose fits claim 0.01 voxel, one of them 0.5 voxel
+    off laterally with a fit that claims 0.2 (a focal-zone particle's prior): the
+    weighted mean is the shift within 0.01 where the pairs alike miss it by 0.05; its
+    uncertainty is smaller too. Pairs that all claim the same uncertainty give the
+    plain mean and its uncertainty."""
+    rng = np.random.default_rng(4)
+    field = grid_field()
+    centre = np.array([field.x[1], field.y[1], field.z[1]], float)
+    mid = centre + rng.uniform(-1.0, 1.0, (10, 3))
+    disp = np.tile([2.3, -1.4, 1.7], (10, 1)) + rng.normal(0, 0.01, (10, 3))
+    disp[0, 0] += 0.5
+    sigma = np.full((10, 3), 0.01)
+    sigma[0] = 0.2
+    alike = window_means(ParticlePairs(mid, disp), field, 3)
+    weighted = window_means(ParticlePairs(mid, disp, sigma=sigma), field, 3)
+    assert abs(weighted[0][0, 1, 1, 1] - 2.3) < 0.01 < 0.04 < abs(alike[0][0, 1, 1, 1] - 2.3)
+    assert weighted[1][0, 1, 1, 1] < alike[1][0, 1, 1, 1]
+    same = window_means(ParticlePairs(mid, disp, sigma=np.full((10, 3), 0.05)), field, 3)
+    for a, b in zip(same[:2], alike[:2]):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=0)
 
 
 def test_a_flat_scatter_takes_the_minimum_norm_gradient():

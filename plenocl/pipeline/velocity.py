@@ -78,7 +78,7 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
 def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSettings,
                      queue: DeviceLike = None, *, camera: Camera | list | None = None,
                      raws=None, backgrounds=None, clock: StageClock | None = None,
-                     spread: float | None = SPREAD) -> PIVResult:
+                     spread: float | None = SPREAD, weighted: bool = True) -> PIVResult:
     """``res`` refined by the volumes' matched particles
     (:func:`plenocl.piv.refinement.refine_with_particles`) where ``settings.particles``
     asks, timed as the stage ``particles``; ``res`` itself otherwise.
@@ -99,9 +99,11 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
     backgrounds
         The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
         them); several cameras: per camera, its two or ``None``.
-    spread
+    spread, weighted
         The pairs each window keeps (:func:`plenocl.piv.refinement.near_median`;
-        ``None``: the refinement before 2026-11-29, all within the search range).
+        ``None``: all within the search range) and whether the window means weigh them
+        by their fits' uncertainties (:func:`plenocl.piv.refinement.pair_weights`);
+        :func:`plenocl.piv.refinement.refine_with_particles`.
     """
     if not settings.particles:
         return res
@@ -123,5 +125,5 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
             focus = FocalZone.of(camera, grid) if camera.pose is None else None
             sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
-                                    maxima=maxima, spread=spread)
+                                    maxima=maxima, spread=spread, weighted=weighted)
     return res

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -109,6 +110,27 @@ class FittedParticles:
         return int(np.count_nonzero(~self.kept))
 
 
+class RefinedPeaks(NamedTuple):
+    """Peaks refined against their raw images: ``positions`` ``(N, 3)`` fractional voxel
+    indices ``(x, y, z)`` and their posterior standard deviations ``sigma`` ``(N, 3)``
+    voxels (:attr:`FittedParticles.sigma` on the grid); NaN rows for the peaks the fit
+    dropped."""
+
+    positions: np.ndarray
+    sigma: np.ndarray
+
+
+def refined_peaks(fit, grid, index: int, peaks: np.ndarray) -> RefinedPeaks:
+    """``fit``'s (:class:`ImageFit` or several cameras' joint fit) refinement of the
+    peaks ``(N, 3)`` fractional voxel indices of exposure ``index`` on ``grid``."""
+    peaks = np.asarray(peaks, float).reshape(-1, 3)
+    if not len(peaks):
+        return RefinedPeaks(peaks.copy(), peaks.copy())
+    fitted = fit.fit(index, grid.from_index(peaks))
+    spacing = np.asarray(grid.spacing[::-1], float)  # (x, y, z) mm per voxel
+    return RefinedPeaks(grid.to_index(fitted.positions), fitted.sigma / spacing)
+
+
 class ImageFit:
     """The raw images of a pair and the rays of their camera, to refine the peaks of the
     reconstructed volumes.
@@ -156,20 +178,19 @@ class ImageFit:
         """Peaks ``(N, 3)`` fractional voxel indices ``(ix, iy, iz)`` of exposure
         ``index``'s volume refined against its raw image; NaN rows for the peaks the fit
         dropped (:attr:`FittedParticles.kept`)."""
-        if not len(peaks):
-            return np.asarray(peaks, float).reshape(0, 3)
-        fitted = self.fit(index, self.grid.from_index(peaks))
-        return self.grid.to_index(fitted.positions)
+        return refined_peaks(self, self.grid, index, peaks).positions
 
     def refine_pair(self, peaks_a: np.ndarray, peaks_b: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`refine` of both exposures' peaks, the two fits on two threads where the
-        process may use two cores (NumPy releases the interpreter in its array loops)."""
+                    ) -> tuple[RefinedPeaks, RefinedPeaks]:
+        """Both exposures' peaks refined, with their uncertainties
+        (:class:`RefinedPeaks`), the two fits on two threads where the process may use
+        two cores (NumPy releases the interpreter in its array loops)."""
         if thread_count() < 2:
-            return self.refine(0, peaks_a), self.refine(1, peaks_b)
+            return (refined_peaks(self, self.grid, 0, peaks_a),
+                    refined_peaks(self, self.grid, 1, peaks_b))
         with ThreadPoolExecutor(2) as pool:
-            b = pool.submit(self.refine, 1, peaks_b)
-            return self.refine(0, peaks_a), b.result()
+            b = pool.submit(refined_peaks, self, self.grid, 1, peaks_b)
+            return refined_peaks(self, self.grid, 0, peaks_a), b.result()
 
     def fit(self, index: int, positions: np.ndarray) -> FittedParticles:
         """Fit particles starting at object-space ``positions`` ``(N, 3)`` mm to exposure

@@ -24,7 +24,9 @@ from .imagefit import (
     FittedParticles,
     ImageFit,
     ImageFitSettings,
+    RefinedPeaks,
     fit_where_inside,
+    refined_peaks,
 )
 
 
@@ -61,14 +63,14 @@ class JointImageFit:
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
         """:meth:`plenocl.piv.imagefit.ImageFit.refine` against every camera's image of
         exposure ``index``."""
-        if not len(peaks):
-            return np.asarray(peaks, float).reshape(0, 3)
-        return self.grid.to_index(self.fit(index, self.grid.from_index(peaks)).positions)
+        return refined_peaks(self, self.grid, index, peaks).positions
 
     def refine_pair(self, peaks_a: np.ndarray, peaks_b: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`refine` of both exposures' peaks."""
-        return self.refine(0, peaks_a), self.refine(1, peaks_b)
+                    ) -> tuple[RefinedPeaks, RefinedPeaks]:
+        """Both exposures' peaks refined, with their uncertainties
+        (:class:`plenocl.piv.imagefit.RefinedPeaks`)."""
+        return (refined_peaks(self, self.grid, 0, peaks_a),
+                refined_peaks(self, self.grid, 1, peaks_b))
 
     def inside(self, positions: np.ndarray) -> np.ndarray:
         """Which positions every camera's fit keeps."""

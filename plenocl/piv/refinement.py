@@ -18,9 +18,15 @@ displacement of the pairs whose midpoints lie in it, each first moved to the win
 centre along the local displacement gradient (a least-squares linear fit to the pairs in
 the window grown to twice its size, where it holds at least :data:`GRADIENT_PAIRS`;
 otherwise none), after leaving out pairs farther than ``search`` from the window's
-median or, per component, more than :data:`SPREAD` robust standard deviations from it
-(:func:`near_median`: a fit gone astray). Without the gradient step, a gradient across
-a sparse window would bias its mean by where its few particles happen to lie. With the
+median (:func:`near_median`; optionally also those beyond ``spread`` robust standard
+deviations, :data:`ROBUST_SPREAD`). Without the gradient step, a gradient across a
+sparse window would bias its mean by where its few particles happen to lie. With the
+fit to the raw images, the mean weighs each pair by the inverse of its displacement's
+variance, the two particles' posterior variances from their fits plus
+:data:`WEIGHT_FLOOR` squared (:func:`pair_weights`): a particle in the focal zone
+lights one microlens and its fit knows its lateral position to 0.15 voxel (its prior),
+against 0.01-0.03 elsewhere, and its pairs' errors follow their fits' uncertainties
+(docs/design.md §7.1). With the
 camera's :class:`FocalZone`, the depth component comes from the pairs that see depth
 (:func:`seen_depth`; interpolated in depth across the blind zone at the focal plane),
 and with its lines of sight the blind pairs' lateral motion is read across their lines
@@ -50,6 +56,7 @@ from scipy.spatial import cKDTree
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
+from .imagefit import PRIOR_VOXELS
 from .tube import DeviceTubeSums, host_tube_sums
 from .validation import normalized_median_test, replace_outliers
 
@@ -64,18 +71,32 @@ if TYPE_CHECKING:
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: refinement makes a different field from the same settings.
-METHOD = "lines of sight, seen depth, robust window means (2026-11-29)"
+METHOD = "lines of sight, seen depth, fit-weighted window means (2026-11-29)"
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
-#: A window keeps the pairs whose displacement (moved to its centre) lies within this
-#: many robust standard deviations (1.4826 times the median absolute deviation) of the
-#: window's median, per component (:func:`near_median`): one particle in a hundred
-#: whose fit to the raw images ends 0.3-0.5 voxel off would otherwise move a window of
-#: ten pairs by a few hundredths (docs/design.md §7.1).
-SPREAD = 3.0
+#: The robust rule (:func:`near_median`, ``spread=ROBUST_SPREAD``): a window keeps the
+#: pairs whose displacement (moved to its centre) lies within this many robust standard
+#: deviations (1.4826 times the median absolute deviation) of the window's median, per
+#: component. It left out the one pair in a hundred whose fit to the raw images ends
+#: 0.3-0.5 voxel off, but in a sheared, turbulent window it also trims the flow's own
+#: spread (the paper-size demo 7.4 -> 8.5 % of U∞); the fit-weighted means
+#: (:func:`pair_weights`) do better on both, so it is no longer the default
+#: (docs/design.md §7.1; ``benchmarks/robust_means.py``).
+ROBUST_SPREAD = 3.0
+#: The default ``spread``: ``None``, a window keeps every pair within ``search`` of its
+#: median, and weighs them by their fits' uncertainties (:func:`pair_weights`).
+SPREAD: float | None = None
+#: Added in quadrature to a pair's fitted uncertainty (x, y, z voxels) for its weight
+#: (:func:`pair_weights`): the scatter of the best-fitted pairs' displacements at the
+#: paper's optics (0.016-0.022 voxel laterally where the fits claim 0.009-0.015), so
+#: that no pair outweighs the others by more than its fit can show. On
+#: ``benchmarks/robust_means.py``'s one-camera scenes no floor gives 0.014 / 0.184 voxel,
+#: this one 0.016 / 0.188 and twice it 0.017 / 0.192; the small demo 7.0 % of U∞ with
+#: each.
+WEIGHT_FLOOR = (0.02, 0.02, 0.1)
 #: A normal distribution's standard deviation over its median absolute deviation.
 MAD_SIGMA = 1.4826
-#: ... and never leaves out a pair within this distance (x, y, z voxels) of the median:
+#: The robust rule never leaves out a pair within this distance (x, y, z voxels) of the median:
 #: about twice the scatter of fitted particles' displacements at the paper's optics
 #: (median 0.011, 90th percentile 0.034 voxel laterally), so that a window whose pairs
 #: agree closely keeps its ordinary spread.
@@ -114,6 +135,11 @@ class ParticlePairs:
     midpoints: np.ndarray
     displacements: np.ndarray
     dropped: int = 0
+    #: ``(N, 3)`` each displacement's standard uncertainty (x, y, z voxels) from its two
+    #: particles' fits (:class:`plenocl.piv.imagefit.RefinedPeaks`; a peak paired but
+    #: not fitted: :data:`plenocl.piv.imagefit.PRIOR_VOXELS`); ``None``: not fitted, the
+    #: window means weigh every pair alike.
+    sigma: np.ndarray | None = None
 
 
 def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
@@ -146,15 +172,18 @@ def pair_peaks(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH,
     ``(x, y, z)`` voxels (copied, not changed)."""
     pa, pb = np.array(pa, float), np.array(pb, float)
     ia, ib = mutual_pairs(pa, pb, field, search)
-    dropped = 0
-    if fit is not None and len(ia):
-        pa[ia], pb[ib] = fit.refine_pair(pa[ia], pb[ib])
-        kept_a, kept_b = (np.all(np.isfinite(p), axis=1) for p in (pa, pb))
-        dropped = int(np.count_nonzero(~kept_a) + np.count_nonzero(~kept_b))
-        pa, pb = pa[kept_a], pb[kept_b]
-        ia, ib = mutual_pairs(pa, pb, field, search)
+    if fit is None or not len(ia):
+        disp = pb[ib] - pa[ia]
+        return ParticlePairs(pa[ia] + disp / 2, disp)
+    sa, sb = (np.tile(np.asarray(PRIOR_VOXELS, float), (len(p), 1)) for p in (pa, pb))
+    ra, rb = fit.refine_pair(pa[ia], pb[ib])
+    (pa[ia], sa[ia]), (pb[ib], sb[ib]) = ra, rb
+    kept_a, kept_b = (np.all(np.isfinite(p), axis=1) for p in (pa, pb))
+    dropped = int(np.count_nonzero(~kept_a) + np.count_nonzero(~kept_b))
+    pa, pb, sa, sb = pa[kept_a], pb[kept_b], sa[kept_a], sb[kept_b]
+    ia, ib = mutual_pairs(pa, pb, field, search)
     disp = pb[ib] - pa[ia]
-    return ParticlePairs(pa[ia] + disp / 2, disp, dropped)
+    return ParticlePairs(pa[ia] + disp / 2, disp, dropped, np.hypot(sa[ia], sb[ib]))
 
 
 def volume_particles(vol: np.ndarray, threshold: float = 0.1,
@@ -375,14 +404,17 @@ def t_quantile(dof: int) -> float:
 
 
 def window_estimate(d: np.ndarray, depth: np.ndarray, grad: np.ndarray,
-                    focus: FocalZone | None, position_sigma=POSITION_SIGMA
-                    ) -> tuple[np.ndarray, np.ndarray]:
+                    focus: FocalZone | None, position_sigma=POSITION_SIGMA,
+                    weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The displacement ``(3,)`` of one window from its pairs' displacements ``d``
     ``(n, 3)`` (already moved to the window's centre) at depth indices ``depth``, and
     its standard uncertainty.
 
-    The displacement is the pairs' mean. Its uncertainty adds in quadrature the random
-    part (the standard error times Student's t quantile for ``n`` pairs), the focal
+    The displacement is the pairs' mean, weighted per component by ``weight`` ``(n, 3)``
+    (:func:`pair_weights`; ``None``: alike). Its uncertainty adds in quadrature the
+    random part (the weighted standard error, the spread about the mean over the
+    effective number of pairs ``(sum w)^2 / sum w^2``, times Student's t quantile for
+    ``n`` pairs), the focal
     zone's systematic depth part (the mean of the pairs' :meth:`FocalZone.ambiguity`:
     the pairs near the focal plane err together, so it does not shrink with their
     number; 0 without ``focus``), and the particles' positions (``position_sigma``,
@@ -391,12 +423,16 @@ def window_estimate(d: np.ndarray, depth: np.ndarray, grad: np.ndarray,
     displacement gradient ``grad`` ``(3, 3)``.
     """
     n = len(d)
-    random = d.std(axis=0, ddof=1) / np.sqrt(n) * t_quantile(n - 1)
+    w = np.ones_like(d) if weight is None else weight
+    mean = np.average(d, axis=0, weights=w)
+    n_eff = w.sum(axis=0) ** 2 / (w ** 2).sum(axis=0)
+    spread = np.average((d - mean) ** 2, axis=0, weights=w) * n_eff / (n_eff - 1)
+    random = np.sqrt(spread / n_eff) * t_quantile(n - 1)
     systematic = np.zeros(3)
     if focus is not None:
         systematic[2] = focus.ambiguity(depth).mean()
     position = np.sqrt(((grad * np.asarray(position_sigma)) ** 2).sum(axis=1))
-    return d.mean(axis=0), np.sqrt(random ** 2 + systematic ** 2 + position ** 2)
+    return mean, np.sqrt(random ** 2 + systematic ** 2 + position ** 2)
 
 
 #: Smallest ratio of the least to the largest eigenvalue of a window's centred offsets'
@@ -564,23 +600,37 @@ def _window_estimates(pairs: ParticlePairs, window: np.ndarray, inside: np.ndarr
         keep = _near_medians(d, search, spread)
         count[which] = np.count_nonzero(keep, axis=1)
         use = count[which] >= max(min_pairs, 1)
+        weight = pair_weights(pairs, inside[rows[use]])  # (g, n, 3) or None
         mean[which[use]], error[which[use]] = _estimates(
-            d[use], mid[use, :, 2], keep[use], grad[which[use]], focus, position_sigma)
+            d[use], mid[use, :, 2], keep[use], grad[which[use]], focus, position_sigma,
+            weight)
     return count, mean, error
 
 
+def pair_weights(pairs: ParticlePairs, rows: np.ndarray) -> np.ndarray | None:
+    """The window means' weights of the pairs ``rows`` (any shape): the inverse of each
+    displacement's variance with :data:`WEIGHT_FLOOR` added, ``rows.shape + (3,)``;
+    ``None`` where the pairs carry no uncertainty (every pair alike)."""
+    if pairs.sigma is None:
+        return None
+    return 1.0 / (pairs.sigma[rows] ** 2 + np.asarray(WEIGHT_FLOOR) ** 2)
+
+
 def _estimates(d: np.ndarray, depth: np.ndarray, keep: np.ndarray, grad: np.ndarray,
-               focus: FocalZone | None, position_sigma=POSITION_SIGMA
-               ) -> tuple[np.ndarray, np.ndarray]:
+               focus: FocalZone | None, position_sigma=POSITION_SIGMA,
+               weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`window_estimate` of ``g`` windows at once, each of the pairs ``keep``
-    ``(g, n)`` of ``d`` ``(g, n, 3)`` at depths ``depth`` ``(g, n)``: ``(g, 3)`` each."""
+    ``(g, n)`` of ``d`` ``(g, n, 3)`` at depths ``depth`` ``(g, n)``, weighted by
+    ``weight`` ``(g, n, 3)`` (``None``: alike): ``(g, 3)`` each."""
     n = np.count_nonzero(keep, axis=1)
-    w = keep[..., None]
-    mean = np.sum(d, axis=1, where=w) / n[:, None]
+    w = np.where(keep[..., None], 1.0 if weight is None else weight, 0.0)
+    total = w.sum(axis=1)
+    mean = np.sum(w * d, axis=1) / total
+    n_eff = total ** 2 / np.sum(w ** 2, axis=1)  # n when alike
     with np.errstate(divide="ignore", invalid="ignore"):
-        var = np.sum((d - mean[:, None]) ** 2, axis=1, where=w) / (n[:, None] - 1)
+        spread = np.sum(w * (d - mean[:, None]) ** 2, axis=1) / total * n_eff / (n_eff - 1)
     t = np.array([t_quantile(int(k) - 1) for k in n])
-    random = np.sqrt(var) / np.sqrt(n)[:, None] * t[:, None]
+    random = np.sqrt(spread / n_eff) * t[:, None]
     systematic = np.zeros_like(mean)
     if focus is not None:
         systematic[:, 2] = np.sum(focus.ambiguity(depth), axis=1, where=keep) / n
@@ -640,7 +690,8 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     ``sigma_w`` (all their pairs' mean).
     """
     seeing = focus.sees_depth(pairs.midpoints[:, 2])
-    subset = ParticlePairs(pairs.midpoints[seeing], pairs.displacements[seeing])
+    subset = ParticlePairs(pairs.midpoints[seeing], pairs.displacements[seeing],
+                           sigma=None if pairs.sigma is None else pairs.sigma[seeing])
     mean, error, _ = window_means(subset, field, min_pairs, search, focus, position_sigma,
                                   spread)
     blind = ~focus.sees_depth(field.z)[:, None, None]
@@ -680,7 +731,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                           fit: ImageFit | None = None,
                           sight: SightLines | None = None,
                           maxima: Callable | None = None,
-                          spread: float | None = SPREAD) -> PIVResult:
+                          spread: float | None = SPREAD, weighted: bool = True
+                          ) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -693,12 +745,15 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     fit to the raw images dropped (``dropped``: their fit left the grid or was not
     finite; docs/design.md §7.2). ``maxima``: where the volumes' local maxima are found
     (:func:`volume_particles`). ``spread``: the pairs each window keeps
-    (:func:`near_median`; ``None``: all within ``search`` of the window's median, the
-    refinement before 2026-11-29).
+    (:func:`near_median`; ``None``: all within ``search`` of the window's median).
+    ``weighted``: the window means weigh the pairs by their fits' uncertainties
+    (:func:`pair_weights`; ``False``: alike, the refinement before 2026-11-29).
     """
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
     predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
+    if not weighted:
+        pairs = dataclasses.replace(pairs, sigma=None)
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
     mean, error, count = window_means(pairs, field, min_pairs, search, focus, position,
                                       spread)

@@ -16,6 +16,7 @@ from ..piv.refinement import (
     ParticlePairs,
     local_gradient,
     near_median,
+    pair_weights,
     window_estimate,
 )
 from ..vectorfield import PIVResult
@@ -47,6 +48,8 @@ def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: in
         keep = near_median(d, search, spread)
         count[k, j, i] = np.count_nonzero(keep)
         if count[k, j, i] >= min_pairs:
+            weight = pair_weights(pairs, np.asarray(inside)[keep])
             mean[:, k, j, i], error[:, k, j, i] = window_estimate(
-                d[keep], pairs.midpoints[inside][keep, 2], grad, focus, position_sigma)
+                d[keep], pairs.midpoints[inside][keep, 2], grad, focus, position_sigma,
+                weight)
     return mean, error, count
