@@ -86,14 +86,15 @@ MANIFEST: tuple[Entry, ...] = (
         5.5),
     Entry(
         "robust-means", "Accuracy",
-        "The particle refinement's robust window means",
+        "The particle refinement's window means: fit-weighted against robust and plain",
         "The `cameras` entry's scenes (116 x 78 lenses, three scenes), one camera and two "
         "cameras 25 degrees apart: each pair reconstructed and correlated once, then the "
         "particle refinement (the fit to the raw images, the pairing, the window means) "
-        "run twice on the same volumes: each window keeping the pairs within 3 robust "
-        "standard deviations of its median (the default), and keeping every pair within "
-        "the search range (the baseline, the refinement before): the RMS error "
-        "of the valid vectors, the valid share, and the RMS over every vector, the "
+        "run three times on the same volumes: each window's mean weighted by its pairs' "
+        "fitted uncertainties (the default), the pairs alike within 3 robust standard "
+        "deviations of the window's median (the previous default), and the pairs alike "
+        "within the search range (the baseline, the refinement before both): the RMS "
+        "error of the valid vectors, the valid share, and the RMS over every vector, the "
         "outliers' replacements included.",
         ("benchmarks/robust_means.py",), 4.0),
     Entry(
