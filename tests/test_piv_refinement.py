@@ -295,15 +295,22 @@ def test_near_median_leaves_out_a_stray_pair_and_keeps_an_honest_spread():
     assert 0.98 < kept < 0.997  # 3 sigma per component: 0.9973 ** 3 = 0.992
 
 
-def test_a_stray_pair_moves_its_window_by_less_than_with_the_search_range_alone():
-    """A window of ten pairs at the true shift, one of them 0.5 voxel off laterally: the
-    robust mean is the shift, the search range's mean is 0.05 off."""
+def one_stray_pair() -> tuple[PIVResult, np.ndarray, np.ndarray]:
+    """The field of :func:`grid_field` and ten pairs' midpoints and displacements in its
+    window (1, 1, 1), 0.01 voxel about (2.3, -1.4, 1.7), the first 0.5 voxel off in x."""
     rng = np.random.default_rng(4)
     field = grid_field()
     centre = np.array([field.x[1], field.y[1], field.z[1]], float)
     mid = centre + rng.uniform(-1.0, 1.0, (10, 3))
     disp = np.tile([2.3, -1.4, 1.7], (10, 1)) + rng.normal(0, 0.01, (10, 3))
     disp[0, 0] += 0.5
+    return field, mid, disp
+
+
+def test_a_stray_pair_moves_its_window_by_less_than_with_the_search_range_alone():
+    """A window of ten pairs at the true shift, one of them 0.5 voxel off laterally: the
+    robust mean is the shift, the search range's mean is 0.05 off."""
+    field, mid, disp = one_stray_pair()
     pairs = ParticlePairs(mid, disp)
     robust = window_means(pairs, field, 3, spread=ROBUST_SPREAD)[0][:, 1, 1, 1]
     boxed = window_means(pairs, field, 3, spread=None)[0][:, 1, 1, 1]
@@ -316,12 +323,7 @@ def test_a_pair_its_fit_doubts_weighs_less_in_its_window():
     weighted mean is the shift within 0.01 where the pairs alike miss it by 0.05; its
     uncertainty is smaller too. Pairs that all claim the same uncertainty give the
     plain mean and its uncertainty."""
-    rng = np.random.default_rng(4)
-    field = grid_field()
-    centre = np.array([field.x[1], field.y[1], field.z[1]], float)
-    mid = centre + rng.uniform(-1.0, 1.0, (10, 3))
-    disp = np.tile([2.3, -1.4, 1.7], (10, 1)) + rng.normal(0, 0.01, (10, 3))
-    disp[0, 0] += 0.5
+    field, mid, disp = one_stray_pair()
     sigma = np.full((10, 3), 0.01)
     sigma[0] = 0.2
     alike = window_means(ParticlePairs(mid, disp), field, 3)
