@@ -349,3 +349,10 @@ def test_a_flat_scatter_takes_the_minimum_norm_gradient():
     got = _fit_gradients(pos, np.ones((1, 40), bool))[0]
     assert abs(want[0, 2]) > 0.01  # the constant leaks into the depth column
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("spread", [0.0, -1.0, float("nan")])
+def test_a_spread_that_keeps_nothing_is_refused_by_name(spread):
+    vol = np.zeros((8, 8, 8), np.float32)
+    with pytest.raises(ValueError, match="spread=.*positive number of robust"):
+        refine_with_particles(grid_field(), vol, vol, spread=spread)

@@ -749,6 +749,10 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     ``weighted``: the window means weigh the pairs by their fits' uncertainties
     (:func:`pair_weights`; ``False``: alike, the refinement before 2026-11-29).
     """
+    if spread is not None and not spread > 0:
+        raise ValueError(f"refine_with_particles got spread={spread}: give a positive "
+                         f"number of robust standard deviations (ROBUST_SPREAD = "
+                         f"{ROBUST_SPREAD:g}), or None for the search range alone")
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
     predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
