@@ -141,6 +141,12 @@ class ParticlePairs:
     #: window means weigh every pair alike.
     sigma: np.ndarray | None = None
 
+    def subset(self, rows: np.ndarray) -> ParticlePairs:
+        """The pairs ``rows`` (a mask or indices), their uncertainties with them."""
+        return dataclasses.replace(
+            self, midpoints=self.midpoints[rows], displacements=self.displacements[rows],
+            sigma=None if self.sigma is None else self.sigma[rows])
+
 
 def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
     """The displacement ``(N, 3)`` ``(dx, dy, dz)`` of a :class:`PIVResult` at ``points``
@@ -690,10 +696,8 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     ``sigma_w`` (all their pairs' mean).
     """
     seeing = focus.sees_depth(pairs.midpoints[:, 2])
-    subset = ParticlePairs(pairs.midpoints[seeing], pairs.displacements[seeing],
-                           sigma=None if pairs.sigma is None else pairs.sigma[seeing])
-    mean, error, _ = window_means(subset, field, min_pairs, search, focus, position_sigma,
-                                  spread)
+    mean, error, _ = window_means(pairs.subset(seeing), field, min_pairs, search, focus,
+                                  position_sigma, spread)
     blind = ~focus.sees_depth(field.z)[:, None, None]
     seen = np.where(blind, np.nan, mean[2])
     seen_sigma = np.where(blind, np.nan, error[2])
