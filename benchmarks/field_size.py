@@ -14,13 +14,16 @@ motion at the window centres). For each size the table gives
 the RMS error (lateral / depth voxels, and the count) of every stage of the default
 chain (:mod:`plenocl.bench.fieldsize`): the volume's particles, the pairs of the two
 volumes' particles, the same pairs fitted to the raw images, the correlation's vectors
-and the final vectors; over everything, by distance from the optical axis and by depth
-(the focal zone |z| < 2 mm); and the volume's raw peaks per true particle and the share
-recovered. The last lines sum up the final vectors per size and their error 20-25 mm off
-the axis over that on it. With several ``--seeds`` each scene's table comes first, then
-the scenes pooled (every stage's entries together, :func:`plenocl.bench.fieldsize.pooled`):
-the band within 5 mm of the axis holds some 15 independent windows a scene, so one scene's
-off-axis ratio varies by 0.1-0.15 from scene to scene and the pooled one is the figure.
+and the final vectors, and the final vectors' errors across and along each window's line
+of sight ("across/along": one camera's worst direction, which leans ``r / s_o`` off the
+axis); over everything, by distance from the optical axis and by depth (the focal zone
+|z| < 2 mm); and the volume's raw peaks per true particle and the share recovered. The
+last lines sum up the final vectors per size and their error 20-25 mm off the axis over
+that on it, in x, y, z and across and along the lines of sight. With several ``--seeds``
+each scene's table comes first, then the scenes pooled (every stage's entries together,
+:func:`plenocl.bench.fieldsize.pooled`): the band within 5 mm of the axis holds some 15
+independent windows a scene, so one scene's off-axis ratio varies by 0.1-0.15 from scene
+to scene and the pooled one is the figure.
 """
 
 from __future__ import annotations
@@ -39,19 +42,22 @@ from plenocl.bench.fieldsize import (  # noqa: E402
     pooled,
     size_split,
     split_table,
+    stage_named,
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 
 
 def summary_line(split, label: str) -> str:
-    """The final vectors' errors of one split and their off-axis ratio, one line."""
-    final = split.stages[-1]
+    """The final vectors' errors of one split and their off-axis ratio, in x, y, z and
+    across and along the lines of sight, one line."""
+    final, sight = stage_named(split, "vectors"), stage_named(split, "across/along")
     lat, dep, _ = final.rms()
-    ratio = off_axis_ratio(final)
+    ratio, sight_ratio = off_axis_ratio(final), off_axis_ratio(sight)
     cols, rows = split.lenses
     return (f"{cols:4d} x {rows:<4d} {label:8s} vectors: lateral {lat:.3f} depth {dep:.3f} voxel"
-            + ("; 20-25 mm off the axis over on it: lateral {:.2f}x, depth {:.2f}x"
-               .format(*ratio) if all(np.isfinite(ratio)) else ""))
+            + ("; 20-25 mm off the axis over on it: lateral {:.2f}x, depth {:.2f}x; across "
+               "the line of sight {:.2f}x, along it {:.2f}x".format(*ratio, *sight_ratio)
+               if all(np.isfinite(ratio)) else ""))
 
 
 def main() -> None:

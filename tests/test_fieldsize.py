@@ -74,3 +74,28 @@ def test_pooled_scenes_take_each_bins_rms_over_all_their_entries():
     assert dep != pytest.approx((one.stages[0].rms()[1] + two.stages[0].rms()[1]) / 2, rel=1e-3)
     with pytest.raises(ValueError, match="at least one"):
         pooled([])
+
+
+def test_the_sight_frame_puts_an_error_along_the_line_of_sight_in_depth_alone():
+    """An error along each entry's line of sight is all "depth" in the sight frame, and
+    one across it all "lateral", though off the axis the first shows in x and y too."""
+    from plenocl import Camera, Grid
+    from plenocl.bench.fieldsize import sight_stage
+    from plenocl.optics.sightline import line_of_sight
+
+    camera = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (40, 30), 0.0074, (700, 530))
+    grid = Grid((20, 30, 40), x=(10.0, 30.0), y=(-5.0, 10.0), z=(-4.0, 4.0))
+    dz, dy, dx = grid.spacing
+    where = np.array([[20.0, 5.0, 1.0], [12.0, -3.0, -2.0], [0.0, 0.0, 0.0]])
+    line = line_of_sight(camera, where)
+    along = Stage("vectors", where, 0.5 * line / np.array([dx, dy, dz]))
+    assert np.abs(along.error[:2, :2]).max() > 0.05
+    turned = sight_stage(along, camera, grid)
+    np.testing.assert_allclose(turned.error[:, :2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(turned.error[:, 2], 0.5 / dz)
+    across = np.cross(line, [0.0, 0.0, 1.0]) + [[0, 0, 0], [0, 0, 0], [1.0, 0, 0]]
+    turned = sight_stage(Stage("vectors", where, across / np.array([dx, dy, dz])), camera,
+                         grid)
+    np.testing.assert_allclose(turned.error[:, 2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.hypot(*turned.error[:, :2].T),
+                               np.linalg.norm(across, axis=1) / ((dx + dy) / 2))

@@ -16,7 +16,12 @@ chain runs as ``process_pair`` runs it, and every stage is compared with the tru
   particle's own;
 - **fitted**: the same pairs after the fit to the raw images;
 - **correlation**: the correlation's vectors;
-- **vectors**: the final field (``process_pair``'s).
+- **vectors**: the final field (``process_pair``'s);
+- **across/along**: the same errors in each window's line-of-sight frame
+  (:func:`sight_stage`): the two components across the line (in the grid's mean lateral
+  voxel) as "lateral", the one along it (in depth voxels) as "depth". One camera places
+  a point worst along its line of sight, which off the axis leans by ``r / s_o``, so
+  what it misses there shows in x and y as a radial error; across the line it does not.
 
 Errors are RMS lateral (over x and y) / depth in voxels, over everything and by distance
 from the optical axis (mm) and by depth (``|z|`` in mm: the focal zone within 2 mm).
@@ -29,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles
 from ..pipeline import process_pair
 from ..pipeline.pair import known_backgrounds
@@ -103,6 +109,18 @@ def pair_stage(name: str, pairs, grid, scene) -> Stage:
     return Stage(name, mid_mm[it], pairs.displacements[ip] - (end - start)[it])
 
 
+def sight_stage(stage: Stage, camera, grid) -> Stage:
+    """``stage``'s errors in each entry's line-of-sight frame
+    (:func:`plenocl.optics.sightline.sight_frames`): across the line (two components,
+    mm over the grid's mean lateral voxel) and along it (mm over the depth voxel)."""
+    dz, dy, dx = grid.spacing
+    mm = stage.error * np.array([dx, dy, dz])
+    frames = sight_frames(line_of_sight(camera, stage.where))
+    local = np.einsum("nji,nj->ni", frames, mm)  # R^T e
+    return Stage("across/along", stage.where,
+                 local / np.array([(dx + dy) / 2, (dx + dy) / 2, dz]))
+
+
 def field_stage(name: str, res, grid, motion: Motion = UNIFORM) -> Stage:
     """The errors of the valid vectors of ``res`` at their window centres against
     ``motion``."""
@@ -143,6 +161,7 @@ def size_split(cam, grid, proj, seeding: float, seed: int, queue,
     final = refine_with_particles(corr, pair.vol_a, pair.vol_b, focus=focus, fit=fit,
                                   sight=sight)
     stages.append(field_stage("vectors", final, grid, motion))
+    stages.append(sight_stage(stages[-1], cam, grid))
     raw, _ = find_particles(pair.vol_a, reference="robust")
     per, rec = _per_radius(scene.pa, truth, raw, it)
     return SizeSplit(tuple(cam.ml_count), grid.shape, scene.count, stages, per, rec,
@@ -208,6 +227,11 @@ def pooled(splits: list[SizeSplit]) -> SizeSplit:
                      stages, list(np.mean([s.peaks_per_particle for s in splits], axis=0)),
                      list(np.mean([s.recovered for s in splits], axis=0)),
                      sum(s.seconds for s in splits))
+
+
+def stage_named(split: SizeSplit, name: str) -> Stage:
+    """The stage ``name`` of ``split``."""
+    return next(st for st in split.stages if st.name == name)
 
 
 def off_axis_ratio(stage: Stage, band: int = 4) -> tuple[float, float]:

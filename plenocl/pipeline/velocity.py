@@ -21,7 +21,13 @@ from ..piv import PIVResult, piv3d
 from ..piv.devicepeaks import DeviceMaxima
 from ..piv.imagefit import ImageFit
 from ..piv.jointfit import JointImageFit
-from ..piv.refinement import SPREAD, FocalZone, SightLines, refine_with_particles
+from ..piv.refinement import (
+    DEPTH_SUPPORT,
+    SPREAD,
+    FocalZone,
+    SightLines,
+    refine_with_particles,
+)
 from .settings import PairSettings
 
 __all__ = ["StageClock", "refine_particles", "refined_field"]
@@ -78,7 +84,8 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
 def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSettings,
                      queue: DeviceLike = None, *, camera: Camera | list | None = None,
                      raws=None, backgrounds=None, clock: StageClock | None = None,
-                     spread: float | None = SPREAD, weighted: bool = True) -> PIVResult:
+                     spread: float | None = SPREAD, weighted: bool = True,
+                     depth_support: float = DEPTH_SUPPORT) -> PIVResult:
     """``res`` refined by the volumes' matched particles
     (:func:`plenocl.piv.refinement.refine_with_particles`) where ``settings.particles``
     asks, timed as the stage ``particles``; ``res`` itself otherwise.
@@ -99,10 +106,12 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
     backgrounds
         The ``(median, noise)`` each reconstruction removed (``None``: the fit estimates
         them); several cameras: per camera, its two or ``None``.
-    spread, weighted
+    spread, weighted, depth_support
         The pairs each window keeps (:func:`plenocl.piv.refinement.near_median`;
-        ``None``: all within the search range) and whether the window means weigh them
-        by their fits' uncertainties (:func:`plenocl.piv.refinement.pair_weights`);
+        ``None``: all within the search range), whether the window means weigh them
+        by their fits' uncertainties (:func:`plenocl.piv.refinement.pair_weights`), and
+        the depth's support in windows (one camera's;
+        :data:`plenocl.piv.refinement.DEPTH_SUPPORT`);
         :func:`plenocl.piv.refinement.refine_with_particles`.
     """
     if not settings.particles:
@@ -125,5 +134,6 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
             focus = FocalZone.of(camera, grid) if camera.pose is None else None
             sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
-                                    maxima=maxima, spread=spread, weighted=weighted)
+                                    maxima=maxima, spread=spread, weighted=weighted,
+                                    depth_support=depth_support)
     return res

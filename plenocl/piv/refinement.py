@@ -28,9 +28,10 @@ lights one microlens and its fit knows its lateral position to 0.15 voxel (its p
 against 0.01-0.03 elsewhere, and its pairs' errors follow their fits' uncertainties
 (docs/design.md §7.1). With the
 camera's :class:`FocalZone`, the depth component comes from the pairs that see depth
-(:func:`seen_depth`; interpolated in depth across the blind zone at the focal plane),
-and with its lines of sight the blind pairs' lateral motion is read across their lines
-(:meth:`SightLines.unseen_along_sight`).
+(:func:`seen_depth`; interpolated in depth across the blind zone at the focal plane) in
+a box :data:`DEPTH_SUPPORT` times the window, and with its lines of sight every pair is
+then moved along its line to that depth, so that the lateral motion is read across the
+lines (:func:`seen_means`, :meth:`SightLines.along_sight`).
 The vector's uncertainty (:func:`window_estimate`) adds in quadrature the half-width of
 the mean's 68.3 % confidence interval (the standard error times Student's t quantile for
 the pairs it holds: 1.32 for 3 pairs, 1.05 for 11), the systematic depth error of pairs
@@ -71,7 +72,8 @@ if TYPE_CHECKING:
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: refinement makes a different field from the same settings.
-METHOD = "lines of sight, seen depth, fit-weighted window means (2026-11-29)"
+METHOD = ("lines of sight, seen depth over twice the window, every pair along its line, "
+          "fit-weighted window means (2026-11-29 afternoon)")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
 #: The robust rule (:func:`near_median`, ``spread=ROBUST_SPREAD``): a window keeps the
@@ -124,6 +126,18 @@ FOCAL_SYSTEMATIC = 0.087
 #: full size (``benchmarks/field_size.py``): 1.0 leaves windows at 0.45 voxel RMS in
 #: depth, 1.5 at 0.31; docs/design.md §7.4.
 DEPTH_BLIND = 1.5
+#: The depth component's support, in windows (docs/design.md §7.1 "Choice: one camera's
+#: depth over twice the window"): with the camera's focal zone, each window's depth is the
+#: mean of the seeing pairs in a box this many times its window about its centre, each
+#: moved to the centre along the local gradient, and every pair is then moved along its
+#: line of sight to that depth before the lateral means. One camera places a particle
+#: 10-20 times less precisely along its line of sight than across it, so a window's depth
+#: holds most of its error, and off the axis, where the line leans, that error also moves
+#: the lateral components (``r / s_o`` of it). At the paper's optics (three scenes each,
+#: ``benchmarks/field_size.py``'s chain), lateral / depth voxel for 1, 1.5 and 2: the whole
+#: sensor 0.020 / 0.187, 0.015 / 0.108, 0.015 / 0.082; 96 x 64 lenses 0.012 / 0.175,
+#: 0.011 / 0.096, 0.011 / 0.074; the small demo's boundary layer 7.0, 6.9, 6.7 % of U∞.
+DEPTH_SUPPORT = 2.0
 
 
 @dataclass(frozen=True)
@@ -349,24 +363,32 @@ class SightLines:
     def unseen_along_sight(self, pairs: ParticlePairs, depth: PIVResult,
                            focus: FocalZone) -> ParticlePairs:
         """``pairs`` with the displacement of each pair the camera does not see in
-        depth (:meth:`FocalZone.sees_depth`) moved along its line of sight until its
-        depth component is ``depth``'s ``w`` at its midpoint (:func:`predicted`).
+        depth (:meth:`FocalZone.sees_depth`) moved along its line of sight to ``depth``
+        (:meth:`along_sight`).
 
         Such a pair's two particles are placed at about the same depth along their
         lines of sight whatever their motion in depth, and off the axis that error
         leans into the lateral components too (``r / s_o`` of it: 0.2 voxel of a
         1.7-voxel motion 20 mm off the axis); the lateral motion across the line is
         measured, the motion along it is taken from the pairs that see depth."""
-        blind = ~focus.sees_depth(pairs.midpoints[:, 2])
-        if not blind.any():
+        return self.along_sight(pairs, depth, ~focus.sees_depth(pairs.midpoints[:, 2]))
+
+    def along_sight(self, pairs: ParticlePairs, depth: PIVResult,
+                    rows: np.ndarray | None = None) -> ParticlePairs:
+        """``pairs`` with the displacement of the pairs ``rows`` (a boolean mask;
+        ``None``: every pair) moved along its line of sight until its depth component is
+        ``depth``'s ``w`` at its midpoint (:func:`predicted`): what the camera measures
+        across the line is kept, the motion along it is ``depth``'s."""
+        rows = np.ones(len(pairs.midpoints), bool) if rows is None else np.asarray(rows)
+        if not rows.any():
             return pairs
-        mid, disp = pairs.midpoints[blind], pairs.displacements[blind].copy()
+        mid, disp = pairs.midpoints[rows], pairs.displacements[rows].copy()
         mm = self.grid.from_index(mid)
         along = self.grid.to_index(mm + line_of_sight(self.camera, mm)) - mid  # voxels
         shift = predicted(depth, mid)[:, 2] - disp[:, 2]
         disp += along * (shift / along[:, 2])[:, None]
         out = pairs.displacements.copy()
-        out[blind] = disp
+        out[rows] = disp
         return dataclasses.replace(pairs, displacements=out)
 
     def centres(self, vol: np.ndarray, peaks: np.ndarray) -> np.ndarray:
@@ -451,11 +473,16 @@ WELL_POSED = 1e-4
 
 def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH,
                  focus: FocalZone | None = None, position_sigma=POSITION_SIGMA,
-                 spread: float | None = SPREAD
+                 spread: float | None = SPREAD, support: float = 1.0
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window of ``field``'s grid: the displacement of its pairs at the window's
     centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
     :func:`window_estimate`), its uncertainty, and the pair counts.
+
+    ``support``: the pairs taken from a box this many times the window about its centre
+    (the gradient's twice that), each moved to the centre along the gradient. (A box
+    shifted inwards at the volume's faces, to hold as many pairs as one inside, changed
+    the whole sensor's vectors by under 0.002 voxel: not kept.)
 
     The same as :func:`plenocl.reference.refinement.window_means_reference`, the
     per-window loop over
@@ -470,9 +497,11 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     if not len(pairs.midpoints):
         return mean, error, count
     half = np.asarray(field.window[::-1], float) / 2  # (x, y, z)
-    points = pairs.midpoints / half
-    axes = [a / h for a, h in zip((field.x, field.y, field.z), half)]
+    box = half * support
+    points = pairs.midpoints / box
+    centre_axes = (field.x, field.y, field.z)
     centres = _grid_centres(field)
+    axes = [c / b for c, b in zip(centre_axes, box)]
     win, member = _box_members(points, axes, 1.0)
     busy = np.bincount(win, minlength=count.size) >= min_pairs
     near_win, near = _box_members(points, axes, 2.0)
@@ -679,10 +708,38 @@ def with_window_means(field: PIVResult, mean: np.ndarray, error: np.ndarray
     return dataclasses.replace(field, **comps, valid=valid, outlier=outlier), use
 
 
+def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
+               sight: SightLines | None = None, fallback_w: np.ndarray | None = None,
+               min_pairs: int = 3, search=SEARCH, position_sigma=POSITION_SIGMA,
+               spread: float | None = SPREAD, depth_support: float = DEPTH_SUPPORT
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`window_means` with the depth seen by the camera: each window's depth from
+    the pairs that see it in a box ``depth_support`` times the window
+    (:func:`seen_depth` with that ``support``); with ``sight``, the lateral means then
+    taken after moving the pairs along their lines of sight to that depth (every pair;
+    with ``depth_support`` 1, the blind ones alone), ``fallback_w`` ``(nz, ny, nx)``
+    (the predictor's) giving the depth where no window's is known."""
+    mean, error, count = window_means(pairs, field, min_pairs, search, focus, position_sigma,
+                                      spread)
+    mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs, search,
+                                   position_sigma, spread, depth_support)
+    if sight is None:
+        return mean, error, count
+    known = np.isfinite(mean[2])
+    depth = dataclasses.replace(field, w=np.where(known, mean[2], field.w if fallback_w is None
+                                                  else fallback_w))
+    pairs = (sight.unseen_along_sight(pairs, depth, focus) if depth_support == 1
+             else sight.along_sight(pairs, depth))
+    lateral, lateral_error, count = window_means(pairs, field, min_pairs, search, focus,
+                                                 position_sigma, spread)
+    mean[:2], error[:2] = lateral[:2], lateral_error[:2]
+    return mean, error, count
+
+
 def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.ndarray,
                sigma_w: np.ndarray, min_pairs: int = 3, search=SEARCH,
-               position_sigma=POSITION_SIGMA, spread: float | None = SPREAD
-               ) -> tuple[np.ndarray, np.ndarray]:
+               position_sigma=POSITION_SIGMA, spread: float | None = SPREAD,
+               support: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The depth component of every window ``(nz, ny, nx)`` and its uncertainty from
     the pairs that see depth (:meth:`FocalZone.sees_depth`) alone.
 
@@ -693,11 +750,12 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     and half the two values' difference added in quadrature: its own seeing pairs lie at
     its faces, and carried to its centre along their gradient they missed the small
     demo's boundary layer by more (8.3 % of U∞ against 7.6 %). Others keep ``w`` and
-    ``sigma_w`` (all their pairs' mean).
+    ``sigma_w`` (all their pairs' mean). ``support``: the seeing pairs are taken from a
+    box this many times the window (:func:`window_means`).
     """
     seeing = focus.sees_depth(pairs.midpoints[:, 2])
     mean, error, _ = window_means(pairs.subset(seeing), field, min_pairs, search, focus,
-                                  position_sigma, spread)
+                                  position_sigma, spread, support)
     blind = ~focus.sees_depth(field.z)[:, None, None]
     seen = np.where(blind, np.nan, mean[2])
     seen_sigma = np.where(blind, np.nan, error[2])
@@ -735,8 +793,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                           fit: ImageFit | None = None,
                           sight: SightLines | None = None,
                           maxima: Callable | None = None,
-                          spread: float | None = SPREAD, weighted: bool = True
-                          ) -> PIVResult:
+                          spread: float | None = SPREAD, weighted: bool = True,
+                          depth_support: float = DEPTH_SUPPORT) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -752,29 +810,32 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     (:func:`near_median`; ``None``: all within ``search`` of the window's median).
     ``weighted``: the window means weigh the pairs by their fits' uncertainties
     (:func:`pair_weights`; ``False``: alike, the refinement before 2026-11-29).
+    ``depth_support``: with ``focus``, the depth comes from the pairs in a box this many
+    times each window (:data:`DEPTH_SUPPORT`; 1: the window itself), and with ``sight``
+    every pair is then moved along its line of sight to that depth
+    (:meth:`SightLines.along_sight`; 1: the blind pairs alone, the refinement before
+    2026-11-29 afternoon).
     """
     if spread is not None and not spread > 0:
         raise ValueError(f"refine_with_particles got spread={spread}: give a positive "
                          f"number of robust standard deviations (ROBUST_SPREAD = "
                          f"{ROBUST_SPREAD:g}), or None for the search range alone")
+    if not 1.0 <= depth_support < np.inf:
+        raise ValueError(f"refine_with_particles got depth_support={depth_support}: give "
+                         f"a finite number of windows, at least 1 (the window itself; "
+                         f"DEPTH_SUPPORT = {DEPTH_SUPPORT:g})")
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
     predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
     if not weighted:
         pairs = dataclasses.replace(pairs, sigma=None)
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
-    mean, error, count = window_means(pairs, field, min_pairs, search, focus, position,
-                                      spread)
-    if focus is not None:
-        mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs,
-                                       search, position, spread)
-        if sight is not None:
-            depth = dataclasses.replace(field, w=np.where(np.isfinite(mean[2]), mean[2],
-                                                          predictor.w))
-            pairs = sight.unseen_along_sight(pairs, depth, focus)
-            lateral, lateral_error, count = window_means(pairs, field, min_pairs, search,
-                                                         focus, position, spread)
-            mean[:2], error[:2] = lateral[:2], lateral_error[:2]
+    if focus is None:
+        mean, error, count = window_means(pairs, field, min_pairs, search, None, position,
+                                          spread)
+    else:
+        mean, error, count = seen_means(pairs, field, focus, sight, predictor.w, min_pairs,
+                                        search, position, spread, depth_support)
     refined, use = with_window_means(predictor, mean, error)
     log = {"refinement": "particles", "pairs": len(pairs.midpoints),
            "vectors": int(use.sum()), "outliers": int(np.count_nonzero(refined.outlier)),
