@@ -484,8 +484,8 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     shifted inwards at the volume's faces, to hold as many pairs as one inside, changed
     the whole sensor's vectors by under 0.002 voxel: not kept.)
 
-    The same as :func:`plenocl.reference.refinement.window_means_reference`, the
-    per-window loop over
+    At ``support`` 1, the same as
+    :func:`plenocl.reference.refinement.window_means_reference`, the per-window loop over
     :func:`local_gradient`, :func:`near_median` and :func:`window_estimate`, computed for
     all windows holding the same number of pairs at once: about 5 times faster at the
     paper's size (11,220 windows, 5,000 pairs; ``benchmarks/window_means.py``), the
