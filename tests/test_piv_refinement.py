@@ -276,6 +276,29 @@ def test_window_means_equal_the_per_window_loop(case, focus, min_pairs, spread, 
         assert not want[2].any() and np.isnan(want[0]).all()
 
 
+@pytest.mark.parametrize("case", ["sparse", "outliers", "faces"])
+@pytest.mark.parametrize("support", [1.5, 2.0])
+def test_window_means_over_a_wider_support_equal_the_per_window_loop(case, support):
+    """With a support box wider than the window (one camera's depth, DEPTH_SUPPORT) the
+    batched means are the loop's, and each window holds at least the pairs its own box
+    holds."""
+    rng = np.random.default_rng(len(case) + 7)
+    pairs = awkward_pairs(case, rng)
+    pairs = dataclasses.replace(pairs, sigma=10 ** rng.uniform(-2.5, -0.5,
+                                                               pairs.displacements.shape))
+    field, focus = grid_field(), FocalZone(plane=12.0, resolution=5.0)
+    got = window_means(pairs, field, 3, focus=focus, support=support)
+    want = window_means_reference(pairs, field, 3, focus=focus, support=support)
+    np.testing.assert_array_equal(got[2], want[2])
+    for a, b in zip(got[:2], want[:2]):
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    own = window_means_reference(pairs, field, 3, search=(99.0,) * 3, spread=None)[2]
+    wide = window_means_reference(pairs, field, 3, search=(99.0,) * 3, spread=None,
+                                  support=support)[2]
+    assert (wide >= own).all() and (wide > own).any()
+
+
 def test_near_median_leaves_out_a_stray_pair_and_keeps_an_honest_spread():
     """One pair 0.4 voxel off among pairs that agree within 0.02 is left out (the search
     range alone keeps it); a pair within the floor of the median is always kept; and

@@ -24,17 +24,18 @@ from ..vectorfield import PIVResult
 
 def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3,
                            search=SEARCH, focus: FocalZone | None = None,
-                           position_sigma=POSITION_SIGMA, spread: float | None = SPREAD
+                           position_sigma=POSITION_SIGMA, spread: float | None = SPREAD,
+                           support: float = 1.0
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`plenocl.piv.refinement.window_means` one window at a time: the readable
-    reference that it is
-    tested and timed against (``benchmarks/window_means.py``)."""
+    reference that it is tested and timed against (``benchmarks/window_means.py``); the
+    pairs of each window from a box ``support`` times it, the gradient's twice that."""
     shape = field.u.shape
     mean, error = np.full((2, 3, *shape), np.nan)
     count = np.zeros(shape, int)
     if not len(pairs.midpoints):
         return mean, error, count
-    half = np.asarray(field.window[::-1], float) / 2  # (x, y, z)
+    half = np.asarray(field.window[::-1], float) / 2 * support  # (x, y, z)
     tree = cKDTree(pairs.midpoints / half)
     z, y, x = np.meshgrid(field.z, field.y, field.x, indexing="ij")
     centres = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)  # np.ndindex order
