@@ -9,6 +9,7 @@ import pytest
 
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.optics.raybundle import RayBundle, sunflower
+from plenocl.optics.sightline import line_of_sight
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.reference.simulate import trace_particles
 
@@ -182,3 +183,26 @@ def test_refined_peaks_carry_the_fits_uncertainty_in_voxels():
     np.testing.assert_allclose(first.positions, GRID.to_index(want.positions), rtol=1e-9)
     np.testing.assert_allclose(second.sigma, first.sigma, rtol=1e-9)  # the same image
     assert np.all(first.sigma[0, :2] > 10 * first.sigma[1, :2]), first.sigma
+
+
+def test_the_posterior_covariance_leans_with_the_line_of_sight():
+    """Off the axis one camera places a particle worst along its line of sight, which
+    leans by ``r / s_o``: the fit's posterior covariance has its long axis on that line
+    (within a third of the lean, where the z axis is the whole lean off), about 16 times
+    the short ones; ``sigma`` is its diagonal's root, and ``refine_pair`` gives it in
+    voxels²."""
+    true = np.array([[2.4, 0.3, -6.0], [-2.4, -0.5, -6.0], [2.4, 0.3, 6.0]])
+    fit = ImageFit(CAM, GRID, [noisy_image(true, 7)] * 2, ImageFitSettings(rays=400))
+    start = true + np.array([0.2, -0.2, 0.5]) * VOXEL
+    out = fit.fit(0, start)
+    cov = out.covariance
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2))
+    np.testing.assert_allclose(out.sigma, np.sqrt(np.diagonal(cov, axis1=1, axis2=2)))
+    values, vectors = np.linalg.eigh(cov)
+    assert np.all(values > 0) and np.all(values[:, 2] > 100 * values[:, 1]), values
+    lines = line_of_sight(CAM, true)
+    off_line = np.arccos(np.abs(np.einsum("ni,ni->n", vectors[:, :, 2], lines)))
+    lean = np.arccos(np.abs(lines[:, 2]))
+    assert np.all(lean > np.radians(1.0)) and np.all(off_line < lean / 3), (off_line, lean)
+    first, _ = fit.refine_pair(GRID.to_index(start), GRID.to_index(start))
+    np.testing.assert_allclose(first.covariance, cov / np.outer(VOXEL, VOXEL), rtol=1e-9)

@@ -152,7 +152,7 @@ def size_split(cam, grid, proj, seeding: float, seed: int, queue,
     truth = grid.to_index(scene.pa)
     it, ip = matched(pa, truth)
     stages = [Stage("volume", scene.pa[it], pa[ip] - truth[it])]
-    predictor = repredicted(corr, pa, pb, focus=focus)
+    predictor = repredicted(corr, pa, pb, focus=focus, sight=sight)
     stages.append(pair_stage("paired", pair_peaks(pa, pb, predictor), grid, scene))
     fit = ImageFit(cam, grid, (scene.raw_a, scene.raw_b), queue=queue,
                    backgrounds=known_backgrounds(pair.info_a, pair.info_b))

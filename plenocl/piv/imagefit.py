@@ -97,12 +97,19 @@ class FittedParticles:
         ``(N,)``: false for a particle the fit dropped (it started or stepped beyond
         the grid's margin, :meth:`ImageFit.inside`, or its fit was not finite); its
         rows are NaN.
+    covariance
+        ``(N, 3, 3)`` mm²: the posterior covariance of each position, whose diagonal
+        ``sigma`` is the root of. Off the axis one camera's uncertainty leans with the
+        line of sight, so x and y share the depth's; what a particle's position is known
+        to across its line is the covariance seen in the line's frame. ``None``: not
+        given (``sigma`` alone).
     """
 
     positions: np.ndarray
     intensities: np.ndarray
     sigma: np.ndarray
     kept: np.ndarray
+    covariance: np.ndarray | None = None
 
     @property
     def dropped(self) -> int:
@@ -112,12 +119,14 @@ class FittedParticles:
 
 class RefinedPeaks(NamedTuple):
     """Peaks refined against their raw images: ``positions`` ``(N, 3)`` fractional voxel
-    indices ``(x, y, z)`` and their posterior standard deviations ``sigma`` ``(N, 3)``
-    voxels (:attr:`FittedParticles.sigma` on the grid); NaN rows for the peaks the fit
-    dropped."""
+    indices ``(x, y, z)``, their posterior standard deviations ``sigma`` ``(N, 3)``
+    voxels (:attr:`FittedParticles.sigma` on the grid) and covariances ``covariance``
+    ``(N, 3, 3)`` voxels² (:attr:`FittedParticles.covariance`; ``None`` where the fit
+    gave none); NaN rows for the peaks the fit dropped."""
 
     positions: np.ndarray
     sigma: np.ndarray
+    covariance: np.ndarray | None = None
 
 
 def refined_peaks(fit, grid, index: int, peaks: np.ndarray) -> RefinedPeaks:
@@ -125,10 +134,12 @@ def refined_peaks(fit, grid, index: int, peaks: np.ndarray) -> RefinedPeaks:
     peaks ``(N, 3)`` fractional voxel indices of exposure ``index`` on ``grid``."""
     peaks = np.asarray(peaks, float).reshape(-1, 3)
     if not len(peaks):
-        return RefinedPeaks(peaks.copy(), peaks.copy())
+        return RefinedPeaks(peaks.copy(), peaks.copy(), np.zeros((0, 3, 3)))
     fitted = fit.fit(index, grid.from_index(peaks))
     spacing = np.asarray(grid.spacing[::-1], float)  # (x, y, z) mm per voxel
-    return RefinedPeaks(grid.to_index(fitted.positions), fitted.sigma / spacing)
+    cov = (None if fitted.covariance is None
+           else fitted.covariance / (spacing[:, None] * spacing[None, :]))
+    return RefinedPeaks(grid.to_index(fitted.positions), fitted.sigma / spacing, cov)
 
 
 class ImageFit:
@@ -217,12 +228,12 @@ class ImageFit:
 
     def _iterate(self, index: int, start: np.ndarray):
         """The Gauss-Newton iterations from ``start`` (inside the grid): positions,
-        intensities, sigmas and which particles are still in the fit (the others' rows
-        hold where they were dropped)."""
+        intensities, posterior covariances and which particles are still in the fit (the
+        others' rows hold where they were dropped)."""
         noise = self.images[index][1]
         prior = self._prior_mm()
         frames = sight_frames(line_of_sight(self.bundle.camera, start))
-        p, sigma = start.copy(), np.broadcast_to(prior, start.shape).copy()
+        p, cov = start.copy(), prior_covariance(frames, prior)
         device = self.sums is not None and self.sums.fits(
             self.bundle.patches(self.bundle.camera.image_points(p)))
         data = None if device else self._host_image(index)
@@ -237,14 +248,14 @@ class ImageFit:
                 sums = self._device_sums(index, noise, p[rows], intensity[rows])
             else:
                 sums = self._host_sums(data, noise, p[rows], intensity[rows])
-            step, intensity_step, sig = self._solve(*sums, p[rows] - start[rows], prior,
-                                                    frames[rows])
+            step, intensity_step, c = self._solve(*sums, p[rows] - start[rows], prior,
+                                                  frames[rows])
             p[rows] += step
             intensity[rows] = np.maximum(intensity[rows] + intensity_step, 0.0)
-            sigma[rows] = sig
+            cov[rows] = c
             live[rows] = (self.inside(p[rows]) & np.isfinite(intensity[rows])
-                          & np.all(np.isfinite(sig), axis=1))
-        return p, intensity, sigma, live
+                          & np.all(np.isfinite(c), axis=(1, 2)))
+        return p, intensity, cov, live
 
     def _on_device(self, p: np.ndarray) -> bool:
         """Whether the sums of particles at ``p`` run on the device (a queue, device
@@ -359,7 +370,7 @@ class ImageFit:
 
     def _solve(self, normal, rhs, scatter, offset, prior, frames):
         """One damped Gauss-Newton step of every particle (position mm, intensity) and
-        the posterior standard deviation of each position, from the sums at ``p``
+        the posterior covariance ``(n, 3, 3)`` of each position, from the sums at ``p``
         (:meth:`_host_sums`) and ``offset = p - start``; chunk by chunk. The prior
         ``prior`` ``(lateral, lateral, along)`` mm and the step bound hold in each
         particle's line-of-sight frame ``frames`` ``(n, 3, 3)``
@@ -367,7 +378,7 @@ class ImageFit:
         depth leans with the line. A particle whose sums are not finite gets NaN (the
         fit drops it) and leaves the others' alone."""
         n = len(offset)
-        steps, sigmas = np.full((n, 4), np.nan), np.full((n, 3), np.nan)
+        steps, covs = np.full((n, 4), np.nan), np.full((n, 3, 3), np.nan)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             normal = normal / scatter[:, None, None] ** 2
             rhs = rhs / scatter[:, None] ** 2
@@ -378,28 +389,38 @@ class ImageFit:
         for part in self._chunks(n):
             rows = np.arange(part.start, part.stop)[good[part]]
             if len(rows):
-                sigmas[rows], steps[rows] = _solve_each(normal[rows], rhs[rows],
-                                                        self.settings.damping)
+                covs[rows], steps[rows] = _solve_each(normal[rows], rhs[rows],
+                                                      self.settings.damping)
         limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
         local = np.clip(np.einsum("nji,nj->ni", frames, steps[:, :3]), -limit, limit)
-        return np.einsum("nij,nj->ni", frames, local), steps[:, 3], sigmas
+        return np.einsum("nij,nj->ni", frames, local), steps[:, 3], covs
 
 
 def fit_where_inside(positions: np.ndarray, inside, iterate) -> FittedParticles:
     """A fit's :class:`FittedParticles` from ``positions`` ``(N, 3)`` mm: ``iterate``
-    (start -> positions, intensities, sigmas, still in) runs on the positions ``inside``
-    keeps; the others, and those it drops, get NaN rows and ``kept`` false (one camera's
-    fit and several cameras' share it)."""
+    (start -> positions, intensities, posterior covariances ``(n, 3, 3)``, still in) runs
+    on the positions ``inside`` keeps; the others, and those it drops, get NaN rows and
+    ``kept`` false (one camera's fit and several cameras' share it)."""
     start = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = len(start)
-    p, sigma = np.full((2, n, 3), np.nan)
+    p = np.full((n, 3), np.nan)
+    cov = np.full((n, 3, 3), np.nan)
     intensity = np.full(n, np.nan)
     kept = inside(start)
     if kept.any():
-        p[kept], intensity[kept], sigma[kept], still = iterate(start[kept])
+        p[kept], intensity[kept], cov[kept], still = iterate(start[kept])
         kept[np.flatnonzero(kept)[~still]] = False
-    p[~kept], intensity[~kept], sigma[~kept] = np.nan, np.nan, np.nan
-    return FittedParticles(p, intensity, sigma, kept)
+    p[~kept], intensity[~kept], cov[~kept] = np.nan, np.nan, np.nan
+    sigma = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
+    return FittedParticles(p, intensity, sigma, kept, cov)
+
+
+def prior_covariance(frames: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """The covariance ``(n, 3, 3)`` of a prior with standard deviations ``prior``
+    ``(lateral, lateral, along)`` in each particle's line-of-sight frame ``frames``
+    ``(n, 3, 3)`` (:func:`plenocl.optics.sightline.sight_frames`): ``R diag(prior²) R^T``,
+    what a particle the fit has not moved is known to."""
+    return np.einsum("nij,j,nkj->nik", frames, np.asarray(prior, float) ** 2, frames)
 
 
 def _backgrounds(backgrounds, n: int) -> list:
@@ -468,27 +489,29 @@ def _peaks(value: np.ndarray, pid: np.ndarray, n: int) -> np.ndarray:
 
 def _solve_each(normal: np.ndarray, rhs: np.ndarray, damping: float
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The posterior standard deviations ``(n, 3)`` and :func:`_damped_solve`'s steps
+    """The posterior covariances ``(n, 3, 3)`` and :func:`_damped_solve`'s steps
     ``(n, 4)`` of finite normal equations, all at once; where NumPy's stacked solvers
     refuse (one singular or unconverged matrix refuses the stack), particle by particle,
     NaN for those that fail alone."""
     try:
-        return _posterior_sigma(normal), _damped_solve(normal, rhs, damping)
+        return posterior_covariance(normal), _damped_solve(normal, rhs, damping)
     except np.linalg.LinAlgError:
-        sigma, steps = np.full((len(normal), 3), np.nan), np.full((len(normal), 4), np.nan)
+        cov, steps = np.full((len(normal), 3, 3), np.nan), np.full((len(normal), 4), np.nan)
         for k in range(len(normal)):
             try:
-                sigma[k] = _posterior_sigma(normal[k:k + 1])[0]
+                cov[k] = posterior_covariance(normal[k:k + 1])[0]
                 steps[k] = _damped_solve(normal[k:k + 1], rhs[k:k + 1], damping)[0]
             except np.linalg.LinAlgError:
-                sigma[k] = np.nan
+                cov[k] = np.nan
                 continue
-        return sigma, steps
+        return cov, steps
 
 
-def _posterior_sigma(normal: np.ndarray) -> np.ndarray:
-    """The position columns' standard deviations ``(n, 3)`` of normal matrices."""
-    return np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal), axis1=1, axis2=2)[:, :3]))
+def posterior_covariance(normal: np.ndarray) -> np.ndarray:
+    """The position block ``(n, 3, 3)`` of the inverse of normal matrices ``(n, k, k)``
+    (the first three unknowns the position; pseudo-inverse, made exactly symmetric)."""
+    cov = np.linalg.pinv(normal)[:, :3, :3]
+    return (cov + np.swapaxes(cov, 1, 2)) / 2
 
 
 def _damped_solve(normal: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:

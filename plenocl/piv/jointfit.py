@@ -26,6 +26,7 @@ from .imagefit import (
     ImageFitSettings,
     RefinedPeaks,
     fit_where_inside,
+    posterior_covariance,
     refined_peaks,
 )
 
@@ -85,9 +86,9 @@ class JointImageFit:
 
     def _iterate(self, index: int, start: np.ndarray):
         """The joint Gauss-Newton iterations from ``start``: positions, mean intensities,
-        sigmas and which particles are still in the fit."""
+        posterior covariances and which particles are still in the fit."""
         p = start.copy()
-        sigma = np.broadcast_to(self.prior, start.shape).copy()
+        cov = np.tile(np.diag(np.asarray(self.prior, float) ** 2), (len(start), 1, 1))
         intens = np.stack([f.start_intensities(index, p) for f in self.fits])
         live = np.all(np.isfinite(intens), axis=0)
         for _ in range(self.settings.iterations):
@@ -96,13 +97,13 @@ class JointImageFit:
                 break
             normal, rhs = self._system(index, p[rows], intens[:, rows],
                                        p[rows] - start[rows])
-            steps, sig = _solve(normal, rhs, self.settings.damping)
+            steps, c = _solve(normal, rhs, self.settings.damping)
             p[rows] += np.clip(steps[:, :3], -self.max_step, self.max_step)
             intens[:, rows] = np.maximum(intens[:, rows] + steps[:, 3:].T, 0.0)
-            sigma[rows] = sig
+            cov[rows] = c
             live[rows] = (self.inside(p[rows]) & np.all(np.isfinite(steps), axis=1)
-                          & np.all(np.isfinite(sig), axis=1))
-        return p, intens.mean(axis=0), sigma, live
+                          & np.all(np.isfinite(c), axis=(1, 2)))
+        return p, intens.mean(axis=0), cov, live
 
     def _system(self, index: int, p: np.ndarray, intens: np.ndarray, offset: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -128,25 +129,24 @@ class JointImageFit:
 
 def _solve(normal: np.ndarray, rhs: np.ndarray, damping: float
            ) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt steps ``(n, k)`` and the positions' posterior standard
-    deviations ``(n, 3)``, all particles at once; where the stacked solve refuses (one
-    singular system refuses the stack), particle by particle; NaN rows for particles
-    whose system is not finite or singular."""
+    """Levenberg-Marquardt steps ``(n, k)`` and the positions' posterior covariances
+    ``(n, 3, 3)``, all particles at once; where the stacked solve refuses (one singular
+    system refuses the stack), particle by particle; NaN rows for particles whose system
+    is not finite or singular."""
     n, k = rhs.shape
-    steps, sigma = np.full((n, k), np.nan), np.full((n, 3), np.nan)
+    steps, cov = np.full((n, k), np.nan), np.full((n, 3, 3), np.nan)
     good = np.flatnonzero(np.all(np.isfinite(normal), axis=(1, 2))
                           & np.all(np.isfinite(rhs), axis=1))
     diag = np.maximum(np.diagonal(normal[good], axis1=1, axis2=2), 1e-300)
     damped = normal[good] + np.einsum("pi,ij->pij", damping * diag, np.eye(k))
     try:
         steps[good] = np.linalg.solve(damped, rhs[good][..., None])[..., 0]
-        sigma[good] = np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal[good]), axis1=1,
-                                                 axis2=2)[:, :3]))
+        cov[good] = posterior_covariance(normal[good])
     except np.linalg.LinAlgError:
         for j, i in enumerate(good):
             try:
                 steps[i] = np.linalg.solve(damped[j], rhs[i])
-                sigma[i] = np.sqrt(np.abs(np.diagonal(np.linalg.pinv(normal[i]))[:3]))
+                cov[i] = posterior_covariance(normal[i:i + 1])[0]
             except np.linalg.LinAlgError:
                 continue
-    return steps, sigma
+    return steps, cov

@@ -72,8 +72,9 @@ if TYPE_CHECKING:
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: refinement makes a different field from the same settings.
-METHOD = ("lines of sight, seen depth over twice the window, every pair along its line, "
-          "fit-weighted window means (2026-11-29 afternoon)")
+METHOD = ("lines of sight, seen depth over twice the window in the predictor too, every "
+          "pair along its line with its covariance, fit-weighted window means "
+          "(2026-11-29 evening)")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
 #: The robust rule (:func:`near_median`, ``spread=ROBUST_SPREAD``): a window keeps the
@@ -154,12 +155,18 @@ class ParticlePairs:
     #: not fitted: :data:`plenocl.piv.imagefit.PRIOR_VOXELS`); ``None``: not fitted, the
     #: window means weigh every pair alike.
     sigma: np.ndarray | None = None
+    #: ``(N, 3, 3)`` each displacement's covariance (voxels², the two fits' added),
+    #: whose diagonal ``sigma`` is the root of; ``None``: not known. Off the axis one
+    #: camera's uncertainty leans with the line of sight: moving a pair along its line
+    #: (:meth:`SightLines.along_sight`) leaves it what is known across the line.
+    covariance: np.ndarray | None = None
 
     def subset(self, rows: np.ndarray) -> ParticlePairs:
         """The pairs ``rows`` (a mask or indices), their uncertainties with them."""
         return dataclasses.replace(
             self, midpoints=self.midpoints[rows], displacements=self.displacements[rows],
-            sigma=None if self.sigma is None else self.sigma[rows])
+            sigma=None if self.sigma is None else self.sigma[rows],
+            covariance=None if self.covariance is None else self.covariance[rows])
 
 
 def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
@@ -195,15 +202,27 @@ def pair_peaks(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH,
     if fit is None or not len(ia):
         disp = pb[ib] - pa[ia]
         return ParticlePairs(pa[ia] + disp / 2, disp)
-    sa, sb = (np.tile(np.asarray(PRIOR_VOXELS, float), (len(p), 1)) for p in (pa, pb))
+    prior = np.diag(np.asarray(PRIOR_VOXELS, float) ** 2)
+    ca, cb = (np.tile(prior, (len(p), 1, 1)) for p in (pa, pb))
     ra, rb = fit.refine_pair(pa[ia], pb[ib])
-    (pa[ia], sa[ia]), (pb[ib], sb[ib]) = ra, rb
+    pa[ia], pb[ib] = ra.positions, rb.positions
+    known = ra.covariance is not None and rb.covariance is not None
+    if known:
+        ca[ia], cb[ib] = ra.covariance, rb.covariance
+    else:  # a fit that gives its sigmas alone
+        ca[ia], cb[ib] = (_diagonal(r.sigma) for r in (ra, rb))
     kept_a, kept_b = (np.all(np.isfinite(p), axis=1) for p in (pa, pb))
     dropped = int(np.count_nonzero(~kept_a) + np.count_nonzero(~kept_b))
-    pa, pb, sa, sb = pa[kept_a], pb[kept_b], sa[kept_a], sb[kept_b]
+    pa, pb, ca, cb = pa[kept_a], pb[kept_b], ca[kept_a], cb[kept_b]
     ia, ib = mutual_pairs(pa, pb, field, search)
-    disp = pb[ib] - pa[ia]
-    return ParticlePairs(pa[ia] + disp / 2, disp, dropped, np.hypot(sa[ia], sb[ib]))
+    disp, cov = pb[ib] - pa[ia], ca[ia] + cb[ib]
+    sigma = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
+    return ParticlePairs(pa[ia] + disp / 2, disp, dropped, sigma, cov if known else None)
+
+
+def _diagonal(sigma: np.ndarray) -> np.ndarray:
+    """Covariances ``(n, 3, 3)`` with the variances ``sigma**2`` ``(n, 3)`` alone."""
+    return np.einsum("ni,ij->nij", np.asarray(sigma, float) ** 2, np.eye(3))
 
 
 def volume_particles(vol: np.ndarray, threshold: float = 0.1,
@@ -378,7 +397,15 @@ class SightLines:
         """``pairs`` with the displacement of the pairs ``rows`` (a boolean mask;
         ``None``: every pair) moved along its line of sight until its depth component is
         ``depth``'s ``w`` at its midpoint (:func:`predicted`): what the camera measures
-        across the line is kept, the motion along it is ``depth``'s."""
+        across the line is kept, the motion along it is ``depth``'s.
+
+        With :attr:`ParticlePairs.covariance`, each moved pair's covariance becomes
+        ``A C A^T`` for the move ``d -> A d + b`` (``A = I - l e_z^T / l_z``, ``l`` the
+        line in voxels; ``depth`` taken as known), and ``sigma`` its diagonal's root:
+        the lateral uncertainty left is the fit's across the line. Off the axis the
+        fit's x and y share its depth's uncertainty through the line's lean (at 20-25 mm
+        on the paper's optics, 2-3 times the across-line one); a window weighing moved
+        pairs by that would weigh them by their depth."""
         rows = np.ones(len(pairs.midpoints), bool) if rows is None else np.asarray(rows)
         if not rows.any():
             return pairs
@@ -389,7 +416,13 @@ class SightLines:
         disp += along * (shift / along[:, 2])[:, None]
         out = pairs.displacements.copy()
         out[rows] = disp
-        return dataclasses.replace(pairs, displacements=out)
+        if pairs.covariance is None:
+            return dataclasses.replace(pairs, displacements=out)
+        move = np.eye(3) - np.einsum("ni,j->nij", along / along[:, 2:], np.eye(3)[2])
+        cov = pairs.covariance.copy()
+        cov[rows] = move @ cov[rows] @ np.swapaxes(move, 1, 2)
+        sigma = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
+        return dataclasses.replace(pairs, displacements=out, sigma=sigma, covariance=cov)
 
     def centres(self, vol: np.ndarray, peaks: np.ndarray) -> np.ndarray:
         """The particles ``peaks`` ``(N, 3)`` ``(x, y, z)`` voxels moved along their lines
@@ -675,15 +708,28 @@ def _estimates(d: np.ndarray, depth: np.ndarray, keep: np.ndarray, grad: np.ndar
 
 def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int = 3,
                 search=SEARCH, focus: FocalZone | None = None,
-                spread: float | None = SPREAD) -> PIVResult:
+                spread: float | None = SPREAD, sight: SightLines | None = None,
+                depth_support: float = DEPTH_SUPPORT) -> PIVResult:
     """``field`` refined by the volumes' particles ``pa``, ``pb`` as they are (paired
     along ``field``; :func:`with_window_means`): the predictor of the pairing that the
     fit to the raw images follows, and the field of the windows it leaves without
     pairs. Where a correlation errs by more than the search range (off the axis its
     depth error reaches 3-4 voxels in places, ``benchmarks/field_size.py``) its windows
-    find no pairs along it, and would keep it; along this field they find them."""
+    find no pairs along it, and would keep it; along this field they find them.
+
+    With ``focus`` and ``sight`` the means are :func:`seen_means`' (the depth over
+    ``depth_support`` windows, every pair moved along its line to it), as the final
+    refinement takes them. The correlation errs along the lines of sight (a lateral
+    motion off the axis reads as depth there: 1.3-2 voxels at 20-25 mm on the paper's
+    optics), and the pairing picks, among a particle's peaks along its line, the one
+    nearest the predictor; a predictor with the window's depth alone kept 0.3-0.5 voxel
+    of that error and passed a fifth of it to the pairs (docs/design.md §7.4)."""
     pairs = pair_peaks(pa, pb, field, search)
-    mean, error, _ = window_means(pairs, field, min_pairs, search, focus, spread=spread)
+    if focus is not None and sight is not None:
+        mean, error, _ = seen_means(pairs, field, focus, sight, field.w, min_pairs, search,
+                                    POSITION_SIGMA, spread, depth_support)
+    else:
+        mean, error, _ = window_means(pairs, field, min_pairs, search, focus, spread=spread)
     return with_window_means(field, mean, error)[0]
 
 
@@ -825,7 +871,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                          f"a finite number of windows, at least 1 (the window itself; "
                          f"DEPTH_SUPPORT = {DEPTH_SUPPORT:g})")
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
-    predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread)
+    predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight,
+                            depth_support)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
     if not weighted:
         pairs = dataclasses.replace(pairs, sigma=None)
