@@ -413,23 +413,27 @@ def test_lateral_means_weigh_moved_pairs_by_what_is_known_across_their_lines(fie
     assert errors[0] < 0.5 * errors[1], errors
 
 
-def test_the_predictor_takes_the_seen_depth_over_the_wider_support(field):
-    """With the camera's focal zone and lines of sight, the pairing's predictor takes
-    the depth as the final means do (over twice the window, every pair moved along its
-    line): from a correlation 1 voxel off in depth, its windows' depth error is under
-    0.7 of the window's own pairs' mean."""
-    grid = Grid((48, 40, 56), x=(14.0, 24.0), y=(8.0, 16.0), z=(3.0, 13.0))
-    sight, zone = SightLines.of(CAMERA, grid), FocalZone.of(CAMERA, grid)
-    truth = np.array([1.2, -0.6, 2.0])
-    pairs = sighted_pairs(np.random.default_rng(13), grid, truth, 0.15, n=1500)
-    pa = pairs.midpoints - pairs.displacements / 2
-    pb = pairs.midpoints + pairs.displacements / 2
+def test_the_predictor_takes_the_depth_from_the_pairs_that_see_it(field):
+    """A blind pair's depth motion is the one its pairing followed: from a correlation 1
+    voxel off in depth, the focal zone's pairs keep that error. With the camera's focal
+    zone and lines of sight the pairing's predictor takes each window's depth from the
+    pairs that see it, interpolated across the zone, and its blind windows come within
+    0.2 voxel of the truth; from all the window's pairs they stay nearly 1 voxel off."""
     res = field[2]
-    start = dataclasses.replace(res, u=np.full(res.u.shape, truth[0]),
-                                v=np.full(res.u.shape, truth[1]),
-                                w=np.full(res.u.shape, truth[2] + 1.0))
+    zone = FocalZone(plane=24.0, resolution=4.0)
+    rng = np.random.default_rng(13)
+    mid = rng.uniform([0, 0, 0], [56, 40, 48], (1500, 3))
+    disp = np.tile(SHIFT, (len(mid), 1)) + rng.normal(0, 0.05, mid.shape)
+    blind = ~zone.sees_depth(mid[:, 2])
+    disp[blind, 2] = SHIFT[2] + 1.0
+    pa, pb = mid - disp / 2, mid + disp / 2
+    start = dataclasses.replace(res, u=np.full(res.u.shape, SHIFT[0]),
+                                v=np.full(res.u.shape, SHIFT[1]),
+                                w=np.full(res.u.shape, SHIFT[2] + 1.0))
+    in_zone = ~zone.sees_depth(res.z)
+    assert in_zone.any() and not in_zone.all()
     errors = []
-    for lines in (sight, None):
+    for lines in (SightLines.of(CAMERA, GRID), None):
         w = repredicted(start, pa, pb, focus=zone, sight=lines).w
-        errors.append(np.sqrt(np.mean((w - truth[2]) ** 2)))
-    assert errors[0] < 0.7 * errors[1], errors
+        errors.append(np.abs(w[in_zone] - SHIFT[2]).max())
+    assert errors[0] < 0.2 < 0.8 < errors[1], errors

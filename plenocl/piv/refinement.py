@@ -72,7 +72,7 @@ if TYPE_CHECKING:
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: refinement makes a different field from the same settings.
-METHOD = ("lines of sight, seen depth over twice the window in the predictor too, every "
+METHOD = ("lines of sight, seen depth in the predictor and over twice the window, every "
           "pair along its line with its covariance, fit-weighted window means "
           "(2026-11-29 evening)")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
@@ -708,8 +708,8 @@ def _estimates(d: np.ndarray, depth: np.ndarray, keep: np.ndarray, grad: np.ndar
 
 def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int = 3,
                 search=SEARCH, focus: FocalZone | None = None,
-                spread: float | None = SPREAD, sight: SightLines | None = None,
-                depth_support: float = DEPTH_SUPPORT) -> PIVResult:
+                spread: float | None = SPREAD, sight: SightLines | None = None
+                ) -> PIVResult:
     """``field`` refined by the volumes' particles ``pa``, ``pb`` as they are (paired
     along ``field``; :func:`with_window_means`): the predictor of the pairing that the
     fit to the raw images follows, and the field of the windows it leaves without
@@ -717,17 +717,20 @@ def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int
     depth error reaches 3-4 voxels in places, ``benchmarks/field_size.py``) its windows
     find no pairs along it, and would keep it; along this field they find them.
 
-    With ``focus`` and ``sight`` the means are :func:`seen_means`' (the depth over
-    ``depth_support`` windows, every pair moved along its line to it), as the final
-    refinement takes them. The correlation errs along the lines of sight (a lateral
-    motion off the axis reads as depth there: 1.3-2 voxels at 20-25 mm on the paper's
-    optics), and the pairing picks, among a particle's peaks along its line, the one
-    nearest the predictor; a predictor with the window's depth alone kept 0.3-0.5 voxel
-    of that error and passed a fifth of it to the pairs (docs/design.md §7.4)."""
+    With ``focus`` and ``sight`` the means are :func:`seen_means`' over the window
+    itself: the depth from the pairs that see it (interpolated across the blind zone),
+    the blind pairs moved along their lines to it. The correlation errs along the lines
+    of sight (a lateral motion off the axis reads as depth there: 1.3-2 voxels at 20-25
+    mm on the paper's optics), and the pairing picks, among a particle's peaks along its
+    line, the one nearest the predictor; the blind zone's pairs, whose depth is the
+    predictor's, kept that error in a predictor from all the window's pairs
+    (docs/design.md §7.4 item 6). Over twice the window, as the final depth, the
+    predictor misses a boundary layer's depth motion (the small demo 7.0 % of U∞ against
+    6.7 %)."""
     pairs = pair_peaks(pa, pb, field, search)
     if focus is not None and sight is not None:
         mean, error, _ = seen_means(pairs, field, focus, sight, field.w, min_pairs, search,
-                                    POSITION_SIGMA, spread, depth_support)
+                                    POSITION_SIGMA, spread, depth_support=1.0)
     else:
         mean, error, _ = window_means(pairs, field, min_pairs, search, focus, spread=spread)
     return with_window_means(field, mean, error)[0]
@@ -871,8 +874,7 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                          f"a finite number of windows, at least 1 (the window itself; "
                          f"DEPTH_SUPPORT = {DEPTH_SUPPORT:g})")
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
-    predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight,
-                            depth_support)
+    predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
     if not weighted:
         pairs = dataclasses.replace(pairs, sigma=None)
