@@ -862,8 +862,9 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     ``depth_support``: with ``focus``, the depth comes from the pairs in a box this many
     times each window (:data:`DEPTH_SUPPORT`; 1: the window itself), and with ``sight``
     every pair is then moved along its line of sight to that depth
-    (:meth:`SightLines.along_sight`; 1: the blind pairs alone, the refinement before
-    2026-11-29 afternoon).
+    (:meth:`SightLines.along_sight`; 1: the blind pairs alone, the window means of
+    2026-11-29 afternoon; the predictor's seen depth and the moved pairs' covariances
+    of that evening stay).
     """
     if spread is not None and not spread > 0:
         raise ValueError(f"refine_with_particles got spread={spread}: give a positive "
