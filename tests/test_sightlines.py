@@ -382,6 +382,9 @@ def test_along_sight_carries_each_pairs_covariance(field):
         assert np.all(moved.sigma[rows][0, :2] < pairs.sigma[rows][0, :2] / 3)
     np.testing.assert_allclose(moved.sigma, np.sqrt(np.diagonal(moved.covariance, axis1=1,
                                                                 axis2=2)))
+    alike = sight.along_sight(pairs.alike(), depth)  # weighed alike: no sigma comes back
+    assert alike.sigma is None and alike.covariance is None
+    np.testing.assert_allclose(alike.displacements, moved.displacements)
 
 
 def test_lateral_means_weigh_moved_pairs_by_what_is_known_across_their_lines(field):

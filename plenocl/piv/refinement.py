@@ -168,6 +168,11 @@ class ParticlePairs:
             sigma=None if self.sigma is None else self.sigma[rows],
             covariance=None if self.covariance is None else self.covariance[rows])
 
+    def alike(self) -> ParticlePairs:
+        """The same pairs without their uncertainties: every window mean, also after a
+        move along the lines of sight, weighs them alike."""
+        return dataclasses.replace(self, sigma=None, covariance=None)
+
 
 def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
     """The displacement ``(N, 3)`` ``(dx, dy, dz)`` of a :class:`PIVResult` at ``points``
@@ -878,7 +883,7 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
     if not weighted:
-        pairs = dataclasses.replace(pairs, sigma=None)
+        pairs = pairs.alike()
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
     if focus is None:
         mean, error, count = window_means(pairs, field, min_pairs, search, None, position,
