@@ -411,8 +411,13 @@ def fit_where_inside(positions: np.ndarray, inside, iterate) -> FittedParticles:
         p[kept], intensity[kept], cov[kept], still = iterate(start[kept])
         kept[np.flatnonzero(kept)[~still]] = False
     p[~kept], intensity[~kept], cov[~kept] = np.nan, np.nan, np.nan
-    sigma = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
-    return FittedParticles(p, intensity, sigma, kept, cov)
+    return FittedParticles(p, intensity, standard_deviations(cov), kept, cov)
+
+
+def standard_deviations(covariance: np.ndarray) -> np.ndarray:
+    """The standard deviations ``(n, 3)`` of covariances ``(n, 3, 3)``: their diagonals'
+    roots (NaN rows stay NaN)."""
+    return np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
 
 
 def prior_covariance(frames: np.ndarray, prior: np.ndarray) -> np.ndarray:

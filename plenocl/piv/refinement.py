@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
-from .imagefit import PRIOR_VOXELS
+from .imagefit import PRIOR_VOXELS, standard_deviations
 from .tube import DeviceTubeSums, host_tube_sums
 from .validation import normalized_median_test, replace_outliers
 
@@ -221,8 +221,8 @@ def pair_peaks(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH,
     pa, pb, ca, cb = pa[kept_a], pb[kept_b], ca[kept_a], cb[kept_b]
     ia, ib = mutual_pairs(pa, pb, field, search)
     disp, cov = pb[ib] - pa[ia], ca[ia] + cb[ib]
-    sigma = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
-    return ParticlePairs(pa[ia] + disp / 2, disp, dropped, sigma, cov if known else None)
+    return ParticlePairs(pa[ia] + disp / 2, disp, dropped, standard_deviations(cov),
+                         cov if known else None)
 
 
 def _diagonal(sigma: np.ndarray) -> np.ndarray:
@@ -426,8 +426,8 @@ class SightLines:
         move = np.eye(3) - np.einsum("ni,j->nij", along / along[:, 2:], np.eye(3)[2])
         cov = pairs.covariance.copy()
         cov[rows] = move @ cov[rows] @ np.swapaxes(move, 1, 2)
-        sigma = np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)))
-        return dataclasses.replace(pairs, displacements=out, sigma=sigma, covariance=cov)
+        return dataclasses.replace(pairs, displacements=out, sigma=standard_deviations(cov),
+                                   covariance=cov)
 
     def centres(self, vol: np.ndarray, peaks: np.ndarray) -> np.ndarray:
         """The particles ``peaks`` ``(N, 3)`` ``(x, y, z)`` voxels moved along their lines
