@@ -14,12 +14,13 @@ atomically, ``OUT/figures/tracks.png`` (the tracks coloured by speed) and
 Resume is :class:`plenocl.pipeline.resume.StageRunner`'s: two stages, ``tracks`` (the
 tracking) and ``field`` (the binned field, the ParaView file and the store), keyed on
 the frames' content (name, size, SHA-256), the camera and grid used, the frame
-corrections and every setting; a rerun with the same skips both, any change runs both
-again, but a change of the binned field's options alone (the field stage's own key,
-with the digest of the tracks it bins) runs the field stage only. The outputs of a
-stage to be done again are removed before it starts, and the store records both
-digests (its ``record`` attribute: ``tracks``, the configuration's, and ``field``, the
-field stage's key), so the results beside ``experiment_used.toml`` are always its.
+corrections, every setting and the image fit's method
+(:data:`plenocl.piv.imagefit.METHOD`); a rerun with the same skips both, any change runs
+both again, but a change of the binned field's options alone (the field stage's own key,
+with the digest of the tracks it bins) runs the field stage only. The outputs of a stage
+to be done again are removed before it starts, and the store records both digests (its
+``record`` attribute: ``tracks``, the configuration's, and ``field``, the field stage's
+key), so the results beside ``experiment_used.toml`` are always its.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from ..io.progress import step_bar
 from ..pipeline.frames import load_frame
 from ..pipeline.resume import StageRunner, config_digest, remove_outputs
 from ..pipeline.track import TrackSettings, bin_tracks, track
+from ..piv.imagefit import METHOD as FIT_METHOD
 from ..piv.refinement import FocalZone
 from ..ptv import Tracks
 from .config import Experiment
@@ -205,7 +207,8 @@ def _config(exp: Experiment, frames: dict[int, Path], out: Path,
     return {"frames": {n: _content(path) for n, path in frames.items()},
             "settings": record, "channel": exp["images"]["channel"],
             "dark": dark and _content(Path(dark)), "flat": flat and _content(Path(flat)),
-            "camera": _digest(out / "camera_used.toml"), "grid": _digest(out / "grid_used.toml")}
+            "camera": _digest(out / "camera_used.toml"), "grid": _digest(out / "grid_used.toml"),
+            "fit": FIT_METHOD}
 
 
 def _content(path: Path) -> dict:

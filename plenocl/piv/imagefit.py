@@ -8,7 +8,8 @@ spot in each lens give its depth. Here every peak of a volume starts a fit of it
 position and intensity to the raw image, with the camera's exact rays
 (:class:`plenocl.optics.raybundle.RayBundle`): Gauss-Newton steps on all particles at
 once (each one against the image minus every other particle's current image),
-Levenberg-Marquardt damped, with the volume's position as a Gaussian prior
+Levenberg-Marquardt damped in each particle's line-of-sight frame (as on the axis, where
+the uncertain depth does not lean), with the volume's position as a Gaussian prior
 (:data:`PRIOR_VOXELS`). Where the image says little, in the camera's focal zone where
 a particle lights one lens, the prior keeps the volume's position; far from it the
 image decides. Each pixel's noise is the residual's own scatter over the particle's
@@ -32,10 +33,16 @@ import numpy as np
 from ..opencl.threads import thread_count
 from ..optics.rawimage import check_image, subtract_background
 from ..optics.raybundle import Patches, RayBundle
-from ..optics.sightline import line_of_sight, sight_frames, sight_information
+from ..optics.sightline import line_of_sight, sight_frames
 from .devicebundle import DeviceRayBundle
 from .fitsums import DeviceFitSums
 
+#: The fit's method, recorded with every batch field (through
+#: :data:`plenocl.piv.refinement.METHOD`) and every tracking run
+#: (:mod:`plenocl.batch.tracking`), so that a rerun does not keep positions an earlier fit
+#: made. Change it whenever the fit makes other positions from the same settings.
+METHOD = ("Gauss-Newton with the prior, the Levenberg-Marquardt damping and the step bound "
+          "in each line of sight's frame (2026-11-29, issue 45)")
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
 PRIOR_VOXELS = (0.15, 0.15, 1.3)
@@ -371,29 +378,83 @@ class ImageFit:
     def _solve(self, normal, rhs, scatter, offset, prior, frames):
         """One damped Gauss-Newton step of every particle (position mm, intensity) and
         the posterior covariance ``(n, 3, 3)`` of each position, from the sums at ``p``
-        (:meth:`_host_sums`) and ``offset = p - start``; chunk by chunk. The prior
-        ``prior`` ``(lateral, lateral, along)`` mm and the step bound hold in each
-        particle's line-of-sight frame ``frames`` ``(n, 3, 3)``
-        (:func:`plenocl.optics.sightline.sight_frames`): off the axis the uncertain
-        depth leans with the line. A particle whose sums are not finite gets NaN (the
-        fit drops it) and leaves the others' alone."""
-        n = len(offset)
-        steps, covs = np.full((n, 4), np.nan), np.full((n, 3, 3), np.nan)
+        (:meth:`_host_sums`, each divided by its residual's scatter here) and ``offset =
+        p - start``: :func:`sight_steps`."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             normal = normal / scatter[:, None, None] ** 2
             rhs = rhs / scatter[:, None] ** 2
-        information = sight_information(frames, prior)
-        normal[:, :3, :3] += information
-        rhs[:, :3] -= np.einsum("nij,nj->ni", information, offset)
-        good = np.all(np.isfinite(normal), axis=(1, 2)) & np.all(np.isfinite(rhs), axis=1)
-        for part in self._chunks(n):
-            rows = np.arange(part.start, part.stop)[good[part]]
-            if len(rows):
-                covs[rows], steps[rows] = _solve_each(normal[rows], rhs[rows],
-                                                      self.settings.damping)
-        limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
-        local = np.clip(np.einsum("nji,nj->ni", frames, steps[:, :3]), -limit, limit)
-        return np.einsum("nij,nj->ni", frames, local), steps[:, 3], covs
+        return sight_steps(normal, rhs, offset, prior, frames, self.settings.damping,
+                           self.settings.chunk)
+
+
+def sight_steps(normal: np.ndarray, rhs: np.ndarray, offset: np.ndarray,
+                prior: np.ndarray, frames: np.ndarray, damping: float, chunk: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt steps of every particle, solved in its line-of-sight frame.
+
+    Parameters
+    ----------
+    normal, rhs
+        ``J^T J`` ``(n, 4, 4)`` and ``J^T r`` ``(n, 4)`` over (x, y, z mm, intensity),
+        already weighed by the noise.
+    offset
+        ``p - start`` ``(n, 3)`` mm: where each particle is from its prior's centre.
+    prior
+        The prior's standard deviations ``(lateral, lateral, along)`` mm.
+    frames
+        Each particle's line-of-sight frame ``(n, 3, 3)``
+        (:func:`plenocl.optics.sightline.sight_frames`).
+    damping
+        Fraction of each normal matrix's diagonal added, in that frame.
+    chunk
+        Particles solved at once.
+
+    Returns
+    -------
+    steps, intensity_steps, covariances
+        Position steps ``(n, 3)`` mm in the grid's axes, bounded by
+        :data:`MAX_STEP_VOXELS` in the frame; intensity steps ``(n,)``; each position's
+        posterior covariance ``(n, 3, 3)`` mm². NaN where a particle's equations are
+        not finite (the fit drops it; the others are left alone).
+
+    Notes
+    -----
+    The prior, the damping and the bound all hold in the frame, so the step is the same
+    for a particle off the axis as for one on it with the same equations turned: off
+    the axis, where the uncertain depth leans with the line, damping by the grid's
+    diagonal would slow the step along the line several times more than on the axis
+    (docs/design.md §7.2).
+    """
+    n = len(offset)
+    steps, covs = np.full((n, 4), np.nan), np.full((n, 3, 3), np.nan)
+    normal, rhs = in_sight_frames(normal, rhs, frames)
+    weights = 1.0 / np.asarray(prior, dtype=np.float64) ** 2
+    normal[:, [0, 1, 2], [0, 1, 2]] += weights
+    rhs[:, :3] -= weights * np.einsum("nji,nj->ni", frames, offset)
+    good = np.all(np.isfinite(normal), axis=(1, 2)) & np.all(np.isfinite(rhs), axis=1)
+    for start in range(0, n, chunk):
+        rows = np.arange(start, min(start + chunk, n))
+        rows = rows[good[rows]]
+        if len(rows):
+            covs[rows], steps[rows] = _solve_each(normal[rows], rhs[rows], damping)
+    limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
+    local = np.clip(steps[:, :3], -limit, limit)
+    covs = np.einsum("nij,njk,nlk->nil", frames, covs, frames)
+    return np.einsum("nij,nj->ni", frames, local), steps[:, 3], covs
+
+
+def in_sight_frames(normal: np.ndarray, rhs: np.ndarray, frames: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Normal equations ``J^T J`` ``(n, 4, 4)`` and ``J^T r`` ``(n, 4)`` over (x, y, z,
+    intensity) turned to unknowns (across, across, along the line of sight, intensity):
+    ``T^T N T`` and ``T^T r`` with ``T = diag(R, 1)``, ``R = frames[k]`` ``(3, 3)``
+    whose columns are the frame's axes (:func:`plenocl.optics.sightline.sight_frames`).
+    A step ``s`` found there is ``R s`` in the grid's axes."""
+    turn = np.zeros((len(frames), 4, 4))
+    turn[:, :3, :3] = frames
+    turn[:, 3, 3] = 1.0
+    return (np.einsum("nji,njk,nkl->nil", turn, normal, turn),
+            np.einsum("nji,nj->ni", turn, rhs))
 
 
 def fit_where_inside(positions: np.ndarray, inside, iterate) -> FittedParticles:

@@ -57,6 +57,7 @@ from scipy.spatial import cKDTree
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
+from .imagefit import METHOD as FIT_METHOD
 from .imagefit import PRIOR_VOXELS, standard_deviations
 from .tube import DeviceTubeSums, host_tube_sums
 from .validation import normalized_median_test, replace_outliers
@@ -74,7 +75,7 @@ if TYPE_CHECKING:
 #: refinement makes a different field from the same settings.
 METHOD = ("lines of sight, seen depth in the predictor and over twice the window, every "
           "pair along its line with its covariance, fit-weighted window means "
-          "(2026-11-29 evening)")
+          f"(2026-11-29 evening); the fit: {FIT_METHOD}")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
 #: The robust rule (:func:`near_median`, ``spread=ROBUST_SPREAD``): a window keeps the
