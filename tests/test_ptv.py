@@ -172,7 +172,9 @@ def test_track_with_two_cameras_sees_the_steps_sharper_in_depth(recording, one_c
     particles, each camera's frames ray traced: one joint volume per frame, its particles
     fitted to both cameras' images; as many particles tracked as by one camera, the
     measured depth steps (and those in the focal zone) sharper than the one camera's, and
-    the smoothed ones no worse; a camera short of a frame is refused by name."""
+    the smoothed ones no worse; a camera short of a frame is refused by name. (In the
+    focal zone two cameras measure the depth steps within 0.22 voxel, one camera within
+    0.41 since its fit damps along each line of sight, 0.71 before.)"""
     from plenocl.bench.accuracy_section import paper_optics
     from plenocl.bench.tracking_section import track_errors
     from plenocl.camera import Pose
@@ -189,7 +191,7 @@ def test_track_with_two_cameras_sees_the_steps_sharper_in_depth(recording, one_c
     one = track_errors(one_camera[0], series.truth, grid, 1.0)
     assert two["tracked"] >= max(0.6, one["tracked"] - 0.05) and two["ghosts"] <= 0.2
     assert two["measured"]["depth"] < 0.7 * one["measured"]["depth"], (two, one)
-    assert two["measured"]["focal_depth"] < 0.5 * one["measured"]["focal_depth"], (two, one)
+    assert two["measured"]["focal_depth"] < 0.6 * one["measured"]["focal_depth"], (two, one)
     assert two["smoothed"]["depth"] <= one["smoothed"]["depth"]
     assert two["smoothed"]["lateral"] <= 0.1
     with pytest.raises(ValueError, match="camera 2 has 5 frames but camera 1 has 6"):
