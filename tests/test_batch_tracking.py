@@ -142,7 +142,7 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
     np.testing.assert_allclose(field.field_time.values, np.array([1, 3, 4.5]) * INTERVAL_S)
 
 
-def test_a_changed_image_fit_tracks_again(recording, tmp_path, monkeypatch):
+def test_a_changed_image_fit_tracks_again(recording, monkeypatch):
     """The image fit's method (``plenocl.piv.imagefit.METHOD``) changed with the same
     settings: the rerun tracks again and names why, never keeping tracks an earlier fit
     made (nor does a batch keep such fields: the refinement's method holds the fit's)."""

@@ -22,11 +22,11 @@ __all__ = ["BUDGET_MINUTES", "MANIFEST"]
 #: particles per microlens (27 minutes, issue 45's lines) joined it.
 BUDGET_MINUTES = 90.0
 
-#: Every entry of the page, in page order within each section.
 #: `benchmarks/field_size.py` on both cameras' three scenes (the `field-size` entries).
 FIELD_SIZE = ("benchmarks/field_size.py", "--lenses", "96", "64", "289", "193", "--seeds",
               "1", "2", "3")
 
+#: Every entry of the page, in page order within each section.
 MANIFEST: tuple[Entry, ...] = (
     Entry(
         "demo", "Accuracy",

@@ -298,8 +298,7 @@ class ImageFit:
         return np.asarray(PRIOR_VOXELS) * np.array([dx, dy, dz])
 
     def _chunks(self, n: int):
-        size = self.settings.chunk
-        return (slice(i, min(i + size, n)) for i in range(0, n, size))
+        return chunk_slices(n, self.settings.chunk)
 
     def _render(self, p: np.ndarray, intensity: np.ndarray, derivatives: bool = True):
         """Image points, patches, and the particle, sensor pixel and rendered rows of
@@ -432,15 +431,19 @@ def sight_steps(normal: np.ndarray, rhs: np.ndarray, offset: np.ndarray,
     normal[:, [0, 1, 2], [0, 1, 2]] += weights
     rhs[:, :3] -= weights * np.einsum("nji,nj->ni", frames, offset)
     good = np.all(np.isfinite(normal), axis=(1, 2)) & np.all(np.isfinite(rhs), axis=1)
-    for start in range(0, n, chunk):
-        rows = np.arange(start, min(start + chunk, n))
-        rows = rows[good[rows]]
+    for part in chunk_slices(n, chunk):
+        rows = np.arange(part.start, part.stop)[good[part]]
         if len(rows):
             covs[rows], steps[rows] = _solve_each(normal[rows], rhs[rows], damping)
     limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
     local = np.clip(steps[:, :3], -limit, limit)
     covs = np.einsum("nij,njk,nlk->nil", frames, covs, frames)
     return np.einsum("nij,nj->ni", frames, local), steps[:, 3], covs
+
+
+def chunk_slices(n: int, size: int):
+    """Slices of ``range(n)`` at most ``size`` long, in order."""
+    return (slice(i, min(i + size, n)) for i in range(0, n, size))
 
 
 def in_sight_frames(normal: np.ndarray, rhs: np.ndarray, frames: np.ndarray
