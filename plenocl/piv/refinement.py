@@ -59,6 +59,8 @@ from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
 from .imagefit import METHOD as FIT_METHOD
 from .imagefit import PRIOR_VOXELS, standard_deviations
+from .pairoutliers import THRESHOLD as OUTLIER_THRESHOLD
+from .pairoutliers import neighbour_outliers
 from .tube import DeviceTubeSums, host_tube_sums
 from .validation import normalized_median_test, replace_outliers
 
@@ -75,7 +77,9 @@ if TYPE_CHECKING:
 #: refinement makes a different field from the same settings.
 METHOD = ("lines of sight, seen depth in the predictor and over twice the window, every "
           "pair along its line with its covariance, fit-weighted window means "
-          f"(2026-11-29 evening); the fit: {FIT_METHOD}")
+          "(2026-11-29 evening); pairs tested against their neighbours, sparse windows "
+          "from twice their box, the predictor extended linearly beyond its centres "
+          f"(2026-11-29 night); the fit: {FIT_METHOD}")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
 #: The robust rule (:func:`near_median`, ``spread=ROBUST_SPREAD``): a window keeps the
@@ -140,6 +144,10 @@ DEPTH_BLIND = 1.5
 #: sensor 0.020 / 0.187, 0.015 / 0.108, 0.015 / 0.082; 96 x 64 lenses 0.012 / 0.175,
 #: 0.011 / 0.096, 0.011 / 0.074; the small demo's boundary layer 7.0, 6.9, 6.7 % of U∞.
 DEPTH_SUPPORT = 2.0
+#: The box (in windows) from which a window left with fewer than ``min_pairs`` pairs
+#: takes its lateral means (:func:`sparse_filled`; 1.5 and 2 gave the same vectors on
+#: the paper's full sensor under the rotation, 20-30 windows of 10,500 per scene).
+SPARSE_SUPPORT = 2.0
 
 
 @dataclass(frozen=True)
@@ -175,15 +183,23 @@ class ParticlePairs:
         return dataclasses.replace(self, sigma=None, covariance=None)
 
 
-def predicted(field: PIVResult, points: np.ndarray) -> np.ndarray:
+def predicted(field: PIVResult, points: np.ndarray, extrapolate: bool = False
+              ) -> np.ndarray:
     """The displacement ``(N, 3)`` ``(dx, dy, dz)`` of a :class:`PIVResult` at ``points``
-    ``(N, 3)`` ``(x, y, z)``: trilinear between window centres, the nearest value beyond
-    them; masked (NaN) vectors count as 0."""
+    ``(N, 3)`` ``(x, y, z)``: trilinear between window centres; beyond them the nearest
+    value, or with ``extrapolate`` the outermost cells' linear trend (a linear motion
+    stays exact up to the volume's faces: under the error budget's rotation the nearest
+    value misses 0.7 voxel of depth motion at a face, which off the axis leans into the
+    lateral components); masked (NaN) vectors count as 0."""
     axes = (field.z, field.y, field.x)
-    zyx = np.clip(points[:, ::-1], [a[0] for a in axes], [a[-1] for a in axes])
+    zyx = np.asarray(points, float)[:, ::-1]
+    if not extrapolate:
+        zyx = np.clip(zyx, [a[0] for a in axes], [a[-1] for a in axes])
     comps = []
     for c in (field.u, field.v, field.w):
-        comps.append(RegularGridInterpolator(axes, np.nan_to_num(c), bounds_error=False)(zyx))
+        look = RegularGridInterpolator(axes, np.nan_to_num(c), bounds_error=False,
+                                       fill_value=None)
+        comps.append(look(zyx))
     return np.column_stack(comps)
 
 
@@ -260,8 +276,8 @@ def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH
         return np.zeros(0, int), np.zeros(0, int)
     scale = 1.0 / np.asarray(search, float)
     # the field is the displacement at mid-time: look it up half a step along
-    fwd = pa + predicted(field, pa + predicted(field, pa) / 2)
-    back = pb - predicted(field, pb - predicted(field, pb) / 2)
+    fwd = pa + predicted(field, pa + predicted(field, pa, True) / 2, True)
+    back = pb - predicted(field, pb - predicted(field, pb, True) / 2, True)
     dist_a, to_b = cKDTree(pb * scale).query(fwd * scale, distance_upper_bound=1.0)
     dist_b, to_a = cKDTree(pa * scale).query(back * scale, distance_upper_bound=1.0)
     ia = np.flatnonzero(np.isfinite(dist_a))
@@ -418,7 +434,7 @@ class SightLines:
         mid, disp = pairs.midpoints[rows], pairs.displacements[rows].copy()
         mm = self.grid.from_index(mid)
         along = self.grid.to_index(mm + line_of_sight(self.camera, mm)) - mid  # voxels
-        shift = predicted(depth, mid)[:, 2] - disp[:, 2]
+        shift = predicted(depth, mid, extrapolate=True)[:, 2] - disp[:, 2]
         disp += along * (shift / along[:, 2])[:, None]
         out = pairs.displacements.copy()
         out[rows] = disp
@@ -766,14 +782,21 @@ def with_window_means(field: PIVResult, mean: np.ndarray, error: np.ndarray
 def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
                sight: SightLines | None = None, fallback_w: np.ndarray | None = None,
                min_pairs: int = 3, search=SEARCH, position_sigma=POSITION_SIGMA,
-               spread: float | None = SPREAD, depth_support: float = DEPTH_SUPPORT
+               spread: float | None = SPREAD, depth_support: float = DEPTH_SUPPORT,
+               outliers: float | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`window_means` with the depth seen by the camera: each window's depth from
     the pairs that see it in a box ``depth_support`` times the window
     (:func:`seen_depth` with that ``support``); with ``sight``, the lateral means then
     taken after moving the pairs along their lines of sight to that depth (every pair;
     with ``depth_support`` 1, the blind ones alone), ``fallback_w`` ``(nz, ny, nx)``
-    (the predictor's) giving the depth where no window's is known."""
+    (the predictor's) giving the depth where no window's is known.
+
+    With ``sight``, the lateral means also leave out the moved pairs that lie more than
+    ``outliers`` combined scales from their neighbours
+    (:func:`plenocl.piv.pairoutliers.neighbour_outliers` along these means; ``None``:
+    none left out), and a window left with fewer than ``min_pairs`` pairs takes them
+    from a box :data:`SPARSE_SUPPORT` times its size (:func:`sparse_filled`)."""
     mean, error, count = window_means(pairs, field, min_pairs, search, focus, position_sigma,
                                       spread)
     mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs, search,
@@ -787,8 +810,41 @@ def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
              else sight.along_sight(pairs, depth))
     lateral, lateral_error, count = window_means(pairs, field, min_pairs, search, focus,
                                                  position_sigma, spread)
+    if outliers is not None:
+        trend = dataclasses.replace(depth, **{c: np.where(np.isfinite(lateral[n]), lateral[n],
+                                                          getattr(field, c))
+                                              for n, c in enumerate("uv")})
+        pairs = pairs.subset(~neighbour_outliers(pairs.midpoints, pairs.displacements,
+                                                 pairs.sigma, trend, threshold=outliers))
+        lateral, lateral_error, count = window_means(pairs, field, min_pairs, search, focus,
+                                                     position_sigma, spread)
+    lateral, lateral_error, count = sparse_filled(
+        (lateral, lateral_error, count), known, pairs, field, min_pairs, search, focus,
+        position_sigma, spread)
     mean[:2], error[:2] = lateral[:2], lateral_error[:2]
     return mean, error, count
+
+
+def sparse_filled(means: tuple[np.ndarray, np.ndarray, np.ndarray], known: np.ndarray,
+                  pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3,
+                  search=SEARCH, focus: FocalZone | None = None,
+                  position_sigma=POSITION_SIGMA, spread: float | None = SPREAD
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``means`` (:func:`window_means`' mean, uncertainty and counts) with each window
+    that has none but whose depth is ``known`` ``(nz, ny, nx)`` given the means of the
+    pairs in a box :data:`SPARSE_SUPPORT` times it (each moved to its centre along their
+    gradient), where those hold ``min_pairs``: such a window kept the predictor's
+    vector, and in the focal zone at the paper's full size that erred 0.2-0.37 voxel
+    laterally where one well-fitted pair lay in it (docs/design.md §7.4 item 8)."""
+    mean, error, count = means
+    empty = ~np.isfinite(mean[0]) & known
+    if not empty.any():
+        return mean, error, count
+    wide, wide_error, wide_count = window_means(pairs, field, min_pairs, search, focus,
+                                                position_sigma, spread, SPARSE_SUPPORT)
+    fill = empty & np.isfinite(wide[0])
+    return (np.where(fill, wide, mean), np.where(fill, wide_error, error),
+            np.where(fill, wide_count, count))
 
 
 def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.ndarray,
@@ -849,7 +905,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                           sight: SightLines | None = None,
                           maxima: Callable | None = None,
                           spread: float | None = SPREAD, weighted: bool = True,
-                          depth_support: float = DEPTH_SUPPORT) -> PIVResult:
+                          depth_support: float = DEPTH_SUPPORT,
+                          outliers: float | None = OUTLIER_THRESHOLD) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -870,7 +927,10 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     every pair is then moved along its line of sight to that depth
     (:meth:`SightLines.along_sight`; 1: the blind pairs alone, the window means of
     2026-11-29 afternoon; the predictor's seen depth and the moved pairs' covariances
-    of that evening stay).
+    of that evening stay). ``outliers``: with ``focus`` and ``sight``, the lateral
+    means leave out the pairs this many combined scales from their neighbours
+    (:func:`plenocl.piv.pairoutliers.neighbour_outliers`; ``None``: none, the
+    refinement before 2026-11-29 night).
     """
     if spread is not None and not spread > 0:
         raise ValueError(f"refine_with_particles got spread={spread}: give a positive "
@@ -891,7 +951,7 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                                           spread)
     else:
         mean, error, count = seen_means(pairs, field, focus, sight, predictor.w, min_pairs,
-                                        search, position, spread, depth_support)
+                                        search, position, spread, depth_support, outliers)
     refined, use = with_window_means(predictor, mean, error)
     log = {"refinement": "particles", "pairs": len(pairs.midpoints),
            "vectors": int(use.sum()), "outliers": int(np.count_nonzero(refined.outlier)),
