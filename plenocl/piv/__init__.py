@@ -10,6 +10,7 @@
 - :mod:`.multipass`: :func:`piv3d`; its result :class:`plenocl.vectorfield.PIVResult`
   (velocities, gradients, the arrays written to files) lives in the model layer;
 - :mod:`.refinement`: the refinement by the volumes' matched particle pairs;
+- :mod:`.pairoutliers`: the pairs that disagree with their neighbours, left out of it;
 - :mod:`.imagefit`: those particles fitted to the raw images (the camera's rays:
   :mod:`plenocl.optics.raybundle`).
 """
