@@ -38,8 +38,9 @@ from ..vectorfield import PIVResult
 NEIGHBOURS = 16
 #: A pair is an outlier beyond this many combined scales from its neighbours' median.
 #: At the paper's optics under the error budget's rotation (three whole-sensor scenes,
-#: docs/design.md §7.4 item 8): 3.0 left out 0.9 % of the pairs, 2.5 left out 1.8 %; the
-#: vectors erred 0.0137 and 0.0132 voxel laterally (0.0149 without the test).
+#: docs/design.md §7.4 item 8, with its other two changes): 3.0 left out 0.9 % of the
+#: pairs, 2.5 left out 1.8 %; the vectors erred 0.0137 and 0.0132 voxel laterally (0.0149
+#: without the test). The small demo's boundary layer: 6.9, 7.0 and 6.8 % of U∞.
 THRESHOLD = 2.5
 #: Lateral floor (voxels) added in quadrature to every pair's scale: the scatter of the
 #: best-fitted pairs' displacements at the paper's optics, as the window means' weights'.

@@ -78,7 +78,8 @@ if TYPE_CHECKING:
 METHOD = ("lines of sight, seen depth in the predictor and over twice the window, every "
           "pair along its line with its covariance, fit-weighted window means "
           "(2026-11-29 evening); pairs tested against their neighbours, sparse windows "
-          "from twice their box, the predictor extended linearly beyond its centres "
+          "from twice their box, the moves along the lines extended linearly beyond the "
+          "window centres "
           f"(2026-11-29 night); the fit: {FIT_METHOD}")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
@@ -276,8 +277,8 @@ def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH
         return np.zeros(0, int), np.zeros(0, int)
     scale = 1.0 / np.asarray(search, float)
     # the field is the displacement at mid-time: look it up half a step along
-    fwd = pa + predicted(field, pa + predicted(field, pa, True) / 2, True)
-    back = pb - predicted(field, pb - predicted(field, pb, True) / 2, True)
+    fwd = pa + predicted(field, pa + predicted(field, pa) / 2)
+    back = pb - predicted(field, pb - predicted(field, pb) / 2)
     dist_a, to_b = cKDTree(pb * scale).query(fwd * scale, distance_upper_bound=1.0)
     dist_b, to_a = cKDTree(pa * scale).query(back * scale, distance_upper_bound=1.0)
     ia = np.flatnonzero(np.isfinite(dist_a))
