@@ -1,6 +1,6 @@
 """Matched particle pairs that disagree with their neighbours (docs/design.md §7.4 item 8).
 
-The particle refinement (:mod:`.refinement`) averages the pairs of each interrogation
+The particle refinement (:mod:`plenocl.piv.refinement`) averages the pairs of each interrogation
 window, each weighed by its fit's uncertainty. A wrongly matched pair (a ghost, or two
 different particles) whose fit is confident then carries a window alone: in a window of
 three to five pairs it takes 90-97 % of the weight, and no test inside the window can
