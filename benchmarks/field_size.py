@@ -75,6 +75,7 @@ def main() -> None:
     queue = get_queue()
     summary = []
     motion = {"uniform": UNIFORM, "rotation": ROTATION}[args.motion]
+    sizes = []
     for cols, rows in zip(args.lenses[::2], args.lenses[1::2]):
         cam, grid, proj = paper_setup((cols, rows), queue)
         splits = []
@@ -86,7 +87,19 @@ def main() -> None:
             together = pooled(splits)
             print(f"seeds {args.seeds} pooled: " + split_table(together), "\n", flush=True)
             summary.append(summary_line(together, "pooled"))
+        sizes.append(pooled(splits))
+    summary.extend(size_ratio(split, sizes[0]) for split in sizes[1:])
     print("\n".join(summary))
+
+
+def size_ratio(split, first) -> str:
+    """The final vectors' lateral and depth RMS of ``split`` over those of ``first`` (the
+    smallest camera, its scenes pooled), one line: issue 45 asks within 1.5x."""
+    mine, base = (stage_named(s, "vectors").rms() for s in (split, first))
+    (cols, rows), (c0, r0) = split.lenses, first.lenses
+    return (f"{cols:4d} x {rows:<4d} over {c0} x {r0}: lateral {mine[0] / base[0]:.2f}x "
+            f"({mine[0]:.4f} / {base[0]:.4f}), depth {mine[1] / base[1]:.2f}x "
+            f"({mine[1]:.4f} / {base[1]:.4f})")
 
 
 if __name__ == "__main__":
