@@ -59,8 +59,8 @@ from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
 from .imagefit import METHOD as FIT_METHOD
 from .imagefit import PRIOR_VOXELS, standard_deviations
+from .pairoutliers import MAD_SIGMA, neighbour_outliers
 from .pairoutliers import THRESHOLD as OUTLIER_THRESHOLD
-from .pairoutliers import neighbour_outliers
 from .tube import DeviceTubeSums, host_tube_sums
 from .validation import normalized_median_test, replace_outliers
 
@@ -103,8 +103,6 @@ SPREAD: float | None = None
 #: this one 0.016 / 0.188 and twice it 0.017 / 0.192; the small demo 7.0 % of U∞ with
 #: each.
 WEIGHT_FLOOR = (0.02, 0.02, 0.1)
-#: A normal distribution's standard deviation over its median absolute deviation.
-MAD_SIGMA = 1.4826
 #: The robust rule never leaves out a pair within this distance (x, y, z voxels) of the median:
 #: about twice the scatter of fitted particles' displacements at the paper's optics
 #: (median 0.011, 90th percentile 0.034 voxel laterally), so that a window whose pairs
