@@ -299,6 +299,28 @@ def test_window_means_over_a_wider_support_equal_the_per_window_loop(case, suppo
     assert (wide >= own).all() and (wide > own).any()
 
 
+@pytest.mark.parametrize("case", ["sparse", "outliers", "empty"])
+@pytest.mark.parametrize("support", [1.0, 2.0])
+def test_window_means_of_some_windows_are_theirs_among_all(case, support):
+    """``windows`` (the sparse windows' wide means, the seen depth's windows outside the
+    blind zone) computes only those windows: each the same as among all of them, to the
+    bit, and the others NaN with no pairs counted."""
+    rng = np.random.default_rng(len(case) + 11)
+    pairs = awkward_pairs(case, rng)
+    pairs = dataclasses.replace(pairs, sigma=10 ** rng.uniform(-2.5, -0.5,
+                                                               pairs.displacements.shape))
+    field, focus = grid_field(), FocalZone(plane=12.0, resolution=5.0)
+    wanted = rng.random(field.u.shape) < 0.3
+    wanted[0] = True  # a whole plane of windows, and scattered ones
+    every = window_means(pairs, field, 3, focus=focus, support=support)
+    some = window_means(pairs, field, 3, focus=focus, support=support, windows=wanted)
+    for a, b in zip(some, every):
+        np.testing.assert_array_equal(a[..., wanted], b[..., wanted])
+    assert np.isnan(some[0][:, ~wanted]).all() and not some[2][~wanted].any()
+    if case != "empty":
+        assert np.isfinite(every[0][:, ~wanted]).any()  # the others had means to leave out
+
+
 def test_near_median_leaves_out_a_stray_pair_and_keeps_an_honest_spread():
     """One pair 0.4 voxel off among pairs that agree within 0.02 is left out (the search
     range alone keeps it); a pair within the floor of the median is always kept; and

@@ -527,7 +527,8 @@ WELL_POSED = 1e-4
 
 def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH,
                  focus: FocalZone | None = None, position_sigma=POSITION_SIGMA,
-                 spread: float | None = SPREAD, support: float = 1.0
+                 spread: float | None = SPREAD, support: float = 1.0,
+                 windows: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window of ``field``'s grid: the displacement of its pairs at the window's
     centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
@@ -536,7 +537,9 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     ``support``: the pairs taken from a box this many times the window about its centre
     (the gradient's twice that), each moved to the centre along the gradient. (A box
     shifted inwards at the volume's faces, to hold as many pairs as one inside, changed
-    the whole sensor's vectors by under 0.002 voxel: not kept.)
+    the whole sensor's vectors by under 0.002 voxel: not kept.) ``windows``: a boolean
+    ``(nz, ny, nx)``, the windows wanted (the others NaN, count 0); each window's
+    result is the same as without it (``None``: all).
 
     At ``support`` 1, the same as
     :func:`plenocl.reference.refinement.window_means_reference`, the per-window loop over
@@ -556,9 +559,10 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     centre_axes = (field.x, field.y, field.z)
     centres = _grid_centres(field)
     axes = [c / b for c, b in zip(centre_axes, box)]
-    win, member = _box_members(points, axes, 1.0)
+    win, member = _box_members(points, axes, 1.0,
+                               None if windows is None else windows.reshape(-1))
     busy = np.bincount(win, minlength=count.size) >= min_pairs
-    near_win, near = _box_members(points, axes, 2.0)
+    near_win, near = _box_members(points, axes, 2.0, busy)
     grad = _local_gradients(pairs, near_win[busy[near_win]], near[busy[near_win]],
                             centres, search, spread)
     inside = busy[win]
@@ -591,24 +595,25 @@ def _axis_range(p: np.ndarray, c: np.ndarray, radius: float) -> tuple[np.ndarray
     return first, first + np.count_nonzero(ok, axis=1)
 
 
-def _box_members(points: np.ndarray, axes: list[np.ndarray], radius: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _box_members(points: np.ndarray, axes: list[np.ndarray], radius: float,
+                 wanted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The points ``(n, 3)`` ``(x, y, z)`` within ``radius`` per axis of each centre of
     the grid ``axes`` (x, y, z): flat (window, point) index pairs, by window (``np.ndindex``
     order of ``(nz, ny, nx)``), then point; what ``cKDTree.query_ball_point(...,
-    p=np.inf)`` returns for every centre, one row of windows at a time."""
+    p=np.inf)`` returns for every centre, one row of windows at a time. ``wanted``: a
+    boolean per window (flat), the only windows listed (``None``: all)."""
     (x0, x1), (y0, y1), (z0, z1) = (_axis_range(points[:, a], axes[a], radius)
                                     for a in range(3))
     nx, ny, nz = (len(a) for a in axes)
-    kx = np.arange(nx)[:, None]
-    windows, members = [], []
-    for kz in range(nz):
+    want = np.ones((nz, ny, nx), bool) if wanted is None else wanted.reshape(nz, ny, nx)
+    windows, members = [np.zeros(0, int)], [np.zeros(0, int)]
+    for kz, ky in zip(*np.nonzero(want.any(axis=2))):
         in_z = np.flatnonzero((z0 <= kz) & (kz < z1))
-        for ky in range(ny):
-            p = in_z[(y0[in_z] <= ky) & (ky < y1[in_z])]
-            i, j = np.nonzero((x0[p] <= kx) & (kx < x1[p]))  # by window, then point
-            windows.append((kz * ny + ky) * nx + i)
-            members.append(p[j])
+        p = in_z[(y0[in_z] <= ky) & (ky < y1[in_z])]
+        kx = np.flatnonzero(want[kz, ky])[:, None]
+        i, j = np.nonzero((x0[p] <= kx) & (kx < x1[p]))  # by window, then point
+        windows.append((kz * ny + ky) * nx + kx[i, 0])
+        members.append(p[j])
     return np.concatenate(windows), np.concatenate(members)
 
 
@@ -840,7 +845,8 @@ def sparse_filled(means: tuple[np.ndarray, np.ndarray, np.ndarray], known: np.nd
     if not empty.any():
         return mean, error, count
     wide, wide_error, wide_count = window_means(pairs, field, min_pairs, search, focus,
-                                                position_sigma, spread, SPARSE_SUPPORT)
+                                                position_sigma, spread, SPARSE_SUPPORT,
+                                                windows=empty)
     fill = empty & np.isfinite(wide[0])
     return (np.where(fill, wide, mean), np.where(fill, wide_error, error),
             np.where(fill, wide_count, count))
@@ -864,9 +870,10 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     box this many times the window (:func:`window_means`).
     """
     seeing = focus.sees_depth(pairs.midpoints[:, 2])
-    mean, error, _ = window_means(pairs.subset(seeing), field, min_pairs, search, focus,
-                                  position_sigma, spread, support)
     blind = ~focus.sees_depth(field.z)[:, None, None]
+    mean, error, _ = window_means(pairs.subset(seeing), field, min_pairs, search, focus,
+                                  position_sigma, spread, support,
+                                  windows=np.broadcast_to(~blind, field.u.shape))
     seen = np.where(blind, np.nan, mean[2])
     seen_sigma = np.where(blind, np.nan, error[2])
     fill, fill_sigma = _depth_interpolation(seen, seen_sigma, field.z)
