@@ -185,6 +185,11 @@ def test_windows_take_depth_from_the_pairs_that_see_it_and_interpolate_across_th
     w, sigma = seen_depth(pairs, res, zone, mean[2], error[2])
     assert np.isfinite(w[ok]).all() and np.isfinite(sigma[ok]).all()
     np.testing.assert_allclose(w[ok], SHIFT[2], atol=0.1)
+    # without the plain means given, seen_depth computes them where it uses them alone:
+    # the same depths and uncertainties, to the bit
+    lazy = seen_depth(pairs, res, zone, None, None)
+    np.testing.assert_array_equal(lazy[0], w)
+    np.testing.assert_array_equal(lazy[1], sigma)
 
 
 def test_a_blind_pair_off_the_axis_moves_along_its_line_to_the_seen_depth(field):

@@ -801,12 +801,15 @@ def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
     (:func:`plenocl.piv.pairoutliers.neighbour_outliers` along these means; ``None``:
     none left out), and a window left with fewer than ``min_pairs`` pairs takes them
     from a box :data:`SPARSE_SUPPORT` times its size (:func:`sparse_filled`)."""
-    mean, error, count = window_means(pairs, field, min_pairs, search, focus, position_sigma,
-                                      spread)
-    mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs, search,
-                                   position_sigma, spread, depth_support)
     if sight is None:
+        mean, error, count = window_means(pairs, field, min_pairs, search, focus,
+                                          position_sigma, spread)
+        mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs,
+                                       search, position_sigma, spread, depth_support)
         return mean, error, count
+    mean, error = np.full((2, 3, *field.u.shape), np.nan)  # lateral: the moved pairs'
+    mean[2], error[2] = seen_depth(pairs, field, focus, None, None, min_pairs, search,
+                                   position_sigma, spread, depth_support)
     known = np.isfinite(mean[2])
     depth = dataclasses.replace(field, w=np.where(known, mean[2], field.w if fallback_w is None
                                                   else fallback_w))
@@ -852,8 +855,9 @@ def sparse_filled(means: tuple[np.ndarray, np.ndarray, np.ndarray], known: np.nd
             np.where(fill, wide_count, count))
 
 
-def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.ndarray,
-               sigma_w: np.ndarray, min_pairs: int = 3, search=SEARCH,
+def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
+               w: np.ndarray | None, sigma_w: np.ndarray | None, min_pairs: int = 3,
+               search=SEARCH,
                position_sigma=POSITION_SIGMA, spread: float | None = SPREAD,
                support: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The depth component of every window ``(nz, ny, nx)`` and its uncertainty from
@@ -866,7 +870,8 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     and half the two values' difference added in quadrature: its own seeing pairs lie at
     its faces, and carried to its centre along their gradient they missed the small
     demo's boundary layer by more (8.3 % of U∞ against 7.6 %). Others keep ``w`` and
-    ``sigma_w`` (all their pairs' mean). ``support``: the seeing pairs are taken from a
+    ``sigma_w`` (all their pairs' mean; ``None``: :func:`window_means` of all the pairs,
+    computed for those windows alone). ``support``: the seeing pairs are taken from a
     box this many times the window (:func:`window_means`).
     """
     seeing = focus.sees_depth(pairs.midpoints[:, 2])
@@ -877,6 +882,11 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone, w: np.n
     seen = np.where(blind, np.nan, mean[2])
     seen_sigma = np.where(blind, np.nan, error[2])
     fill, fill_sigma = _depth_interpolation(seen, seen_sigma, field.z)
+    if w is None:  # wanted in the blind zone and where the seeing pairs are too few
+        every, every_error, _ = window_means(pairs, field, min_pairs, search, focus,
+                                             position_sigma, spread,
+                                             windows=~np.isfinite(seen))
+        w, sigma_w = every[2], every_error[2]
     filled = blind & np.isfinite(w) & np.isfinite(fill)
     out = np.where(np.isfinite(seen), seen, np.where(filled, fill, w))
     out_sigma = np.where(np.isfinite(seen), seen_sigma, np.where(filled, fill_sigma, sigma_w))
