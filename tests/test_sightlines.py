@@ -185,11 +185,23 @@ def test_windows_take_depth_from_the_pairs_that_see_it_and_interpolate_across_th
     w, sigma = seen_depth(pairs, res, zone, mean[2], error[2])
     assert np.isfinite(w[ok]).all() and np.isfinite(sigma[ok]).all()
     np.testing.assert_allclose(w[ok], SHIFT[2], atol=0.1)
-    # without the plain means given, seen_depth computes them where it uses them alone:
-    # the same depths and uncertainties, to the bit
-    lazy = seen_depth(pairs, res, zone, None, None)
-    np.testing.assert_array_equal(lazy[0], w)
-    np.testing.assert_array_equal(lazy[1], sigma)
+    # without the plain means given, seen_depth computes them where it uses them alone
+    # (the blind zone, and windows with too few seeing pairs: here a corner thinned of
+    # them): the same depths and uncertainties, to the bit
+    thin = (pairs.midpoints[:, 0] < 20) & zone.sees_depth(pairs.midpoints[:, 2])
+    thin &= np.random.default_rng(5).random(len(thin)) < 0.97
+    sparse = pairs.subset(~thin)
+    mean, error, _ = window_means(sparse, res, focus=zone)
+    given = seen_depth(sparse, res, zone, mean[2], error[2])
+    lazy = seen_depth(sparse, res, zone, None, None)
+    np.testing.assert_array_equal(lazy[0], given[0])
+    np.testing.assert_array_equal(lazy[1], given[1])
+    # the case that asks for it: windows outside the zone without enough seeing pairs,
+    # which keep the plain means
+    seeing = sparse.subset(zone.sees_depth(sparse.midpoints[:, 2]))
+    seen = window_means(seeing, res, focus=zone)[0][2]
+    outside = zone.sees_depth(res.z)[:, None, None]
+    assert (outside & ~np.isfinite(seen) & np.isfinite(mean[2])).any()
 
 
 def test_a_blind_pair_off_the_axis_moves_along_its_line_to_the_seen_depth(field):
