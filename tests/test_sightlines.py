@@ -364,6 +364,15 @@ def test_a_depth_support_below_one_window_is_refused_by_name(field, support):
         refine_with_particles(res, a, b, depth_support=support)
 
 
+@pytest.mark.parametrize("outliers", [0.0, -2.5, np.nan, np.inf])
+def test_an_outlier_threshold_that_is_no_scale_is_refused_by_name(field, outliers):
+    """The refinement's own parameter is named (not the neighbour test's ``threshold``
+    it passes on), before any particle is found."""
+    a, b, res = field
+    with pytest.raises(ValueError, match="outliers=.*positive number of combined scales"):
+        refine_with_particles(res, a, b, outliers=outliers)
+
+
 def leaning_covariance(grid: Grid, mid: np.ndarray, along_mm: float, across_mm: float
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Each midpoint's line of sight in voxels per mm ``(n, 3)`` and the covariance

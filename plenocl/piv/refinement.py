@@ -956,6 +956,11 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
         raise ValueError(f"refine_with_particles got depth_support={depth_support}: give "
                          f"a finite number of windows, at least 1 (the window itself; "
                          f"DEPTH_SUPPORT = {DEPTH_SUPPORT:g})")
+    if outliers is not None and not 0 < outliers < np.inf:
+        raise ValueError(f"refine_with_particles got outliers={outliers}: give a positive "
+                         f"number of combined scales from a pair's neighbours "
+                         f"(OUTLIER_THRESHOLD = {OUTLIER_THRESHOLD:g}), or None to leave "
+                         f"no pair out")
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
     predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
