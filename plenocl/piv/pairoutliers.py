@@ -43,7 +43,8 @@ NEIGHBOURS = 16
 #: without the test). The small demo's boundary layer: 6.9, 7.0 and 6.8 % of U∞.
 THRESHOLD = 2.5
 #: Lateral floor (voxels) added in quadrature to every pair's scale: the scatter of the
-#: best-fitted pairs' displacements at the paper's optics, as the window means' weights'.
+#: best-fitted pairs' displacements at the paper's optics, the window means' weights'
+#: lateral floor too (:data:`plenocl.piv.refinement.WEIGHT_FLOOR` takes it from here).
 FLOOR = 0.02
 #: A normal distribution's standard deviation over its median absolute deviation.
 MAD_SIGMA = 1.4826

@@ -59,6 +59,7 @@ from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
 from .imagefit import METHOD as FIT_METHOD
 from .imagefit import PRIOR_VOXELS, standard_deviations
+from .pairoutliers import FLOOR as PAIR_SCATTER
 from .pairoutliers import MAD_SIGMA, neighbour_outliers
 from .pairoutliers import THRESHOLD as OUTLIER_THRESHOLD
 from .tube import DeviceTubeSums, host_tube_sums
@@ -102,7 +103,7 @@ SPREAD: float | None = None
 #: ``benchmarks/robust_means.py``'s one-camera scenes no floor gives 0.014 / 0.184 voxel,
 #: this one 0.016 / 0.188 and twice it 0.017 / 0.192; the small demo 7.0 % of U∞ with
 #: each.
-WEIGHT_FLOOR = (0.02, 0.02, 0.1)
+WEIGHT_FLOOR = (PAIR_SCATTER, PAIR_SCATTER, 0.1)  # lateral: the neighbour test's floor
 #: The robust rule never leaves out a pair within this distance (x, y, z voxels) of the median:
 #: about twice the scatter of fitted particles' displacements at the paper's optics
 #: (median 0.011, 90th percentile 0.034 voxel laterally), so that a window whose pairs
