@@ -10,6 +10,7 @@ from helpers import ROTATED, lens_camera
 
 from plenocl import Grid
 from plenocl.projection import Projector
+from plenocl.projection.lenses import lit_lenses
 from plenocl.reconstruction import reconstruct
 from plenocl.reference.weights import lit_lenses as exact_lit_lenses
 from plenocl.simulate import simulate_image
@@ -43,6 +44,26 @@ def _sparse_image(shape, spots: int, seed: int) -> np.ndarray:
         img[r - 1:r + 2, c - 1:c + 2] = rng.uniform(0.5, 2.0)
     img[-1, 0] = 1.0
     return img
+
+
+@pytest.mark.parametrize("reach", [0, 2, 7])
+@pytest.mark.parametrize("shape", [(37, 53), (9, 64), (61, 5)])
+def test_lit_lenses_are_the_patches_holding_a_pixel_above_the_threshold(shape, reach):
+    """Each lens is lit exactly when the square patch ``reach`` pixels around its centre,
+    clipped to the sensor, holds a pixel above the threshold: against a loop over the
+    lenses, with centres on and beyond every edge and missing ones (far outside)."""
+    rng = np.random.default_rng(shape[0] + reach)
+    img = np.where(rng.random(shape) < 0.03, rng.uniform(0.2, 2.0, shape), 0.0)
+    centres = np.column_stack([rng.integers(-reach - 3, shape[1] + reach + 3, 400),
+                               rng.integers(-reach - 3, shape[0] + reach + 3, 400)])
+    centres[::37] = -(2 ** 40)  # missing
+    for threshold in (0.0, 1.0):
+        got = lit_lenses(img, centres, reach, threshold)
+        want = [(img[max(y - reach, 0):max(y + reach + 1, 0),
+                     max(x - reach, 0):max(x + reach + 1, 0)] > threshold).any()
+                for x, y in centres]
+        np.testing.assert_array_equal(got, want)
+        assert got.any() and not got.all()  # both kinds of lens in every case
 
 
 @pytest.mark.parametrize("name", ["ideal", "missing", "rotated"])

@@ -269,8 +269,9 @@ MANIFEST: tuple[Entry, ...] = (
         "the deformation's cubic B-spline prefilter on the device against SciPy's, the "
         "particles' tube sums along their lines of sight on the device against SciPy's "
         "`map_coordinates`, the image's median and noise by a bracketed selection against "
-        "NumPy's medians, and the support's dilation by separable maxima against SciPy's "
-        "`binary_dilation`: each against the code it replaced on the same data in the same "
+        "NumPy's medians, the support's dilation by separable maxima against SciPy's "
+        "`binary_dilation`, and the lit microlenses by row counts against a summed-area "
+        "table: each against the code it replaced on the same data in the same "
         "process, medians of repeats and the largest difference of the results.",
         ("benchmarks/host_work.py",), 0.5),
     Entry(
