@@ -564,8 +564,7 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
                                None if windows is None else windows.reshape(-1))
     busy = np.bincount(win, minlength=count.size) >= min_pairs
     near_win, near = _box_members(points, axes, 2.0, busy)
-    grad = _local_gradients(pairs, near_win[busy[near_win]], near[busy[near_win]],
-                            centres, search, spread)
+    grad = _local_gradients(pairs, near_win, near, centres, search, spread)
     inside = busy[win]
     n, m, e = _window_estimates(pairs, win[inside], member[inside], centres, grad,
                                 min_pairs, search, focus, position_sigma, spread)
@@ -607,14 +606,16 @@ def _box_members(points: np.ndarray, axes: list[np.ndarray], radius: float,
                                     for a in range(3))
     nx, ny, nz = (len(a) for a in axes)
     want = np.ones((nz, ny, nx), bool) if wanted is None else wanted.reshape(nz, ny, nx)
+    rows = want.any(axis=2)
     windows, members = [np.zeros(0, int)], [np.zeros(0, int)]
-    for kz, ky in zip(*np.nonzero(want.any(axis=2))):
+    for kz in np.flatnonzero(rows.any(axis=1)):
         in_z = np.flatnonzero((z0 <= kz) & (kz < z1))
-        p = in_z[(y0[in_z] <= ky) & (ky < y1[in_z])]
-        kx = np.flatnonzero(want[kz, ky])[:, None]
-        i, j = np.nonzero((x0[p] <= kx) & (kx < x1[p]))  # by window, then point
-        windows.append((kz * ny + ky) * nx + kx[i, 0])
-        members.append(p[j])
+        for ky in np.flatnonzero(rows[kz]):
+            p = in_z[(y0[in_z] <= ky) & (ky < y1[in_z])]
+            kx = np.flatnonzero(want[kz, ky])[:, None]
+            i, j = np.nonzero((x0[p] <= kx) & (kx < x1[p]))  # by window, then point
+            windows.append((kz * ny + ky) * nx + kx[i, 0])
+            members.append(p[j])
     return np.concatenate(windows), np.concatenate(members)
 
 
