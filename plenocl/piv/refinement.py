@@ -16,18 +16,18 @@ pairs (:func:`repredicted`): where the correlation errs beyond the search its wi
 would find no pairs. Each window of the correlation's final grid then takes the mean
 displacement of the pairs whose midpoints lie in it, each first moved to the window's
 centre along the local displacement gradient (a least-squares linear fit to the pairs in
-the window grown to twice its size, where it holds at least :data:`GRADIENT_PAIRS`;
-otherwise none), after leaving out pairs farther than ``search`` from the window's
-median (:func:`near_median`; optionally also those beyond ``spread`` robust standard
-deviations, :data:`ROBUST_SPREAD`). Without the gradient step, a gradient across a
-sparse window would bias its mean by where its few particles happen to lie. With the
-fit to the raw images, the mean weighs each pair by the inverse of its displacement's
-variance, the two particles' posterior variances from their fits plus
-:data:`WEIGHT_FLOOR` squared (:func:`pair_weights`): a particle in the focal zone
-lights one microlens and its fit knows its lateral position to 0.15 voxel (its prior),
-against 0.01-0.03 elsewhere, and its pairs' errors follow their fits' uncertainties
-(docs/design.md §7.1). With the
-camera's :class:`FocalZone`, the depth component comes from the pairs that see depth
+the window grown to twice its size, weighted as the means are, where it holds at least
+:data:`GRADIENT_PAIRS`; otherwise none), after leaving out pairs farther than ``search``
+from the window's median (:func:`near_median`; optionally also those beyond ``spread``
+robust standard deviations, :data:`ROBUST_SPREAD`). Without the gradient step, a
+gradient across a sparse window would bias its mean by where its few particles happen to
+lie. With the fit to the raw images, the mean weighs each pair by the inverse of its
+displacement's variance, the two particles' posterior variances from their fits plus
+:data:`WEIGHT_FLOOR` squared (:func:`pair_weights`): a particle in the focal zone lights
+one microlens and its fit knows its lateral position to 0.15 voxel (its prior; its pairs
+err 0.25 at the paper's full size), against 0.01-0.03 elsewhere, and its pairs' errors
+follow their fits' uncertainties (docs/design.md §7.1; the gradient's weights: §7.4 item
+9). With the camera's :class:`FocalZone`, the depth component comes from the pairs that see depth
 (:func:`seen_depth`; interpolated in depth across the blind zone at the focal plane) in
 a box :data:`DEPTH_SUPPORT` times the window, and with its lines of sight every pair is
 then moved along its line to that depth, so that the lateral motion is read across the
@@ -81,7 +81,8 @@ METHOD = ("lines of sight, seen depth in the predictor and over twice the window
           "(2026-11-29 evening); pairs tested against their neighbours, sparse windows "
           "from twice their box, the moves along the lines extended linearly beyond the "
           "window centres "
-          f"(2026-11-29 night); the fit: {FIT_METHOD}")
+          "(2026-11-29 night); the local gradients weighted as the means (2026-11-30); "
+          f"the fit: {FIT_METHOD}")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
 #: The robust rule (:func:`near_median`, ``spread=ROBUST_SPREAD``): a window keeps the
@@ -303,16 +304,26 @@ def near_median(d: np.ndarray, search=SEARCH, spread: float | None = SPREAD) -> 
 def local_gradient(pairs: ParticlePairs, near: list[int], centre: np.ndarray,
                    search=SEARCH, spread: float | None = SPREAD) -> np.ndarray:
     """The displacement gradient ``(3, 3)`` (component, x/y/z) fitted by least squares to
-    the pairs ``near`` (those :func:`near_median` keeps), or zeros with fewer than
-    :data:`GRADIENT_PAIRS` of them."""
+    the pairs ``near`` (those :func:`near_median` keeps), each component's weighted as
+    the window means weigh it (:func:`pair_weights`; alike without uncertainties), or
+    zeros with fewer than :data:`GRADIENT_PAIRS` of them.
+
+    Weighted, a pair whose fit knows it to 0.25 voxel (a focal-zone particle, placed to
+    a lens) no longer tilts the gradient that moves the well-fitted pairs to the
+    window's centre (docs/design.md §7.4 item 9)."""
     d = pairs.displacements[near]
     keep = near_median(d, search, spread)
     if np.count_nonzero(keep) < GRADIENT_PAIRS:
         return np.zeros((3, 3))
     offsets = pairs.midpoints[near][keep] - centre
     design = np.column_stack([np.ones(len(offsets)), offsets])
-    coef, *_ = np.linalg.lstsq(design, d[keep], rcond=None)
-    return coef[1:].T
+    weight = pair_weights(pairs, np.asarray(near)[keep])
+    if weight is None:
+        coef, *_ = np.linalg.lstsq(design, d[keep], rcond=None)
+        return coef[1:].T
+    root = np.sqrt(weight)
+    return np.stack([np.linalg.lstsq(design * root[:, c, None], d[keep, c] * root[:, c],
+                                     rcond=None)[0][1:] for c in range(3)])
 
 
 @dataclass(frozen=True)
@@ -654,28 +665,48 @@ def _local_gradients(pairs: ParticlePairs, window: np.ndarray, near: np.ndarray,
         if fit.any():
             pos = pos[fit]
             pos[..., :3] -= centres[which[fit], None]
-            grad[which[fit]] = _fit_gradients(pos, keep[fit])
+            grad[which[fit]] = _fit_gradients(pos, keep[fit],
+                                              pair_weights(pairs, near[rows[fit]]))
     return grad
 
 
-def _fit_gradients(pos: np.ndarray, keep: np.ndarray) -> np.ndarray:
+def _fit_gradients(pos: np.ndarray, keep: np.ndarray, weight: np.ndarray | None = None
+                   ) -> np.ndarray:
     """The least-squares gradients ``(g, 3, 3)`` of the displacements over the offsets
     from each window's centre, ``pos`` ``(g, n, 6)`` (offset, displacement), on the rows
-    ``keep`` ``(g, n)``: the normal equations of both centred on their means (the same
-    full-rank solution as :func:`local_gradient`'s ``np.linalg.lstsq`` on ``[1,
-    offset]``); a scatter flatter than :data:`WELL_POSED` goes to that ``lstsq`` (its
-    minimum-norm solution where the pairs do not span the three axes)."""
-    w = keep[..., None]
-    m = np.count_nonzero(keep, axis=1)
-    centred = (pos - np.sum(pos, axis=1, where=w, keepdims=True) / m[:, None, None]) * w
-    moments = centred[..., :3].transpose(0, 2, 1) @ centred  # (g, 3, 6)
+    ``keep`` ``(g, n)``, each component weighted by ``weight`` ``(g, n, 3)`` (``None``:
+    alike): :func:`local_gradient`'s, by :func:`_weighted_gradients`."""
+    if weight is None:
+        return _weighted_gradients(pos[..., :3], pos[..., 3:], keep.astype(float))
+    grad = np.empty((len(pos), 3, 3))
+    for c in range(3):
+        grad[:, c:c + 1] = _weighted_gradients(pos[..., :3], pos[..., 3 + c:4 + c],
+                                               keep * weight[..., c])
+    return grad
+
+
+def _weighted_gradients(offset: np.ndarray, values: np.ndarray, w: np.ndarray
+                        ) -> np.ndarray:
+    """The gradients ``(g, k, 3)`` of ``values`` ``(g, n, k)`` over ``offset`` ``(g, n,
+    3)`` by least squares weighted by ``w`` ``(g, n)`` (0: left out): the normal
+    equations of both centred on their weighted means (the same full-rank solution as
+    ``np.linalg.lstsq`` on ``[1, offset]``); a scatter flatter than :data:`WELL_POSED`
+    goes to that ``lstsq`` (its minimum-norm solution where the pairs do not span the
+    three axes)."""
+    total = w.sum(axis=1)[:, None, None]
+    x = offset - np.sum(w[..., None] * offset, axis=1, keepdims=True) / total
+    y = values - np.sum(w[..., None] * values, axis=1, keepdims=True) / total
+    moments = (w[..., None] * x).transpose(0, 2, 1) @ np.concatenate([x, y], axis=2)
     lam, vec = np.linalg.eigh(moments[..., :3])
     with np.errstate(divide="ignore", invalid="ignore"):
         coef = vec @ ((vec.transpose(0, 2, 1) @ moments[..., 3:]) / lam[..., None])
     grad = coef.transpose(0, 2, 1)
     for g in np.flatnonzero(~(lam[:, 0] > WELL_POSED * lam[:, -1])):
-        design = np.column_stack([np.ones(m[g]), pos[g, keep[g], :3]])
-        grad[g] = np.linalg.lstsq(design, pos[g, keep[g], 3:], rcond=None)[0][1:].T
+        rows = w[g] > 0
+        root = np.sqrt(w[g, rows])[:, None]
+        design = np.column_stack([np.ones(np.count_nonzero(rows)), offset[g, rows]])
+        grad[g] = np.linalg.lstsq(design * root, values[g, rows] * root,
+                                  rcond=None)[0][1:].T
     return grad
 
 
