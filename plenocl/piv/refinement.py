@@ -24,14 +24,15 @@ gradient across a sparse window would bias its mean by where its few particles h
 lie. With the fit to the raw images, the mean weighs each pair by the inverse of its
 displacement's variance, the two particles' posterior variances from their fits plus
 :data:`WEIGHT_FLOOR` squared (:func:`pair_weights`): a particle in the focal zone lights
-one microlens and its fit knows its lateral position to 0.15 voxel (its prior; its pairs
-err 0.25 at the paper's full size), against 0.01-0.03 elsewhere, and its pairs' errors
-follow their fits' uncertainties (docs/design.md §7.1; the gradient's weights: §7.4 item
-9). With the camera's :class:`FocalZone`, the depth component comes from the pairs that see depth
-(:func:`seen_depth`; interpolated in depth across the blind zone at the focal plane) in
-a box :data:`DEPTH_SUPPORT` times the window, and with its lines of sight every pair is
-then moved along its line to that depth, so that the lateral motion is read across the
-lines (:func:`seen_means`, :meth:`SightLines.along_sight`).
+one microlens and its fit knows its lateral position to 0.15 voxel (its prior), against
+0.01-0.03 elsewhere; elsewhere the pairs' errors follow their fits' uncertainties, there
+they err more (0.25 voxel at the paper's full size; docs/design.md §7.1, and for the
+gradient's weights §7.4 item 9). With the camera's :class:`FocalZone`, the depth
+component comes from the pairs that see depth (:func:`seen_depth`; interpolated in depth
+across the blind zone at the focal plane) in a box :data:`DEPTH_SUPPORT` times the
+window, and with its lines of sight every pair is then moved along its line to that
+depth, so that the lateral motion is read across the lines (:func:`seen_means`,
+:meth:`SightLines.along_sight`).
 The vector's uncertainty (:func:`window_estimate`) adds in quadrature the half-width of
 the mean's 68.3 % confidence interval (the standard error times Student's t quantile for
 the pairs it holds: 1.32 for 3 pairs, 1.05 for 11), the systematic depth error of pairs
