@@ -40,6 +40,7 @@ typedef float pl_vec;
 #define PL_BACK_ALLCOLS 0  /* 1: a back_y work-item covers every column of a chunk (CPUs) */
 #endif
 #define PL_PAIRS 128  /* (aperture row, depth) weights back_y lists at a time */
+#define PL_XLIST 128  /* non-zero voxels of a row fwd_x_row and back_x_row list at a time */
 #ifndef PL_LENS_EXTENT
 #define PL_LENS_EXTENT 0  /* 1: lens weights integrate the voxel's extent (issue 47) */
 #endif

@@ -43,13 +43,12 @@ __kernel void bin_lateral(__global const float *fine, int nyf, int nxf, int oy, 
 }
 
 /* fine[z][y][x] = coarse[z][y / factor][x / factor] * scale (scale: 1 / factor^2 over the
- * image's scaling). Parallel structure: one work-item per sub-voxel of a depth slab, a
- * gather of its one coarse voxel; no atomics. */
+ * image's scaling). Parallel structure: one work-item per sub-voxel (x, y, z) of a depth
+ * slab, a gather of its one coarse voxel; no atomics. */
 __kernel void spread_lateral(__global const float *coarse, int ny, int nx, int factor,
-                             float scale, __global float *fine, int nyf, int nxf, int n)
+                             float scale, __global float *fine, int nyf, int nxf)
 {
-    const int j = get_global_id(0);
-    if (j >= n) return;
-    const int x = j % nxf, y = (j / nxf) % nyf, z = j / (nxf * nyf);
-    fine[j] = coarse[((size_t)z * ny + y / factor) * nx + x / factor] * scale;
+    const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    fine[((size_t)z * nyf + y) * nxf + x] =
+        coarse[((size_t)z * ny + y / factor) * nx + x / factor] * scale;
 }

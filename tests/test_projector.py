@@ -308,6 +308,34 @@ def test_separable_element_kernels_equal_the_row_kernels_bit_for_bit(name, camer
     np.testing.assert_array_equal(got[True].back(image), got[False].back(image))
 
 
+
+def test_sparse_rows_longer_than_one_list_project_as_the_element_kernels(small_camera,
+                                                                         queue):
+    """The row kernels list a sparse row's non-zero voxels ``PL_XLIST`` (128) at a time:
+    on rows of 600 voxels with 200-290 of them non-zero (three lists, under half the row),
+    ``fwd_x_row`` equals the element kernel ``fwd_x`` (to float32 rounding: on rows this
+    long their sums of some 70 voxels per lens round differently, as before the lists),
+    and ``back_x_row`` on the volume as its support gives the full back projection there
+    bit for bit, 0 elsewhere, also when the columns come in several chunks that
+    accumulate."""
+    grid = Grid((3, 2, 600), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-4.0, 4.0))
+    rows, gather = (Projector(small_camera, grid, queue, scratch_bytes=2**14,
+                              gather_forward=g) for g in (False, True))
+    assert rows.path == "separable" and len(rows.plan.columns) > 1
+    rng = np.random.default_rng(14)
+    vol = np.where(rng.random(grid.shape) < rng.uniform(0.34, 0.48, (3, 2, 1)),
+                   rng.random(grid.shape), 0).astype(np.float32)
+    lit = np.count_nonzero(vol, axis=2)
+    assert lit.min() > 2 * 128 - 56 and 2 * lit.max() < grid.shape[2]
+    np.testing.assert_allclose(rows.forward(vol), gather.forward(vol), **RECOMPUTED)
+    image = cl_array.to_device(queue, rng.random(small_camera.pixels[::-1], dtype=np.float32))
+    full = rows.volume_to_host(rows.back_device(image))
+    got = rows.volume_to_host(rows.back_device(image, support=rows.volume_to_device(vol)))
+    on = vol != 0
+    assert np.count_nonzero(full[on]) > 0.9 * on.sum()
+    np.testing.assert_array_equal(got[on], full[on])
+    assert not got[~on].any()
+
 @pytest.mark.parametrize("gather", [False, True])
 @pytest.mark.parametrize("name", ["ideal", "rotated"])
 def test_back_projection_on_a_support_is_the_full_one_there(name, gather, cameras, queue):

@@ -100,6 +100,6 @@ class LateralBinning:
                                                           np.float32))
             z0 += slab.shape[0]
             if slab.size:
-                self._k.launch("spread_lateral", (slab.size,), part, i32(ny), i32(nx),
+                self._k.launch("spread_lateral", slab.shape[::-1], part, i32(ny), i32(nx),
                                i32(factor), np.float32(scale / factor**2), slab,
-                               i32(ny * factor), i32(nx * factor), i32(slab.size))
+                               i32(ny * factor), i32(nx * factor))
