@@ -336,6 +336,29 @@ def test_sparse_rows_longer_than_one_list_project_as_the_element_kernels(small_c
     np.testing.assert_array_equal(got[on], full[on])
     assert not got[~on].any()
 
+
+def test_row_kernels_at_vector_widths_8_and_16_give_the_same_bits(small_camera, queue):
+    """A CPU's default vector width follows its native float vectors (16 with AVX-512,
+    else 8: ``cpu_vector_width``); the row kernels' sums do not depend on it: the
+    forward and the back projection (with a support) at 8 and at 16 agree bit for bit,
+    over several column chunks."""
+    from plenocl.projection.projector import cpu_vector_width
+    grid = Grid((3, 5, 40), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-4.0, 4.0))
+    projs = {vw: Projector(small_camera, grid, queue, scratch_bytes=2**14, vector_width=vw,
+                           gather_forward=False) for vw in (8, 16)}
+    assert all(len(p.plan.columns) > 1 for p in projs.values())
+    rng = np.random.default_rng(15)
+    vol = np.where(rng.random(grid.shape) < 0.3, rng.random(grid.shape), 0).astype(np.float32)
+    image = cl_array.to_device(queue, rng.random(small_camera.pixels[::-1], dtype=np.float32))
+    fwd = {vw: p.forward(vol) for vw, p in projs.items()}
+    back = {vw: p.volume_to_host(p.back_device(image, support=p.volume_to_device(vol)))
+            for vw, p in projs.items()}
+    assert fwd[8].any() and back[8].any()
+    np.testing.assert_array_equal(fwd[8], fwd[16])
+    np.testing.assert_array_equal(back[8], back[16])
+    native = queue.device.native_vector_width_float
+    assert cpu_vector_width(queue.device) == (16 if native >= 16 else 8)
+
 @pytest.mark.parametrize("gather", [False, True])
 @pytest.mark.parametrize("name", ["ideal", "rotated"])
 def test_back_projection_on_a_support_is_the_full_one_there(name, gather, cameras, queue):
