@@ -10,6 +10,7 @@ from helpers import ROTATED, assert_adjoint, assert_close_to_peak, lens_camera
 
 from plenocl import Camera, Grid
 from plenocl.projection import Projector
+from plenocl.projection.projector import cpu_vector_width
 from plenocl.reference.simulate import trace_particles
 from plenocl.reference.weights import ApertureGrid, lens_index_map, voxel_weights, weight_matrix
 
@@ -308,7 +309,6 @@ def test_separable_element_kernels_equal_the_row_kernels_bit_for_bit(name, camer
     np.testing.assert_array_equal(got[True].back(image), got[False].back(image))
 
 
-
 def test_sparse_rows_longer_than_one_list_project_as_the_element_kernels(small_camera,
                                                                          queue):
     """The row kernels list a sparse row's non-zero voxels ``PL_XLIST`` (128) at a time:
@@ -342,7 +342,6 @@ def test_row_kernels_at_vector_widths_8_and_16_give_the_same_bits(small_camera, 
     else 8: ``cpu_vector_width``); the row kernels' sums do not depend on it: the
     forward and the back projection (with a support) at 8 and at 16 agree bit for bit,
     over several column chunks."""
-    from plenocl.projection.projector import cpu_vector_width
     grid = Grid((3, 5, 40), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-4.0, 4.0))
     projs = {vw: Projector(small_camera, grid, queue, scratch_bytes=2**14, vector_width=vw,
                            gather_forward=False) for vw in (8, 16)}
@@ -358,6 +357,7 @@ def test_row_kernels_at_vector_widths_8_and_16_give_the_same_bits(small_camera, 
     np.testing.assert_array_equal(back[8], back[16])
     native = queue.device.native_vector_width_float
     assert cpu_vector_width(queue.device) == (16 if native >= 16 else 8)
+
 
 @pytest.mark.parametrize("gather", [False, True])
 @pytest.mark.parametrize("name", ["ideal", "rotated"])
