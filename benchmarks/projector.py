@@ -5,6 +5,7 @@ alternatives, and one forward + back projection of the paper's full experiment.
     python benchmarks/projector.py [--repeats 5] [--skip-paper] [--skip-direct]
                                    [--skip-stored] [--skip-small] [--skip-rotated]
                                    [--skip-reconstruction] [--skip-scratch]
+                                   [--skip-widths]
 
 Weights per second count the non-zeros of the weight matrix processed per second (the
 CSR matrix's ``nnz`` for the stored case; an estimate from sampled voxels for the paper
@@ -26,8 +27,9 @@ from plenocl.bench.scripts import script_parser
 from plenocl.bench.sparse import matrix_bytes
 from plenocl.bench.stages import csr_case, device_pair, projector_bytes
 from plenocl.bench.timing import median_time
-from plenocl.opencl.device import device_info
+from plenocl.opencl.device import device_info, is_cpu
 from plenocl.projection import Projector
+from plenocl.projection.projector import cpu_vector_width
 from plenocl.reconstruction import ReconstructionSettings
 from plenocl.reconstruction.reconstruct import run_reconstruction
 
@@ -214,36 +216,75 @@ def rotated_reconstruction(queue, rotation: float = 0.15) -> None:
               f"{seconds / base:.2f}x the aligned array")
 
 
+def _sparse_support(grid: Grid, factor: int = 3) -> np.ndarray:
+    """A sparse support on ``grid``'s ``factor x factor`` sub-voxels (6.5 % of them, as a
+    pair's fine iterations see it): dilated random voxels, random values."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    coarse = ndimage.binary_dilation(rng.random(grid.shape) < 0.0015, np.ones((3, 3, 5), bool))
+    fine = np.repeat(np.repeat(coarse, factor, 1), factor, 2)
+    return (fine * rng.random(fine.shape)).astype(np.float32)
+
+
+def _taking_turns(queue, projs: dict, sup: np.ndarray, repeats: int) -> tuple[dict, dict]:
+    """Forward + back (on the support ``sup``) of each projector of ``projs``, taking
+    turns ``repeats`` times: the median seconds and the last outputs per key."""
+    times: dict = {key: [] for key in projs}
+    outs: dict = {}
+    for _ in range(repeats):
+        for key, p in projs.items():
+            vol, img, out = p.volume_to_device(sup), p.empty_image(), p.empty_volume()
+            img.fill(1.0)
+            t0 = time.perf_counter()
+            image = p.forward_device(vol)
+            p.back_device(img, out=out, support=vol)
+            queue.finish()
+            times[key].append(time.perf_counter() - t0)
+            outs[key] = (image, out)
+    return {key: float(np.median(t)) for key, t in times.items()}, outs
+
+
 def scratch_sizes(queue, repeats: int, sizes_mib=(32, 256)) -> None:
     """Forward + back on the paper's 3 x 3 sub-voxels (a sparse support, 6.5 % of the
     grid, as a pair's fine iterations see it) for scratch buffers of each size, the
     projectors taking turns; medians of ``repeats``."""
-    from scipy import ndimage
-
     cam, grid = paper_optics((289, 193))
-    rng = np.random.default_rng(0)
-    coarse = ndimage.binary_dilation(rng.random(grid.shape) < 0.0015, np.ones((3, 3, 5), bool))
     projs = {mib: Projector(cam, grid, queue, scratch_bytes=mib * 2**20).refined(3)
              for mib in sizes_mib}
+    sup = _sparse_support(grid)
+    medians, _ = _taking_turns(queue, projs, sup, repeats)
     fine = next(iter(projs.values())).grid
-    sup = (np.repeat(np.repeat(coarse, 3, 1), 3, 2) * rng.random(fine.shape)).astype(np.float32)
-    times: dict[int, list] = {mib: [] for mib in projs}
-    for _ in range(repeats):
-        for mib, p in projs.items():
-            vol, img, out = p.volume_to_device(sup), p.empty_image(), p.empty_volume()
-            img.fill(1.0)
-            t0 = time.perf_counter()
-            p.forward_device(vol)
-            p.back_device(img, out=out, support=vol)
-            queue.finish()
-            times[mib].append(time.perf_counter() - t0)
     print(f"\nscratch size, paper grid on 3 x 3 sub-voxels {fine.shape}, support "
           f"{(sup > 0).mean():.1%}: forward + back, medians of {repeats}")
-    base = np.median(times[sizes_mib[0]])
+    base = medians[sizes_mib[0]]
     for mib, p in projs.items():
-        t = np.median(times[mib])
+        t = medians[mib]
         print(f"  {mib:5d} MiB: {len(p.plan.columns)} column chunk(s), {p.plan.zchunk:3d} "
               f"depths per chunk: {t:.3f} s ({t / base:.2f}x the {sizes_mib[0]} MiB)")
+
+
+def vector_widths(queue, repeats: int) -> None:
+    """Forward + back on the paper's 3 x 3 sub-voxels (the support of
+    :func:`scratch_sizes`) with the row kernels at vector widths 8 and 16 (the default on
+    a CPU whose native float vectors hold 16, ``cpu_vector_width``), taking turns;
+    medians of ``repeats``, and whether both give the same bits."""
+    if not is_cpu(queue.device):
+        print("\nvector widths: the row kernels' widths are a CPU's (this device runs 1)")
+        return
+    cam, grid = paper_optics((289, 193))
+    projs = {vw: Projector(cam, grid, queue, vector_width=vw).refined(3) for vw in (8, 16)}
+    sup = _sparse_support(grid)
+    medians, outs = _taking_turns(queue, projs, sup, repeats)
+    host = {vw: (image.get(), projs[vw].volume_to_host(back))
+            for vw, (image, back) in outs.items()}
+    same = all(np.array_equal(a, b) for a, b in zip(host[8], host[16], strict=True))
+    print(f"\nvector width of the row kernels (this device's default: "
+          f"{cpu_vector_width(queue.device)}), paper grid on 3 x 3 sub-voxels, support "
+          f"{(sup > 0).mean():.1%}: forward + back, medians of {repeats}")
+    for vw, t in medians.items():
+        print(f"  width {vw:2d}: {t:.3f} s ({t / medians[8]:.2f}x width 8)")
+    print(f"  the same image and back projection at both widths, bit for bit: {same}")
 
 
 def main() -> None:
@@ -253,6 +294,7 @@ def main() -> None:
                                                        "reconstruction times",
                                      "stored": "skip the stored-matrix (CSR) comparison",
                                      "scratch": "skip the scratch-size comparison",
+                                     "widths": "skip the row kernels' vector widths",
                                      "small": "skip the per-call cost of small problems"})
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--paper-repeats", type=int, default=3)
@@ -273,6 +315,8 @@ def main() -> None:
         rotated_reconstruction(queue)
     if not args.skip_scratch:
         scratch_sizes(queue, args.paper_repeats)
+    if not args.skip_widths:
+        vector_widths(queue, args.paper_repeats)
     print(f"load average at end {os.getloadavg()[0]:.2f}")
 
 

@@ -811,8 +811,8 @@ def cpu_vector_width(device) -> int:
     """The row kernels' vector width on a CPU ``device`` (a ``pyopencl.Device``): 16
     where its native float vectors hold 16 (AVX-512), else 8. The same sums either way
     (each lane adds as before, the padding lanes hold zeros); on an AVX-512 Xeon a
-    sub-voxel iteration's lens-row stage ran 1.3x faster at 16 under Intel's runtime and
-    about 1.1x under PoCL (docs/design.md §6.5)."""
+    forward + back on the paper's sub-voxels took 0.79x the time at 16 under PoCL and
+    0.86x under Intel's runtime (``benchmarks/projector.py``; docs/design.md §6.5)."""
     return 16 if device.native_vector_width_float >= 16 else 8
 
 
