@@ -4,7 +4,7 @@ baseline), against the same MART with the weighting true to the camera on 3 x 3 
 sub-voxels, without and with a Gaussian smoothing of the raw image; the default
 reconstruction beside them; on the same unseen scenes in the same run.
 
-    python benchmarks/paper_mart.py [--scenes 3] [--counts 20 60] [--smooth 1.0]
+    python benchmarks/paper_mart.py [--scenes 6] [--counts 20 60] [--smooth 1.0]
 
 Camera: the 850 x 850 px synthetic camera (50 x 50 microlenses, M = 1, f/2); grid: the
 5 mm cube of ``benchmarks/mart_footprint.py`` (40 x 40 voxels of 0.125 mm, one microlens,
@@ -78,7 +78,7 @@ def scene_images(camera: Camera, count: int, seed: int, queue):
 
 def main() -> None:
     parser = script_parser(__doc__)
-    parser.add_argument("--scenes", type=int, default=3)
+    parser.add_argument("--scenes", type=int, default=6)
     parser.add_argument("--counts", type=int, nargs="+", default=[20, 60])
     parser.add_argument("--smooth", type=float, default=1.0,
                         help="the smoothing's standard deviation (pixels)")
