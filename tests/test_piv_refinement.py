@@ -322,6 +322,19 @@ def test_window_means_of_some_windows_are_theirs_among_all(case, support):
         assert np.isfinite(every[0][:, ~wanted]).any()  # the others had means to leave out
 
 
+@pytest.mark.parametrize("wrong", ["transposed", "flat", "integers"])
+def test_windows_of_another_shape_or_kind_are_refused_by_name(wrong):
+    """A ``windows`` mask that is not one boolean per window of the field's grid is
+    refused with the shape it must have (before, a flat mask of the right size passed
+    and a transposed one failed inside with a reshape error)."""
+    rng = np.random.default_rng(5)
+    pairs, field = awkward_pairs("sparse", rng), grid_field()
+    mask = np.ones(field.u.shape, bool)
+    bad = {"transposed": mask.T, "flat": mask.ravel(), "integers": mask.astype(int)}[wrong]
+    with pytest.raises(ValueError, match=r"boolean array of the field's grid shape \(5, 6, 7\)"):
+        window_means(pairs, field, 3, windows=bad)
+
+
 def test_near_median_leaves_out_a_stray_pair_and_keeps_an_honest_spread():
     """One pair 0.4 voxel off among pairs that agree within 0.02 is left out (the search
     range alone keeps it); a pair within the floor of the median is always kept; and

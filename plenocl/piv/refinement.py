@@ -562,6 +562,8 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     same counts, means and uncertainties within a few 1e-15 voxel.
     """
     shape = field.u.shape
+    if windows is not None:
+        windows = _checked_windows(windows, shape)
     mean, error = np.full((2, 3, *shape), np.nan)
     count = np.zeros(shape, int)
     if not len(pairs.midpoints):
@@ -584,6 +586,17 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     use = busy & (n >= max(min_pairs, 1))
     mean.reshape(3, -1)[:, use], error.reshape(3, -1)[:, use] = m[use].T, e[use].T
     return mean, error, count
+
+
+def _checked_windows(windows, shape: tuple[int, ...]) -> np.ndarray:
+    """``windows`` as the boolean ``(nz, ny, nx)`` of the field's grid ``shape``, or a
+    ValueError that names the shape wanted."""
+    w = np.asarray(windows)
+    if w.shape != tuple(shape) or w.dtype != bool:
+        raise ValueError(f"windows must be a boolean array of the field's grid shape "
+                         f"{tuple(shape)} (nz, ny, nx), one flag per window; got "
+                         f"{w.dtype} of shape {w.shape}")
+    return w
 
 
 def _grid_centres(field: PIVResult) -> np.ndarray:
