@@ -23,10 +23,10 @@ long as the disc reaches no other edge.
 2. **What the images allow**: on ``cubic_recovery.py``'s scenes (seeds 1000 + k, 1 px
    blur), each particle with ``|z|`` under the depth resolution by class: its disc in one
    cell (the depth known up to its sign: the best guess is the focal plane), crossing one
-   edge, or two (a corner; the depth known up to the line: at most ``z_max``, where the
-   scaled disc reaches another edge, and the middle of ``(0, z_max]`` lies within 2
-   voxels of every depth on it). The share an estimator that knew each line could place
-   within 2 voxels is the ceiling the images set.
+   edge, or two (a corner; the depth known up to the line: anywhere in ``(0, z_max]``,
+   where the scaled disc reaches another edge; the best single guess is the middle). The
+   share an estimator that knew each line could place within 2 voxels is the ceiling the
+   images set.
 3. **Where the default's misses fall** (``reconstruct()``'s default, a peak within 1 voxel
    laterally and 2 in depth, one to one, as ``cubic_recovery.py``): recovered per class,
    and each missed focal-zone particle's cut ``c = e / r`` (the smallest of the crossed
