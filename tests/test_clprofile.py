@@ -4,6 +4,7 @@ pair it attributes calls to, and the one composition of volumes to a refined fie
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -12,7 +13,7 @@ import pyopencl.array as cl_array
 import pytest
 
 from plenocl import get_queue
-from plenocl.bench.clprofile import OpenCLProfile, split_lines, total_profile
+from plenocl.bench.clprofile import OpenCLProfile, covered, split_lines, total_profile
 from plenocl.pipeline import StageClock
 
 
@@ -46,6 +47,44 @@ def test_profile_counts_bytes_launches_and_host_time(queue):
     total = total_profile(split)
     assert total.h2d_bytes == total.d2h_bytes == host.nbytes and total.launches == 3
     assert total.wall == pytest.approx(sum(clock.seconds.values()))
+
+
+def test_covered_is_the_length_of_the_union():
+    """Overlapping, nested, touching and disjoint intervals, in any order."""
+    assert covered([]) == 0.0
+    assert covered([(0.0, 1.0), (0.5, 2.0)]) == pytest.approx(2.0)
+    assert covered([(0.0, 3.0), (1.0, 2.0)]) == pytest.approx(3.0)
+    assert covered([(4.0, 5.0), (0.0, 1.0), (1.0, 1.5)]) == pytest.approx(2.5)
+
+
+def test_two_threads_waiting_at_once_count_once(queue):
+    """A stage whose two threads each wait on the device at the same time spends that
+    time in OpenCL once: the sum of the calls (0.3 s) would exceed the stage's wall time
+    and hide its host work."""
+    clock = StageClock()
+    barrier = threading.Barrier(2)
+
+    def wait_together():
+        barrier.wait()
+        cl.wait_for_events([_slow_event(queue.context, 0.15)])
+
+    with OpenCLProfile() as prof, clock.stage("both"):
+        threads = [threading.Thread(target=wait_together) for _ in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    stage = prof.split(clock.spans)["both"]
+    assert stage.calls["wait"] == 2
+    assert 0.15 <= stage.opencl < 0.25 and stage.opencl <= stage.wall
+
+
+def _slow_event(context: cl.Context, seconds: float) -> cl.UserEvent:
+    """A user event completed ``seconds`` from now by a timer thread."""
+    event = cl.UserEvent(context)
+    timer = threading.Timer(seconds, event.set_status, (cl.command_execution_status.COMPLETE,))
+    timer.start()
+    return event
 
 
 def test_profile_restores_pyopencl(queue):

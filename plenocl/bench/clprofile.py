@@ -6,8 +6,9 @@ and array operation goes through), copies (``enqueue_copy``: bytes each way), fi
 the waits (``CommandQueue.finish``, ``Event.wait``, ``wait_for_events``), each with the
 wall time spent inside the call. :meth:`OpenCLProfile.split` then attributes them to
 stages by their time spans (:attr:`plenocl.pipeline.PairResult.spans`): per stage the
-wall time, the time inside OpenCL calls (launching, copying, waiting for the device),
-the host's own work outside them (the stage's wall time less that: NumPy, SciPy and
+wall time, the time inside OpenCL calls (launching, copying, waiting for the device; with
+several threads, the time any of them was inside one), the host's own work outside them
+(the stage's wall time less that: NumPy, SciPy and
 Python, what a faster device cannot shorten), the kernels' device seconds from their
 profiling events (on a queue made with profiling enabled; ``None`` otherwise) and the
 bytes moved each way.
@@ -26,7 +27,7 @@ import numpy as np
 import pyopencl as cl
 from pyopencl import _cl
 
-__all__ = ["OpenCLProfile", "StageProfile", "split_lines", "total_profile"]
+__all__ = ["OpenCLProfile", "StageProfile", "covered", "split_lines", "total_profile"]
 
 
 @dataclass
@@ -119,18 +120,24 @@ class OpenCLProfile:
 
     def split(self, spans: dict[str, tuple[float, float]]) -> dict[str, StageProfile]:
         """Each stage's :class:`StageProfile` from the calls that started within its
-        span; call it after the device finished (the events' times are read here)."""
+        span; call it after the device finished (the events' times are read here). A
+        stage's time in OpenCL calls is the wall time during which at least one thread
+        was inside one (:func:`covered`): two threads waiting at once count once, and a
+        thread idle while another is inside a call is not host work."""
         out = {name: StageProfile(wall=end - start) for name, (start, end) in spans.items()}
+        inside: dict[str, list[tuple[float, float]]] = {name: [] for name in spans}
         for call in self.calls:
             for name, (start, end) in spans.items():
                 if start <= call.start < end:
                     self._add(out[name], call)
+                    inside[name].append((call.start, call.end))
                     break
+        for name, intervals in inside.items():
+            out[name].opencl = covered(intervals)
         return out
 
     @staticmethod
     def _add(stage: StageProfile, call: _Call) -> None:
-        stage.opencl += call.end - call.start
         stage.calls[call.kind] = stage.calls.get(call.kind, 0) + 1
         if call.kind == "h2d":
             stage.h2d_bytes += call.nbytes
@@ -141,6 +148,16 @@ class OpenCLProfile:
             seconds = _event_seconds(call.event)
             if seconds is not None:
                 stage.kernel = (stage.kernel or 0.0) + seconds
+
+
+def covered(intervals: list[tuple[float, float]]) -> float:
+    """The length of the union of ``(start, end)`` intervals (seconds)."""
+    total, reach = 0.0, -np.inf
+    for start, end in sorted(intervals):
+        if end > reach:
+            total += end - max(start, reach)
+            reach = end
+    return total
 
 
 def _event_seconds(event) -> float | None:
