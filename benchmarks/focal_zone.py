@@ -47,6 +47,7 @@ from plenocl.bench.core import particle_scene  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.metrics import match_particles  # noqa: E402
 from plenocl.peaks import find_particles  # noqa: E402
+from plenocl.projection.weighting import lens_index_map  # noqa: E402
 from plenocl.reconstruction import reconstruct  # noqa: E402
 from plenocl.simulate import simulate_image  # noqa: E402
 
@@ -60,15 +61,12 @@ CLASSES = ("one cell", "one edge", "corner")
 
 
 def chief_lens(camera: Camera, positions: np.ndarray) -> np.ndarray:
-    """``(n, 2)`` fractional lens indices (centres at integers) where each point's chief
-    ray (through the exit pupil's centre) meets the array: its defocus disc's centre (an
-    unrotated rectangular array)."""
+    """``(n, 2)`` fractional lens indices (centres at integers, the weighting's
+    :func:`lens_index_map`) where each point's chief ray (through the exit pupil's
+    centre) meets the array: its defocus disc's centre (a rectangular array)."""
     image = camera.image_points(positions)
-    d = camera.exit_pupil_distance_mm
-    hit = image[:, :2] * (d / image[:, 2])[:, None]
-    cols, rows = camera.ml_count
-    pitch = np.array([camera.ml_pitch_mm, camera.ml_row_pitch_mm])
-    return (hit - np.asarray(camera.ml_offset_mm)) / pitch + [(cols - 1) / 2, (rows - 1) / 2]
+    hit = image[:, :2] * (camera.exit_pupil_distance_mm / image[:, 2])[:, None]
+    return np.column_stack(lens_index_map(camera)(hit[:, 0], hit[:, 1]))
 
 
 def disc_radius(camera: Camera, positions: np.ndarray) -> np.ndarray:
