@@ -22,13 +22,16 @@ grows with the pairs per doubled window (medians of 3): 1,500 pairs 1.56 against
 
 from __future__ import annotations
 
+import functools
 import os
 
 import numpy as np
 
+from plenocl import get_queue
 from plenocl.bench.scripts import script_parser
 from plenocl.bench.timing import median_time
 from plenocl.piv import PIVResult
+from plenocl.piv.devicemeans import DeviceWindowMeans
 from plenocl.piv.refinement import FocalZone, ParticlePairs, window_means  # noqa: E402
 from plenocl.reference.refinement import window_means_reference
 
@@ -71,6 +74,11 @@ def main() -> None:
     pairs, field = paper_case(args.pairs, args.seed)
     focus = FocalZone(plane=74.5, resolution=8.6)
     runs = {"loop": window_means_reference, "batched": window_means}
+    queue = get_queue()
+    if DeviceWindowMeans.supports(queue):
+        runs["device"] = functools.partial(window_means,
+                                           device_means=DeviceWindowMeans(queue))
+        print(f"device: {queue.device.name.strip()}")
     out = {name: fn(pairs, field, focus=focus) for name, fn in runs.items()}
     times = {name: median_time(lambda fn=fn: fn(pairs, field, focus=focus), args.repeats,
                                warmup=False) for name, fn in runs.items()}
@@ -78,14 +86,20 @@ def main() -> None:
           f"{out['loop'][2].mean():.1f} pairs per window; medians of {args.repeats}")
     for name, t in times.items():
         print(f"  {name:8s} {t:6.2f} s")
-    print(f"  speed-up {times['loop'] / times['batched']:.1f}x")
-    (mean, error, count), (mean_b, error_b, count_b) = out["loop"], out["batched"]
-    print(f"  largest difference: mean {np.nanmax(np.abs(mean_b - mean)):.1e}, "
+    for name in list(runs)[1:]:
+        print(f"  {name} against the loop: {times['loop'] / times[name]:.1f}x")
+        differences(out["loop"], out[name], name)
+    print(f"load average at end {os.getloadavg()[0]:.2f}")
+
+
+def differences(want, got, name: str) -> None:
+    """Print the largest differences of one run's results from the loop's."""
+    (mean, error, count), (mean_b, error_b, count_b) = want, got
+    print(f"  {name}: largest difference: mean {np.nanmax(np.abs(mean_b - mean)):.1e}, "
           f"uncertainty {np.nanmax(np.abs(error_b - error)):.1e} voxel; "
           f"{np.count_nonzero(count_b != count)} counts and "
           f"{np.count_nonzero(np.isnan(mean_b[0]) != np.isnan(mean[0]))} refined windows "
           "differ")
-    print(f"load average at end {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":

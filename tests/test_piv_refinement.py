@@ -11,6 +11,7 @@ import pytest
 from plenocl import Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.piv import PIVResult
+from plenocl.piv.devicemeans import ILL_POSED, DeviceWindowMeans, WindowLists
 from plenocl.piv.refinement import (
     FITTED_POSITION_SIGMA,
     FOCAL_SYSTEMATIC,
@@ -320,6 +321,41 @@ def test_window_means_of_some_windows_are_theirs_among_all(case, support):
     assert np.isnan(some[0][:, ~wanted]).all() and not some[2][~wanted].any()
     if case != "empty":
         assert np.isfinite(every[0][:, ~wanted]).any()  # the others had means to leave out
+
+
+@pytest.mark.parametrize("case", ["sparse", "outliers", "plane", "line", "faces", "empty"])
+@pytest.mark.parametrize("spread, weighted", [(None, True), (ROBUST_SPREAD, False)])
+def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted):
+    """The device's window means (kernels/windowmeans.cl, double precision) against the
+    host's batched ones, which equal the per-window loop: the same pairs counted, the
+    same windows refined, the means and uncertainties to float64 rounding; with the
+    focal zone, over the window and over twice it, and for some windows alone. The
+    plane's and the line's gradients are too flat for the normal equations and go back to
+    the host's lstsq (solved on the device they would be infinite or NaN)."""
+    rng = np.random.default_rng(len(case) + 3)
+    pairs = awkward_pairs(case, rng)
+    if weighted:
+        pairs = dataclasses.replace(pairs, sigma=10 ** rng.uniform(-2.5, -0.5,
+                                                                   pairs.displacements.shape))
+    field, focus = grid_field(), FocalZone(plane=12.0, resolution=5.0)
+    device = DeviceWindowMeans(queue)
+    wanted = rng.random(field.u.shape) < 0.5
+    for support, windows in [(1.0, None), (2.0, None), (1.0, wanted)]:
+        kw = dict(focus=focus, spread=spread, support=support, windows=windows)
+        want = window_means(pairs, field, 3, **kw)
+        got = window_means(pairs, field, 3, **kw, device_means=device)
+        np.testing.assert_array_equal(got[2], want[2])
+        for a, b in zip(got[:2], want[:2]):
+            np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    if case in ("plane", "line"):
+        centres = np.stack(np.meshgrid(field.x, field.y, field.z, indexing="ij"), -1)
+        every = np.arange(len(pairs.midpoints))
+        lists = WindowLists.of(np.zeros(len(every), int), every, 1)
+        dev = device.pairs(pairs.midpoints, pairs.displacements, None, None)
+        _, status = device.gradients(dev, lists, centres.reshape(-1, 3)[:1], (99.0,) * 3,
+                                     None, (0.1, 0.1, 0.3), 12, 1e-4)
+        assert status[0] == ILL_POSED
 
 
 @pytest.mark.parametrize("wrong", ["transposed", "flat", "integers"])

@@ -18,6 +18,7 @@ from ..camera import Camera
 from ..grid import Grid
 from ..opencl.device import DeviceLike, get_queue
 from ..piv import PIVResult, piv3d
+from ..piv.devicemeans import DeviceWindowMeans
 from ..piv.devicepeaks import DeviceMaxima
 from ..piv.imagefit import ImageFit
 from ..piv.jointfit import JointImageFit
@@ -121,6 +122,8 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
         fit = focus = sight = None
         device = None if queue is False else get_queue(queue)  # None: the host
         maxima = None if device is None else DeviceMaxima(device)
+        device_means = (DeviceWindowMeans(device) if device is not None
+                        and DeviceWindowMeans.supports(device) else None)
         if isinstance(camera, (list, tuple)):  # several cameras: their joint fit
             if raws is not None and settings.image_fit is not None:
                 fit = JointImageFit(camera, grid, raws, settings.image_fit, queue=device,
@@ -135,5 +138,5 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
             sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
                                     maxima=maxima, spread=spread, weighted=weighted,
-                                    depth_support=depth_support)
+                                    depth_support=depth_support, device_means=device_means)
     return res

@@ -58,6 +58,7 @@ from scipy.spatial import cKDTree
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
+from .devicemeans import ILL_POSED, DeviceWindowMeans, WindowLists
 from .imagefit import METHOD as FIT_METHOD
 from .imagefit import PRIOR_VOXELS, standard_deviations
 from .pairoutliers import FLOOR as PAIR_SCATTER
@@ -541,7 +542,7 @@ WELL_POSED = 1e-4
 def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, search=SEARCH,
                  focus: FocalZone | None = None, position_sigma=POSITION_SIGMA,
                  spread: float | None = SPREAD, support: float = 1.0,
-                 windows: np.ndarray | None = None
+                 windows: np.ndarray | None = None, *, device_means: DeviceWindowMeans | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window of ``field``'s grid: the displacement of its pairs at the window's
     centre ``(3, nz, ny, nx)`` (NaN where fewer than ``min_pairs`` pairs remain; see
@@ -560,6 +561,11 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     all windows holding the same number of pairs at once: about 5 times faster at the
     paper's size (11,220 windows, 5,000 pairs; ``benchmarks/window_means.py``), the
     same counts, means and uncertainties within a few 1e-15 voxel.
+
+    ``device_means``: the gradients and estimates on that OpenCL device
+    (:class:`plenocl.piv.devicemeans.DeviceWindowMeans`, one work-item per window in
+    double precision: the same pairs kept, the results the host's to rounding); ``None``:
+    on the host.
     """
     shape = field.u.shape
     if windows is not None:
@@ -578,14 +584,42 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
                                None if windows is None else windows.reshape(-1))
     busy = np.bincount(win, minlength=count.size) >= min_pairs
     near_win, near = _box_members(points, axes, 2.0, busy)
-    grad = _local_gradients(pairs, near_win, near, centres, search, spread)
     inside = busy[win]
-    n, m, e = _window_estimates(pairs, win[inside], member[inside], centres, grad,
-                                min_pairs, search, focus, position_sigma, spread)
+    if device_means is None:
+        grad = _local_gradients(pairs, near_win, near, centres, search, spread)
+        n, m, e = _window_estimates(pairs, win[inside], member[inside], centres, grad,
+                                    min_pairs, search, focus, position_sigma, spread)
+    else:
+        n, m, e = _device_estimates(
+            device_means, pairs, WindowLists.of(near_win, near, count.size),
+            WindowLists.of(win[inside], member[inside], count.size), centres, min_pairs,
+            search, focus, position_sigma, spread)
     count.reshape(-1)[busy] = n[busy]
     use = busy & (n >= max(min_pairs, 1))
     mean.reshape(3, -1)[:, use], error.reshape(3, -1)[:, use] = m[use].T, e[use].T
     return mean, error, count
+
+
+def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: WindowLists,
+                      inside: WindowLists, centres: np.ndarray, min_pairs: int, search,
+                      focus: FocalZone | None, position_sigma, spread: float | None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_local_gradients` over the doubled boxes' pairs ``near``, then
+    :func:`_window_estimates` over the boxes' pairs ``inside``, on ``means``' device;
+    the gradients too flat for its normal equations fitted here (:func:`local_gradient`)."""
+    every = np.arange(len(pairs.midpoints))
+    amb = None if focus is None else focus.ambiguity(pairs.midpoints[:, 2])
+    dev = means.pairs(pairs.midpoints, pairs.displacements, pair_weights(pairs, every), amb)
+    grad, status = means.gradients(dev, near, centres, search, spread, KEEP_FLOOR,
+                                   GRADIENT_PAIRS, WELL_POSED)
+    for k in np.flatnonzero(status[near.win] == ILL_POSED):
+        w = near.win[k]
+        grad[w] = local_gradient(pairs, near.member[near.start[k]:near.start[k + 1]],
+                                 centres[w], search, spread)
+    largest = int(np.diff(inside.start).max(initial=0))
+    t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, largest + 1)])
+    return means.estimates(dev, inside, centres, grad, search, spread, KEEP_FLOOR,
+                           max(min_pairs, 1), t, position_sigma)
 
 
 def _checked_windows(windows, shape: tuple[int, ...]) -> np.ndarray:
@@ -781,8 +815,8 @@ def _estimates(d: np.ndarray, depth: np.ndarray, keep: np.ndarray, grad: np.ndar
 
 def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int = 3,
                 search=SEARCH, focus: FocalZone | None = None,
-                spread: float | None = SPREAD, sight: SightLines | None = None
-                ) -> PIVResult:
+                spread: float | None = SPREAD, sight: SightLines | None = None, *,
+                device_means: DeviceWindowMeans | None = None) -> PIVResult:
     """``field`` refined by the volumes' particles ``pa``, ``pb`` as they are (paired
     along ``field``; :func:`with_window_means`): the predictor of the pairing that the
     fit to the raw images follows, and the field of the windows it leaves without
@@ -803,9 +837,11 @@ def repredicted(field: PIVResult, pa: np.ndarray, pb: np.ndarray, min_pairs: int
     pairs = pair_peaks(pa, pb, field, search)
     if focus is not None and sight is not None:
         mean, error, _ = seen_means(pairs, field, focus, sight, field.w, min_pairs, search,
-                                    POSITION_SIGMA, spread, depth_support=1.0)
+                                    POSITION_SIGMA, spread, depth_support=1.0,
+                                    device_means=device_means)
     else:
-        mean, error, _ = window_means(pairs, field, min_pairs, search, focus, spread=spread)
+        mean, error, _ = window_means(pairs, field, min_pairs, search, focus, spread=spread,
+                                      device_means=device_means)
     return with_window_means(field, mean, error)[0]
 
 
@@ -834,7 +870,7 @@ def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
                sight: SightLines | None = None, fallback_w: np.ndarray | None = None,
                min_pairs: int = 3, search=SEARCH, position_sigma=POSITION_SIGMA,
                spread: float | None = SPREAD, depth_support: float = DEPTH_SUPPORT,
-               outliers: float | None = None
+               outliers: float | None = None, *, device_means: DeviceWindowMeans | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`window_means` with the depth seen by the camera: each window's depth from
     the pairs that see it in a box ``depth_support`` times the window
@@ -847,23 +883,25 @@ def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
     ``outliers`` combined scales from their neighbours
     (:func:`plenocl.piv.pairoutliers.neighbour_outliers` along these means; ``None``:
     none left out), and a window left with fewer than ``min_pairs`` pairs takes them
-    from a box :data:`SPARSE_SUPPORT` times its size (:func:`sparse_filled`)."""
+    from a box :data:`SPARSE_SUPPORT` times its size (:func:`sparse_filled`).
+    ``device_means``: where the window means run (:func:`window_means`)."""
     if sight is None:
         mean, error, count = window_means(pairs, field, min_pairs, search, focus,
-                                          position_sigma, spread)
+                                          position_sigma, spread, device_means=device_means)
         mean[2], error[2] = seen_depth(pairs, field, focus, mean[2], error[2], min_pairs,
-                                       search, position_sigma, spread, depth_support)
+                                       search, position_sigma, spread, depth_support,
+                                       device_means=device_means)
         return mean, error, count
     mean, error = np.full((2, 3, *field.u.shape), np.nan)  # lateral: the moved pairs'
     mean[2], error[2] = seen_depth(pairs, field, focus, None, None, min_pairs, search,
-                                   position_sigma, spread, depth_support)
+                                   position_sigma, spread, depth_support, device_means=device_means)
     known = np.isfinite(mean[2])
     depth = dataclasses.replace(field, w=np.where(known, mean[2], field.w if fallback_w is None
                                                   else fallback_w))
     pairs = (sight.unseen_along_sight(pairs, depth, focus) if depth_support == 1
              else sight.along_sight(pairs, depth))
     lateral, lateral_error, count = window_means(pairs, field, min_pairs, search, focus,
-                                                 position_sigma, spread)
+                                                 position_sigma, spread, device_means=device_means)
     if outliers is not None:
         trend = dataclasses.replace(depth, **{c: np.where(np.isfinite(lateral[n]), lateral[n],
                                                           getattr(field, c))
@@ -871,10 +909,11 @@ def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
         pairs = pairs.subset(~neighbour_outliers(pairs.midpoints, pairs.displacements,
                                                  pairs.sigma, trend, threshold=outliers))
         lateral, lateral_error, count = window_means(pairs, field, min_pairs, search, focus,
-                                                     position_sigma, spread)
+                                                     position_sigma, spread,
+                                                     device_means=device_means)
     lateral, lateral_error, count = sparse_filled(
         (lateral, lateral_error, count), known, pairs, field, min_pairs, search, focus,
-        position_sigma, spread)
+        position_sigma, spread, device_means=device_means)
     mean[:2], error[:2] = lateral[:2], lateral_error[:2]
     return mean, error, count
 
@@ -882,7 +921,8 @@ def seen_means(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
 def sparse_filled(means: tuple[np.ndarray, np.ndarray, np.ndarray], known: np.ndarray,
                   pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3,
                   search=SEARCH, focus: FocalZone | None = None,
-                  position_sigma=POSITION_SIGMA, spread: float | None = SPREAD
+                  position_sigma=POSITION_SIGMA, spread: float | None = SPREAD, *,
+                  device_means: DeviceWindowMeans | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``means`` (:func:`window_means`' mean, uncertainty and counts) with each window
     that has none but whose depth is ``known`` ``(nz, ny, nx)`` given the means of the
@@ -896,7 +936,7 @@ def sparse_filled(means: tuple[np.ndarray, np.ndarray, np.ndarray], known: np.nd
         return mean, error, count
     wide, wide_error, wide_count = window_means(pairs, field, min_pairs, search, focus,
                                                 position_sigma, spread, SPARSE_SUPPORT,
-                                                windows=empty)
+                                                windows=empty, device_means=device_means)
     fill = empty & np.isfinite(wide[0])
     return (np.where(fill, wide, mean), np.where(fill, wide_error, error),
             np.where(fill, wide_count, count))
@@ -906,7 +946,8 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
                w: np.ndarray | None, sigma_w: np.ndarray | None, min_pairs: int = 3,
                search=SEARCH,
                position_sigma=POSITION_SIGMA, spread: float | None = SPREAD,
-               support: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+               support: float = 1.0, *, device_means: DeviceWindowMeans | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The depth component of every window ``(nz, ny, nx)`` and its uncertainty from
     the pairs that see depth (:meth:`FocalZone.sees_depth`) alone.
 
@@ -925,14 +966,15 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
     blind = ~focus.sees_depth(field.z)[:, None, None]
     mean, error, _ = window_means(pairs.subset(seeing), field, min_pairs, search, focus,
                                   position_sigma, spread, support,
-                                  windows=np.broadcast_to(~blind, field.u.shape))
+                                  windows=np.broadcast_to(~blind, field.u.shape),
+                                  device_means=device_means)
     seen = np.where(blind, np.nan, mean[2])
     seen_sigma = np.where(blind, np.nan, error[2])
     fill, fill_sigma = _depth_interpolation(seen, seen_sigma, field.z)
     if w is None:  # wanted in the blind zone and where the seeing pairs are too few
         every, every_error, _ = window_means(pairs, field, min_pairs, search, focus,
                                              position_sigma, spread,
-                                             windows=~np.isfinite(seen))
+                                             windows=~np.isfinite(seen), device_means=device_means)
         w, sigma_w = every[2], every_error[2]
     filled = blind & np.isfinite(w) & np.isfinite(fill)
     out = np.where(np.isfinite(seen), seen, np.where(filled, fill, w))
@@ -969,7 +1011,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                           maxima: Callable | None = None,
                           spread: float | None = SPREAD, weighted: bool = True,
                           depth_support: float = DEPTH_SUPPORT,
-                          outliers: float | None = OUTLIER_THRESHOLD) -> PIVResult:
+                          outliers: float | None = OUTLIER_THRESHOLD, *,
+                          device_means: DeviceWindowMeans | None = None) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -993,7 +1036,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     of that evening stay). ``outliers``: with ``focus`` and ``sight``, the lateral
     means leave out the pairs this many combined scales from their neighbours
     (:func:`plenocl.piv.pairoutliers.neighbour_outliers`; ``None``: none, the
-    refinement before 2026-11-29 night).
+    refinement before 2026-11-29 night). ``device_means``: the window means on that device
+    (:class:`plenocl.piv.devicemeans.DeviceWindowMeans`; ``None``: on the host).
     """
     if spread is not None and not spread > 0:
         raise ValueError(f"refine_with_particles got spread={spread}: give a positive "
@@ -1009,17 +1053,19 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                          f"(OUTLIER_THRESHOLD = {OUTLIER_THRESHOLD:g}), or None to leave "
                          f"no pair out")
     pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
-    predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight)
+    predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight,
+                            device_means=device_means)
     pairs = pair_peaks(pa, pb, predictor, search, fit)
     if not weighted:
         pairs = pairs.alike()
     position = POSITION_SIGMA if fit is None else FITTED_POSITION_SIGMA
     if focus is None:
         mean, error, count = window_means(pairs, field, min_pairs, search, None, position,
-                                          spread)
+                                          spread, device_means=device_means)
     else:
         mean, error, count = seen_means(pairs, field, focus, sight, predictor.w, min_pairs,
-                                        search, position, spread, depth_support, outliers)
+                                        search, position, spread, depth_support, outliers,
+                                        device_means=device_means)
     refined, use = with_window_means(predictor, mean, error)
     log = {"refinement": "particles", "pairs": len(pairs.midpoints),
            "vectors": int(use.sum()), "outliers": int(np.count_nonzero(refined.outlier)),
