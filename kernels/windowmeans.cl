@@ -11,9 +11,10 @@
  *
  * Data. Pairs p: midpoints mid[3p..] and displacements disp[3p..] (x, y, z voxels), the
  * weights weight[3p..] (per component; used where `weighted`), and the focal zone's
- * systematic depth uncertainty amb[p] (used where `focus`). Windows are listed as a CSR
- * table: listed window k is the grid window win[k] (flat index into centres, 3 doubles
- * each), and its pairs are member[start[k] .. start[k + 1]), in pair order.
+ * systematic depth uncertainty amb[p] (used where `focus`). Windows are listed: listed
+ * window k is the grid window win[k] (flat index into centres, 3 doubles each), and its
+ * pairs (at least one) are member[start[k] .. stop[k]), in pair order; the lists come from
+ * box_counts and box_fill below.
  *
  * A window's pairs near their median (near_median): per component c the median m_c of
  * its displacements d, and with spread > 0 the reach min(search_c, max(spread x
@@ -35,6 +36,14 @@
  * and its uncertainty: the random part sqrt(spread / n_eff) t[n] (t: Student's quantile
  * for n kept pairs, from the host), the focal zone's mean ambiguity (depth), and the
  * position sigma carried through the gradient, added in quadrature; NaN elsewhere.
+ *
+ * box_counts, box_fill: the pairs within a box about each listed window's centre: the
+ * host gives, per pair, the windows whose box holds it along each axis as index ranges
+ * [x0, x1) (and the same in y and z), and buckets the pairs by the (z, y) row of
+ * windows they cover (bucket_start over nz * ny rows, bucket_pts in pair order); a window
+ * (kz, ky, kx) scans its row's bucket for the pairs with x0 <= kx < x1. box_counts counts
+ * them, the host sums the counts into each window's start, box_fill writes them (in pair
+ * order, as the host's box search lists them).
  *
  * Parallel structure: one work-item per listed window (thousands per call), each looping
  * over its own pairs; no atomics, no shared writes (each item writes its window's outputs
@@ -217,7 +226,7 @@ int pl_fit_component(__global const double *mid, __global const double *disp,
 __kernel void window_gradients(__global const double *mid, __global const double *disp,
                                __global const double *weight, int weighted,
                                __global const int *win, __global const int *start,
-                               __global const int *member, __global const double *centres,
+                               __global const int *stop, __global const int *member, __global const double *centres,
                                int listed, double3 search, double spread, double3 floor_,
                                int min_keep, double well_posed, __global double *scratch,
                                __global double *grad, __global int *status)
@@ -225,7 +234,7 @@ __kernel void window_gradients(__global const double *mid, __global const double
     const int k = get_global_id(0);
     if (k >= listed)
         return;
-    const int w = win[k], s = start[k], n = start[k + 1] - s;
+    const int w = win[k], s = start[k], n = stop[k] - s;
     const double cen[3] = {centres[3 * w], centres[3 * w + 1], centres[3 * w + 2]};
     const double zero[9] = {0};
     double median[3], reach[3], g[9] = {0};
@@ -248,8 +257,8 @@ __kernel void window_estimates(__global const double *mid, __global const double
                                __global const double *weight, int weighted,
                                __global const double *amb, int focus,
                                __global const int *win, __global const int *start,
-                               __global const int *member, __global const double *centres,
-                               __global const double *grad, int listed, double3 search,
+                               __global const int *stop, __global const int *member,
+                               __global const double *centres, __global const double *grad, int listed, double3 search,
                                double spread, double3 floor_, int min_count,
                                __global const double *t, double3 position_sigma,
                                __global double *scratch, __global int *count,
@@ -258,7 +267,7 @@ __kernel void window_estimates(__global const double *mid, __global const double
     const int k = get_global_id(0);
     if (k >= listed)
         return;
-    const int w = win[k], s = start[k], n = start[k + 1] - s;
+    const int w = win[k], s = start[k], n = stop[k] - s;
     __global const int *mem = member + s;
     const double cen[3] = {centres[3 * w], centres[3 * w + 1], centres[3 * w + 2]};
     double g[9];
@@ -305,5 +314,38 @@ __kernel void window_estimates(__global const double *mid, __global const double
         mean[3 * w + c] = use ? mu : NAN;
         error[3 * w + c] = use ? sqrt(random * random + systematic * systematic
                                       + position * position) : NAN;
+    }
+}
+
+__kernel void box_counts(__global const int *bucket_start, __global const int *bucket_pts,
+                         __global const int *x0, __global const int *x1,
+                         __global const int *win, int listed, int nx, __global int *count)
+{
+    const int k = get_global_id(0);
+    if (k >= listed)
+        return;
+    const int kx = win[k] % nx, row = win[k] / nx;
+    int n = 0;
+    for (int i = bucket_start[row]; i < bucket_start[row + 1]; ++i) {
+        const int p = bucket_pts[i];
+        n += x0[p] <= kx && kx < x1[p];
+    }
+    count[k] = n;
+}
+
+__kernel void box_fill(__global const int *bucket_start, __global const int *bucket_pts,
+                       __global const int *x0, __global const int *x1,
+                       __global const int *win, int listed, int nx,
+                       __global const int *start, __global int *member)
+{
+    const int k = get_global_id(0);
+    if (k >= listed)
+        return;
+    const int kx = win[k] % nx, row = win[k] / nx;
+    int j = start[k];
+    for (int i = bucket_start[row]; i < bucket_start[row + 1]; ++i) {
+        const int p = bucket_pts[i];
+        if (x0[p] <= kx && kx < x1[p])
+            member[j++] = p;
     }
 }

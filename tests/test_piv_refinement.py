@@ -7,11 +7,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from plenocl import Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.piv import PIVResult
-from plenocl.piv.devicemeans import ILL_POSED, DeviceWindowMeans, WindowLists
+from plenocl.piv.devicemeans import ILL_POSED, DeviceWindowMeans
 from plenocl.piv.refinement import (
     FITTED_POSITION_SIGMA,
     FOCAL_SYSTEMATIC,
@@ -348,14 +349,45 @@ def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted)
         for a, b in zip(got[:2], want[:2]):
             np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
-    if case in ("plane", "line"):
-        centres = np.stack(np.meshgrid(field.x, field.y, field.z, indexing="ij"), -1)
-        every = np.arange(len(pairs.midpoints))
-        lists = WindowLists.of(np.zeros(len(every), int), every, 1)
+    if case in ("plane", "line"):  # all pairs in one window: a flat scatter
+        every = len(pairs.midpoints)
+        one = (np.zeros(every, int), np.ones(every, int))
+        lists, _ = device.box_lists([one, one, one], (1, 1, 1), np.ones(1, bool))
         dev = device.pairs(pairs.midpoints, pairs.displacements, None, None)
-        _, status = device.gradients(dev, lists, centres.reshape(-1, 3)[:1], (99.0,) * 3,
+        _, status = device.gradients(dev, lists, np.full((1, 3), 15.0), (99.0,) * 3,
                                      None, (0.1, 0.1, 0.3), 12, 1e-4)
         assert status[0] == ILL_POSED
+
+
+@pytest.mark.parametrize("count, radius", [(0, 1.0), (1, 1.0), (57, 1.0), (400, 2.0)])
+def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius):
+    """Each wanted window's pairs from the device's box search (the host's per-axis index
+    ranges, the pairs bucketed by row of windows) are the pairs a k-d tree finds within
+    ``radius`` of its centre per axis, in pair order; the windows not wanted list none."""
+    rng = np.random.default_rng(count)
+    field = grid_field()
+    half = np.asarray(field.window[::-1], float) / 2
+    points = rng.uniform(-2.0, [32.0, 28.0, 24.0], (count, 3)) / half
+    if count:
+        points[0] = np.array([field.x[2], field.y[1], field.z[0]]) / half + radius  # a face
+    axes = [c / h for c, h in zip((field.x, field.y, field.z), half)]
+    ranges = []  # per axis, each point's run of centres within the radius
+    for a in range(3):
+        near = np.abs(points[:, a, None] - axes[a][None]) <= radius
+        first = near.argmax(axis=1)
+        ranges.append((first, first + np.count_nonzero(near, axis=1)))
+    wanted = rng.random(field.u.size) < 0.6
+    lists, held = DeviceWindowMeans(queue).box_lists(ranges, field.u.shape, wanted)
+    z, y, x = np.meshgrid(*axes[::-1], indexing="ij")
+    centres = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    truth = (cKDTree(points).query_ball_point(centres, radius, p=np.inf) if count
+             else [[] for _ in centres])
+    got = dict(zip(lists.win.tolist(), (lists.members(k) for k in range(len(lists.win)))))
+    for w, inside in enumerate(truth):
+        want = sorted(inside) if wanted[w] else []
+        assert held[w] == len(want)
+        np.testing.assert_array_equal(got.get(w, []), want)
+    assert held[wanted].sum() == lists.stop[-1] if len(lists.win) else not held.any()
 
 
 @pytest.mark.parametrize("wrong", ["transposed", "flat", "integers"])

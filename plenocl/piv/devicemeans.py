@@ -5,8 +5,10 @@ docs/design.md §7.1, §7.5).
 :func:`plenocl.piv.refinement.window_means` (each window's local gradient from the pairs
 of its doubled box, then the mean of its own pairs moved to its centre along it, and the
 mean's uncertainty) with one work-item per window, in double precision, so that the pairs
-each window keeps and its results are the host's to rounding. The host lists each
-window's pairs (``refinement``'s box search) and fits the rare gradients whose pairs
+each window keeps and its results are the host's to rounding; and the search for the
+pairs each window's box holds (:meth:`DeviceWindowMeans.box_lists`), so that their lists
+stay on the device. The host gives each pair's window index ranges per axis and buckets
+the pairs by row of windows (:func:`row_buckets`), and fits the rare gradients whose pairs
 scatter too flatly for the normal equations (``np.linalg.lstsq``, as its own path does).
 Devices without ``cl_khr_fp64`` keep the host path (:meth:`DeviceWindowMeans.supports`).
 """
@@ -23,7 +25,7 @@ from ..opencl.device import DeviceInfo
 from ..opencl.program import KernelSet
 from .pairoutliers import MAD_SIGMA
 
-__all__ = ["DeviceWindowMeans", "PairsOnDevice", "WindowLists"]
+__all__ = ["DeviceWindowMeans", "PairsOnDevice", "WindowLists", "row_buckets"]
 
 i32, f64 = np.int32, np.float64
 #: Status of a window's gradient (``window_gradients``): fitted; too flat for the normal
@@ -45,20 +47,42 @@ class PairsOnDevice:
 
 @dataclass(frozen=True)
 class WindowLists:
-    """Windows' pairs as a CSR table on the host: listed window ``k`` is grid window
-    ``win[k]``, its pairs ``member[start[k]:start[k + 1]]``."""
+    """Windows' pairs, the pair indices on the device: listed window ``k`` is grid window
+    ``win[k]``, its pairs ``member[start[k]:stop[k]]`` (at least one), in pair order."""
 
     win: np.ndarray
     start: np.ndarray
-    member: np.ndarray
+    stop: np.ndarray
+    member: cl_array.Array
 
-    @classmethod
-    def of(cls, window: np.ndarray, member: np.ndarray, size: int) -> WindowLists:
-        """From flat (window, pair) entries sorted by ``window`` over ``size`` windows."""
-        counts = np.bincount(window, minlength=size)
-        win = np.flatnonzero(counts)
-        start = np.concatenate([[0], np.cumsum(counts[win])])
-        return cls(win.astype(i32), start.astype(i32), np.asarray(member, i32))
+    def where(self, keep: np.ndarray) -> WindowLists:
+        """The listed windows ``keep`` (a boolean per listed window) alone."""
+        return WindowLists(self.win[keep], self.start[keep], self.stop[keep], self.member)
+
+    def members(self, k: int) -> np.ndarray:
+        """Listed window ``k``'s pairs, on the host."""
+        return self.member[int(self.start[k]):int(self.stop[k])].get()
+
+    def largest(self) -> int:
+        """The most pairs a listed window holds (0: none listed)."""
+        return int((self.stop - self.start).max(initial=0))
+
+
+def row_buckets(z: tuple[np.ndarray, np.ndarray], y: tuple[np.ndarray, np.ndarray],
+                nz: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs by the ``(z, y)`` rows of windows whose boxes hold them: each pair's
+    window index ranges ``[z0, z1)`` and ``[y0, y1)``; a CSR table over the ``nz * ny``
+    rows, ``start`` ``(nz * ny + 1,)`` and the pairs (ascending within a row), int32."""
+    (z0, z1), (y0, y1) = z, y
+    zr, yr = np.maximum(z1 - z0, 0), np.maximum(y1 - y0, 0)
+    per = zr * yr
+    pair = np.repeat(np.arange(len(per)), per)
+    k = np.arange(len(pair)) - np.repeat(np.cumsum(per) - per, per)
+    rows = np.maximum(yr, 1)[pair]
+    key = (z0[pair] + k // rows) * ny + y0[pair] + k % rows
+    order = np.argsort(key, kind="stable")
+    start = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=nz * ny))])
+    return start.astype(i32), pair[order].astype(i32)
 
 
 def _scale(spread: float | None) -> np.float64:
@@ -86,8 +110,8 @@ class DeviceWindowMeans:
         if not self.supports(queue):
             raise ValueError(f"{queue.device.name.strip()} has no double precision "
                              "(cl_khr_fp64): keep the window means on the host (means=None)")
-        self._k = KernelSet(queue, "windowmeans.cl", ["window_gradients", "window_estimates"],
-                            looping=["window_gradients", "window_estimates"])
+        names = ["window_gradients", "window_estimates", "box_counts", "box_fill"]
+        self._k = KernelSet(queue, "windowmeans.cl", names, looping=names)
 
     @staticmethod
     def supports(queue: cl.CommandQueue) -> bool:
@@ -98,6 +122,35 @@ class DeviceWindowMeans:
     def queue(self) -> cl.CommandQueue:
         """The device's queue."""
         return self._k.queue
+
+    def box_lists(self, ranges, shape: tuple[int, int, int], wanted: np.ndarray
+                  ) -> tuple[WindowLists, np.ndarray]:
+        """The pairs each ``wanted`` window's box holds (a boolean per window of the
+        ``(nz, ny, nx)`` grid, flat), from each pair's window index ranges ``ranges``
+        (``[(x0, x1), (y0, y1), (z0, z1)]``, each ``(P,)``): the windows with any, and the
+        count of every window ``(W,)`` (0 where not wanted)."""
+        nz, ny, nx = shape
+        (x0, x1), y, z = ranges
+        start, pts = row_buckets(z, y, nz, ny)
+        tables = [self._k.to_device(np.asarray(a, i32)) for a in (start, pts, x0, x1)]
+        if not len(pts):  # an empty buffer cannot be made
+            tables[1] = self._k.to_device(np.zeros(1, i32))
+        listed = np.flatnonzero(wanted).astype(i32)
+        count = np.zeros(nz * ny * nx, int)
+        if len(listed) and len(pts):
+            counts = self._k.array(len(listed), i32)
+            win = self._k.to_device(listed)
+            self._k.launch("box_counts", (len(listed),), *tables, win, i32(len(listed)),
+                           i32(nx), counts)
+            count[listed] = counts.get()
+        win = np.flatnonzero(count).astype(i32)
+        stop = np.cumsum(count[win]).astype(i32)
+        first = (stop - count[win]).astype(i32)
+        member = self._k.array(max(int(stop[-1]) if len(stop) else 0, 1), i32)
+        if len(win):
+            self._k.launch("box_fill", (len(win),), *tables, self._k.to_device(win),
+                           i32(len(win)), i32(nx), self._k.to_device(first), member)
+        return WindowLists(win, first, stop, member), count
 
     def pairs(self, mid: np.ndarray, disp: np.ndarray, weight: np.ndarray | None,
               amb: np.ndarray | None) -> PairsOnDevice:
@@ -117,7 +170,7 @@ class DeviceWindowMeans:
         if len(lists.win):
             self._launch("window_gradients", pairs, False, lists, centres,
                          _triple(search), _scale(spread), _triple(floor), i32(min_keep),
-                         f64(well_posed), self._k.array(len(lists.member), f64), grad,
+                         f64(well_posed), self._k.array(lists.member.size, f64), grad,
                          status)
         out = np.zeros((size, 3, 3))
         listed = lists.win
@@ -138,7 +191,7 @@ class DeviceWindowMeans:
             self._launch("window_estimates", pairs, True, lists, centres,
                          self._upload(grad.reshape(-1)), _triple(search), _scale(spread),
                          _triple(floor), i32(min_count), self._upload(t),
-                         _triple(position_sigma), self._k.array(len(lists.member), f64),
+                         _triple(position_sigma), self._k.array(lists.member.size, f64),
                          count, mean, error)
         return (count.get().astype(int), mean.get().reshape(size, 3),
                 error.get().reshape(size, 3))
@@ -152,8 +205,8 @@ class DeviceWindowMeans:
                 i32(pairs.weight is not None)]
         if with_amb:
             head += [dummy if pairs.amb is None else pairs.amb, i32(pairs.amb is not None)]
-        tables = [self._k.to_device(a) for a in (lists.win, lists.start, lists.member)]
-        head += [*tables, self._upload(centres.reshape(-1))]
+        tables = [self._k.to_device(a) for a in (lists.win, lists.start, lists.stop)]
+        head += [*tables, lists.member, self._upload(centres.reshape(-1))]
         listed = i32(len(lists.win))
         args = ([*head, rest[0], listed, *rest[1:]] if with_amb else [*head, listed, *rest])
         self._k.launch(name, (len(lists.win),), *args)

@@ -580,20 +580,24 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     centre_axes = (field.x, field.y, field.z)
     centres = _grid_centres(field)
     axes = [c / b for c, b in zip(centre_axes, box)]
-    win, member = _box_members(points, axes, 1.0,
-                               None if windows is None else windows.reshape(-1))
-    busy = np.bincount(win, minlength=count.size) >= min_pairs
-    near_win, near = _box_members(points, axes, 2.0, busy)
-    inside = busy[win]
+    wanted = None if windows is None else windows.reshape(-1)
     if device_means is None:
+        win, member = _box_members(points, axes, 1.0, wanted)
+        busy = np.bincount(win, minlength=count.size) >= min_pairs
+        near_win, near = _box_members(points, axes, 2.0, busy)
+        inside = busy[win]
         grad = _local_gradients(pairs, near_win, near, centres, search, spread)
         n, m, e = _window_estimates(pairs, win[inside], member[inside], centres, grad,
                                     min_pairs, search, focus, position_sigma, spread)
     else:
-        n, m, e = _device_estimates(
-            device_means, pairs, WindowLists.of(near_win, near, count.size),
-            WindowLists.of(win[inside], member[inside], count.size), centres, min_pairs,
-            search, focus, position_sigma, spread)
+        ranges = [[_axis_range(points[:, a], axes[a], r) for a in range(3)] for r in (1, 2)]
+        own, held = device_means.box_lists(
+            ranges[0], shape, np.ones(count.size, bool) if wanted is None else wanted)
+        busy = held >= min_pairs
+        near, _ = device_means.box_lists(ranges[1], shape, busy)
+        n, m, e = _device_estimates(device_means, pairs, near, own.where(busy[own.win]),
+                                    centres, min_pairs, search, focus, position_sigma,
+                                    spread)
     count.reshape(-1)[busy] = n[busy]
     use = busy & (n >= max(min_pairs, 1))
     mean.reshape(3, -1)[:, use], error.reshape(3, -1)[:, use] = m[use].T, e[use].T
@@ -614,10 +618,8 @@ def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: Wind
                                    GRADIENT_PAIRS, WELL_POSED)
     for k in np.flatnonzero(status[near.win] == ILL_POSED):
         w = near.win[k]
-        grad[w] = local_gradient(pairs, near.member[near.start[k]:near.start[k + 1]],
-                                 centres[w], search, spread)
-    largest = int(np.diff(inside.start).max(initial=0))
-    t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, largest + 1)])
+        grad[w] = local_gradient(pairs, near.members(k), centres[w], search, spread)
+    t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, inside.largest() + 1)])
     return means.estimates(dev, inside, centres, grad, search, spread, KEEP_FLOOR,
                            max(min_pairs, 1), t, position_sigma)
 
