@@ -21,8 +21,9 @@ grows with the pairs per doubled window (medians of 3): 1,500 pairs 1.56 against
 
 With a device that has double precision, also ``window_means(..., device_means=...)``
 (``kernels/windowmeans.cl``). Measured 2026-11-30 (2 cores, alone, medians of 5, seed 1):
-loop 4.68 s, batched 0.68 s, device 0.23 s under Intel's CPU runtime (PoCL: 4.22, 0.68,
-0.31 s); the device's largest differences from the loop 3.6e-15 voxel in the means,
+loop 3.23 s, batched 0.59 s, device 0.14 s under Intel's CPU runtime (PoCL: 3.23, 0.60,
+0.19 s; 0.23 and 0.31 s before the boxes' search moved to the device, with the loop at
+4.7 s); the device's largest differences from the loop 3.6e-15 voxel in the means,
 7.8e-16 in the uncertainties, the same counts and refined windows.
 """
 
