@@ -17,9 +17,9 @@
  * box_counts and box_fill below.
  *
  * A window's pairs near their median (near_median): per component c the median m_c of
- * its displacements d, and with spread > 0 the reach min(search_c, max(spread x
+ * its displacements d, and with spread >= 0 the reach min(search_c, max(spread x
  * median |d - m_c|, floor_c)) (spread: the robust rule's standard deviations times the
- * MAD's 1.4826, from the host), else search_c; a pair is kept where
+ * MAD's 1.4826, from the host; negative: no robust rule), else search_c; a pair is kept where
  * |d_c - m_c| <= reach_c for every c. Medians by selection on the window's own slice of
  * `scratch` (one double per member, at start[k]); an even count takes the mean of the two
  * middle values as NumPy does.
@@ -125,7 +125,7 @@ void pl_near_median(__global const double *mid, __global const double *disp,
             scratch[i] = pl_moved(mid, disp, member[i], c, cen, g, moved);
         median[c] = pl_median(scratch, n);
         reach[c] = s[c];
-        if (spread > 0.0) {
+        if (spread >= 0.0) {
             for (int i = 0; i < n; ++i)
                 scratch[i] = fabs(pl_moved(mid, disp, member[i], c, cen, g, moved) - median[c]);
             reach[c] = fmin(s[c], fmax(spread * pl_median(scratch, n), f[c]));

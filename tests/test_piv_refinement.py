@@ -359,6 +359,22 @@ def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted)
         assert status[0] == ILL_POSED
 
 
+def test_window_means_on_the_device_take_the_hosts_scalars_and_zero_spread(queue):
+    """A scalar search range or position sigma stands for all three components, and a
+    spread of 0 is a reach of the floor (KEEP_FLOOR), on the device as on the host."""
+    rng = np.random.default_rng(21)
+    pairs, field = awkward_pairs("outliers", rng), grid_field()
+    device = DeviceWindowMeans(queue)
+    for kw in [dict(search=2.0, position_sigma=0.5), dict(spread=0.0)]:
+        want = window_means(pairs, field, 3, **kw)
+        got = window_means(pairs, field, 3, **kw, device_means=device)
+        np.testing.assert_array_equal(got[2], want[2])
+        np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-12)
+    floor = window_means(pairs, field, 3, spread=0.0)[2]
+    assert (floor < window_means(pairs, field, 3, spread=None)[2]).any()
+
+
 @pytest.mark.parametrize("count, radius", [(0, 1.0), (1, 1.0), (57, 1.0), (400, 2.0)])
 def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius):
     """Each wanted window's pairs from the device's box search (the host's per-axis index

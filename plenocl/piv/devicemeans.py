@@ -87,13 +87,15 @@ def row_buckets(z: tuple[np.ndarray, np.ndarray], y: tuple[np.ndarray, np.ndarra
 
 def _scale(spread: float | None) -> np.float64:
     """The kernels' ``spread``: the robust rule's standard deviations times
-    :data:`plenocl.piv.pairoutliers.MAD_SIGMA` (0: the search range alone)."""
-    return f64(0.0 if spread is None else spread * MAD_SIGMA)
+    :data:`plenocl.piv.pairoutliers.MAD_SIGMA` (-1: none, the search range alone; 0 is
+    a reach of the floor, as on the host)."""
+    return f64(-1.0 if spread is None else spread * MAD_SIGMA)
 
 
 def _triple(values) -> np.ndarray:
-    """Three numbers as an OpenCL ``double3`` argument."""
-    return cl.cltypes.make_double3(*(float(v) for v in values))
+    """Three numbers (or one for all three, as NumPy broadcasts it) as an OpenCL
+    ``double3`` argument."""
+    return cl.cltypes.make_double3(*np.broadcast_to(np.asarray(values, float), 3).tolist())
 
 
 class DeviceWindowMeans:
