@@ -8,12 +8,14 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pyopencl.array as cl_array
 import pytest
 
 from plenocl import Camera, Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.optics.sightline import line_of_sight, sight_frames, sight_information
 from plenocl.peaks import find_particles, merge_along_lines
+from plenocl.piv.devicepeaks import DeviceMaxima
 from plenocl.piv.refinement import (
     DEPTH_BLIND,
     FocalZone,
@@ -25,6 +27,7 @@ from plenocl.piv.refinement import (
     repredicted,
     seen_depth,
     seen_means,
+    volume_particles,
     window_means,
 )
 from plenocl.piv.tube import DeviceTubeSums, host_tube_sums
@@ -133,6 +136,26 @@ def test_the_tube_sums_on_the_device_are_scipys(queue, group):
     peaks, _ = find_particles(ridge, 0.1)
     on_device = dataclasses.replace(sight, sums=device)
     assert np.abs(on_device.centres(ridge, peaks) - sight.centres(ridge, peaks)).max() < 1e-4
+
+
+def test_a_volumes_particles_on_one_device_upload_it_once(queue, monkeypatch):
+    """With the local maxima and the tube sums on one device, volume_particles sends the
+    volume there once (each would send it: the sums once per centring pass) and finds
+    the same particles as with separate copies and as the host."""
+    ridge = sum(tilted_ridge(OFF_AXIS, np.array(c), 0.35, 0.1)
+                for c in ([20.0, 12.0, 0.3], [18.8, 10.8, -1.5], [21.2, 13.2, 1.8]))
+    host = volume_particles(ridge, sight=SightLines.of(CAMERA, OFF_AXIS))
+    sight, maxima = SightLines.of(CAMERA, OFF_AXIS, queue), DeviceMaxima(queue)
+    uploads = []
+    real = cl_array.to_device
+    monkeypatch.setattr(cl_array, "to_device", lambda q, a, *args, **kw: (
+        uploads.append(a.shape), real(q, a, *args, **kw))[1])
+    shared = volume_particles(ridge, sight=sight, maxima=maxima)
+    assert uploads.count(ridge.shape) == 1 and len(host) == 3
+    separate = volume_particles(ridge, sight=dataclasses.replace(sight, sums=None),
+                                maxima=maxima)
+    np.testing.assert_allclose(shared, host, atol=1e-4)
+    np.testing.assert_allclose(separate, host, atol=1e-4)
 
 
 def test_the_index_jacobian_moves_points_as_to_index_does():

@@ -51,6 +51,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pyopencl.array as cl_array
 from scipy import stats
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
@@ -261,14 +262,36 @@ def volume_particles(vol: np.ndarray, threshold: float = 0.1,
     ``sight``, the peaks along one line of sight merged (:meth:`SightLines.merge`) and
     centred on their ridge (:meth:`SightLines.centres`). ``maxima``: where the local
     maxima are found (:func:`plenocl.peaks.find_particles`' ``maxima``; ``None``: the
-    host)."""
+    host). Where both run on one device, the volume goes to it once
+    (:func:`shared_upload`)."""
+    shared = shared_upload(vol, maxima, sight)
+    if shared is not None:
+        maxima = _maxima_on(maxima, shared)
     peaks, values = find_particles(vol, threshold, reference="robust", maxima=maxima)
     if sight is None:
         return peaks
     peaks = sight.merge(peaks, values)[0]
     for _ in range(CENTRE_PASSES):
-        peaks = sight.centres(vol, peaks)
+        peaks = sight.centres(vol if shared is None else shared, peaks)
     return peaks
+
+
+def _maxima_on(maxima: Callable, shared: cl_array.Array) -> Callable:
+    """``maxima`` run on the device copy ``shared``, whatever volume it is given."""
+    return lambda _vol, floor, reach: maxima(shared, floor, reach)
+
+
+def shared_upload(vol: np.ndarray, maxima, sight: SightLines | None
+                  ) -> cl_array.Array | None:
+    """One float32 device copy of ``vol`` for both the local maxima and the tube sums
+    of :func:`volume_particles`, where both run on one device (``maxima`` and
+    ``sight.sums`` with a ``queue`` of one context; each would upload it, the sums once
+    per centring pass); ``None`` otherwise."""
+    queues = [getattr(maxima, "queue", None),
+              None if sight is None else getattr(sight.sums, "queue", None)]
+    if any(q is None for q in queues) or queues[0].context != queues[1].context:
+        return None
+    return cl_array.to_device(queues[0], np.ascontiguousarray(vol, np.float32))
 
 
 def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH
@@ -461,7 +484,8 @@ class SightLines:
 
     def centres(self, vol: np.ndarray, peaks: np.ndarray) -> np.ndarray:
         """The particles ``peaks`` ``(N, 3)`` ``(x, y, z)`` voxels moved along their lines
-        of sight to the intensity centroid of ``vol`` in a tube around each line
+        of sight to the intensity centroid of ``vol`` (a host array, or a float32 device
+        array on the tube sums' queue) in a tube around each line
         (:data:`TUBE_RADIUS` lateral voxels, as long as the camera's depth resolution each
         way; trilinear samples every half voxel across and :data:`TUBE_STEPS` per resolution
         along).

@@ -12,6 +12,7 @@ samples, 3)`` array of coordinates on the host.
 from __future__ import annotations
 
 import numpy as np
+import pyopencl.array as cl_array
 from scipy import ndimage
 
 from ..opencl.program import KernelSet, group_size
@@ -57,17 +58,24 @@ class DeviceTubeSums:
         self._k = KernelSet(queue, "sightline.cl", ["tube_sums"], [f"-DPL_GROUP={self.group}"],
                             looping=["tube_sums"])
 
+    @property
+    def queue(self):
+        """The device's queue."""
+        return self._k.queue
+
     def __call__(self, vol: np.ndarray, centre: np.ndarray, frames: np.ndarray,
                  local: np.ndarray) -> np.ndarray:
-        """As :func:`host_tube_sums` (float32 sums, as float64)."""
+        """As :func:`host_tube_sums` (float32 sums, as float64); ``vol`` a host array or
+        a float32 device array on this queue (uploaded once for several calls)."""
         n = len(centre)
         if not n:
             return np.zeros((0, 2))
-        vol = np.asarray(vol, np.float32)
+        if not isinstance(vol, cl_array.Array):
+            vol = self._k.to_device(np.asarray(vol, np.float32))
         nz, ny, nx = vol.shape
         out = self._k.array(2 * n)
-        dev = [self._k.to_device(np.asarray(a, np.float32))
-               for a in (vol, centre, frames, local)]
+        dev = [vol] + [self._k.to_device(np.asarray(a, np.float32))
+                       for a in (centre, frames, local)]
         self._k.launch("tube_sums", (n * self.group,), dev[0], np.int32(nz), np.int32(ny),
                        np.int32(nx), *dev[1:], np.int32(len(local)), out,
                        local_size=(self.group,))
