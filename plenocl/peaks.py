@@ -187,7 +187,8 @@ def merge_along_lines(points: np.ndarray, values: np.ndarray, directions: np.nda
         near = near[keep[near]]
         if len(near):
             group = np.append(near, i)
-            out[i] = np.average(pts[group], axis=0, weights=w[group])
+            weight = w[group, None]  # np.average's sums, without its per-call checks
+            out[i] = (pts[group] * weight).sum(axis=0) / weight.sum(axis=0)
             keep[near] = False
     return keep, out
 
