@@ -22,7 +22,8 @@
  * MAD's 1.4826, from the host; negative: no robust rule), else search_c; a pair is kept where
  * |d_c - m_c| <= reach_c for every c. Medians by selection on the window's own slice of
  * `scratch` (one double per member, at start[k]); an even count takes the mean of the two
- * middle values as NumPy does.
+ * middle values as NumPy does; once they are taken, the slice holds each pair's keep flag
+ * (1 or 0), so the fits and sums below test it instead of the medians again.
  *
  * window_gradients: the gradient (3 x 3, component by axis) of the kept displacements over
  * the offsets from the window's centre, each component by least squares weighted by
@@ -177,18 +178,17 @@ void pl_solve3(const double *m, const double *b, double *x)
     x[2] = (m[0] * (m[4] * b[2] - b[1] * m[7]) + m[1] * (b[1] * m[6] - m[3] * b[2]) + b[0] * c2) / det;
 }
 
-/* One component c of the weighted gradient fit of window `members` (the kept ones):
- * g_row (3) and whether the scatter is well posed. */
+/* One component c of the weighted gradient fit of window `members`, the pairs whose
+ * `keep` flag is set: g_row (3) and whether the scatter is well posed. */
 int pl_fit_component(__global const double *mid, __global const double *disp,
                      __global const double *weight, int weighted, __global const int *member,
-                     int n, const double *cen, const double *median, const double *reach,
-                     int c, double well_posed, double *g_row)
+                     __global const double *keep, int n, const double *cen, int c,
+                     double well_posed, double *g_row)
 {
-    const double zero[9] = {0};
     double total = 0.0, xm[3] = {0}, ym = 0.0;
     for (int i = 0; i < n; ++i) {
         const int p = member[i];
-        if (!pl_kept(mid, disp, p, cen, zero, 0, median, reach))
+        if (keep[i] == 0.0)
             continue;
         const double w = weighted ? weight[3 * p + c] : 1.0;
         total += w;
@@ -202,7 +202,7 @@ int pl_fit_component(__global const double *mid, __global const double *disp,
     double m[9] = {0}, b[3] = {0};
     for (int i = 0; i < n; ++i) {
         const int p = member[i];
-        if (!pl_kept(mid, disp, p, cen, zero, 0, median, reach))
+        if (keep[i] == 0.0)
             continue;
         const double w = weighted ? weight[3 * p + c] : 1.0;
         double x[3];
@@ -226,8 +226,9 @@ int pl_fit_component(__global const double *mid, __global const double *disp,
 __kernel void window_gradients(__global const double *mid, __global const double *disp,
                                __global const double *weight, int weighted,
                                __global const int *win, __global const int *start,
-                               __global const int *stop, __global const int *member, __global const double *centres,
-                               int listed, double3 search, double spread, double3 floor_,
+                               __global const int *stop, __global const int *member,
+                               __global const double *centres, int listed, double3 search,
+                               double spread, double3 floor_,
                                int min_keep, double well_posed, __global double *scratch,
                                __global double *grad, __global int *status)
 {
@@ -241,11 +242,14 @@ __kernel void window_gradients(__global const double *mid, __global const double
     pl_near_median(mid, disp, member + s, n, cen, zero, 0, scratch + s, search, spread,
                    floor_, median, reach);
     int kept = 0;
-    for (int i = 0; i < n; ++i)
-        kept += pl_kept(mid, disp, member[s + i], cen, zero, 0, median, reach);
+    for (int i = 0; i < n; ++i) {  /* the medians done, scratch holds the keep flags */
+        const int keep = pl_kept(mid, disp, member[s + i], cen, zero, 0, median, reach);
+        scratch[s + i] = keep;
+        kept += keep;
+    }
     int state = kept >= min_keep;
     for (int c = 0; c < 3 && state == 1; ++c)
-        if (!pl_fit_component(mid, disp, weight, weighted, member + s, n, cen, median, reach,
+        if (!pl_fit_component(mid, disp, weight, weighted, member + s, scratch + s, n, cen,
                               c, well_posed, g + 3 * c))
             state = 2;
     for (int e = 0; e < 9; ++e)
@@ -258,8 +262,9 @@ __kernel void window_estimates(__global const double *mid, __global const double
                                __global const double *amb, int focus,
                                __global const int *win, __global const int *start,
                                __global const int *stop, __global const int *member,
-                               __global const double *centres, __global const double *grad, int listed, double3 search,
-                               double spread, double3 floor_, int min_count,
+                               __global const double *centres, int listed,
+                               __global const double *grad, double3 search, double spread,
+                               double3 floor_, int min_count,
                                __global const double *t, double3 position_sigma,
                                __global double *scratch, __global int *count,
                                __global double *mean, __global double *error)
@@ -276,19 +281,22 @@ __kernel void window_estimates(__global const double *mid, __global const double
     double median[3], reach[3];
     pl_near_median(mid, disp, mem, n, cen, g, 1, scratch + s, search, spread, floor_,
                    median, reach);
+    __global double *keep = scratch + s;  /* the medians done: the keep flags */
     int kept = 0;
     double ambiguity = 0.0;
-    for (int i = 0; i < n; ++i)
-        if (pl_kept(mid, disp, mem[i], cen, g, 1, median, reach)) {
+    for (int i = 0; i < n; ++i) {
+        keep[i] = pl_kept(mid, disp, mem[i], cen, g, 1, median, reach);
+        if (keep[i] != 0.0) {
             ++kept;
             ambiguity += focus ? amb[mem[i]] : 0.0;
         }
+    }
     count[w] = kept;
     const double ps[3] = {position_sigma.x, position_sigma.y, position_sigma.z};
     for (int c = 0; c < 3; ++c) {
         double total = 0.0, total2 = 0.0, sum = 0.0;
         for (int i = 0; i < n; ++i)
-            if (pl_kept(mid, disp, mem[i], cen, g, 1, median, reach)) {
+            if (keep[i] != 0.0) {
                 const double wt = weighted ? weight[3 * mem[i] + c] : 1.0;
                 total += wt;
                 total2 += wt * wt;
@@ -297,7 +305,7 @@ __kernel void window_estimates(__global const double *mid, __global const double
         const double mu = sum / total;
         double dev = 0.0;
         for (int i = 0; i < n; ++i)
-            if (pl_kept(mid, disp, mem[i], cen, g, 1, median, reach)) {
+            if (keep[i] != 0.0) {
                 const double wt = weighted ? weight[3 * mem[i] + c] : 1.0;
                 const double r = pl_moved(mid, disp, mem[i], c, cen, g, 1) - mu;
                 dev += wt * r * r;

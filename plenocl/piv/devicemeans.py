@@ -111,7 +111,8 @@ class DeviceWindowMeans:
     def __init__(self, queue: cl.CommandQueue) -> None:
         if not self.supports(queue):
             raise ValueError(f"{queue.device.name.strip()} has no double precision "
-                             "(cl_khr_fp64): keep the window means on the host (means=None)")
+                             "(cl_khr_fp64): keep the window means on the host "
+                             "(device_means=None)")
         names = ["window_gradients", "window_estimates", "box_counts", "box_fill"]
         self._k = KernelSet(queue, "windowmeans.cl", names, looping=names)
 
@@ -134,12 +135,11 @@ class DeviceWindowMeans:
         nz, ny, nx = shape
         (x0, x1), y, z = ranges
         start, pts = row_buckets(z, y, nz, ny)
+        pts = pts if len(pts) else np.zeros(1, i32)  # a buffer of one: nothing listed reads it
         tables = [self._k.to_device(np.asarray(a, i32)) for a in (start, pts, x0, x1)]
-        if not len(pts):  # an empty buffer cannot be made
-            tables[1] = self._k.to_device(np.zeros(1, i32))
         listed = np.flatnonzero(wanted).astype(i32)
         count = np.zeros(nz * ny * nx, int)
-        if len(listed) and len(pts):
+        if len(listed) and start[-1]:
             counts = self._k.array(len(listed), i32)
             win = self._k.to_device(listed)
             self._k.launch("box_counts", (len(listed),), *tables, win, i32(len(listed)),
@@ -201,7 +201,7 @@ class DeviceWindowMeans:
     def _launch(self, name: str, pairs: PairsOnDevice, with_amb: bool, lists: WindowLists,
                 centres: np.ndarray, *rest) -> None:
         """Launch ``name`` over the listed windows: the pairs' and lists' arguments, then
-        the rest of the kernel's (after the listed count for the estimates' grad)."""
+        the listed count, then the rest of the kernel's."""
         dummy = pairs.mid  # stands for an unused buffer (the flag says so)
         head = [pairs.mid, pairs.disp, dummy if pairs.weight is None else pairs.weight,
                 i32(pairs.weight is not None)]
@@ -209,9 +209,7 @@ class DeviceWindowMeans:
             head += [dummy if pairs.amb is None else pairs.amb, i32(pairs.amb is not None)]
         tables = [self._k.to_device(a) for a in (lists.win, lists.start, lists.stop)]
         head += [*tables, lists.member, self._upload(centres.reshape(-1))]
-        listed = i32(len(lists.win))
-        args = ([*head, rest[0], listed, *rest[1:]] if with_amb else [*head, listed, *rest])
-        self._k.launch(name, (len(lists.win),), *args)
+        self._k.launch(name, (len(lists.win),), *head, i32(len(lists.win)), *rest)
 
     def _upload(self, host: np.ndarray) -> cl_array.Array:
         """A float64 device copy."""
