@@ -116,6 +116,17 @@ SIMULATED_SPLIT = 1e-4
 #: normalised by float32 norms.
 PIV_TWIN = 2e-5
 
+#: The device's mixed-radix FFT (``kernels/fftcorr.cl``) against NumPy's float64 FFT,
+#: ``atol`` of the spectrum's peak: log2(n) float32 butterfly passes per axis, each
+#: rounding once; measured 1-4e-7.
+FFT_LINES = 1e-6
+
+#: A normalised correlation plane's value through the device's FFT correlation against
+#: the host's or the float64 twin's (``atol``; ``rtol`` for the peak ratio): a 3-D float32
+#: FFT over 10^3-10^5 values and back, normalised by float32 energies; measured up to
+#: 3e-5.
+FFT_PLANE = 1e-4
+
 #: A Pearson coefficient's bound, and its value for a window against itself
 #: (``|r| <= 1 + PEARSON``): the float32 normalisation rounds either way.
 PEARSON = 1e-5

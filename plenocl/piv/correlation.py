@@ -89,12 +89,18 @@ def padded_size(window: int) -> int:
     displacements up to a third of the window, beyond the quarter a first pass finds
     reliably, at about a third of the cost of doubling it (48 -> 64, 32 -> 48)."""
     size = window + -(-window // 3)
-    while size % 2 or not _smooth(size):
+    while size % 2 or not smooth_length(size):
         size += 1
     return size
 
 
-def _smooth(n: int) -> bool:
+def fft_shape_of(grid: WindowGrid, pad: bool = False) -> tuple[int, int, int]:
+    """The FFT box of ``grid``'s windows: the window, or :func:`padded_size` per axis with
+    ``pad``."""
+    return tuple(padded_size(w) if pad else int(w) for w in grid.size)
+
+
+def smooth_length(n: int) -> bool:
     """``n`` has no prime factor above 5 (fast FFT lengths)."""
     for p in (2, 3, 5):
         while n % p == 0:
@@ -121,7 +127,8 @@ def gaussian_weight(size: tuple[int, int, int], fraction: float) -> np.ndarray:
 
 def correlate(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid, *, pad: bool = False,
               weight: np.ndarray | None = None, workers: int = -1,
-              backend: str | None = None, select: np.ndarray | None = None) -> Correlation:
+              backend: str | None = None, select: np.ndarray | None = None,
+              windows=None) -> Correlation:
     """Cross-correlate every window of ``grid`` between two volumes.
 
     Parameters
@@ -148,26 +155,30 @@ def correlate(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid, *, pad: bo
     select
         Optional bool array shaped ``grid.count``: correlate only these windows (the
         others come back with zero displacement and no signal).
+    windows
+        Optional ``windows(vol, lows)``: the windows of ``vol`` whose low corners are
+        ``lows`` ``(B, 3)``, ``(B, *grid.size)`` float32, for volumes that are not host
+        arrays (:meth:`plenocl.piv.devicefft.DeviceCorrelation.windows`: only the
+        windows come to the host). By default they are sliced from the host volumes.
 
     Returns
     -------
     Correlation
         Sub-voxel peak displacement, peak height, peak ratio and signal flags.
     """
-    vols = (np.asarray(vol_a, np.float32), np.asarray(vol_b, np.float32))
-    fft_shape = tuple(padded_size(w) if pad else w for w in grid.size)
+    vols = ((vol_a, vol_b) if windows is not None
+            else (np.asarray(vol_a, np.float32), np.asarray(vol_b, np.float32)))
+    fft_shape = fft_shape_of(grid, pad)
     n = int(np.prod(grid.count))
     todo = np.arange(n) if select is None else np.flatnonzero(select)
     batch = max(1, min(max(len(todo), 1), BATCH_BYTES // (4 * int(np.prod(fft_shape)))))
     fft = CorrelationFFT(batch, grid.size, fft_shape, workers, backend)
     disp = np.zeros((3, n))
     peak, ratio, signal = np.zeros(n), np.zeros(n), np.zeros(n, bool)
-    corners = [o + s * np.arange(c) for o, s, c in zip(grid.offset, grid.step, grid.count)]
     for start in range(0, len(todo), batch):
         sel = todo[start:start + batch]
-        index = np.unravel_index(sel, grid.count)
-        lows = np.column_stack([c[i] for c, i in zip(corners, index)])
-        prepared = [_gather(vol, lows, fft.windows(k, len(lows)), weight)
+        lows = window_lows(grid, sel)
+        prepared = [_gather(vol, lows, fft.windows(k, len(lows)), weight, windows)
                     for k, vol in enumerate(vols)]
         out = _fit_batch(fft.correlate(len(lows)), fft.scale, *prepared)
         disp[:, sel], peak[sel], ratio[sel], signal[sel] = out
@@ -181,9 +192,17 @@ def correlate(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid, *, pad: bo
 CHUNK = 16
 
 
-def _gather(vol: np.ndarray, lows: np.ndarray, out: np.ndarray, weight):
+def window_lows(grid: WindowGrid, flat: np.ndarray) -> np.ndarray:
+    """The low corners ``(B, 3)`` ``(z, y, x)`` of ``grid``'s windows of flat indices
+    ``flat`` (C order over ``grid.count``)."""
+    index = np.unravel_index(np.asarray(flat, np.int64), grid.count)
+    return np.column_stack([o + s * i for o, s, i in zip(grid.offset, grid.step, index)])
+
+
+def _gather(vol, lows: np.ndarray, out: np.ndarray, weight, windows=None):
     """Copy the windows whose low corners are ``lows`` ``(B, 3)`` into ``out``
-    ``(B, wz, wy, wx)`` and prepare them (:func:`_prepare_windows`), a chunk at a time.
+    ``(B, wz, wy, wx)`` (sliced from a host ``vol``, or by ``windows(vol, lows)``) and
+    prepare them (:func:`_prepare_windows`), a chunk at a time.
 
     Returns
     -------
@@ -191,7 +210,9 @@ def _gather(vol: np.ndarray, lows: np.ndarray, out: np.ndarray, weight):
         Each window's energy after preparation and whether it had any variance.
     """
     wz, wy, wx = out.shape[1:]
-    for i, (z, y, x) in enumerate(lows):
+    if windows is not None:
+        out[...] = windows(vol, lows)
+    for i, (z, y, x) in enumerate(lows if windows is None else ()):
         out[i] = vol[z:z + wz, y:y + wy, x:x + wx]
     parts = [_prepare_windows(out[c:c + CHUNK], weight) for c in range(0, len(lows), CHUNK)]
     return tuple(np.concatenate(p) for p in zip(*parts))

@@ -40,8 +40,9 @@ class HostDeformer:
         return resample(field, source, voxels, kind, np.float32)
 
     def __call__(self, prepared: np.ndarray, displacement: np.ndarray,
-                 factor: float) -> np.ndarray:
-        """``vol(p + factor * displacement(p))`` for every voxel, float32."""
+                 factor: float, keep: bool = False) -> np.ndarray:
+        """``vol(p + factor * displacement(p))`` for every voxel, float32 (``keep`` is
+        :class:`DeviceDeformer`'s; the host's volume is where it is kept)."""
         return deform(prepared, displacement, factor, self.order)
 
 
@@ -113,15 +114,16 @@ class DeviceDeformer:
             out = step
         return out
 
-    def __call__(self, prepared, displacement, factor: float) -> np.ndarray:
+    def __call__(self, prepared, displacement, factor: float, keep: bool = False):
         """``vol(p + factor * displacement(p))`` for every voxel, float32, on the device;
-        ``displacement`` from :meth:`field` or :meth:`predictor`."""
+        ``displacement`` from :meth:`field` or :meth:`predictor`. The host's copy, or with
+        ``keep`` the device array (for the window sums and correlations on the device)."""
         shape = displacement.shape[1:]
         out = self.kernels.array(shape)
         pz, py, px = prepared.shape
         self.kernels.launch("deform", shape[::-1], prepared, np.int32(pz), np.int32(py),
                             np.int32(px), displacement, np.int32(MARGIN), np.float32(factor), out)
-        return out.get()
+        return out if keep else out.get()
 
 
 #: B-spline orders ``kernels/deform.cl`` has (the quintic is host-only).

@@ -124,18 +124,24 @@ class DeviceSums:
         y = self._axis(x, nz, ny, cx, grid, weighting, 1, fields[0], UNIT_LAGS)
         return self._axis(y, 1, nz, cy * cx, grid, weighting, 0, fields[1], zlags).get()
 
-    def _padded(self, vol: np.ndarray, left: int, width: int):
-        """``vol`` on the device inside zeros: the farthest depth lag's planes on each side
-        in z, one row on each side in y, ``left`` voxels before each row, rows ``width``
-        long (the row kernels' layout)."""
-        host = np.ascontiguousarray(vol, np.float32)
-        nz, ny, nx = host.shape
+    def _padded(self, vol, left: int, width: int):
+        """``vol`` (host, or a device array) on the device inside zeros: the farthest
+        depth lag's planes on each side in z, one row on each side in y, ``left`` voxels
+        before each row, rows ``width`` long (the row kernels' layout)."""
+        nz, ny, nx = vol.shape
         rz = REACH[0]
         out = cl_array.zeros(self.kernels.queue, (nz + 2 * rz, ny + 2, width), np.float32)
-        cl.enqueue_copy(self.kernels.queue, out.data, host, buffer_origin=(4 * left, 1, rz),
-                        host_origin=(0, 0, 0), region=(4 * nx, ny, nz),
-                        buffer_pitches=(4 * width, 4 * width * (ny + 2)),
-                        host_pitches=(4 * nx, 4 * nx * ny))
+        place = {"region": (4 * nx, ny, nz)}
+        inside = {"origin": (4 * left, 1, rz), "pitches": (4 * width, 4 * width * (ny + 2))}
+        packed = {"origin": (0, 0, 0), "pitches": (4 * nx, 4 * nx * ny)}
+        if isinstance(vol, cl_array.Array):
+            cl.enqueue_copy(self.kernels.queue, out.data, vol.data, **place,
+                            **{f"dst_{k}": v for k, v in inside.items()},
+                            **{f"src_{k}": v for k, v in packed.items()})
+        else:
+            cl.enqueue_copy(self.kernels.queue, out.data, np.ascontiguousarray(vol, np.float32),
+                            **place, **{f"buffer_{k}": v for k, v in inside.items()},
+                            **{f"host_{k}": v for k, v in packed.items()})
         return out
 
     def _axis(self, source, outer: int, n: int, inner: int, grid: WindowGrid,

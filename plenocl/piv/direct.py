@@ -349,7 +349,7 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
         ``(3, *grid.count)`` as ``(dz, dy, dx)`` in voxels; NaN without signal.
     """
     raw = (HostSums() if sums is None else sums).spread_sums(vol_a, vol_b, grid, weighting)
-    factors = correlated_factors(vol_a, vol_b, grid, weighting)
+    factors = correlated_factors(on_host(vol_a), on_host(vol_b), grid, weighting)
     count = float(np.prod([w + 2 * margin(w, weighting) for w in grid.size]))
     cube = corr.r.reshape(*CUBE, *corr.r.shape[1:])
     norm = corr.norm.reshape(cube.shape)
@@ -365,6 +365,11 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
         down = gaussian_subpixel(cube[lo] + d_lo, cube[REACH], cube[hi] - d_hi)
         sigma[axis] = np.where(corr.signal, 0.5 * np.abs(up - down), np.nan)
     return sigma
+
+
+def on_host(vol) -> np.ndarray:
+    """A volume on the host: a device array's copy (``.get()``), a host array as it is."""
+    return vol if isinstance(vol, np.ndarray) else vol.get()
 
 
 def correlated_factors(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
@@ -482,10 +487,12 @@ def weak_peaks(peak: np.ndarray, signal: np.ndarray) -> np.ndarray:
 
 def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                        weighting: float | None, uncertainty: bool = False,
-                       sums: SumEngine | None = None, **fft_options) -> Correlation:
+                       sums: SumEngine | None = None, fft=None, **fft_options) -> Correlation:
     """Correlate deformed volumes directly at the 63 lags, and by FFT
-    (:func:`plenocl.piv.correlation.correlate`, with ``fft_options``) only the windows
-    whose peak :func:`fit_direct` cannot fit or is weak (:func:`weak_peaks`).
+    (:func:`plenocl.piv.correlation.correlate`, with ``fft_options``, or ``fft``'s
+    ``correlate``: a :class:`plenocl.piv.devicefft.FFTRoute`) only the windows whose peak
+    :func:`fit_direct` cannot fit or is weak (:func:`weak_peaks`). The volumes are host
+    arrays, or device arrays where ``sums`` and ``fft`` take them.
 
     Parameters
     ----------
@@ -509,7 +516,9 @@ def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     far = signal & (~fitted | weak_peaks(peak, signal))
     if far.any():
         weight = None if weighting is None else gaussian_weight(grid.size, weighting)
-        wide = correlate(vol_a, vol_b, grid, weight=weight, select=far, **fft_options)
+        wide = (correlate(vol_a, vol_b, grid, weight=weight, select=far, **fft_options)
+                if fft is None else fft.correlate(vol_a, vol_b, grid, weight=weight,
+                                                  select=far))
         disp[:, far], peak[far], ratio[far] = (wide.displacement[:, far], wide.peak[far],
                                                wide.peak_ratio[far])
         signal = signal & (fitted | wide.signal)

@@ -25,8 +25,9 @@ import numpy as np
 from ..options import with_keywords
 from ..peaks import host_maxima
 from ..vectorfield import PIVResult, Size3
-from .correlation import correlate, gaussian_weight, window_fraction, window_grid
+from .correlation import gaussian_weight, window_fraction, window_grid
 from .deformation import make_deformer
+from .devicefft import FFTRoute
 from .devicepeaks import DeviceMaxima
 from .devicesums import sums_for
 from .direct import correlate_deformed, deformed_uncertainty
@@ -228,7 +229,15 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         the same volumes to float32 rounding; the device is several times faster even on
         a CPU (all cores instead of one).
     fft
-        ``"fftw"`` (default where pyfftw is installed) or ``"scipy"`` (the reference).
+        Where the FFT correlations run (the first pass, and the windows a direct pass
+        sends to the FFT): ``"fftw"`` or ``"scipy"`` (the host's; SciPy the reference),
+        ``"device"`` (``kernels/fftcorr.cl`` on ``queue``'s device: the windows gathered,
+        transformed and their peaks fitted there, only six numbers per window back), or
+        ``None`` (default): for each device and FFT box, whichever of the device and the
+        host's FFTW (SciPy without pyfftw) correlated its first call faster
+        (:class:`plenocl.piv.devicefft.FFTRoute`; on 2 CPU cores the host, on a GPU the
+        device). The routes taken are in ``result.passes`` (``fft_route``). Without a
+        device (``queue=False``, the quintic B-spline) the host's.
     correlation
         ``"auto"`` (default): the deformed passes correlate each window directly at the
         63 lags around zero, one voxel across and three in depth (:mod:`plenocl.piv.direct`:
@@ -252,6 +261,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
     windows, weighting = opts.windows, opts.weighting
     deformer = make_deformer(opts.deform_order, queue)
     sums = sums_for(deformer)
+    fft = FFTRoute(opts.fft, None if sums is None else sums.kernels.queue, opts.workers)
     if windows is None:
         maxima = None if sums is None else DeviceMaxima(sums.kernels.queue)
         windows = auto_windows(a.shape, particles=count_particles(a, maxima=maxima))
@@ -268,12 +278,14 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         final = k == len(schedule) - 1
         direct = (opts.correlation == "auto" and k > 0 and weighting is not None
                   and not (final and opts.min_peak_ratio is not None))
+        fft.used.clear()
         state = _run_pass(a, b, (deformer, *coeffs), state, size, overlap, mask, pad, weight,
-                          opts, direct, final, sums)
+                          opts, direct, final, (sums, fft))
         # a direct pass gives a peak ratio only to the windows it sent to the FFT
         by_fft = int((~np.isnan(state.peak_ratio)).sum()) if direct else state.invalid.size
         log.append({"window": size, "overlap": overlap, "vectors": state.invalid.size,
                     "correlation": "direct" if direct else "fft", "fft_windows": by_fft,
+                    "fft_route": "+".join(sorted(fft.used)) or None,
                     "outliers": int(state.outlier.sum()), "invalid": int(state.invalid.sum()),
                     "seconds": time.perf_counter() - t0})
     result = _result(state, schedule[-1][0], log)
@@ -308,10 +320,11 @@ def _check_mask(mask, shape: Size3) -> np.ndarray | None:
 
 
 def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, mask, pad: bool,
-              weight, opts: PIVSettings, direct: bool = False, final: bool = False,
-              sums=None) -> _Pass:
-    """One correlation pass: deform by the predictor, correlate, validate, replace; the
-    direct correlation's window sums on ``sums`` (host for ``None``)."""
+              weight, opts: PIVSettings, direct: bool, final: bool, engines: tuple) -> _Pass:
+    """One correlation pass: deform by the predictor, correlate, validate, replace;
+    ``engines``: the direct correlation's window sums (``None``: the host) and the
+    :class:`~plenocl.piv.devicefft.FFTRoute`. Deformed volumes stay on the device where
+    the window sums run there."""
     grid = window_grid(a.shape, size, overlap)
     centres = grid.centres
     if prev is None:
@@ -319,11 +332,12 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
     else:
         deformer, coeff_a, coeff_b = prepared
         dense = deformer.predictor(prev.field, prev.centres, a.shape, opts.predictor)
-        da = deformer(coeff_a, dense, -0.5)
-        db = deformer(coeff_b, dense, +0.5)
+        keep = engines[0] is not None
+        da = deformer(coeff_a, dense, -0.5, keep)
+        db = deformer(coeff_b, dense, +0.5, keep)
         base = resample(prev.field, prev.centres, centres, opts.predictor)
     corr = _correlate_pass(da, db, grid, pad, weight, opts, direct,
-                           uncertainty=final and prev is not None, sums=sums)
+                           final and prev is not None, engines)
     masked = np.zeros(grid.count, bool) if mask is None else window_fraction(mask, grid) > 0.5
     invalid = ~corr.signal | masked
     if opts.min_peak_ratio is not None:
@@ -336,14 +350,13 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
 
 
 def _correlate_pass(da, db, grid, pad: bool, weight, opts: PIVSettings, direct: bool,
-                    uncertainty: bool, sums=None):
+                    uncertainty: bool, engines: tuple):
     """Correlate one pass directly or by FFT; with ``uncertainty`` (the final pass on
     deformed volumes) also estimate each vector's uncertainty."""
-    fft_options = {"workers": opts.workers, "backend": opts.fft}
+    sums, fft = engines
     if direct:
-        return correlate_deformed(da, db, grid, opts.weighting, uncertainty, sums,
-                                  **fft_options)
-    corr = correlate(da, db, grid, pad=pad, weight=weight, **fft_options)
+        return correlate_deformed(da, db, grid, opts.weighting, uncertainty, sums, fft)
+    corr = fft.correlate(da, db, grid, pad=pad, weight=weight)
     if uncertainty:
         corr.sigma = deformed_uncertainty(da, db, grid, opts.weighting, sums)
     return corr

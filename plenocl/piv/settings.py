@@ -11,6 +11,8 @@ from ..options import is_integer
 from .fft import BACKENDS
 
 CORRELATIONS = ("auto", "fft")
+#: Where the FFT correlations run: a host backend or the device (``fft=None``: measured).
+FFT_ROUTES = (*BACKENDS, "device")
 DEFORM_ORDERS = (1, 3, 5)
 PREDICTORS = ("cubic", "linear")
 
@@ -85,6 +87,7 @@ def _check_counts(s: PIVSettings) -> None:
     if not is_integer(s.workers) or not (s.workers == -1 or s.workers >= 1):
         raise ValueError(f"workers must be -1 (all cores) or a positive integer, got "
                          f"{s.workers!r}")
-    if s.fft is not None and s.fft not in BACKENDS:
-        raise ValueError(f"fft must be one of {BACKENDS} or None (FFTW where installed), "
-                         f"got {s.fft!r}")
+    if s.fft is not None and s.fft not in FFT_ROUTES:
+        raise ValueError(f"fft must be one of {FFT_ROUTES} (the host's FFTW or SciPy, or "
+                         f"the OpenCL device) or None (whichever of the device and the "
+                         f"host measures faster), got {s.fft!r}")
