@@ -1,5 +1,5 @@
 /* A work-group's sum or maximum by a tree in local memory (kernels/imagefit.cl,
- * kernels/sightline.cl). PL_GROUP, the work-group size, is a power of two: wide on a GPU
+ * kernels/sightline.cl, kernels/fftcorr.cl). PL_GROUP, the work-group size, is a power of two: wide on a GPU
  * (the group's items share a particle's work), 1 on a CPU (one item loops over it). */
 #ifndef PLENOCL_GROUPREDUCE_H
 #define PLENOCL_GROUPREDUCE_H

@@ -20,6 +20,7 @@ from plenocl.reconstruction import (
 )
 from plenocl.reconstruction import images as images_module
 from plenocl.reconstruction.images import prepare_image
+from plenocl.reconstruction.schedule import box_dilated
 from plenocl.reconstruction.settings import COARSE_OVERSAMPLE
 from plenocl.reconstruction.supersample import LateralBinning
 from plenocl.simulate import simulate_image
@@ -380,3 +381,16 @@ def test_the_callback_counts_the_coarse_iterations_then_the_fine_ones(optics, sc
         assert seen == list(range(1, stop + 1)) and vol.shape == grid.shape
         assert info.supersample == (1 if fine_done is None else 2)
         assert info.iterations == (stop if fine_done is None else fine_done)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (1, 5, 2), (7, 3, 9), (12, 11, 10)])
+def test_box_dilation_is_scipys(shape):
+    """The coarse support's growth by one voxel is SciPy's binary dilation by the
+    3 x 3 x 3 box (nothing beyond the faces), on masks touching every face."""
+    rng = np.random.default_rng(sum(shape))
+    for share in (0.02, 0.3):
+        mask = rng.random(shape) < share
+        mask[(0,) * 3] = mask[tuple(n - 1 for n in shape)] = True
+        want = ndimage.binary_dilation(mask, np.ones((3, 3, 3), bool))
+        assert np.array_equal(box_dilated(mask), want)
+    assert not box_dilated(np.zeros(shape, bool)).any()

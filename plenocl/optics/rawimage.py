@@ -52,7 +52,10 @@ def check_image(image, camera: Camera, dtype=np.float64, name: str = "image") ->
         raise ValueError(f"{name} must be one 2-D monochrome frame (rows, columns), got "
                          f"shape {img.shape}; pass a single raw sensor image")
     check_shape(img.shape, camera, name)
+    counts = np.issubdtype(img.dtype, np.integer)
     img = img.astype(dtype)
+    if counts:  # a camera's integer counts: finite in any float (at most 2^64 < 3.4e38)
+        return img
     bad = ~np.isfinite(img)
     if bad.any():
         row, col = (int(v) for v in np.argwhere(bad)[0])
@@ -149,7 +152,10 @@ def subtract_background(image, known: tuple[float, float] | None = None
         if not (np.isfinite(med) and np.isfinite(sigma) and sigma >= 0):
             raise ValueError(f"a known background needs a finite median and a finite "
                              f"non-negative noise, got {med!r} and {sigma!r}")
-    return np.clip(img - med, 0, None).astype(np.float32), sigma
+    out = np.empty(img.shape, np.float32)  # rounded from the float64 difference, as before
+    np.subtract(img, med, out=out, casting="same_kind")
+    np.maximum(out, np.float32(0.0), out=out)
+    return out, sigma
 
 
 def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None

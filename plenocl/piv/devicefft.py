@@ -40,6 +40,8 @@ MAX_LINE = 512
 #: Work-items per line and per window on a CPU device (a GPU takes
 #: :data:`plenocl.opencl.program.GPU_GROUP`).
 CPU_GROUP = 1
+#: The windows :class:`FFTRoute` times on each route to choose one (the first of a call's).
+MEASURED_WINDOWS = 16
 #: The peak ratio's excluded neighbourhood, as :func:`plenocl.piv.correlation.fit_peaks`.
 EXCLUDE = 2
 
@@ -211,8 +213,8 @@ class FFTRoute:
         device, FFT box and residence of the volumes, whichever of the device and the
         host's default backend correlated the first such call faster (the choice holds for the
         process, :func:`measured_routes`). The measurement runs each route twice on the
-        first such call (the first run of each warms it); every call returns the chosen
-        route's result.
+        first :data:`MEASURED_WINDOWS` windows of the first such call (the first run of
+        each warms it); every call returns the chosen route's result.
     queue
         The device (``None``: the host only).
     workers
@@ -274,20 +276,26 @@ class FFTRoute:
 
     def _measure(self, vol_a, vol_b, grid: WindowGrid, options: dict
                  ) -> tuple[str, Correlation]:
-        """Run both routes on this call twice, the first run of each warming it (the
-        device's buffers and twiddles, the host's FFT plans), time the second, keep the
-        faster; it and its result."""
-        routes = {"host": lambda: self._host(vol_a, vol_b, grid, options),
-                  "device": lambda: self.device.correlate(vol_a, vol_b, grid, **options)}
-        seconds, results = {}, {}
+        """Time both routes on up to :data:`MEASURED_WINDOWS` of this call's windows,
+        each run twice (the first run warms it: the device's buffers and twiddles, the
+        host's FFT plans) and the second timed; keep the faster, and return it and its
+        correlation of every window."""
+        todo = np.ones(grid.count, bool) if options["select"] is None else options["select"]
+        sample = np.zeros(grid.count, bool)
+        sample.flat[np.flatnonzero(todo)[:MEASURED_WINDOWS]] = True
+        trial = {**options, "select": sample}
+        routes = {"host": lambda: self._host(vol_a, vol_b, grid, trial),
+                  "device": lambda: self.device.correlate(vol_a, vol_b, grid, **trial)}
+        seconds = {}
         for name, run in routes.items():
             run()
             start = time.perf_counter()
-            results[name] = run()
+            run()
             seconds[name] = time.perf_counter() - start
         route = min(seconds, key=seconds.get)
         with _MEASURE_LOCK:
             _MEASURED[self._key(vol_a, grid, options["pad"])] = (route, seconds["host"],
                                                                   seconds["device"])
-        return route, results[route]
-
+        if route == "host":
+            return route, self._host(vol_a, vol_b, grid, options)
+        return route, self.device.correlate(vol_a, vol_b, grid, **options)

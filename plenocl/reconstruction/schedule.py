@@ -6,7 +6,6 @@ the sub-voxels; one camera's reconstruction (``reconstruct.py``) and several cam
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from .settings import ReconstructionSettings
 
@@ -37,9 +36,24 @@ def coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
     peak = float(coarse.max())
     if peak <= 0:
         return None, 0.0
-    # a binary dilation by the 3 x 3 x 3 box, as three separable 1-D maxima (2.6x
-    # SciPy's binary_dilation on the paper's grid, the same mask)
-    keep = ndimage.maximum_filter(coarse > settings.support * peak, size=3,
-                                  mode="constant", cval=0)
+    keep = box_dilated(coarse > settings.support * peak)
     flat = np.where(keep, np.float32(coarse[keep].mean()), np.float32(0))
-    return flat, float(keep.mean())
+    return flat, np.count_nonzero(keep) / keep.size
+
+
+def box_dilated(mask: np.ndarray) -> np.ndarray:
+    """A 3-D boolean ``mask`` grown by one voxel in every direction (a binary dilation by
+    the 3 x 3 x 3 box, nothing beyond the faces): each axis in turn, a voxel set where it
+    or a neighbour along the axis is (the box is separable). The same mask as SciPy's
+    ``binary_dilation`` and ``maximum_filter``, about 10x faster than the latter on the
+    paper's grid (in-place ORs of shifted views)."""
+    out = np.array(mask, dtype=bool)
+    for axis in range(out.ndim):
+        grown = out.copy()
+        lead = [slice(None)] * out.ndim
+        lag = [slice(None)] * out.ndim
+        lead[axis], lag[axis] = slice(1, None), slice(None, -1)
+        grown[tuple(lead)] |= out[tuple(lag)]
+        grown[tuple(lag)] |= out[tuple(lead)]
+        out = grown
+    return out
