@@ -23,6 +23,7 @@ import pyopencl.array as cl_array
 
 from ..opencl.device import DeviceInfo
 from ..opencl.program import KernelSet
+from ..sorting import stable_order
 from .pairoutliers import MAD_SIGMA
 
 __all__ = ["DeviceWindowMeans", "PairsOnDevice", "WindowLists", "row_buckets"]
@@ -80,7 +81,7 @@ def row_buckets(z: tuple[np.ndarray, np.ndarray], y: tuple[np.ndarray, np.ndarra
     k = np.arange(len(pair)) - np.repeat(np.cumsum(per) - per, per)
     rows = np.maximum(yr, 1)[pair]
     key = (z0[pair] + k // rows) * ny + y0[pair] + k % rows
-    order = np.argsort(key, kind="stable")
+    order = stable_order(key)
     start = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=nz * ny))])
     return start.astype(i32), pair[order].astype(i32)
 

@@ -19,6 +19,7 @@ import pyopencl.array as cl_array
 from ..opencl.device import is_cpu
 from ..opencl.program import KernelSet, group_size
 from ..optics.raybundle import Patches
+from ..sorting import stable_order
 from .devicebundle import DeviceRayBundle
 
 i32, i64, f32 = np.int32, np.int64, np.float32
@@ -168,6 +169,6 @@ def _rows_covered(patches: Patches, rows: int) -> tuple[np.ndarray, np.ndarray]:
     pid = np.repeat(np.arange(len(on), dtype=i32), on)
     first = np.cumsum(on) - on
     sensor_row = patches.row0[pid] + np.arange(len(pid)) - np.repeat(first, on)
-    order = np.argsort(sensor_row, kind="stable")
+    order = stable_order(sensor_row)
     counts = np.bincount(sensor_row, minlength=rows)
     return np.concatenate([[0], np.cumsum(counts)]).astype(i32), pid[order]
