@@ -24,7 +24,8 @@ image (a dark level of 20 counts with 3 counts of noise, 3 % of the pixels lit).
   replaced;
 * the lit microlenses of a 16 MP image (``projection.lenses.lit_lenses``: lit pixels
   counted along rows, each lens's rows looked up) against the summed-area table it
-  replaced.
+  replaced, and on the device (``kernels/lenses.cl``, from the image the solver uploads
+  anyway, 2026-11-30) against the row counts.
 
 Measured (2 CPU cores, PoCL, 2026-11-28, medians of 5, with CI's install beside it):
 prefilter 0.240 s against 0.196 s plus the old path's upload (a separate run of the two
@@ -51,13 +52,14 @@ from plenocl.bench.accuracy_section import paper_optics  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import render_particles  # noqa: E402
+from plenocl.opencl.program import KernelSet  # noqa: E402
 from plenocl.optics.rawimage import median_and_noise, subtract_background  # noqa: E402
 from plenocl.optics.sightline import line_of_sight, sight_frames  # noqa: E402
 from plenocl.piv.deformation import DeviceDeformer  # noqa: E402
 from plenocl.piv.interpolate import prepare  # noqa: E402
 from plenocl.piv.refinement import SightLines  # noqa: E402
 from plenocl.piv.tube import DeviceTubeSums, host_tube_sums  # noqa: E402
-from plenocl.projection.lenses import lit_lenses  # noqa: E402
+from plenocl.projection.lenses import lit_lenses, lit_lenses_on_device  # noqa: E402
 from plenocl.reconstruction.schedule import box_dilated  # noqa: E402
 
 
@@ -169,6 +171,13 @@ def main() -> None:
     new = timed(lambda: lit_lenses(img, centres, LENS_REACH, 100.0), n)
     old = timed(lambda: summed_area_lit_lenses(img, centres, LENS_REACH, 100.0), n)
     row("lit lenses, 16 MP (row counts / summed-area)", new, old,
+        float(np.count_nonzero(new[0] != old[0])), "lenses")
+    kernels = KernelSet(queue, "lenses.cl", ["lit_patches"])
+    on_device = kernels.to_device(img.astype(np.float32))  # the solver's copy, uploaded anyway
+    table = kernels.to_device(centres.astype(np.int32))
+    new = timed(lambda: lit_lenses_on_device(kernels, on_device, table, LENS_REACH, 100.0), n)
+    old = timed(lambda: lit_lenses(img, centres, LENS_REACH, 100.0), n)
+    row("lit lenses, 16 MP (device / row counts)", new, old,
         float(np.count_nonzero(new[0] != old[0])), "lenses")
     print(f"load average at end {os.getloadavg()[0]:.2f}")
 

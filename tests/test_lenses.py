@@ -79,6 +79,24 @@ def test_lit_lenses_cover_the_exact_set(name, cameras, projectors):
     assert not (proj.lit_lenses(np.ones(proj.image_shape)) & missing).any()
 
 
+@pytest.mark.parametrize("name", ["ideal", "missing", "rotated"])
+def test_lit_lenses_on_the_device_are_the_hosts(name, projectors, queue):
+    """The device's flags (``kernels/lenses.cl``, from the image the solver reads) are the
+    host's, bit for bit: pixels at and next to thresholds float32 cannot hold, patches cut
+    by the sensor's edges, missing lenses dark."""
+    proj = projectors[name]
+    rng = np.random.default_rng(7)
+    for seed in range(3):
+        img = _sparse_image(proj.image_shape, 6, seed)
+        img[rng.random(img.shape) < 0.002] = np.float32(0.1)
+        for threshold in (0.0, 0.1, float(np.float32(0.1)), np.float64(0.1), 0.3, 1.5):
+            want = proj.lit_lenses(img, threshold)
+            got = proj.lit_lenses(cla.to_device(queue, img), threshold)
+            assert np.array_equal(got, want), threshold
+    with pytest.raises(ValueError, match="float32 of shape"):
+        proj.lit_lenses(cla.to_device(queue, np.zeros((3, 4), np.float32)))
+
+
 def test_one_pixel_lights_few_lenses(projectors):
     proj = projectors["ideal"]
     cols, rows = proj.camera.ml_count

@@ -71,6 +71,20 @@ def lit_lenses(image: np.ndarray, centres: np.ndarray, reach: int,
     return np.any((counts[rows, x1[:, None]] != counts[rows, x0[:, None]]) & inside, axis=1)
 
 
+def lit_lenses_on_device(kernels, image: cl_array.Array, centres: cl_array.Array,
+                         reach: int, threshold: float = 0.0) -> np.ndarray:
+    """:func:`lit_lenses` of a float32 device image ``(H, W)`` by ``kernels/lenses.cl``
+    (``kernels``: its :class:`plenocl.opencl.program.KernelSet`), the centres an int32
+    device array ``(n_lenses, 2)``: the same flags, only one byte per lens back. The
+    threshold is taken to float32 as NumPy takes a Python float compared with a float32
+    image (:func:`lit_lenses` on the host)."""
+    height, width = image.shape
+    out = kernels.array(centres.shape[0], np.uint8)
+    kernels.launch("lit_patches", (centres.shape[0],), image, np.int32(width),
+                   np.int32(height), centres, np.int32(reach), np.float32(threshold), out)
+    return out.get().astype(bool)
+
+
 @dataclass(frozen=True)
 class LensSet:
     """Device tables of the lenses a projection visits.

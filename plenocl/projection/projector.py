@@ -43,7 +43,7 @@ from ..opencl.program import KernelSet
 from ..optics.depthrange import check_grid
 from .extent import PlaneExtent, lens_spans, whole_columns
 from .factorised import FactorisedStages
-from .lenses import LensSet, lens_set, lit_lenses
+from .lenses import LensSet, lens_set, lit_lenses, lit_lenses_on_device
 from .model import WeightingModel, warn_general_path
 from .plan import Plan, SampleColumns, make_plan, runs
 from .posed import PoseResampler, one_slab, posed_frame_grid
@@ -204,6 +204,8 @@ class Projector(FactorisedStages):
         self.camera, self.grid, self.model, self.frame = camera, grid, model, frame
         self._options.update(oversample=model.oversample, shear_tol=model.shear_tol)
         self._variants: dict[tuple, Projector] = {}
+        self._lit_kernels: KernelSet | None = None
+        self._lit_centres: cl_array.Array | None = None
         self._layout(vector_width, segment)
         self.plan = self._make_plan(max_alloc_bytes, scratch_bytes)
         if self.pose is not None:
@@ -484,14 +486,37 @@ class Projector(FactorisedStages):
         self._sensitivity = self.volume_to_device(sensitivity)
 
     # ---- dark-microlens skipping ------------------------------------------------------
-    def lit_lenses(self, image: np.ndarray, threshold: float = 0.0) -> np.ndarray:
+    def lit_lenses(self, image, threshold: float = 0.0) -> np.ndarray:
         """Bool per lens (flat, row-major): does any pixel it can reach exceed
-        ``threshold``? Missing lenses are never lit (see :mod:`plenocl.projection.lenses`)."""
-        img = _checked(image, self.image_shape, "image")
+        ``threshold``? Missing lenses are never lit (see :mod:`plenocl.projection.lenses`).
+        ``image``: a host image, or a float32 device array of the image's shape on this
+        projector's queue (then found there, ``kernels/lenses.cl``: the same flags)."""
         if not np.isfinite(threshold):
             raise ValueError(f"threshold must be a finite number, got {threshold}")
-        rnd = self.model.lens_tables[0]
-        return lit_lenses(img, rnd, self.lens_reach, threshold) & self.model.present
+        threshold = float(threshold)  # compared with the float32 image as a float32
+        if isinstance(image, cl_array.Array):
+            if image.shape != tuple(self.image_shape) or image.dtype != np.float32:
+                raise ValueError(f"a device image must be float32 of shape "
+                                 f"{tuple(self.image_shape)}, got {image.dtype} {image.shape}")
+            lit = lit_lenses_on_device(self._lens_kernels(), image, self._lens_centres(),
+                                       self.lens_reach, threshold)
+        else:
+            lit = lit_lenses(_checked(image, self.image_shape, "image"),
+                             self.model.lens_tables[0], self.lens_reach, threshold)
+        return lit & self.model.present
+
+    def _lens_kernels(self) -> KernelSet:
+        """``kernels/lenses.cl`` on this queue, built at the first device image."""
+        if self._lit_kernels is None:
+            self._lit_kernels = KernelSet(self.queue, "lenses.cl", ["lit_patches"])
+        return self._lit_kernels
+
+    def _lens_centres(self) -> cl_array.Array:
+        """The rounded lens centres ``(n_lenses, 2)`` int32 on the device, uploaded once."""
+        if self._lit_centres is None:
+            rounded = np.asarray(self.model.lens_tables[0], np.int32).reshape(-1, 2)
+            self._lit_centres = cl_array.to_device(self.queue, rounded)
+        return self._lit_centres
 
     def lens_set(self, lit: np.ndarray) -> LensSet:
         """The :class:`plenocl.projection.lenses.LensSet` of the lenses flagged in ``lit`` (for the

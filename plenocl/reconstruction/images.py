@@ -226,9 +226,11 @@ def prepare_image(image, projector: ProjectionOperator, settings: Reconstruction
                          settings.threshold is None)
     if not settings.skip_dark:
         return prepared
-    # lenses without data give no update either: skipped alike
-    return dataclasses.replace(prepared, lit=projector.lit_lenses(prepared.image,
-                                                                  prepared.threshold))
+    # lenses without data give no update either: skipped alike. Where the operator has a
+    # device, found there on the image the solver then reads (uploaded once)
+    queue = getattr(projector, "queue", None)
+    image = prepared.image if queue is None else prepared.on_device(queue)
+    return dataclasses.replace(prepared, lit=projector.lit_lenses(image, prepared.threshold))
 
 
 def _refuse_all_dark(threshold: float, peak: float, estimated: bool) -> None:

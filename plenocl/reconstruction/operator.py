@@ -73,7 +73,9 @@ class ProjectionOperator(Protocol):
         """``Aᵀ 1``, computed once and kept; callers must not write to it."""
 
     def lit_lenses(self, image: np.ndarray, threshold: float = 0.0) -> np.ndarray:
-        """Bool per microlens: could it see a pixel of ``image`` above ``threshold``?"""
+        """Bool per microlens: could it see a pixel of ``image`` above ``threshold``?
+        An operator with a ``queue`` takes the image as a float32 device array on it too
+        (:func:`plenocl.reconstruction.images.prepare_image` passes the solver's copy)."""
 
     def lens_set(self, lit: np.ndarray) -> Any:
         """The lenses flagged in ``lit``, in the form ``lenses`` arguments take."""
