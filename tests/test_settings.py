@@ -94,7 +94,7 @@ def test_switches_and_lists_are_read_as_the_objects_hold_them():
     ({"piv": {"deform_order": 2}}, r"\[piv\]: deform_order must be 1"),
     ({"piv": {"final_iterations": 1.5}}, r"\[piv\]: final_iterations must be a non-negative"),
     ({"piv": {"workers": 0}}, r"\[piv\]: workers must be -1 \(all cores\)"),
-    ({"piv": {"fft": "fftpack"}}, r"\[piv\]: fft must be one of \('fftw', 'scipy'\)"),
+    ({"piv": {"fft": "fftpack"}}, r"\[piv\]: fft must be one of \('fftw', 'scipy', 'device'\)"),
     ({"image_fit": {"rays": 8}}, r"\[image_fit\]: ImageFitSettings.rays must be"),
     ({"particles": "yes"}, r"\[particles\] enabled must be true or false"),
     ({"mte": 3}, r"\[mte\] must be a table"),
