@@ -155,6 +155,15 @@ def test_unsupported_lengths_are_refused_by_name(engine):
         engine.correlate(a, a, grid)
 
 
+def test_mismatched_volumes_are_refused(engine, queue):
+    grid = window_grid((20, 20, 20), (10, 10, 10), 0.5)
+    a = np.zeros((20, 20, 20), np.float32)
+    with pytest.raises(ValueError, match="3-D float32 of one shape"):
+        engine.correlate(a, np.zeros((20, 20, 21), np.float32), grid)
+    with pytest.raises(ValueError, match="3-D float32 of one shape"):
+        engine.correlate(cl_array.to_device(queue, a.astype(np.float64)), a, grid)
+
+
 def test_windows_are_gathered_as_sliced(engine):
     rng = np.random.default_rng(4)
     vol = rng.random((13, 17, 22)).astype(np.float32)

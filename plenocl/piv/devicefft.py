@@ -3,7 +3,7 @@
 :class:`DeviceCorrelation` runs :func:`plenocl.piv.correlation.correlate` with
 ``kernels/fftcorr.cl``: the windows are gathered from the volumes on the device, made
 zero-mean and weighted, both windows of a pair packed into one complex box and
-transformed by mixed-radix (2, 3, 4, 5) FFTs along each axis, their cross spectrum
+transformed by mixed-radix (2, 3, 4, 5, 8) FFTs along each axis, their cross spectrum
 transformed back and each plane's peak fitted there; six numbers per window come back
 instead of the volumes going to the host. The host's FFTW path stays the reference and
 the path for FFT lengths with a prime factor above 5 (``supports``).
@@ -98,6 +98,9 @@ class DeviceCorrelation:
             raise ValueError(f"FFT box {fft_shape_of(grid, pad)} has a length above "
                              f"{MAX_LINE} or a prime factor above 5; correlate on the host")
         a, b = self.upload(vol_a), self.upload(vol_b)
+        if a.shape != b.shape or a.ndim != 3 or a.dtype != f32 or b.dtype != f32:
+            raise ValueError(f"the volumes must be 3-D float32 of one shape, got "
+                             f"{a.dtype} {a.shape} and {b.dtype} {b.shape}")
         box = fft_shape_of(grid, pad)
         n = int(np.prod(grid.count))
         todo = np.arange(n) if select is None else np.flatnonzero(select)
