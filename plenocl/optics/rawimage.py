@@ -37,10 +37,13 @@ def check_pixel_mask(observed, camera: Camera) -> np.ndarray | None:
     return mask
 
 
-def check_image(image, camera: Camera, dtype=np.float64, name: str = "image") -> np.ndarray:
+def check_image(image, camera: Camera, dtype=np.float64, name: str = "image",
+                copy: bool = True) -> np.ndarray:
     """A raw image as ``dtype`` (float64 by default), checked against the camera: numeric
     and real, one 2-D frame of the sensor's shape, finite in ``dtype`` (the first bad
     pixel is named). ``name`` names the image in the messages (e.g. "the white image").
+    A copy the caller may change, or with ``copy=False`` the image itself where it is
+    already ``dtype`` (for a caller that only reads it).
     """
     img = np.asarray(image)
     if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
@@ -53,7 +56,7 @@ def check_image(image, camera: Camera, dtype=np.float64, name: str = "image") ->
                          f"shape {img.shape}; pass a single raw sensor image")
     check_shape(img.shape, camera, name)
     counts = np.issubdtype(img.dtype, np.integer)
-    img = img.astype(dtype)
+    img = img.astype(dtype, copy=copy)
     if counts:  # a camera's integer counts: finite in any float (at most 2^64 < 3.4e38)
         return img
     bad = ~np.isfinite(img)

@@ -11,6 +11,8 @@ kernel spreads it over every core of a CPU and over a GPU.
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
+import pyopencl.array as cl_array
 
 from ..opencl.device import DeviceLike, NoOpenCLError, check_fits, get_queue
 from ..opencl.program import KernelSet
@@ -69,12 +71,20 @@ class DeviceDeformer:
 
     def prepare(self, vol: np.ndarray):
         """The padded, filtered volume (:func:`~plenocl.piv.interpolate.prepare`, the host
-        reference) on the device: padded on the host, B-spline filtered on the device
+        reference) on the device: copied into zeros there, B-spline filtered there
         (``spline_prefilter``, axis by axis as SciPy)."""
-        padded = np.pad(np.asarray(vol, np.float32), MARGIN)
-        check_fits(self.kernels.queue, 4 * (2 * padded.size + 4 * np.asarray(vol).size),
+        host = np.ascontiguousarray(vol, np.float32)
+        nz, ny, nx = host.shape
+        shape = (nz + 2 * MARGIN, ny + 2 * MARGIN, nx + 2 * MARGIN)
+        check_fits(self.kernels.queue, 4 * (2 * int(np.prod(shape)) + 4 * host.size),
                    "PIV volume deformation")
-        coeffs = self.kernels.to_device(padded)
+        # zeros on the device, the volume copied inside them (np.pad's constant mode)
+        coeffs = cl_array.zeros(self.kernels.queue, shape, np.float32)
+        cl.enqueue_copy(self.kernels.queue, coeffs.data, host,
+                        buffer_origin=(4 * MARGIN, MARGIN, MARGIN), host_origin=(0, 0, 0),
+                        region=(4 * nx, ny, nz), buffer_pitches=(4 * shape[2],
+                                                                  4 * shape[2] * shape[1]),
+                        host_pitches=(4 * nx, 4 * nx * ny))
         if self.order == 3:
             self.prefilter(coeffs)
         return coeffs

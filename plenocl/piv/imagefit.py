@@ -189,7 +189,7 @@ class ImageFit:
         self.grid = grid
         self.images, self._device_images, self._host_images = [], {}, {}
         for raw, known in zip(images, _backgrounds(backgrounds, len(images)), strict=True):
-            img, noise = subtract_background(check_image(raw, camera), known)
+            img, noise = subtract_background(check_image(raw, camera, copy=False), known)
             self.images.append((img.ravel(), max(noise, 1e-12)))  # float32
 
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
