@@ -19,13 +19,15 @@
  * fill_windows: the complex boxes from both volumes and the moments.
  * gather_windows: the windows of one volume as they are (B x wz x wy x wx floats), for the
  * host's FFT of a device volume (only the windows go to the host).
- * fft_lines: one radix-2/3/4/5 Stockham pass sequence along one axis of every box: length
- * n (a product of 2, 3 and 5), element stride `stride`; `sign` -1 forward, +1 inverse
- * (not normalised, as FFTW).
- * cross_spectrum: conj(A(k)) B(k) from the packed spectrum Z = A + i B: A(k) = (Z(k) +
- * conj(Z(-k))) / 2, B(k) = (Z(k) - conj(Z(-k))) / 2i; its inverse FFT's real part is P
- * times the circular correlation c(s) = sum_p a'(p) b'(p + s).
- * peak_fit: per window the plane's highest value (the lowest index among equals, as
+ * fft_lines: Stockham passes of radix 8, 4, 2, 3, 5 along one axis of every box (or of
+ * the lines that hold window values): length n (a product of 2, 3 and 5), elements
+ * `step` apart; `sign` -1 forward, +1 inverse (not normalised, as FFTW).
+ * cross_spectrum: S = conj(A(k)) B(k) from the packed spectrum Z = A + i B: A(k) = (Z(k)
+ * + conj(Z(-k))) / 2, B(k) = (Z(k) - conj(Z(-k))) / 2i; the inverse FFT of S is P times
+ * the circular correlation c(s) = sum_p a'(p) b'(p + s), which is real, so windows 2 j
+ * and 2 j + 1 share one box, S_2j + i S_2j+1, and one inverse gives both planes (its real
+ * and imaginary parts).
+ * peak_fit: per window its plane's highest value (the lowest index among equals, as
  * np.argmax), normalised by P sqrt(energy_a energy_b) where both windows have signal;
  * the three-point Gaussian offset along each axis (parabolic where a value is <= 0, as
  * plenocl.peaks.gaussian_subpixel), the peak wrapped to [-n/2, n/2); the ratio to the
@@ -38,8 +40,11 @@
  * fill_windows, gather_windows and cross_spectrum: one work-item per value of the batch,
  * no shared writes. fft_lines: one work-group of PL_GROUP items per line (B P / n lines, 10^4
  * to 10^5 per pass), the line in local memory, the items striding over its butterflies
- * between barriers; lines along x read contiguous memory, along y and z a strided column
- * (on a GPU uncoalesced reads of a few megabytes per pass). No atomics anywhere; every
+ * between barriers (a pass of radix r has n / r butterflies: a 64-point line's radix-8
+ * passes keep 8 of a GPU's 64 items busy, left so while the passes are memory-bound, not
+ * yet measured on a GPU; on a CPU one item walks the line); lines along x read contiguous
+ * memory, along y and z a strided column (on a GPU uncoalesced reads of a few megabytes
+ * per pass). No atomics anywhere; every
  * result is one item's or one group's tree, so results do not depend on the core count.
  * Sizes are arguments; PL_GROUP (a power of two) and PL_MAXN (the longest line) are -D
  * defines. */
