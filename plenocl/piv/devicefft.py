@@ -41,7 +41,7 @@ MAX_LINE = 512
 #: :data:`plenocl.opencl.program.GPU_GROUP`).
 CPU_GROUP = 1
 #: The windows :class:`FFTRoute` times on each route to choose one (the first of a call's).
-MEASURED_WINDOWS = 16
+MEASURED_WINDOWS = 4
 #: The peak ratio's excluded neighbourhood, as :func:`plenocl.piv.correlation.fit_peaks`.
 EXCLUDE = 2
 
