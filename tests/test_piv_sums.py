@@ -6,6 +6,7 @@ reach past the volume's faces."""
 from __future__ import annotations
 
 import numpy as np
+import pyopencl.array as cl_array
 import pytest
 import tolerances as tol
 
@@ -17,6 +18,7 @@ from plenocl.piv.direct import (
     LAGS,
     HostSums,
     correlate_direct,
+    correlated_factors,
     correlation_uncertainty,
     fit_direct,
     margin,
@@ -75,6 +77,25 @@ def test_spread_sums_match_the_host(device_sums, shape, size, overlap, weighting
         for k in range(9):
             _close(got[axis, k], want[axis, k])
     assert np.all(got[:, 3:6] >= 0)  # sums of squares
+
+
+@pytest.mark.parametrize("shape,size,overlap,weighting", CASES)
+def test_correlated_factors_match_the_host(device_sums, queue, shape, size, overlap,
+                                           weighting):
+    """The uncertainty's correlated-sum factors on the device (box means, contribution
+    fields and their lagged products, ``kernels/correlated.cl``) are the host's
+    (``direct.correlated_factors``, SciPy's box filter and BLAS) within float32 sums, from
+    host or device volumes; at least one factor is above 1 (correlated neighbours)."""
+    rng = np.random.default_rng(sum(shape) + 1)
+    a = (rng.random(shape) ** 6).astype(np.float32)
+    b = (np.roll(a, 1, axis=2) + 0.02 * rng.random(shape)).astype(np.float32)
+    grid = window_grid(shape, size, overlap)
+    want = correlated_factors(a, b, grid, weighting)
+    got = device_sums.correlated_factors(a, b, grid, weighting)
+    np.testing.assert_allclose(got, want, rtol=tol.CORRELATED_FACTOR)
+    on_device = [cl_array.to_device(queue, v) for v in (a, b)]
+    assert device_sums.correlated_factors(*on_device, grid, weighting) == got
+    assert max(want) > 1.0
 
 
 def test_device_correlation_and_uncertainty_equal_the_host(device_sums):

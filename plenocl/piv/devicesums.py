@@ -17,11 +17,20 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from ..opencl.device import DeviceLike, check_fits, get_queue
+from ..opencl.device import DeviceInfo, DeviceLike, check_fits, get_queue
 from ..opencl.program import KernelSet
 from .correlation import WindowGrid
 from .deformation import DeviceDeformer
-from .direct import AXIS_LAGS, CUBE, LAGS, REACH, axis_taps, margin
+from .direct import (
+    AXIS_LAGS,
+    CUBE,
+    LAGS,
+    REACH,
+    axis_taps,
+    correlation_lags,
+    margin,
+    sum_factor,
+)
 
 #: Sums the row kernels write per row segment (``NPAIR``, ``NSPREAD`` in the kernel):
 #: ``a``, ``a^2``, ``b``, ``b^2`` at the 3 x lags, then the products at the 9 (y, x) lags of
@@ -81,6 +90,11 @@ class DeviceSums:
         self.kernels = KernelSet(get_queue(queue), "windowsums.cl", _KERNELS,
                                  options=[f"-DPL_ZREACH={REACH[0]}"],
                                  looping=["pair_rows", "spread_rows"])
+        fp64 = DeviceInfo.probe(self.kernels.queue.device).fp64
+        self._c = KernelSet(self.kernels.queue, "correlated.cl",
+                            ["box_mean_axis", "contributions", "lagged_rows"],
+                            options=["-DPL_DOUBLE"] if fp64 else [],
+                            looping=["box_mean_axis", "contributions", "lagged_rows"])
         self._pair = [self.kernels.to_device(f) for f in pair_fields()]
         self._spread = [self.kernels.to_device(f) for f in spread_fields()]
 
@@ -123,6 +137,73 @@ class DeviceSums:
                                    cx, chunks), tx, *extra, x)
         y = self._axis(x, nz, ny, cx, grid, weighting, 1, fields[0], UNIT_LAGS)
         return self._axis(y, 1, nz, cy * cx, grid, weighting, 0, fields[1], zlags).get()
+
+    def correlated_factors(self, vol_a, vol_b, grid: WindowGrid,
+                           weighting: float | None) -> list[float]:
+        """:func:`plenocl.piv.direct.correlated_factors` on the device
+        (``kernels/correlated.cl``): the volumes padded there, their box means, each
+        axis's contribution field and its products at the lags along every axis, summed
+        per row there and over the rows on the host in float64; only those come back."""
+        shape = tuple(int(n) for n in vol_a.shape)
+        pads = tuple(margin(w, weighting) + r for w, r in zip(grid.size, REACH))
+        padded = tuple(n + 2 * p for n, p in zip(shape, pads))
+        check_fits(self.kernels.queue, 4 * (6 * int(np.prod(padded)) + int(np.prod(shape))),
+                   "the uncertainty's correlated-sum factors")
+        a, b = (self._inside_zeros(v, pads, padded) for v in (vol_a, vol_b))
+        ma, mb = (self._box_mean(v, grid.size) for v in (a, b))
+        field = self._c.array(shape)
+        factors = []
+        for axis in range(3):
+            self._c.launch("contributions", (shape[0] * shape[1],), a, b, ma, mb,
+                           *_ints(padded[1], padded[2], *pads, axis, shape[1], shape[2]),
+                           field)
+            factors.append(self._factor(field, shape))
+        return factors
+
+    def _factor(self, field, shape: tuple[int, int, int]) -> float:
+        """:func:`plenocl.piv.direct.sum_factor` of one contribution field on the device."""
+        rows = shape[0] * shape[1]
+        lagged = []
+        for axis in range(3):
+            lags = correlation_lags(shape, axis)
+            out = self._c.array(rows * (lags + 1))
+            self._c.launch("lagged_rows", (rows,), field, *_ints(*shape, axis, lags), out)
+            lagged.append(out.get().reshape(rows, lags + 1).astype(np.float64).sum(axis=0))
+        return sum_factor(float(lagged[2][0]), (products[1:] for products in lagged))
+
+    def _box_mean(self, vol, size) -> cl_array.Array:
+        """``scipy.ndimage.uniform_filter(vol, size, mode="constant")``: the box means
+        along z, y and x in turn."""
+        pz, py, px = vol.shape
+        plane = py * px
+        lines = {0: (pz, plane, (py, px), (px, 1)), 1: (py, px, (pz, plane), (px, 1)),
+                 2: (px, 1, (pz, plane), (py, px))}
+        src = vol
+        for axis in range(3):
+            n, step, (nu, su), (nv, sv) = lines[axis]
+            dst = self._c.array(vol.shape)
+            self._c.launch("box_mean_axis", (nu * nv,), src, dst,
+                           *_ints(n, step, nu, su, nv, sv, size[axis]))
+            src = dst
+        return src
+
+    def _inside_zeros(self, vol, pads, padded) -> cl_array.Array:
+        """``vol`` (host or device) inside ``pads`` zeros on each face, on the device."""
+        nz, ny, nx = vol.shape
+        out = cl_array.zeros(self.kernels.queue, padded, np.float32)
+        place = {"region": (4 * nx, ny, nz)}
+        inside = {"origin": (4 * pads[2], pads[1], pads[0]),
+                  "pitches": (4 * padded[2], 4 * padded[2] * padded[1])}
+        packed = {"origin": (0, 0, 0), "pitches": (4 * nx, 4 * nx * ny)}
+        if isinstance(vol, cl_array.Array):
+            cl.enqueue_copy(self.kernels.queue, out.data, vol.data, **place,
+                            **{f"dst_{k}": v for k, v in inside.items()},
+                            **{f"src_{k}": v for k, v in packed.items()})
+        else:
+            cl.enqueue_copy(self.kernels.queue, out.data, np.ascontiguousarray(vol, np.float32),
+                            **place, **{f"buffer_{k}": v for k, v in inside.items()},
+                            **{f"host_{k}": v for k, v in packed.items()})
+        return out
 
     def _padded(self, vol, left: int, width: int):
         """``vol`` (host, or a device array) on the device inside zeros: the farthest

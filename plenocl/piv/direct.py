@@ -232,6 +232,9 @@ class SumEngine(Protocol):
     def spread_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                     weighting: float | None) -> np.ndarray: ...
 
+    def correlated_factors(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                           weighting: float | None) -> list[float]: ...
+
 
 class HostSums:
     """The window sums of :func:`correlate_direct` and :func:`correlation_uncertainty` on
@@ -252,6 +255,11 @@ class HostSums:
                  for lag in LAGS]
         s_a, s_b, raw_a, raw_b, *products = parallel_sums(lambda job: job(), jobs)
         return s_a, s_b, raw_a, raw_b, np.stack(products)
+
+    def correlated_factors(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                           weighting: float | None) -> list[float]:
+        """:func:`correlated_factors` (of host copies of device volumes)."""
+        return correlated_factors(on_host(vol_a), on_host(vol_b), grid, weighting)
 
     def spread_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                     weighting: float | None) -> np.ndarray:
@@ -340,16 +348,17 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
     Gaussian fit of the normalised coefficients: ``sigma = |fit(r- - ds, r0, r+ + ds) -
     fit(r- + ds, r0, r+ - ds)| / 2`` with ``ds = s / 2`` over each lag's normaliser.
 
-    The window sums run on ``sums`` (:class:`SumEngine`; ``None``: :class:`HostSums`), the
-    factor ``k`` on the host.
+    The window sums and the factors ``k`` run on ``sums`` (:class:`SumEngine`; ``None``:
+    :class:`HostSums`).
 
     Returns
     -------
     numpy.ndarray
         ``(3, *grid.count)`` as ``(dz, dy, dx)`` in voxels; NaN without signal.
     """
-    raw = (HostSums() if sums is None else sums).spread_sums(vol_a, vol_b, grid, weighting)
-    factors = correlated_factors(on_host(vol_a), on_host(vol_b), grid, weighting)
+    engine = HostSums() if sums is None else sums
+    raw = engine.spread_sums(vol_a, vol_b, grid, weighting)
+    factors = engine.correlated_factors(vol_a, vol_b, grid, weighting)
     count = float(np.prod([w + 2 * margin(w, weighting) for w in grid.size]))
     cube = corr.r.reshape(*CUBE, *corr.r.shape[1:])
     norm = corr.norm.reshape(cube.shape)
@@ -404,17 +413,32 @@ def correlated_sum_factor(field: np.ndarray) -> float:
     ``field`` holds every voxel's contribution, ``a'(i) b'(i+e) - a'(i+e) b'(i)`` with
     ``a'``, ``b'`` the volumes less their local (window-sized box) means.
     """
-    energy = float(np.vdot(field, field))
-    if energy <= 0:
-        return 1.0
-    factor = 1.0
-    for axis in range(3):
-        total = 1.0
-        for lag in range(1, min(MAX_CORRELATION_LAG, field.shape[axis] - 1) + 1):
+    def lagged(axis: int):
+        for lag in range(1, correlation_lags(field.shape, axis) + 1):
             head = [slice(None)] * 3
             tail = [slice(None)] * 3
             head[axis], tail[axis] = slice(lag, None), slice(None, -lag)
-            rho = float(np.vdot(field[tuple(head)], field[tuple(tail)])) / energy
+            yield float(np.vdot(field[tuple(head)], field[tuple(tail)]))
+
+    return sum_factor(float(np.vdot(field, field)), (lagged(axis) for axis in range(3)))
+
+
+def correlation_lags(shape: tuple[int, ...], axis: int) -> int:
+    """The lags along ``axis`` over which :func:`correlated_sum_factor` looks."""
+    return min(MAX_CORRELATION_LAG, shape[axis] - 1)
+
+
+def sum_factor(energy: float, lagged) -> float:
+    """:func:`correlated_sum_factor` from the field's energy ``sum f^2`` and, per axis,
+    its products ``sum f(i) f(i + l e)`` at lags ``l = 1, 2, ...`` (an iterable each,
+    read only up to the first coefficient that is not positive)."""
+    if energy <= 0:
+        return 1.0
+    factor = 1.0
+    for products in lagged:
+        total = 1.0
+        for product in products:
+            rho = product / energy
             if rho <= 0:
                 break
             total += 2.0 * rho
