@@ -41,7 +41,11 @@ MAX_LINE = 512
 #: :data:`plenocl.opencl.program.GPU_GROUP`).
 CPU_GROUP = 1
 #: The windows :class:`FFTRoute` times on each route to choose one (the first of a call's).
-MEASURED_WINDOWS = 4
+MEASURED_WINDOWS = 8
+#: The device's route is chosen when it took at most this fraction of the host's time: a
+#: clear gain, so that two routes about as fast do not flip between processes (their
+#: results differ at float32 rounding); the host's is the reference.
+DEVICE_GAIN = 0.8
 #: The peak ratio's excluded neighbourhood, as :func:`plenocl.piv.correlation.fit_peaks`.
 EXCLUDE = 2
 
@@ -214,7 +218,8 @@ class FFTRoute:
         ``"fftw"`` or ``"scipy"``: the host with that backend (as before the device
         path); ``"device"``: the device wherever its FFT lengths allow; ``None``: for each
         device, FFT box and residence of the volumes, whichever of the device and the
-        host's default backend correlated the first such call faster (the choice holds for the
+        host's default backend correlated the first such call faster, the device by a
+        clear margin (:data:`DEVICE_GAIN`; the choice holds for the
         process, :func:`measured_routes`). The measurement runs each route twice on the
         first :data:`MEASURED_WINDOWS` windows of the first such call (the first run of
         each warms it); every call returns the chosen route's result.
@@ -281,8 +286,9 @@ class FFTRoute:
                  ) -> tuple[str, Correlation]:
         """Time both routes on up to :data:`MEASURED_WINDOWS` of this call's windows,
         each run twice (the first run warms it: the device's buffers and twiddles, the
-        host's FFT plans) and the second timed; keep the faster, and return it and its
-        correlation of every window."""
+        host's FFT plans) and the second timed; keep the device where it took at most
+        :data:`DEVICE_GAIN` of the host's time, else the host, and return the route and
+        its correlation of every window."""
         todo = np.ones(grid.count, bool) if options["select"] is None else options["select"]
         sample = np.zeros(grid.count, bool)
         sample.flat[np.flatnonzero(todo)[:MEASURED_WINDOWS]] = True
@@ -295,7 +301,7 @@ class FFTRoute:
             start = time.perf_counter()
             run()
             seconds[name] = time.perf_counter() - start
-        route = min(seconds, key=seconds.get)
+        route = "device" if seconds["device"] <= DEVICE_GAIN * seconds["host"] else "host"
         with _MEASURE_LOCK:
             _MEASURED[self._key(vol_a, grid, options["pad"])] = (route, seconds["host"],
                                                                   seconds["device"])
