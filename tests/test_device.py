@@ -327,3 +327,22 @@ def test_fill_sets_whole_arrays_and_leading_slices_only(queue):
     fill(vol[3:3], 2.0)  # empty: nothing enqueued
     with pytest.raises(ValueError, match="contiguous device array"):
         fill(vol[:, 1], 0.0)
+
+
+@pytest.mark.parametrize("shape,corner", [((6, 7, 9), (1, 2, 3)), ((3, 4, 5), (0, 0, 0)),
+                                          ((9, 4, 13), (2, 0, 6))])
+def test_inside_zeros_is_numpys_padding(queue, shape, corner):
+    """``plenocl.opencl.arrays.inside_zeros``: a host or device volume placed at
+    ``corner`` inside zeros is ``np.pad``'s constant padding, bit for bit (the fill reused
+    over a stale buffer)."""
+    import pyopencl.array as cla
+
+    from plenocl.opencl.arrays import inside_zeros
+
+    vol = np.random.default_rng(sum(shape)).random((3, 4, 5)).astype(np.float32)
+    pads = [(c, n - c - v) for c, n, v in zip(corner, shape, vol.shape)]
+    want = np.pad(vol, pads)
+    for source in (vol, cla.to_device(queue, vol)):
+        got = inside_zeros(queue, source, shape, corner)
+        assert got.dtype == np.float32 and got.shape == shape
+        assert np.array_equal(got.get(), want)

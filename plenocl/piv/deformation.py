@@ -11,9 +11,8 @@ kernel spreads it over every core of a CPU and over a GPU.
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
-import pyopencl.array as cl_array
 
+from ..opencl.arrays import inside_zeros
 from ..opencl.device import DeviceLike, NoOpenCLError, check_fits, get_queue
 from ..opencl.program import KernelSet
 from .interpolate import MARGIN, axis_weights, deform, prepare, resample
@@ -79,12 +78,7 @@ class DeviceDeformer:
         check_fits(self.kernels.queue, 4 * (2 * int(np.prod(shape)) + 4 * host.size),
                    "PIV volume deformation")
         # zeros on the device, the volume copied inside them (np.pad's constant mode)
-        coeffs = cl_array.zeros(self.kernels.queue, shape, np.float32)
-        cl.enqueue_copy(self.kernels.queue, coeffs.data, host,
-                        buffer_origin=(4 * MARGIN, MARGIN, MARGIN), host_origin=(0, 0, 0),
-                        region=(4 * nx, ny, nz), buffer_pitches=(4 * shape[2],
-                                                                  4 * shape[2] * shape[1]),
-                        host_pitches=(4 * nx, 4 * nx * ny))
+        coeffs = inside_zeros(self.kernels.queue, host, shape, (MARGIN,) * 3)
         if self.order == 3:
             self.prefilter(coeffs)
         return coeffs

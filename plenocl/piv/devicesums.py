@@ -14,9 +14,9 @@ so the results do not depend on the device's core count either).
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cl_array
 
+from ..opencl.arrays import inside_zeros
 from ..opencl.device import DeviceInfo, DeviceLike, check_fits, get_queue
 from ..opencl.program import KernelSet
 from .correlation import WindowGrid
@@ -149,7 +149,7 @@ class DeviceSums:
         padded = tuple(n + 2 * p for n, p in zip(shape, pads))
         check_fits(self.kernels.queue, 4 * (6 * int(np.prod(padded)) + int(np.prod(shape))),
                    "the uncertainty's correlated-sum factors")
-        a, b = (self._inside_zeros(v, pads, padded) for v in (vol_a, vol_b))
+        a, b = (inside_zeros(self.kernels.queue, v, padded, pads) for v in (vol_a, vol_b))
         ma, mb = (self._box_mean(v, grid.size) for v in (a, b))
         field = self._c.array(shape)
         factors = []
@@ -187,43 +187,13 @@ class DeviceSums:
             src = dst
         return src
 
-    def _inside_zeros(self, vol, pads, padded) -> cl_array.Array:
-        """``vol`` (host or device) inside ``pads`` zeros on each face, on the device."""
-        nz, ny, nx = vol.shape
-        out = cl_array.zeros(self.kernels.queue, padded, np.float32)
-        place = {"region": (4 * nx, ny, nz)}
-        inside = {"origin": (4 * pads[2], pads[1], pads[0]),
-                  "pitches": (4 * padded[2], 4 * padded[2] * padded[1])}
-        packed = {"origin": (0, 0, 0), "pitches": (4 * nx, 4 * nx * ny)}
-        if isinstance(vol, cl_array.Array):
-            cl.enqueue_copy(self.kernels.queue, out.data, vol.data, **place,
-                            **{f"dst_{k}": v for k, v in inside.items()},
-                            **{f"src_{k}": v for k, v in packed.items()})
-        else:
-            cl.enqueue_copy(self.kernels.queue, out.data, np.ascontiguousarray(vol, np.float32),
-                            **place, **{f"buffer_{k}": v for k, v in inside.items()},
-                            **{f"host_{k}": v for k, v in packed.items()})
-        return out
-
     def _padded(self, vol, left: int, width: int):
         """``vol`` (host, or a device array) on the device inside zeros: the farthest
         depth lag's planes on each side in z, one row on each side in y, ``left`` voxels
         before each row, rows ``width`` long (the row kernels' layout)."""
-        nz, ny, nx = vol.shape
-        rz = REACH[0]
-        out = cl_array.zeros(self.kernels.queue, (nz + 2 * rz, ny + 2, width), np.float32)
-        place = {"region": (4 * nx, ny, nz)}
-        inside = {"origin": (4 * left, 1, rz), "pitches": (4 * width, 4 * width * (ny + 2))}
-        packed = {"origin": (0, 0, 0), "pitches": (4 * nx, 4 * nx * ny)}
-        if isinstance(vol, cl_array.Array):
-            cl.enqueue_copy(self.kernels.queue, out.data, vol.data, **place,
-                            **{f"dst_{k}": v for k, v in inside.items()},
-                            **{f"src_{k}": v for k, v in packed.items()})
-        else:
-            cl.enqueue_copy(self.kernels.queue, out.data, np.ascontiguousarray(vol, np.float32),
-                            **place, **{f"buffer_{k}": v for k, v in inside.items()},
-                            **{f"host_{k}": v for k, v in packed.items()})
-        return out
+        nz, ny, _ = vol.shape
+        return inside_zeros(self.kernels.queue, vol, (nz + 2 * REACH[0], ny + 2, width),
+                            (REACH[0], 1, left))
 
     def _axis(self, source, outer: int, n: int, inner: int, grid: WindowGrid,
               weighting: float | None, axis: int, fields, lags):
