@@ -15,11 +15,11 @@
  * field), out[row (lags + 1) + l]; the host adds the rows in float64.
  *
  * Parallel structure: box_mean_axis one work-item per line (a running sum in PL_ACC,
- * double where the device has it); contributions one work-item per row of voxels;
- * lagged_rows
- * one work-item per row looping over its lags and voxels, eight at a time (neighbouring
- * items read neighbouring rows). No atomics, no shared writes; sums in a fixed order per item.
- * Sizes are arguments. */
+ * double where the device has it; lines along z and y are columns, neighbouring items
+ * reading neighbouring voxels); contributions one work-item per row of voxels;
+ * lagged_rows one work-item per row looping over its lags and voxels, eight at a time
+ * (neighbouring items read neighbouring rows). No atomics, no shared writes; sums in a
+ * fixed order per item. Sizes are arguments. */
 
 #ifdef PL_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
