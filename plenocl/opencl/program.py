@@ -100,3 +100,10 @@ class KernelSet:
     def to_device(self, host: np.ndarray) -> cl_array.Array:
         """A device copy of a host array on this queue."""
         return cl_array.to_device(self.queue, np.ascontiguousarray(host))
+
+    def on_device(self, data, dtype=np.float32) -> cl_array.Array:
+        """``data`` on this queue's device: a device array as it is (a volume uploaded
+        once for several kernels), a host array copied as ``dtype``."""
+        if isinstance(data, cl_array.Array):
+            return data
+        return self.to_device(np.asarray(data, dtype))

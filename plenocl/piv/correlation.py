@@ -212,8 +212,9 @@ def _gather(vol, lows: np.ndarray, out: np.ndarray, weight, windows=None):
     wz, wy, wx = out.shape[1:]
     if windows is not None:
         out[...] = windows(vol, lows)
-    for i, (z, y, x) in enumerate(lows if windows is None else ()):
-        out[i] = vol[z:z + wz, y:y + wy, x:x + wx]
+    else:
+        for i, (z, y, x) in enumerate(lows):
+            out[i] = vol[z:z + wz, y:y + wy, x:x + wx]
     parts = [_prepare_windows(out[c:c + CHUNK], weight) for c in range(0, len(lows), CHUNK)]
     return tuple(np.concatenate(p) for p in zip(*parts))
 

@@ -85,9 +85,7 @@ class DeviceCorrelation:
 
     def upload(self, vol) -> cl_array.Array:
         """``vol`` as a float32 device array (a device array as it is)."""
-        if isinstance(vol, cl_array.Array):
-            return vol
-        return self._k.to_device(np.asarray(vol, f32))
+        return self._k.on_device(vol)
 
     def correlate(self, vol_a, vol_b, grid: WindowGrid, *, pad: bool = False,
                   weight: np.ndarray | None = None,
@@ -248,11 +246,7 @@ class FFTRoute:
         """:func:`plenocl.piv.correlation.correlate` of host or device volumes, on the
         route chosen (the host's FFT options from this object)."""
         options = {"pad": pad, "weight": weight, "select": select}
-        route = self.route(vol_a, grid, pad)
-        if route is None:
-            route, result = self._measure(vol_a, vol_b, grid, options)
-            self.used.add(route)
-            return result
+        route = self.route(vol_a, grid, pad) or self._measure(vol_a, vol_b, grid, options)
         self.used.add(route)
         if route == "host":
             return self._host(vol_a, vol_b, grid, options)
@@ -282,13 +276,11 @@ class FFTRoute:
         return (self.device.queue.device.name.strip(), fft_shape_of(grid, pad),
                 isinstance(vol_a, cl_array.Array))
 
-    def _measure(self, vol_a, vol_b, grid: WindowGrid, options: dict
-                 ) -> tuple[str, Correlation]:
+    def _measure(self, vol_a, vol_b, grid: WindowGrid, options: dict) -> str:
         """Time both routes on up to :data:`MEASURED_WINDOWS` of this call's windows,
         each run twice (the first run warms it: the device's buffers and twiddles, the
         host's FFT plans) and the second timed; keep the device where it took at most
-        :data:`DEVICE_GAIN` of the host's time, else the host, and return the route and
-        its correlation of every window."""
+        :data:`DEVICE_GAIN` of the host's time, else the host, and return the route."""
         todo = np.ones(grid.count, bool) if options["select"] is None else options["select"]
         sample = np.zeros(grid.count, bool)
         sample.flat[np.flatnonzero(todo)[:MEASURED_WINDOWS]] = True
@@ -305,6 +297,4 @@ class FFTRoute:
         with _MEASURE_LOCK:
             _MEASURED[self._key(vol_a, grid, options["pad"])] = (route, seconds["host"],
                                                                   seconds["device"])
-        if route == "host":
-            return route, self._host(vol_a, vol_b, grid, options)
-        return route, self.device.correlate(vol_a, vol_b, grid, **options)
+        return route

@@ -49,8 +49,7 @@ class DeviceMaxima:
             raise ValueError(f"a volume of {vol.size} voxels is too large for the device's "
                              "local maxima (at most 2^31 - 1); find its particles on the "
                              "host (queue=False)")
-        dev = vol if isinstance(vol, cl_array.Array) else self._k.to_device(
-            np.asarray(vol, np.float32))
+        dev = self._k.on_device(vol)
         nz, ny, nx = vol.shape
         capacity = max(1024, int(vol.size * START_SHARE))
         while True:

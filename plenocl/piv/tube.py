@@ -12,7 +12,6 @@ samples, 3)`` array of coordinates on the host.
 from __future__ import annotations
 
 import numpy as np
-import pyopencl.array as cl_array
 from scipy import ndimage
 
 from ..opencl.program import KernelSet, group_size
@@ -70,8 +69,7 @@ class DeviceTubeSums:
         n = len(centre)
         if not n:
             return np.zeros((0, 2))
-        if not isinstance(vol, cl_array.Array):
-            vol = self._k.to_device(np.asarray(vol, np.float32))
+        vol = self._k.on_device(vol)
         nz, ny, nx = vol.shape
         out = self._k.array(2 * n)
         dev = [vol] + [self._k.to_device(np.asarray(a, np.float32))
