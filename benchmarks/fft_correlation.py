@@ -78,8 +78,7 @@ def main() -> None:
     measured.correlate(a, b, first, pad=True)
     measured.correlate(da, db, grid, weight=weight, select=select)
     for (_, box, resident), (chosen, host_s, device_s) in measured_routes().items():
-        where = "device" if resident else "host"
-        print(f"route for {box} from {where} volumes: {chosen} (host {host_s:.4f} s, "
+        print(f"route for {box} from {resident} volumes: {chosen} (host {host_s:.4f} s, "
               f"device {device_s:.4f} s)")
 
 

@@ -148,3 +148,36 @@ def test_refined_field_is_the_pairs_composition(queue, small_camera):
     assert again.refinement == pair.piv.refinement
     plain = refined_field(pair.vol_a, pair.vol_b, grid, PairSettings(particles=False), queue)
     np.testing.assert_array_equal(plain.u, piv3d(pair.vol_a, pair.vol_b, queue=queue).u)
+
+
+@pytest.mark.filterwarnings("ignore:the final windows")  # a tiny volume: one vector
+def test_a_pairs_volumes_go_from_its_reconstructions_to_piv_on_the_device(queue,
+                                                                        small_camera):
+    """process_pair hands each reconstruction's device volume to PIV and the particle
+    stage: neither sends a volume to the device (the same chain on the host volumes
+    does), the field is the same to the bit, and the pair's infos hold no device memory
+    after."""
+    from plenocl import process_pair
+    from plenocl.pipeline import PairSettings, refined_field
+
+    proj, raws = _small_pair(queue, small_camera, 40, 0.04, seed=3)
+    settings = PairSettings(image_fit=None)
+    with OpenCLProfile() as prof:
+        pair = process_pair(*raws, proj, settings)
+        queue.finish()
+    nbytes = pair.vol_a.nbytes
+
+    def largest_upload(start: float, end: float = np.inf) -> int:
+        return max([c.nbytes for c in prof.calls
+                    if c.kind == "h2d" and start <= c.start < end], default=0)
+
+    assert largest_upload(pair.spans["piv"][0]) < nbytes
+    assert pair.info_a.volume_on_device is None and pair.info_b.volume_on_device is None
+    with OpenCLProfile() as prof:
+        again = refined_field(pair.vol_a, pair.vol_b, proj.grid, settings, queue,
+                              camera=small_camera)
+        queue.finish()
+    assert largest_upload(0.0) >= nbytes  # the host volumes are uploaded
+    for name in ("u", "v", "w", "valid", "sigma_u", "sigma_w"):
+        assert np.array_equal(getattr(again, name), getattr(pair.piv, name),
+                              equal_nan=True), name

@@ -194,7 +194,7 @@ def test_routes(queue):
     got = measured.correlate(a, b, grid)
     (key, (chosen, host_s, device_s)), = [
         (k, v) for k, v in measured_routes().items()
-        if k[0] == queue.device.name.strip() and k[1] == (10, 12, 20) and not k[2]]
+        if k[0] == queue.device.name.strip() and k[1] == (10, 12, 20) and k[2] == "host"]
     assert measured.used == {chosen} and host_s > 0 and device_s > 0
     assert chosen == ("device" if device_s <= DEVICE_GAIN * host_s else "host")
     assert measured.route(a, grid, False) == chosen
@@ -215,6 +215,44 @@ def test_piv_with_the_device_fft_matches_the_host(queue):
     assert [p["fft_route"] for p in runs["device"].passes] == ["device"] * 4
     assert [p["fft_route"] for p in runs["scipy"].passes] == ["host"] * 4
     assert abs(float(np.median(runs["device"].u)) - 1.3) < 0.05
+
+
+@pytest.mark.parametrize("fft", ["device", "scipy"])
+def test_piv3d_reads_the_volumes_device_copies_instead_of_uploading_them(queue, fft):
+    """``piv3d(on_device=...)`` (a reconstruction's device volumes): the same field to
+    the bit, and no copy of a volume's size goes to the device (the particle count, the
+    deformation and the device's first-pass FFT read the copies), where without them
+    the volumes are uploaded."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    a, b = _pair((40, 44, 48), shift=(1.2, -0.8, 0.5), seed=4)
+    copies = tuple(cl_array.to_device(queue, v) for v in (a, b))
+    runs = {}
+    for name, kept in (("uploaded", None), ("kept", copies)):
+        with OpenCLProfile() as prof:
+            runs[name] = piv3d(a, b, queue=queue, fft=fft, on_device=kept)
+            queue.finish()
+        runs[name + " bytes"] = max(c.nbytes for c in prof.calls if c.kind == "h2d")
+    for comp in ("u", "v", "w", "valid", "sigma_u", "sigma_w", "peak_ratio"):
+        assert np.array_equal(getattr(runs["kept"], comp), getattr(runs["uploaded"], comp),
+                              equal_nan=True), comp
+    assert runs["kept bytes"] < a.nbytes <= runs["uploaded bytes"]
+    assert runs["kept"].passes[0]["fft_route"] == {"device": "device", "scipy": "host"}[fft]
+
+
+def test_piv3d_refuses_device_copies_that_are_not_the_volumes(queue):
+    """A wrong ``on_device`` is refused by name with the fix, never read."""
+    import pyopencl as cl
+
+    a, b = _pair((24, 26, 28))
+    good = cl_array.to_device(queue, a)
+    context = cl.Context([queue.device])  # held: a driver may drop an unreferenced one
+    other = cl.CommandQueue(context)
+    for bad in ((good,), (good, cl_array.to_device(queue, a[:, :, :27].copy())),
+                (good, cl_array.to_device(queue, b.astype(np.float64))),
+                (good, cl_array.to_device(other, b)), (good, b)):
+        with pytest.raises(ValueError, match="on_device"):
+            piv3d(a, b, queue=queue, on_device=bad)
 
 
 def test_fft_setting_is_checked():

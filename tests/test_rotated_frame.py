@@ -143,6 +143,27 @@ def test_reconstruction_in_the_rotated_frame_finds_the_particles(queue):
     assert found[2.0] >= found[0.0] >= 5
 
 
+def test_only_a_volume_on_the_projectors_grid_is_kept_on_the_device(queue):
+    """``run_reconstruction(keep_on_device=True)`` on a grid across a rotated array's
+    lens rows: the voxels (each iteration resampled) keep their device volume, the host
+    one to the bit; sub-voxels on the lens-row frame, resampled onto the grid on the
+    host, keep none rather than the frame's."""
+    from plenocl.reconstruction import ReconstructionSettings, run_reconstruction
+
+    cam = lens_camera(12, 10, **ROTATED)
+    grid = Grid((4, 8, 8), x=(-0.5, 0.5), y=(-0.5, 0.5), z=(-0.5, 0.5))
+    proj = Projector(cam, grid, queue)
+    assert proj.path == "resampled"
+    img = simulate_image(cam, np.array([[0.05, -0.1, 0.1], [-0.2, 0.15, -0.2]]), 2e4,
+                         rays_per_particle=3000, seed=1, queue=queue)
+    voxels = ReconstructionSettings(supersample=1, iterations=3)
+    vol, info = run_reconstruction(img, proj, voxels, keep_on_device=True)
+    assert np.array_equal(info.volume_on_device.get(), vol) and vol.any()
+    sub = ReconstructionSettings(supersample=2, coarse_iterations=2, iterations=2)
+    vol, info = run_reconstruction(img, proj, sub, keep_on_device=True)
+    assert vol.shape == grid.shape and info.volume_on_device is None
+
+
 def test_a_grid_across_the_lens_rows_is_resampled_or_says_it_is_slow(queue):
     """Never a silent 12x: a sensor-axis grid on a rotated array is projected through the
     lens-row frame quietly, a sheared array too (jittered centres: the rows' frame makes

@@ -141,7 +141,8 @@ def test_the_tube_sums_on_the_device_are_scipys(queue, group):
 def test_a_volumes_particles_on_one_device_upload_it_once(queue, monkeypatch):
     """With the local maxima and the tube sums on one device, volume_particles sends the
     volume there once (each would send it: the sums once per centring pass) and finds
-    the same particles as with separate copies and as the host."""
+    the same particles as with separate copies and as the host; given the volume's
+    device copy (``on_device``), it sends nothing."""
     ridge = sum(tilted_ridge(OFF_AXIS, np.array(c), 0.35, 0.1)
                 for c in ([20.0, 12.0, 0.3], [18.8, 10.8, -1.5], [21.2, 13.2, 1.8]))
     host = volume_particles(ridge, sight=SightLines.of(CAMERA, OFF_AXIS))
@@ -156,6 +157,16 @@ def test_a_volumes_particles_on_one_device_upload_it_once(queue, monkeypatch):
                                 maxima=maxima)
     np.testing.assert_allclose(shared, host, atol=1e-4)
     np.testing.assert_allclose(separate, host, atol=1e-4)
+    # a device copy kept from the reconstruction: read by both, nothing sent, the same
+    # particles to the bit; with the sums on the host, the maxima alone read it
+    kept = real(queue, np.asarray(ridge, np.float32))
+    uploads.clear()
+    assert np.array_equal(volume_particles(ridge, sight=sight, maxima=maxima,
+                                           on_device=kept), shared)
+    assert uploads.count(ridge.shape) == 0
+    assert np.array_equal(volume_particles(ridge, sight=dataclasses.replace(sight, sums=None),
+                                           maxima=maxima, on_device=kept), separate)
+    assert uploads.count(ridge.shape) == 0
 
 
 def test_the_index_jacobian_moves_points_as_to_index_does():

@@ -259,6 +259,26 @@ def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):
     np.testing.assert_allclose(got, bin_lateral(full, 3), rtol=tol.BINNED, atol=0)
 
 
+@pytest.mark.parametrize("box", [None, (slice(20, 97), slice(4, 41), slice(7, 68))])
+def test_the_binned_device_volume_is_the_host_volume_bit_for_bit(optics, queue, box):
+    """``Solver.binned_to_device`` (the volume a reconstruction keeps on the device for
+    PIV) holds the host volume's values to the bit, cropped or not, over several slabs;
+    at factor 1 it is the volume times the scale as NumPy rounds it (no lateral sum)."""
+    cam, grid, _ = optics
+    fine = Projector(cam, grid.refined(3), queue, max_alloc_bytes=500_000)
+    solver = Solver(fine) if box is None else Solver(fine.cropped(box), box=box)
+    assert len(solver.proj.plan.slabs) > 1
+    host = np.random.default_rng(7).random(solver.proj.grid.shape).astype(np.float32)
+    vol = solver.proj.volume_to_device(host)
+    dev = solver.binned_to_device(vol, 3, grid.shape, 1.7)
+    assert dev.shape == grid.shape and dev.dtype == np.float32 and dev.flags.c_contiguous
+    assert np.array_equal(dev.get(), solver.binned_to_host(vol, 3, grid.shape, 1.7))
+    full = np.zeros(fine.grid.shape, np.float32)
+    full[box or slice(None)] = host
+    same = solver.binned_to_device(vol, 1, fine.grid.shape, 1.7).get()
+    assert np.array_equal(same, full * np.float32(1.7))
+
+
 # ---- coarse-to-fine: the image prepared once, the callback over both runs -------------
 @pytest.fixture(scope="module")
 def scene(optics, queue):
@@ -302,15 +322,16 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
             return function(*args, **kwargs)
         return wrapper
 
-    def binned_to_host(solver, vol, factor, shape, scale=1.0):
-        calls["fine"].append(solver.volume_to_host(vol, fine.shape) * np.float32(scale))
-        return Solver.binned_to_host.__wrapped__(solver, vol, factor, shape, scale)
+    def binned_to_device(solver, vol, factor, shape, scale=1.0):
+        if factor > 1:  # the fine run's sub-voxels (the coarse run's voxels pass too)
+            calls["fine"].append(solver.volume_to_host(vol, fine.shape) * np.float32(scale))
+        return binned_to_device.__wrapped__(solver, vol, factor, shape, scale)
 
-    binned_to_host.__wrapped__ = Solver.binned_to_host
+    binned_to_device.__wrapped__ = Solver.binned_to_device
     monkeypatch.setattr(images_module, "_preprocessed",
                         counted("_preprocessed", images_module._preprocessed))
     monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
-    monkeypatch.setattr(Solver, "binned_to_host", binned_to_host)
+    monkeypatch.setattr(Solver, "binned_to_device", binned_to_device)
     uploads, to_device = [], images_module.cla.to_device
     monkeypatch.setattr(images_module.cla, "to_device",
                         lambda queue, host, *a, **k: uploads.append(np.shape(host))
@@ -324,6 +345,26 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
     np.testing.assert_allclose(calls["fine"][0], fine, rtol=tol.ITERATED,
                                atol=tol.ROUNDING * peak)
     np.testing.assert_allclose(vol, bin_lateral(calls["fine"][0], 2), rtol=tol.BINNED, atol=0)
+
+
+@pytest.mark.parametrize("options", [{"supersample": 2, "coarse_iterations": 3,
+                                      "iterations": 3, "support": 0.05},
+                                     {"supersample": 1, "iterations": 3}])
+def test_a_reconstruction_keeps_its_volume_on_the_device_when_asked(optics, scene,
+                                                                    options):
+    """``run_reconstruction(keep_on_device=True)``: ``info.volume_on_device`` is the
+    returned volume to the bit, on the projector's context (coarse-to-fine sub-voxels and
+    plain voxels); without it (the default, ``reconstruct``'s) no device memory is held."""
+    from plenocl.reconstruction import run_reconstruction
+
+    proj = optics[2]
+    rec = ReconstructionSettings(**options)
+    vol, info = run_reconstruction(scene, proj, rec, keep_on_device=True)
+    dev = info.volume_on_device
+    assert dev.context == proj.queue.context and dev.dtype == np.float32
+    assert np.array_equal(dev.get(), vol) and vol.any()
+    again, plain = run_reconstruction(scene, proj, rec)
+    assert plain.volume_on_device is None and np.array_equal(again, vol)
 
 
 @pytest.mark.parametrize("crop", [True, False])
@@ -344,13 +385,13 @@ def test_the_first_sub_voxel_iterations_run_on_the_early_sampling(optics, scene,
                         **kw)
     assert fine.sampled(0.6).n_samples < fine.n_samples / 2
     late = reconstruct(scene, fine, iterations=1, start=early, **kw)
-    to_host, original = [], Solver.volume_to_host
+    to_host, original = [], Solver.binned_to_device
 
-    def counted(solver, vol, shape):
+    def counted(solver, vol, factor, shape, scale=1.0):  # each run's end: to the host
         to_host.append(shape)
-        return original(solver, vol, shape)
+        return original(solver, vol, factor, shape, scale)
 
-    monkeypatch.setattr(Solver, "volume_to_host", counted)
+    monkeypatch.setattr(Solver, "binned_to_device", counted)
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, relax=1.0, early_iterations=2, early_oversample=0.6,
                             crop=crop, return_info=True)

@@ -1,5 +1,6 @@
 """Device arrays filled with one value by the driver's own fill (``clEnqueueFillBuffer``),
-and volumes placed inside zeros on the device (one rectangular copy).
+volumes placed inside zeros or inside another volume on the device (one rectangular
+copy), and the check of two volumes' device copies handed from one stage to the next.
 
 pyopencl's ``Array.fill`` runs an element-wise kernel whose work-items each loop over a
 strided range; PoCL runs it 25-40x slower than the driver's fill (a 12.6-million-voxel
@@ -13,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-__all__ = ["fill", "inside_zeros"]
+__all__ = ["copy_inside", "device_copies", "fill", "inside_zeros"]
 
 
 def fill(array: cl_array.Array, value) -> cl_array.Array:
@@ -33,18 +34,58 @@ def inside_zeros(queue: cl.CommandQueue, vol, shape: tuple[int, int, int],
     """A float32 device array of ``shape`` ``(z, y, x)`` of zeros with ``vol`` (a host
     array, or a float32 device array on ``queue``'s context) copied in, its first voxel
     at ``corner``: a padded volume made on the device, without a padded host copy."""
-    nz, ny, nx = vol.shape
     out = fill(cl_array.empty(queue, tuple(shape), np.float32), 0.0)
+    return copy_inside(out, vol, corner)
+
+
+def copy_inside(out: cl_array.Array, vol, corner: tuple[int, int, int]) -> cl_array.Array:
+    """``vol`` (a float32 host array, or a whole float32 device array on ``out``'s
+    context) copied into the whole float32 device array ``out`` ``(z, y, x)``, its first
+    voxel at ``corner`` (one rectangular copy, enqueued on ``out``'s queue); returns
+    ``out``."""
+    nz, ny, nx = vol.shape
+    shape = out.shape
+    if any(c < 0 or c + n > s for c, n, s in zip(corner, vol.shape, shape, strict=True)):
+        raise ValueError(f"a {tuple(vol.shape)} volume at {tuple(corner)} does not fit in "
+                         f"{tuple(shape)}")
+    if not vol.size:
+        return out
     region = (4 * nx, ny, nz)
     inside = {"origin": (4 * corner[2], corner[1], corner[0]),
               "pitches": (4 * shape[2], 4 * shape[2] * shape[1])}
     packed = {"origin": (0, 0, 0), "pitches": (4 * nx, 4 * nx * ny)}
     if isinstance(vol, cl_array.Array):
-        cl.enqueue_copy(queue, out.data, vol.data, region=region,
+        cl.enqueue_copy(out.queue, out.data, vol.data, region=region,
                         **{f"dst_{k}": v for k, v in inside.items()},
                         **{f"src_{k}": v for k, v in packed.items()})
     else:
-        cl.enqueue_copy(queue, out.data, np.ascontiguousarray(vol, np.float32), region=region,
-                        **{f"buffer_{k}": v for k, v in inside.items()},
+        cl.enqueue_copy(out.queue, out.data, np.ascontiguousarray(vol, np.float32),
+                        region=region, **{f"buffer_{k}": v for k, v in inside.items()},
                         **{f"host_{k}": v for k, v in packed.items()})
     return out
+
+
+def device_copies(on_device, shape: tuple[int, ...], context: cl.Context | None = None,
+                  who: str = "on_device") -> tuple[cl_array.Array, cl_array.Array] | None:
+    """Two volumes' device copies ``(dev_a, dev_b)`` (a reconstruction's
+    ``info.volume_on_device``, handed to the next stage), checked: whole contiguous
+    float32 device arrays of the volumes' ``shape``, on ``context`` where given;
+    ``None`` for ``None``. A wrong one is refused by name, with the fix."""
+    if on_device is None:
+        return None
+    copies = tuple(on_device)
+    if len(copies) != 2:
+        raise ValueError(f"{who} takes the two volumes' device copies (dev_a, dev_b), got "
+                         f"{len(copies)}")
+    for name, dev in zip(("a", "b"), copies):
+        if not (isinstance(dev, cl_array.Array) and dev.shape == tuple(shape)
+                and dev.dtype == np.float32 and dev.flags.c_contiguous and dev.offset == 0
+                and (context is None or dev.context == context)):
+            raise ValueError(
+                f"{who}'s copy of volume {name} must be a whole float32 device array of "
+                f"the volumes' shape {tuple(shape)}"
+                f"{'' if context is None else ' on the context the stage runs on'} (a "
+                f"reconstruction's info.volume_on_device); got "
+                f"{getattr(dev, 'shape', type(dev).__name__)}. Pass the host volumes alone "
+                f"({who}=None) to upload them")
+    return copies

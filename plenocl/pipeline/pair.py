@@ -118,13 +118,18 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     for tag, raw in (("a", raw_a), ("b", raw_b)):
         with clock.stage(f"reconstruct_{tag}"):
             try:
-                out[tag] = run_reconstruction(raw, projector, rec)
+                out[tag] = run_reconstruction(raw, projector, rec,
+                                              keep_on_device=not settings.mte.cycles)
             except UnusableImageError as exc:
                 raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
     if not settings.mte.cycles:
-        res, _ = correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector, settings,
-                                   known_backgrounds(info_a, info_b), clock)
+        try:
+            res, _ = correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector, settings,
+                                       known_backgrounds(info_a, info_b), clock,
+                                       on_device=kept_on_device(info_a, info_b))
+        finally:  # the result holds the host volumes alone: no device memory
+            info_a.volume_on_device = info_b.volume_on_device = None
         return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
     def correlate(a, b) -> PIVResult:
@@ -174,7 +179,8 @@ def _several_cameras(raws_a, raws_b, projectors: list, settings: PairSettings
 
 def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
                       settings: PairSettings, backgrounds: list | None = None,
-                      clock: StageClock | None = None) -> tuple[PIVResult, dict[str, float]]:
+                      clock: StageClock | None = None, on_device: tuple | None = None
+                      ) -> tuple[PIVResult, dict[str, float]]:
     """The chain of :func:`process_pair` after its reconstruction, on two volumes made
     earlier (a batch rerun whose PIV settings changed reuses its kept volumes).
 
@@ -195,6 +201,10 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
         per camera such a list or ``None``.
     clock
         The :class:`StageClock` to time the stages on (``None``: a new one).
+    on_device
+        The volumes' float32 device copies on the projector's queue (one camera;
+        :func:`kept_on_device`), read instead of uploading the volumes again
+        (:func:`plenocl.pipeline.velocity.refined_field`); ``None``: none.
 
     Returns
     -------
@@ -215,8 +225,15 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
     else:
         res = refined_field(vol_a, vol_b, projector.grid, settings, projector.queue,
                             camera=projector.camera, raws=(raw_a, raw_b),
-                            backgrounds=backgrounds, clock=clock)
+                            backgrounds=backgrounds, clock=clock, on_device=on_device)
     return res, clock.seconds
+
+
+def kept_on_device(*infos: ReconstructionInfo) -> tuple | None:
+    """The reconstructions' device volumes (``info.volume_on_device``), ``None`` unless
+    every one kept its volume there."""
+    kept = tuple(info.volume_on_device for info in infos)
+    return None if any(dev is None for dev in kept) else kept
 
 
 def known_backgrounds(*infos: ReconstructionInfo) -> list | None:

@@ -53,7 +53,8 @@ class StageClock:
 
 def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: DeviceLike = None,
                   *, camera: Camera | None = None, raws=None, backgrounds=None,
-                  clock: StageClock | None = None) -> PIVResult:
+                  clock: StageClock | None = None, on_device: tuple | None = None
+                  ) -> PIVResult:
     """The velocity field of two volumes: ``settings.piv``'s correlation, refined by the
     particles (:func:`refine_particles`) where ``settings.particles`` asks.
 
@@ -74,19 +75,25 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
         As :func:`refine_particles`.
     clock
         The :class:`StageClock` timing the stages ``piv`` and ``particles``.
+    on_device
+        The volumes' float32 device copies on ``queue``'s context (the reconstructions'
+        ``info.volume_on_device``), read by both stages instead of uploading the volumes
+        (:func:`plenocl.piv3d`, :func:`refine_particles`); ``None``: none.
     """
     clock = clock or StageClock()
     with clock.stage("piv"):
-        res = piv3d(vol_a, vol_b, settings.piv, queue=queue)
+        res = piv3d(vol_a, vol_b, settings.piv, queue=queue, on_device=on_device)
     return refine_particles(res, vol_a, vol_b, grid, settings, queue, camera=camera,
-                            raws=raws, backgrounds=backgrounds, clock=clock)
+                            raws=raws, backgrounds=backgrounds, clock=clock,
+                            on_device=on_device)
 
 
 def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSettings,
                      queue: DeviceLike = None, *, camera: Camera | list | None = None,
                      raws=None, backgrounds=None, clock: StageClock | None = None,
                      spread: float | None = SPREAD, weighted: bool = True,
-                     depth_support: float = DEPTH_SUPPORT) -> PIVResult:
+                     depth_support: float = DEPTH_SUPPORT, on_device: tuple | None = None
+                     ) -> PIVResult:
     """``res`` refined by the volumes' matched particles
     (:func:`plenocl.piv.refinement.refine_with_particles`) where ``settings.particles``
     asks, timed as the stage ``particles``; ``res`` itself otherwise.
@@ -114,6 +121,9 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
         the depth's support in windows (one camera's;
         :data:`plenocl.piv.refinement.DEPTH_SUPPORT`);
         :func:`plenocl.piv.refinement.refine_with_particles`.
+    on_device
+        The volumes' float32 device copies (:func:`refined_field`), which the local
+        maxima and tube sums on that device read.
     """
     if not settings.particles:
         return res
@@ -138,5 +148,6 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
             sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
                                     maxima=maxima, spread=spread, weighted=weighted,
-                                    depth_support=depth_support, device_means=device_means)
+                                    depth_support=depth_support, device_means=device_means,
+                                    on_device=on_device)
     return res

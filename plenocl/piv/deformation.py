@@ -11,6 +11,7 @@ kernel spreads it over every core of a CPU and over a GPU.
 from __future__ import annotations
 
 import numpy as np
+import pyopencl.array as cl_array
 
 from ..opencl.arrays import inside_zeros
 from ..opencl.device import DeviceLike, NoOpenCLError, check_fits, get_queue
@@ -68,17 +69,19 @@ class DeviceDeformer:
                                  options=[f"-DORDER={order}"],
                                  looping=["spline_prefilter", "resample_axis"])
 
-    def prepare(self, vol: np.ndarray):
+    def prepare(self, vol):
         """The padded, filtered volume (:func:`~plenocl.piv.interpolate.prepare`, the host
         reference) on the device: copied into zeros there, B-spline filtered there
-        (``spline_prefilter``, axis by axis as SciPy)."""
-        host = np.ascontiguousarray(vol, np.float32)
-        nz, ny, nx = host.shape
+        (``spline_prefilter``, axis by axis as SciPy). ``vol``: a host volume, or a
+        float32 device volume on this queue's context (copied there, not uploaded)."""
+        if not isinstance(vol, cl_array.Array):
+            vol = np.ascontiguousarray(vol, np.float32)
+        nz, ny, nx = vol.shape
         shape = (nz + 2 * MARGIN, ny + 2 * MARGIN, nx + 2 * MARGIN)
-        check_fits(self.kernels.queue, 4 * (2 * int(np.prod(shape)) + 4 * host.size),
+        check_fits(self.kernels.queue, 4 * (2 * int(np.prod(shape)) + 4 * vol.size),
                    "PIV volume deformation")
         # zeros on the device, the volume copied inside them (np.pad's constant mode)
-        coeffs = inside_zeros(self.kernels.queue, host, shape, (MARGIN,) * 3)
+        coeffs = inside_zeros(self.kernels.queue, vol, shape, (MARGIN,) * 3)
         if self.order == 3:
             self.prefilter(coeffs)
         return coeffs

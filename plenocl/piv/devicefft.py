@@ -201,8 +201,9 @@ _MEASURE_LOCK = threading.Lock()
 
 
 def measured_routes() -> dict[tuple, tuple[str, float, float]]:
-    """Every FFT route measured so far in this process: ``(device name, box, volumes on
-    the device)`` to ``(route, host seconds, device seconds)``."""
+    """Every FFT route measured so far in this process: ``(device name, box, where the
+    volumes are)`` to ``(route, host seconds, device seconds)``; the volumes ``"host"``,
+    ``"device"`` or ``"both"`` (host volumes with device copies, ``on_device``)."""
     with _MEASURE_LOCK:
         return dict(_MEASURED)
 
@@ -241,16 +242,20 @@ class FFTRoute:
         self.used: set[str] = set()
 
     def correlate(self, vol_a, vol_b, grid: WindowGrid, *, pad: bool = False,
-                  weight: np.ndarray | None = None,
-                  select: np.ndarray | None = None) -> Correlation:
+                  weight: np.ndarray | None = None, select: np.ndarray | None = None,
+                  on_device: tuple | None = None) -> Correlation:
         """:func:`plenocl.piv.correlation.correlate` of host or device volumes, on the
-        route chosen (the host's FFT options from this object)."""
+        route chosen (the host's FFT options from this object). ``on_device``: device
+        copies of host volumes (the same values, on this route's context), which the
+        device's route reads instead of uploading the volumes; the host's reads the host
+        volumes."""
         options = {"pad": pad, "weight": weight, "select": select}
-        route = self.route(vol_a, grid, pad) or self._measure(vol_a, vol_b, grid, options)
+        route = (self.route(vol_a, grid, pad, on_device)
+                 or self._measure(vol_a, vol_b, grid, options, on_device))
         self.used.add(route)
         if route == "host":
             return self._host(vol_a, vol_b, grid, options)
-        return self.device.correlate(vol_a, vol_b, grid, **options)
+        return self.device.correlate(*(on_device or (vol_a, vol_b)), grid, **options)
 
     def _host(self, vol_a, vol_b, grid: WindowGrid, options: dict) -> Correlation:
         """The host's FFT; of device volumes only the windows come to the host."""
@@ -261,22 +266,26 @@ class FFTRoute:
         return correlate(vol_a, vol_b, grid, workers=self.workers, backend=self.backend,
                          windows=windows, **options)
 
-    def route(self, vol_a, grid: WindowGrid, pad: bool) -> str | None:
-        """``"host"`` or ``"device"`` for volumes like ``vol_a`` and ``grid``'s windows;
-        ``None`` where it is still to be measured."""
+    def route(self, vol_a, grid: WindowGrid, pad: bool, on_device: tuple | None = None
+              ) -> str | None:
+        """``"host"`` or ``"device"`` for volumes like ``vol_a`` (with device copies
+        ``on_device`` or not) and ``grid``'s windows; ``None`` where it is still to be
+        measured."""
         if self.device is None or self.fft in BACKENDS or not self.device.supports(grid, pad):
             return "host"
         if self.fft == "device":
             return "device"
         with _MEASURE_LOCK:
-            known = _MEASURED.get(self._key(vol_a, grid, pad))
+            known = _MEASURED.get(self._key(vol_a, grid, pad, on_device))
         return None if known is None else known[0]
 
-    def _key(self, vol_a, grid: WindowGrid, pad: bool) -> tuple:
-        return (self.device.queue.device.name.strip(), fft_shape_of(grid, pad),
-                isinstance(vol_a, cl_array.Array))
+    def _key(self, vol_a, grid: WindowGrid, pad: bool, on_device: tuple | None) -> tuple:
+        resident = ("device" if isinstance(vol_a, cl_array.Array)
+                    else "host" if on_device is None else "both")
+        return self.device.queue.device.name.strip(), fft_shape_of(grid, pad), resident
 
-    def _measure(self, vol_a, vol_b, grid: WindowGrid, options: dict) -> str:
+    def _measure(self, vol_a, vol_b, grid: WindowGrid, options: dict,
+                 on_device: tuple | None) -> str:
         """Time both routes on up to :data:`MEASURED_WINDOWS` of this call's windows,
         each run twice (the first run warms it: the device's buffers and twiddles, the
         host's FFT plans) and the second timed; keep the device where it took at most
@@ -286,7 +295,8 @@ class FFTRoute:
         sample.flat[np.flatnonzero(todo)[:MEASURED_WINDOWS]] = True
         trial = {**options, "select": sample}
         routes = {"host": lambda: self._host(vol_a, vol_b, grid, trial),
-                  "device": lambda: self.device.correlate(vol_a, vol_b, grid, **trial)}
+                  "device": lambda: self.device.correlate(*(on_device or (vol_a, vol_b)),
+                                                          grid, **trial)}
         seconds = {}
         for name, run in routes.items():
             run()
@@ -295,6 +305,6 @@ class FFTRoute:
             seconds[name] = time.perf_counter() - start
         route = "device" if seconds["device"] <= DEVICE_GAIN * seconds["host"] else "host"
         with _MEASURE_LOCK:
-            _MEASURED[self._key(vol_a, grid, options["pad"])] = (route, seconds["host"],
-                                                                  seconds["device"])
+            _MEASURED[self._key(vol_a, grid, options["pad"], on_device)] = (
+                route, seconds["host"], seconds["device"])
         return route

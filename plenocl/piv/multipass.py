@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..opencl.arrays import device_copies
 from ..options import with_keywords
 from ..peaks import host_maxima
 from ..vectorfield import PIVResult, Size3
@@ -160,20 +161,21 @@ def auto_windows(shape, max_displacement: float | None = None,
 
 
 def count_particles(vol: np.ndarray, threshold: float = 0.1,
-                    maxima: Callable | None = None) -> int:
+                    maxima: Callable | None = None, on_device=None) -> int:
     """Local maxima above ``threshold`` of the volume's maximum: about the particles (and
     ghosts) a reconstructed volume holds; found by ``maxima``
     (:func:`plenocl.peaks.host_maxima`, the default, or a device's
-    :class:`plenocl.piv.devicepeaks.DeviceMaxima`)."""
+    :class:`plenocl.piv.devicepeaks.DeviceMaxima`, which reads ``on_device``, the
+    volume's device copy, where given)."""
     v = np.asarray(vol, np.float32)
     top = float(v.max()) if v.size else 0.0
     if top <= 0:
         return 0
-    return len((maxima or host_maxima)(v, threshold * top))
+    return len((maxima or host_maxima)(v if on_device is None else on_device, threshold * top))
 
 
 def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue=None,
-          **keywords) -> PIVResult:
+          on_device: tuple | None = None, **keywords) -> PIVResult:
     """Multi-pass 3-D PIV of two particle volumes with symmetric window deformation.
 
     Parameters
@@ -238,6 +240,13 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         (:class:`plenocl.piv.devicefft.FFTRoute`; on 2 CPU cores the host, on a GPU the
         device). The routes taken are in ``result.passes`` (``fft_route``). Without a
         device (``queue=False``, the quintic B-spline) the host's.
+    on_device
+        The two volumes' float32 device copies ``(dev_a, dev_b)`` on ``queue``'s context,
+        holding the same values (a reconstruction's ``info.volume_on_device``:
+        :func:`plenocl.process_pair` passes them): read where the volumes go to the
+        device (the particle count, the deformation, the device's FFT of the first
+        pass) instead of uploading them again. Not used with a ``mask`` (the masked
+        volumes differ) or on the host.
     correlation
         ``"auto"`` (default): the deformed passes correlate each window directly at the
         63 lags around zero, one voxel across and three in depth (:mod:`plenocl.piv.direct`:
@@ -262,14 +271,18 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
     deformer = make_deformer(opts.deform_order, queue)
     sums = sums_for(deformer)
     fft = FFTRoute(opts.fft, None if sums is None else sums.kernels.queue, opts.workers)
+    copies = None if sums is None else device_copies(on_device, a.shape,
+                                                     sums.kernels.queue.context)
     if windows is None:
         maxima = None if sums is None else DeviceMaxima(sums.kernels.queue)
-        windows = auto_windows(a.shape, particles=count_particles(a, maxima=maxima))
+        windows = auto_windows(a.shape, particles=count_particles(
+            a, maxima=maxima, on_device=None if copies is None else copies[0]))
     schedule = _schedule(a.shape, windows, opts.overlaps, opts.final_iterations)
     mask = _check_mask(mask, a.shape)
     if mask is not None:
         a, b = (np.where(mask, np.float32(0), v) for v in (a, b))
-    coeffs = (deformer.prepare(a), deformer.prepare(b))
+        copies = None
+    coeffs = tuple(deformer.prepare(v) for v in copies or (a, b))
     state, log = None, []
     for k, (size, overlap) in enumerate(schedule):
         t0 = time.perf_counter()
@@ -280,7 +293,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
                   and not (final and opts.min_peak_ratio is not None))
         fft.used.clear()
         state = _run_pass(a, b, (deformer, *coeffs), state, size, overlap, mask, pad, weight,
-                          opts, direct, final, (sums, fft))
+                          opts, direct, final, (sums, fft, copies))
         # a direct pass gives a peak ratio only to the windows it sent to the FFT
         by_fft = int((~np.isnan(state.peak_ratio)).sum()) if direct else state.invalid.size
         log.append({"window": size, "overlap": overlap, "vectors": state.invalid.size,
@@ -322,13 +335,15 @@ def _check_mask(mask, shape: Size3) -> np.ndarray | None:
 def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, mask, pad: bool,
               weight, opts: PIVSettings, direct: bool, final: bool, engines: tuple) -> _Pass:
     """One correlation pass: deform by the predictor, correlate, validate, replace;
-    ``engines``: the direct correlation's window sums (``None``: the host) and the
-    :class:`~plenocl.piv.devicefft.FFTRoute`. Deformed volumes stay on the device where
-    the window sums run there."""
+    ``engines``: the direct correlation's window sums (``None``: the host), the
+    :class:`~plenocl.piv.devicefft.FFTRoute` and the volumes' device copies (``None``:
+    none; the first pass's device FFT reads them). Deformed volumes stay on the device
+    where the window sums run there."""
     grid = window_grid(a.shape, size, overlap)
     centres = grid.centres
+    copies = None
     if prev is None:
-        da, db, base = a, b, 0.0
+        da, db, base, copies = a, b, 0.0, engines[2]
     else:
         deformer, coeff_a, coeff_b = prepared
         dense = deformer.predictor(prev.field, prev.centres, a.shape, opts.predictor)
@@ -337,7 +352,7 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
         db = deformer(coeff_b, dense, +0.5, keep)
         base = resample(prev.field, prev.centres, centres, opts.predictor)
     corr = _correlate_pass(da, db, grid, pad, weight, opts, direct,
-                           final and prev is not None, engines)
+                           final and prev is not None, engines[:2], copies)
     masked = np.zeros(grid.count, bool) if mask is None else window_fraction(mask, grid) > 0.5
     invalid = ~corr.signal | masked
     if opts.min_peak_ratio is not None:
@@ -350,13 +365,14 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
 
 
 def _correlate_pass(da, db, grid, pad: bool, weight, opts: PIVSettings, direct: bool,
-                    uncertainty: bool, engines: tuple):
+                    uncertainty: bool, engines: tuple, on_device: tuple | None = None):
     """Correlate one pass directly or by FFT; with ``uncertainty`` (the final pass on
-    deformed volumes) also estimate each vector's uncertainty."""
+    deformed volumes) also estimate each vector's uncertainty; ``on_device``: device
+    copies of host volumes ``da``, ``db`` for the device's FFT."""
     sums, fft = engines
     if direct:
         return correlate_deformed(da, db, grid, opts.weighting, uncertainty, sums, fft)
-    corr = fft.correlate(da, db, grid, pad=pad, weight=weight)
+    corr = fft.correlate(da, db, grid, pad=pad, weight=weight, on_device=on_device)
     if uncertainty:
         corr.sigma = deformed_uncertainty(da, db, grid, opts.weighting, sums)
     return corr

@@ -56,6 +56,7 @@ from scipy import stats
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
+from ..opencl.arrays import device_copies
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
@@ -252,8 +253,8 @@ def _diagonal(sigma: np.ndarray) -> np.ndarray:
 
 
 def volume_particles(vol: np.ndarray, threshold: float = 0.1,
-                     sight: SightLines | None = None, maxima: Callable | None = None
-                     ) -> np.ndarray:
+                     sight: SightLines | None = None, maxima: Callable | None = None,
+                     on_device=None) -> np.ndarray:
     """A volume's particles ``(N, 3)`` ``(x, y, z)`` voxels, brightest first: its peaks
     above ``threshold`` of the robust peak level (:func:`plenocl.peaks.find_particles`
     with ``reference="robust"``: a high quantile of the peaks, which does not grow with
@@ -263,17 +264,33 @@ def volume_particles(vol: np.ndarray, threshold: float = 0.1,
     centred on their ridge (:meth:`SightLines.centres`). ``maxima``: where the local
     maxima are found (:func:`plenocl.peaks.find_particles`' ``maxima``; ``None``: the
     host). Where both run on one device, the volume goes to it once
-    (:func:`shared_upload`)."""
-    shared = shared_upload(vol, maxima, sight)
-    if shared is not None:
-        maxima = _maxima_on(maxima, shared)
+    (:func:`shared_upload`); ``on_device``: the volume's float32 device copy (the same
+    values), which each of them on its context reads instead."""
+    for_maxima, for_sums = device_reads(vol, maxima, sight, on_device)
+    if for_maxima is not None:
+        maxima = _maxima_on(maxima, for_maxima)
     peaks, values = find_particles(vol, threshold, reference="robust", maxima=maxima)
     if sight is None:
         return peaks
     peaks = sight.merge(peaks, values)[0]
     for _ in range(CENTRE_PASSES):
-        peaks = sight.centres(vol if shared is None else shared, peaks)
+        peaks = sight.centres(vol if for_sums is None else for_sums, peaks)
     return peaks
+
+
+def device_reads(vol: np.ndarray, maxima, sight: SightLines | None, on_device=None
+                 ) -> tuple:
+    """The device volumes :func:`volume_particles`' local maxima and tube sums read
+    (``None``: the host volume, uploaded by each as it needs): ``on_device`` for each on
+    its context; without it, one upload for both where both run on one device
+    (:func:`shared_upload`)."""
+    if on_device is None:
+        shared = shared_upload(vol, maxima, sight)
+        return shared, shared
+    queues = (getattr(maxima, "queue", None),
+              None if sight is None else getattr(sight.sums, "queue", None))
+    return tuple(on_device if q is not None and q.context == on_device.context else None
+                 for q in queues)
 
 
 def _maxima_on(maxima: Callable, shared: cl_array.Array) -> Callable:
@@ -1038,7 +1055,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                           spread: float | None = SPREAD, weighted: bool = True,
                           depth_support: float = DEPTH_SUPPORT,
                           outliers: float | None = OUTLIER_THRESHOLD, *,
-                          device_means: DeviceWindowMeans | None = None) -> PIVResult:
+                          device_means: DeviceWindowMeans | None = None,
+                          on_device: tuple | None = None) -> PIVResult:
     """``field`` with every window that holds at least ``min_pairs`` matched particle
     pairs replaced by their mean displacement at the window's centre and its uncertainty
     (``sigma_*``; see the module documentation).
@@ -1064,7 +1082,12 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
     (:func:`plenocl.piv.pairoutliers.neighbour_outliers`; ``None``: none, the
     refinement before 2026-11-29 night). ``device_means``: the window means on that device
     (:class:`plenocl.piv.devicemeans.DeviceWindowMeans`; ``None``: on the host).
+    ``on_device``: the volumes' float32 device copies ``(dev_a, dev_b)`` (the same
+    values; a reconstruction's ``info.volume_on_device``), which the local maxima and the
+    tube sums on their context read instead of uploading the volumes
+    (:func:`volume_particles`).
     """
+    on_device = device_copies(on_device, np.shape(vol_a), who="refine_with_particles")
     if spread is not None and not spread > 0:
         raise ValueError(f"refine_with_particles got spread={spread}: give a positive "
                          f"number of robust standard deviations (ROBUST_SPREAD = "
@@ -1078,7 +1101,8 @@ def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray
                          f"number of combined scales from a pair's neighbours "
                          f"(OUTLIER_THRESHOLD = {OUTLIER_THRESHOLD:g}), or None to leave "
                          f"no pair out")
-    pa, pb = (volume_particles(v, threshold, sight, maxima) for v in (vol_a, vol_b))
+    pa, pb = (volume_particles(v, threshold, sight, maxima, dev)
+              for v, dev in zip((vol_a, vol_b), on_device or (None, None), strict=True))
     predictor = repredicted(field, pa, pb, min_pairs, search, focus, spread, sight,
                             device_means=device_means)
     pairs = pair_peaks(pa, pb, predictor, search, fit)

@@ -327,7 +327,7 @@ def _supersampled(prepared: PreparedImage, projector, refined,
                                      coarse_settings, callback)
         start, support = coarse_support(coarse, settings)
         if not support:  # nothing to refine: the image holds no light (warned)
-            coarse_info.support_fraction = 0.0
+            coarse_info.support_fraction, coarse_info.volume_on_device = 0.0, None
             return np.zeros(projector.grid.shape, np.float32), coarse_info
         if coarse_info.stopped:
             return coarse, coarse_info  # the callback stopped the reconstruction
@@ -430,13 +430,13 @@ def _to_host(solver: Solver, vol, prepared: PreparedImage, info: ReconstructionI
              factor: int, grid_shape: tuple[int, int, int]) -> np.ndarray:
     """A run's device volume as the host volume in image units on the full grid of
     ``grid_shape`` (a cropped solver's box placed in it), summed over ``factor x factor``
-    lateral blocks on the device when ``factor > 1``; sets ``info.active_fraction``."""
+    lateral blocks on the device when ``factor > 1``; sets ``info.active_fraction`` and
+    keeps the same volume on the device as ``info.volume_on_device``."""
     nz, ny, nx = grid_shape
-    shape = (nz, ny // factor, nx // factor)
-    if factor == 1:
-        out = solver.volume_to_host(vol, shape) * np.float32(prepared.scale)
-    else:
-        out = solver.binned_to_host(vol, factor, shape, prepared.scale)
+    device = solver.binned_to_device(vol, factor, (nz, ny // factor, nx // factor),
+                                     prepared.scale)
+    out = device.get()
+    info.volume_on_device = device
     info.active_fraction = float(np.count_nonzero(out)) / out.size
     return out
 
@@ -473,12 +473,14 @@ def _in_frame(image, projector, settings: ReconstructionSettings, callback, obse
         vol = projector.volume_from_frame(vol)
     info.active_fraction = float(np.count_nonzero(vol)) / vol.size
     info.seconds = time.perf_counter() - t0
+    info.volume_on_device = None  # the frame's grid, resampled on the host
     return vol, info
 
 
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                        callback: Callable[[int, float], bool | None] | None = None,
-                       pixel_mask=None) -> tuple[np.ndarray, ReconstructionInfo]:
+                       pixel_mask=None, *, keep_on_device: bool = False
+                       ) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
     returns the volume and its :class:`ReconstructionInfo`.
 
@@ -489,7 +491,23 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     (:func:`_in_frame`) and voxels with its own operator (resampled every iteration: at
     the voxels' scale a single resampling at the end would blur particles by up to a
     voxel).
+
+    ``keep_on_device``: also keep the volume on the device, as
+    ``info.volume_on_device`` (float32, the projector's queue; the same values as the
+    returned volume), where the reconstruction ends with it there (one camera, not on a
+    rotated array's frame; ``None`` otherwise), for the next stage to read without
+    uploading it again (:func:`plenocl.process_pair`). By default it is released: an
+    info kept for long does not hold device memory.
     """
+    vol, info = _reconstructed(image, projector, settings, callback, pixel_mask)
+    if not keep_on_device:
+        info.volume_on_device = None
+    return vol, info
+
+
+def _reconstructed(image, projector: ProjectionOperator, settings: ReconstructionSettings,
+                   callback, pixel_mask) -> tuple[np.ndarray, ReconstructionInfo]:
+    """:func:`run_reconstruction`'s work (the device volume kept in the info)."""
     if isinstance(settings.start, str) and settings.start not in ("uniform", "mlos"):
         raise ValueError("start must be 'uniform', 'mlos' or a volume array, got "
                          f"{settings.start!r}")  # an option: checked before the image

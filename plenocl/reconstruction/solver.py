@@ -12,7 +12,7 @@ import functools
 import numpy as np
 import pyopencl.array as cla
 
-from ..opencl.arrays import fill
+from ..opencl.arrays import copy_inside, fill
 from ..opencl.program import KernelSet
 from .operator import ProjectionOperator
 from .supersample import LateralBinning
@@ -241,19 +241,32 @@ class Solver:
                        scale: float = 1.0) -> np.ndarray:
         """The volume summed over ``factor x factor`` lateral blocks on the device, times
         ``scale``, as a host volume on the full binned grid of shape ``shape`` (0 outside
-        :attr:`box`): only the binned volume crosses to the host (:class:`LateralBinning`).
+        :attr:`box`): only the binned volume crosses to the host
+        (:meth:`binned_to_device`)."""
+        return self.binned_to_device(vol, factor, shape, scale).get()
+
+    def binned_to_device(self, vol, factor: int, shape: tuple[int, int, int],
+                         scale: float = 1.0) -> cla.Array:
+        """:meth:`binned_to_host`'s volume as one float32 device array of ``shape`` (the
+        next stage reads it there; ``factor`` 1: the volume itself, times ``scale``).
 
         A crop box need not start on a block boundary: the blocks it cuts are summed
         over the sub-voxels inside it (the others are 0 in the full fine grid).
         """
-        binning = self.binning
         if self.box is None:
-            return binning.to_host(vol, factor, scale=scale)
-        z, y, x = self.box
-        (y0, oy), (x0, ox) = divmod(y.start, factor), divmod(x.start, factor)
-        part = binning.to_host(vol, factor, (oy, ox), scale)
-        full = np.zeros(shape, np.float32)
-        full[z, y0:y0 + part.shape[1], x0:x0 + part.shape[2]] = part
+            corner, offset = (0, 0, 0), (0, 0)
+        else:
+            z, y, x = self.box
+            (y0, oy), (x0, ox) = divmod(y.start, factor), divmod(x.start, factor)
+            corner, offset = (z.start, y0, x0), (oy, ox)
+        parts = self.binning.binned(vol, factor, offset, scale)
+        if self.box is None and len(parts) == 1:
+            return parts[0]
+        full = fill(cla.empty(self.queue, shape, np.float32), 0.0)
+        z0 = corner[0]
+        for part in parts:
+            copy_inside(full, part, (z0, corner[1], corner[2]))
+            z0 += part.shape[0]
         return full
 
 

@@ -65,11 +65,16 @@ class LateralBinning:
         covers every block the slabs touch, ``ceil((o + n) / factor)`` per axis, and the
         sub-voxels outside the slabs count as zero.
         """
+        return np.concatenate([p.get() for p in self.binned(slabs, factor, offset, scale)],
+                              axis=0)
+
+    def binned(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
+               scale: float = 1.0) -> list[cla.Array]:
+        """:meth:`to_host`'s binned slabs, left on the device (one per slab)."""
         oy, ox = offset
         if not (0 <= oy < factor and 0 <= ox < factor):
             raise ValueError(f"offset {offset} must lie in [0, {factor}) per axis")
-        parts = [self._bin(s, factor, oy, ox, scale) for s in slabs]
-        return np.concatenate([p.get() for p in parts], axis=0)
+        return [self._bin(s, factor, oy, ox, scale) for s in slabs]
 
     def _bin(self, slab: cla.Array, factor: int, oy: int, ox: int,
              scale: float) -> cla.Array:
