@@ -146,10 +146,10 @@ __kernel void partial_sums(__global const float *a, __global const float *b, int
 }
 
 /* First and last non-zero voxel of every volume row (one work-item per (z, y) row of a
- * slab; (nx, -1) for an empty row). From them the host gets the depth slices that can
- * still be non-zero and the bounding box of the non-zero voxels without copying the
- * volume: multiplicative updates never revive a zero voxel, so what is zero stays out of
- * every later projection. */
+ * slab; (nx, -1) for an empty row). From them slice_extent (below) gives each depth
+ * slice's extent, and the host the slices that can still be non-zero and the bounding
+ * box of the non-zero voxels without copying the volume: multiplicative updates never
+ * revive a zero voxel, so what is zero stays out of every later projection. */
 __kernel void row_extent(__global const float *vol, int nx, __global int2 *out, int nrows)
 {
     const int r = get_global_id(0);
@@ -162,4 +162,27 @@ __kernel void row_extent(__global const float *vol, int nx, __global int2 *out, 
             last = i;
         }
     out[r] = (int2)(first, last);
+}
+
+/* Each depth slice's extent from its rows' (row_extent above): (first and last row with a
+ * non-zero voxel, first and last non-zero x over those rows), (ny, -1, nx, -1) for an
+ * empty slice; so only nz x 4 ints cross to the host each iteration (the slices still
+ * active, the box to crop to). Parallel structure: one work-item per depth slice, a loop
+ * over its rows' extents; no atomics. */
+__kernel void slice_extent(__global const int2 *rows, int ny, int nx, __global int4 *out,
+                           int nz)
+{
+    const int z = get_global_id(0);
+    if (z >= nz) return;
+    __global const int2 *slice = rows + (size_t)z * ny;
+    int4 e = (int4)(ny, -1, nx, -1);
+    for (int y = 0; y < ny; ++y) {
+        const int2 r = slice[y];
+        if (r.y < 0) continue;
+        e.x = min(e.x, y);
+        e.y = y;
+        e.z = min(e.z, r.x);
+        e.w = max(e.w, r.y);
+    }
+    out[z] = e;
 }

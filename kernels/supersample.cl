@@ -52,3 +52,35 @@ __kernel void spread_lateral(__global const float *coarse, int ny, int nx, int f
     fine[((size_t)z * nyf + y) * nxf + x] =
         coarse[((size_t)z * ny + y / factor) * nx + x / factor] * scale;
 }
+
+/* The coarse run's support found on the device (plenocl/reconstruction/schedule.py
+ * support_of, its twin with box_dilated): keep[z][y][x] = 1 where any voxel of the 3 x 3
+ * x 3 box around (x, y, z), inside the volume, is above floor (float32, as the host
+ * compares), else 0. Parallel structure: one work-item per coarse voxel, a gather of its
+ * 27 neighbours; no atomics. */
+__kernel void grown_support(__global const float *coarse, int nz, int ny, int nx,
+                            float floor_value, __global uchar *keep)
+{
+    const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    uchar found = 0;
+    for (int dz = max(z - 1, 0); dz <= min(z + 1, nz - 1) && !found; ++dz)
+        for (int dy = max(y - 1, 0); dy <= min(y + 1, ny - 1) && !found; ++dy) {
+            __global const float *row = coarse + ((size_t)dz * ny + dy) * nx;
+            for (int dx = max(x - 1, 0); dx <= min(x + 1, nx - 1); ++dx)
+                found |= row[dx] > floor_value;
+        }
+    keep[((size_t)z * ny + y) * nx + x] = found;
+}
+
+/* The support spread over the sub-voxels of one depth slab (spread_lateral of the flat
+ * start, without it crossing to the device): fine[z][y][x] = level * scale where
+ * keep[z0 + z][y / factor][x / factor], else 0. Parallel structure: one work-item per
+ * sub-voxel, a gather of its one coarse flag; no atomics. */
+__kernel void spread_support(__global const uchar *keep, int z0, int ny, int nx, int factor,
+                             float level, float scale, __global float *fine, int nyf,
+                             int nxf)
+{
+    const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    const uchar on = keep[((size_t)(z0 + z) * ny + y / factor) * nx + x / factor];
+    fine[((size_t)z * nyf + y) * nxf + x] = on ? level * scale : 0.0f;
+}

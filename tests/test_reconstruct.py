@@ -240,8 +240,9 @@ def test_cropping_again_between_iterations(paper_case, queue):
 
 
 def test_device_extent_gives_the_numpy_box(small_camera, queue):
-    """Rows' first/last non-zero voxels, found on the device slab by slab, give the same
-    bounding box and non-zero slices as the NumPy twin, at every density."""
+    """Each slice's first/last non-zero rows and columns, found on the device slab by
+    slab (rows, then slices), are each slice's NumPy box and give the same bounding box
+    and non-zero slices as the NumPy twin, at every density."""
     grid = Grid((5, 150, 251), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1.5, 1.5))
     proj = Projector(small_camera, grid, queue, max_alloc_bytes=2 * 4 * 150 * 251)
     assert len(proj.plan.slabs) > 1
@@ -249,9 +250,15 @@ def test_device_extent_gives_the_numpy_box(small_camera, queue):
     rng = np.random.default_rng(3)
     for density in (0.0, 1e-5, 1e-3, 0.05, 1.0):
         vol = (rng.random(grid.shape) * (rng.random(grid.shape) < density)).astype(np.float32)
-        extent = solver.row_extent(proj.volume_to_device(vol))
+        extent = solver.slice_extent(proj.volume_to_device(vol))
+        assert extent.shape == (grid.shape[0], 4) and extent.dtype == np.int32
         assert extent_box(extent) == nonzero_box(vol), density
-        np.testing.assert_array_equal((extent[..., 1] >= 0).any(axis=1), vol.any(axis=(1, 2)))
+        np.testing.assert_array_equal(extent[:, 1] >= 0, vol.any(axis=(1, 2)))
+        for z, (y0, y1, x0, x1) in enumerate(extent):
+            box = nonzero_box(vol[z])
+            want = (150, -1, 251, -1) if box is None else (
+                box[0].start, box[0].stop - 1, box[1].start, box[1].stop - 1)
+            assert (y0, y1, x0, x1) == want, (density, z)
 
 
 def test_settings_are_validated_once_and_resolve_method_defaults():

@@ -239,6 +239,47 @@ def test_device_spreading_is_spread_lateral_on_awkward_sizes(queue, factor, shap
         binning.spread_into(coarse[:-1], factor, slabs)
 
 
+@pytest.mark.parametrize(("factor", "shape"), [(3, (5, 7, 11)), (2, (4, 1, 5)),
+                                               (4, (3, 2, 3)), (3, (9, 6, 2))])
+def test_the_support_found_on_the_device_is_the_hosts_spread(queue, factor, shape):
+    """The coarse run's support found and spread on the device
+    (``LateralBinning.spread_support``) is the host's flat start (``support_of``: the
+    voxels above the float32 floor, grown by the 3 x 3 x 3 box within the faces, at the
+    support's mean) spread into the same slabs, bit for bit, with voxels exactly at,
+    just above and just below the floor; slabs of another shape are refused."""
+    import pyopencl.array as cla
+
+    from plenocl.reconstruction.schedule import support_of
+
+    rng = np.random.default_rng(sum(shape) + factor)
+    coarse = (rng.random(shape) ** 6).astype(np.float32)
+    settings = ReconstructionSettings(support=0.3)
+    floor = np.float32(0.3 * float(coarse.max()))
+    flat = coarse.ravel()  # voxels on the floor's edge: at it is out, above is in
+    flat[rng.choice(flat.size, 3, replace=False)] = [
+        floor, np.nextafter(floor, np.float32(1)), np.nextafter(floor, np.float32(0))]
+    start = support_of(coarse, settings, on_device=cla.to_device(queue, coarse))
+    assert start.floor == floor and 0 < start.fraction <= 1
+    nz, ny, nx = shape
+    binning = LateralBinning(queue)
+
+    def slabs():
+        parts = np.array_split(np.full((nz, ny * factor, nx * factor), 7.0, np.float32),
+                               min(3, nz))
+        return [cla.to_device(queue, np.ascontiguousarray(p)) for p in parts]
+
+    want, got = slabs(), slabs()
+    binning.spread_into(start.flat(), factor, want, scale=0.37)
+    binning.spread_support(start.on_device, start.floor, start.level, factor, got,
+                           scale=0.37)
+    assert np.array_equal(np.concatenate([g.get() for g in got]),
+                          np.concatenate([w.get() for w in want]))
+    assert np.array_equal(start.mask, ndimage.binary_dilation(
+        coarse > floor, np.ones((3, 3, 3), bool)))
+    with pytest.raises(ValueError, match="does not spread by"):
+        binning.spread_support(start.on_device, floor, start.level, factor + 1, got)
+
+
 def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):
     """A solver cropped to a box that starts and ends inside 3 x 3 blocks, on several
     depth slabs, bins on the device to the full grid's binned volume."""
@@ -340,6 +381,7 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
                             support=0.05, relax=1.0, early_oversample=None, return_info=True)
     assert calls["_preprocessed"] == 1 and calls["lit_lenses"] == 1
     assert uploads.count(scene.shape) == 1  # the image goes to the device once, not per run
+    assert grid.shape not in uploads  # the coarse support is found and spread on the device
     assert info.cropped_shape is not None  # the fine run cropped itself before binning
     peak = float(fine.max())
     np.testing.assert_allclose(calls["fine"][0], fine, rtol=tol.ITERATED,

@@ -43,10 +43,14 @@ from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
 from .joint import run_joint
 from .operator import FramedOperator, PlannedOperator, ProjectionOperator
-from .schedule import coarse_support, sampled_operator
+from .schedule import SupportStart, sampled_operator, support_of
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
 from .supersample import bin_lateral
+
+#: A sub-voxel run's first guess from a coarser grid: the coarse start (a host volume or a
+#: coarse run's support) and the lateral factor.
+Spread = tuple[np.ndarray | SupportStart, int]
 
 
 def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
@@ -56,11 +60,11 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
     or not) and its device volume."""
     for it in range(settings.iterations):
         cropping = settings.crop and it >= 1
-        extent = solver.row_extent(vol) if settings.skip_empty or cropping else None
+        extent = solver.slice_extent(vol) if settings.skip_empty or cropping else None
         if cropping:
             solver, vol, extent = solver.crop(vol, extent)
             info.cropped_shape = solver.proj.grid.shape if solver.box else None
-        active = (extent[..., 1] >= 0).any(axis=1) if settings.skip_empty else None
+        active = extent[:, 1] >= 0 if settings.skip_empty else None
         if active is not None:
             info.active_slices.append(int(active.sum()))
         resid = step(solver, vol, img, active) / norm
@@ -325,7 +329,8 @@ def _supersampled(prepared: PreparedImage, projector, refined,
         sampled = sampled_operator(projector, settings.coarse_oversample)
         coarse, coarse_info = _solve(prepared, projector if sampled is None else sampled,
                                      coarse_settings, callback)
-        start, support = coarse_support(coarse, settings)
+        start = support_of(coarse, settings, coarse_info.volume_on_device)
+        support = 0.0 if start is None else start.fraction
         if not support:  # nothing to refine: the image holds no light (warned)
             coarse_info.support_fraction, coarse_info.volume_on_device = 0.0, None
             return np.zeros(projector.grid.shape, np.float32), coarse_info
@@ -348,7 +353,7 @@ def _supersampled(prepared: PreparedImage, projector, refined,
 
 def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings,
                   settings: ReconstructionSettings, callback, factor: int,
-                  spread: tuple[np.ndarray, int]) -> tuple[np.ndarray, ReconstructionInfo]:
+                  spread: Spread) -> tuple[np.ndarray, ReconstructionInfo]:
     """The sub-voxel iterations from the coarse support (docs/design.md §6.5): the first
     ``early_iterations`` (leaving at least one) on the aperture sampled
     ``early_oversample`` times per pixel footprint when
@@ -386,7 +391,7 @@ def _same_slabs(a, b) -> bool:
 
 
 def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSettings,
-                  info: ReconstructionInfo, spread: tuple[np.ndarray, int] | None = None,
+                  info: ReconstructionInfo, spread: Spread | None = None,
                   device: list | None = None) -> tuple[Solver, cla.Array, list]:
     """The solver of one run, the device image and the first guess (masked): with
     ``spread`` ``(volume, factor)``, that volume of the ``factor`` times coarser grid
@@ -410,7 +415,7 @@ def _start_solver(prepared: PreparedImage, projector, settings: ReconstructionSe
 
 
 def _iterations(prepared: PreparedImage, projector, settings: ReconstructionSettings,
-                callback, spread: tuple[np.ndarray, int] | None = None,
+                callback, spread: Spread | None = None,
                 device: list | None = None) -> tuple[Solver, list, ReconstructionInfo]:
     """One run of the iterations on the projector's grid: the solver it ended with
     (cropped or not), its device volume in the solver's units and the run's info;
@@ -442,7 +447,7 @@ def _to_host(solver: Solver, vol, prepared: PreparedImage, info: ReconstructionI
 
 
 def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings, callback,
-           factor: int = 1, spread: tuple[np.ndarray, int] | None = None,
+           factor: int = 1, spread: Spread | None = None,
            device: list | None = None) -> tuple[np.ndarray, ReconstructionInfo]:
     """One run of the iterations on the projector's grid; the host volume in image units,
     summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``;

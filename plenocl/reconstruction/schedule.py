@@ -5,6 +5,8 @@ the sub-voxels; one camera's reconstruction (``reconstruct.py``) and several cam
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
 from .settings import ReconstructionSettings
@@ -21,24 +23,67 @@ def sampled_operator(projector, oversample: float | None):
     return projector.sampled(oversample)
 
 
-def coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
-                   ) -> tuple[np.ndarray | None, float]:
-    """The start of a coarse-to-fine reconstruction's sub-voxels (docs/design.md §6.5) on
-    the coarse grid (the fine run spreads it), and the fraction of the grid it covers
-    (``None`` and 0 for an empty volume).
+@dataclass(frozen=True)
+class SupportStart:
+    """A coarse run's support as the start of the sub-voxels (:func:`support_of`): the
+    coarse voxels above ``floor``, grown by one voxel in every direction (``mask``), at
+    ``level``, every other voxel 0 (:meth:`flat`).
+
+    Attributes
+    ----------
+    floor, level
+        The float32 threshold and the flat level (the coarse volume's units).
+    mask
+        The support, boolean on the coarse grid.
+    on_device
+        The coarse volume's float32 device copy (a reconstruction's
+        ``ReconstructionInfo.volume_on_device``), from which the solver finds the same
+        support and spreads it on the device
+        (:meth:`plenocl.reconstruction.supersample.LateralBinning.spread_support`);
+        ``None``: the flat volume is spread from the host.
+    """
+
+    floor: np.float32
+    level: np.float32
+    mask: np.ndarray
+    on_device: object = field(default=None, repr=False, compare=False)
+
+    @property
+    def fraction(self) -> float:
+        """The fraction of the coarse grid the support covers."""
+        return np.count_nonzero(self.mask) / self.mask.size
+
+    def flat(self) -> np.ndarray:
+        """The start on the coarse grid: ``level`` on the support, 0 elsewhere."""
+        return np.where(self.mask, self.level, np.float32(0))
+
+
+def support_of(coarse: np.ndarray, settings: ReconstructionSettings, on_device=None
+               ) -> SupportStart | None:
+    """The support that starts a coarse-to-fine reconstruction's sub-voxels
+    (docs/design.md §6.5; ``None`` for an empty volume).
 
     The voxels brighter than ``support`` times the brightest one, grown by one voxel in
     every direction, are the support. Its sub-voxels start flat, at the coarse volume's
     mean over the support (the coarse intensities carry the voxel basis's depth errors);
     every other sub-voxel starts at zero and, the updates being multiplicative, stays
-    there.
+    there. ``on_device``: the coarse volume's device copy, kept for the solver
+    (:class:`SupportStart`).
     """
     peak = float(coarse.max())
     if peak <= 0:
-        return None, 0.0
-    keep = box_dilated(coarse > settings.support * peak)
-    flat = np.where(keep, np.float32(coarse[keep].mean()), np.float32(0))
-    return flat, np.count_nonzero(keep) / keep.size
+        return None
+    floor = np.float32(settings.support * peak)  # as NumPy compares a float32 volume
+    keep = box_dilated(coarse > floor)
+    return SupportStart(floor, np.float32(coarse[keep].mean()), keep, on_device)
+
+
+def coarse_support(coarse: np.ndarray, settings: ReconstructionSettings
+                   ) -> tuple[np.ndarray | None, float]:
+    """:func:`support_of` as the flat start on the coarse grid (the fine run spreads it)
+    and the fraction of the grid it covers (``None`` and 0 for an empty volume)."""
+    start = support_of(coarse, settings)
+    return (None, 0.0) if start is None else (start.flat(), start.fraction)
 
 
 def box_dilated(mask: np.ndarray) -> np.ndarray:

@@ -15,10 +15,11 @@ import pyopencl.array as cla
 from ..opencl.arrays import copy_inside, fill
 from ..opencl.program import KernelSet
 from .operator import ProjectionOperator
+from .schedule import SupportStart
 from .supersample import LateralBinning
 
 _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
-            "partial_sums", "row_extent", "add_into")
+            "partial_sums", "row_extent", "slice_extent", "add_into")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
 #: The literal methods' ratio floor (kernels/solver.cl PL_RATIO_MIN: log -13.8).
@@ -38,14 +39,14 @@ def _start_volume(start: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
 
 
 def extent_box(extent: np.ndarray) -> tuple[slice, slice, slice] | None:
-    """The bounding box of the non-zero voxels from :meth:`Solver.row_extent` (``None``
+    """The bounding box of the non-zero voxels from :meth:`Solver.slice_extent` (``None``
     when all are zero); :func:`nonzero_box` is its NumPy twin."""
-    lit = extent[..., 1] >= 0
+    lit = extent[:, 1] >= 0
     if not lit.any():
         return None
-    z, y = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
-    x0, x1 = int(extent[..., 0][lit].min()), int(extent[..., 1][lit].max())
-    return slice(int(z[0]), int(z[-1]) + 1), slice(int(y[0]), int(y[-1]) + 1), slice(x0, x1 + 1)
+    z, e = np.flatnonzero(lit), extent[lit]
+    return (slice(int(z[0]), int(z[-1]) + 1), slice(int(e[:, 0].min()), int(e[:, 1].max()) + 1),
+            slice(int(e[:, 2].min()), int(e[:, 3].max()) + 1))
 
 
 def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
@@ -128,14 +129,19 @@ class Solver:
         for o, v in zip(out, vol, strict=True):
             self._run("add_into", o.size, o, v)
 
-    def row_extent(self, vol) -> np.ndarray:
-        """First and last non-zero ``x`` of every row ``(nz, ny, 2)`` int32, computed on
-        the device (``(nx, -1)`` for an empty row)."""
+    def slice_extent(self, vol) -> np.ndarray:
+        """Each depth slice's extent ``(nz, 4)`` int32: its first and last row ``y`` with a
+        non-zero voxel and the first and last non-zero ``x`` over them (``(ny, -1, nx,
+        -1)`` for an empty slice), computed on the device (each row's extent, then each
+        slice's): only ``nz x 4`` values come back."""
         parts = []
         for v in vol:
             nz, ny, nx = v.shape
-            out = self._k.array((nz, ny, 2), np.int32)
-            self._k.launch("row_extent", (nz * ny,), v, np.int32(nx), out, np.int32(nz * ny))
+            rows = self._k.array((nz * ny, 2), np.int32)
+            out = self._k.array((nz, 4), np.int32)
+            self._k.launch("row_extent", (nz * ny,), v, np.int32(nx), rows, np.int32(nz * ny))
+            self._k.launch("slice_extent", (nz,), rows, np.int32(ny), np.int32(nx), out,
+                           np.int32(nz))
             parts.append(out.get())
         return np.concatenate(parts)
 
@@ -182,14 +188,27 @@ class Solver:
             raise ValueError(f"start must be 'uniform', 'mlos' or a volume array, got {kind!r}")
         return vol
 
-    def spread_start(self, coarse: np.ndarray, factor: int, scale: float = 1.0):
+    def spread_start(self, coarse, factor: int, scale: float = 1.0):
         """First guess from a volume in image units on the grid ``factor`` times coarser
         laterally (a coarse run's support, a start given on a supersampled
         reconstruction's grid): each voxel shared by its ``factor x factor`` sub-voxels,
-        on the device (:func:`plenocl.reconstruction.supersample.spread_lateral`)."""
+        on the device (:func:`plenocl.reconstruction.supersample.spread_lateral`).
+        ``coarse``: a host volume, or a coarse run's
+        :class:`~plenocl.reconstruction.schedule.SupportStart`, found again on the
+        device from the coarse volume kept there (nothing crosses) where it has it."""
         nz, ny, nx = self.proj.grid.shape
-        coarse = _start_volume(np.asarray(coarse), (nz, ny // factor, nx // factor))
+        shape = (nz, ny // factor, nx // factor)
         vol = self.proj.empty_volume()
+        if isinstance(coarse, SupportStart) and coarse.on_device is not None:
+            if coarse.on_device.shape != shape:
+                raise ValueError(f"a coarse support of shape {coarse.on_device.shape} does "
+                                 f"not spread by {factor} onto the grid {(nz, ny, nx)}")
+            self.binning.spread_support(coarse.on_device, coarse.floor, coarse.level, factor,
+                                        vol, 1.0 / scale)
+            return vol
+        if isinstance(coarse, SupportStart):
+            coarse = coarse.flat()
+        coarse = _start_volume(np.asarray(coarse), shape)
         self.binning.spread_into(coarse, factor, vol, 1.0 / scale)
         return vol
 
@@ -213,7 +232,7 @@ class Solver:
         """Continue on the bounding box of the non-zero voxels when it holds at most
         ``below`` of the current grid.
 
-        ``extent`` is ``vol``'s :meth:`row_extent`. Returns ``(solver, vol, extent)``: a
+        ``extent`` is ``vol``'s :meth:`slice_extent`. Returns ``(solver, vol, extent)``: a
         solver on the cropped projector (with :attr:`box` in full-grid indices) and the
         volume and extent on it, or ``self`` and the inputs when nothing is cropped.
         """
@@ -227,7 +246,7 @@ class Solver:
         sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box,
                      self.observed)
         new_vol = sub.proj.volume_to_device(host)
-        return sub, new_vol, sub.row_extent(new_vol)
+        return sub, new_vol, sub.slice_extent(new_vol)
 
     def volume_to_host(self, vol, full_shape: tuple[int, int, int]) -> np.ndarray:
         """The host volume on the full grid of shape ``full_shape`` (0 outside :attr:`box`)."""

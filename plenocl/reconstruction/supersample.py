@@ -54,7 +54,8 @@ class LateralBinning:
     """
 
     def __init__(self, queue: cl.CommandQueue) -> None:
-        self._k = KernelSet(queue, "supersample.cl", ("bin_lateral", "spread_lateral"))
+        self._k = KernelSet(queue, "supersample.cl", ("bin_lateral", "spread_lateral",
+                                                      "grown_support", "spread_support"))
 
     def to_host(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
                 scale: float = 1.0) -> np.ndarray:
@@ -108,3 +109,30 @@ class LateralBinning:
                 self._k.launch("spread_lateral", slab.shape[::-1], part, i32(ny), i32(nx),
                                i32(factor), np.float32(scale / factor**2), slab,
                                i32(ny * factor), i32(nx * factor))
+
+    def spread_support(self, coarse: cla.Array, floor: float, level: float, factor: int,
+                       slabs: list[cla.Array], scale: float = 1.0) -> None:
+        """Fill the device ``slabs`` (consecutive depth slabs of one volume, ``factor``
+        times finer laterally) with the support of the device volume ``coarse``
+        ``(nz, ny, nx)`` spread over its sub-voxels: ``level`` times ``scale /
+        factor**2`` where a voxel of the coarse voxel's 3 x 3 x 3 box is above ``floor``,
+        else 0 (:func:`spread_lateral` of :meth:`plenocl.reconstruction.schedule.
+        SupportStart.flat`, found on the device: nothing crosses)."""
+        nz, ny, nx = coarse.shape
+        if sum(s.shape[0] for s in slabs) != nz or any(
+                s.shape[1:] != (ny * factor, nx * factor) for s in slabs):
+            raise ValueError(f"a {coarse.shape} volume does not spread by {factor} into slabs "
+                             f"{[s.shape for s in slabs]}")
+        keep, i32 = self._k.array(coarse.shape, np.uint8), np.int32
+        if not coarse.size:
+            return
+        self._k.launch("grown_support", (nx, ny, nz), coarse, i32(nz), i32(ny), i32(nx),
+                       np.float32(floor), keep)
+        z0 = 0
+        for slab in slabs:
+            if slab.size:
+                self._k.launch("spread_support", slab.shape[::-1], keep, i32(z0), i32(ny),
+                               i32(nx), i32(factor), np.float32(level),
+                               np.float32(scale / factor**2), slab, i32(ny * factor),
+                               i32(nx * factor))
+            z0 += slab.shape[0]
