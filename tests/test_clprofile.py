@@ -156,7 +156,7 @@ def test_a_pairs_volumes_go_from_its_reconstructions_to_piv_on_the_device(queue,
     """process_pair hands each reconstruction's device volume to PIV and the particle
     stage: neither sends a volume to the device (the same chain on the host volumes
     does), the field is the same to the bit, and the pair's infos hold no device memory
-    after."""
+    (and no kept image) after."""
     from plenocl import process_pair
     from plenocl.pipeline import PairSettings, refined_field
 
@@ -172,7 +172,8 @@ def test_a_pairs_volumes_go_from_its_reconstructions_to_piv_on_the_device(queue,
                     if c.kind == "h2d" and start <= c.start < end], default=0)
 
     assert largest_upload(pair.spans["piv"][0]) < nbytes
-    assert pair.info_a.volume_on_device is None and pair.info_b.volume_on_device is None
+    assert all(info.volume_on_device is None and info.background_free is None
+               for info in (pair.info_a, pair.info_b))
     with OpenCLProfile() as prof:
         again = refined_field(pair.vol_a, pair.vol_b, proj.grid, settings, queue,
                               camera=small_camera)

@@ -158,6 +158,49 @@ def test_a_known_background_gives_the_fits_own_images():
         ImageFit(CAM, GRID, raws, backgrounds=[(float("nan"), 1.0), known[1]])
 
 
+@pytest.mark.parametrize("kind", ["float", "integer", "dark-subtracted"])
+def test_a_reconstructions_background_free_image_is_the_fits_own(kind):
+    """The image a reconstruction keeps for the fit (``prepare_image(keep_free=True)``,
+    ``ReconstructionInfo.background_free``) is the one the fit makes from the raw image
+    and the same background, bit for bit (a camera's integers, floats, a dark frame
+    subtracted: background 0); none is kept where the reconstruction smoothed the image
+    or masked pixels, or removed no background; wrong ones are refused by name."""
+    import dataclasses
+
+    from plenocl.reconstruction.images import prepare_image
+    from plenocl.reconstruction.settings import ReconstructionSettings
+
+    class Optics:  # the camera alone: prepare_image asks nothing else without skip_dark
+        camera = CAM
+
+    raw = noisy_image(np.array([[0.1, 0.2, -2.0]]), 8)
+    if kind == "integer":
+        raw = np.round(raw).astype(np.uint16)
+    elif kind == "dark-subtracted":
+        raw = raw - np.float32(np.median(raw))  # pixels below zero: background 0
+    rec = ReconstructionSettings(skip_dark=False)
+    prepared = prepare_image(raw, Optics, rec, keep_free=True)
+    known = (prepared.background, prepared.noise)
+    assert (known[0] == 0.0) == (kind == "dark-subtracted")
+    own = ImageFit(CAM, GRID, [raw], backgrounds=[known])
+    given = ImageFit(CAM, GRID, [raw], backgrounds=[known],
+                     background_free=[prepared.background_free])
+    assert prepared.background_free.dtype == np.float32
+    assert np.array_equal(own.images[0][0], given.images[0][0])
+    assert own.images[0][1] == given.images[0][1]
+    assert prepare_image(raw, Optics, rec).background_free is None  # not asked
+    for other in (dataclasses.replace(rec, smooth_px=1.0), dataclasses.replace(
+            rec, background=None) if kind != "dark-subtracted" else None):
+        if other is not None:
+            assert prepare_image(raw, Optics, other, keep_free=True).background_free is None
+    seen = np.ones(raw.shape, bool)
+    assert prepare_image(raw, Optics, rec, seen, keep_free=True).background_free is None
+    free = prepared.background_free
+    for bad, known_bad in ((free.astype(np.float64), known), (free[1:], known), (free, None)):
+        with pytest.raises(ValueError, match="background_free"):
+            ImageFit(CAM, GRID, [raw], backgrounds=[known_bad], background_free=[bad])
+
+
 def test_per_particle_peaks_match_the_unsorted_form():
     """The residual noise's per-particle peak by runs of the sorted particle ids equals
     ``np.maximum.at`` (sorted, unsorted, a particle without elements, none at all)."""

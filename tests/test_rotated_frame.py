@@ -144,7 +144,7 @@ def test_reconstruction_in_the_rotated_frame_finds_the_particles(queue):
 
 
 def test_only_a_volume_on_the_projectors_grid_is_kept_on_the_device(queue):
-    """``run_reconstruction(keep_on_device=True)`` on a grid across a rotated array's
+    """``run_reconstruction(keep_for_next_stage=True)`` on a grid across a rotated array's
     lens rows: the voxels (each iteration resampled) keep their device volume, the host
     one to the bit; sub-voxels on the lens-row frame, resampled onto the grid on the
     host, keep none rather than the frame's."""
@@ -157,10 +157,10 @@ def test_only_a_volume_on_the_projectors_grid_is_kept_on_the_device(queue):
     img = simulate_image(cam, np.array([[0.05, -0.1, 0.1], [-0.2, 0.15, -0.2]]), 2e4,
                          rays_per_particle=3000, seed=1, queue=queue)
     voxels = ReconstructionSettings(supersample=1, iterations=3)
-    vol, info = run_reconstruction(img, proj, voxels, keep_on_device=True)
+    vol, info = run_reconstruction(img, proj, voxels, keep_for_next_stage=True)
     assert np.array_equal(info.volume_on_device.get(), vol) and vol.any()
     sub = ReconstructionSettings(supersample=2, coarse_iterations=2, iterations=2)
-    vol, info = run_reconstruction(img, proj, sub, keep_on_device=True)
+    vol, info = run_reconstruction(img, proj, sub, keep_for_next_stage=True)
     assert vol.shape == grid.shape and info.volume_on_device is None
 
 

@@ -394,19 +394,22 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
                                      {"supersample": 1, "iterations": 3}])
 def test_a_reconstruction_keeps_its_volume_on_the_device_when_asked(optics, scene,
                                                                     options):
-    """``run_reconstruction(keep_on_device=True)``: ``info.volume_on_device`` is the
+    """``run_reconstruction(keep_for_next_stage=True)``: ``info.volume_on_device`` is the
     returned volume to the bit, on the projector's context (coarse-to-fine sub-voxels and
-    plain voxels); without it (the default, ``reconstruct``'s) no device memory is held."""
+    plain voxels), with the image fit's background-free image; without it (the default,
+    ``reconstruct``'s) no device memory and no image is held."""
     from plenocl.reconstruction import run_reconstruction
 
     proj = optics[2]
     rec = ReconstructionSettings(**options)
-    vol, info = run_reconstruction(scene, proj, rec, keep_on_device=True)
+    vol, info = run_reconstruction(scene, proj, rec, keep_for_next_stage=True)
     dev = info.volume_on_device
     assert dev.context == proj.queue.context and dev.dtype == np.float32
     assert np.array_equal(dev.get(), vol) and vol.any()
+    assert info.background_free.shape == scene.shape  # the image fit's, kept too
     again, plain = run_reconstruction(scene, proj, rec)
-    assert plain.volume_on_device is None and np.array_equal(again, vol)
+    assert plain.volume_on_device is None and plain.background_free is None
+    assert np.array_equal(again, vol)
 
 
 @pytest.mark.parametrize("crop", [True, False])

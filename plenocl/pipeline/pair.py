@@ -119,7 +119,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         with clock.stage(f"reconstruct_{tag}"):
             try:
                 out[tag] = run_reconstruction(raw, projector, rec,
-                                              keep_on_device=not settings.mte.cycles)
+                                              keep_for_next_stage=not settings.mte.cycles)
             except UnusableImageError as exc:
                 raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
@@ -127,9 +127,12 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         try:
             res, _ = correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector, settings,
                                        known_backgrounds(info_a, info_b), clock,
-                                       on_device=kept_on_device(info_a, info_b))
-        finally:  # the result holds the host volumes alone: no device memory
-            info_a.volume_on_device = info_b.volume_on_device = None
+                                       on_device=kept_on_device(info_a, info_b),
+                                       background_free=[info_a.background_free,
+                                                        info_b.background_free])
+        finally:  # the result holds no device memory and no extra images
+            for info in (info_a, info_b):
+                info.volume_on_device = info.background_free = None
         return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
     def correlate(a, b) -> PIVResult:
@@ -179,8 +182,8 @@ def _several_cameras(raws_a, raws_b, projectors: list, settings: PairSettings
 
 def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
                       settings: PairSettings, backgrounds: list | None = None,
-                      clock: StageClock | None = None, on_device: tuple | None = None
-                      ) -> tuple[PIVResult, dict[str, float]]:
+                      clock: StageClock | None = None, on_device: tuple | None = None,
+                      background_free=None) -> tuple[PIVResult, dict[str, float]]:
     """The chain of :func:`process_pair` after its reconstruction, on two volumes made
     earlier (a batch rerun whose PIV settings changed reuses its kept volumes).
 
@@ -205,6 +208,10 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
         The volumes' float32 device copies on the projector's queue (one camera;
         :func:`kept_on_device`), read instead of uploading the volumes again
         (:func:`plenocl.pipeline.velocity.refined_field`); ``None``: none.
+    background_free
+        One camera: the raw images with their ``backgrounds`` removed (the
+        reconstructions' ``info.background_free``), for the image fit not to remove them
+        again; ``None``: removed there.
 
     Returns
     -------
@@ -225,7 +232,8 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
     else:
         res = refined_field(vol_a, vol_b, projector.grid, settings, projector.queue,
                             camera=projector.camera, raws=(raw_a, raw_b),
-                            backgrounds=backgrounds, clock=clock, on_device=on_device)
+                            backgrounds=backgrounds, clock=clock, on_device=on_device,
+                            background_free=background_free)
     return res, clock.seconds
 
 

@@ -53,8 +53,8 @@ class StageClock:
 
 def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: DeviceLike = None,
                   *, camera: Camera | None = None, raws=None, backgrounds=None,
-                  clock: StageClock | None = None, on_device: tuple | None = None
-                  ) -> PIVResult:
+                  clock: StageClock | None = None, on_device: tuple | None = None,
+                  background_free=None) -> PIVResult:
     """The velocity field of two volumes: ``settings.piv``'s correlation, refined by the
     particles (:func:`refine_particles`) where ``settings.particles`` asks.
 
@@ -79,21 +79,23 @@ def refined_field(vol_a, vol_b, grid: Grid, settings: PairSettings, queue: Devic
         The volumes' float32 device copies on ``queue``'s context (the reconstructions'
         ``info.volume_on_device``), read by both stages instead of uploading the volumes
         (:func:`plenocl.piv3d`, :func:`refine_particles`); ``None``: none.
+    background_free
+        As :func:`refine_particles`.
     """
     clock = clock or StageClock()
     with clock.stage("piv"):
         res = piv3d(vol_a, vol_b, settings.piv, queue=queue, on_device=on_device)
     return refine_particles(res, vol_a, vol_b, grid, settings, queue, camera=camera,
                             raws=raws, backgrounds=backgrounds, clock=clock,
-                            on_device=on_device)
+                            on_device=on_device, background_free=background_free)
 
 
 def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSettings,
                      queue: DeviceLike = None, *, camera: Camera | list | None = None,
                      raws=None, backgrounds=None, clock: StageClock | None = None,
                      spread: float | None = SPREAD, weighted: bool = True,
-                     depth_support: float = DEPTH_SUPPORT, on_device: tuple | None = None
-                     ) -> PIVResult:
+                     depth_support: float = DEPTH_SUPPORT, on_device: tuple | None = None,
+                     background_free=None) -> PIVResult:
     """``res`` refined by the volumes' matched particles
     (:func:`plenocl.piv.refinement.refine_with_particles`) where ``settings.particles``
     asks, timed as the stage ``particles``; ``res`` itself otherwise.
@@ -124,6 +126,10 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
     on_device
         The volumes' float32 device copies (:func:`refined_field`), which the local
         maxima and tube sums on that device read.
+    background_free
+        One camera: the two raw images with their ``backgrounds`` removed (the
+        reconstructions' ``info.background_free``; a ``None`` entry: removed here), for
+        the image fit (:class:`plenocl.piv.imagefit.ImageFit`); ``None``: removed here.
     """
     if not settings.particles:
         return res
@@ -141,7 +147,7 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
         elif camera is not None:
             if raws is not None and settings.image_fit is not None:
                 fit = ImageFit(camera, grid, raws, settings.image_fit, queue=device,
-                               backgrounds=backgrounds)
+                               backgrounds=backgrounds, background_free=background_free)
             # the focal zone lies along the grid's z: a posed camera's is tilted in the
             # world grid, so its pairs are not told apart by it (docs/design.md §5.5)
             focus = FocalZone.of(camera, grid) if camera.pose is None else None

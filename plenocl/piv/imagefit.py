@@ -177,10 +177,17 @@ class ImageFit:
         ``ReconstructionInfo.background`` and ``.noise``, from the same raw images
         without a pixel mask): subtracted as they are instead of computing the medians
         again. ``None``: computed here.
+    background_free
+        Per image, that image with its background already removed as here
+        (``max(image - median, 0)`` in float32, the median of ``backgrounds``: a
+        reconstruction's ``ReconstructionInfo.background_free``), taken as it is instead
+        of removing it again; ``None`` (or a ``None`` entry): removed here. Needs
+        ``backgrounds`` (its noise).
     """
 
     def __init__(self, camera, grid, images, settings: ImageFitSettings | None = None,
-                 queue=None, host_sums: bool = False, backgrounds=None):
+                 queue=None, host_sums: bool = False, backgrounds=None,
+                 background_free=None):
         self.settings = ImageFitSettings() if settings is None else settings
         self.bundle = RayBundle.of(camera, self.settings.rays, self.settings.blur_px)
         self.renderer = self.bundle if queue is None else DeviceRayBundle(self.bundle, queue)
@@ -188,8 +195,10 @@ class ImageFit:
                      else DeviceFitSums(self.renderer, self.settings.chunk))
         self.grid = grid
         self.images, self._device_images, self._host_images = [], {}, {}
-        for raw, known in zip(images, _backgrounds(backgrounds, len(images)), strict=True):
-            img, noise = subtract_background(check_image(raw, camera, copy=False), known)
+        knowns = _backgrounds(backgrounds, len(images))
+        frees = [None] * len(images) if background_free is None else list(background_free)
+        for raw, known, free in zip(images, knowns, frees, strict=True):
+            img, noise = _background_free(raw, camera, known, free)
             self.images.append((img.ravel(), max(noise, 1e-12)))  # float32
 
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
@@ -490,6 +499,26 @@ def prior_covariance(frames: np.ndarray, prior: np.ndarray) -> np.ndarray:
     ``(n, 3, 3)`` (:func:`plenocl.optics.sightline.sight_frames`): ``R diag(prior²) R^T``,
     what a particle the fit has not moved is known to."""
     return np.einsum("nij,j,nkj->nik", frames, np.asarray(prior, float) ** 2, frames)
+
+
+def _background_free(raw, camera, known, free) -> tuple[np.ndarray, float]:
+    """An image without its background and its noise: ``free`` as it is (checked
+    against the camera; its noise ``known``'s), else removed from ``raw``
+    (:func:`plenocl.optics.rawimage.subtract_background`)."""
+    if free is None:
+        return subtract_background(check_image(raw, camera, copy=False), known)
+    cols, rows = camera.pixels
+    if known is None or np.shape(free) != (rows, cols) or np.dtype(free.dtype) != np.float32:
+        raise ValueError(f"ImageFit's background_free images must be float32 ({rows}, "
+                         f"{cols}) images with their (median, noise) in backgrounds (a "
+                         f"reconstruction's info.background_free and .background, .noise); "
+                         f"got {getattr(free, 'dtype', type(free).__name__)} "
+                         f"{np.shape(free)}{' without a background' if known is None else ''}")
+    noise = float(known[1])
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"a known background needs a finite non-negative noise, got "
+                         f"{known[1]!r}")
+    return np.asarray(free), noise
 
 
 def _backgrounds(backgrounds, n: int) -> list:

@@ -118,9 +118,11 @@ def smooth_image(img: np.ndarray, sigma: float, observed: np.ndarray | None = No
 
 def _preprocessed(image, camera, background: str | None, threshold: float | None,
                   observed: np.ndarray | None, exposure: bool = False,
-                  smooth_px: float | None = None) -> PreparedImage:
+                  smooth_px: float | None = None, keep_free: bool = False) -> PreparedImage:
     """:func:`preprocess` as a :class:`PreparedImage` (no lit lenses), with the median
-    and noise it removed; ``exposure``: a blank or saturated image is refused first."""
+    and noise it removed; ``exposure``: a blank or saturated image is refused first;
+    ``keep_free``: its background-free image kept too, where it is the image fit's
+    (:attr:`PreparedImage.background_free`)."""
     img = check_image(image, camera)
     if exposure:
         try:
@@ -143,6 +145,10 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     if smooth_px is not None:  # noise averaged before clipping: no bias from the clip
         img, gain = smooth_image(img, smooth_px, observed), smoothing_gain(smooth_px)
     np.maximum(img, 0.0, out=img)
+    # the image fit's image, max(I - median, 0) rounded to float32 from the same float64
+    # difference (plenocl.optics.rawimage.subtract_background): no smoothing, every pixel
+    free = (img.astype(np.float32) if keep_free and med is not None and smooth_px is None
+            and observed is None else None)
     thr = NOISE_SIGMAS * gain * (noise or 0.0) if threshold is None else float(threshold)
     if observed is not None:  # 0 - a negative median would give them light
         img[~observed] = 0.0
@@ -152,10 +158,11 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
                          "largest value plenocl reconstructs in float32; divide the image "
                          "by a constant (the volume scales with it)")
     if scale == 0:
-        return PreparedImage(img.astype(np.float32), 0.0, thr, observed, None, med, noise)
+        return PreparedImage(img.astype(np.float32), 0.0, thr, observed, None, med, noise,
+                             free)
     out = np.empty(img.shape, np.float32)
     np.divide(img, scale, out=out, casting="same_kind")
-    return PreparedImage(out, scale, thr / scale, observed, None, med, noise)
+    return PreparedImage(out, scale, thr / scale, observed, None, med, noise, free)
 
 
 def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
@@ -185,6 +192,10 @@ class PreparedImage:
         The median and noise (image units) the median background removed (``None``
         with ``background=None``): the particle fit reuses them
         (:class:`plenocl.reconstruction.ReconstructionInfo`).
+    background_free
+        ``max(image - background, 0)`` as float32, image units: the image fit's image,
+        kept where asked (``prepare_image(keep_free=True)``) and a background was
+        removed without smoothing or masked pixels; ``None`` otherwise.
     """
 
     image: np.ndarray
@@ -194,6 +205,8 @@ class PreparedImage:
     lit: np.ndarray | None = None
     background: float | None = None
     noise: float | None = None
+    background_free: np.ndarray | None = dataclasses.field(default=None, repr=False,
+                                                           compare=False)
     #: The image's device copies by queue (:meth:`on_device`): uploaded once, not once
     #: per run (a coarse-to-fine reconstruction's three runs read the same image).
     _device: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
@@ -208,14 +221,16 @@ class PreparedImage:
 
 
 def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,
-                  observed: np.ndarray | None = None) -> PreparedImage:
+                  observed: np.ndarray | None = None, keep_free: bool = False
+                  ) -> PreparedImage:
     """:func:`preprocess` with ``settings``' background and threshold, and the lit
     lenses when ``settings.skip_dark``. A blank or saturated image
     (:func:`plenocl.optics.rawimage.check_exposure`), or one whose every pixel is dark
-    (the volume would be empty), is refused: :class:`UnusableImageError`."""
+    (the volume would be empty), is refused: :class:`UnusableImageError`.
+    ``keep_free``: the background-free image kept (:attr:`PreparedImage.background_free`)."""
     prepared = _preprocessed(image, projector.camera, settings.background,
                              settings.threshold, observed, exposure=True,
-                             smooth_px=settings.smooth_px)
+                             smooth_px=settings.smooth_px, keep_free=keep_free)
     if prepared.scale == 0:
         raise UnusableImageError(
             "the image holds no light above its background, so the volume would be empty: "

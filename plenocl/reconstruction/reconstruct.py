@@ -456,14 +456,14 @@ def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings,
     return _to_host(solver, vol, prepared, info, factor, projector.grid.shape), info
 
 
-def _in_frame(image, projector, settings: ReconstructionSettings, callback, observed
-              ) -> tuple[np.ndarray, ReconstructionInfo]:
+def _in_frame(image, projector, settings: ReconstructionSettings, callback, observed,
+              keep: bool = False) -> tuple[np.ndarray, ReconstructionInfo]:
     """Sub-voxels on a grid across a rotated array's lens rows (``projector.frame``,
     docs/design.md §5.1): the iterations run on the lens-row frame's grid and its refined
     grid, on the separable kernels at their full speed, and the sub-voxels are resampled
     onto the projector's refined grid once, at the end, before they are summed (the
     resampling blurs by a fraction of a voxel only); a start volume is resampled onto the
-    frame."""
+    frame. ``keep``: :func:`_run`'s."""
     f = settings.supersample
     fine = _refined(projector, f)
     start = settings.start
@@ -471,7 +471,7 @@ def _in_frame(image, projector, settings: ReconstructionSettings, callback, obse
         start = projector.volume_to_frame(start)
     t0 = time.perf_counter()
     vol, info = _run(image, projector.frame, dataclasses.replace(settings, start=start),
-                     callback, observed, binned=False)
+                     callback, observed, binned=False, keep=keep)
     if vol.shape == fine.frame.grid.shape:
         vol = bin_lateral(fine.volume_from_frame(vol), f)
     else:  # an empty or stopped coarse run: the voxels'
@@ -484,7 +484,7 @@ def _in_frame(image, projector, settings: ReconstructionSettings, callback, obse
 
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                        callback: Callable[[int, float], bool | None] | None = None,
-                       pixel_mask=None, *, keep_on_device: bool = False
+                       pixel_mask=None, *, keep_for_next_stage: bool = False
                        ) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
     returns the volume and its :class:`ReconstructionInfo`.
@@ -497,22 +497,29 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     the voxels' scale a single resampling at the end would blur particles by up to a
     voxel).
 
-    ``keep_on_device``: also keep the volume on the device, as
-    ``info.volume_on_device`` (float32, the projector's queue; the same values as the
-    returned volume), where the reconstruction ends with it there (one camera, not on a
-    rotated array's frame; ``None`` otherwise), for the next stage to read without
-    uploading it again (:func:`plenocl.process_pair`). By default it is released: an
-    info kept for long does not hold device memory.
+    ``keep_for_next_stage``: keep for the stages after it (:func:`plenocl.process_pair`)
+    the volume on the device, as ``info.volume_on_device`` (float32, the projector's
+    queue; the same values as the returned volume), where the reconstruction ends with
+    it there (one camera, not on a rotated array's frame; ``None`` otherwise), for them
+    to read without uploading it again; and the image with its background removed as
+    the image fit removes it, ``info.background_free`` (float32, image units,
+    ``max(image - background, 0)``; where the reconstruction removed a background and
+    neither smoothed the image nor masked pixels; ``None`` otherwise), for the fit not to
+    remove it again. By default both are released: an info kept for long holds no
+    device memory and no image.
     """
-    vol, info = _reconstructed(image, projector, settings, callback, pixel_mask)
-    if not keep_on_device:
-        info.volume_on_device = None
+    vol, info = _reconstructed(image, projector, settings, callback, pixel_mask,
+                               keep_for_next_stage)
+    if not keep_for_next_stage:
+        info.volume_on_device = info.background_free = None
     return vol, info
 
 
 def _reconstructed(image, projector: ProjectionOperator, settings: ReconstructionSettings,
-                   callback, pixel_mask) -> tuple[np.ndarray, ReconstructionInfo]:
-    """:func:`run_reconstruction`'s work (the device volume kept in the info)."""
+                   callback, pixel_mask, keep: bool = False
+                   ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """:func:`run_reconstruction`'s work (the device volume kept in the info; with
+    ``keep``, the background-free image too)."""
     if isinstance(settings.start, str) and settings.start not in ("uniform", "mlos"):
         raise ValueError("start must be 'uniform', 'mlos' or a volume array, got "
                          f"{settings.start!r}")  # an option: checked before the image
@@ -526,8 +533,8 @@ def _reconstructed(image, projector: ProjectionOperator, settings: Reconstructio
                          "every pixel): use start='uniform' (the default)")
     if (isinstance(projector, FramedOperator) and projector.frame is not None
             and settings.supersample > 1):
-        return _in_frame(image, projector, settings, callback, observed)
-    return _run(image, projector, settings, callback, observed)
+        return _in_frame(image, projector, settings, callback, observed, keep)
+    return _run(image, projector, settings, callback, observed, keep=keep)
 
 
 def _several(images, projectors, settings: ReconstructionSettings, callback, pixel_mask
@@ -548,16 +555,18 @@ def _several(images, projectors, settings: ReconstructionSettings, callback, pix
 
 
 def _run(image, projector, settings: ReconstructionSettings, callback, observed,
-         binned: bool = True) -> tuple[np.ndarray, ReconstructionInfo]:
+         binned: bool = True, keep: bool = False) -> tuple[np.ndarray, ReconstructionInfo]:
     """The reconstruction on the projector's own grid (sub-voxels summed when
-    ``binned``)."""
+    ``binned``); ``keep``: the background-free image kept in the info
+    (:func:`run_reconstruction`'s ``keep_for_next_stage``)."""
     refined = _refined(projector, settings.supersample) if settings.supersample > 1 else None
     t0 = time.perf_counter()
-    prepared = prepare_image(image, projector, settings, observed)
+    prepared = prepare_image(image, projector, settings, observed, keep_free=keep)
     if refined is None:
         vol, info = _solve(prepared, projector, settings, callback)
     else:
         vol, info = _supersampled(prepared, projector, refined, settings, callback, binned)
     info.seconds = time.perf_counter() - t0
     info.background, info.noise = prepared.background, prepared.noise
+    info.background_free = prepared.background_free
     return vol, info

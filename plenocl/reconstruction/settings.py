@@ -45,10 +45,12 @@ class ReconstructionInfo:
     ``stopped``: the callback ended it; ``background`` and ``noise``: the median and
     noise (image units) the median background removed (``None`` without it); ``cameras``:
     several cameras' reconstruction, each camera's own (its background and noise), in
-    the images' order (empty for one camera); ``volume_on_device``: the volume's float32
-    device copy on the projector's queue, the same values as the host volume, kept where
+    the images' order (empty for one camera); ``volume_on_device`` and
+    ``background_free``: the volume's float32 device copy on the projector's queue (the
+    same values as the host volume) and the image with its background removed as the
+    image fit removes it (float32), kept where
     :func:`plenocl.reconstruction.reconstruct.run_reconstruction` was asked to
-    (``keep_on_device``: the next stage reads it there instead of uploading the volume
+    (``keep_for_next_stage``: the stages after it read them instead of making them
     again), else ``None``."""
 
     method: str
@@ -68,6 +70,7 @@ class ReconstructionInfo:
     noise: float | None = None
     cameras: list[ReconstructionInfo] = field(default_factory=list)
     volume_on_device: object = field(default=None, repr=False, compare=False)
+    background_free: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 #: Aperture samples per pixel footprint of a coarse-to-fine reconstruction's coarse
