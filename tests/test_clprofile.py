@@ -182,3 +182,27 @@ def test_a_pairs_volumes_go_from_its_reconstructions_to_piv_on_the_device(queue,
     for name in ("u", "v", "w", "valid", "sigma_u", "sigma_w"):
         assert np.array_equal(getattr(again, name), getattr(pair.piv, name),
                               equal_nan=True), name
+
+
+@pytest.mark.filterwarnings("ignore:the final windows")  # a tiny volume: one vector
+def test_a_pair_with_one_background_known_fits_as_before(queue, small_camera):
+    """Without background removal (``background=None``) a dark-subtracted image (pixels
+    below zero: background 0) and one without such pixels (no background known): the
+    image fit removes both images' backgrounds itself, as before the hand-over, and the
+    pair's field is ``refined_field``'s on its volumes and raw images, bit for bit."""
+    from plenocl import process_pair
+    from plenocl.pipeline import PairSettings, refined_field
+    from plenocl.pipeline.pair import known_backgrounds
+    from plenocl.reconstruction import ReconstructionSettings
+
+    proj, raws = _small_pair(queue, small_camera, 40, 0.04, seed=3)
+    noisy = raws[0] + np.random.default_rng(1).normal(0.0, 1.0, raws[0].shape)
+    raws = [noisy.astype(np.float32), raws[1]]
+    settings = PairSettings(reconstruction=ReconstructionSettings(background=None))
+    pair = process_pair(*raws, proj, settings)
+    assert pair.info_a.background == 0.0 and pair.info_b.background is None
+    assert known_backgrounds(pair.info_a, pair.info_b) is None
+    again = refined_field(pair.vol_a, pair.vol_b, proj.grid, settings, queue,
+                          camera=small_camera, raws=raws)
+    for name in ("u", "v", "w", "valid"):
+        assert np.array_equal(getattr(again, name), getattr(pair.piv, name)), name

@@ -430,13 +430,18 @@ def test_the_first_sub_voxel_iterations_run_on_the_early_sampling(optics, scene,
                         **kw)
     assert fine.sampled(0.6).n_samples < fine.n_samples / 2
     late = reconstruct(scene, fine, iterations=1, start=early, **kw)
-    to_host, original = [], Solver.binned_to_device
+    to_host, binned, whole = [], Solver.binned_to_device, Solver.volume_to_host
 
-    def counted(solver, vol, factor, shape, scale=1.0):  # each run's end: to the host
+    def counted_binned(solver, vol, factor, shape, scale=1.0):  # a run's end, kept
         to_host.append(shape)
-        return original(solver, vol, factor, shape, scale)
+        return binned(solver, vol, factor, shape, scale)
 
-    monkeypatch.setattr(Solver, "binned_to_device", counted)
+    def counted_whole(solver, vol, shape):  # a run's end handed on through the host
+        to_host.append(shape)
+        return whole(solver, vol, shape)
+
+    monkeypatch.setattr(Solver, "binned_to_device", counted_binned)
+    monkeypatch.setattr(Solver, "volume_to_host", counted_whole)
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, relax=1.0, early_iterations=2, early_oversample=0.6,
                             crop=crop, return_info=True)

@@ -125,11 +125,11 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
     if not settings.mte.cycles:
         try:
+            known = known_backgrounds(info_a, info_b)
             res, _ = correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector, settings,
-                                       known_backgrounds(info_a, info_b), clock,
-                                       on_device=kept_on_device(info_a, info_b),
-                                       background_free=[info_a.background_free,
-                                                        info_b.background_free])
+                                       known, clock, on_device=kept_on_device(info_a, info_b),
+                                       background_free=None if known is None else [
+                                           info_a.background_free, info_b.background_free])
         finally:  # the result holds no device memory and no extra images
             for info in (info_a, info_b):
                 info.volume_on_device = info.background_free = None

@@ -508,17 +508,18 @@ def _background_free(raw, camera, known, free) -> tuple[np.ndarray, float]:
     if free is None:
         return subtract_background(check_image(raw, camera, copy=False), known)
     cols, rows = camera.pixels
-    if known is None or np.shape(free) != (rows, cols) or np.dtype(free.dtype) != np.float32:
+    free = np.asarray(free)
+    if known is None or free.shape != (rows, cols) or free.dtype != np.float32:
         raise ValueError(f"ImageFit's background_free images must be float32 ({rows}, "
                          f"{cols}) images with their (median, noise) in backgrounds (a "
                          f"reconstruction's info.background_free and .background, .noise); "
-                         f"got {getattr(free, 'dtype', type(free).__name__)} "
-                         f"{np.shape(free)}{' without a background' if known is None else ''}")
+                         f"got {free.dtype} {free.shape}"
+                         f"{' without a background' if known is None else ''}")
     noise = float(known[1])
     if not (np.isfinite(noise) and noise >= 0):
         raise ValueError(f"a known background needs a finite non-negative noise, got "
                          f"{known[1]!r}")
-    return np.asarray(free), noise
+    return free, noise
 
 
 def _backgrounds(backgrounds, n: int) -> list:

@@ -166,12 +166,14 @@ def count_particles(vol: np.ndarray, threshold: float = 0.1,
     ghosts) a reconstructed volume holds; found by ``maxima``
     (:func:`plenocl.peaks.host_maxima`, the default, or a device's
     :class:`plenocl.piv.devicepeaks.DeviceMaxima`, which reads ``on_device``, the
-    volume's device copy, where given)."""
+    volume's device copy, where both are given)."""
     v = np.asarray(vol, np.float32)
     top = float(v.max()) if v.size else 0.0
     if top <= 0:
         return 0
-    return len((maxima or host_maxima)(v if on_device is None else on_device, threshold * top))
+    if maxima is None:
+        return len(host_maxima(v, threshold * top))
+    return len(maxima(v if on_device is None else on_device, threshold * top))
 
 
 def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue=None,

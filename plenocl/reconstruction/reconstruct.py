@@ -340,11 +340,12 @@ def _supersampled(prepared: PreparedImage, projector, refined,
     fine = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                start=settings.start if start is None else "uniform")
     factor = f if binned else 1
-    if start is None:
-        vol, info = _solve(prepared, refined, fine, _numbered(callback, done), factor=factor)
+    if start is None:  # sub-voxels not binned (a frame's) are resampled on the host
+        vol, info = _solve(prepared, refined, fine, _numbered(callback, done), factor=factor,
+                           keep=binned)
     else:
         vol, info = _from_support(prepared, refined, fine, settings, _numbered(callback, done),
-                                  factor, (start, f))
+                                  factor, (start, f), keep=binned)
     info.supersample = f
     if support is not None:
         info.coarse_iterations, info.support_fraction = settings.coarse_iterations, support
@@ -353,29 +354,30 @@ def _supersampled(prepared: PreparedImage, projector, refined,
 
 def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings,
                   settings: ReconstructionSettings, callback, factor: int,
-                  spread: Spread) -> tuple[np.ndarray, ReconstructionInfo]:
+                  spread: Spread, keep: bool = True) -> tuple[np.ndarray, ReconstructionInfo]:
     """The sub-voxel iterations from the coarse support (docs/design.md §6.5): the first
     ``early_iterations`` (leaving at least one) on the aperture sampled
     ``early_oversample`` times per pixel footprint when
     :func:`.schedule.sampled_operator` gives that projector, the rest on the refined
     projector from their volume (handed over on the device when both keep it in the same
-    slabs and the early run did not crop it)."""
+    slabs and the early run did not crop it); ``keep``: :func:`_to_host`'s."""
     early = min(settings.early_iterations, fine.iterations - 1)
     sampled = sampled_operator(refined, settings.early_oversample) if early > 0 else None
     if sampled is None:
-        return _solve(prepared, refined, fine, callback, factor=factor, spread=spread)
+        return _solve(prepared, refined, fine, callback, factor=factor, spread=spread,
+                      keep=keep)
     first = dataclasses.replace(fine, iterations=early)
     solver, vol, info = _iterations(prepared, sampled, first, callback, spread=spread)
     if info.stopped:  # the callback ended the reconstruction
-        return _to_host(solver, vol, prepared, info, factor, refined.grid.shape), info
+        return _to_host(solver, vol, prepared, info, factor, refined.grid.shape, keep), info
     rest = dataclasses.replace(fine, iterations=fine.iterations - early)
     if solver.box is not None or not _same_slabs(sampled, refined):
-        host = _to_host(solver, vol, prepared, info, 1, refined.grid.shape)
+        host = _to_host(solver, vol, prepared, info, 1, refined.grid.shape, keep=False)
         out, late = _solve(prepared, refined, dataclasses.replace(rest, start=host),
-                           _numbered(callback, early), factor=factor)
+                           _numbered(callback, early), factor=factor, keep=keep)
     else:
         out, late = _solve(prepared, refined, rest, _numbered(callback, early),
-                           factor=factor, device=vol)
+                           factor=factor, device=vol, keep=keep)
     late.iterations += info.iterations
     late.residuals[:0] = info.residuals
     return out, late
@@ -432,28 +434,35 @@ def _iterations(prepared: PreparedImage, projector, settings: ReconstructionSett
 
 
 def _to_host(solver: Solver, vol, prepared: PreparedImage, info: ReconstructionInfo,
-             factor: int, grid_shape: tuple[int, int, int]) -> np.ndarray:
+             factor: int, grid_shape: tuple[int, int, int], keep: bool = True) -> np.ndarray:
     """A run's device volume as the host volume in image units on the full grid of
     ``grid_shape`` (a cropped solver's box placed in it), summed over ``factor x factor``
-    lateral blocks on the device when ``factor > 1``; sets ``info.active_fraction`` and
-    keeps the same volume on the device as ``info.volume_on_device``."""
+    lateral blocks on the device when ``factor > 1``; sets ``info.active_fraction`` and,
+    with ``keep``, keeps the same volume on the device as ``info.volume_on_device`` (not
+    for sub-voxels the host resamples or hands on: no full fine grid copied there)."""
     nz, ny, nx = grid_shape
-    device = solver.binned_to_device(vol, factor, (nz, ny // factor, nx // factor),
-                                     prepared.scale)
-    out = device.get()
-    info.volume_on_device = device
+    shape = (nz, ny // factor, nx // factor)
+    if keep:
+        device = solver.binned_to_device(vol, factor, shape, prepared.scale)
+        out, info.volume_on_device = device.get(), device
+    elif factor == 1:
+        out = solver.volume_to_host(vol, shape) * np.float32(prepared.scale)
+    else:
+        out = solver.binned_to_host(vol, factor, shape, prepared.scale)
     info.active_fraction = float(np.count_nonzero(out)) / out.size
     return out
 
 
 def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings, callback,
            factor: int = 1, spread: Spread | None = None,
-           device: list | None = None) -> tuple[np.ndarray, ReconstructionInfo]:
+           device: list | None = None, keep: bool = True
+           ) -> tuple[np.ndarray, ReconstructionInfo]:
     """One run of the iterations on the projector's grid; the host volume in image units,
     summed over ``factor x factor`` lateral blocks on the device when ``factor > 1``;
-    ``spread``, ``device``: the first guess (:func:`_start_solver`)."""
+    ``spread``, ``device``: the first guess (:func:`_start_solver`); ``keep``:
+    :func:`_to_host`'s."""
     solver, vol, info = _iterations(prepared, projector, settings, callback, spread, device)
-    return _to_host(solver, vol, prepared, info, factor, projector.grid.shape), info
+    return _to_host(solver, vol, prepared, info, factor, projector.grid.shape, keep), info
 
 
 def _in_frame(image, projector, settings: ReconstructionSettings, callback, observed,
