@@ -255,6 +255,11 @@ class FFTRoute:
         self.used.add(route)
         if route == "host":
             return self._host(vol_a, vol_b, grid, options)
+        return self._device(vol_a, vol_b, grid, options, on_device)
+
+    def _device(self, vol_a, vol_b, grid: WindowGrid, options: dict,
+                on_device: tuple | None) -> Correlation:
+        """The device's FFT, of the volumes' device copies where given."""
         return self.device.correlate(*(on_device or (vol_a, vol_b)), grid, **options)
 
     def _host(self, vol_a, vol_b, grid: WindowGrid, options: dict) -> Correlation:
@@ -295,8 +300,7 @@ class FFTRoute:
         sample.flat[np.flatnonzero(todo)[:MEASURED_WINDOWS]] = True
         trial = {**options, "select": sample}
         routes = {"host": lambda: self._host(vol_a, vol_b, grid, trial),
-                  "device": lambda: self.device.correlate(*(on_device or (vol_a, vol_b)),
-                                                          grid, **trial)}
+                  "device": lambda: self._device(vol_a, vol_b, grid, trial, on_device)}
         seconds = {}
         for name, run in routes.items():
             run()

@@ -285,12 +285,18 @@ def device_reads(vol: np.ndarray, maxima, sight: SightLines | None, on_device=No
     its context; without it, one upload for both where both run on one device
     (:func:`shared_upload`)."""
     if on_device is None:
-        shared = shared_upload(vol, maxima, sight)
-        return shared, shared
-    queues = (getattr(maxima, "queue", None),
-              None if sight is None else getattr(sight.sums, "queue", None))
+        on_device = shared_upload(vol, maxima, sight)
+        if on_device is None:
+            return None, None
     return tuple(on_device if q is not None and q.context == on_device.context else None
-                 for q in queues)
+                 for q in _queues(maxima, sight))
+
+
+def _queues(maxima, sight: SightLines | None) -> tuple:
+    """The queues of :func:`volume_particles`' local maxima and tube sums (``None``: the
+    host's)."""
+    return (getattr(maxima, "queue", None),
+            None if sight is None else getattr(sight.sums, "queue", None))
 
 
 def _maxima_on(maxima: Callable, shared: cl_array.Array) -> Callable:
@@ -304,8 +310,7 @@ def shared_upload(vol: np.ndarray, maxima, sight: SightLines | None
     of :func:`volume_particles`, where both run on one device (``maxima`` and
     ``sight.sums`` with a ``queue`` of one context; each would upload it, the sums once
     per centring pass); ``None`` otherwise."""
-    queues = [getattr(maxima, "queue", None),
-              None if sight is None else getattr(sight.sums, "queue", None)]
+    queues = _queues(maxima, sight)
     if any(q is None for q in queues) or queues[0].context != queues[1].context:
         return None
     return cl_array.to_device(queues[0], np.ascontiguousarray(vol, np.float32))

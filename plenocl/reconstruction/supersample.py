@@ -95,11 +95,8 @@ class LateralBinning:
         """Fill the device ``slabs`` (consecutive depth slabs ``(dz, ny f, nx f)`` of one
         volume) with :func:`spread_lateral` of the host volume ``coarse`` ``(nz, ny, nx)``,
         times ``scale``: only the coarse volume crosses to the device."""
-        nz, ny, nx = coarse.shape
-        if sum(s.shape[0] for s in slabs) != nz or any(
-                s.shape[1:] != (ny * factor, nx * factor) for s in slabs):
-            raise ValueError(f"a {coarse.shape} volume does not spread by {factor} into slabs "
-                             f"{[s.shape for s in slabs]}")
+        _check_slabs(coarse.shape, factor, slabs)
+        _, ny, nx = coarse.shape
         z0, i32 = 0, np.int32
         for slab in slabs:
             part = self._k.to_device(np.ascontiguousarray(coarse[z0:z0 + slab.shape[0]],
@@ -119,13 +116,10 @@ class LateralBinning:
         else 0 (:func:`spread_lateral` of :meth:`plenocl.reconstruction.schedule.
         SupportStart.flat`, found on the device: nothing crosses)."""
         nz, ny, nx = coarse.shape
-        if sum(s.shape[0] for s in slabs) != nz or any(
-                s.shape[1:] != (ny * factor, nx * factor) for s in slabs):
-            raise ValueError(f"a {coarse.shape} volume does not spread by {factor} into slabs "
-                             f"{[s.shape for s in slabs]}")
-        keep, i32 = self._k.array(coarse.shape, np.uint8), np.int32
+        _check_slabs(coarse.shape, factor, slabs)
         if not coarse.size:
             return
+        keep, i32 = self._k.array(coarse.shape, np.uint8), np.int32
         self._k.launch("grown_support", (nx, ny, nz), coarse, i32(nz), i32(ny), i32(nx),
                        np.float32(floor), keep)
         z0 = 0
@@ -136,3 +130,13 @@ class LateralBinning:
                                np.float32(scale / factor**2), slab, i32(ny * factor),
                                i32(nx * factor))
             z0 += slab.shape[0]
+
+
+def _check_slabs(shape: tuple[int, int, int], factor: int, slabs: list[cla.Array]) -> None:
+    """Refuse device ``slabs`` that are not a volume of ``shape`` ``(nz, ny, nx)`` made
+    ``factor`` times finer laterally (the spreading's target)."""
+    nz, ny, nx = shape
+    if sum(s.shape[0] for s in slabs) != nz or any(
+            s.shape[1:] != (ny * factor, nx * factor) for s in slabs):
+        raise ValueError(f"a {tuple(shape)} volume does not spread by {factor} into slabs "
+                         f"{[s.shape for s in slabs]}")
