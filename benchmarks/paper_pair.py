@@ -23,7 +23,8 @@ time printed, so no row pays for them and the order of the rows does not matter.
 ``--profile``: everything runs on a queue with profiling enabled, and after the rows the
 first setting's pair runs once more under :class:`plenocl.bench.clprofile.OpenCLProfile`,
 which prints per stage the wall seconds, the seconds inside OpenCL calls, the host's own
-work outside them, the kernels' device seconds (profiling events), the launches and the
+work outside them, the kernels' device seconds (profiling events), the launches, the
+calls in which the host waited for the queue (waits and blocking copies) and the
 megabytes moved each way, then the bytes a pair moved against its two raw images.
 ``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
 functions of most own time (on a GPU, where the host's work goes; docs/design.md §7.5).

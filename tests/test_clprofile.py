@@ -37,6 +37,8 @@ def test_profile_counts_bytes_launches_and_host_time(queue):
     assert np.array_equal(back, host * 8)
     split = prof.split(clock.spans)
     assert split["up"].h2d_bytes == host.nbytes and split["up"].d2h_bytes == 0
+    # the host waited for the queue in the blocking write, the finish and the read
+    assert (split["up"].waits, split["work"].waits, split["down"].waits) == (1, 1, 1)
     assert split["down"].d2h_bytes == host.nbytes and split["down"].h2d_bytes == 0
     assert split["work"].launches == 3 and split["up"].launches == 0
     assert split["work"].kernel is not None and 0 < split["work"].kernel <= split["work"].wall
@@ -46,7 +48,28 @@ def test_profile_counts_bytes_launches_and_host_time(queue):
     assert lines[-1].split()[0] == "total" and len(lines) == 5
     total = total_profile(split)
     assert total.h2d_bytes == total.d2h_bytes == host.nbytes and total.launches == 3
+    assert total.waits == 3
     assert total.wall == pytest.approx(sum(clock.seconds.values()))
+
+
+def test_uploads_made_with_their_buffers_count_as_copies_to_the_device(queue):
+    """plenocl's uploads (``arrays.upload``: the buffer made from the host array, no
+    command on the queue) count their bytes to the device like ``enqueue_copy``; an
+    empty array moves none; the profile puts the function back after the block."""
+    from plenocl.opencl import arrays
+
+    host = np.arange(12_345, dtype=np.int32)
+    clock = StageClock()
+    saved = arrays.buffer_from_host
+    with OpenCLProfile() as prof:
+        with clock.stage("up"):
+            dev = arrays.upload(queue, host)
+            empty = arrays.upload(queue, np.zeros(0, np.float32))
+    assert arrays.buffer_from_host is saved
+    assert np.array_equal(dev.get(), host) and empty.size == 0
+    split = prof.split(clock.spans)
+    assert split["up"].h2d_bytes == host.nbytes and split["up"].calls == {"h2d": 1}
+    assert split["up"].waits == 0  # no command on the queue, nothing waited for
 
 
 def test_covered_is_the_length_of_the_union():

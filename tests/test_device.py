@@ -123,6 +123,75 @@ def test_kernel_set_launches_with_arrays_and_the_cpu_rule(queue):
         KernelSet(queue, "solver.cl", ["row_extent"], looping=["ratio"])
 
 
+
+def test_an_upload_copies_now_and_does_not_wait_for_the_queue(queue):
+    """``arrays.upload`` copies the host array as its buffer is made: it returns while
+    the queue is held by an unfinished event (pyopencl's blocking write would wait for
+    it), changing the host array afterwards changes nothing on the device, and the copy
+    keeps the array's shape and dtype, any layout made contiguous."""
+    import threading
+
+    from plenocl.opencl.arrays import upload
+
+    own = cl.CommandQueue(queue.context, queue.device)
+    held = cl.UserEvent(queue.context)
+    cl.enqueue_barrier(own, wait_for=[held])
+    host = np.arange(60, dtype=np.float64).reshape(3, 4, 5)[:, ::2]  # not contiguous
+    want = host.copy()
+    done = {}
+    worker = threading.Thread(target=lambda: done.setdefault("dev", upload(own, host)))
+    try:
+        worker.start()
+        worker.join(timeout=20)
+        assert "dev" in done, "the upload waited for the queue"
+        host[...] = -1.0
+    finally:
+        held.set_status(cl.command_execution_status.COMPLETE)
+        worker.join()
+    dev = done["dev"]
+    assert dev.shape == want.shape and dev.dtype == want.dtype
+    assert np.array_equal(dev.get(), want)
+
+
+def test_kernels_are_fetched_once_per_thread_and_never_shared_across_threads(queue):
+    """Two sets of one program in one thread share its kernel objects (fetched once);
+    another thread launching the same set gets its own, and two threads adding into
+    their own arrays at once through one set each get NumPy's sums; an unknown name is
+    refused by name."""
+    import threading
+
+    import pyopencl.array as cla
+
+    from plenocl.opencl.program import fetch_kernels
+
+    first = KernelSet(queue, "solver.cl", ["add_into"])
+    second = KernelSet(queue, "solver.cl", ["add_into", "row_extent"])
+    assert first.kernel("add_into") is second.kernel("add_into")
+    program = build_program(queue.context, "solver.cl")
+    assert fetch_kernels(program, ["add_into"])["add_into"] is first.kernel("add_into")
+    seen, sums = {}, {}
+
+    def work(k: int) -> None:
+        queue_k = cl.CommandQueue(queue.context, queue.device)
+        seen[k] = first.kernel("add_into")
+        n = 1000 + 7 * k
+        a = cla.to_device(queue_k, np.zeros(n, np.float32))
+        b = cla.to_device(queue_k, np.arange(n, dtype=np.float32))
+        for _ in range(50):
+            first.kernel("add_into")(queue_k, (n,), None, a.data, b.data, np.int32(n))
+        sums[k] = a.get(queue_k)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert seen[0] is not seen[1] and first.kernel("add_into") not in (seen[0], seen[1])
+    for k in range(2):
+        np.testing.assert_array_equal(sums[k], 50 * np.arange(1000 + 7 * k, dtype=np.float32))
+    with pytest.raises(KeyError, match="not among"):
+        first.launch("ratio", (1,))
+
 def test_a_kernel_set_builds_a_source_text_against_todays_headers(queue):
     """``source=`` builds a file's text from elsewhere (a revision a benchmark compares),
     its ``#include`` served by today's headers, cached by its text: another text under the

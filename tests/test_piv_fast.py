@@ -125,6 +125,36 @@ def test_fftw_correlation_matches_scipy(window, fft_shape, count):
     assert planes[1][0][s] == pytest.approx(want, rel=1e-4)
 
 
+@pytest.mark.skipif(pivfft.pyfftw is None, reason="pyfftw is not installed")
+def test_fftw_plans_kept_are_the_most_recently_used_within_the_budget(monkeypatch):
+    """A thread keeps the plans it used last: one used again is not planned again while
+    newer ones come (the second pair of a process replanned its first pass when the
+    oldest made went first); past the count or the byte budget the least recently used
+    go, the newest always stays."""
+    monkeypatch.setattr(pivfft._LOCAL, "plans", {})
+    monkeypatch.setattr(pivfft, "PLAN_COUNT", 3)
+    window = (4, 4, 4)
+
+    def plans(batch: int):
+        return pivfft._fftw_plans((batch, 8, 8, 8), window, 1)
+
+    first = plans(1)
+    for batch in (2, 3):
+        plans(batch)
+        assert plans(1) is first  # used again: kept as the most recent
+    plans(4)  # the fourth: batch 2, the least recently used, goes
+    kept = [key[0][0] for key in pivfft._LOCAL.plans]
+    assert kept == [3, 1, 4]
+    one = pivfft._plan_bytes({"k": first})
+    assert one == 3 * 8**3 * 4 + 2 * 8 * 8 * 5 * 8  # three real boxes, two half spectra
+    monkeypatch.setattr(pivfft, "PLAN_BYTES", 5 * one)  # batches 1 + 4 fit, not + 3
+    plans(1)
+    assert [key[0][0] for key in pivfft._LOCAL.plans] == [4, 1]
+    monkeypatch.setattr(pivfft, "PLAN_BYTES", 1)
+    big = plans(5)
+    assert list(pivfft._LOCAL.plans.values()) == [big]  # the newest, alone over budget
+
+
 def test_padded_first_pass_is_linear_up_to_a_third_of_the_window():
     for w in range(8, 97):
         size = padded_size(w)

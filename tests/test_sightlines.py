@@ -13,6 +13,7 @@ import pytest
 
 from plenocl import Camera, Grid, piv3d
 from plenocl.metrics import render_particles
+from plenocl.opencl import arrays
 from plenocl.optics.sightline import line_of_sight, sight_frames, sight_information
 from plenocl.peaks import find_particles, merge_along_lines
 from plenocl.piv.devicepeaks import DeviceMaxima
@@ -148,9 +149,9 @@ def test_a_volumes_particles_on_one_device_upload_it_once(queue, monkeypatch):
     host = volume_particles(ridge, sight=SightLines.of(CAMERA, OFF_AXIS))
     sight, maxima = SightLines.of(CAMERA, OFF_AXIS, queue), DeviceMaxima(queue)
     uploads = []
-    real = cl_array.to_device
-    monkeypatch.setattr(cl_array, "to_device", lambda q, a, *args, **kw: (
-        uploads.append(a.shape), real(q, a, *args, **kw))[1])
+    made = arrays.buffer_from_host  # where every upload goes
+    monkeypatch.setattr(arrays, "buffer_from_host", lambda context, a: (
+        uploads.append(a.shape), made(context, a))[1])
     shared = volume_particles(ridge, sight=sight, maxima=maxima)
     assert uploads.count(ridge.shape) == 1 and len(host) == 3
     separate = volume_particles(ridge, sight=dataclasses.replace(sight, sums=None),
@@ -159,7 +160,7 @@ def test_a_volumes_particles_on_one_device_upload_it_once(queue, monkeypatch):
     np.testing.assert_allclose(separate, host, atol=1e-4)
     # a device copy kept from the reconstruction: read by both, nothing sent, the same
     # particles to the bit; with the sums on the host, the maxima alone read it
-    kept = real(queue, np.asarray(ridge, np.float32))
+    kept = cl_array.to_device(queue, np.asarray(ridge, np.float32))
     uploads.clear()
     assert np.array_equal(volume_particles(ridge, sight=sight, maxima=maxima,
                                            on_device=kept), shared)

@@ -12,6 +12,7 @@ from scipy import ndimage
 from plenocl import Grid, Projector, random_particles, reconstruct
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.metrics import recovery
+from plenocl.opencl import arrays
 from plenocl.reconstruction import (
     ReconstructionSettings,
     Solver,
@@ -373,10 +374,10 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
                         counted("_preprocessed", images_module._preprocessed))
     monkeypatch.setattr(Projector, "lit_lenses", counted("lit_lenses", Projector.lit_lenses))
     monkeypatch.setattr(Solver, "binned_to_device", binned_to_device)
-    uploads, to_device = [], images_module.cla.to_device
-    monkeypatch.setattr(images_module.cla, "to_device",
-                        lambda queue, host, *a, **k: uploads.append(np.shape(host))
-                        or to_device(queue, host, *a, **k))
+    uploads, made = [], arrays.buffer_from_host  # where every upload goes
+    monkeypatch.setattr(arrays, "buffer_from_host",
+                        lambda context, host: uploads.append(np.shape(host))
+                        or made(context, host))
     vol, info = reconstruct(scene, proj, iterations=3, supersample=2, coarse_iterations=4,
                             support=0.05, relax=1.0, early_oversample=None, return_info=True)
     assert calls["_preprocessed"] == 1 and calls["lit_lenses"] == 1

@@ -2,7 +2,9 @@
 
 :class:`OpenCLProfile` records, while active, every OpenCL call the process makes through
 pyopencl: kernel launches (``enqueue_nd_range_kernel``, which every pyopencl kernel call
-and array operation goes through), copies (``enqueue_copy``: bytes each way), fills and
+and array operation goes through), copies (``enqueue_copy``: bytes each way; and the
+buffers plenocl makes from host arrays, :func:`plenocl.opencl.arrays.buffer_from_host`,
+as copies to the device), fills and
 the waits (``CommandQueue.finish``, ``Event.wait``, ``wait_for_events``), each with the
 wall time spent inside the call. :meth:`OpenCLProfile.split` then attributes them to
 stages by their time spans (:attr:`plenocl.pipeline.PairResult.spans`): per stage the
@@ -27,18 +29,22 @@ import numpy as np
 import pyopencl as cl
 from pyopencl import _cl
 
+from ..opencl import arrays
+
 __all__ = ["OpenCLProfile", "StageProfile", "covered", "split_lines", "total_profile"]
 
 
 @dataclass
 class _Call:
-    """One OpenCL call: its kind, wall span, bytes moved and event."""
+    """One OpenCL call: its kind, wall span, bytes moved, event and whether the host
+    waited in it for the queue (a wait, or a blocking copy)."""
 
     kind: str  # "kernel", "h2d", "d2h", "d2d", "fill", "wait"
     start: float
     end: float
     nbytes: int = 0
     event: object = None
+    waits: bool = False
 
 
 @dataclass
@@ -51,6 +57,7 @@ class StageProfile:
     launches: int = 0
     h2d_bytes: int = 0
     d2h_bytes: int = 0
+    waits: int = 0
     calls: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -87,9 +94,12 @@ class OpenCLProfile:
         def wrapped(*args, **kwargs):
             t0 = time.perf_counter()
             out = fn(*args, **kwargs)
-            call = _Call(kind, t0, time.perf_counter(), event=out)
+            call = _Call(kind, t0, time.perf_counter(),
+                         event=out if isinstance(out, cl.Event) else None)
             if nbytes is not None:
                 call.kind, call.nbytes = nbytes(*args, **kwargs)
+            call.waits = kind == "wait" or (kind == "copy" and call.kind != "d2d"
+                                            and kwargs.get("is_blocking", True))
             calls.append(call)
             return out
         return wrapped
@@ -108,6 +118,8 @@ class OpenCLProfile:
         self._patch(_cl, "enqueue_nd_range_kernel", "kernel")
         self._patch(cl, "enqueue_copy", "copy", copy_bytes)
         self._patch(cl, "enqueue_fill_buffer", "fill")
+        self._patch(arrays, "buffer_from_host", "h2d",
+                    lambda context, host: ("h2d", _host_bytes(host)))
         self._patch(cl, "wait_for_events", "wait")
         self._patch(cl.CommandQueue, "finish", "wait")
         self._patch(cl.Event, "wait", "wait")
@@ -139,6 +151,7 @@ class OpenCLProfile:
     @staticmethod
     def _add(stage: StageProfile, call: _Call) -> None:
         stage.calls[call.kind] = stage.calls.get(call.kind, 0) + 1
+        stage.waits += call.waits
         if call.kind == "h2d":
             stage.h2d_bytes += call.nbytes
         elif call.kind == "d2h":
@@ -178,19 +191,21 @@ def total_profile(split: dict[str, StageProfile]) -> StageProfile:
                         kernel=sum(kernels) if kernels else None,
                         launches=sum(st.launches for st in stages),
                         h2d_bytes=sum(st.h2d_bytes for st in stages),
-                        d2h_bytes=sum(st.d2h_bytes for st in stages))
+                        d2h_bytes=sum(st.d2h_bytes for st in stages),
+                        waits=sum(st.waits for st in stages))
 
 
 def split_lines(split: dict[str, StageProfile]) -> list[str]:
     """The split as a table of text lines, one per stage and their total
-    (:func:`total_profile`): wall, OpenCL calls, host, kernel seconds, launches and MB
-    each way."""
+    (:func:`total_profile`): wall, OpenCL calls, host, kernel seconds, launches, the
+    calls in which the host waited for the queue (waits and blocking copies) and MB each
+    way."""
     head = (f"{'stage':14s} {'wall s':>7s} {'in CL s':>8s} {'host s':>7s} {'kernel s':>9s} "
-            f"{'launches':>8s} {'MB in':>8s} {'MB out':>8s}")
+            f"{'launches':>8s} {'waits':>6s} {'MB in':>8s} {'MB out':>8s}")
     rows = [head]
     for name, st in {**split, "total": total_profile(split)}.items():
         kernel = "n/a" if st.kernel is None else f"{st.kernel:.3f}"
         rows.append(f"{name:14s} {st.wall:7.3f} {st.opencl:8.3f} {st.host:7.3f} "
-                    f"{kernel:>9s} {st.launches:8d} {st.h2d_bytes / 1e6:8.1f} "
+                    f"{kernel:>9s} {st.launches:8d} {st.waits:6d} {st.h2d_bytes / 1e6:8.1f} "
                     f"{st.d2h_bytes / 1e6:8.1f}")
     return rows

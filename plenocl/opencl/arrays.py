@@ -1,6 +1,7 @@
 """Device arrays filled with one value by the driver's own fill (``clEnqueueFillBuffer``),
-volumes placed inside zeros or inside another volume on the device (one rectangular
-copy), and the check of two volumes' device copies handed from one stage to the next.
+host arrays uploaded without waiting for the queue, volumes placed inside zeros or inside
+another volume on the device (one rectangular copy), and the check of two volumes'
+device copies handed from one stage to the next.
 
 pyopencl's ``Array.fill`` runs an element-wise kernel whose work-items each loop over a
 strided range; PoCL runs it 25-40x slower than the driver's fill (a 12.6-million-voxel
@@ -14,7 +15,29 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-__all__ = ["copy_inside", "device_copies", "fill", "inside_zeros"]
+__all__ = ["buffer_from_host", "copy_inside", "device_copies", "fill", "inside_zeros",
+           "upload"]
+
+
+def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
+    """A device copy of a host array (made contiguous) on ``queue``, copied as the driver
+    makes its buffer (:func:`buffer_from_host`): no command on the queue, so the host
+    does not wait for the kernels before it. pyopencl's ``to_device`` enqueues a blocking
+    write, which waits for every kernel enqueued before it: a pair's 800 small uploads
+    (window lists, tables, geometry) were as many hidden synchronisations (issue 46)."""
+    host = np.ascontiguousarray(host)
+    if not host.nbytes:
+        return cl_array.to_device(queue, host)
+    return cl_array.Array(queue, host.shape, host.dtype,
+                          data=buffer_from_host(queue.context, host))
+
+
+def buffer_from_host(context: cl.Context, host: np.ndarray) -> cl.Buffer:
+    """A read-write buffer of ``context`` holding a copy of the contiguous, non-empty
+    ``host`` array, copied when it is made (``COPY_HOST_PTR``); the one place uploads go
+    through, where :class:`plenocl.bench.clprofile.OpenCLProfile` counts their bytes."""
+    flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+    return cl.Buffer(context, flags, hostbuf=host)
 
 
 def fill(array: cl_array.Array, value) -> cl_array.Array:

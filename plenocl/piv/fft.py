@@ -90,18 +90,30 @@ class CorrelationFFT:
 
 
 _LOCAL = threading.local()
+#: The FFTW plans a thread keeps (the least recently used go first): at most this many,
+#: and their buffers within :data:`PLAN_BYTES` (the newest always kept). A pair uses six
+#: (the first call's route measurement two, its four passes four); four kept made the
+#: second pair of a process plan its first pass again (0.1 s on the 116 x 78 pair).
+PLAN_COUNT = 8
+PLAN_BYTES = 768 * 2**20
 
 
 def _fftw_plans(shape: tuple[int, ...], window: tuple[int, ...], threads: int):
     """Aligned buffers and FFTW plans for one batch shape and window, made once per
-    thread (the last few kept), so that every pass of every pair reuses them."""
+    thread (the most recently used kept: :data:`PLAN_COUNT`, :data:`PLAN_BYTES`), so that
+    every pass of every pair reuses them."""
     cache = _LOCAL.__dict__.setdefault("plans", {})
     key = (shape, window, threads)
-    if key not in cache:
-        if len(cache) >= 4:
-            cache.pop(next(iter(cache)))
-        cache[key] = _make_plans(shape, threads)
+    plans = cache.pop(key, None)
+    cache[key] = _make_plans(shape, threads) if plans is None else plans
+    while len(cache) > 1 and (len(cache) > PLAN_COUNT or _plan_bytes(cache) > PLAN_BYTES):
+        cache.pop(next(iter(cache)))
     return cache[key]
+
+
+def _plan_bytes(cache: dict) -> int:
+    """The bytes of the buffers of every kept plan."""
+    return sum(a.nbytes for plans in cache.values() for a in plans[:4] + plans[7:])
 
 
 def _make_plans(shape: tuple[int, ...], threads: int):

@@ -56,7 +56,7 @@ from scipy import stats
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
-from ..opencl.arrays import device_copies
+from ..opencl.arrays import device_copies, upload
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
@@ -313,7 +313,7 @@ def shared_upload(vol: np.ndarray, maxima, sight: SightLines | None
     queues = _queues(maxima, sight)
     if any(q is None for q in queues) or queues[0].context != queues[1].context:
         return None
-    return cl_array.to_device(queues[0], np.ascontiguousarray(vol, np.float32))
+    return upload(queues[0], np.ascontiguousarray(vol, np.float32))
 
 
 def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl.array as cl_array
 
+from ..opencl.arrays import upload
+
 #: Lenses added to each side of a span: the kernels compute a voxel's lens coordinate in
 #: float32, the host in float64.
 SPAN_MARGIN = 1
@@ -52,8 +54,8 @@ class PlaneExtent:
         """The extent of ``columns`` and ``spans``, copied to ``queue``'s device."""
         columns = np.ascontiguousarray(columns, np.int32)
         spans = np.ascontiguousarray(spans, np.int32)
-        return cls(columns, spans, cl_array.to_device(queue, columns),
-                   cl_array.to_device(queue, spans))
+        return cls(columns, spans, upload(queue, columns),
+                   upload(queue, spans))
 
     @property
     def n_columns(self) -> int:

@@ -24,6 +24,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
+from ..opencl.arrays import upload
+
 
 def lens_reach(max_offset_px: float) -> int:
     """Half-width in pixels of the patch around a lens's rounded centre holding every
@@ -135,5 +137,5 @@ def lens_set(queue: cl.CommandQueue, lit: np.ndarray, ml_count: tuple[int, int],
     counts = np.bincount(colour[ids], minlength=stride * stride)
     offsets = tuple(int(v) for v in np.concatenate([[0], np.cumsum(counts)]))
     row_flags = lit.reshape(rows, cols).any(axis=1).astype(np.uint8)
-    return LensSet(cl_array.to_device(queue, np.concatenate([ids, np.zeros(1, np.int32)])),
-                   offsets, cl_array.to_device(queue, row_flags), lit)
+    return LensSet(upload(queue, np.concatenate([ids, np.zeros(1, np.int32)])),
+                   offsets, upload(queue, row_flags), lit)

@@ -37,7 +37,7 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..camera.lattice import separable_rotation_deg
 from ..grid import Grid
-from ..opencl.arrays import fill
+from ..opencl.arrays import fill, upload
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
 from ..optics.depthrange import check_grid
@@ -363,14 +363,14 @@ class Projector(FactorisedStages):
         self.n_samples = len(i)
         self._columns = SampleColumns.of(self.aperture)
         self._d = {
-            "coef": cl_array.to_device(q, self.coef.astype(np.float32)),
-            "ij": cl_array.to_device(q, np.column_stack([i, j]).astype(np.int32)),
-            "px": cl_array.to_device(q, self.model.pixel_offsets),
-            "col_lo": cl_array.to_device(q, lo.astype(np.int32)),
-            "col_hi": cl_array.to_device(q, hi.astype(np.int32)),
-            "col_off": cl_array.to_device(q, self._columns.offset.astype(np.int32)),
-            "rnd": cl_array.to_device(q, rnd),
-            "frac": cl_array.to_device(q, frac),
+            "coef": upload(q, self.coef.astype(np.float32)),
+            "ij": upload(q, np.column_stack([i, j]).astype(np.int32)),
+            "px": upload(q, self.model.pixel_offsets),
+            "col_lo": upload(q, lo.astype(np.int32)),
+            "col_hi": upload(q, hi.astype(np.int32)),
+            "col_off": upload(q, self._columns.offset.astype(np.int32)),
+            "rnd": upload(q, rnd),
+            "frac": upload(q, frac),
         }
         self._scratch: dict[str, cl_array.Array] = {}
         self._sensitivity: list[cl_array.Array] | None = None
@@ -448,12 +448,12 @@ class Projector(FactorisedStages):
     def back(self, image: np.ndarray) -> np.ndarray:
         """Back-project an image ``(H, W)``: a volume ``(nz, ny, nx)`` float32 (``Aᵀ image``)."""
         img = _checked(image, self.image_shape, "image")
-        return self.volume_to_host(self.back_device(cl_array.to_device(self.queue, img)))
+        return self.volume_to_host(self.back_device(upload(self.queue, img)))
 
     def volume_to_device(self, vol: np.ndarray) -> list[cl_array.Array]:
         """Checked float32 copy of a host volume as device slabs (see ``plan.slabs``)."""
         vol = _checked(vol, self.shape, "volume")
-        return [cl_array.to_device(self.queue, vol[a:b]) for a, b in self.plan.slabs]
+        return [upload(self.queue, vol[a:b]) for a, b in self.plan.slabs]
 
     def volume_to_host(self, slabs: VolumeLike) -> np.ndarray:
         """Gather device slabs into one host volume."""
@@ -515,7 +515,7 @@ class Projector(FactorisedStages):
         """The rounded lens centres ``(n_lenses, 2)`` int32 on the device, uploaded once."""
         if self._lit_centres is None:
             rounded = np.asarray(self.model.lens_tables[0], np.int32).reshape(-1, 2)
-            self._lit_centres = cl_array.to_device(self.queue, rounded)
+            self._lit_centres = upload(self.queue, rounded)
         return self._lit_centres
 
     def lens_set(self, lit: np.ndarray) -> LensSet:

@@ -8,6 +8,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..camera.lattice import RectangularLattice
+from ..opencl.arrays import upload
 from ..optics.ownership import pixel_lenses
 from .operator import ProjectionOperator
 
@@ -48,6 +49,6 @@ def device_view_blocks(projector: ProjectionOperator, n_per_axis: int) -> cla.Ar
     """:func:`view_blocks` of the projector's camera on its queue, cached per projector."""
     per_projector = _BLOCKS.setdefault(projector, {})
     if n_per_axis not in per_projector:
-        per_projector[n_per_axis] = cla.to_device(projector.queue,
+        per_projector[n_per_axis] = upload(projector.queue,
                                                   view_blocks(projector.camera, n_per_axis))
     return per_projector[n_per_axis]

@@ -8,9 +8,9 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-import pyopencl.array as cla
 from scipy import ndimage
 
+from ..opencl.arrays import upload
 from ..optics.rawimage import background_and_noise, check_exposure, check_image, dark_noise
 from .operator import ProjectionOperator
 from .settings import ReconstructionSettings
@@ -216,7 +216,7 @@ class PreparedImage:
         only reads it)."""
         key = queue.int_ptr
         if key not in self._device:
-            self._device[key] = cla.to_device(queue, self.image)
+            self._device[key] = upload(queue, self.image)
         return self._device[key]
 
 
