@@ -136,7 +136,7 @@ def test_an_upload_copies_now_and_does_not_wait_for_the_queue(queue):
     own = cl.CommandQueue(queue.context, queue.device)
     held = cl.UserEvent(queue.context)
     cl.enqueue_barrier(own, wait_for=[held])
-    host = np.arange(60, dtype=np.float64).reshape(3, 4, 5)[:, ::2]  # not contiguous
+    host = np.arange(60, dtype=np.float64).reshape(3, 4, 5)  # contiguous: its own memory
     want = host.copy()
     done = {}
     worker = threading.Thread(target=lambda: done.setdefault("dev", upload(own, host)))
@@ -151,6 +151,11 @@ def test_an_upload_copies_now_and_does_not_wait_for_the_queue(queue):
     dev = done["dev"]
     assert dev.shape == want.shape and dev.dtype == want.dtype
     assert np.array_equal(dev.get(), want)
+    # any layout and shape, a 0-d array's included, as pyopencl's own copy keeps them
+    for other in (want[:, ::2], want.T, np.float32(2.5) * np.ones(()), np.arange(4) > 1):
+        dev = upload(queue, other)
+        assert dev.shape == other.shape and dev.dtype == other.dtype
+        assert np.array_equal(dev.get(), other)
 
 
 def test_kernels_are_fetched_once_per_thread_and_never_shared_across_threads(queue):

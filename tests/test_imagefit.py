@@ -234,6 +234,40 @@ def test_refined_peaks_carry_the_fits_uncertainty_in_voxels():
     assert np.all(first.sigma[0, :2] > 10 * first.sigma[1, :2]), first.sigma
 
 
+def test_a_pairs_second_fit_runs_on_one_kept_thread_and_ends_before_it_returns(
+        monkeypatch):
+    """``refine_pair`` fits the second exposure on a helper thread the calling thread
+    keeps from pair to pair (its kernels fetched once), and returns or raises only when
+    that fit has ended: an error in the first fit waits for the second."""
+    import threading
+    import time
+
+    from plenocl.piv import imagefit
+
+    monkeypatch.setattr(imagefit, "thread_count", lambda: 2)
+    threads, ended = [], []
+
+    def fitted(fit, grid, index, peaks):
+        if index == 1:
+            threads.append(threading.current_thread())
+            time.sleep(0.2)
+            ended.append(index)
+        elif peaks is None:
+            raise RuntimeError("the first fit failed")
+        return index
+
+    monkeypatch.setattr(imagefit, "refined_peaks", fitted)
+    fit = object.__new__(ImageFit)
+    fit.grid = GRID
+    assert ImageFit.refine_pair(fit, np.zeros((0, 3)), np.zeros((0, 3))) == (0, 1)
+    assert ImageFit.refine_pair(fit, np.zeros((0, 3)), np.zeros((0, 3))) == (0, 1)
+    assert threads[0] is threads[1] is not threading.current_thread()
+    ended.clear()
+    with pytest.raises(RuntimeError, match="first fit failed"):
+        ImageFit.refine_pair(fit, None, np.zeros((0, 3)))
+    assert ended == [1]  # the second fit had ended when the error came out
+
+
 def test_the_posterior_covariance_leans_with_the_line_of_sight():
     """Off the axis one camera places a particle worst along its line of sight, which
     leans by ``r / s_o``: the fit's posterior covariance has its long axis on that line

@@ -20,16 +20,17 @@ __all__ = ["buffer_from_host", "copy_inside", "device_copies", "fill", "inside_z
 
 
 def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
-    """A device copy of a host array (made contiguous) on ``queue``, copied as the driver
-    makes its buffer (:func:`buffer_from_host`): no command on the queue, so the host
-    does not wait for the kernels before it. pyopencl's ``to_device`` enqueues a blocking
+    """A device copy of a host array (any layout, its shape kept) on ``queue``, copied as
+    the driver makes its buffer (:func:`buffer_from_host`): no command on the queue, so
+    the host does not wait for the kernels before it. pyopencl's ``to_device`` enqueues a
+    blocking
     write, which waits for every kernel enqueued before it: a pair's 800 small uploads
     (window lists, tables, geometry) were as many hidden synchronisations (issue 46)."""
-    host = np.ascontiguousarray(host)
+    host = np.asarray(host)
     if not host.nbytes:
         return cl_array.to_device(queue, host)
     return cl_array.Array(queue, host.shape, host.dtype,
-                          data=buffer_from_host(queue.context, host))
+                          data=buffer_from_host(queue.context, np.ascontiguousarray(host)))
 
 
 def buffer_from_host(context: cl.Context, host: np.ndarray) -> cl.Buffer:

@@ -49,9 +49,15 @@ def fetch_kernels(program: cl.Program, names: Sequence[str]) -> dict[str, cl.Ker
 
 
 def _fetched(program: cl.Program) -> dict[str, cl.Kernel]:
-    """The calling thread's kernels fetched from ``program`` so far, by name."""
-    programs = _FETCHED.__dict__.setdefault("programs", weakref.WeakKeyDictionary())
-    return programs.setdefault(program, {})
+    """The calling thread's kernels fetched from ``program`` so far, by name (looked up
+    first: every launch asks)."""
+    try:
+        return _FETCHED.programs[program]
+    except AttributeError:
+        _FETCHED.programs = weakref.WeakKeyDictionary()
+    except KeyError:
+        pass
+    return _FETCHED.programs.setdefault(program, {})
 
 
 def group_size(queue: cl.CommandQueue, group: int | None = None) -> int:

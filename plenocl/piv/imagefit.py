@@ -24,7 +24,8 @@ or whose sums, step or intensity are not finite, is dropped (its rows NaN,
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -215,9 +216,12 @@ class ImageFit:
         if thread_count() < 2:
             return (refined_peaks(self, self.grid, 0, peaks_a),
                     refined_peaks(self, self.grid, 1, peaks_b))
-        with ThreadPoolExecutor(2) as pool:
-            b = pool.submit(refined_peaks, self, self.grid, 1, peaks_b)
-            return refined_peaks(self, self.grid, 0, peaks_a), b.result()
+        b = _second_thread().submit(refined_peaks, self, self.grid, 1, peaks_b)
+        try:
+            a = refined_peaks(self, self.grid, 0, peaks_a)
+        finally:
+            wait([b])  # nothing of this pair runs on after it returns or raises
+        return a, b.result()
 
     def fit(self, index: int, positions: np.ndarray) -> FittedParticles:
         """Fit particles starting at object-space ``positions`` ``(N, 3)`` mm to exposure
@@ -499,6 +503,20 @@ def prior_covariance(frames: np.ndarray, prior: np.ndarray) -> np.ndarray:
     ``(n, 3, 3)`` (:func:`plenocl.optics.sightline.sight_frames`): ``R diag(prior²) R^T``,
     what a particle the fit has not moved is known to."""
     return np.einsum("nij,j,nkj->nik", frames, np.asarray(prior, float) ** 2, frames)
+
+
+#: Per calling thread, the thread that fits a pair's second exposure (:func:`_second_thread`).
+_SECOND = threading.local()
+
+
+def _second_thread() -> ThreadPoolExecutor:
+    """The calling thread's own helper thread for :meth:`ImageFit.refine_pair`, kept from
+    pair to pair, so that its kernels are fetched once (kernel objects are per thread:
+    :func:`plenocl.opencl.program.fetch_kernels`); it ends with the calling thread."""
+    pool = getattr(_SECOND, "pool", None)
+    if pool is None:
+        pool = _SECOND.pool = ThreadPoolExecutor(1, thread_name_prefix="plenocl-fit")
+    return pool
 
 
 def _background_free(raw, camera, known, free) -> tuple[np.ndarray, float]:
