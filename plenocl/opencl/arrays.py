@@ -23,9 +23,9 @@ def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
     """A device copy of a host array (any layout, its shape kept) on ``queue``, copied as
     the driver makes its buffer (:func:`buffer_from_host`): no command on the queue, so
     the host does not wait for the kernels before it. pyopencl's ``to_device`` enqueues a
-    blocking
-    write, which waits for every kernel enqueued before it: a pair's 800 small uploads
-    (window lists, tables, geometry) were as many hidden synchronisations (issue 46)."""
+    blocking write, which waits for every kernel enqueued before it: a pair's 800 small
+    uploads (window lists, tables, geometry) were as many hidden synchronisations (issue
+    46)."""
     host = np.asarray(host)
     if not host.nbytes:
         return cl_array.to_device(queue, host)

@@ -37,7 +37,7 @@ _FETCHED = threading.local()
 
 def fetch_kernels(program: cl.Program, names: Sequence[str]) -> dict[str, cl.Kernel]:
     """Each named kernel of ``program``, fetched once per thread (``cl.Kernel(prg,
-    name)``; fetching one costs about 0.7 ms under Intel's CPU runtime, its launcher
+    name)``; fetching one costs 0.2-0.7 ms on a CPU runtime, and its launcher is
     generated again with it). Threads do not share a kernel object, which holds its
     arguments between setting them and the launch; within a thread every launch sets
     them all, so the solvers and stages of a thread share it."""
