@@ -158,6 +158,31 @@ def test_an_upload_copies_now_and_does_not_wait_for_the_queue(queue):
         assert np.array_equal(dev.get(), other)
 
 
+def test_reading_several_arrays_waits_once_and_gives_what_get_gives(queue):
+    """``arrays.read`` returns each device array's ``.get()`` (any dtype and shape, an
+    empty one and a leading slice included), waiting for the queue once for all of them
+    (three ``.get()`` calls wait three times); a strided array is refused by name."""
+    from plenocl.bench.clprofile import OpenCLProfile
+    from plenocl.opencl.arrays import read, upload
+    from plenocl.pipeline import StageClock
+
+    hosts = [np.arange(7 * 5, dtype=np.float64).reshape(7, 5), np.array([3, -1], np.int32),
+             np.zeros(0, np.float32), np.arange(10, dtype=np.float32)]
+    devs = [upload(queue, h) for h in hosts]
+    devs[-1] = devs[-1][2:6]
+    devs[0] *= 2.0  # a kernel still in the array's events
+    clock = StageClock()
+    with OpenCLProfile() as prof, clock.stage("read"):
+        got = read(*devs)
+    for g, d in zip(got, devs, strict=True):
+        want = d.get()
+        assert g.dtype == want.dtype and np.array_equal(g, want)
+    assert np.array_equal(got[0], 2 * hosts[0])
+    assert prof.split(clock.spans)["read"].waits == 1
+    with pytest.raises(ValueError, match="contiguous"):
+        read(devs[0][:, ::2])
+
+
 def test_kernels_are_fetched_once_per_thread_and_never_shared_across_threads(queue):
     """Two sets of one program in one thread share its kernel objects (fetched once);
     another thread launching the same set gets its own, and two threads adding into

@@ -21,6 +21,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
+from ..opencl.arrays import read
 from ..opencl.device import DeviceInfo
 from ..opencl.program import KernelSet
 from ..sorting import stable_order
@@ -177,8 +178,9 @@ class DeviceWindowMeans:
                          status)
         out = np.zeros((size, 3, 3))
         listed = lists.win
-        out.reshape(size, 9)[listed] = grad.get().reshape(size, 9)[listed]
-        return out, status.get()
+        grad, status = read(grad, status)
+        out.reshape(size, 9)[listed] = grad.reshape(size, 9)[listed]
+        return out, status
 
     def estimates(self, pairs: PairsOnDevice, lists: WindowLists, centres: np.ndarray,
                   grad: np.ndarray, search, spread: float | None, floor, min_count: int,
@@ -196,8 +198,8 @@ class DeviceWindowMeans:
                          _triple(floor), i32(min_count), self._upload(t),
                          _triple(position_sigma), self._k.array(lists.member.size, f64),
                          count, mean, error)
-        return (count.get().astype(int), mean.get().reshape(size, 3),
-                error.get().reshape(size, 3))
+        count, mean, error = read(count, mean, error)
+        return count.astype(int), mean.reshape(size, 3), error.reshape(size, 3)
 
     def _launch(self, name: str, pairs: PairsOnDevice, with_amb: bool, lists: WindowLists,
                 centres: np.ndarray, *rest) -> None:
