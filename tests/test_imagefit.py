@@ -199,6 +199,9 @@ def test_a_reconstructions_background_free_image_is_the_fits_own(kind):
     for bad, known_bad in ((free.astype(np.float64), known), (free[1:], known), (free, None)):
         with pytest.raises(ValueError, match="background_free"):
             ImageFit(CAM, GRID, [raw], backgrounds=[known_bad], background_free=[bad])
+    for known_bad in ((known[0], float("nan")), (known[0], -1.0), (float("nan"), known[1])):
+        with pytest.raises(ValueError, match="finite median and a finite non-negative noise"):
+            ImageFit(CAM, GRID, [raw], backgrounds=[known_bad], background_free=[free])
 
 
 def test_per_particle_peaks_match_the_unsorted_form():

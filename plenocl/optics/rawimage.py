@@ -12,8 +12,8 @@ import numpy as np
 from ..camera import Camera
 
 __all__ = ["SATURATED_FRACTION", "background_and_noise", "check_exposure", "check_image",
-           "check_pixel_mask", "check_shape", "dark_noise", "exact_median", "median_and_noise",
-           "median_background", "subtract_background"]
+           "check_pixel_mask", "check_shape", "checked_background", "dark_noise",
+           "exact_median", "median_and_noise", "median_background", "subtract_background"]
 
 #: A frame with more than this fraction of its pixels at its brightest value is saturated
 #: (a particle image has a few per cent there at most).
@@ -134,6 +134,16 @@ def background_and_noise(img: np.ndarray, observed: np.ndarray | None = None
     return med, noise
 
 
+def checked_background(known) -> tuple[float, float]:
+    """A known background ``(median, noise)`` as floats, refused unless the median is
+    finite and the noise finite and not negative."""
+    med, sigma = (float(v) for v in known)
+    if not (np.isfinite(med) and np.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"a known background needs a finite median and a finite "
+                         f"non-negative noise, got {med!r} and {sigma!r}")
+    return med, sigma
+
+
 def subtract_background(image, known: tuple[float, float] | None = None
                         ) -> tuple[np.ndarray, float]:
     """Remove a camera's dark level and estimate its noise, robustly.
@@ -148,13 +158,7 @@ def subtract_background(image, known: tuple[float, float] | None = None
     computing the medians again.
     """
     img = np.asarray(image, dtype=np.float64)
-    if known is None:
-        med, sigma = background_and_noise(img)
-    else:
-        med, sigma = (float(v) for v in known)
-        if not (np.isfinite(med) and np.isfinite(sigma) and sigma >= 0):
-            raise ValueError(f"a known background needs a finite median and a finite "
-                             f"non-negative noise, got {med!r} and {sigma!r}")
+    med, sigma = background_and_noise(img) if known is None else checked_background(known)
     out = np.empty(img.shape, np.float32)  # rounded from the float64 difference, as before
     np.subtract(img, med, out=out, casting="same_kind")
     np.maximum(out, np.float32(0.0), out=out)

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..opencl.threads import thread_count
-from ..optics.rawimage import check_image, subtract_background
+from ..optics.rawimage import check_image, checked_background, subtract_background
 from ..optics.raybundle import Patches, RayBundle
 from ..optics.sightline import line_of_sight, sight_frames
 from .devicebundle import DeviceRayBundle
@@ -533,11 +533,7 @@ def _background_free(raw, camera, known, free) -> tuple[np.ndarray, float]:
                          f"reconstruction's info.background_free and .background, .noise); "
                          f"got {free.dtype} {free.shape}"
                          f"{' without a background' if known is None else ''}")
-    noise = float(known[1])
-    if not (np.isfinite(noise) and noise >= 0):
-        raise ValueError(f"a known background needs a finite non-negative noise, got "
-                         f"{known[1]!r}")
-    return free, noise
+    return free, checked_background(known)[1]
 
 
 def _backgrounds(backgrounds, n: int) -> list:

@@ -313,7 +313,7 @@ def shared_upload(vol: np.ndarray, maxima, sight: SightLines | None
     queues = _queues(maxima, sight)
     if any(q is None for q in queues) or queues[0].context != queues[1].context:
         return None
-    return upload(queues[0], np.ascontiguousarray(vol, np.float32))
+    return upload(queues[0], np.asarray(vol, np.float32))
 
 
 def mutual_pairs(pa: np.ndarray, pb: np.ndarray, field: PIVResult, search=SEARCH

@@ -54,8 +54,7 @@ class PlaneExtent:
         """The extent of ``columns`` and ``spans``, copied to ``queue``'s device."""
         columns = np.ascontiguousarray(columns, np.int32)
         spans = np.ascontiguousarray(spans, np.int32)
-        return cls(columns, spans, upload(queue, columns),
-                   upload(queue, spans))
+        return cls(columns, spans, upload(queue, columns), upload(queue, spans))
 
     @property
     def n_columns(self) -> int:

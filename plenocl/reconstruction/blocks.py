@@ -50,5 +50,5 @@ def device_view_blocks(projector: ProjectionOperator, n_per_axis: int) -> cla.Ar
     per_projector = _BLOCKS.setdefault(projector, {})
     if n_per_axis not in per_projector:
         per_projector[n_per_axis] = upload(projector.queue,
-                                                  view_blocks(projector.camera, n_per_axis))
+                                           view_blocks(projector.camera, n_per_axis))
     return per_projector[n_per_axis]

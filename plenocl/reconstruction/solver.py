@@ -102,7 +102,7 @@ class Solver:
         self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
         self._no_blocks = cla.zeros(self.queue, 1, np.int32)
         seen = np.ones(1, np.float32) if observed is None else observed.astype(np.float32)
-        self._observed = upload(self.queue, np.ascontiguousarray(seen.ravel()))
+        self._observed = upload(self.queue, seen.ravel())
         self._use_observed = np.int32(observed is not None)
         # A^T 1, kept by the projector; with pixels without data, A^T observed
         self.sens = (projector.sensitivity() if observed is None else
