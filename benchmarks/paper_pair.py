@@ -25,7 +25,8 @@ first setting's pair runs once more under :class:`plenocl.bench.clprofile.OpenCL
 which prints per stage the wall seconds, the seconds inside OpenCL calls, the host's own
 work outside them, the kernels' device seconds (profiling events), the launches, the
 calls in which the host waited for the queue (waits and blocking copies) and the
-megabytes moved each way, then the bytes a pair moved against its two raw images.
+megabytes moved each way, then the bytes a pair moved against its two raw images and
+the 15 kernels of most device time (launches, seconds, share).
 ``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
 functions of most own time (on a GPU, where the host's work goes; docs/design.md §7.5).
 """
@@ -47,7 +48,12 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
     pair_row,
     paper_setup,
 )
-from plenocl.bench.clprofile import OpenCLProfile, split_lines, total_profile  # noqa: E402
+from plenocl.bench.clprofile import (  # noqa: E402
+    OpenCLProfile,
+    kernel_lines,
+    split_lines,
+    total_profile,
+)
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
@@ -144,6 +150,7 @@ def profile_pair(scene, proj, rec) -> None:
     raws = scene.raw_a.nbytes + scene.raw_b.nbytes
     print(f"bytes moved: {moved_in / 1e6:.1f} MB to the device ({moved_in / raws:.1f}x the "
           f"two raw images' {raws / 1e6:.1f} MB), {moved_out / 1e6:.1f} MB back")
+    print("\n".join(kernel_lines(prof.kernel_seconds())))
 
 
 def host_profile(scene, proj, rec, count: int) -> None:

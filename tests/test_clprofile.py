@@ -13,7 +13,13 @@ import pyopencl.array as cl_array
 import pytest
 
 from plenocl import get_queue
-from plenocl.bench.clprofile import OpenCLProfile, covered, split_lines, total_profile
+from plenocl.bench.clprofile import (
+    OpenCLProfile,
+    covered,
+    kernel_lines,
+    split_lines,
+    total_profile,
+)
 from plenocl.pipeline import StageClock
 
 
@@ -50,6 +56,12 @@ def test_profile_counts_bytes_launches_and_host_time(queue):
     assert total.h2d_bytes == total.d2h_bytes == host.nbytes and total.launches == 3
     assert total.waits == 3
     assert total.wall == pytest.approx(sum(clock.seconds.values()))
+    # by kernel: pyopencl's one multiply kernel, three launches, all the kernels' time
+    by_kernel = prof.kernel_seconds()
+    assert [n for n, _ in by_kernel.values()] == [3]
+    assert sum(t for _, t in by_kernel.values()) == pytest.approx(split["work"].kernel)
+    table = kernel_lines(by_kernel)
+    assert len(table) == 2 and table[1].split()[1:3] == ["3", f"{split['work'].kernel:.4f}"]
 
 
 def test_uploads_made_with_their_buffers_count_as_copies_to_the_device(queue):

@@ -4,15 +4,18 @@ fit with them against the fit summed on the host."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
+import pyopencl as cl
 import pytest
 import tolerances as tol
 from helpers import traced_fit_scene
 
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.optics.raybundle import Patches, RayBundle
-from plenocl.piv.devicebundle import DeviceRayBundle
-from plenocl.piv.fitsums import DeviceFitSums
+from plenocl.piv.devicebundle import SLOT, DeviceRayBundle
+from plenocl.piv.fitsums import GPU_SCRATCH_BYTES, HOST_CHUNK, DeviceFitSums, fit_chunk
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.reference import imagefit as ref
 
@@ -141,3 +144,42 @@ def test_kept_buffers_give_fresh_results(queue):
                 want = got
         for a, b in zip(want, got, strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+def test_the_chunk_changes_no_sum(queue):
+    """Particles rendered 2 at a time and all at once (the default on a GPU): the same
+    normal and unit sums, bit for bit (each particle's rows are written alone)."""
+    bundle = RayBundle.of(CAM, rays=37)
+    rng = np.random.default_rng(8)
+    pts = CAM.image_points(np.column_stack([rng.uniform(-2.5, 2.5, 7),
+                                            rng.uniform(-2, 2, 7), rng.uniform(-9, 9, 7)]))
+    patches = bundle.patches(pts)
+    data = rng.uniform(0.0, 50.0, CAM.pixels[::-1])
+    jac = np.tile(np.eye(3), (7, 1, 1))
+    got = []
+    for chunk in (2, 7):
+        sums = DeviceFitSums(DeviceRayBundle(bundle, queue), chunk=chunk)
+        image = sums.upload(data)
+        got.append((sums.normal_sums(image, pts, np.full(7, 250.0),
+                                     patches, jac), sums.unit_sums(image, pts, patches)))
+    for a, b in zip(*got, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_default_chunk_is_the_cpus_or_a_gpus_scratch(queue):
+    """``None``: 128 on a CPU device; on a GPU every particle 256 MB of ray slots hold
+    (200 rays: 2,825 particles, the paper pair's 2,789 in one launch); a chunk given is
+    kept."""
+    renderer = DeviceRayBundle(RayBundle.of(CAM, rays=200), queue)
+    assert fit_chunk(renderer, 9) == 9
+    if queue.device.type & cl.device_type.CPU:
+        assert fit_chunk(renderer) == HOST_CHUNK
+    gpu = SimpleNamespace(queue=SimpleNamespace(device=SimpleNamespace(
+        type=cl.device_type.GPU)), bundle=renderer.bundle)
+    chunk = fit_chunk(gpu)
+    assert chunk * 200 * 4 * (SLOT + 1) * 4 <= GPU_SCRATCH_BYTES
+    assert (chunk + 1) * 200 * 4 * (SLOT + 1) * 4 > GPU_SCRATCH_BYTES
+    assert chunk >= 2789
+    assert ImageFitSettings().chunk is None
+    with pytest.raises(ValueError, match="chunk"):
+        ImageFitSettings(chunk=0)

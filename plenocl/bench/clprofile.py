@@ -30,8 +30,10 @@ import pyopencl as cl
 from pyopencl import _cl
 
 from ..opencl import arrays
+from ..pipeline import process_pair
 
-__all__ = ["OpenCLProfile", "StageProfile", "covered", "split_lines", "total_profile"]
+__all__ = ["OpenCLProfile", "StageProfile", "covered", "kernel_lines", "profiled_pair",
+           "split_lines", "total_profile"]
 
 
 @dataclass
@@ -45,6 +47,7 @@ class _Call:
     nbytes: int = 0
     event: object = None
     waits: bool = False
+    kernel: object = None  # the launched cl.Kernel (its name read when reported)
 
 
 @dataclass
@@ -98,6 +101,8 @@ class OpenCLProfile:
                          event=out if isinstance(out, cl.Event) else None)
             if nbytes is not None:
                 call.kind, call.nbytes = nbytes(*args, **kwargs)
+            if kind == "kernel":
+                call.kernel = args[1]  # enqueue_nd_range_kernel(queue, kernel, ...)
             call.waits = kind == "wait" or (kind == "copy" and call.kind != "d2d"
                                             and kwargs.get("is_blocking", True))
             calls.append(call)
@@ -147,6 +152,19 @@ class OpenCLProfile:
         for name, intervals in inside.items():
             out[name].opencl = covered(intervals)
         return out
+
+    def kernel_seconds(self) -> dict[str, tuple[int, float]]:
+        """Each kernel's launches and device seconds (from their events; 0 on a queue
+        without profiling), by name, the most device time first; call it after the
+        device finished."""
+        out: dict[str, list] = {}
+        for call in self.calls:
+            if call.kind == "kernel":
+                row = out.setdefault(call.kernel.function_name, [0, 0.0])
+                row[0] += 1
+                row[1] += _event_seconds(call.event) or 0.0
+        return {name: (n, t) for name, (n, t) in
+                sorted(out.items(), key=lambda item: -item[1][1])}
 
     @staticmethod
     def _add(stage: StageProfile, call: _Call) -> None:
@@ -209,3 +227,25 @@ def split_lines(split: dict[str, StageProfile]) -> list[str]:
                     f"{kernel:>9s} {st.launches:8d} {st.waits:6d} {st.h2d_bytes / 1e6:8.1f} "
                     f"{st.d2h_bytes / 1e6:8.1f}")
     return rows
+
+
+def kernel_lines(seconds: dict[str, tuple[int, float]], count: int = 15) -> list[str]:
+    """:meth:`OpenCLProfile.kernel_seconds` as text lines: the ``count`` kernels of most
+    device time, their launches, seconds and share of all kernels' time."""
+    total = sum(t for _, t in seconds.values()) or 1.0
+    rows = [f"{'kernel':24s} {'launches':>8s} {'device s':>9s} {'share':>6s}"]
+    for name, (n, t) in list(seconds.items())[:count]:
+        rows.append(f"{name:24s} {n:8d} {t:9.4f} {t / total:6.1%}")
+    return rows
+
+
+def profiled_pair(raw_a, raw_b, projector) -> tuple[dict[str, float], object]:
+    """One :func:`plenocl.process_pair` of the default chain under the profile: its
+    ``waits``, ``host`` work outside OpenCL calls and ``wall`` seconds (the queue
+    finished), and its field (:class:`plenocl.PIVResult`): what the benchmarks that
+    alternate two ways of the chain in one process compare."""
+    with OpenCLProfile() as prof:
+        pair = process_pair(raw_a, raw_b, projector)
+        projector.queue.finish()
+    total = total_profile(prof.split(pair.spans))
+    return {"waits": total.waits, "host": total.host, "wall": total.wall}, pair.piv

@@ -8,16 +8,20 @@ available on their own (:func:`plenocl.reconstruct`, :func:`plenocl.piv3d`).
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..opencl.device import is_cpu
 from ..options import with_keywords
 from ..piv import PIVResult, piv3d
 from ..reconstruction import (
     ProjectionOperator,
     ReconstructionInfo,
+    ReconstructionSettings,
     UnusableImageError,
+    prepare_on_host,
     run_reconstruction,
 )
 from .mte import motion_tracking_enhancement
@@ -114,15 +118,9 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     if isinstance(projector, (list, tuple)):  # several cameras (docs/design.md §6.7)
         return _several_cameras(raw_a, raw_b, list(projector), settings)
     rec = settings.reconstruction
-    clock, out = StageClock(), {}
-    for tag, raw in (("a", raw_a), ("b", raw_b)):
-        with clock.stage(f"reconstruct_{tag}"):
-            try:
-                out[tag] = run_reconstruction(raw, projector, rec,
-                                              keep_for_next_stage=not settings.mte.cycles)
-            except UnusableImageError as exc:
-                raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
-    (vol_a, info_a), (vol_b, info_b) = out["a"], out["b"]
+    clock = StageClock()
+    (vol_a, info_a), (vol_b, info_b) = _reconstructions(raw_a, raw_b, projector, rec,
+                                                        not settings.mte.cycles, clock)
     if not settings.mte.cycles:
         try:
             known = known_backgrounds(info_a, info_b)
@@ -148,6 +146,38 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
                            camera=projector.camera, raws=(raw_a, raw_b),
                            backgrounds=known_backgrounds(info_a, info_b), clock=clock)
     return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
+
+
+def _reconstructions(raw_a, raw_b, projector, rec: ReconstructionSettings, keep: bool,
+                     clock: StageClock) -> list[tuple[np.ndarray, ReconstructionInfo]]:
+    """Both exposures' reconstructions, one after the other on the projector's queue.
+    On a device that is not a CPU, the second image's host preparation (its checks,
+    median, noise and scaling: NumPy, 0.3 s at paper size) runs on a helper thread while
+    the first reconstructs, whose device leaves the host's cores idle; on a CPU device
+    they are the device's, so there it runs in turn (docs/design.md §7.5)."""
+    ahead = (None if is_cpu(projector.queue.device) else
+             ThreadPoolExecutor(1, thread_name_prefix="plenocl-prepare"))
+    try:
+        later = (None if ahead is None else
+                 ahead.submit(prepare_on_host, raw_b, projector.camera, rec, None, keep))
+        return [_reconstruction(tag, raw, projector, rec, keep, clock, future)
+                for tag, raw, future in (("a", raw_a, None), ("b", raw_b, later))]
+    finally:
+        if ahead is not None:
+            ahead.shutdown(wait=True)
+
+
+def _reconstruction(tag: str, raw, projector, rec: ReconstructionSettings, keep: bool,
+                    clock: StageClock, later: Future | None
+                    ) -> tuple[np.ndarray, ReconstructionInfo]:
+    """One exposure's reconstruction (``later``: its host preparation, made ahead), its
+    unusable image named by ``tag``."""
+    with clock.stage(f"reconstruct_{tag}"):
+        try:
+            return run_reconstruction(raw, projector, rec, keep_for_next_stage=keep,
+                                      ahead=None if later is None else later.result())
+        except UnusableImageError as exc:
+            raise UnusableImageError(f"raw_{tag}: {exc}", which=tag) from None
 
 
 def _several_cameras(raws_a, raws_b, projectors: list, settings: PairSettings

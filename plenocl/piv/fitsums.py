@@ -20,12 +20,31 @@ from ..opencl.device import is_cpu
 from ..opencl.program import KernelSet, group_size
 from ..optics.raybundle import Patches
 from ..sorting import stable_order
-from .devicebundle import DeviceRayBundle
+from .devicebundle import SLOT, DeviceRayBundle
 
 i32, i64, f32 = np.int32, np.int64, np.float32
 _KERNELS = ("patch_model", "normal_sums", "unit_sums")
 #: Sensor columns per work-item of the model image: one on a GPU, a run on a CPU.
 MODEL_BLOCK = {False: 1, True: 256}
+#: Particles rendered at once on a CPU device and on the host (a CPU's caches).
+HOST_CHUNK = 128
+#: The rays' scratch a GPU's rendering may take at once: its default chunk (the paper
+#: pair's 2,789 particles at 200 rays in one launch, not 22 of 128).
+GPU_SCRATCH_BYTES = 256 * 2**20
+
+
+def fit_chunk(renderer: DeviceRayBundle, chunk: int | None = None) -> int:
+    """Particles ``renderer`` renders at once: ``chunk`` when given; else
+    :data:`HOST_CHUNK` on a CPU device, and on a GPU as many as
+    :data:`GPU_SCRATCH_BYTES` of ray slots and keys hold (each launch costs the host
+    its uploads and index tables, so fewer is faster there). The rows are the same for
+    any chunk: each particle's are written alone."""
+    if chunk is not None:
+        return int(chunk)
+    if is_cpu(renderer.queue.device):
+        return HOST_CHUNK
+    per_particle = renderer.bundle.rays * 4 * (SLOT + 1) * 4
+    return max(HOST_CHUNK, GPU_SCRATCH_BYTES // per_particle)
 
 
 class DeviceFitSums:
@@ -36,7 +55,8 @@ class DeviceFitSums:
     renderer
         The device ray bundle that renders the particles' rows.
     chunk
-        Particles rendered at once (bounds the rays' scratch memory).
+        Particles rendered at once (bounds the rays' scratch memory); ``None``:
+        :func:`fit_chunk`'s.
     group
         Work-items per particle of the sums (a power of two); ``None``: 1 on a CPU,
         :data:`plenocl.opencl.program.GPU_GROUP` elsewhere.
@@ -50,10 +70,10 @@ class DeviceFitSums:
     on a paper-size fit took longer than the rendering itself.
     """
 
-    def __init__(self, renderer: DeviceRayBundle, chunk: int, group: int | None = None
-                 ) -> None:
+    def __init__(self, renderer: DeviceRayBundle, chunk: int | None = None,
+                 group: int | None = None) -> None:
         self.renderer = renderer
-        self.chunk = int(chunk)
+        self.chunk = fit_chunk(renderer, chunk)
         cpu = is_cpu(renderer.queue.device)
         self.group = group_size(renderer.queue, group)
         self._k = KernelSet(renderer.queue, "imagefit.cl", _KERNELS,

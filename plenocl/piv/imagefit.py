@@ -36,7 +36,7 @@ from ..optics.rawimage import check_image, checked_background, subtract_backgrou
 from ..optics.raybundle import Patches, RayBundle
 from ..optics.sightline import line_of_sight, sight_frames
 from .devicebundle import DeviceRayBundle
-from .fitsums import DeviceFitSums
+from .fitsums import HOST_CHUNK, DeviceFitSums
 
 #: The fit's method, recorded with every batch field (through
 #: :data:`plenocl.piv.refinement.METHOD`) and every tracking run
@@ -71,18 +71,23 @@ class ImageFitSettings:
     damping
         Levenberg-Marquardt damping (fraction of each normal matrix's diagonal).
     chunk
-        Particles rendered at once (bounds memory).
+        Particles rendered at once (bounds memory). ``None``: the device's
+        (:func:`plenocl.piv.fitsums.fit_chunk`: 128 on a CPU device and
+        on the host, every particle a GPU's 256 MB of ray scratch holds); the fit is the
+        same for any chunk.
     """
 
     rays: int = 200
     blur_px: float = 0.8
     iterations: int = 4
     damping: float = 0.1
-    chunk: int = 128
+    chunk: int | None = None
 
     def __post_init__(self) -> None:
         for name, low in (("rays", 16), ("iterations", 0), ("chunk", 1)):
             value = getattr(self, name)
+            if value is None and name == "chunk":
+                continue
             if isinstance(value, bool) or int(value) != value or value < low:
                 raise ValueError(f"ImageFitSettings.{name} must be an integer >= {low}, "
                                  f"got {value!r}")
@@ -311,7 +316,7 @@ class ImageFit:
         return np.asarray(PRIOR_VOXELS) * np.array([dx, dy, dz])
 
     def _chunks(self, n: int):
-        return chunk_slices(n, self.settings.chunk)
+        return chunk_slices(n, self.settings.chunk or HOST_CHUNK)
 
     def _render(self, p: np.ndarray, intensity: np.ndarray, derivatives: bool = True):
         """Image points, patches, and the particle, sensor pixel and rendered rows of
@@ -396,7 +401,7 @@ class ImageFit:
             normal = normal / scatter[:, None, None] ** 2
             rhs = rhs / scatter[:, None] ** 2
         return sight_steps(normal, rhs, offset, prior, frames, self.settings.damping,
-                           self.settings.chunk)
+                           self.settings.chunk or HOST_CHUNK)
 
 
 def sight_steps(normal: np.ndarray, rhs: np.ndarray, offset: np.ndarray,

@@ -18,6 +18,7 @@ from .images import (
     FLOAT32_LIMIT,
     NOISE_SIGMAS,
     UnusableImageError,
+    prepare_on_host,
     preprocess,
     scale_raw_image,
 )
@@ -40,7 +41,7 @@ from .supersample import MAX_SUPERSAMPLE, bin_lateral, spread_lateral
 __all__ = ["COARSE_ITERATIONS", "CROP_BELOW", "DEFAULTS", "FINE_DEFAULTS", "FLOAT32_LIMIT",
            "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHODS", "NOISE_SIGMAS", "SUPERSAMPLE",
            "SUPPORT", "UPDATES", "UnusableImageError", "bin_lateral",
-           "preprocess", "spread_lateral",
+           "prepare_on_host", "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
            "RefinableOperator", "Solver",
            "device_view_blocks", "extent_box", "nonzero_box", "reconstruct",

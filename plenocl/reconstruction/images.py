@@ -220,17 +220,30 @@ class PreparedImage:
         return self._device[key]
 
 
+def prepare_on_host(image, camera, settings: ReconstructionSettings,
+                    observed: np.ndarray | None = None, keep_free: bool = False
+                    ) -> PreparedImage:
+    """:func:`prepare_image`'s host part, without the lit lenses and its refusals of an
+    empty image: :func:`preprocess` with ``settings``' background and threshold, a blank
+    or saturated image refused (:class:`UnusableImageError`). NumPy alone, so it may run
+    on another thread while the device reconstructs (:func:`plenocl.process_pair` makes
+    the second exposure's so on a GPU); ``keep_free``: :func:`prepare_image`'s."""
+    return _preprocessed(image, camera, settings.background, settings.threshold, observed,
+                         exposure=True, smooth_px=settings.smooth_px, keep_free=keep_free)
+
+
 def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,
-                  observed: np.ndarray | None = None, keep_free: bool = False
-                  ) -> PreparedImage:
+                  observed: np.ndarray | None = None, keep_free: bool = False,
+                  ahead: PreparedImage | None = None) -> PreparedImage:
     """:func:`preprocess` with ``settings``' background and threshold, and the lit
     lenses when ``settings.skip_dark``. A blank or saturated image
     (:func:`plenocl.optics.rawimage.check_exposure`), or one whose every pixel is dark
     (the volume would be empty), is refused: :class:`UnusableImageError`.
-    ``keep_free``: the background-free image kept (:attr:`PreparedImage.background_free`)."""
-    prepared = _preprocessed(image, projector.camera, settings.background,
-                             settings.threshold, observed, exposure=True,
-                             smooth_px=settings.smooth_px, keep_free=keep_free)
+    ``keep_free``: the background-free image kept (:attr:`PreparedImage.background_free`).
+    ``ahead``: :func:`prepare_on_host` of this image with these settings, ``observed``
+    and ``keep_free``, made beforehand (``image`` is then not read)."""
+    prepared = (prepare_on_host(image, projector.camera, settings, observed, keep_free)
+                if ahead is None else ahead)
     if prepared.scale == 0:
         raise UnusableImageError(
             "the image holds no light above its background, so the volume would be empty: "

@@ -466,13 +466,14 @@ def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings,
 
 
 def _in_frame(image, projector, settings: ReconstructionSettings, callback, observed,
-              keep: bool = False) -> tuple[np.ndarray, ReconstructionInfo]:
+              keep: bool = False, ahead: PreparedImage | None = None
+              ) -> tuple[np.ndarray, ReconstructionInfo]:
     """Sub-voxels on a grid across a rotated array's lens rows (``projector.frame``,
     docs/design.md §5.1): the iterations run on the lens-row frame's grid and its refined
     grid, on the separable kernels at their full speed, and the sub-voxels are resampled
     onto the projector's refined grid once, at the end, before they are summed (the
     resampling blurs by a fraction of a voxel only); a start volume is resampled onto the
-    frame. ``keep``: :func:`_run`'s."""
+    frame. ``keep``, ``ahead``: :func:`_run`'s."""
     f = settings.supersample
     fine = _refined(projector, f)
     start = settings.start
@@ -480,7 +481,7 @@ def _in_frame(image, projector, settings: ReconstructionSettings, callback, obse
         start = projector.volume_to_frame(start)
     t0 = time.perf_counter()
     vol, info = _run(image, projector.frame, dataclasses.replace(settings, start=start),
-                     callback, observed, binned=False, keep=keep)
+                     callback, observed, binned=False, keep=keep, ahead=ahead)
     if vol.shape == fine.frame.grid.shape:
         vol = bin_lateral(fine.volume_from_frame(vol), f)
     else:  # an empty or stopped coarse run: the voxels'
@@ -493,7 +494,8 @@ def _in_frame(image, projector, settings: ReconstructionSettings, callback, obse
 
 def run_reconstruction(image, projector: ProjectionOperator, settings: ReconstructionSettings,
                        callback: Callable[[int, float], bool | None] | None = None,
-                       pixel_mask=None, *, keep_for_next_stage: bool = False
+                       pixel_mask=None, *, keep_for_next_stage: bool = False,
+                       ahead: PreparedImage | None = None
                        ) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`reconstruct` with its options as one :class:`ReconstructionSettings`;
     returns the volume and its :class:`ReconstructionInfo`.
@@ -516,19 +518,28 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     neither smoothed the image nor masked pixels; ``None`` otherwise), for the fit not to
     remove it again. By default both are released: an info kept for long holds no
     device memory and no image.
+
+    ``ahead``: the image's host preparation made beforehand
+    (:func:`plenocl.reconstruction.images.prepare_on_host` of ``image`` with these
+    settings, no pixel mask, ``keep_free=keep_for_next_stage``), e.g. on another thread
+    while the device reconstructed another image; one camera only. ``info.seconds`` then
+    leaves it out.
     """
+    if ahead is not None and (pixel_mask is not None or isinstance(image, (list, tuple))):
+        raise ValueError("ahead is one camera's image prepared without a pixel mask")
     vol, info = _reconstructed(image, projector, settings, callback, pixel_mask,
-                               keep_for_next_stage)
+                               keep_for_next_stage, ahead)
     if not keep_for_next_stage:
         info.volume_on_device = info.background_free = None
     return vol, info
 
 
 def _reconstructed(image, projector: ProjectionOperator, settings: ReconstructionSettings,
-                   callback, pixel_mask, keep: bool = False
+                   callback, pixel_mask, keep: bool = False,
+                   ahead: PreparedImage | None = None
                    ) -> tuple[np.ndarray, ReconstructionInfo]:
     """:func:`run_reconstruction`'s work (the device volume kept in the info; with
-    ``keep``, the background-free image too)."""
+    ``keep``, the background-free image too; ``ahead``: its)."""
     if isinstance(settings.start, str) and settings.start not in ("uniform", "mlos"):
         raise ValueError("start must be 'uniform', 'mlos' or a volume array, got "
                          f"{settings.start!r}")  # an option: checked before the image
@@ -542,8 +553,8 @@ def _reconstructed(image, projector: ProjectionOperator, settings: Reconstructio
                          "every pixel): use start='uniform' (the default)")
     if (isinstance(projector, FramedOperator) and projector.frame is not None
             and settings.supersample > 1):
-        return _in_frame(image, projector, settings, callback, observed, keep)
-    return _run(image, projector, settings, callback, observed, keep=keep)
+        return _in_frame(image, projector, settings, callback, observed, keep, ahead)
+    return _run(image, projector, settings, callback, observed, keep=keep, ahead=ahead)
 
 
 def _several(images, projectors, settings: ReconstructionSettings, callback, pixel_mask
@@ -564,13 +575,15 @@ def _several(images, projectors, settings: ReconstructionSettings, callback, pix
 
 
 def _run(image, projector, settings: ReconstructionSettings, callback, observed,
-         binned: bool = True, keep: bool = False) -> tuple[np.ndarray, ReconstructionInfo]:
+         binned: bool = True, keep: bool = False, ahead: PreparedImage | None = None
+         ) -> tuple[np.ndarray, ReconstructionInfo]:
     """The reconstruction on the projector's own grid (sub-voxels summed when
     ``binned``); ``keep``: the background-free image kept in the info
-    (:func:`run_reconstruction`'s ``keep_for_next_stage``)."""
+    (:func:`run_reconstruction`'s ``keep_for_next_stage``); ``ahead``: its."""
     refined = _refined(projector, settings.supersample) if settings.supersample > 1 else None
     t0 = time.perf_counter()
-    prepared = prepare_image(image, projector, settings, observed, keep_free=keep)
+    prepared = prepare_image(image, projector, settings, observed, keep_free=keep,
+                             ahead=ahead)
     if refined is None:
         vol, info = _solve(prepared, projector, settings, callback)
     else:

@@ -8,6 +8,8 @@ The solver needs of a projector only the operator contract
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import TypeVar
 
 import numpy as np
 import pyopencl.array as cla
@@ -20,6 +22,7 @@ from .supersample import LateralBinning
 
 _KERNELS = ("ratio", "update_mlem", "update_exp", "mlos", "mask_dark", "prepare_image",
             "partial_sums", "row_extent", "slice_extent", "add_into")
+T = TypeVar("T")
 #: Work-items of the partial-sum reduction (the host adds their results in float64).
 _SUM_ITEMS = 1024
 #: The literal methods' ratio floor (kernels/solver.cl PL_RATIO_MIN: log -13.8).
@@ -98,6 +101,7 @@ class Solver:
         self.lenses = None if lit is None else projector.lens_set(lit)
         self.smin = np.float32(max(min_sensitivity, 1e-12))
         self.queue = projector.queue
+        self._kept: dict[str, object] = {}
         self._k = KernelSet(self.queue, "solver.cl", _KERNELS, looping=["partial_sums"])
         self.n_pix = projector.camera.pixels[0] * projector.camera.pixels[1]
         self._no_blocks = cla.zeros(self.queue, 1, np.int32)
@@ -113,6 +117,17 @@ class Solver:
         """The lateral binning and spreading kernels on this solver's queue, fetched once
         (a sub-voxel run's start and its binned result)."""
         return LateralBinning(self.queue)
+
+    def kept(self, name: str, make: Callable[[], T]) -> T:
+        """The device buffer ``name`` this solver keeps from one iteration to the next,
+        ``make()`` at its first use: each iteration's projection, ratio and back
+        projection write over the previous one's (the in-order queue runs the earlier
+        kernels that read it first). A buffer made and freed every iteration costs a
+        CPU device a page fault per 4 KiB at its first touch, and a GPU driver an
+        allocation and a free (docs/design.md §7.5)."""
+        if name not in self._kept:
+            self._kept[name] = make()
+        return self._kept[name]
 
     def _run(self, name: str, n: int, *args) -> None:
         """An element-wise kernel over ``n`` items (``n`` is its last argument)."""
@@ -154,10 +169,11 @@ class Solver:
         return float(out.get().astype(np.float64).sum())
 
     def ratio(self, img, proj, threshold: float, log_mode: bool, blocks=None, block=-1,
-              floor: float = RATIO_MIN):
+              floor: float = RATIO_MIN, out=None):
         """``I / max(P, eps)`` on the device, or ``log(max(ratio, floor))`` (``log_mode``),
-        restricted to one block."""
-        out = cla.empty_like(img)
+        restricted to one block; into ``out`` (an image like ``img``; ``None``: a new
+        one)."""
+        out = cla.empty_like(img) if out is None else out
         block_of = blocks if blocks is not None else self._no_blocks
         self._run("ratio", self.n_pix, img, proj, block_of, np.int32(block),
                   np.float32(threshold), np.int32(log_mode), np.float32(floor),
@@ -295,10 +311,11 @@ def _simultaneous(solver: Solver, vol, img, active, relax: float, threshold: flo
     """One simultaneous update from one forward and one back projection; returns
     ``‖P - I‖`` before it."""
     fwd, back = solver.projections(log_ratio)
-    proj = fwd(vol, active=active)
+    proj = fwd(vol, out=_kept_image(solver, "projection", img), active=active)
     resid = solver.total(proj, img) ** 0.5
-    b = back(solver.ratio(img, proj, threshold, log_ratio, floor=floor), active=active,
-             support=vol)
+    ratio = solver.ratio(img, proj, threshold, log_ratio, floor=floor,
+                         out=_kept_image(solver, "ratio", img))
+    b = back(ratio, out=_kept_volume(solver), active=active, support=vol)
     if log_ratio:
         solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin, np.int32(1))
     else:
@@ -329,16 +346,27 @@ def update_mart(solver: Solver, vol, img, active, relax: float, threshold: float
     (``None``: the solver's; several cameras: their sum)."""
     floor = RATIO_MIN if ratio_floor is None else ratio_floor
     fwd, back = solver.projections(log_ratio=True)
-    proj = fwd(vol, active=active)
+    proj = fwd(vol, out=_kept_image(solver, "projection", img), active=active)
     resid = solver.total(proj, img) ** 0.5
     for blk in range(n_blocks):
         if blk:
             proj = fwd(vol, out=proj, active=active)
         lr = solver.ratio(img, proj, threshold, True, blocks, -1 if blocks is None else blk,
-                          floor)
-        solver.update_voxels("update_exp", vol, back(lr, active=active, support=vol),
-                             np.float32(relax), solver.smin, np.int32(0), sens=sens)
+                          floor, out=_kept_image(solver, "ratio", img))
+        b = back(lr, out=_kept_volume(solver), active=active, support=vol)
+        solver.update_voxels("update_exp", vol, b, np.float32(relax), solver.smin,
+                             np.int32(0), sens=sens)
     return resid
+
+
+def _kept_image(solver: Solver, name: str, img):
+    """The solver's kept device image ``name``, shaped like the image ``img``."""
+    return solver.kept(name, lambda: cla.empty_like(img))
+
+
+def _kept_volume(solver: Solver):
+    """The solver's kept device slabs of a back projection."""
+    return solver.kept("back projection", solver.proj.empty_volume)
 
 
 #: The update of each method, chosen once per reconstruction.

@@ -1,0 +1,85 @@
+"""The second exposure's host preparation made ahead (issue 46, docs/design.md §7.5):
+``run_reconstruction(ahead=)`` and ``process_pair`` on a device that is not a CPU give
+what the images prepared in turn give, bit for bit."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+import plenocl
+from plenocl.pipeline import pair as pair_module
+from plenocl.pipeline import process_pair
+from plenocl.piv import PIVSettings
+from plenocl.reconstruction import (
+    ReconstructionSettings,
+    UnusableImageError,
+    prepare_on_host,
+    run_reconstruction,
+)
+
+REC = ReconstructionSettings(iterations=3, coarse_iterations=2)
+GRID = plenocl.Grid((16, 24, 24), x=(-1.2, 1.2), y=(-1.2, 1.2), z=(-1.5, 1.5))
+
+
+@pytest.fixture(scope="module")
+def scene(queue):
+    """A small camera's projector and two raw images of 60 particles, the second moved
+    0.2 mm along x, with a dark level and noise."""
+    cam = plenocl.Camera.synthetic_850()
+    pos, inten = plenocl.random_particles(((-1.1, 1.1), (-1.1, 1.1), (-1.4, 1.4)),
+                                          count=60, seed=3, intensity=3e4)
+    rng = np.random.default_rng(5)
+    raws = [plenocl.simulate_image(cam, pos + [dx, 0.0, 0.0], inten, 1000, seed=k,
+                                   blur_px=0.5, queue=queue)
+            + 50.0 + rng.normal(0.0, 2.0, cam.pixels[::-1]) for k, dx in enumerate((0, 0.2))]
+    return cam, plenocl.Projector(cam, GRID, queue), raws
+
+
+def test_an_image_prepared_ahead_gives_the_same_reconstruction(scene):
+    """The volume, its device copy, background, noise and the fit's background-free
+    image as the image prepared in turn gives them; refused with a pixel mask or for
+    several cameras."""
+    cam, proj, (raw, _) = scene
+    want, info = run_reconstruction(raw, proj, REC, keep_for_next_stage=True)
+    ahead = prepare_on_host(raw, cam, REC, keep_free=True)
+    got, got_info = run_reconstruction(raw, proj, REC, keep_for_next_stage=True,
+                                       ahead=ahead)
+    assert want.max() > 0
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got_info.volume_on_device.get(), got)
+    np.testing.assert_array_equal(got_info.background_free, info.background_free)
+    assert (got_info.background, got_info.noise) == (info.background, info.noise)
+    with pytest.raises(ValueError, match="without a pixel mask"):
+        run_reconstruction(raw, proj, REC, pixel_mask=np.ones(raw.shape, bool), ahead=ahead)
+    with pytest.raises(ValueError, match="one camera"):
+        run_reconstruction([raw, raw], [proj, proj], REC, ahead=ahead)
+
+
+def test_a_pair_off_a_cpu_prepares_its_second_image_on_a_helper_thread(scene, monkeypatch):
+    """With ``is_cpu`` answering False (this device then takes a GPU's path) the second
+    exposure's preparation runs on the helper thread while the first reconstructs: the
+    same volumes and field, bit for bit; a blank second exposure is still named."""
+    _, proj, (raw_a, raw_b) = scene
+    kw = dict(reconstruction=REC, piv=PIVSettings(windows=[8]), particles=False)
+    want = process_pair(raw_a, raw_b, proj, **kw)
+    threads = []
+    real = pair_module.prepare_on_host
+
+    def spy(*args, **kwargs):
+        threads.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pair_module, "is_cpu", lambda device: False)
+    monkeypatch.setattr(pair_module, "prepare_on_host", spy)
+    got = process_pair(raw_a, raw_b, proj, **kw)
+    assert len(threads) == 1 and threads[0].startswith("plenocl-prepare")
+    assert want.vol_b.max() > 0
+    for a, b in ((got.vol_a, want.vol_a), (got.vol_b, want.vol_b), (got.piv.u, want.piv.u),
+                 (got.piv.v, want.piv.v), (got.piv.w, want.piv.w)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(UnusableImageError, match="raw_b: the image is blank") as err:
+        process_pair(raw_a, np.zeros_like(raw_b), proj, **kw)
+    assert err.value.which == "b"
