@@ -133,7 +133,61 @@ __kernel void fwd_x_row(__global const float *restrict vol, __global float *rest
 /* ---- forward, separable:
  * L[ky][s(i, j)][kx] (+)= sum_iz,iy hat(ky(iy, j) - ky) T[(izl, il)][iy][kx].
  * One work-item per (segment, ky, aperture column i): it owns the L rows of the column's
- * samples (kept in cache) and reads each T row once per depth for all of them. */
+ * samples (kept in cache) and reads each T row once per depth for all of them.
+ * With PL_SCALAR_ROWS (a GPU's layout: one element per segment) it owns one element of
+ * each of those rows and sums each in a register over every depth, aperture row by
+ * aperture row, writing it once: the same terms in the same order as the depth-by-depth
+ * form (which reads and writes every L element once per depth through global memory). */
+/* The next pair of voxel rows under lens row ky's hat at aperture row offset bv, from row
+ * *iy on (within r, pl_hat_range's): rows a, b with weights wa, wb (a row left without a
+ * partner comes as b = a, wb = 0); 0 when none is left. Both forms of fwd_y add the
+ * pairs in this order. */
+inline int pl_fwd_y_pair(__global const float *c, float bv, int ky, float iwy, int2 r,
+                         int *iy, int *a, int *b, float *wa, float *wb)
+{
+    int pending = -1;  /* a row with a positive weight waiting for a partner */
+    float wp = 0.0f;
+    for (; *iy <= r.y + 1; ++*iy) {
+        const int y = *iy;
+        const float w = y <= r.y ? pl_lens_tent(pl_ky(c, bv, y) - (float)ky, iwy) : 0.0f;
+        if (w <= 0.0f && !(y > r.y && pending >= 0)) continue;
+        if (pending < 0) {
+            pending = y;
+            wp = w;
+            continue;
+        }
+        *a = pending;
+        *wa = wp;
+        *b = w > 0.0f ? y : pending;
+        *wb = w;
+        ++*iy;
+        return 1;
+    }
+    return 0;
+}
+
+#if PL_SCALAR_ROWS
+/* One L element's sum over the depths of the chunk: acc + its weighted T elements. */
+inline float pl_fwd_y_sum(__global const float *T, __global const float *coef, float acc,
+                          __global const int2 *span, int ncols, int ny, int nkxp, int zc0,
+                          int nzc, int i, int il, int nic, int t, size_t off, int ky, float bv)
+{
+    for (int izl = 0; izl < nzc; ++izl) {
+        __global const float *c = coef + 16 * (zc0 + izl);
+        const int2 m = pl_seg_span(span, ncols, zc0 + izl, i, t, 1);  /* T's lit part */
+        if (m.y <= m.x) continue;
+        const float iwy = pl_lens_iw(c).y;
+        __global const float *src = T + (size_t)(izl * nic + il) * ny * nkxp + off;
+        const int2 r = pl_hat_range(c[13], c[9] * bv + c[5], (float)ky, ny);
+        int iy = r.x, a, b;
+        float wa, wb;
+        while (pl_fwd_y_pair(c, bv, ky, iwy, r, &iy, &a, &b, &wa, &wb))
+            acc = acc + wa * src[(size_t)a * nkxp] + wb * src[(size_t)b * nkxp];
+    }
+    return acc;
+}
+#endif
+
 __kernel void fwd_y(__global const float *restrict T, __global float *restrict L,
                     __global const float *restrict coef, __global const int *restrict col_lo,
                     __global const int *restrict col_hi, __global const int *restrict col_off,
@@ -147,6 +201,13 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
     const int i = i0 + il, lo = col_lo[i], hi = col_hi[i];
     const size_t off = (size_t)t * seg * PL_VW;
     __global float *rows = L + ((size_t)ky * nsc + col_off[i] - s0) * nkxp + off;
+#if PL_SCALAR_ROWS
+    for (int j = lo; j <= hi; ++j) {
+        __global float *out = rows + (size_t)(j - lo) * nkxp;
+        *out = pl_fwd_y_sum(T, coef, accumulate ? *out : 0.0f, span, ncols, ny, nkxp, zc0,
+                            nzc, i, il, nic, t, off, ky, (float)j - ic);
+    }
+#else
     if (!accumulate)
         for (int j = lo; j <= hi; ++j)
             pl_zero(rows + (size_t)(j - lo) * nkxp, seg);
@@ -161,23 +222,14 @@ __kernel void fwd_y(__global const float *restrict T, __global float *restrict L
             const float bv = (float)j - ic;
             const int2 r = pl_hat_range(c[13], c[9] * bv + c[5], (float)ky, ny);
             __global float *out = rows + (size_t)(j - lo) * nkxp + mo;
-            int pending = -1;  /* a row with a positive weight waiting for a partner */
-            float wp = 0.0f;
-            for (int iy = r.x; iy <= r.y + 1; ++iy) {
-                const float w = iy <= r.y ? pl_lens_tent(pl_ky(c, bv, iy) - (float)ky, iwy)
-                                          : 0.0f;
-                if (w <= 0.0f && !(iy > r.y && pending >= 0)) continue;
-                if (pending < 0) {
-                    pending = iy;
-                    wp = w;
-                    continue;
-                }
-                pl_axpy2(out, src + (size_t)pending * nkxp,
-                         src + (size_t)(w > 0.0f ? iy : pending) * nkxp, wp, w, m.y - m.x);
-                pending = -1;
-            }
+            int iy = r.x, a, b;
+            float wa, wb;
+            while (pl_fwd_y_pair(c, bv, ky, iwy, r, &iy, &a, &b, &wa, &wb))
+                pl_axpy2(out, src + (size_t)a * nkxp, src + (size_t)b * nkxp, wa, wb,
+                         m.y - m.x);
         }
     }
+#endif
 }
 
 /* ---- forward, general (a sheared array, or a grid not in the lens rows' frame):
@@ -327,7 +379,9 @@ __kernel void back_pix(__global const float *restrict image, __global float *res
 
 /* ---- back, separable: T[(izl, il)][iy][kx] = sum_j,ky hat(ky(iy, j) - ky) L[ky][s(i, j)][kx].
  * One work-item per (segment, iy, aperture column i), for every depth of the chunk: the
- * L rows it reads (near ky(iy)) stay in cache from one depth to the next.
+ * L rows it reads (near ky(iy)) stay in cache from one depth to the next. With
+ * PL_SCALAR_ROWS (a GPU's layout: one element per segment) each depth's T element is
+ * summed over the aperture rows in a register and written once (the same order).
  * With PL_BACK_ALLCOLS (CPUs, whole rows): one work-item per voxel row iy for every
  * column and depth of the chunk (global size (1, ny, 1)). It lists the weights of each
  * (aperture row j, depth) once for all columns (they depend on neither), j by j and depth
@@ -427,6 +481,19 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
         __global float *out = T + ((size_t)(izl * nic + il) * ny + iy) * nkxp + off;
         const int2 m = pl_seg_span(span, ncols, zc0 + izl, i, t, seg);  /* what back_x reads */
         if (m.y <= m.x) continue;
+#if PL_SCALAR_ROWS  /* one element: summed in a register, written once (same order) */
+        float acc = 0.0f;
+        for (int j = lo; j <= hi; ++j) {
+            int ka, kb;
+            float w0, w1;
+            if (!pl_back_y_taps(c, (float)j - ic, iy, nky, rows_lit, &ka, &kb, &w0, &w1))
+                continue;
+            __global const float *src = col + (size_t)(j - lo) * nkxp;
+            acc = acc + w0 * src[(size_t)ka * nsc * nkxp] + w1 * src[(size_t)kb * nsc * nkxp];
+        }
+        *out = acc;
+        continue;
+#endif
         pl_zero(out + m.x * PL_VW, m.y - m.x);
         for (int j = lo; j <= hi; ++j) {
             int ka, kb;

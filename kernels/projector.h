@@ -47,6 +47,10 @@ typedef float pl_vec;
 #ifndef PL_EXTENT
 #define PL_EXTENT 0  /* 1: the separable kernels keep to a plane extent (pl_seg_span) */
 #endif
+#ifndef PL_SCALAR_ROWS
+#define PL_SCALAR_ROWS 0  /* 1: one row element per work-item (a GPU's layout): fwd_y and
+                             back_y sum in a register (kernels/projector.cl) */
+#endif
 
 #define PL_NO_LENS (-1073741824)   /* lens_rnd.x of a lens calibration missed (NaN centre) */
 

@@ -385,7 +385,8 @@ class Projector(FactorisedStages):
         return KernelSet(self.queue, "projector.cl", _KERNELS,
                          [f"-DPL_VW={self.vw}", f"-DPL_BACK_ALLCOLS={int(self.back_allcols)}",
                           f"-DPL_LENS_EXTENT={int(self.lens_weights == 'extent')}",
-                          f"-DPL_EXTENT={int(extent)}"],
+                          f"-DPL_EXTENT={int(extent)}",
+                          f"-DPL_SCALAR_ROWS={int(self.vw == 1 and self.seg == 1)}"],
                          looping=[k for k in _KERNELS if k not in _ELEMENTWISE])
 
     def _kernels(self, extent: PlaneExtent) -> KernelSet:
