@@ -168,18 +168,23 @@ def test_the_chunk_changes_no_sum(queue):
 
 def test_default_chunk_is_the_cpus_or_a_gpus_scratch(queue):
     """``None``: 128 on a CPU device; on a GPU every particle 256 MB of ray slots hold
-    (200 rays: 2,825 particles, the paper pair's 2,789 in one launch); a chunk given is
-    kept."""
+    (200 rays: 2,892 particles, the paper pair's 2,789 in one launch), within the
+    device's largest buffer; a chunk given is kept."""
     renderer = DeviceRayBundle(RayBundle.of(CAM, rays=200), queue)
     assert fit_chunk(renderer, 9) == 9
     if queue.device.type & cl.device_type.CPU:
         assert fit_chunk(renderer) == HOST_CHUNK
-    gpu = SimpleNamespace(queue=SimpleNamespace(device=SimpleNamespace(
-        type=cl.device_type.GPU)), bundle=renderer.bundle)
-    chunk = fit_chunk(gpu)
-    assert chunk * 200 * 4 * (SLOT + 1) * 4 <= GPU_SCRATCH_BYTES
-    assert (chunk + 1) * 200 * 4 * (SLOT + 1) * 4 > GPU_SCRATCH_BYTES
-    assert chunk >= 2789
+    def gpu(max_alloc: int) -> SimpleNamespace:
+        return SimpleNamespace(queue=SimpleNamespace(device=SimpleNamespace(
+            type=cl.device_type.GPU, max_mem_alloc_size=max_alloc)), bundle=renderer.bundle)
+
+    per_particle = 200 * 4 * (SLOT + 1) * 4
+    chunk = fit_chunk(gpu(2**34))
+    assert chunk * per_particle <= GPU_SCRATCH_BYTES < (chunk + 1) * per_particle
+    assert chunk == 2892 >= 2789
+    small = fit_chunk(gpu(2**28 // 4))  # a small GPU's largest buffer bounds it
+    assert small * per_particle <= 2**28 // 4 < (small + 1) * per_particle
+    assert fit_chunk(gpu(2**20)) == HOST_CHUNK  # never below the CPU's
     assert ImageFitSettings().chunk is None
     with pytest.raises(ValueError, match="chunk"):
         ImageFitSettings(chunk=0)

@@ -1,10 +1,13 @@
-"""The second exposure's host preparation made ahead (issue 46, docs/design.md §7.5):
-``run_reconstruction(ahead=)`` and ``process_pair`` on a device that is not a CPU give
-what the images prepared in turn give, bit for bit."""
+"""What a GPU pays outside its kernels (issue 46, docs/design.md §7.5): the second
+exposure's host preparation made ahead (``run_reconstruction(ahead=)`` and
+``process_pair`` on a device that is not a CPU give what the images prepared in turn
+give, bit for bit), and the solver's buffers kept over its iterations."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
+import weakref
 
 import numpy as np
 import pytest
@@ -56,6 +59,10 @@ def test_an_image_prepared_ahead_gives_the_same_reconstruction(scene):
         run_reconstruction(raw, proj, REC, pixel_mask=np.ones(raw.shape, bool), ahead=ahead)
     with pytest.raises(ValueError, match="one camera"):
         run_reconstruction([raw, raw], [proj, proj], REC, ahead=ahead)
+    for other, keep in ((REC, False), (dataclasses.replace(REC, threshold=5.0), True),
+                        (dataclasses.replace(REC, smooth_px=0.7), True)):
+        with pytest.raises(ValueError, match="other settings"):
+            run_reconstruction(raw, proj, other, keep_for_next_stage=keep, ahead=ahead)
 
 
 def test_a_pair_off_a_cpu_prepares_its_second_image_on_a_helper_thread(scene, monkeypatch):
@@ -74,6 +81,10 @@ def test_a_pair_off_a_cpu_prepares_its_second_image_on_a_helper_thread(scene, mo
 
     monkeypatch.setattr(pair_module, "is_cpu", lambda device: False)
     monkeypatch.setattr(pair_module, "prepare_on_host", spy)
+    monkeypatch.setenv("PLENOCL_THREADS", "1")  # one thread allowed: in turn
+    process_pair(raw_a, raw_b, proj, **kw)
+    assert threads == []
+    monkeypatch.setenv("PLENOCL_THREADS", "2")
     got = process_pair(raw_a, raw_b, proj, **kw)
     assert len(threads) == 1 and threads[0].startswith("plenocl-prepare")
     assert want.vol_b.max() > 0
@@ -83,3 +94,34 @@ def test_a_pair_off_a_cpu_prepares_its_second_image_on_a_helper_thread(scene, mo
     with pytest.raises(UnusableImageError, match="raw_b: the image is blank") as err:
         process_pair(raw_a, np.zeros_like(raw_b), proj, **kw)
     assert err.value.which == "b"
+
+
+def test_one_solver_at_a_time_holds_its_kept_buffers(scene, monkeypatch):
+    """A coarse-to-fine reconstruction (three runs, each a solver, some cropped): each
+    kept buffer is made once per solver and reused over its iterations, and a solver
+    lets go of them when its iterations end or it is cropped, so at most one projection,
+    ratio and back projection are alive at a time; the volume as without keeping them."""
+    from plenocl.reconstruction import Solver
+
+    cam, proj, (raw, _) = scene
+    made, alive = [], []
+    real = Solver.kept
+
+    def tracking(self, name, make):
+        def counted():
+            out = make()
+            made.append((name, weakref.ref(out[0] if isinstance(out, list) else out)))
+            return out
+        got = real(self, name, counted)
+        alive.append(max(sum(1 for n, r in made if n == k and r() is not None)
+                         for k in ("projection", "ratio", "back projection")))
+        return got
+
+    want, _ = run_reconstruction(raw, proj, REC)
+    monkeypatch.setattr(Solver, "kept", tracking)
+    got, info = run_reconstruction(raw, proj, REC)
+    np.testing.assert_array_equal(got, want)
+    assert len(made) % 3 == 0 and len(made) < len(alive)  # made per solver, then reused
+    assert max(alive) == 1
+    monkeypatch.setattr(Solver, "kept", lambda self, name, make: make())
+    np.testing.assert_array_equal(run_reconstruction(raw, proj, REC)[0], want)

@@ -54,6 +54,10 @@ REFUSE = ("camera", "grid")
 FIELD_SECTIONS = ("piv", "correlation", "particles", "image_fit", "refinement")
 #: The entry of the time between the exposures.
 DT = "images.dt_s"
+#: Options that change how fast a pair runs, not what it gives (the image fit's
+#: particles per launch: the same fit for any chunk, tested bit for bit): left out of the
+#: record, and out of the comparison with a record written before they were left out.
+SPEED_ONLY = ("image_fit.chunk",)
 
 _UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile)
 
@@ -64,6 +68,9 @@ def run_record(exp: Experiment, camera, grid) -> dict:
     more or less, or one moved, is another geometry)."""
     dark, flat = frame_corrections(exp)
     pair = exp.pair.to_dict(none=NONE)
+    for entry in SPEED_ONLY:
+        section, key = entry.split(".")
+        pair[section].pop(key, None)
     images = {"channel": exp["images"]["channel"] or NONE,
               "dark": _content(dark), "flat": _content(flat),
               "dt_s": float(exp["images"]["dt_s"])}
@@ -106,6 +113,14 @@ def field_record(record: dict, sources: dict, index: int) -> dict:
             "digests": stage_digests(record, sources)}
 
 
+def record_changes(old: dict, new: dict) -> list[str]:
+    """The entries that differ between a pair's record and the run's (sorted, as
+    :func:`plenocl.pipeline.resume.changed_keys` names them), the
+    :data:`SPEED_ONLY` options left out."""
+    return [k for k in changed_keys(config_parts(old), config_parts(new))
+            if k not in SPEED_ONLY]
+
+
 @dataclass
 class Decision:
     """What a rerun does with one finished pair: ``action`` (:data:`SKIP`,
@@ -138,7 +153,7 @@ def decide(pair: ImagePair | None, field_file: Path, volumes_file: Path, record:
     if "record" not in meta:
         return _refusal(k, "its field records no settings (written by an older plenocl)"
                         + gone, redo)
-    changed = changed_keys(config_parts(meta["record"]), config_parts(record))
+    changed = record_changes(meta["record"], record)
     if not changed:
         return Decision(k)
     if changed == [DT]:

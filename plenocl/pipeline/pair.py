@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..opencl.device import is_cpu
+from ..opencl.threads import thread_count
 from ..options import with_keywords
 from ..piv import PIVResult, piv3d
 from ..reconstruction import (
@@ -154,8 +155,10 @@ def _reconstructions(raw_a, raw_b, projector, rec: ReconstructionSettings, keep:
     On a device that is not a CPU, the second image's host preparation (its checks,
     median, noise and scaling: NumPy, 0.3 s at paper size) runs on a helper thread while
     the first reconstructs, whose device leaves the host's cores idle; on a CPU device
-    they are the device's, so there it runs in turn (docs/design.md §7.5)."""
-    ahead = (None if is_cpu(projector.queue.device) else
+    they are the device's, and a process allowed one thread (``PLENOCL_THREADS=1``, a
+    batch's workers sharing the cores) has one, so there it runs in turn
+    (docs/design.md §7.5)."""
+    ahead = (None if is_cpu(projector.queue.device) or thread_count() < 2 else
              ThreadPoolExecutor(1, thread_name_prefix="plenocl-prepare"))
     try:
         later = (None if ahead is None else

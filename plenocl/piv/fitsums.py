@@ -28,23 +28,25 @@ _KERNELS = ("patch_model", "normal_sums", "unit_sums")
 MODEL_BLOCK = {False: 1, True: 256}
 #: Particles rendered at once on a CPU device and on the host (a CPU's caches).
 HOST_CHUNK = 128
-#: The rays' scratch a GPU's rendering may take at once: its default chunk (the paper
-#: pair's 2,789 particles at 200 rays in one launch, not 22 of 128).
+#: The rays' scratch a GPU's rendering may take at once: its default chunk (2,892
+#: particles at 200 rays: the paper pair's 2,789 in one launch, not 22 of 128).
 GPU_SCRATCH_BYTES = 256 * 2**20
 
 
 def fit_chunk(renderer: DeviceRayBundle, chunk: int | None = None) -> int:
     """Particles ``renderer`` renders at once: ``chunk`` when given; else
     :data:`HOST_CHUNK` on a CPU device, and on a GPU as many as
-    :data:`GPU_SCRATCH_BYTES` of ray slots and keys hold (each launch costs the host
-    its uploads and index tables, so fewer is faster there). The rows are the same for
-    any chunk: each particle's are written alone."""
+    :data:`GPU_SCRATCH_BYTES` of ray slots and keys hold, within the device's largest
+    buffer (each launch costs the host its uploads and index tables, so fewer is faster
+    there). The rows are the same for any chunk: each particle's are written alone."""
     if chunk is not None:
         return int(chunk)
-    if is_cpu(renderer.queue.device):
+    device = renderer.queue.device
+    if is_cpu(device):
         return HOST_CHUNK
     per_particle = renderer.bundle.rays * 4 * (SLOT + 1) * 4
-    return max(HOST_CHUNK, GPU_SCRATCH_BYTES // per_particle)
+    budget = min(GPU_SCRATCH_BYTES, int(device.max_mem_alloc_size))
+    return max(HOST_CHUNK, budget // per_particle)
 
 
 class DeviceFitSums:

@@ -207,6 +207,9 @@ class PreparedImage:
     noise: float | None = None
     background_free: np.ndarray | None = dataclasses.field(default=None, repr=False,
                                                            compare=False)
+    #: What it was prepared with (:func:`prepare_on_host`: background, threshold,
+    #: smoothing, a pixel mask or not, the background-free image kept or not).
+    made_with: tuple | None = dataclasses.field(default=None, compare=False, repr=False)
     #: The image's device copies by queue (:meth:`on_device`): uploaded once, not once
     #: per run (a coarse-to-fine reconstruction's three runs read the same image).
     _device: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
@@ -228,8 +231,17 @@ def prepare_on_host(image, camera, settings: ReconstructionSettings,
     or saturated image refused (:class:`UnusableImageError`). NumPy alone, so it may run
     on another thread while the device reconstructs (:func:`plenocl.process_pair` makes
     the second exposure's so on a GPU); ``keep_free``: :func:`prepare_image`'s."""
-    return _preprocessed(image, camera, settings.background, settings.threshold, observed,
-                         exposure=True, smooth_px=settings.smooth_px, keep_free=keep_free)
+    prepared = _preprocessed(image, camera, settings.background, settings.threshold,
+                             observed, exposure=True, smooth_px=settings.smooth_px,
+                             keep_free=keep_free)
+    return dataclasses.replace(prepared, made_with=_preparation(settings, observed,
+                                                                keep_free))
+
+
+def _preparation(settings: ReconstructionSettings, observed, keep_free: bool) -> tuple:
+    """What a host preparation depends on beside the image (:attr:`PreparedImage.made_with`)."""
+    return (settings.background, settings.threshold, settings.smooth_px,
+            observed is not None, bool(keep_free))
 
 
 def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,
@@ -242,6 +254,10 @@ def prepare_image(image, projector: ProjectionOperator, settings: Reconstruction
     ``keep_free``: the background-free image kept (:attr:`PreparedImage.background_free`).
     ``ahead``: :func:`prepare_on_host` of this image with these settings, ``observed``
     and ``keep_free``, made beforehand (``image`` is then not read)."""
+    if ahead is not None and ahead.made_with != _preparation(settings, observed, keep_free):
+        raise ValueError("ahead was prepared with other settings than this reconstruction's "
+                         "(background, threshold, smoothing, pixel mask or keep_free): "
+                         "prepare it with prepare_on_host and the same ones")
     prepared = (prepare_on_host(image, projector.camera, settings, observed, keep_free)
                 if ahead is None else ahead)
     if prepared.scale == 0:

@@ -117,6 +117,7 @@ class JointSolver:
                                          strict=True):
             resid += update_mart(solver, vol, img, None, relax, thr, blk, n_blocks, floor,
                                  sens=self.sens) ** 2
+            solver.release_kept()  # one camera's buffers at a time, not every camera's
         return resid ** 0.5
 
 

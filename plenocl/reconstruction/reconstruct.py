@@ -77,6 +77,7 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
         if tol is not None and it and abs(info.residuals[-2] - resid) < tol * resid:
             info.converged = True
             break
+    solver.release_kept()
     return solver, vol
 
 

@@ -129,6 +129,12 @@ class Solver:
             self._kept[name] = make()
         return self._kept[name]
 
+    def release_kept(self) -> None:
+        """Let go of the buffers :meth:`kept` holds (the run's iterations are over, or
+        the solver is cropped): a solver kept for its volume or its sensitivity then
+        holds no projection, ratio or back projection beside it."""
+        self._kept.clear()
+
     def _run(self, name: str, n: int, *args) -> None:
         """An element-wise kernel over ``n`` items (``n`` is its last argument)."""
         self._k.launch(name, (n,), *args, np.int32(n))
@@ -259,6 +265,7 @@ class Solver:
         host = np.ascontiguousarray(self.proj.volume_to_host(vol)[local])
         box = local if self.box is None else tuple(
             slice(b.start + s.start, b.start + s.stop) for b, s in zip(self.box, local))
+        self.release_kept()  # the iterations go on with the cropped solver's
         sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box,
                      self.observed)
         new_vol = sub.proj.volume_to_device(host)
