@@ -24,6 +24,7 @@ from plenocl.piv.refinement import (
     WEIGHT_FLOOR,
     FocalZone,
     ParticlePairs,
+    depth_interpolation,
     near_median,
     pair_particles,
     predicted,
@@ -31,7 +32,7 @@ from plenocl.piv.refinement import (
     window_estimate,
     window_means,
 )
-from plenocl.reference.refinement import window_means_reference
+from plenocl.reference.refinement import depth_interpolation_reference, window_means_reference
 
 GRID = Grid((48, 40, 56), x=(0, 56), y=(0, 40), z=(0, 48))  # 1 mm = 1 voxel
 SHIFT = np.array([1.6, -0.7, 2.2])  # (x, y, z) voxels
@@ -522,3 +523,25 @@ def test_pairs_their_fits_doubt_do_not_tilt_the_gradient(seed):
     weights = 1.0 / (sigma ** 2 + np.asarray(WEIGHT_FLOOR) ** 2)
     got = _fit_gradients(pos, np.ones((1, 40), bool), weights[None])[0]
     np.testing.assert_allclose(got, weighted, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_depth_interpolation_is_numpys_interp_column_by_column(seed):
+    """All columns at once against numpy.interp one column at a time, to the bit:
+    awkward shapes, a single depth, columns with no, one, or every finite value, gaps at
+    either end, NaN uncertainties (taken as 0), unevenly spaced depths."""
+    rng = np.random.default_rng(seed)
+    for nz in (1, 2, 5, 9):
+        z = np.sort(rng.choice(np.linspace(-4, 4, 40), nz, replace=False))
+        w = rng.normal(0.0, 3.0, (nz, 3, 5))
+        w[rng.random(w.shape) < rng.uniform(0.1, 0.9)] = np.nan
+        w[:, 0, 0], w[:, 0, 1] = np.nan, 2.5  # a column without values, one full
+        if nz > 1:
+            w[:, 0, 2] = np.nan
+            w[nz // 2, 0, 2] = -1.0  # one value: constant
+        sigma = rng.uniform(0.0, 1.0, w.shape)
+        sigma[rng.random(w.shape) < 0.2] = np.nan
+        got, want = depth_interpolation(w, sigma, z), depth_interpolation_reference(w, sigma, z)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert np.isnan(got[0][:, 0, 0]).all() and (got[0][:, 0, 1] == 2.5).all()

@@ -1018,7 +1018,7 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
                                   device_means=device_means)
     seen = np.where(blind, np.nan, mean[2])
     seen_sigma = np.where(blind, np.nan, error[2])
-    fill, fill_sigma = _depth_interpolation(seen, seen_sigma, field.z)
+    fill, fill_sigma = depth_interpolation(seen, seen_sigma, field.z)
     if w is None:  # wanted in the blind zone and where the seeing pairs are too few
         every, every_error, _ = window_means(pairs, field, min_pairs, search, focus,
                                              position_sigma, spread,
@@ -1030,25 +1030,54 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
     return out, out_sigma
 
 
-def _depth_interpolation(w: np.ndarray, sigma: np.ndarray, z: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def depth_interpolation(w: np.ndarray, sigma: np.ndarray, z: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """Per column ``(y, x)`` of ``w`` ``(nz, ny, nx)`` (NaN: missing), the linear
-    interpolation in ``z`` between the finite values, their uncertainty interpolated
-    likewise with half the bracketing values' difference added in quadrature; NaN in a
-    column without any."""
+    interpolation in ``z`` (ascending) between the finite values, constant beyond the
+    first and last (:func:`numpy.interp`'s, to the bit), their uncertainty ``sigma``
+    interpolated likewise (NaN taken as 0) with half the bracketing values' difference
+    added in quadrature; NaN in a column without any. Every column at once: each row's
+    nearest finite rows below and above it by running maxima and minima of their
+    indices (a column at a time took 0.06 s a call at paper size)."""
     nz = len(z)
     fill, fill_sigma = np.full((2, *w.shape), np.nan)
-    flat_w, flat_s = w.reshape(nz, -1), sigma.reshape(nz, -1)
-    out_w, out_s = fill.reshape(nz, -1), fill_sigma.reshape(nz, -1)
-    for col in np.flatnonzero(np.isfinite(flat_w).any(axis=0)):
-        have = np.flatnonzero(np.isfinite(flat_w[:, col]))
-        values, sig = flat_w[have, col], np.nan_to_num(flat_s[have, col])
-        upper = np.clip(np.searchsorted(z[have], z), 0, len(have) - 1)
-        lower = np.clip(upper - 1, 0, len(have) - 1)
-        out_w[:, col] = np.interp(z, z[have], values)
-        out_s[:, col] = np.hypot(np.interp(z, z[have], sig),
-                                 np.abs(values[upper] - values[lower]) / 2)
+    flat_w = w.reshape(nz, -1)
+    cols = np.flatnonzero(np.isfinite(flat_w).any(axis=0))
+    if not len(cols):
+        return fill, fill_sigma
+    values, ok = flat_w[:, cols], np.isfinite(flat_w[:, cols])
+    sig = np.nan_to_num(sigma.reshape(nz, -1)[:, cols])
+    rows = np.broadcast_to(np.arange(nz)[:, None], ok.shape)
+    below = np.maximum.accumulate(np.where(ok, rows, -1), axis=0)  # finite row <= i
+    above = np.minimum.accumulate(np.where(ok, rows, nz)[::-1], axis=0)[::-1]  # >= i
+    lo, hi = np.where(below < 0, above, below), np.where(above >= nz, below, above)
+    zz = np.broadcast_to(np.asarray(z, float)[:, None], ok.shape)
+    # the bracket's values (numpy.searchsorted's in the finite rows): the first finite
+    # row at or above (else the last), and the finite row before that one (else itself)
+    before = np.concatenate([np.full((1, len(cols)), -1), below[:-1]])  # finite row < i
+    lower = _rows(before, hi)
+    lower = np.where(lower < 0, hi, lower)
+    spread = np.abs(_rows(values, hi) - _rows(values, lower)) / 2
+    inside = lo != hi
+    fill.reshape(nz, -1)[:, cols] = _interp(values, zz, lo, hi, inside)
+    fill_sigma.reshape(nz, -1)[:, cols] = np.hypot(_interp(sig, zz, lo, hi, inside), spread)
     return fill, fill_sigma
+
+
+def _rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``a[rows[i, c], c]``."""
+    return np.take_along_axis(a, rows, axis=0)
+
+
+def _interp(fp: np.ndarray, z: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+            inside: np.ndarray) -> np.ndarray:
+    """:func:`numpy.interp`'s value between rows ``lo`` and ``hi`` of each column
+    (``fp[lo]`` where they are one row: at a finite row, or beyond the ends), by its
+    formula ``slope (z - z_lo) + fp_lo``."""
+    f_lo, f_hi, z_lo, z_hi = _rows(fp, lo), _rows(fp, hi), _rows(z, lo), _rows(z, hi)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = (f_hi - f_lo) / (z_hi - z_lo)
+        return np.where(inside, slope * (z - z_lo) + f_lo, f_lo)
 
 
 def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray,

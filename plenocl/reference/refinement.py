@@ -1,7 +1,9 @@
-"""NumPy twin of :func:`plenocl.piv.refinement.window_means`: the per-window loop over
+"""NumPy twins of :func:`plenocl.piv.refinement.window_means`: the per-window loop over
 :func:`~plenocl.piv.refinement.local_gradient`, :func:`~plenocl.piv.refinement.near_median`
 and :func:`~plenocl.piv.refinement.window_estimate`, written for clarity; the batched
-production code is tested and timed against it (``benchmarks/window_means.py``)."""
+production code is tested and timed against it (``benchmarks/window_means.py``); and of
+:func:`plenocl.piv.refinement.depth_interpolation`: :func:`numpy.interp` column by
+column."""
 
 from __future__ import annotations
 
@@ -54,3 +56,24 @@ def window_means_reference(pairs: ParticlePairs, field: PIVResult, min_pairs: in
                 d[keep], pairs.midpoints[inside][keep, 2], grad, focus, position_sigma,
                 weight)
     return mean, error, count
+
+
+def depth_interpolation_reference(w: np.ndarray, sigma: np.ndarray, z: np.ndarray
+                                  ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`plenocl.piv.refinement.depth_interpolation` one column at a time: each
+    column's finite values interpolated by :func:`numpy.interp`, the uncertainty too with
+    half the difference of the values bracketing each depth (by
+    :func:`numpy.searchsorted` among the finite depths) added in quadrature."""
+    nz = len(z)
+    fill, fill_sigma = np.full((2, *w.shape), np.nan)
+    flat_w, flat_s = w.reshape(nz, -1), sigma.reshape(nz, -1)
+    out_w, out_s = fill.reshape(nz, -1), fill_sigma.reshape(nz, -1)
+    for col in np.flatnonzero(np.isfinite(flat_w).any(axis=0)):
+        have = np.flatnonzero(np.isfinite(flat_w[:, col]))
+        values, sig = flat_w[have, col], np.nan_to_num(flat_s[have, col])
+        upper = np.clip(np.searchsorted(z[have], z), 0, len(have) - 1)
+        lower = np.clip(upper - 1, 0, len(have) - 1)
+        out_w[:, col] = np.interp(z, z[have], values)
+        out_s[:, col] = np.hypot(np.interp(z, z[have], sig),
+                                 np.abs(values[upper] - values[lower]) / 2)
+    return fill, fill_sigma
