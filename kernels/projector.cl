@@ -492,8 +492,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
             acc = acc + w0 * src[(size_t)ka * nsc * nkxp] + w1 * src[(size_t)kb * nsc * nkxp];
         }
         *out = acc;
-        continue;
-#endif
+#else
         pl_zero(out + m.x * PL_VW, m.y - m.x);
         for (int j = lo; j <= hi; ++j) {
             int ka, kb;
@@ -504,6 +503,7 @@ __kernel void back_y(__global const float *restrict L, __global float *restrict 
             pl_axpy2(out + m.x * PL_VW, src + (size_t)ka * nsc * nkxp,
                      src + (size_t)kb * nsc * nkxp, w0, w1, m.y - m.x);
         }
+#endif
     }
 }
 #endif

@@ -1051,7 +1051,7 @@ def depth_interpolation(w: np.ndarray, sigma: np.ndarray, z: np.ndarray
     below = np.maximum.accumulate(np.where(ok, rows, -1), axis=0)  # finite row <= i
     above = np.minimum.accumulate(np.where(ok, rows, nz)[::-1], axis=0)[::-1]  # >= i
     lo, hi = np.where(below < 0, above, below), np.where(above >= nz, below, above)
-    zz = np.broadcast_to(np.asarray(z, float)[:, None], ok.shape)
+    z = np.asarray(z, float)
     # the bracket's values (numpy.searchsorted's in the finite rows): the first finite
     # row at or above (else the last), and the finite row before that one (else itself)
     before = np.concatenate([np.full((1, len(cols)), -1), below[:-1]])  # finite row < i
@@ -1059,8 +1059,8 @@ def depth_interpolation(w: np.ndarray, sigma: np.ndarray, z: np.ndarray
     lower = np.where(lower < 0, hi, lower)
     spread = np.abs(_rows(values, hi) - _rows(values, lower)) / 2
     inside = lo != hi
-    fill.reshape(nz, -1)[:, cols] = _interp(values, zz, lo, hi, inside)
-    fill_sigma.reshape(nz, -1)[:, cols] = np.hypot(_interp(sig, zz, lo, hi, inside), spread)
+    fill.reshape(nz, -1)[:, cols] = _interp(values, z, lo, hi, inside)
+    fill_sigma.reshape(nz, -1)[:, cols] = np.hypot(_interp(sig, z, lo, hi, inside), spread)
     return fill, fill_sigma
 
 
@@ -1071,13 +1071,13 @@ def _rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 def _interp(fp: np.ndarray, z: np.ndarray, lo: np.ndarray, hi: np.ndarray,
             inside: np.ndarray) -> np.ndarray:
-    """:func:`numpy.interp`'s value between rows ``lo`` and ``hi`` of each column
-    (``fp[lo]`` where they are one row: at a finite row, or beyond the ends), by its
-    formula ``slope (z - z_lo) + fp_lo``."""
-    f_lo, f_hi, z_lo, z_hi = _rows(fp, lo), _rows(fp, hi), _rows(z, lo), _rows(z, hi)
+    """:func:`numpy.interp`'s value at each row's depth ``z`` between rows ``lo`` and
+    ``hi`` of each column (``fp[lo]`` where they are one row: at a finite row, or beyond
+    the ends), by its formula ``slope (z - z_lo) + fp_lo``."""
+    f_lo, f_hi, z_lo = _rows(fp, lo), _rows(fp, hi), z[lo]
     with np.errstate(divide="ignore", invalid="ignore"):
-        slope = (f_hi - f_lo) / (z_hi - z_lo)
-        return np.where(inside, slope * (z - z_lo) + f_lo, f_lo)
+        slope = (f_hi - f_lo) / (z[hi] - z_lo)
+        return np.where(inside, slope * (z[:, None] - z_lo) + f_lo, f_lo)
 
 
 def refine_with_particles(field: PIVResult, vol_a: np.ndarray, vol_b: np.ndarray,
