@@ -14,8 +14,11 @@
  *   sums); a tree in local memory adds the items. Two passes: J^T J (10), J^T r (4) and
  *   the brightest value; then the lit elements (value above 1 % of the brightest) and
  *   their squared residuals. 16 floats per particle out.
- * - unit_sums: one work-group per particle: sum(unit * data) and sum(unit^2) of the unit
+ * - unit_sums: one work-group per particle: sum(unit * image) and sum(unit^2) of the unit
  *   image (the value row rendered at intensity 1).
+ * The image is read as data * data_scale: the fit's image as the reconstruction's solver
+ * read it (divided by its brightest pixel: plenocl.optics.rawimage.ScaledImage), where
+ * the reconstruction left it on the device; one multiply a pixel, no second upload.
  * On a GPU PL_GROUP is wide (a group's items read adjacent elements of a row); on a CPU
  * it is 1 (one item loops over its particle's patch; KernelSet's looping rule). Sizes are
  * arguments: a new particle count, patch or sensor never recompiles. */
@@ -56,10 +59,12 @@ __kernel void patch_model(__global const float *values, __global const long *off
     }
 }
 
-/* rows: 5 rows of `total`; data, model: the sensor (rows x cols); jac: per particle
- * d (X', Y', d') / d (x, y, z), 3 x 3 row-major; out: PL_NORMALS per particle. */
+/* rows: 5 rows of `total`; data, model: the sensor (rows x cols), the image being
+ * data * data_scale (see unit_sums); jac: per particle d (X', Y', d') / d (x, y, z),
+ * 3 x 3 row-major; out: PL_NORMALS per particle. */
 __kernel void normal_sums(__global const float *patch_rows, long total,
-                          __global const float *data, __global const float *model,
+                          __global const float *data, float data_scale,
+                          __global const float *model,
                           __global const long *offset, __global const int *col0,
                           __global const int *row0, __global const int *width,
                           __global const int *height, int cols, int rows,
@@ -81,7 +86,7 @@ __kernel void normal_sums(__global const float *patch_rows, long total,
             float a = e[total], b = e[2 * total], d = e[3 * total];
             float j[4] = {a * m[0] + b * m[3] + d * m[6], a * m[1] + b * m[4] + d * m[7],
                           a * m[2] + b * m[5] + d * m[8], e[4 * total]};
-            float res = data[pix + c] - model[pix + c];
+            float res = data[pix + c] * data_scale - model[pix + c];
             peak = fmax(peak, e[0]);
             for (int i = 0, k = 0; i < 4; ++i) {
                 for (int q = i; q < 4; ++q, ++k)
@@ -102,7 +107,7 @@ __kernel void normal_sums(__global const float *patch_rows, long total,
         long base = offset[p] + (long)r * wd, pix = (long)(row0[p] + r) * cols + col0[p];
         float line = 0.0f;
         for (int c = lid; c < cols_on; c += PL_GROUP) {
-            float res = data[pix + c] - model[pix + c];
+            float res = data[pix + c] * data_scale - model[pix + c];
             int lit = patch_rows[base + c] > lit_from;
             count += lit;
             line += lit ? res * res : 0.0f;
@@ -117,8 +122,12 @@ __kernel void normal_sums(__global const float *patch_rows, long total,
     }
 }
 
-/* unit: the value row at intensity 1; out: sum(unit * data), sum(unit^2) per particle. */
+/* unit: the value row at intensity 1; the image is data * data_scale (1: an image
+ * uploaded as it is; a reconstruction's image divided by its maximum, times that
+ * maximum: read where the reconstruction left it); out: sum(unit * image), sum(unit^2)
+ * per particle. */
 __kernel void unit_sums(__global const float *unit, __global const float *data,
+                        float data_scale,
                         __global const long *offset, __global const int *col0,
                         __global const int *row0, __global const int *width,
                         __global const int *height, int cols, int rows,
@@ -134,7 +143,7 @@ __kernel void unit_sums(__global const float *unit, __global const float *data,
         float line_cross = 0.0f, line_square = 0.0f;
         for (int c = lid; c < cols_on; c += PL_GROUP) {
             float u = unit[base + c];
-            line_cross += u * data[pix + c];
+            line_cross += u * (data[pix + c] * data_scale);
             line_square += u * u;
         }
         cross += line_cross;

@@ -220,6 +220,40 @@ def test_a_pairs_volumes_go_from_its_reconstructions_to_piv_on_the_device(queue,
 
 
 @pytest.mark.filterwarnings("ignore:the final windows")  # a tiny volume: one vector
+def test_a_pairs_image_fit_reads_the_images_its_reconstructions_uploaded(queue,
+                                                                        small_camera):
+    """With the image fit, process_pair sends each raw image to the device once: the
+    particle stage uploads no image (the fit reads the reconstructions' device copies,
+    ``info.background_free.on_device``), where the same fit given the host images alone
+    uploads both; the field is the same to the bit."""
+    from plenocl import process_pair
+    from plenocl.pipeline import PairSettings, refined_field
+    from plenocl.pipeline.pair import known_backgrounds
+
+    proj, raws = _small_pair(queue, small_camera, 40, 0.04, seed=3)
+    image_bytes = 4 * raws[0].size  # one float32 image
+
+    def image_uploads(prof, start: float) -> int:
+        return sum(c.kind == "h2d" and c.nbytes >= image_bytes and c.start >= start
+                   for c in prof.calls)
+
+    with OpenCLProfile() as prof:
+        pair = process_pair(*raws, proj)
+        queue.finish()
+    assert pair.piv.refinement["pairs"] > 0  # the fit ran on matched particles
+    assert image_uploads(prof, 0.0) == 2 and image_uploads(prof, pair.spans["piv"][0]) == 0
+    with OpenCLProfile() as prof:
+        again = refined_field(pair.vol_a, pair.vol_b, proj.grid, PairSettings(), queue,
+                              camera=small_camera, raws=raws,
+                              backgrounds=known_backgrounds(pair.info_a, pair.info_b))
+        queue.finish()
+    assert image_uploads(prof, 0.0) == 2
+    for name in ("u", "v", "w", "valid", "sigma_u", "sigma_w"):
+        assert np.array_equal(getattr(again, name), getattr(pair.piv, name),
+                              equal_nan=True), name
+
+
+@pytest.mark.filterwarnings("ignore:the final windows")  # a tiny volume: one vector
 def test_a_pair_with_one_background_known_fits_as_before(queue, small_camera):
     """Without background removal (``background=None``) a dark-subtracted image (pixels
     below zero: background 0) and one without such pixels (no background known): the

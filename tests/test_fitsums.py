@@ -102,6 +102,36 @@ def test_unit_sums_match_reference(sums, count):
     assert np.all(np.abs(got - want) <= 1e-5 * scale + 1e-30)
 
 
+@pytest.mark.parametrize("count", [1, 7, 37])
+def test_sums_read_an_image_scaled_to_its_brightest_pixel(sums, count):
+    """``data_scale``: the sums of a reconstruction's image (divided by its brightest
+    pixel, :func:`plenocl.optics.rawimage.divided_to_float32`) read times that pixel are
+    the references' on ``values * scale``, within float32 rounding of the magnitudes."""
+    from plenocl.optics.rawimage import divided_to_float32
+
+    rng = np.random.default_rng(30 + count)
+    patches = awkward_patches(count, rng)
+    rows = sparse_rows(patches, rng)
+    image = rng.uniform(0.0, 6e4, SENSOR)
+    scale = float(image.max())
+    values = divided_to_float32(image, scale)
+    data = values.astype(np.float64) * scale  # the image the sums stand for
+    model = rng.uniform(0.0, 5e4, SENSOR).astype(np.float32)
+    jac = rng.normal(0.0, 1.0, (count, 3, 3))
+    got = sums.reduce_normals(sums.upload(rows.ravel()), sums.upload(values),
+                              sums.upload(model), patches, jac, scale)
+    want = ref.normal_sums(rows.astype(np.float64), data, model.astype(np.float64), patches,
+                           jac.astype(np.float32))
+    size = ref.normal_sums(np.abs(rows.astype(np.float64)), data + model, np.zeros(SENSOR),
+                           patches, np.abs(jac))
+    np.testing.assert_array_equal(got[:, 14], want[:, 14])
+    assert np.all(np.abs(got - want) <= 1e-5 * size + 1e-30), np.abs(got - want) / size
+    unit = rows[0] / 40.0
+    got = sums.reduce_units(sums.upload(unit), sums.upload(values), patches, scale)
+    want = ref.unit_sums(unit.astype(np.float64), data, patches)
+    assert np.all(np.abs(got - want) <= 1e-5 * want + 1e-30)
+
+
 def test_fit_with_device_sums_matches_host_sums(queue):
     """The same device-rendered fit, summed on the device and on the host: positions
     within float32 tolerance, intensities close; no particles gives no positions."""

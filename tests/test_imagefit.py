@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import tolerances as tol
 
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.optics.raybundle import RayBundle, sunflower
@@ -151,7 +152,8 @@ def test_a_known_background_gives_the_fits_own_images():
     own = ImageFit(CAM, GRID, raws)
     given = ImageFit(CAM, GRID, raws, backgrounds=known)
     for (img, noise), (img_k, noise_k) in zip(own.images, given.images, strict=True):
-        assert np.array_equal(img, img_k) and noise == noise_k
+        assert np.array_equal(img.values, img_k.values) and img.scale == img_k.scale
+        assert noise == noise_k
     with pytest.raises(ValueError, match="2 images"):
         ImageFit(CAM, GRID, raws, backgrounds=known[:1])
     with pytest.raises(ValueError, match="finite"):
@@ -160,11 +162,13 @@ def test_a_known_background_gives_the_fits_own_images():
 
 @pytest.mark.parametrize("kind", ["float", "integer", "dark-subtracted"])
 def test_a_reconstructions_background_free_image_is_the_fits_own(kind):
-    """The image a reconstruction keeps for the fit (``prepare_image(keep_free=True)``,
-    ``ReconstructionInfo.background_free``) is the one the fit makes from the raw image
-    and the same background, bit for bit (a camera's integers, floats, a dark frame
-    subtracted: background 0); none is kept where the reconstruction smoothed the image
-    or masked pixels, or removed no background; wrong ones are refused by name."""
+    """The image a reconstruction's solver reads, as it hands it to the fit
+    (``PreparedImage.fit_image``, ``ReconstructionInfo.background_free``), is the one
+    the fit makes from the raw image and the same background, bit for bit (a camera's
+    integers, floats, a dark frame subtracted: background 0): values and scale, and the
+    image they stand for within float32 rounding of ``max(I - median, 0)``; none where
+    the reconstruction smoothed the image or masked pixels, or removed no background;
+    wrong ones are refused by name."""
     import dataclasses
 
     from plenocl.reconstruction.images import prepare_image
@@ -179,24 +183,29 @@ def test_a_reconstructions_background_free_image_is_the_fits_own(kind):
     elif kind == "dark-subtracted":
         raw = raw - np.float32(np.median(raw))  # pixels below zero: background 0
     rec = ReconstructionSettings(skip_dark=False)
-    prepared = prepare_image(raw, Optics, rec, keep_free=True)
+    prepared = prepare_image(raw, Optics, rec)
     known = (prepared.background, prepared.noise)
     assert (known[0] == 0.0) == (kind == "dark-subtracted")
     own = ImageFit(CAM, GRID, [raw], backgrounds=[known])
-    given = ImageFit(CAM, GRID, [raw], backgrounds=[known],
-                     background_free=[prepared.background_free])
-    assert prepared.background_free.dtype == np.float32
-    assert np.array_equal(own.images[0][0], given.images[0][0])
+    free = prepared.fit_image()
+    given = ImageFit(CAM, GRID, [raw], backgrounds=[known], background_free=[free])
+    assert free.values is prepared.image and free.on_device is None
+    for img in (own.images[0][0], given.images[0][0]):
+        assert np.array_equal(img.values, free.values) and img.scale == free.scale
     assert own.images[0][1] == given.images[0][1]
-    assert prepare_image(raw, Optics, rec).background_free is None  # not asked
+    exact = np.maximum(raw.astype(np.float64) - known[0], 0.0)
+    np.testing.assert_allclose(free.image(), exact, rtol=2 * tol.ROUNDING,
+                               atol=2 * tol.ROUNDING * exact.max())
     for other in (dataclasses.replace(rec, smooth_px=1.0), dataclasses.replace(
             rec, background=None) if kind != "dark-subtracted" else None):
         if other is not None:
-            assert prepare_image(raw, Optics, other, keep_free=True).background_free is None
+            assert prepare_image(raw, Optics, other).fit_image() is None
     seen = np.ones(raw.shape, bool)
-    assert prepare_image(raw, Optics, rec, seen, keep_free=True).background_free is None
-    free = prepared.background_free
-    for bad, known_bad in ((free.astype(np.float64), known), (free[1:], known), (free, None)):
+    assert prepare_image(raw, Optics, rec, seen).fit_image() is None
+    for bad, known_bad in ((free._replace(values=free.values.astype(np.float64)), known),
+                           (free._replace(values=free.values[1:]), known),
+                           (free._replace(scale=0.0), known), (free.values, known),
+                           (free, None)):
         with pytest.raises(ValueError, match="background_free"):
             ImageFit(CAM, GRID, [raw], backgrounds=[known_bad], background_free=[bad])
     for known_bad in ((known[0], float("nan")), (known[0], -1.0), (float("nan"), known[1])):

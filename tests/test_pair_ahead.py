@@ -43,26 +43,30 @@ def scene(queue):
 
 def test_an_image_prepared_ahead_gives_the_same_reconstruction(scene):
     """The volume, its device copy, background, noise and the fit's background-free
-    image as the image prepared in turn gives them; refused with a pixel mask or for
-    several cameras."""
+    image as the image prepared in turn gives them, kept for the next stage or not;
+    refused with other settings, a pixel mask or for several cameras."""
     cam, proj, (raw, _) = scene
     want, info = run_reconstruction(raw, proj, REC, keep_for_next_stage=True)
-    ahead = prepare_on_host(raw, cam, REC, keep_free=True)
+    ahead = prepare_on_host(raw, cam, REC)
     got, got_info = run_reconstruction(raw, proj, REC, keep_for_next_stage=True,
                                        ahead=ahead)
     assert want.max() > 0
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(got_info.volume_on_device.get(), got)
-    np.testing.assert_array_equal(got_info.background_free, info.background_free)
+    np.testing.assert_array_equal(got_info.background_free.values, info.background_free.values)
+    assert got_info.background_free.scale == info.background_free.scale
     assert (got_info.background, got_info.noise) == (info.background, info.noise)
     with pytest.raises(ValueError, match="without a pixel mask"):
         run_reconstruction(raw, proj, REC, pixel_mask=np.ones(raw.shape, bool), ahead=ahead)
     with pytest.raises(ValueError, match="one camera"):
         run_reconstruction([raw, raw], [proj, proj], REC, ahead=ahead)
-    for other, keep in ((REC, False), (dataclasses.replace(REC, threshold=5.0), True),
-                        (dataclasses.replace(REC, smooth_px=0.7), True)):
+    plain, plain_info = run_reconstruction(raw, proj, REC, ahead=ahead)  # nothing kept
+    np.testing.assert_array_equal(plain, want)
+    assert plain_info.volume_on_device is None and plain_info.background_free is None
+    for other in (dataclasses.replace(REC, threshold=5.0),
+                  dataclasses.replace(REC, smooth_px=0.7)):
         with pytest.raises(ValueError, match="other settings"):
-            run_reconstruction(raw, proj, other, keep_for_next_stage=keep, ahead=ahead)
+            run_reconstruction(raw, proj, other, keep_for_next_stage=True, ahead=ahead)
 
 
 def test_a_pair_off_a_cpu_prepares_its_second_image_on_a_helper_thread(scene, monkeypatch):

@@ -407,7 +407,9 @@ def test_a_reconstruction_keeps_its_volume_on_the_device_when_asked(optics, scen
     dev = info.volume_on_device
     assert dev.context == proj.queue.context and dev.dtype == np.float32
     assert np.array_equal(dev.get(), vol) and vol.any()
-    assert info.background_free.shape == scene.shape  # the image fit's, kept too
+    free = info.background_free  # the image fit's: the solver's image, on its device too
+    assert free.values.shape == scene.shape and free.on_device.context == proj.queue.context
+    assert np.array_equal(free.on_device.get(), free.values) and free.scale > 0
     again, plain = run_reconstruction(scene, proj, rec)
     assert plain.volume_on_device is None and plain.background_free is None
     assert np.array_equal(again, vol)

@@ -7,13 +7,16 @@ light field and the image-space particle fit. Plain NumPy; nothing here touches 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..camera import Camera
 
-__all__ = ["SATURATED_FRACTION", "background_and_noise", "check_exposure", "check_image",
-           "check_pixel_mask", "check_shape", "checked_background", "dark_noise",
-           "exact_median", "median_and_noise", "median_background", "subtract_background"]
+__all__ = ["SATURATED_FRACTION", "ScaledImage", "background_and_noise", "check_exposure",
+           "check_image", "check_pixel_mask", "check_shape", "checked_background",
+           "dark_noise", "divided_to_float32", "exact_median", "median_and_noise",
+           "median_background", "scaled_background_free", "subtract_background"]
 
 #: A frame with more than this fraction of its pixels at its brightest value is saturated
 #: (a particle image has a few per cent there at most).
@@ -163,6 +166,48 @@ def subtract_background(image, known: tuple[float, float] | None = None
     np.subtract(img, med, out=out, casting="same_kind")
     np.maximum(out, np.float32(0.0), out=out)
     return out, sigma
+
+
+class ScaledImage(NamedTuple):
+    """An image as float32 ``values`` divided by ``scale`` (its brightest pixel: values in
+    [0, 1]), the form the reconstruction's solver reads and the image fit takes
+    (:func:`scaled_background_free`); ``on_device``: the same values on an OpenCL device
+    (a ``pyopencl.array.Array``), or ``None``."""
+
+    values: np.ndarray
+    scale: float
+    on_device: object = None
+
+    def image(self) -> np.ndarray:
+        """The image in its own units, float64: ``values * scale``."""
+        return self.values.astype(np.float64) * self.scale
+
+
+def divided_to_float32(img: np.ndarray, scale: float) -> np.ndarray:
+    """``img / scale`` (float64 or float32 ``img``) rounded once to float32; zeros for a
+    ``scale`` of 0 (an image without light)."""
+    out = np.empty(img.shape, np.float32)
+    if scale == 0:
+        out.fill(0.0)
+        return out
+    np.divide(img, scale, out=out, casting="same_kind")
+    return out
+
+
+def scaled_background_free(image, known: tuple[float, float] | None = None
+                           ) -> tuple[ScaledImage, float]:
+    """``max(I - median, 0)`` divided by its brightest pixel (:class:`ScaledImage`) and
+    the noise, the background and noise as :func:`subtract_background` finds them (or
+    ``known``): to the bit the image the reconstruction's solver reads where it removed
+    that background and neither smoothed nor masked pixels
+    (:func:`plenocl.reconstruction.images.preprocess`), so the image fit reads the image
+    the volume was made from, however it gets it."""
+    img = np.array(image, dtype=np.float64)
+    med, sigma = background_and_noise(img) if known is None else checked_background(known)
+    np.subtract(img, med, out=img)
+    np.maximum(img, 0.0, out=img)
+    scale = float(img.max()) if img.size else 0.0
+    return ScaledImage(divided_to_float32(img, scale), scale), sigma
 
 
 def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None

@@ -131,7 +131,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
                                            info_a.background_free, info_b.background_free])
         finally:  # the result holds no device memory and no extra images
             for info in (info_a, info_b):
-                info.volume_on_device = info.background_free = None
+                info.release_kept()
         return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
 
     def correlate(a, b) -> PIVResult:
@@ -162,7 +162,7 @@ def _reconstructions(raw_a, raw_b, projector, rec: ReconstructionSettings, keep:
              ThreadPoolExecutor(1, thread_name_prefix="plenocl-prepare"))
     try:
         later = (None if ahead is None else
-                 ahead.submit(prepare_on_host, raw_b, projector.camera, rec, None, keep))
+                 ahead.submit(prepare_on_host, raw_b, projector.camera, rec))
         return [_reconstruction(tag, raw, projector, rec, keep, clock, future)
                 for tag, raw, future in (("a", raw_a, None), ("b", raw_b, later))]
     finally:
@@ -242,9 +242,11 @@ def correlate_volumes(raw_a, raw_b, vol_a, vol_b, projector: ProjectionOperator,
         :func:`kept_on_device`), read instead of uploading the volumes again
         (:func:`plenocl.pipeline.velocity.refined_field`); ``None``: none.
     background_free
-        One camera: the raw images with their ``backgrounds`` removed (the
-        reconstructions' ``info.background_free``), for the image fit not to remove them
-        again; ``None``: removed there.
+        One camera: the raw images with their ``backgrounds`` removed as the
+        reconstructions' solvers read them (their ``info.background_free``,
+        :class:`plenocl.optics.rawimage.ScaledImage`, with the device copies), for the
+        image fit neither to remove them again nor to upload them; ``None``: removed
+        there.
 
     Returns
     -------

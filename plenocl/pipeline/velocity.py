@@ -127,9 +127,11 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
         The volumes' float32 device copies (:func:`refined_field`), which the local
         maxima and tube sums on that device read.
     background_free
-        One camera: the two raw images with their ``backgrounds`` removed (the
-        reconstructions' ``info.background_free``; a ``None`` entry: removed here), for
-        the image fit (:class:`plenocl.piv.imagefit.ImageFit`); ``None``: removed here.
+        One camera: the two raw images with their ``backgrounds`` removed as the
+        reconstructions' solvers read them (their ``info.background_free``,
+        :class:`plenocl.optics.rawimage.ScaledImage`; a ``None`` entry: removed here),
+        for the image fit, which reads their device copies where on ``queue``'s context
+        (:class:`plenocl.piv.imagefit.ImageFit`); ``None``: removed here.
     """
     if not settings.particles:
         return res

@@ -93,48 +93,56 @@ class DeviceFitSums:
         return 5 * 4 * int(patches.offset[-1]) <= self.renderer.queue.device.max_mem_alloc_size
 
     def unit_sums(self, data: cl_array.Array, image_points: np.ndarray,
-                  patches: Patches) -> np.ndarray:
-        """Per particle ``(n, 2)``: ``sum(unit * data)`` and ``sum(unit^2)`` of its image
-        at unit intensity, over its patch; ``data`` from :meth:`upload`."""
+                  patches: Patches, data_scale: float = 1.0) -> np.ndarray:
+        """Per particle ``(n, 2)``: ``sum(unit * image)`` and ``sum(unit^2)`` of its image
+        at unit intensity, over its patch; the image is ``data * data_scale`` (``data``
+        from :meth:`upload` and 1, or a device image in other units: a reconstruction's,
+        divided by its maximum, and that maximum)."""
         n = len(image_points)
         if n == 0:
             return np.zeros((0, 2))
         with self._lock:
             unit = self._render(image_points, np.ones(n), patches, False)
-            return self.reduce_units(unit, data, patches)
+            return self.reduce_units(unit, data, patches, data_scale)
 
     def normal_sums(self, data: cl_array.Array, image_points: np.ndarray,
-                    intensity: np.ndarray, patches: Patches, jac: np.ndarray) -> np.ndarray:
+                    intensity: np.ndarray, patches: Patches, jac: np.ndarray,
+                    data_scale: float = 1.0) -> np.ndarray:
         """Per particle ``(n, 16)``: ``J^T J`` (upper triangle, row by row), ``J^T r``,
         the lit elements and their summed squared residuals
         (:func:`plenocl.reference.imagefit.normal_sums`), against the model image of all
-        ``n`` particles; ``jac`` ``(n, 3, 3)``: ``d (X', Y', d') / d (x, y, z)``."""
+        ``n`` particles; ``jac`` ``(n, 3, 3)``: ``d (X', Y', d') / d (x, y, z)``; the
+        image is ``data * data_scale`` (:meth:`unit_sums`)."""
         n = len(image_points)
         if n == 0:
             return np.zeros((0, 16))
         with self._lock:
             rows = self._render(image_points, intensity, patches, True)
             model = self.model(rows, patches, data.shape)
-            return self.reduce_normals(rows, data, model, patches, jac)
+            return self.reduce_normals(rows, data, model, patches, jac, data_scale)
 
     def reduce_units(self, unit: cl_array.Array, data: cl_array.Array,
-                     patches: Patches) -> np.ndarray:
-        """The ``unit_sums`` kernel on rendered value rows ``unit`` (device, float32):
-        :func:`plenocl.reference.imagefit.unit_sums`, ``(n, 2)`` float64."""
+                     patches: Patches, data_scale: float = 1.0) -> np.ndarray:
+        """The ``unit_sums`` kernel on rendered value rows ``unit`` (device, float32) and
+        the image ``data * data_scale``: :func:`plenocl.reference.imagefit.unit_sums`,
+        ``(n, 2)`` float64."""
         n = len(patches.width)
         out = self._k.array(2 * n)
-        self._k.launch("unit_sums", (n * self.group,), unit, data, *self._geometry(patches),
+        self._k.launch("unit_sums", (n * self.group,), unit, data, f32(data_scale),
+                       *self._geometry(patches),
                        *_sensor(data), out, local_size=(self.group,))
         return out.get().reshape(n, 2).astype(np.float64)
 
     def reduce_normals(self, rows: cl_array.Array, data: cl_array.Array,
-                       model: cl_array.Array, patches: Patches, jac: np.ndarray) -> np.ndarray:
+                       model: cl_array.Array, patches: Patches, jac: np.ndarray,
+                       data_scale: float = 1.0) -> np.ndarray:
         """The ``normal_sums`` kernel on rendered ``rows`` (device, 5 rows of the patches'
-        elements): :func:`plenocl.reference.imagefit.normal_sums`, ``(n, 16)`` float64."""
+        elements) and the image ``data * data_scale``:
+        :func:`plenocl.reference.imagefit.normal_sums`, ``(n, 16)`` float64."""
         n = len(patches.width)
         out = self._k.array(16 * n)
         self._k.launch("normal_sums", (n * self.group,), rows, i64(patches.offset[-1]),
-                       data, model, *self._geometry(patches), *_sensor(data),
+                       data, f32(data_scale), model, *self._geometry(patches), *_sensor(data),
                        self._k.to_device(np.asarray(jac, f32)), out, local_size=(self.group,))
         return out.get().reshape(n, 16).astype(np.float64)
 

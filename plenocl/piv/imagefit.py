@@ -32,7 +32,12 @@ from typing import NamedTuple
 import numpy as np
 
 from ..opencl.threads import thread_count
-from ..optics.rawimage import check_image, checked_background, subtract_background
+from ..optics.rawimage import (
+    ScaledImage,
+    check_image,
+    checked_background,
+    scaled_background_free,
+)
 from ..optics.raybundle import Patches, RayBundle
 from ..optics.sightline import line_of_sight, sight_frames
 from .devicebundle import DeviceRayBundle
@@ -185,10 +190,19 @@ class ImageFit:
         again. ``None``: computed here.
     background_free
         Per image, that image with its background already removed as here
-        (``max(image - median, 0)`` in float32, the median of ``backgrounds``: a
-        reconstruction's ``ReconstructionInfo.background_free``), taken as it is instead
-        of removing it again; ``None`` (or a ``None`` entry): removed here. Needs
-        ``backgrounds`` (its noise).
+        (:class:`plenocl.optics.rawimage.ScaledImage`: ``max(image - median, 0)``
+        divided by its brightest pixel, the median of ``backgrounds``; a
+        reconstruction's ``ReconstructionInfo.background_free``, the image its solver
+        read), taken as it is instead of removing the background again, and where it
+        has a device copy on ``queue``'s context, read there instead of uploading the
+        image; ``None`` (or a ``None`` entry): removed here. Needs ``backgrounds`` (its
+        noise).
+
+    Notes
+    -----
+    Every route gives the fit the same image to the bit: removed here or by the
+    reconstruction, it is :func:`plenocl.optics.rawimage.scaled_background_free`'s
+    float32 values, which the sums read times the scale.
     """
 
     def __init__(self, camera, grid, images, settings: ImageFitSettings | None = None,
@@ -205,7 +219,7 @@ class ImageFit:
         frees = [None] * len(images) if background_free is None else list(background_free)
         for raw, known, free in zip(images, knowns, frees, strict=True):
             img, noise = _background_free(raw, camera, known, free)
-            self.images.append((img.ravel(), max(noise, 1e-12)))  # float32
+            self.images.append((img, max(noise, 1e-12)))
 
     def refine(self, index: int, peaks: np.ndarray) -> np.ndarray:
         """Peaks ``(N, 3)`` fractional voxel indices ``(ix, iy, iz)`` of exposure
@@ -341,31 +355,35 @@ class ImageFit:
     def _device_start(self, index: int, p: np.ndarray) -> np.ndarray:
         """:meth:`_start_intensity` with the sums on the device."""
         pts = self.bundle.camera.image_points(p)
-        sums = self.sums.unit_sums(self._device_image(index), pts, self.bundle.patches(pts))
+        data, data_scale = self._device_image(index)
+        sums = self.sums.unit_sums(data, pts, self.bundle.patches(pts), data_scale)
         return np.maximum(sums[:, 0] / np.maximum(sums[:, 1], 1e-30), 0.0)
 
     def _host_image(self, index: int) -> np.ndarray:
         """Exposure ``index``'s background-free image as float64 (made once, for the
         host's sums only: the device takes the float32 image as it is)."""
         if index not in self._host_images:
-            self._host_images[index] = self.images[index][0].astype(np.float64)
+            self._host_images[index] = self.images[index][0].image().ravel()
         return self._host_images[index]
 
-    def _device_image(self, index: int):
-        """Exposure ``index``'s image on the device (uploaded once)."""
+    def _device_image(self, index: int) -> tuple:
+        """Exposure ``index``'s scaled image on the device and its scale: the copy it
+        came with where that is on this device's context, else uploaded once."""
         if index not in self._device_images:
-            cols, rows = self.bundle.camera.pixels
-            self._device_images[index] = self.sums.upload(
-                self.images[index][0].reshape(rows, cols))
+            img = self.images[index][0]
+            dev = img.on_device
+            if dev is None or dev.context != self.renderer.queue.context:
+                dev = self.sums.upload(img.values)
+            self._device_images[index] = (dev, img.scale)
         return self._device_images[index]
 
     def _device_sums(self, index: int, noise: float, p: np.ndarray, intensity: np.ndarray):
         """:meth:`_host_sums` with the rendering, the model image and the sums on the
         device (:class:`DeviceFitSums`)."""
         pts = self.bundle.camera.image_points(p)
-        sums = self.sums.normal_sums(self._device_image(index), pts, intensity,
-                                     self.bundle.patches(pts),
-                                     _to_object(self.bundle.camera, p, pts))
+        data, data_scale = self._device_image(index)
+        sums = self.sums.normal_sums(data, pts, intensity, self.bundle.patches(pts),
+                                     _to_object(self.bundle.camera, p, pts), data_scale)
         upper = np.triu_indices(4)
         normal = np.zeros((len(p), 4, 4))
         normal[:, upper[0], upper[1]] = normal[:, upper[1], upper[0]] = sums[:, :10]
@@ -524,19 +542,21 @@ def _second_thread() -> ThreadPoolExecutor:
     return pool
 
 
-def _background_free(raw, camera, known, free) -> tuple[np.ndarray, float]:
+def _background_free(raw, camera, known, free) -> tuple[ScaledImage, float]:
     """An image without its background and its noise: ``free`` as it is (checked
     against the camera; its noise ``known``'s), else removed from ``raw``
-    (:func:`plenocl.optics.rawimage.subtract_background`)."""
+    (:func:`plenocl.optics.rawimage.scaled_background_free`)."""
     if free is None:
-        return subtract_background(check_image(raw, camera, copy=False), known)
+        return scaled_background_free(check_image(raw, camera, copy=False), known)
     cols, rows = camera.pixels
-    free = np.asarray(free)
-    if known is None or free.shape != (rows, cols) or free.dtype != np.float32:
-        raise ValueError(f"ImageFit's background_free images must be float32 ({rows}, "
-                         f"{cols}) images with their (median, noise) in backgrounds (a "
-                         f"reconstruction's info.background_free and .background, .noise); "
-                         f"got {free.dtype} {free.shape}"
+    values = getattr(free, "values", None)
+    if (known is None or not isinstance(free, ScaledImage) or values.shape != (rows, cols)
+            or values.dtype != np.float32 or not 0 < free.scale < np.inf):
+        raise ValueError(f"ImageFit's background_free images must be ScaledImage of float32 "
+                         f"({rows}, {cols}) values and a positive scale, with their (median, "
+                         f"noise) in backgrounds (a reconstruction's info.background_free "
+                         f"and .background, .noise); got {type(free).__name__} "
+                         f"{getattr(values, 'dtype', '')} {getattr(values, 'shape', '')}"
                          f"{' without a background' if known is None else ''}")
     return free, checked_background(known)[1]
 

@@ -11,7 +11,14 @@ import numpy as np
 from scipy import ndimage
 
 from ..opencl.arrays import upload
-from ..optics.rawimage import background_and_noise, check_exposure, check_image, dark_noise
+from ..optics.rawimage import (
+    ScaledImage,
+    background_and_noise,
+    check_exposure,
+    check_image,
+    dark_noise,
+    divided_to_float32,
+)
 from .operator import ProjectionOperator
 from .settings import ReconstructionSettings
 
@@ -118,11 +125,9 @@ def smooth_image(img: np.ndarray, sigma: float, observed: np.ndarray | None = No
 
 def _preprocessed(image, camera, background: str | None, threshold: float | None,
                   observed: np.ndarray | None, exposure: bool = False,
-                  smooth_px: float | None = None, keep_free: bool = False) -> PreparedImage:
+                  smooth_px: float | None = None) -> PreparedImage:
     """:func:`preprocess` as a :class:`PreparedImage` (no lit lenses), with the median
-    and noise it removed; ``exposure``: a blank or saturated image is refused first;
-    ``keep_free``: its background-free image kept too, where it is the image fit's
-    (:attr:`PreparedImage.background_free`)."""
+    and noise it removed; ``exposure``: a blank or saturated image is refused first."""
     img = check_image(image, camera)
     if exposure:
         try:
@@ -145,10 +150,6 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     if smooth_px is not None:  # noise averaged before clipping: no bias from the clip
         img, gain = smooth_image(img, smooth_px, observed), smoothing_gain(smooth_px)
     np.maximum(img, 0.0, out=img)
-    # the image fit's image, max(I - median, 0) rounded to float32 from the same float64
-    # difference (plenocl.optics.rawimage.subtract_background): no smoothing, every pixel
-    free = (img.astype(np.float32) if keep_free and med is not None and smooth_px is None
-            and observed is None else None)
     thr = NOISE_SIGMAS * gain * (noise or 0.0) if threshold is None else float(threshold)
     if observed is not None:  # 0 - a negative median would give them light
         img[~observed] = 0.0
@@ -157,12 +158,11 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
         raise ValueError(f"image maximum {scale:.10g} is above {FLOAT32_LIMIT:.10g}, the "
                          "largest value plenocl reconstructs in float32; divide the image "
                          "by a constant (the volume scales with it)")
-    if scale == 0:
-        return PreparedImage(img.astype(np.float32), 0.0, thr, observed, None, med, noise,
-                             free)
-    out = np.empty(img.shape, np.float32)
-    np.divide(img, scale, out=out, casting="same_kind")
-    return PreparedImage(out, scale, thr / scale, observed, None, med, noise, free)
+    # the image fit's image where nothing but the background was removed: the same
+    # division as plenocl.optics.rawimage.scaled_background_free (PreparedImage.fit_image)
+    out, smoothed = divided_to_float32(img, scale), smooth_px is not None
+    return PreparedImage(out, scale, thr / scale if scale else thr, observed, None, med,
+                         noise, smoothed)
 
 
 def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
@@ -192,10 +192,8 @@ class PreparedImage:
         The median and noise (image units) the median background removed (``None``
         with ``background=None``): the particle fit reuses them
         (:class:`plenocl.reconstruction.ReconstructionInfo`).
-    background_free
-        ``max(image - background, 0)`` as float32, image units: the image fit's image,
-        kept where asked (``prepare_image(keep_free=True)``) and a background was
-        removed without smoothing or masked pixels; ``None`` otherwise.
+    smoothed
+        Whether the image was smoothed (``smooth_px``) before it was scaled.
     """
 
     image: np.ndarray
@@ -205,10 +203,9 @@ class PreparedImage:
     lit: np.ndarray | None = None
     background: float | None = None
     noise: float | None = None
-    background_free: np.ndarray | None = dataclasses.field(default=None, repr=False,
-                                                           compare=False)
+    smoothed: bool = False
     #: What it was prepared with (:func:`prepare_on_host`: background, threshold,
-    #: smoothing, a pixel mask or not, the background-free image kept or not).
+    #: smoothing, a pixel mask or not).
     made_with: tuple | None = dataclasses.field(default=None, compare=False, repr=False)
     #: The image's device copies by queue (:meth:`on_device`): uploaded once, not once
     #: per run (a coarse-to-fine reconstruction's three runs read the same image).
@@ -222,43 +219,49 @@ class PreparedImage:
             self._device[key] = upload(queue, self.image)
         return self._device[key]
 
+    def fit_image(self, queue=None) -> ScaledImage | None:
+        """The image fit's image where it is this one, to the bit
+        (:func:`plenocl.optics.rawimage.scaled_background_free`): a background removed
+        (:attr:`background`), not smoothed, every pixel observed; with its device copy on
+        ``queue`` (:meth:`on_device`; ``None``: none). ``None`` otherwise."""
+        if self.background is None or self.smoothed or self.observed is not None:
+            return None
+        device = None if queue is None else self.on_device(queue)
+        return ScaledImage(self.image, self.scale, device)
+
 
 def prepare_on_host(image, camera, settings: ReconstructionSettings,
-                    observed: np.ndarray | None = None, keep_free: bool = False
-                    ) -> PreparedImage:
+                    observed: np.ndarray | None = None) -> PreparedImage:
     """:func:`prepare_image`'s host part, without the lit lenses and its refusals of an
     empty image: :func:`preprocess` with ``settings``' background and threshold, a blank
     or saturated image refused (:class:`UnusableImageError`). NumPy alone, so it may run
     on another thread while the device reconstructs (:func:`plenocl.process_pair` makes
-    the second exposure's so on a GPU); ``keep_free``: :func:`prepare_image`'s."""
+    the second exposure's so on a GPU)."""
     prepared = _preprocessed(image, camera, settings.background, settings.threshold,
-                             observed, exposure=True, smooth_px=settings.smooth_px,
-                             keep_free=keep_free)
-    return dataclasses.replace(prepared, made_with=_preparation(settings, observed,
-                                                                keep_free))
+                             observed, exposure=True, smooth_px=settings.smooth_px)
+    return dataclasses.replace(prepared, made_with=_preparation(settings, observed))
 
 
-def _preparation(settings: ReconstructionSettings, observed, keep_free: bool) -> tuple:
+def _preparation(settings: ReconstructionSettings, observed) -> tuple:
     """What a host preparation depends on beside the image (:attr:`PreparedImage.made_with`)."""
     return (settings.background, settings.threshold, settings.smooth_px,
-            observed is not None, bool(keep_free))
+            observed is not None)
 
 
 def prepare_image(image, projector: ProjectionOperator, settings: ReconstructionSettings,
-                  observed: np.ndarray | None = None, keep_free: bool = False,
+                  observed: np.ndarray | None = None,
                   ahead: PreparedImage | None = None) -> PreparedImage:
     """:func:`preprocess` with ``settings``' background and threshold, and the lit
     lenses when ``settings.skip_dark``. A blank or saturated image
     (:func:`plenocl.optics.rawimage.check_exposure`), or one whose every pixel is dark
     (the volume would be empty), is refused: :class:`UnusableImageError`.
-    ``keep_free``: the background-free image kept (:attr:`PreparedImage.background_free`).
-    ``ahead``: :func:`prepare_on_host` of this image with these settings, ``observed``
-    and ``keep_free``, made beforehand (``image`` is then not read)."""
-    if ahead is not None and ahead.made_with != _preparation(settings, observed, keep_free):
+    ``ahead``: :func:`prepare_on_host` of this image with these settings and
+    ``observed``, made beforehand (``image`` is then not read)."""
+    if ahead is not None and ahead.made_with != _preparation(settings, observed):
         raise ValueError("ahead was prepared with other settings than this reconstruction's "
-                         "(background, threshold, smoothing, pixel mask or keep_free): "
-                         "prepare it with prepare_on_host and the same ones")
-    prepared = (prepare_on_host(image, projector.camera, settings, observed, keep_free)
+                         "(background, threshold, smoothing or pixel mask): prepare it with "
+                         "prepare_on_host and the same ones")
+    prepared = (prepare_on_host(image, projector.camera, settings, observed)
                 if ahead is None else ahead)
     if prepared.scale == 0:
         raise UnusableImageError(

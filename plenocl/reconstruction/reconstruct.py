@@ -513,16 +513,18 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     the volume on the device, as ``info.volume_on_device`` (float32, the projector's
     queue; the same values as the returned volume), where the reconstruction ends with
     it there (one camera, not on a rotated array's frame; ``None`` otherwise), for them
-    to read without uploading it again; and the image with its background removed as
-    the image fit removes it, ``info.background_free`` (float32, image units,
-    ``max(image - background, 0)``; where the reconstruction removed a background and
-    neither smoothed the image nor masked pixels; ``None`` otherwise), for the fit not to
-    remove it again. By default both are released: an info kept for long holds no
+    to read without uploading it again; and the image the solver read,
+    ``info.background_free`` (:class:`plenocl.optics.rawimage.ScaledImage`:
+    ``max(image - background, 0)`` divided by its brightest pixel, float32, with its
+    device copy on the projector's queue), where it is the image fit's (the
+    reconstruction removed a background and neither smoothed the image nor masked
+    pixels; ``None`` otherwise), for the fit neither to remove the background again nor
+    to upload the image. By default both are released: an info kept for long holds no
     device memory and no image.
 
     ``ahead``: the image's host preparation made beforehand
     (:func:`plenocl.reconstruction.images.prepare_on_host` of ``image`` with these
-    settings, no pixel mask, ``keep_free=keep_for_next_stage``), e.g. on another thread
+    settings and no pixel mask), e.g. on another thread
     while the device reconstructed another image; one camera only. ``info.seconds`` then
     leaves it out.
     """
@@ -531,7 +533,7 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     vol, info = _reconstructed(image, projector, settings, callback, pixel_mask,
                                keep_for_next_stage, ahead)
     if not keep_for_next_stage:
-        info.volume_on_device = info.background_free = None
+        info.release_kept()
     return vol, info
 
 
@@ -583,13 +585,13 @@ def _run(image, projector, settings: ReconstructionSettings, callback, observed,
     (:func:`run_reconstruction`'s ``keep_for_next_stage``); ``ahead``: its."""
     refined = _refined(projector, settings.supersample) if settings.supersample > 1 else None
     t0 = time.perf_counter()
-    prepared = prepare_image(image, projector, settings, observed, keep_free=keep,
-                             ahead=ahead)
+    prepared = prepare_image(image, projector, settings, observed, ahead=ahead)
     if refined is None:
         vol, info = _solve(prepared, projector, settings, callback)
     else:
         vol, info = _supersampled(prepared, projector, refined, settings, callback, binned)
     info.seconds = time.perf_counter() - t0
     info.background, info.noise = prepared.background, prepared.noise
-    info.background_free = prepared.background_free
+    if keep:
+        info.background_free = prepared.fit_image(getattr(projector, "queue", None))
     return vol, info

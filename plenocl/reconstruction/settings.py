@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..optics.rawimage import ScaledImage
 from ..options import is_integer
 from .supersample import MAX_SUPERSAMPLE
 
@@ -47,8 +48,8 @@ class ReconstructionInfo:
     several cameras' reconstruction, each camera's own (its background and noise), in
     the images' order (empty for one camera); ``volume_on_device`` and
     ``background_free``: the volume's float32 device copy on the projector's queue (the
-    same values as the host volume) and the image with its background removed as the
-    image fit removes it (float32), kept where
+    same values as the host volume) and the image the solver read where it is the image
+    fit's (:class:`plenocl.optics.rawimage.ScaledImage`, with its device copy), kept where
     :func:`plenocl.reconstruction.reconstruct.run_reconstruction` was asked to
     (``keep_for_next_stage``: the stages after it read them instead of making them
     again), else ``None``."""
@@ -70,7 +71,12 @@ class ReconstructionInfo:
     noise: float | None = None
     cameras: list[ReconstructionInfo] = field(default_factory=list)
     volume_on_device: object = field(default=None, repr=False, compare=False)
-    background_free: np.ndarray | None = field(default=None, repr=False, compare=False)
+    background_free: ScaledImage | None = field(default=None, repr=False, compare=False)
+
+    def release_kept(self) -> None:
+        """Let go of what was kept for the stages after the reconstruction (the device
+        volume, the image): an info kept for long holds no device memory."""
+        self.volume_on_device = self.background_free = None
 
 
 #: Aperture samples per pixel footprint of a coarse-to-fine reconstruction's coarse
