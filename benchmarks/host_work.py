@@ -19,9 +19,10 @@ image (a dark level of 20 counts with 3 counts of noise, 3 % of the pixels lit).
 * the coarse support's dilation by the 3 x 3 x 3 box: ``schedule.box_dilated`` (in-place
   ORs of shifted views, 2026-11-30) against the separable maxima it replaced and SciPy's
   ``binary_dilation``;
-* the image fit's background removal (``subtract_background``: the float32 result of
-  the float64 difference written in place, 2026-11-30) against the clip and cast it
-  replaced;
+* a background removal in float32 (``subtract_background``: the float32 result of
+  the float64 difference written in place, 2026-11-30; the image fit's until
+  2026-12-01, which now reads ``scaled_background_free``'s image, the reconstruction's)
+  against the clip and cast it replaced;
 * the uncertainty's correlated-sum factors of the volume against itself moved a voxel
   (32-voxel windows, ``DeviceSums.correlated_factors``, ``kernels/correlated.cl``,
   2026-11-30) against the host's ``direct.correlated_factors``;
@@ -181,7 +182,7 @@ def main() -> None:
 
     new = timed(lambda: subtract_background(img, (20.0, 3.0)), n)
     old = timed(lambda: (np.clip(img - 20.0, 0, None).astype(np.float32), 3.0), n)
-    row("the fit's background removal, 16 MP", new, old,
+    row("background removal in float32, 16 MP", new, old,
         float(np.max(np.abs(new[0][0] - old[0][0]))), "counts")
 
     moved = np.roll(vol, 1, axis=2)

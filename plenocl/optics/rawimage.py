@@ -202,9 +202,9 @@ def scaled_background_free(image, known: tuple[float, float] | None = None
     that background and neither smoothed nor masked pixels
     (:func:`plenocl.reconstruction.images.preprocess`), so the image fit reads the image
     the volume was made from, however it gets it."""
-    img = np.array(image, dtype=np.float64)
-    med, sigma = background_and_noise(img) if known is None else checked_background(known)
-    np.subtract(img, med, out=img)
+    data = np.asarray(image, dtype=np.float64)  # no copy of a float64 image: read only
+    med, sigma = background_and_noise(data) if known is None else checked_background(known)
+    img = np.subtract(data, med)
     np.maximum(img, 0.0, out=img)
     scale = float(img.max()) if img.size else 0.0
     return ScaledImage(divided_to_float32(img, scale), scale), sigma
