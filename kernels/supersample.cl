@@ -84,3 +84,37 @@ __kernel void spread_support(__global const uchar *keep, int z0, int ny, int nx,
     const uchar on = keep[((size_t)(z0 + z) * ny + y / factor) * nx + x / factor];
     fine[((size_t)z * nyf + y) * nxf + x] = on ? level * scale : 0.0f;
 }
+
+/* The coarse run's brightest voxel by (y, z) row: out[r] = the largest of row r's nx
+ * values (the host takes the largest row: schedule.support_on_device). Parallel
+ * structure: one work-item per row, a loop along it; no atomics. Once a reconstruction,
+ * on a volume of the voxel grid: the rows' strided reads cost less than a read-back. */
+__kernel void row_peaks(__global const float *coarse, int nx, __global float *out)
+{
+    const size_t r = get_global_id(0);
+    __global const float *row = coarse + r * nx;
+    float peak = row[0];
+    for (int x = 1; x < nx; ++x)
+        peak = fmax(peak, row[x]);
+    out[r] = peak;
+}
+
+/* The support's sums by (y, z) row: sums[r] = row r's values where keep (grown_support),
+ * added in x order in float32; counts[r] = its voxels in the support. The host adds the
+ * rows in float64 (schedule.support_level; its NumPy form is the same row sums, in the
+ * same order: the same bits). Parallel structure: one work-item per row, a loop along
+ * it; no atomics. */
+__kernel void support_rows(__global const float *coarse, __global const uchar *keep, int nx,
+                           __global float *sums, __global int *counts)
+{
+    const size_t r = get_global_id(0);
+    float sum = 0.0f;
+    int count = 0;
+    for (size_t i = r * nx; i < (r + 1) * nx; ++i) {
+        const float v = keep[i] ? coarse[i] : 0.0f;
+        sum += v;
+        count += keep[i];
+    }
+    sums[r] = sum;
+    counts[r] = count;
+}

@@ -281,6 +281,41 @@ def test_the_support_found_on_the_device_is_the_hosts_spread(queue, factor, shap
         binning.spread_support(start.on_device, floor, start.level, factor + 1, got)
 
 
+@pytest.mark.parametrize("shape", [(5, 7, 11), (4, 1, 5), (3, 2, 3), (9, 6, 1), (1, 1, 1)])
+def test_the_support_found_from_the_device_volume_is_the_hosts(queue, shape):
+    """``support_on_device`` (the rows' peaks, the grown support's row sums and counts
+    read back, not the volume) gives the host's ``support_of`` floor, level and fraction
+    bit for bit, with voxels at and beside the floor; the level is the support's mean
+    within float32 rounding; no support for a volume without light."""
+    import pyopencl.array as cla
+
+    from plenocl.reconstruction.schedule import support_of, support_on_device
+
+    rng = np.random.default_rng(sum(shape))
+    coarse = (rng.random(shape) ** 6 * 3e3).astype(np.float32)
+    settings = ReconstructionSettings(support=0.3)
+    floor = np.float32(0.3 * float(coarse.max()))
+    flat = coarse.ravel()  # the brightest voxel kept: the floor stays
+    chosen = rng.choice(np.flatnonzero(flat < flat.max()), min(3, flat.size - 1),
+                        replace=False)
+    flat[chosen] = [floor, np.nextafter(floor, np.float32(1)),
+                    np.nextafter(floor, np.float32(0))][:len(chosen)]
+    binning = LateralBinning(queue)
+    host = support_of(coarse, settings)
+    device = support_on_device(cla.to_device(queue, coarse), settings, binning)
+    assert (device.floor, device.level, device.fraction) == (floor, host.level,
+                                                             host.fraction)
+    keep = ndimage.binary_dilation(coarse > floor, np.ones((3, 3, 3), bool))
+    assert host.fraction == np.count_nonzero(keep) / keep.size > 0
+    assert host.level == pytest.approx(coarse[keep].astype(np.float64).mean(), rel=1e-6)
+    assert device.mask is None and np.array_equal(device.on_device.get(), coarse)
+    with pytest.raises(ValueError, match="found on the device"):
+        device.flat()
+    dark = np.zeros(shape, np.float32)
+    assert support_of(dark, settings) is None
+    assert support_on_device(cla.to_device(queue, dark), settings, binning) is None
+
+
 def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):
     """A solver cropped to a box that starts and ends inside 3 x 3 blocks, on several
     depth slabs, bins on the device to the full grid's binned volume."""

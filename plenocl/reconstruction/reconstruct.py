@@ -43,7 +43,7 @@ from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
 from .joint import run_joint
 from .operator import FramedOperator, PlannedOperator, ProjectionOperator
-from .schedule import SupportStart, sampled_operator, support_of
+from .schedule import SupportStart, sampled_operator, support_on_device
 from .settings import ReconstructionInfo, ReconstructionSettings
 from .solver import UPDATES, Solver
 from .supersample import bin_lateral
@@ -328,15 +328,17 @@ def _supersampled(prepared: PreparedImage, projector, refined,
         coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                               iterations=settings.coarse_iterations)
         sampled = sampled_operator(projector, settings.coarse_oversample)
-        coarse, coarse_info = _solve(prepared, projector if sampled is None else sampled,
-                                     coarse_settings, callback)
-        start = support_of(coarse, settings, coarse_info.volume_on_device)
+        solver, vol, coarse_info = _iterations(
+            prepared, projector if sampled is None else sampled, coarse_settings, callback)
+        coarse = solver.binned_to_device(vol, 1, projector.grid.shape, prepared.scale)
+        start = support_on_device(coarse, settings, solver.binning)  # the volume stays
         support = 0.0 if start is None else start.fraction
         if not support:  # nothing to refine: the image holds no light (warned)
-            coarse_info.support_fraction, coarse_info.volume_on_device = 0.0, None
+            coarse_info.support_fraction = coarse_info.active_fraction = 0.0
             return np.zeros(projector.grid.shape, np.float32), coarse_info
-        if coarse_info.stopped:
-            return coarse, coarse_info  # the callback stopped the reconstruction
+        if coarse_info.stopped:  # the callback stopped the reconstruction
+            coarse_info.volume_on_device = coarse
+            return _counted(coarse.get(), coarse_info), coarse_info
         done = coarse_info.iterations
     fine = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                start=settings.start if start is None else "uniform")
@@ -450,8 +452,13 @@ def _to_host(solver: Solver, vol, prepared: PreparedImage, info: ReconstructionI
         out = solver.volume_to_host(vol, shape) * np.float32(prepared.scale)
     else:
         out = solver.binned_to_host(vol, factor, shape, prepared.scale)
-    info.active_fraction = float(np.count_nonzero(out)) / out.size
-    return out
+    return _counted(out, info)
+
+
+def _counted(vol: np.ndarray, info: ReconstructionInfo) -> np.ndarray:
+    """``vol``, with ``info.active_fraction`` set to its share of non-zero voxels."""
+    info.active_fraction = float(np.count_nonzero(vol)) / vol.size
+    return vol
 
 
 def _solve(prepared: PreparedImage, projector, settings: ReconstructionSettings, callback,

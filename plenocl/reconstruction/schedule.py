@@ -25,16 +25,19 @@ def sampled_operator(projector, oversample: float | None):
 
 @dataclass(frozen=True)
 class SupportStart:
-    """A coarse run's support as the start of the sub-voxels (:func:`support_of`): the
-    coarse voxels above ``floor``, grown by one voxel in every direction (``mask``), at
-    ``level``, every other voxel 0 (:meth:`flat`).
+    """A coarse run's support as the start of the sub-voxels (:func:`support_of`,
+    :func:`support_on_device`): the coarse voxels above ``floor``, grown by one voxel in
+    every direction, at ``level``, every other voxel 0 (:meth:`flat`).
 
     Attributes
     ----------
     floor, level
         The float32 threshold and the flat level (the coarse volume's units).
+    fraction
+        The fraction of the coarse grid the support covers.
     mask
-        The support, boolean on the coarse grid.
+        The support, boolean on the coarse grid; ``None`` where it was found on the
+        device (:func:`support_on_device`: only its sums crossed).
     on_device
         The coarse volume's float32 device copy (a reconstruction's
         ``ReconstructionInfo.volume_on_device``), from which the solver finds the same
@@ -45,37 +48,65 @@ class SupportStart:
 
     floor: np.float32
     level: np.float32
-    mask: np.ndarray
+    fraction: float
+    mask: np.ndarray | None = None
     on_device: object = field(default=None, repr=False, compare=False)
 
-    @property
-    def fraction(self) -> float:
-        """The fraction of the coarse grid the support covers."""
-        return np.count_nonzero(self.mask) / self.mask.size
-
     def flat(self) -> np.ndarray:
-        """The start on the coarse grid: ``level`` on the support, 0 elsewhere."""
+        """The start on the coarse grid: ``level`` on the support, 0 elsewhere (a
+        support found on the host)."""
+        if self.mask is None:
+            raise ValueError("this support was found on the device: spread it there "
+                             "(Solver.spread_start), its mask never crossed to the host")
         return np.where(self.mask, self.level, np.float32(0))
+
+
+def support_level(row_sums: np.ndarray, count: int) -> np.float32:
+    """The support's flat level, its mean: the float32 row sums (each row's values in
+    the support added along x in order, as the device adds them) added in float64, over
+    the support's voxels; the same bits from the host's volume and the device's."""
+    return np.float32(np.sum(np.asarray(row_sums, np.float64)) / count)
 
 
 def support_of(coarse: np.ndarray, settings: ReconstructionSettings, on_device=None
                ) -> SupportStart | None:
     """The support that starts a coarse-to-fine reconstruction's sub-voxels
-    (docs/design.md §6.5; ``None`` for an empty volume).
+    (docs/design.md §6.5; ``None`` for an empty volume), from the host volume.
 
     The voxels brighter than ``support`` times the brightest one, grown by one voxel in
     every direction, are the support. Its sub-voxels start flat, at the coarse volume's
-    mean over the support (the coarse intensities carry the voxel basis's depth errors);
-    every other sub-voxel starts at zero and, the updates being multiplicative, stays
-    there. ``on_device``: the coarse volume's device copy, kept for the solver
-    (:class:`SupportStart`).
+    mean over the support (:func:`support_level`; the coarse intensities carry the voxel
+    basis's depth errors); every other sub-voxel starts at zero and, the updates being
+    multiplicative, stays there. ``on_device``: the coarse volume's device copy, kept
+    for the solver (:class:`SupportStart`). :func:`support_on_device` finds the same
+    support from the device copy alone.
     """
     peak = float(coarse.max())
     if peak <= 0:
         return None
     floor = np.float32(settings.support * peak)  # as NumPy compares a float32 volume
     keep = box_dilated(coarse > floor)
-    return SupportStart(floor, np.float32(coarse[keep].mean()), keep, on_device)
+    kept = np.where(keep, np.asarray(coarse, np.float32), np.float32(0))
+    rows = np.cumsum(kept, axis=-1, dtype=np.float32)[..., -1]  # in order along x
+    count = int(np.count_nonzero(keep))
+    return SupportStart(floor, support_level(rows, count), count / keep.size, keep,
+                        on_device)
+
+
+def support_on_device(coarse, settings: ReconstructionSettings, binning
+                      ) -> SupportStart | None:
+    """:func:`support_of` of the device volume ``coarse`` (float32 ``(nz, ny, nx)``),
+    found there: its rows' peaks and the support's row sums and counts cross to the
+    host, not the volume (``binning``: a
+    :class:`plenocl.reconstruction.supersample.LateralBinning` on its queue); the same
+    floor, level and fraction to the bit."""
+    peak = float(binning.row_peaks(coarse).max()) if coarse.size else 0.0
+    if peak <= 0:
+        return None
+    floor = np.float32(settings.support * peak)
+    rows, counts = binning.support_rows(coarse, floor)
+    count = int(counts.sum(dtype=np.int64))
+    return SupportStart(floor, support_level(rows, count), count / coarse.size, None, coarse)
 
 
 def coarse_support(coarse: np.ndarray, settings: ReconstructionSettings

@@ -17,6 +17,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from ..opencl.arrays import read
 from ..opencl.program import KernelSet
 
 #: Largest accepted factor (memory and time grow as its square).
@@ -55,7 +56,8 @@ class LateralBinning:
 
     def __init__(self, queue: cl.CommandQueue) -> None:
         self._k = KernelSet(queue, "supersample.cl", ("bin_lateral", "spread_lateral",
-                                                      "grown_support", "spread_support"))
+                                                      "grown_support", "spread_support",
+                                                      "row_peaks", "support_rows"))
 
     def to_host(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
                 scale: float = 1.0) -> np.ndarray:
@@ -106,6 +108,26 @@ class LateralBinning:
                 self._k.launch("spread_lateral", slab.shape[::-1], part, i32(ny), i32(nx),
                                i32(factor), np.float32(scale / factor**2), slab,
                                i32(ny * factor), i32(nx * factor))
+
+    def row_peaks(self, coarse: cla.Array) -> np.ndarray:
+        """The largest value of each ``(z, y)`` row of the device volume ``coarse``
+        ``(nz, ny, nx)``, ``(nz * ny,)`` float32 (a row of at least one voxel)."""
+        rows = coarse.size // coarse.shape[-1]
+        out = self._k.array(rows)
+        self._k.launch("row_peaks", (rows,), coarse, np.int32(coarse.shape[-1]), out)
+        return out.get()
+
+    def support_rows(self, coarse: cla.Array, floor: float) -> tuple[np.ndarray, np.ndarray]:
+        """The support of the device volume ``coarse`` above ``floor`` (the 3 x 3 x 3 box
+        grown, as :meth:`spread_support` finds it) by ``(z, y)`` row: its values' float32
+        sums along x, in x order, and its voxel counts (``(nz * ny,)`` each)."""
+        nz, ny, nx = coarse.shape
+        keep = self._k.array(coarse.shape, np.uint8)
+        self._k.launch("grown_support", (nx, ny, nz), coarse, np.int32(nz), np.int32(ny),
+                       np.int32(nx), np.float32(floor), keep)
+        sums, counts = self._k.array(nz * ny), self._k.array(nz * ny, np.int32)
+        self._k.launch("support_rows", (nz * ny,), coarse, keep, np.int32(nx), sums, counts)
+        return tuple(read(sums, counts))
 
     def spread_support(self, coarse: cla.Array, floor: float, level: float, factor: int,
                        slabs: list[cla.Array], scale: float = 1.0) -> None:
