@@ -258,7 +258,7 @@ def test_the_support_found_on_the_device_is_the_hosts_spread(queue, factor, shap
     floor = np.float32(0.3 * float(coarse.max()))
     flat = coarse.ravel()  # voxels on the floor's edge: at it is out, above is in
     flat[rng.choice(flat.size, 3, replace=False)] = [
-        floor, np.nextafter(floor, np.float32(1)), np.nextafter(floor, np.float32(0))]
+        floor, np.nextafter(floor, np.float32(np.inf)), np.nextafter(floor, np.float32(0))]
     start = support_of(coarse, settings, on_device=cla.to_device(queue, coarse))
     assert start.floor == floor and 0 < start.fraction <= 1
     nz, ny, nx = shape
@@ -298,7 +298,7 @@ def test_the_support_found_from_the_device_volume_is_the_hosts(queue, shape):
     flat = coarse.ravel()  # the brightest voxel kept: the floor stays
     chosen = rng.choice(np.flatnonzero(flat < flat.max()), min(3, flat.size - 1),
                         replace=False)
-    flat[chosen] = [floor, np.nextafter(floor, np.float32(1)),
+    flat[chosen] = [floor, np.nextafter(floor, np.float32(np.inf)),
                     np.nextafter(floor, np.float32(0))][:len(chosen)]
     binning = LateralBinning(queue)
     host = support_of(coarse, settings)

@@ -332,6 +332,7 @@ def _supersampled(prepared: PreparedImage, projector, refined,
             prepared, projector if sampled is None else sampled, coarse_settings, callback)
         coarse = solver.binned_to_device(vol, 1, projector.grid.shape, prepared.scale)
         start = support_on_device(coarse, settings, solver.binning)  # the volume stays
+        del solver, vol  # the coarse run's buffers, freed before the fine run
         support = 0.0 if start is None else start.fraction
         if not support:  # nothing to refine: the image holds no light (warned)
             coarse_info.support_fraction = coarse_info.active_fraction = 0.0

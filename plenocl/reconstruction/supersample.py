@@ -57,7 +57,8 @@ class LateralBinning:
     def __init__(self, queue: cl.CommandQueue) -> None:
         self._k = KernelSet(queue, "supersample.cl", ("bin_lateral", "spread_lateral",
                                                       "grown_support", "spread_support",
-                                                      "row_peaks", "support_rows"))
+                                                      "row_peaks", "support_rows"),
+                            looping=["row_peaks", "support_rows"])
 
     def to_host(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
                 scale: float = 1.0) -> np.ndarray:
