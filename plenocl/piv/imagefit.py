@@ -329,8 +329,15 @@ class ImageFit:
         dz, dy, dx = self.grid.spacing
         return np.asarray(PRIOR_VOXELS) * np.array([dx, dy, dz])
 
+    @property
+    def _host_chunk(self) -> int:
+        """Particles a host step takes at once: the settings' chunk, else
+        :data:`plenocl.piv.fitsums.HOST_CHUNK` (the device's sums take
+        :func:`plenocl.piv.fitsums.fit_chunk`'s)."""
+        return self.settings.chunk or HOST_CHUNK
+
     def _chunks(self, n: int):
-        return chunk_slices(n, self.settings.chunk or HOST_CHUNK)
+        return chunk_slices(n, self._host_chunk)
 
     def _render(self, p: np.ndarray, intensity: np.ndarray, derivatives: bool = True):
         """Image points, patches, and the particle, sensor pixel and rendered rows of
@@ -419,7 +426,7 @@ class ImageFit:
             normal = normal / scatter[:, None, None] ** 2
             rhs = rhs / scatter[:, None] ** 2
         return sight_steps(normal, rhs, offset, prior, frames, self.settings.damping,
-                           self.settings.chunk or HOST_CHUNK)
+                           self._host_chunk)
 
 
 def sight_steps(normal: np.ndarray, rhs: np.ndarray, offset: np.ndarray,

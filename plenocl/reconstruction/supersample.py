@@ -123,12 +123,19 @@ class LateralBinning:
         grown, as :meth:`spread_support` finds it) by ``(z, y)`` row: its values' float32
         sums along x, in x order, and its voxel counts (``(nz * ny,)`` each)."""
         nz, ny, nx = coarse.shape
-        keep = self._k.array(coarse.shape, np.uint8)
-        self._k.launch("grown_support", (nx, ny, nz), coarse, np.int32(nz), np.int32(ny),
-                       np.int32(nx), np.float32(floor), keep)
+        keep = self._grown_support(coarse, floor)
         sums, counts = self._k.array(nz * ny), self._k.array(nz * ny, np.int32)
         self._k.launch("support_rows", (nz * ny,), coarse, keep, np.int32(nx), sums, counts)
         return tuple(read(sums, counts))
+
+    def _grown_support(self, coarse: cla.Array, floor: float) -> cla.Array:
+        """The voxels of ``coarse`` ``(nz, ny, nx)`` whose 3 x 3 x 3 box holds one above
+        ``floor`` (the ``grown_support`` kernel), a uint8 device volume."""
+        nz, ny, nx = coarse.shape
+        keep, i32 = self._k.array(coarse.shape, np.uint8), np.int32
+        self._k.launch("grown_support", (nx, ny, nz), coarse, i32(nz), i32(ny), i32(nx),
+                       np.float32(floor), keep)
+        return keep
 
     def spread_support(self, coarse: cla.Array, floor: float, level: float, factor: int,
                        slabs: list[cla.Array], scale: float = 1.0) -> None:
@@ -138,14 +145,11 @@ class LateralBinning:
         factor**2`` where a voxel of the coarse voxel's 3 x 3 x 3 box is above ``floor``,
         else 0 (:func:`spread_lateral` of :meth:`plenocl.reconstruction.schedule.
         SupportStart.flat`, found on the device: nothing crosses)."""
-        nz, ny, nx = coarse.shape
+        _, ny, nx = coarse.shape
         _check_slabs(coarse.shape, factor, slabs)
         if not coarse.size:
             return
-        keep, i32 = self._k.array(coarse.shape, np.uint8), np.int32
-        self._k.launch("grown_support", (nx, ny, nz), coarse, i32(nz), i32(ny), i32(nx),
-                       np.float32(floor), keep)
-        z0 = 0
+        keep, i32, z0 = self._grown_support(coarse, floor), np.int32, 0
         for slab in slabs:
             if slab.size:
                 self._k.launch("spread_support", slab.shape[::-1], keep, i32(z0), i32(ny),
