@@ -142,21 +142,26 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
     np.testing.assert_allclose(field.field_time.values, np.array([1, 3, 4.5]) * INTERVAL_S)
 
 
-def test_a_changed_image_fit_tracks_again(recording, monkeypatch):
-    """The image fit's method (``plenocl.piv.imagefit.METHOD``) changed with the same
-    settings: the rerun tracks again and names why, never keeping tracks an earlier fit
-    made (nor does a batch keep such fields: the refinement's method holds the fit's)."""
+@pytest.mark.parametrize("name, entry", [("FIT_METHOD", "fit"),
+                                         ("RECONSTRUCTION_METHOD", "reconstruction")])
+def test_a_changed_image_fit_or_reconstruction_tracks_again(recording, monkeypatch, name,
+                                                            entry):
+    """The image fit's method (``plenocl.piv.imagefit.METHOD``) or the reconstruction's
+    (``plenocl.reconstruction.METHOD``) changed with the same settings: the rerun tracks
+    again and names why, never keeping tracks an earlier method made (nor does a batch
+    keep such fields: the refinement's method holds the fit's, and the record the
+    reconstruction's)."""
     import plenocl.batch.tracking as tracking_module
     from plenocl.piv import imagefit, refinement
 
     assert imagefit.METHOD in refinement.METHOD
     d, _ = recording
     plenocl.run(d / "experiment.toml", log=_logged([]))  # its own tracks, whatever ran
-    monkeypatch.setattr(tracking_module, "FIT_METHOD", "a later fit")
+    monkeypatch.setattr(tracking_module, name, f"a later {entry}")
     lines: list[str] = []
     again = plenocl.run(d / "experiment.toml", log=_logged(lines))
     assert again.processed == ["tracks", "field"] and again.skipped == []
-    assert any("configuration changed (fit):" in line for line in lines), lines
+    assert any(f"configuration changed ({entry}):" in line for line in lines), lines
 
 
 @pytest.mark.parametrize("edit, message", [

@@ -199,6 +199,44 @@ def test_a_field_of_an_earlier_method_is_correlated_again(done, monkeypatch, nam
     assert field_metadata(done / PAIR)["record"][section]["method"] == f"a later {section}"
 
 
+@pytest.mark.parametrize("earlier", ["another method", None])
+def test_volumes_of_an_earlier_reconstruction_method_are_made_again(done, monkeypatch,
+                                                                    earlier):
+    """The reconstruction's method (``plenocl.reconstruction.METHOD``) changed with the
+    same settings, or the pair's record was written before the method was recorded
+    (``None``): the pair is reconstructed again, never its kept volumes correlated, and
+    its record and kept volumes name today's method."""
+    import importlib
+
+    import plenocl.batch.record as record_module
+
+    run_module = importlib.import_module("plenocl.batch.run")  # the package's run() hides it
+    volumes_digest = field_metadata(done / PAIR)["digests"]["volumes"]
+    with monkeypatch.context() as patch:
+        if earlier is None:
+            made = run_module.run_record
+
+            def without_method(*args):
+                record = made(*args)
+                del record["reconstruction_method"]
+                return record
+
+            patch.setattr(run_module, "run_record", without_method)
+        else:
+            patch.setattr(record_module, "RECONSTRUCTION_METHOD", earlier)
+        s, _ = _rerun(done)  # what the earlier code wrote
+    assert s.redone == [0]
+    assert field_metadata(done / PAIR)["digests"]["volumes"] != volumes_digest
+    s, said = _rerun(done)
+    assert s.processed == [0] and s.redone == [0]
+    assert any("reconstruction_method.method changed" in m and "redoing" in m
+               for m in said), said
+    assert field_metadata(done / PAIR)["digests"]["volumes"] == volumes_digest
+    _record_matches_the_run(done)
+    assert (field_metadata(done / PAIR)["record"]["reconstruction_method"]["method"]
+            == plenocl.reconstruction.METHOD)
+
+
 @pytest.mark.parametrize("old, new, changed, action", [
     ("iterations = 6", "iterations = 4", "reconstruction.iterations", "redoing"),
     ("iterations = 6", "iterations = 6\nsmooth_px = 1.0", "reconstruction.smooth_px",

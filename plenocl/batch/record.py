@@ -5,10 +5,10 @@ of the experiment that made it, resolved (``images``: channel, dark frame and fl
 field by content, ``dt_s``; ``reconstruction``, ``mte``, ``piv``, ``particles``,
 ``image_fit``), the calibrated camera's and the grid's digests, beside the two source
 files (name, size, SHA-256) it already names; and the digests of the stages: ``volumes``
-(the source files, camera, grid, frame corrections and the reconstruction's settings;
-with motion-tracking enhancement the PIV settings too, which it reconstructs with),
-``field`` (all but ``dt_s``) and ``record`` (everything). Kept volumes carry their
-``volumes`` digest.
+(the source files, camera, grid, frame corrections, the reconstruction's settings and
+its method, :data:`plenocl.reconstruction.METHOD`; with motion-tracking enhancement the
+PIV settings too, which it reconstructs with), ``field`` (all but ``dt_s``) and
+``record`` (everything). Kept volumes carry their ``volumes`` digest.
 
 A rerun compares each finished pair's record with the run's (:func:`decide`), naming
 the changed entries as :func:`plenocl.pipeline.resume.changed_keys` does
@@ -20,7 +20,8 @@ the changed entries as :func:`plenocl.pipeline.resume.changed_keys` does
 - ``piv``, ``particles`` or ``image_fit`` (and ``dt_s``): the kept volumes, when their
   digest is the run's, are correlated again (``correlate``); otherwise the pair is redone;
 - anything else of the reconstruction (``reconstruction``, ``mte``, the frame
-  corrections): the pair is redone (``redo``);
+  corrections, ``reconstruction_method``: a record written before it was recorded
+  lacks it, so such a pair is redone too): the pair is redone (``redo``);
 - the camera, the grid, the pair's source files, or a field without a record (written
   before records, or unreadable): refused (:data:`REFUSE`) unless the run is told to
   redo such pairs (``redo=True``, ``plenocl run --redo``).
@@ -38,6 +39,7 @@ from ..options import NONE
 from ..pipeline.resume import changed_keys, config_digest, config_parts, name_changes
 from ..piv.direct import METHOD as CORRELATION_METHOD
 from ..piv.refinement import METHOD as REFINEMENT_METHOD
+from ..reconstruction import METHOD as RECONSTRUCTION_METHOD
 from .config import Experiment
 from .pairing import ImagePair, changed_since, fingerprint
 from .prepare import frame_corrections
@@ -78,6 +80,7 @@ def run_record(exp: Experiment, camera, grid) -> dict:
               else config_digest(camera.to_dict()))
     return {"images": images, "camera": digest,
             "grid": config_digest(grid.to_dict()), **pair,
+            "reconstruction_method": {"method": RECONSTRUCTION_METHOD},
             "correlation": {"method": CORRELATION_METHOD},
             "refinement": {"method": REFINEMENT_METHOD}}
 

@@ -14,7 +14,8 @@ atomically, ``OUT/figures/tracks.png`` (the tracks coloured by speed) and
 Resume is :class:`plenocl.pipeline.resume.StageRunner`'s: two stages, ``tracks`` (the
 tracking) and ``field`` (the binned field, the ParaView file and the store), keyed on
 the frames' content (name, size, SHA-256), the camera and grid used, the frame
-corrections, every setting and the image fit's method
+corrections, every setting, the reconstruction's method
+(:data:`plenocl.reconstruction.METHOD`) and the image fit's
 (:data:`plenocl.piv.imagefit.METHOD`); a rerun with the same skips both, any change runs
 both again, but a change of the binned field's options alone (the field stage's own key,
 with the digest of the tracks it bins) runs the field stage only. The outputs of a stage
@@ -44,6 +45,7 @@ from ..pipeline.track import TrackSettings, bin_tracks, track
 from ..piv.imagefit import METHOD as FIT_METHOD
 from ..piv.refinement import FocalZone
 from ..ptv import Tracks
+from ..reconstruction import METHOD as RECONSTRUCTION_METHOD
 from .config import Experiment
 from .pairing import fingerprint, numbered_series
 from .prepare import (
@@ -208,7 +210,7 @@ def _config(exp: Experiment, frames: dict[int, Path], out: Path,
             "settings": record, "channel": exp["images"]["channel"],
             "dark": dark and _content(Path(dark)), "flat": flat and _content(Path(flat)),
             "camera": _digest(out / "camera_used.toml"), "grid": _digest(out / "grid_used.toml"),
-            "fit": FIT_METHOD}
+            "reconstruction": RECONSTRUCTION_METHOD, "fit": FIT_METHOD}
 
 
 def _content(path: Path) -> dict:

@@ -27,6 +27,7 @@ from ..pipeline.settings import PairSettings
 from ..piv.direct import METHOD as CORRELATION_METHOD
 from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from ..piv.settings import PIVSettings
+from ..reconstruction import METHOD as RECONSTRUCTION_METHOD
 from ..reconstruction import ReconstructionSettings
 from ..volumefile import load_volume, save_volume
 
@@ -141,7 +142,7 @@ def run_boundary_layer(size: str, out_dir: str | Path, queue=None, seed: int = 0
              "lens_weights": settings.reconstruction.lens_weights,
              "refinement": "particles fitted to the raw images on the device, the calibrated "
                            f"camera's lines of sight (issue 48); {REFINEMENT_METHOD}",
-             "correlation": CORRELATION_METHOD}
+             "correlation": CORRELATION_METHOD, "reconstruction": RECONSTRUCTION_METHOD}
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "chain": chain}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: stage_particles(run, sc, flow, seed))

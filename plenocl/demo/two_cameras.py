@@ -27,7 +27,10 @@ from ..opencl.device import get_queue
 from ..pipeline.pair import process_pair
 from ..pipeline.posecal import calibrate_pose
 from ..pipeline.resume import StageRunner
+from ..piv.direct import METHOD as CORRELATION_METHOD
+from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from ..projection.projector import Projector
+from ..reconstruction import METHOD as RECONSTRUCTION_METHOD
 from ..vectorfield import save_field
 from .boundary_layer import (
     DT,
@@ -65,7 +68,9 @@ def run_two_cameras(out_dir: str | Path, queue=None, seed: int = 0, apart: float
     queue = get_queue(queue)  # one queue: the two cameras' projectors share it
     weights = chain_settings(sc).with_named_weights().reconstruction.lens_weights
     run = StageRunner(out_dir, {**sc.config(), "seed": seed, "apart_deg": apart,
-                                "cameras": 2, "lens_weights": weights}, log)
+                                "cameras": 2, "lens_weights": weights,
+                                "methods": [RECONSTRUCTION_METHOD, CORRELATION_METHOD,
+                                            REFINEMENT_METHOD]}, log)
     run.run("particles", ["particles_a.csv", "particles_b.csv"],
             lambda: stage_particles(run, sc, flow, seed))
     poses = true_poses(apart)

@@ -29,6 +29,7 @@ from .settings import (
     DEFAULTS,
     FINE_DEFAULTS,
     MAX_MART_BLOCKS,
+    METHOD,
     METHODS,
     SUPERSAMPLE,
     SUPPORT,
@@ -39,7 +40,7 @@ from .solver import CROP_BELOW, UPDATES, Solver, extent_box, nonzero_box
 from .supersample import MAX_SUPERSAMPLE, bin_lateral, spread_lateral
 
 __all__ = ["COARSE_ITERATIONS", "CROP_BELOW", "DEFAULTS", "FINE_DEFAULTS", "FLOAT32_LIMIT",
-           "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHODS", "NOISE_SIGMAS", "SUPERSAMPLE",
+           "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHOD", "METHODS", "NOISE_SIGMAS", "SUPERSAMPLE",
            "SUPPORT", "UPDATES", "UnusableImageError", "bin_lateral",
            "prepare_on_host", "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
