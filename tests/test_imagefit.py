@@ -16,6 +16,7 @@ from plenocl.piv.imagefit import (
     PRIOR_VOXELS,
     ImageFit,
     ImageFitSettings,
+    posterior_covariance,
     sight_steps,
 )
 from plenocl.reference.simulate import trace_particles
@@ -303,6 +304,54 @@ def test_the_posterior_covariance_leans_with_the_line_of_sight():
     assert np.all(lean > np.radians(1.0)) and np.all(off_line < lean / 3), (off_line, lean)
     first, _ = fit.refine_pair(GRID.to_index(start), GRID.to_index(start))
     np.testing.assert_allclose(first.covariance, cov / np.outer(VOXEL, VOXEL), rtol=1e-9)
+
+
+def scaled_normals(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Normal matrices ``D M D`` ``(n, 4, 4)`` of well-conditioned ``M`` and diagonal
+    ``D`` of powers of two from 2^-20 to 2^20 (a fit's axes in millimetres and counts
+    differ so; the scaling is exact in floating point), and the exact position blocks of
+    their inverses, ``D^-1 M^-1 D^-1``."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, 12, 4))
+    m = np.einsum("nki,nkj->nij", a, a)
+    d = 2.0 ** rng.integers(-20, 21, size=(n, 4))
+    outer = d[:, :, None] * d[:, None, :]
+    return (m * outer), (np.linalg.inv(m) / outer)[:, :3, :3]
+
+
+def test_the_posterior_covariance_is_the_inverse_across_axes_of_any_scale():
+    """Axes 2^40 apart (condition numbers to 1e24): the covariance is the exact inverse's
+    position block to float64 rounding, where the pseudo-inverse drops the small
+    singular values (errors of order one); exactly symmetric."""
+    normal, want = scaled_normals(64, 3)
+    got = posterior_covariance(normal)
+    scale = np.abs(want).max(axis=(1, 2), keepdims=True)
+    np.testing.assert_array_less(np.abs(got - want) / scale, 1e-12)
+    np.testing.assert_array_equal(got, np.swapaxes(got, 1, 2))
+    pinv = np.linalg.pinv(normal)[:, :3, :3]
+    assert np.max(np.abs(pinv - want) / scale) > 1e-3  # what it replaced could not
+
+
+def test_a_particle_lighting_no_pixel_keeps_its_positions_prior():
+    """A matrix whose intensity row and column are zero (the particle lights no pixel)
+    takes the pseudo-inverse beside the others: its position block is the inverse of
+    the position block, the others' their own, and a non-finite matrix still raises for
+    the fit's fallback to name it."""
+    normal, want = scaled_normals(5, 4)
+    blind = normal.copy()
+    blind[2, 3, :] = blind[2, :, 3] = 0.0
+    got = posterior_covariance(blind)
+    scale = np.abs(want).max(axis=(1, 2), keepdims=True)
+    keep = [0, 1, 3, 4]
+    np.testing.assert_array_less(np.abs(got[keep] - want[keep]) / scale[keep], 1e-12)
+    # the pseudo-inverse's float64 accuracy at axes 2^40 apart
+    np.testing.assert_allclose(got[2], np.linalg.inv(blind[2, :3, :3]), rtol=1e-6)
+    singular = normal[:2].copy()
+    singular[1] = np.outer([1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0, 4.0])
+    got = posterior_covariance(singular)  # the stack refused: all by the pseudo-inverse
+    np.testing.assert_allclose(got[1], np.linalg.pinv(singular[1])[:3, :3], rtol=1e-12)
+    with pytest.raises(np.linalg.LinAlgError):
+        posterior_covariance(np.full((1, 4, 4), np.nan))
 
 
 def leaning_equations(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

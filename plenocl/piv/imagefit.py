@@ -658,8 +658,28 @@ def _solve_each(normal: np.ndarray, rhs: np.ndarray, damping: float
 
 def posterior_covariance(normal: np.ndarray) -> np.ndarray:
     """The position block ``(n, 3, 3)`` of the inverse of normal matrices ``(n, k, k)``
-    (the first three unknowns the position; pseudo-inverse, made exactly symmetric)."""
-    cov = np.linalg.pinv(normal)[:, :3, :3]
+    (the first three unknowns the position), made exactly symmetric.
+
+    Each matrix is scaled to a unit diagonal, inverted and scaled back: a fit's axes
+    (millimetres, counts) span many orders of magnitude (condition numbers of 1e8-1e12 on
+    the paper pair's fits, under 1e3 once scaled), which the scaling takes out, so the
+    inverse is closer than the pseudo-inverse's (``N X - I`` within 4e-11 against 1.6e-8
+    there) and several times faster. A matrix with a zero or non-finite diagonal (a
+    particle lighting no pixel: its intensity unseen), or a stack whose scaled inverse
+    fails, takes the pseudo-inverse (``numpy.linalg.pinv``), which raises
+    ``LinAlgError`` where it cannot converge (docs/design.md §7.2)."""
+    diag = np.sqrt(np.diagonal(normal, axis1=1, axis2=2))
+    scalable = np.all(np.isfinite(diag) & (diag > 0), axis=1)
+    inverse = np.empty(normal.shape)
+    try:
+        d = diag[scalable]
+        outer = d[:, :, None] * d[:, None, :]
+        inverse[scalable] = np.linalg.inv(normal[scalable] / outer) / outer
+    except np.linalg.LinAlgError:  # one exactly singular matrix refuses the stack
+        scalable[:] = False
+    if not scalable.all():
+        inverse[~scalable] = np.linalg.pinv(normal[~scalable])
+    cov = inverse[:, :3, :3]
     return (cov + np.swapaxes(cov, 1, 2)) / 2
 
 
