@@ -49,6 +49,34 @@ def test_rendered_particles_conserve_intensity_and_peak_at_the_truth():
     assert np.abs(err).max() < 0.1  # sub-voxel fit of erf-integrated Gaussians
 
 
+def test_peaks_on_the_faces_are_fitted_as_if_zeros_lay_beyond():
+    """A peak in every face and corner voxel of an awkward volume: each sub-voxel offset
+    is the three-point fit with 0 beyond the face (parabolic there: a zero neighbour has
+    no logarithm), toward the inner neighbour, as a zero-padded volume gives it."""
+    rng = np.random.default_rng(7)
+    vol = np.zeros((5, 6, 7), np.float32)
+    corners = [(z, y, x) for z in (0, 4) for y in (0, 5) for x in (0, 6)]
+    for z, y, x in corners:  # each peak with one lit neighbour inside along each axis
+        vol[z, y, x] = 10.0
+        for inner in ((1 if z == 0 else 3, y, x), (z, 1 if y == 0 else 4, x),
+                      (z, y, 1 if x == 0 else 5)):
+            vol[inner] = rng.uniform(2.0, 6.0)
+    found, values = find_particles(vol, threshold=0.5)
+    assert len(found) == 8 and np.all(values == 10.0)
+    pad = np.pad(vol, 1)
+    for ix, iy, iz in np.rint(found).astype(int):
+        c = (iz + 1, iy + 1, ix + 1)
+        for k, axis in enumerate((2, 1, 0)):
+            minus, plus = list(c), list(c)
+            minus[axis] -= 1
+            plus[axis] += 1
+            m, p = float(pad[tuple(minus)]), float(pad[tuple(plus)])
+            want = np.clip((m - p) / (2.0 * (m - 20.0 + p)), -0.5, 0.5)
+            got = found[(np.rint(found) == (ix, iy, iz)).all(axis=1)][0, k]
+            assert got - (ix, iy, iz)[k] == pytest.approx(want, abs=1e-12)
+            assert np.sign(want) == np.sign(p - m)  # towards the lit neighbour inside
+
+
 def test_a_robust_reference_keeps_the_particles_a_few_bright_voxels_would_hide():
     """Twelve particles and two voxels 40 times brighter (as crossing lines of sight
     make in a dense volume): the maximum as reference keeps only those two; the robust
