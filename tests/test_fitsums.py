@@ -176,6 +176,39 @@ def test_kept_buffers_give_fresh_results(queue):
             np.testing.assert_array_equal(a, b)
 
 
+def test_rows_growing_a_little_are_kept_in_one_buffer(queue, monkeypatch):
+    """A fit's patches grow a little from step to step as its particles move: the rows
+    buffer is made once with headroom (``KEPT_HEADROOM``), not again at each step (a
+    fresh buffer's first touch costs page faults on a CPU device)."""
+    from plenocl.opencl.program import KernelSet
+    from plenocl.piv.fitsums import KEPT_HEADROOM
+
+    made = []
+    array = KernelSet.array
+
+    def counted(self, size, *args, **kwargs):
+        made.append(int(size))
+        return array(self, size, *args, **kwargs)
+
+    bundle = RayBundle.of(CAM, rays=37)
+    rng = np.random.default_rng(5)
+    pts = CAM.image_points(np.column_stack([rng.uniform(-2.5, 2.5, 10),
+                                            rng.uniform(-2, 2, 10), rng.uniform(-9, 9, 10)]))
+    data = rng.uniform(0.0, 50.0, CAM.pixels[::-1])
+    sums = DeviceFitSums(DeviceRayBundle(bundle, queue), chunk=4)
+    image = sums.upload(data)
+    monkeypatch.setattr(KernelSet, "array", counted)
+    totals = []
+    for n in (9, 10):  # the second step's patches a few per cent more elements
+        patches = bundle.patches(pts[:n])
+        totals.append(5 * int(patches.offset[-1]))
+        sums.normal_sums(image, pts[:n], np.full(n, 300.0), patches,
+                         np.tile(np.eye(3), (n, 1, 1)))
+    assert totals[0] < totals[1] <= KEPT_HEADROOM * totals[0]
+    rows = [size for size in made if size >= totals[0]]
+    assert rows == [int(KEPT_HEADROOM * totals[0])], (made, totals)
+
+
 def test_the_chunk_changes_no_sum(queue):
     """Particles rendered 2 at a time and all at once (the default on a GPU): the same
     normal and unit sums, bit for bit (each particle's rows are written alone)."""

@@ -31,6 +31,11 @@ HOST_CHUNK = 128
 #: The rays' scratch a GPU's rendering may take at once: its default chunk (2,892
 #: particles at 200 rays: the paper pair's 2,789 in one launch, not 22 of 128).
 GPU_SCRATCH_BYTES = 256 * 2**20
+#: A kept buffer too small is made this much larger than asked (within the device's
+#: largest buffer): a fit's patches change a little at every step as its particles move
+#: (the 116 x 78 pair's rows 32.13 → 32.97 million floats over eight steps), and a buffer
+#: made exactly to size was made again at most steps, each a fresh buffer's page faults.
+KEPT_HEADROOM = 1.25
 
 
 def fit_chunk(renderer: DeviceRayBundle, chunk: int | None = None) -> int:
@@ -173,11 +178,14 @@ class DeviceFitSums:
         return model
 
     def _kept_array(self, name: str, size: int) -> cl_array.Array:
-        """The first ``size`` floats of the kept buffer ``name``, grown to hold them (the
-        in-order queue finishes the previous computation's kernels before new ones)."""
+        """The first ``size`` floats of the kept buffer ``name``, grown to hold them with
+        :data:`KEPT_HEADROOM` (the in-order queue finishes the previous computation's
+        kernels before new ones)."""
         kept = self._kept.get(name)
         if kept is None or kept.size < size:
-            kept = self._kept[name] = self._k.array(max(size, 1))
+            largest = self.renderer.queue.device.max_mem_alloc_size // 4
+            grown = max(min(int(size * KEPT_HEADROOM), largest), size, 1)
+            kept = self._kept[name] = self._k.array(grown)
         return kept[:size]
 
     def _geometry(self, patches: Patches) -> list[cl_array.Array]:
