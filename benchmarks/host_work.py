@@ -54,6 +54,11 @@ from a float64 computation of the same factors (7.4e-4 against the device's 1.3e
   replaced, on matrices of the fits' scales (the axes' roots 490, 490, 29 and 0.0026:
   mm and counts); the difference relative to each block's largest element: 0.003
   against 0.009 s (PoCL machine, medians of 5, 2026-12-01), 7.8e-14 apart.
+* a camera's uint16 frame's median and noise counted on its integers
+  (``rawimage.counted``, 2026-12-01) against the same histogram of its float64 copy
+  (the reconstruction's and the fit's path before; the copy itself is made either way,
+  the checked image and the fit's data, so it is not timed): 0.086 against 0.147 s
+  (PoCL machine, medians of 5, 2026-12-01), the same values.
 """
 
 from __future__ import annotations
@@ -198,6 +203,12 @@ def main() -> None:
     new = timed(lambda: median_and_noise(img), n)
     old = timed(numpy_median_and_noise, n)
     row("median and noise, 16 MP (bracketed / NumPy)", new, old,
+        float(np.max(np.abs(np.subtract(new[0], old[0])))), "counts")
+    counts = np.clip(np.rint(img), 0, 65535).astype(np.uint16)  # a camera's frame
+    as_float = counts.astype(np.float64)  # made anyway: the checked image, the fit's data
+    new = timed(lambda: median_and_noise(counts), n)
+    old = timed(lambda: median_and_noise(as_float), n)
+    row("median and noise, 16 MP uint16 (as counts / float)", new, old,
         float(np.max(np.abs(np.subtract(new[0], old[0])))), "counts")
 
     mask = vol > 0.01 * vol.max()

@@ -103,31 +103,66 @@ def test_background_subtraction_returns_noise_level():
     assert clean[50, 50] == pytest.approx(980, abs=1)
 
 
-@pytest.mark.parametrize("kind", ["counts", "signed", "one fraction", "float", "wide", "mask"])
+@pytest.mark.parametrize("kind", ["counts", "signed", "one fraction", "float", "wide", "mask",
+                                  "uint16", "uint8 from 3", "int16 signed", "int64 wide",
+                                  "uint32 mask"])
 def test_the_median_and_noise_of_integer_counts_equal_numpys(kind):
-    """A camera's integer counts take a histogram: the median and MAD are NumPy's exactly
-    (odd and even counts, ties, negative levels); anything else takes NumPy's sorts."""
+    """A camera's integer counts take a histogram, as floats holding integers or as the
+    camera's integer type itself: the median and MAD are NumPy's exactly (odd and even
+    counts, ties, negative levels, a lowest level above 0); anything else takes NumPy's
+    sorts."""
     from plenocl.optics.rawimage import median_and_noise
 
     rng = np.random.default_rng(len(kind))
     for n in (1, 2, 7, 40, 1001, 40_000):
         img = rng.poisson(20, n).astype(np.float64)
-        img[rng.random(n) < 0.02] += 3000
-        observed = rng.random(n) < 0.7 if kind == "mask" else None
-        if kind == "signed":
+        img[rng.random(n) < 0.02] += 200
+        observed = rng.random(n) < 0.7 if "mask" in kind else None
+        if "signed" in kind:
             img -= 25
         elif kind == "one fraction":
             img[-1] += 0.5
         elif kind == "float":
             img += rng.normal(0, 1, n)
-        elif kind == "wide":
+        elif "wide" in kind:
             img[0] = 2.0**40
+        elif kind == "uint8 from 3":
+            img = np.maximum(img, 3)
+        dtype = kind.split()[0]
+        if dtype in ("uint16", "uint8", "int16", "int64", "uint32"):
+            img = img.astype(dtype)
         data = img if observed is None else img[observed]
         if not data.size:
             continue
         med = float(np.median(data))
         expected = (med, 1.4826 * float(np.median(np.abs(data - med))))
         assert median_and_noise(img, observed) == expected
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_a_cameras_integer_frame_is_prepared_as_its_float_copy(masked):
+    """A uint16 frame's background and noise are counted on its integers (no float
+    copy), for the reconstruction's image (with a pixel mask too) and the fit's: the
+    same preparation, bit for bit, as the frame given as float64."""
+    from plenocl.optics.rawimage import scaled_background_free
+    from plenocl.reconstruction import prepare_on_host
+
+    cam = Camera.synthetic_850()
+    rng = np.random.default_rng(9)
+    raw = rng.poisson(30.0, cam.pixels[::-1]).astype(np.uint16)
+    raw[rng.random(raw.shape) < 0.03] += 900
+    observed = rng.random(raw.shape) < 0.9 if masked else None
+    rec = ReconstructionSettings()
+    got, want = (prepare_on_host(img, cam, rec, observed)
+                 for img in (raw, raw.astype(np.float64)))
+    assert got.background == want.background and got.noise == want.noise
+    assert got.background == (np.median(raw[observed]) if masked else np.median(raw))
+    assert (got.scale, got.threshold) == (want.scale, want.threshold)
+    np.testing.assert_array_equal(got.image, want.image)
+    (a, noise_a), (b, noise_b) = (scaled_background_free(img)
+                                  for img in (raw, raw.astype(np.float64)))
+    assert noise_a == noise_b and a.scale == b.scale
+    np.testing.assert_array_equal(a.values, b.values)
 
 
 def test_reconstruct_cli_writes_volume_with_grid(tmp_path, small_camera, queue):

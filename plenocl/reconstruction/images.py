@@ -16,6 +16,7 @@ from ..optics.rawimage import (
     background_and_noise,
     check_exposure,
     check_image,
+    counted,
     dark_noise,
     divided_to_float32,
 )
@@ -137,8 +138,8 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     if observed is not None:
         img = np.where(observed, img, 0.0)  # no data: no light, no statistics
     med = noise = None
-    if background == "median":
-        med, noise = background_and_noise(img, observed)
+    if background == "median":  # the raw counts where they are integers: no fractions
+        med, noise = background_and_noise(counted(image, img), observed)
     elif background is None:
         if img.min() < 0:  # a dark frame subtracted: its noise below zero, clipped
             med, noise = 0.0, dark_noise(img, observed)
