@@ -3,7 +3,7 @@ each reconstruction setting, every setting on the same scene in the same run.
 
     python benchmarks/paper_pair.py [--settings previous fullaperture default] [--lenses 289 193]
                                     [--seeding 0.05] [--motion uniform] [--bit-depth 16]
-                                    [--profile] [--host-profile N]
+                                    [--profile] [--host-profile N] [--scratch-mb M]
 
 Camera: the paper's optics on the whole 16 MP sensor (289 x 193 microlenses,
 4914 x 3282 px); grid: the paper's 300 x 200 x 150 voxels (``paper_optics``, as in
@@ -29,6 +29,12 @@ megabytes moved each way, then the bytes a pair moved against its two raw images
 the 15 kernels of most device time (launches, seconds, share).
 ``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
 functions of most own time (on a GPU, where the host's work goes; docs/design.md §7.5).
+``--scratch-mb M``: the projector's scratch bound (``Projector(scratch_bytes=)``); the
+sub-voxel projector's plan (chunks, depths a launch) is printed either way. On this
+CPU one chunk of every depth halved the launches (1,077 → 541 a 116 x 78 pair) and the
+host's work with them (0.775 → 0.700 s) but slowed the kernels by a fifth (9.4 → 11.5
+s): to be measured on a GPU, whose launches cost more and whose kernels gain from
+larger ones (docs/design.md §7.5).
 """
 
 from __future__ import annotations
@@ -97,9 +103,14 @@ def main() -> None:
     parser.add_argument("--host-profile", type=int, default=0, metavar="N",
                         help="then the first setting's pair once more under cProfile: its "
                              "N functions of most own time (where the host's work goes)")
+    parser.add_argument("--scratch-mb", type=float, default=None,
+                        help="the projector's scratch bound (MiB; default: the device's "
+                             "rule): a larger one takes more depths per launch")
     args = parser.parse_args()
     queue = get_queue(profiling=args.profile)
-    cam, grid, proj = paper_setup(tuple(args.lenses), queue)
+    options = ({} if args.scratch_mb is None
+               else {"scratch_bytes": int(args.scratch_mb * 2**20)})
+    cam, grid, proj = paper_setup(tuple(args.lenses), queue, **options)
     motion = MOTIONS[args.motion]
     scene = budget_scene(cam, grid, args.seeding, args.seed, queue, motion=motion,
                          bit_depth=args.bit_depth)
@@ -113,6 +124,9 @@ def main() -> None:
           f"once per projector (a batch "
           f"worker's first pair): {time.perf_counter() - t0:.1f} s; every row below runs "
           "with them built")
+    fine = proj.refined(SUPERSAMPLE).plan
+    print(f"the sub-voxel projector's plan: {len(fine.columns)} aperture-column chunk(s), "
+          f"{fine.zchunk} depths a launch, {fine.scratch_bytes / 2**20:.0f} MiB of scratch")
     print(f"{scene.count} particles ({args.seeding} per microlens), {motion.name}")
     print(f"{'setting':10s} {'total s':>8s} {'rec a':>6s} {'rec b':>6s} {'piv':>5s} "
           f"{'part.':>6s} | {'lateral':>7s} {'depth':>6s} {'valid':>6s} {'recov':>6s}")

@@ -52,13 +52,14 @@ ROWS = {"default": "default", "previous": "30 sub-voxel iterations",
         "baseline": "before (voxels, correlation)"}
 
 
-def paper_setup(lenses: tuple[int, int], queue, layout: str = "rectangular"
-                ) -> tuple[Camera, Grid, Projector]:
+def paper_setup(lenses: tuple[int, int], queue, layout: str = "rectangular",
+                **options) -> tuple[Camera, Grid, Projector]:
     """:func:`paper_optics` on ``lenses`` microlenses (``layout``) with its projector on
-    ``queue``; prints the device, the load, the camera and the grid (a benchmark script's
-    first lines)."""
+    ``queue`` (``options``: :class:`plenocl.Projector`'s, e.g. ``scratch_bytes``);
+    prints the device, the load, the camera and the grid (a benchmark script's first
+    lines)."""
     cam, grid = paper_optics(lenses, layout)
-    proj = Projector(cam, grid, queue)
+    proj = Projector(cam, grid, queue, **options)
     print(f"device: {queue.device.name.strip()}; load average {os.getloadavg()[0]:.2f}")
     print(f"camera: {cam.describe()}; {cam.pixels[0]} x {cam.pixels[1]} px")
     print(f"grid {grid.shape} (z, y, x), voxel {grid.spacing[2]:.4f} x {grid.spacing[1]:.4f}"
