@@ -209,6 +209,17 @@ def test_rows_growing_a_little_are_kept_in_one_buffer(queue, monkeypatch):
     assert rows == [int(KEPT_HEADROOM * totals[0])], (made, totals)
 
 
+def test_a_kept_buffers_headroom_stays_within_the_largest_buffer():
+    """The headroom is cut at the device's largest buffer, never below the size asked
+    (which the driver may then refuse by name) and never empty."""
+    from plenocl.piv.fitsums import kept_size
+
+    assert kept_size(1000, 10**9, 1.25) == 1250
+    assert kept_size(1000, 1100, 1.25) == 1100
+    assert kept_size(1200, 1100, 1.25) == 1200
+    assert kept_size(0, 10, 1.25) == 1 and kept_size(7, 10**9, 1.0) == 7
+
+
 def test_the_chunk_changes_no_sum(queue):
     """Particles rendered 2 at a time and all at once (the default on a GPU): the same
     normal and unit sums, bit for bit (each particle's rows are written alone)."""

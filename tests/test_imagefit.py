@@ -4,6 +4,8 @@ finite differences, and the fit's recovery of particles from ray-traced images."
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import tolerances as tol
@@ -335,8 +337,9 @@ def test_the_posterior_covariance_is_the_inverse_across_axes_of_any_scale():
 def test_a_particle_lighting_no_pixel_keeps_its_positions_prior():
     """A matrix whose intensity row and column are zero (the particle lights no pixel)
     takes the pseudo-inverse beside the others: its position block is the inverse of
-    the position block, the others' their own, and a non-finite matrix still raises for
-    the fit's fallback to name it."""
+    the position block, the others' their own; a NaN diagonal still raises (the
+    pseudo-inverse's ``LinAlgError``), and negative or subnormal diagonals give no
+    warning."""
     normal, want = scaled_normals(5, 4)
     blind = normal.copy()
     blind[2, 3, :] = blind[2, :, 3] = 0.0
@@ -352,6 +355,12 @@ def test_a_particle_lighting_no_pixel_keeps_its_positions_prior():
     np.testing.assert_allclose(got[1], np.linalg.pinv(singular[1])[:3, :3], rtol=1e-12)
     with pytest.raises(np.linalg.LinAlgError):
         posterior_covariance(np.full((1, 4, 4), np.nan))
+    odd = normal[:2].copy()
+    odd[0, 3, 3], odd[1, 3, 3] = -1.0, 1e-320
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = posterior_covariance(odd)
+    np.testing.assert_allclose(got, np.linalg.pinv(odd)[:, :3, :3], rtol=1e-6)
 
 
 def leaning_equations(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

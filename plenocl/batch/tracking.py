@@ -210,7 +210,7 @@ def _config(exp: Experiment, frames: dict[int, Path], out: Path,
             "settings": record, "channel": exp["images"]["channel"],
             "dark": dark and _content(Path(dark)), "flat": flat and _content(Path(flat)),
             "camera": _digest(out / "camera_used.toml"), "grid": _digest(out / "grid_used.toml"),
-            "reconstruction": RECONSTRUCTION_METHOD, "fit": FIT_METHOD}
+            "reconstruction_method": RECONSTRUCTION_METHOD, "fit": FIT_METHOD}
 
 
 def _content(path: Path) -> dict:

@@ -31,10 +31,11 @@ HOST_CHUNK = 128
 #: The rays' scratch a GPU's rendering may take at once: its default chunk (2,892
 #: particles at 200 rays: the paper pair's 2,789 in one launch, not 22 of 128).
 GPU_SCRATCH_BYTES = 256 * 2**20
-#: A kept buffer too small is made this much larger than asked (within the device's
-#: largest buffer): a fit's patches change a little at every step as its particles move
-#: (the 116 x 78 pair's rows 32.13 → 32.97 million floats over eight steps), and a buffer
-#: made exactly to size was made again at most steps, each a fresh buffer's page faults.
+#: The kept rows buffer, too small, is made this much larger than asked (within the
+#: device's largest buffer): a fit's patches change a little at every step as its
+#: particles move (the 116 x 78 pair's rows 32.13 → 32.97 million floats over eight
+#: steps), and a buffer made exactly to size was made again at most steps, each a fresh
+#: buffer's page faults. The model image keeps the sensor's size: made to size.
 KEPT_HEADROOM = 1.25
 
 
@@ -155,7 +156,7 @@ class DeviceFitSums:
                 derivatives: bool) -> cl_array.Array:
         """Every particle's rows into one device buffer, ``chunk`` particles at a time."""
         total = int(patches.offset[-1])
-        rows = self._kept_array("rows", (5 if derivatives else 1) * total)
+        rows = self._kept_array("rows", (5 if derivatives else 1) * total, KEPT_HEADROOM)
         for start in range(0, len(image_points), self.chunk):
             part = slice(start, start + self.chunk)
             sub = Patches(patches.offset[start:part.stop + 1], patches.col0[part],
@@ -177,15 +178,14 @@ class DeviceFitSums:
                        self._k.to_device(row_list), i32(shape[1]), i32(self._block), model)
         return model
 
-    def _kept_array(self, name: str, size: int) -> cl_array.Array:
-        """The first ``size`` floats of the kept buffer ``name``, grown to hold them with
-        :data:`KEPT_HEADROOM` (the in-order queue finishes the previous computation's
-        kernels before new ones)."""
+    def _kept_array(self, name: str, size: int, headroom: float = 1.0) -> cl_array.Array:
+        """The first ``size`` floats of the kept buffer ``name``, grown to hold them
+        (:func:`kept_size` with ``headroom``; the in-order queue finishes the previous
+        computation's kernels before new ones)."""
         kept = self._kept.get(name)
         if kept is None or kept.size < size:
             largest = self.renderer.queue.device.max_mem_alloc_size // 4
-            grown = max(min(int(size * KEPT_HEADROOM), largest), size, 1)
-            kept = self._kept[name] = self._k.array(grown)
+            kept = self._kept[name] = self._k.array(kept_size(size, largest, headroom))
         return kept[:size]
 
     def _geometry(self, patches: Patches) -> list[cl_array.Array]:
@@ -193,6 +193,13 @@ class DeviceFitSums:
         return [self._k.to_device(patches.offset.astype(i64))] + [
             self._k.to_device(a.astype(i32))
             for a in (patches.col0, patches.row0, patches.width, patches.height)]
+
+
+def kept_size(size: int, largest: int, headroom: float) -> int:
+    """Floats to make a kept buffer that must hold ``size``: ``headroom`` times it, but
+    no more than ``largest`` (the device's largest buffer), never less than ``size``
+    (a buffer beyond ``largest`` is the driver's to refuse) and at least one."""
+    return max(min(int(size * headroom), largest), size, 1)
 
 
 def _sensor(image: cl_array.Array) -> tuple[np.int32, np.int32]:

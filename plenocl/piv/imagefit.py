@@ -664,19 +664,23 @@ def posterior_covariance(normal: np.ndarray) -> np.ndarray:
     (millimetres, counts) span many orders of magnitude (condition numbers of 1e8-1e12 on
     the paper pair's fits, under 1e3 once scaled), which the scaling takes out, so the
     inverse is closer than the pseudo-inverse's (``N X - I`` within 4e-11 against 1.6e-8
-    there) and several times faster. A matrix with a zero or non-finite diagonal (a
-    particle lighting no pixel: its intensity unseen), or a stack whose scaled inverse
-    fails, takes the pseudo-inverse (``numpy.linalg.pinv``), which raises
-    ``LinAlgError`` where it cannot converge (docs/design.md §7.2)."""
-    diag = np.sqrt(np.diagonal(normal, axis1=1, axis2=2))
-    scalable = np.all(np.isfinite(diag) & (diag > 0), axis=1)
+    there) and several times faster. A matrix whose diagonal is not all finite and
+    normal (above the smallest normal float: a particle lighting no pixel has an unseen
+    intensity, a zero), whose scaled inverse is not finite, or any in a stack whose
+    scaled inverse fails (one exactly singular matrix), takes the pseudo-inverse
+    (``numpy.linalg.pinv``), which raises ``LinAlgError`` where it cannot converge (a
+    NaN diagonal). The fit passes finite matrices alone (docs/design.md §7.2)."""
+    diag = np.diagonal(normal, axis1=1, axis2=2)
+    scalable = np.all(np.isfinite(diag) & (diag >= np.finfo(np.float64).tiny), axis=1)
     inverse = np.empty(normal.shape)
-    try:
-        d = diag[scalable]
-        outer = d[:, :, None] * d[:, None, :]
-        inverse[scalable] = np.linalg.inv(normal[scalable] / outer) / outer
-    except np.linalg.LinAlgError:  # one exactly singular matrix refuses the stack
-        scalable[:] = False
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        try:
+            root = np.sqrt(diag[scalable])
+            outer = root[:, :, None] * root[:, None, :]
+            inverse[scalable] = np.linalg.inv(normal[scalable] / outer) / outer
+        except np.linalg.LinAlgError:  # one exactly singular matrix refuses the stack
+            scalable[:] = False
+    scalable &= np.all(np.isfinite(inverse), axis=(1, 2))
     if not scalable.all():
         inverse[~scalable] = np.linalg.pinv(normal[~scalable])
     cov = inverse[:, :3, :3]

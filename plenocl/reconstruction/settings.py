@@ -12,12 +12,12 @@ from ..options import is_integer
 from .supersample import MAX_SUPERSAMPLE
 
 METHODS = ("mlem", "smart", "mart")
-#: The reconstruction's method, recorded with every batch field and its kept volumes
-#: (:func:`plenocl.batch.record.run_record`), every tracking run
-#: (:mod:`plenocl.batch.tracking`) and the demos' stages: a rerun redoes the volumes an
-#: earlier method made from the same settings. Change it whenever a reconstruction makes
-#: other volumes from the same settings (rounding included: a kept volume then differs
-#: from a fresh one).
+#: The reconstruction's method, recorded with every batch field (and so in the
+#: ``volumes`` digest its kept volumes carry: :func:`plenocl.batch.record.run_record`),
+#: every tracking run (:mod:`plenocl.batch.tracking`) and the demos' stages: a rerun
+#: redoes the volumes an earlier method made from the same settings. Change it whenever
+#: a reconstruction makes other volumes from the same settings (rounding included: a
+#: kept volume then differs from a fresh one).
 METHOD = ("coarse-to-fine: the coarse support's peak, floor and level found on the "
           "device, the level from float32 row sums added in float64 (2026-12-01, issue 46)")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
