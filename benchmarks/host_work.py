@@ -58,7 +58,11 @@ from a float64 computation of the same factors (7.4e-4 against the device's 1.3e
   (``rawimage.counted``, 2026-12-01) against the same histogram of its float64 copy
   (the reconstruction's and the fit's path before; the copy itself is made either way,
   the checked image and the fit's data, so it is not timed): 0.086 against 0.147 s
-  (PoCL machine, medians of 5, 2026-12-01), the same values.
+  (PoCL machine, medians of 5, 2026-12-01), the same values; and the reconstruction's
+  whole host preparation of that frame (``prepare_on_host``: checks, exposure, median,
+  noise, scaling; the exposure check on the counts too) against the same frame given
+  as float64, the path the counts took before: 0.234 against 0.311 s (the same day and
+  machine, load average 1.9), the same image.
 """
 
 from __future__ import annotations
@@ -90,6 +94,7 @@ from plenocl.piv.interpolate import prepare  # noqa: E402
 from plenocl.piv.refinement import SightLines, depth_interpolation  # noqa: E402
 from plenocl.piv.tube import DeviceTubeSums, host_tube_sums  # noqa: E402
 from plenocl.projection.lenses import lit_lenses, lit_lenses_on_device  # noqa: E402
+from plenocl.reconstruction import ReconstructionSettings, prepare_on_host  # noqa: E402
 from plenocl.reconstruction.schedule import box_dilated  # noqa: E402
 from plenocl.reference.refinement import depth_interpolation_reference  # noqa: E402
 
@@ -210,6 +215,12 @@ def main() -> None:
     old = timed(lambda: median_and_noise(as_float), n)
     row("median and noise, 16 MP uint16 (as counts / float)", new, old,
         float(np.max(np.abs(np.subtract(new[0], old[0])))), "counts")
+    cam16 = paper_optics((289, 193))[0]
+    settings = ReconstructionSettings()
+    new = timed(lambda: prepare_on_host(counts, cam16, settings), n)
+    old = timed(lambda: prepare_on_host(as_float, cam16, settings), n)
+    row("host preparation, 16 MP uint16 (counts / float)", new, old,
+        float(np.max(np.abs(new[0].image - old[0].image))), "of the scale")
 
     mask = vol > 0.01 * vol.max()
     box = np.ones((3, 3, 3), bool)
