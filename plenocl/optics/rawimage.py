@@ -14,7 +14,7 @@ import numpy as np
 from ..camera import Camera
 
 __all__ = ["SATURATED_FRACTION", "ScaledImage", "background_and_noise", "check_exposure",
-           "check_image", "check_pixel_mask", "check_shape", "checked_background",
+           "check_image", "check_pixel_mask", "check_shape", "checked_background", "counted",
            "dark_noise", "divided_to_float32", "exact_median", "median_and_noise",
            "median_background", "scaled_background_free", "subtract_background"]
 
@@ -310,7 +310,7 @@ def _integer_histogram(data: np.ndarray) -> tuple[int, np.ndarray] | None:
         if high - low >= HISTOGRAM_LEVELS:
             return None
         if data.dtype.kind == "u":  # levels from 0: bincount reads them as they are
-            return low, np.bincount(flat, minlength=high + 1)[low:]
+            return low, np.bincount(flat)[low:]
         return low, np.bincount(flat.astype(np.int64) - low)
     if not flat.size or np.any(flat[:: max(1, flat.size // 1024)] % 1):
         return None

@@ -130,16 +130,17 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     """:func:`preprocess` as a :class:`PreparedImage` (no lit lenses), with the median
     and noise it removed; ``exposure``: a blank or saturated image is refused first."""
     img = check_image(image, camera)
+    source = counted(image, img)  # the raw counts where integers: the same values, fewer bytes
     if exposure:
-        try:  # on the raw counts where they are integers: the same values, a quarter read
-            check_exposure(counted(image, img), "the image", observed=observed)
+        try:
+            check_exposure(source, "the image", observed=observed)
         except ValueError as exc:
             raise UnusableImageError(str(exc)) from None
     if observed is not None:
         img = np.where(observed, img, 0.0)  # no data: no light, no statistics
     med = noise = None
-    if background == "median":  # the raw counts where they are integers: no fractions
-        med, noise = background_and_noise(counted(image, img), observed)
+    if background == "median":
+        med, noise = background_and_noise(source, observed)
     elif background is None:
         if img.min() < 0:  # a dark frame subtracted: its noise below zero, clipped
             med, noise = 0.0, dark_noise(img, observed)
