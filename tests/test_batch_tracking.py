@@ -144,13 +144,12 @@ def test_a_rerun_skips_the_finished_work_and_a_changed_setting_redoes_it(recordi
 
 @pytest.mark.parametrize("name, entry", [("FIT_METHOD", "fit"),
                                          ("RECONSTRUCTION_METHOD", "reconstruction_method")])
-def test_a_changed_image_fit_or_reconstruction_tracks_again(recording, monkeypatch, name,
-                                                            entry):
+def test_a_changed_method_tracks_again(recording, monkeypatch, name, entry):
     """The image fit's method (``plenocl.piv.imagefit.METHOD``) or the reconstruction's
     (``plenocl.reconstruction.METHOD``) changed with the same settings: the rerun tracks
     again and names why, never keeping tracks an earlier method made (nor does a batch
     keep such fields: the refinement's method holds the fit's, and the record the
-    reconstruction's)."""
+    reconstruction's). The other methods in the key: the next test."""
     import plenocl.batch.tracking as tracking_module
     from plenocl.piv import imagefit, refinement
 
@@ -162,6 +161,48 @@ def test_a_changed_image_fit_or_reconstruction_tracks_again(recording, monkeypat
     again = plenocl.run(d / "experiment.toml", log=_logged(lines))
     assert again.processed == ["tracks", "field"] and again.skipped == []
     assert any(f"configuration changed ({entry}):" in line for line in lines), lines
+
+
+def test_the_keys_follow_every_method_the_tracks_and_field_come_from(recording, tmp_path,
+                                                                    monkeypatch):
+    """The tracks' key names the correlation's method that predicts the first step
+    (``plenocl.piv.direct.METHOD``) and the tracker's (``plenocl.pipeline.track.METHOD``);
+    the field stage's key the tracker's and the refinement's (its window means,
+    ``plenocl.piv.refinement.METHOD``), so a changed one tracks or bins again (the
+    previous test: a changed key reruns its stages)."""
+    import plenocl.batch.tracking as tracking_module
+    from plenocl.batch.prepare import run_camera, run_grid, write_used_config
+
+    d, _ = recording
+    exp = load_experiment(d / "experiment.toml")
+    camera = run_camera(exp, None, lambda _: None)
+    write_used_config(exp, tmp_path, camera, run_grid(exp, camera), exp.tracking.record())
+    frames = tracking_module.frame_series(exp, exp.tracking)
+
+    def keys():
+        return (json.dumps(tracking_module._config(exp, frames, tmp_path, exp.tracking)),
+                json.dumps(tracking_module._field_key(tmp_path, exp.tracking)))
+
+    before = keys()
+    for name, tracks, field in (("CORRELATION_METHOD", True, False),
+                                ("TRACK_METHOD", True, True),
+                                ("REFINEMENT_METHOD", False, True)):
+        with monkeypatch.context() as patch:
+            patch.setattr(tracking_module, name, "a later method")
+            after = keys()
+        assert (after[0] != before[0], after[1] != before[1]) == (tracks, field), name
+
+
+def test_the_tracking_key_names_the_lens_weights(recording):
+    """The tracks' key names the lens weights of their volumes when the file leaves them
+    to plenocl's default, as the pairs' records do: a changed default tracks again."""
+    from plenocl.projection.projector import DEFAULT_LENS_WEIGHTS
+
+    d, _ = recording
+    exp = load_experiment(d / "experiment.toml")
+    assert exp.pair.reconstruction.lens_weights == DEFAULT_LENS_WEIGHTS
+    assert exp.tracking.record()["reconstruction"]["lens_weights"] == DEFAULT_LENS_WEIGHTS
+    assert exp.tracking.settings.reconstruction.lens_weights == DEFAULT_LENS_WEIGHTS
 
 
 @pytest.mark.parametrize("edit, message", [

@@ -199,6 +199,22 @@ def test_a_field_of_an_earlier_method_is_correlated_again(done, monkeypatch, nam
     assert field_metadata(done / PAIR)["record"][section]["method"] == f"a later {section}"
 
 
+def test_an_ensemble_of_an_earlier_method_is_made_again(done, monkeypatch):
+    """The ensemble correlation's method (``plenocl.piv.ensemble.METHOD``) changed, with
+    ``dt_s`` too: the ensemble field is correlated again from the kept volumes, not kept
+    or rescaled; the pairs' fields are kept."""
+    import plenocl.batch.record as record_module
+
+    field = (done / PAIR).read_bytes()
+    monkeypatch.setattr(record_module, "ENSEMBLE_METHOD", "a later ensemble")
+    _edit(done, f"dt_s = {DT}", f"dt_s = {2 * DT}")
+    s, said = _rerun(done, monkeypatch)
+    assert s.rescaled == [0] and not s.processed and (done / PAIR).read_bytes() != field
+    assert any("ensemble correlation of 1 pair(s)" in m for m in said), said
+    made = field_metadata(done / "results" / "ensemble.npz")["record"]
+    assert made["method"] == "a later ensemble" and made["dt_s"] == 2 * DT
+
+
 @pytest.mark.parametrize("earlier", ["another method", None])
 def test_volumes_of_an_earlier_reconstruction_method_are_made_again(done, monkeypatch,
                                                                     earlier):
@@ -290,6 +306,43 @@ def test_another_camera_or_old_results_are_refused_until_redo(done):
     _record_matches_the_run(done)
 
 
+def test_a_narrowed_selection_keeps_no_pair_it_no_longer_makes(done):
+    """A pair the run no longer makes while its frames are still there (``[images]
+    pattern`` narrowed) is refused, naming its frames and the way out, and removed with
+    ``--redo``; a pair whose frames are gone is kept, as before."""
+    raw = done / "raw"
+    for k in (0, 1):
+        shutil.copy(raw / f"frame_00{k}.tif", raw / f"frame_00{k + 2}.tif")
+    s, _ = _rerun(done)
+    assert s.skipped == [0] and s.processed == [1]
+    second = done / "results" / "pairs" / "pair_00001.npz"
+    made = second.read_bytes()
+    exp = _edit(done, 'pattern = "frame_*.tif"', 'pattern = "frame_00[01].tif"')
+    with pytest.raises(ValueError, match=r"pair 1: it was made from frame_002.tif and "
+                                         r"frame_003.tif, still in .*no longer pairs so.*"
+                                         r"--redo"):
+        plenocl.run(exp, progress=False, log=lambda _: None)
+    assert second.read_bytes() == made  # nothing changed by the refusal
+    said = []
+    s = plenocl.run(exp, progress=False, log=said.append, redo=True)
+    assert s.skipped == [0] and not s.processed and not second.exists()
+    assert any("pair 1" in line and "removed: this run makes no such pair" in line
+               for line in said)
+    with pytest.importorskip("xarray").open_zarr(done / "results" / "timeseries.zarr") as ds:
+        assert ds.sizes["time"] == 1
+    # frames deleted after their pair was made: the pair is kept
+    _edit(done, 'pattern = "frame_00[01].tif"', 'pattern = "frame_*.tif"')
+    s, _ = _rerun(done)
+    assert s.processed == [1]
+    for k in (2, 3):
+        (raw / f"frame_00{k}.tif").unlink()
+    kept = second.read_bytes()
+    s, _ = _rerun(done)
+    assert not s.processed and second.read_bytes() == kept
+    with pytest.importorskip("xarray").open_zarr(done / "results" / "timeseries.zarr") as ds:
+        assert ds.sizes["time"] == 2
+
+
 def test_a_tracking_rerun_leaves_only_results_of_its_record(tmp_path, monkeypatch):
     """[tracking]: the store records the digests of what made it; a rerun with another
     frame interval removes the old tracks and field before tracking again, so a run that
@@ -343,6 +396,27 @@ def test_a_tracking_rerun_leaves_only_results_of_its_record(tmp_path, monkeypatc
     assert again.processed == ["tracks", "field"]
     assert plenocl.Tracks.load(out / "tracks.npz").dt == 0.002
     assert recorded()["tracks"] != first["tracks"]
+    # stopped after writing another configuration's tracks, before its stage's entry:
+    # the configuration it started with is the state's, so 0.002 does not keep them
+    tracked = tracking.track_job
+
+    def stopped(*args, **kwargs):
+        tracked(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    exp.write_text(exp.read_text().replace("frame_interval_s = 0.002",
+                                           "frame_interval_s = 0.003"))
+    with monkeypatch.context() as patch:
+        patch.setattr(tracking, "track_job", stopped)
+        with pytest.raises(KeyboardInterrupt):
+            plenocl.run(exp, log=lambda _: None, progress=False)
+    assert plenocl.Tracks.load(out / "tracks.npz").dt == 0.003
+    exp.write_text(exp.read_text().replace("frame_interval_s = 0.003",
+                                           "frame_interval_s = 0.002"))
+    assert plenocl.run(exp, log=lambda _: None, progress=False).processed == ["tracks",
+                                                                             "field"]
+    assert plenocl.Tracks.load(out / "tracks.npz").dt == 0.002
+    recorded()
 
 
 def test_vti_asked_for_later_is_written_from_the_kept_field(done, monkeypatch):

@@ -321,6 +321,13 @@ def image_pairs(exp: Experiment) -> PairPlan:
     return plan
 
 
+def image_folders(exp: Experiment) -> list[Path]:
+    """The folders the run's frames come from: ``[images] folder``, or each camera's
+    (``[[cameras]] folder``) in their order."""
+    names = [cam["folder"] for cam in exp.cameras] or [exp["images"]["folder"]]
+    return [exp.base / name for name in names]
+
+
 def _folder_pairs(exp: Experiment, name: str) -> PairPlan:
     """The pairs of one folder of images (:func:`image_pairs`)."""
     img = exp["images"]

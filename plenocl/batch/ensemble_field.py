@@ -4,8 +4,9 @@ correlated together (:func:`plenocl.piv.ensemble.ensemble_piv`), written to
 ``OUT/ensemble.npz`` and gathered into the time-series store.
 
 The field records what it was made of (:func:`plenocl.batch.record.ensemble_record`: each
-pair's ``field`` digest and ``dt_s``); :func:`update_ensemble` keeps it while that is
-unchanged, rescales it when ``dt_s`` alone changed, and makes it again otherwise."""
+pair's ``field`` digest, the ensemble's and the correlation's methods, and ``dt_s``);
+:func:`update_ensemble` keeps it while that is unchanged, rescales it when ``dt_s`` alone
+changed, and makes it again otherwise."""
 
 from __future__ import annotations
 
@@ -50,13 +51,18 @@ def update_ensemble(out: Path, fields: dict[int, tuple[Path, dict]], dt: float, 
             made.unlink()
             log(f"removed {made}: made from other pairs or another dt_s than those now here")
         return None
-    if old is not None and old.get("pairs") == record["pairs"]:
+    if old is not None and _but_dt(old) == _but_dt(record):
         _rescale(made, dt, formats, record)
         log(f"ensemble correlation: dt_s changed, {made} rescaled")
         return made
     made.unlink(missing_ok=True)
     return ensemble_field(out, dt, queue, formats, log, [path for path, _ in usable.values()],
                           {"record": record})
+
+
+def _but_dt(record: dict) -> dict:
+    """An ensemble record without its ``dt_s``: equal, only ``dt_s`` changed."""
+    return {k: v for k, v in record.items() if k != "dt_s"}
 
 
 def _volumes_digest(meta: dict) -> str | None:

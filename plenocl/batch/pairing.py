@@ -236,6 +236,17 @@ def same_file(recorded: dict, path: Path) -> bool:
     return fingerprint(path)["sha256"] == recorded.get("sha256")
 
 
+def sources_present(recorded: dict, folders: list[Path]) -> bool:
+    """Whether every file a pair was made from (:func:`pair_sources`' record: camera 1's,
+    then the other cameras' under ``"cameras"``) is still, unchanged, in its camera's
+    folder of ``folders``."""
+    per_camera = [recorded, *recorded.get("cameras", [])]
+    if len(per_camera) != len(folders):
+        return False
+    return all(tag in files and same_file(files[tag], Path(folder) / str(files[tag]["name"]))
+               for files, folder in zip(per_camera, folders) for tag in "ab")
+
+
 def pair_sources(pair: ImagePair) -> dict:
     """The fingerprints of a pair's files: ``{"a": .., "b": ..}``, and with several
     cameras ``"cameras"``: the other cameras' ``{"a": .., "b": ..}`` in their order."""

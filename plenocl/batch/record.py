@@ -38,10 +38,11 @@ from ..io.files import volumes_metadata
 from ..options import NONE
 from ..pipeline.resume import changed_keys, config_digest, config_parts, name_changes
 from ..piv.direct import METHOD as CORRELATION_METHOD
+from ..piv.ensemble import METHOD as ENSEMBLE_METHOD
 from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from ..reconstruction import METHOD as RECONSTRUCTION_METHOD
 from .config import Experiment
-from .pairing import ImagePair, changed_since, fingerprint
+from .pairing import ImagePair, changed_since, fingerprint, sources_present
 from .prepare import frame_corrections
 
 #: What a rerun does with a finished pair (see the module notes).
@@ -139,10 +140,12 @@ class Decision:
 
 
 def decide(pair: ImagePair | None, field_file: Path, volumes_file: Path, record: dict,
-           redo: bool = False) -> Decision:
+           redo: bool = False, folders: list[Path] | None = None) -> Decision:
     """What to do with the finished pair in ``field_file`` under the run's ``record``
-    (``pair``: the run's pair of that index, ``None`` when its frames are gone: such a
-    pair is kept or rescaled while its record allows, else it cannot be remade)."""
+    (``pair``: the run's pair of that index, ``None`` when the run makes no such pair:
+    when its frames are gone, it is kept or rescaled while its record allows, else it
+    cannot be remade; when they are still in the run's image ``folders``, the run's
+    ``[images]`` selection no longer makes it, and it cannot be kept)."""
     k = int(field_file.stem.removeprefix("pair_"))
     try:
         meta = field_metadata(field_file)
@@ -150,6 +153,8 @@ def decide(pair: ImagePair | None, field_file: Path, volumes_file: Path, record:
         return _refusal(k, f"{field_file.name} cannot be read ({exc})", redo)
     if pair is None and not meta.get("sources"):
         return _refusal(k, f"{field_file.name} exists but the images give no pair {k}", redo)
+    if pair is None and folders and sources_present(meta["sources"], folders):
+        return _refusal(k, _unselected(meta["sources"], folders[0]), redo)
     if pair is not None and (why := changed_since(meta.get("sources", {}), pair)) is not None:
         return _refusal(k, why, redo)
     gone = "" if pair is not None else " and its frames are gone"
@@ -164,6 +169,13 @@ def decide(pair: ImagePair | None, field_file: Path, volumes_file: Path, record:
     if pair is None:
         return _refusal(k, f"{name_changes(changed)} changed{gone}", redo)
     return _action(k, changed, meta, record, volumes_file, redo)
+
+
+def _unselected(sources: dict, folder: Path) -> str:
+    """Why a pair whose frames are still there cannot be kept: the run's selection."""
+    names = " and ".join(str(sources[tag]["name"]) for tag in "ab")
+    return (f"it was made from {names}, still in {folder}, which the run's [images] "
+            "selection (pattern, first_frame, pairing, pairs) no longer pairs so")
 
 
 def _action(k: int, changed: list[str], meta: dict, record: dict, volumes_file: Path,
@@ -203,7 +215,8 @@ def refuse(decisions: list[Decision], out: Path) -> None:
         return
     raise ValueError(
         f"{out} holds pairs made from other images, another camera or grid, or by an "
-        "older plenocl, which this run can neither keep nor remake: "
+        "older plenocl, or that its [images] selection no longer makes, which this run "
+        "can neither keep nor remake: "
         + "; ".join(refused[:5]) + (f"; and {len(refused) - 5} more" if len(refused) > 5
                                     else "")
         + ". Write this run to another folder (--out), or redo those pairs with --redo "
@@ -212,8 +225,11 @@ def refuse(decisions: list[Decision], out: Path) -> None:
 
 def ensemble_record(fields: dict[int, dict], dt_s: float) -> dict:
     """What the ensemble correlation is made of: each pair's ``field`` digest (the pairs
-    whose volumes it correlates) and ``dt_s``."""
+    whose volumes it correlates), the ensemble's method and the correlation's
+    (:data:`plenocl.piv.ensemble.METHOD`, :data:`plenocl.piv.direct.METHOD`), and
+    ``dt_s``."""
     return {"pairs": {str(k): meta["digests"]["field"] for k, meta in sorted(fields.items())},
+            "method": ENSEMBLE_METHOD, "correlation": CORRELATION_METHOD,
             "dt_s": float(dt_s)}
 
 

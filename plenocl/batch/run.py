@@ -39,7 +39,7 @@ from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..options import NONE
 from ..pipeline.resume import name_changes, remove_outputs
-from .config import Experiment, image_pairs, load_experiment, output_formats
+from .config import Experiment, image_folders, image_pairs, load_experiment, output_formats
 from .ensemble_field import update_ensemble
 from .layout import (
     field_copies,
@@ -168,7 +168,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     camera = cameras if exp.cameras else cameras[0]  # several: joint (design.md §6.7)
     grid = run_grid(exp, camera)
     settings = _run_settings(exp, run_record(exp, camera, grid), len(cameras))
-    decisions = _decide(plan, out, settings.record, redo)
+    decisions = _decide(plan, out, settings.record, redo, image_folders(exp))
     summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),
                          workers=workers or (0 if scheduler else 1),
                          gaps=dict(plan.gaps), unpaired=list(plan.unpaired))
@@ -200,11 +200,13 @@ def _report_gaps(plan: PairPlan, log) -> None:
         log(f"not in any pair: {why}")
 
 
-def _decide(plan: PairPlan, out: Path, record: dict, redo: bool) -> list[Decision]:
-    """What to do with each finished pair (:func:`.record.decide`); refuses, before
-    anything is changed, when a pair can be neither kept nor remade (unless ``redo``)."""
+def _decide(plan: PairPlan, out: Path, record: dict, redo: bool,
+            folders: list[Path]) -> list[Decision]:
+    """What to do with each finished pair (:func:`.record.decide`; ``folders``: the
+    run's image folders); refuses, before anything is changed, when a pair can be
+    neither kept nor remade (unless ``redo``)."""
     planned = {p.index: p for p in plan.pairs}
-    decisions = [decide(planned.get(k), path, volume_file(path), record, redo)
+    decisions = [decide(planned.get(k), path, volume_file(path), record, redo, folders)
                  for k, path in finished_pairs(out)]
     refuse(decisions, out)
     return decisions
@@ -259,7 +261,8 @@ def _report_decisions(changes: list[Decision], planned: set[int], settings: RunS
                      "reconstructed or correlated)",
             CORRELATE: "correlating the kept volumes again (no reconstruction)",
             REDO: "redoing them (reconstruction included)",
-            "remove": "removed: their frames are gone, they cannot be remade"}
+            "remove": "removed: this run makes no such pair (its frames are gone, or "
+                      "its [images] selection leaves them out)"}
     for (action, why, changed), pairs in sorted(groups.items()):
         if action == REDO and changed and not settings.pair.mte.cycles and all(
                 n == DT or n.split(".")[0] in FIELD_SECTIONS for n in changed):

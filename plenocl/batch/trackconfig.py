@@ -140,8 +140,10 @@ def tracking_options(table, parts: Mapping, images: Mapping, path: Path
     if not given["enabled"]:
         return None
     _refuse_pair_parts(parts, path)
+    # the weights named, as the pairs' are (config.py): the key names those that made
+    # the volumes the tracks come from
     chain = PairSettings.from_dict({k: v for k, v in parts.items() if k in PARTS},
-                                   source=str(path))
+                                   source=str(path)).with_named_weights()
     scalars = {k: v for k, v in table.items() if k not in KEYS}
     settings = from_table(TrackSettings, {**scalars, "reconstruction": chain.reconstruction,
                                           "piv": chain.piv, "image_fit": chain.image_fit},

@@ -14,14 +14,18 @@ atomically, ``OUT/figures/tracks.png`` (the tracks coloured by speed) and
 Resume is :class:`plenocl.pipeline.resume.StageRunner`'s: two stages, ``tracks`` (the
 tracking) and ``field`` (the binned field, the ParaView file and the store), keyed on
 the frames' content (name, size, SHA-256), the camera and grid used, the frame
-corrections, every setting, the reconstruction's method
-(:data:`plenocl.reconstruction.METHOD`) and the image fit's
-(:data:`plenocl.piv.imagefit.METHOD`); a rerun with the same skips both, any change runs
-both again, but a change of the binned field's options alone (the field stage's own key,
-with the digest of the tracks it bins) runs the field stage only. The outputs of a stage
-to be done again are removed before it starts, and the store records both digests (its
-``record`` attribute: ``tracks``, the configuration's, and ``field``, the field stage's
-key), so the results beside ``experiment_used.toml`` are always its.
+corrections, every setting (the lens weights named), the reconstruction's method
+(:data:`plenocl.reconstruction.METHOD`), the image fit's
+(:data:`plenocl.piv.imagefit.METHOD`), the correlation's that predicts the first step
+(:data:`plenocl.piv.direct.METHOD`) and the tracker's
+(:data:`plenocl.pipeline.track.METHOD`); a rerun with the same skips both, any change
+runs both again, but a change of the binned field's options alone (the field stage's own
+key, with the digest of the tracks it bins and the methods that bin them: the tracker's
+and :data:`plenocl.piv.refinement.METHOD`, its window means) runs the field stage
+only. The outputs of a stage to be done again are removed before it starts, and the
+store records both digests (its ``record`` attribute: ``tracks``, the configuration's,
+and ``field``, the field stage's key), so the results beside ``experiment_used.toml``
+are always its.
 """
 
 from __future__ import annotations
@@ -41,8 +45,11 @@ from ..io.files import read_image
 from ..io.progress import step_bar
 from ..pipeline.frames import load_frame
 from ..pipeline.resume import StageRunner, config_digest, remove_outputs
+from ..pipeline.track import METHOD as TRACK_METHOD
 from ..pipeline.track import TrackSettings, bin_tracks, track
+from ..piv.direct import METHOD as CORRELATION_METHOD
 from ..piv.imagefit import METHOD as FIT_METHOD
+from ..piv.refinement import METHOD as REFINEMENT_METHOD
 from ..piv.refinement import FocalZone
 from ..ptv import Tracks
 from ..reconstruction import METHOD as RECONSTRUCTION_METHOD
@@ -151,9 +158,11 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
 
 
 def _field_key(out: Path, opts: TrackingOptions) -> dict:
-    """The field stage's own key: the binned field's options and the tracks' digest."""
+    """The field stage's own key: the binned field's options, the tracks' digest and
+    the methods that bin them (the tracker's, and the refinement's window means)."""
     tracks = out / TRACKS
-    return {**opts.field_record(), "tracks": _digest(tracks) if tracks.is_file() else None}
+    return {**opts.field_record(), "tracks": _digest(tracks) if tracks.is_file() else None,
+            "tracker": TRACK_METHOD, "refinement": REFINEMENT_METHOD}
 
 
 def _remove_stale(runner: StageRunner, out: Path, opts: TrackingOptions, log) -> None:
@@ -210,7 +219,8 @@ def _config(exp: Experiment, frames: dict[int, Path], out: Path,
             "settings": record, "channel": exp["images"]["channel"],
             "dark": dark and _content(Path(dark)), "flat": flat and _content(Path(flat)),
             "camera": _digest(out / "camera_used.toml"), "grid": _digest(out / "grid_used.toml"),
-            "reconstruction_method": RECONSTRUCTION_METHOD, "fit": FIT_METHOD}
+            "reconstruction_method": RECONSTRUCTION_METHOD, "fit": FIT_METHOD,
+            "correlation": CORRELATION_METHOD, "tracker": TRACK_METHOD}
 
 
 def _content(path: Path) -> dict:

@@ -8,7 +8,8 @@ temporary files, which :func:`remove_partial_files` deletes before a run goes on
   a store folder);
 - :class:`StageRunner`: named stages in an output folder; a stage is done when its entry
   in ``state.json`` exists, was made with the same configuration, and its outputs exist
-  (the demos).
+  (the demos, a tracking run). ``state.json`` names a new configuration, with no stage
+  done, before any stage runs.
 """
 
 from __future__ import annotations
@@ -107,14 +108,18 @@ class StageRunner:
         self.log = log
         self.state_path = self.out / "state.json"
         self.state = {"config": self.key, "parts": config_parts(config), "stages": {}}
-        if self.state_path.is_file():
-            old = json.loads(self.state_path.read_text())
-            if old.get("config") == self.key:
-                self.state = old
-            else:
-                changed = name_changes(changed_keys(old.get("parts"), self.state["parts"]))
-                self.log(f"configuration changed{f' ({changed})' if changed else ''}: "
-                         "running every stage again")
+        old = json.loads(self.state_path.read_text()) if self.state_path.is_file() else None
+        if old is not None and old.get("config") == self.key:
+            self.state = old
+            return
+        if old is not None:
+            changed = name_changes(changed_keys(old.get("parts"), self.state["parts"]))
+            self.log(f"configuration changed{f' ({changed})' if changed else ''}: "
+                     "running every stage again")
+        # the new configuration with no stage done, before any stage writes an output: a
+        # run stopped after a stage's outputs but before its entry leaves a state that
+        # names this configuration, so no later run keeps those outputs for another
+        write_json(self.state_path, self.state, sort_keys=True)
 
     def path(self, name: str) -> Path:
         """A file in the output folder."""

@@ -38,6 +38,14 @@ from ..ptv import Tracks, link, neighbour_velocity, smooth, smooth_states
 from ..reconstruction import ProjectionOperator, ReconstructionSettings, run_reconstruction
 from ..vectorfield import PIVResult
 
+#: The tracker's own method (merging, linking, smoothing, the binned field), recorded in
+#: every tracking run's key with the methods it calls (:mod:`plenocl.batch.tracking`): a
+#: rerun tracks again instead of keeping tracks an earlier tracker made. Change it
+#: whenever :func:`track` or :func:`bin_tracks` makes other tracks or fields from the
+#: same frames and settings (rounding included).
+METHOD = ("fitted particles merged, linked from the first step's correlation, smoothed "
+          "by the constant-velocity state-space smoother with the neighbours' depth "
+          "velocity prior; fields from the refinement's window means (2026-12-01)")
 #: Standard deviation (x, y, z voxels) of a volume's peak without the image fit: the
 #: reconstruction draws particles up to about a voxel towards the focal plane.
 PEAK_SIGMA_VOXELS = (0.1, 0.1, 1.0)

@@ -53,7 +53,7 @@ from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 #: The correlation's method, recorded with every batch field
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
-#: correlation makes a different field from the same settings.
+#: correlation makes a different field from the same settings (rounding included).
 METHOD = "direct at 63 lags, three in depth (issue 46, 2026-11-28 evening)"
 #: The lags of each axis ``(z, y, x)``: three voxels either way in depth, one across.
 AXIS_LAGS = ((-3, -2, -1, 0, 1, 2, 3), (-1, 0, 1), (-1, 0, 1))

@@ -25,6 +25,14 @@ from .direct import CENTRE, LAGS, correlate_direct, fit_direct, off_centre, pear
 from .interpolate import resample
 from .validation import normalized_median_test, replace_outliers
 
+#: The ensemble correlation's method (:func:`ensemble_piv` at its defaults, which the
+#: batch's ensemble field runs), recorded with that field
+#: (:func:`plenocl.batch.record.ensemble_record`): a rerun correlates the ensemble again
+#: instead of keeping one an earlier method made. Change it whenever the ensemble makes
+#: another field from the same pairs and predictor (rounding included).
+METHOD = ("the pairs deformed by the predictor, their direct correlations' window sums "
+          "at 63 lags added, 2 passes at overlap 0.75, Gaussian weight 0.35, cubic "
+          "deformation (2026-12-01)")
 #: A zero-argument callable yielding ``(vol_a, vol_b)`` volume pairs, called once per
 #: iteration (volumes are read one pair at a time, never all held at once).
 PairSource = Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]]

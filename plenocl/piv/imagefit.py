@@ -46,9 +46,11 @@ from .fitsums import HOST_CHUNK, DeviceFitSums
 #: The fit's method, recorded with every batch field (through
 #: :data:`plenocl.piv.refinement.METHOD`) and every tracking run
 #: (:mod:`plenocl.batch.tracking`), so that a rerun does not keep positions an earlier fit
-#: made. Change it whenever the fit makes other positions from the same settings.
+#: made. Change it whenever the fit makes other positions or covariances from the same
+#: settings (rounding included: a kept field then differs from a fresh one).
 METHOD = ("Gauss-Newton with the prior, the Levenberg-Marquardt damping and the step bound "
-          "in each line of sight's frame (2026-11-29, issue 45)")
+          "in each line of sight's frame (2026-11-29, issue 45); the posterior covariance "
+          "of each normal matrix scaled to a unit diagonal (2026-12-01)")
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
 PRIOR_VOXELS = (0.15, 0.15, 1.3)

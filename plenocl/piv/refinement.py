@@ -79,7 +79,7 @@ if TYPE_CHECKING:
 #: The particle refinement's method, recorded with every batch field
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
-#: refinement makes a different field from the same settings.
+#: refinement makes a different field from the same settings (rounding included).
 METHOD = ("lines of sight, seen depth in the predictor and over twice the window, every "
           "pair along its line with its covariance, fit-weighted window means "
           "(2026-11-29 evening); pairs tested against their neighbours, sparse windows "
