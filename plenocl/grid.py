@@ -185,13 +185,30 @@ class Grid:
         """Read a grid file (section ``[grid]`` with ``shape``, ``x_mm``, ``y_mm``, ``z_mm``
         and optionally ``rotation_deg``)."""
         doc = read_toml(path)
+        g = doc.get("grid")
+        if not isinstance(g, dict):
+            raise ValueError(f"{path}: a grid file needs a [grid] section with shape, x_mm, "
+                             "y_mm and z_mm")
+        unknown = sorted(set(g) - set(GRID_KEYS))
+        if unknown:
+            raise ValueError(f"{path}: unknown key(s) {unknown} in [grid]; it takes "
+                             f"{list(GRID_KEYS)}")
+        missing = [key for key in GRID_KEYS[:4] if key not in g]
+        if missing:
+            raise ValueError(f"{path}: the [grid] section needs shape, x_mm, y_mm and z_mm "
+                             f"(missing {missing[0]!r})")
+        lists = [key for key, n in zip(GRID_KEYS[:4], (3, 2, 2, 2))
+                 if not (isinstance(g[key], list) and len(g[key]) == n)]
+        if lists:
+            raise ValueError(f"{path}: [grid] {lists[0]} must be a list of "
+                             f"{3 if lists[0] == 'shape' else 2} numbers "
+                             f"({'[nz, ny, nx]' if lists[0] == 'shape' else '[low, high] mm'}), "
+                             f"got {g[lists[0]]!r}")
         try:
-            g = doc["grid"]
             return cls(tuple(g["shape"]), tuple(g["x_mm"]), tuple(g["y_mm"]), tuple(g["z_mm"]),
                        g.get("rotation_deg", 0.0))
-        except KeyError as exc:
-            raise ValueError(f"{path}: the [grid] section needs shape, x_mm, y_mm and z_mm "
-                             f"(missing {exc.args[0]!r})") from None
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{path}: {exc}") from None
 
     def to_toml(self, path: str | Path) -> None:
         """Write a grid file atomically."""
@@ -214,12 +231,24 @@ class Grid:
         rows' (``pitch·√3/2``), and its axes follow its rows.
         """
         require_world_frame(camera, "Grid.for_camera")
-        voxel = voxel_mm or camera.ml_pitch_mm / camera.magnification
-        dvox = depth_voxel_mm or camera.depth_resolution_mm / 2
+        z = _depth_range(z)
+        voxel = _size(voxel_mm, "voxel_mm", camera.ml_pitch_mm / camera.magnification)
+        dvox = _size(depth_voxel_mm, "depth_voxel_mm", camera.depth_resolution_mm / 2)
+        if not (isinstance(fraction, (int, float, np.number)) and 0 < fraction <= 1):
+            raise ValueError(f"fraction is the share of the field of view the grid covers, "
+                             f"0 < fraction <= 1, got {fraction!r}")
         w, h = (n * step / camera.magnification * fraction for n, step in
                 zip(camera.ml_count, (camera.ml_pitch_mm, camera.ml_row_pitch_mm)))
+        _fits(voxel, "voxel_mm", min(w, h), "the field of view covered")
+        _fits(dvox, "depth_voxel_mm", z[1] - z[0], f"the depth range {z}")
         nx, ny = max(1, round(w / voxel)), max(1, round(h / voxel))
         nz = max(1, round((z[1] - z[0]) / dvox))
+        if nx * ny * nz > MAX_VOXELS:
+            raise ValueError(f"a grid of {nz} x {ny} x {nx} voxels (z, y, x) is more than "
+                             f"any device holds ({MAX_VOXELS:.2g}): voxel_mm {voxel:g} and "
+                             f"depth_voxel_mm {dvox:g} are in millimetres (the defaults: "
+                             f"{camera.ml_pitch_mm / camera.magnification:.3g} and "
+                             f"{camera.depth_resolution_mm / 2:.3g})")
         if rotation_deg is None:
             rotation_deg = separable_rotation_deg(camera.on_lens_lattice().microlens_centers,
                                                   DEFAULT_SHEAR_TOL)
@@ -227,3 +256,41 @@ class Grid:
                    (-ny * voxel / 2, ny * voxel / 2), tuple(z), rotation_deg)
         check_grid(camera, grid)
         return grid
+
+
+#: The keys of a grid file's ``[grid]`` section (the first four required).
+GRID_KEYS = ("shape", "x_mm", "y_mm", "z_mm", "rotation_deg")
+#: The most voxels :meth:`Grid.for_camera` makes: 2^31 float32 voxels are 8 GiB, and
+#: the kernels index a volume with 32-bit integers.
+MAX_VOXELS = 2**31 - 1
+
+
+def _depth_range(z) -> tuple[float, float]:
+    """``z``: two finite depths (mm), the first the smaller."""
+    try:
+        lo, hi = (float(v) for v in z)
+    except (TypeError, ValueError):
+        raise ValueError(f"z must be two depths in mm (near, far), got {z!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise ValueError(f"z must be two finite depths in mm, the first the smaller, got "
+                         f"{z!r}")
+    return lo, hi
+
+
+def _size(value, name: str, default: float) -> float:
+    """A voxel size in mm: ``value``, a positive finite number, or ``default`` for None."""
+    if value is None:
+        return float(default)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)) \
+            or not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive size in mm, or None for the default "
+                         f"({default:.3g} mm), got {value!r}")
+    return float(value)
+
+
+def _fits(size: float, name: str, span: float, what: str) -> None:
+    """A voxel no larger than the span it divides (a size in µm given as mm, say)."""
+    if size > span:
+        raise ValueError(f"{name} = {size:g} mm is larger than {what} ({span:.3g} mm): "
+                         "sizes are in millimetres")
+

@@ -329,12 +329,28 @@ def grid_geometry(grid) -> tuple[tuple[float, float, float], tuple[float, float,
     return spacing, tuple(lo + 0.5 * s for lo, s in zip(lows, spacing))
 
 
-def _geometry(voxel_size_mm, origin_mm, grid):
-    """Voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm."""
+def _geometry(voxel_size_mm, origin_mm, grid, result: PIVResult | None = None):
+    """Voxel size ``(dz, dy, dx)`` and voxel-0 centre ``(z0, y0, x0)`` in mm; with a
+    ``grid``, ``result``'s window centres checked to lie on it."""
     if grid is not None:
+        if result is not None:
+            _check_on_grid(result, grid)
         return grid_geometry(grid)
     origin = tuple(float(o) for o in np.broadcast_to(np.asarray(origin_mm, float), (3,)))
     return voxel_size(voxel_size_mm), origin
+
+
+def _check_on_grid(result: PIVResult, grid) -> None:
+    """Refuse a ``grid`` whose volume does not hold ``result``'s window centres (another
+    grid than the volumes'): the vectors would be placed and scaled wrongly."""
+    for axis, centres, n in zip("zyx", (result.z, result.y, result.x), grid.shape):
+        centres = np.asarray(centres, float)
+        if centres.size and (centres.min() < -0.5 or centres.max() > n - 0.5):
+            raise ValueError(f"this field's windows lie at voxels {centres.min():g} to "
+                             f"{centres.max():g} along {axis}, but the grid has {n} voxels "
+                             "there: give the grid the "
+                             "volumes were reconstructed on (grid_used.toml, or the "
+                             "volume file's own)")
 
 
 def field_arrays(result: PIVResult, voxel_size_mm=1.0, origin_mm=(0.0, 0.0, 0.0),
@@ -387,7 +403,7 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
         The file written.
     """
     path = check_field_path(path)
-    size, origin = _geometry(voxel_size_mm, origin_mm, grid)
+    size, origin = _geometry(voxel_size_mm, origin_mm, grid, result)
     rotation = 0.0 if grid is None else grid.rotation_deg
     return write_field(path, result.arrays(size, origin, dt, rotation),
                        _metadata(result, dt, metadata))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 
 import numpy as np
@@ -227,11 +228,42 @@ def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(exper
         plenocl.run(experiment / "experiment.toml", out, progress=False)
     with pytest.raises(ValueError, match="must be a name each worker looks up"):
         plenocl.run(experiment / "experiment.toml", tmp_path / "w", queue=queue, workers=2)
+    for workers in (0, -2, 1.5):  # refused before anything is written
+        with pytest.raises(ValueError, match=rf"workers must be a positive number of "
+                                             rf"processes \(--workers N\), got {workers}"):
+            plenocl.run(experiment / "experiment.toml", tmp_path / "n", workers=workers)
+        assert not (tmp_path / "n").exists()
     bad = (experiment / "experiment.toml").read_text().replace("dt_s = 1e-3",
                                                                 "dt_s = 1e-3\npair_interval_s = -1")
     (tmp_path / "bad.toml").write_text(bad)
     with pytest.raises(ValueError, match="pair_interval_s must be the time between"):
         load_experiment(tmp_path / "bad.toml")
+
+
+def test_windows_larger_than_the_grid_are_refused_before_any_work(experiment, tmp_path,
+                                                                  monkeypatch):
+    """[piv] windows that the grid cannot hold fail every pair after its reconstructions:
+    refused before any frame is read or anything is written, naming the axis and the
+    grid's size (the default schedule on a grid under 8 voxels too)."""
+    run_module = importlib.import_module("plenocl.batch.run")
+
+    def no_pair(*args, **kwargs):
+        raise AssertionError("a pair was processed")
+
+    monkeypatch.setattr(run_module, "_process", no_pair)
+    (tmp_path / "raw").symlink_to(experiment / "raw")
+    text = (experiment / "experiment.toml").read_text()
+    for edit, message in (("[piv]\nwindows = [512]\n", r"\[piv\] windows do not fit the "
+                           r"grid's \d+ x \d+ x \d+ voxels \(z, y, x\): window 512 of "
+                           r"pass 1 is larger than the volume along z"),
+                          ("", r"holds no 8-voxel window")):
+        exp = tmp_path / "e.toml"
+        exp.write_text(text.replace("[output]", edit + "[output]") if edit else
+                       text.replace("fraction = 0.6", "fraction = 0.6\nvoxel_mm = 0.9"))
+        out = tmp_path / "out"
+        with pytest.raises(ValueError, match=message):
+            plenocl.run(exp, out, progress=False, log=lambda _: None)
+        assert not out.exists() or not any(out.iterdir())
 
 
 #: The FFT route pinned where runs in two processes are compared bit for bit: measured
@@ -373,13 +405,13 @@ def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
 
     text = (EXPERIMENT.replace("iterations = 20", "iterations = 20\ntol = 0.01")
             .replace('folder = "raw"', f'folder = "{(experiment / "raw").as_posix()}"')
-            + "[piv]\nwindows = [24]\ncorrelation = 'fft'\nweighting = 'none'\n"
+            + "[piv]\nwindows = [16]\ncorrelation = 'fft'\nweighting = 'none'\n"
             "[mte]\ncycles = 1\n"
             "iterations = 4\n[particles]\nenabled = false\n[image_fit]\nrays = 200\n")
     (tmp_path / "e.toml").write_text(text)
     expected = load_experiment(tmp_path / "e.toml").pair
     assert expected.mte == MTESettings(cycles=1, iterations=4) and not expected.particles
-    assert expected.image_fit.rays == 200 and expected.piv.windows == (24,)
+    assert expected.image_fit.rays == 200 and expected.piv.windows == (16,)
     assert expected.piv.weighting is None  # "none": TOML has no null
     assert expected.reconstruction.tol == 0.01 and expected.reconstruction.supersample == 3
     # the default lens weights named, so that a record says which weights made its volumes

@@ -317,7 +317,8 @@ def test_each_pair_is_written_in_the_asked_formats(tmp_path, field, monkeypatch)
     from plenocl import Camera, Grid, PairSettings
 
     Camera.synthetic_850().to_toml(tmp_path / "camera_used.toml")
-    Grid(shape=(24, 24, 40), x=(0.0, 2.0), y=(0.0, 2.4), z=(0.0, 4.8)).to_toml(
+    # the volumes the field's windows came from (save_field refuses another grid)
+    Grid(shape=(32, 30, 24), x=(0.0, 2.4), y=(0.0, 3.0), z=(0.0, 6.4)).to_toml(
         tmp_path / "grid_used.toml")
     formats = (".dat", ".csv", ".vti")
     proc = worker.PairProcessor(tmp_path, worker.RunSettings(PairSettings(), DT, formats))

@@ -175,6 +175,9 @@ def test_the_batch_records_each_failed_pair_with_the_files_name(tmp_path, small_
     raw_dir = tmp_path / "raw"
     raw_dir.mkdir()
     _frames(raw_dir, small_camera)
+    # eight voxels deep: a grid the default windows fit (a batch checks them first)
+    Grid((8, 20, 24), x=SMALL_GRID.x, y=SMALL_GRID.y, z=SMALL_GRID.z).to_toml(
+        raw_dir / "grid.toml")
     for k, name in enumerate(("blank.tif", "sparse.tif", "sparse.tif", "bright.tif")):
         (raw_dir / f"frame_{k:03d}.tif").write_bytes((raw_dir / name).read_bytes())
     (tmp_path / "experiment.toml").write_text(
@@ -327,3 +330,107 @@ def test_exact_median_is_numpys(n):
         for c in (centre, centre + 0.37):
             assert exact_median(data, centre=c) == float(np.median(np.abs(data - c)))
     assert np.isnan(exact_median(with_nan)) and np.isnan(exact_median(with_nan, 1.0))
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"voxel_mm": 0}, r"voxel_mm must be a positive size in mm, or None for the default"),
+    ({"depth_voxel_mm": -0.1}, r"depth_voxel_mm must be a positive size in mm"),
+    ({"voxel_mm": float("nan")}, r"voxel_mm must be a positive size in mm"),
+    ({"fraction": 0}, r"fraction is the share of the field of view.*got 0"),
+    ({"fraction": 1.5}, r"0 < fraction <= 1, got 1.5"),
+    ({"voxel_mm": 100.0}, r"voxel_mm = 100 mm is larger than the field of view covered.*"
+                          "millimetres"),
+    ({"depth_voxel_mm": 5.0}, r"depth_voxel_mm = 5 mm is larger than the depth range"),
+    ({"voxel_mm": 1e-5}, r"more than any device holds.*in millimetres"),
+    ({"z": (float("nan"), 0.5)}, r"z must be two finite depths in mm"),
+    ({"z": (0.5, -0.5)}, r"the first the smaller"),
+])
+def test_a_grid_of_impossible_sizes_is_refused_naming_the_option(options, message):
+    """``Grid.for_camera`` (``plenocl grid``, a batch's ``[grid]``): a zero or negative
+    voxel is not the default, a voxel larger than what it divides is a unit mistake, and a
+    grid no device holds is refused before it is made."""
+    camera = lens_camera(12, 10)
+    with pytest.raises(ValueError, match=message):
+        Grid.for_camera(camera, **{"z": (-0.5, 0.5), **options})
+
+
+@pytest.mark.parametrize("text, message", [
+    ("rotaton_deg = 10", r"unknown key\(s\) \['rotaton_deg'\] in \[grid\]; it takes"),
+    ("", None),
+])
+def test_a_grid_file_names_unknown_keys_and_wrong_values(tmp_path, text, message):
+    good = SMALL_GRID.to_dict()["grid"]
+    lines = [f"{k} = {v!r}".replace("(", "[").replace(")", "]") for k, v in good.items()]
+    path = tmp_path / "g.toml"
+    path.write_text("[grid]\n" + "\n".join(lines + [text]) + "\n")
+    if message is None:
+        assert Grid.from_toml(path) == SMALL_GRID
+        path.write_text(path.read_text().replace("x_mm = [-0.72, 0.72]", "x_mm = 0.72"))
+        message = r"\[grid\] x_mm must be a list of 2 numbers \(\[low, high\] mm\), got 0.72"
+    with pytest.raises(ValueError, match=message):
+        Grid.from_toml(path)
+
+
+def test_a_damaged_npz_is_named_with_the_fix(tmp_path, capsys):
+    """A truncated or foreign ``.npz``/``.npy`` (a copy cut short, a file of another
+    tool): the file, what it should hold and the fix, from the API and the command line
+    (exit status 2, no traceback); a missing array names what the file holds."""
+    from plenocl.io.fieldformat import read_field
+
+    whole = tmp_path / "v.npz"
+    np.savez(whole, volume=np.ones((8, 8, 8), np.float32))
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(whole.read_bytes()[:100])
+    junk = tmp_path / "junk.npy"
+    junk.write_bytes(b"not numpy")
+    for path, read in ((cut, load_volume), (junk, load_volume), (cut, read_field)):
+        with pytest.raises(ValueError, match=rf"{path.name} cannot be read as .*truncated, "
+                                             "damaged or not one plenocl wrote"):
+            read(path)
+    other = tmp_path / "other.npz"
+    np.savez(other, vol=np.ones(3))
+    with pytest.raises(ValueError, match=r"is not a volume .*it holds \['vol'\]"):
+        load_volume(other)
+    assert main(["piv", str(cut), str(cut), "--dt", "1e-3", "--out",
+                 str(tmp_path / "f.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "cut.npz cannot be read as a volume" in err and "Traceback" not in err
+
+
+def test_a_start_volume_that_cannot_grow_is_refused():
+    """Every method multiplies its voxels, so a start of zeros returns zeros: refused with
+    the fix, as a complex start is (it was cast, its imaginary part dropped)."""
+    camera = lens_camera(12, 10)
+    projector = Projector(camera, SMALL_GRID)
+    image = simulate_image(camera, np.array([[0.0, 0.0, 0.1]]), 2e4, 2000, seed=1,
+                           background=20.0)
+    for start, message in ((np.zeros(SMALL_GRID.shape), r"no positive voxel.*start='uniform'"),
+                           (np.ones(SMALL_GRID.shape) * 1j, r"must hold real numbers, got "
+                                                            r"complex128")):
+        for supersample in (1, 3):
+            with pytest.raises(ValueError, match=message):
+                reconstruct(image, projector, start=start, supersample=supersample)
+
+
+def test_a_field_saved_with_another_grid_is_refused(tmp_path):
+    """``save_field(grid=)`` places and scales the vectors by the grid: one that does not
+    hold the field's windows (another grid than the volumes') is refused, naming both."""
+    from plenocl import piv3d, save_field
+
+    rng = np.random.default_rng(0)
+    vol = np.zeros((32, 32, 32), np.float32)
+    vol[tuple(rng.integers(2, 30, (3, 300)))] = 1.0
+    result = piv3d(vol, np.roll(vol, 1, axis=2), windows=(16,), queue=False)
+    small = Grid((16, 16, 16), x=(-1, 1), y=(-1, 1), z=(-1, 1))
+    with pytest.raises(ValueError, match=r"windows lie at voxels .* to 23.5 along z, but the "
+                                         r"grid has 16 voxels there"):
+        save_field(tmp_path / "f.npz", result, grid=small, dt=1e-3)
+    assert not (tmp_path / "f.npz").exists()
+    right = Grid((32, 32, 32), x=(-1, 1), y=(-1, 1), z=(-1, 1))
+    assert save_field(tmp_path / "f.npz", result, grid=right, dt=1e-3).is_file()
+
+
+def test_a_projector_of_file_names_says_how_to_read_them():
+    with pytest.raises(TypeError, match=r"takes a plenocl.Camera and a plenocl.Grid, got str "
+                                        r"and Grid: read files with plenocl.load_camera"):
+        Projector("camera.toml", SMALL_GRID)

@@ -3,6 +3,8 @@ plenocl.track on a simulated recording at the paper's optics."""
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 
@@ -207,6 +209,18 @@ def test_track_refuses_bad_recordings(recording):
         plenocl.track(frames[:3], proj, dt=1.0)
     with pytest.raises(ValueError, match="frame 2 is"):
         plenocl.track(frames[:2] + [frames[2][:-1]] + frames[3:], proj, dt=1.0)
+    # a frame's pixels checked before the first is reconstructed, naming the frame
+    blank, holed = np.zeros_like(frames[4]), np.array(frames[4], float)
+    holed[3, 5] = np.nan
+    for bad, message in ((blank, "frame 4 is blank"), (holed, "frame 4 contains 1 NaN")):
+        def reconstructed(*args, **kwargs):
+            raise AssertionError("a frame was reconstructed before the bad one was named")
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(importlib.import_module("plenocl.pipeline.track"),
+                          "run_reconstruction", reconstructed)
+            with pytest.raises(ValueError, match=message):
+                plenocl.track(frames[:4] + [bad] + frames[5:], proj, dt=1.0)
     for dt in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="dt"):
             plenocl.track(frames, proj, dt=dt)

@@ -92,7 +92,19 @@ def test_switches_and_lists_are_read_as_the_objects_hold_them():
     ({"reconstruction": {"supersample": 9}}, r"\[reconstruction\]: supersample must be"),
     ({"reconstruction": {"method": "art"}}, r"\[reconstruction\]: method must be"),
     ({"piv": {"deform_order": 2}}, r"\[piv\]: deform_order must be 1"),
-    ({"piv": {"final_iterations": 1.5}}, r"\[piv\]: final_iterations must be a non-negative"),
+    ({"reconstruction": {"iterations": True}},
+     r"\[reconstruction\]: iterations must be a non-negative integer, got True"),
+    ({"reconstruction": {"coarse_iterations": 2.5}},
+     r"\[reconstruction\]: coarse_iterations must be a non-negative integer, got 2.5"),
+    ({"reconstruction": {"relax": "1"}}, r"\[reconstruction\]: relax must be a number, got"),
+    ({"reconstruction": {"threshold": "5"}},
+     r"\[reconstruction\]: threshold must be a number or None, got '5'"),
+    ({"piv": {"final_iterations": 1.5}}, r"\[piv\]: final_iterations must be an integer >= 1"),
+    ({"piv": {"final_iterations": 0}}, r"\[piv\]: final_iterations must be an integer >= 1"),
+    ({"piv": {"windows": [0]}}, r"\[piv\]: window of pass 1 must be integers >= 8"),
+    ({"piv": {"windows": [16, 8], "overlaps": [0.5, 0.5, 0.5]}},
+     r"\[piv\]: overlaps \(3 values\) must match windows \(2 passes\)"),
+    ({"piv": {"windows": [16], "overlaps": 1.0}}, r"\[piv\]: overlap of pass 1 must be"),
     ({"piv": {"workers": 0}}, r"\[piv\]: workers must be -1 \(all cores\)"),
     ({"piv": {"fft": "fftpack"}}, r"\[piv\]: fft must be one of \('fftw', 'scipy', 'device'\)"),
     ({"image_fit": {"rays": 8}}, r"\[image_fit\]: ImageFitSettings.rays must be"),
@@ -102,6 +114,17 @@ def test_switches_and_lists_are_read_as_the_objects_hold_them():
 def test_unknown_keys_and_bad_values_are_named(doc, message):
     with pytest.raises(ValueError, match=message):
         PairSettings.from_dict(doc, source="e.toml")
+
+
+def test_a_whole_float_count_is_that_count():
+    """``iterations = 3.0`` (a file's float) is 3 iterations, recorded as 3: the same
+    settings and record as ``iterations = 3`` (it failed inside ``range`` before)."""
+    as_float = PairSettings.from_dict({"reconstruction": {"iterations": 3.0,
+                                                          "early_iterations": 2.0}})
+    as_int = PairSettings.from_dict({"reconstruction": {"iterations": 3,
+                                                        "early_iterations": 2}})
+    assert as_float == as_int and as_float.to_dict() == as_int.to_dict()
+    assert type(as_float.reconstruction.iterations) is int
 
 
 def _cli_settings(*options: str) -> ReconstructionSettings:

@@ -69,7 +69,8 @@ def test_preprocessing_keeps_the_raw_noise_and_thresholds_the_smoothed_one(small
 
 @pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), 4.5, True, "1"])
 def test_a_smoothing_outside_a_particle_images_size_is_refused(value):
-    with pytest.raises(ValueError, match="smooth_px must be a Gaussian's standard deviation"):
+    with pytest.raises(ValueError, match="smooth_px must be a (Gaussian's standard "
+                                         "deviation|number or None)"):
         ReconstructionSettings(smooth_px=value)
 
 

@@ -39,7 +39,7 @@ from plenocl.io import read_field, read_image, read_particles
 from plenocl.optics.depthrange import resolved_depth_range
 from plenocl.pipeline import TrackSettings, track
 from plenocl.pipeline.frames import load_frame
-from plenocl.piv import piv3d
+from plenocl.piv import PIVSettings, piv3d
 from plenocl.piv.imagefit import ImageFit, ImageFitSettings
 from plenocl.plot import PlotOptions, plot_file
 from plenocl.reconstruction import (
@@ -525,6 +525,9 @@ def ctx(tiny, queue, tmp_path_factory):
     (d / "two_columns.csv").write_text("x_mm,y_mm\n1,2\n3,4\n")
     (d / "no_header.csv").write_text("0.1,0.2,0.3\n0.4,0.5,0.6\n")
     (d / "empty.tif").write_bytes(b"")
+    (d / "cut.npz").write_bytes(b"PK\x03\x04 cut short")
+    (d / "grid_typo.toml").write_text("[grid]\nshape = [3, 4, 4]\nx_mm = [-0.2, 0.2]\n"
+                                      "y_mm = [-0.2, 0.2]\nz_mm = [-1, 1]\nrotaton_deg = 5\n")
     (d / "five_columns.csv").write_text("a,b,c,d,e\n1,2,3,4,5\n")
     (d / "header_only.csv").write_text("x_mm,y_mm,z_mm\n")
     (d / "text.csv").write_text("x_mm,y_mm,z_mm\na,b,c\n")
@@ -768,6 +771,17 @@ INVALID = [
     ("grid-for-camera-depth-not-resolved",
      lambda c: Grid.for_camera(c["cam"], (-2.0, 25.0)), ValueError,
      r"reaches beyond the depths the camera resolves: this camera resolves z in \["),
+    ("grid-for-camera-voxel-zero", lambda c: Grid.for_camera(c["cam"], (-1.0, 1.0),
+                                                             voxel_mm=0), ValueError,
+     "voxel_mm must be a positive size in mm"),
+    ("grid-for-camera-voxel-unit", lambda c: Grid.for_camera(c["cam"], (-1.0, 1.0),
+                                                             voxel_mm=50.0), ValueError,
+     "is larger than the field of view covered"),
+    ("grid-for-camera-fraction", lambda c: Grid.for_camera(c["cam"], (-1.0, 1.0),
+                                                           fraction=0), ValueError,
+     r"0 < fraction <= 1"),
+    ("projector-not-a-camera", lambda c: Projector("camera.toml", c["proj"].grid),
+     TypeError, "takes a plenocl.Camera and a plenocl.Grid"),
     ("projector-method", _proj(method="sparse"), ValueError, "method must be one of"),
     ("lightfield-axial-view",
      lambda c: LightField(np.ones((70, 70)),
@@ -841,6 +855,11 @@ INVALID = [
      r"min_sensitivity must be in \[0, 1\)"),
     ("reconstruct-start", _rec(start="zero"), ValueError,
      "start must be 'uniform', 'mlos' or a volume array"),
+    ("reconstruct-start-zero", _rec(start=np.zeros((3, 4, 4))), ValueError,
+     "start volume has no positive voxel"),
+    ("reconstruct-iterations-bool", _rec(iterations=True), ValueError,
+     "iterations must be a non-negative integer"),
+    ("reconstruct-relax-text", _rec(relax="1"), ValueError, "relax must be a number"),
     ("reconstruct-zero-image-bad-relax", _rec(lambda i: np.zeros_like(i), relax=2.0),
      ValueError, "relax"),
     ("reconstruct-threshold-nan", _rec(threshold=NAN), ValueError, "threshold"),
@@ -878,6 +897,9 @@ INVALID = [
     ("piv-not-3d", _piv(a=lambda v: v[0], b=lambda v: v[0]), ValueError,
      "must be a 3-D volume"),
     ("piv-window-below-8", _piv(windows=(4,)), ValueError, "integers >= 8 voxels"),
+    ("piv-settings-overlaps-count", lambda c: PIVSettings(windows=(16, 8),
+                                                          overlaps=(0.5, 0.5, 0.5)),
+     ValueError, r"overlaps \(3 values\) must match windows \(2 passes\)"),
     ("piv-overlap-one", _piv(windows=(8,), overlaps=1.0), ValueError,
      r"overlap of pass 1 must be a fraction in \[0, 1\)"),
     ("piv-complex", _piv(a=lambda v: v.astype(complex)), TypeError, "must hold real numbers"),
@@ -954,6 +976,10 @@ INVALID = [
     ("read-particles-no-header", _file(read_particles, "no_header.csv"), ValueError,
      "is a particle, not the header"),
     ("read-image-empty", _file(read_image, "empty.tif"), ValueError, r"empty \(0 bytes\)"),
+    ("read-volume-damaged", _file(load_volume, "cut.npz"), ValueError,
+     "cannot be read as a volume"),
+    ("grid-file-unknown-key", _file(Grid.from_toml, "grid_typo.toml"), ValueError,
+     r"unknown key\(s\) \['rotaton_deg'\] in \[grid\]"),
     ("read-image-missing", _file(read_image, "nope.tif"), FileNotFoundError,
      "no such image file"),
     ("read-image-colour", _file(read_image, "colour.npy"), ValueError,

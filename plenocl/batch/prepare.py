@@ -6,18 +6,27 @@ shared by the pairs' run (:mod:`plenocl.batch.run`) and the tracking run
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from ..camera import Camera
 from ..grid import Grid
 from ..io.tomlfile import write_toml
 from ..optics.depthrange import check_grid
+from ..options import is_integer
+from ..piv import PIVSettings
+from ..piv.multipass import auto_windows, window_passes
 from ..version import __version__
 from .config import Experiment
 
 
 def check_cluster_device(queue, workers: int | None, scheduler: str | None) -> None:
-    """On a cluster the device is a name each worker looks up, never an OpenCL object."""
+    """A cluster's workers are a positive number of processes, and on a cluster the
+    device is a name each worker looks up, never an OpenCL object: refused before the
+    run writes anything."""
+    if workers is not None and not (is_integer(workers) and workers >= 1):
+        raise ValueError(f"workers must be a positive number of processes (--workers N), "
+                         f"got {workers!r}; without it the pairs run in this process")
     if (workers or scheduler) and not (queue is None or isinstance(queue, str)):
         raise ValueError("with --workers or --scheduler the device must be a name each "
                          "worker looks up (e.g. 'cpu' or 'NVIDIA'), not an OpenCL object")
@@ -67,6 +76,22 @@ def run_grid(exp: Experiment, camera: Camera | list[Camera]) -> Grid:
     for cam in cameras:
         check_grid(cam, grid)
     return grid
+
+
+def check_windows(piv: PIVSettings, grid: Grid) -> None:
+    """``[piv]``'s windows (given, or the default schedule cut to the grid) checked on the
+    grid's volume before any frame is read: a window larger than the grid would fail
+    every pair after its two reconstructions."""
+    shape = grid.shape
+    try:
+        windows = piv.windows if piv.windows is not None else auto_windows(shape)
+        with warnings.catch_warnings():  # windows that grow: piv3d's warning, per pair
+            warnings.simplefilter("ignore")
+            window_passes(shape, windows, piv.overlaps, piv.final_iterations)
+    except ValueError as exc:
+        raise ValueError(f"[piv] windows do not fit the grid's {shape[0]} x {shape[1]} x "
+                         f"{shape[2]} voxels (z, y, x): {exc}; or a larger grid ([grid])"
+                         ) from exc
 
 
 def frame_corrections(exp: Experiment) -> tuple[str | None, str | None]:

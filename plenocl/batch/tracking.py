@@ -57,6 +57,7 @@ from .config import Experiment
 from .pairing import fingerprint, numbered_series
 from .prepare import (
     check_cluster_device,
+    check_windows,
     frame_corrections,
     run_camera,
     run_grid,
@@ -128,6 +129,7 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     check_cluster_device(queue, workers, scheduler)
     camera = run_camera(exp, queue, log)
     grid = run_grid(exp, camera)
+    check_windows(opts.settings.piv, grid)
     layout = opts.layout(grid)
     write_used_config(exp, out, camera, grid, opts.record())
     runner = StageRunner(out, _config(exp, frames, out, opts), log)

@@ -47,6 +47,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .fieldtables import write_csv, write_tecplot
+from .npzfile import open_npz
 from .outputs import check_output
 
 __all__ = ["AXES", "FIELD_FORMATS", "FORMAT_VERSION", "READABLE_FIELD_FORMATS",
@@ -123,7 +124,7 @@ def field_metadata(path) -> dict:
     """The JSON metadata of a field written by :func:`write_npz` or :func:`write_h5`
     (``{}`` without any), without reading its arrays."""
     if _readable(path) == ".npz":
-        with np.load(path) as data:
+        with open_npz(path, "a vector field (plenocl.save_field)") as data:
             return metadata_of(data)
     import h5py
 
@@ -136,7 +137,7 @@ def read_field(path) -> dict[str, np.ndarray]:
     (``metadata``: its JSON text), in the layout of the module notes: a file of the first
     layout (no ``format_version``) comes back converted."""
     if _readable(path) == ".npz":
-        with np.load(path) as data:
+        with open_npz(path, "a vector field (plenocl.save_field)") as data:
             arrays = {name: data[name] for name in data.files}
     else:
         arrays = _read_h5(path)

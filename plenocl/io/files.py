@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
+from .npzfile import load_npy, open_npz
 
 
 def write_tiff(path: str | Path, image: np.ndarray, metadata: dict | None = None) -> None:
@@ -67,7 +68,7 @@ def _read_any(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     if suffix in (".tif", ".tiff"):
         return _read_tiff(path)
     if suffix == ".npy":
-        return np.load(path), None
+        return load_npy(path, "an image"), None
     import imageio.v3 as iio
 
     return iio.imread(path), None  # a PNG palette comes back through its palette
@@ -221,9 +222,9 @@ def read_volume(path: str | Path) -> tuple[np.ndarray, dict]:
         raise FileNotFoundError(f"no such volume file: {path}")
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        vol, meta = np.load(path), {}
+        vol, meta = load_npy(path, "a volume"), {}
     elif suffix == ".npz":
-        with np.load(path) as data:
+        with open_npz(path, "a volume (plenocl.save_volume)") as data:
             vol, meta = data["volume"], {k: data[k] for k in data.files if k != "volume"}
     elif suffix in (".h5", ".hdf5"):
         import h5py
@@ -249,12 +250,12 @@ def write_volumes(path: str | Path, vol_a: np.ndarray, vol_b: np.ndarray,
 
 def read_volumes(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """The two volumes written by :func:`write_volumes`."""
-    with np.load(path) as data:
+    with open_npz(path, "a pair's volumes") as data:
         return data["vol_a"], data["vol_b"]
 
 
 def volumes_metadata(path: str | Path) -> dict:
     """The ``metadata`` written with :func:`write_volumes` (``{}`` without any), without
     reading the volumes."""
-    with np.load(path) as data:
+    with open_npz(path, "a pair's volumes") as data:
         return json.loads(str(data["metadata"])) if "metadata" in data.files else {}

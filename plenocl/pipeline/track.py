@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..grid import Grid
+from ..optics.rawimage import check_exposure, check_image
 from ..options import is_integer, with_keywords
 from ..peaks import find_particles, merge_close
 from ..piv import PIVSettings, piv3d
@@ -421,6 +422,17 @@ class Recording:
             self.frames = _camera_frames(frames, self.projectors, min_length)
         self.operator = projector
         self.grid, self.queue = self.projectors[0].grid, self.projectors[0].queue
+        self._check_content()
+
+    def _check_content(self) -> None:
+        """Every frame's pixels checked before the first is reconstructed (numeric,
+        finite, the sensor's shape, not blank), each error naming its frame: one bad frame
+        would otherwise fail the recording after every frame before it was done."""
+        for k, images in enumerate(self.frames):
+            for c, (image, proj) in enumerate(zip(images, self.projectors), start=1):
+                name = f"frame {k}" + (f" of camera {c}" if self.several else "")
+                check_exposure(check_image(image, proj.camera, name=name, copy=False), name,
+                               saturation=False)
 
     def images(self, k: int):
         """Frame ``k``'s raw image; several cameras': the list of them."""

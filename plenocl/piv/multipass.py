@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +33,7 @@ from .devicepeaks import DeviceMaxima
 from .devicesums import sums_for
 from .direct import correlate_deformed, deformed_uncertainty
 from .interpolate import resample
-from .settings import PIVSettings
+from .settings import PIVSettings, window_schedule
 from .validation import normalized_median_test, replace_outliers
 
 __all__ = ["PIVResult", "piv3d"]
@@ -56,26 +56,20 @@ def _check_volume(name: str, vol) -> np.ndarray:
     return arr
 
 
-def _schedule(shape: Size3, windows, overlaps, final_iterations: int):
-    """Validate windows/overlaps; return the list of ``(size, overlap)`` per pass."""
-    windows = list(windows) if isinstance(windows, Sequence) else [windows]
-    if not windows:
-        raise ValueError("windows must list at least one window size, e.g. (48, 32, 24)")
-    if overlaps is None:
-        overlaps = [0.5] * (len(windows) - 1) + [0.75]
-    overlaps = list(overlaps) if isinstance(overlaps, Sequence) else [overlaps] * len(windows)
-    if len(overlaps) != len(windows):
-        raise ValueError(f"overlaps ({len(overlaps)} values) must match windows "
-                         f"({len(windows)} passes) or be a single fraction")
-    if int(final_iterations) != final_iterations or final_iterations < 1:
-        raise ValueError(f"final_iterations must be an integer >= 1, got {final_iterations!r}")
-    passes = []
-    for k, (win, ovl) in enumerate(zip(windows, overlaps), start=1):
-        size = tuple(int(s) for s in np.broadcast_to(np.asarray(win), (3,)))
-        if any(s != t for s, t in zip(size, np.broadcast_to(np.asarray(win), (3,)))) \
-                or min(size) < 8:
-            raise ValueError(f"window of pass {k} must be integers >= 8 voxels (an int or "
-                             f"(wz, wy, wx)), got {win!r}")
+def window_passes(shape: Size3, windows, overlaps, final_iterations: int
+                  ) -> list[tuple[Size3, float]]:
+    """The ``(size, overlap)`` of every pass of ``windows`` on a volume of ``shape``
+    (:func:`~plenocl.piv.settings.window_schedule`'s, each window checked to fit the
+    volume; a batch checks its grid with it before any pair).
+
+    Raises
+    ------
+    ValueError
+        A window larger than the volume along an axis (naming it, with windows that
+        fit), or what :func:`~plenocl.piv.settings.window_schedule` refuses.
+    """
+    passes = window_schedule(windows, overlaps, final_iterations)
+    for k, (size, _) in enumerate(passes[:len(passes) - int(final_iterations) + 1], start=1):
         for axis, s, n in zip("zyx", size, shape):
             if s > n:
                 first = min(shape) // 8 * 8
@@ -85,14 +79,11 @@ def _schedule(shape: Size3, windows, overlaps, final_iterations: int):
                         "larger volume")
                 raise ValueError(f"window {s} of pass {k} is larger than the volume along "
                                  f"{axis} ({n} voxels); {hint}")
-        if passes and any(a > b for a, b in zip(size, passes[-1][0])):
+        if k > 1 and any(a > b for a, b in zip(size, passes[k - 2][0])):
             warnings.warn(f"the window of pass {k} {size} is larger than pass {k - 1}'s "
-                          f"{passes[-1][0]}: multi-pass PIV refines, so windows should "
-                          "shrink (or stay) from pass to pass", stacklevel=4)
-        if not (0.0 <= float(ovl) < 1.0):
-            raise ValueError(f"overlap of pass {k} must be a fraction in [0, 1), got {ovl!r}")
-        passes.append((size, float(ovl)))
-    return passes + [passes[-1]] * (int(final_iterations) - 1)
+                          f"{passes[k - 2][0]}: multi-pass PIV refines, so windows should "
+                          "shrink (or stay) from pass to pass", stacklevel=3)
+    return passes
 
 
 @dataclass
@@ -279,7 +270,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         maxima = None if sums is None else DeviceMaxima(sums.kernels.queue)
         windows = auto_windows(a.shape, particles=count_particles(
             a, maxima=maxima, on_device=None if copies is None else copies[0]))
-    schedule = _schedule(a.shape, windows, opts.overlaps, opts.final_iterations)
+    schedule = window_passes(a.shape, windows, opts.overlaps, opts.final_iterations)
     mask = _check_mask(mask, a.shape)
     if mask is not None:
         a, b = (np.where(mask, np.float32(0), v) for v in (a, b))

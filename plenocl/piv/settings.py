@@ -21,8 +21,9 @@ PREDICTORS = ("cubic", "linear")
 class PIVSettings:
     """The options of :func:`plenocl.piv3d` (see there for their meaning), checked once.
 
-    ``windows`` and ``overlaps`` given as lists are stored as tuples; whether the
-    windows fit the volume is checked when the volumes come (:func:`plenocl.piv3d`).
+    ``windows`` and ``overlaps`` given as lists are stored as tuples and checked
+    (:func:`window_schedule`); whether the windows fit the volume is checked when the
+    volumes come (:func:`plenocl.piv3d`), or a batch's grid (before any pair).
     """
 
     windows: tuple | int | None = None
@@ -78,12 +79,66 @@ def _check(s: PIVSettings) -> None:
     _check_counts(s)
 
 
+def window_schedule(windows, overlaps, final_iterations: int) -> list[tuple[tuple, float]]:
+    """The ``(size, overlap)`` of every pass: ``windows`` (one size, or one per pass: an
+    int or ``(wz, wy, wx)``, integers >= 8 voxels), ``overlaps`` (``None``: 0.5 for every
+    pass but the last, 0.75 for the last; one fraction in ``[0, 1)`` for all, or one per
+    pass), the last pass run ``final_iterations`` (>= 1) times. Whether the windows fit a
+    volume is :func:`plenocl.piv.multipass.window_passes`'.
+
+    Raises
+    ------
+    ValueError
+        Naming the option and what it takes.
+    """
+    windows = list(windows) if isinstance(windows, Sequence) else [windows]
+    if not windows:
+        raise ValueError("windows must list at least one window size, e.g. (48, 32, 24)")
+    if overlaps is None:
+        overlaps = [0.5] * (len(windows) - 1) + [0.75]
+    overlaps = list(overlaps) if isinstance(overlaps, Sequence) else [overlaps] * len(windows)
+    if len(overlaps) != len(windows):
+        raise ValueError(f"overlaps ({len(overlaps)} values) must match windows "
+                         f"({len(windows)} passes) or be a single fraction")
+    if not is_integer(final_iterations) or final_iterations < 1:
+        raise ValueError(f"final_iterations must be an integer >= 1 (how many times the "
+                         f"last pass runs), got {final_iterations!r}")
+    passes = [(_window_size(win, k), _overlap(ovl, k))
+              for k, (win, ovl) in enumerate(zip(windows, overlaps), start=1)]
+    return passes + [passes[-1]] * (int(final_iterations) - 1)
+
+
+def _window_size(win, k: int) -> tuple[int, int, int]:
+    """Pass ``k``'s window ``(wz, wy, wx)`` from an int or three, integers >= 8."""
+    items = list(np.ravel(win)) if np.ndim(win) else [win] * 3
+    if len(items) != 3 or not all(_whole(v) and v >= 8 for v in items):
+        raise ValueError(f"window of pass {k} must be integers >= 8 voxels (an int or "
+                         f"(wz, wy, wx)), got {win!r}")
+    return tuple(int(v) for v in items)
+
+
+def _whole(value) -> bool:
+    """A whole number (an integer, or a float such as 32.0), not a bool."""
+    return (isinstance(value, (int, float, np.integer, np.floating))
+            and not isinstance(value, (bool, np.bool_)) and float(value).is_integer())
+
+
+def _overlap(ovl, k: int) -> float:
+    """Pass ``k``'s overlap, a fraction in ``[0, 1)``."""
+    if isinstance(ovl, (bool, np.bool_)) or not isinstance(ovl, (int, float, np.number)) \
+            or not 0.0 <= float(ovl) < 1.0:
+        raise ValueError(f"overlap of pass {k} must be a fraction in [0, 1), got {ovl!r}")
+    return float(ovl)
+
+
 def _check_counts(s: PIVSettings) -> None:
     """The counts and the FFT backend, checked when the settings are made (a batch's
     experiment file is refused before any pair, not in every worker)."""
-    if not is_integer(s.final_iterations) or s.final_iterations < 0:
-        raise ValueError(f"final_iterations must be a non-negative integer (extra passes "
-                         f"at the final window), got {s.final_iterations!r}")
+    if s.windows is not None:  # the windows and overlaps, but whether they fit a volume
+        window_schedule(s.windows, s.overlaps, s.final_iterations)
+    if not is_integer(s.final_iterations) or s.final_iterations < 1:
+        raise ValueError(f"final_iterations must be an integer >= 1 (how many times the "
+                         f"last pass runs), got {s.final_iterations!r}")
     if not is_integer(s.workers) or not (s.workers == -1 or s.workers >= 1):
         raise ValueError(f"workers must be -1 (all cores) or a positive integer, got "
                          f"{s.workers!r}")

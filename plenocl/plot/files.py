@@ -88,11 +88,12 @@ def _read_npz(path: Path):
         return "field", read_vector_field(path)
     except ValueError:
         pass
+    from ..io.npzfile import MissingArray
     from ..volumefile import load_volume
 
     try:
         return "volume", load_volume(path)
-    except KeyError:
+    except MissingArray:
         raise ValueError(f"{path} holds no vector field, tracks or volume plenocl wrote "
                          "(save_field, Tracks.save, save_volume)") from None
 

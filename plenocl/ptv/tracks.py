@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.atomic import atomic_path
+from ..io.npzfile import open_npz
 from ..io.polylines import write_vtu
 from .smoothing import TrackFit, smooth
 
@@ -104,7 +105,7 @@ class Tracks:
     @classmethod
     def load(cls, path) -> Tracks:
         """Tracks written by :meth:`save` as ``.npz``."""
-        with np.load(path) as data:
+        with open_npz(path, "tracks (Tracks.save)") as data:
             if "format" not in data.files or str(data["format"]) != FORMAT:
                 raise ValueError(f"{path} is not a plenocl tracks file (written by "
                                  "Tracks.save(... .npz))")
@@ -115,7 +116,7 @@ class Tracks:
     @staticmethod
     def record_of(path) -> dict:
         """The ``record`` a ``.npz`` of :meth:`save` was written with (``{}``: none)."""
-        with np.load(path) as data:
+        with open_npz(path, "tracks (Tracks.save)") as data:
             return json.loads(str(data["record"])) if "record" in data.files else {}
 
     def _lines(self) -> tuple[list[np.ndarray], dict[str, list[np.ndarray]]]:

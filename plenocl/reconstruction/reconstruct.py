@@ -298,12 +298,21 @@ def _weighted(projector, lens_weights: str | None):
 
 def _coarse_start(start, grid) -> np.ndarray | None:
     """A start volume given on the grid (the fine run spreads it over the sub-voxels on
-    the device), checked for its shape; ``None`` for a named start."""
+    the device), checked for its shape, its kind and that it can grow (every method
+    multiplies its voxels: one at zero stays there); ``None`` for a named start."""
     if not isinstance(start, np.ndarray):
         return None
     if start.shape != grid.shape:
         raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
                          f"{grid.shape} (nz, ny, nx)")
+    if start.dtype.kind not in "biuf":
+        raise ValueError(f"start volume must hold real numbers, got {start.dtype}")
+    if not np.all(np.isfinite(start)) or start.min() < 0:
+        raise ValueError("start volume must be finite and non-negative")
+    if not start.any():
+        raise ValueError("start volume has no positive voxel: the multiplicative updates "
+                         "(MLEM, SMART, MART) cannot grow a voxel from zero, so the result "
+                         "would be zero; give start='uniform' (the default) or 'mlos'")
     return start
 
 

@@ -149,6 +149,11 @@ class ReconstructionSettings:
             object.__setattr__(self, "iterations", it_default)
         if self.relax is None:
             object.__setattr__(self, "relax", mu_default)
+        for name in COUNTS:  # a whole float (3.0, as a file may write it) is that count
+            value = getattr(self, name)
+            if _whole_float(value):
+                object.__setattr__(self, name, int(value))
+        _check_types(self)
         _check_options(self)
 
     @property
@@ -163,6 +168,36 @@ class ReconstructionSettings:
     def n_blocks(self) -> int:
         """Update blocks per iteration: MART's ``mart_blocks²`` views, else 1."""
         return self.mart_blocks**2 if self.method == "mart" and self.mart_blocks > 1 else 1
+
+
+#: The options that count (iterations, blocks): integers, a whole float taken as one.
+COUNTS = ("iterations", "coarse_iterations", "early_iterations", "mart_blocks")
+#: The options that are numbers or None.
+NUMBERS = ("threshold", "relax", "mask_fraction", "tol", "ratio_floor", "support",
+           "coarse_oversample", "early_oversample", "smooth_px", "min_sensitivity")
+#: Of :data:`NUMBERS`, those that take no None (``relax``'s None is resolved first).
+REQUIRED_NUMBERS = ("relax", "support", "min_sensitivity")
+
+
+def _whole_float(value) -> bool:
+    """A float (Python's or NumPy's) with no fraction: a count written as ``3.0``."""
+    return isinstance(value, (float, np.floating)) and np.isfinite(value) \
+        and float(value).is_integer()
+
+
+def _check_types(s: ReconstructionSettings) -> None:
+    """Counts are integers (not booleans), number options numbers (not text or
+    booleans): named, before a comparison fails inside with a type error."""
+    for name in COUNTS:
+        if not is_integer(getattr(s, name)):
+            raise ValueError(f"{name} must be a non-negative integer, got "
+                             f"{getattr(s, name)!r}")
+    for name in NUMBERS:
+        value, nullable = getattr(s, name), name not in REQUIRED_NUMBERS
+        if (value is not None or not nullable) and (
+                isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real)):
+            raise ValueError(f"{name} must be a number{' or None' if nullable else ''}, "
+                             f"got {value!r}")
 
 
 def _check_options(s: ReconstructionSettings) -> None:
