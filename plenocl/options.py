@@ -20,6 +20,16 @@ def is_integer(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
+def whole_counts(settings, names) -> None:
+    """The counts ``names`` of a frozen settings object given as whole floats (``3.0``,
+    as a file may write them) made integers; other values are left to its checks."""
+    for name in names:
+        value = getattr(settings, name)
+        if isinstance(value, (float, np.floating)) and np.isfinite(value) \
+                and float(value).is_integer():
+            object.__setattr__(settings, name, int(value))
+
+
 def field_names(cls) -> list[str]:
     """The fields of a settings dataclass, in order."""
     return [f.name for f in dataclasses.fields(cls)]

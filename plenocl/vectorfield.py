@@ -222,7 +222,10 @@ def _window(arrays) -> Size3:
 
 def voxel_size(voxel_size_mm) -> tuple[float, float, float]:
     """A voxel size as ``(dz, dy, dx)`` mm from a scalar or a triple, checked positive."""
-    size = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,))
+    try:
+        size = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,))
+    except (ValueError, TypeError):
+        size = np.full(3, np.nan)  # two values, or text: refused below
     if not np.all(np.isfinite(size) & (size > 0)):
         raise ValueError(f"voxel_size_mm must be positive, a scalar or (dz, dy, dx) in mm, "
                          f"got {voxel_size_mm!r}")

@@ -434,3 +434,24 @@ def test_a_projector_of_file_names_says_how_to_read_them():
     with pytest.raises(TypeError, match=r"takes a plenocl.Camera and a plenocl.Grid, got str "
                                         r"and Grid: read files with plenocl.load_camera"):
         Projector("camera.toml", SMALL_GRID)
+
+
+def test_piv_refuses_negative_volumes_and_warns_of_a_background():
+    """A volume of another tool with its sign flipped is refused (its vectors were
+    garbage); one whose constant background exceeds its particles warns (the vectors were
+    pulled towards zero); a reconstruction's ringing below zero passes."""
+    from plenocl import piv3d
+
+    rng = np.random.default_rng(0)
+    vol = np.zeros((32, 32, 32), np.float32)
+    vol[tuple(rng.integers(2, 30, (3, 300)))] = 1.0
+    moved = np.roll(vol, 1, axis=2)
+    with pytest.raises(ValueError, match=r"vol_b holds negative intensities down to -1 "
+                                         r"against a peak of -?0"):
+        piv3d(vol, -moved, windows=(16,), queue=False)
+    with pytest.warns(UserWarning, match=r"vol_a's darkest voxel \(10\) lies above its "
+                                         r"particles' height"):
+        piv3d(vol + 10, moved + 10, windows=(16,), queue=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        piv3d(vol - 0.05, moved, windows=(16,), queue=False)

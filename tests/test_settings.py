@@ -125,6 +125,19 @@ def test_a_whole_float_count_is_that_count():
                                                         "early_iterations": 2}})
     assert as_float == as_int and as_float.to_dict() == as_int.to_dict()
     assert type(as_float.reconstruction.iterations) is int
+    from plenocl.pipeline import MTESettings, TrackSettings
+    from plenocl.piv import PIVSettings
+    from plenocl.piv.imagefit import ImageFitSettings
+
+    for cls, counts in ((MTESettings, {"cycles": 1, "iterations": 2}),
+                        (TrackSettings, {"min_length": 3, "window": 5, "refits": 1}),
+                        (ImageFitSettings, {"rays": 400, "iterations": 2}),
+                        (PIVSettings, {"final_iterations": 2})):
+        made = cls(**{k: float(v) for k, v in counts.items()})
+        assert made == cls(**counts), cls.__name__
+        assert all(type(getattr(made, k)) is int for k in counts), cls.__name__
+        with pytest.raises(ValueError, match="integer"):
+            cls(**{next(iter(counts)): 2.5})
 
 
 def _cli_settings(*options: str) -> ReconstructionSettings:

@@ -292,7 +292,9 @@ class Camera:
         """Image distance ``s_i'`` (from the rear principal plane) of object depth ``z``
         (+z away from the camera)."""
         s_o = self.object_distance_mm + np.asarray(z_mm, dtype=np.float64)
-        if np.any(s_o <= self.focal_length_mm) or not np.all(np.isfinite(s_o)):
+        if not np.all(np.isfinite(s_o)):
+            raise ValueError(f"depth z must be a finite number of mm, got {z_mm!r}")
+        if np.any(s_o <= self.focal_length_mm):
             raise ValueError(
                 f"depth z must satisfy z > {self.focal_length_mm - self.object_distance_mm:.3f}"
                 f" mm (an object at or inside the focal length of the main lens forms no "

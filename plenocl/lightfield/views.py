@@ -365,6 +365,10 @@ class LightField:
         """
         if (alpha is None) == (z_mm is None):
             raise ValueError("give exactly one of alpha= or z_mm=")
+        if np.ndim(z_mm if alpha is None else alpha):
+            raise ValueError(f"refocus takes one depth (alpha= or z_mm=, a number), got "
+                             f"{z_mm if alpha is None else alpha!r}; refocus each depth in "
+                             "turn (LightField.focal_stack for several)")
         a = float(self.camera.alpha(z_mm)) if alpha is None else float(alpha)
         return self.shift_and_add(self.shifts([a]), supersample)[0]
 

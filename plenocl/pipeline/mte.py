@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..options import is_integer, whole_counts
 from ..piv import PIVResult
 from ..piv.deformation import make_deformer
 from ..piv.interpolate import resample
@@ -52,9 +53,10 @@ class MTESettings:
     smooth: float = 1.0
 
     def __post_init__(self) -> None:
-        if int(self.cycles) != self.cycles or self.cycles < 0:
+        whole_counts(self, ("cycles", "iterations"))
+        if not is_integer(self.cycles) or self.cycles < 0:
             raise ValueError(f"MTE cycles must be a non-negative integer, got {self.cycles!r}")
-        if int(self.iterations) != self.iterations or self.iterations < 1:
+        if not is_integer(self.iterations) or self.iterations < 1:
             raise ValueError(f"MTE iterations must be a positive integer, got "
                              f"{self.iterations!r}")
         if self.combine not in COMBINATIONS:

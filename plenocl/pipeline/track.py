@@ -21,7 +21,7 @@ import numpy as np
 
 from ..grid import Grid
 from ..optics.rawimage import check_exposure, check_image
-from ..options import is_integer, with_keywords
+from ..options import is_integer, whole_counts, with_keywords
 from ..peaks import find_particles, merge_close
 from ..piv import PIVSettings, piv3d
 from ..piv.imagefit import ImageFit, ImageFitSettings
@@ -125,19 +125,20 @@ class TrackSettings:
     def __post_init__(self) -> None:
         if isinstance(self.image_fit, bool):
             object.__setattr__(self, "image_fit", ImageFitSettings() if self.image_fit else None)
+        whole_counts(self, ("min_length", "gap", "refits", "window", "degree", "neighbours"))
         self._check_distances()
         if not 0 < self.threshold < 1:
             raise ValueError(f"TrackSettings.threshold must lie between 0 and 1 (a fraction "
                              f"of the volume's bright level), got {self.threshold}")
-        if isinstance(self.min_length, bool) or int(self.min_length) != self.min_length \
-                or self.min_length < 2:
+        if not is_integer(self.min_length) or self.min_length < 2:
             raise ValueError(f"TrackSettings.min_length must be an integer >= 2 (frames), "
                              f"got {self.min_length!r}")
         for name in ("gap", "refits"):
             value = getattr(self, name)
-            if isinstance(value, bool) or int(value) != value or value < 0:
+            if not is_integer(value) or value < 0:
                 raise ValueError(f"TrackSettings.{name} must be an integer >= 0, got {value!r}")
-        if self.window < 3 or self.window % 2 == 0 or self.degree not in (0, 1, 2, 3):
+        if not (is_integer(self.window) and is_integer(self.degree)) or self.window < 3 \
+                or self.window % 2 == 0 or self.degree not in (0, 1, 2, 3):
             raise ValueError(f"TrackSettings.window must be an odd number of frames >= 3 and "
                              f"degree 0-3, got window={self.window}, degree={self.degree}")
         self._check_smoother()

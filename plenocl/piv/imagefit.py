@@ -40,6 +40,7 @@ from ..optics.rawimage import (
 )
 from ..optics.raybundle import Patches, RayBundle
 from ..optics.sightline import line_of_sight, sight_frames
+from ..options import is_integer, whole_counts
 from .devicebundle import DeviceRayBundle
 from .fitsums import HOST_CHUNK, DeviceFitSums
 
@@ -91,11 +92,12 @@ class ImageFitSettings:
     chunk: int | None = None
 
     def __post_init__(self) -> None:
+        whole_counts(self, ("rays", "iterations", "chunk"))
         for name, low in (("rays", 16), ("iterations", 0), ("chunk", 1)):
             value = getattr(self, name)
             if value is None and name == "chunk":
                 continue
-            if isinstance(value, bool) or int(value) != value or value < low:
+            if not is_integer(value) or value < low:
                 raise ValueError(f"ImageFitSettings.{name} must be an integer >= {low}, "
                                  f"got {value!r}")
         for name in ("blur_px", "damping"):

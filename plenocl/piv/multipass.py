@@ -38,6 +38,7 @@ from .validation import normalized_median_test, replace_outliers
 
 __all__ = ["PIVResult", "piv3d"]
 
+
 def _check_volume(name: str, vol) -> np.ndarray:
     arr = np.asarray(vol)
     if arr.ndim != 3:
@@ -50,9 +51,20 @@ def _check_volume(name: str, vol) -> np.ndarray:
     if bad:
         raise ValueError(f"{name} contains {bad} NaN/Inf values; replace them (e.g. "
                          f"np.nan_to_num) or mask those voxels before calling piv3d")
-    if float(arr.max()) == float(arr.min()):
-        raise ValueError(f"{name} is constant ({float(arr.min())}): it holds no particles to "
+    low, high = float(arr.min()), float(arr.max())
+    if high == low:
+        raise ValueError(f"{name} is constant ({low}): it holds no particles to "
                          f"correlate; check the reconstruction or the file loaded")
+    if low < 0 and -low > 0.5 * max(high, 0.0):
+        raise ValueError(f"{name} holds negative intensities down to {low:.4g} against a "
+                         f"peak of {high:.4g}: a particle volume is non-negative; check its "
+                         "sign and the tool that made it (small negative ringing is "
+                         "accepted)")
+    if low > 0 and low > high - low:
+        warnings.warn(f"{name}'s darkest voxel ({low:.4g}) lies above its particles' height "
+                      f"over it ({high - low:.4g}): a constant background correlates as a "
+                      "plane and pulls the vectors towards zero; subtract it "
+                      f"(vol - vol.min(), or its median)", stacklevel=3)
     return arr
 
 

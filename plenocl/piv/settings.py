@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..options import is_integer
+from ..options import is_integer, whole_counts
 from .fft import BACKENDS
 
 CORRELATIONS = ("auto", "fft")
@@ -41,6 +41,7 @@ class PIVSettings:
     correlation: str = "auto"
 
     def __post_init__(self) -> None:
+        whole_counts(self, ("final_iterations", "workers", "deform_order"))
         for name in ("windows", "overlaps"):
             value = getattr(self, name)
             if isinstance(value, Sequence) and not isinstance(value, str):

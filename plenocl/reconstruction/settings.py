@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..optics.rawimage import ScaledImage
-from ..options import is_integer
+from ..options import is_integer, whole_counts
 from .supersample import MAX_SUPERSAMPLE
 
 METHODS = ("mlem", "smart", "mart")
@@ -149,10 +149,7 @@ class ReconstructionSettings:
             object.__setattr__(self, "iterations", it_default)
         if self.relax is None:
             object.__setattr__(self, "relax", mu_default)
-        for name in COUNTS:  # a whole float (3.0, as a file may write it) is that count
-            value = getattr(self, name)
-            if _whole_float(value):
-                object.__setattr__(self, name, int(value))
+        whole_counts(self, COUNTS)
         _check_types(self)
         _check_options(self)
 
@@ -177,12 +174,6 @@ NUMBERS = ("threshold", "relax", "mask_fraction", "tol", "ratio_floor", "support
            "coarse_oversample", "early_oversample", "smooth_px", "min_sensitivity")
 #: Of :data:`NUMBERS`, those that take no None (``relax``'s None is resolved first).
 REQUIRED_NUMBERS = ("relax", "support", "min_sensitivity")
-
-
-def _whole_float(value) -> bool:
-    """A float (Python's or NumPy's) with no fraction: a count written as ``3.0``."""
-    return isinstance(value, (float, np.floating)) and np.isfinite(value) \
-        and float(value).is_integer()
 
 
 def _check_types(s: ReconstructionSettings) -> None:
