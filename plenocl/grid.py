@@ -234,13 +234,15 @@ class Grid:
         z = _depth_range(z)
         voxel = _size(voxel_mm, "voxel_mm", camera.ml_pitch_mm / camera.magnification)
         dvox = _size(depth_voxel_mm, "depth_voxel_mm", camera.depth_resolution_mm / 2)
-        if not (isinstance(fraction, (int, float, np.number)) and 0 < fraction <= 1):
+        if _real(fraction) is None or not 0 < fraction <= 1:
             raise ValueError(f"fraction is the share of the field of view the grid covers, "
                              f"0 < fraction <= 1, got {fraction!r}")
         w, h = (n * step / camera.magnification * fraction for n, step in
                 zip(camera.ml_count, (camera.ml_pitch_mm, camera.ml_row_pitch_mm)))
-        _fits(voxel, "voxel_mm", min(w, h), "the field of view covered")
-        _fits(dvox, "depth_voxel_mm", z[1] - z[0], f"the depth range {z}")
+        if voxel_mm is not None:  # a default larger than its span: one voxel, as before
+            _fits(voxel, "voxel_mm", min(w, h), "the field of view covered")
+        if depth_voxel_mm is not None:
+            _fits(dvox, "depth_voxel_mm", z[1] - z[0], f"the depth range {z}")
         nx, ny = max(1, round(w / voxel)), max(1, round(h / voxel))
         nz = max(1, round((z[1] - z[0]) / dvox))
         if nx * ny * nz > MAX_VOXELS:
@@ -281,11 +283,23 @@ def _size(value, name: str, default: float) -> float:
     """A voxel size in mm: ``value``, a positive finite number, or ``default`` for None."""
     if value is None:
         return float(default)
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)) \
-            or not (np.isfinite(value) and value > 0):
+    size = _real(value)
+    if size is None or not (np.isfinite(size) and size > 0):
         raise ValueError(f"{name} must be a positive size in mm, or None for the default "
                          f"({default:.3g} mm), got {value!r}")
-    return float(value)
+    return size
+
+
+def _real(value) -> float | None:
+    """``value`` as a float when it is one real number (a NumPy scalar or 0-d array, a
+    fraction), else ``None`` (text, a bool, several numbers)."""
+    if isinstance(value, (bool, np.bool_, str, bytes)) or np.ndim(value) \
+            or np.iscomplexobj(value):
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
 
 
 def _fits(size: float, name: str, span: float, what: str) -> None:

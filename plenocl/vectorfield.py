@@ -346,12 +346,14 @@ def _geometry(voxel_size_mm, origin_mm, grid, result: PIVResult | None = None):
 def _check_on_grid(result: PIVResult, grid) -> None:
     """Refuse a ``grid`` whose volume does not hold ``result``'s window centres (another
     grid than the volumes'): the vectors would be placed and scaled wrongly."""
-    for axis, centres, n in zip("zyx", (result.z, result.y, result.x), grid.shape):
-        centres = np.asarray(centres, float)
-        if centres.size and (centres.min() < -0.5 or centres.max() > n - 0.5):
-            raise ValueError(f"this field's windows lie at voxels {centres.min():g} to "
-                             f"{centres.max():g} along {axis}, but the grid has {n} voxels "
-                             "there: give the grid the "
+    window = (0, 0, 0) if result.window is None else tuple(result.window)
+    for axis, centres, n, w in zip("zyx", (result.z, result.y, result.x), grid.shape, window):
+        centres, half = np.asarray(centres, float), (float(w) - 1) / 2 if w else 0.0
+        if centres.size and (centres.min() - half < -0.5 - 1e-6
+                             or centres.max() + half > n - 0.5 + 1e-6):
+            raise ValueError(f"this field's windows of {w or 1} voxels lie at voxels "
+                             f"{centres.min():g} to {centres.max():g} along {axis}, but the "
+                             f"grid has {n} voxels there: give the grid the "
                              "volumes were reconstructed on (grid_used.toml, or the "
                              "volume file's own)")
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from .grid import Grid
 from .io.files import read_volume, write_volume
+from .io.npzfile import MissingArray
 
 __all__ = ["load_volume", "save_volume"]
 
@@ -34,6 +35,11 @@ def load_volume(path: str | Path) -> tuple[np.ndarray, Grid | None]:
     vol, meta = read_volume(path)
     if not meta:
         return vol, None
+    missing = [key for key in ("shape", "x_mm", "y_mm", "z_mm") if key not in meta]
+    if missing:
+        raise MissingArray(f"{path} is not a volume plenocl.save_volume wrote: beside the "
+                           f"volume it holds {sorted(meta)}, not its grid ({missing[0]!r} "
+                           "missing)")
     return vol, Grid(tuple(int(n) for n in meta["shape"]), tuple(meta["x_mm"]),
                      tuple(meta["y_mm"]), tuple(meta["z_mm"]),
                      float(meta.get("rotation_deg", 0.0)))

@@ -354,6 +354,20 @@ def test_a_grid_of_impossible_sizes_is_refused_naming_the_option(options, messag
         Grid.for_camera(camera, **{"z": (-0.5, 0.5), **options})
 
 
+def test_a_grid_of_default_sizes_and_numbers_of_any_kind_is_made():
+    """The defaults are not held to the span they divide (a range thinner than the
+    default depth voxel is one layer, as before); a NumPy 0-d array or a fraction is a
+    size; a boolean fraction is not."""
+    from fractions import Fraction
+
+    camera = lens_camera(12, 10)
+    assert Grid.for_camera(camera, (-0.1, 0.1)).shape[0] == 1
+    assert Grid.for_camera(camera, (-0.5, 0.5), voxel_mm=np.array(0.125)) == \
+        Grid.for_camera(camera, (-0.5, 0.5), voxel_mm=Fraction(1, 8))
+    with pytest.raises(ValueError, match="0 < fraction <= 1, got True"):
+        Grid.for_camera(camera, (-0.5, 0.5), fraction=True)
+
+
 @pytest.mark.parametrize("text, message", [
     ("rotaton_deg = 10", r"unknown key\(s\) \['rotaton_deg'\] in \[grid\]; it takes"),
     ("", None),
@@ -391,6 +405,13 @@ def test_a_damaged_npz_is_named_with_the_fix(tmp_path, capsys):
     np.savez(other, vol=np.ones(3))
     with pytest.raises(ValueError, match=r"is not a volume .*it holds \['vol'\]"):
         load_volume(other)
+    objects, renamed = tmp_path / "objects.npz", tmp_path / "renamed.npz"
+    np.savez(objects, volume=np.array([None, 1], dtype=object))
+    np.save(tmp_path / "one.npy", np.ones(3))
+    (tmp_path / "one.npy").rename(renamed)
+    for path in (objects, renamed):
+        with pytest.raises(ValueError, match=rf"{path.name} cannot be read as a volume"):
+            load_volume(path)
     assert main(["piv", str(cut), str(cut), "--dt", "1e-3", "--out",
                  str(tmp_path / "f.npz")]) == 2
     err = capsys.readouterr().err
@@ -421,10 +442,11 @@ def test_a_field_saved_with_another_grid_is_refused(tmp_path):
     vol = np.zeros((32, 32, 32), np.float32)
     vol[tuple(rng.integers(2, 30, (3, 300)))] = 1.0
     result = piv3d(vol, np.roll(vol, 1, axis=2), windows=(16,), queue=False)
-    small = Grid((16, 16, 16), x=(-1, 1), y=(-1, 1), z=(-1, 1))
-    with pytest.raises(ValueError, match=r"windows lie at voxels .* to 23.5 along z, but the "
-                                         r"grid has 16 voxels there"):
-        save_field(tmp_path / "f.npz", result, grid=small, dt=1e-3)
+    for n in (16, 24):  # centres on the grid, windows beyond it: another grid too
+        small = Grid((n, n, n), x=(-1, 1), y=(-1, 1), z=(-1, 1))
+        with pytest.raises(ValueError, match=rf"windows of 16 voxels lie at voxels .* to "
+                                             rf"23.5 along z, but the grid has {n} voxels"):
+            save_field(tmp_path / "f.npz", result, grid=small, dt=1e-3)
     assert not (tmp_path / "f.npz").exists()
     right = Grid((32, 32, 32), x=(-1, 1), y=(-1, 1), z=(-1, 1))
     assert save_field(tmp_path / "f.npz", result, grid=right, dt=1e-3).is_file()

@@ -208,6 +208,9 @@ def test_plot_refuses_files_it_cannot_draw(tmp_path, capsys):
     assert "cannot plot 'raw.tif'" in capsys.readouterr().err
     assert main(["plot", str(tmp_path / "other.npz")]) == 2
     assert "holds no vector field, tracks or volume" in capsys.readouterr().err
+    np.savez(tmp_path / "other.npz", volume=np.ones((8, 8, 8)), spacing=np.ones(3))
+    assert main(["plot", str(tmp_path / "other.npz")]) == 2  # a volume of another tool
+    assert "holds no vector field, tracks or volume" in capsys.readouterr().err
     save_field(tmp_path / "field.h5", _result(), VOXEL, dt=DT)  # fields are plotted from .npz
     assert main(["plot", str(tmp_path / "field.h5")]) == 2
     assert "holds no volume; plenocl plot reads vector fields from .npz" in \

@@ -105,6 +105,8 @@ def test_switches_and_lists_are_read_as_the_objects_hold_them():
     ({"piv": {"windows": [16, 8], "overlaps": [0.5, 0.5, 0.5]}},
      r"\[piv\]: overlaps \(3 values\) must match windows \(2 passes\)"),
     ({"piv": {"windows": [16], "overlaps": 1.0}}, r"\[piv\]: overlap of pass 1 must be"),
+    ({"piv": {"overlaps": [0.5, 0.75]}}, r"\[piv\]: overlaps \(0.5, 0.75\) gives one per "
+                                         r"pass, but without windows"),
     ({"piv": {"workers": 0}}, r"\[piv\]: workers must be -1 \(all cores\)"),
     ({"piv": {"fft": "fftpack"}}, r"\[piv\]: fft must be one of \('fftw', 'scipy', 'device'\)"),
     ({"image_fit": {"rays": 8}}, r"\[image_fit\]: ImageFitSettings.rays must be"),
@@ -125,6 +127,7 @@ def test_a_whole_float_count_is_that_count():
                                                         "early_iterations": 2}})
     assert as_float == as_int and as_float.to_dict() == as_int.to_dict()
     assert type(as_float.reconstruction.iterations) is int
+    assert ReconstructionSettings(supersample=2.0) == ReconstructionSettings(supersample=2)
     from plenocl.pipeline import MTESettings, TrackSettings
     from plenocl.piv import PIVSettings
     from plenocl.piv.imagefit import ImageFitSettings

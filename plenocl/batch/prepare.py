@@ -83,15 +83,17 @@ def check_windows(piv: PIVSettings, grid: Grid) -> None:
     grid's volume before any frame is read: a window larger than the grid would fail
     every pair after its two reconstructions."""
     shape = grid.shape
+    where = f"the grid's {shape[0]} x {shape[1]} x {shape[2]} voxels (z, y, x)"
     try:
-        windows = piv.windows if piv.windows is not None else auto_windows(shape)
+        if piv.windows is None:  # the schedule follows each volume's particles: it fits
+            auto_windows(shape)  # the grid when its smallest window does
+            return
         with warnings.catch_warnings():  # windows that grow: piv3d's warning, per pair
             warnings.simplefilter("ignore")
-            window_passes(shape, windows, piv.overlaps, piv.final_iterations)
+            window_passes(shape, piv.windows, piv.overlaps, piv.final_iterations)
     except ValueError as exc:
-        raise ValueError(f"[piv] windows do not fit the grid's {shape[0]} x {shape[1]} x "
-                         f"{shape[2]} voxels (z, y, x): {exc}; or a larger grid ([grid])"
-                         ) from exc
+        raise ValueError(f"[piv] windows do not fit {where}: {exc}; or a larger grid "
+                         "([grid])") from exc
 
 
 def frame_corrections(exp: Experiment) -> tuple[str | None, str | None]:

@@ -17,14 +17,16 @@ class MissingArray(ValueError):
     """A readable ``.npz`` without an array asked for: a file of another kind."""
 
 
+#: What a file that cannot be opened raises: said as it is, not as damage.
+ACCESS = (FileNotFoundError, PermissionError, IsADirectoryError)
 #: What reading a damaged ``.npz`` or ``.npy`` raises, at opening or at an array.
 DAMAGED = (zipfile.BadZipFile, EOFError, zlib.error, ValueError, OSError)
 
 
 def damaged(path, what: str, exc: BaseException) -> ValueError:
     """The error for a file that cannot be read as ``what``."""
-    why = ("not a NumPy file: NumPy took it for pickled data" if "pickled" in str(exc)
-           else f"{type(exc).__name__}: {exc}")
+    why = ("not a NumPy file, or one of objects: NumPy read pickled data, which it does "
+           "not load" if "pickle" in str(exc) else f"{type(exc).__name__}: {exc}")
     return ValueError(f"{path} cannot be read as {what} ({why}): the file is truncated, "
                       "damaged or not one plenocl wrote; write or copy it again")
 
@@ -39,8 +41,12 @@ def open_npz(path, what: str) -> Iterator[np.lib.npyio.NpzFile]:
         raise FileNotFoundError(f"no such file: {path}")
     try:
         data = np.load(path)
+    except ACCESS:
+        raise
     except DAMAGED as exc:
         raise damaged(path, what, exc) from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):  # a .npy file named .npz
+        raise damaged(path, what, ValueError("a single .npy array, not an .npz archive"))
     with data:
         try:
             yield data
@@ -49,6 +55,10 @@ def open_npz(path, what: str) -> Iterator[np.lib.npyio.NpzFile]:
                                f"{sorted(data.files)})") from exc
         except (zipfile.BadZipFile, EOFError, zlib.error) as exc:
             raise damaged(path, what, exc) from exc
+        except ValueError as exc:  # an object array (pickles are never loaded)
+            if "allow_pickle" not in str(exc):
+                raise
+            raise damaged(path, what, exc) from exc
 
 
 def load_npy(path, what: str) -> np.ndarray:
@@ -56,7 +66,7 @@ def load_npy(path, what: str) -> np.ndarray:
     ``ValueError`` naming it and ``what`` it should be."""
     try:
         return np.load(path)
-    except FileNotFoundError:
+    except ACCESS:
         raise
     except DAMAGED as exc:
         raise damaged(path, what, exc) from exc

@@ -137,6 +137,10 @@ def _check_counts(s: PIVSettings) -> None:
     experiment file is refused before any pair, not in every worker)."""
     if s.windows is not None:  # the windows and overlaps, but whether they fit a volume
         window_schedule(s.windows, s.overlaps, s.final_iterations)
+    elif isinstance(s.overlaps, Sequence) and not isinstance(s.overlaps, str):
+        raise ValueError(f"overlaps {s.overlaps!r} gives one per pass, but without windows "
+                         "the passes follow each volume's particles (two or three): give "
+                         "the windows they go with, or one overlap for every pass")
     if not is_integer(s.final_iterations) or s.final_iterations < 1:
         raise ValueError(f"final_iterations must be an integer >= 1 (how many times the "
                          f"last pass runs), got {s.final_iterations!r}")

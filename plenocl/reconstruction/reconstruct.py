@@ -310,9 +310,11 @@ def _coarse_start(start, grid) -> np.ndarray | None:
     if not np.all(np.isfinite(start)) or start.min() < 0:
         raise ValueError("start volume must be finite and non-negative")
     if not start.any():
-        raise ValueError("start volume has no positive voxel: the multiplicative updates "
-                         "(MLEM, SMART, MART) cannot grow a voxel from zero, so the result "
-                         "would be zero; give start='uniform' (the default) or 'mlos'")
+        raise ValueError("start volume has no positive voxel (a start given, or the "
+                         "combined volume of motion-tracking enhancement): the "
+                         "multiplicative updates (MLEM, SMART, MART) cannot grow a voxel "
+                         "from zero, so the result would be zero; give start='uniform' (the "
+                         "default) or 'mlos'")
     return start
 
 

@@ -138,6 +138,7 @@ class ReconstructionSettings:
     smooth_px: float | None = None
 
     def __post_init__(self) -> None:
+        whole_counts(self, (*COUNTS, "supersample"))  # 3.0, as a file may write it: 3
         fine = is_integer(self.supersample) and self.supersample > 1
         if self.coarse_iterations is None:
             object.__setattr__(self, "coarse_iterations", COARSE_ITERATIONS if fine else 0)
@@ -149,7 +150,6 @@ class ReconstructionSettings:
             object.__setattr__(self, "iterations", it_default)
         if self.relax is None:
             object.__setattr__(self, "relax", mu_default)
-        whole_counts(self, COUNTS)
         _check_types(self)
         _check_options(self)
 
