@@ -17,7 +17,9 @@ METHODS = ("mlem", "smart", "mart")
 #: every tracking run (:mod:`plenocl.batch.tracking`) and the demos' stages: a rerun
 #: redoes the volumes an earlier method made from the same settings. Change it whenever
 #: a reconstruction makes other volumes from the same settings (rounding included: a
-#: kept volume then differs from a fresh one).
+#: kept volume then differs from a fresh one), the projector's defaults included (a batch
+#: builds its projector with them: ``DEFAULT_OVERSAMPLE``, ``DEFAULT_SHEAR_TOL``,
+#: ``general``, which no record names).
 METHOD = ("coarse-to-fine: the coarse support's peak, floor and level found on the "
           "device, the level from float32 row sums added in float64 (2026-12-01, issue 46)")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
