@@ -109,3 +109,26 @@ def test_fingerprints_tell_a_changed_file_from_a_copied_one(tmp_path):
     assert "frame_000.tif" in changed_since(recorded, pair)
     assert "other" not in (changed_since(recorded, ImagePair(0, b, a)) or "other")
     assert "older plenocl" in changed_since({}, pair)
+
+
+def test_a_pairs_frames_are_found_where_its_pattern_reached(tmp_path):
+    """``sources_present``: a finished pair's frames, by name, size and content, in each
+    camera's folder or a folder below it (a pattern such as ``sub/*.tif``); a frame
+    deleted or changed since, or a camera more or less, is not."""
+    from plenocl.batch.pairing import fingerprint, sources_present
+
+    for cam in ("one", "two"):
+        (tmp_path / cam / "sub").mkdir(parents=True)
+        for k in (1, 2):
+            (tmp_path / cam / "sub" / f"f_{k:03d}.tif").write_bytes(bytes([k]) * 16)
+    recorded = {tag: fingerprint(tmp_path / "one" / "sub" / f"f_{k:03d}.tif")
+                for tag, k in (("a", 1), ("b", 2))}
+    recorded["cameras"] = [{tag: fingerprint(tmp_path / "two" / "sub" / f"f_{k:03d}.tif")
+                            for tag, k in (("a", 1), ("b", 2))}]
+    folders = [tmp_path / "one", tmp_path / "two"]
+    assert sources_present(recorded, folders)
+    assert not sources_present(recorded, folders[:1])
+    (tmp_path / "two" / "sub" / "f_002.tif").write_bytes(bytes([9]) * 16)  # changed
+    assert not sources_present(recorded, folders)
+    (tmp_path / "two" / "sub" / "f_002.tif").unlink()
+    assert not sources_present(recorded, folders)

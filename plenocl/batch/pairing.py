@@ -243,8 +243,18 @@ def sources_present(recorded: dict, folders: list[Path]) -> bool:
     per_camera = [recorded, *recorded.get("cameras", [])]
     if len(per_camera) != len(folders):
         return False
-    return all(tag in files and same_file(files[tag], Path(folder) / str(files[tag]["name"]))
+    return all(tag in files and _found(files[tag], Path(folder))
                for files, folder in zip(per_camera, folders) for tag in "ab")
+
+
+def _found(recorded: dict, folder: Path) -> bool:
+    """Whether the file ``recorded`` names is in ``folder`` or a folder below it (a
+    pattern such as ``sub/*.tif`` reaches into one), unchanged."""
+    name = str(recorded.get("name"))
+    here = folder / name
+    if here.is_file():
+        return same_file(recorded, here)
+    return any(same_file(recorded, path) for path in folder.rglob(name))
 
 
 def pair_sources(pair: ImagePair) -> dict:
