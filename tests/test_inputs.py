@@ -11,7 +11,15 @@ import numpy as np
 import pytest
 from helpers import lens_camera
 
-from plenocl import Camera, Grid, Projector, calibrate, reconstruct, simulate_image
+from plenocl import (
+    Camera,
+    Grid,
+    Projector,
+    calibrate,
+    reconstruct,
+    simulate_image,
+    simulate_white_image,
+)
 from plenocl.cli.main import main
 from plenocl.io import write_tiff
 from plenocl.optics.rawimage import dark_noise, median_and_noise
@@ -477,3 +485,15 @@ def test_piv_refuses_negative_volumes_and_warns_of_a_background():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         piv3d(vol - 0.05, moved, windows=(16,), queue=False)
+
+
+def test_a_partly_dark_white_image_is_not_only_blamed_on_the_lens_count():
+    """Half the array dark (occluded, outside the illumination) shows fewer lenses than
+    the camera file has: the message names the lit span beside the count."""
+    camera = lens_camera(12, 10)
+    white = simulate_white_image(camera, rays_per_lens=400, seed=0)
+    half = np.where(np.arange(white.shape[1])[None, :] < white.shape[1] // 2, white, 0)
+    with pytest.raises(ValueError, match=r"shows about 6 x 10 microlens images .* or, if the "
+                                         r"count is right, part of the array is dark: the lit "
+                                         r"lenses span x \d+-\d+ of 204 px"):
+        calibrate(half, camera)

@@ -103,8 +103,23 @@ def _lens_count_and_shift(base: np.ndarray, pts: np.ndarray, model: np.ndarray,
             f"the white image shows about {seen[0]} x {seen[1]} microlens images (columns x "
             f"rows, counting those whose centre lies on the sensor) but the camera file has "
             f"{count[0]} x {count[1]} microlenses: correct [microlens_array] count = "
-            "[columns, rows] in the camera file")
+            "[columns, rows] in the camera file" + _dark_margin(pts, size, pitch, seen < count))
     return -first
+
+
+def _dark_margin(pts: np.ndarray, size: np.ndarray, pitch: float, short: np.ndarray) -> str:
+    """Where fewer lenses are seen than the file has and the spots leave more than two
+    pitches of the sensor dark on a side: that the array may be partly dark, not the
+    count wrong ("" otherwise)."""
+    lo, hi = np.min(pts, axis=0), np.max(pts, axis=0)
+    dark = [f"{'xy'[axis]} {lo[axis]:.0f}-{hi[axis]:.0f} of {size[axis]:.0f} px"
+            for axis in (0, 1) if short[axis]
+            and (lo[axis] > 2 * pitch or size[axis] - 1 - hi[axis] > 2 * pitch)]
+    if not dark:
+        return ""
+    return (f"; or, if the count is right, part of the array is dark: the lit lenses span "
+            f"{' and '.join(dark)} (occluded, vignetted or outside the illumination): "
+            "light the whole array for the white image")
 
 
 def _hexagonal_indices(base: np.ndarray, ok: np.ndarray, model: np.ndarray,
