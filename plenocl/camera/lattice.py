@@ -102,6 +102,11 @@ def separable_rotation_deg(centres: np.ndarray, tol_lenses: float) -> float:
     or 0 when that rotation moves a lens index by at most ``tol_lenses`` across the array
     (an aligned array stays in the sensor's frame)."""
     angle = lattice_rotation_deg(centres)
+    if abs(angle) > 45:
+        raise ValueError(f"the microlens centres' rows run along the sensor's columns (the "
+                         f"lattice turned {angle:.1f} degrees): microlens_centers[row, col] "
+                         "holds (x, y) = (column, row) pixel coordinates, so centres given "
+                         "as (row, column) need their last axis swapped (centres[..., ::-1])")
     rows, cols = np.asarray(centres).shape[:2]
     drift = abs(math.tan(math.radians(angle))) * max(rows, cols)
     return 0.0 if drift <= tol_lenses else angle
