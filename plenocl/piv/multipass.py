@@ -55,11 +55,11 @@ def _check_volume(name: str, vol) -> np.ndarray:
     if high == low:
         raise ValueError(f"{name} is constant ({low}): it holds no particles to "
                          f"correlate; check the reconstruction or the file loaded")
-    if low < 0 and -low > 0.5 * max(high, 0.0):
+    if -low > max(high, 0.0):
         raise ValueError(f"{name} holds negative intensities down to {low:.4g} against a "
                          f"peak of {high:.4g}: a particle volume is non-negative; check its "
-                         "sign and the tool that made it (small negative ringing is "
-                         "accepted)")
+                         "sign and the tool that made it (noise or ringing below zero, "
+                         "smaller than the peak, is accepted)")
     if low > 0 and low > high - low:
         warnings.warn(f"{name}'s darkest voxel ({low:.4g}) lies above its particles' height "
                       f"over it ({high - low:.4g}): a constant background correlates as a "
