@@ -93,6 +93,7 @@ def test_a_tracked_run_writes_tracks_and_field_that_follow_the_motion(recording)
     assert np.all(ds.u_sigma.values[valid] > 0)
     header = (out / "tracks.vtu").read_bytes()[:2000].decode(errors="ignore")
     assert f'NumberOfCells="{np.sum(tracks.lengths >= 2)}"' in header
+    assert 'Name="velocity_m_per_s"' in header  # m/s, as the store's
     used = read_toml(out / "experiment_used.toml")
     assert used["tracking"]["frame_interval_s"] == INTERVAL_S
     assert used["tracking"]["min_length"] == 4 and "iterations" in used["reconstruction"]

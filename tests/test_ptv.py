@@ -309,12 +309,18 @@ def test_tracks_files_round_trip_and_open_as_poly_lines(tmp_path):
     assert 'NumberOfPoints="8" NumberOfCells="2"' in header
     for name in ("velocity", "speed", "frame", "track"):
         assert f'Name="{name}"' in header
+    raw = tracks.save(tmp_path / "s.vtu", seconds=True).read_bytes()  # dt in seconds: m/s
+    header = raw[:raw.index(b"<AppendedData")].decode()
+    for name in ("velocity_m_per_s", "speed_m_per_s", "frame", "track"):
+        assert f'Name="{name}"' in header
+    assert 'Name="velocity"' not in header
     with pytest.raises(ValueError, match="not a plenocl tracks file"):
         np.savez(tmp_path / "other.npz", x=np.zeros(3))
         Tracks.load(tmp_path / "other.npz")
     with pytest.raises(ValueError, match=r"\.npz or \.vtu"):
         tracks.save(tmp_path / "t.csv")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.npz", "t.npz", "t.vtu"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.npz", "s.vtu", "t.npz",
+                                                          "t.vtu"]
 
 
 def test_the_tracks_figure_is_written(tmp_path):

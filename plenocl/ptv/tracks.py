@@ -82,12 +82,15 @@ class Tracks:
         ``(n_tracks, n_frames - 1, 3)`` mm (NaN where either end is missing)."""
         return np.diff(self.positions, axis=1)
 
-    def save(self, path, record: dict | None = None) -> Path:
+    def save(self, path, record: dict | None = None, seconds: bool = False) -> Path:
         """Write the tracks: ``.npz`` (every array and ``dt``, read back by :meth:`load`,
         and ``record``, JSON-ready, what made them: :meth:`record_of`) or ``.vtu``
         (poly-lines for ParaView: each track through its smoothed positions, with its
         velocity, speed, frame and track number per point; tracks with fewer than two
-        positions are left out). Written atomically."""
+        positions are left out). Written atomically. ``.vtu`` with ``seconds`` (``dt`` in
+        seconds, as a batch's): ``velocity_m_per_s`` and ``speed_m_per_s`` in m/s, the
+        unit of every other product of a run; without it ``velocity`` and ``speed`` in mm
+        per unit of ``dt``, as the tracks hold them."""
         path = Path(path)
         if path.suffix == ".npz":
             extra = {} if record is None else {"record": np.asarray(json.dumps(record))}
@@ -97,7 +100,12 @@ class Tracks:
                                         dropped=self.dropped, **extra,
                                         **{name: getattr(self, name) for name in _PER_TRACK})
         elif path.suffix == ".vtu":
-            write_vtu(path, *self._lines())
+            lines, data = self._lines()
+            if seconds:
+                data = {(f"{k}_m_per_s" if k in ("velocity", "speed") else k):
+                        ([v * 1e-3 for v in values] if k in ("velocity", "speed") else values)
+                        for k, values in data.items()}
+            write_vtu(path, lines, data)
         else:
             raise ValueError(f"tracks are written as .npz or .vtu (ParaView), not {path.name!r}")
         return path
