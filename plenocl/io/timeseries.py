@@ -90,7 +90,10 @@ def write_timeseries(path: str | Path, fields: Sequence[tuple[int, float, Path]]
     stats.write(group)
     if ensemble is not None:
         _write_ensemble(group, read_field(ensemble), first, Path(ensemble))
-    group.attrs.update({"title": "plenocl time series", "source": "plenocl run"})
+    # x, y are along the grid's axes, u, v along object space's (design.md §9): the turn
+    # between them, for whoever differentiates or draws the velocities on those axes
+    group.attrs.update({"title": "plenocl time series", "source": "plenocl run",
+                        "rotation_deg": float(first.get("rotation_deg", 0.0))})
     if record is not None:
         group.attrs["record"] = record
     return finish_store(partial, path)

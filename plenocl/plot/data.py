@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..camera.lattice import rotation_matrix
+
 #: The axes of a field, in the order of its vector components.
 AXES = ("x", "y", "z")
 #: The components a figure can colour by.
@@ -103,17 +105,34 @@ def read_vector_field(path: str | Path) -> VectorData:
     res, arrays = read_npz(path)
     coords = [np.asarray(arrays[f"{a}_mm"], float) for a in AXES]
     if "velocity" in arrays:
-        vel, unit = np.asarray(arrays["velocity"], float), "m/s"
+        vel = grid_frame(np.asarray(arrays["velocity"], float),
+                         float(arrays.get("rotation_deg", 0.0)))
+        unit = "m/s"
     else:
         vel, unit = np.stack([res.u, res.v, res.w]).astype(float), "voxel"
     valid = np.asarray(res.valid, bool) & np.all(np.isfinite(vel), axis=0)
     return VectorData(*coords, velocity=vel, valid=valid, unit=unit)
 
 
-def store_field(arrays: dict[str, np.ndarray], prefix: str = "mean") -> VectorData:
+def grid_frame(velocity: np.ndarray, rotation_deg: float) -> np.ndarray:
+    """Object-space velocity ``(3, ...)`` (a stored field's) turned onto the axes of a
+    grid turned by ``rotation_deg``, the axes its coordinates are on: what a figure draws
+    and differentiates against them (``Rᵀ v``; as it is on an unrotated grid)."""
+    if not rotation_deg:
+        return velocity
+    turned = velocity.copy()
+    r = rotation_matrix(rotation_deg)
+    turned[0] = r[0, 0] * velocity[0] + r[1, 0] * velocity[1]
+    turned[1] = r[0, 1] * velocity[0] + r[1, 1] * velocity[1]
+    return turned
+
+
+def store_field(arrays: dict[str, np.ndarray], prefix: str = "mean",
+                rotation_deg: float = 0.0) -> VectorData:
     """A batch store's ensemble field (``u_mean``... or ``u_ensemble``... by ``prefix``),
-    valid where it has a value."""
-    vel = np.stack([np.asarray(arrays[f"{c}_{prefix}"], float) for c in "uvw"])
+    valid where it has a value, on its grid's axes (the store's ``rotation_deg``)."""
+    vel = grid_frame(np.stack([np.asarray(arrays[f"{c}_{prefix}"], float) for c in "uvw"]),
+                     rotation_deg)
     valid = np.all(np.isfinite(vel), axis=0)
     return VectorData(*(np.asarray(arrays[a], float) for a in AXES), velocity=vel,
                       valid=valid, unit="m/s")

@@ -174,7 +174,7 @@ def _store(out: Path, content, view: str, opt: PlotOptions) -> Path:
         return probe_figure(out, arrays, attrs, opt.probe)
     if view == "valid":
         return valid_fraction_figure(out, arrays, attrs)
-    mean = store_field(arrays)
+    mean = store_field(arrays, rotation_deg=float(attrs.get("rotation_deg", 0.0)))
     if not mean.valid.any():
         raise ValueError("the store's mean field has no valid vector to draw")
     if view == "profile":

@@ -98,7 +98,7 @@ def batch_figures(store: str | Path, out: str | Path) -> list[Path]:
 
     arrays, attrs = read_store(store)
     out = Path(out)
-    mean = store_field(arrays)
+    mean = store_field(arrays, rotation_deg=float(attrs.get("rotation_deg", 0.0)))
     written = []
     if mean.valid.any():
         written.append(slices_figure(out / "mean_slices.png", mean, "z", "speed"))
