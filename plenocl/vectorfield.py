@@ -376,7 +376,7 @@ def _metadata(result: PIVResult, dt: float | None, metadata: dict | None) -> dic
     return {**(metadata or {}), **result.metadata(dt)}
 
 
-def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
+def save_field(path: str | Path, result: PIVResult, voxel_size_mm=None,
                origin_mm=(0.0, 0.0, 0.0), dt: float | None = None, grid=None,
                metadata: dict | None = None) -> Path:
     """Write a PIV result, choosing the format from the extension (.vti, .npz, .h5/.hdf5,
@@ -390,7 +390,8 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
     result
         Output of :func:`plenocl.piv3d`.
     voxel_size_mm
-        Scalar or ``(dz, dy, dx)`` in mm.
+        Scalar or ``(dz, dy, dx)`` in mm; without it (nor ``grid``) 1 mm, with a warning
+        when ``dt`` asks for velocities (m/s from 1 mm voxels are rarely meant).
     origin_mm
         ``(z0, y0, x0)``: the centre of voxel ``(0, 0, 0)`` in mm.
     dt
@@ -410,6 +411,12 @@ def save_field(path: str | Path, result: PIVResult, voxel_size_mm=1.0,
         The file written.
     """
     path = check_field_path(path)
+    if voxel_size_mm is None:
+        if grid is None and dt is not None:
+            warnings.warn("save_field with dt but neither grid= nor voxel_size_mm=: the "
+                          "velocities (m/s) take 1 mm voxels; give the volumes' grid (or "
+                          "their voxel size in mm)", stacklevel=2)
+        voxel_size_mm = 1.0
     size, origin = _geometry(voxel_size_mm, origin_mm, grid, result)
     rotation = 0.0 if grid is None else grid.rotation_deg
     return write_field(path, result.arrays(size, origin, dt, rotation),

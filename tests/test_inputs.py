@@ -497,3 +497,20 @@ def test_a_partly_dark_white_image_is_not_only_blamed_on_the_lens_count():
                                          r"count is right, part of the array is dark: the lit "
                                          r"lenses span x \d+-\d+ of 204 px"):
         calibrate(half, camera)
+
+
+def test_velocities_from_the_default_voxel_warn(tmp_path):
+    """``save_field(dt=)`` without the grid or the voxel size writes m/s from 1 mm voxels
+    (one voxel in 1 ms is 1 m/s): said; given either, not."""
+    from plenocl import PIVResult, read_npz, save_field
+
+    x = y = z = np.array([8.0, 16.0])
+    ones, none = np.ones((2, 2, 2)), np.zeros((2, 2, 2), bool)
+    result = PIVResult(x, y, z, ones, 0 * ones, 0 * ones, ~none, ones, none, none, (16,) * 3)
+    with pytest.warns(UserWarning, match=r"neither grid= nor voxel_size_mm=.*1 mm voxels"):
+        path = save_field(tmp_path / "f.npz", result, dt=1e-3)
+    assert read_npz(path)[1]["velocity"][0].max() == pytest.approx(1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        path = save_field(tmp_path / "g.npz", result, voxel_size_mm=0.125, dt=1e-3)
+    assert read_npz(path)[1]["velocity"][0].max() == pytest.approx(0.125)

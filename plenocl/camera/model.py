@@ -428,6 +428,7 @@ class Camera:
                              "whole frame (calibrate the cropped white image instead)")
         ox, oy = _origin(origin)
         base = self.crop_origin or (0, 0)
+        _warn_off_axis(self, (ox, oy), size)
         return replace(self, pixels=tuple(size), crop_origin=(base[0] + ox, base[1] + oy),
                        microlens_centers=None)
 
@@ -597,3 +598,21 @@ def load_camera(spec: str | Path | None) -> Camera:
         raise FileNotFoundError(f"no camera file {spec!s} and no preset of that name; give a "
                                 f"camera TOML file or one of the presets {sorted(PRESETS)}")
     return Camera.from_toml(spec)
+
+
+def _warn_off_axis(camera: Camera, origin: tuple[int, int], size) -> None:
+    """Warn when a region of interest's centre lies off the sensor's by more than half a
+    lens image: plenocl puts the optical axis at the region's centre (sensor mm are
+    counted from it), so positions, not displacements, are then off by the offset over
+    the magnification (docs/conventions.md)."""
+    shift = [(o + n / 2 - full / 2) for o, n, full in zip(origin, size, camera.pixels)]
+    if max(abs(d) for d in shift) * camera.pixel_pitch_mm <= camera.ml_pitch_mm / 2:
+        return
+    mm = math.hypot(*shift) * camera.pixel_pitch_mm / camera.magnification
+    warnings.warn(f"the region's centre lies ({shift[0]:+.0f}, {shift[1]:+.0f}) px from the "
+                  "sensor's, but plenocl places the optical axis at the region's centre: "
+                  f"positions (grids, peaks, vectors' coordinates) will be off by about "
+                  f"{mm:.3g} mm in object space, displacements and "
+                  "velocities hardly; crop symmetrically about the sensor's centre where "
+                  "absolute positions matter", stacklevel=2)
+
