@@ -61,7 +61,7 @@ def run_tracking(out_dir: str | Path, frames: int = FRAMES, queue=None, seed: in
     tracks = track(images, proj, dt=DT, settings=settings)
     seconds = time.perf_counter() - t0
     tracks.save(out / "tracks.npz")
-    tracks.save(out / "tracks.vtu")
+    tracks.save(out / "tracks.vtu", seconds=True)  # dt in s: m/s, as plenocl run writes
     plot_tracks(out / "fig_tracks.png", tracks)
     mid = frames // 2 - 1
     pair = process_pair(images[mid], images[mid + 1], proj, chain_settings(sc))
