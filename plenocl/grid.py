@@ -231,7 +231,7 @@ class Grid:
         rows' (``pitch·√3/2``), and its axes follow its rows.
         """
         require_world_frame(camera, "Grid.for_camera")
-        z = _depth_range(z)
+        z = _extent("z", z)
         voxel = _size(voxel_mm, "voxel_mm", camera.ml_pitch_mm / camera.magnification)
         dvox = _size(depth_voxel_mm, "depth_voxel_mm", camera.depth_resolution_mm / 2)
         if _real(fraction) is None or not 0 < fraction <= 1:
@@ -267,18 +267,6 @@ GRID_KEYS = ("shape", "x_mm", "y_mm", "z_mm", "rotation_deg")
 MAX_VOXELS = 2**31 - 1
 
 
-def _depth_range(z) -> tuple[float, float]:
-    """``z``: two finite depths (mm), the first the smaller."""
-    try:
-        lo, hi = (float(v) for v in z)
-    except (TypeError, ValueError):
-        raise ValueError(f"z must be two depths in mm (near, far), got {z!r}") from None
-    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-        raise ValueError(f"z must be two finite depths in mm, the first the smaller, got "
-                         f"{z!r}")
-    return lo, hi
-
-
 def _size(value, name: str, default: float) -> float:
     """A voxel size in mm: ``value``, a positive finite number, or ``default`` for None."""
     if value is None:
@@ -307,4 +295,3 @@ def _fits(size: float, name: str, span: float, what: str) -> None:
     if size > span:
         raise ValueError(f"{name} = {size:g} mm is larger than {what} ({span:.3g} mm): "
                          "sizes are in millimetres")
-

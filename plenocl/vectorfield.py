@@ -22,8 +22,8 @@ from .camera.lattice import rotation_matrix
 from .io.fieldformat import AXES, FORMAT_VERSION, check_field_path, read_field, write_field
 
 __all__ = ["AXES", "FLAGS", "FORMAT_VERSION", "NOTES", "PIVResult", "Size3",
-           "displacement_to_velocity", "field_units", "q_criterion", "uncertainty",
-           "velocity_gradient", "vorticity", "voxel_size"]
+           "displacement_to_velocity", "field_units", "q_criterion", "to_object_space",
+           "uncertainty", "velocity_gradient", "vorticity", "voxel_size"]
 
 Size3 = tuple[int, int, int]
 
@@ -165,11 +165,11 @@ class PIVResult:
         out.update({name: np.asarray(getattr(self, name), bool) for name in FLAGS})
         out["displacement_uncertainty"] = uncertainty(self)
         if dt is not None:
-            out["velocity"] = _to_object_space(self.velocity(size, dt), rotation_deg)
+            out["velocity"] = to_object_space(self.velocity(size, dt), rotation_deg)
             out["velocity_uncertainty"] = _spread_to_object_space(
                 self.velocity_uncertainty(size, dt), rotation_deg)
             out["dt"] = np.asarray(float(dt))
-        out["vorticity"] = _to_object_space(self.vorticity(size, dt), rotation_deg)
+        out["vorticity"] = to_object_space(self.vorticity(size, dt), rotation_deg)
         out["q_criterion"] = self.q_criterion(size, dt)
         out["rotation_deg"] = np.asarray(float(rotation_deg))
         return out
@@ -313,9 +313,10 @@ def _spread_to_object_space(sigmas, rotation_deg: float) -> np.ndarray:
     return np.stack([sx, sy, sz])
 
 
-def _to_object_space(components, rotation_deg: float) -> np.ndarray:
+def to_object_space(components, rotation_deg: float) -> np.ndarray:
     """``(x, y, z)`` vector components along a grid turned by ``rotation_deg`` about the
-    optical axis, as object-space components ``(3, ...)``."""
+    optical axis, as object-space components ``(3, ...)`` (float64; with
+    ``-rotation_deg``, object-space components onto the grid's axes)."""
     cx, cy, cz = (np.asarray(c, np.float64) for c in components)
     if rotation_deg:
         r = rotation_matrix(rotation_deg)

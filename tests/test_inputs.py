@@ -350,8 +350,9 @@ def test_exact_median_is_numpys(n):
                           "millimetres"),
     ({"depth_voxel_mm": 5.0}, r"depth_voxel_mm = 5 mm is larger than the depth range"),
     ({"voxel_mm": 1e-5}, r"more than any device holds.*in millimetres"),
-    ({"z": (float("nan"), 0.5)}, r"z must be two finite depths in mm"),
-    ({"z": (0.5, -0.5)}, r"the first the smaller"),
+    ({"z": (float("nan"), 0.5)}, r"grid extent z must be two finite numbers \(lo, hi\) "
+                                 r"with lo < hi in mm, got \(nan, 0.5\)"),
+    ({"z": (0.5, -0.5)}, r"grid extent z must be two finite numbers .* got \(0.5, -0.5\)"),
 ])
 def test_a_grid_of_impossible_sizes_is_refused_naming_the_option(options, message):
     """``Grid.for_camera`` (``plenocl grid``, a batch's ``[grid]``): a zero or negative

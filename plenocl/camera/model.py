@@ -615,4 +615,3 @@ def _warn_off_axis(camera: Camera, origin: tuple[int, int], size) -> None:
                   f"{mm:.3g} mm in object space, displacements and "
                   "velocities hardly; crop symmetrically about the sensor's centre where "
                   "absolute positions matter", stacklevel=2)
-

@@ -101,12 +101,17 @@ def window_schedule(windows, overlaps, final_iterations: int) -> list[tuple[tupl
     if len(overlaps) != len(windows):
         raise ValueError(f"overlaps ({len(overlaps)} values) must match windows "
                          f"({len(windows)} passes) or be a single fraction")
-    if not is_integer(final_iterations) or final_iterations < 1:
-        raise ValueError(f"final_iterations must be an integer >= 1 (how many times the "
-                         f"last pass runs), got {final_iterations!r}")
+    _check_final_iterations(final_iterations)
     passes = [(_window_size(win, k), _overlap(ovl, k))
               for k, (win, ovl) in enumerate(zip(windows, overlaps), start=1)]
     return passes + [passes[-1]] * (int(final_iterations) - 1)
+
+
+def _check_final_iterations(value) -> None:
+    """How many times the last pass runs: an integer >= 1."""
+    if not is_integer(value) or value < 1:
+        raise ValueError(f"final_iterations must be an integer >= 1 (how many times the "
+                         f"last pass runs), got {value!r}")
 
 
 def _window_size(win, k: int) -> tuple[int, int, int]:
@@ -141,9 +146,7 @@ def _check_counts(s: PIVSettings) -> None:
         raise ValueError(f"overlaps {s.overlaps!r} gives one per pass, but without windows "
                          "the passes follow each volume's particles (two or three): give "
                          "the windows they go with, or one overlap for every pass")
-    if not is_integer(s.final_iterations) or s.final_iterations < 1:
-        raise ValueError(f"final_iterations must be an integer >= 1 (how many times the "
-                         f"last pass runs), got {s.final_iterations!r}")
+    _check_final_iterations(s.final_iterations)
     if not is_integer(s.workers) or not (s.workers == -1 or s.workers >= 1):
         raise ValueError(f"workers must be -1 (all cores) or a positive integer, got "
                          f"{s.workers!r}")

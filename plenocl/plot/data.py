@@ -9,8 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera.lattice import rotation_matrix
-
 #: The axes of a field, in the order of its vector components.
 AXES = ("x", "y", "z")
 #: The components a figure can colour by.
@@ -118,13 +116,9 @@ def grid_frame(velocity: np.ndarray, rotation_deg: float) -> np.ndarray:
     """Object-space velocity ``(3, ...)`` (a stored field's) turned onto the axes of a
     grid turned by ``rotation_deg``, the axes its coordinates are on: what a figure draws
     and differentiates against them (``Rᵀ v``; as it is on an unrotated grid)."""
-    if not rotation_deg:
-        return velocity
-    turned = velocity.copy()
-    r = rotation_matrix(rotation_deg)
-    turned[0] = r[0, 0] * velocity[0] + r[1, 0] * velocity[1]
-    turned[1] = r[0, 1] * velocity[0] + r[1, 1] * velocity[1]
-    return turned
+    from ..vectorfield import to_object_space
+
+    return to_object_space(velocity, -rotation_deg) if rotation_deg else velocity
 
 
 def store_field(arrays: dict[str, np.ndarray], prefix: str = "mean",

@@ -101,10 +101,8 @@ class Tracks:
                                         **{name: getattr(self, name) for name in _PER_TRACK})
         elif path.suffix == ".vtu":
             lines, data = self._lines()
-            if seconds:
-                data = {(f"{k}_m_per_s" if k in ("velocity", "speed") else k):
-                        ([v * 1e-3 for v in values] if k in ("velocity", "speed") else values)
-                        for k, values in data.items()}
+            for name in ("velocity", "speed") if seconds else ():  # mm/s to m/s
+                data[f"{name}_m_per_s"] = [v * 1e-3 for v in data.pop(name)]
             write_vtu(path, lines, data)
         else:
             raise ValueError(f"tracks are written as .npz or .vtu (ParaView), not {path.name!r}")

@@ -45,7 +45,7 @@ from .joint import run_joint
 from .operator import FramedOperator, PlannedOperator, ProjectionOperator
 from .schedule import SupportStart, sampled_operator, support_on_device
 from .settings import ReconstructionInfo, ReconstructionSettings
-from .solver import UPDATES, Solver
+from .solver import UPDATES, Solver, check_start_volume
 from .supersample import bin_lateral
 
 #: A sub-voxel run's first guess from a coarser grid: the coarse start (a host volume or a
@@ -302,13 +302,7 @@ def _coarse_start(start, grid) -> np.ndarray | None:
     multiplies its voxels: one at zero stays there); ``None`` for a named start."""
     if not isinstance(start, np.ndarray):
         return None
-    if start.shape != grid.shape:
-        raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
-                         f"{grid.shape} (nz, ny, nx)")
-    if start.dtype.kind not in "biuf":
-        raise ValueError(f"start volume must hold real numbers, got {start.dtype}")
-    if not np.all(np.isfinite(start)) or start.min() < 0:
-        raise ValueError("start volume must be finite and non-negative")
+    check_start_volume(start, grid.shape)
     if not start.any():
         raise ValueError("start volume has no positive voxel (a start given, or the "
                          "combined volume of motion-tracking enhancement): the "

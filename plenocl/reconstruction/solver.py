@@ -31,13 +31,22 @@ RATIO_MIN = 1e-6
 CROP_BELOW = 0.8
 
 
-def _start_volume(start: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
-    """A user-supplied first guess, checked: the grid's shape, finite, non-negative."""
+def check_start_volume(start: np.ndarray, shape: tuple[int, int, int]) -> None:
+    """Refuse a first guess that is not a volume of the grid's ``shape`` of real, finite,
+    non-negative numbers."""
     if start.shape != shape:
         raise ValueError(f"start volume has shape {start.shape}, expected the grid's "
                          f"{shape} (nz, ny, nx)")
+    if start.dtype.kind not in "biuf":
+        raise ValueError(f"start volume must hold real numbers, got {start.dtype}")
     if not np.all(np.isfinite(start)) or start.min() < 0:
         raise ValueError("start volume must be finite and non-negative")
+
+
+def _start_volume(start: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """A first guess (a user's, a coarse run's support), checked
+    (:func:`check_start_volume`), as float32."""
+    check_start_volume(start, shape)
     return start.astype(np.float32)
 
 
