@@ -94,11 +94,13 @@ inline float2 pl_lens_center(const pl_mla m, int kx, int ky)
     return (float2)(m.c * a - m.s * b + m.ox, m.s * a + m.c * b + m.oy);
 }
 
-/* Flat pixel index of sensor point (x, y) mm, -1 off the sensor. */
-inline int pl_pixel_index(float x, float y, float pixel_pitch, int width, int height)
+/* Flat pixel index of sensor point (x, y) mm (from the optical axis, which lies edge_col,
+ * edge_row pixels from the first pixel's outer edge), -1 off the sensor. */
+inline int pl_pixel_index(float x, float y, float pixel_pitch, float edge_col, float edge_row,
+                          int width, int height)
 {
-    int col = pl_floori(x / pixel_pitch + 0.5f * (float)width);
-    int row = pl_floori(y / pixel_pitch + 0.5f * (float)height);
+    int col = pl_floori(x / pixel_pitch + edge_col);
+    int row = pl_floori(y / pixel_pitch + edge_row);
     if (col < 0 || row < 0 || col >= width || row >= height) return -1;
     return row * width + col;
 }

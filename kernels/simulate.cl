@@ -8,7 +8,10 @@
  * on the device or on how the work is split. A lens may sit off its lattice node by
  * lens_shift (mm on the array plane; manufacturing errors): its optical centre and its
  * lit cell move with it, while the cell boundaries a particle's ray is sorted by stay on
- * the lattice (the shifts are a small fraction of a pitch). */
+ * the lattice (the shifts are a small fraction of a pitch). Sensor millimetres count from
+ * the optical axis, which lies (edge_col, edge_row) pixels from the sensor's first pixel's
+ * outer edge (Camera.sensor_edge_px: W/2, H/2 unless the sensor is a region of a larger
+ * one). */
 #include "common.h"
 
 inline float2 pl_blur(uint key, float sigma_mm)
@@ -32,7 +35,8 @@ __kernel void trace_particles(
     uint seed, uint src_offset, uint rays, uint rays_per_item,
     float aperture_radius, float d_p, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
-    float ml_row, float ml_odd, float px_pitch, int width, int height)
+    float ml_row, float ml_odd, float px_pitch, float edge_col, float edge_row, int width,
+    int height)
 {
     const pl_mla m = {ml_pitch, ml_cos, ml_sin, ml_ox, ml_oy, nx, ny, ml_row, ml_odd};
     const uint p = get_global_id(1);
@@ -55,7 +59,7 @@ __kernel void trace_particles(
         float2 c = pl_lens_center(m, kx, ky) + lens_shift[k];
         float2 s = c + f_ml * (float2)(ip.x - u, ip.y - v) / ip.z;
         if (blur_mm > 0.0f) s += pl_blur(key, blur_mm);
-        int idx = pl_pixel_index(s.x, s.y, px_pitch, width, height);
+        int idx = pl_pixel_index(s.x, s.y, px_pitch, edge_col, edge_row, width, height);
         if (idx >= 0) pl_accumulate(image, idx, q);
     }
 }
@@ -82,7 +86,8 @@ __kernel void trace_white(
     uint seed, uint src_offset, uint rays, uint rays_per_item,
     float stop_radius, float d_p, float f_ml, float blur_mm,
     float ml_pitch, float ml_cos, float ml_sin, float ml_ox, float ml_oy, int nx, int ny,
-    float ml_row, float ml_odd, float px_pitch, int width, int height)
+    float ml_row, float ml_odd, float px_pitch, float edge_col, float edge_row, int width,
+    int height)
 {
     const pl_mla m = {ml_pitch, ml_cos, ml_sin, ml_ox, ml_oy, nx, ny, ml_row, ml_odd};
     const uint src = src_offset + get_global_id(1);
@@ -102,7 +107,7 @@ __kernel void trace_white(
         float th = PLENOCL_TWO_PI * pl_uniform(pl_word(key, 1));
         float2 s = c + f_ml * (x - (float2)(rad * cos(th), rad * sin(th))) / d_p;
         if (blur_mm > 0.0f) s += pl_blur(key, blur_mm);
-        int idx = pl_pixel_index(s.x, s.y, px_pitch, width, height);
+        int idx = pl_pixel_index(s.x, s.y, px_pitch, edge_col, edge_row, width, height);
         if (idx >= 0) pl_accumulate(image, idx, quantum);
     }
 }

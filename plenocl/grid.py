@@ -218,7 +218,8 @@ class Grid:
     def for_camera(cls, camera, z: tuple[float, float], voxel_mm: float | None = None,
                    depth_voxel_mm: float | None = None, fraction: float = 1.0,
                    rotation_deg: float | None = None) -> Grid:
-        """A grid covering the camera's field of view over depths ``z``.
+        """A grid covering the camera's field of view over depths ``z``, centred on what
+        the sensor's (a region of interest's) centre sees at the nominal focal plane.
 
         The default lateral voxel is one microlens projected into object space (the
         paper's choice, ``p_ml / M``); the default depth voxel is half the camera's depth
@@ -254,8 +255,9 @@ class Grid:
         if rotation_deg is None:
             rotation_deg = separable_rotation_deg(camera.on_lens_lattice().microlens_centers,
                                                   DEFAULT_SHEAR_TOL)
-        grid = cls((nz, ny, nx), (-nx * voxel / 2, nx * voxel / 2),
-                   (-ny * voxel / 2, ny * voxel / 2), tuple(z), rotation_deg)
+        cx, cy = camera.field_centre_mm() @ rotation_matrix(rotation_deg)  # grid frame
+        grid = cls((nz, ny, nx), (cx - nx * voxel / 2, cx + nx * voxel / 2),
+                   (cy - ny * voxel / 2, cy + ny * voxel / 2), tuple(z), rotation_deg)
         check_grid(camera, grid)
         return grid
 

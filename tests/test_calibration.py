@@ -604,20 +604,3 @@ def test_a_bad_centres_csv_is_refused_naming_the_line(tmp_path, small_white, edi
     (tmp_path / "bad.csv").write_text("\n".join(edit(lines)) + "\n")
     with pytest.raises(ValueError, match=message):
         import_centers(tmp_path / "bad.csv", cam)
-
-
-def test_an_off_centre_region_warns_that_positions_shift():
-    """plenocl puts the optical axis at a region of interest's centre: a region off the
-    sensor's centre by more than half a lens image warns with the positions' error; a
-    centred one does not."""
-    import warnings
-
-    doc = Camera.synthetic_850().to_dict()  # the region's lenses in the file: 34 of 50
-    doc["microlens_array"]["count"] = [34, 50]
-    camera = Camera.from_dict(doc)
-    with pytest.warns(UserWarning, match=r"region's centre lies \(\+136, \+0\) px from the "
-                                         r"sensor's.*off by about 1.01 mm"):
-        camera.cropped((272, 0), (578, 850))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        camera.cropped((136, 0), (578, 850))

@@ -24,7 +24,7 @@ from .disks import (
 )
 from .gridmodel import grid_model
 from .lenscentres import fit_disks
-from .matching import match_lattice
+from .matching import LayoutMismatch, match_lattice
 from .result import CenterFit
 from .spots import (
     DUPLICATE_RADIUS,
@@ -119,7 +119,7 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     keep = suppress_duplicates(cents, strength, DUPLICATE_RADIUS * pitch)
     cents, split = cents[keep], split[keep]
     _check_count(len(cents), camera, "well-formed spots")
-    k, dev = match_lattice(cents, camera)
+    camera, (k, dev) = _matched(cents, camera)
     _check_lattice(dev, "disks" if kind == "full" else "spots")
     if kind == "full" and method == "combined":  # the disks' centroids: the lattice only
         per_lens, method = pitch >= PER_LENS_MIN_PITCH_PX, "fit"
@@ -131,7 +131,23 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         fit = _cut_by_the_edge(fit, flat)
     if per_lens:  # the lattice is the prior; each lens's own disk says where it is
         fit = _follow_lenses(fit, img, camera, degree, fill_missing)
-    return dataclasses.replace(fit, aperture=kind)
+    return dataclasses.replace(fit, aperture=kind, camera=camera)
+
+
+def _matched(cents: np.ndarray, camera: Camera) -> tuple[Camera, tuple]:
+    """:func:`match_lattice` of the spots, and the camera they were matched on: a region
+    of interest cut by :meth:`Camera.cropped` (``full_pixels``) takes the lens count and
+    odd-row shift its white image shows (the region's lenses were counted on the nominal
+    layout, whose offset the image alone knows); a whole sensor's camera file that
+    disagrees with its image is refused (:class:`LayoutMismatch`)."""
+    for _ in range(2):  # the count, then a hexagonal region's shift
+        try:
+            return camera, match_lattice(cents, camera)
+        except LayoutMismatch as exc:
+            if camera.full_pixels is None:
+                raise
+            camera = dataclasses.replace(camera, microlens_centers=None, **exc.fix)
+    return camera, match_lattice(cents, camera)
 
 
 def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,
@@ -444,7 +460,7 @@ def calibrate(white_image, camera: Camera, *, diagnostic_png: str | Path | None 
     warn_about(fit)
     if diagnostic_png is not None:
         save_diagnostic(diagnostic_png, white_image, fit)
-    return camera.with_centers(fit.centers)
+    return fit.camera.with_centers(fit.centers)
 
 
 #: Imported centres must lie within this many pitches (median) of the camera's nominal

@@ -17,6 +17,17 @@ from .checks import image_pitch_px
 PITCH_TOLERANCE = 0.10
 
 
+class LayoutMismatch(ValueError):
+    """The white image shows another lens count or odd-row shift than the camera's;
+    ``fix`` holds the camera fields it shows (:func:`dataclasses.replace` keywords). A
+    whole sensor's camera file is then wrong; a region's count and shift, derived from
+    the nominal layout (:meth:`plenocl.Camera.cropped`), follow the image."""
+
+    def __init__(self, message: str, fix: dict) -> None:
+        super().__init__(message)
+        self.fix = fix
+
+
 def _lattice_frame(pts: np.ndarray, pitch_nominal: float, symmetry: int = 4
                    ) -> tuple[float, float]:
     """Pitch (px) and rotation (rad) of the spot lattice from nearest-neighbour vectors
@@ -99,11 +110,12 @@ def _lens_count_and_shift(base: np.ndarray, pts: np.ndarray, model: np.ndarray,
         first[axis], last[axis] = edge.boundary(lo[axis], -1), edge.boundary(hi[axis], +1)
     seen = last - first + 1
     if (seen != count).any():
-        raise ValueError(
+        raise LayoutMismatch(
             f"the white image shows about {seen[0]} x {seen[1]} microlens images (columns x "
             f"rows, counting those whose centre lies on the sensor) but the camera file has "
             f"{count[0]} x {count[1]} microlenses: correct [microlens_array] count = "
-            "[columns, rows] in the camera file" + _dark_margin(pts, size, pitch, seen < count))
+            "[columns, rows] in the camera file" + _dark_margin(pts, size, pitch, seen < count),
+            dict(ml_count=tuple(int(n) for n in seen)))
     return -first
 
 
@@ -150,11 +162,11 @@ def _hexagonal_indices(base: np.ndarray, ok: np.ndarray, model: np.ndarray,
     first_q, last_q = edge.boundary(int(row.min()), -1), edge.boundary(int(row.max()), +1)
     seen = (last_q - first_q + 1, last_r - first_r + 1)
     if seen != (cols, rows):
-        raise ValueError(
+        raise LayoutMismatch(
             f"the white image shows about {seen[0]} x {seen[1]} microlens images (lenses in "
             f"an even row x rows, counting those whose centre lies on the sensor) but the "
             f"camera file has {cols} x {rows} microlenses: correct [microlens_array] count = "
-            "[columns, rows] in the camera file")
+            "[columns, rows] in the camera file", dict(ml_count=tuple(map(int, seen))))
     origin = np.array([first_q + camera.odd_row_shift * (even - first_r), first_r])
     k = axial_to_offset(base - origin.astype(np.int64), camera.odd_row_shift)
     _check_stagger(k[ok], camera)
@@ -175,10 +187,11 @@ def _check_stagger(k: np.ndarray, camera: Camera) -> None:
     rows_end = np.unique(k[odd & (k[:, 0] == end), 1])
     half = len(rows_odd) / 2
     if len(rows_odd) and len(rows_wrong) > half and len(rows_end) <= half:
-        raise ValueError(
+        raise LayoutMismatch(
             f"the white image's odd rows of lenses sit {-camera.odd_row_shift:+g} pitch from "
             f"the even ones, the camera file says {camera.odd_row_shift:+g}: set "
-            f"[microlens_array] odd_row_shift = {-camera.odd_row_shift:g}")
+            f"[microlens_array] odd_row_shift = {-camera.odd_row_shift:g}",
+            dict(ml_odd_row_shift=-camera.odd_row_shift))
 
 
 class _EdgeLattice:

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..camera import Camera
+
 
 @dataclass(frozen=True)
 class CenterFit:
@@ -48,6 +50,10 @@ class CenterFit:
     aperture
         ``"stopped"`` (small spots) or ``"full"`` (disks filling the lenses): how the
         image was read.
+    camera
+        The camera the centres belong to: the one given, or a region of interest's
+        (:meth:`plenocl.Camera.cropped`) with the lens count and odd-row shift its white
+        image shows (:func:`plenocl.calibration.fit.find_centers`).
     """
 
     centers: np.ndarray
@@ -64,6 +70,7 @@ class CenterFit:
     noise_px: np.ndarray
     lattice_scatter_px: float
     aperture: str = "stopped"
+    camera: Camera | None = None
 
     @property
     def n_missing(self) -> int:

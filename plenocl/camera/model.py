@@ -1,8 +1,10 @@
 """The unfocused plenoptic camera (docs/design.md §2): optics, microlens layout, TOML files.
 
-Units are millimetres. Sensor coordinates have their origin on the optical axis;
-pixel ``(col, row)`` has its centre at ``((col + 0.5) - W/2) * p_px``,
-``((row + 0.5) - H/2) * p_px``. The main lens inverts the image.
+Units are millimetres. Sensor coordinates have their origin on the optical axis, which
+crosses the whole sensor's centre: pixel ``(col, row)`` of a ``W x H`` sensor has its centre
+at ``((col + 0.5) - W/2) * p_px``, ``((row + 0.5) - H/2) * p_px``; a region of interest's
+pixels are counted from its origin on the whole sensor (:meth:`Camera.cropped`). The
+main lens inverts the image.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from ..io.tomlfile import read_toml, write_toml
 from ..options import refuse_unknown
 from .lattice import LensLayout, lens_layout
 from .pose import POSE_KEYS, Pose
+from .region import region_fields
 
 #: Microlens images that fill their pitch less than this (fraction) trigger a warning.
 UNDERFILL_WARN = 0.80
@@ -92,6 +95,12 @@ class Camera:
     microlens_centers
         Microlens image centres ``(rows, cols, 2)`` as ``(col, row)`` pixels; the ideal
         centres of the layout when not given. ``NaN`` marks a lens calibration missed.
+    crop_origin, full_pixels
+        A region of interest (:meth:`cropped`): its first pixel ``(column, row)`` on the
+        whole sensor, and the whole sensor's ``(columns, rows)``; ``pixels`` are then the
+        region's. The optical axis crosses the whole sensor's centre, so positions seen
+        through an off-centre region are the whole frame's. Without ``full_pixels`` (a
+        camera file written before 2026-12) the axis is taken at the region's centre.
     pupil_magnification, principal_plane_separation_mm
         A thick main lens (docs/design.md §2): the exit pupil's diameter over the
         entrance pupil's, ``m_p``, and the distance from the front principal plane to
@@ -116,6 +125,7 @@ class Camera:
     microlens_centers: np.ndarray | None = field(default=None, repr=False)
     calibrated: bool = False
     crop_origin: tuple[int, int] | None = None
+    full_pixels: tuple[int, int] | None = None
     pupil_magnification: float = 1.0
     principal_plane_separation_mm: float = 0.0
     ml_layout: str = "rectangular"
@@ -138,8 +148,7 @@ class Camera:
                                                        self.ml_odd_row_shift))
         object.__setattr__(self, "principal_plane_separation_mm", _finite(
             "principal_plane_separation_mm", self.principal_plane_separation_mm))
-        if self.crop_origin is not None:
-            object.__setattr__(self, "crop_origin", _origin(self.crop_origin))
+        self._check_region()
         if self.pose is not None and not isinstance(self.pose, Pose):
             raise TypeError(f"pose must be a plenocl.camera.Pose or None, got "
                             f"{type(self.pose).__name__}")
@@ -148,6 +157,22 @@ class Camera:
         object.__setattr__(self, "microlens_centers", self._validated_centers())
 
     # ---- validation -------------------------------------------------------------
+    def _check_region(self) -> None:
+        """``crop_origin`` as two whole pixels, and ``full_pixels`` (only with it) holding
+        the region."""
+        if self.crop_origin is not None:
+            object.__setattr__(self, "crop_origin", _origin(self.crop_origin))
+        if self.full_pixels is None:
+            return
+        full = _count_pair("whole sensor's pixels (full_pixels)", self.full_pixels)
+        object.__setattr__(self, "full_pixels", full)
+        origin = self.crop_origin
+        if origin is None or any(o + n > f for o, n, f in zip(origin, self.pixels, full)):
+            raise ValueError(
+                f"[sensor] full_pixels {list(full)} is the whole sensor a region of interest "
+                f"is cut from: it needs crop_origin, and the region ({self.pixels[0]} x "
+                f"{self.pixels[1]} px from {list(origin or ())}) must lie inside it")
+
     @property
     def odd_row_shift(self) -> float:
         """How far (pitches, along the row) the odd rows of lenses sit from the even ones:
@@ -385,17 +410,33 @@ class Camera:
         ck = self.microlens_positions_mm() * self.lens_image_scale
         return self.mm_to_px(ck)
 
+    @property
+    def sensor_edge_px(self) -> np.ndarray:
+        """``(col, row)`` of the optical axis counted from the sensor's first pixel's
+        outer edge (``W/2, H/2`` for a whole sensor; a region's from its own edge):
+        ``mm_to_px(xy) = xy / p_px + sensor_edge_px - 0.5``."""
+        if self.full_pixels is None:
+            return np.array(self.pixels, dtype=np.float64) / 2
+        return (np.array(self.full_pixels, dtype=np.float64) / 2
+                - np.array(self.crop_origin, dtype=np.float64))
+
     def mm_to_px(self, xy_mm) -> np.ndarray:
-        """Sensor ``(x, y)`` mm to ``(col, row)`` pixel coordinates (pixel centres at .0)."""
+        """Sensor ``(x, y)`` mm (from the optical axis) to ``(col, row)`` pixel
+        coordinates (pixel centres at .0)."""
         xy = np.asarray(xy_mm, dtype=np.float64)
-        size = np.array(self.pixels, dtype=np.float64)
-        return xy / self.pixel_pitch_mm + size / 2 - 0.5
+        return xy / self.pixel_pitch_mm + self.sensor_edge_px - 0.5
 
     def px_to_mm(self, colrow) -> np.ndarray:
-        """``(col, row)`` pixel coordinates to sensor ``(x, y)`` mm."""
+        """``(col, row)`` pixel coordinates to sensor ``(x, y)`` mm (from the axis)."""
         cr = np.asarray(colrow, dtype=np.float64)
-        size = np.array(self.pixels, dtype=np.float64)
-        return (cr + 0.5 - size / 2) * self.pixel_pitch_mm
+        return (cr + 0.5 - self.sensor_edge_px) * self.pixel_pitch_mm
+
+    def field_centre_mm(self) -> np.ndarray:
+        """Object-space ``(x, y)`` mm at the nominal focal plane that the sensor's (a
+        region's) centre sees: ``(0, 0)`` for a whole sensor; :meth:`Grid.for_camera
+        <plenocl.Grid.for_camera>` centres its grid there."""
+        middle = (np.array(self.pixels, dtype=np.float64) - 1) / 2
+        return -self.px_to_mm(middle) / (self.lens_image_scale * self.magnification)
 
     def with_layout(self, name: str, odd_row_shift: float | None = None) -> Camera:
         """This camera with a ``name`` array (:data:`LAYOUTS`) of the same pitch on the same
@@ -419,23 +460,25 @@ class Camera:
     # ---- region of interest --------------------------------------------------------
     def cropped(self, origin: tuple[int, int], size: tuple[int, int]) -> Camera:
         """The camera seen through a region of interest of its frames: ``size`` =
-        ``(columns, rows)`` pixels from ``origin`` = ``(column, row)``; recorded in the
-        camera (``[sensor] crop_origin``) so that full frames read later are cut alike
-        (:meth:`fit_image`). Crop before calibrating: the microlens count is then the
-        lenses whose image centre lies in the region (docs/design.md §3)."""
+        ``(columns, rows)`` pixels from ``origin`` = ``(column, row)``.
+
+        Give the camera of the whole sensor (``[microlens_array] count``: the whole
+        array's lenses). The region keeps the lenses whose image centre lies in it, where
+        they stand on the whole array, and the optical axis where it crosses the whole
+        sensor (``[sensor] crop_origin`` and ``full_pixels``), so positions seen through
+        an off-centre region are the whole frame's; full frames read later are cut
+        alike (:meth:`fit_image`). Crop before calibrating (docs/design.md §2, §3).
+        """
         if self.calibrated:
             raise ValueError("crop before calibrating: the calibrated centres belong to the "
                              "whole frame (calibrate the cropped white image instead)")
-        ox, oy = _origin(origin)
-        base = self.crop_origin or (0, 0)
-        _warn_off_axis(self, (ox, oy), size)
-        return replace(self, pixels=tuple(size), crop_origin=(base[0] + ox, base[1] + oy),
-                       microlens_centers=None)
+        origin, size = _origin(origin), _count_pair("region of interest's size", size)
+        return replace(self, **region_fields(self, origin, size))
 
     def fit_image(self, image, name: str = "image") -> np.ndarray:
         """``image`` as this camera's sensor sees it: as it is when its shape is the
-        sensor's, else cut to the recorded region of interest (``crop_origin``); any
-        other shape is an error naming the fix."""
+        sensor's, else cut to the recorded region of interest (``crop_origin``); a frame
+        that does not hold the region is an error naming the fix."""
         img = np.asarray(image)
         want = (self.pixels[1], self.pixels[0])
         if img.shape == want:
@@ -448,7 +491,10 @@ class Camera:
             f"{name} is {img.shape[-1]} x {img.shape[0]} px (columns x rows), which does not "
             f"match the camera's sensor of {want[1]} x {want[0]}"
             + (f" from ({self.crop_origin[0]}, {self.crop_origin[1]})" if self.crop_origin
-               else "") + ": give the region of interest of the frames (--crop COLUMN ROW "
+               else "")
+            + (f" of the whole {self.full_pixels[0]} x {self.full_pixels[1]} sensor"
+               if self.full_pixels else "")
+            + ": give the region of interest of the frames (--crop COLUMN ROW "
             "WIDTH HEIGHT, or camera.cropped(origin, size)), or correct [sensor] pixels")
 
     def describe(self) -> str:
@@ -495,6 +541,8 @@ class Camera:
         }
         if self.crop_origin is not None:
             doc["sensor"]["crop_origin"] = list(self.crop_origin)
+        if self.full_pixels is not None:
+            doc["sensor"]["full_pixels"] = list(self.full_pixels)
         if self.calibrated:
             c = self.microlens_centers
             doc["calibration"] = {"centers_col": c[..., 0].tolist(),
@@ -521,7 +569,7 @@ class Camera:
                 ml_layout=mla.get("layout", "rectangular"),
                 ml_odd_row_shift=mla.get("odd_row_shift"),
                 pixel_pitch_mm=sensor["pixel_pitch_mm"], pixels=sensor["pixels"],
-                crop_origin=sensor.get("crop_origin"),
+                crop_origin=sensor.get("crop_origin"), full_pixels=sensor.get("full_pixels"),
             )
         except KeyError as exc:
             raise ValueError(f"{source} lacks the key {exc.args[0]!r} (see docs/design.md §2 "
@@ -533,7 +581,16 @@ class Camera:
             kwargs["calibrated"] = True
         if "pose" in doc:
             kwargs["pose"] = Pose.from_dict(doc["pose"], source)
-        return cls(**kwargs)
+        camera = cls(**kwargs)
+        if camera.crop_origin is not None and camera.full_pixels is None:
+            warnings.warn(
+                f"{source} records a region of interest ([sensor] crop_origin) but not the "
+                "whole sensor's size, so plenocl takes the optical axis at the region's "
+                "centre: positions (grids, particles, the vectors' coordinates) are off by "
+                "the region's offset from the sensor's centre over the magnification. Add "
+                "[sensor] full_pixels = [columns, rows] of the whole sensor (docs/design.md "
+                "§2)", stacklevel=2)
+        return camera
 
     @classmethod
     def from_toml(cls, path: str | Path) -> Camera:
@@ -564,7 +621,7 @@ CAMERA_KEYS = {
                   "principal_plane_separation_mm"),
     "microlens_array": ("pitch_mm", "focal_length_mm", "count", "rotation_deg", "offset_mm",
                         "layout", "odd_row_shift"),
-    "sensor": ("pixel_pitch_mm", "pixels", "crop_origin"),
+    "sensor": ("pixel_pitch_mm", "pixels", "crop_origin", "full_pixels"),
     "calibration": ("centers_col", "centers_row"),
     "pose": POSE_KEYS,
 }
@@ -599,19 +656,3 @@ def load_camera(spec: str | Path | None) -> Camera:
                                 f"camera TOML file or one of the presets {sorted(PRESETS)}")
     return Camera.from_toml(spec)
 
-
-def _warn_off_axis(camera: Camera, origin: tuple[int, int], size) -> None:
-    """Warn when a region of interest's centre lies off the sensor's by more than half a
-    lens image: plenocl puts the optical axis at the region's centre (sensor mm are
-    counted from it), so positions, not displacements, are then off by the offset over
-    the magnification (docs/conventions.md)."""
-    shift = [(o + n / 2 - full / 2) for o, n, full in zip(origin, size, camera.pixels)]
-    if max(abs(d) for d in shift) * camera.pixel_pitch_mm <= camera.ml_pitch_mm / 2:
-        return
-    mm = math.hypot(*shift) * camera.pixel_pitch_mm / camera.magnification
-    warnings.warn(f"the region's centre lies ({shift[0]:+.0f}, {shift[1]:+.0f}) px from the "
-                  "sensor's, but plenocl places the optical axis at the region's centre: "
-                  f"positions (grids, peaks, vectors' coordinates) will be off by about "
-                  f"{mm:.3g} mm in object space, displacements and "
-                  "velocities hardly; crop symmetrically about the sensor's centre where "
-                  "absolute positions matter", stacklevel=2)

@@ -56,7 +56,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         raise
     warn_about(fit)
-    calibrated = camera.with_centers(fit.centers)
+    calibrated = fit.camera.with_centers(fit.centers)
     calibrated.to_toml(args.out)
     if getattr(args, "centres_out", None):
         write_centers_csv(args.centres_out, fit.centers)

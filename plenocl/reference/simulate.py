@@ -113,8 +113,9 @@ def _hexagon(cam: Camera, a: np.ndarray, b: np.ndarray):
 def _deposit(cam: Camera, sx, sy, weight, keep) -> np.ndarray:
     """Sum ``weight`` of the kept rays landing at sensor points into an image."""
     w, h = cam.pixels
-    col = np.floor(sx / cam.pixel_pitch_mm + w / 2).astype(np.int64)
-    row = np.floor(sy / cam.pixel_pitch_mm + h / 2).astype(np.int64)
+    edge_col, edge_row = cam.sensor_edge_px  # the axis from the first pixel's outer edge
+    col = np.floor(sx / cam.pixel_pitch_mm + edge_col).astype(np.int64)
+    row = np.floor(sy / cam.pixel_pitch_mm + edge_row).astype(np.int64)
     keep = keep & (col >= 0) & (row >= 0) & (col < w) & (row < h)
     image = np.zeros(w * h)
     np.add.at(image, row[keep] * w + col[keep], np.broadcast_to(weight, keep.shape)[keep])

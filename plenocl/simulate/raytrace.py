@@ -113,8 +113,8 @@ class Simulator:
                 np.float32(cam.ml_offset_mm[0]), np.float32(cam.ml_offset_mm[1]),
                 np.int32(cam.ml_count[0]), np.int32(cam.ml_count[1]),
                 np.float32(cam.ml_row_pitch_mm), np.float32(cam.odd_row_shift),
-                np.float32(cam.pixel_pitch_mm), np.int32(cam.pixels[0]),
-                np.int32(cam.pixels[1])]
+                np.float32(cam.pixel_pitch_mm), *cam.sensor_edge_px.astype(np.float32),
+                np.int32(cam.pixels[0]), np.int32(cam.pixels[1])]
 
     def _quanta(self, per_ray: np.ndarray, total: float) -> tuple[np.ndarray, float]:
         """Per-ray contributions in the accumulator's units, and the scale back to counts."""
