@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from plenocl.camera import AxialView, Camera, HexagonalLayout, RectangularLayout, lens_layout
-from plenocl.camera.lattice import axial_basis
+from plenocl.camera.lattice import axial_basis, view_lean
 
 LAYOUTS = [("rectangular", None), ("hexagonal", 0.5), ("hexagonal", -0.5)]
 
@@ -81,9 +81,11 @@ def test_the_axial_view_numbers_the_same_lenses(shift):
                                   cam.microlens_centers)
     # every other place of the view's parallelogram holds no lens
     assert np.isnan(view.microlens_centers).all(-1).sum() == view.ml_count[0] * rows - cols * rows
-    # the view's first column is axial index q_min
-    q = cam.layout.to_axial(np.stack([kx, ky], -1))[..., 0]
+    # the view's first column is its index q - lean r = q_min (it steps by (+1/2, √3/2)
+    # from row to row whatever the numbering's shift: one rhombus for one array)
+    q = cam.layout.to_axial(np.stack([kx, ky], -1))[..., 0] - view_lean(shift) * ky
     assert view.layout.q_min == q.min()
+    assert np.isfinite(view.microlens_centers[:, 0]).all(-1).any()
 
 
 def test_the_view_is_not_a_camera_file_and_not_an_array():

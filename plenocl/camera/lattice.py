@@ -136,6 +136,17 @@ def axial_to_offset(qr: np.ndarray, odd_row_shift: float) -> np.ndarray:
     return np.stack([qr[..., 0] + step * (qr[..., 1] // 2), qr[..., 1]], -1)
 
 
+def view_lean(odd_row_shift: float) -> int:
+    """How far (columns per row) the projector's axial view leans from the axial indices:
+    the view always steps from row to row by ``(+1/2, √3/2)`` pitch, whatever the
+    numbering's shift, so 1 for a ``-0.5`` numbering (its axial ``e2`` is ``(-1/2,
+    √3/2)``) and 0 otherwise. The projector splits a ray's light over the four lenses of
+    the view's rhombus (docs/design.md §5.3), whose long diagonal follows ``e2``: one
+    array numbered either way (a row more or fewer, a cropped region of interest) must
+    give one projection."""
+    return int(odd_row_shift < 0)
+
+
 @runtime_checkable
 class LensLattice(Protocol):
     """What a microlens array's layout offers, whatever its shape.
@@ -362,6 +373,7 @@ class HexagonalLayout(LensLayout):
         cols, rows = self.count
         ky, kx = np.mgrid[0:rows, 0:cols]
         q = offset_to_axial(np.stack([kx, ky], -1), self.odd_row_shift)[..., 0]
+        q = q - view_lean(self.odd_row_shift) * ky  # the view's steps: see view_lean
         width = int(q.max() - q.min()) + 1
         centres = np.full((rows, width, 2), np.nan)
         centres[ky, q - q.min()] = camera.microlens_centers
@@ -390,24 +402,32 @@ class AxialView(HexagonalLayout):
 
     @property
     def array_count(self) -> tuple[int, int]:
-        """``(columns, rows)`` of the hexagonal array the view stands for."""
+        """``(columns, rows)`` of the hexagonal array the view stands for (the view's
+        last column holds row 0's last lens)."""
         width, rows = self.count
-        return width - (rows - 1) // 2, rows
+        return width + self.q_min, rows
 
     @property
     def q_min(self) -> int:
-        """The axial index ``q`` of the view's first column."""
+        """The view's index ``q - lean r`` (:func:`view_lean`) of its first column."""
         rows = self.count[1]
-        first = np.stack([np.zeros(rows, np.int64), np.arange(rows)], -1)
-        return int(offset_to_axial(first, self.odd_row_shift)[:, 0].min())
+        r = np.arange(rows)
+        first = np.stack([np.zeros(rows, np.int64), r], -1)
+        q = offset_to_axial(first, self.odd_row_shift)[:, 0]
+        return int((q - view_lean(self.odd_row_shift) * r).min())
 
     def to_axial(self, k: np.ndarray) -> np.ndarray:
-        """Axial indices of the view's ``(column, row)``: ``(column + q_min, row)``."""
-        return np.asarray(k, dtype=np.int64) + [self.q_min, 0]
+        """Axial indices of the view's ``(column, row)``: ``(column + q_min + lean row,
+        row)``."""
+        k = np.asarray(k, dtype=np.int64)
+        lean = view_lean(self.odd_row_shift)
+        return np.stack([k[..., 0] + self.q_min + lean * k[..., 1], k[..., 1]], -1)
 
     def from_axial(self, qr: np.ndarray) -> np.ndarray:
         """The view's ``(column, row)`` of axial indices."""
-        return np.asarray(qr, dtype=np.int64) - [self.q_min, 0]
+        qr = np.asarray(qr, dtype=np.int64)
+        lean = view_lean(self.odd_row_shift)
+        return np.stack([qr[..., 0] - self.q_min - lean * qr[..., 1], qr[..., 1]], -1)
 
     def file_keys(self) -> dict:
         """Refused: the view is the projector's, not a camera file."""

@@ -21,7 +21,9 @@ METHODS = ("mlem", "smart", "mart")
 #: builds its projector with them: ``DEFAULT_OVERSAMPLE``, ``DEFAULT_SHEAR_TOL``,
 #: ``general``, which no record names).
 METHOD = ("coarse-to-fine: the coarse support's peak, floor and level found on the "
-          "device, the level from float32 row sums added in float64 (2026-12-01, issue 46)")
+          "device, the level from float32 row sums added in float64 (2026-12-01, issue 46); "
+          "a hexagonal array's axial view leaning one way whatever its numbering "
+          "(2026-12-01 evening)")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
 MAX_MART_BLOCKS = 32
 #: Defaults per method on one grid: (iterations, relaxation). MART's are the paper's
