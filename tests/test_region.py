@@ -190,6 +190,9 @@ def test_a_regions_lens_count_follows_its_white_image(queue, layout):
     ok = np.isfinite(centres).all(1)
     assert ok.mean() > 0.9
     assert cKDTree(truth[seen] - origin).query(centres[ok])[0].max() < 0.1
+    # the nominal array moved onto the measured one (the simulator's, the depth range's)
+    nominal = cal.ideal_microlens_centers().reshape(-1, 2)
+    assert np.abs(nominal[ok] - centres[ok]).max() < 0.1
     with pytest.raises(ValueError, match="correct \\[microlens_array\\] count"):
         calibrate(white, lens_camera(19, 16, (340, 272)) if layout == "rectangular" else
                   lens_camera(19, 16, (349, 251), ml_layout="hexagonal"))
@@ -207,3 +210,35 @@ def test_frames_are_cut_to_the_region():
                                   _cut(frame, origin, size))
     with pytest.raises(ValueError, match=r"of the whole 340 x 272 sensor"):
         region.fit_image(frame[:, :origin[0] + size[0] - 1])
+
+
+def test_a_region_off_the_axis_resolves_the_depths_of_one_on_it():
+    """The depth range's light criterion centres a particle's blur disc on what the
+    region's centre sees, not on the axis: a region that holds no lens on the axis (the
+    right half) resolves the depths a region of its size centred on the axis does (it
+    resolved none before), and its grid is made and checked."""
+    from plenocl.optics import resolved_depth_range
+
+    whole = lens_camera(30, 20)
+    right, middle = whole.cropped((255, 0), (255, 340)), whole.cropped((127, 0), (255, 340))
+    assert right.ml_count == middle.ml_count
+    near, far = resolved_depth_range(right)
+    assert (near, far) == pytest.approx(resolved_depth_range(middle), abs=1e-9)
+    assert near < -5 and far > 5
+    grid = Grid.for_camera(right, z=(-2.0, 2.0))
+    assert grid.x[1] < 0 < -grid.x[0]  # the right half of the sensor sees x < 0
+
+
+def test_a_camera_file_counting_only_the_regions_lenses_warns(queue):
+    """A camera file written the old way, its count the region's lenses, cropped off
+    centre: calibration takes the count the white image shows and says to crop the
+    whole sensor's camera."""
+    whole = lens_camera(30, 20)
+    origin, size = (170, 0), (340, 340)
+    doc = whole.to_dict()
+    doc["microlens_array"]["count"] = [20, 20]
+    old = Camera.from_dict(doc).cropped(origin, size)
+    white = _cut(white_image(whole, queue=queue), origin, size)
+    with pytest.warns(UserWarning, match="crop the camera of the whole sensor"):
+        cal = calibrate(white, old)
+    assert cal.ml_count == whole.cropped(origin, size).ml_count

@@ -119,6 +119,7 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
     keep = suppress_duplicates(cents, strength, DUPLICATE_RADIUS * pitch)
     cents, split = cents[keep], split[keep]
     _check_count(len(cents), camera, "well-formed spots")
+    given = camera
     camera, (k, dev) = _matched(cents, camera)
     _check_lattice(dev, "disks" if kind == "full" else "spots")
     if kind == "full" and method == "combined":  # the disks' centroids: the lattice only
@@ -131,6 +132,8 @@ def find_centers(white_image, camera: Camera, *, method: str = "combined",
         fit = _cut_by_the_edge(fit, flat)
     if per_lens:  # the lattice is the prior; each lens's own disk says where it is
         fit = _follow_lenses(fit, img, camera, degree, fill_missing)
+    if camera.full_pixels is not None:  # a region's nominal array: onto the measured one
+        camera = _placed(camera, fit, given)
     return dataclasses.replace(fit, aperture=kind, camera=camera)
 
 
@@ -148,6 +151,25 @@ def _matched(cents: np.ndarray, camera: Camera) -> tuple[Camera, tuple]:
                 raise
             camera = dataclasses.replace(camera, microlens_centers=None, **exc.fix)
     return camera, match_lattice(cents, camera)
+
+
+def _placed(camera: Camera, fit: CenterFit, given: Camera) -> Camera:
+    """A region's camera (:meth:`Camera.cropped`, its lenses placed on the nominal layout
+    and their count and shift as its white image shows them, :func:`_matched`) with its
+    nominal array moved onto the measured one (``ml_offset_mm`` by the fit's shift), so
+    that the simulator and the depth range see the lenses where they are; a count more
+    than a lens off the region's nominal one (the camera file's count then not the whole
+    sensor's) warns."""
+    if max(abs(a - b) for a, b in zip(camera.ml_count, given.ml_count)) > 1:
+        warnings.warn(
+            f"the region's white image shows {camera.ml_count[0]} x {camera.ml_count[1]} "
+            f"lenses where the camera's layout puts {given.ml_count[0]} x "
+            f"{given.ml_count[1]} in it: crop the camera of the whole sensor "
+            "([microlens_array] count = the whole array's lenses; docs/design.md §2)",
+            stacklevel=3)
+    move = np.array(fit.shift_px) * camera.pixel_pitch_mm / camera.lens_image_scale
+    return dataclasses.replace(camera, microlens_centers=None,
+                               ml_offset_mm=tuple(np.add(camera.ml_offset_mm, move)))
 
 
 def _follow_lenses(prior: CenterFit, img: np.ndarray, camera: Camera, degree,

@@ -53,7 +53,8 @@ class CenterFit:
     camera
         The camera the centres belong to: the one given, or a region of interest's
         (:meth:`plenocl.Camera.cropped`) with the lens count and odd-row shift its white
-        image shows (:func:`plenocl.calibration.fit.find_centers`).
+        image shows and its nominal array placed on the measured one
+        (:func:`plenocl.calibration.fit.find_centers`).
     """
 
     centers: np.ndarray

@@ -66,7 +66,8 @@ def _disc_share(box: np.ndarray, diameter: float) -> float:
 
 def _light_limit_mm(box: np.ndarray, pitch: float) -> float:
     """Largest blur-disc diameter (mm) of which :data:`LIGHT_SHARE` still falls on the
-    array ``box`` (the disc centred on the optical axis)."""
+    array ``box`` (the disc centred on the origin: the optical axis, or a region of
+    interest's centre seen on the array)."""
     lo, hi = 0.0, 4 * float(np.abs(box).max()) + pitch
     for _ in range(50):
         mid = (lo + hi) / 2
@@ -79,7 +80,9 @@ def _blur_limit(camera: Camera, box: np.ndarray) -> float:
     limit (``VIEW_LENSES · p_ml`` per pixel footprint on the pupil) and the light limit
     (``box``: :func:`_array_box`)."""
     resolution = VIEW_LENSES * camera.ml_pitch_mm / camera.pixel_pupil_footprint_mm
-    return min(resolution, _light_limit_mm(box, camera.ml_pitch_mm)
+    # a region of interest's discs centre on what its centre sees, not on the axis
+    seen = camera.px_to_mm((np.array(camera.pixels) - 1) / 2) / camera.lens_image_scale
+    return min(resolution, _light_limit_mm(box - seen[:, None], camera.ml_pitch_mm)
                / camera.exit_pupil_diameter_mm)
 
 

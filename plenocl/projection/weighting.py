@@ -328,8 +328,10 @@ def check_field_of_view(camera: Camera, grid: Grid, coef: np.ndarray,
             & (k[..., 1].max(1) > -1) & (k[..., 1].min(1) < rows))
     if not seen.any():
         half = np.array(camera.ml_count) * camera.ml_pitch_mm / camera.magnification / 2
+        mid = camera.field_centre_mm()
         raise ValueError(
             f"the grid (x = {grid.x}, y = {grid.y} mm) lies entirely outside the camera's "
-            f"field of view (about x in ±{half[0]:.2f}, y in ±{half[1]:.2f} mm at z = 0); "
+            f"field of view (about x in {mid[0]:.2f} ± {half[0]:.2f}, y in {mid[1]:.2f} ± "
+            f"{half[1]:.2f} mm at z = 0); "
             "no voxel's light reaches the microlens array"
         )
