@@ -29,6 +29,7 @@ from plenocl.piv.refinement import (
     pair_particles,
     predicted,
     refine_with_particles,
+    seen_depth,
     window_estimate,
     window_means,
 )
@@ -545,3 +546,24 @@ def test_depth_interpolation_is_numpys_interp_column_by_column(seed):
         for a, b in zip(got, want, strict=True):
             np.testing.assert_array_equal(a, b)
         assert np.isnan(got[0][:, 0, 0]).all() and (got[0][:, 0, 1] == 2.5).all()
+
+
+def test_a_blind_window_without_a_seeing_one_in_its_column_takes_its_seeing_pairs():
+    """One window in depth, centred in the blind zone (a volume hardly deeper than a
+    window): nothing to interpolate from, so it takes its seeing pairs' depth motion
+    (1.0 here), not all its pairs' (the blind ones at 0.4 drew it below 0.6), and warns
+    that a deeper volume measures depth motion."""
+    rng = np.random.default_rng(4)
+    field, focus = grid_field((1, 3, 3), (16, 8, 8), 8.0), FocalZone(plane=3.5, resolution=1.0)
+    seeing = rng.uniform([0, 0, 6.0], [23, 23, 11.0], (300, 3))
+    blind = rng.uniform([0, 0, 2.5], [23, 23, 4.5], (300, 3))
+    shift = np.array([0.2, -0.1, 0.0])
+    disp = np.vstack([np.full((300, 3), shift + [0, 0, 1.0]),
+                      np.full((300, 3), shift + [0, 0, 0.4])])
+    pairs = ParticlePairs(np.vstack([seeing, blind]), disp + rng.normal(0, 0.02, disp.shape))
+    every = window_means(pairs, field, 3, focus=focus)[0][2]
+    assert np.all(every < 0.6)  # all pairs' (robust) mean: drawn to the blind ones
+    with pytest.warns(UserWarning, match="blind zone .* reconstruct a deeper volume"):
+        w, sigma = seen_depth(pairs, field, focus, None, None)
+    np.testing.assert_allclose(w, 1.0, atol=0.02)
+    assert np.isfinite(sigma).all()
