@@ -200,7 +200,8 @@ def test_a_regions_lens_count_follows_its_white_image(queue, layout):
 
 def test_frames_are_cut_to_the_region():
     """A whole frame is cut to the region; the region itself passes as it is; a frame
-    that does not hold the region is refused naming the whole sensor."""
+    that does not hold the region, or an outer region's frame, is refused naming the
+    whole sensor."""
     whole, origin, size = CASES["rectangular"]
     region = whole.cropped(origin, size)
     frame = np.arange(whole.pixels[0] * whole.pixels[1], dtype=float).reshape(
@@ -210,6 +211,13 @@ def test_frames_are_cut_to_the_region():
                                   _cut(frame, origin, size))
     with pytest.raises(ValueError, match=r"of the whole 340 x 272 sensor"):
         region.fit_image(frame[:, :origin[0] + size[0] - 1])
+    # the frame of an outer region, given to a region cut from it: cut at the combined
+    # origin it would be the wrong pixels, so it is refused
+    inner = region.cropped((10, 20), (100, 80))
+    with pytest.raises(ValueError, match=r"of the whole 340 x 272 sensor"):
+        inner.fit_image(_cut(frame, origin, size))
+    np.testing.assert_array_equal(inner.fit_image(frame),
+                                  _cut(frame, (origin[0] + 10, origin[1] + 20), (100, 80)))
 
 
 def test_a_region_off_the_axis_resolves_the_depths_of_one_on_it():

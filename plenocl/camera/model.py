@@ -477,15 +477,20 @@ class Camera:
 
     def fit_image(self, image, name: str = "image") -> np.ndarray:
         """``image`` as this camera's sensor sees it: as it is when its shape is the
-        sensor's, else cut to the recorded region of interest (``crop_origin``); a frame
-        that does not hold the region is an error naming the fix."""
+        sensor's, else a whole frame (at least ``full_pixels``) cut to the recorded
+        region of interest (``crop_origin``); any other frame (one that does not hold the
+        region, or a region of the sensor itself) is an error naming the fix."""
         img = np.asarray(image)
         want = (self.pixels[1], self.pixels[0])
         if img.shape == want:
             return img
         if self.crop_origin is not None and img.ndim == 2:
             col, row = self.crop_origin
-            if img.shape[0] >= row + want[0] and img.shape[1] >= col + want[1]:
+            # a frame of the whole sensor or larger (a camera writing a column more);
+            # a frame between the region and the whole sensor (another region) is refused
+            least = (row + want[0], col + want[1]) if self.full_pixels is None else \
+                (self.full_pixels[1], self.full_pixels[0])
+            if img.shape[0] >= least[0] and img.shape[1] >= least[1]:
                 return img[row:row + want[0], col:col + want[1]]
         raise ValueError(
             f"{name} is {img.shape[-1]} x {img.shape[0]} px (columns x rows), which does not "
