@@ -39,17 +39,25 @@ CAMERA = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (40, 30), 0.0074, (700, 530))
 OFF_AXIS = Grid((60, 24, 24), x=(17.8, 22.2), y=(9.9, 14.1), z=(-4.0, 4.0))
 
 
-def test_a_line_of_sight_holds_the_points_that_image_on_one_chief_ray():
+@pytest.mark.parametrize("thick", [(1.0, 0.0), (0.5, -10.0), (2.0, 15.0)])
+def test_a_line_of_sight_holds_the_points_that_image_on_one_chief_ray(thick):
     """Every object point on a line of sight images onto one image-space ray through the
-    rear principal point: X'/d' and Y'/d' are the same all along it."""
+    exit pupil's centre: X'/d' and Y'/d' (the central view's place on the array) are the
+    same all along it, for a thin lens and thick ones (the line through the entrance
+    pupil's centre; through the front principal point it leaned 9.0° for 6.5° at m_p =
+    0.5)."""
+    import dataclasses
+
+    camera = dataclasses.replace(CAMERA, pupil_magnification=thick[0],
+                                 principal_plane_separation_mm=thick[1])
     start = np.array([[20.0, -12.0, -3.0]])
-    d = line_of_sight(CAMERA, start)[0]
+    d = line_of_sight(camera, start)[0]
     assert np.linalg.norm(d) == pytest.approx(1.0) and d[2] > 0
     pts = start + np.linspace(-8, 8, 9)[:, None] * d
-    img = CAMERA.image_points(pts)
+    img = camera.image_points(pts)
     slope = img[:, :2] / img[:, 2:]
     np.testing.assert_allclose(slope, np.tile(slope[0], (9, 1)), atol=1e-12)
-    assert np.allclose(line_of_sight(CAMERA, [[0.0, 0.0, 5.0]]), [0, 0, 1])
+    assert np.allclose(line_of_sight(camera, [[0.0, 0.0, 5.0]]), [0, 0, 1])
 
 
 def test_sight_frames_are_rotations_onto_the_lines_and_the_identity_on_the_axis():

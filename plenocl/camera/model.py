@@ -259,6 +259,15 @@ class Camera:
         return self.pupil_magnification * self.focal_length_mm / f_number
 
     @property
+    def entrance_pupil_distance_mm(self) -> float:
+        """Distance of the entrance pupil's centre from the nominal focal plane,
+        ``s_o + f (1/m_p - 1)`` (a thin lens: ``s_o``): the centre of the camera's
+        perspective, through which a point's chief ray (its lateral image position, the
+        central view's place on the array) runs."""
+        return self.object_distance_mm + self.focal_length_mm * (
+            1.0 / self.pupil_magnification - 1.0)
+
+    @property
     def exit_pupil_distance_mm(self) -> float:
         """Exit pupil to microlens array, ``d = f (M + m_p)`` (the pupil lies ``f (1 -
         m_p)`` behind the rear principal plane; a thin lens: ``s_i``). Every image-space

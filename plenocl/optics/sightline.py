@@ -3,13 +3,17 @@
 
 A plenoptic camera reads a point's depth from the parallax across the lenses it lights,
 several times less precisely than its lateral position. What it leaves uncertain is where
-the point lies along its *line of sight*: the chief ray through the main lens's front
-principal point ``(0, 0, -s_o)``, along which every point keeps the same lateral image
-position (:meth:`plenocl.Camera.image_points`). On the optical axis that line is the
-grid's z axis; off it, it leans by ``atan(r / (s_o + z))``: 11° at the paper's optics 25 mm
-off the axis, where one voxel (0.13 mm) of depth error along it also moves the point 0.14
-voxel (0.18 mm) sideways. A stage that treats the uncertain direction as z (a prior, a step
-bound, a search ellipsoid) is right on the axis only; these frames turn it with the line.
+the point lies along its *line of sight*: the chief ray through the centre of the main
+lens's entrance pupil, ``(0, 0, -(s_o + f (1/m_p - 1)))`` (a thin lens: its centre,
+``-s_o``; :attr:`plenocl.Camera.entrance_pupil_distance_mm`), along which every point
+keeps the same central view on the array (:meth:`plenocl.Camera.image_points`). (A thick
+lens's front principal point would lean the line 9.0° instead of 6.5° 20 mm off the axis
+at the paper's optics with ``m_p = 0.5``.) On the optical axis that line is the grid's z
+axis; off it, it leans by ``atan(r / (s_o + f (1/m_p - 1) + z))``: 11° at the paper's
+optics 25 mm off the axis, where one voxel (0.13 mm) of depth error along it also moves
+the point 0.14 voxel (0.18 mm) sideways. A stage that treats the uncertain direction as z
+(a prior, a step bound, a search ellipsoid) is right on the axis only; these frames turn
+it with the line.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ def line_of_sight(camera: Camera, points_xyz) -> np.ndarray:
     pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
     pose = camera.pose
     local = pts if pose is None else pose.to_camera(pts)
-    ray = local + np.array([0.0, 0.0, camera.object_distance_mm])
+    ray = local + np.array([0.0, 0.0, camera.entrance_pupil_distance_mm])
     ray = ray / np.linalg.norm(ray, axis=1, keepdims=True)
     return ray if pose is None else ray @ pose.matrix   # R^T v, row by row
 

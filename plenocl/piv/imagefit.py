@@ -51,7 +51,8 @@ from .fitsums import HOST_CHUNK, DeviceFitSums
 #: settings (rounding included: a kept field then differs from a fresh one).
 METHOD = ("Gauss-Newton with the prior, the Levenberg-Marquardt damping and the step bound "
           "in each line of sight's frame (2026-11-29, issue 45); the posterior covariance "
-          "of each normal matrix scaled to a unit diagonal (2026-12-01)")
+          "of each normal matrix scaled to a unit diagonal (2026-12-01); a thick lens's lines "
+          "of sight through its entrance pupil (2026-12-01 evening)")
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
 PRIOR_VOXELS = (0.15, 0.15, 1.3)
