@@ -312,9 +312,10 @@ class Camera:
 
     @property
     def depth_resolution_mm(self) -> float:
-        """Depth range over which a point's defocus blur on the array stays within one
-        microlens, ``p_ml N_w / M²`` (object space): the camera's depth resolution. Inside
-        it a particle lights a single microlens and its depth is ambiguous."""
+        """How far from the focal plane (either side, object space) a point's defocus blur
+        on the array grows to one microlens pitch, ``p_ml N_w / M²``: the camera's depth
+        resolution. Within it of the plane a particle lights a single microlens and its
+        depth is ambiguous."""
         return self.ml_pitch_mm * self.working_f_number / self.magnification**2
 
     @property
