@@ -441,12 +441,18 @@ class Camera:
         cr = np.asarray(colrow, dtype=np.float64)
         return (cr + 0.5 - self.sensor_edge_px) * self.pixel_pitch_mm
 
+    def sensor_centre_on_array_mm(self) -> np.ndarray:
+        """Array-plane ``(x, y)`` mm of the lens whose image centre is the sensor's (a
+        region's) centre: ``(0, 0)`` for a whole sensor (the depth range's blur discs
+        centre there, :mod:`plenocl.optics.depthrange`)."""
+        middle = (np.array(self.pixels, dtype=np.float64) - 1) / 2
+        return self.px_to_mm(middle) / self.lens_image_scale
+
     def field_centre_mm(self) -> np.ndarray:
         """Object-space ``(x, y)`` mm at the nominal focal plane that the sensor's (a
         region's) centre sees: ``(0, 0)`` for a whole sensor; :meth:`Grid.for_camera
         <plenocl.Grid.for_camera>` centres its grid there."""
-        middle = (np.array(self.pixels, dtype=np.float64) - 1) / 2
-        return -self.px_to_mm(middle) / (self.lens_image_scale * self.magnification)
+        return -self.sensor_centre_on_array_mm() / self.magnification
 
     def with_layout(self, name: str, odd_row_shift: float | None = None) -> Camera:
         """This camera with a ``name`` array (:data:`LAYOUTS`) of the same pitch on the same

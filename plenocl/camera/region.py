@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 
+from .lattice import rotation_matrix
+
 __all__ = ["region_fields"]
 
 #: Lattice units a lens centre may lie beyond a region's pixel edge and still count
@@ -77,10 +79,7 @@ def _sub_array(camera, origin: tuple[int, int], size: tuple[int, int]) -> dict:
     # the sub-array's centre on the whole array's lattice, in the array's frame (mm)
     move = np.array([kx[0] + shift + (count[0] - 1) / 2 - (cols - 1) / 2,
                      ky[0] + (count[1] - 1) / 2 - (rows - 1) / 2]) * pitch
-    c, s = math.cos(math.radians(camera.ml_rotation_deg)), math.sin(
-        math.radians(camera.ml_rotation_deg))
-    offset = (camera.ml_offset_mm[0] + c * move[0] - s * move[1],
-              camera.ml_offset_mm[1] + s * move[0] + c * move[1])
+    offset = tuple(np.add(camera.ml_offset_mm, rotation_matrix(camera.ml_rotation_deg) @ move))
     odd = -layout.odd_row_shift if first_odd else layout.odd_row_shift
     return dict(ml_count=count, ml_offset_mm=offset,
                 ml_odd_row_shift=odd if layout.staggered else None)
@@ -92,9 +91,7 @@ def _region_in_lattice(camera, origin, size, pitch: np.ndarray
     rows), and its half-width and half-height in pitches and rows (its pixel edges)."""
     middle = np.asarray(origin, float) + (np.asarray(size, float) - 1) / 2
     on_array = camera.px_to_mm(middle) / camera.lens_image_scale - camera.ml_offset_mm
-    c, s = math.cos(math.radians(camera.ml_rotation_deg)), math.sin(
-        math.radians(camera.ml_rotation_deg))
-    along = np.array([c * on_array[0] + s * on_array[1], -s * on_array[0] + c * on_array[1]])
+    along = on_array @ rotation_matrix(camera.ml_rotation_deg)  # into the array's frame
     centre = along / pitch + (np.array(camera.ml_count) - 1) / 2
     half = np.asarray(size, float) / 2 * camera.pixel_pitch_mm / camera.lens_image_scale / pitch
     return centre, half

@@ -81,7 +81,7 @@ def _blur_limit(camera: Camera, box: np.ndarray) -> float:
     (``box``: :func:`_array_box`)."""
     resolution = VIEW_LENSES * camera.ml_pitch_mm / camera.pixel_pupil_footprint_mm
     # a region of interest's discs centre on what its centre sees, not on the axis
-    seen = camera.px_to_mm((np.array(camera.pixels) - 1) / 2) / camera.lens_image_scale
+    seen = camera.sensor_centre_on_array_mm()
     return min(resolution, _light_limit_mm(box - seen[:, None], camera.ml_pitch_mm)
                / camera.exit_pupil_diameter_mm)
 

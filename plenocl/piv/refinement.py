@@ -1011,8 +1011,8 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
     demo's boundary layer by more (8.3 % of U∞ against 7.6 %). A blind window whose
     column has no window that sees depth (a volume hardly deeper than a window) takes its
     own seeing pairs' mean, and where no window sees depth warns (:func:`_warn_shallow`):
-    all its pairs' mean read
-    the depth motion 7 % low, the blind pairs' 42 % (docs/design.md §7.4). Others keep
+    all its pairs' mean read the depth motion 7 % low, the blind pairs' 42 %
+    (docs/design.md §7.4). Others keep
     ``w`` and ``sigma_w`` (all their pairs' mean; ``None``: :func:`window_means` of all
     the pairs, computed for those windows alone). ``support``: the seeing pairs are
     taken from a box this many times the window (:func:`window_means`).
@@ -1041,7 +1041,7 @@ def seen_depth(pairs: ParticlePairs, field: PIVResult, focus: FocalZone,
                                          windows=orphan, device_means=device_means)
         take = orphan & np.isfinite(own[2])
         out, out_sigma = np.where(take, own[2], out), np.where(take, own_error[2], out_sigma)
-        if not focus.sees_depth(field.z).any():  # no depth of windows sees depth
+        if blind.all():  # no depth of windows sees depth
             _warn_shallow(focus, field)
     return out, out_sigma
 
