@@ -463,7 +463,7 @@ def test_a_field_saved_with_another_grid_is_refused(tmp_path):
 
 def test_a_projector_of_file_names_says_how_to_read_them():
     with pytest.raises(TypeError, match=r"takes a plenocl.Camera and a plenocl.Grid, got str "
-                                        r"and Grid: read files with plenocl.load_camera"):
+                                        r"and Grid: read files with plenocl.Camera.from_toml"):
         Projector("camera.toml", SMALL_GRID)
 
 

@@ -182,8 +182,8 @@ class Projector(FactorisedStages):
         if not isinstance(camera, Camera) or not isinstance(grid, Grid):
             raise TypeError(f"Projector(camera, grid) takes a plenocl.Camera and a "
                             f"plenocl.Grid, got {type(camera).__name__} and "
-                            f"{type(grid).__name__}: read files with plenocl.load_camera(path) "
-                            "and plenocl.Grid.from_toml(path)")
+                            f"{type(grid).__name__}: read files with "
+                            "plenocl.Camera.from_toml(path) and plenocl.Grid.from_toml(path)")
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if back not in BACK_MODES:
