@@ -250,3 +250,121 @@ def test_a_camera_file_counting_only_the_regions_lenses_warns(queue):
     with pytest.warns(UserWarning, match="crop the camera of the whole sensor"):
         cal = calibrate(white, old)
     assert cal.ml_count == whole.cropped(origin, size).ml_count
+
+
+def _perturbed(whole: Camera, seed: int = 4) -> Camera:
+    """``whole`` calibrated with its ideal centres moved up to 0.4 px and two lenses
+    missing (NaN)."""
+    rng = np.random.default_rng(seed)
+    centres = whole.ideal_microlens_centers() + rng.uniform(-0.4, 0.4, (*whole.ml_count[::-1], 2))
+    centres[5, 7] = centres[9, 3] = np.nan
+    return whole.with_centers(centres)
+
+
+def _expected_centres(calibrated: Camera, region: Camera, origin) -> np.ndarray:
+    """The whole camera's centres of the region's lenses, each lens found by where its
+    ideal centre stands on the whole sensor, less ``origin``."""
+    at = region.ideal_microlens_centers().reshape(-1, 2) + origin
+    dist, index = cKDTree(calibrated.ideal_microlens_centers().reshape(-1, 2)).query(at)
+    assert dist.max() < 1e-9
+    mine = calibrated.microlens_centers.reshape(-1, 2)[index] - origin
+    return mine.reshape(*region.ml_count[::-1], 2)
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_a_calibrated_camera_keeps_its_centres_through_a_region(name):
+    """A calibrated whole sensor's region keeps its lenses' measured centres to the last
+    bit, less the region's origin, numbered as the region numbers them (a hexagonal
+    region from an odd row, a turned array), NaN kept; a region cut from that region
+    holds the whole sensor's centres less both origins; the whole sensor's region keeps
+    them all. Before, cropping a calibrated camera was refused."""
+    whole, origin, size = CASES[name]
+    calibrated = _perturbed(whole)
+    region = calibrated.cropped(origin, size)
+    assert region.calibrated and region.ml_count == whole.cropped(origin, size).ml_count
+    expected = _expected_centres(calibrated, region, origin)
+    np.testing.assert_array_equal(region.microlens_centers, expected)
+    assert np.isnan(expected).all(-1).any()  # a missing lens lies in the region
+    inner = region.cropped((10, 20), (120, 100))
+    both = (origin[0] + 10, origin[1] + 20)
+    np.testing.assert_array_equal(inner.microlens_centers,
+                                  _expected_centres(calibrated, inner, both))
+    same = calibrated.cropped((0, 0), whole.pixels)
+    np.testing.assert_array_equal(same.microlens_centers, calibrated.microlens_centers)
+
+
+@pytest.mark.parametrize("name", ["rectangular", "hexagonal-even-row", "hexagonal-odd-row"])
+def test_a_regions_centres_are_imported_from_the_whole_sensors_file(tmp_path, name):
+    """A centres CSV of the whole sensor (whole-array numbering, whole-sensor pixels)
+    imported onto the region's camera gives the camera imported on the whole sensor and
+    cropped, to the last bit (before: refused, its lenses outside the region's array);
+    so does the region's own CSV (the region's numbering and pixels), and LFIT's file of
+    the whole sensor."""
+    from scipy.io import savemat
+
+    from plenocl.calibration import import_centers
+    from plenocl.io.centres import write_centers_csv
+
+    whole, origin, size = CASES[name]
+    calibrated = _perturbed(whole)
+    write_centers_csv(tmp_path / "whole.csv", calibrated.microlens_centers)
+    with pytest.warns(UserWarning, match="2 of 320 microlenses have no centre"):
+        expected = import_centers(tmp_path / "whole.csv", whole).cropped(origin, size)
+    write_centers_csv(tmp_path / "region.csv", expected.microlens_centers)
+    cal = np.empty((1, 1), dtype=object)
+    cal[0, 0] = np.nan_to_num(calibrated.microlens_centers + 1.0, nan=0.0)
+    savemat(tmp_path / "whole_calData.mat", {"calData": cal})
+    for file in ("whole.csv", "region.csv", "whole_calData.mat"):
+        with pytest.warns(UserWarning, match="have no centre"):
+            got = import_centers(tmp_path / file, whole.cropped(origin, size))
+        assert got.calibrated and got.ml_count == expected.ml_count
+        assert got.crop_origin == origin and got.full_pixels == whole.pixels
+        if file.endswith(".mat"):  # LFIT's pixels count from 1
+            np.testing.assert_allclose(got.microlens_centers, expected.microlens_centers,
+                                       atol=1e-12)
+        else:
+            np.testing.assert_array_equal(got.microlens_centers, expected.microlens_centers)
+
+
+def test_a_centres_file_that_fits_a_region_neither_way_is_refused(tmp_path):
+    """x and y swapped in the whole sensor's file, or the region's own file counted from
+    another origin: refused, naming both readings and the fix."""
+    from plenocl.calibration import import_centers
+    from plenocl.io.centres import write_centers_csv
+
+    whole, origin, size = CASES["rectangular"]
+    calibrated = _perturbed(whole)
+    region = whole.cropped(origin, size)
+    write_centers_csv(tmp_path / "swapped.csv", calibrated.microlens_centers[..., ::-1])
+    own = calibrated.cropped(origin, size).microlens_centers
+    write_centers_csv(tmp_path / "moved.csv", own + [30.0, 0.0])
+    for file in ("swapped.csv", "moved.csv"):
+        with pytest.raises(ValueError, match="neither as the whole sensor's centres") as info:
+            import_centers(tmp_path / file, region)
+        assert "nor as the region's own" in str(info.value)
+        assert "import them onto the whole sensor's camera and crop it" in str(info.value)
+
+
+def test_the_cli_imports_a_whole_sensors_centres_through_a_crop(tmp_path, capsys):
+    """``plenocl calibrate --centres whole.csv --crop ...`` writes the region's camera with
+    the region's centres, as importing on the whole sensor and cropping; a calibrated
+    whole sensor's camera given ``--crop`` is cropped with its centres (it was refused
+    as calibrated on another region)."""
+    from plenocl.cli.main import main
+    from plenocl.io.centres import write_centers_csv
+
+    whole, origin, size = CASES["hexagonal-odd-row"]
+    calibrated = _perturbed(whole)
+    whole.to_toml(tmp_path / "cam.toml")
+    calibrated.to_toml(tmp_path / "cal.toml")
+    write_centers_csv(tmp_path / "whole.csv", calibrated.microlens_centers)
+    crop = ["--crop", *map(str, origin), *map(str, size)]
+    for camera in ("cam.toml", "cal.toml"):
+        assert main(["calibrate", "--centres", str(tmp_path / "whole.csv"), "--camera",
+                     str(tmp_path / camera), *crop, "--out", str(tmp_path / "region.toml")]
+                    ) == 0, capsys.readouterr().err
+        got = Camera.from_toml(tmp_path / "region.toml")
+        assert got.crop_origin == origin and got.pixels == size
+        np.testing.assert_array_equal(got.microlens_centers,
+                                      calibrated.cropped(origin, size).microlens_centers)
+

@@ -537,6 +537,7 @@ def ctx(tiny, queue, tmp_path_factory):
     (d / "camera_missing_key.toml").write_text("[main_lens]\nfocal_length_mm = 50.0\n")
     (d / "camera_bad.toml").write_text("[main_lens\nfocal_length_mm = 50.0\n")
     (d / "centres_from_one.csv").write_text("lens_col,lens_row,x_px,y_px\n4,4,60.0,60.0\n")
+    (d / "centres_off_region.csv").write_text("lens_col,lens_row,x_px,y_px\n0,0,60.0,5.0\n")
     vol = np.random.default_rng(2).random((16, 16, 16)).astype(np.float32)
     return {"cam": cam, "proj": proj, "img": img, "dir": d, "vol": vol, "queue": queue}
 
@@ -971,6 +972,10 @@ INVALID = [
     ("calibrate-centres-index", lambda c: import_centers(c["dir"] / "centres_from_one.csv",
                                                          c["cam"]),
      ValueError, "outside the camera's 4 x 4 array"),
+    ("calibrate-centres-region",
+     lambda c: import_centers(c["dir"] / "centres_off_region.csv",
+                              c["cam"].cropped((17, 0), (53, 70))),
+     ValueError, "neither as the whole sensor's centres .* nor as the region's own"),
     ("calibrate-aperture", lambda c: calibrate(simulate_white_image(c["cam"], queue=c["queue"]),
                                                c["cam"], aperture="wide"),
      ValueError, "aperture must be one of"),

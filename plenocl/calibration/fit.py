@@ -25,6 +25,7 @@ from .disks import (
 from .gridmodel import grid_model
 from .lenscentres import fit_disks
 from .matching import LayoutMismatch, match_lattice
+from .regionfile import lattice_offset, region_file_centres
 from .result import CenterFit
 from .spots import (
     DUPLICATE_RADIUS,
@@ -493,20 +494,25 @@ IMPORT_TOLERANCE = 0.5
 def import_centers(path: str | Path, camera: Camera) -> Camera:
     """``camera`` calibrated with the centres of a centres CSV or of LFIT's ``.mat``
     calibration (another tool's; formats in :mod:`plenocl.io.centres`), checked against
-    the camera's
-    nominal layout: refused when they lie, in the median, more than
+    the camera's nominal layout: refused when they lie, in the median, more than
     :data:`IMPORT_TOLERANCE` pitches from its lattice (swapped x and y, indices counted
     from 1, another camera file), since every later stage would then see the wrong
-    lenses."""
-    centers = read_centres(path, camera.ml_count)
+    lenses. A region of interest's camera (:meth:`Camera.cropped`) takes a file of the
+    whole sensor's centres, the region's lenses then taken from it as
+    :meth:`Camera.cropped` takes a calibrated camera's, or of the region's own lenses in
+    its pixels (:func:`plenocl.calibration.regionfile.region_file_centres`)."""
+    if camera.full_pixels is not None:
+        centers = region_file_centres(path, camera, IMPORT_TOLERANCE)
+    else:
+        centers = read_centres(path, camera.ml_count)
+        off = lattice_offset(centers, camera)
+        if off > IMPORT_TOLERANCE:
+            raise ValueError(f"the centres in {path} lie {off:.2f} pitches (median) from the "
+                             "camera's nominal lattice: check that x_px is the column and "
+                             "y_px the row, that lens indices count from 0, and that the "
+                             "camera file's pitch, count, rotation and offset are this "
+                             "camera's")
     found = np.isfinite(centers).all(-1)
-    off = np.hypot(*(centers - camera.ideal_microlens_centers())[found].T) / image_pitch_px(camera)
-    if float(np.median(off)) > IMPORT_TOLERANCE:
-        raise ValueError(f"the centres in {path} lie {float(np.median(off)):.2f} pitches "
-                         "(median) from the camera's nominal lattice: check that x_px is the "
-                         "column and y_px the row, that lens indices count from 0, and that "
-                         "the camera file's pitch, count, rotation and offset are this "
-                         "camera's")
     missing = int((~found).sum())
     if missing:
         warnings.warn(f"{missing} of {found.size} microlenses have no centre in {path} "

@@ -483,11 +483,12 @@ class Camera:
         they stand on the whole array, and the optical axis where it crosses the whole
         sensor (``[sensor] crop_origin`` and ``full_pixels``), so positions seen through
         an off-centre region are the whole frame's; full frames read later are cut
-        alike (:meth:`fit_image`). Crop before calibrating (docs/design.md §2, §3).
+        alike (:meth:`fit_image`). A calibrated camera's region keeps its lenses'
+        measured centres, less ``origin`` (``NaN`` stays ``NaN``; the lenses are chosen
+        on the nominal layout, as uncalibrated). A region's camera may be cropped
+        again: ``origin`` then counts in its pixels, and the result is the whole
+        sensor's region that far further on (docs/design.md §2, §3).
         """
-        if self.calibrated:
-            raise ValueError("crop before calibrating: the calibrated centres belong to the "
-                             "whole frame (calibrate the cropped white image instead)")
         origin, size = _origin(origin), _count_pair("region of interest's size", size)
         return replace(self, **region_fields(self, origin, size))
 

@@ -30,19 +30,20 @@ def add_frame_options(p: argparse.ArgumentParser) -> None:
 
 
 def camera_for_frames(args: argparse.Namespace, camera: Camera) -> Camera:
-    """``camera`` through ``--crop``: cropped if not calibrated yet; a calibrated camera
-    keeps its recorded region, and a different ``--crop`` is refused."""
+    """``camera`` through ``--crop``: cropped if not calibrated yet, or calibrated on
+    the whole sensor (its centres kept, :meth:`Camera.cropped`); a camera calibrated on
+    a region keeps it, and a different ``--crop`` is refused."""
     crop = args.crop
     if not crop:
         return camera
     origin, size = tuple(crop[:2]), tuple(crop[2:])
-    if not camera.calibrated:
+    if not camera.calibrated or camera.crop_origin is None:
         return camera.cropped(origin, size)
     if camera.crop_origin == origin and camera.pixels == size:
         return camera
     raise ValueError(f"--crop {' '.join(map(str, crop))} is not the region the camera was "
-                     f"calibrated on ({camera.crop_origin or (0, 0)}, {camera.pixels} px): "
-                     "leave --crop out (the camera cuts frames to its region itself)")
+                     f"calibrated on ({camera.crop_origin}, {camera.pixels} px): leave "
+                     "--crop out (the camera cuts frames to its region itself)")
 
 
 def read_frame(args: argparse.Namespace, path, camera: Camera, white: bool = False

@@ -20,6 +20,7 @@ whose first entry holds the centres, lens rows x lens columns x (x, y), in MATLA
 from __future__ import annotations
 
 import csv
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -42,18 +43,20 @@ def write_centers_csv(path: str | Path, centers: np.ndarray) -> None:
             out.writerow([c, r, repr(float(centers[r, c, 0])), repr(float(centers[r, c, 1]))])
 
 
-def read_centres(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
-    """The centres of a centres CSV, or of LFIT's ``.mat`` calibration (by the suffix)."""
+def read_centres(path: str | Path, ml_count: tuple[int, int] | None) -> np.ndarray:
+    """The centres of a centres CSV, or of LFIT's ``.mat`` calibration (by the suffix);
+    ``ml_count`` ``None``: the file's own array (a CSV's up to its largest indices)."""
     if Path(path).suffix.lower() == ".mat":
         return read_lfit_calibration(path, ml_count)
     return read_centers_csv(path, ml_count)
 
 
-def read_lfit_calibration(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
+def read_lfit_calibration(path: str | Path, ml_count: tuple[int, int] | None) -> np.ndarray:
     """The centres ``(rows, cols, 2)`` (``(col, row)`` px from the first pixel's centre,
     ``NaN``: missing) of LFIT's calibration file: ``calData{1}``, rows x columns x
     (x, y) in MATLAB's pixel coordinates (the first pixel's centre at 1), less 1.
-    Refused, naming the fix, when the file holds no ``calData`` or another array size."""
+    Refused, naming the fix, when the file holds no ``calData`` or another array size
+    than ``ml_count`` (``None``: any)."""
     from scipy.io import loadmat
 
     try:
@@ -62,7 +65,7 @@ def read_lfit_calibration(path: str | Path, ml_count: tuple[int, int]) -> np.nda
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         raise ValueError(f"{path} is not an LFIT calibration file (a calData cell array "
                          f"whose first entry holds the centres): {exc}") from None
-    cols, rows = ml_count
+    cols, rows = ml_count or (points.shape[1::-1] if points.ndim == 3 else (0, 0))
     if points.shape != (rows, cols, 2):
         raise ValueError(
             f"{path} holds {points.shape[1] if points.ndim == 3 else '?'} x "
@@ -74,12 +77,27 @@ def read_lfit_calibration(path: str | Path, ml_count: tuple[int, int]) -> np.nda
     return np.where(found, points - 1.0, np.nan)
 
 
-def read_centers_csv(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
+def read_centers_csv(path: str | Path, ml_count: tuple[int, int] | None) -> np.ndarray:
     """The centres ``(rows, cols, 2)`` (``(col, row)`` px, ``NaN``: missing) of an array
-    of ``ml_count`` = ``(columns, rows)`` lenses from a centres CSV; refused, naming the
-    line, when the header, a number, a lens index or a repeated lens is wrong."""
+    of ``ml_count`` = ``(columns, rows)`` lenses from a centres CSV (``None``: up to the
+    largest indices listed); refused, naming the line, when the header, a number, a lens
+    index or a repeated lens is wrong."""
+    entries = _entries(path)
+    if ml_count is None:  # the file's own extent (a negative index is refused below)
+        entries = list(entries)
+        ml_count = tuple(max([e[k] for _, e in entries], default=0) + 1 for k in (0, 1))
     cols, rows = ml_count
     centers = np.full((rows, cols, 2), np.nan)
+    for number, entry in entries:
+        _place(centers, entry, path, number)
+    if not np.isfinite(centers).all(-1).any():
+        raise ValueError(f"{path} lists no lens with a centre")
+    return centers
+
+
+def _entries(path: str | Path) -> Iterator[tuple[int, tuple[int, int, float, float]]]:
+    """Each non-blank line's number and its parsed lens (:func:`_parse`), after the
+    header is checked."""
     with open(path, newline="") as f:
         lines = csv.reader(f)
         header = tuple(cell.strip() for cell in next(lines, []))
@@ -88,10 +106,7 @@ def read_centers_csv(path: str | Path, ml_count: tuple[int, int]) -> np.ndarray:
                              f"got {','.join(header) or 'nothing'}")
         for number, cells in enumerate(lines, start=2):
             if cells and any(cell.strip() for cell in cells):
-                _place(centers, _parse(cells, path, number), path, number)
-    if not np.isfinite(centers).all(-1).any():
-        raise ValueError(f"{path} lists no lens with a centre")
-    return centers
+                yield number, _parse(cells, path, number)
 
 
 def _parse(cells: list[str], path, number: int) -> tuple[int, int, float, float]:
