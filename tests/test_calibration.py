@@ -604,3 +604,25 @@ def test_a_bad_centres_csv_is_refused_naming_the_line(tmp_path, small_white, edi
     (tmp_path / "bad.csv").write_text("\n".join(edit(lines)) + "\n")
     with pytest.raises(ValueError, match=message):
         import_centers(tmp_path / "bad.csv", cam)
+
+
+def test_centroid_noise_is_finite_where_a_neighbourhood_holds_no_spot():
+    """Lenses found in a disc only (a vignetted white image): the box filter's running
+    sums leave rounding below zero outside it, which gave NaN noise and a NumPy
+    ``invalid value in sqrt`` warning on a user's calibration. The noise is finite,
+    not negative, 0 far from any spot and the split scatter's inside."""
+    from plenocl.calibration.fit import _centroid_noise
+
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:50, 0:50]
+    found = (x - 25) ** 2 + (y - 25) ** 2 < 22**2
+    split = rng.normal(0.0, 1.1, (50, 50, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        noise = _centroid_noise(split, found)
+    assert np.isfinite(noise).all() and (noise >= 0).all()
+    far = (x - 25) ** 2 + (y - 25) ** 2 > 26**2
+    assert (noise[far] == 0).all()
+    # E|d|² = 8 σ² per lens over both axes: σ = 1.1 · √2 / √8 = 0.55 in the middle
+    assert np.median(noise[(x - 25) ** 2 + (y - 25) ** 2 < 15**2]) == pytest.approx(
+        0.55, rel=0.1)

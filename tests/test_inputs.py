@@ -489,8 +489,9 @@ def test_piv_refuses_negative_volumes_and_warns_of_a_background():
 
 
 def test_a_partly_dark_white_image_is_not_only_blamed_on_the_lens_count():
-    """Half the array dark (occluded, outside the illumination) shows fewer lenses than
-    the camera file has: the message names the lit span beside the count."""
+    """Half the array dark (occluded, outside the illumination), or one edge column of
+    lenses, shows fewer lenses than the camera file has: the message names the lit span
+    beside the count."""
     camera = lens_camera(12, 10)
     white = simulate_white_image(camera, rays_per_lens=400, seed=0)
     half = np.where(np.arange(white.shape[1])[None, :] < white.shape[1] // 2, white, 0)
@@ -498,6 +499,10 @@ def test_a_partly_dark_white_image_is_not_only_blamed_on_the_lens_count():
                                          r"count is right, part of the array is dark: the lit "
                                          r"lenses span x \d+-\d+ of 204 px"):
         calibrate(half, camera)
+    one = np.where(np.arange(white.shape[1])[None, :] < white.shape[1] // 12, 0, white)
+    with pytest.raises(ValueError, match=r"shows about 11 x 10 microlens images .* or, if "
+                                         r"the count is right, part of the array is dark"):
+        calibrate(one, camera)
 
 
 def test_velocities_from_the_default_voxel_warn(tmp_path):

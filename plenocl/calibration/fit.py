@@ -370,7 +370,11 @@ def _centroid_noise(split: np.ndarray, found: np.ndarray) -> np.ndarray:
     that it follows vignetting and exposure across the array without one spot's luck."""
     d2 = np.where(found, np.nansum(split**2, axis=-1), 0.0)
     n = ndimage.uniform_filter(found.astype(float), 5, mode="nearest")
-    mean = ndimage.uniform_filter(d2, 5, mode="nearest") / np.maximum(n, 1e-12)
+    total = ndimage.uniform_filter(d2, 5, mode="nearest")
+    # The filter's running sums leave rounding (even below zero) where a neighbourhood
+    # holds no spot: such a lens has no noise to report (0), a found one counts itself.
+    seen = n > 0.5 / 25
+    mean = np.where(seen, np.maximum(total, 0.0) / np.where(seen, n, 1.0), 0.0)
     return np.sqrt(mean / 8.0)
 
 

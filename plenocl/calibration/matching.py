@@ -120,13 +120,13 @@ def _lens_count_and_shift(base: np.ndarray, pts: np.ndarray, model: np.ndarray,
 
 
 def _dark_margin(pts: np.ndarray, size: np.ndarray, pitch: float, short: np.ndarray) -> str:
-    """Where fewer lenses are seen than the file has and the spots leave more than two
-    pitches of the sensor dark on a side: that the array may be partly dark, not the
-    count wrong ("" otherwise)."""
+    """Where fewer lenses are seen than the file has and the spots leave more than a
+    pitch of the sensor dark on a side (one dark edge column or row does): that the
+    array may be partly dark, not the count wrong ("" otherwise)."""
     lo, hi = np.min(pts, axis=0), np.max(pts, axis=0)
     dark = [f"{'xy'[axis]} {lo[axis]:.0f}-{hi[axis]:.0f} of {size[axis]:.0f} px"
             for axis in (0, 1) if short[axis]
-            and (lo[axis] > 2 * pitch or size[axis] - 1 - hi[axis] > 2 * pitch)]
+            and (lo[axis] > pitch or size[axis] - 1 - hi[axis] > pitch)]
     if not dark:
         return ""
     return (f"; or, if the count is right, part of the array is dark: the lit lenses span "
