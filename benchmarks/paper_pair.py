@@ -21,12 +21,15 @@ sensitivities are built before the rows (a batch builds them once per worker) an
 time printed, so no row pays for them and the order of the rows does not matter.
 
 ``--profile``: everything runs on a queue with profiling enabled, and after the rows the
-first setting's pair runs once more under :class:`plenocl.bench.clprofile.OpenCLProfile`,
-which prints per stage the wall seconds, the seconds inside OpenCL calls, the host's own
-work outside them, the kernels' device seconds (profiling events), the launches, the
-calls in which the host waited for the queue (waits and blocking copies) and the
-megabytes moved each way, then the bytes a pair moved against its two raw images and
-the 15 kernels of most device time (launches, seconds, share).
+first setting's pair runs twice more under :class:`plenocl.bench.clprofile.OpenCLProfile`,
+returning its volumes (``volumes=True``, the chain before 2026-12-02) and asked for its
+vectors alone (``volumes=False``, as a batch that keeps no volumes). The second's table
+gives per stage the wall seconds, the seconds inside OpenCL calls, the host's own work
+outside them, the kernels' device seconds (profiling events), the launches, the calls in
+which the host waited for the queue (waits and blocking copies) and the megabytes moved
+each way; then, for both, the host's work in the stages and the bytes moved each way
+(every copy, the volumes' after the stages too) against the two raw images; then the 15
+kernels of most device time (launches, seconds, share).
 ``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
 functions of most own time (on a GPU, where the host's work goes; docs/design.md §7.5).
 ``--scratch-mb M``: the projector's scratch bound (``Projector(scratch_bytes=)``); the
@@ -152,18 +155,25 @@ def main() -> None:
 
 def profile_pair(scene, proj, rec) -> None:
     """One pair of ``scene`` with reconstruction settings ``rec``, profiled: its split
-    and the bytes it moved against the raw images'."""
-    with OpenCLProfile() as prof:
-        pair = process_pair(scene.raw_a, scene.raw_b, proj,
-                            **({} if rec is None else {"reconstruction": rec}))
-        proj.queue.finish()
-    split = prof.split(pair.spans)
+    and the bytes it moved against the raw images'; beside it, in the same run, the same
+    pair returning its volumes (the chain before 2026-12-02, whose volumes came back)."""
+    moved = {}
+    for volumes in (True, False):
+        with OpenCLProfile() as prof:
+            pair = process_pair(scene.raw_a, scene.raw_b, proj, volumes=volumes,
+                                **({} if rec is None else {"reconstruction": rec}))
+            proj.queue.finish()
+        split = prof.split(pair.spans)
+        total = total_profile(split)
+        back = sum(call.nbytes for call in prof.calls if call.kind == "d2h")
+        moved[volumes] = (total.host, total.h2d_bytes, back)
     print("\n".join(split_lines(split)))
-    total = total_profile(split)
-    moved_in, moved_out = total.h2d_bytes, total.d2h_bytes
     raws = scene.raw_a.nbytes + scene.raw_b.nbytes
-    print(f"bytes moved: {moved_in / 1e6:.1f} MB to the device ({moved_in / raws:.1f}x the "
-          f"two raw images' {raws / 1e6:.1f} MB), {moved_out / 1e6:.1f} MB back")
+    for volumes, label in ((False, "the vectors alone"), (True, "with the volumes")):
+        host, moved_in, moved_out = moved[volumes]
+        print(f"{label:17s}: host work {host:.3f} s in the stages; {moved_in / 1e6:.1f} MB "
+              f"to the device ({moved_in / raws:.1f}x the two raw images' {raws / 1e6:.1f} "
+              f"MB), {moved_out / 1e6:.1f} MB back (every copy)")
     print("\n".join(kernel_lines(prof.kernel_seconds())))
 
 
@@ -175,7 +185,8 @@ def host_profile(scene, proj, rec, count: int) -> None:
 
     profiler = cProfile.Profile()
     profiler.enable()
-    process_pair(scene.raw_a, scene.raw_b, proj, **({} if rec is None else {"reconstruction": rec}))
+    process_pair(scene.raw_a, scene.raw_b, proj, volumes=False,
+                 **({} if rec is None else {"reconstruction": rec}))
     proj.queue.finish()
     profiler.disable()
     text = io.StringIO()

@@ -10,6 +10,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from .opencl.volume import DeviceVolume, host_volume
+
 __all__ = ["find_particles", "gaussian_subpixel", "host_maxima"]
 
 
@@ -56,21 +58,26 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
     min_separation)`` as :func:`host_maxima` (the default;
     :class:`plenocl.piv.devicepeaks.DeviceMaxima` on a device, the same maxima).
 
+    ``vol`` may be a :class:`plenocl.opencl.volume.DeviceVolume`: its maximum and the
+    peaks' neighbourhoods are then read on its device (and the maxima there too with a
+    device's ``maxima``), the same particles as of its host copy.
+
     Returns fractional voxel indices ``(N, 3)`` as ``(ix, iy, iz)`` and peak values,
     brightest first. Positions use a three-point Gaussian fit along each axis.
     """
     if reference not in ("max", "robust"):
         raise ValueError(f"reference must be 'max' or 'robust', got {reference!r}")
-    v = np.asarray(vol, np.float32)
+    v = vol if isinstance(vol, DeviceVolume) else np.asarray(vol, np.float32)
     if v.ndim != 3:
         raise ValueError(f"expected a 3-D volume, got shape {v.shape}")
-    vmax = float(v.max()) if v.size else 0.0
+    vmax = _maximum(v)
     if vmax <= 0:
         return np.zeros((0, 3)), np.zeros(0)
     # every level below is above this floor (the robust level exceeds CANDIDATE * vmax)
     floor = vmax * (CANDIDATE * min(threshold, 1.0) if reference == "robust" else threshold)
-    flat = (maxima or host_maxima)(v, floor - abs(floor) * 1e-6, min_separation)
-    values = v.reshape(-1)[flat]
+    flat = (maxima or _host_maxima)(v, floor - abs(floor) * 1e-6, min_separation)
+    near = _neighbourhoods(v, flat)  # (n, 7): the voxel, then x -/+, y -/+, z -/+
+    values = near[:, 0]
     level = vmax
     if reference == "robust":
         bright = np.sort(values[values > CANDIDATE * vmax])[::-1]
@@ -78,20 +85,45 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
         level = float(bright[min(aside, len(bright) - 1)])
     keep = values > threshold * level
     iz, iy, ix = np.unravel_index(flat[keep], v.shape)
-    vals = values[keep]
-    centre, pos = (iz, iy, ix), [ix, iy, iz]
+    vals, near = values[keep], near[keep]
     out = np.empty((len(vals), 3))
-    for k, axis in enumerate((2, 1, 0)):
-        out[:, k] = pos[k] + gaussian_subpixel(_beside(v, centre, axis, -1), vals,
-                                               _beside(v, centre, axis, 1))
+    for k, pos in enumerate((ix, iy, iz)):
+        out[:, k] = pos + gaussian_subpixel(near[:, 1 + 2 * k], vals, near[:, 2 + 2 * k])
     order = np.argsort(-vals)
     return out[order], vals[order]
 
 
+def _maximum(v) -> float:
+    """The volume's maximum (a :class:`DeviceVolume`'s found on the device), 0 for an
+    empty volume."""
+    if isinstance(v, DeviceVolume):
+        return v.summary().high
+    return float(v.max()) if v.size else 0.0
+
+
+def _host_maxima(v, floor: float, reach: int = 1) -> np.ndarray:
+    """:func:`host_maxima` of a host volume, or of a :class:`DeviceVolume` copied to the
+    host."""
+    return host_maxima(host_volume(v), floor, reach)
+
+
+def _neighbourhoods(v, flat: np.ndarray) -> np.ndarray:
+    """``(n, 7)`` float32: the voxels at the C-order indices ``flat`` and their face
+    neighbours (x - 1, x + 1, y - 1, y + 1, z - 1, z + 1), 0 beyond the volume's faces
+    (as a zero-padded copy would give, without making one: 34 MB at the paper's grid);
+    a :class:`DeviceVolume`'s read on the device (only these come to the host)."""
+    if isinstance(v, DeviceVolume):
+        return v.neighbourhoods(flat)
+    centre = np.unravel_index(np.asarray(flat, np.int64), v.shape)
+    near = [v[centre]]
+    for axis in (2, 1, 0):
+        near += [_beside(v, centre, axis, step) for step in (-1, 1)]
+    return np.stack(near, axis=1).astype(np.float32, copy=False)
+
+
 def _beside(v: np.ndarray, centre: tuple, axis: int, step: int) -> np.ndarray:
     """The voxels ``step`` along ``axis`` from the voxels ``centre`` (index arrays
-    ``(iz, iy, ix)``) of ``v``, 0 beyond its faces (as a zero-padded copy of the volume
-    would give, without making one: 34 MB at the paper's grid)."""
+    ``(iz, iy, ix)``) of ``v``, 0 beyond its faces."""
     index = list(centre)
     index[axis] = centre[axis] + step
     inside = (index[axis] >= 0) & (index[axis] < v.shape[axis])

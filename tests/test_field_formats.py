@@ -323,7 +323,7 @@ def test_each_pair_is_written_in_the_asked_formats(tmp_path, field, monkeypatch)
     formats = (".dat", ".csv", ".vti")
     proc = worker.PairProcessor(tmp_path, worker.RunSettings(PairSettings(), DT, formats))
     monkeypatch.setattr(proc, "frame", lambda path: np.zeros((4, 4)))
-    monkeypatch.setattr(worker, "process_pair", lambda *args: SimpleNamespace(
+    monkeypatch.setattr(worker, "process_pair", lambda *args, **kwargs: SimpleNamespace(
         piv=field, seconds={}, vol_a=None, vol_b=None))
     for name in ("a.tif", "b.tif"):
         (tmp_path / name).write_bytes(b"raw")

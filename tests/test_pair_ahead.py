@@ -50,6 +50,7 @@ def test_an_image_prepared_ahead_gives_the_same_reconstruction(scene):
     ahead = prepare_on_host(raw, cam, REC)
     got, got_info = run_reconstruction(raw, proj, REC, keep_for_next_stage=True,
                                        ahead=ahead)
+    want, got = want.get(), got.get()  # kept on the device (DeviceVolume)
     assert want.max() > 0
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(got_info.volume_on_device.get(), got)
@@ -61,6 +62,7 @@ def test_an_image_prepared_ahead_gives_the_same_reconstruction(scene):
     with pytest.raises(ValueError, match="one camera"):
         run_reconstruction([raw, raw], [proj, proj], REC, ahead=ahead)
     plain, plain_info = run_reconstruction(raw, proj, REC, ahead=ahead)  # nothing kept
+    assert isinstance(plain, np.ndarray)  # the host volume
     np.testing.assert_array_equal(plain, want)
     assert plain_info.volume_on_device is None and plain_info.background_free is None
     for other in (dataclasses.replace(REC, threshold=5.0),
@@ -129,3 +131,31 @@ def test_one_solver_at_a_time_holds_its_kept_buffers(scene, monkeypatch):
     assert max(alive) == 1
     monkeypatch.setattr(Solver, "kept", lambda self, name, make: make())
     np.testing.assert_array_equal(run_reconstruction(raw, proj, REC)[0], want)
+
+
+@pytest.mark.filterwarnings("ignore:the final windows", "ignore:every window's centre")
+@pytest.mark.parametrize("fft", ["device", "scipy"])
+def test_a_pair_asked_for_its_vectors_alone_leaves_its_volumes_on_the_device(scene, fft):
+    """``process_pair(volumes=False)``: the same field, bit for bit, as the pair that
+    returns its volumes, no volume in the result, and (the first pass's FFT on the
+    device) no volume ever copied back: its bytes back fall by both volumes."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    _, proj, raws = scene
+    settings = {"reconstruction": REC, "piv": PIVSettings(windows=(16, 16), fft=fft)}
+    runs = {}
+    for volumes in (True, False):
+        with OpenCLProfile() as prof:
+            runs[volumes] = process_pair(*raws, proj, volumes=volumes, **settings)
+        runs[volumes, "back"] = [c.nbytes for c in prof.calls if c.kind == "d2h"]
+    kept, alone = runs[True], runs[False]
+    assert alone.vol_a is None and alone.vol_b is None
+    assert isinstance(kept.vol_a, np.ndarray) and kept.vol_a.max() > 0
+    for name in ("u", "v", "w", "sigma_u", "sigma_w"):
+        np.testing.assert_array_equal(getattr(alone.piv, name), getattr(kept.piv, name))
+    assert alone.piv.refinement["pairs"] > 10  # the particles were found and paired
+    nbytes = kept.vol_a.nbytes
+    assert runs[True, "back"].count(nbytes) >= 2  # the volumes came back
+    if fft == "device":
+        assert nbytes not in runs[False, "back"]
+        assert sum(runs[True, "back"]) - sum(runs[False, "back"]) >= 2 * nbytes

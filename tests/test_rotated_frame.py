@@ -145,9 +145,9 @@ def test_reconstruction_in_the_rotated_frame_finds_the_particles(queue):
 
 def test_only_a_volume_on_the_projectors_grid_is_kept_on_the_device(queue):
     """``run_reconstruction(keep_for_next_stage=True)`` on a grid across a rotated array's
-    lens rows: the voxels (each iteration resampled) keep their device volume, the host
-    one to the bit; sub-voxels on the lens-row frame, resampled onto the grid on the
-    host, keep none rather than the frame's."""
+    lens rows: the voxels (each iteration resampled) keep their device volume, returned
+    as it (a DeviceVolume), the host one to the bit; sub-voxels on the lens-row frame,
+    resampled onto the grid on the host, keep none rather than the frame's."""
     from plenocl.reconstruction import ReconstructionSettings, run_reconstruction
 
     cam = lens_camera(12, 10, **ROTATED)
@@ -158,7 +158,8 @@ def test_only_a_volume_on_the_projectors_grid_is_kept_on_the_device(queue):
                          rays_per_particle=3000, seed=1, queue=queue)
     voxels = ReconstructionSettings(supersample=1, iterations=3)
     vol, info = run_reconstruction(img, proj, voxels, keep_for_next_stage=True)
-    assert np.array_equal(info.volume_on_device.get(), vol) and vol.any()
+    assert vol.array is info.volume_on_device and vol.get().any()
+    assert np.array_equal(vol.get(), run_reconstruction(img, proj, voxels)[0])
     sub = ReconstructionSettings(supersample=2, coarse_iterations=2, iterations=2)
     vol, info = run_reconstruction(img, proj, sub, keep_for_next_stage=True)
     assert vol.shape == grid.shape and info.volume_on_device is None

@@ -13,6 +13,7 @@ from plenocl import Grid, Projector, random_particles, reconstruct
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.metrics import recovery
 from plenocl.opencl import arrays
+from plenocl.opencl.volume import DeviceVolume
 from plenocl.reconstruction import (
     ReconstructionSettings,
     Solver,
@@ -430,18 +431,23 @@ def test_coarse_to_fine_prepares_the_image_once_and_equals_two_separate_runs(
                                      {"supersample": 1, "iterations": 3}])
 def test_a_reconstruction_keeps_its_volume_on_the_device_when_asked(optics, scene,
                                                                     options):
-    """``run_reconstruction(keep_for_next_stage=True)``: ``info.volume_on_device`` is the
-    returned volume to the bit, on the projector's context (coarse-to-fine sub-voxels and
-    plain voxels), with the image fit's background-free image; without it (the default,
-    ``reconstruct``'s) no device memory and no image is held."""
+    """``run_reconstruction(keep_for_next_stage=True)``: the volume returned stays on the
+    device (a ``DeviceVolume`` of ``info.volume_on_device``, on the projector's context),
+    its host copy the volume made without keeping it, to the bit, its share of non-zero
+    voxels counted there (coarse-to-fine sub-voxels and plain voxels), with the image
+    fit's background-free image; without it (the default, ``reconstruct``'s) no device
+    memory and no image is held."""
     from plenocl.reconstruction import run_reconstruction
 
     proj = optics[2]
     rec = ReconstructionSettings(**options)
-    vol, info = run_reconstruction(scene, proj, rec, keep_for_next_stage=True)
+    kept, info = run_reconstruction(scene, proj, rec, keep_for_next_stage=True)
     dev = info.volume_on_device
     assert dev.context == proj.queue.context and dev.dtype == np.float32
+    assert isinstance(kept, DeviceVolume) and kept.array is dev  # returned on the device
+    vol = kept.get()
     assert np.array_equal(dev.get(), vol) and vol.any()
+    assert info.active_fraction == np.count_nonzero(vol) / vol.size
     free = info.background_free  # the image fit's: the solver's image, on its device too
     assert free.values.shape == scene.shape and free.on_device.context == proj.queue.context
     assert np.array_equal(free.on_device.get(), free.values) and free.scale > 0

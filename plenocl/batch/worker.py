@@ -196,7 +196,8 @@ class PairProcessor:
             res, seconds = correlate_volumes(raw_a, raw_b, vol_a, vol_b, self.projector,
                                              run.pair, known)
         else:
-            pair = process_pair(raw_a, raw_b, self.projector, run.pair)
+            pair = process_pair(raw_a, raw_b, self.projector, run.pair,
+                                volumes=run.keep_volumes)
             res, seconds = pair.piv, pair.seconds
         t0 = time.perf_counter()
         if mode != CORRELATE and run.keep_volumes:  # for the ensemble correlation

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..opencl.device import is_cpu
 from ..opencl.threads import thread_count
+from ..opencl.volume import host_volume
 from ..options import with_keywords
 from ..piv import PIVResult, piv3d
 from ..reconstruction import (
@@ -37,7 +38,9 @@ class PairResult:
     Attributes
     ----------
     vol_a, vol_b
-        The reconstructed volumes ``(nz, ny, nx)`` (image intensity units).
+        The reconstructed volumes ``(nz, ny, nx)`` (image intensity units, host arrays);
+        ``None`` where :func:`process_pair` was asked for the vectors alone
+        (``volumes=False``: the volumes then never come back from the device).
     piv
         The displacement field between them (voxels; :class:`plenocl.PIVResult`).
     info_a, info_b
@@ -51,8 +54,8 @@ class PairResult:
         profile attributes to it: :class:`plenocl.bench.clprofile.OpenCLProfile`).
     """
 
-    vol_a: np.ndarray
-    vol_b: np.ndarray
+    vol_a: np.ndarray | None
+    vol_b: np.ndarray | None
     piv: PIVResult
     info_a: ReconstructionInfo
     info_b: ReconstructionInfo
@@ -68,7 +71,8 @@ class PairResult:
 
 
 def process_pair(raw_a, raw_b, projector: ProjectionOperator,
-                 settings: PairSettings | None = None, **parts) -> PairResult:
+                 settings: PairSettings | None = None, *, volumes: bool = True,
+                 **parts) -> PairResult:
     """Reconstruct two raw images with one projector and correlate the volumes.
 
     Parameters
@@ -109,15 +113,23 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
           9-56 % and the lateral by 10-58 % (``benchmarks/accuracy.py``), for 2-32 s
           more per pair on 2 CPU cores. ``None`` (or ``False``): the volumes' peaks as
           they are.
+    volumes
+        Return the volumes (``True``, the default). ``False``: the vectors alone
+        (``vol_a``, ``vol_b`` ``None``): the volumes stay on the device from the
+        reconstructions to the particles, where only their summaries and the particles'
+        neighbourhoods are read (docs/design.md §7.5), and are never copied to the host
+        whole unless a stage measured faster on the host needs them (the first pass's
+        FFT on a CPU device).
 
     Returns
     -------
     PairResult
-        Both volumes, the displacement field, the reconstructions' info and stage times.
+        Both volumes (when asked), the displacement field, the reconstructions' info and
+        stage times.
     """
     settings = with_keywords(PairSettings, settings, parts, "process_pair")
     if isinstance(projector, (list, tuple)):  # several cameras (docs/design.md §6.7)
-        return _several_cameras(raw_a, raw_b, list(projector), settings)
+        return _asked(_several_cameras(raw_a, raw_b, list(projector), settings), volumes)
     rec = settings.reconstruction
     clock = StageClock()
     (vol_a, info_a), (vol_b, info_b) = _reconstructions(raw_a, raw_b, projector, rec,
@@ -132,7 +144,8 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
         finally:  # the result holds no device memory and no extra images
             for info in (info_a, info_b):
                 info.release_kept()
-        return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
+        return _asked(PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds,
+                                 clock.spans), volumes)
 
     def correlate(a, b) -> PIVResult:
         return piv3d(a, b, settings.piv, queue=projector.queue)
@@ -146,7 +159,18 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     res = refine_particles(res, vol_a, vol_b, projector.grid, settings, projector.queue,
                            camera=projector.camera, raws=(raw_a, raw_b),
                            backgrounds=known_backgrounds(info_a, info_b), clock=clock)
-    return PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans)
+    return _asked(PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans),
+                  volumes)
+
+
+def _asked(result: PairResult, volumes: bool) -> PairResult:
+    """``result`` with its volumes on the host (``volumes``) or without them; either way
+    it holds no device memory."""
+    if volumes:
+        result.vol_a, result.vol_b = host_volume(result.vol_a), host_volume(result.vol_b)
+    else:
+        result.vol_a = result.vol_b = None
+    return result
 
 
 def _reconstructions(raw_a, raw_b, projector, rec: ReconstructionSettings, keep: bool,

@@ -19,6 +19,7 @@ import pyopencl.array as cl_array
 
 from ..opencl.device import check_fits, is_cpu
 from ..opencl.program import GPU_GROUP, KernelSet
+from ..opencl.volume import host_volume
 from .correlation import (
     BATCH_BYTES,
     Correlation,
@@ -263,7 +264,9 @@ class FFTRoute:
         return self.device.correlate(*(on_device or (vol_a, vol_b)), grid, **options)
 
     def _host(self, vol_a, vol_b, grid: WindowGrid, options: dict) -> Correlation:
-        """The host's FFT; of device volumes only the windows come to the host."""
+        """The host's FFT; of device volumes only the windows come to the host (of a
+        :class:`DeviceVolume`, the volume: its windows overlap)."""
+        vol_a, vol_b = host_volume(vol_a), host_volume(vol_b)
         windows = None
         if isinstance(vol_a, cl_array.Array):
             def windows(vol, lows):

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..opencl.arrays import device_copies
+from ..opencl.volume import DeviceVolume, host_volume, resident
 from ..options import with_keywords
 from ..peaks import host_maxima
 from ..vectorfield import PIVResult, Size3
@@ -39,19 +40,34 @@ from .validation import normalized_median_test, replace_outliers
 __all__ = ["PIVResult", "piv3d"]
 
 
-def _check_volume(name: str, vol) -> np.ndarray:
-    arr = np.asarray(vol)
-    if arr.ndim != 3:
-        raise ValueError(f"{name} must be a 3-D volume vol[iz, iy, ix], got {arr.ndim}-D "
-                         f"shape {arr.shape}")
-    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
-        raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float32, copy=False)
-    bad = int(np.count_nonzero(~np.isfinite(arr)))
+def _check_volume(name: str, vol):
+    """``vol`` as a float32 volume, refused by name where it cannot be correlated; a
+    :class:`DeviceVolume` stays on the device (its summary checked)."""
+    if isinstance(vol, DeviceVolume):
+        summary = vol.summary()
+        bad, low, high = summary.nonfinite, summary.low, summary.high
+        arr = vol
+    else:
+        arr = np.asarray(vol)
+        if arr.ndim != 3:
+            raise ValueError(f"{name} must be a 3-D volume vol[iz, iy, ix], got {arr.ndim}-D "
+                             f"shape {arr.shape}")
+        if not (np.issubdtype(arr.dtype, np.integer)
+                or np.issubdtype(arr.dtype, np.floating)):
+            raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+        arr = arr.astype(np.float32, copy=False)
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
     if bad:
         raise ValueError(f"{name} contains {bad} NaN/Inf values; replace them (e.g. "
                          f"np.nan_to_num) or mask those voxels before calling piv3d")
-    low, high = float(arr.min()), float(arr.max())
+    if not isinstance(vol, DeviceVolume):
+        low, high = float(arr.min()), float(arr.max())
+    _check_levels(name, low, high)
+    return arr
+
+
+def _check_levels(name: str, low: float, high: float) -> None:
+    """A volume's darkest and brightest voxel checked: not constant, not negative."""
     if high == low:
         raise ValueError(f"{name} is constant ({low}): it holds no particles to "
                          f"correlate; check the reconstruction or the file loaded")
@@ -64,8 +80,7 @@ def _check_volume(name: str, vol) -> np.ndarray:
         warnings.warn(f"{name}'s darkest voxel ({low:.4g}) lies above its particles' height "
                       f"over it ({high - low:.4g}): a constant background correlates as a "
                       "plane and pulls the vectors towards zero; subtract it "
-                      f"(vol - vol.min(), or its median)", stacklevel=3)
-    return arr
+                      f"(vol - vol.min(), or its median)", stacklevel=4)
 
 
 def window_passes(shape: Size3, windows, overlaps, final_iterations: int
@@ -170,12 +185,16 @@ def count_particles(vol: np.ndarray, threshold: float = 0.1,
     (:func:`plenocl.peaks.host_maxima`, the default, or a device's
     :class:`plenocl.piv.devicepeaks.DeviceMaxima`, which reads ``on_device``, the
     volume's device copy, where both are given)."""
-    v = np.asarray(vol, np.float32)
-    top = float(v.max()) if v.size else 0.0
+    if isinstance(vol, DeviceVolume):  # its maximum found on the device
+        v, top = vol, vol.summary().high
+        on_device = vol.array if on_device is None else on_device
+    else:
+        v = np.asarray(vol, np.float32)
+        top = float(v.max()) if v.size else 0.0
     if top <= 0:
         return 0
     if maxima is None:
-        return len(host_maxima(v, threshold * top))
+        return len(host_maxima(host_volume(v), threshold * top))
     return len(maxima(v if on_device is None else on_device, threshold * top))
 
 
@@ -276,8 +295,11 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
     deformer = make_deformer(opts.deform_order, queue)
     sums = sums_for(deformer)
     fft = FFTRoute(opts.fft, None if sums is None else sums.kernels.queue, opts.workers)
-    copies = None if sums is None else device_copies(on_device, a.shape,
-                                                     sums.kernels.queue.context)
+    copies = None if sums is None else device_copies(
+        on_device or resident(a, b, sums.kernels.queue.context), a.shape,
+        sums.kernels.queue.context)
+    if copies is None:  # the volumes are read on the host
+        a, b = host_volume(a), host_volume(b)
     if windows is None:
         maxima = None if sums is None else DeviceMaxima(sums.kernels.queue)
         windows = auto_windows(a.shape, particles=count_particles(
@@ -285,7 +307,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
     schedule = window_passes(a.shape, windows, opts.overlaps, opts.final_iterations)
     mask = _check_mask(mask, a.shape)
     if mask is not None:
-        a, b = (np.where(mask, np.float32(0), v) for v in (a, b))
+        a, b = (np.where(mask, np.float32(0), host_volume(v)) for v in (a, b))
         copies = None
     coeffs = tuple(deformer.prepare(v) for v in copies or (a, b))
     state, log = None, []

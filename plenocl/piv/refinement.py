@@ -58,6 +58,7 @@ from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
 from ..opencl.arrays import device_copies, upload
+from ..opencl.volume import DeviceVolume, host_volume
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
@@ -268,7 +269,8 @@ def volume_particles(vol: np.ndarray, threshold: float = 0.1,
     maxima are found (:func:`plenocl.peaks.find_particles`' ``maxima``; ``None``: the
     host). Where both run on one device, the volume goes to it once
     (:func:`shared_upload`); ``on_device``: the volume's float32 device copy (the same
-    values), which each of them on its context reads instead."""
+    values), which each of them on its context reads instead (a
+    :class:`plenocl.opencl.volume.DeviceVolume`'s own array by default)."""
     for_maxima, for_sums = device_reads(vol, maxima, sight, on_device)
     if for_maxima is not None:
         maxima = _maxima_on(maxima, for_maxima)
@@ -277,7 +279,7 @@ def volume_particles(vol: np.ndarray, threshold: float = 0.1,
         return peaks
     peaks = sight.merge(peaks, values)[0]
     for _ in range(CENTRE_PASSES):
-        peaks = sight.centres(vol if for_sums is None else for_sums, peaks)
+        peaks = sight.centres(host_volume(vol) if for_sums is None else for_sums, peaks)
     return peaks
 
 
@@ -287,6 +289,8 @@ def device_reads(vol: np.ndarray, maxima, sight: SightLines | None, on_device=No
     (``None``: the host volume, uploaded by each as it needs): ``on_device`` for each on
     its context; without it, one upload for both where both run on one device
     (:func:`shared_upload`)."""
+    if on_device is None and isinstance(vol, DeviceVolume):
+        on_device = vol.array
     if on_device is None:
         on_device = shared_upload(vol, maxima, sight)
         if on_device is None:

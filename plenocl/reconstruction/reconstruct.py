@@ -37,6 +37,7 @@ from collections.abc import Callable
 import numpy as np
 import pyopencl.array as cla
 
+from ..opencl.volume import DeviceVolume, host_volume
 from ..optics.rawimage import check_pixel_mask
 from ..options import with_keywords
 from .blocks import device_view_blocks
@@ -344,7 +345,7 @@ def _supersampled(prepared: PreparedImage, projector, refined,
             return np.zeros(projector.grid.shape, np.float32), coarse_info
         if coarse_info.stopped:  # the callback stopped the reconstruction
             coarse_info.volume_on_device = coarse
-            return _counted(coarse.get(), coarse_info), coarse_info
+            return _counted(DeviceVolume(coarse), coarse_info), coarse_info
         done = coarse_info.iterations
     fine = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
                                start=settings.start if start is None else "uniform")
@@ -443,17 +444,19 @@ def _iterations(prepared: PreparedImage, projector, settings: ReconstructionSett
 
 
 def _to_host(solver: Solver, vol, prepared: PreparedImage, info: ReconstructionInfo,
-             factor: int, grid_shape: tuple[int, int, int], keep: bool = True) -> np.ndarray:
+             factor: int, grid_shape: tuple[int, int, int], keep: bool = True):
     """A run's device volume as the host volume in image units on the full grid of
     ``grid_shape`` (a cropped solver's box placed in it), summed over ``factor x factor``
-    lateral blocks on the device when ``factor > 1``; sets ``info.active_fraction`` and,
-    with ``keep``, keeps the same volume on the device as ``info.volume_on_device`` (not
-    for sub-voxels the host resamples or hands on: no full fine grid copied there)."""
+    lateral blocks on the device when ``factor > 1``; sets ``info.active_fraction``.
+    With ``keep``, the volume stays on the device (not for sub-voxels the host resamples
+    or hands on: no full fine grid copied there): a :class:`DeviceVolume`, its array
+    also ``info.volume_on_device``, copied to the host only when asked
+    (:func:`run_reconstruction`)."""
     nz, ny, nx = grid_shape
     shape = (nz, ny // factor, nx // factor)
     if keep:
         device = solver.binned_to_device(vol, factor, shape, prepared.scale)
-        out, info.volume_on_device = device.get(), device
+        out, info.volume_on_device = DeviceVolume(device), device
     elif factor == 1:
         out = solver.volume_to_host(vol, shape) * np.float32(prepared.scale)
     else:
@@ -461,9 +464,12 @@ def _to_host(solver: Solver, vol, prepared: PreparedImage, info: ReconstructionI
     return _counted(out, info)
 
 
-def _counted(vol: np.ndarray, info: ReconstructionInfo) -> np.ndarray:
-    """``vol``, with ``info.active_fraction`` set to its share of non-zero voxels."""
-    info.active_fraction = float(np.count_nonzero(vol)) / vol.size
+def _counted(vol, info: ReconstructionInfo):
+    """``vol`` (host or :class:`DeviceVolume`), with ``info.active_fraction`` set to its
+    share of non-zero voxels (a device volume's counted there)."""
+    lit = (vol.summary().nonzero if isinstance(vol, DeviceVolume)
+           else np.count_nonzero(vol))
+    info.active_fraction = float(lit) / vol.size
     return vol
 
 
@@ -496,6 +502,7 @@ def _in_frame(image, projector, settings: ReconstructionSettings, callback, obse
     t0 = time.perf_counter()
     vol, info = _run(image, projector.frame, dataclasses.replace(settings, start=start),
                      callback, observed, binned=False, keep=keep, ahead=ahead)
+    vol = host_volume(vol)  # resampled on the host
     if vol.shape == fine.frame.grid.shape:
         vol = bin_lateral(fine.volume_from_frame(vol), f)
     else:  # an empty or stopped coarse run: the voxels'
@@ -524,10 +531,11 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
 
     ``keep_for_next_stage``: keep for the stages after it (:func:`plenocl.process_pair`)
     the volume on the device, as ``info.volume_on_device`` (float32, the projector's
-    queue; the same values as the returned volume), where the reconstruction ends with
-    it there (one camera, not on a rotated array's frame; ``None`` otherwise), for them
-    to read without uploading it again; and the image the solver read,
-    ``info.background_free`` (:class:`plenocl.optics.rawimage.ScaledImage`:
+    queue), where the reconstruction ends with it there (one camera, not on a rotated
+    array's frame; ``None`` otherwise), for them to read without uploading it again: the
+    volume returned is then a :class:`plenocl.opencl.volume.DeviceVolume` of that array,
+    copied to the host only when asked (``np.asarray``, its ``get``; issue 46); and the
+    image the solver read, ``info.background_free`` (:class:`plenocl.optics.rawimage.ScaledImage`:
     ``max(image - background, 0)`` divided by its brightest pixel, float32, with its
     device copy on the projector's queue), where it is the image fit's (the
     reconstruction removed a background and neither smoothed the image nor masked
@@ -546,6 +554,7 @@ def run_reconstruction(image, projector: ProjectionOperator, settings: Reconstru
     vol, info = _reconstructed(image, projector, settings, callback, pixel_mask,
                                keep_for_next_stage, ahead)
     if not keep_for_next_stage:
+        vol = host_volume(vol)
         info.release_kept()
     return vol, info
 
