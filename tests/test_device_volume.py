@@ -82,6 +82,9 @@ def test_device_volume_is_copied_once_and_refuses_a_view(queue):
     dev = _on(queue, vol)
     np.testing.assert_array_equal(np.asarray(dev), vol)
     assert dev.get() is dev.get() and host_volume(dev) is dev.get()
+    assert np.asarray(dev) is dev.get() and np.array(dev) is not dev.get()  # copy=True
+    with pytest.raises(IndexError, match=r"\[0, 120\)"):
+        dev.neighbourhoods([0, 120])
     assert (dev.shape, dev.ndim, dev.size, dev.dtype) == (vol.shape, 3, vol.size, np.float32)
     with pytest.raises(ValueError, match="contiguous float32"):
         DeviceVolume(cla.to_device(queue, vol.astype(np.float64)))
@@ -116,10 +119,38 @@ def test_particles_of_a_device_volume_are_its_host_copys(queue, reference,
 
 
 def test_particles_of_an_empty_or_dark_device_volume(queue):
+    empty = _on(queue, np.zeros((0, 4, 5), np.float32)).summary()
+    assert (empty.low, empty.high, empty.nonfinite, empty.nonzero) == (np.inf, -np.inf, 0, 0)
     for vol in (np.zeros((3, 4, 5), np.float32), -np.ones((3, 4, 5), np.float32)):
         peaks, values = find_particles(_on(queue, vol))
         assert peaks.shape == (0, 3) and values.shape == (0,)
         assert count_particles(_on(queue, vol)) == 0
+
+
+@pytest.mark.parametrize("bad", [np.inf, np.nan])
+def test_particles_of_a_device_volume_not_finite_are_its_host_copys(queue, bad):
+    """A voxel not finite: the maximum NumPy's, so the same particles as the host copy's
+    (what a direct caller gets; piv3d refuses such volumes first)."""
+    vol = _particles(6)
+    vol[2, 3, 4] = bad
+    for g, w in zip(find_particles(_on(queue, vol)), find_particles(vol), strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert count_particles(_on(queue, vol)) == count_particles(vol)
+
+
+def test_device_maxima_read_a_device_volume_where_it_is(queue):
+    """The device's maxima of a DeviceVolume on its context: no copy of the volume back."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    vol = _particles(8)
+    dev, maxima = _on(queue, vol), DeviceMaxima(queue)
+    want = find_particles(vol, maxima=maxima)
+    with OpenCLProfile() as prof:
+        got = find_particles(dev, maxima=maxima)
+    back = [c.nbytes for c in prof.calls if c.kind == "d2h"]
+    assert back and max(back) < vol.nbytes
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
 
 
 @pytest.mark.parametrize("fft", ["device", "scipy"])

@@ -75,18 +75,23 @@ class DeviceVolume:
         return np.dtype(np.float32)
 
     def get(self) -> np.ndarray:
-        """The volume on the host (copied the first time, then kept)."""
+        """The volume on the host (copied the first time, then kept: the same array each
+        time, not to be written to; ``np.array(volume)`` gives a copy of it)."""
         if self._host is None:
             self._host = read(self.array)[0]
         return self._host
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         host = self.get()
-        return host if dtype is None else host.astype(dtype, copy=False)
+        if dtype is not None:
+            host = host.astype(dtype, copy=False)
+        return host.copy() if copy and host is self._host else host
 
     def summary(self) -> VolumeSummary:
         """The volume's :class:`VolumeSummary`, found on the device (by rows; the rows'
         extremes and counts combined on the host: exact), once."""
+        if self._summary is None and not self.size:
+            self._summary = VolumeSummary(np.inf, -np.inf, 0, 0)
         if self._summary is None:
             nz, ny, nx = self.shape
             rows = nz * ny
@@ -106,6 +111,9 @@ class DeviceVolume:
         flat = np.asarray(flat, np.int64).reshape(-1)
         if not len(flat):
             return np.zeros((0, 7), np.float32)
+        if flat.min() < 0 or flat.max() >= self.size:
+            raise IndexError(f"voxel indices must lie in [0, {self.size}) of the volume "
+                             f"{self.shape}, got {flat.min()} to {flat.max()}")
         k = self._set()
         out = k.array(7 * len(flat))
         nz, ny, nx = self.shape

@@ -14,6 +14,7 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..opencl.program import KernelSet
+from ..opencl.volume import DeviceVolume
 
 __all__ = ["DeviceMaxima"]
 
@@ -44,7 +45,10 @@ class DeviceMaxima:
     def __call__(self, vol, floor: float, reach: int = 1) -> np.ndarray:
         """The flat indices (C order, ascending) of ``vol``'s voxels above ``floor`` that
         no voxel within ``reach`` per axis exceeds (0 beyond the faces); ``vol`` a
-        ``(nz, ny, nx)`` host array or a float32 device array."""
+        ``(nz, ny, nx)`` host array, a float32 device array or a
+        :class:`~plenocl.opencl.volume.DeviceVolume` (read where it is, on this context)."""
+        if isinstance(vol, DeviceVolume) and vol.array.context == self.queue.context:
+            vol = vol.array
         if vol.size >= 2 ** 31:
             raise ValueError(f"a volume of {vol.size} voxels is too large for the device's "
                              "local maxima (at most 2^31 - 1); find its particles on the "

@@ -185,9 +185,8 @@ def count_particles(vol: np.ndarray, threshold: float = 0.1,
     (:func:`plenocl.peaks.host_maxima`, the default, or a device's
     :class:`plenocl.piv.devicepeaks.DeviceMaxima`, which reads ``on_device``, the
     volume's device copy, where both are given)."""
-    if isinstance(vol, DeviceVolume):  # its maximum found on the device
-        v, top = vol, vol.summary().high
-        on_device = vol.array if on_device is None else on_device
+    if isinstance(vol, DeviceVolume) and not vol.summary().nonfinite:  # found there
+        v, top = vol, vol.summary().high  # a device's maxima read it where it is
     else:
         v = np.asarray(vol, np.float32)
         top = float(v.max()) if v.size else 0.0
