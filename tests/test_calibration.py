@@ -581,6 +581,21 @@ def test_centres_travel_to_and_from_other_tools_as_csv(tmp_path, small_white):
                                   part.microlens_centers)
 
 
+def test_a_centres_csv_keeps_a_dark_last_row_and_column_of_lenses(tmp_path):
+    """Missing lenses are written with an empty centre: read back without a lens count,
+    an array whose last column and row are dark keeps its extent and its NaN lenses."""
+    from plenocl.io.centres import read_centers_csv, write_centers_csv
+
+    centers = _camera(7, 5).microlens_centers.copy()
+    centers[:, -1] = centers[-1, :] = np.nan
+    centers[2, 3] = np.nan
+    write_centers_csv(tmp_path / "c.csv", centers)
+    back = read_centers_csv(tmp_path / "c.csv", None)
+    assert back.shape == (5, 7, 2)
+    np.testing.assert_array_equal(back, centers)  # NaN where missing, else to the bit
+    assert "6,4,," in (tmp_path / "c.csv").read_text().splitlines()
+
+
 @pytest.mark.parametrize("edit, message", [
     (lambda lines: ["col,row,x,y", *lines[1:]], "the first line must be the header"),
     (lambda lines: [*lines, "3,4,abc,5"], "line 122: 3,4,abc,5 is not four numbers"),

@@ -10,7 +10,8 @@ The format, one lens per line after a header (docs/design.md §3)::
 ``lens_col``, ``lens_row``: the lens's column and row in the array, counted from 0 (the
 ``(rows, cols)`` order of ``Camera.microlens_centers``); ``x_px``, ``y_px``: its image
 centre in pixels, column and row, with the centre of the first pixel at 0. Lenses not
-listed (or with an empty or NaN centre) are missing.
+listed (or with an empty or NaN centre) are missing; plenocl writes every lens, a missing
+one with an empty centre, so that its files keep the array's extent.
 
 LFIT's own calibration file (``<name>_calData.mat``, LFIT v2: the cell array ``calData``
 whose first entry holds the centres, lens rows x lens columns x (x, y), in MATLAB's
@@ -32,15 +33,18 @@ HEADER = ("lens_col", "lens_row", "x_px", "y_px")
 
 
 def write_centers_csv(path: str | Path, centers: np.ndarray) -> None:
-    """Write the found centres of ``centers`` ``(rows, cols, 2)`` (``(col, row)`` px,
-    ``NaN``: missing) as a centres CSV, atomically."""
+    """Write ``centers`` ``(rows, cols, 2)`` (``(col, row)`` px, ``NaN``: missing) as a
+    centres CSV, atomically: every lens, row by row, a missing one with an empty centre,
+    so that the file keeps the array's extent (read without a lens count, a dark last
+    row or column of lenses is not lost)."""
     centers = np.asarray(centers, float)
-    rows, cols = np.nonzero(np.isfinite(centers).all(-1))
+    found = np.isfinite(centers).all(-1)
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         out = csv.writer(f)
         out.writerow(HEADER)
-        for r, c in zip(rows, cols, strict=True):
-            out.writerow([c, r, repr(float(centers[r, c, 0])), repr(float(centers[r, c, 1]))])
+        for (r, c), seen in np.ndenumerate(found):
+            x, y = (repr(float(v)) if seen else "" for v in centers[r, c])
+            out.writerow([c, r, x, y])
 
 
 def read_centres(path: str | Path, ml_count: tuple[int, int] | None) -> np.ndarray:
