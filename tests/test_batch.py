@@ -393,6 +393,50 @@ def test_a_run_applies_the_dark_frame_and_flat_field_of_the_experiment(experimen
         load_experiment(exp)
 
 
+@pytest.mark.one_device
+def test_a_bad_dark_frame_or_flat_field_is_refused_once_before_any_pair(experiment,
+                                                                        tmp_path):
+    """A dark frame with a NaN pixel, of another shape, a flat field with a dark pixel or
+    below the dark frame: the run is refused before any pair, naming the file (it failed
+    every pair, blaming a NaN on the images); a raw frame with a NaN pixel fails its pair
+    naming that frame."""
+    from plenocl.io import read_image
+
+    exp = _copy_experiment(experiment, tmp_path, drop=[4, 5])
+    shape = read_image(tmp_path / "raw" / "frame_000.tif").shape
+    dark = np.full(shape, 40.0, np.float32)
+    nan_dark = dark.copy()
+    nan_dark[4, 7] = np.nan
+    flat = np.full(shape, 1000.0, np.float32)
+    dark_pixel = flat.copy()
+    dark_pixel[3, 2] = 0.0
+    text = exp.read_text()
+    cases = [({"dark": nan_dark}, r"dark frame d\.npy contains 1 NaN .* row 4, column 7"),
+             ({"dark": dark[:, :-3]}, r"dark frame d\.npy is .* does not match"),
+             ({"flat": dark_pixel}, r"flat field f\.npy is not positive at 1 pixel.* row 3, "
+                                    "column 2"),
+             ({"dark": dark, "flat": dark - 1.0}, r"f\.npy minus the dark frame is not "
+                                                  f"positive at {dark.size} pixel")]
+    for files, message in cases:
+        keys = ""
+        for kind, frame in files.items():
+            np.save(tmp_path / f"{kind[0]}.npy", frame)
+            keys += f'{kind} = "{kind[0]}.npy"\n'
+        exp.write_text(text.replace("dt_s = 1e-3", "dt_s = 1e-3\n" + keys))
+        with pytest.raises(ValueError, match=message):
+            plenocl.run(exp, tmp_path / "out", progress=False)
+        assert not (tmp_path / "out" / "pairs").exists()
+    exp.write_text(text)
+    frame = read_image(tmp_path / "raw" / "frame_003.tif").astype(np.float32)
+    frame[5, 6] = np.inf
+    (tmp_path / "raw" / "frame_003.tif").unlink()
+    write_tiff(tmp_path / "raw" / "frame_003.tif", frame)
+    summary = plenocl.run(exp, tmp_path / "out", progress=False)
+    assert list(summary.failed) == [1] and summary.processed == [0]
+    assert "frame_003.tif contains 1 NaN or Inf pixel(s), the first at row 5, column 6" \
+        in summary.failed[1]
+
+
 def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
         experiment, tmp_path, monkeypatch):
     """[mte], [particles], [image_fit] and every [reconstruction]/[piv] option reach each

@@ -96,6 +96,15 @@ def check_windows(piv: PIVSettings, grid: Grid) -> None:
                          "([grid])") from exc
 
 
+def check_corrections(exp: Experiment, cameras: list[Camera]) -> None:
+    """The experiment's dark frame and flat field checked before any frame is read
+    (:func:`plenocl.pipeline.frames.load_corrections`): a bad one is refused once, naming
+    its file, not blamed on every pair's images."""
+    from ..pipeline.frames import load_corrections
+
+    load_corrections(*frame_corrections(exp), cameras, exp["images"]["channel"])
+
+
 def frame_corrections(exp: Experiment) -> tuple[str | None, str | None]:
     """The absolute paths of the dark frame and the flat field (``None``: none)."""
     img = exp["images"]

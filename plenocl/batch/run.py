@@ -51,6 +51,7 @@ from .layout import (
 from .pairing import ImagePair, PairPlan
 from .prepare import (
     check_cluster_device,
+    check_corrections,
     check_windows,
     frame_corrections,
     run_cameras,
@@ -169,6 +170,7 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
     camera = cameras if exp.cameras else cameras[0]  # several: joint (design.md §6.7)
     grid = run_grid(exp, camera)
     check_windows(exp.pair.piv, grid)
+    check_corrections(exp, cameras)
     settings = _run_settings(exp, run_record(exp, camera, grid), len(cameras))
     decisions = _decide(plan, out, settings.record, redo, image_folders(exp))
     summary = RunSummary(pairs=len(plan.pairs) + len(plan.gaps),

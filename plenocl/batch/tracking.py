@@ -41,9 +41,8 @@ import numpy as np
 from ..camera import load_camera
 from ..grid import Grid
 from ..io.atomic import write_json
-from ..io.files import read_image
 from ..io.progress import step_bar
-from ..pipeline.frames import load_frame
+from ..pipeline.frames import load_corrections, load_frame
 from ..pipeline.resume import StageRunner, config_digest, remove_outputs
 from ..pipeline.track import METHOD as TRACK_METHOD
 from ..pipeline.track import TrackSettings, bin_tracks, track
@@ -57,6 +56,7 @@ from .config import Experiment
 from .pairing import fingerprint, numbered_series
 from .prepare import (
     check_cluster_device,
+    check_corrections,
     check_windows,
     frame_corrections,
     run_camera,
@@ -130,6 +130,7 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     camera = run_camera(exp, queue, log)
     grid = run_grid(exp, camera)
     check_windows(opts.settings.piv, grid)
+    check_corrections(exp, [camera])
     layout = opts.layout(grid)
     write_used_config(exp, out, camera, grid, opts.record())
     runner = StageRunner(out, _config(exp, frames, out, opts), log)
@@ -286,8 +287,7 @@ def track_job(job: TrackJob, device=None, bar: bool = True) -> dict[str, float]:
 def read_frames(job: TrackJob, camera) -> list[np.ndarray]:
     """Every frame as the camera sees it (:func:`plenocl.pipeline.frames.load_frame`);
     an unreadable or mis-sized frame is an error naming it and the fix."""
-    dark, flat = (read_image(path, job.channel) if path else None
-                  for path in (job.dark, job.flat))
+    dark, flat = load_corrections(job.dark, job.flat, [camera], job.channel)
     frames = []
     for path in job.frames:
         try:

@@ -20,10 +20,10 @@ import numpy as np
 from ..camera import load_camera
 from ..grid import Grid
 from ..io.fieldformat import field_metadata
-from ..io.files import read_image, read_volumes, volumes_metadata, write_volumes
+from ..io.files import read_volumes, volumes_metadata, write_volumes
 from ..opencl.device import DeviceLike
 from ..pipeline import PairSettings, process_pair
-from ..pipeline.frames import load_frame
+from ..pipeline.frames import load_corrections, load_frame
 from ..pipeline.pair import correlate_volumes, known_backgrounds
 from ..reconstruction import UnusableImageError
 from ..vectorfield import PIVResult, read_npz, save_field
@@ -131,8 +131,8 @@ class PairProcessor:
         self.cameras = [load_camera(folder / name) for name in camera_files(settings.cameras)]
         self.camera = self.cameras[0]
         self.grid = Grid.from_toml(folder / "grid_used.toml")
-        self.dark, self.flat = (read_image(path, settings.channel) if path else None
-                                for path in (settings.dark, settings.flat))
+        self.dark, self.flat = load_corrections(settings.dark, settings.flat, self.cameras,
+                                                settings.channel)
         self.device = device
         self._projector = None
 
