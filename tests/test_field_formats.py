@@ -363,3 +363,39 @@ def test_every_command_checks_its_outputs_first(tmp_path, capsys):
         assert main([command, "--out", str(tmp_path / "note.txt" / "results")]) == 2
         assert "is a file, not a folder" in capsys.readouterr().err
     assert not (tmp_path / "out.xyz").exists()
+
+
+def test_a_full_disk_names_the_folder_and_the_fix(tmp_path, field, monkeypatch, capsys):
+    """Out of space while a pair is written: the pair fails naming the output folder and
+    the fix (free space, --out; a rerun makes it), and an out-of-space error reaching the
+    command line is one line with that fix and exit status 2, not a traceback."""
+    import errno
+    import importlib
+
+    import plenocl.batch.worker as worker
+    from plenocl import Camera, Grid, PairSettings
+
+    cli = importlib.import_module("plenocl.cli.main")  # the module, not its main()
+
+    Camera.synthetic_850().to_toml(tmp_path / "camera_used.toml")
+    Grid(shape=(32, 30, 24), x=(0.0, 2.4), y=(0.0, 3.0), z=(0.0, 6.4)).to_toml(
+        tmp_path / "grid_used.toml")
+    proc = worker.PairProcessor(tmp_path, worker.RunSettings(PairSettings(), DT, (".dat",)))
+    monkeypatch.setattr(proc, "frame", lambda path: np.zeros((4, 4)))
+    full = OSError(errno.ENOSPC, "No space left on device")
+
+    def no_space(*args, **kwargs):
+        raise full
+
+    monkeypatch.setattr(worker, "process_pair", no_space)
+    for name in ("a.tif", "b.tif"):
+        (tmp_path / name).write_bytes(b"raw")
+    target = tmp_path / "pairs" / "pair_00000.npz"
+    outcome = proc(worker.PairTask(0, str(tmp_path / "a.tif"), str(tmp_path / "b.tif"),
+                                   str(target)))
+    assert f"no space left on the disk of {target.parent}" in outcome.error
+    assert "--out" in outcome.error and "a rerun makes" in outcome.error
+    monkeypatch.setattr(cli, "check_outputs", no_space)
+    assert cli.main(["devices"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("plenocl devices: error: [Errno 28]") and "(--out)" in err

@@ -11,6 +11,7 @@ Tasks carry only a :class:`PairTask` (file paths), never contexts or volumes.
 
 from __future__ import annotations
 
+import errno
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -163,7 +164,7 @@ class PairProcessor:
                                           task.mode)
             seconds.update(done)
         except PAIR_ERRORS as exc:
-            return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {exc}")
+            return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {_said(exc, task)}")
         return PairOutcome(task.index, seconds, dropped=dropped)
 
     def frame(self, path: str, camera: int = 0) -> np.ndarray:
@@ -258,6 +259,16 @@ def pair_backgrounds(pair) -> list | None:
         return None
     lists = [[[float(v) for v in bg] for bg in k] for k in known]
     return lists if pair.info_a.cameras else lists[0]
+
+
+def _said(exc: Exception, task: PairTask) -> str:
+    """A pair's error as the run reports it: a full disk named with its folder and the
+    fix (the pair was not written: a rerun makes it)."""
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return (f"no space left on the disk of {Path(task.target).parent} ({exc}); free "
+                "space there or give another output folder (--out): a rerun makes the "
+                "pairs not written")
+    return str(exc)
 
 
 def _culprit(task: PairTask, exc: Exception) -> str:

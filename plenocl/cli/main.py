@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import os
 import re
 import sys
@@ -142,13 +143,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             check_outputs(args)  # before any work
             return int(args.func(args) or 0)
-        except (ValueError, FileNotFoundError, MemoryError, RuntimeError) as exc:
-            print(f"plenocl {args.command}: error: {exc}", file=sys.stderr)
+        except (ValueError, OSError, MemoryError, RuntimeError) as exc:
+            print(f"plenocl {args.command}: error: {exc}{_hint(exc)}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
             print(f"plenocl {args.command}: interrupted; finished outputs are kept, "
                   "unfinished ones were not written", file=sys.stderr)
             return 130
+
+
+def _hint(exc: Exception) -> str:
+    """The fix for an operating system's error the message alone does not say (a full
+    disk); empty otherwise."""
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return ("; free space on that disk or write elsewhere (--out): finished outputs "
+                "are kept, a rerun makes the rest")
+    return ""
 
 
 def _warning_printer(command: str, once: bool = True):
