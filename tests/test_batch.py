@@ -437,6 +437,31 @@ def test_a_bad_dark_frame_or_flat_field_is_refused_once_before_any_pair(experime
         in summary.failed[1]
 
 
+def test_a_full_disk_stops_the_run_at_its_first_pair(experiment, tmp_path, monkeypatch):
+    """Out of space writing the first pair: the run stops there (no later pair computed
+    for nothing), says why in its summary and log, and a rerun with space goes on."""
+    import errno
+
+    from plenocl.batch import worker
+
+    exp = _copy_experiment(experiment, tmp_path)
+    calls = []
+
+    def full(*args, **kwargs):
+        calls.append(1)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(worker, "process_pair", full)
+    monkeypatch.setattr(worker.PairProcessor, "projector", None)
+    said = []
+    summary = plenocl.run(exp, tmp_path / "out", progress=False, log=said.append)
+    assert len(calls) == 1 and list(summary.failed) == [0] and not summary.processed
+    assert "no space left on the disk of" in summary.stopped
+    assert any(line.startswith("stopped, the output disk is full") for line in said)
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert saved["stopped"] == summary.stopped and summary.exit_status() == 1
+
+
 def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
         experiment, tmp_path, monkeypatch):
     """[mte], [particles], [image_fit] and every [reconstruction]/[piv] option reach each

@@ -84,7 +84,8 @@ from .worker import (
 
 @dataclass
 class RunSummary:
-    """What :func:`run` did (also written to ``summary.json``)."""
+    """What :func:`run` did (also written to ``summary.json``); ``stopped``: why the run
+    stopped before its last pair (the output disk full), else ``None``."""
 
     pairs: int = 0
     processed: list[int] = field(default_factory=list)
@@ -101,6 +102,7 @@ class RunSummary:
     wall_seconds: float = 0.0
     workers: int = 1
     interrupted: bool = False
+    stopped: str | None = None
     store: str | None = None
     ensemble: str | None = None
     figures: list[str] = field(default_factory=list)
@@ -185,15 +187,26 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
         def done(outcome: PairOutcome) -> None:
             _record(outcome, summary, log)
             advance(outcome.error is not None)
+            if outcome.disk_full:  # no later pair could be written: stop computing them
+                raise _DiskFull(outcome.error)
 
         try:
             _process(tasks, out, settings, queue, workers, scheduler, done)
         except KeyboardInterrupt:
             summary.interrupted = True
             log("interrupted: the pairs finished so far are kept; run again to go on")
+        except _DiskFull as exc:
+            summary.stopped = str(exc)
+            log(f"stopped, the output disk is full: the pairs finished so far are kept; "
+                f"free space and run again to go on ({exc})")
     summary.wall_seconds = time.perf_counter() - t0
     _finish(summary, exp, out, queue, log)
     return summary
+
+
+class _DiskFull(Exception):
+    """A pair could not be written for want of space: the run stops (the pairs still
+    running on a cluster are cancelled)."""
 
 
 def _report_gaps(plan: PairPlan, log) -> None:
@@ -378,7 +391,8 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
     ensemble = update_ensemble(out, metas, exp["images"]["dt_s"], queue,
                                output_formats(exp["output"]), log,
                                wanted=bool(fields and exp["piv"]["ensemble"]
-                                           and not summary.interrupted))
+                                           and not summary.interrupted
+                                           and summary.stopped is None))
     if exp["piv"]["ensemble"]:
         summary.ensemble = None if ensemble is None else str(ensemble)
     else:

@@ -101,12 +101,14 @@ class PairTask:
 class PairOutcome:
     """What became of a :class:`PairTask`: ``error`` is None when the field was written;
     ``dropped``: the particles the fit to the raw images dropped
-    (:attr:`plenocl.pipeline.PairResult.dropped`)."""
+    (:attr:`plenocl.pipeline.PairResult.dropped`); ``disk_full``: the error was the
+    output disk out of space (the run stops: no later pair could be written)."""
 
     index: int
     seconds: dict
     error: str | None = None
     dropped: int = 0
+    disk_full: bool = False
 
 
 class PairProcessor:
@@ -164,7 +166,9 @@ class PairProcessor:
                                           task.mode)
             seconds.update(done)
         except PAIR_ERRORS as exc:
-            return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {_said(exc, task)}")
+            full = isinstance(exc, OSError) and exc.errno == errno.ENOSPC
+            return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {_said(exc, task)}",
+                               disk_full=full)
         return PairOutcome(task.index, seconds, dropped=dropped)
 
     def frame(self, path: str, camera: int = 0) -> np.ndarray:
