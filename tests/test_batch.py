@@ -223,8 +223,9 @@ def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(exper
     (out / "pairs").mkdir(parents=True)
     (out / "pairs" / "pair_00000.npz").write_bytes(b"")
     plenocl.Grid((8, 8, 8), x=(-1, 1), y=(-1, 1), z=(-1, 1)).to_toml(out / "grid_used.toml")
-    with pytest.raises(ValueError, match="holds pairs made from other images, another "
-                                         "camera or grid.*pair 0"):
+    with pytest.raises(ValueError, match=r"holds pairs this run can neither keep nor remake "
+                                         r"\(made from other images.*damaged\): pair 0: "
+                                         "pair_00000.npz cannot be read"):
         plenocl.run(experiment / "experiment.toml", out, progress=False)
     with pytest.raises(ValueError, match="must be a name each worker looks up"):
         plenocl.run(experiment / "experiment.toml", tmp_path / "w", queue=queue, workers=2)
@@ -316,7 +317,7 @@ def test_a_rerun_refuses_inputs_that_changed_since(experiment, tmp_path):
     assert plenocl.run(exp, progress=False).processed == [0]
     frame = tmp_path / "raw" / "frame_001.tif"
     frame.write_bytes(frame.read_bytes()[:-4] + b"\0\0\0\1")  # same size, new content
-    with pytest.raises(ValueError, match=r"pairs made from other images.*frame_001.tif"):
+    with pytest.raises(ValueError, match=r"neither keep nor remake.*frame_001.tif"):
         plenocl.run(exp, progress=False)
     assert plenocl.run(exp, tmp_path / "elsewhere", progress=False).processed == [0]
 

@@ -69,13 +69,22 @@ def two_cameras(tmp_path_factory):
     return d
 
 
-def test_two_cameras_run_matches_frames_by_number_and_resumes(two_cameras):
+@pytest.fixture(scope="module")
+def first_run(two_cameras):
+    """The experiment run once (its summary and log), for every test that reads its
+    results: none depends on another test having run it first (pytest-xdist may run
+    them in different processes)."""
+    said = []
+    return plenocl.run(two_cameras / "experiment.toml", log=said.append,
+                       progress=False), said
+
+
+def test_two_cameras_run_matches_frames_by_number_and_resumes(two_cameras, first_run):
     """Pairs 0 and 2 are made from both cameras' frames of the same numbers, pair 1
     (camera 2's frame 3 missing) is a gap naming the camera and the frame; the second
     camera is calibrated from its white image and keeps its pose; the fields measure the
     motion, record every camera's source files, and a rerun skips them."""
-    said = []
-    s = plenocl.run(two_cameras / "experiment.toml", log=said.append, progress=False)
+    s, said = first_run
     assert s.processed == [0, 2] and not s.failed and list(s.gaps) == [1]
     assert "camera 2" in s.gaps[1] and "frame_003.tif missing" in s.gaps[1]
     assert any(m.startswith("pair 1: not made") and "camera 2" in m for m in said)
@@ -99,7 +108,8 @@ def test_two_cameras_run_matches_frames_by_number_and_resumes(two_cameras):
     assert "camera 2" in saved["gaps"]["1"]
 
 
-def test_a_changed_frame_of_the_second_camera_refuses_the_rerun(two_cameras, tmp_path):
+def test_a_changed_frame_of_the_second_camera_refuses_the_rerun(two_cameras, first_run,
+                                                                tmp_path):
     """Camera 2's image of a finished pair replaced: the rerun names that camera's file
     and refuses, before anything is changed."""
     import shutil

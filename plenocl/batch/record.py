@@ -214,9 +214,9 @@ def refuse(decisions: list[Decision], out: Path) -> None:
     if not refused:
         return
     raise ValueError(
-        f"{out} holds pairs made from other images, another camera or grid, or by an "
-        "older plenocl, or that its [images] selection no longer makes, which this run "
-        "can neither keep nor remake: "
+        f"{out} holds pairs this run can neither keep nor remake (made from other images, "
+        "another camera or grid, or by an older plenocl, no longer in its [images] "
+        "selection, or damaged): "
         + "; ".join(refused[:5]) + (f"; and {len(refused) - 5} more" if len(refused) > 5
                                     else "")
         + ". Write this run to another folder (--out), or redo those pairs with --redo "
