@@ -95,10 +95,10 @@ def find_particles(vol: np.ndarray, threshold: float = 0.1, min_separation: int 
 
 def _maximum(v) -> float:
     """The volume's maximum as NumPy gives it (a :class:`DeviceVolume`'s found on the
-    device where it is finite), 0 for an empty volume."""
+    device where it is finite, :meth:`DeviceVolume.maximum`), at most 0 for an empty
+    volume."""
     if isinstance(v, DeviceVolume):
-        summary = v.summary()  # NaN or inf: NumPy's maximum of the host copy
-        return summary.high if not summary.nonfinite else float(v.get().max())
+        return v.maximum()
     return float(v.max()) if v.size else 0.0
 
 

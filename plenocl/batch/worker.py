@@ -11,7 +11,6 @@ Tasks carry only a :class:`PairTask` (file paths), never contexts or volumes.
 
 from __future__ import annotations
 
-import errno
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +21,7 @@ from ..camera import load_camera
 from ..grid import Grid
 from ..io.fieldformat import field_metadata
 from ..io.files import read_volumes, volumes_metadata, write_volumes
+from ..io.outputs import disk_full
 from ..opencl.device import DeviceLike
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_corrections, load_frame
@@ -166,9 +166,8 @@ class PairProcessor:
                                           task.mode)
             seconds.update(done)
         except PAIR_ERRORS as exc:
-            full = isinstance(exc, OSError) and exc.errno == errno.ENOSPC
             return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {_said(exc, task)}",
-                               disk_full=full)
+                               disk_full=disk_full(exc))
         return PairOutcome(task.index, seconds, dropped=dropped)
 
     def frame(self, path: str, camera: int = 0) -> np.ndarray:
@@ -268,7 +267,7 @@ def pair_backgrounds(pair) -> list | None:
 def _said(exc: Exception, task: PairTask) -> str:
     """A pair's error as the run reports it: a full disk named with its folder and the
     fix (the pair was not written: a rerun makes it)."""
-    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+    if disk_full(exc):
         return (f"no space left on the disk of {Path(task.target).parent} ({exc}); free "
                 "space there or give another output folder (--out): a rerun makes the "
                 "pairs not written")

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import errno
 import os
 import re
 import sys
 import warnings
 from collections.abc import Sequence
 
+from ..io.outputs import disk_full
 from .batch import add_run_parser
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser, add_refocus_parser
@@ -155,7 +155,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _hint(exc: Exception) -> str:
     """The fix for an operating system's error the message alone does not say (a full
     disk); empty otherwise."""
-    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+    if disk_full(exc):
         return ("; free space on that disk or write elsewhere (--out): finished outputs "
                 "are kept, a rerun makes the rest")
     return ""

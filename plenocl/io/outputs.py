@@ -9,12 +9,13 @@ reconstruction or the correlation.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
-__all__ = ["check_output", "check_output_folder"]
+__all__ = ["check_output", "check_output_folder", "disk_full"]
 
 
 def check_output(path: str | Path, formats: Mapping[str, str], what: str) -> Path:
@@ -65,3 +66,9 @@ def check_output_folder(folder: str | Path) -> Path:
     os.close(fd)
     os.unlink(probe)
     return folder
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` is the operating system's "no space left on device" (a batch stops
+    at it; the command line says the fix)."""
+    return isinstance(exc, OSError) and exc.errno == errno.ENOSPC

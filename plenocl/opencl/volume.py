@@ -105,6 +105,12 @@ class DeviceVolume:
                                           int(lit.sum(dtype=np.int64)))
         return self._summary
 
+    def maximum(self) -> float:
+        """The volume's maximum as NumPy gives it: found on the device where every voxel
+        is finite, else (NaN or inf) of the host copy; ``-inf`` for an empty volume."""
+        summary = self.summary()
+        return summary.high if not summary.nonfinite else float(self.get().max())
+
     def neighbourhoods(self, flat: np.ndarray) -> np.ndarray:
         """``(n, 7)`` float32: the voxels at ``flat`` (C-order indices) and their face
         neighbours (x - 1, x + 1, y - 1, y + 1, z - 1, z + 1), 0 beyond the faces."""

@@ -11,7 +11,7 @@ import numpy as np
 from ..camera import Camera
 from ..io.files import read_image
 from ..optics.rawimage import check_exposure, check_image
-from ..simulate.sensor import correct_frame
+from ..simulate.sensor import correct_frame, flat_gain
 
 
 def load_frame(path, camera: Camera, channel: str | None = None,
@@ -32,7 +32,7 @@ def load_frame(path, camera: Camera, channel: str | None = None,
     check_exposure(raw, name, saturation=not white)
     if dark is None and flat is None:
         return raw
-    return camera.fit_image(correct_frame(image, dark, flat), Path(path).name)
+    return camera.fit_image(correct_frame(image, dark, flat), name)
 
 
 def load_corrections(dark_path, flat_path, cameras: list[Camera], channel: str | None = None
@@ -57,17 +57,6 @@ def load_corrections(dark_path, flat_path, cameras: list[Camera], channel: str |
                          f"{found['flat field'][1]} is {flat.shape}: use frames of the same "
                          "camera and region")
     if flat is not None:
-        _check_gain(flat, dark, found["flat field"][1])
+        flat_gain(flat, dark, found["flat field"][1])
     return dark, flat
 
-
-def _check_gain(flat: np.ndarray, dark: np.ndarray | None, name: str) -> None:
-    """Refuse a flat field not above the dark frame (0 without one) at every pixel."""
-    gain = np.asarray(flat, np.float64) - (0.0 if dark is None else dark)
-    bad = ~(gain > 0)
-    if bad.any():
-        row, col = (int(v) for v in np.argwhere(bad)[0])
-        minus = "" if dark is None else " minus the dark frame"
-        raise ValueError(f"{name}{minus} is not positive at {int(bad.sum())} pixel(s), the "
-                         f"first at row {row}, column {col}: take the flat field with light "
-                         "on every pixel (and the dark frame at the same exposure)")

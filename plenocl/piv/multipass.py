@@ -57,11 +57,10 @@ def _check_volume(name: str, vol):
             raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype}")
         arr = arr.astype(np.float32, copy=False)
         bad = int(np.count_nonzero(~np.isfinite(arr)))
+        low, high = float(arr.min()), float(arr.max())  # read only where bad is 0
     if bad:
         raise ValueError(f"{name} contains {bad} NaN/Inf values; replace them (e.g. "
                          f"np.nan_to_num) or mask those voxels before calling piv3d")
-    if not isinstance(vol, DeviceVolume):
-        low, high = float(arr.min()), float(arr.max())
     _check_levels(name, low, high)
     return arr
 
@@ -185,8 +184,8 @@ def count_particles(vol: np.ndarray, threshold: float = 0.1,
     (:func:`plenocl.peaks.host_maxima`, the default, or a device's
     :class:`plenocl.piv.devicepeaks.DeviceMaxima`, which reads ``on_device``, the
     volume's device copy, where both are given)."""
-    if isinstance(vol, DeviceVolume) and not vol.summary().nonfinite:  # found there
-        v, top = vol, vol.summary().high  # a device's maxima read it where it is
+    if isinstance(vol, DeviceVolume):  # a device's maxima read it where it is
+        v, top = vol, vol.maximum()
     else:
         v = np.asarray(vol, np.float32)
         top = float(v.max()) if v.size else 0.0

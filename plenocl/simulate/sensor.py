@@ -95,14 +95,24 @@ def correct_frame(image, dark=None, flat=None) -> np.ndarray:
         if other is not None and np.shape(other) != img.shape:
             raise ValueError(f"the {name} is {np.shape(other)} (rows, columns) but the image "
                              f"is {img.shape}: use frames of the same camera and region")
-    dark_f = 0.0 if dark is None else np.asarray(dark, dtype=np.float64)
-    out = img - dark_f
+    out = img - (0.0 if dark is None else np.asarray(dark, dtype=np.float64))
     if flat is not None:
-        gain = np.asarray(flat, dtype=np.float64) - dark_f
-        if not np.isfinite(gain).all() or (gain <= 0).any():
-            bad = int((~(gain > 0)).sum())
-            raise ValueError(f"the flat field minus the dark frame is not positive at {bad} "
-                             "pixel(s): take the flat field with light on every pixel (and "
-                             "the dark frame at the same exposure)")
+        gain = flat_gain(flat, dark)
         out = out / (gain / gain.mean())
     return out
+
+
+def flat_gain(flat, dark=None, name: str = "the flat field") -> np.ndarray:
+    """``flat - dark`` (float64; ``dark`` ``None``: the flat field itself), the gain a
+    flat field measures; refused where it is not positive (or not finite), naming
+    ``name``, the pixels and the first of them."""
+    gain = np.asarray(flat, dtype=np.float64) - (0.0 if dark is None else
+                                                 np.asarray(dark, dtype=np.float64))
+    bad = ~(gain > 0)
+    if bad.any():
+        row, col = (int(v) for v in np.argwhere(bad)[0])
+        minus = "" if dark is None else " minus the dark frame"
+        raise ValueError(f"{name}{minus} is not positive at {int(bad.sum())} pixel(s), the "
+                         f"first at row {row}, column {col}: take the flat field with light "
+                         "on every pixel (and the dark frame at the same exposure)")
+    return gain
