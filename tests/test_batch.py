@@ -180,6 +180,32 @@ def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_sto
     assert any("already done" in m and "skipped" in m for m in messages)
     assert xr.open_zarr(out / "timeseries.zarr").sizes["time"] == 2
     assert not (out / "timeseries.zarr.partial").exists()
+    # the disk full while the store is written: neither its half nor the older store
+    # (which no longer gathers the run's pairs) stays; the summary says why, and a rerun
+    # with space writes it from the pairs kept
+    import errno
+    import importlib
+
+    batch_run = importlib.import_module("plenocl.batch.run")  # the module, not plenocl.run
+
+    def full(path, *args, **kwargs):
+        (out / "timeseries.zarr.partial" / "u").mkdir(parents=True)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(batch_run, "write_timeseries", full)
+    said = []
+    third = plenocl.run(experiment / "experiment.toml", out, progress=False, log=said.append)
+    assert third.skipped == [0, 1] and third.store is None
+    assert batch_run.RunSummary(pairs=1, stopped=third.stopped).exit_status() == 1
+    assert "timeseries.zarr could not be written, the output disk is full" in third.stopped
+    assert any(line.startswith("stopped: the time series") for line in said)
+    assert not (out / "timeseries.zarr").exists()
+    assert not (out / "timeseries.zarr.partial").exists()
+    assert json.loads((out / "summary.json").read_text())["stopped"] == third.stopped
+    monkeypatch.undo()
+    fourth = plenocl.run(experiment / "experiment.toml", out, progress=False)
+    assert fourth.stopped is None and fourth.store is not None
+    assert xr.open_zarr(out / "timeseries.zarr").sizes["time"] == 2
 
 
 @pytest.mark.one_device
@@ -215,6 +241,24 @@ def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
     assert again.skipped == [0, 1] and again.ensemble.endswith("ensemble.npz")
     assert (tmp_path / "results" / "ensemble.npz").stat().st_mtime_ns == made
     assert any("no new pair" in m for m in said)
+    # the disk full while the ensemble field is made again: no half of it is left, the
+    # summary says why, the store is still written
+    import errno
+
+    from plenocl.batch import ensemble_field as module
+
+    def full(out, *args, **kwargs):
+        (out / "ensemble.npz").write_bytes(b"PK")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    (tmp_path / "results" / "ensemble.npz").unlink()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(module, "ensemble_field", full)
+        third = plenocl.run(tmp_path / "experiment.toml", log=said.append, progress=False)
+    assert third.ensemble is None and third.store is not None
+    assert "the ensemble field ensemble.npz could not be written, the output disk is full" \
+        in third.stopped
+    assert not (tmp_path / "results" / "ensemble.npz").exists()
 
 
 def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(experiment,

@@ -28,19 +28,20 @@ removed first.
 
 from __future__ import annotations
 
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..io.atomic import write_json
 from ..io.fieldformat import field_metadata
-from ..io.outputs import check_output_folder
+from ..io.outputs import check_output_folder, disk_full
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
 from ..options import NONE
 from ..pipeline.resume import name_changes, remove_outputs
 from .config import Experiment, image_folders, image_pairs, load_experiment, output_formats
-from .ensemble_field import update_ensemble
+from .ensemble_field import ENSEMBLE, update_ensemble
 from .layout import (
     field_copies,
     finished_pairs,
@@ -85,7 +86,8 @@ from .worker import (
 @dataclass
 class RunSummary:
     """What :func:`run` did (also written to ``summary.json``); ``stopped``: why the run
-    stopped before its last pair (the output disk full), else ``None``."""
+    stopped before its last pair or its time series (the output disk full), else
+    ``None``."""
 
     pairs: int = 0
     processed: list[int] = field(default_factory=list)
@@ -108,10 +110,11 @@ class RunSummary:
     figures: list[str] = field(default_factory=list)
 
     def exit_status(self) -> int:
-        """The command's exit status: 130 when interrupted, 1 when a pair failed, else 0."""
+        """The command's exit status: 130 when interrupted, 1 when a pair failed or the
+        run stopped (:attr:`stopped`), else 0."""
         if self.interrupted:
             return 130
-        return 1 if self.failed else 0
+        return 1 if self.failed or self.stopped else 0
 
 
 def run(config: str | Path, out: str | Path | None = None, queue=None, log=print, *,
@@ -207,6 +210,25 @@ def run(config: str | Path, out: str | Path | None = None, queue=None, log=print
 class _DiskFull(Exception):
     """A pair could not be written for want of space: the run stops (the pairs still
     running on a cluster are cancelled)."""
+
+
+def _no_store(path: Path, summary: RunSummary, exc: OSError, log) -> None:
+    """The disk filled while the time-series store was written: its half-written copy
+    and the older store (which no longer gathers this run's pairs) are removed, so no
+    store is left that the pairs would not make (:func:`_stopped_writing`)."""
+    for stale in (path.with_name(path.name + ".partial"), path):
+        shutil.rmtree(stale, ignore_errors=True)
+    _stopped_writing(f"the time series {path.name}", summary, exc, log)
+
+
+def _stopped_writing(what: str, summary: RunSummary, exc: OSError, log) -> None:
+    """``what``, gathered from the finished pairs, could not be written for want of
+    space (and is not left): the summary says so (:attr:`RunSummary.stopped`), and a
+    rerun with space writes it from the pairs kept."""
+    why = (f"{what} could not be written, the output disk is full ({exc.strerror or exc}): "
+           "the pairs are kept; free space and run again to write it")
+    summary.stopped = why if summary.stopped is None else f"{summary.stopped}; {why}"
+    log(f"stopped: {why}")
 
 
 def _report_gaps(plan: PairPlan, log) -> None:
@@ -388,24 +410,36 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
     fields = finished_pairs(out)
     metas = {k: (path, field_metadata(path)) for k, path in fields}
     summary.sources = {k: meta.get("sources", {}) for k, (_, meta) in metas.items()}
-    ensemble = update_ensemble(out, metas, exp["images"]["dt_s"], queue,
-                               output_formats(exp["output"]), log,
-                               wanted=bool(fields and exp["piv"]["ensemble"]
-                                           and not summary.interrupted
-                                           and summary.stopped is None))
+    try:
+        ensemble = update_ensemble(out, metas, exp["images"]["dt_s"], queue,
+                                   output_formats(exp["output"]), log,
+                                   wanted=bool(fields and exp["piv"]["ensemble"]
+                                               and not summary.interrupted
+                                               and summary.stopped is None))
+    except OSError as exc:
+        if not disk_full(exc):
+            raise
+        (out / ENSEMBLE).unlink(missing_ok=True)
+        ensemble = _stopped_writing(f"the ensemble field {ENSEMBLE}", summary, exc, log)
     if exp["piv"]["ensemble"]:
         summary.ensemble = None if ensemble is None else str(ensemble)
     else:
         ensemble = None
     if fields:
-        store = write_timeseries(out / "timeseries.zarr",
-                                 [(k, k * interval if interval else float(k), p)
-                                  for k, p in fields], "s" if interval else "pair",
-                                 ensemble=ensemble,
-                                 record=store_record({k: m for k, (_, m) in metas.items()},
-                                                     ensemble))
-        summary.store = str(store)
-        summary.figures = _figures(store, out / "figures", log)
+        try:
+            store = write_timeseries(out / "timeseries.zarr",
+                                     [(k, k * interval if interval else float(k), p)
+                                      for k, p in fields], "s" if interval else "pair",
+                                     ensemble=ensemble,
+                                     record=store_record({k: m for k, (_, m) in metas.items()},
+                                                         ensemble))
+        except OSError as exc:
+            if not disk_full(exc):
+                raise
+            _no_store(out / "timeseries.zarr", summary, exc, log)
+        else:
+            summary.store = str(store)
+            summary.figures = _figures(store, out / "figures", log)
     write_json(out / "summary.json", asdict(summary))
     each = (f" ({summary.seconds_per_pair:.1f} s each, "
             f"{3600 / summary.seconds_per_pair:.0f} pairs per hour)"
