@@ -12,14 +12,19 @@
  * a'(i) b'(i + e) - a'(i + e) b'(i) along the unit step e of axis `axis`.
  * lagged_rows: per row (z, y) of a field (nz, ny, nx), the products sum_x f(i) f(i + l d)
  * for lags l = 0 .. `lags` along axis `axis` (d its unit step; only pairs inside the
- * field), out[row (lags + 1) + l]; the host adds the rows in float64.
+ * field), out[row (lags + 1) + l].
+ * column_partials: per block of `block` rows of a (rows, cols) float array and per
+ * column c, the block's values in that column added in row order in PL_ACC,
+ * out[k cols + c] for block k; the host adds the blocks' partial sums in float64, so only
+ * those come back (a few kB), not every row's lagged products.
  *
  * Parallel structure: box_mean_axis one work-item per line (a running sum in PL_ACC,
  * double where the device has it; lines along z and y are columns, neighbouring items
  * reading neighbouring voxels); contributions one work-item per row of voxels;
  * lagged_rows one work-item per row looping over its lags and voxels, eight at a time
- * (neighbouring items read neighbouring rows). No atomics, no shared writes; sums in a
- * fixed order per item. Sizes are arguments. */
+ * (neighbouring items read neighbouring rows); column_partials one work-item per (column,
+ * block of rows), neighbouring items reading neighbouring columns of the same rows. No
+ * atomics, no shared writes; sums in a fixed order per item. Sizes are arguments. */
 
 #ifdef PL_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -94,4 +99,15 @@ __kernel void lagged_rows(__global const float *field, int nz, int ny, int nx, i
             s = pl_dot(f, f + (long)l * (axis == 1 ? nx : (long)ny * nx), nx);
         out[(long)row * (lags + 1) + l] = s;
     }
+}
+
+__kernel void column_partials(__global const float *x, int rows, int cols, int block,
+                              __global PL_ACC *out)
+{
+    const int c = get_global_id(0), k = get_global_id(1);
+    const int end = min(rows, (k + 1) * block);
+    PL_ACC acc = 0;
+    for (int r = k * block; r < end; r++)
+        acc += x[(long)r * cols + c];
+    out[(long)k * cols + c] = acc;
 }

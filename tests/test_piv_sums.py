@@ -98,6 +98,30 @@ def test_correlated_factors_match_the_host(device_sums, queue, shape, size, over
     assert max(want) > 1.0
 
 
+@pytest.mark.parametrize("rows,cols", [(1, 1), (255, 9), (256, 4), (257, 9), (1000, 3)])
+def test_column_partials_equal_their_twin_and_only_blocks_come_back(device_sums, rows, cols):
+    """The lagged products' rows are added on the device in blocks
+    (``column_partials``): each block's sums equal the twin's (bit for bit where the
+    device has doubles, else within float32 sums), the column sums the rows' float64
+    sums, and what comes back is the blocks' sums, not the rows."""
+    from plenocl.bench.clprofile import OpenCLProfile
+    from plenocl.piv.devicesums import COLUMN_BLOCK
+    from plenocl.reference.direct import column_partials
+
+    rng = np.random.default_rng(rows + cols)
+    host = (rng.standard_normal((rows, cols)) * 10.0 ** rng.integers(-3, 4, (rows, 1))
+            ).astype(np.float32)
+    dev = cl_array.to_device(device_sums.kernels.queue, host)
+    with OpenCLProfile() as prof:
+        got = device_sums.column_sums(dev, rows, cols)
+    back = sum(c.nbytes for c in prof.calls if c.kind == "d2h")
+    assert back == -(-rows // COLUMN_BLOCK) * cols * np.dtype(device_sums.accumulator).itemsize
+    want = column_partials(host, COLUMN_BLOCK)
+    np.testing.assert_allclose(got, want.sum(axis=0), rtol=1e-6, atol=1e-6 * np.abs(host).sum())
+    if device_sums.accumulator == np.float64:
+        assert np.array_equal(got, want.sum(axis=0))
+
+
 def test_device_correlation_and_uncertainty_equal_the_host(device_sums):
     pair = flows.volume_pair((27, 34, 41), flows.Uniform((0.3, -0.2, 0.4)), density=0.004,
                              sigma=1.5, seed=4, noise=0.05)

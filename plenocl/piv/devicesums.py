@@ -40,6 +40,8 @@ PAIR_FIELDS, SPREAD_FIELDS = 12 + 9 * CUBE[0], 27
 UNIT_LAGS = (-1, 0, 1)
 
 _KERNELS = ["pair_rows", "spread_rows", "axis_sums"]
+#: Rows a work-item of ``column_partials`` adds (:meth:`DeviceSums.column_sums`).
+COLUMN_BLOCK = 256
 
 
 def tap_table(size: int, weighting: float | None, width: int = 0,
@@ -92,9 +94,13 @@ class DeviceSums:
                                  looping=["pair_rows", "spread_rows"])
         fp64 = DeviceInfo.probe(self.kernels.queue.device).fp64
         self._c = KernelSet(self.kernels.queue, "correlated.cl",
-                            ["box_mean_axis", "contributions", "lagged_rows"],
+                            ["box_mean_axis", "contributions", "lagged_rows", "column_partials"],
                             options=["-DPL_DOUBLE"] if fp64 else [],
-                            looping=["box_mean_axis", "contributions", "lagged_rows"])
+                            looping=["box_mean_axis", "contributions", "lagged_rows",
+                                     "column_partials"])
+        #: The dtype of ``column_partials``' sums (``PL_ACC``): float64 where the device
+        #: has doubles, else float32.
+        self.accumulator = np.float64 if fp64 else np.float32
         self._pair = [self.kernels.to_device(f) for f in pair_fields()]
         self._spread = [self.kernels.to_device(f) for f in spread_fields()]
 
@@ -143,7 +149,8 @@ class DeviceSums:
         """:func:`plenocl.piv.direct.correlated_factors` on the device
         (``kernels/correlated.cl``): the volumes padded there, their box means, each
         axis's contribution field and its products at the lags along every axis, summed
-        per row there and over the rows on the host in float64; only those come back."""
+        per row there, then over blocks of rows there (:meth:`column_sums`) and over
+        the blocks on the host in float64; only the blocks' sums come back."""
         shape = tuple(int(n) for n in vol_a.shape)
         pads = tuple(margin(w, weighting) + r for w, r in zip(grid.size, REACH))
         padded = tuple(n + 2 * p for n, p in zip(shape, pads))
@@ -168,8 +175,19 @@ class DeviceSums:
             lags = correlation_lags(shape, axis)
             out = self._c.array(rows * (lags + 1))
             self._c.launch("lagged_rows", (rows,), field, *_ints(*shape, axis, lags), out)
-            lagged.append(out.get().reshape(rows, lags + 1).astype(np.float64).sum(axis=0))
+            lagged.append(self.column_sums(out, rows, lags + 1))
         return sum_factor(float(lagged[2][0]), (products[1:] for products in lagged))
+
+    def column_sums(self, rows_array: cl_array.Array, rows: int, cols: int) -> np.ndarray:
+        """``(cols,)`` float64: the column sums of a device ``(rows, cols)`` float32
+        array, added on the device in blocks of :data:`COLUMN_BLOCK` rows
+        (``column_partials``; twin :func:`plenocl.reference.direct.column_partials`) and
+        the blocks on the host: only the blocks' sums come back."""
+        blocks = max(-(-rows // COLUMN_BLOCK), 1)
+        partial = self._c.array((blocks, cols), self.accumulator)
+        self._c.launch("column_partials", (cols, blocks), rows_array,
+                       *_ints(rows, cols, COLUMN_BLOCK), partial)
+        return partial.get().astype(np.float64).sum(axis=0)
 
     def _box_mean(self, vol, size) -> cl_array.Array:
         """``scipy.ndimage.uniform_filter(vol, size, mode="constant")``: the box means

@@ -54,7 +54,8 @@ from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: correlation makes a different field from the same settings (rounding included).
-METHOD = "direct at 63 lags, three in depth (issue 46, 2026-11-28 evening)"
+METHOD = ("direct at 63 lags, three in depth (issue 46, 2026-11-28 evening); the uncertainty's "
+          "correlated-sum rows added in blocks on the device (2026-12-02)")
 #: The lags of each axis ``(z, y, x)``: three voxels either way in depth, one across.
 AXIS_LAGS = ((-3, -2, -1, 0, 1, 2, 3), (-1, 0, 1), (-1, 0, 1))
 #: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order (63 of them).

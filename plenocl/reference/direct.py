@@ -50,3 +50,16 @@ def _weighted_pearson(u: np.ndarray, v: np.ndarray, w: np.ndarray) -> float:
     cov = (w * (u - mu) * (v - mv)).sum()
     den = np.sqrt((w * (u - mu) ** 2).sum() * (w * (v - mv) ** 2).sum())
     return float(cov / den) if den > 0 else 0.0
+
+
+def column_partials(rows: np.ndarray, block: int) -> np.ndarray:
+    """Twin of ``column_partials`` (``kernels/correlated.cl``): per block of ``block``
+    rows of ``rows`` ``(n, cols)`` and per column, the block's values added in row order
+    (float64), ``(blocks, cols)``."""
+    n, cols = rows.shape
+    out = np.zeros((max(-(-n // block), 1), cols))
+    for k in range(out.shape[0]):
+        for c in range(cols):
+            for r in range(k * block, min(n, (k + 1) * block)):
+                out[k, c] += float(rows[r, c])
+    return out
