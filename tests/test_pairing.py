@@ -132,3 +132,36 @@ def test_a_pairs_frames_are_found_where_its_pattern_reached(tmp_path):
     assert not sources_present(recorded, folders)
     (tmp_path / "two" / "sub" / "f_002.tif").unlink()
     assert not sources_present(recorded, folders)
+
+
+@pytest.mark.parametrize("pairing", ["sequence", "sliding", "ab"])
+def test_several_cameras_pair_the_same_frame_numbers_whatever_each_folder_starts_at(
+        tmp_path, pairing):
+    """Camera 1 holds frames 0-5, camera 2 frames 2-7: pair k is the same frame numbers
+    in both (counted from the lowest frame of any camera), the pairs camera 2 lacks are
+    gaps naming it; counted per folder, camera 2's first pair (frames 2 + 3) was matched
+    with camera 1's first (frames 0 + 1), of other instants."""
+    from plenocl.batch import load_experiment
+    from plenocl.batch.config import image_pairs
+
+    pattern = "frame_{:03d}_a.tif" if pairing == "ab" else "frame_{:03d}.tif"
+    for c, numbers in ((1, range(6)), (2, range(2, 8))):
+        (tmp_path / f"raw{c}").mkdir()
+        _frames(tmp_path / f"raw{c}", numbers, pattern)
+        if pairing == "ab":
+            _frames(tmp_path / f"raw{c}", numbers, "frame_{:03d}_b.tif")
+        (tmp_path / f"cam{c}.toml").write_text("")
+    (tmp_path / "experiment.toml").write_text(
+        "[[cameras]]\nfile = 'cam1.toml'\nfolder = 'raw1'\n"
+        "[[cameras]]\nfile = 'cam2.toml'\nfolder = 'raw2'\n"
+        "[grid]\nz_mm = [-1.0, 1.0]\n"
+        f"[images]\npattern = 'frame_*.tif'\npairing = '{pairing}'\ndt_s = 1e-3\n")
+    plan = image_pairs(load_experiment(tmp_path / "experiment.toml"))
+    assert plan.pairs
+    for pair in plan.pairs:
+        (a2, b2), = pair.others
+        assert (frame_number(pair.a), frame_number(pair.b)) == \
+            (frame_number(a2), frame_number(b2)), (pair.index, pair.a.name, a2.name)
+    first = plan.pairs[0]
+    assert frame_number(first.a) == 2 and first.index == (2 if pairing != "sequence" else 1)
+    assert all("camera 2" in why for why in plan.gaps.values()) and 0 in plan.gaps

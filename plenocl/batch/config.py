@@ -83,6 +83,7 @@ from .pairing import (
     PAIRINGS,
     PairPlan,
     ab_pairs,
+    common_first_frame,
     listed_pairs,
     matched_pairs,
     numbered_pairs,
@@ -313,7 +314,11 @@ def image_pairs(exp: Experiment) -> PairPlan:
     """
     if not exp.cameras:
         return _folder_pairs(exp, exp["images"]["folder"])
-    plan = matched_pairs([_folder_pairs(exp, cam["folder"]) for cam in exp.cameras])
+    first = exp["images"]["first_frame"]
+    if first is None:  # one count for every camera: pair k is the same instants in each
+        first = common_first_frame([_folder_files(exp, cam["folder"]) for cam in exp.cameras],
+                                   exp["images"])
+    plan = matched_pairs([_folder_pairs(exp, cam["folder"], first) for cam in exp.cameras])
     if not plan.pairs:
         gaps = "; ".join(f"pair {k}: {why}" for k, why in plan.gaps.items())
         raise ValueError(f"no image pair that every camera has (pairs are matched by frame "
@@ -328,19 +333,26 @@ def image_folders(exp: Experiment) -> list[Path]:
     return [exp.base / name for name in names]
 
 
-def _folder_pairs(exp: Experiment, name: str) -> PairPlan:
-    """The pairs of one folder of images (:func:`image_pairs`)."""
+def _folder_files(exp: Experiment, name: str) -> list[Path]:
+    """The files of one folder that ``[images] pattern`` matches, sorted."""
+    return sorted(f for f in (exp.base / name).glob(exp["images"]["pattern"]) if f.is_file())
+
+
+def _folder_pairs(exp: Experiment, name: str, first_frame: int | None = None) -> PairPlan:
+    """The pairs of one folder of images (:func:`image_pairs`), counted from
+    ``first_frame`` (``None``: ``[images] first_frame``, else the folder's lowest)."""
     img = exp["images"]
     folder = exp.base / name
-    files = sorted(f for f in folder.glob(img["pattern"]) if f.is_file())
+    files = _folder_files(exp, name)
+    first = img["first_frame"] if first_frame is None else first_frame
     if img["pairing"] == "list":
         plan = listed_pairs(img["pairs"], folder)
     elif not files:
         plan = PairPlan([])
     elif img["pairing"] == "ab":
-        plan = ab_pairs(files, img["a_suffix"], img["b_suffix"], img["first_frame"], folder)
+        plan = ab_pairs(files, img["a_suffix"], img["b_suffix"], first, folder)
     else:
-        plan = numbered_pairs(files, img["pairing"], img["first_frame"], folder)
+        plan = numbered_pairs(files, img["pairing"], first, folder)
     if not plan.pairs:
         raise ValueError(f"no image pairs in {folder} matching {img['pattern']!r} "
                          f"(pairing {img['pairing']!r})"

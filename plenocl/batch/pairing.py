@@ -170,6 +170,29 @@ def ab_pairs(files: list[Path], a_suffix: str, b_suffix: str, first_frame: int |
     return plan
 
 
+def common_first_frame(folders: list[list[Path]], images: dict) -> int | None:
+    """The lowest frame number in any of several cameras' folders (each a list of its
+    files), from which every camera's pairs are counted (:func:`matched_pairs` matches
+    them by that count: counted from each folder's own lowest frame, folders starting at
+    different numbers would pair frames of different instants). ``None`` where the
+    frames are not numbered (``list`` pairing, ``ab`` pairs without numbers) or none
+    are found: each folder is then paired as it is."""
+    lowest = []
+    for files in folders:
+        if images["pairing"] == "list" or not files:
+            return None
+        if images["pairing"] == "ab":
+            stems = [f.stem[: -len(images["a_suffix"])] for f in files
+                     if f.stem.endswith(images["a_suffix"])]
+            numbers = [frame_number(Path(stem)) for stem in stems]
+            if not numbers or None in numbers:
+                return None
+        else:
+            numbers = list(numbered_frames(files, images["pairing"]))
+        lowest.append(min(numbers))
+    return min(lowest)
+
+
 def matched_pairs(plans: list[PairPlan]) -> PairPlan:
     """Several cameras' plans (each camera's folder paired by the same rule) as one:
     a pair is made where every camera has it, matched by its index (its frame numbers),
