@@ -50,6 +50,7 @@
  * defines. */
 
 #include "groupreduce.h" /* PL_GROUP, pl_group_sum, pl_group_max */
+#include "subpixel.h"    /* pl_subpixel, in float */
 
 #ifndef PL_MAXN
 #define PL_MAXN 512
@@ -285,20 +286,6 @@ __kernel void cross_spectrum(__global const float2 *spec, int pz, int count,
     const float2 odd = 2 * j + 1 < count ? pl_cross(spec, box, 2 * j + 1, z, y, x, pz, py, px)
                                          : (float2)(0.0f, 0.0f);
     out[((long)zj * py + y) * px + x] = (float2)(even.x - odd.y, even.y + odd.x);
-}
-
-/* The three-point Gaussian offset in [-0.5, 0.5]; parabolic where a value is <= 0 or the
- * log-curvature is not negative (plenocl.peaks.gaussian_subpixel). */
-inline float pl_subpixel(float cm, float c0, float cp)
-{
-    float off = 0.0f;
-    const float dg = 2.0f * (log(cm) - 2.0f * log(c0) + log(cp));
-    const float dp = 2.0f * (cm - 2.0f * c0 + cp);
-    if (cm > 0.0f && c0 > 0.0f && cp > 0.0f && dg < 0.0f)
-        off = (log(cm) - log(cp)) / dg;
-    else if (dp < 0.0f)
-        off = (cm - cp) / dp;
-    return clamp(off, -0.5f, 0.5f);
 }
 
 /* The circular distance between i and c on n. */

@@ -122,6 +122,54 @@ def test_column_partials_equal_their_twin_and_only_blocks_come_back(device_sums,
         assert np.array_equal(got, want.sum(axis=0))
 
 
+@pytest.mark.parametrize("fp64", [None, False])
+@pytest.mark.parametrize("shape,size,overlap,weighting", CASES[:4] + [
+    ((27, 34, 41), (12, 12, 12), 0.75, 0.35)])
+def test_window_fit_equals_its_twin_on_the_same_sums(queue, shape, size, overlap, weighting,
+                                                      fp64):
+    """``kernels/windowfit.cl`` fits the windows as the host's functions do on the same
+    (device) sums: displacement, peak, flags and uncertainty, operation for operation in
+    double (the logarithms aside: within 1e-9 voxel), within float32 sums on the float
+    path; only eight numbers per window come back (and the factors' block sums)."""
+    from plenocl.bench.clprofile import OpenCLProfile
+    from plenocl.piv.devicesums import COLUMN_BLOCK
+    from plenocl.piv.direct import (
+        direct_correlation,
+        fitted_windows,
+        lag_weight_sums,
+        uncertainty_from_sums,
+        weighed_voxels,
+    )
+
+    engine = DeviceSums(queue, fp64=fp64)
+    pair = flows.volume_pair(shape, flows.Uniform((0.3, -0.2, 1.4)), density=0.01,
+                             sigma=1.5, seed=sum(shape), noise=0.05)
+    grid = window_grid(shape, size, overlap)
+    a, b = (v.astype(np.float32) for v in (pair.vol_a, pair.vol_b))
+    with OpenCLProfile() as prof:
+        got = engine.window_fit(a, b, grid, weighting, uncertainty=True)
+    windows = int(np.prod(grid.count))
+    back = sum(c.nbytes for c in prof.calls if c.kind == "d2h")
+    blocks = -(-shape[0] * shape[1] // COLUMN_BLOCK)  # the factors' block sums, 9 x 9 lags
+    assert back <= windows * (7 * 8 + 4) + 9 * 9 * 8 * blocks < windows * 315 * 4, back
+    direct = direct_correlation(engine.correlation_sums(a, b, grid, weighting),
+                                lag_weight_sums(grid, weighting))
+    sigma = uncertainty_from_sums(engine.spread_sums(a, b, grid, weighting),
+                                  engine.correlated_factors(a, b, grid, weighting),
+                                  weighed_voxels(grid, weighting), direct)
+    want = fitted_windows(direct, sigma)
+    assert want.signal.any() and (want.fitted & want.signal).any()
+    double = engine.accumulator == np.float64
+    atol = 1e-9 if double else 2e-3
+    for name in ("signal", "fitted", "off_centre"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    np.testing.assert_allclose(got.peak, want.peak, atol=1e-12 if double else 1e-5)
+    np.testing.assert_allclose(got.displacement, want.displacement, atol=atol)
+    assert np.array_equal(np.isnan(got.sigma), np.isnan(want.sigma))
+    np.testing.assert_allclose(got.sigma, want.sigma, rtol=1e-9 if double else 1e-2,
+                               atol=atol)
+
+
 def test_device_correlation_and_uncertainty_equal_the_host(device_sums):
     pair = flows.volume_pair((27, 34, 41), flows.Uniform((0.3, -0.2, 0.4)), density=0.004,
                              sigma=1.5, seed=4, noise=0.05)

@@ -26,10 +26,13 @@ from .direct import (
     CUBE,
     LAGS,
     REACH,
+    WindowFit,
     axis_taps,
     correlation_lags,
+    lag_weight_sums,
     margin,
     sum_factor,
+    weighed_voxels,
 )
 
 #: Sums the row kernels write per row segment (``NPAIR``, ``NSPREAD`` in the kernel):
@@ -86,13 +89,19 @@ class DeviceSums:
     ----------
     queue
         Device to run on (:func:`plenocl.get_queue` rules); the kernels are built once.
+    fp64
+        Whether the factors' and the windows' fits add in double (``None``: where the
+        device has doubles; ``False`` takes the float path of a device without them).
     """
 
-    def __init__(self, queue: DeviceLike) -> None:
+    def __init__(self, queue: DeviceLike, fp64: bool | None = None) -> None:
         self.kernels = KernelSet(get_queue(queue), "windowsums.cl", _KERNELS,
                                  options=[f"-DPL_ZREACH={REACH[0]}"],
                                  looping=["pair_rows", "spread_rows"])
-        fp64 = DeviceInfo.probe(self.kernels.queue.device).fp64
+        if fp64 is None:
+            fp64 = DeviceInfo.probe(self.kernels.queue.device).fp64
+        self._fit = KernelSet(self.kernels.queue, "windowfit.cl", ["window_fit"],
+                              options=["-DPL_DOUBLE"] if fp64 else [])
         self._c = KernelSet(self.kernels.queue, "correlated.cl",
                             ["box_mean_axis", "contributions", "lagged_rows", "column_partials"],
                             options=["-DPL_DOUBLE"] if fp64 else [],
@@ -110,7 +119,7 @@ class DeviceSums:
         :meth:`plenocl.piv.direct.HostSums.correlation_sums`."""
         out = self._sums("pair_rows", PAIR_FIELDS, self._pair, vol_a, vol_b, grid, weighting,
                          AXIS_LAGS[0])
-        s_a, raw_a, s_b, raw_b, products = out.reshape(5, len(LAGS), *grid.count)
+        s_a, raw_a, s_b, raw_b, products = out.get().reshape(5, len(LAGS), *grid.count)
         return s_a, s_b, raw_a, raw_b, products
 
     def spread_sums(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
@@ -119,12 +128,39 @@ class DeviceSums:
         :meth:`plenocl.piv.direct.HostSums.spread_sums`."""
         out = self._sums("spread_rows", SPREAD_FIELDS, self._spread, vol_a, vol_b, grid,
                          weighting, UNIT_LAGS)
-        return out.reshape(3, 9, *grid.count)
+        return out.get().reshape(3, 9, *grid.count)
+
+    def window_fit(self, vol_a, vol_b, grid: WindowGrid, weighting: float | None,
+                   uncertainty: bool = False) -> WindowFit:
+        """:func:`plenocl.piv.direct.window_fit` on the device: the window sums stay
+        there and ``kernels/windowfit.cl`` fits them (twin: the host's
+        :func:`~plenocl.piv.direct.direct_correlation`,
+        :func:`~plenocl.piv.direct.fitted_windows` and
+        :func:`~plenocl.piv.direct.uncertainty_from_sums` of the same sums), so that
+        eight numbers per window come back instead of its 315 sums."""
+        sums = self._sums("pair_rows", PAIR_FIELDS, self._pair, vol_a, vol_b, grid,
+                          weighting, AXIS_LAGS[0])
+        consts = [1.0] * 4  # not read without the uncertainty
+        spread = sums
+        if uncertainty:
+            spread = self._sums("spread_rows", SPREAD_FIELDS, self._spread, vol_a, vol_b,
+                                grid, weighting, UNIT_LAGS)
+            consts = [*self.correlated_factors(vol_a, vol_b, grid, weighting),
+                      weighed_voxels(grid, weighting)]
+        windows = int(np.prod(grid.count))
+        out = self._fit.array((7, windows), self.accumulator)
+        flags = self._fit.array(windows, np.int32)
+        self._fit.launch("window_fit", (windows,), sums,
+                         self._fit.to_device(lag_weight_sums(grid, weighting).astype(
+                             self.accumulator)), np.int32(windows), spread,
+                         self._fit.to_device(np.asarray(consts, self.accumulator)),
+                         np.int32(uncertainty), out, flags)
+        return unpacked_fit(out.get(), flags.get(), grid.count, uncertainty)
 
     def _sums(self, rows: str, nfields: int, fields, vol_a, vol_b, grid: WindowGrid,
-              weighting: float | None, zlags) -> np.ndarray:
+              weighting: float | None, zlags) -> cl_array.Array:
         """The x pass ``rows`` of both volumes, then the y and z passes with ``fields``
-        (the z pass's tap rows those of ``zlags``)."""
+        (the z pass's tap rows those of ``zlags``), on the device."""
         nz, ny, nx = np.shape(vol_a)
         cz, cy, cx = grid.count
         mx = margin(grid.size[2], weighting)
@@ -142,7 +178,7 @@ class DeviceSums:
                             *_ints(nz, ny, ny + 2, width, grid.offset[2] + 1, grid.step[2],
                                    cx, chunks), tx, *extra, x)
         y = self._axis(x, nz, ny, cx, grid, weighting, 1, fields[0], UNIT_LAGS)
-        return self._axis(y, 1, nz, cy * cx, grid, weighting, 0, fields[1], zlags).get()
+        return self._axis(y, 1, nz, cy * cx, grid, weighting, 0, fields[1], zlags)
 
     def correlated_factors(self, vol_a, vol_b, grid: WindowGrid,
                            weighting: float | None) -> list[float]:
@@ -228,6 +264,16 @@ class DeviceSums:
 
 def _ints(*values: int) -> list[np.int32]:
     return [np.int32(v) for v in values]
+
+
+def unpacked_fit(out: np.ndarray, flags: np.ndarray, shape: tuple[int, ...],
+                 uncertainty: bool) -> WindowFit:
+    """``window_fit``'s outputs (``(7, windows)`` values and the flags) as a
+    :class:`~plenocl.piv.direct.WindowFit` of windows ``shape``."""
+    values = out.astype(np.float64).reshape(7, *shape)
+    flags = flags.reshape(shape)
+    return WindowFit(values[:3], values[3], (flags & 1) > 0, (flags & 2) > 0,
+                     (flags & 4) > 0, values[4:] if uncertainty else None)
 
 
 def sums_for(deformer) -> DeviceSums | None:

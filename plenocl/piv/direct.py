@@ -54,8 +54,8 @@ from .correlation import Correlation, WindowGrid, correlate, gaussian_weight
 #: (:func:`plenocl.batch.record.run_record`): a batch rerun re-correlates the pairs whose
 #: fields an earlier method made from the same settings. Change it whenever the
 #: correlation makes a different field from the same settings (rounding included).
-METHOD = ("direct at 63 lags, three in depth (issue 46, 2026-11-28 evening); the uncertainty's "
-          "correlated-sum rows added in blocks on the device (2026-12-02)")
+METHOD = ("direct at 63 lags, three in depth (issue 46, 2026-11-28 evening); the windows "
+          "fitted and the correlated-sum rows added in blocks on the device (2026-12-02)")
 #: The lags of each axis ``(z, y, x)``: three voxels either way in depth, one across.
 AXIS_LAGS = ((-3, -2, -1, 0, 1, 2, 3), (-1, 0, 1), (-1, 0, 1))
 #: The lags ``(sz, sy, sx)`` of :func:`correlate_direct`, in C order (63 of them).
@@ -236,6 +236,22 @@ class SumEngine(Protocol):
     def correlated_factors(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                            weighting: float | None) -> list[float]: ...
 
+    def window_fit(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                   weighting: float | None, uncertainty: bool = False) -> WindowFit: ...
+
+
+@dataclass
+class WindowFit:
+    """One pass's direct correlation fitted per window (:func:`window_fit`): what
+    :func:`correlate_deformed` reads (arrays shaped ``grid.count`` after the first axis)."""
+
+    displacement: np.ndarray  # (3, ...) (dz, dy, dx) voxels: the peak, fitted (fit_direct)
+    peak: np.ndarray          # the coefficient there (at lag zero where not fitted)
+    fitted: np.ndarray        # bool: the peak could be fitted among the lags
+    signal: np.ndarray        # bool: both windows had variance
+    off_centre: np.ndarray    # bool: the highest coefficient is not at lag zero
+    sigma: np.ndarray | None  # (3, ...) voxels (correlation_uncertainty), or None
+
 
 class HostSums:
     """The window sums of :func:`correlate_direct` and :func:`correlation_uncertainty` on
@@ -256,6 +272,15 @@ class HostSums:
                  for lag in LAGS]
         s_a, s_b, raw_a, raw_b, *products = parallel_sums(lambda job: job(), jobs)
         return s_a, s_b, raw_a, raw_b, np.stack(products)
+
+    def window_fit(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+                   weighting: float | None, uncertainty: bool = False) -> WindowFit:
+        """:func:`window_fit` on the host: :func:`correlate_direct`, :func:`fit_direct`
+        and, with ``uncertainty``, :func:`correlation_uncertainty` of these sums."""
+        direct = correlate_direct(vol_a, vol_b, grid, weighting, self)
+        sigma = (correlation_uncertainty(vol_a, vol_b, grid, weighting, direct, self)
+                 if uncertainty else None)
+        return fitted_windows(direct, sigma)
 
     def correlated_factors(self, vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
                            weighting: float | None) -> list[float]:
@@ -309,8 +334,17 @@ def correlate_direct(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
         ``r[k]``, the weighted Pearson coefficient at lag ``LAGS[k]``, and its parts.
     """
     engine = HostSums() if sums is None else sums
-    s_a, s_b, raw_a, raw_b, products = engine.correlation_sums(vol_a, vol_b, grid, weighting)
-    n = lag_weight_sums(grid, weighting).reshape(len(LAGS), 1, 1, 1)
+    return direct_correlation(engine.correlation_sums(vol_a, vol_b, grid, weighting),
+                              lag_weight_sums(grid, weighting))
+
+
+def direct_correlation(sums: tuple[np.ndarray, ...], lag_weights: np.ndarray
+                       ) -> DirectCorrelation:
+    """:func:`correlate_direct` from the window sums ``(s_a, s_b, raw_a, raw_b,
+    products)`` (:meth:`HostSums.correlation_sums`) and the lags' weight sums
+    (:func:`lag_weight_sums`); the twin of ``kernels/windowfit.cl``'s coefficients."""
+    s_a, s_b, raw_a, raw_b, products = sums
+    n = np.asarray(lag_weights, np.float64).reshape(len(LAGS), *[1] * (s_a.ndim - 1))
     var_a = raw_a - s_a * s_a / n
     var_b = raw_b - s_b * s_b / n
     cov = products - s_a * s_b / n
@@ -358,12 +392,26 @@ def correlation_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGr
         ``(3, *grid.count)`` as ``(dz, dy, dx)`` in voxels; NaN without signal.
     """
     engine = HostSums() if sums is None else sums
-    raw = engine.spread_sums(vol_a, vol_b, grid, weighting)
-    factors = engine.correlated_factors(vol_a, vol_b, grid, weighting)
-    count = float(np.prod([w + 2 * margin(w, weighting) for w in grid.size]))
+    return uncertainty_from_sums(engine.spread_sums(vol_a, vol_b, grid, weighting),
+                                 engine.correlated_factors(vol_a, vol_b, grid, weighting),
+                                 weighed_voxels(grid, weighting), corr)
+
+
+def weighed_voxels(grid: WindowGrid, weighting: float | None) -> float:
+    """The voxels a window's weight covers (the window and its margins): the count of
+    :func:`correlation_uncertainty`'s spread."""
+    return float(np.prod([w + 2 * margin(w, weighting) for w in grid.size]))
+
+
+def uncertainty_from_sums(raw: np.ndarray, factors, count: float, corr: DirectCorrelation
+                          ) -> np.ndarray:
+    """:func:`correlation_uncertainty` from the spread sums ``raw``
+    (:meth:`HostSums.spread_sums`), the correlated-sum ``factors``, the windows'
+    :func:`weighed_voxels` ``count`` and the correlation; the twin of
+    ``kernels/windowfit.cl``'s uncertainty."""
     cube = corr.r.reshape(*CUBE, *corr.r.shape[1:])
     norm = corr.norm.reshape(cube.shape)
-    sigma = np.full((3, *grid.count), np.nan)
+    sigma = np.full((3, *corr.r.shape[1:]), np.nan)
     for axis, factor in enumerate(factors):
         total, spread = _asymmetry(raw[axis], corr)
         half = 0.5 * np.sqrt(factor * np.maximum(spread - total ** 2 / count, 0.0))
@@ -489,6 +537,25 @@ def fit_direct(r: np.ndarray):
     return disp.reshape(3, *shape), peak.reshape(shape), fitted.reshape(shape)
 
 
+def fitted_windows(direct: DirectCorrelation, sigma: np.ndarray | None = None) -> WindowFit:
+    """A :class:`WindowFit` of a direct correlation (:func:`fit_direct`, :func:`off_centre`)
+    and its uncertainty ``sigma``."""
+    disp, peak, fitted = fit_direct(direct.r)
+    return WindowFit(disp, peak, fitted, direct.signal, off_centre(direct.r), sigma)
+
+
+def window_fit(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
+               weighting: float | None, uncertainty: bool = False,
+               sums: SumEngine | None = None) -> WindowFit:
+    """Every window of ``grid`` correlated at the 63 :data:`LAGS`
+    (:func:`correlate_direct`), its peak fitted (:func:`fit_direct`) and, with
+    ``uncertainty``, its uncertainty (:func:`correlation_uncertainty`), where ``sums``
+    runs (``None``: :class:`HostSums`; a :class:`plenocl.piv.devicesums.DeviceSums`
+    fits them on its device, so that only the fit comes back)."""
+    engine = HostSums() if sums is None else sums
+    return engine.window_fit(vol_a, vol_b, grid, weighting, uncertainty)
+
+
 def off_centre(r: np.ndarray) -> np.ndarray:
     """Windows whose highest coefficient is not at lag zero: the correlation's statistics
     (:func:`correlation_uncertainty`) hold at the centre lag only."""
@@ -532,11 +599,9 @@ def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
         As the FFT path's, but for the peak ratio, NaN where the direct correlation
         decided (it sees no secondary peak); ``sigma`` with ``uncertainty``.
     """
-    direct = correlate_direct(vol_a, vol_b, grid, weighting, sums)
-    sigma = (correlation_uncertainty(vol_a, vol_b, grid, weighting, direct, sums)
-             if uncertainty else None)
-    signal = direct.signal
-    disp, peak, fitted = fit_direct(direct.r)
+    fit = window_fit(vol_a, vol_b, grid, weighting, uncertainty, sums)
+    sigma, signal = fit.sigma, fit.signal
+    disp, peak, fitted = fit.displacement, fit.peak, fit.fitted
     ratio = np.full(grid.count, np.nan)
     far = signal & (~fitted | weak_peaks(peak, signal))
     if far.any():
@@ -549,7 +614,7 @@ def correlate_deformed(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
         signal = signal & (fitted | wide.signal)
     disp[:, ~signal] = 0.0
     if sigma is not None:  # the statistics hold at the centre lag only
-        sigma[:, far | ~signal | off_centre(direct.r)] = np.nan
+        sigma[:, far | ~signal | fit.off_centre] = np.nan
     return Correlation(disp, np.where(signal, peak, 0.0), ratio, signal, sigma)
 
 
@@ -559,7 +624,6 @@ def deformed_uncertainty(vol_a: np.ndarray, vol_b: np.ndarray, grid: WindowGrid,
     """:func:`correlation_uncertainty` on its own (for a pass correlated by FFT):
     ``(3, *grid.count)`` voxels, NaN where the peak is off lag zero; the window sums
     on ``sums`` (as :func:`correlate_deformed`)."""
-    direct = correlate_direct(vol_a, vol_b, grid, weighting, sums)
-    sigma = correlation_uncertainty(vol_a, vol_b, grid, weighting, direct, sums)
-    sigma[:, off_centre(direct.r)] = np.nan
-    return sigma
+    fit = window_fit(vol_a, vol_b, grid, weighting, True, sums)
+    fit.sigma[:, fit.off_centre] = np.nan
+    return fit.sigma
