@@ -130,3 +130,17 @@ def test_several_cameras_are_refused_for_tracking_and_beside_an_images_folder(tm
     (tmp_path / "e.toml").write_text(EXPERIMENT + "[tracking]\nenabled = true\n")
     with pytest.raises(ValueError, match=r"plenocl.track\(\[frames_1"):
         load_experiment(tmp_path / "e.toml")
+
+
+def test_two_cameras_at_one_pose_are_refused_before_any_frame(two_cameras, tmp_path):
+    """Both [[cameras]] naming one camera file (or two files without [pose]) would
+    reconstruct one view twice: refused before anything is written."""
+    text = EXPERIMENT.replace('file = "cam2.toml"\nwhite = "white_2.tif"',
+                              'file = "cam1.toml"')
+    assert text != EXPERIMENT
+    (tmp_path / "experiment.toml").write_text(text)
+    for name in ("cam1.toml", "raw1", "raw2"):
+        (tmp_path / name).symlink_to(two_cameras / name)
+    with pytest.raises(ValueError, match=r"cameras 1 and 2 have the same pose"):
+        plenocl.run(tmp_path / "experiment.toml", progress=False)
+    assert not (tmp_path / "results").exists()

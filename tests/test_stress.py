@@ -770,6 +770,9 @@ INVALID = [
      r"seen through the camera's pose .* entirely outside the camera's field of view"),
     ("reconstruct-cameras-count", lambda c: reconstruct([c["img"]], [c["proj"], c["proj"]]),
      ValueError, r"several cameras need one image per projector: got 1 image\(s\) and 2"),
+    ("reconstruct-cameras-pose", lambda c: reconstruct([c["img"], c["img"]],
+                                                       [c["proj"], c["proj"]]),
+     ValueError, r"cameras 1 and 2 have the same pose .* Give each camera its own pose"),
     ("reconstruct-cameras-start", lambda c: reconstruct(
         [c["img"], c["img"]], [c["proj"], c["proj"]],
         start=np.ones(c["proj"].grid.shape, np.float32), supersample=1),

@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 
 from ..camera import Camera
+from ..camera.pose import check_distinct_poses
 from ..grid import Grid
 from ..io.tomlfile import write_toml
 from ..optics.depthrange import check_grid
@@ -36,7 +37,10 @@ def run_cameras(exp: Experiment, queue, log) -> list[Camera]:
     """The experiment's cameras (:func:`run_camera`; several: each ``[[cameras]]``
     table's, its pose kept through its calibration)."""
     tables = exp.cameras or (exp["camera"],)
-    return [run_camera(exp, queue, log, table) for table in tables]
+    cameras = [run_camera(exp, queue, log, table) for table in tables]
+    if len(cameras) > 1:  # before any frame is read: every pair would fail at it
+        check_distinct_poses([camera.pose for camera in cameras])
+    return cameras
 
 
 def run_camera(exp: Experiment, queue, log, cam: dict | None = None) -> Camera:

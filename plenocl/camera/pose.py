@@ -140,3 +140,21 @@ def require_world_frame(camera, what: str) -> None:
             "(camera.with_pose(None)) and carry the result into the world with "
             "Pose.to_world, or give the world grid yourself (projectors, reconstruct and "
             "process_pair take a posed camera with a world grid; docs/design.md §2.2)")
+
+
+def check_distinct_poses(poses) -> None:
+    """Several cameras in one reconstruction stand at different places: two with the
+    same pose (``None``, no pose, is the world frame) would give one view twice, which
+    measures no depth and weighs that view double; refused, naming them and the fix."""
+    placed = [Pose() if pose is None else pose for pose in poses]
+    for j, first in enumerate(placed, start=1):
+        for k, other in enumerate(placed[j:], start=j + 1):
+            if (np.allclose(first.rotation_deg, other.rotation_deg, rtol=0, atol=1e-9)
+                    and np.allclose(first.translation_mm, other.translation_mm, rtol=0,
+                                    atol=1e-9)):
+                raise ValueError(
+                    f"cameras {j} and {k} have the same pose (rotation {first.rotation_deg} "
+                    f"deg, translation {first.translation_mm} mm): several cameras must see "
+                    "the volume from different places. Give each camera its own pose "
+                    "([pose] in its camera file, Camera.with_pose, or plenocl.calibrate_pose "
+                    "from a dot target), or list each camera file once")
