@@ -187,7 +187,8 @@ def test_the_keys_follow_every_method_the_tracks_and_field_come_from(recording, 
     before = keys()
     for name, tracks, field in (("CORRELATION_METHOD", True, False),
                                 ("TRACK_METHOD", True, True),
-                                ("REFINEMENT_METHOD", False, True)):
+                                ("REFINEMENT_METHOD", False, True),
+                                ("FIELD_METHOD", False, True)):
         with monkeypatch.context() as patch:
             patch.setattr(tracking_module, name, "a later method")
             after = keys()

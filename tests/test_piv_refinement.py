@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from plenocl import Grid, piv3d
+from plenocl import Camera, Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.piv import PIVResult
 from plenocl.piv.devicemeans import ILL_POSED, DeviceWindowMeans
@@ -567,3 +567,16 @@ def test_a_blind_window_without_a_seeing_one_in_its_column_takes_its_seeing_pair
         w, sigma = seen_depth(pairs, field, focus, None, None)
     np.testing.assert_allclose(w, 1.0, atol=0.02)
     assert np.isfinite(sigma).all()
+
+
+def test_the_focal_zone_along_the_grid_only_for_a_camera_without_pose():
+    """A posed camera's focal plane is tilted or moved in the world grid: no depth index
+    holds it, so the pair chain, track and a tracking run's binned field get none."""
+    from plenocl.camera import Pose
+    from plenocl.piv.refinement import FocalZone
+
+    cam = Camera.synthetic_850()
+    grid = Grid.for_camera(cam, (-2.0, 2.0))
+    assert FocalZone.along_grid(cam, grid) == FocalZone.of(cam, grid)
+    moved = cam.with_pose(Pose((0.0, 0.0, 0.0), (0.0, 0.0, 5.0)))
+    assert FocalZone.along_grid(moved, grid) is None

@@ -349,3 +349,14 @@ def test_tracking_demo_writes_its_files_and_beats_the_pair_in_depth(tmp_path, ca
     assert tracked["depth_voxels"] < 0.7 * pair["depth_voxels"]
     assert tracked["lateral_u_inf"] < 0.05
     assert len(Tracks.load(tmp_path / "tracks.npz").positions) == s["tracks"]
+    # the binned field at its windows' places on the grid (it was written from 0 mm)
+    from plenocl.demo.boundary_layer import scenario
+    from plenocl.vectorfield import read_npz
+
+    grid = scenario("small").grid
+    _, arrays = read_npz(tmp_path / "field_tracks.npz")
+    for name, (lo, hi) in (("x_mm", grid.x), ("y_mm", grid.y), ("z_mm", grid.z)):
+        centres = np.asarray(arrays[name])
+        assert lo < centres.min() and centres.max() < hi, (name, centres, lo, hi)
+        assert abs(centres.min() - lo - (hi - centres.max())) < 0.5 * np.ptp(centres) / max(
+            len(centres) - 1, 1), name  # about centred on the grid

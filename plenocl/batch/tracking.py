@@ -160,12 +160,19 @@ def run_tracking(exp: Experiment, out: Path, queue=None, log=print, *,
     return summary
 
 
+#: How the field stage bins the tracks beyond the refinement's window means; change it
+#: whenever the binned field changes (a rerun bins the tracks again, not tracking them).
+FIELD_METHOD = ("the focal zone's depth uncertainty only where it lies along the grid's z "
+                "(a camera without pose; 2026-12-02)")
+
+
 def _field_key(out: Path, opts: TrackingOptions) -> dict:
     """The field stage's own key: the binned field's options, the tracks' digest and
-    the methods that bin them (the tracker's, and the refinement's window means)."""
+    the methods that bin them (the tracker's, the refinement's window means and
+    :data:`FIELD_METHOD`)."""
     tracks = out / TRACKS
     return {**opts.field_record(), "tracks": _digest(tracks) if tracks.is_file() else None,
-            "tracker": TRACK_METHOD, "refinement": REFINEMENT_METHOD}
+            "tracker": TRACK_METHOD, "refinement": REFINEMENT_METHOD, "field": FIELD_METHOD}
 
 
 def _remove_stale(runner: StageRunner, out: Path, opts: TrackingOptions, log) -> None:
@@ -324,7 +331,7 @@ def _write_outputs(out: Path, frames: dict[int, Path], opts: TrackingOptions, ca
                          "consecutive and in focus, or lower [tracking] threshold or "
                          "min_length, or widen search (docs/errors.md)")
     tracks.save(out / LINES, seconds=True)  # m/s, as the store and the figure
-    fields = binned_fields(tracks, grid, opts, layout, FocalZone.of(camera, grid))
+    fields = binned_fields(tracks, grid, opts, layout, FocalZone.along_grid(camera, grid))
     write_track_store(out / STORE, tracks, list(frames), fields, grid, record)
 
 

@@ -66,7 +66,7 @@ def run_tracking(out_dir: str | Path, frames: int = FRAMES, queue=None, seed: in
     mid = frames // 2 - 1
     pair = process_pair(images[mid], images[mid + 1], proj, chain_settings(sc))
     field = bin_tracks(tracks, sc.grid, window=pair.piv.window, step=pair.piv.step)
-    save_field(out / "field_tracks.npz", field, voxel_size_mm=sc.grid.spacing, dt=DT)
+    save_field(out / "field_tracks.npz", field, grid=sc.grid, dt=DT)
     summary = {"frames": frames, "particles": int(truth.shape[0]), "dt_s": DT,
                "u_inf_m_s": U_INF, "tracks": int(len(tracks.positions)),
                "seconds_per_frame": seconds / frames,

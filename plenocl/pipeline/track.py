@@ -315,8 +315,7 @@ def smooth_tracks(measured: np.ndarray, sigma: np.ndarray, intensity: np.ndarray
     prior = prior_sigma = None
     if settings.neighbours:
         camera = projectors[0].camera
-        focus = (FocalZone.of(camera, grid) if len(projectors) == 1 and camera.pose is None
-                 else None)  # a posed camera's focal plane is tilted in the world grid
+        focus = FocalZone.along_grid(camera, grid) if len(projectors) == 1 else None
         prior, prior_sigma = _depth_prior(measured, sigma, grid, focus, settings)
     fit = smooth_states(measured, sigma, settings.acceleration * voxel, prior, prior_sigma)
     return Tracks(fit.positions, measured, sigma, intensity, fit.velocities / dt,

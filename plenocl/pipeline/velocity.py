@@ -152,7 +152,7 @@ def refine_particles(res: PIVResult, vol_a, vol_b, grid: Grid, settings: PairSet
                                backgrounds=backgrounds, background_free=background_free)
             # the focal zone lies along the grid's z: a posed camera's is tilted in the
             # world grid, so its pairs are not told apart by it (docs/design.md §5.5)
-            focus = FocalZone.of(camera, grid) if camera.pose is None else None
+            focus = FocalZone.along_grid(camera, grid)
             sight = SightLines.of(camera, grid, device)
         res = refine_with_particles(res, vol_a, vol_b, focus=focus, fit=fit, sight=sight,
                                     maxima=maxima, spread=spread, weighted=weighted,

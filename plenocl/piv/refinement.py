@@ -399,6 +399,13 @@ class FocalZone:
         dz = grid.spacing[0]
         return cls(plane=-grid.z[0] / dz - 0.5, resolution=camera.depth_resolution_mm / dz)
 
+    @classmethod
+    def along_grid(cls, camera: Camera, grid: Grid) -> FocalZone | None:
+        """:meth:`of` where the focal zone lies along the grid's z (a camera without a
+        pose), else ``None``: a posed camera's focal plane is tilted or moved in the
+        world grid (docs/design.md §5.5), so no depth index tells it."""
+        return cls.of(camera, grid) if camera.pose is None else None
+
     def sees_depth(self, z: np.ndarray) -> np.ndarray:
         """Whether the camera measures depth at depth index ``z``: farther from the plane
         than :data:`DEPTH_BLIND` resolutions (docs/design.md §7.4)."""
