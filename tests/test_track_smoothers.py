@@ -249,3 +249,26 @@ def test_particles_seen_twice_merge_into_the_brightest_and_distinct_ones_stay():
     assert merged[0] == 8.0 and merged[2] == 2.0 and merged[3] == 4.0
     keep, merged = merge_close(index, intensity, (0.7, 0.7, 0.0))
     assert keep.all() and np.array_equal(merged, intensity)
+
+
+def test_a_prior_formed_in_no_frame_is_said():
+    """Fewer tracks in every frame than ``neighbours``: the depth prior cannot be formed
+    anywhere (the tracks are smoothed on their own frames, as with ``neighbours=0``), and
+    a warning says so with the fix, instead of switching the prior off silently."""
+    from types import SimpleNamespace
+
+    from plenocl.bench.accuracy_section import paper_optics
+    from plenocl.pipeline import TrackSettings, smooth_tracks
+
+    cam, grid = paper_optics((24, 16))
+    rng = np.random.default_rng(3)
+    n, frames = 8, 6
+    start = rng.uniform([grid.x[0], grid.y[0], 2.0], [grid.x[1], grid.y[1], 6.0], (n, 3))
+    measured = start[:, None] + np.array([0.1, 0.0, 0.2]) * np.arange(frames)[None, :, None]
+    sigma = np.full(measured.shape, 0.01)
+    args = (measured, sigma, np.ones((n, frames)), 1.0, SimpleNamespace(camera=cam, grid=grid))
+    with pytest.warns(UserWarning, match=r"prior was formed in no frame: it needs more than "
+                                         r"neighbours = 12 .* the most in any frame is 8"):
+        alone = smooth_tracks(*args, TrackSettings())
+    np.testing.assert_array_equal(alone.positions, smooth_tracks(
+        *args, TrackSettings(neighbours=0)).positions)

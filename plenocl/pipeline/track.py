@@ -145,24 +145,48 @@ class TrackSettings:
 
     def _check_distances(self) -> None:
         """The search range and the merge radius as three floats, or refused."""
-        object.__setattr__(self, "search", tuple(float(s) for s in self.search))
-        object.__setattr__(self, "merge", tuple(float(s) for s in self.merge))
-        if len(self.search) != 3 or not all(np.isfinite(s) and s > 0 for s in self.search):
-            raise ValueError(f"TrackSettings.search must be three positive distances "
-                             f"(x, y, z voxels), got {self.search}")
-        if len(self.merge) != 3 or not all(np.isfinite(s) and s >= 0 for s in self.merge):
-            raise ValueError(f"TrackSettings.merge must be three distances >= 0 (x, y, z "
-                             f"voxels; 0 merges nothing), got {self.merge}")
+        object.__setattr__(self, "search", _three_distances(
+            "search", self.search, "three positive distances (x, y, z voxels)", 0.0))
+        object.__setattr__(self, "merge", _three_distances(
+            "merge", self.merge, "three distances >= 0 (x, y, z voxels; 0 merges nothing)",
+            None))
 
     def _check_smoother(self) -> None:
-        """Refuse a state-space smoother that cannot run."""
-        if not (np.isfinite(self.acceleration) and self.acceleration > 0):
+        """Refuse a state-space smoother that cannot run, and a velocity prior that
+        could never be formed."""
+        if not (_is_number(self.acceleration) and np.isfinite(self.acceleration)
+                and self.acceleration > 0):
             raise ValueError(f"TrackSettings.acceleration must be a positive number (voxels "
                              f"per frame squared), got {self.acceleration!r}")
         n = self.neighbours
         if not is_integer(n) or not (n == 0 or n > 4):
             raise ValueError(f"TrackSettings.neighbours must be 0 (no velocity prior) or an "
                              f"integer above 4 (a local linear field), got {n!r}")
+        if n and self.degree == 0:
+            raise ValueError(f"TrackSettings.degree = 0 gives the local fits no velocity, so "
+                             f"the neighbours' depth prior (neighbours = {n}) would have none "
+                             "to take: give degree 1-3, or neighbours = 0 to track without "
+                             "the prior")
+
+
+def _is_number(value) -> bool:
+    """A real number (not a bool or text)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, bool)
+
+
+def _three_distances(name: str, value, what: str, above: float | None
+                     ) -> tuple[float, float, float]:
+    """``value`` as three finite floats, each above ``above`` (``None``: at least 0),
+    or refused naming ``TrackSettings.<name>`` and ``what`` it must be."""
+    values = np.ravel(np.asarray(value, dtype=object)) if value is not None else []
+    ok = len(values) == 3 and all(_is_number(v) and np.isfinite(v) for v in values)
+    if ok:
+        values = tuple(float(v) for v in values)
+        ok = all(v > above if above is not None else v >= 0 for v in values)
+    if not ok:
+        raise ValueError(f"TrackSettings.{name} must be {what}, got {value!r}")
+    return values
 
 
 @dataclass
@@ -339,6 +363,13 @@ def _depth_prior(measured: np.ndarray, sigma: np.ndarray, grid: Grid,
                    np.reshape(bias, poly.positions.shape[:2] + (1,)) if focus is not None else 0.0)
     z, z_sigma = neighbour_velocity(poly.positions, poly.velocities[..., 2:], own, voxel,
                                     settings.neighbours)
+    if np.isnan(z).all() and np.isfinite(poly.velocities[..., 2]).any():
+        most = int(np.isfinite(poly.velocities[..., 2]).sum(axis=0).max())
+        warnings.warn(f"the neighbours' depth prior was formed in no frame: it needs more "
+                      f"than neighbours = {settings.neighbours} tracks with a velocity in a "
+                      f"frame, and the most in any frame is {most}; lower neighbours "
+                      "([tracking] neighbours, TrackSettings) or set it to 0 to track "
+                      "without the prior", stacklevel=3)
     prior = np.full(poly.velocities.shape, np.nan)
     prior_sigma = np.full(poly.velocities.shape, np.nan)
     prior[..., 2:], prior_sigma[..., 2:] = z, z_sigma
@@ -478,6 +509,10 @@ def _camera_frames(frames, projectors: list, min_length: int) -> list[tuple]:
 
 def _check_frames(frames, min_length: int) -> list:
     """The frames as a list, refused when too few or of different shapes."""
+    if isinstance(frames, np.ndarray) and frames.ndim == 2:
+        raise ValueError(f"track takes a recording, a sequence of at least {min_length} "
+                         f"frames (a list of 2-D images or a (frames, rows, cols) array), "
+                         f"got one 2-D image {frames.shape[::-1]} (cols x rows)")
     frames = list(frames)  # a (frames, rows, cols) array gives its frames
     if len(frames) < min_length:
         raise ValueError(f"tracking needs at least {min_length} frames (min_length), got "
@@ -492,6 +527,8 @@ def _check_frames(frames, min_length: int) -> list:
 
 
 def _check_dt(dt) -> float:
+    if not _is_number(dt):
+        raise ValueError(f"dt (the time between frames) must be a positive number, got {dt!r}")
     value = float(dt)
     if not (np.isfinite(value) and value > 0):
         raise ValueError(f"dt (the time between frames) must be a positive number, got {dt!r}")
