@@ -36,13 +36,29 @@ def target(queue):
     return images, plates
 
 
-def test_the_pose_is_recovered_from_a_rough_guess(target, queue):
+def test_the_pose_is_recovered_from_a_rough_guess(target, queue, recwarn):
     images, plates = target
     assert _angle_deg(TRUE, GUESS) > 0.6
     found = calibrate_pose(CAM, images, plates, GUESS, queue=queue)
+    assert not [w for w in recwarn if "calibrate_pose" in str(w.message)]
     assert _angle_deg(TRUE, found.pose) < 0.05
     assert np.linalg.norm(np.subtract(found.pose.translation_mm, TRUE.translation_mm)) < 0.02
     assert found.dots == 48 and found.residual_px < 1.0 and found.rounds >= 2
+    assert found.settled
+
+
+def test_a_pose_it_cannot_trust_is_said(target, queue, recwarn):
+    """One plate at the focal plane (its dots' depths barely measured: the pose came out
+    18 degrees off, in silence), or the plates given in another order than their images
+    (it does not settle, or its residual grows): a warning says why the pose may be wrong
+    and what to do."""
+    images, plates = target
+    with pytest.warns(UserWarning, match=r"calibrate_pose: the pose found may be wrong: "
+                                         r"every dot lies within the camera's depth "
+                                         r"resolution"):
+        calibrate_pose(CAM, images[1:2], plates[1:2], GUESS, queue=queue)
+    with pytest.warns(UserWarning, match=r"may be wrong: .*(did not settle|residual grew)"):
+        calibrate_pose(CAM, images, plates[::-1], GUESS, queue=queue)
 
 
 def test_bad_targets_are_named(target, queue):

@@ -17,6 +17,7 @@ puts each dot against where its image puts it.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,12 @@ from ..reconstruction import reconstruct
 #: mm) below which they stop.
 POSE_ROUNDS = 6
 POSE_TOLERANCE = (1e-4, 1e-5)
+#: An unsettled pose is said (a warning) when its last change exceeds this (degrees,
+#: mm), and a grown residual when it exceeds the guess's by this factor and this many
+#: pixels: a good guess's last rounds move by rounding, and its residual by a few
+#: hundredths of a pixel either way.
+UNSETTLED = (1e-2, 1e-3)
+GROWN = (1.25, 0.1)
 #: How far (mm) beyond the dots the fit's grid reaches (its margin and voxel size only).
 GRID_MARGIN_MM = 1.0
 
@@ -58,6 +65,9 @@ class PoseCalibration:
         The dots used (the fit dropped the others: outside the view, not finite).
     rounds
         Alternations run.
+    settled
+        Whether the pose stopped moving (:data:`POSE_TOLERANCE`) within
+        :data:`POSE_ROUNDS` (``False``: a warning said so).
     """
 
     pose: Pose
@@ -65,6 +75,7 @@ class PoseCalibration:
     dots: int
     rounds: int
     start_residual_px: float = float("nan")
+    settled: bool = True
 
 
 def calibrate_pose(camera: Camera, images, targets, guess: Pose,
@@ -93,8 +104,8 @@ def calibrate_pose(camera: Camera, images, targets, guess: Pose,
     if len(points) != len(images) or not points or not sum(map(len, points)) >= 3:
         raise ValueError("calibrate_pose needs one array of dot positions per image and at "
                          "least 3 dots in all")
-    pose, rounds, start = guess, 0, float("nan")
-    while rounds < POSE_ROUNDS:
+    pose, rounds, start, settled = guess, 0, float("nan"), False
+    while rounds < POSE_ROUNDS and not settled:
         rounds += 1
         world, fitted, sigma = _fitted_dots(own, images, points, pose, settings, queue)
         if rounds == 1:
@@ -102,10 +113,37 @@ def calibrate_pose(camera: Camera, images, targets, guess: Pose,
         new = _solve_pose(world, fitted, sigma, pose)
         turn, shift = pose.turn_deg(new), pose.shift_mm(new)
         pose = new
-        if turn < POSE_TOLERANCE[0] and shift < POSE_TOLERANCE[1]:
-            break
+        settled = turn < POSE_TOLERANCE[0] and shift < POSE_TOLERANCE[1]
     residual = _residual_px(own, pose, world, fitted)
-    return PoseCalibration(pose, residual, len(world), rounds, start)
+    found = PoseCalibration(pose, residual, len(world), rounds, start, settled)
+    _warn_if_doubtful(own, found, world, (turn, shift))
+    return found
+
+
+def _warn_if_doubtful(own: Camera, found: PoseCalibration, world: np.ndarray,
+                      last: tuple[float, float]) -> None:
+    """Say when the pose cannot be trusted: every dot within the camera's depth
+    resolution of its focal plane (their depths barely measured, so the pose's tilt is
+    not held: a plate at the focal plane gave 18 degrees off), the alternation not
+    settled (:data:`UNSETTLED`), or the residual grown from the guess's (:data:`GROWN`)."""
+    depth = np.abs(found.pose.to_camera(world)[:, 2])
+    reach = own.depth_resolution_mm
+    why = []
+    if depth.max() < reach:
+        why.append(f"every dot lies within the camera's depth resolution ({reach:.2f} mm) of "
+                   f"its focal plane (at most {depth.max():.2f} mm), where it measures depth "
+                   "poorly: image the target at depths beyond it too (two or more plate "
+                   "positions, e.g. 2-3 resolutions either side)")
+    if not found.settled and (last[0] > UNSETTLED[0] or last[1] > UNSETTLED[1]):
+        why.append(f"the pose did not settle in {found.rounds} rounds (its last change "
+                   f"{last[0]:.3g} deg, {last[1]:.3g} mm)")
+    if found.residual_px > GROWN[0] * found.start_residual_px + GROWN[1]:
+        why.append(f"the residual grew from the guess's {found.start_residual_px:.3g} px to "
+                   f"{found.residual_px:.3g} px (check the dots' order against the images "
+                   "and the guess)")
+    if why:
+        warnings.warn("calibrate_pose: the pose found may be wrong: " + "; ".join(why),
+                      stacklevel=3)
 
 
 def _fitted_dots(own: Camera, images, points, pose: Pose, settings, queue):
