@@ -382,3 +382,30 @@ def test_process_pair_of_two_cameras_measures_a_uniform_motion(queue):
     assert ok.mean() > 0.8 and pair.piv.refinement["pairs"] > 10
     for comp, value in zip((pair.piv.u, pair.piv.v, pair.piv.w), want, strict=True):
         assert abs(np.median(comp[ok]) - value) < 0.3, (np.median(comp[ok]), value)
+
+
+def test_a_camera_seeing_part_of_the_grid_or_far_brighter_is_said(queue):
+    """Several cameras: one moved so that it sees part of the grid only (there the other
+    measures alone), or one camera's counts 16 times the other's (one shared scale: it
+    outweighs the other): each is a warning naming the camera, said once per geometry."""
+    import warnings
+
+    cams, grid, projs = _two_cameras(queue)
+    pos = np.array([[0.1, 0.0, 0.2], [-0.3, 0.2, -0.4]])
+    imgs = [simulate_image(c, pos, 2e4, 20000, seed=k, queue=queue) for k, c in enumerate(cams)]
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        reconstruct(imgs, projs, supersample=1, iterations=2)
+        reconstruct([imgs[0], 16 * imgs[1]], projs, supersample=1, iterations=2)
+    text = [str(w.message) for w in said]
+    assert not any("does not see" in t for t in text), text
+    assert sum("camera 2's image peaks" in t and "times camera 1's" in t for t in text) == 1
+    moved = cams[1].with_pose(Pose((0.0, 15.0, 0.0), (1.0, 0.0, 0.0)))
+    shifted = [projs[0], Projector(moved, grid, queue)]
+    imgs[1] = simulate_image(moved, pos, 2e4, 20000, seed=1, queue=queue)
+    with pytest.warns(UserWarning, match=r"camera 2 does not see \d+% of the grid's voxels"):
+        reconstruct(imgs, shifted, supersample=1, iterations=2)
+    with warnings.catch_warnings(record=True) as again:
+        warnings.simplefilter("always")
+        reconstruct(imgs, shifted, supersample=1, iterations=2)
+    assert not any("does not see" in str(w.message) for w in again)  # once per geometry

@@ -46,7 +46,7 @@ from .joint import run_joint
 from .operator import FramedOperator, PlannedOperator, ProjectionOperator
 from .schedule import SupportStart, sampled_operator, support_on_device
 from .settings import ReconstructionInfo, ReconstructionSettings
-from .solver import UPDATES, Solver, check_start_volume
+from .solver import OUTSIDE_WARN, UPDATES, Solver, check_start_volume
 from .supersample import bin_lateral
 
 #: A sub-voxel run's first guess from a coarser grid: the coarse start (a host volume or a
@@ -82,9 +82,6 @@ def _iterate(solver: Solver, vol, img, settings: ReconstructionSettings,
     return solver, vol
 
 
-#: Warn when more than this fraction of the grid's voxels send too little light to the
-#: sensor to be reconstructed (the grid reaches beyond the field of view).
-OUTSIDE_WARN = 0.25
 #: Per camera, the grid extents already checked (:func:`_warn_if_outside`).
 _CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -101,8 +98,7 @@ def _warn_if_outside(projector, solver: Solver, min_sensitivity: float) -> None:
     if key in checked:
         return
     checked.add(key)
-    dark = sum(int((s.get() <= solver.smin).sum()) for s in solver.sens)
-    fraction = dark / projector.grid.size
+    fraction = solver.unseen_fraction()
     if fraction > OUTSIDE_WARN:
         warnings.warn(f"{fraction:.0%} of the grid's voxels send no more than "
                       f"{min_sensitivity:g} of their light to the sensor and are not "

@@ -73,6 +73,10 @@ def nonzero_box(vol: np.ndarray) -> tuple[slice, slice, slice] | None:
     return tuple(box)
 
 
+#: Warn when more than this fraction of the grid's voxels send too little light to a
+#: camera's sensor to be reconstructed (the grid reaches beyond its field of view).
+OUTSIDE_WARN = 0.25
+
 class Solver:
     """Device buffers and kernels of a reconstruction with one projector.
 
@@ -120,6 +124,13 @@ class Solver:
         # A^T 1, kept by the projector; with pixels without data, A^T observed
         self.sens = (projector.sensitivity() if observed is None else
                      projector.back_device(self._observed.reshape(observed.shape)))
+
+    def unseen_fraction(self) -> float:
+        """The fraction of the grid's voxels whose sensitivity is at or below
+        :attr:`smin`: too little of their light reaches the sensor to reconstruct them
+        (the grid beyond the camera's field of view; read on the host)."""
+        dark = sum(int((s.get() <= self.smin).sum()) for s in self.sens)
+        return dark / self.proj.grid.size
 
     @functools.cached_property
     def binning(self) -> LateralBinning:
