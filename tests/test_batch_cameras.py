@@ -144,3 +144,32 @@ def test_two_cameras_at_one_pose_are_refused_before_any_frame(two_cameras, tmp_p
     with pytest.raises(ValueError, match=r"cameras 1 and 2 have the same pose"):
         plenocl.run(tmp_path / "experiment.toml", progress=False)
     assert not (tmp_path / "results").exists()
+
+
+def test_a_bad_frame_of_one_camera_is_named_with_its_camera(two_cameras, tmp_path,
+                                                             monkeypatch):
+    """Both cameras' folders hold frame_004.tif: camera 2's with a NaN pixel fails its
+    pair naming camera 2's file, not an ambiguous list of four names."""
+    import shutil
+
+    from plenocl.batch import worker
+    from plenocl.io.files import read_image
+
+    for name in ("experiment.toml", "cam1.toml", "cam2.toml", "white_2.tif"):
+        shutil.copy(two_cameras / name, tmp_path / name)
+    for name in ("raw1", "raw2"):
+        shutil.copytree(two_cameras / name, tmp_path / name)
+    bad = read_image(tmp_path / "raw2" / "frame_004.tif").astype(np.float32)
+    bad[3, 4] = np.nan
+    (tmp_path / "raw2" / "frame_004.tif").unlink()
+    write_tiff(tmp_path / "raw2" / "frame_004.tif", bad)
+
+    def unused(*args, **kwargs):
+        raise ValueError("not computed in this test")
+
+    monkeypatch.setattr(worker, "process_pair", unused)
+    monkeypatch.setattr(worker.PairProcessor, "projector", None)
+    summary = plenocl.run(tmp_path / "experiment.toml", progress=False, log=lambda _: None)
+    assert "camera 2's frame_004.tif contains 1 NaN or Inf pixel(s)" in summary.failed[2]
+    assert summary.failed[2].startswith("camera 1's frame_004.tif + camera 2's "
+                                        "frame_004.tif + camera 1's frame_005.tif")

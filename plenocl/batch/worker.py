@@ -174,8 +174,9 @@ class PairProcessor:
         """One raw frame as camera ``camera`` (its index) sees it: its colour channel,
         the dark frame and flat field of the experiment, the camera's region of
         interest."""
+        label = None if len(self.cameras) == 1 else _camera_file(camera, path)
         return load_frame(path, self.cameras[camera], self.settings.channel, self.dark,
-                          self.flat)
+                          self.flat, label=label)
 
     def _frames(self, task: PairTask):
         """The pair's two raw frames; several cameras: two lists, camera by camera."""
@@ -279,5 +280,13 @@ def _culprit(task: PairTask, exc: Exception) -> str:
     the pair's (several cameras: every camera's)."""
     which = exc.which if isinstance(exc, UnusableImageError) else None
     files = [(task.image_a, task.image_b), *task.others]
-    names = {tag: " + ".join(Path(f[i]).name for f in files) for i, tag in enumerate("ab")}
+    named = (lambda c, f: Path(f).name) if len(files) == 1 else _camera_file
+    names = {tag: " + ".join(named(c, f[i]) for c, f in enumerate(files))
+             for i, tag in enumerate("ab")}
     return names[which] if which in names else f"{names['a']} + {names['b']}"
+
+
+def _camera_file(camera: int, path) -> str:
+    """A frame named with its camera (index ``camera`` from 0): several cameras' folders
+    may hold the same file names."""
+    return f"camera {camera + 1}'s {Path(path).name}"

@@ -16,17 +16,19 @@ from ..simulate.sensor import correct_frame, flat_gain
 
 def load_frame(path, camera: Camera, channel: str | None = None,
                dark: np.ndarray | None = None, flat: np.ndarray | None = None,
-               white: bool = False) -> np.ndarray:
+               white: bool = False, label: str | None = None) -> np.ndarray:
     """Read ``path`` (:func:`plenocl.io.read_image` with ``channel``), correct it with
     ``dark`` and ``flat`` (:func:`plenocl.simulate.sensor.correct_frame`, when given) and cut it
     to ``camera``'s sensor (:meth:`plenocl.Camera.fit_image`).
 
     A frame with a NaN or Inf pixel, a blank frame, or a saturated one (not for a
     ``white`` image, whose spots may all be), is refused naming the file
-    (:func:`plenocl.optics.rawimage.check_image`, :func:`~plenocl.optics.rawimage.check_exposure`).
+    (:func:`plenocl.optics.rawimage.check_image`, :func:`~plenocl.optics.rawimage.check_exposure`);
+    ``label`` names it in those messages instead of its file name (several cameras:
+    ``"camera 2's frame_004.tif"``, their folders may hold the same names).
     """
     image = read_image(path, channel)
-    name = Path(path).name
+    name = Path(path).name if label is None else label
     raw = camera.fit_image(image, name)  # the shape first
     check_image(raw, camera, raw.dtype, name, copy=False)  # a NaN or Inf pixel: the file's
     check_exposure(raw, name, saturation=not white)
