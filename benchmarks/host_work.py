@@ -84,10 +84,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
+import pyopencl.array as cl_array  # noqa: E402
 from scipy import ndimage  # noqa: E402
 
 from plenocl import get_queue  # noqa: E402
 from plenocl.bench.accuracy_section import UNIFORM, budget_scene, paper_optics  # noqa: E402
+from plenocl.bench.clprofile import OpenCLProfile  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
 from plenocl.metrics import render_particles  # noqa: E402
@@ -99,7 +101,12 @@ from plenocl.piv import fitsums  # noqa: E402
 from plenocl.piv.correlation import window_grid  # noqa: E402
 from plenocl.piv.deformation import DeviceDeformer  # noqa: E402
 from plenocl.piv.devicesums import DeviceSums  # noqa: E402
-from plenocl.piv.direct import correlated_factors  # noqa: E402
+from plenocl.piv.direct import (  # noqa: E402
+    correlate_direct,
+    correlated_factors,
+    correlation_uncertainty,
+    fitted_windows,
+)
 from plenocl.piv.fitsums import HOST_CHUNK  # noqa: E402
 from plenocl.piv.imagefit import chunk_slices, posterior_covariance  # noqa: E402
 from plenocl.piv.interpolate import prepare  # noqa: E402
@@ -194,6 +201,32 @@ def headroom_turns(queue, pairs: int) -> tuple[tuple, tuple, float]:
     return new, old, float(np.nanmax(np.abs(new[0] - old[0])))
 
 
+def direct_fit_row(sums: DeviceSums, vol, moved, grid, n: int) -> None:
+    """The deformed pass's direct correlation with its uncertainty fitted on the device
+    (``DeviceSums.window_fit``, 2026-12-02) against the same device sums brought to the
+    host and fitted there (the code before: ``correlate_direct``, ``fit_direct`` and
+    ``correlation_uncertainty`` on the host); both volumes on the device, as the chain
+    hands them; the bytes each way read back and the largest displacement difference."""
+    a, b = (cl_array.to_device(sums.kernels.queue, v) for v in (vol, moved))
+
+    def on_host():
+        direct = correlate_direct(a, b, grid, 0.35, sums)
+        sigma = correlation_uncertainty(a, b, grid, 0.35, direct, sums)
+        return fitted_windows(direct, sigma)
+
+    def on_device():
+        return sums.window_fit(a, b, grid, 0.35, uncertainty=True)
+    moved_bytes = []
+    for way in (on_device, on_host):
+        with OpenCLProfile() as prof:
+            way()
+        moved_bytes.append(sum(c.nbytes for c in prof.calls if c.kind == "d2h") / 1e6)
+    new, old = timed(on_device, n), timed(on_host, n)
+    row(f"direct fit, {int(np.prod(grid.count))} windows (device / host)", new, old,
+        float(np.abs(new[0].displacement - old[0].displacement).max()), "voxel")
+    print(f"{'':44s} back to the host {moved_bytes[0]:.2f} MB against {moved_bytes[1]:.2f} MB")
+
+
 def row(label: str, new: tuple, old: tuple, difference: float, unit: str) -> None:
     """One comparison: both medians, the speed-up and the largest difference."""
     print(f"{label:44s} {new[1]:7.3f} s against {old[1]:7.3f} s ({old[1] / new[1]:4.1f}x); "
@@ -282,6 +315,8 @@ def main() -> None:
     old = timed(lambda: correlated_factors(vol, moved, grid, 0.35), n)
     row("correlated-sum factors (device / host)", new, old,
         float(np.max(np.abs(np.subtract(new[0], old[0])) / np.abs(old[0]))), "relative")
+
+    direct_fit_row(sums, vol, moved, grid, n)
 
     centres = np.rint(cam.microlens_centers.reshape(-1, 2))
     new = timed(lambda: lit_lenses(img, centres, LENS_REACH, 100.0), n)

@@ -201,6 +201,7 @@ def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_sto
     assert any(line.startswith("stopped: the time series") for line in said)
     assert not (out / "timeseries.zarr").exists()
     assert not (out / "timeseries.zarr.partial").exists()
+    assert not (out / "figures").exists()  # they drew the store no longer there
     assert json.loads((out / "summary.json").read_text())["stopped"] == third.stopped
     monkeypatch.undo()
     fourth = plenocl.run(experiment / "experiment.toml", out, progress=False)
@@ -248,6 +249,7 @@ def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
     from plenocl.batch import ensemble_field as module
 
     def full(out, *args, **kwargs):
+        (out / "ensemble.vti").write_bytes(b"<VTK")  # a copy written before the field
         (out / "ensemble.npz").write_bytes(b"PK")
         raise OSError(errno.ENOSPC, "No space left on device")
 
@@ -258,7 +260,7 @@ def test_time_series_demo_writes_an_experiment_and_measures_it(tmp_path, queue):
     assert third.ensemble is None and third.store is not None
     assert "the ensemble field ensemble.npz could not be written, the output disk is full" \
         in third.stopped
-    assert not (tmp_path / "results" / "ensemble.npz").exists()
+    assert not list((tmp_path / "results").glob("ensemble.*"))
 
 
 def test_pairs_of_another_grid_and_device_objects_with_workers_are_refused(experiment,

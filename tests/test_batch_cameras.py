@@ -149,7 +149,8 @@ def test_two_cameras_at_one_pose_are_refused_before_any_frame(two_cameras, tmp_p
 def test_a_bad_frame_of_one_camera_is_named_with_its_camera(two_cameras, tmp_path,
                                                              monkeypatch):
     """Both cameras' folders hold frame_004.tif: camera 2's with a NaN pixel fails its
-    pair naming camera 2's file, not an ambiguous list of four names."""
+    pair naming camera 2's file, and the pair's files each with its camera (the pair's
+    names were four file names, two of them the same)."""
     import shutil
 
     from plenocl.batch import worker

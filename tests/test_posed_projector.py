@@ -354,9 +354,15 @@ def test_several_cameras_refuse_what_they_cannot_do(queue):
     with pytest.raises(ValueError, match=r"another OpenCL queue than projector 1: build "
                                          r"every camera's projector on one queue"):
         reconstruct([img, img], [projs[0], Projector(cams[1], grid)])
-    with pytest.raises(ValueError, match=r"cameras 1 and 2 have the same pose .* Give each "
+    with pytest.raises(ValueError, match=r"cameras 1 and 2 have the same pose .* give each "
                                          r"camera its own pose"):
         reconstruct([img, img], [projs[0], projs[0]])  # one view twice: no depth, weighed 2x
+    import dataclasses
+
+    from plenocl.camera.pose import check_distinct_poses
+
+    refocused = dataclasses.replace(cams[0], magnification=0.9 * cams[0].magnification)
+    check_distinct_poses([cams[0], refocused])  # the same place, another focus: a view
     with pytest.raises(ValueError, match="tol and mask_fraction are one camera's"):
         reconstruct([img, img], projs, tol=1e-3)
     with pytest.raises(ValueError, match="pixel_mask and start volumes are for one camera"):

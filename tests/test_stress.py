@@ -772,7 +772,7 @@ INVALID = [
      ValueError, r"several cameras need one image per projector: got 1 image\(s\) and 2"),
     ("reconstruct-cameras-pose", lambda c: reconstruct([c["img"], c["img"]],
                                                        [c["proj"], c["proj"]]),
-     ValueError, r"cameras 1 and 2 have the same pose .* Give each camera its own pose"),
+     ValueError, r"cameras 1 and 2 have the same pose .* give each camera its own pose"),
     ("reconstruct-cameras-start", lambda c: reconstruct(
         [c["img"], c["img"]], [c["proj"], c["proj"]],
         start=np.ones(c["proj"].grid.shape, np.float32), supersample=1),

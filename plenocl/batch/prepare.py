@@ -39,7 +39,7 @@ def run_cameras(exp: Experiment, queue, log) -> list[Camera]:
     tables = exp.cameras or (exp["camera"],)
     cameras = [run_camera(exp, queue, log, table) for table in tables]
     if len(cameras) > 1:  # before any frame is read: every pair would fail at it
-        check_distinct_poses([camera.pose for camera in cameras])
+        check_distinct_poses(cameras)
     return cameras
 
 

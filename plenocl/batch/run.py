@@ -213,10 +213,12 @@ class _DiskFull(Exception):
 
 
 def _no_store(path: Path, summary: RunSummary, exc: OSError, log) -> None:
-    """The disk filled while the time-series store was written: its half-written copy
-    and the older store (which no longer gathers this run's pairs) are removed, so no
-    store is left that the pairs would not make (:func:`_stopped_writing`)."""
-    for stale in (path.with_name(path.name + ".partial"), path):
+    """The disk filled while the time-series store was written: its half-written copy,
+    the older store (which no longer gathers this run's pairs) and its figures are
+    removed, so no store is left that the pairs would not make
+    (:func:`_stopped_writing`)."""
+    # the older store's figures too: they drew a store no longer there
+    for stale in (path.with_name(path.name + ".partial"), path, path.parent / "figures"):
         shutil.rmtree(stale, ignore_errors=True)
     _stopped_writing(f"the time series {path.name}", summary, exc, log)
 
@@ -419,7 +421,8 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
     except OSError as exc:
         if not disk_full(exc):
             raise
-        (out / ENSEMBLE).unlink(missing_ok=True)
+        for part in (out / ENSEMBLE, *field_copies(out / ENSEMBLE)):  # none half-written
+            part.unlink(missing_ok=True)
         ensemble = _stopped_writing(f"the ensemble field {ENSEMBLE}", summary, exc, log)
     if exp["piv"]["ensemble"]:
         summary.ensemble = None if ensemble is None else str(ensemble)

@@ -142,19 +142,25 @@ def require_world_frame(camera, what: str) -> None:
             "process_pair take a posed camera with a world grid; docs/design.md §2.2)")
 
 
-def check_distinct_poses(poses) -> None:
-    """Several cameras in one reconstruction stand at different places: two with the
-    same pose (``None``, no pose, is the world frame) would give one view twice, which
-    measures no depth and weighs that view double; refused, naming them and the fix."""
-    placed = [Pose() if pose is None else pose for pose in poses]
-    for j, first in enumerate(placed, start=1):
-        for k, other in enumerate(placed[j:], start=j + 1):
-            if (np.allclose(first.rotation_deg, other.rotation_deg, rtol=0, atol=1e-9)
-                    and np.allclose(first.translation_mm, other.translation_mm, rtol=0,
-                                    atol=1e-9)):
+def check_distinct_poses(cameras) -> None:
+    """Several cameras in one reconstruction see the volume differently: two with the
+    same pose (``None``, no pose, is the world frame) and the same main lens (focal
+    length, f-number, magnification) would give one view twice, which measures no depth
+    and weighs that view double; refused, naming them and the fix. (The same pose with
+    another focus, behind a beam splitter say, is another view.)"""
+    def view(camera) -> tuple:
+        pose = Pose() if camera.pose is None else camera.pose
+        return (*pose.rotation_deg, *pose.translation_mm, camera.focal_length_mm,
+                camera.f_number, camera.magnification)
+
+    views = [np.asarray(view(c), float) for c in cameras]
+    for j, first in enumerate(views, start=1):
+        for k, other in enumerate(views[j:], start=j + 1):
+            if np.allclose(first, other, rtol=1e-12, atol=1e-9):
                 raise ValueError(
-                    f"cameras {j} and {k} have the same pose (rotation {first.rotation_deg} "
-                    f"deg, translation {first.translation_mm} mm): several cameras must see "
-                    "the volume from different places. Give each camera its own pose "
-                    "([pose] in its camera file, Camera.with_pose, or plenocl.calibrate_pose "
-                    "from a dot target), or list each camera file once")
+                    f"cameras {j} and {k} have the same pose (rotation {tuple(first[:3])} "
+                    f"deg, translation {tuple(first[3:6])} mm) and main lens: one view "
+                    "twice. Several cameras must see the volume from different places: "
+                    "give each camera its own pose ([pose] in its camera file, "
+                    "Camera.with_pose, or plenocl.calibrate_pose from a dot target), or "
+                    "list each camera file once")

@@ -132,7 +132,7 @@ def check_cameras(images: Sequence, projectors: Sequence) -> None:
                          f"{len(images)} image(s) and {len(projectors)} projector(s)")
     grid, queue = projectors[0].grid, projectors[0].queue
     if len(projectors) > 1:
-        check_distinct_poses([getattr(p.camera, "pose", None) for p in projectors])
+        check_distinct_poses([p.camera for p in projectors])
     for k, proj in enumerate(projectors[1:], start=2):
         if proj.grid != grid:
             raise ValueError(f"projector {k}'s grid {proj.grid} is not projector 1's "
@@ -209,7 +209,7 @@ def _warn_if_unequal(prepared: Sequence[PreparedImage]) -> None:
                       "a camera of higher gain or bit depth outweighs the others and the "
                       "second view's depth is partly lost; bring the frames to one gain "
                       "(divide the brighter camera's frames by the ratio of the gains)",
-                      stacklevel=4)
+                      stacklevel=7)
 
 
 def warn_partial_views(solver: JointSolver, projectors: Sequence) -> None:
@@ -217,8 +217,8 @@ def warn_partial_views(solver: JointSolver, projectors: Sequence) -> None:
     more than :data:`.solver.OUTSIDE_WARN` of the grid (there the other cameras measure
     alone: one camera's depth error, or none)."""
     g = projectors[0].grid
-    key = (tuple(id(p.camera) for p in projectors[1:]), tuple(g.x), tuple(g.y), tuple(g.z),
-           g.rotation_deg)
+    key = (tuple((id(p.camera), p.camera.pose) for p in projectors[1:]), tuple(g.x),
+           tuple(g.y), tuple(g.z), g.rotation_deg, float(solver.smin))
     checked = _VIEWS_CHECKED.setdefault(projectors[0].camera, set())
     if key in checked:
         return
@@ -229,7 +229,7 @@ def warn_partial_views(solver: JointSolver, projectors: Sequence) -> None:
             warnings.warn(f"camera {k} does not see {fraction:.0%} of the grid's voxels: there "
                           "the other cameras measure alone (one camera's depth error, or no "
                           "data where none sees them); narrow the grid to where the cameras' "
-                          "views overlap, or turn the camera towards it", stacklevel=4)
+                          "views overlap, or turn the camera towards it", stacklevel=7)
 
 
 def _sampled(projectors: Sequence, oversample: float | None) -> list:
