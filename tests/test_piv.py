@@ -7,12 +7,12 @@ the flows' parameters (displacement, axes, centres) are drawn from the seed.
 
 from __future__ import annotations
 
-import re
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+from vtkfiles import read_appended
 
 from plenocl import flows
 from plenocl import vectorfield as fieldio
@@ -364,29 +364,11 @@ def test_save_npz_round_trip(tmp_path: Path, small_result):
     assert [p.name for p in tmp_path.iterdir()] == ["f.npz"]   # no temporary left
 
 
-def _read_vti(path: Path) -> tuple[dict, dict]:
-    """Minimal reader for pyevtk's raw-appended ImageData: header attributes and arrays."""
-    raw = path.read_bytes()
-    head, _, data = raw.partition(b'<AppendedData encoding="raw">')
-    text = head.decode("ascii")
-    start = data.index(b"_") + 1
-    attrs = dict(re.findall(r'(WholeExtent|Origin|Spacing)="([^"]*)"', text))
-    arrays = {}
-    for m in re.finditer(r"<DataArray ([^>]*)>", text):
-        a = dict(re.findall(r'(\w+)="([^"]*)"', m.group(1)))
-        dtype = {"Float64": "<f8", "Float32": "<f4", "UInt8": "u1"}[a["type"]]
-        off = start + int(a["offset"])
-        nbytes = int(np.frombuffer(data[off:off + 8], "<u8")[0])
-        arrays[a["Name"]] = (np.frombuffer(data[off + 8:off + 8 + nbytes], dtype),
-                             int(a.get("NumberOfComponents", 1)))
-    return attrs, arrays
-
-
 def test_save_vti_layout_is_x_fastest_in_mm(tmp_path: Path, small_result):
     res = small_result
     path = fieldio.save_field(tmp_path / "f.vti", res, voxel_size_mm=(0.1, 0.05, 0.025),
                               origin_mm=(1.0, 2.0, 3.0), dt=1e-3)
-    attrs, arrays = _read_vti(path)
+    attrs, arrays = read_appended(path)
     nz, ny, nx = res.shape
     assert attrs["WholeExtent"].split() == ["0", str(nx - 1), "0", str(ny - 1), "0", str(nz - 1)]
     assert np.allclose([float(s) for s in attrs["Origin"].split()],

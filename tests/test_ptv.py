@@ -7,6 +7,7 @@ import importlib
 
 import numpy as np
 import pytest
+from vtkfiles import read_appended
 
 import plenocl
 from plenocl.ptv import Tracks, link, smooth
@@ -314,13 +315,20 @@ def test_tracks_files_round_trip_and_open_as_poly_lines(tmp_path):
     for name in ("velocity_m_per_s", "speed_m_per_s", "frame", "track"):
         assert f'Name="{name}"' in header
     assert 'Name="velocity"' not in header
+    # a run's frames numbered from 100: the lines' frame is the number, as the store's
+    _, arrays = read_appended(tracks.save(tmp_path / "n.vtu", frames=range(100, 105)))
+    np.testing.assert_array_equal(arrays["frame"][0], [100, 101, 102, 103, 104, 101, 102, 103])
+    _, arrays = read_appended(tmp_path / "t.vtu")
+    np.testing.assert_array_equal(arrays["frame"][0], [0, 1, 2, 3, 4, 1, 2, 3])
+    with pytest.raises(ValueError, match="frames names 3 frame number"):
+        tracks.save(tmp_path / "x.vtu", frames=[1, 2, 3])
     with pytest.raises(ValueError, match="not a plenocl tracks file"):
         np.savez(tmp_path / "other.npz", x=np.zeros(3))
         Tracks.load(tmp_path / "other.npz")
     with pytest.raises(ValueError, match=r"\.npz or \.vtu"):
         tracks.save(tmp_path / "t.csv")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.npz", "s.vtu", "t.npz",
-                                                          "t.vtu"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["n.vtu", "other.npz", "s.vtu",
+                                                          "t.npz", "t.vtu"]
 
 
 def test_the_tracks_figure_is_written(tmp_path):

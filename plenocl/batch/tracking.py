@@ -330,7 +330,8 @@ def _write_outputs(out: Path, frames: dict[int, Path], opts: TrackingOptions, ca
                          f"({out / TRACKS} holds no track): check that the frames are "
                          "consecutive and in focus, or lower [tracking] threshold or "
                          "min_length, or widen search (docs/errors.md)")
-    tracks.save(out / LINES, seconds=True)  # m/s, as the store and the figure
+    tracks.save(out / LINES, seconds=True, frames=list(frames))  # m/s and frame numbers,
+    # as the store and the figure
     fields = binned_fields(tracks, grid, opts, layout, FocalZone.along_grid(camera, grid))
     write_track_store(out / STORE, tracks, list(frames), fields, grid, record)
 

@@ -82,7 +82,8 @@ class Tracks:
         ``(n_tracks, n_frames - 1, 3)`` mm (NaN where either end is missing)."""
         return np.diff(self.positions, axis=1)
 
-    def save(self, path, record: dict | None = None, seconds: bool = False) -> Path:
+    def save(self, path, record: dict | None = None, seconds: bool = False,
+             frames=None) -> Path:
         """Write the tracks: ``.npz`` (every array and ``dt``, read back by :meth:`load`,
         and ``record``, JSON-ready, what made them: :meth:`record_of`) or ``.vtu``
         (poly-lines for ParaView: each track through its smoothed positions, with its
@@ -90,7 +91,9 @@ class Tracks:
         positions are left out). Written atomically. ``.vtu`` with ``seconds`` (``dt`` in
         seconds, as a batch's): ``velocity_m_per_s`` and ``speed_m_per_s`` in m/s, the
         unit of every other product of a run; without it ``velocity`` and ``speed`` in mm
-        per unit of ``dt``, as the tracks hold them."""
+        per unit of ``dt``, as the tracks hold them. ``frames``: the frames' numbers (a
+        run's, as its store's ``frame`` coordinate), which ``.vtu``'s ``frame`` then
+        holds instead of the index from 0."""
         path = Path(path)
         if path.suffix == ".npz":
             extra = {} if record is None else {"record": np.asarray(json.dumps(record))}
@@ -100,7 +103,7 @@ class Tracks:
                                         dropped=self.dropped, **extra,
                                         **{name: getattr(self, name) for name in _PER_TRACK})
         elif path.suffix == ".vtu":
-            lines, data = self._lines()
+            lines, data = self._lines(frames)
             for name in ("velocity", "speed") if seconds else ():  # mm/s to m/s
                 data[f"{name}_m_per_s"] = [v * 1e-3 for v in data.pop(name)]
             write_vtu(path, lines, data)
@@ -125,8 +128,15 @@ class Tracks:
         with open_npz(path, "tracks (Tracks.save)") as data:
             return json.loads(str(data["record"])) if "record" in data.files else {}
 
-    def _lines(self) -> tuple[list[np.ndarray], dict[str, list[np.ndarray]]]:
-        """Each track's smoothed positions as a line and its per-point arrays."""
+    def _lines(self, frames=None) -> tuple[list[np.ndarray], dict[str, list[np.ndarray]]]:
+        """Each track's smoothed positions as a line and its per-point arrays (``frame``:
+        ``frames[k]`` of frame index ``k``, the index itself without ``frames``)."""
+        count = self.positions.shape[1]
+        number_of = (np.arange(count, dtype=float) if frames is None
+                     else np.asarray(frames, float).reshape(-1))
+        if len(number_of) != count:
+            raise ValueError(f"frames names {len(number_of)} frame number(s) for tracks of "
+                             f"{count} frames")
         lines, data = [], {"velocity": [], "speed": [], "frame": [], "track": []}
         for number, (pos, vel) in enumerate(zip(self.positions, self.velocities)):
             here = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
@@ -135,7 +145,7 @@ class Tracks:
             lines.append(pos[here])
             data["velocity"].append(np.nan_to_num(vel[here]))
             data["speed"].append(np.linalg.norm(np.nan_to_num(vel[here]), axis=1))
-            data["frame"].append(here.astype(float))
+            data["frame"].append(number_of[here])
             data["track"].append(np.full(len(here), float(number)))
         return lines, data
 
