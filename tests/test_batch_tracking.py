@@ -234,7 +234,10 @@ def test_the_frame_interval_is_needed_and_checked_in_seconds(tmp_path):
     for old, new, message in (
             (f"frame_interval_s = {INTERVAL_S}\n", "", "frame_interval_s must be the time"),
             (f"frame_interval_s = {INTERVAL_S}", "frame_interval_s = 250",
-             r"frame_interval_s = 250 s .*force_dt = true")):
+             r"frame_interval_s = 250 s .*force_dt = true"),
+            (f"frame_interval_s = {INTERVAL_S}", "frame_interval_s = 0",  # not pair wording
+             r"frame_interval_s must be the time between successive frames in seconds, a "
+             r"positive number \(e.g. 1e-3\), got 0$")):
         (tmp_path / "e.toml").write_text(EXPERIMENT.replace(old, new))
         with pytest.raises(ValueError, match=message):
             load_experiment(tmp_path / "e.toml")

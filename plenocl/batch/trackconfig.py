@@ -190,9 +190,10 @@ def check_images_for_tracking(images: Mapping, ensemble: bool, path: Path,
 
 
 def _interval(value, images: Mapping, where: str) -> float:
-    if value is None or isinstance(value, bool) or not isinstance(value, (int, float)):
+    if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not value > 0 or value == float("inf"):
         raise ValueError(f"{where} frame_interval_s must be the time between successive "
-                         f"frames in seconds (e.g. 1e-3), got {value!r}")
+                         f"frames in seconds, a positive number (e.g. 1e-3), got {value!r}")
     return check_dt(value, f"{where} frame_interval_s", images["force_dt"],
                     flag="[images] force_dt = true")
 
