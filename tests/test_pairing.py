@@ -109,6 +109,14 @@ def test_fingerprints_tell_a_changed_file_from_a_copied_one(tmp_path):
     assert "frame_000.tif" in changed_since(recorded, pair)
     assert "other" not in (changed_since(recorded, ImagePair(0, b, a)) or "other")
     assert "older plenocl" in changed_since({}, pair)
+    # several cameras: the changed one named ("camera 2's it was made from" before)
+    (tmp_path / "two").mkdir()
+    c2 = _frames(tmp_path / "two", (0, 1), "g_{:03d}.tif")
+    two = {"a": fingerprint(a), "b": fingerprint(b),
+           "cameras": [{"a": fingerprint(c2[0]), "b": fingerprint(c2[1])}]}
+    c2[1].write_bytes(b"changed since")
+    assert changed_since(two, ImagePair(0, a, b, ((c2[0], c2[1]),))).startswith(
+        "camera 2: it was made from g_001.tif")
 
 
 def test_a_pairs_frames_are_found_where_its_pattern_reached(tmp_path):
