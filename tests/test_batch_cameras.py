@@ -174,3 +174,20 @@ def test_a_bad_frame_of_one_camera_is_named_with_its_camera(two_cameras, tmp_pat
     assert "camera 2's frame_004.tif contains 1 NaN or Inf pixel(s)" in summary.failed[2]
     assert summary.failed[2].startswith("camera 1's frame_004.tif + camera 2's "
                                         "frame_004.tif + camera 1's frame_005.tif")
+
+
+def test_a_grid_fitted_to_a_posed_first_camera_is_refused_with_the_files_fix(tmp_path):
+    """[grid] z_mm with a posed first camera: named with the experiment file's fix
+    ([grid] file), not only the Python one."""
+    from plenocl.batch.prepare import run_grid
+
+    posed = Camera.synthetic_850().with_pose(Pose((0.0, 10.0, 0.0), (0.0, 0.0, 0.0)))
+    posed.to_toml(tmp_path / "cam1.toml")
+    Camera.synthetic_850().with_pose(Pose((0.0, -10.0, 0.0), (0.0, 0.0, 0.0))).to_toml(
+        tmp_path / "cam2.toml")
+    (tmp_path / "experiment.toml").write_text(EXPERIMENT.replace(
+        'file = "cam2.toml"\nwhite = "white_2.tif"', 'file = "cam2.toml"'))
+    exp = load_experiment(tmp_path / "experiment.toml")
+    with pytest.raises(ValueError, match=r"the \(first\) camera has a \[pose\]: .*give it as "
+                                         r"\[grid\] file"):
+        run_grid(exp, [posed, posed])

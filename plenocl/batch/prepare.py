@@ -74,6 +74,12 @@ def run_grid(exp: Experiment, camera: Camera | list[Camera]) -> Grid:
     g = exp["grid"]
     if g["file"]:
         grid = Grid.from_toml(exp.base / g["file"])
+    elif cameras[0].pose is not None:
+        raise ValueError(
+            "[grid] z_mm fits the grid to the camera in its own frame, but the (first) "
+            "camera has a [pose]: the grid then lies in the world frame, so give it as "
+            "[grid] file = \"grid.toml\" (written by plenocl grid for that camera without "
+            "its [pose], carried into the world by hand, or made with plenocl.Grid)")
     else:
         grid = Grid.for_camera(cameras[0], tuple(g["z_mm"]), voxel_mm=g["voxel_mm"],
                                depth_voxel_mm=g["depth_voxel_mm"], fraction=g["fraction"])
