@@ -300,6 +300,13 @@ def test_simulate_refuses_a_dt_in_the_wrong_units(tmp_path, capsys):
         capsys.readouterr().err
     assert not list(tmp_path.glob("raw*.tif"))
     assert main([*common, "--dt", "0.5", "--force"]) == 0  # the rare real case: forced
+    # one flow: --omega beside --velocity dropped the velocity in silence; --dt alone
+    # (no flow) was ignored
+    with pytest.raises(SystemExit) as stop:
+        main([*common, "--omega", "0", "0", "100", "--dt", "175e-6"])
+    assert stop.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
+    assert main([*common[:5], "--dt", "175e-6"]) == 2
+    assert "--dt is the time between a displaced pair's exposures" in capsys.readouterr().err
 
 
 def test_one_meaning_per_option_name(tmp_path, capsys):
@@ -330,6 +337,10 @@ def test_grid_command_labels_its_sizes_in_their_order(tmp_path, capsys):
     dz, dy, dx = g.spacing
     assert f"of {dz:.4g} x {dy:.4g} x {dx:.4g} mm (z, y, x)" in out
     assert "fewer than 3 layers of vectors in depth" in out and "--depth-voxel-mm" in out
+    # a depth voxel of 0 is refused as by the API (it silently took the default)
+    assert main(["grid", "--camera", "synthetic", "--z", "-2", "2", "--depth-voxel-mm", "0",
+                 "--out", str(tmp_path / "g0.toml")]) == 2
+    assert "depth_voxel_mm" in capsys.readouterr().err and not (tmp_path / "g0.toml").exists()
 
 
 def test_quiet_and_verbose(tmp_path, capsys):
@@ -403,3 +414,26 @@ def test_reconstructs_progress_bar_counts_the_coarse_and_the_fine_iterations(
                  "--grid", str(tmp_path / "g.toml"), "--out", str(tmp_path / "v.npz"),
                  "--supersample", "2", "--coarse-iterations", "3", "--iterations", "2"]) == 0
     assert bars == [(5, [1, 2, 3, 4, 5])]
+
+
+def test_a_complex_volume_or_a_field_for_a_volume_is_one_line_exit_2(tmp_path, capsys):
+    """The API refuses a complex array with TypeError and an HDF5 file without a volume
+    with KeyError: both reached the command line as tracebacks (exit 1)."""
+    import h5py
+
+    from plenocl import Grid
+
+    Grid((8, 8, 8), x=(-1, 1), y=(-1, 1), z=(-1, 1)).to_toml(tmp_path / "g.toml")
+    np.save(tmp_path / "c.npy", np.ones((8, 8, 8), np.complex64))
+    np.save(tmp_path / "v.npy", np.ones((8, 8, 8), np.float32))
+    with h5py.File(tmp_path / "f.h5", "w") as fh:
+        fh["velocity"] = np.zeros((3, 2, 2, 2))
+    (tmp_path / "x.h5").write_bytes(b"not hdf5")
+    common = ["--dt", "175e-6", "--grid", str(tmp_path / "g.toml"), "--out",
+              str(tmp_path / "o.npz")]
+    for first, message in (("c.npy", "must hold real numbers"),
+                           ("f.h5", "f.h5 holds no 'volume' dataset"),
+                           ("x.h5", "x.h5 cannot be read as HDF5")):
+        assert main(["piv", str(tmp_path / first), str(tmp_path / "v.npy"), *common]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err

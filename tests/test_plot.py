@@ -321,3 +321,20 @@ def test_a_stores_mean_field_is_drawn_on_its_grids_axes(tmp_path):
     mean = store_field(arrays, rotation_deg=attrs["rotation_deg"])
     np.testing.assert_allclose(mean.velocity[0], grid.spacing[2], rtol=1e-6)  # m/s, 1 ms
     np.testing.assert_allclose(mean.velocity[1], 0.0, atol=1e-9)
+
+
+def test_a_volume_with_a_nan_voxel_is_drawn_on_its_own_scale_and_said(tmp_path):
+    """One NaN voxel made the colour scale's percentile NaN: a figure saturated 0-1 for
+    data up to 2600, in silence. It is drawn as no light, the scale the others', and said."""
+    import imageio.v3 as iio
+
+    from plenocl.plot.volume import volume_figure
+
+    rng = np.random.default_rng(0)
+    vol = (rng.random((6, 12, 14)) ** 8 * 2600).astype(np.float32)
+    clean = iio.imread(volume_figure(tmp_path / "clean.png", vol))
+    vol[2, 3, 4] = np.nan
+    with pytest.warns(UserWarning, match=r"1 voxel\(s\) of the volume are NaN or Inf"):
+        damaged = iio.imread(volume_figure(tmp_path / "nan.png", vol))
+    assert damaged.shape == clean.shape
+    assert np.mean(damaged != clean) < 0.01  # the same figure but for that voxel

@@ -143,7 +143,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             check_outputs(args)  # before any work
             return int(args.func(args) or 0)
-        except (ValueError, OSError, MemoryError, RuntimeError) as exc:
+        except (ValueError, TypeError, OSError, MemoryError, RuntimeError) as exc:
+            # TypeError: the API's refusal of a complex or boolean array, say
             print(f"plenocl {args.command}: error: {exc}{_hint(exc)}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:

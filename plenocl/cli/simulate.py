@@ -37,6 +37,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     positions, intensities = read_particles(args.particles)
     out = Path(args.out)
     if args.velocity is None and args.omega is None:
+        if args.dt is not None:
+            raise ValueError("--dt is the time between a displaced pair's exposures: give the "
+                             "flow that moves them (--velocity U V W or --omega WX WY WZ), or "
+                             "leave --dt out for one image")
         _simulate_cameras(args, cams, out, positions, intensities)
         write_particles(out.with_name(out.stem + "_particles.csv"), positions, intensities)
         return 0
@@ -110,8 +114,8 @@ def cmd_grid(args: argparse.Namespace) -> int:
     from ..optics.depthrange import resolved_depth_range
 
     camera = load_camera(args.camera)
-    depth_voxel = args.depth_voxel_mm or min(camera.depth_resolution_mm / 2,
-                                             abs(args.z[1] - args.z[0]) / THREE_LAYERS)
+    depth_voxel = (min(camera.depth_resolution_mm / 2, abs(args.z[1] - args.z[0]) / THREE_LAYERS)
+                   if args.depth_voxel_mm is None else args.depth_voxel_mm)  # 0: refused
     # refused before anything is written when the camera does not resolve args.z
     grid = Grid.for_camera(camera, tuple(args.z), voxel_mm=args.voxel_mm,
                            depth_voxel_mm=depth_voxel, fraction=args.fraction)
@@ -161,10 +165,12 @@ def add_simulate_parsers(sub) -> None:
     p.add_argument("--rays", type=int, default=2000, help="rays per particle")
     p.add_argument("--blur", type=float, default=0.0, help="particle-image blur (px)")
     p.add_argument("--background", type=float, default=0.0, help="background (counts)")
-    p.add_argument("--velocity", type=float, nargs=3, default=None, metavar=("U", "V", "W"),
-                   help="a pair moved by a uniform flow (m/s)")
-    p.add_argument("--omega", type=float, nargs=3, default=None, metavar=("WX", "WY", "WZ"),
-                   help="a pair moved by a solid-body rotation about the origin (rad/s)")
+    motion = p.add_mutually_exclusive_group()  # one flow: both would drop one silently
+    motion.add_argument("--velocity", type=float, nargs=3, default=None,
+                        metavar=("U", "V", "W"), help="a pair moved by a uniform flow (m/s)")
+    motion.add_argument("--omega", type=float, nargs=3, default=None,
+                        metavar=("WX", "WY", "WZ"),
+                        help="a pair moved by a solid-body rotation about the origin (rad/s)")
     p.add_argument("--dt", type=float, default=None, help="time between the pair (s)")
     p.add_argument("--force", action="store_true",
                    help="accept a dt or displacement outside the plausible range (a dt "

@@ -229,7 +229,17 @@ def read_volume(path: str | Path) -> tuple[np.ndarray, dict]:
     elif suffix in (".h5", ".hdf5"):
         import h5py
 
-        with h5py.File(path, "r") as fh:
+        try:
+            fh = h5py.File(path, "r")
+        except OSError as exc:  # not HDF5, or damaged: name the file
+            raise ValueError(f"{path} cannot be read as HDF5 ({exc}): a volume written by "
+                             "plenocl.save_volume, or a damaged copy") from None
+        with fh:
+            if "volume" not in fh:
+                raise ValueError(f"{path} holds no 'volume' dataset (it holds "
+                                 f"{sorted(fh.keys())[:6]}...): not a volume plenocl "
+                                 "wrote (a vector field is read by "
+                                 "plenocl.vectorfield.read_npz)")
             vol, meta = fh["volume"][...], dict(fh.attrs)
     else:
         raise ValueError(f"unknown volume format {suffix!r}: use .npy, .npz or .h5")

@@ -3,6 +3,7 @@ slices, in mm."""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -37,13 +38,24 @@ def _image(ax, image2d, h, v, limits):
                      cmap="magma", aspect="equal", interpolation="nearest")
 
 
+def _finite(vol: np.ndarray) -> np.ndarray:
+    """The volume with its NaN and Inf voxels drawn as no light, said (a single NaN made
+    the colour scale's percentile NaN: a saturated figure, in silence)."""
+    bad = ~np.isfinite(vol)
+    if not bad.any():
+        return vol
+    warnings.warn(f"{int(bad.sum())} voxel(s) of the volume are NaN or Inf (of "
+                  f"{vol.size}): drawn as no light; check the file", stacklevel=3)
+    return np.where(bad, 0.0, vol)
+
+
 def volume_figure(path: str | Path, vol: np.ndarray, grid=None, view: str = "projection",
                   axis: str = "z", at: Sequence[float] | None = None) -> Path:
     """``view="projection"``: the maximum intensity along z, y and x (three panels);
     ``"slices"``: three slices normal to ``axis`` (nearest ``at`` mm, or spread evenly).
     Axes in mm with a grid, else in voxels; one colour scale, 0 to the 99.5th
     percentile of what is shown."""
-    vol, axis = np.asarray(vol, float), check_axis(axis)
+    vol, axis = _finite(np.asarray(vol, float)), check_axis(axis)
     c = _centres(grid, vol.shape)
     unit = "mm" if grid is not None else "voxel"
     if view == "projection":
