@@ -437,3 +437,16 @@ def test_a_complex_volume_or_a_field_for_a_volume_is_one_line_exit_2(tmp_path, c
         assert main(["piv", str(tmp_path / first), str(tmp_path / "v.npy"), *common]) == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, err
+
+
+def test_an_output_that_is_an_input_is_refused_before_any_work(tmp_path, capsys):
+    """``grid --camera cam.toml --out cam.toml`` replaced the calibrated camera with a
+    grid file (exit 0): an output naming one of the command's inputs is refused."""
+    from plenocl import Camera
+
+    Camera.synthetic_850().to_toml(tmp_path / "cam.toml")
+    before = (tmp_path / "cam.toml").read_bytes()
+    assert main(["grid", "--camera", str(tmp_path / "cam.toml"), "--z", "-2", "2",
+                 "--out", str(tmp_path / "cam.toml")]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert (tmp_path / "cam.toml").read_bytes() == before

@@ -7,6 +7,7 @@ that folder checked (:func:`plenocl.io.outputs.check_output_folder`).
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from ..io.fieldformat import FIELD_FORMATS
 from ..io.files import VOLUME_FORMATS
@@ -40,8 +41,28 @@ def check_outputs(args: argparse.Namespace) -> None:
     out = getattr(args, "out", None)
     if out is None:
         return  # plenocl run without --out: the run checks its experiment's folder
+    outputs = {"out", *EXTRA_OUTPUTS.get(args.command, {})}
+    for option in outputs:
+        if getattr(args, option, None) is not None:
+            _not_an_input(args, option, outputs)
     if args.command in FILE_OUTPUTS:
         what, formats = FILE_OUTPUTS[args.command]
         check_output(out, formats, what)
     elif args.command in FOLDER_OUTPUTS:
         check_output_folder(out)
+
+
+def _not_an_input(args: argparse.Namespace, option: str, outputs: set) -> None:
+    """Refuse an output that is one of the command's input files: writing it would
+    replace the input (a calibrated camera turned into a grid file, say)."""
+    target = Path(getattr(args, option)).resolve()
+    for name, value in vars(args).items():
+        if name in outputs:
+            continue
+        for given in value if isinstance(value, (list, tuple)) else [value]:
+            if isinstance(given, str) and Path(given).is_file() and \
+                    Path(given).resolve() == target:
+                flag = "--" + option.replace("_", "-")
+                raise ValueError(f"{flag} {getattr(args, option)} is also the command's input "
+                                 f"({name.replace('_', ' ')}): writing it would replace "
+                                 "that input; give the output another name")
