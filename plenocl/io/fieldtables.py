@@ -4,7 +4,9 @@ The rows run over the vector grid with x fastest, then y, then z (the order of t
 arrays ``(nz', ny', nx')`` flattened), and both formats hold the same columns:
 
 - ``x [mm]``, ``y [mm]``, ``z [mm]``: the vector's position, in the grid's frame as the
-  ``.vti`` file gives it;
+  ``.vti`` file gives it; on a grid turned about the optical axis (``rotation_deg``) also
+  ``x_object [mm]``, ``y_object [mm]``, the position in object space, the frame of the
+  velocity below (the Tecplot file's ``#`` lines give the turn);
 - ``u [m/s]``, ``v [m/s]``, ``w [m/s]``: the velocity in object space (only in fields
   written with ``dt``);
 - ``u_voxel [voxel]``, ``v_voxel [voxel]``, ``w_voxel [voxel]``: the displacement along
@@ -38,6 +40,11 @@ def field_columns(arrays: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, 
     z, y, x = np.meshgrid(*(np.asarray(arrays[f"{a}_mm"], float) for a in "zyx"),
                           indexing="ij")
     cols = [(f"{a} [mm]", c.ravel(), _FLOAT) for a, c in zip("xyz", (x, y, z))]
+    turn = _turn(arrays)
+    if turn:  # the velocities' frame: positions turned as Grid.to_world turns vectors
+        c, s = np.cos(np.radians(turn)), np.sin(np.radians(turn))
+        cols += [("x_object [mm]", (c * x - s * y).ravel(), _FLOAT),
+                 ("y_object [mm]", (s * x + c * y).ravel(), _FLOAT)]
     if "velocity" in arrays:
         cols += [(f"{a} [m/s]", np.asarray(c, float).ravel(), _FLOAT)
                  for a, c in zip("uvw", arrays["velocity"])]
@@ -46,6 +53,11 @@ def field_columns(arrays: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, 
     cols += [(flag, np.asarray(arrays[flag], bool).ravel().astype(np.int64), _FLAG)
              for flag in ("valid", "outlier", "masked")]
     return cols
+
+
+def _turn(arrays: dict[str, np.ndarray]) -> float:
+    """The grid's turn about the optical axis (degrees; 0 for a field without one)."""
+    return float(np.asarray(arrays.get("rotation_deg", 0.0)))
 
 
 def write_csv(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
@@ -68,6 +80,9 @@ def write_tecplot(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
         "# plenocl vector field: one row per vector, x fastest, then y, then z",
         "# masked vectors are written as 0 with valid = 0 and masked = 1; outliers hold "
         "their replaced values",
+        *([f"# the grid is turned {_turn(arrays):.6g} deg about the optical axis: x, y [mm] "
+           "along its axes, u, v [m/s] in object space, at x_object, y_object [mm]"]
+          if _turn(arrays) else []),
         'TITLE = "plenocl vector field"',
         "VARIABLES = " + " ".join(f'"{c[0]}"' for c in cols),
         f'ZONE T="field", I={nx}, J={ny}, K={nz}, DATAPACKING=POINT'])
