@@ -285,6 +285,12 @@ def test_outputs_in_unwritable_folders_are_refused_before_work(tmp_path, capsys)
     assert "note.txt is a file, not a folder" in capsys.readouterr().err
     assert main([*args, "--out", str(tmp_path / "new" / "deeper" / "f.csv")]) != 0
     assert "no such volume" in capsys.readouterr().err   # a folder to be made passes
+    # plot checks its figure's folder first too (it drew, then failed with an OS error)
+    assert main(["plot", str(tmp_path / "a.npz"), "--out",
+                 str(tmp_path / "note.txt" / "f.png")]) == 2
+    assert "note.txt is a file, not a folder" in capsys.readouterr().err
+    assert main(["plot", str(folder / "a.npz")]) == 2  # the default: beside the input
+    assert f"cannot write in {folder}" in capsys.readouterr().err
 
 
 def test_run_refuses_an_unwritable_output_folder_before_work(tmp_path, monkeypatch):

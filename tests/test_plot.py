@@ -213,7 +213,7 @@ def test_plot_refuses_files_it_cannot_draw(tmp_path, capsys):
     assert "holds no vector field, tracks or volume" in capsys.readouterr().err
     save_field(tmp_path / "field.h5", _result(), VOXEL, dt=DT)  # fields are plotted from .npz
     assert main(["plot", str(tmp_path / "field.h5")]) == 2
-    assert "holds no volume; plenocl plot reads vector fields from .npz" in \
+    assert "holds no 'volume' dataset" in \
         capsys.readouterr().err
 
 

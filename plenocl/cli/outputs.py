@@ -39,6 +39,9 @@ def check_outputs(args: argparse.Namespace) -> None:
         if getattr(args, option, None) is not None:
             check_output(getattr(args, option), formats, what)
     out = getattr(args, "out", None)
+    if args.command == "plot":  # its folder (beside the input by default), before drawing
+        check_output_folder(Path(out).parent if out is not None else
+                            Path(args.input).parent)
     if out is None:
         return  # plenocl run without --out: the run checks its experiment's folder
     outputs = {"out", *EXTRA_OUTPUTS.get(args.command, {})}

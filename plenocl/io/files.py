@@ -238,8 +238,8 @@ def read_volume(path: str | Path) -> tuple[np.ndarray, dict]:
             if "volume" not in fh:
                 raise ValueError(f"{path} holds no 'volume' dataset (it holds "
                                  f"{sorted(fh.keys())[:6]}...): not a volume plenocl "
-                                 "wrote (a vector field is read by "
-                                 "plenocl.vectorfield.read_npz)")
+                                 "wrote (a vector field: plenocl.vectorfield.read_npz "
+                                 "reads it, plenocl plot draws fields from their .npz)")
             vol, meta = fh["volume"][...], dict(fh.attrs)
     else:
         raise ValueError(f"unknown volume format {suffix!r}: use .npy, .npz or .h5")

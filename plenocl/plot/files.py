@@ -64,11 +64,7 @@ def read_any(path: Path):
     if suffix in (".npy", ".h5", ".hdf5"):
         from ..volumefile import load_volume
 
-        try:
-            return "volume", load_volume(path)
-        except KeyError:
-            raise ValueError(f"{path} holds no volume; plenocl plot reads vector fields "
-                             "from .npz (plenocl piv --out field.npz)") from None
+        return "volume", load_volume(path)  # an HDF5 field: named there (read_volume)
     raise ValueError(f"cannot plot {path.name!r}: plenocl plot reads a vector field or "
                      "tracks (.npz), a volume (.npz, .npy, .h5) or a batch's store (.zarr)"
                      + ("; open a .vti in ParaView, or plot the field's .npz"
