@@ -210,7 +210,16 @@ def test_plot_refuses_files_it_cannot_draw(tmp_path, capsys):
     assert "holds no vector field, tracks or volume" in capsys.readouterr().err
     np.savez(tmp_path / "other.npz", volume=np.ones((8, 8, 8)), spacing=np.ones(3))
     assert main(["plot", str(tmp_path / "other.npz")]) == 2  # a volume of another tool
+    assert "is not a volume plenocl.save_volume wrote" in capsys.readouterr().err
+    np.savez(tmp_path / "none.npz", counts=np.arange(3))
+    assert main(["plot", str(tmp_path / "none.npz")]) == 2
     assert "holds no vector field, tracks or volume" in capsys.readouterr().err
+    # a damaged field is named damaged (each reader was tried and it read "holds no ...")
+    raw = bytearray(save_field(tmp_path / "hurt.npz", _result(), VOXEL, dt=DT).read_bytes())
+    raw[len(raw) // 3:len(raw) // 3 + 64] = bytes(64)
+    (tmp_path / "hurt.npz").write_bytes(bytes(raw))
+    assert main(["plot", str(tmp_path / "hurt.npz")]) == 2
+    assert "damaged" in capsys.readouterr().err
     save_field(tmp_path / "field.h5", _result(), VOXEL, dt=DT)  # fields are plotted from .npz
     assert main(["plot", str(tmp_path / "field.h5")]) == 2
     assert "holds no 'volume' dataset" in \

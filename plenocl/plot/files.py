@@ -72,26 +72,25 @@ def read_any(path: Path):
 
 
 def _read_npz(path: Path):
+    """The kind of an ``.npz`` (by the arrays it holds) and its contents, read by that
+    kind's reader, so that a damaged file of a known kind is named as damaged (each
+    reader was tried in turn and a damaged field read "holds no vector field")."""
+    from ..io.npzfile import open_npz
     from ..ptv import Tracks
+    from ..volumefile import load_volume
     from .data import read_vector_field
     from .tracks import tracks_in_m_per_s
 
-    try:
+    with open_npz(path, "a vector field, tracks or a volume plenocl wrote") as data:
+        names = set(data.files)
+    if {"positions", "velocities"} <= names:
         return "tracks", tracks_in_m_per_s(Tracks.load(path))
-    except ValueError:
-        pass
-    try:
+    if "displacement" in names:
         return "field", read_vector_field(path)
-    except ValueError:
-        pass
-    from ..io.npzfile import MissingArray
-    from ..volumefile import load_volume
-
-    try:
+    if "volume" in names:
         return "volume", load_volume(path)
-    except MissingArray:
-        raise ValueError(f"{path} holds no vector field, tracks or volume plenocl wrote "
-                         "(save_field, Tracks.save, save_volume)") from None
+    raise ValueError(f"{path} holds no vector field, tracks or volume plenocl wrote "
+                     "(save_field, Tracks.save, save_volume)")
 
 
 def default_output(path: Path, view: str) -> Path:
