@@ -556,13 +556,16 @@ def test_centres_travel_to_and_from_other_tools_as_csv(tmp_path, small_white):
     add_calibrate_parser(parser.add_subparsers())
     run = [("calibrate", str(tmp_path / "white.npy"), "--centres-out", str(tmp_path / "c.csv"),
             "--out", str(tmp_path / "cal.toml")),
-           ("calibrate", "--centres", str(tmp_path / "c.csv"), "--out", str(tmp_path / "imp.toml"))]
+           ("calibrate", "--centres", str(tmp_path / "c.csv"), "--out", str(tmp_path / "imp.toml"),
+            "--centres-out", str(tmp_path / "again_out.csv"))]  # converted (it was ignored)
     for words in run:
         args = parser.parse_args([*words, "--camera", str(tmp_path / "cam.toml")])
         assert args.func(args) == 0
     for words, message in ((("calibrate",), "give a white image, or --centres CSV"),
                            (("calibrate", str(tmp_path / "white.npy"), "--centres",
-                             str(tmp_path / "c.csv")), "not both")):
+                             str(tmp_path / "c.csv")), "not both"),
+                           (("calibrate", "--centres", str(tmp_path / "c.csv"), "--diagnostic",
+                             str(tmp_path / "d.png")), "--diagnostic draws a white image")):
         args = parser.parse_args([*words, "--camera", str(tmp_path / "cam.toml"), "--out",
                                   str(tmp_path / "x.toml")])
         with pytest.raises(ValueError, match=message):
@@ -570,6 +573,7 @@ def test_centres_travel_to_and_from_other_tools_as_csv(tmp_path, small_white):
     found, imported = (Camera.from_toml(tmp_path / f"{n}.toml") for n in ("cal", "imp"))
     assert imported.calibrated
     np.testing.assert_array_equal(imported.microlens_centers, found.microlens_centers)
+    assert (tmp_path / "again_out.csv").read_text() == (tmp_path / "c.csv").read_text()
     lines = (tmp_path / "c.csv").read_text().splitlines()
     assert lines[0] == "lens_col,lens_row,x_px,y_px" and len(lines) == 1 + 12 * 10
     (tmp_path / "part.csv").write_text("\n".join(lines[:-1]) + "\n")  # the last lens left out
@@ -615,6 +619,7 @@ def test_a_bad_centres_csv_is_refused_naming_the_line(tmp_path, small_white, edi
 
     cam = _camera(12, 10)
     write_centers_csv(tmp_path / "c.csv", find_centers(small_white, cam).centers)
+    assert (tmp_path / "again_out.csv").read_text() == (tmp_path / "c.csv").read_text()
     lines = (tmp_path / "c.csv").read_text().splitlines()
     (tmp_path / "bad.csv").write_text("\n".join(edit(lines)) + "\n")
     with pytest.raises(ValueError, match=message):

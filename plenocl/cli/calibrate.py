@@ -78,11 +78,17 @@ def _import_centres(args: argparse.Namespace, camera) -> int:
 
     if args.white is not None:
         raise ValueError("give either a white image or --centres CSV, not both")
+    if getattr(args, "diagnostic", None):
+        raise ValueError("--diagnostic draws a white image's fit: with --centres there is "
+                         "none; leave --diagnostic out (or calibrate from the white image)")
     calibrated = import_centers(args.centres, camera)
     calibrated.to_toml(args.out)
     found = int(np.isfinite(calibrated.microlens_centers).all(-1).sum())
     print(f"imported {found} of {calibrated.microlens_centers[..., 0].size} microlens "
           f"centres from {args.centres}; wrote {args.out}")
+    if getattr(args, "centres_out", None):  # another tool's centres (an LFIT .mat) as CSV
+        write_centers_csv(args.centres_out, calibrated.microlens_centers)
+        print(f"wrote {args.centres_out}")
     return 0
 
 
