@@ -136,6 +136,10 @@ def _grid_columns(arrays: dict) -> dict[str, np.ndarray]:
     want.update({f"{c} [m/s]": arrays["velocity"][k] for k, c in enumerate("uvw")})
     want.update({f"{c}_voxel [voxel]": arrays["displacement"][k] for k, c in enumerate("uvw")})
     want.update({f: arrays[f].astype(float) for f in ("valid", "outlier", "masked")})
+    want.update({f"{c}_sigma [m/s]": arrays["velocity_uncertainty"][k]
+                 for k, c in enumerate("uvw")})
+    want.update({f"{c}_sigma_voxel [voxel]": arrays["displacement_uncertainty"][k]
+                 for k, c in enumerate("uvw")})
     return {k: np.asarray(v, float).ravel() for k, v in want.items()}
 
 

@@ -11,7 +11,9 @@ arrays ``(nz', ny', nx')`` flattened), and both formats hold the same columns:
   written with ``dt``);
 - ``u_voxel [voxel]``, ``v_voxel [voxel]``, ``w_voxel [voxel]``: the displacement along
   the grid's axes;
-- ``valid``, ``outlier``, ``masked``: the flags as 1 or 0.
+- ``valid``, ``outlier``, ``masked``: the flags as 1 or 0;
+- then, for a field with an uncertainty (``PIVResult.sigma_u``), ``u_sigma [m/s]``, ...
+  (with ``dt``) and ``u_sigma_voxel [voxel]``, ...: the standard uncertainties.
 
 Outliers hold their replaced values (``outlier`` 1, ``valid`` 0). Masked vectors have no
 value: the CSV gives them as ``nan`` (NumPy and pandas read it as NaN), the Tecplot file
@@ -52,6 +54,12 @@ def field_columns(arrays: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, 
              for a, c in zip("uvw", arrays["displacement"])]
     cols += [(flag, np.asarray(arrays[flag], bool).ravel().astype(np.int64), _FLAG)
              for flag in ("valid", "outlier", "masked")]
+    # the uncertainties last: the columns before keep their places (2026-12-02)
+    for name, unit, key in (("sigma", "m/s", "velocity_uncertainty"),
+                            ("sigma_voxel", "voxel", "displacement_uncertainty")):
+        if key in arrays:
+            cols += [(f"{a}_{name} [{unit}]", np.asarray(c, float).ravel(), _FLOAT)
+                     for a, c in zip("uvw", arrays[key])]
     return cols
 
 
