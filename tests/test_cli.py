@@ -321,6 +321,10 @@ def test_one_meaning_per_option_name(tmp_path, capsys):
               "--z", "0", "--out", str(tmp_path / "s.tif")]
     assert main([*common, "--supersample", "2"]) == 2
     assert "refocus takes --upsample" in capsys.readouterr().err
+    far = [*common[:4], "--z", "500", "--out", str(tmp_path / "far.tif")]
+    assert main(far) == 2  # beyond the depths the camera resolves: no image of that depth
+    assert "lies beyond the depths the camera resolves" in capsys.readouterr().err
+    assert not (tmp_path / "far.tif").exists()
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tmp_path / "raw.npy"), "--camera", "synthetic", "--grid",
               "g.toml", "--out", "v.npz", "--background", "auto"])

@@ -113,6 +113,7 @@ def refocus_command(args: argparse.Namespace) -> int:
         raise ValueError("refocus takes --upsample N (output pixels per microlens); "
                          "--supersample means lateral sub-voxels, in reconstruct")
     camera = camera_for_frames(args, load_camera(args.camera))
+    _check_refocus_depths(camera, args.z)
     raw = read_frame(args, args.raw, camera)
     lf = LightField(raw, camera, queue=getattr(args, "device", None))
     s = getattr(args, "upsample", 1)
@@ -125,6 +126,19 @@ def refocus_command(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {len(args.z)} planes of {stack.shape[2]} x {stack.shape[1]} px "
           f"(microlens lattice x {s}) at z = {zs} mm")
     return 0
+
+
+def _check_refocus_depths(camera, depths) -> None:
+    """Refuse depths the camera does not resolve (as ``plenocl grid`` refuses a range
+    beyond them): a plane refocused there is no image of that depth."""
+    from ..optics.depthrange import resolved_depth_range
+
+    near, far = resolved_depth_range(camera)
+    outside = [float(z) for z in depths if not near <= float(z) <= far]
+    if outside:
+        raise ValueError(f"--z {', '.join(f'{z:g}' for z in outside)} mm lies beyond the "
+                         f"depths the camera resolves, [{near:.2f}, {far:.2f}] mm: refocus "
+                         "within them")
 
 
 def add_calibrate_parser(subparsers) -> argparse.ArgumentParser:
