@@ -441,6 +441,10 @@ def test_a_complex_volume_or_a_field_for_a_volume_is_one_line_exit_2(tmp_path, c
         assert main(["piv", str(tmp_path / first), str(tmp_path / "v.npy"), *common]) == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, err
+    # a binary file given as a camera file: named (it was a bare 'utf-8' codec error)
+    assert main(["grid", "--camera", str(tmp_path / "v.npy"), "--z", "-2", "2", "--out",
+                 str(tmp_path / "g2.toml")]) == 2
+    assert "v.npy is not a TOML text file" in capsys.readouterr().err
 
 
 def test_an_output_that_is_an_input_is_refused_before_any_work(tmp_path, capsys):

@@ -20,6 +20,9 @@ def read_toml(path: str | Path) -> dict:
         raise FileNotFoundError(f"no such file: {path}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path} is not valid TOML: {exc}") from None
+    except UnicodeDecodeError:  # a binary file (a volume, an image) given as a TOML file
+        raise ValueError(f"{path} is not a TOML text file (a camera, grid or experiment "
+                         "file is TOML text)") from None
 
 
 def write_toml(path: str | Path, doc: dict) -> None:
