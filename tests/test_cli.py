@@ -441,6 +441,11 @@ def test_a_complex_volume_or_a_field_for_a_volume_is_one_line_exit_2(tmp_path, c
         assert main(["piv", str(tmp_path / first), str(tmp_path / "v.npy"), *common]) == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, err
+    # a white image of no light: refused (it wrote an all-zero image, exit 0)
+    assert main(["white", "--camera", "synthetic", "--intensity", "0", "--out",
+                 str(tmp_path / "w.tif")]) == 2
+    assert "intensity must be positive" in capsys.readouterr().err
+    assert not (tmp_path / "w.tif").exists()
     # a binary file given as a camera file: named (it was a bare 'utf-8' codec error)
     assert main(["grid", "--camera", str(tmp_path / "v.npy"), "--z", "-2", "2", "--out",
                  str(tmp_path / "g2.toml")]) == 2

@@ -298,6 +298,8 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
     """
     if not 0.0 <= vignetting < 1.0:
         raise ValueError(f"vignetting must be in [0, 1), got {vignetting}")
+    if not (np.isfinite(intensity) and intensity > 0):  # a blank white image: no lens
+        raise ValueError(f"intensity must be positive (counts per microlens), got {intensity}")
     pos = camera.microlens_positions_mm()
     r2 = (pos ** 2).sum(-1)
     gain = 1.0 - vignetting * r2 / r2.max() if r2.max() > 0 else np.ones(r2.shape)
