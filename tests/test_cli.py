@@ -43,7 +43,8 @@ def test_simulate_writes_16_bit_tiff_and_truth(tmp_path, small_camera):
 
 
 def test_simulate_several_cameras_writes_each_cameras_pair_in_its_folder(tmp_path,
-                                                                           small_camera):
+                                                                           small_camera,
+                                                                           monkeypatch):
     """``--camera`` with several files: each posed camera's images of the same world
     particles in ``camK/`` beside ``--out`` (the same names: the batch's frame numbers),
     each the Python simulator's image through that camera's pose, the truth once."""
@@ -68,6 +69,22 @@ def test_simulate_several_cameras_writes_each_cameras_pair_in_its_folder(tmp_pat
         np.testing.assert_array_equal(images[k, "a"], expected)
     assert not np.array_equal(images[1, "a"], images[2, "a"])  # two views
     assert not list(tmp_path.glob("raw_*.tif"))  # each camera's images in its folder
+    # the second camera's image refused: the first's is not left behind either
+    import plenocl.simulate as simulate_module
+
+    calls = []
+
+    def second_refused(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ValueError("refused for the test")
+        return simulate_image(*args, **kwargs)
+
+    monkeypatch.setattr(simulate_module, "simulate_image", second_refused)
+    rc = main(["simulate", "--camera", str(tmp_path / "cam1.toml"), str(tmp_path / "cam2.toml"),
+               "--particles", str(tmp_path / "p.csv"), "--out", str(tmp_path / "new.tif"),
+               "--rays", "50", "--velocity", "0.5", "0", "0", "--dt", "1e-3"])
+    assert rc == 2 and not list(tmp_path.rglob("new*"))
 
 
 def test_simulate_reports_bad_files_clearly(tmp_path, capsys):

@@ -41,7 +41,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             raise ValueError("--dt is the time between a displaced pair's exposures: give the "
                              "flow that moves them (--velocity U V W or --omega WX WY WZ), or "
                              "leave --dt out for one image")
-        _simulate_cameras(args, cams, out, positions, intensities)
+        _write_images(cams, out, _camera_images(args, cams, positions, intensities))
         write_particles(out.with_name(out.stem + "_particles.csv"), positions, intensities)
         return 0
     if args.dt is None:
@@ -52,25 +52,35 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     moved = displace(positions, flow, args.dt) - positions
     check_displacement(float(np.abs(moved).max(initial=0.0)),
                        min(cam.sensor_size_mm) / cam.magnification, args.force)
+    # every image made before any is written: a refused one leaves no other behind
+    exposures = []
     for tag, sign in (("a", -0.5), ("b", 0.5)):
         moved = displace(positions, flow, sign * args.dt)
-        path = out.with_name(f"{out.stem}_{tag}{out.suffix}")
-        _simulate_cameras(args, cams, path, moved, intensities)
+        exposures.append((out.with_name(f"{out.stem}_{tag}{out.suffix}"), moved,
+                          _camera_images(args, cams, moved, intensities)))
+    for path, moved, images in exposures:
+        _write_images(cams, path, images)
         write_particles(path.with_name(path.stem + "_particles.csv"), moved, intensities)
     return 0
 
 
-def _simulate_cameras(args, cams: list, out: Path, positions, intensities) -> None:
-    """Each camera's image of the particles: ``out`` for one camera; for several, in
-    each camera's folder ``camK`` beside it (``K`` from 1; the names, and so their frame
-    numbers, are the same in every folder, as the batch pairs them: docs/batch.md),
-    camera ``K``'s ray sampling seeded ``seed + K - 1``."""
-    if len(cams) == 1:
-        _simulate_one(args, cams[0], out, positions, intensities, args.seed)
-        return
-    for k, cam in enumerate(cams, start=1):
-        _simulate_one(args, cam, camera_image_path(out, k), positions, intensities,
-                      args.seed + k - 1)
+def _camera_images(args, cams: list, positions, intensities) -> list:
+    """Each camera's image of the particles, camera ``K``'s ray sampling seeded
+    ``seed + K - 1``."""
+    return [_simulate_one(args, cam, positions, intensities, args.seed + k)
+            for k, cam in enumerate(cams)]
+
+
+def _write_images(cams: list, out: Path, images: list) -> None:
+    """The cameras' images: ``out`` for one camera; for several, in each camera's folder
+    ``camK`` beside it (``K`` from 1; the names, and so their frame numbers, are the same
+    in every folder, as the batch pairs them: docs/batch.md)."""
+    from ..io.files import write_tiff
+
+    for k, image in enumerate(images, start=1):
+        path = out if len(cams) == 1 else camera_image_path(out, k)
+        write_tiff(path, image)
+        print(f"wrote {path} ({image.shape[1]} x {image.shape[0]} px, max {image.max()})")
 
 
 def camera_image_path(out: Path, k: int) -> Path:
@@ -81,16 +91,14 @@ def camera_image_path(out: Path, k: int) -> Path:
     return folder / out.name
 
 
-def _simulate_one(args, cam, out: Path, positions, intensities, seed: int) -> None:
-    from ..io.files import write_tiff
+def _simulate_one(args, cam, positions, intensities, seed: int) -> np.ndarray:
+    """One camera's 16-bit raw image of the particles."""
     from ..simulate import simulate_image
 
-    image = simulate_image(cam, positions, intensities, args.rays, seed,
-                           blur_px=args.blur, background=args.background,
-                           photon_noise=args.photon_noise, read_noise=args.read_noise,
-                           bit_depth=16, queue=args.device)
-    write_tiff(out, image)
-    print(f"wrote {out} ({image.shape[1]} x {image.shape[0]} px, max {image.max()})")
+    return simulate_image(cam, positions, intensities, args.rays, seed,
+                          blur_px=args.blur, background=args.background,
+                          photon_noise=args.photon_noise, read_noise=args.read_noise,
+                          bit_depth=16, queue=args.device)
 
 
 def cmd_white(args: argparse.Namespace) -> int:
