@@ -619,7 +619,6 @@ def test_a_bad_centres_csv_is_refused_naming_the_line(tmp_path, small_white, edi
 
     cam = _camera(12, 10)
     write_centers_csv(tmp_path / "c.csv", find_centers(small_white, cam).centers)
-    assert (tmp_path / "again_out.csv").read_text() == (tmp_path / "c.csv").read_text()
     lines = (tmp_path / "c.csv").read_text().splitlines()
     (tmp_path / "bad.csv").write_text("\n".join(edit(lines)) + "\n")
     with pytest.raises(ValueError, match=message):
