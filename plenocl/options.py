@@ -20,6 +20,13 @@ def is_integer(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
+def is_number(value) -> bool:
+    """A real number (Python's or NumPy's), and not a bool or text: what a quantity
+    option takes."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, bool)
+
+
 def whole_counts(settings, names) -> None:
     """The counts ``names`` of a frozen settings object given as whole floats (``3.0``,
     as a file may write them) made integers; other values are left to its checks."""

@@ -359,10 +359,10 @@ def test_several_cameras_refuse_what_they_cannot_do(queue):
         reconstruct([img, img], [projs[0], projs[0]])  # one view twice: no depth, weighed 2x
     import dataclasses
 
-    from plenocl.camera.pose import check_distinct_poses
+    from plenocl.camera.pose import check_distinct_views
 
     refocused = dataclasses.replace(cams[0], magnification=0.9 * cams[0].magnification)
-    check_distinct_poses([cams[0], refocused])  # the same place, another focus: a view
+    check_distinct_views([cams[0], refocused])  # the same place, another focus: a view
     with pytest.raises(ValueError, match="tol and mask_fraction are one camera's"):
         reconstruct([img, img], projs, tol=1e-3)
     with pytest.raises(ValueError, match="pixel_mask and start volumes are for one camera"):

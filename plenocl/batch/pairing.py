@@ -296,11 +296,9 @@ def changed_since(recorded: dict, pair: ImagePair) -> str | None:
     if len(others) != len(pair.others):
         return (f"it was made from {len(others) + 1} camera(s)' images, the run has "
                 f"{len(pair.others) + 1}")
-    files = [(recorded, "", pair.a, pair.b)] + [
+    files = [(recorded, "camera 1: " if others else "", pair.a, pair.b)] + [
         (rec, f"camera {c}: ", a, b)
         for c, (rec, (a, b)) in enumerate(zip(others, pair.others, strict=True), start=2)]
-    if others:
-        files[0] = (recorded, "camera 1: ", pair.a, pair.b)
     for rec, whose, a, b in files:
         if (why := _changed_files(rec, a, b)) is not None:
             return whose + why

@@ -10,7 +10,7 @@ import warnings
 from pathlib import Path
 
 from ..camera import Camera
-from ..camera.pose import check_distinct_poses
+from ..camera.pose import check_distinct_views
 from ..grid import Grid
 from ..io.tomlfile import write_toml
 from ..optics.depthrange import check_grid
@@ -39,7 +39,7 @@ def run_cameras(exp: Experiment, queue, log) -> list[Camera]:
     tables = exp.cameras or (exp["camera"],)
     cameras = [run_camera(exp, queue, log, table) for table in tables]
     if len(cameras) > 1:  # before any frame is read: every pair would fail at it
-        check_distinct_poses(cameras)
+        check_distinct_views(cameras)
     return cameras
 
 

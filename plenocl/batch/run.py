@@ -423,7 +423,8 @@ def _finish(summary: RunSummary, exp: Experiment, out: Path, queue, log) -> None
             raise
         for part in (out / ENSEMBLE, *field_copies(out / ENSEMBLE)):  # none half-written
             part.unlink(missing_ok=True)
-        ensemble = _stopped_writing(f"the ensemble field {ENSEMBLE}", summary, exc, log)
+        _stopped_writing(f"the ensemble field {ENSEMBLE}", summary, exc, log)
+        ensemble = None
     if exp["piv"]["ensemble"]:
         summary.ensemble = None if ensemble is None else str(ensemble)
     else:

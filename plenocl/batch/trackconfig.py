@@ -28,11 +28,12 @@ refused with tracking.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from ..options import field_names, from_table, is_integer, to_table
+from ..options import field_names, from_table, is_integer, is_number, to_table
 from ..pipeline.settings import PairSettings
 from ..pipeline.track import TrackSettings
 from ..units import check_dt
@@ -190,8 +191,7 @@ def check_images_for_tracking(images: Mapping, ensemble: bool, path: Path,
 
 
 def _interval(value, images: Mapping, where: str) -> float:
-    if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) \
-            or not value > 0 or value == float("inf"):
+    if not (is_number(value) and math.isfinite(value) and value > 0):
         raise ValueError(f"{where} frame_interval_s must be the time between successive "
                          f"frames in seconds, a positive number (e.g. 1e-3), got {value!r}")
     return check_dt(value, f"{where} frame_interval_s", images["force_dt"],

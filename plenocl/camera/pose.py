@@ -142,7 +142,7 @@ def require_world_frame(camera, what: str) -> None:
             "process_pair take a posed camera with a world grid; docs/design.md §2.2)")
 
 
-def check_distinct_poses(cameras) -> None:
+def check_distinct_views(cameras) -> None:
     """Several cameras in one reconstruction see the volume differently: two with the
     same pose (``None``, no pose, is the world frame) and the same main lens (focal
     length, f-number, magnification) would give one view twice, which measures no depth

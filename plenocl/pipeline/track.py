@@ -21,7 +21,7 @@ import numpy as np
 
 from ..grid import Grid
 from ..optics.rawimage import check_exposure, check_image
-from ..options import is_integer, whole_counts, with_keywords
+from ..options import is_integer, is_number, whole_counts, with_keywords
 from ..peaks import find_particles, merge_close
 from ..piv import PIVSettings, piv3d
 from ..piv.imagefit import ImageFit, ImageFitSettings
@@ -154,7 +154,7 @@ class TrackSettings:
     def _check_smoother(self) -> None:
         """Refuse a state-space smoother that cannot run, and a velocity prior that
         could never be formed."""
-        if not (_is_number(self.acceleration) and np.isfinite(self.acceleration)
+        if not (is_number(self.acceleration) and np.isfinite(self.acceleration)
                 and self.acceleration > 0):
             raise ValueError(f"TrackSettings.acceleration must be a positive number (voxels "
                              f"per frame squared), got {self.acceleration!r}")
@@ -169,18 +169,12 @@ class TrackSettings:
                              "the prior")
 
 
-def _is_number(value) -> bool:
-    """A real number (not a bool or text)."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
-        value, bool)
-
-
 def _three_distances(name: str, value, what: str, above: float | None
                      ) -> tuple[float, float, float]:
     """``value`` as three finite floats, each above ``above`` (``None``: at least 0),
     or refused naming ``TrackSettings.<name>`` and ``what`` it must be."""
     values = np.ravel(np.asarray(value, dtype=object)) if value is not None else []
-    ok = len(values) == 3 and all(_is_number(v) and np.isfinite(v) for v in values)
+    ok = len(values) == 3 and all(is_number(v) and np.isfinite(v) for v in values)
     if ok:
         values = tuple(float(v) for v in values)
         ok = all(v > above if above is not None else v >= 0 for v in values)
@@ -527,7 +521,7 @@ def _check_frames(frames, min_length: int) -> list:
 
 
 def _check_dt(dt) -> float:
-    if not _is_number(dt):
+    if not is_number(dt):
         raise ValueError(f"dt (the time between frames) must be a positive number, got {dt!r}")
     value = float(dt)
     if not (np.isfinite(value) and value > 0):

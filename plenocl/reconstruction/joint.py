@@ -28,7 +28,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ..camera.pose import check_distinct_poses
+from ..camera.pose import check_distinct_views
 from ..opencl.arrays import fill
 from .blocks import device_view_blocks
 from .images import PreparedImage, prepare_image
@@ -126,13 +126,13 @@ class JointSolver:
 
 def check_cameras(images: Sequence, projectors: Sequence) -> None:
     """One image per projector, at least one, all projectors on one grid and queue, no
-    two cameras at one pose (:func:`plenocl.camera.pose.check_distinct_poses`)."""
+    two cameras with one view (:func:`plenocl.camera.pose.check_distinct_views`)."""
     if len(images) != len(projectors) or not projectors:
         raise ValueError(f"several cameras need one image per projector: got "
                          f"{len(images)} image(s) and {len(projectors)} projector(s)")
     grid, queue = projectors[0].grid, projectors[0].queue
     if len(projectors) > 1:
-        check_distinct_poses([p.camera for p in projectors])
+        check_distinct_views([p.camera for p in projectors])
     for k, proj in enumerate(projectors[1:], start=2):
         if proj.grid != grid:
             raise ValueError(f"projector {k}'s grid {proj.grid} is not projector 1's "
