@@ -15,7 +15,8 @@ each, ``DeviceCorrelation.correlate`` (``kernels/fftcorr.cl``) against the host'
   there: the host path gathers the windows on the device and takes only them).
 
 Then what ``FFTRoute`` (``fft=None``, ``piv3d``'s default) chose for each, measured on the
-first call. Measured (2 CPU cores, 2026-11-30): see docs/design.md §7.5.
+first call (in this process alone: the script keeps no route on the machine,
+``PLENOCL_CACHE_DIR=""``). Measured (2 CPU cores, 2026-11-30): see docs/design.md §7.5.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+os.environ["PLENOCL_CACHE_DIR"] = ""  # measure here: neither read nor keep a route
 
 import numpy as np  # noqa: E402
 

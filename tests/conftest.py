@@ -23,10 +23,13 @@ from __future__ import annotations
 import functools
 import os
 import re
+import shutil
+import tempfile
 
 import pyopencl as cl
 import pytest
 
+from plenocl.io.kept import CACHE_VARIABLE
 from plenocl.opencl.device import NoOpenCLError, building_devices, devices_by_preference, get_queue
 
 
@@ -79,6 +82,16 @@ def baseline_index(devices: list[cl.Device | None]) -> int:
         if device is not None and "Portable Computing Language" in device.platform.name:
             return n
     return 0
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Choices plenocl keeps between processes (the measured FFT routes,
+    :mod:`plenocl.io.kept`) go to a folder of this test process's own, removed at its end:
+    the tests neither read nor change the user's cache."""
+    if os.environ.get(CACHE_VARIABLE) is None:
+        folder = tempfile.mkdtemp(prefix="plenocl-test-cache-")
+        os.environ[CACHE_VARIABLE] = folder
+        config.add_cleanup(lambda: shutil.rmtree(folder, ignore_errors=True))
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:

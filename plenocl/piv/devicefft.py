@@ -17,9 +17,11 @@ import time
 import numpy as np
 import pyopencl.array as cl_array
 
+from ..io.kept import KeptChoices
 from ..opencl.device import check_fits, is_cpu
 from ..opencl.program import GPU_GROUP, KernelSet
 from ..opencl.volume import host_volume
+from ..version import __version__
 from .correlation import (
     BATCH_BYTES,
     Correlation,
@@ -31,7 +33,8 @@ from .correlation import (
 )
 from .fft import BACKENDS
 
-__all__ = ["CPU_GROUP", "MAX_LINE", "DeviceCorrelation", "FFTRoute", "measured_routes"]
+__all__ = ["CPU_GROUP", "KEPT_ROUTES", "MAX_LINE", "DeviceCorrelation", "FFTRoute",
+           "forget_measured_routes", "is_route", "measured_routes"]
 
 i32, f32 = np.int32, np.float32
 _KERNELS = ("window_moments", "fill_windows", "fft_lines", "cross_spectrum", "peak_fit",
@@ -199,12 +202,30 @@ class DeviceCorrelation:
 #: or host): ``"device"`` or ``"host"``, with the seconds of each, for the process's life.
 _MEASURED: dict[tuple, tuple[str, float, float]] = {}
 _MEASURE_LOCK = threading.Lock()
+#: The routes measured on this machine, kept for every later process (docs/design.md
+#: §7.5, "Which side correlates").
+KEPT_ROUTES = KeptChoices("fft_routes", "PIV's FFT route (host or device)")
+ROUTES = ("host", "device")
+
+
+def is_route(value) -> bool:
+    """Whether a kept ``value`` names a route (a hand-edited file may not)."""
+    return isinstance(value, dict) and value.get("route") in ROUTES
+
+
+def forget_measured_routes() -> None:
+    """Forget this process's routes, as a new process starts: the next call per key
+    reads the kept file (:data:`KEPT_ROUTES`) or measures again."""
+    with _MEASURE_LOCK:
+        _MEASURED.clear()
 
 
 def measured_routes() -> dict[tuple, tuple[str, float, float]]:
-    """Every FFT route measured so far in this process: ``(device name, box, where the
-    volumes are)`` to ``(route, host seconds, device seconds)``; the volumes ``"host"``,
-    ``"device"`` or ``"both"`` (host volumes with device copies, ``on_device``)."""
+    """Every FFT route this process has chosen by measurement, its own or kept from an
+    earlier process (:data:`KEPT_ROUTES`): ``(device name, box, where the volumes are)`` to
+    ``(route, host seconds, device seconds)`` (the seconds of the measurement that chose
+    it); the volumes ``"host"``, ``"device"`` or ``"both"`` (host volumes with device
+    copies, ``on_device``)."""
     with _MEASURE_LOCK:
         return dict(_MEASURED)
 
@@ -219,10 +240,11 @@ class FFTRoute:
         path); ``"device"``: the device wherever its FFT lengths allow; ``None``: for each
         device, FFT box and residence of the volumes, whichever of the device and the
         host's default backend correlated the first such call faster, the device by a
-        clear margin (:data:`DEVICE_GAIN`; the choice holds for the
-        process, :func:`measured_routes`). The measurement runs each route twice on the
-        first :data:`MEASURED_WINDOWS` windows of the first such call (the first run of
-        each warms it); every call returns the chosen route's result.
+        clear margin (:data:`DEVICE_GAIN`). The measurement runs each route twice on
+        the first :data:`MEASURED_WINDOWS` windows of the first such call (the first run
+        of each warms it) and is kept on this machine (:data:`KEPT_ROUTES`): every later
+        call and process takes the same route, so reruns agree to the bit
+        (:func:`measured_routes`). Every call returns the chosen route's result.
     queue
         The device (``None``: the host only).
     workers
@@ -283,9 +305,31 @@ class FFTRoute:
             return "host"
         if self.fft == "device":
             return "device"
+        key = self._key(vol_a, grid, pad, on_device)
         with _MEASURE_LOCK:
-            known = _MEASURED.get(self._key(vol_a, grid, pad, on_device))
+            known = _MEASURED.get(key)
+        if known is None:
+            known = self._kept(key, KEPT_ROUTES.get(self._kept_key(key)))
         return None if known is None else known[0]
+
+    def _kept_key(self, key: tuple) -> tuple:
+        """The kept file's key of a measurement's ``key``: the device's platform and
+        driver and plenocl's version beside it (another driver or plenocl measures
+        again)."""
+        device = self.device.queue.device
+        return (device.platform.name.strip(), key[0], device.driver_version.strip(),
+                __version__, *key[1], key[2])
+
+    @staticmethod
+    def _kept(key: tuple, value: dict | None) -> tuple[str, float, float] | None:
+        """A kept ``value`` as this process's choice for ``key`` (``None``: none kept,
+        or not a route)."""
+        if not is_route(value):
+            return None
+        known = (value["route"], float(value.get("host_s", 0.0)),
+                 float(value.get("device_s", 0.0)))
+        with _MEASURE_LOCK:
+            return _MEASURED.setdefault(key, known)
 
     def _key(self, vol_a, grid: WindowGrid, pad: bool, on_device: tuple | None) -> tuple:
         resident = ("device" if isinstance(vol_a, cl_array.Array)
@@ -296,8 +340,10 @@ class FFTRoute:
                  on_device: tuple | None) -> str:
         """Time both routes on up to :data:`MEASURED_WINDOWS` of this call's windows,
         each run twice (the first run warms it: the device's buffers and twiddles, the
-        host's FFT plans) and the second timed; keep the device where it took at most
-        :data:`DEVICE_GAIN` of the host's time, else the host, and return the route."""
+        host's FFT plans) and the second timed; choose the device where it took at most
+        :data:`DEVICE_GAIN` of the host's time, else the host; keep the choice on the
+        machine (:data:`KEPT_ROUTES`) and return the route that stands there (another
+        process's, where it kept one first)."""
         todo = np.ones(grid.count, bool) if options["select"] is None else options["select"]
         sample = np.zeros(grid.count, bool)
         sample.flat[np.flatnonzero(todo)[:MEASURED_WINDOWS]] = True
@@ -311,7 +357,7 @@ class FFTRoute:
             run()
             seconds[name] = time.perf_counter() - start
         route = "device" if seconds["device"] <= DEVICE_GAIN * seconds["host"] else "host"
-        with _MEASURE_LOCK:
-            _MEASURED[self._key(vol_a, grid, options["pad"], on_device)] = (
-                route, seconds["host"], seconds["device"])
-        return route
+        key = self._key(vol_a, grid, options["pad"], on_device)
+        measured = {"route": route, "host_s": seconds["host"], "device_s": seconds["device"]}
+        # another process may have kept its measurement first: that one stands
+        return self._kept(key, KEPT_ROUTES.keep(self._kept_key(key), measured, is_route))[0]
