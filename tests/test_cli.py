@@ -351,13 +351,19 @@ def test_one_meaning_per_option_name(tmp_path, capsys):
 def test_grid_command_labels_its_sizes_in_their_order(tmp_path, capsys):
     assert main(["grid", "--camera", "synthetic", "--z", "-2", "2", "--depth-voxel-mm",
                  "0.25", "--out", str(tmp_path / "g.toml")]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     from plenocl import Grid
 
     g = Grid.from_toml(tmp_path / "g.toml")
     dz, dy, dx = g.spacing
     assert f"of {dz:.4g} x {dy:.4g} x {dx:.4g} mm (z, y, x)" in out
-    assert "fewer than 3 layers of vectors in depth" in out and "--depth-voxel-mm" in out
+    assert "warning: " in err and "fewer than 3 layers of vectors in depth" in err
+    assert "--depth-voxel-mm" in err
+    # -q silences the summary, not the warning (it was printed to stdout, and -q hid it)
+    assert main(["-q", "grid", "--camera", "synthetic", "--z", "-2", "2", "--depth-voxel-mm",
+                 "0.25", "--out", str(tmp_path / "g.toml")]) == 0
+    out, err = capsys.readouterr()
+    assert out == "" and "fewer than 3 layers of vectors in depth" in err
     # a depth voxel of 0 is refused as by the API (it silently took the default)
     assert main(["grid", "--camera", "synthetic", "--z", "-2", "2", "--depth-voxel-mm", "0",
                  "--out", str(tmp_path / "g0.toml")]) == 2
@@ -480,3 +486,22 @@ def test_an_output_that_is_an_input_is_refused_before_any_work(tmp_path, capsys)
                  "--out", str(tmp_path / "cam.toml")]) == 2
     assert "--out" in capsys.readouterr().err
     assert (tmp_path / "cam.toml").read_bytes() == before
+
+
+def test_piv_names_the_volume_file_it_refuses_or_warns_of(tmp_path, capsys):
+    """``plenocl piv``'s messages about a volume name its file (they said ``vol_a``)."""
+    _volumes(tmp_path)
+    vol = np.load(tmp_path / "a.npy")
+    bad = vol.copy()
+    bad[1, 2, 3] = np.nan
+    np.save(tmp_path / "nan.npy", bad)
+    np.save(tmp_path / "lifted.npy", vol + 10 * vol.max())  # a constant background
+    base = ["--dt", "1e-3", "--no-particles", "--grid", str(tmp_path / "grid.toml"),
+            "--out", str(tmp_path / "f.npz")]
+    assert main(["piv", str(tmp_path / "a.npy"), str(tmp_path / "nan.npy"), *base]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'nan.npy'} contains 1 NaN/Inf values" in err and "vol_b" not in err
+    assert not (tmp_path / "f.npz").exists()
+    assert main(["piv", str(tmp_path / "lifted.npy"), str(tmp_path / "a.npy"), *base]) == 0
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'lifted.npy'}'s darkest voxel" in err and "vol_a" not in err

@@ -15,6 +15,7 @@ displaced pairs, white images and grid files from the command line.
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -133,11 +134,11 @@ def cmd_grid(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {grid.shape} voxels of {dz:.4g} x {dy:.4g} x {dx:.4g} mm "
           f"(z, y, x), rotated {grid.rotation_deg:.4f} deg; the camera resolves z in "
           f"[{near:.2f}, {far:.2f}] mm")
-    if grid.shape[0] < THREE_LAYERS:
-        print(f"note: {grid.shape[0]} voxels deep: PIV's final 24-voxel windows give fewer "
-              f"than 3 layers of vectors in depth (at least {THREE_LAYERS} voxels give 3); "
-              "widen --z (within the depths the camera resolves) or give thinner voxels "
-              "(--depth-voxel-mm)")
+    if grid.shape[0] < THREE_LAYERS:  # a warning: -q (stdout silenced) still shows it
+        warnings.warn(f"{grid.shape[0]} voxels deep: PIV's final 24-voxel windows give "
+                      f"fewer than 3 layers of vectors in depth (at least {THREE_LAYERS} "
+                      "voxels give 3); widen --z (within the depths the camera resolves) "
+                      "or give thinner voxels (--depth-voxel-mm)", stacklevel=1)
     return 0
 
 

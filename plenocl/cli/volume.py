@@ -91,6 +91,7 @@ def piv_command(args: argparse.Namespace) -> int:
     from ..pipeline.settings import PairSettings
     from ..pipeline.velocity import refined_field
     from ..piv import PIVSettings
+    from ..piv.multipass import check_volume
     from ..units import check_dt
     from ..vectorfield import save_field
     from ..volumefile import load_volume
@@ -103,10 +104,15 @@ def piv_command(args: argparse.Namespace) -> int:
                             particles=args.particles, image_fit=bool(args.raw))
     vol_a, grid_a = load_volume(args.vol_a)
     vol_b, grid_b = load_volume(args.vol_b)
+    # checked under the files' names (piv3d's own checks say vol_a, vol_b)
+    vol_a, vol_b = check_volume(str(args.vol_a), vol_a), check_volume(str(args.vol_b), vol_b)
     grid = _volume_grid(args, (grid_a, grid_b), (vol_a.shape, vol_b.shape))
     camera = load_camera(args.camera) if args.camera else None
     raws = [load_frame(path, camera, args.channel) for path in args.raw] if args.raw else None
-    res = refined_field(vol_a, vol_b, grid, settings, args.device, camera=camera, raws=raws)
+    with warnings.catch_warnings():  # said above under the files' names
+        warnings.filterwarnings("ignore", message=r"vol_[ab]'s darkest voxel")
+        res = refined_field(vol_a, vol_b, grid, settings, args.device, camera=camera,
+                            raws=raws)
     if settings.particles:
         log = res.refinement
         print(f"particle refinement: {log['pairs']} particle pairs, {log['vectors']} vectors"

@@ -37,12 +37,14 @@ from .interpolate import resample
 from .settings import PIVSettings, window_schedule
 from .validation import normalized_median_test, replace_outliers
 
-__all__ = ["PIVResult", "piv3d"]
+__all__ = ["PIVResult", "check_volume", "piv3d"]
 
 
-def _check_volume(name: str, vol):
-    """``vol`` as a float32 volume, refused by name where it cannot be correlated; a
-    :class:`DeviceVolume` stays on the device (its summary checked)."""
+def check_volume(name: str, vol):
+    """``vol`` as a float32 volume, refused by ``name`` (``"vol_a"``, or the file it came
+    from) where it cannot be correlated, with a warning where a constant background would
+    pull the vectors to zero; a :class:`DeviceVolume` stays on the device (its summary
+    checked). :func:`piv3d` checks its volumes so."""
     if isinstance(vol, DeviceVolume):
         summary = vol.summary()
         bad, low, high = summary.nonfinite, summary.low, summary.high
@@ -60,7 +62,7 @@ def _check_volume(name: str, vol):
         low, high = float(arr.min()), float(arr.max())  # read only where bad is 0
     if bad:
         raise ValueError(f"{name} contains {bad} NaN/Inf values; replace them (e.g. "
-                         f"np.nan_to_num) or mask those voxels before calling piv3d")
+                         f"np.nan_to_num) or mask those voxels before correlating")
     _check_levels(name, low, high)
     return arr
 
@@ -284,7 +286,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
     PIVResult
         Window centres (voxel-index units) and displacements (voxels) of the final pass.
     """
-    a, b = _check_volume("vol_a", vol_a), _check_volume("vol_b", vol_b)
+    a, b = check_volume("vol_a", vol_a), check_volume("vol_b", vol_b)
     if a.shape != b.shape:
         raise ValueError(f"vol_a and vol_b must have the same shape, got {a.shape} and "
                          f"{b.shape}")
