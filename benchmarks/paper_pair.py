@@ -22,8 +22,10 @@ time printed, so no row pays for them and the order of the rows does not matter.
 
 ``--profile``: everything runs on a queue with profiling enabled, and after the rows the
 first setting's pair runs twice more under :class:`plenocl.bench.clprofile.OpenCLProfile`,
-returning its volumes (``volumes=True``, the chain before 2026-12-02) and asked for its
-vectors alone (``volumes=False``, as a batch that keeps no volumes). The second's table
+returning its volumes (``volumes=True``, the chain before 2026-12-02), then with every PIV
+FFT on the device (``PIVSettings(fft="device")``, the route a GPU measures: no volume
+comes back) and asked for its vectors alone (``volumes=False``, as a batch that keeps no
+volumes, the FFT route as measured on this device). The last one's table
 gives per stage the wall seconds, the seconds inside OpenCL calls, the host's own work
 outside them, the kernels' device seconds (profiling events), the launches, the calls in
 which the host waited for the queue (waits and blocking copies) and the megabytes moved
@@ -65,6 +67,7 @@ from plenocl.bench.clprofile import (  # noqa: E402
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
+from plenocl.piv import PIVSettings  # noqa: E402
 from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
 from plenocl.reconstruction.settings import (  # noqa: E402
     COARSE_OVERSAMPLE,
@@ -153,24 +156,31 @@ def main() -> None:
         host_profile(scene, proj, SETTINGS[args.settings[0]], args.host_profile)
 
 
+#: The profiled ways of the pair: the label, ``volumes=`` and PIV's FFT route.
+PROFILED = (("with the volumes", True, None), ("the device's FFT", False, "device"),
+            ("the vectors alone", False, None))
+
+
 def profile_pair(scene, proj, rec) -> None:
     """One pair of ``scene`` with reconstruction settings ``rec``, profiled: its split
     and the bytes it moved against the raw images'; beside it, in the same run, the same
-    pair returning its volumes (the chain before 2026-12-02, whose volumes came back)."""
+    pair returning its volumes (the chain before 2026-12-02, whose volumes came back) and
+    with every PIV FFT on the device (a GPU's route: no volume comes back)."""
     moved = {}
-    for volumes in (True, False):
+    for label, volumes, fft in PROFILED:
         with OpenCLProfile() as prof:
             pair = process_pair(scene.raw_a, scene.raw_b, proj, volumes=volumes,
+                                **({} if fft is None else {"piv": PIVSettings(fft=fft)}),
                                 **({} if rec is None else {"reconstruction": rec}))
             proj.queue.finish()
         split = prof.split(pair.spans)
         total = total_profile(split)
         back = sum(call.nbytes for call in prof.calls if call.kind == "d2h")
-        moved[volumes] = (total.host, total.h2d_bytes, back)
+        moved[label] = (total.host, total.h2d_bytes, back)
     print("\n".join(split_lines(split)))
     raws = scene.raw_a.nbytes + scene.raw_b.nbytes
-    for volumes, label in ((False, "the vectors alone"), (True, "with the volumes")):
-        host, moved_in, moved_out = moved[volumes]
+    for label, _, _ in PROFILED[::-1]:
+        host, moved_in, moved_out = moved[label]
         print(f"{label:17s}: host work {host:.3f} s in the stages; {moved_in / 1e6:.1f} MB "
               f"to the device ({moved_in / raws:.1f}x the two raw images' {raws / 1e6:.1f} "
               f"MB), {moved_out / 1e6:.1f} MB back (every copy)")
