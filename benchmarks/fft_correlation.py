@@ -15,8 +15,8 @@ each, ``DeviceCorrelation.correlate`` (``kernels/fftcorr.cl``) against the host'
   there: the host path gathers the windows on the device and takes only them).
 
 Then what ``FFTRoute`` (``fft=None``, ``piv3d``'s default) chose for each, measured on the
-first call (in this process alone: the script keeps no route on the machine,
-``PLENOCL_CACHE_DIR=""``). Measured (2 CPU cores, 2026-11-30): see docs/design.md §7.5.
+first call (in this process alone, as every benchmark: ``bench.scripts.script_parser``
+keeps no route on the machine). Measured (2 CPU cores, 2026-11-30): see docs/design.md §7.5.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-os.environ["PLENOCL_CACHE_DIR"] = ""  # measure here: neither read nor keep a route
 
 import numpy as np  # noqa: E402
 
@@ -79,8 +78,9 @@ def main() -> None:
     measured = FFTRoute(None, queue)
     measured.correlate(a, b, first, pad=True)
     measured.correlate(da, db, grid, weight=weight, select=select)
-    for (_, box, resident), (chosen, host_s, device_s) in measured_routes().items():
-        print(f"route for {box} from {resident} volumes: {chosen} (host {host_s:.4f} s, "
+    for (_, box, resident, pad), (chosen, host_s, device_s) in measured_routes().items():
+        padded = " (padded)" if pad else ""
+        print(f"route for {box}{padded} from {resident} volumes: {chosen} (host {host_s:.4f} s, "
               f"device {device_s:.4f} s)")
 
 

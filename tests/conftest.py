@@ -86,9 +86,11 @@ def baseline_index(devices: list[cl.Device | None]) -> int:
 
 def pytest_configure(config: pytest.Config) -> None:
     """Choices plenocl keeps between processes (the measured FFT routes,
-    :mod:`plenocl.io.kept`) go to a folder of this test process's own, removed at its end:
-    the tests neither read nor change the user's cache."""
-    if os.environ.get(CACHE_VARIABLE) is None:
+    :mod:`plenocl.io.kept`) go to a folder of this test run's own, removed at its end
+    (whatever ``PLENOCL_CACHE_DIR`` says: a run neither reads nor changes the user's kept
+    choices, nor an earlier run's). xdist's workers, started after this, share the
+    controller's folder; a worker keeps the one it was given."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
         folder = tempfile.mkdtemp(prefix="plenocl-test-cache-")
         os.environ[CACHE_VARIABLE] = folder
         config.add_cleanup(lambda: shutil.rmtree(folder, ignore_errors=True))

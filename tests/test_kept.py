@@ -7,11 +7,12 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import warnings
 
 import numpy as np
 import pytest
 
-from plenocl.io.kept import CACHE_VARIABLE, KeptChoices, cache_dir
+from plenocl.io.kept import CACHE_VARIABLE, FORMAT, KeptChoices, cache_dir
 from plenocl.piv import devicefft
 from plenocl.piv.correlation import correlate, window_grid
 
@@ -23,74 +24,111 @@ def folder(tmp_path, monkeypatch):
     return tmp_path / "cache"
 
 
+def _file(folder, name="t"):
+    return folder / f"{name}.v{FORMAT}.json"
+
+
+def _valid(value) -> bool:
+    return isinstance(value, dict) and value.get("route") in ("host", "device")
+
+
 def test_the_folder_is_the_variable_or_the_users_cache(monkeypatch, tmp_path):
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
     assert cache_dir() == tmp_path
+    monkeypatch.setenv(CACHE_VARIABLE, "~/kept")
+    assert cache_dir() == cache_dir().expanduser() and cache_dir().is_absolute()
     monkeypatch.setenv(CACHE_VARIABLE, "  ")
     assert cache_dir() is None
     monkeypatch.delenv(CACHE_VARIABLE)
-    assert cache_dir().name == "plenocl"
+    assert cache_dir().name == "plenocl" and cache_dir().is_absolute()
 
 
-def test_the_first_value_kept_stands(folder):
+def test_a_choice_is_measured_once_and_then_read(folder):
     kept = KeptChoices("t", "a test choice")
+    calls = []
+
+    def measure(route):
+        return lambda: calls.append(route) or {"route": route}
+
     assert kept.get(("dev", 64, "host")) is None
-    assert kept.keep(("dev", 64, "host"), {"route": "device"}) == {"route": "device"}
-    assert kept.keep(("dev", 64, "host"), {"route": "host"}) == {"route": "device"}
-    assert kept.keep(("dev", 32, "host"), {"route": "host"}) == {"route": "host"}
+    assert kept.choose(("dev", 64, "host"), measure("device")) == {"route": "device"}
+    assert kept.choose(("dev", 64, "host"), measure("host")) == {"route": "device"}
+    assert kept.choose(("dev", np.int64(32), "host"), measure("host")) == {"route": "host"}
+    assert calls == ["device", "host"]  # the second call of a key measured nothing
     other = KeptChoices("t", "a test choice")  # another process's object reads the file
     assert other.get(("dev", 64, "host")) == {"route": "device"}
-    assert other.get(("dev", 32, "host")) == {"route": "host"}
-    assert sorted(p.name for p in folder.iterdir()) == ["t.json", "t.lock"]  # no temporaries
+    assert other.get(("dev", 32, "host")) == {"route": "host"}  # NumPy's int as Python's
+    assert sorted(p.name for p in folder.iterdir()) == [_file(folder).name, "t.v1.lock"]
 
 
-def test_nothing_kept_where_the_variable_is_empty(monkeypatch, tmp_path):
+def test_nothing_kept_where_the_variable_is_empty(monkeypatch):
     monkeypatch.setenv(CACHE_VARIABLE, "")
     kept = KeptChoices("t", "a test choice")
-    assert kept.keep(("k",), {"v": 1}) == {"v": 1}
-    assert kept.keep(("k",), {"v": 2}) == {"v": 2}
+    assert kept.choose(("k",), lambda: {"v": 1}) == {"v": 1}
+    assert kept.choose(("k",), lambda: {"v": 2}) == {"v": 2}
     assert kept.get(("k",)) is None
 
 
-def test_a_damaged_file_is_said_once_and_replaced(folder):
+@pytest.mark.parametrize("text", ["{not json", "[1, 2]", '{"choices": 5}', "[" * 200000])
+def test_a_damaged_file_is_said_and_replaced(folder, text):
     folder.mkdir()
-    (folder / "t.json").write_text("{not json")
+    _file(folder).write_text(text)
     kept = KeptChoices("t", "a test choice")
-    with pytest.warns(RuntimeWarning, match=r"could not read .*t\.json.*measured in each"):
+    with pytest.warns(RuntimeWarning, match=r"t\.v1\.json.*replaced.*measured by the process"):
         assert kept.get(("k",)) is None
-    assert kept.keep(("k",), {"v": 1}) == {"v": 1}
-    assert json.loads((folder / "t.json").read_text())["choices"] == {'["k"]': {"v": 1}}
-    (folder / "t.json").write_text(json.dumps({"format": 99, "choices": {'["k"]': 5}}))
-    with pytest.warns(RuntimeWarning, match="not a file of kept choices"):
-        assert KeptChoices("t", "x").get(("k",)) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert kept.choose(("k",), lambda: {"v": 1}) == {"v": 1}
+    assert json.loads(_file(folder).read_text())["choices"] == {'["k"]': {"v": 1}}
 
 
-def test_a_folder_that_cannot_be_written_is_said_once(monkeypatch, tmp_path):
+def test_a_standing_value_refused_is_measured_again_and_replaced(folder):
+    kept = KeptChoices("t", "a test choice")
+    kept.choose(("k",), lambda: {"route": "gpu"})
+    assert kept.get(("k",), _valid) is None
+    assert kept.choose(("k",), lambda: {"route": "host"}, _valid) == {"route": "host"}
+    assert kept.choose(("k",), lambda: {"route": "device"}, _valid) == {"route": "host"}
+
+
+def test_a_folder_that_cannot_be_written_is_said(monkeypatch, tmp_path):
     """A folder that cannot be made (a file stands in its way: fails for root too)."""
     (tmp_path / "a_file").write_text("")
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path / "a_file" / "cache"))
     kept = KeptChoices("t", "the test's choice")
-    with pytest.warns(RuntimeWarning, match=f"could not .*{CACHE_VARIABLE}") as said:
-        assert kept.keep(("k",), {"v": 1}) == {"v": 1}
-        assert kept.keep(("k",), {"v": 2}) == {"v": 2}
-    assert len(said) == 1
+    with pytest.warns(RuntimeWarning, match=f"could not keep it .*{CACHE_VARIABLE}"):
+        assert kept.choose(("k",), lambda: {"v": 1}) == {"v": 1}
     assert kept.get(("k",)) is None
 
 
-def _keep_in_a_process(args):
-    """One process's measurement of the same key (``value``): what stands after it."""
-    path, value = args
+def _choose_in_a_process(path, barrier, own, shared):
+    """One process choosing its own key and a shared one, started with the others."""
     os.environ[CACHE_VARIABLE] = path
-    return KeptChoices("race", "a raced choice").keep(("device", 64), {"value": value})
+    kept = KeptChoices("race", "a raced choice")
+    barrier.wait()
+    kept.choose(("own", own), lambda: {"value": own})
+    return kept.choose(("shared",), lambda: {"value": shared})
 
 
-def test_processes_keeping_at_once_agree(folder):
-    """Several processes measuring the same choice at once (a batch's workers starting
-    together) all take the first one kept."""
-    with multiprocessing.get_context("spawn").Pool(4) as pool:
-        got = pool.map(_keep_in_a_process, [(str(folder), v) for v in range(8)])
+def _worker(path, barrier, own, queue):
+    queue.put(_choose_in_a_process(path, barrier, own, own))
+
+
+def test_processes_choosing_at_once_agree_and_lose_nothing(folder):
+    """Processes started together (a batch's workers): every process's own key is kept
+    (no update lost) and all take the first value kept for the shared key."""
+    spawn = multiprocessing.get_context("spawn")
+    count = 4
+    barrier, results = spawn.Barrier(count), spawn.Queue()
+    procs = [spawn.Process(target=_worker, args=(str(folder), barrier, n, results))
+             for n in range(count)]
+    for p in procs:
+        p.start()
+    got = [results.get(timeout=120) for _ in procs]
+    for p in procs:
+        p.join(timeout=60)
     assert len({g["value"] for g in got}) == 1
-    assert KeptChoices("race", "x").get(("device", 64)) == got[0]
+    kept = KeptChoices("race", "x")
+    assert all(kept.get(("own", n)) == {"value": n} for n in range(count))
 
 
 def _pair(shape, seed):
@@ -101,48 +139,80 @@ def _pair(shape, seed):
 
 def test_a_kept_route_is_taken_by_a_new_process(queue, folder):
     """A route measured once is read by a later process instead of measured again, and a
-    kept route stands over what a new measurement would say; a kept entry that names no
-    route is measured again."""
+    kept route stands over what a new measurement would say; a kept entry that is not a
+    route (a hand-edited file) is measured again and replaced; padded windows of the
+    same box are another measurement."""
     a, b = _pair((28, 30, 36), seed=3)
     grid = window_grid(a.shape, (10, 12, 18), 0.5)
     devicefft.forget_measured_routes()
     first = devicefft.FFTRoute(None, queue)
-    chosen = first.correlate(a, b, grid)
+    first.correlate(a, b, grid)
     route = first.route(a, grid, False)
     assert route in ("host", "device")
-    (entry,) = json.loads((folder / "fft_routes.json").read_text())["choices"].values()
+    path = _file(folder, "fft_routes")
+    (key, entry), = json.loads(path.read_text())["choices"].items()
     assert entry["route"] == route and entry["host_s"] > 0 and entry["device_s"] > 0
+    assert queue.device.driver_version.strip() in key and '"unpadded"' in key
+
+    def kept_as(value):
+        doc = json.loads(path.read_text())
+        doc["choices"][key] = value  # as if an earlier process had measured that
+        path.write_text(json.dumps(doc))
+        devicefft.forget_measured_routes()  # as a new process
+        return devicefft.FFTRoute(None, queue)
 
     other = "device" if route == "host" else "host"
-    path = folder / "fft_routes.json"
-    doc = json.loads(path.read_text())
-    (key,) = doc["choices"]
-    doc["choices"][key]["route"] = other  # as if an earlier process had measured that
-    path.write_text(json.dumps(doc))
-    devicefft.forget_measured_routes()  # as a new process
-    later = devicefft.FFTRoute(None, queue)
+    later = kept_as({**entry, "route": other})
     assert later.route(a, grid, False) == other
     got = later.correlate(a, b, grid)
     assert later.used == {other}
     want = (devicefft.DeviceCorrelation(queue).correlate(a, b, grid) if other == "device"
             else correlate(a, b, grid))
     assert np.array_equal(got.peak, want.peak)
-    assert chosen.peak.shape == got.peak.shape
-
-    doc["choices"][key]["route"] = "gpu"  # not a route: measured again and replaced
-    path.write_text(json.dumps(doc))
-    devicefft.forget_measured_routes()
-    again = devicefft.FFTRoute(None, queue)
-    assert again.route(a, grid, False) is None
-    again.correlate(a, b, grid)
-    (taken,) = again.used
-    assert json.loads(path.read_text())["choices"][key]["route"] == taken
+    for bad in ({**entry, "route": "gpu"}, {**entry, "host_s": None},
+                {**entry, "device_s": "fast"}, [route]):
+        again = kept_as(bad)
+        assert again.route(a, grid, False) is None
+        again.correlate(a, b, grid)  # measured again, not a crash
+        (taken,) = again.used
+        assert json.loads(path.read_text())["choices"][key]["route"] == taken
+    assert first.route(a, grid, True) is None  # padded: not the unpadded box's route
 
 
-def test_a_standing_value_refused_is_replaced(folder):
-    kept = KeptChoices("t", "a test choice")
-    kept.keep(("k",), {"route": "gpu"})
-    def valid(v):
-        return v.get("route") in ("host", "device")
-    assert kept.keep(("k",), {"route": "host"}, valid) == {"route": "host"}
-    assert kept.keep(("k",), {"route": "device"}, valid) == {"route": "host"}
+def _route_in_a_process(device, path, gain, barrier, results):
+    """A new process's first FFT route for one box, with a margin that makes its own
+    measurement choose ``host`` (gain 0) or ``device`` (gain 1e9)."""
+    os.environ[CACHE_VARIABLE] = path
+    from plenocl import get_queue
+    from plenocl.opencl.device import devices_by_preference
+
+    chosen = [d for d in devices_by_preference()
+              if (d.platform.name.strip(), d.name.strip()) == device]
+    queue = get_queue(chosen[0])
+    devicefft.DEVICE_GAIN = gain
+    a, b = _pair((24, 26, 30), seed=4)
+    route = devicefft.FFTRoute(None, queue)
+    timed, calls = route._timed, []
+    route._timed = lambda *args: calls.append(1) or timed(*args)  # counts measurements
+    barrier.wait()
+    route.correlate(a, b, window_grid(a.shape, (12, 12, 16), 0.5))
+    results.put((sorted(route.used), len(calls)))
+
+
+def test_new_processes_measuring_at_once_take_one_route(queue, folder):
+    """Processes whose own measurements would disagree (forced), started together, all
+    take one route from their first call: one measures, the others wait and read its
+    choice (no two measurements timed against each other)."""
+    spawn = multiprocessing.get_context("spawn")
+    device = (queue.device.platform.name.strip(), queue.device.name.strip())
+    gains = (0.0, 1e9, 0.0, 1e9)
+    barrier, results = spawn.Barrier(len(gains)), spawn.Queue()
+    procs = [spawn.Process(target=_route_in_a_process,
+                           args=(device, str(folder), g, barrier, results)) for g in gains]
+    for p in procs:
+        p.start()
+    got = [results.get(timeout=300) for _ in procs]
+    for p in procs:
+        p.join(timeout=60)
+    assert len({tuple(used) for used, _ in got}) == 1 and len(got[0][0]) == 1
+    assert sum(calls for _, calls in got) == 1

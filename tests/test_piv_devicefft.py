@@ -194,7 +194,7 @@ def test_routes(queue):
     got = measured.correlate(a, b, grid)
     (key, (chosen, host_s, device_s)), = [
         (k, v) for k, v in measured_routes().items()
-        if k[0] == queue.device.name.strip() and k[1] == (10, 12, 20) and k[2] == "host"]
+        if k == (queue.device.name.strip(), (10, 12, 20), "host", False)]
     assert measured.used == {chosen} and host_s > 0 and device_s > 0
     assert chosen == ("device" if device_s <= DEVICE_GAIN * host_s else "host")
     assert measured.route(a, grid, False) == chosen

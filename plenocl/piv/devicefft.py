@@ -31,7 +31,7 @@ from .correlation import (
     smooth_length,
     window_lows,
 )
-from .fft import BACKENDS
+from .fft import BACKENDS, default_backend
 
 __all__ = ["CPU_GROUP", "KEPT_ROUTES", "MAX_LINE", "DeviceCorrelation", "FFTRoute",
            "forget_measured_routes", "is_route", "measured_routes"]
@@ -209,8 +209,11 @@ ROUTES = ("host", "device")
 
 
 def is_route(value) -> bool:
-    """Whether a kept ``value`` names a route (a hand-edited file may not)."""
-    return isinstance(value, dict) and value.get("route") in ROUTES
+    """Whether a kept ``value`` names a route, with its two measured seconds as numbers
+    (a hand-edited file may hold anything)."""
+    return (isinstance(value, dict) and value.get("route") in ROUTES
+            and all(isinstance(value.get(k), (int, float)) and not isinstance(value[k], bool)
+                    for k in ("host_s", "device_s")))
 
 
 def forget_measured_routes() -> None:
@@ -222,10 +225,11 @@ def forget_measured_routes() -> None:
 
 def measured_routes() -> dict[tuple, tuple[str, float, float]]:
     """Every FFT route this process has chosen by measurement, its own or kept from an
-    earlier process (:data:`KEPT_ROUTES`): ``(device name, box, where the volumes are)`` to
-    ``(route, host seconds, device seconds)`` (the seconds of the measurement that chose
-    it); the volumes ``"host"``, ``"device"`` or ``"both"`` (host volumes with device
-    copies, ``on_device``)."""
+    earlier process (:data:`KEPT_ROUTES`): ``(device name, box, where the volumes are,
+    padded)`` to ``(route, host seconds, device seconds)`` (the seconds of the measurement
+    that chose it); the volumes ``"host"``, ``"device"`` or ``"both"`` (host volumes with
+    device copies, ``on_device``); padded: whether the windows are zero-padded into the
+    box."""
     with _MEASURE_LOCK:
         return dict(_MEASURED)
 
@@ -309,41 +313,51 @@ class FFTRoute:
         with _MEASURE_LOCK:
             known = _MEASURED.get(key)
         if known is None:
-            known = self._kept(key, KEPT_ROUTES.get(self._kept_key(key)))
+            known = self._kept(key, KEPT_ROUTES.get(self._kept_key(key), is_route))
         return None if known is None else known[0]
 
     def _kept_key(self, key: tuple) -> tuple:
         """The kept file's key of a measurement's ``key``: the device's platform and
-        driver and plenocl's version beside it (another driver or plenocl measures
-        again)."""
+        driver, plenocl's version and the host's FFT backend beside it (another of any
+        of them measures again)."""
         device = self.device.queue.device
-        return (device.platform.name.strip(), key[0], device.driver_version.strip(),
-                __version__, *key[1], key[2])
+        name, box, resident, pad = key
+        return (device.platform.name.strip(), name, device.driver_version.strip(),
+                __version__, self.backend or default_backend(), *box, resident,
+                "padded" if pad else "unpadded")
 
     @staticmethod
     def _kept(key: tuple, value: dict | None) -> tuple[str, float, float] | None:
-        """A kept ``value`` as this process's choice for ``key`` (``None``: none kept,
-        or not a route)."""
-        if not is_route(value):
+        """A kept ``value`` as this process's choice for ``key`` (``None``: none kept)."""
+        if value is None:
             return None
-        known = (value["route"], float(value.get("host_s", 0.0)),
-                 float(value.get("device_s", 0.0)))
+        known = (value["route"], float(value["host_s"]), float(value["device_s"]))
         with _MEASURE_LOCK:
             return _MEASURED.setdefault(key, known)
 
     def _key(self, vol_a, grid: WindowGrid, pad: bool, on_device: tuple | None) -> tuple:
         resident = ("device" if isinstance(vol_a, cl_array.Array)
                     else "host" if on_device is None else "both")
-        return self.device.queue.device.name.strip(), fft_shape_of(grid, pad), resident
+        box = tuple(int(n) for n in fft_shape_of(grid, pad))
+        return self.device.queue.device.name.strip(), box, resident, bool(pad)
 
     def _measure(self, vol_a, vol_b, grid: WindowGrid, options: dict,
                  on_device: tuple | None) -> str:
+        """The route kept on the machine for this call's key (:data:`KEPT_ROUTES`: another
+        process's, where one measured first), else measured (:meth:`_timed`) and kept."""
+        key = self._key(vol_a, grid, options["pad"], on_device)
+        value = KEPT_ROUTES.choose(self._kept_key(key),
+                                   lambda: self._timed(vol_a, vol_b, grid, options, on_device),
+                                   is_route)
+        return self._kept(key, value)[0]
+
+    def _timed(self, vol_a, vol_b, grid: WindowGrid, options: dict,
+               on_device: tuple | None) -> dict:
         """Time both routes on up to :data:`MEASURED_WINDOWS` of this call's windows,
         each run twice (the first run warms it: the device's buffers and twiddles, the
         host's FFT plans) and the second timed; choose the device where it took at most
-        :data:`DEVICE_GAIN` of the host's time, else the host; keep the choice on the
-        machine (:data:`KEPT_ROUTES`) and return the route that stands there (another
-        process's, where it kept one first)."""
+        :data:`DEVICE_GAIN` of the host's time, else the host: ``{"route", "host_s",
+        "device_s"}``."""
         todo = np.ones(grid.count, bool) if options["select"] is None else options["select"]
         sample = np.zeros(grid.count, bool)
         sample.flat[np.flatnonzero(todo)[:MEASURED_WINDOWS]] = True
@@ -357,7 +371,4 @@ class FFTRoute:
             run()
             seconds[name] = time.perf_counter() - start
         route = "device" if seconds["device"] <= DEVICE_GAIN * seconds["host"] else "host"
-        key = self._key(vol_a, grid, options["pad"], on_device)
-        measured = {"route": route, "host_s": seconds["host"], "device_s": seconds["device"]}
-        # another process may have kept its measurement first: that one stands
-        return self._kept(key, KEPT_ROUTES.keep(self._kept_key(key), measured, is_route))[0]
+        return {"route": route, "host_s": seconds["host"], "device_s": seconds["device"]}

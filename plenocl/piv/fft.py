@@ -26,6 +26,11 @@ except ImportError:  # pragma: no cover - depends on the installation
 BACKENDS = ("fftw", "scipy")
 
 
+def default_backend() -> str:
+    """The host FFT's backend when none is given: FFTW where pyfftw is installed."""
+    return "fftw" if pyfftw is not None else "scipy"
+
+
 class CorrelationFFT:
     """Circular cross-correlation of window batches over ``fft_shape``.
 
@@ -44,7 +49,7 @@ class CorrelationFFT:
 
     def __init__(self, batch: int, window, fft_shape, workers: int = -1,
                  backend: str | None = None) -> None:
-        backend = backend or ("fftw" if pyfftw is not None else "scipy")
+        backend = backend or default_backend()
         if backend not in BACKENDS or (backend == "fftw" and pyfftw is None):
             raise ValueError(f"FFT backend must be one of {BACKENDS} (fftw needs pyfftw), "
                              f"got {backend!r}")
