@@ -199,7 +199,8 @@ def test_mask_excludes_windows():
     mask[:, :, 44:] = True               # a "wall" on the high-x side
     res = piv3d(pair.vol_a, pair.vol_b, mask=mask)
     xx = np.meshgrid(res.z, res.y, res.x, indexing="ij")[2]
-    assert np.array_equal(res.masked, xx > 43.5)   # windows more than half in the wall
+    # windows more than a quarter in the wall: their centre within a quarter window of it
+    assert np.array_equal(res.masked, xx > 44 - res.window[2] / 4)
     assert np.isnan(res.u[res.masked]).all() and not res.valid[res.masked].any()
     err = np.stack([res.u, res.v, res.w]) - truth(res, flow)
     keep = interior(res, shape) & (xx < 30)
@@ -564,3 +565,41 @@ def test_a_volume_too_thin_for_three_vector_layers_is_said_with_the_fix():
         warnings.simplefilter("error", UserWarning)
         warnings.simplefilter("ignore", DeviceFallbackWarning)  # which device, not PIV's
         assert piv3d(deep, np.roll(deep, 1, axis=2)).u.shape[0] >= 3
+
+
+def test_vectors_beside_a_mask_are_not_pulled_to_zero():
+    """A wall (the mask) fixed in both volumes: the final windows it covers by more than a
+    quarter are left out, and the others beside it keep the displacement across it (the
+    zeroed wall correlated at zero displacement: 1.03 of 1.3 voxels, valid, at 46 %)."""
+    pair = flows.volume_pair((48, 48, 48), flows.Uniform((1.3, -0.7, 0.4)), density=0.01,
+                             seed=1)   # (u, v, w)
+    mask = np.zeros((48, 48, 48), bool)
+    mask[:, :, 25:] = True
+    for correlation in ("auto", "fft"):
+        res = piv3d(pair.vol_a, pair.vol_b, queue=False, mask=mask, correlation=correlation)
+        beside = res.valid & (np.abs(res.x - 25)[None, None, :] < res.window[2] / 2)
+        assert beside.sum() >= 20
+        assert abs(res.u[beside].mean() - 1.3) < 0.05, res.u[beside].mean()
+
+
+def test_displacements_beyond_the_first_windows_are_said():
+    """A displacement the first windows cannot hold gave valid-looking wrong vectors in
+    silence (u = 14 in windows of 16: every valid vector wrong); a small one says
+    nothing."""
+    far = flows.volume_pair((48, 48, 48), flows.Uniform((0.0, 0.0, 14.0)), density=0.01,
+                            seed=2)
+    with pytest.warns(UserWarning, match=r"beyond a quarter of the window.*larger first"):
+        piv3d(far.vol_a, far.vol_b, windows=(16, 16), queue=False)
+    near = flows.volume_pair((48, 48, 48), flows.Uniform((0.4, -0.7, 1.3)), density=0.01,
+                             seed=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        piv3d(near.vol_a, near.vol_b, windows=(16, 16), queue=False)
+
+
+def test_a_field_without_a_valid_vector_is_said():
+    pair = flows.volume_pair((40, 40, 40), flows.Uniform((0.4, -0.7, 1.3)), density=0.01,
+                             seed=3)
+    with pytest.warns(UserWarning, match="no vector passed validation"):
+        res = piv3d(pair.vol_a, pair.vol_b, queue=False, min_peak_ratio=100.0)
+    assert not res.valid.any()

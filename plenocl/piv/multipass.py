@@ -240,7 +240,10 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         between vectors; both extrapolate linearly beyond the outermost vectors.
     mask
         Optional boolean volume, ``True`` for voxels to exclude (walls, outside the flow).
-        Excluded voxels are zeroed; windows more than half excluded give NaN vectors.
+        Excluded voxels take the mean of the others (:func:`masked_volume`); windows more
+        than a quarter excluded (:data:`MASKED_FRACTION`) give NaN vectors (``masked``;
+        the earlier passes keep windows up to half excluded). A mask that leaves no
+        first-pass window is refused.
     median_eps, median_threshold
         Normalised median test parameters (voxels; dimensionless).
     min_peak_ratio
@@ -305,9 +308,9 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
         windows = auto_windows(a.shape, particles=count_particles(
             a, maxima=maxima, on_device=None if copies is None else copies[0]))
     schedule = window_passes(a.shape, windows, opts.overlaps, opts.final_iterations)
-    mask = _check_mask(mask, a.shape)
+    mask = _check_mask(mask, a.shape, schedule[0])
     if mask is not None:
-        a, b = (np.where(mask, np.float32(0), host_volume(v)) for v in (a, b))
+        a, b = (masked_volume(host_volume(v), mask) for v in (a, b))
         copies = None
     coeffs = tuple(deformer.prepare(v) for v in copies or (a, b))
     state, log = None, []
@@ -328,9 +331,63 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
                     "fft_route": "+".join(sorted(fft.used)) or None,
                     "outliers": int(state.outlier.sum()), "invalid": int(state.invalid.sum()),
                     "seconds": time.perf_counter() - t0})
+        if k == 0:
+            _warn_if_far(state, size)
     result = _result(state, schedule[-1][0], log)
     _warn_if_thin(result, a.shape)
+    _warn_if_none_valid(result)
     return result
+
+
+#: A final window more than this fraction masked is left out (its vector NaN,
+#: ``masked``): above it the mask's edge, fixed in both volumes, pulls the displacement
+#: across it towards zero (docs/design.md §7.3, "Masks"). The earlier passes, which only
+#: predict, keep windows up to :data:`PREDICTOR_MASKED` masked.
+MASKED_FRACTION = 0.25
+PREDICTOR_MASKED = 0.5
+#: The first pass's displacements are reliable up to this fraction of its windows (the
+#: one-quarter rule of Keane & Adrian 1990): beyond it :func:`piv3d` warns.
+FAR_FRACTION = 0.25
+
+
+def masked_volume(vol: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``vol`` with its ``mask``ed voxels set to the mean of the others: a level that
+    window means nearly remove, where zeros (a band identical in both volumes) would
+    correlate at zero displacement and pull the vectors beside the mask towards zero
+    (3-4 % at a window 10-20 % masked, against 1 %; docs/design.md §7)."""
+    kept = vol[~mask]
+    level = np.float32(kept.mean()) if kept.size else np.float32(0)
+    return np.where(mask, level, vol).astype(np.float32, copy=False)
+
+
+def _warn_if_far(state: _Pass, size: Size3) -> None:
+    """The first pass's valid displacements beyond a quarter of its windows along an axis
+    (their median): a displacement the windows cannot hold, or volumes that do not
+    belong together, correlate into vectors that look valid and are not."""
+    valid = ~(state.invalid | state.outlier | state.masked)
+    if not valid.any():
+        return
+    far = [(axis, float(np.median(np.abs(comp[valid]))), w)
+           for axis, comp, w in zip("zyx", state.field, size)
+           if np.median(np.abs(comp[valid])) > FAR_FRACTION * w]
+    if far:
+        said = ", ".join(f"{d:.1f} voxels along {axis} in windows of {w}"
+                         for axis, d, w in far)
+        warnings.warn(
+            f"the first pass's displacements reach {said}: beyond a quarter of the window, "
+            "where correlation finds them unreliably (or the volumes do not belong "
+            "together), and the vectors may look valid and be wrong. Give larger first "
+            "windows (windows=(64, ...), --windows), or a shorter time between the "
+            "exposures", stacklevel=3)
+
+
+def _warn_if_none_valid(result: PIVResult) -> None:
+    """No vector of the final pass valid: its field holds no measurement."""
+    if not result.valid.any():
+        warnings.warn(
+            "no vector passed validation (the peak ratio, the outlier test or the mask): "
+            "the field's vectors are fill values (zeros), not measurements; check the "
+            "volumes and the settings (min_peak_ratio, windows, mask)", stacklevel=3)
 
 
 def _warn_if_thin(result: PIVResult, shape: tuple[int, ...]) -> None:
@@ -348,7 +405,9 @@ def _warn_if_thin(result: PIVResult, shape: tuple[int, ...]) -> None:
             "--depth-voxel-mm) or give smaller windows (windows=, --windows)", stacklevel=3)
 
 
-def _check_mask(mask, shape: Size3) -> np.ndarray | None:
+def _check_mask(mask, shape: Size3, first: tuple[Size3, float]) -> np.ndarray | None:
+    """``mask`` checked: the volumes' shape, boolean, and leaving some window of the
+    ``first`` pass ``(size, overlap)`` to correlate."""
     if mask is None:
         return None
     m = np.asarray(mask)
@@ -356,6 +415,11 @@ def _check_mask(mask, shape: Size3) -> np.ndarray | None:
         raise ValueError(f"mask must have the volumes' shape {shape}, got {m.shape}")
     if m.dtype != bool:
         raise TypeError(f"mask must be boolean (True = exclude the voxel), got dtype {m.dtype}")
+    if (window_fraction(m, window_grid(shape, *first)) > PREDICTOR_MASKED).all():
+        raise ValueError(f"the mask covers {m.mean():.0%} of the volume and more than "
+                         f"{PREDICTOR_MASKED:.0%} of every first-pass window {first[0]}: "
+                         "nothing is left to correlate; True marks voxels to exclude "
+                         "(pass ~mask if yours marks the voxels to keep)")
     return m
 
 
@@ -380,7 +444,9 @@ def _run_pass(a, b, prepared, prev: _Pass | None, size: Size3, overlap: float, m
         base = resample(prev.field, prev.centres, centres, opts.predictor)
     corr = _correlate_pass(da, db, grid, pad, weight, opts, direct,
                            final and prev is not None, engines[:2], copies)
-    masked = np.zeros(grid.count, bool) if mask is None else window_fraction(mask, grid) > 0.5
+    limit = MASKED_FRACTION if final else PREDICTOR_MASKED
+    masked = (np.zeros(grid.count, bool) if mask is None
+              else window_fraction(mask, grid) > limit)
     invalid = ~corr.signal | masked
     if opts.min_peak_ratio is not None:
         invalid |= corr.peak_ratio < opts.min_peak_ratio

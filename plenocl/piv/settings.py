@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..options import is_integer, whole_counts
+from ..options import is_integer, is_number, whole_counts
 from .fft import BACKENDS
 
 CORRELATIONS = ("auto", "fft")
@@ -44,7 +44,12 @@ class PIVSettings:
         whole_counts(self, ("final_iterations", "workers", "deform_order"))
         for name in ("windows", "overlaps"):
             value = getattr(self, name)
-            if isinstance(value, Sequence) and not isinstance(value, str):
+            if isinstance(value, str):
+                raise ValueError(f"{name} must be numbers (e.g. windows=(48, 32, 24), "
+                                 f"overlaps=0.5), not text: got {value!r}")
+            if isinstance(value, np.ndarray):  # as the list it holds: one entry a pass
+                value = value.tolist()
+            if isinstance(value, Sequence):
                 object.__setattr__(self, name, _frozen(value))
         _check(self)
 
@@ -58,6 +63,11 @@ def _frozen(value):
 
 def _check(s: PIVSettings) -> None:
     weighting = s.weighting
+    for name in ("median_eps", "median_threshold", "weighting", "min_peak_ratio"):
+        value = getattr(s, name)
+        if not (is_number(value) or (value is None and name in ("weighting",
+                                                               "min_peak_ratio"))):
+            raise ValueError(f"{name} must be a number, got {value!r}")
     if s.correlation not in CORRELATIONS:
         raise ValueError(f"correlation must be 'auto' (the deformed passes correlated "
                          f"directly around zero) or 'fft', got {s.correlation!r}")
@@ -72,8 +82,10 @@ def _check(s: PIVSettings) -> None:
     if weighting is not None and not 0.05 <= weighting <= 10:
         raise ValueError(f"weighting is a Gaussian width as a fraction of the window "
                          f"(e.g. 0.35) or None, got {weighting!r}")
-    if s.min_peak_ratio is not None and not np.isfinite(s.min_peak_ratio):
-        raise ValueError(f"min_peak_ratio must be a finite number or None, got "
+    if s.min_peak_ratio is not None and not (np.isfinite(s.min_peak_ratio)
+                                             and s.min_peak_ratio >= 1):
+        raise ValueError(f"min_peak_ratio must be a finite number >= 1 (a correlation's "
+                         f"highest peak over its second: never below 1) or None, got "
                          f"{s.min_peak_ratio!r}")
     if not isinstance(s.pad_first, (bool, np.bool_)):
         raise ValueError(f"pad_first must be true or false, got {s.pad_first!r}")
@@ -142,10 +154,12 @@ def _check_counts(s: PIVSettings) -> None:
     experiment file is refused before any pair, not in every worker)."""
     if s.windows is not None:  # the windows and overlaps, but whether they fit a volume
         window_schedule(s.windows, s.overlaps, s.final_iterations)
-    elif isinstance(s.overlaps, Sequence) and not isinstance(s.overlaps, str):
+    elif isinstance(s.overlaps, Sequence):
         raise ValueError(f"overlaps {s.overlaps!r} gives one per pass, but without windows "
                          "the passes follow each volume's particles (two or three): give "
                          "the windows they go with, or one overlap for every pass")
+    elif s.overlaps is not None:
+        _overlap(s.overlaps, 1)
     _check_final_iterations(s.final_iterations)
     if not is_integer(s.workers) or not (s.workers == -1 or s.workers >= 1):
         raise ValueError(f"workers must be -1 (all cores) or a positive integer, got "
