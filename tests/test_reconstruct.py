@@ -374,3 +374,72 @@ def test_pixels_without_data_masked_do_not_darken_the_volume(queue):
     assert naive.sum() < 0.8 * full.sum()
     assert np.corrcoef(masked.ravel(), full.ravel())[0, 1] > 0.99
     assert recovered(masked, CUBE, pos).fraction >= recovered(full, CUBE, pos).fraction - 0.03
+
+
+@pytest.fixture(scope="module")
+def two_particles(queue):
+    """A 12 x 10-lens camera's 16-bit image of two particles and its projector."""
+    from helpers import lens_camera
+
+    cam = lens_camera(12, 10)
+    grid = Grid((9, 10, 12), x=(-0.75, 0.75), y=(-0.6, 0.6), z=(-1.5, 1.5))
+    pos = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.8]])
+    img = simulate_image(cam, pos, 2e4, 5000, seed=1, background=20.0, photon_noise=True,
+                         bit_depth=16, queue=queue)
+    return cam, grid, img, Projector(cam, grid, queue)
+
+
+def test_a_bad_pixel_map_given_as_the_pixel_mask_is_refused(two_particles):
+    """A map of the bad pixels (True = bad) given where True means data: every voxel
+    unseen, and the volume was all zero in silence (the warning, once a process, blamed
+    the grid)."""
+    _, _, img, proj = two_particles
+    bad = np.random.default_rng(0).random(img.shape) < 0.1
+    for _ in range(2):  # every time, not once a process
+        with pytest.raises(ValueError, match=r"pixel mask leaves 100% .*marks 10\.\d% .*"
+                                             r"pass its inverse \(pixel_mask=~bad"):
+            reconstruct(img, proj, pixel_mask=bad)
+    assert reconstruct(img, proj, pixel_mask=~bad).sum() > 0
+
+
+@pytest.mark.parametrize("supersample", [3, 1])
+def test_a_mask_fraction_that_zeroes_every_voxel_is_refused(two_particles, supersample):
+    _, _, img, proj = two_particles
+    with pytest.raises(ValueError, match=r"mask_fraction=0 zeroed every voxel"):
+        reconstruct(img, proj, mask_fraction=0.0, supersample=supersample)
+    assert reconstruct(img, proj, mask_fraction=0.5, supersample=supersample).sum() > 0
+
+
+def test_a_pinhole_aperture_sampling_and_a_camera_for_a_projector_are_refused(two_particles,
+                                                                             queue):
+    cam, grid, img, proj = two_particles
+    with pytest.raises(ValueError, match=r"samples the aperture 1\.7 times across, fewer "
+                                         r"than 3: a pinhole.*at least 0\.18"):
+        Projector(cam, grid, queue, oversample=0.1)
+    with pytest.raises(ValueError, match="oversample must be a positive number, got True"):
+        Projector(cam, grid, queue, oversample=True)
+    assert Projector(cam, grid, queue, oversample=0.3).forward(
+        np.ones(grid.shape, np.float32)).sum() > 0
+    with pytest.raises(TypeError, match=r"takes a projector .*got Camera"):
+        reconstruct(img, cam)
+
+
+def test_a_rotated_array_under_a_sensor_axis_grid_is_not_said_to_be_outside(queue):
+    """A rotated array's iterations run on its lens-row frame, whose padding lies beyond
+    the grid's corners: the field-of-view check reads the grid given (it warned of 36 %
+    of a grid 0.6 % outside), and still warns of one that does reach outside."""
+    import warnings
+
+    from helpers import ROTATED, lens_camera
+
+    cam = lens_camera(12, 10, **ROTATED)
+    pos = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.8]])
+    img = simulate_image(cam, pos, 2e4, 5000, seed=1, background=20.0, photon_noise=True,
+                         bit_depth=16, queue=queue)
+    inside = Grid((9, 10, 12), x=(-0.75, 0.75), y=(-0.6, 0.6), z=(-1.5, 1.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert reconstruct(img, Projector(cam, inside, queue)).sum() > 0
+    wide = Grid((9, 20, 24), x=(-1.5, 1.5), y=(-1.2, 1.2), z=(-1.5, 1.5))
+    with pytest.warns(UserWarning, match="beyond the camera's field of view"):
+        reconstruct(img, Projector(cam, wide, queue))
