@@ -20,6 +20,7 @@ import numpy as np
 
 from .camera.lattice import rotation_matrix
 from .io.fieldformat import AXES, FORMAT_VERSION, check_field_path, read_field, write_field
+from .options import is_number
 
 __all__ = ["AXES", "FLAGS", "FORMAT_VERSION", "NOTES", "PIVResult", "Size3",
            "displacement_to_velocity", "field_units", "q_criterion", "to_object_space",
@@ -244,14 +245,22 @@ def displacement_to_velocity(displacement, voxel_size_mm, dt: float):
     dt
         Time between the two volumes (s).
     """
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive time in seconds, got {dt!r}")
+    if not _positive_number(dt):
+        raise ValueError(f"dt must be a positive time in seconds (a number, e.g. 175e-6), "
+                         f"got {dt!r}")
     if dt > 1.0:
         warnings.warn(f"dt = {dt:g} s between the exposures is unusually long for PIV "
                       "(microseconds to milliseconds): dt is in seconds, e.g. 175 µs is "
                       "175e-6", stacklevel=3)
     dz, dy, dx = voxel_size(voxel_size_mm)
     return tuple(np.asarray(c) * s * 1e-3 / dt for c, s in zip(displacement, (dx, dy, dz)))
+
+
+def _positive_number(value) -> bool:
+    """A positive finite number (NumPy's 0-d arrays too; not text, not a bool)."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    return is_number(value) and bool(np.isfinite(value)) and value > 0
 
 
 def velocity_gradient(u, v, w, x, y, z) -> np.ndarray:
@@ -340,8 +349,14 @@ def _geometry(voxel_size_mm, origin_mm, grid, result: PIVResult | None = None):
         if result is not None:
             _check_on_grid(result, grid)
         return grid_geometry(grid)
-    origin = tuple(float(o) for o in np.broadcast_to(np.asarray(origin_mm, float), (3,)))
-    return voxel_size(voxel_size_mm), origin
+    try:
+        origin = np.broadcast_to(np.asarray(origin_mm, float), (3,))
+    except (ValueError, TypeError):
+        origin = np.full(3, np.nan)  # two values, or text: refused below
+    if not np.all(np.isfinite(origin)):
+        raise ValueError(f"origin_mm must be finite, a scalar or (z0, y0, x0) in mm (the "
+                         f"centre of voxel 0), got {origin_mm!r}")
+    return voxel_size(voxel_size_mm), tuple(float(o) for o in origin)
 
 
 def _check_on_grid(result: PIVResult, grid) -> None:

@@ -216,6 +216,25 @@ def test_tecplot_ordered_zone_x_fastest(tmp_path, field):
     assert data[out, names.index("u_voxel [voxel]")][0] == pytest.approx(field.u[1, 2, 3])
 
 
+def test_tecplot_writes_an_unknown_uncertainty_as_negative(tmp_path, field):
+    """piv3d gives invalid and masked vectors a NaN uncertainty: the Tecplot file wrote 0
+    (a perfect vector); it writes -1 there, and the CSV keeps nan."""
+    import dataclasses
+
+    unknown = ~field.valid
+    sigma = {f"sigma_{c}": np.where(unknown, np.nan, getattr(field, f"sigma_{c}"))
+             for c in "uvw"}
+    path = _save(tmp_path / "f.dat", dataclasses.replace(field, **sigma))
+    assert "written as -1" in path.read_text()
+    names, _, data = _read_tecplot(path)
+    rows = unknown.ravel()
+    for name in names:
+        if "sigma" in name:
+            assert (data[rows, names.index(name)] == -1).all(), name
+            assert (data[~rows, names.index(name)] > 0).all(), name
+    assert data[field.masked.ravel(), names.index("u [m/s]")][0] == 0  # values stay 0
+
+
 def test_tables_without_dt_hold_displacements_only(tmp_path, field):
     path = _save(tmp_path / "f.dat", field, dt=None)
     names, _, _ = _read_tecplot(path)

@@ -376,7 +376,7 @@ def test_reconstruct_is_finite_and_non_negative(tiny, tiny_perturbed, kind, dtyp
     every method and option mix: the volume is finite, non-negative and (MLEM, SMART)
     carries no more light than :func:`_sum_bound` allows; an image that cannot give a
     volume (one value, saturated, no pixel above the threshold) is refused, and only such a
-    one."""
+    one; a ``mask_fraction`` that zeroes every voxel of the first guess is said."""
     proj = tiny_perturbed if perturbed else tiny[1]
     image = _make_image(proj.image_shape, kind, dtype, exponent, seed)
     peak = float(np.asarray(image, np.float64).max())
@@ -391,6 +391,9 @@ def test_reconstruct_is_finite_and_non_negative(tiny, tiny_perturbed, kind, dtyp
                               skip_empty=skip_empty, mart_blocks=mart_blocks, supersample=1)
         except UnusableImageError:
             assert unusable, f"{method}: a usable image refused"
+            continue
+        except ValueError as exc:  # a mask_fraction that left no voxel: said, not zeros
+            assert mask_fraction is not None and "zeroed every voxel" in str(exc), exc
             continue
         assert not unusable, f"{method}: an image without light reconstructed"
         assert vol.shape == proj.shape and vol.dtype == np.float32
@@ -815,6 +818,17 @@ INVALID = [
     ("projector-back-mode", _proj(back="scatter"), ValueError, "back must be one of"),
     ("projector-oversample-zero", _proj(oversample=0), ValueError,
      "oversample must be a positive number"),
+    ("projector-oversample-pinhole", _proj(oversample=0.01), ValueError,
+     r"samples the aperture .* times across, fewer than 3: a pinhole"),
+    ("projector-shear-tol", _proj(shear_tol=-1.0), ValueError,
+     "shear_tol must be a non-negative number"),
+    ("projector-scratch-bytes", _proj(scratch_bytes=-5), ValueError,
+     "scratch_bytes must be a positive whole number of bytes"),
+    ("reconstruct-threshold-negative", _rec(threshold=-1.0), ValueError,
+     "threshold must be a finite number >= 0"),
+    ("reconstruct-tol", _rec(tol=float("nan")), ValueError, "tol must be a finite number >= 0"),
+    ("reconstruct-not-a-projector", lambda c: reconstruct(c["img"], c["cam"]), TypeError,
+     r"reconstruct takes a projector \(plenocl.Projector\(camera, grid\)\)"),
     ("projector-buffer-too-large", _proj(max_alloc_bytes=1000), MemoryError,
      "the device allocates at most"),
     ("projector-forward-shape", lambda c: c["proj"].forward(np.ones((3, 4, 5))), ValueError,
@@ -919,6 +933,11 @@ INVALID = [
      ValueError, "larger than the volume along z"),
     ("piv-all-zero", _piv(a=np.zeros_like), ValueError, "is constant"),
     ("piv-negative", _piv(b=lambda v: -v), ValueError, "vol_b holds negative intensities"),
+    ("field-dt-text", lambda c: _tiny_field().velocity(0.1, dt="1e-3"), ValueError,
+     r"dt must be a positive time in seconds \(a number"),
+    ("field-origin-two", lambda c: save_field(c["dir"] / "o.npz", _tiny_field(),
+                                              origin_mm=(1.0, 2.0)), ValueError,
+     r"origin_mm must be finite, a scalar or \(z0, y0, x0\)"),
     ("field-voxel-size-two", lambda c: _tiny_field().velocity((0.1, 0.1), dt=1e-3),
      ValueError, r"voxel_size_mm must be positive, a scalar or \(dz, dy, dx\)"),
     ("piv-not-3d", _piv(a=lambda v: v[0], b=lambda v: v[0]), ValueError,

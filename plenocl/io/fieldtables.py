@@ -78,16 +78,26 @@ def write_csv(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
                    comments="")
 
 
+#: An uncertainty the field does not know (NaN: invalid, outlier or masked vectors) in
+#: the Tecplot file, which reads NaN poorly: negative, so no reader takes it for a
+#: perfect vector (0 did).
+UNKNOWN_SIGMA = -1.0
+
+
 def write_tecplot(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
     """Write the field as a Tecplot ASCII ``.dat`` file (one ordered zone, point data;
-    masked vectors as 0 with ``valid`` 0 and ``masked`` 1), atomically."""
+    masked vectors as 0 with ``valid`` 0 and ``masked`` 1, an unknown uncertainty as
+    :data:`UNKNOWN_SIGMA`), atomically."""
     cols = field_columns(arrays)
     nz, ny, nx = np.shape(arrays["displacement"])[1:]
-    values = np.nan_to_num(np.column_stack([c[1] for c in cols]), nan=0.0)
+    values = np.column_stack([
+        np.nan_to_num(c[1], nan=UNKNOWN_SIGMA if "sigma" in c[0] else 0.0) for c in cols])
     head = "\n".join([
         "# plenocl vector field: one row per vector, x fastest, then y, then z",
         "# masked vectors are written as 0 with valid = 0 and masked = 1; outliers hold "
         "their replaced values",
+        *([f"# an uncertainty not known (invalid, outlier or masked vectors) is written "
+           f"as {UNKNOWN_SIGMA:g}"] if any("sigma" in c[0] for c in cols) else []),
         *([f"# the grid is turned {_turn(arrays):.6g} deg about the optical axis: x, y [mm] "
            "along its axes, u, v [m/s] in object space, at x_object, y_object [mm]"]
           if _turn(arrays) else []),

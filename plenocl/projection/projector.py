@@ -41,6 +41,7 @@ from ..opencl.arrays import fill, upload
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
 from ..optics.depthrange import check_grid
+from ..options import is_integer, is_number
 from .extent import PlaneExtent, lens_spans, whole_columns
 from .factorised import FactorisedStages
 from .lenses import LensSet, lens_set, lit_lenses, lit_lenses_on_device
@@ -79,6 +80,19 @@ SCRATCH_MEMORY_SHARE = 16
 
 VolumeLike = cl_array.Array | Sequence[cl_array.Array]
 i32, f32 = np.int32, np.float32
+
+
+def _check_sizes(shear_tol, max_alloc_bytes, scratch_bytes) -> None:
+    """``shear_tol`` a non-negative number (lenses), the byte bounds positive integers or
+    None: named, before a plan or a warning misreads them."""
+    if not (is_number(shear_tol) and np.isfinite(shear_tol) and shear_tol >= 0):
+        raise ValueError(f"shear_tol must be a non-negative number (lenses of drift the "
+                         f"separable kernels allow), got {shear_tol!r}")
+    for name, value in (("max_alloc_bytes", max_alloc_bytes),
+                        ("scratch_bytes", scratch_bytes)):
+        if value is not None and not (is_integer(value) and value > 0):
+            raise ValueError(f"{name} must be a positive whole number of bytes or None "
+                             f"(the device's rule), got {value!r}")
 
 
 class Projector(FactorisedStages):
@@ -193,6 +207,7 @@ class Projector(FactorisedStages):
         if lens_weights not in LENS_WEIGHTS:
             raise ValueError(f"lens_weights must be one of {LENS_WEIGHTS}, got "
                              f"{lens_weights!r}")
+        _check_sizes(shear_tol, max_alloc_bytes, scratch_bytes)
         self._options = dict(oversample=oversample, shear_tol=shear_tol,
                              method=method, back=back, max_alloc_bytes=max_alloc_bytes,
                              scratch_bytes=scratch_bytes, vector_width=vector_width,

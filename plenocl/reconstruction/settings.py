@@ -196,9 +196,12 @@ def _check_types(s: ReconstructionSettings) -> None:
 
 
 def _check_options(s: ReconstructionSettings) -> None:
-    if s.threshold is not None and not np.isfinite(s.threshold):
-        raise ValueError(f"threshold must be a finite number (image units) or None (from the "
-                         f"noise), got {s.threshold!r}")
+    if s.threshold is not None and not (np.isfinite(s.threshold) and s.threshold >= 0):
+        raise ValueError(f"threshold must be a finite number >= 0 (image units) or None "
+                         f"(from the noise), got {s.threshold!r}")
+    if s.tol is not None and not (np.isfinite(s.tol) and s.tol >= 0):
+        raise ValueError(f"tol must be a finite number >= 0 (the residual's relative change "
+                         f"that stops the iterations) or None, got {s.tol!r}")
     if s.background not in ("median", None):
         raise ValueError(f"background must be 'median' or None, got {s.background!r}")
     if int(s.mart_blocks) != s.mart_blocks or not 1 <= s.mart_blocks <= MAX_MART_BLOCKS:
@@ -260,4 +263,7 @@ def _check_relax(method: str, relax: float) -> None:
     else:
         ok, bound = 0 < relax <= 1, f"0 < μ <= 1 for {method.upper()}"
     if not (np.isfinite(relax) and ok):
-        raise ValueError(f"relax (μ) must satisfy {bound}, got {relax!r}")
+        raise ValueError(f"relax (μ) must satisfy {bound}, got {relax!r} (where relax was "
+                         "not given, it was resolved for the method the settings were "
+                         "made with, and dataclasses.replace keeps it: give relax with the "
+                         "new method, or make new settings)")
