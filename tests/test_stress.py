@@ -827,6 +827,8 @@ INVALID = [
     ("reconstruct-threshold-negative", _rec(threshold=-1.0), ValueError,
      "threshold must be a finite number >= 0"),
     ("reconstruct-tol", _rec(tol=float("nan")), ValueError, "tol must be a finite number >= 0"),
+    ("reconstruct-mask-text", lambda c: reconstruct(c["img"], c["proj"], pixel_mask=np.full(
+        c["img"].shape, "False")), ValueError, "pixel_mask must be boolean or numbers"),
     ("reconstruct-not-a-projector", lambda c: reconstruct(c["img"], c["cam"]), TypeError,
      r"reconstruct takes a projector \(plenocl.Projector\(camera, grid\)\)"),
     ("projector-buffer-too-large", _proj(max_alloc_bytes=1000), MemoryError,

@@ -33,6 +33,12 @@ def check_pixel_mask(observed, camera: Camera) -> np.ndarray | None:
     if mask.shape != expected:
         raise ValueError(f"pixel_mask shape {mask.shape} does not match the camera's sensor "
                          f"{expected} (rows, columns)")
+    if mask.dtype != bool and not (np.issubdtype(mask.dtype, np.number)
+                                   and np.isfinite(mask).all()):
+        raise ValueError(f"pixel_mask must be boolean or numbers (nonzero: the pixel holds "
+                         f"data), finite, got dtype {mask.dtype}"
+                         + (" with NaN or Inf" if np.issubdtype(mask.dtype, np.number)
+                            else ""))
     mask = mask.astype(bool)
     if not mask.any():
         raise ValueError("pixel_mask leaves no pixel with data (True marks the pixels the "

@@ -611,7 +611,7 @@ def _reconstructed(image, projector: ProjectionOperator, settings: Reconstructio
                          f"{settings.start!r}")  # an option: checked before the image
     if isinstance(image, (list, tuple)):  # several cameras (docs/design.md §6.7)
         return _several(image, projector, settings, callback, pixel_mask)
-    if not all(hasattr(projector, name) for name in ("queue", "camera", "grid")):
+    if not hasattr(projector, "grid"):  # a camera, a grid file, None
         raise TypeError(f"reconstruct takes a projector (plenocl.Projector(camera, grid)) "
                         f"after the image, got {type(projector).__name__}")
     _coarse_start(settings.start, projector.grid)
