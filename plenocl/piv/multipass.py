@@ -341,7 +341,7 @@ def piv3d(vol_a, vol_b, settings: PIVSettings | None = None, *, mask=None, queue
 
 #: A final window more than this fraction masked is left out (its vector NaN,
 #: ``masked``): above it the mask's edge, fixed in both volumes, pulls the displacement
-#: across it towards zero (docs/design.md §7.3, "Masks"). The earlier passes, which only
+#: across it towards zero (docs/design.md §7, "Masks"). The earlier passes, which only
 #: predict, keep windows up to :data:`PREDICTOR_MASKED` masked.
 MASKED_FRACTION = 0.25
 PREDICTOR_MASKED = 0.5
@@ -354,7 +354,8 @@ def masked_volume(vol: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``vol`` with its ``mask``ed voxels set to the mean of the others: a level that
     window means nearly remove, where zeros (a band identical in both volumes) would
     correlate at zero displacement and pull the vectors beside the mask towards zero
-    (3-4 % at a window 10-20 % masked, against 1 %; docs/design.md §7)."""
+    (the component across the edge 2-7 % low in windows 10-20 % masked, against 1-4 %;
+    docs/design.md §7, "Masks")."""
     kept = vol[~mask]
     level = np.float32(kept.mean()) if kept.size else np.float32(0)
     return np.where(mask, level, vol).astype(np.float32, copy=False)
