@@ -505,3 +505,32 @@ def test_piv_names_the_volume_file_it_refuses_or_warns_of(tmp_path, capsys):
     assert main(["piv", str(tmp_path / "lifted.npy"), str(tmp_path / "a.npy"), *base]) == 0
     err = capsys.readouterr().err
     assert f"{tmp_path / 'lifted.npy'}'s darkest voxel" in err and "vol_a" not in err
+
+
+@pytest.mark.parametrize("flow", [[], ["--velocity", "1", "0", "0", "--dt", "1e-4"]])
+def test_simulate_does_not_write_over_its_particles(tmp_path, capsys, flow):
+    """The truth file is named after --out (OUT_particles.csv, OUT_a_particles.csv for a
+    pair): a particles file of that name was replaced by the displaced positions, exit 0,
+    and drifted at every rerun."""
+    name = "raw_a_particles.csv" if flow else "raw_particles.csv"
+    write_particles(tmp_path / name, np.array([[0.05, 0.0, 0.3]]), np.array([2e4]))
+    before = (tmp_path / name).read_bytes()
+    assert main(["simulate", "--particles", str(tmp_path / name), "--out",
+                 str(tmp_path / "raw.tif"), *flow]) == 2
+    assert "which this command writes, is also the command's input (particles)" in \
+        capsys.readouterr().err
+    assert (tmp_path / name).read_bytes() == before and not list(tmp_path.glob("*.tif"))
+
+
+def test_particle_columns_are_read_by_their_names(tmp_path):
+    """A particle file's columns in another order are read by their header's names (they
+    were read by position: z, y, x taken as x, y, z, in silence); NumPy's '# ' header and
+    names without the unit are the same columns."""
+    want = np.array([[0.05, -0.1, 0.3]])
+    for header, row in (("z_mm,y_mm,x_mm,intensity", "0.3,-0.1,0.05,7"),
+                        ("# intensity,x,y,z", "7,0.05,-0.1,0.3"),
+                        ("x [mm], y [mm], z [mm], intensity", "0.05,-0.1,0.3,7")):
+        (tmp_path / "p.csv").write_text(f"{header}\n{row}\n")
+        positions, intensities = read_particles(tmp_path / "p.csv")
+        np.testing.assert_array_equal(positions, want)
+        assert intensities.tolist() == [7.0], header

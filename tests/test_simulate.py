@@ -180,12 +180,33 @@ def test_sensor_model_noise_and_saturation(queue, small_camera):
     (dict(rays_per_particle=0), "positive integer"),
     (dict(read_noise=-1.0), "read_noise"),
     (dict(bit_depth=20), "bit_depth"),
+    (dict(bit_depth=1.5), "bit_depth must be a whole number"),
+    # a saturation above the integers' full scale wrapped around (900000 read 48032)
+    (dict(bit_depth=16, saturation=1e6), r"above the 16-bit full scale 65535"),
+    (dict(photon_noise=True, electrons_per_count=np.inf), "electrons_per_count must be a "
+                                                          "finite number"),
 ])
 def test_bad_simulation_input_is_rejected(queue, small_camera, bad, message):
     args = dict(positions=np.zeros((1, 3)), intensities=1.0, rays_per_particle=10)
     args.update(bad)
     with pytest.raises(ValueError, match=message):
         simulate_image(small_camera, queue=queue, **args)
+
+
+def test_particles_outside_the_field_of_view_are_counted(queue, small_camera):
+    """Some particles outside the field of view were dropped in silence (only all of them
+    warned): their count is said; particles inside say nothing."""
+    import warnings
+
+    inside = np.array([[0.0, 0.0, 0.3]])
+    with pytest.warns(UserWarning, match=r"1 of the 2 particles lie outside the camera's "
+                                         r"field of view"):
+        img = simulate_image(small_camera, np.vstack([inside, [[40.0, 0.0, 0.3]]]), 1e4,
+                             200, seed=1, queue=queue)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        alone = simulate_image(small_camera, inside, 1e4, 200, seed=1, queue=queue)
+    np.testing.assert_allclose(img, alone)  # the outside particle adds no light
 
 
 def test_white_image_rejects_open_aperture(queue, small_camera):

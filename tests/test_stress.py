@@ -527,6 +527,7 @@ def ctx(tiny, queue, tmp_path_factory):
     d = tmp_path_factory.mktemp("bad_inputs")
     (d / "two_columns.csv").write_text("x_mm,y_mm\n1,2\n3,4\n")
     (d / "no_header.csv").write_text("0.1,0.2,0.3\n0.4,0.5,0.6\n")
+    (d / "pixels.csv").write_text("x_px,y_px,z_px\n10,20,3\n")
     (d / "empty.tif").write_bytes(b"")
     (d / "cut.npz").write_bytes(b"PK\x03\x04 cut short")
     (d / "grid_typo.toml").write_text("[grid]\nshape = [3, 4, 4]\nx_mm = [-0.2, 0.2]\n"
@@ -1047,6 +1048,8 @@ INVALID = [
      "expected CSV rows 'x_mm,y_mm,z_mm"),
     ("read-particles-no-header", _file(read_particles, "no_header.csv"), ValueError,
      "is a particle, not the header"),
+    ("read-particles-other-units", _file(read_particles, "pixels.csv"), ValueError,
+     r"the header names the columns \['x_px', 'y_px', 'z_px'\]"),
     ("read-image-empty", _file(read_image, "empty.tif"), ValueError, r"empty \(0 bytes\)"),
     ("read-volume-damaged", _file(load_volume, "cut.npz"), ValueError,
      "cannot be read as a volume"),

@@ -58,14 +58,25 @@ def check_outputs(args: argparse.Namespace) -> None:
 def _not_an_input(args: argparse.Namespace, option: str, outputs: set) -> None:
     """Refuse an output that is one of the command's input files: writing it would
     replace the input (a calibrated camera turned into a grid file, say)."""
-    target = Path(getattr(args, option)).resolve()
+    flag = "--" + option.replace("_", "-")
+    check_not_inputs(args, [Path(getattr(args, option))], outputs,
+                     f"{flag} {getattr(args, option)}")
+
+
+def check_not_inputs(args: argparse.Namespace, paths, outputs=frozenset(),
+                     said: str | None = None) -> None:
+    """Refuse any of ``paths`` (files a command will write, ``--out`` or named after it)
+    that is one of its input files (the options of ``args`` but ``outputs``): writing it
+    would replace that input. ``said``: how the message names the output (the path)."""
+    inputs = {}
     for name, value in vars(args).items():
-        if name in outputs:
-            continue
         for given in value if isinstance(value, (list, tuple)) else [value]:
-            if isinstance(given, str) and Path(given).is_file() and \
-                    Path(given).resolve() == target:
-                flag = "--" + option.replace("_", "-")
-                raise ValueError(f"{flag} {getattr(args, option)} is also the command's input "
-                                 f"({name.replace('_', ' ')}): writing it would replace "
-                                 "that input; give the output another name")
+            if name not in outputs and isinstance(given, str) and Path(given).is_file():
+                inputs.setdefault(Path(given).resolve(), name)
+    for path in paths:
+        name = inputs.get(Path(path).resolve())
+        if name is not None:
+            raise ValueError(f"{said or f'{path}, which this command writes,'} is also the "
+                             f"command's input "
+                             f"({name.replace('_', ' ')}): writing it would replace that "
+                             "input; give the output another name")

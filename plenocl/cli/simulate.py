@@ -22,6 +22,7 @@ import numpy as np
 
 from ..camera import load_camera
 from ..units import check_displacement, check_dt
+from .outputs import check_not_inputs
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -37,6 +38,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     cam = cams[0]
     positions, intensities = read_particles(args.particles)
     out = Path(args.out)
+    check_not_inputs(args, _written(out, len(cams), args.velocity is None
+                                    and args.omega is None), {"out"})
     if args.velocity is None and args.omega is None:
         if args.dt is not None:
             raise ValueError("--dt is the time between a displaced pair's exposures: give the "
@@ -63,6 +66,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         _write_images(cams, path, images)
         write_particles(path.with_name(path.stem + "_particles.csv"), moved, intensities)
     return 0
+
+
+def _written(out: Path, cameras: int, single: bool) -> list[Path]:
+    """Every file ``plenocl simulate`` writes for ``out``: the images (one camera's, or
+    each camera's in ``camK``) and the particles' truth beside them."""
+    images = [out] if single else [out.with_name(f"{out.stem}_{tag}{out.suffix}")
+                                   for tag in "ab"]
+    return [*(image if cameras == 1 else image.parent / f"cam{k}" / image.name
+              for image in images for k in range(1, cameras + 1)),
+            *(image.with_name(image.stem + "_particles.csv") for image in images)]
 
 
 def _camera_images(args, cams: list, positions, intensities) -> list:

@@ -141,7 +141,8 @@ def write_particles(path: str | Path, positions: np.ndarray, intensities: np.nda
 
 
 def read_particles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a particle CSV: columns ``x_mm,y_mm,z_mm`` and optionally ``intensity``.
+    """Read a particle CSV: columns ``x_mm,y_mm,z_mm`` and optionally ``intensity``, in
+    any order, read by their names in the header (``x``, ``x_mm``, ``x [mm]`` alike).
 
     Returns positions ``(N, 3)`` and intensities ``(N,)`` (1000 counts each when the
     file has no intensity column).
@@ -149,7 +150,7 @@ def read_particles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such particle file: {path}")
-    _check_particle_header(path)
+    header = _particle_header(path)
     try:
         data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as exc:
@@ -158,22 +159,46 @@ def read_particles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if data.shape[1] not in (3, 4) or data.shape[0] == 0:
         raise ValueError(f"{path}: expected 3 or 4 columns 'x_mm,y_mm,z_mm[,intensity]' and at "
                          f"least one row, got shape {data.shape}")
-    intens = data[:, 3] if data.shape[1] == 4 else np.full(len(data), 1000.0)
-    return data[:, :3], intens
+    order = _particle_columns(path, header, data.shape[1])
+    intens = data[:, order[3]] if len(order) == 4 else np.full(len(data), 1000.0)
+    return data[:, order[:3]], intens
 
 
-def _check_particle_header(path: Path) -> None:
-    """The first line must be the header, not a particle (it would be skipped silently)."""
+#: A particle file's column names (lower case, spaces removed) and what each holds.
+PARTICLE_COLUMNS = {**{name: axis for axis in "xyz"
+                       for name in (axis, f"{axis}_mm", f"{axis}[mm]", f"{axis}(mm)")},
+                    "intensity": "intensity", "intensity[counts]": "intensity"}
+
+
+def _particle_columns(path: Path, header: str, count: int) -> list[int]:
+    """The columns of x, y, z (and the intensity) named by ``header``: refused where a
+    name is another quantity or unit (a position in pixels, or z, y, x read as x, y, z,
+    placed every particle elsewhere in silence)."""
+    names = [n.strip() for n in header.lstrip("#").split(",")][:count]  # NumPy's "# "
+    roles = [PARTICLE_COLUMNS.get(n.lower().replace(" ", "")) for n in names]
+    want = ["x", "y", "z", "intensity"][:count]
+    if len(names) != count or sorted(map(str, roles)) != sorted(want):
+        raise ValueError(f"{path}: the header names the columns {names}; a particle file's "
+                         f"columns are x_mm, y_mm, z_mm (positions in mm) and optionally "
+                         "intensity, in any order: name them so (positions in other units, "
+                         "pixels or voxels, converted to mm)")
+    return [roles.index(role) for role in want]
+
+
+def _particle_header(path: Path) -> str:
+    """The first line, which must be the header, not a particle (it would be skipped
+    silently)."""
     with path.open(encoding="utf-8", errors="replace") as fh:
         first = fh.readline().strip()
     try:
         [float(v) for v in first.split(",") if v.strip()]
     except ValueError:
-        return  # words: a header
+        return first  # words: a header
     if first:
         raise ValueError(f"{path}: the first line {first!r} is a particle, not the header "
                          "'x_mm,y_mm,z_mm[,intensity]'; add the header line so that no "
                          "particle is lost")
+    return first
 
 
 #: The volume file formats by suffix (:func:`write_volume`).

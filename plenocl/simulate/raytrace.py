@@ -17,6 +17,7 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..opencl.device import DeviceLike, device_info, get_queue
 from ..opencl.program import KernelSet
+from ..optics.depthrange import field_of_view_mm
 from .sensor import SensorModel
 
 #: Rays one work-item traces; the rest of the parallelism is over sources.
@@ -236,7 +237,27 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
     clean = Simulator(camera, queue).trace(positions, intensities, rays_per_particle, seed,
                                            blur_px, lens_transmission, lens_shift_mm)
     _warn_if_unusable(camera, clean, float(np.sum(intensities)) if np.size(intensities) else 0)
+    _warn_if_some_outside(camera, positions, float(clean.max()))
     return sensor.apply(clean, seed)
+
+
+def _warn_if_some_outside(camera: Camera, positions, peak: float) -> None:
+    """Warn when some particles (not all: :func:`_warn_if_unusable` says that) lie
+    outside the field of view at their depths: their light misses the sensor, and a
+    truth list that holds them holds particles the image does not."""
+    pts = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if camera.pose is not None:
+        pts = camera.pose.to_camera(pts)
+    outside = 0
+    for x, y, z in pts:
+        (x0, x1), (y0, y1) = np.sort(field_of_view_mm(camera, float(z)), axis=1)
+        outside += not (x0 <= x <= x1 and y0 <= y <= y1)
+    if outside and peak > 0:
+        warnings.warn(f"{outside} of the {len(pts)} particles lie outside the camera's field "
+                      "of view at their depths: their light misses the sensor (positions "
+                      "are x, y, z in mm, z along the optical axis; "
+                      "plenocl.optics.depthrange.field_of_view_mm gives the field at a "
+                      "depth)", stacklevel=3)
 
 
 #: A simulated particle image whose brightest pixel stays below this many counts warns:

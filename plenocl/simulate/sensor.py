@@ -40,14 +40,23 @@ class SensorModel:
     def __post_init__(self) -> None:
         if not np.isfinite(self.background) or self.background < 0:
             raise ValueError(f"background must be >= 0 counts, got {self.background}")
-        if not self.electrons_per_count > 0:
-            raise ValueError(f"electrons_per_count must be > 0, got {self.electrons_per_count}")
+        if not (np.isfinite(self.electrons_per_count) and self.electrons_per_count > 0):
+            raise ValueError(f"electrons_per_count must be a finite number > 0, got "
+                             f"{self.electrons_per_count}")
         if not np.isfinite(self.read_noise) or self.read_noise < 0:
             raise ValueError(f"read_noise must be >= 0 counts, got {self.read_noise}")
-        if self.bit_depth is not None and not 1 <= int(self.bit_depth) <= 16:
-            raise ValueError(f"bit_depth must be between 1 and 16, got {self.bit_depth}")
+        if self.bit_depth is not None and not (float(self.bit_depth).is_integer()
+                                               and 1 <= self.bit_depth <= 16):
+            raise ValueError(f"bit_depth must be a whole number from 1 to 16, got "
+                             f"{self.bit_depth}")
         if self.saturation is not None and not self.saturation > 0:
             raise ValueError(f"saturation must be > 0 counts, got {self.saturation}")
+        top = 2 ** int(self.bit_depth) - 1 if self.bit_depth is not None else np.inf
+        if self.saturation is not None and self.saturation > top:
+            raise ValueError(f"saturation {self.saturation:g} counts lies above the "
+                             f"{int(self.bit_depth)}-bit full scale {top}: the integers "
+                             "cannot hold it (brighter pixels wrapped around); give a "
+                             f"saturation <= {top} or a larger bit_depth")
 
     @property
     def full_scale(self) -> float:
