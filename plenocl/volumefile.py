@@ -22,8 +22,13 @@ __all__ = ["load_volume", "save_volume"]
 def save_volume(path: str | Path, vol: np.ndarray, grid: Grid | None = None) -> None:
     """Save a volume atomically: ``.npy`` (array only), ``.npz`` or ``.h5`` (with the grid).
 
-    ``.h5`` needs h5py (``pip install h5py``).
+    ``.h5`` needs h5py (``pip install h5py``). A volume of another shape than ``grid``'s
+    is refused (it was written, and refused only when read for PIV).
     """
+    if grid is not None and np.shape(vol) != tuple(grid.shape):
+        raise ValueError(f"the volume's shape {np.shape(vol)} is not its grid's "
+                         f"{tuple(grid.shape)} (z, y, x): save it with the grid it was made "
+                         "on")
     meta = {} if grid is None else {"shape": np.array(grid.shape), "x_mm": np.array(grid.x),
                                     "y_mm": np.array(grid.y), "z_mm": np.array(grid.z),
                                     "rotation_deg": np.array(grid.rotation_deg)}

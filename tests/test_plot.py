@@ -149,7 +149,26 @@ def test_a_field_read_back_keeps_its_coordinates_and_velocity(files):
     dx = 0.1e-3 / DT  # m/s per voxel along x
     np.testing.assert_allclose(data.velocity[0], 1.0 * dx)
     np.testing.assert_allclose(np.diff(data.x), 0.4)  # 4 voxels of 0.1 mm
-    assert read_vector_field(files / "nodt.npz").unit == "voxel"
+    # without dt: displacements in mm, each axis's voxels by their size (arrows in voxels
+    # on axes in mm pointed the wrong way where the voxels are not cubes)
+    nodt = read_vector_field(files / "nodt.npz")
+    assert nodt.unit == "mm"
+    np.testing.assert_allclose(nodt.velocity[0], 1.0 * 0.1)   # 1 voxel of 0.1 mm along x
+    np.testing.assert_allclose(nodt.velocity, data.velocity * DT / 1e-3)
+
+
+def test_a_turned_grid_names_its_frame_and_a_field_without_positions_is_refused(tmp_path):
+    save_field(tmp_path / "plain.npz", _result(), VOXEL, dt=DT)
+    assert read_vector_field(tmp_path / "plain.npz").label("u") == "u (m/s)"
+    np.savez(tmp_path / "turned.npz", **_result().arrays(VOXEL, dt=DT, rotation_deg=30.0))
+    data = read_vector_field(tmp_path / "turned.npz")
+    assert "grid turned 30°" in data.label("x")
+    assert data.label("u") == "u along the grid's x (m/s)"
+    with np.load(tmp_path / "turned.npz") as stored:
+        kept = {k: stored[k] for k in stored.files if not k.endswith("_mm")}
+    np.savez(tmp_path / "bare.npz", **kept)
+    with pytest.raises(ValueError, match=r"bare.npz holds no vector positions \(x_mm"):
+        read_vector_field(tmp_path / "bare.npz")
 
 
 @pytest.mark.parametrize("name, args, kind", [
@@ -347,3 +366,27 @@ def test_a_volume_with_a_nan_voxel_is_drawn_on_its_own_scale_and_said(tmp_path):
         damaged = iio.imread(volume_figure(tmp_path / "nan.png", vol))
     assert damaged.shape == clean.shape
     assert np.mean(damaged != clean) < 0.01  # the same figure but for that voxel
+
+
+def test_a_volume_is_saved_with_its_own_grid_only(tmp_path):
+    grid = Grid((4, 6, 10), x=(-1.0, 1.0), y=(-0.6, 0.6), z=(-0.4, 0.4))
+    with pytest.raises(ValueError, match=r"shape \(4, 18, 30\) is not its grid's \(4, 6, 10\)"):
+        save_volume(tmp_path / "v.npz", np.zeros((4, 18, 30), np.float32), grid)
+    assert not (tmp_path / "v.npz").exists()
+
+
+def test_a_lost_ensemble_chunk_reads_unknown_not_a_valid_zero(files, tmp_path):
+    """The ensemble arrays took zarr's fill value 0: a lost chunk read as a valid zero
+    mean (and was drawn so); it reads NaN (the count -1) now."""
+    import shutil
+
+    import xarray as xr
+
+    store = tmp_path / "timeseries.zarr"
+    shutil.copytree(files / "timeseries.zarr", store)
+    for name in ("u_mean", "u_rms", "valid_count"):
+        shutil.rmtree(store / name / "c")
+    ds = xr.open_zarr(store)
+    assert np.isnan(ds["u_mean"].values).all() and np.isnan(ds["u_rms"].values).all()
+    assert (ds["valid_count"].values == -1).all()
+    assert np.isfinite(ds["v_mean"].values).any()  # the others as written

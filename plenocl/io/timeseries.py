@@ -158,7 +158,7 @@ def _write_ensemble(group, data: dict, first: dict, npz: Path) -> None:
     dims = ["z", "y", "x"]
     for comp, values in zip(COMPONENTS, data["velocity"]):
         group.create_array(f"{comp}_ensemble", data=values.astype(np.float32),
-                           dimension_names=dims,
+                           fill_value=np.nan, dimension_names=dims,
                            attributes={"units": "m/s", "long_name":
                                        f"{comp} of the ensemble correlation"})
     group.create_array("valid_ensemble", data=np.asarray(data["valid"], bool),
@@ -196,13 +196,15 @@ class _Ensemble:
         dims = ["z", "y", "x"]
         for k, comp in enumerate(COMPONENTS):
             group.create_array(f"{comp}_mean", data=mean[k].astype(np.float32),
-                               dimension_names=dims, attributes={
+                               fill_value=np.nan, dimension_names=dims, attributes={
                                    "units": "m/s", "long_name": f"ensemble mean of {comp} "
                                    "over the valid vectors"})
             group.create_array(f"{comp}_rms", data=rms[k].astype(np.float32),
-                               dimension_names=dims, attributes={
+                               fill_value=np.nan, dimension_names=dims, attributes={
                                    "units": "m/s", "long_name": f"RMS fluctuation of {comp} "
                                    "over the valid vectors"})
-        group.create_array("valid_count", data=self.count, dimension_names=dims,
+        # a lost chunk reads as unknown (NaN, -1), not as a valid zero mean (zarr's 0)
+        group.create_array("valid_count", data=self.count, fill_value=-1,
+                           dimension_names=dims,
                            attributes={"long_name": "valid vectors in the ensemble"})
 

@@ -28,7 +28,8 @@ class VectorData:
     valid
         ``(nz, ny, nx)``: the vectors to draw (valid and finite).
     unit
-        ``"m/s"``, or ``"voxel"`` for a displacement field written without ``dt``.
+        ``"m/s"``, or ``"mm"`` for a displacement field written without ``dt`` (``"voxel"``
+        where it holds no voxel size).
     axis_labels
         Label of each axis, x y z (e.g. ``"y streamwise (mm)"``).
     component_labels
@@ -97,19 +98,42 @@ def check_component(name: str) -> str:
 
 def read_vector_field(path: str | Path) -> VectorData:
     """A field written by :func:`plenocl.vectorfield.save_field` (``.npz``): velocities in
-    m/s where it was written with ``dt``, else displacements in voxels."""
+    m/s where it was written with ``dt``, else displacements in mm (voxels times their
+    size along each axis: on voxels of unequal sizes, arrows in voxels on axes in mm
+    point the wrong way)."""
     from ..vectorfield import read_npz
 
     res, arrays = read_npz(path)
+    missing = [f"{a}_mm" for a in AXES if f"{a}_mm" not in arrays]
+    if missing:
+        raise ValueError(f"{path} holds no vector positions ({', '.join(missing)}): a field "
+                         "plenocl.vectorfield.save_field writes has them; save the field "
+                         "with its grid (save_field(path, result, grid=...))")
     coords = [np.asarray(arrays[f"{a}_mm"], float) for a in AXES]
+    rotation = float(arrays.get("rotation_deg", 0.0))
     if "velocity" in arrays:
-        vel = grid_frame(np.asarray(arrays["velocity"], float),
-                         float(arrays.get("rotation_deg", 0.0)))
-        unit = "m/s"
+        vel, unit = grid_frame(np.asarray(arrays["velocity"], float), rotation), "m/s"
     else:
-        vel, unit = np.stack([res.u, res.v, res.w]).astype(float), "voxel"
+        size = np.asarray(arrays.get("voxel_size_mm_xyz", (1.0, 1.0, 1.0)), float)
+        vel = np.stack([res.u, res.v, res.w]).astype(float) * size.reshape(3, 1, 1, 1)
+        unit = "mm" if "voxel_size_mm_xyz" in arrays else "voxel"
     valid = np.asarray(res.valid, bool) & np.all(np.isfinite(vel), axis=0)
-    return VectorData(*coords, velocity=vel, valid=valid, unit=unit)
+    try:
+        return VectorData(*coords, velocity=vel, valid=valid, unit=unit,
+                          **turned_labels(rotation))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def turned_labels(rotation_deg: float) -> dict:
+    """The axis and component labels of a grid turned by ``rotation_deg`` about the
+    optical axis (its vectors drawn on its own axes; none for an unturned grid)."""
+    if not rotation_deg:
+        return {}
+    turn = f"grid turned {rotation_deg:g}°"
+    return {"axis_labels": (f"x along the grid (mm; {turn})", "y along the grid (mm)",
+                            "z (mm)"),
+            "component_labels": ("u along the grid's x", "v along the grid's y", "w")}
 
 
 def grid_frame(velocity: np.ndarray, rotation_deg: float) -> np.ndarray:
@@ -129,4 +153,4 @@ def store_field(arrays: dict[str, np.ndarray], prefix: str = "mean",
                      rotation_deg)
     valid = np.all(np.isfinite(vel), axis=0)
     return VectorData(*(np.asarray(arrays[a], float) for a in AXES), velocity=vel,
-                      valid=valid, unit="m/s")
+                      valid=valid, unit="m/s", **turned_labels(rotation_deg))

@@ -83,11 +83,13 @@ i32, f32 = np.int32, np.float32
 
 
 def _check_sizes(shear_tol, max_alloc_bytes, scratch_bytes) -> None:
-    """``shear_tol`` a non-negative number (lenses), the byte bounds positive integers or
-    None: named, before a plan or a warning misreads them."""
-    if not (is_number(shear_tol) and np.isfinite(shear_tol) and shear_tol >= 0):
-        raise ValueError(f"shear_tol must be a non-negative number (lenses of drift the "
-                         f"separable kernels allow), got {shear_tol!r}")
+    """``shear_tol`` a finite number (lenses; a negative one sends every array to the
+    general path, no term dropped), the byte bounds positive integers or None: named,
+    before a plan or a warning misreads them."""
+    if not (is_number(shear_tol) and np.isfinite(shear_tol)):
+        raise ValueError(f"shear_tol must be a finite number (lenses of drift the separable "
+                         f"kernels allow; negative: the general path always), got "
+                         f"{shear_tol!r}")
     for name, value in (("max_alloc_bytes", max_alloc_bytes),
                         ("scratch_bytes", scratch_bytes)):
         if value is not None and not (is_integer(value) and value > 0):
