@@ -390,3 +390,19 @@ def test_a_lost_ensemble_chunk_reads_unknown_not_a_valid_zero(files, tmp_path):
     assert np.isnan(ds["u_mean"].values).all() and np.isnan(ds["u_rms"].values).all()
     assert (ds["valid_count"].values == -1).all()
     assert np.isfinite(ds["v_mean"].values).any()  # the others as written
+
+
+def test_track_speeds_are_labelled_in_the_units_of_their_dt(tmp_path):
+    """Tracks whose dt is not seconds (plenocl.track takes a frame count) were labelled
+    m/s, 1000x off: their speeds are mm per dt then; seconds stay m/s."""
+    from plenocl.plot.tracks import tracks_in_m_per_s
+
+    start = np.zeros((2, 1, 3))
+    for dt, unit, scale in ((1.0, "mm per dt of 1", 1.0), (1e-3, "m/s", 1e-3)):
+        measured = start + np.arange(6)[None, :, None] * np.array([2.0, 0.0, 0.0])
+        tracks = Tracks.from_measured(measured, np.full(measured.shape, 1e-3),
+                                      np.ones(measured.shape[:2]), dt=dt, window=5)
+        _, velocities, got = tracks_in_m_per_s(tracks)
+        assert got == unit
+        np.testing.assert_allclose(np.nanmedian(velocities[..., 0]), 2.0 / dt * scale,
+                                   rtol=1e-6)

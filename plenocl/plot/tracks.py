@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.plotting import pyplot, save_figure
+from ..units import DT_RANGE_S
 from .slices import widened
 
 #: Tracks drawn at most (the longest first): more make a tangle.
@@ -52,13 +53,19 @@ def tracks_figure(path: str | Path, positions: np.ndarray, velocities: np.ndarra
     return save_figure(fig, path)
 
 
-def tracks_in_m_per_s(tracks) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (mm) and velocities (m/s) of :class:`plenocl.Tracks` (velocities in mm
-    per second, ``dt`` in seconds)."""
-    return tracks.positions, tracks.velocities * 1e-3
+def tracks_in_m_per_s(tracks) -> tuple[np.ndarray, np.ndarray, str]:
+    """Positions (mm), velocities and their unit of :class:`plenocl.Tracks`: m/s where its
+    ``dt`` is a time in seconds (within :data:`plenocl.units.DT_RANGE_S`), else mm per
+    unit of ``dt`` (``plenocl.track`` takes any: a frame count, say), as
+    :meth:`plenocl.Tracks.save`'s ``seconds`` for the ``.vtu``."""
+    lo, hi = DT_RANGE_S
+    if lo <= float(tracks.dt) < hi:  # 1: a frame, as likely as a second
+        return tracks.positions, tracks.velocities * 1e-3, "m/s"
+    return tracks.positions, tracks.velocities, f"mm per dt of {float(tracks.dt):g}"
 
 
 def plot_tracks(path: str | Path, tracks) -> Path:
-    """:func:`tracks_figure` of :class:`plenocl.Tracks` whose ``dt`` is in seconds
-    (speeds in m/s)."""
-    return tracks_figure(path, *tracks_in_m_per_s(tracks))
+    """:func:`tracks_figure` of :class:`plenocl.Tracks` (speeds in m/s where its ``dt``
+    is in seconds: :func:`tracks_in_m_per_s`)."""
+    positions, velocities, unit = tracks_in_m_per_s(tracks)
+    return tracks_figure(path, positions, velocities, unit)
