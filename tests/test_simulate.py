@@ -209,6 +209,23 @@ def test_particles_outside_the_field_of_view_are_counted(queue, small_camera):
     np.testing.assert_allclose(img, alone)  # the outside particle adds no light
 
 
+def test_a_blank_or_saturated_record_is_said(queue, small_camera):
+    """Light the sensor model lost, in silence before: an image rounded to zero, one
+    mostly at full scale; a well exposed one says nothing."""
+    import warnings
+
+    pos = np.array([[0.0, 0.0, 0.3]])
+    with pytest.warns(UserWarning, match=r"simulated image is saturated: 100% of its lit "
+                                         r"pixels sit at full scale 255"):
+        simulate_image(small_camera, pos, 2e7, 500, seed=1, bit_depth=8, queue=queue)
+    with pytest.warns(UserWarning, match="simulated white image is blank"):
+        simulate_white_image(small_camera, rays_per_lens=50, intensity=1e-3, bit_depth=16,
+                             queue=queue)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        simulate_image(small_camera, pos, 2e4, 500, seed=1, bit_depth=16, queue=queue)
+
+
 def test_white_image_rejects_open_aperture(queue, small_camera):
     with pytest.raises(ValueError, match="stopped down"):
         simulate_white_image(small_camera, stop_f_number=1.0, queue=queue)

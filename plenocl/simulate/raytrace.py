@@ -238,7 +238,31 @@ def simulate_image(camera: Camera, positions, intensities, rays_per_particle: in
                                            blur_px, lens_transmission, lens_shift_mm)
     _warn_if_unusable(camera, clean, float(np.sum(intensities)) if np.size(intensities) else 0)
     _warn_if_some_outside(camera, positions, float(clean.max()))
-    return sensor.apply(clean, seed)
+    return recorded(sensor, clean, seed, "image")
+
+
+#: A recorded image with more than this share of its lit pixels at full scale warns.
+SATURATED_WARN = 0.5
+
+
+def recorded(sensor: SensorModel, clean: np.ndarray, seed: int, what: str) -> np.ndarray:
+    """``sensor``'s record of the noise-free ``clean`` image, with a warning where it holds
+    nothing (every pixel rounded to zero) or is mostly saturated: light that the chosen
+    intensities, background, gain or bit depth lost (plenocl's reconstruction refuses
+    such a frame; calibration reads no spot in it)."""
+    out = sensor.apply(clean, seed)
+    lit = clean > 0
+    if lit.any() and not out.any():
+        warnings.warn(f"the simulated {what} is blank: every pixel records 0 (the light, "
+                      f"peak {float(clean.max()):.3g} counts, rounds to nothing); raise the "
+                      "intensities or the gain", stacklevel=3)
+    elif lit.any() and np.isfinite(sensor.full_scale) and \
+            np.mean(out[lit] >= sensor.full_scale) > SATURATED_WARN:
+        warnings.warn(f"the simulated {what} is saturated: "
+                      f"{np.mean(out[lit] >= sensor.full_scale):.0%} of its lit pixels sit at "
+                      f"full scale {sensor.full_scale:g}; lower the intensities or the "
+                      "background, or raise the bit depth", stacklevel=3)
+    return out
 
 
 def _warn_if_some_outside(camera: Camera, positions, peak: float) -> None:
@@ -334,7 +358,7 @@ def simulate_white_image(camera: Camera, *, stop_f_number: float = 16.0,
                          bit_depth, saturation)
     clean = Simulator(camera, queue).trace_white(stop_f_number, rays_per_lens, intensity, seed,
                                                  blur_px, gain, lens_shift_mm)
-    return sensor.apply(clean, seed)
+    return recorded(sensor, clean, seed, "white image")
 
 
 def centre_shift_px(camera: Camera, lens_shift_mm) -> np.ndarray:
