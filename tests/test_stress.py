@@ -743,7 +743,7 @@ INVALID = [
     ("simulate-rays-fraction", _sim(rays_per_particle=1.5), ValueError,
      "rays must be a positive integer"),
     ("simulate-bit-depth-zero", _sim(bit_depth=0), ValueError,
-     "bit_depth must be between 1 and 16"),
+     "bit_depth must be a whole number from 1 to 16"),
     ("simulate-background-negative", _sim(background=-1.0), ValueError,
      "background must be >= 0"),
     ("simulate-intensities-wrong-length", _sim(intensities=[1.0, 2.0]), ValueError,
