@@ -351,7 +351,7 @@ FAR_FRACTION = 0.25
 
 
 def masked_volume(vol: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """``vol`` with its ``mask``ed voxels set to the mean of the others: a level that
+    """``vol`` with the voxels ``mask`` marks set to the mean of the others: a level that
     window means nearly remove, where zeros (a band identical in both volumes) would
     correlate at zero displacement and pull the vectors beside the mask towards zero
     (the component across the edge 2-7 % low in windows 10-20 % masked, against 1-4 %;
