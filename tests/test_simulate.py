@@ -259,3 +259,19 @@ def test_displaced_lenses_move_their_spots_and_images(queue, small_camera):
     with pytest.raises(ValueError, match="quarter"):
         simulate_white_image(small_camera, lens_shift_mm=np.full((10, 12, 2), 0.05),
                              queue=queue)
+
+
+def test_a_scene_seeded_beyond_the_view_on_purpose_says_nothing(queue, small_camera):
+    """The demos seed a margin the flow carries into view: seeded_beyond_view silences the
+    count there, and only there."""
+    import warnings
+
+    from plenocl.simulate import seeded_beyond_view
+
+    pos = np.array([[0.0, 0.0, 0.3], [40.0, 0.0, 0.3]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with seeded_beyond_view():
+            simulate_image(small_camera, pos, 1e4, 200, seed=1, queue=queue)
+    with pytest.warns(UserWarning, match="1 of the 2 particles lie outside"):
+        simulate_image(small_camera, pos, 1e4, 200, seed=1, queue=queue)

@@ -205,12 +205,13 @@ def _stage_calibration(run: StageRunner, sc: Scenario, seed: int, queue) -> None
 
 
 def _stage_images(run: StageRunner, sc: Scenario, seed: int, queue) -> None:
-    from ..simulate import simulate_image
+    from ..simulate import seeded_beyond_view, simulate_image
 
     for tag, offset in (("a", 1), ("b", 2)):
         pos, inten = read_particles(run.path(f"particles_{tag}.csv"))
         kw = sensor_options(seed + offset)
-        img = simulate_image(sc.physical_camera, pos, inten, sc.rays, queue=queue, **kw)
+        with seeded_beyond_view():  # the streamwise margin the flow carries into view
+            img = simulate_image(sc.physical_camera, pos, inten, sc.rays, queue=queue, **kw)
         write_tiff(run.path(f"raw_{tag}.tif"), img)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..io.atomic import write_json
 from ..io.files import write_tiff
 from ..io.tomlfile import write_toml
-from ..simulate import simulate_image, simulate_white_image
+from ..simulate import seeded_beyond_view, simulate_image, simulate_white_image
 from .boundary_layer import (
     DT,
     U_INF,
@@ -87,8 +87,9 @@ def write_experiment(out: Path, sc, flow, pairs: int, seed: int, queue, log) -> 
             continue
         pos_a, pos_b, inten = seed_particles(sc, flow, seed + 1000 * (k + 1))
         for j, (name, pos) in enumerate(zip(names, (pos_a, pos_b))):
-            img = simulate_image(sc.physical_camera, pos, inten, sc.rays, queue=queue,
-                                 **sensor_options(seed + 10 * k + j))
+            with seeded_beyond_view():  # the margin the flow carries into view
+                img = simulate_image(sc.physical_camera, pos, inten, sc.rays, queue=queue,
+                                     **sensor_options(seed + 10 * k + j))
             write_tiff(name, img)
         log(f"pair {k}: {len(inten)} particles imaged")
     sc.grid.to_toml(out / "grid.toml")

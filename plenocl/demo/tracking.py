@@ -26,7 +26,7 @@ from ..particles import random_particles
 from ..pipeline import TrackSettings, bin_tracks, process_pair, track
 from ..plot.tracks import plot_tracks
 from ..projection import Projector
-from ..simulate import simulate_image
+from ..simulate import seeded_beyond_view, simulate_image
 from ..vectorfield import save_field
 from .boundary_layer import (
     DT,
@@ -92,8 +92,10 @@ def _recording(sc, flow: CameraFrameFlow, frames: int, seed: int, queue):
     for _ in range(frames - 1):
         path.append(displace(path[-1], flow, DT))
     truth = np.stack(path, axis=1)
-    images = [simulate_image(sc.physical_camera, truth[:, k], inten[keep], sc.rays, queue=queue,
-                             **sensor_options(seed + 10 + k)) for k in range(frames)]
+    with seeded_beyond_view():  # the flow carries particles in and out of view
+        images = [simulate_image(sc.physical_camera, truth[:, k], inten[keep], sc.rays,
+                                 queue=queue, **sensor_options(seed + 10 + k))
+                  for k in range(frames)]
     return truth, images
 
 

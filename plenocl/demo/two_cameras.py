@@ -124,13 +124,14 @@ def dot_plates() -> list[np.ndarray]:
 
 def _stage_images(run: StageRunner, sc: Scenario, k: int, pose: Pose, seed: int,
                   queue) -> None:
-    from ..simulate import simulate_image
+    from ..simulate import seeded_beyond_view, simulate_image
 
     physical = sc.physical_camera.with_pose(pose)
     for tag, offset in (("a", 1), ("b", 2)):
         pos, inten = read_particles(run.path(f"particles_{tag}.csv"))
-        img = simulate_image(physical, pos, inten, sc.rays, queue=queue,
-                             **sensor_options(seed + 10 * k + offset))
+        with seeded_beyond_view():  # the streamwise margin the flow carries into view
+            img = simulate_image(physical, pos, inten, sc.rays, queue=queue,
+                                 **sensor_options(seed + 10 * k + offset))
         write_tiff(run.path(f"raw_{k}_{tag}.tif"), img)
 
 

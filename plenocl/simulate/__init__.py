@@ -12,10 +12,12 @@ from .raytrace import (
     Simulator,
     centre_shift_px,
     lens_displacements_mm,
+    seeded_beyond_view,
     simulate_image,
     simulate_white_image,
 )
 from .sensor import SensorModel, correct_frame
 
 __all__ = ["SensorModel", "Simulator", "centre_shift_px", "correct_frame",
-           "lens_displacements_mm", "simulate_image", "simulate_white_image"]
+           "lens_displacements_mm", "seeded_beyond_view", "simulate_image",
+           "simulate_white_image"]

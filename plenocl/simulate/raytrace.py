@@ -8,8 +8,10 @@ where the device has 64-bit atomics: the image is then bit-for-bit repeatable.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
+from collections.abc import Iterator
 
 import numpy as np
 import pyopencl.array as cl_array
@@ -263,6 +265,21 @@ def recorded(sensor: SensorModel, clean: np.ndarray, seed: int, what: str) -> np
                       f"full scale {sensor.full_scale:g}; lower the intensities or the "
                       "background, or raise the bit depth", stacklevel=3)
     return out
+
+
+#: The warning :func:`simulate_image` gives when some particles lie outside the field of
+#: view (what :func:`seeded_beyond_view` silences).
+SOME_OUTSIDE = r"\d+ of the \d+ particles lie outside the camera's field of view"
+
+
+@contextlib.contextmanager
+def seeded_beyond_view() -> Iterator[None]:
+    """Inside the block, :func:`simulate_image` does not count the particles outside the
+    field of view: for scenes that seed beyond it on purpose (a flow carries particles in
+    and out of the view between the exposures, as the demos' do)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=SOME_OUTSIDE)
+        yield
 
 
 def _warn_if_some_outside(camera: Camera, positions, peak: float) -> None:
