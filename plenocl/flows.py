@@ -52,11 +52,25 @@ def _unit(vector, name: str) -> np.ndarray:
     return v / norm
 
 
+def _three_finite(name: str, value) -> None:
+    """``value`` three finite numbers ``(x, y, z)`` (one number was spread over all three,
+    two gave NumPy's broadcasting error)."""
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        v = np.full(0, np.nan)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be three finite numbers (x, y, z), got {value!r}")
+
+
 @dataclass(frozen=True)
 class Uniform:
     """Uniform translation: the same velocity ``(u, v, w)`` everywhere."""
 
     velocity: tuple[float, float, float] = (1.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        _three_finite("velocity", self.velocity)
 
     def __call__(self, positions: np.ndarray) -> np.ndarray:
         p = _points(positions)
@@ -78,6 +92,10 @@ class SolidBodyRotation:
 
     omega: tuple[float, float, float] = (0.0, 0.0, 1.0)
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        _three_finite("omega", self.omega)
+        _three_finite("center", self.center)
 
     def __call__(self, positions: np.ndarray) -> np.ndarray:
         r = _points(positions) - np.asarray(self.center, float)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .options import is_integer
+
 
 def random_particles(
     box_mm: tuple[tuple[float, float], tuple[float, float], tuple[float, float]],
@@ -39,14 +41,22 @@ def random_particles(
         if not density_per_mm3 >= 0:
             raise ValueError(f"density_per_mm3 must be >= 0, got {density_per_mm3}")
         count = int(round(density_per_mm3 * float(np.prod(hi - lo))))
-    if count < 0:
-        raise ValueError(f"count must be >= 0, got {count}")
+    if not is_integer(count) or count < 0:
+        raise ValueError(f"count must be a whole number >= 0, got {count!r}")
+    if not np.all(np.isfinite(hi)):
+        raise ValueError(f"box_mm must be finite, got {box_mm}")
+    if not (is_integer(seed) and seed >= 0):
+        raise ValueError(f"seed must be a whole number >= 0, got {seed!r}")
     rng = np.random.default_rng(seed)
-    positions = lo + rng.random((count, 3)) * (hi - lo)
+    positions = lo + rng.random((int(count), 3)) * (hi - lo)
     if np.ndim(intensity) == 0:
-        intens = np.full(count, float(intensity))
+        intens = np.full(int(count), float(intensity))
     else:
-        intens = rng.uniform(intensity[0], intensity[1], count)
+        low, high = (float(v) for v in intensity)
+        if not (np.isfinite(low) and np.isfinite(high) and 0 <= low <= high):
+            raise ValueError(f"intensity (low, high) must be finite, 0 <= low <= high, got "
+                             f"{intensity!r}")
+        intens = rng.uniform(low, high, int(count))
     return positions, intens
 
 
