@@ -119,18 +119,30 @@ def _filled(values: np.ndarray) -> np.ndarray:
     return values[tuple(idx)]
 
 
+#: What an iso-surface figure of a field with invalid vectors says of its gaps.
+SURFACE_GAPS = "no surface farther than half a vector spacing from a valid vector"
+
+
 def isosurfaces(values: np.ndarray, levels: Sequence[float], data: VectorData):
     """Triangles ``(n, 3, 3)`` mm (x, y, z) of the iso-surface of ``values``
-    ``(nz, ny, nx)`` at each level (an empty array where it does not cross it)."""
+    ``(nz, ny, nx)`` at each level (an empty array where it does not cross it); none
+    whose nearest vector is not valid (finite): the NaN filled for marching cubes drew
+    surfaces across masked regions."""
     from skimage.measure import marching_cubes
 
-    filled = _filled(np.asarray(values, float))
+    values = np.asarray(values, float)
+    filled, near = _filled(values), np.isfinite(values)
+    near = None if near.all() else near
     out = []
     for level in levels:
         if not (np.nanmin(filled) < level < np.nanmax(filled)) or min(filled.shape) < 2:
             out.append(np.zeros((0, 3, 3)))
             continue
         verts, faces, _, _ = marching_cubes(filled, level=float(level))
+        if near is not None:  # each triangle's nearest vector must hold data
+            centre = np.rint(verts[faces].mean(axis=1)).astype(int)
+            centre = np.clip(centre, 0, np.array(near.shape) - 1)
+            faces = faces[near[tuple(centre.T)]]
         mm = np.column_stack([np.interp(verts[:, k], np.arange(len(c)), c)
                               for k, c in ((2, data.x), (1, data.y), (0, data.z))])
         out.append(mm[faces])
@@ -168,6 +180,8 @@ def isosurface_figure(path: str | Path, data: VectorData, values: np.ndarray,
             _reference_arrow(ax, data, ref, scale)
             title = (title or "") + f"\n{len(points)} vectors ({_every(step)}), to scale"
     ax.set_title(title or f"iso-surfaces of {value_label}", fontsize=9)
+    if not np.all(np.isfinite(values)):
+        fig.text(0.01, 0.01, SURFACE_GAPS, fontsize=7, color="0.35")
     return save_figure(fig, path)
 
 
