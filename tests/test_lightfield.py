@@ -226,3 +226,28 @@ def test_calibrated_rotated_camera_end_to_end(queue, tmp_path):
 
     meta = read_tiff_metadata(tmp_path / "stack.tif")  # each page's depth is recorded
     assert meta["z_mm"] == [-1.5, 0.0, 1.5] and len(meta["alpha"]) == 3
+
+
+@pytest.mark.parametrize("layout, aspect", [("rectangular", 1.0), ("hexagonal", 0.866)])
+def test_a_focal_stack_file_holds_its_pixels_aspect(tmp_path, queue, layout, aspect):
+    """A hexagonal array's refocused rows are 0.866 as tall as its columns are wide: the
+    TIFF said nothing, and viewers stretched the stack by 15 %; its resolution tags and
+    metadata give the pixel's size now."""
+    import tifffile
+    from helpers import lens_camera
+
+    from plenocl.cli.main import main
+    from plenocl.io.files import read_tiff_metadata
+
+    cam = lens_camera(8, 7, ml_layout=layout)
+    cam.to_toml(tmp_path / "cam.toml")
+    np.save(tmp_path / "raw.npy", np.random.default_rng(0).random(cam.pixels[::-1]))
+    assert main(["refocus", str(tmp_path / "raw.npy"), "--camera", str(tmp_path / "cam.toml"),
+                 "--z", "0", "--out", str(tmp_path / "stack.tif")]) == 0
+    rows, cols = read_tiff_metadata(tmp_path / "stack.tif")["pixel_mm"]
+    assert rows / cols == pytest.approx(aspect, abs=2e-3)
+    assert cols == pytest.approx(cam.ml_pitch_mm, rel=1e-3)
+    with tifffile.TiffFile(tmp_path / "stack.tif") as tif:
+        tags = tif.pages[0].tags
+        x_res, y_res = (tags[name].value for name in ("XResolution", "YResolution"))
+    assert (x_res[0] / x_res[1]) / (y_res[0] / y_res[1]) == pytest.approx(aspect, abs=2e-3)

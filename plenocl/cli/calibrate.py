@@ -92,6 +92,14 @@ def _import_centres(args: argparse.Namespace, camera) -> int:
     return 0
 
 
+def _pixel_mm(positions: np.ndarray) -> tuple[float, float]:
+    """``(rows, columns)`` spacing (mm) of the refocused pixels' array-plane positions
+    ``(H, W, 2)``: their median steps down the columns and along the rows."""
+    down = np.linalg.norm(np.diff(positions, axis=0), axis=-1)
+    along = np.linalg.norm(np.diff(positions, axis=1), axis=-1)
+    return float(np.median(down)), float(np.median(along))
+
+
 def refocus_command(args: argparse.Namespace) -> int:
     """Refocus a raw image at the requested depths and write the focal stack as TIFF.
 
@@ -118,10 +126,13 @@ def refocus_command(args: argparse.Namespace) -> int:
     lf = LightField(raw, camera, queue=getattr(args, "device", None))
     s = getattr(args, "upsample", 1)
     stack = lf.focal_stack(args.z, supersample=s)
+    pixel = _pixel_mm(lf.output_positions_mm(s))
     write_tiff(args.out, np.asarray(stack, np.float32),
                {"z_mm": [float(z) for z in args.z], "alpha": [float(a) for a in
                                                                camera.alpha(args.z)],
-                "upsample": s, "axes": "page = depth; rows, columns on the microlens lattice"})
+                "upsample": s, "axes": "page = depth; rows, columns on the microlens lattice",
+                "pixel_mm": list(pixel), "pixel_mm_note": "(rows, columns) on the array "
+                "plane: a hexagonal array's rows are 0.866 of its columns"}, pixel_mm=pixel)
     zs = ", ".join(f"{z:g}" for z in args.z)
     print(f"wrote {args.out}: {len(args.z)} planes of {stack.shape[2]} x {stack.shape[1]} px "
           f"(microlens lattice x {s}) at z = {zs} mm")

@@ -12,16 +12,22 @@ from .atomic import atomic_path
 from .npzfile import load_npy, open_npz
 
 
-def write_tiff(path: str | Path, image: np.ndarray, metadata: dict | None = None) -> None:
+def write_tiff(path: str | Path, image: np.ndarray, metadata: dict | None = None,
+               pixel_mm: tuple[float, float] | None = None) -> None:
     """Write an image or image stack as TIFF, atomically; ``metadata`` (JSON-able, e.g.
-    each page's depth) goes into the file's image description as JSON."""
+    each page's depth) goes into the file's image description as JSON; ``pixel_mm``
+    ``(rows, columns)``: a pixel's size, in the resolution tags (viewers then draw
+    pixels that are not square at their aspect)."""
     import tifffile
 
     description = None if metadata is None else json.dumps(metadata)
+    size = {} if pixel_mm is None else {
+        "resolution": (10.0 / float(pixel_mm[1]), 10.0 / float(pixel_mm[0])),
+        "resolutionunit": "CENTIMETER"}  # pixels per cm along x, y
     with atomic_path(path) as tmp:
         # minisblack: a stack of 3 or 4 planes is a stack, not an RGB(A) image
         tifffile.imwrite(tmp, np.asarray(image), photometric="minisblack",
-                         description=description, metadata=None)
+                         description=description, metadata=None, **size)
 
 
 def read_tiff_metadata(path: str | Path) -> dict:
