@@ -453,17 +453,20 @@ def _holds_light(solver: Solver, vol: list) -> bool:
 
 
 def _check_observed(solver: Solver, observed: np.ndarray) -> None:
-    """A pixel mask under which most voxels see too few observed pixels to be
+    """A pixel mask under which every voxel sees too few observed pixels to be
     reconstructed: refused, naming the mask (a map of the bad pixels given as the mask,
-    ``True`` where a pixel holds data, left every voxel dark and the volume zero)."""
+    ``True`` where a pixel holds data, left every voxel dark and the volume zero); one
+    that marks most pixels without data and leaves much of the grid unseen: warned."""
     fraction = solver.unseen_fraction()
-    if fraction > OUTSIDE_WARN and (fraction >= 1.0 or observed.mean() < 0.5):
-        raise ValueError(
-            f"the pixel mask leaves {fraction:.0%} of the grid's voxels with too few "
+    said = (f"the pixel mask leaves {fraction:.0%} of the grid's voxels with too few "
             f"observed pixels to reconstruct: it marks {observed.mean():.1%} of the pixels "
             "as holding data (True = the pixel holds data); if yours marks the bad pixels, "
             "pass its inverse (pixel_mask=~bad; plenocl reconstruct --mask takes a file "
             "nonzero where pixels hold data)")
+    if fraction >= 1.0:
+        raise ValueError(said)
+    if fraction > OUTSIDE_WARN and observed.mean() < 0.5:
+        warnings.warn(said, stacklevel=7)
 
 
 def _iterations(prepared: PreparedImage, projector, settings: ReconstructionSettings,
