@@ -433,15 +433,44 @@ def test_vti_asked_for_later_is_written_from_the_kept_field(done, monkeypatch):
     np.testing.assert_allclose(table["u_ms"], u, rtol=1e-9)
 
 
-def test_the_fits_particles_per_launch_neither_recorded_nor_compared(frames):
-    """``image_fit.chunk`` changes how fast a pair runs, not what it gives: the run's
-    record leaves it out, and a record written before (``chunk = 128``) is the run's;
-    another fit setting is still named."""
+def test_the_fits_particles_per_launch_are_recorded_and_compared(frames):
+    """``image_fit.chunk`` was left out of the record as changing only the speed, but a
+    batch's fields differ with it (an audit: 0.22 voxel at 7 against 128): the record
+    holds it, and a record with another chunk is named changed (the pair correlates
+    again instead of keeping a field its settings would not make)."""
     exp = load_experiment(frames / "experiment.toml")
     camera = run_camera(exp, None, lambda _: None)
     record = run_record(exp, camera, run_grid(exp, camera))
-    assert "chunk" not in record["image_fit"] and "rays" in record["image_fit"]
-    older = {**record, "image_fit": {**record["image_fit"], "chunk": 128}}
-    assert record_changes(older, record) == []
+    assert "chunk" in record["image_fit"] and "rays" in record["image_fit"]
+    older = {**record, "image_fit": {**record["image_fit"], "chunk": 7}}
+    assert record_changes(older, record) == ["image_fit.chunk"]
     other = {**record, "image_fit": {**record["image_fit"], "iterations": 9}}
     assert record_changes(other, record) == ["image_fit.iterations"]
+
+
+def test_an_ensemble_removed_takes_its_copies_along(done):
+    """The ensemble field removed (switched off, its pairs changed) left its .csv copy
+    beside the new run, the older ensemble's vectors in it: the copies go with it."""
+    _edit(done, 'folder = "results"', 'folder = "results"\nformats = ["csv"]')
+    _rerun(done)
+    ensemble = done / "results" / "ensemble.npz"
+    assert ensemble.with_suffix(".csv").is_file()
+    _edit(done, "windows = [12, 8]\nensemble = true", "windows = [12, 10]\nensemble = false")
+    s, said = _rerun(done)
+    assert s.processed == [0]
+    assert not ensemble.exists() and not ensemble.with_suffix(".csv").exists(), said
+
+
+def test_a_frame_rewritten_at_its_size_is_named_as_changed_content(done):
+    """The refusal named the same file and size twice ("made from frame_001.tif (N
+    bytes), now frame_001.tif (N bytes)"): it says the content changed."""
+    from plenocl.io import read_image
+
+    frame = sorted((done / "raw").glob("frame_*.tif"))[1]
+    size = frame.stat().st_size
+    image = read_image(frame)
+    write_tiff(frame, (image + 1).astype(image.dtype))
+    assert frame.stat().st_size == size
+    with pytest.raises(ValueError, match=rf"made from {frame.name} \({size} bytes\), whose "
+                                         r"content has changed since \(its SHA-256 differs\)"):
+        plenocl.run(done / "experiment.toml", progress=False, log=lambda _: None)

@@ -18,9 +18,10 @@ from ..grid import Grid
 from ..io.fieldformat import field_metadata
 from ..io.files import read_volumes
 from ..opencl.device import get_queue
+from ..pipeline.resume import remove_outputs
 from ..piv.ensemble import ensemble_piv
 from ..vectorfield import PIVResult, read_npz
-from .layout import finished_pairs, volume_file
+from .layout import field_copies, finished_pairs, volume_file
 from .record import ensemble_record, kept_volumes
 from .worker import add_copies, rewrite_field, save_with_copies
 
@@ -48,16 +49,23 @@ def update_ensemble(out: Path, fields: dict[int, tuple[Path, dict]], dt: float, 
         return made
     if not wanted:
         if made.is_file():
-            made.unlink()
-            log(f"removed {made}: made from other pairs or another dt_s than those now here")
+            _remove_with_copies(made)
+            log(f"removed {made} and its copies: made from other pairs or another dt_s than "
+                "those now here")
         return None
     if old is not None and _but_dt(old) == _but_dt(record):
         _rescale(made, dt, formats, record)
         log(f"ensemble correlation: dt_s changed, {made} rescaled")
         return made
-    made.unlink(missing_ok=True)
+    _remove_with_copies(made)
     return ensemble_field(out, dt, queue, formats, log, [path for path, _ in usable.values()],
                           {"record": record})
+
+
+def _remove_with_copies(made: Path) -> None:
+    """The ensemble field and its copies (``.csv``, ``.vti``...) removed: a copy left
+    beside a removed or remade field held the older ensemble's vectors."""
+    remove_outputs([made, *field_copies(made)])
 
 
 def _but_dt(record: dict) -> dict:

@@ -312,7 +312,11 @@ def _changed_files(recorded: dict, path_a: Path, path_b: Path) -> str | None:
         if rec is None:
             return "its field records no source files (written by an older plenocl)"
         if not same_file(rec, path):
+            size = path.stat().st_size if path.is_file() else None
+            if rec.get("name") == path.name and rec.get("bytes") == size:
+                return (f"it was made from {path.name} ({size} bytes), whose content has "
+                        f"changed since (its SHA-256 differs) as exposure {tag}")
             return (f"it was made from {rec.get('name')} ({rec.get('bytes')} bytes), now "
-                    f"{path.name} ({path.stat().st_size if path.is_file() else 'missing'}"
-                    f"{' bytes' if path.is_file() else ''}) is exposure {tag}")
+                    f"{path.name} ({'missing' if size is None else f'{size} bytes'}) is "
+                    f"exposure {tag}")
     return None
