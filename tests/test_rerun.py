@@ -433,17 +433,17 @@ def test_vti_asked_for_later_is_written_from_the_kept_field(done, monkeypatch):
     np.testing.assert_allclose(table["u_ms"], u, rtol=1e-9)
 
 
-def test_the_fits_particles_per_launch_are_recorded_and_compared(frames):
-    """``image_fit.chunk`` was left out of the record as changing only the speed, but a
-    batch's fields differ with it (an audit: 0.22 voxel at 7 against 128): the record
-    holds it, and a record with another chunk is named changed (the pair correlates
-    again instead of keeping a field its settings would not make)."""
+def test_the_fits_particles_per_launch_neither_recorded_nor_compared(frames):
+    """``image_fit.chunk`` changes how fast a pair runs, not what it gives (each
+    particle's step and covariance are its own: ``tests/test_imagefit.py``): the run's
+    record leaves it out, and a record written before (``chunk = 128``) is the run's;
+    another fit setting is still named."""
     exp = load_experiment(frames / "experiment.toml")
     camera = run_camera(exp, None, lambda _: None)
     record = run_record(exp, camera, run_grid(exp, camera))
-    assert "chunk" in record["image_fit"] and "rays" in record["image_fit"]
-    older = {**record, "image_fit": {**record["image_fit"], "chunk": 7}}
-    assert record_changes(older, record) == ["image_fit.chunk"]
+    assert "chunk" not in record["image_fit"] and "rays" in record["image_fit"]
+    older = {**record, "image_fit": {**record["image_fit"], "chunk": 128}}
+    assert record_changes(older, record) == []
     other = {**record, "image_fit": {**record["image_fit"], "iterations": 9}}
     assert record_changes(other, record) == ["image_fit.iterations"]
 

@@ -57,13 +57,10 @@ REFUSE = ("camera", "grid")
 FIELD_SECTIONS = ("piv", "correlation", "particles", "image_fit", "refinement")
 #: The entry of the time between the exposures.
 DT = "images.dt_s"
-#: Options that change how fast a pair runs, not what it gives: left out of the record,
-#: and out of the comparison with a record written before they were left out. None now:
-#: the image fit's particles per launch (``image_fit.chunk``) was here until an audit
-#: (2026-12-02) measured fields that differ with it in a batch (0.22 voxel at 7 against
-#: 128 on a 24 x 24-lens experiment; docs/batch.md), so it is recorded again and a
-#: changed chunk correlates again.
-SPEED_ONLY: tuple[str, ...] = ()
+#: Options that change how fast a pair runs, not what it gives (the image fit's
+#: particles per launch: the same fit for any chunk, tested bit for bit): left out of the
+#: record, and out of the comparison with a record written before they were left out.
+SPEED_ONLY = ("image_fit.chunk",)
 
 _UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile)
 

@@ -52,7 +52,8 @@ from .fitsums import HOST_CHUNK, DeviceFitSums
 METHOD = ("Gauss-Newton with the prior, the Levenberg-Marquardt damping and the step bound "
           "in each line of sight's frame (2026-11-29, issue 45); the posterior covariance "
           "of each normal matrix scaled to a unit diagonal (2026-12-01); a thick lens's lines "
-          "of sight through its entrance pupil (2026-12-01 evening)")
+          "of sight through its entrance pupil (2026-12-01 evening); each particle's damping "
+          "floor and inverse its own, not its launch's (2026-12-02)")
 #: Uncertainty ``(x, y, z)`` voxels of a peak's position in a reconstructed volume at the
 #: paper's optics (``benchmarks/accuracy.py``; docs/design.md §7.1): the fit's prior.
 PRIOR_VOXELS = (0.15, 0.15, 1.3)
@@ -671,20 +672,17 @@ def posterior_covariance(normal: np.ndarray) -> np.ndarray:
     inverse is closer than the pseudo-inverse's (``N X - I`` within 4e-11 against 1.6e-8
     there) and several times faster. A matrix whose diagonal is not all finite and
     normal (above the smallest normal float: a particle lighting no pixel has an unseen
-    intensity, a zero), whose scaled inverse is not finite, or any in a stack whose
-    scaled inverse fails (one exactly singular matrix), takes the pseudo-inverse
+    intensity, a zero) or whose scaled inverse is not finite (one exactly singular
+    matrix, alone: the others of its stack keep theirs) takes the pseudo-inverse
     (``numpy.linalg.pinv``), which raises ``LinAlgError`` where it cannot converge (a
     NaN diagonal). The fit passes finite matrices alone (docs/design.md §7.2)."""
     diag = np.diagonal(normal, axis1=1, axis2=2)
     scalable = np.all(np.isfinite(diag) & (diag >= np.finfo(np.float64).tiny), axis=1)
     inverse = np.empty(normal.shape)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        try:
-            root = np.sqrt(diag[scalable])
-            outer = root[:, :, None] * root[:, None, :]
-            inverse[scalable] = np.linalg.inv(normal[scalable] / outer) / outer
-        except np.linalg.LinAlgError:  # one exactly singular matrix refuses the stack
-            scalable[:] = False
+        root = np.sqrt(diag[scalable])
+        outer = root[:, :, None] * root[:, None, :]
+        inverse[scalable] = _each_inverse(normal[scalable] / outer) / outer
     scalable &= np.all(np.isfinite(inverse), axis=(1, 2))
     if not scalable.all():
         inverse[~scalable] = np.linalg.pinv(normal[~scalable])
@@ -692,10 +690,30 @@ def posterior_covariance(normal: np.ndarray) -> np.ndarray:
     return (cov + np.swapaxes(cov, 1, 2)) / 2
 
 
+def _each_inverse(matrices: np.ndarray) -> np.ndarray:
+    """The inverses of ``matrices`` ``(n, k, k)``, NaN for those exactly singular: one
+    such matrix no longer sends the whole stack to the pseudo-inverse (a particle's
+    covariance then depended on the others inverted with it)."""
+    try:
+        return np.linalg.inv(matrices)
+    except np.linalg.LinAlgError:
+        out = np.full(matrices.shape, np.nan)
+        for k, matrix in enumerate(matrices):
+            try:
+                out[k] = np.linalg.inv(matrix)
+            except np.linalg.LinAlgError:
+                continue
+        return out
+
+
 def _damped_solve(normal: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray:
-    """Levenberg-Marquardt steps ``(n, 4)`` for normal matrices ``(n, 4, 4)``."""
+    """Levenberg-Marquardt steps ``(n, 4)`` for normal matrices ``(n, 4, 4)``, each
+    particle's alone: its damping's floor is its own largest diagonal's (it was the
+    stack's, so a particle's step depended on the others solved with it: a batch's field
+    moved by 0.22 voxel with the fit's particles per launch)."""
     diag = np.diagonal(normal, axis1=1, axis2=2)
-    scale = np.maximum(diag, 1e-12 * diag.max(initial=1.0) + 1e-300)
+    top = diag.max(axis=1, keepdims=True, initial=1.0)  # each particle its own
+    scale = np.maximum(diag, 1e-12 * top + 1e-300)
     damped = normal + np.einsum("pi,ij->pij", damping * scale, np.eye(4))
     damped[:, 3, 3] = np.maximum(damped[:, 3, 3], 1e-300)
     return np.linalg.solve(damped, rhs[..., None])[..., 0]
