@@ -198,3 +198,21 @@ def test_a_batch_refuses_the_grid_before_any_pair(tmp_path, capsys, grid):
     err = capsys.readouterr().err
     assert _range_text(Camera.synthetic_850()) in err and err.count("resolves z in") == 1
     assert not (tmp_path / "results").exists()  # nothing made, not one pair tried
+
+
+def test_points_in_the_field_of_view_are_those_inside_its_box_at_their_depth():
+    """``in_field_of_view`` (every point at once, the array's box found once) agrees with
+    ``field_of_view_mm`` taken point by point, near and far of the focal plane."""
+    from plenocl.optics.depthrange import field_of_view_mm, in_field_of_view
+
+    cam = Camera.paper_16mp()
+    rng = np.random.default_rng(4)
+    pts = np.column_stack([rng.uniform(-30, 30, 300), rng.uniform(-20, 20, 300),
+                           rng.uniform(-10, 10, 300)])
+    want = []
+    for x, y, z in pts:
+        (x0, x1), (y0, y1) = field_of_view_mm(cam, float(z))
+        want.append(x0 <= x <= x1 and y0 <= y <= y1)
+    got = in_field_of_view(cam, pts)
+    assert 0.2 < got.mean() < 0.95
+    np.testing.assert_array_equal(got, want)

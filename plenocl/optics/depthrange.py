@@ -32,7 +32,7 @@ import numpy as np
 from ..camera import Camera
 
 __all__ = ["LIGHT_SHARE", "VIEW_LENSES", "check_grid", "field_of_view_mm",
-           "resolved_depth_range"]
+           "in_field_of_view", "resolved_depth_range"]
 
 #: Microlenses one pixel's view of a point may spread over at the ends of the resolved range.
 VIEW_LENSES = 2.0
@@ -121,11 +121,21 @@ def field_of_view_mm(camera: Camera, z: float) -> np.ndarray:
     return _field(camera, z, _array_box(camera))
 
 
-def _field(camera: Camera, z: float, box: np.ndarray) -> np.ndarray:
-    """:func:`field_of_view_mm` of the array ``box`` (:func:`_array_box`)."""
-    scale = float(camera.alpha(z)) * (camera.object_distance_mm + z) / float(
-        camera.image_distance_at(z))  # object mm per array-plane mm
-    return np.sort(-box * scale, axis=1)
+def in_field_of_view(camera: Camera, points) -> np.ndarray:
+    """Bool ``(N,)``: whether each object point ``(x, y, z)`` mm (the camera's frame) lies
+    within :func:`field_of_view_mm` at its own depth; the array's box found once for all
+    points (a point at a time took 5 ms on the 16 MP camera)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    field = _field(camera, pts[:, 2], _array_box(camera))  # (N, 2, 2)
+    return np.all((field[..., 0] <= pts[:, :2]) & (pts[:, :2] <= field[..., 1]), axis=1)
+
+
+def _field(camera: Camera, z, box: np.ndarray) -> np.ndarray:
+    """:func:`field_of_view_mm` of the array ``box`` (:func:`_array_box`); ``z`` a depth,
+    or depths ``(N,)`` for fields ``(N, 2, 2)``."""
+    z = np.asarray(z, dtype=np.float64)
+    scale = camera.alpha(z) * (camera.object_distance_mm + z) / camera.image_distance_at(z)
+    return np.sort(-box * scale[..., None, None], axis=-1)  # object mm per array mm
 
 
 def check_grid(camera: Camera, grid) -> None:

@@ -19,7 +19,7 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..opencl.device import DeviceLike, device_info, get_queue
 from ..opencl.program import KernelSet
-from ..optics.depthrange import field_of_view_mm
+from ..optics.depthrange import in_field_of_view
 from .sensor import SensorModel
 
 #: Rays one work-item traces; the rest of the parallelism is over sources.
@@ -289,10 +289,7 @@ def _warn_if_some_outside(camera: Camera, positions, peak: float) -> None:
     pts = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     if camera.pose is not None:
         pts = camera.pose.to_camera(pts)
-    outside = 0
-    for x, y, z in pts:
-        (x0, x1), (y0, y1) = np.sort(field_of_view_mm(camera, float(z)), axis=1)
-        outside += not (x0 <= x <= x1 and y0 <= y <= y1)
+    outside = int(np.count_nonzero(~in_field_of_view(camera, pts)))
     if outside and peak > 0:
         warnings.warn(f"{outside} of the {len(pts)} particles lie outside the camera's field "
                       "of view at their depths: their light misses the sensor (positions "
