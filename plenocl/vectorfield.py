@@ -221,12 +221,18 @@ def _window(arrays) -> Size3:
     return tuple(int(s) for s in arrays.get("window", (0, 0, 0)))
 
 
+def _triple(value) -> np.ndarray:
+    """``value`` (a scalar or three numbers) as three floats; NaN where it is neither (two
+    values, or text), for the caller to refuse by name."""
+    try:
+        return np.broadcast_to(np.asarray(value, float), (3,))
+    except (ValueError, TypeError):
+        return np.full(3, np.nan)
+
+
 def voxel_size(voxel_size_mm) -> tuple[float, float, float]:
     """A voxel size as ``(dz, dy, dx)`` mm from a scalar or a triple, checked positive."""
-    try:
-        size = np.broadcast_to(np.asarray(voxel_size_mm, float), (3,))
-    except (ValueError, TypeError):
-        size = np.full(3, np.nan)  # two values, or text: refused below
+    size = _triple(voxel_size_mm)
     if not np.all(np.isfinite(size) & (size > 0)):
         raise ValueError(f"voxel_size_mm must be positive, a scalar or (dz, dy, dx) in mm, "
                          f"got {voxel_size_mm!r}")
@@ -349,10 +355,7 @@ def _geometry(voxel_size_mm, origin_mm, grid, result: PIVResult | None = None):
         if result is not None:
             _check_on_grid(result, grid)
         return grid_geometry(grid)
-    try:
-        origin = np.broadcast_to(np.asarray(origin_mm, float), (3,))
-    except (ValueError, TypeError):
-        origin = np.full(3, np.nan)  # two values, or text: refused below
+    origin = _triple(origin_mm)
     if not np.all(np.isfinite(origin)):
         raise ValueError(f"origin_mm must be finite, a scalar or (z0, y0, x0) in mm (the "
                          f"centre of voxel 0), got {origin_mm!r}")

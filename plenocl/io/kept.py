@@ -82,7 +82,7 @@ class KeptChoices:
             return None
         with self._lock:
             value = self._read(path).get(_text(key))
-        return value if value is not None and (valid is None or valid(value)) else None
+        return value if _usable(value, valid) else None
 
     def choose(self, key: tuple, measure: Callable[[], dict],
                valid: Callable[[object], bool] | None = None) -> dict:
@@ -100,7 +100,7 @@ class KeptChoices:
                 with _exclusive(path):
                     kept = self._read(path)
                     standing = kept.get(_text(key))
-                    if standing is not None and (valid is None or valid(standing)):
+                    if _usable(standing, valid):
                         return standing
                     value = measure()
                     write_json(path, {"choices": {**kept, _text(key): value}}, sort_keys=True)
@@ -130,6 +130,11 @@ class KeptChoices:
                       f"so two runs may choose differently (results differ at float32 "
                       f"rounding) until it is kept; set {CACHE_VARIABLE} to a writable "
                       "folder, or delete the file", RuntimeWarning, stacklevel=4)
+
+
+def _usable(value, valid: Callable[[object], bool] | None) -> bool:
+    """Whether a kept ``value`` stands: there, and not refused by ``valid``."""
+    return value is not None and (valid is None or valid(value))
 
 
 def _text(key: tuple) -> str:

@@ -21,6 +21,7 @@ from ..io.kept import KeptChoices
 from ..opencl.device import check_fits, is_cpu
 from ..opencl.program import GPU_GROUP, KernelSet
 from ..opencl.volume import host_volume
+from ..options import is_number
 from ..version import __version__
 from .correlation import (
     BATCH_BYTES,
@@ -212,8 +213,7 @@ def is_route(value) -> bool:
     """Whether a kept ``value`` names a route, with its two measured seconds as numbers
     (a hand-edited file may hold anything)."""
     return (isinstance(value, dict) and value.get("route") in ROUTES
-            and all(isinstance(value.get(k), (int, float)) and not isinstance(value[k], bool)
-                    for k in ("host_s", "device_s")))
+            and all(is_number(value.get(k)) for k in ("host_s", "device_s")))
 
 
 def forget_measured_routes() -> None:

@@ -368,9 +368,8 @@ def _warn_if_far(state: _Pass, size: Size3) -> None:
     valid = ~(state.invalid | state.outlier | state.masked)
     if not valid.any():
         return
-    far = [(axis, float(np.median(np.abs(comp[valid]))), w)
-           for axis, comp, w in zip("zyx", state.field, size)
-           if np.median(np.abs(comp[valid])) > FAR_FRACTION * w]
+    medians = [float(np.median(np.abs(comp[valid]))) for comp in state.field]
+    far = [(axis, d, w) for axis, d, w in zip("zyx", medians, size) if d > FAR_FRACTION * w]
     if far:
         said = ", ".join(f"{d:.1f} voxels along {axis} in windows of {w}"
                          for axis, d, w in far)

@@ -254,15 +254,16 @@ def recorded(sensor: SensorModel, clean: np.ndarray, seed: int, what: str) -> np
     such a frame; calibration reads no spot in it)."""
     out = sensor.apply(clean, seed)
     lit = clean > 0
-    if lit.any() and not out.any():
+    if not lit.any():
+        return out
+    saturated = float(np.mean(out[lit] >= sensor.full_scale))  # 0 for a float sensor (inf)
+    if not out.any():
         warnings.warn(f"the simulated {what} is blank: every pixel records 0 (the light, "
                       f"peak {float(clean.max()):.3g} counts, rounds to nothing); raise the "
                       "intensities or the gain", stacklevel=3)
-    elif lit.any() and np.isfinite(sensor.full_scale) and \
-            np.mean(out[lit] >= sensor.full_scale) > SATURATED_WARN:
-        warnings.warn(f"the simulated {what} is saturated: "
-                      f"{np.mean(out[lit] >= sensor.full_scale):.0%} of its lit pixels sit at "
-                      f"full scale {sensor.full_scale:g}; lower the intensities or the "
+    elif saturated > SATURATED_WARN:
+        warnings.warn(f"the simulated {what} is saturated: {saturated:.0%} of its lit pixels "
+                      f"sit at full scale {sensor.full_scale:g}; lower the intensities or the "
                       "background, or raise the bit depth", stacklevel=3)
     return out
 

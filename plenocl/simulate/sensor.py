@@ -51,19 +51,24 @@ class SensorModel:
                              f"{self.bit_depth}")
         if self.saturation is not None and not self.saturation > 0:
             raise ValueError(f"saturation must be > 0 counts, got {self.saturation}")
-        top = 2 ** int(self.bit_depth) - 1 if self.bit_depth is not None else np.inf
+        top = self.integer_full_scale
         if self.saturation is not None and self.saturation > top:
             raise ValueError(f"saturation {self.saturation:g} counts lies above the "
-                             f"{int(self.bit_depth)}-bit full scale {top}: the integers "
+                             f"{int(self.bit_depth)}-bit full scale {top:g}: the integers "
                              "cannot hold it (brighter pixels wrapped around); give a "
-                             f"saturation <= {top} or a larger bit_depth")
+                             f"saturation <= {top:g} or a larger bit_depth")
+
+    @property
+    def integer_full_scale(self) -> float:
+        """The largest count the digitised integers hold (``inf`` without a bit depth)."""
+        return float(2 ** int(self.bit_depth) - 1) if self.bit_depth is not None else np.inf
 
     @property
     def full_scale(self) -> float:
         """The saturation level in counts (``inf`` for an ideal float sensor)."""
         if self.saturation is not None:
             return float(self.saturation)
-        return float(2 ** int(self.bit_depth) - 1) if self.bit_depth else np.inf
+        return self.integer_full_scale
 
     def apply(self, image: np.ndarray, seed: int = 0) -> np.ndarray:
         """Return the recorded image for the noise-free ``image`` (counts)."""
