@@ -395,14 +395,14 @@ def test_a_lost_ensemble_chunk_reads_unknown_not_a_valid_zero(files, tmp_path):
 def test_track_speeds_are_labelled_in_the_units_of_their_dt(tmp_path):
     """Tracks whose dt is not seconds (plenocl.track takes a frame count) were labelled
     m/s, 1000x off: their speeds are mm per dt then; seconds stay m/s."""
-    from plenocl.plot.tracks import tracks_in_m_per_s
+    from plenocl.plot.tracks import tracks_with_speeds
 
     start = np.zeros((2, 1, 3))
     for dt, unit, scale in ((1.0, "mm per dt of 1", 1.0), (1e-3, "m/s", 1e-3)):
         measured = start + np.arange(6)[None, :, None] * np.array([2.0, 0.0, 0.0])
         tracks = Tracks.from_measured(measured, np.full(measured.shape, 1e-3),
                                       np.ones(measured.shape[:2]), dt=dt, window=5)
-        _, velocities, got = tracks_in_m_per_s(tracks)
+        _, velocities, got = tracks_with_speeds(tracks)
         assert got == unit
         np.testing.assert_allclose(np.nanmedian(velocities[..., 0]), 2.0 / dt * scale,
                                    rtol=1e-6)

@@ -46,7 +46,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                              "flow that moves them (--velocity U V W or --omega WX WY WZ), or "
                              "leave --dt out for one image")
         _write_images(cams, out, _camera_images(args, cams, positions, intensities))
-        write_particles(out.with_name(out.stem + "_particles.csv"), positions, intensities)
+        write_particles(truth_path(out), positions, intensities)
         return 0
     if args.dt is None:
         raise ValueError("a displaced pair needs --dt, the time between the exposures (s)")
@@ -60,22 +60,31 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     exposures = []
     for tag, sign in (("a", -0.5), ("b", 0.5)):
         moved = displace(positions, flow, sign * args.dt)
-        exposures.append((out.with_name(f"{out.stem}_{tag}{out.suffix}"), moved,
+        exposures.append((exposure_path(out, tag), moved,
                           _camera_images(args, cams, moved, intensities)))
     for path, moved, images in exposures:
         _write_images(cams, path, images)
-        write_particles(path.with_name(path.stem + "_particles.csv"), moved, intensities)
+        write_particles(truth_path(path), moved, intensities)
     return 0
+
+
+def exposure_path(out: Path, tag: str) -> Path:
+    """Exposure ``tag``'s image of a pair named ``out`` (``raw.tif`` → ``raw_a.tif``)."""
+    return out.with_name(f"{out.stem}_{tag}{out.suffix}")
+
+
+def truth_path(image: Path) -> Path:
+    """The particles' truth beside an image (``raw_a.tif`` → ``raw_a_particles.csv``)."""
+    return image.with_name(image.stem + "_particles.csv")
 
 
 def _written(out: Path, cameras: int, single: bool) -> list[Path]:
     """Every file ``plenocl simulate`` writes for ``out``: the images (one camera's, or
     each camera's in ``camK``) and the particles' truth beside them."""
-    images = [out] if single else [out.with_name(f"{out.stem}_{tag}{out.suffix}")
-                                   for tag in "ab"]
-    return [*(image if cameras == 1 else image.parent / f"cam{k}" / image.name
+    images = [out] if single else [exposure_path(out, tag) for tag in "ab"]
+    return [*(image if cameras == 1 else camera_image_path(image, k, make=False)
               for image in images for k in range(1, cameras + 1)),
-            *(image.with_name(image.stem + "_particles.csv") for image in images)]
+            *(truth_path(image) for image in images)]
 
 
 def _camera_images(args, cams: list, positions, intensities) -> list:
@@ -97,11 +106,12 @@ def _write_images(cams: list, out: Path, images: list) -> None:
         print(f"wrote {path} ({image.shape[1]} x {image.shape[0]} px, max {image.max()})")
 
 
-def camera_image_path(out: Path, k: int) -> Path:
+def camera_image_path(out: Path, k: int, make: bool = True) -> Path:
     """Camera ``k``'s image of ``out`` (``run/raw_a.tif`` → ``run/cam2/raw_a.tif``),
-    its folder made."""
+    its folder made (``make``)."""
     folder = out.parent / f"cam{k}"
-    folder.mkdir(parents=True, exist_ok=True)
+    if make:
+        folder.mkdir(parents=True, exist_ok=True)
     return folder / out.name
 
 

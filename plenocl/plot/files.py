@@ -79,12 +79,12 @@ def _read_npz(path: Path):
     from ..ptv import Tracks
     from ..volumefile import load_volume
     from .data import read_vector_field
-    from .tracks import tracks_in_m_per_s
+    from .tracks import tracks_with_speeds
 
     with open_npz(path, "a vector field, tracks or a volume plenocl wrote") as data:
         names = set(data.files)
     if {"positions", "velocities"} <= names:
-        return "tracks", tracks_in_m_per_s(Tracks.load(path))
+        return "tracks", tracks_with_speeds(Tracks.load(path))
     if "displacement" in names:
         return "field", read_vector_field(path)
     if "volume" in names:

@@ -53,7 +53,7 @@ def tracks_figure(path: str | Path, positions: np.ndarray, velocities: np.ndarra
     return save_figure(fig, path)
 
 
-def tracks_in_m_per_s(tracks) -> tuple[np.ndarray, np.ndarray, str]:
+def tracks_with_speeds(tracks) -> tuple[np.ndarray, np.ndarray, str]:
     """Positions (mm), velocities and their unit of :class:`plenocl.Tracks`: m/s where its
     ``dt`` is a time in seconds (within :data:`plenocl.units.DT_RANGE_S`), else mm per
     unit of ``dt`` (``plenocl.track`` takes any: a frame count, say), as
@@ -66,6 +66,6 @@ def tracks_in_m_per_s(tracks) -> tuple[np.ndarray, np.ndarray, str]:
 
 def plot_tracks(path: str | Path, tracks) -> Path:
     """:func:`tracks_figure` of :class:`plenocl.Tracks` (speeds in m/s where its ``dt``
-    is in seconds: :func:`tracks_in_m_per_s`)."""
-    positions, velocities, unit = tracks_in_m_per_s(tracks)
+    is in seconds: :func:`tracks_with_speeds`)."""
+    positions, velocities, unit = tracks_with_speeds(tracks)
     return tracks_figure(path, positions, velocities, unit)
