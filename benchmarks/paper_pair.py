@@ -25,7 +25,10 @@ first setting's pair runs twice more under :class:`plenocl.bench.clprofile.OpenC
 returning its volumes (``volumes=True``, the chain before 2026-12-02), then with every PIV
 FFT on the device (``PIVSettings(fft="device")``, the route a GPU measures: no volume
 comes back) and asked for its vectors alone (``volumes=False``, as a batch that keeps no
-volumes, the FFT route as measured on this device). The last one's table
+volumes, the FFT route as measured on this device); with ``--bit-depth``, also with the
+camera's counts given as float32 (every PIV FFT on the device), which the host prepares
+as it prepared every image before 2026-12-02 evening, where the counts themselves are
+prepared on the device (:mod:`plenocl.reconstruction.deviceimage`). The last one's table
 gives per stage the wall seconds, the seconds inside OpenCL calls, the host's own work
 outside them, the kernels' device seconds (profiling events), the launches, the calls in
 which the host waited for the queue (waits and blocking copies) and the megabytes moved
@@ -47,6 +50,8 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -156,9 +161,13 @@ def main() -> None:
         host_profile(scene, proj, SETTINGS[args.settings[0]], args.host_profile)
 
 
-#: The profiled ways of the pair: the label, ``volumes=`` and PIV's FFT route.
-PROFILED = (("with the volumes", True, None), ("the device's FFT", False, "device"),
-            ("the vectors alone", False, None))
+#: The profiled ways of the pair: the label, ``volumes=``, PIV's FFT route and whether a
+#: camera's integer counts are given as float32 (prepared on the host, as every image
+#: was before 2026-12-02 evening; rows only with ``--bit-depth``).
+PROFILED = (("with the volumes", True, None, False),
+            ("counts as floats", False, "device", True),
+            ("the device's FFT", False, "device", False),
+            ("the vectors alone", False, None, False))
 
 
 def profile_pair(scene, proj, rec) -> None:
@@ -167,9 +176,13 @@ def profile_pair(scene, proj, rec) -> None:
     pair returning its volumes (the chain before 2026-12-02, whose volumes came back) and
     with every PIV FFT on the device (a GPU's route: no volume comes back)."""
     moved = {}
-    for label, volumes, fft in PROFILED:
+    counts = scene.raw_a.dtype.kind in "ui"
+    profiled = [row for row in PROFILED if counts or not row[3]]
+    for label, volumes, fft, as_floats in profiled:
+        raws = ((scene.raw_a, scene.raw_b) if not as_floats else
+                (scene.raw_a.astype(np.float32), scene.raw_b.astype(np.float32)))
         with OpenCLProfile() as prof:
-            pair = process_pair(scene.raw_a, scene.raw_b, proj, volumes=volumes,
+            pair = process_pair(*raws, proj, volumes=volumes,
                                 **({} if fft is None else {"piv": PIVSettings(fft=fft)}),
                                 **({} if rec is None else {"reconstruction": rec}))
             proj.queue.finish()
@@ -179,7 +192,7 @@ def profile_pair(scene, proj, rec) -> None:
         moved[label] = (total.host, total.h2d_bytes, back)
     print("\n".join(split_lines(split)))
     raws = scene.raw_a.nbytes + scene.raw_b.nbytes
-    for label, _, _ in PROFILED[::-1]:
+    for label, *_ in profiled[::-1]:
         host, moved_in, moved_out = moved[label]
         print(f"{label:17s}: host work {host:.3f} s in the stages; {moved_in / 1e6:.1f} MB "
               f"to the device ({moved_in / raws:.1f}x the two raw images' {raws / 1e6:.1f} "

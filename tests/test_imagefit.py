@@ -205,11 +205,11 @@ def test_a_reconstructions_background_free_image_is_the_fits_own(kind):
             assert prepare_image(raw, Optics, other).fit_image() is None
     seen = np.ones(raw.shape, bool)
     assert prepare_image(raw, Optics, rec, seen).fit_image() is None
-    for bad, known_bad in ((free._replace(values=free.values.astype(np.float64)), known),
-                           (free._replace(values=free.values[1:]), known),
-                           (free._replace(scale=0.0), known), (free.values, known),
-                           (free._replace(on_device=free.values[1:]), known),
-                           (free._replace(on_device=free.values.astype(np.float64)), known),
+    for bad, known_bad in ((free.replace(values=free.values.astype(np.float64)), known),
+                           (free.replace(values=free.values[1:]), known),
+                           (free.replace(scale=0.0), known), (free.values, known),
+                           (free.replace(on_device=free.values[1:]), known),
+                           (free.replace(on_device=free.values.astype(np.float64)), known),
                            (free, None)):
         with pytest.raises(ValueError, match="background_free"):
             ImageFit(CAM, GRID, [raw], backgrounds=[known_bad], background_free=[bad])

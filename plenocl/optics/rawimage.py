@@ -13,10 +13,11 @@ import numpy as np
 
 from ..camera import Camera
 
-__all__ = ["SATURATED_FRACTION", "ScaledImage", "background_and_noise", "check_exposure",
-           "check_image", "check_pixel_mask", "check_shape", "checked_background", "counted",
-           "dark_noise", "divided_to_float32", "exact_median", "median_and_noise",
-           "median_background", "scaled_background_free", "subtract_background"]
+__all__ = ["SATURATED_FRACTION", "CountHistogram", "ScaledImage", "background_and_noise",
+           "check_exposure", "check_image", "check_levels", "check_pixel_mask", "check_shape",
+           "checked_background", "count_histogram", "counted", "dark_noise",
+           "divided_to_float32", "exact_median", "median_and_noise", "median_background",
+           "scaled_background_free", "subtract_background"]
 
 #: A frame with more than this fraction of its pixels at its brightest value is saturated
 #: (a particle image has a few per cent there at most).
@@ -102,12 +103,22 @@ def check_exposure(img: np.ndarray, name: str = "image", saturation: bool = True
     if not data.size:
         return
     low, high = data.min(), data.max()
+    at_high = int(np.count_nonzero(data == high)) if saturation and high > low else 0
+    check_levels(float(low), float(high), at_high, data.size, name, saturation)
+
+
+def check_levels(low: float, high: float, at_high: int, size: int, name: str = "image",
+                 saturation: bool = True) -> None:
+    """:func:`check_exposure` of a frame of ``size`` pixels from its smallest and largest
+    value and the pixels at the largest (``at_high``; read only with ``saturation`` and
+    ``high > low``), however they were counted (a histogram of a camera's counts:
+    :class:`CountHistogram`)."""
     if low == high:
         what = "blank" if high == 0 else "uniform"
         raise ValueError(f"{name} is {what}: every pixel is {float(high):.6g}, so it holds no "
                          "image; check the file, the exposure and the camera's trigger")
     if saturation and high > 0:  # at or below zero: no light, said by the reconstruction
-        share = float(np.count_nonzero(data == high)) / data.size
+        share = float(at_high) / size
         if share > SATURATED_FRACTION:
             raise ValueError(f"{name} is saturated: {share:.0%} of its pixels are at its "
                              f"brightest value {float(high):.6g}; lower the exposure, the "
@@ -182,15 +193,43 @@ def subtract_background(image, known: tuple[float, float] | None = None
     return out, sigma
 
 
-class ScaledImage(NamedTuple):
+class ScaledImage:
     """An image as float32 ``values`` divided by ``scale`` (its brightest pixel: values in
     [0, 1]), the form the reconstruction's solver reads and the image fit takes
     (:func:`scaled_background_free`); ``on_device``: the same values on an OpenCL device
-    (a ``pyopencl.array.Array``), or ``None``."""
+    (a ``pyopencl.array.Array``), or ``None``.
 
-    values: np.ndarray
-    scale: float
-    on_device: object = None
+    ``values`` may be ``None`` where ``on_device`` holds them (an image prepared on the
+    device, :mod:`plenocl.reconstruction.deviceimage`): they are then copied to the host
+    at the first read of :attr:`values`, once (the fit on that device never reads them).
+    """
+
+    def __init__(self, values: np.ndarray | None, scale: float, on_device=None) -> None:
+        if values is None and on_device is None:
+            raise ValueError("a ScaledImage needs its values on the host or on a device")
+        self._values, self.scale, self.on_device = values, scale, on_device
+
+    @property
+    def values(self) -> np.ndarray:
+        """The float32 values on the host (copied from the device at the first read)."""
+        if self._values is None:
+            self._values = self.on_device.get()
+        return self._values
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """The image's shape (rows, columns), wherever its values are."""
+        return tuple((self.on_device if self._values is None else self._values).shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        """The values' dtype (float32), wherever they are."""
+        return (self.on_device if self._values is None else self._values).dtype
+
+    def replace(self, **changes) -> ScaledImage:
+        """A copy with ``changes`` (``values``, ``scale``, ``on_device``)."""
+        fields = {"values": self._values, "scale": self.scale, "on_device": self.on_device}
+        return ScaledImage(**{**fields, **changes})
 
     def image(self) -> np.ndarray:
         """The image in its own units, float64: ``values * scale``."""
@@ -233,12 +272,7 @@ def median_and_noise(img: np.ndarray, observed: np.ndarray | None = None
     data = img if observed is None else img[observed]
     counts = _integer_histogram(data)
     if counts is not None:
-        low, hist = counts
-        levels = np.arange(low, low + len(hist), dtype=np.float64)
-        med = _multiset_median(levels, hist)
-        dist = np.abs(levels - med)
-        order = np.argsort(dist, kind="stable")
-        return med, 1.4826 * _multiset_median(dist[order], hist[order])
+        return CountHistogram(*counts).median_and_noise()
     med = exact_median(data)
     return med, 1.4826 * exact_median(data, centre=med)
 
@@ -329,6 +363,50 @@ def _integer_histogram(data: np.ndarray) -> tuple[int, np.ndarray] | None:
     if low:
         levels -= int(low)
     return int(low), np.bincount(levels)
+
+
+class CountHistogram(NamedTuple):
+    """A frame of integer counts as the pixels at each level: ``counts[k]`` pixels at
+    level ``low + k`` (:func:`count_histogram`). What the frame's checks, median and
+    noise need, without the frame: the device preparation of a camera's image reads
+    these alone (:mod:`plenocl.reconstruction.deviceimage`)."""
+
+    low: int
+    counts: np.ndarray
+
+    @property
+    def high(self) -> int:
+        """The largest level (the histogram ends at its last pixel)."""
+        return self.low + len(self.counts) - 1
+
+    @property
+    def size(self) -> int:
+        """The frame's pixels."""
+        return int(self.counts.sum())
+
+    def levels(self) -> np.ndarray:
+        """Each bin's level, float64."""
+        return np.arange(self.low, self.low + len(self.counts), dtype=np.float64)
+
+    def median_and_noise(self) -> tuple[float, float]:
+        """:func:`median_and_noise` of the frame: its median and ``1.4826 MAD``."""
+        levels = self.levels()
+        med = _multiset_median(levels, self.counts)
+        dist = np.abs(levels - med)
+        order = np.argsort(dist, kind="stable")
+        return med, 1.4826 * _multiset_median(dist[order], self.counts[order])
+
+    def check_exposure(self, name: str = "image") -> None:
+        """:func:`check_exposure` of the frame (blank, uniform or saturated refused)."""
+        check_levels(self.low, self.high, int(self.counts[-1]), self.size, name)
+
+
+def count_histogram(data: np.ndarray) -> CountHistogram | None:
+    """The :class:`CountHistogram` of a camera's integer counts or of float values that
+    are all whole numbers, within :data:`HISTOGRAM_LEVELS` levels; ``None`` otherwise
+    (or for an empty frame)."""
+    counts = _integer_histogram(np.asarray(data))
+    return None if counts is None else CountHistogram(*counts)
 
 
 def _multiset_median(values: np.ndarray, counts: np.ndarray) -> float:

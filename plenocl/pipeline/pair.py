@@ -24,6 +24,7 @@ from ..reconstruction import (
     ReconstructionSettings,
     UnusableImageError,
     prepare_on_host,
+    prepares_on_device,
     run_reconstruction,
 )
 from .mte import motion_tracking_enhancement
@@ -178,11 +179,14 @@ def _reconstructions(raw_a, raw_b, projector, rec: ReconstructionSettings, keep:
     """Both exposures' reconstructions, one after the other on the projector's queue.
     On a device that is not a CPU, the second image's host preparation (its checks,
     median, noise and scaling: NumPy, 0.3 s at paper size) runs on a helper thread while
-    the first reconstructs, whose device leaves the host's cores idle; on a CPU device
+    the first reconstructs, whose device leaves the host's cores idle (a camera's counts
+    are prepared on the device instead, :mod:`plenocl.reconstruction.deviceimage`: the
+    host only counts their levels); on a CPU device
     they are the device's, and a process allowed one thread (``PLENOCL_THREADS=1``, a
     batch's workers sharing the cores) has one, so there it runs in turn
     (docs/design.md §7.5)."""
-    ahead = (None if is_cpu(projector.queue.device) or thread_count() < 2 else
+    ahead = (None if is_cpu(projector.queue.device) or thread_count() < 2
+             or prepares_on_device(raw_b, rec.background, rec.smooth_px, None) else
              ThreadPoolExecutor(1, thread_name_prefix="plenocl-prepare"))
     try:
         later = (None if ahead is None else

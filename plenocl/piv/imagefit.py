@@ -562,18 +562,17 @@ def _background_free(raw, camera, known, free) -> tuple[ScaledImage, float]:
     if free is None:
         return scaled_background_free(check_image(raw, camera, copy=False), known)
     cols, rows = camera.pixels
-    values = getattr(free, "values", None)
     device = getattr(free, "on_device", None)
-    if (known is None or not isinstance(free, ScaledImage) or values.shape != (rows, cols)
-            or values.dtype != np.float32 or not 0 < free.scale < np.inf
-            or (device is not None and (device.shape != values.shape
+    if (known is None or not isinstance(free, ScaledImage) or free.shape != (rows, cols)
+            or free.dtype != np.float32 or not 0 < free.scale < np.inf
+            or (device is not None and (device.shape != free.shape
                                         or device.dtype != np.float32))):
         raise ValueError(f"ImageFit's background_free images must be ScaledImage of float32 "
                          f"({rows}, {cols}) values (and device copy) and a positive scale, "
                          f"with their (median, "
                          f"noise) in backgrounds (a reconstruction's info.background_free "
                          f"and .background, .noise); got {type(free).__name__} "
-                         f"{getattr(values, 'dtype', '')} {getattr(values, 'shape', '')}"
+                         f"{getattr(free, 'dtype', '')} {getattr(free, 'shape', '')}"
                          f"{' without a background' if known is None else ''}")
     return free, checked_background(known)[1]
 

@@ -14,6 +14,7 @@
 """
 
 from .blocks import device_view_blocks, view_blocks
+from .deviceimage import prepares_on_device
 from .images import (
     FLOAT32_LIMIT,
     NOISE_SIGMAS,
@@ -42,7 +43,7 @@ from .supersample import MAX_SUPERSAMPLE, bin_lateral, spread_lateral
 __all__ = ["COARSE_ITERATIONS", "CROP_BELOW", "DEFAULTS", "FINE_DEFAULTS", "FLOAT32_LIMIT",
            "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHOD", "METHODS", "NOISE_SIGMAS", "SUPERSAMPLE",
            "SUPPORT", "UPDATES", "UnusableImageError", "bin_lateral",
-           "prepare_on_host", "preprocess", "spread_lateral",
+           "prepare_on_host", "prepares_on_device", "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
            "RefinableOperator", "Solver",
            "device_view_blocks", "extent_box", "nonzero_box", "reconstruct",

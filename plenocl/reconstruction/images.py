@@ -12,14 +12,17 @@ from scipy import ndimage
 
 from ..opencl.arrays import upload
 from ..optics.rawimage import (
+    CountHistogram,
     ScaledImage,
     background_and_noise,
     check_exposure,
     check_image,
+    count_histogram,
     counted,
     dark_noise,
     divided_to_float32,
 )
+from .deviceimage import DeviceCounts, prepares_on_device
 from .operator import ProjectionOperator
 from .settings import ReconstructionSettings
 
@@ -152,19 +155,66 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     if smooth_px is not None:  # noise averaged before clipping: no bias from the clip
         img, gain = smooth_image(img, smooth_px, observed), smoothing_gain(smooth_px)
     np.maximum(img, 0.0, out=img)
-    thr = NOISE_SIGMAS * gain * (noise or 0.0) if threshold is None else float(threshold)
     if observed is not None:  # 0 - a negative median would give them light
         img[~observed] = 0.0
-    scale = float(img.max())
+    scale = _checked_scale(float(img.max()))
+    thr = _threshold(threshold, noise, gain, scale)
+    # the image fit's image where nothing but the background was removed: the same
+    # division as plenocl.optics.rawimage.scaled_background_free (PreparedImage.fit_image)
+    out, smoothed = divided_to_float32(img, scale), smooth_px is not None
+    return PreparedImage(out, scale, thr, observed, None, med, noise, smoothed)
+
+
+def _checked_scale(scale: float) -> float:
+    """The image's brightest pixel after its background, refused above float32's reach."""
     if scale > FLOAT32_LIMIT:
         raise ValueError(f"image maximum {scale:.10g} is above {FLOAT32_LIMIT:.10g}, the "
                          "largest value plenocl reconstructs in float32; divide the image "
                          "by a constant (the volume scales with it)")
-    # the image fit's image where nothing but the background was removed: the same
-    # division as plenocl.optics.rawimage.scaled_background_free (PreparedImage.fit_image)
-    out, smoothed = divided_to_float32(img, scale), smooth_px is not None
-    return PreparedImage(out, scale, thr / scale if scale else thr, observed, None, med,
-                         noise, smoothed)
+    return scale
+
+
+def _threshold(threshold: float | None, noise: float | None, gain: float,
+               scale: float) -> float:
+    """The dark-pixel threshold in the scaled image's units: ``threshold`` given, or
+    :data:`NOISE_SIGMAS` times the noise (times the smoothing's ``gain``)."""
+    thr = NOISE_SIGMAS * gain * (noise or 0.0) if threshold is None else float(threshold)
+    return thr / scale if scale else thr
+
+
+def _prepared_counts(image: np.ndarray, camera, queue, settings: ReconstructionSettings
+                     ) -> PreparedImage | None:
+    """:func:`prepare_on_host` of a camera's counts with the image made on ``queue``'s
+    device (:class:`plenocl.reconstruction.deviceimage.DeviceCounts`): the checks, median,
+    noise, scale and the image's norm from the counts' histogram, the same values and
+    image bits. ``None`` where the host prepares it instead (counts below zero, whose
+    background is found otherwise, or a frame without light, which it refuses)."""
+    raw = check_image(image, camera, image.dtype, copy=False)
+    hist = count_histogram(raw)
+    if hist is None or hist.low < 0:
+        return None
+    try:
+        hist.check_exposure("the image")
+    except ValueError as exc:
+        raise UnusableImageError(str(exc)) from None
+    med, noise = (hist.median_and_noise() if settings.background == "median"
+                  else (None, None))
+    scale = _checked_scale(float(max(hist.high - (med or 0.0), 0.0)))
+    if scale == 0:
+        return None
+    device = DeviceCounts.of(queue, raw.dtype).scaled(raw, med or 0.0, scale)
+    prepared = PreparedImage(None, scale, _threshold(settings.threshold, noise, 1.0, scale),
+                             None, None, med, noise, made_with=_preparation(settings, None),
+                             norm_value=_counts_norm(hist, med or 0.0, scale))
+    prepared.keep_on_device(queue, device)
+    return prepared
+
+
+def _counts_norm(hist: CountHistogram, median: float, scale: float) -> float:
+    """The Euclidean norm of the scaled image of ``hist``'s frame, from its levels'
+    float32 values (float64 sums)."""
+    values = divided_to_float32(np.maximum(hist.levels() - median, 0.0), scale)
+    return float(np.sqrt(np.dot(hist.counts, values.astype(np.float64) ** 2)))
 
 
 def scale_raw_image(image, camera) -> tuple[np.ndarray, float]:
@@ -198,7 +248,7 @@ class PreparedImage:
         Whether the image was smoothed (``smooth_px``) before it was scaled.
     """
 
-    image: np.ndarray
+    image: np.ndarray | None
     scale: float
     threshold: float
     observed: np.ndarray | None = None
@@ -209,27 +259,52 @@ class PreparedImage:
     #: What it was prepared with (:func:`prepare_on_host`: background, threshold,
     #: smoothing, a pixel mask or not).
     made_with: tuple | None = dataclasses.field(default=None, compare=False, repr=False)
+    #: The image's norm where it was found without the host image (:meth:`norm`).
+    norm_value: float | None = dataclasses.field(default=None, compare=False, repr=False)
     #: The image's device copies by queue (:meth:`on_device`): uploaded once, not once
     #: per run (a coarse-to-fine reconstruction's three runs read the same image).
     _device: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+
+    def keep_on_device(self, queue, device) -> None:
+        """Keep ``device``, this image made on ``queue``'s device, as its copy there
+        (:meth:`on_device`); an image prepared on the device has no other."""
+        self._device[queue.int_ptr] = device
 
     def on_device(self, queue):
         """:attr:`image` on ``queue``'s device, uploaded at the first call (the solver
         only reads it)."""
         key = queue.int_ptr
         if key not in self._device:
-            self._device[key] = upload(queue, self.image)
+            self._device[key] = upload(queue, self.host_image())
         return self._device[key]
+
+    def host_image(self) -> np.ndarray:
+        """:attr:`image`, or for an image prepared on a device (``image`` ``None``) its
+        copy from there, made once."""
+        if self.image is None:
+            if "host" not in self._device:
+                self._device["host"] = next(iter(self._device.values())).get()
+            return self._device["host"]
+        return self.image
+
+    def norm(self) -> float:
+        """The image's Euclidean norm (the solver's residuals are relative to it)."""
+        if self.norm_value is not None:
+            return self.norm_value
+        return float(np.linalg.norm(self.image))
 
     def fit_image(self, queue=None) -> ScaledImage | None:
         """The image fit's image where it is this one, to the bit
         (:func:`plenocl.optics.rawimage.scaled_background_free`): a background removed
         (:attr:`background`), not smoothed, every pixel observed; with its device copy on
-        ``queue`` (:meth:`on_device`; ``None``: none). ``None`` otherwise."""
+        ``queue`` (:meth:`on_device`; ``None``: none). ``None`` otherwise. An image
+        prepared on ``queue``'s device gives its device copy alone (the host's is made
+        where something reads :attr:`ScaledImage.values`)."""
         if self.background is None or self.smoothed or self.observed is not None:
             return None
         device = None if queue is None else self.on_device(queue)
-        return ScaledImage(self.image, self.scale, device)
+        values = self.host_image() if device is None else self.image
+        return ScaledImage(values, self.scale, device)
 
 
 def prepare_on_host(image, camera, settings: ReconstructionSettings,
@@ -263,8 +338,13 @@ def prepare_image(image, projector: ProjectionOperator, settings: Reconstruction
         raise ValueError("ahead was prepared with other settings than this reconstruction's "
                          "(background, threshold, smoothing or pixel mask): prepare it with "
                          "prepare_on_host and the same ones")
-    prepared = (prepare_on_host(image, projector.camera, settings, observed)
-                if ahead is None else ahead)
+    queue = getattr(projector, "queue", None)
+    prepared = ahead
+    if prepared is None and queue is not None and prepares_on_device(
+            image, settings.background, settings.smooth_px, observed):
+        prepared = _prepared_counts(image, projector.camera, queue, settings)
+    if prepared is None:
+        prepared = prepare_on_host(image, projector.camera, settings, observed)
     if prepared.scale == 0:
         raise UnusableImageError(
             "the image holds no light above its background, so the volume would be empty: "
@@ -277,7 +357,6 @@ def prepare_image(image, projector: ProjectionOperator, settings: Reconstruction
         return prepared
     # lenses without data give no update either: skipped alike. Where the operator has a
     # device, found there on the image the solver then reads (uploaded once)
-    queue = getattr(projector, "queue", None)
     image = prepared.image if queue is None else prepared.on_device(queue)
     return dataclasses.replace(prepared, lit=projector.lit_lenses(image, prepared.threshold))
 

@@ -246,7 +246,7 @@ class _Run:
         self.prepared, self.factors, self.settings = prepared, factors, settings
         self.callback = callback
         self.info = ReconstructionInfo(settings.method)
-        self.norm = max(float(np.sqrt(sum((f * np.linalg.norm(im.image)) ** 2 for im, f in
+        self.norm = max(float(np.sqrt(sum((f * im.norm()) ** 2 for im, f in
                                           zip(prepared, factors, strict=True)))), 1e-30)
 
     def iterate(self, projectors, iterations: int, spread=None, device=None):

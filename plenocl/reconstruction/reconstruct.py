@@ -482,7 +482,7 @@ def _iterations(prepared: PreparedImage, projector, settings: ReconstructionSett
                              threshold=prepared.threshold, blocks=blocks,
                              n_blocks=settings.n_blocks, ratio_floor=settings.ratio_floor)
     solver, vol = _iterate(solver, vol, img, settings, info, step, callback,
-                           float(np.linalg.norm(prepared.image)))
+                           prepared.norm())
     return solver, vol, info
 
 

@@ -1,0 +1,206 @@
+"""A camera's integer counts prepared on the device (``kernels/rawcounts.cl``,
+:mod:`plenocl.reconstruction.deviceimage`; issue 46): the kernel against its NumPy twin,
+and the whole preparation against the host's, to the bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import plenocl
+from plenocl.bench.clprofile import OpenCLProfile
+from plenocl.optics.rawimage import CountHistogram, check_exposure, count_histogram
+from plenocl.pipeline import process_pair
+from plenocl.piv import PIVSettings
+from plenocl.reconstruction import (
+    ReconstructionSettings,
+    UnusableImageError,
+    prepare_on_host,
+    prepares_on_device,
+    run_reconstruction,
+)
+from plenocl.reconstruction.deviceimage import COUNT_TYPES, DeviceCounts
+from plenocl.reconstruction.images import prepare_image
+from plenocl.reference.rawcounts import scaled_counts
+
+REC = ReconstructionSettings(iterations=3, coarse_iterations=2)
+GRID = plenocl.Grid((16, 24, 24), x=(-1.2, 1.2), y=(-1.2, 1.2), z=(-1.5, 1.5))
+
+
+@pytest.fixture(scope="module")
+def scene(queue):
+    """A small camera's projector and two 16-bit raw images of 60 particles (a dark
+    level of 50 counts and read noise), the second moved 0.2 mm along x."""
+    cam = plenocl.Camera.synthetic_850()
+    pos, inten = plenocl.random_particles(((-1.1, 1.1), (-1.1, 1.1), (-1.4, 1.4)),
+                                          count=60, seed=3, intensity=3e4)
+    rng = np.random.default_rng(5)
+    raws = [np.rint(plenocl.simulate_image(cam, pos + [dx, 0.0, 0.0], inten, 1000, seed=k,
+                                           blur_px=0.5, queue=queue)
+                    + 50.0 + rng.normal(0.0, 2.0, cam.pixels[::-1])).astype(np.uint16)
+            for k, dx in enumerate((0, 0.2))]
+    return cam, plenocl.Projector(cam, GRID, queue), raws
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two float32 arrays hold the same bits."""
+    return a.shape == b.shape and np.array_equal(np.asarray(a, np.float32).view(np.uint32),
+                                                 np.asarray(b, np.float32).view(np.uint32))
+
+
+@pytest.mark.parametrize("dtype", sorted(COUNT_TYPES, key=str))
+@pytest.mark.parametrize("shape", [(1, 1), (7, 13), (129, 67)])
+def test_scaled_counts_match_their_twin_bit_for_bit(queue, dtype, shape):
+    """Every type, awkward sizes, whole and half-count medians, scales that do not divide
+    evenly: the kernel's float32 image is the twin's (float64 division rounded once)."""
+    info = np.iinfo(dtype)
+    rng = np.random.default_rng(shape[0] * shape[1])
+    raw = rng.integers(max(info.min, 0), info.max, shape, endpoint=True).astype(dtype)
+    counts = DeviceCounts.of(queue, dtype)
+    for median, scale in ((0.0, 1.0), (3.5, 7.0), (17.0, 3.0), (100.5, info.max - 100.5)):
+        got = counts.scaled(raw, median, scale).get()
+        want = scaled_counts(raw, median, scale)
+        assert same_bits(got, want), (median, scale)
+        assert got.min() >= 0  # counts below the median clipped
+    assert DeviceCounts.of(queue, dtype) is counts  # built once per queue and type
+
+
+def test_scaled_counts_refuse_what_float32_cannot_hold(queue):
+    """A median that is not a whole or half count, or a scale of zero, named."""
+    counts = DeviceCounts.of(queue, np.uint16)
+    raw = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    for median, scale in ((0.1, 2.0), (1.0, 0.0), (1.0, 16777217.0)):
+        with pytest.raises(ValueError, match="exact in float32"):
+            counts.scaled(raw, median, scale)
+    with pytest.raises(ValueError, match="prepared on the host"):
+        DeviceCounts(queue, np.uint32)
+
+
+def test_a_histogram_checks_and_measures_as_the_frame_does():
+    """:class:`CountHistogram`: the median, noise and exposure refusals of the frame."""
+    from plenocl.optics.rawimage import median_and_noise
+
+    rng = np.random.default_rng(0)
+    frame = rng.poisson(40, (50, 70)).astype(np.uint16)
+    frame[:3, :5] = 4000
+    hist = count_histogram(frame)
+    assert (hist.low, hist.high, hist.size) == (frame.min(), frame.max(), frame.size)
+    med, noise = np.median(frame), 1.4826 * np.median(np.abs(frame - np.median(frame)))
+    assert hist.median_and_noise() == pytest.approx((med, noise), abs=0) == median_and_noise(frame)
+    for bad in (np.zeros_like(frame), np.full_like(frame, 7),
+                np.where(np.arange(frame.size).reshape(frame.shape) % 3, 900, 20)):
+        with pytest.raises(ValueError) as want:
+            check_exposure(bad)
+        with pytest.raises(ValueError) as got:
+            count_histogram(bad.astype(np.uint16)).check_exposure()
+        assert str(got.value) == str(want.value)
+    assert CountHistogram(5, np.array([2, 0, 1])).high == 7
+
+
+@pytest.mark.parametrize("settings", [REC, ReconstructionSettings(background=None),
+                                      ReconstructionSettings(threshold=3.0)],
+                         ids=["median", "no-background", "threshold"])
+def test_counts_prepared_on_the_device_are_the_hosts(scene, settings):
+    """The default preparation of 16-bit counts on the device: no host image, and the
+    host's scale, threshold, background, noise, lit lenses and image bits; the norm
+    (from the histogram, in float64) within float32's sums of the host's."""
+    cam, proj, (raw, _) = scene
+    assert prepares_on_device(raw, settings.background, settings.smooth_px, None)
+    host = prepare_on_host(raw, cam, settings)
+    with OpenCLProfile() as prof:
+        dev = prepare_image(raw, proj, settings)
+    assert dev.image is None
+    assert (dev.scale, dev.threshold, dev.background, dev.noise) == (
+        host.scale, host.threshold, host.background, host.noise)
+    assert same_bits(dev.on_device(proj.queue).get(), host.image)
+    assert same_bits(dev.host_image(), host.image)
+    np.testing.assert_array_equal(dev.lit, prepare_image(raw.astype(float), proj, settings).lit)
+    assert dev.norm() == pytest.approx(host.norm(), rel=1e-4)
+    uploads = sum(call.nbytes for call in prof.calls if call.kind == "h2d")
+    assert raw.nbytes <= uploads < raw.nbytes + 0.01 * host.image.nbytes  # the counts alone
+
+
+def test_other_images_are_prepared_on_the_host(scene):
+    """Floats, wider integers, counts below zero, a pixel mask or smoothing: the host."""
+    cam, proj, (raw, _) = scene
+    signed = raw.astype(np.int16) - np.int16(60)  # a dark level over-subtracted
+    for image, settings, mask in ((raw.astype(np.float32), REC, None),
+                                  (raw.astype(np.uint32), REC, None),
+                                  (signed, REC, None),
+                                  (raw, ReconstructionSettings(smooth_px=0.7), None),
+                                  (raw, REC, np.ones(raw.shape, bool))):
+        prepared = prepare_image(image, proj, settings, observed=mask)
+        want = prepare_on_host(image, cam, settings, observed=mask)
+        assert prepared.image is not None
+        assert same_bits(prepared.image, want.image) and prepared.scale == want.scale
+
+
+def test_an_unusable_frame_of_counts_is_refused_as_on_the_host(scene):
+    """Blank, uniform, saturated and all-dark frames: the host's refusal, word for word."""
+    cam, proj, (raw, _) = scene
+    saturated = raw.copy()
+    saturated[: 3 * raw.shape[0] // 4] = 65535
+    for bad in (np.zeros_like(raw), np.full_like(raw, 50), saturated):
+        with pytest.raises(UnusableImageError) as want:
+            prepare_on_host(bad, cam, REC)
+        with pytest.raises(UnusableImageError) as got:
+            prepare_image(bad, proj, REC)
+        assert str(got.value) == str(want.value)
+    above = ReconstructionSettings(threshold=1e6)  # every pixel at or below it
+    with pytest.raises(UnusableImageError, match="dark-pixel threshold") as want:
+        prepare_image(raw.astype(float), proj, above)
+    with pytest.raises(UnusableImageError) as got:
+        prepare_image(raw, proj, above)
+    assert str(got.value) == str(want.value)
+
+
+def test_a_reconstruction_and_pair_of_counts_are_those_of_their_floats(scene):
+    """The volume and the fit's background-free image of 16-bit counts prepared on the
+    device are those of the same counts as floats (prepared on the host), bit for bit;
+    the fit's image is not copied to the host unless read. A pair's vectors alike."""
+    _, proj, raws = scene
+    want, want_info = run_reconstruction(raws[0].astype(float), proj, REC,
+                                         keep_for_next_stage=True)
+    got, got_info = run_reconstruction(raws[0], proj, REC, keep_for_next_stage=True)
+    assert want.get().max() > 0
+    np.testing.assert_array_equal(got.get(), want.get())
+    free = got_info.background_free
+    assert free.on_device is not None
+    with OpenCLProfile() as prof:
+        assert free.shape == raws[0].shape and free.dtype == np.float32
+        first, again = free.values, free.values
+    back = [call.nbytes for call in prof.calls if call.kind == "d2h"]
+    assert back == [first.nbytes] and again is first  # copied at the first read, once
+    assert same_bits(first, want_info.background_free.values)
+    assert free.scale == want_info.background_free.scale
+    kw = dict(reconstruction=REC, piv=PIVSettings(windows=(16, 16)))
+    pair, floats = (process_pair(*raws, proj, **kw),
+                    process_pair(*(r.astype(float) for r in raws), proj, **kw))
+    for name in ("u", "v", "w", "sigma_u", "sigma_w"):
+        np.testing.assert_array_equal(getattr(pair.piv, name), getattr(floats.piv, name))
+
+
+def test_a_pair_off_a_cpu_prepares_counts_on_the_device_not_ahead(scene, monkeypatch):
+    """Off a CPU (``is_cpu`` answering False) the second exposure of floats is prepared
+    ahead on a helper thread; a camera's counts are prepared on the device instead, with
+    no host preparation at all, and the same field as the floats'."""
+    from plenocl.pipeline import pair as pair_module
+
+    _, proj, raws = scene
+    calls = []
+    real = pair_module.prepare_on_host
+
+    def spy(*args, **kwargs):
+        calls.append(args[0].dtype)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pair_module, "is_cpu", lambda device: False)
+    monkeypatch.setattr(pair_module, "prepare_on_host", spy)
+    monkeypatch.setenv("PLENOCL_THREADS", "2")
+    kw = dict(reconstruction=REC, piv=PIVSettings(windows=[8]), particles=False)
+    floats = process_pair(*(r.astype(np.float32) for r in raws), proj, **kw)
+    assert calls == [np.dtype(np.float32)]
+    counts = process_pair(*raws, proj, **kw)
+    assert calls == [np.dtype(np.float32)]  # none for the counts
+    for name in ("u", "v", "w"):
+        np.testing.assert_array_equal(getattr(counts.piv, name), getattr(floats.piv, name))
