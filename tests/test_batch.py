@@ -551,3 +551,43 @@ def test_the_experiment_sets_every_part_of_the_pair_and_the_worker_gets_it(
     parts = {part: dict(used[part]) for part in PARTS}
     parts["piv"].pop("ensemble")
     assert PairSettings.from_dict(parts) == expected
+
+
+@pytest.mark.one_device
+def test_a_serial_run_reads_the_next_pair_while_one_computes(experiment, tmp_path,
+                                                             monkeypatch):
+    """Serially, each next pair's frames are read on a helper thread while a pair
+    computes (where two threads are allowed): the same fields, bit for bit, and the same
+    failure of the corrupt last pair as the run reading each pair in turn
+    (``PLENOCL_THREADS=1``)."""
+    import threading
+
+    from plenocl.batch import worker
+
+    exp = _copy_experiment(experiment, tmp_path, pinned=True)
+    readers = []
+    real = worker.PairProcessor.read
+
+    def spy(self, task):
+        readers.append(threading.current_thread().name)
+        return real(self, task)
+
+    monkeypatch.setattr(worker.PairProcessor, "read", spy)
+    runs, who = {}, {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("PLENOCL_THREADS", threads)
+        readers.clear()
+        runs[threads] = plenocl.run(exp, tmp_path / f"out{threads}", progress=False,
+                                    log=lambda line: None)
+        who[threads] = list(readers)
+    assert who["1"] == ["MainThread"] * 3
+    assert len(who["2"]) == 3 and all(n.startswith("plenocl-read") for n in who["2"])
+    for threads, summary in runs.items():
+        assert summary.processed == [0, 1] and list(summary.failed) == [2], threads
+    assert runs["1"].failed == runs["2"].failed  # the corrupt frame named alike
+    for k in (0, 1):
+        name = f"pairs/pair_{k:05d}.npz"
+        (_, one), (_, two) = (read_npz(tmp_path / f"out{t}" / name) for t in ("1", "2"))
+        assert one.keys() == two.keys()
+        for key in one:
+            np.testing.assert_array_equal(one[key], two[key])

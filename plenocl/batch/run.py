@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -38,6 +39,7 @@ from ..io.fieldformat import field_metadata
 from ..io.outputs import check_output_folder, disk_full
 from ..io.progress import pair_bar
 from ..io.timeseries import write_timeseries
+from ..opencl.threads import thread_count
 from ..options import NONE
 from ..pipeline.resume import name_changes, remove_outputs
 from .config import Experiment, image_folders, image_pairs, load_experiment, output_formats
@@ -362,7 +364,10 @@ def _run_settings(exp: Experiment, record: dict, cameras: int = 1) -> RunSetting
 
 def _process(tasks, out: Path, settings: RunSettings, queue, workers, scheduler,
              done) -> None:
-    """Run the tasks serially in this process, or on a Dask cluster."""
+    """Run the tasks serially in this process, or on a Dask cluster. Serially, a helper
+    thread reads the next pair's frames (files, colour channel, dark frame and flat
+    field, region of interest) while a pair computes, where the process may use two
+    threads; the pairs are processed and recorded in the same order either way."""
     if not tasks:
         return
     if workers or scheduler:
@@ -372,8 +377,17 @@ def _process(tasks, out: Path, settings: RunSettings, queue, workers, scheduler,
             run_on_dask(client, tasks, out, settings, queue, done)
         return
     processor = PairProcessor(out, settings, queue)
-    for task in tasks:
-        done(processor(task))
+    if thread_count() < 2:  # one thread allowed (PLENOCL_THREADS=1): in turn
+        for task in tasks:
+            done(processor(task))
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="plenocl-read") as reader:
+        ahead = reader.submit(processor.read, tasks[0])
+        for k, task in enumerate(tasks):
+            read = ahead.result()
+            if k + 1 < len(tasks):  # the next pair's files read while this one computes
+                ahead = reader.submit(processor.read, tasks[k + 1])
+            done(processor(task, read))
 
 
 def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:

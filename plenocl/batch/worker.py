@@ -111,6 +111,16 @@ class PairOutcome:
     disk_full: bool = False
 
 
+@dataclass
+class ReadFrames:
+    """A pair's raw frames read from their files (``frames``: the two frames, or for
+    several cameras the two lists), the seconds it took, or the error reading raised."""
+
+    frames: tuple | None
+    seconds: float
+    error: Exception | None = None
+
+
 class PairProcessor:
     """Processes pairs of one run; see the module notes.
 
@@ -154,21 +164,34 @@ class PairProcessor:
                 self._projector = [Projector(c, self.grid, queue) for c in self.cameras]
         return self._projector
 
-    def __call__(self, task: PairTask) -> PairOutcome:
+    def __call__(self, task: PairTask, read: ReadFrames | None = None) -> PairOutcome:
         """Process one pair and write its field atomically; a bad pair's error is
-        returned, not raised, so that the run goes on."""
-        t0 = time.perf_counter()
+        returned, not raised, so that the run goes on. ``read``: the pair's frames read
+        beforehand (:meth:`read`, a serial run reading the next pair while this one
+        computes); ``None``: read here."""
+        read = self.read(task) if read is None else read
         try:
-            raw_a, raw_b = self._frames(task)
+            if read.error is not None:
+                raise read.error
             sources = pair_sources(task.pair)
-            seconds = {"read": time.perf_counter() - t0}
-            done, dropped = self._process(raw_a, raw_b, Path(task.target), sources,
+            seconds = {"read": read.seconds}
+            done, dropped = self._process(*read.frames, Path(task.target), sources,
                                           task.mode)
             seconds.update(done)
         except PAIR_ERRORS as exc:
             return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {_said(exc, task)}",
                                disk_full=disk_full(exc))
         return PairOutcome(task.index, seconds, dropped=dropped)
+
+    def read(self, task: PairTask) -> ReadFrames:
+        """The pair's raw frames as :meth:`__call__` takes them, or the error that
+        reading them raised (a pair's error, named when the pair is processed)."""
+        t0 = time.perf_counter()
+        try:
+            frames = self._frames(task)
+        except PAIR_ERRORS as exc:
+            return ReadFrames(None, time.perf_counter() - t0, exc)
+        return ReadFrames(frames, time.perf_counter() - t0)
 
     def frame(self, path: str, camera: int = 0) -> np.ndarray:
         """One raw frame as camera ``camera`` (its index) sees it: its colour channel,
