@@ -591,3 +591,32 @@ def test_a_serial_run_reads_the_next_pair_while_one_computes(experiment, tmp_pat
         assert one.keys() == two.keys()
         for key in one:
             np.testing.assert_array_equal(one[key], two[key])
+
+
+@pytest.mark.one_device
+def test_workers_given_a_name_of_several_devices_share_them(experiment, tmp_path):
+    """``--device cpu --workers 2``: worker k takes the k-th CPU device that builds the
+    kernels, in turn (the plugin set up as Dask sets it up on workers 0 and 1), and
+    ``summary.json`` counts the pairs each device made (which worker takes which pair
+    is Dask's); a serial run counts its one device."""
+    import pyopencl as cl
+
+    from plenocl.batch.cluster import PlenoclWorker
+    from plenocl.batch.worker import RunSettings
+    from plenocl.opencl.device import building_devices, device_label
+
+    exp = _copy_experiment(experiment, tmp_path / "in", pinned=True)
+    cpus = [d for d in building_devices()[0] if d.type & cl.device_type.CPU]
+    spread = plenocl.run(exp, tmp_path / "spread", queue="cpu", workers=2, progress=False)
+    assert spread.processed == [0, 1] and list(spread.failed) == [2]
+    assert set(spread.devices) <= {device_label(d) for d in cpus[:2]}
+    assert sum(spread.devices.values()) == 2
+    settings = RunSettings(plenocl.PairSettings(), 1e-3)
+    plugin = PlenoclWorker(str(tmp_path / "spread"), settings, "cpu")
+    for number in range(3):
+        plugin.setup(type("Worker", (), {"name": number})())
+        assert plugin.processor.device == cpus[number % len(cpus)]
+    saved = json.loads((tmp_path / "spread" / "summary.json").read_text())
+    assert saved["devices"] == spread.devices
+    serial = plenocl.run(exp, tmp_path / "serial", queue=cpus[0], progress=False)
+    assert serial.devices == {device_label(cpus[0]): 2}

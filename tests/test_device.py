@@ -445,3 +445,51 @@ def test_inside_zeros_is_numpys_padding(queue, shape, corner):
         got = inside_zeros(queue, source, shape, corner)
         assert got.dtype == np.float32 and got.shape == shape
         assert np.array_equal(got.get(), want)
+
+
+class _FakeDevice:
+    """Enough of a ``pyopencl.Device`` for :func:`spread_device`: name, type, platform."""
+
+    def __init__(self, name: str, kind, platform: str) -> None:
+        self.name, self.type = name, kind
+        self.platform = type("Platform", (), {"name": platform})()
+
+
+def test_workers_spread_over_the_devices_a_name_or_the_default_gives(monkeypatch):
+    """Worker k takes the k-th (in turn) of the building devices a name matches; by
+    default every GPU in turn, and on a machine without one the default device (never
+    several CPU runtimes of one CPU); a name matching none, ``PYOPENCL_CTX`` and device
+    objects stay as they are."""
+    from plenocl.opencl import device as device_module
+    from plenocl.opencl.device import spread_device
+
+    gpus = [_FakeDevice("H100", cl.device_type.GPU, "NVIDIA CUDA") for _ in range(2)]
+    cpus = [_FakeDevice("EPYC", cl.device_type.CPU, p) for p in ("Portable", "Intel")]
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    monkeypatch.setattr(device_module, "building_devices", lambda: (gpus + cpus, []))
+    assert [spread_device(None, k) for k in range(5)] == [gpus[0], gpus[1]] * 2 + [gpus[0]]
+    assert [spread_device("cpu", k) for k in range(3)] == [cpus[0], cpus[1], cpus[0]]
+    assert [spread_device("intel", k) for k in range(2)] == [cpus[1], cpus[1]]
+    assert spread_device("nothing like it", 3) == "nothing like it"
+    assert spread_device(cpus[1], 0) is cpus[1]
+    monkeypatch.setattr(device_module, "building_devices", lambda: (cpus, []))
+    assert spread_device(None, 1) is None  # the default device
+    monkeypatch.setattr(device_module, "building_devices", lambda: (gpus + cpus, []))
+    monkeypatch.setenv("PYOPENCL_CTX", "0")
+    assert spread_device(None, 1) is None  # PYOPENCL_CTX's rules
+
+
+def test_a_dask_workers_number_comes_from_its_name():
+    from plenocl.batch.cluster import worker_number
+
+    assert [worker_number(n) for n in (0, 7, "3", "SLURMCluster-12", "tcp://a:1/", "x")] \
+        == [0, 7, 3, 12, 0, 0]
+
+
+def test_device_labels_tell_devices_apart():
+    from plenocl.opencl.device import all_devices, device_label
+
+    devices = all_devices()
+    labels = [device_label(d) for d in devices]
+    assert len(set(labels)) == len(devices)
+    assert all(d.name.strip() in label for d, label in zip(devices, labels, strict=True))

@@ -9,8 +9,9 @@ gets the :class:`PlenoclWorker` plugin (pickled with the run's
 kernels) per worker; tasks carry :class:`~plenocl.batch.worker.PairTask` file paths and
 return small :class:`~plenocl.batch.worker.PairOutcome` records, never contexts or
 volumes. Each worker picks its device from the run's ``device`` argument, else its own
-``PLENOCL_DEVICE`` or ``PYOPENCL_CTX`` variable (one GPU per worker: give each worker
-its own), else the default device.
+``PLENOCL_DEVICE`` or ``PYOPENCL_CTX`` variable, else the machine's GPUs: a name that
+matches several devices, or the default on a machine with several GPUs, spreads the
+workers over them by worker number (worker k takes the k-th, in turn).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from contextlib import contextmanager
 
 from distributed import Client, LocalCluster, WorkerPlugin, as_completed, get_worker
 
+from ..opencl.device import spread_device
 from ..opencl.threads import thread_count
 from .worker import PairOutcome, PairProcessor, PairTask, RunSettings
 
@@ -38,9 +40,21 @@ class PlenoclWorker(WorkerPlugin):
         self.processor: PairProcessor | None = None
 
     def setup(self, worker) -> None:
-        """Make the worker's processor (its OpenCL context comes with the first pair)."""
+        """Make the worker's processor (its OpenCL context comes with the first pair) on
+        its device: the run's or its own ``PLENOCL_DEVICE`` name, or by default the
+        machine's GPUs, spread over the workers by their number
+        (:func:`plenocl.opencl.device.spread_device`)."""
         device = self.device or os.environ.get("PLENOCL_DEVICE") or None
+        device = spread_device(device, worker_number(worker.name))
         self.processor = PairProcessor(self.run_folder, self.settings, device)
+
+
+def worker_number(name) -> int:
+    """A Dask worker's number: its name where that is a number (a local cluster's
+    workers are 0, 1, ...), else the number its name ends with (``"SLURMCluster-3"``),
+    else 0."""
+    digits = str(name)[len(str(name).rstrip("0123456789")):]
+    return int(digits) if digits else 0
 
 
 def process_on_worker(task: PairTask) -> PairOutcome:

@@ -89,7 +89,9 @@ from .worker import (
 class RunSummary:
     """What :func:`run` did (also written to ``summary.json``); ``stopped``: why the run
     stopped before its last pair or its time series (the output disk full), else
-    ``None``."""
+    ``None``; ``devices``: the pairs each device made, by
+    :func:`plenocl.opencl.device.device_label` (workers spread over several devices:
+    :mod:`plenocl.batch.cluster`)."""
 
     pairs: int = 0
     processed: list[int] = field(default_factory=list)
@@ -105,6 +107,7 @@ class RunSummary:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     wall_seconds: float = 0.0
     workers: int = 1
+    devices: dict[str, int] = field(default_factory=dict)
     interrupted: bool = False
     stopped: str | None = None
     store: str | None = None
@@ -396,6 +399,8 @@ def _record(outcome: PairOutcome, summary: RunSummary, log) -> None:
         log(f"pair {outcome.index}: failed, skipped: {outcome.error}")
         return
     summary.processed.append(outcome.index)
+    if outcome.device:
+        summary.devices[outcome.device] = summary.devices.get(outcome.device, 0) + 1
     if outcome.dropped:
         summary.dropped_particles[outcome.index] = outcome.dropped
     for key, value in outcome.seconds.items():

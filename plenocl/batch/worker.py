@@ -22,7 +22,7 @@ from ..grid import Grid
 from ..io.fieldformat import field_metadata
 from ..io.files import read_volumes, volumes_metadata, write_volumes
 from ..io.outputs import disk_full
-from ..opencl.device import DeviceLike
+from ..opencl.device import DeviceLike, device_label
 from ..pipeline import PairSettings, process_pair
 from ..pipeline.frames import load_corrections, load_frame
 from ..pipeline.pair import correlate_volumes, known_backgrounds
@@ -102,13 +102,15 @@ class PairOutcome:
     """What became of a :class:`PairTask`: ``error`` is None when the field was written;
     ``dropped``: the particles the fit to the raw images dropped
     (:attr:`plenocl.pipeline.PairResult.dropped`); ``disk_full``: the error was the
-    output disk out of space (the run stops: no later pair could be written)."""
+    output disk out of space (the run stops: no later pair could be written);
+    ``device``: the device that made it (:func:`plenocl.opencl.device.device_label`)."""
 
     index: int
     seconds: dict
     error: str | None = None
     dropped: int = 0
     disk_full: bool = False
+    device: str = ""
 
 
 @dataclass
@@ -181,7 +183,13 @@ class PairProcessor:
         except PAIR_ERRORS as exc:
             return PairOutcome(task.index, {}, f"{_culprit(task, exc)}: {_said(exc, task)}",
                                disk_full=disk_full(exc))
-        return PairOutcome(task.index, seconds, dropped=dropped)
+        return PairOutcome(task.index, seconds, dropped=dropped, device=self.device_label())
+
+    def device_label(self) -> str:
+        """The label of this processor's device (:func:`plenocl.opencl.device.device_label`)."""
+        projector = self.projector
+        queue = (projector if not isinstance(projector, list) else projector[0]).queue
+        return device_label(queue.device)
 
     def read(self, task: PairTask) -> ReadFrames:
         """The pair's raw frames as :meth:`__call__` takes them, or the error that

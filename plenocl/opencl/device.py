@@ -142,14 +142,44 @@ def _describe(device: cl.Device) -> str:
     return f"{device.name.strip()} on {device.platform.name.strip()}"
 
 
-def _match(devices: list[cl.Device], key: str) -> cl.Device:
+def _matches(device: cl.Device, key: str) -> bool:
+    """Whether a device-name or type substring ``key`` names ``device``."""
     key_l = key.lower()
+    kind = cl.device_type.to_string(device.type).lower()
+    return (key_l in device.name.lower() or key_l in kind
+            or key_l in device.platform.name.lower())
+
+
+def _match(devices: list[cl.Device], key: str) -> cl.Device:
     for dev in devices:
-        kind = cl.device_type.to_string(dev.type).lower()
-        if key_l in dev.name.lower() or key_l in kind or key_l in dev.platform.name.lower():
+        if _matches(dev, key):
             return dev
     names = ", ".join(d.name.strip() for d in devices)
     raise NoOpenCLError(f"no OpenCL device matches {key!r}; available: {names}")
+
+
+def device_label(device: cl.Device) -> str:
+    """``device``'s name and platform, and where the machine has several alike its
+    number among them (``"NVIDIA H100 on NVIDIA CUDA #1"``): what a run's summary counts
+    its pairs by."""
+    alike = [d for d in all_devices() if _describe(d) == _describe(device)]
+    number = next((k for k, d in enumerate(alike) if d == device), 0)
+    return _describe(device) + (f" #{number}" if len(alike) > 1 else "")
+
+
+def spread_device(device: DeviceLike, index: int) -> DeviceLike:
+    """The device of a run's worker number ``index`` (its Dask worker name): a name or
+    type substring ``device`` takes the ``index mod n``-th of the ``n`` devices it names
+    that build plenocl's kernels (``"gpu"``: every GPU of the machine in turn); ``None``
+    (no ``PYOPENCL_CTX``) every GPU that builds them in turn, or the default where there
+    is none (never several CPU runtimes of one CPU); anything else as it is."""
+    if isinstance(device, str) or (device is None and not os.environ.get("PYOPENCL_CTX")):
+        building = building_devices()[0]
+        named = [d for d in building if (_matches(d, device) if isinstance(device, str)
+                                         else d.type & cl.device_type.GPU)]
+        if named:
+            return named[index % len(named)]
+    return device
 
 
 def preference(device: cl.Device) -> tuple[int, int]:
