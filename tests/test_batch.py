@@ -161,11 +161,11 @@ def test_a_rerun_skips_and_says_so_and_an_interrupted_run_keeps_a_consistent_sto
 
     real = worker.PairProcessor.__call__
 
-    def stop_after_first(self, task):
+    def stop_after_first(self, task, read=None):
         if calls:
             raise KeyboardInterrupt
         calls.append(task.index)
-        return real(self, task)
+        return real(self, task, read)
 
     monkeypatch.setattr(worker.PairProcessor, "__call__", stop_after_first)
     first = plenocl.run(experiment / "experiment.toml", out, progress=False)

@@ -467,14 +467,18 @@ def test_workers_spread_over_the_devices_a_name_or_the_default_gives(monkeypatch
     cpus = [_FakeDevice("EPYC", cl.device_type.CPU, p) for p in ("Portable", "Intel")]
     monkeypatch.delenv("PYOPENCL_CTX", raising=False)
     monkeypatch.setattr(device_module, "building_devices", lambda: (gpus + cpus, []))
+    monkeypatch.setattr(device_module, "all_devices", lambda: gpus + cpus)
     assert [spread_device(None, k) for k in range(5)] == [gpus[0], gpus[1]] * 2 + [gpus[0]]
     assert [spread_device("cpu", k) for k in range(3)] == [cpus[0], cpus[1], cpus[0]]
     assert [spread_device("intel", k) for k in range(2)] == [cpus[1], cpus[1]]
     assert spread_device("nothing like it", 3) == "nothing like it"
     assert spread_device(cpus[1], 0) is cpus[1]
-    monkeypatch.setattr(device_module, "building_devices", lambda: (cpus, []))
+    monkeypatch.setattr(device_module, "all_devices", lambda: cpus)
+    monkeypatch.setattr(device_module, "building_devices", lambda: 1 / 0)  # not probed
     assert spread_device(None, 1) is None  # the default device
-    monkeypatch.setattr(device_module, "building_devices", lambda: (gpus + cpus, []))
+    monkeypatch.setattr(device_module, "all_devices", lambda: gpus + cpus)
+    monkeypatch.setattr(device_module, "building_devices", lambda: (gpus[1:] + cpus, []))
+    assert spread_device(None, 1) is gpus[1]  # a GPU that cannot build is passed over
     monkeypatch.setenv("PYOPENCL_CTX", "0")
     assert spread_device(None, 1) is None  # PYOPENCL_CTX's rules
 

@@ -150,6 +150,7 @@ class PairProcessor:
                                                 settings.channel)
         self.device = device
         self._projector = None
+        self._label: str | None = None
 
     @property
     def projector(self):
@@ -186,10 +187,13 @@ class PairProcessor:
         return PairOutcome(task.index, seconds, dropped=dropped, device=self.device_label())
 
     def device_label(self) -> str:
-        """The label of this processor's device (:func:`plenocl.opencl.device.device_label`)."""
-        projector = self.projector
-        queue = (projector if not isinstance(projector, list) else projector[0]).queue
-        return device_label(queue.device)
+        """The label of this processor's device (:func:`plenocl.opencl.device.device_label`),
+        found once."""
+        if self._label is None:
+            projector = self.projector
+            queue = (projector if not isinstance(projector, list) else projector[0]).queue
+            self._label = device_label(queue.device)
+        return self._label
 
     def read(self, task: PairTask) -> ReadFrames:
         """The pair's raw frames as :meth:`__call__` takes them, or the error that

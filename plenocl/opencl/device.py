@@ -173,6 +173,8 @@ def spread_device(device: DeviceLike, index: int) -> DeviceLike:
     that build plenocl's kernels (``"gpu"``: every GPU of the machine in turn); ``None``
     (no ``PYOPENCL_CTX``) every GPU that builds them in turn, or the default where there
     is none (never several CPU runtimes of one CPU); anything else as it is."""
+    if device is None and not any(d.type & cl.device_type.GPU for d in all_devices()):
+        return None  # no GPU: the default device (no device probed here)
     if isinstance(device, str) or (device is None and not os.environ.get("PYOPENCL_CTX")):
         building = building_devices()[0]
         named = [d for d in building if (_matches(d, device) if isinstance(device, str)
