@@ -56,18 +56,17 @@ def test_scaled_counts_match_their_twin_bit_for_bit(queue, dtype, shape):
     info = np.iinfo(dtype)
     rng = np.random.default_rng(shape[0] * shape[1])
     raw = rng.integers(max(info.min, 0), info.max, shape, endpoint=True).astype(dtype)
-    counts = DeviceCounts.of(queue, dtype)
+    counts = DeviceCounts(queue, dtype)
     for median, scale in ((0.0, 1.0), (3.5, 7.0), (17.0, 3.0), (100.5, info.max - 100.5)):
         got = counts.scaled(raw, median, scale).get()
         want = scaled_counts(raw, median, scale)
         assert same_bits(got, want), (median, scale)
         assert got.min() >= 0  # counts below the median clipped
-    assert DeviceCounts.of(queue, dtype) is counts  # built once per queue and type
 
 
 def test_scaled_counts_refuse_what_float32_cannot_hold(queue):
     """A median that is not a whole or half count, or a scale of zero, named."""
-    counts = DeviceCounts.of(queue, np.uint16)
+    counts = DeviceCounts(queue, np.uint16)
     raw = np.arange(12, dtype=np.uint16).reshape(3, 4)
     for median, scale in ((0.1, 2.0), (1.0, 0.0), (1.0, 16777217.0)):
         with pytest.raises(ValueError, match="exact in float32"):

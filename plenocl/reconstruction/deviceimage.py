@@ -1,6 +1,6 @@
 """A camera's raw integer image made into the solver's image on the OpenCL device
-(issue 46: the host sends the raw images; docs/design.md §6.5, "The image prepared on
-the device").
+(issue 46: the host sends the raw images; docs/design.md §7.5, "A camera's counts
+prepared on the device").
 
 The host counts the frame's levels once (:class:`plenocl.optics.rawimage.CountHistogram`:
 a bincount, a few kilobytes for 16-bit counts), which give the exposure checks, the
@@ -41,9 +41,8 @@ def prepares_on_device(image, background: str | None, smooth_px: float | None,
 
 class DeviceCounts:
     """``kernels/rawcounts.cl`` on ``queue`` for counts of ``dtype`` (one of
-    :data:`COUNT_TYPES`); :meth:`of` keeps one per queue and type."""
-
-    _kept: dict = {}
+    :data:`COUNT_TYPES`): built once per context and option, its kernel fetched once
+    (:class:`plenocl.opencl.program.KernelSet`'s caches), so one is made per image."""
 
     def __init__(self, queue: cl.CommandQueue, dtype) -> None:
         self.dtype = np.dtype(dtype)
@@ -53,14 +52,6 @@ class DeviceCounts:
         self.queue = queue
         self._k = KernelSet(queue, "rawcounts.cl", ("scaled_counts",),
                             [f"-DPL_COUNT={COUNT_TYPES[self.dtype]}"])
-
-    @classmethod
-    def of(cls, queue: cl.CommandQueue, dtype) -> DeviceCounts:
-        """The kernels for ``dtype`` on ``queue``, built and fetched once."""
-        key = (queue, np.dtype(dtype).str)
-        if key not in cls._kept:
-            cls._kept[key] = cls(queue, dtype)
-        return cls._kept[key]
 
     def scaled(self, raw: np.ndarray, median: float, scale: float) -> cl_array.Array:
         """``max(raw - median, 0) / scale`` as a float32 device image of ``raw``'s shape

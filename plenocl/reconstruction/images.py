@@ -202,7 +202,7 @@ def _prepared_counts(image: np.ndarray, camera, queue, settings: ReconstructionS
     scale = _checked_scale(float(max(hist.high - (med or 0.0), 0.0)))
     if scale == 0:
         return None
-    device = DeviceCounts.of(queue, raw.dtype).scaled(raw, med or 0.0, scale)
+    device = DeviceCounts(queue, raw.dtype).scaled(raw, med or 0.0, scale)
     prepared = PreparedImage(None, scale, _threshold(settings.threshold, noise, 1.0, scale),
                              None, None, med, noise, made_with=_preparation(settings, None),
                              norm_value=_counts_norm(hist, med or 0.0, scale))
