@@ -15,6 +15,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
+from . import pool
+
 __all__ = ["buffer_from_host", "copy_inside", "device_copies", "fill", "inside_zeros",
            "read", "upload"]
 
@@ -78,7 +80,7 @@ def inside_zeros(queue: cl.CommandQueue, vol, shape: tuple[int, int, int],
     """A float32 device array of ``shape`` ``(z, y, x)`` of zeros with ``vol`` (a host
     array, or a float32 device array on ``queue``'s context) copied in, its first voxel
     at ``corner``: a padded volume made on the device, without a padded host copy."""
-    out = fill(cl_array.empty(queue, tuple(shape), np.float32), 0.0)
+    out = fill(pool.empty(queue, tuple(shape), np.float32), 0.0)
     return copy_inside(out, vol, corner)
 
 

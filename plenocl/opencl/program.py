@@ -19,6 +19,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
+from . import pool
 from .arrays import upload
 from .build import UNKNOWN_CPU, KernelBuildError, build_hint, build_program, kernel_dir
 from .device import is_cpu
@@ -129,8 +130,9 @@ class KernelSet:
         return kernel if kernel is not None else fetch_kernels(self._program, (name,))[name]
 
     def array(self, shape, dtype=np.float32) -> cl_array.Array:
-        """An uninitialised device array on this queue."""
-        return cl_array.empty(self.queue, shape, dtype)
+        """An uninitialised device array on this queue, its memory from the queue's
+        pool (:func:`.pool.empty`)."""
+        return pool.empty(self.queue, shape, dtype)
 
     def to_device(self, host: np.ndarray) -> cl_array.Array:
         """A device copy of a host array on this queue (:func:`.arrays.upload`: the host

@@ -21,7 +21,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from ..opencl.arrays import read
+from ..opencl.arrays import fill, read
 from ..opencl.device import DeviceInfo
 from ..opencl.program import KernelSet
 from ..sorting import stable_order
@@ -170,7 +170,7 @@ class DeviceWindowMeans:
         fewer than ``min_keep``) and status ``(W,)`` (:data:`FITTED`,
         :data:`ILL_POSED`: the host fits it; 0 otherwise); ``centres`` ``(W, 3)``."""
         size = len(centres)
-        grad, status = self._k.array(9 * size, f64), self._k.to_device(np.zeros(size, i32))
+        grad, status = self._k.array(9 * size, f64), fill(self._k.array(size, i32), 0)
         if len(lists.win):
             self._launch("window_gradients", pairs, False, lists, centres,
                          _triple(search), _scale(spread), _triple(floor), i32(min_keep),
@@ -190,8 +190,8 @@ class DeviceWindowMeans:
         mean and its uncertainty ``(W, 3)`` (NaN elsewhere); ``t[n]``: Student's quantile
         for ``n`` kept pairs (``len(t)`` above the most pairs a window lists)."""
         size = len(centres)
-        count = self._k.to_device(np.zeros(size, i32))
-        mean, error = (self._k.to_device(np.full(3 * size, np.nan)) for _ in range(2))
+        count = fill(self._k.array(size, i32), 0)
+        mean, error = (fill(self._k.array(3 * size, f64), np.nan) for _ in range(2))
         if len(lists.win):
             self._launch("window_estimates", pairs, True, lists, centres,
                          self._upload(grad.reshape(-1)), _triple(search), _scale(spread),

@@ -37,6 +37,7 @@ import pyopencl.array as cl_array
 from ..camera import Camera
 from ..camera.lattice import separable_rotation_deg
 from ..grid import Grid
+from ..opencl import pool
 from ..opencl.arrays import fill, upload
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
@@ -485,12 +486,12 @@ class Projector(FactorisedStages):
     def empty_volume(self) -> list[cl_array.Array]:
         """Uninitialised device slabs for a volume."""
         _, ny, nx = self.shape
-        return [cl_array.empty(self.queue, (b - a, ny, nx), np.float32)
+        return [pool.empty(self.queue, (b - a, ny, nx), np.float32)
                 for a, b in self.plan.slabs]
 
     def empty_image(self) -> cl_array.Array:
         """An uninitialised device image."""
-        return cl_array.empty(self.queue, self.image_shape, np.float32)
+        return pool.empty(self.queue, self.image_shape, np.float32)
 
     def sensitivity(self) -> list[cl_array.Array]:
         """``Aᵀ 1`` as device slabs: the fraction of each voxel's light that reaches the
