@@ -21,18 +21,22 @@ sensitivities are built before the rows (a batch builds them once per worker) an
 time printed, so no row pays for them and the order of the rows does not matter.
 
 ``--profile``: everything runs on a queue with profiling enabled, and after the rows the
-first setting's pair runs twice more under :class:`plenocl.bench.clprofile.OpenCLProfile`,
-returning its volumes (``volumes=True``, the chain before 2026-12-02), then with every PIV
-FFT on the device (``PIVSettings(fft="device")``, the route a GPU measures: no volume
-comes back) and asked for its vectors alone (``volumes=False``, as a batch that keeps no
-volumes, the FFT route as measured on this device); with ``--bit-depth``, also with the
-camera's counts given as float32 (every PIV FFT on the device), which the host prepares
-as it prepared every image before 2026-12-02 evening, where the counts themselves are
-prepared on the device (:mod:`plenocl.reconstruction.deviceimage`). The last one's table
-gives per stage the wall seconds, the seconds inside OpenCL calls, the host's own work
-outside them, the kernels' device seconds (profiling events), the launches, the calls in
-which the host waited for the queue (waits and blocking copies) and the megabytes moved
-each way; then, for both, the host's work in the stages and the bytes moved each way
+first setting's pair runs more times under
+:class:`plenocl.bench.clprofile.OpenCLProfile`: first with every PIV FFT on the device
+and the queue's memory pool off (every device array made and released by the driver, as
+before 2026-12-03: :mod:`plenocl.opencl.pool`), then, the pool on again, returning its
+volumes (``volumes=True``, the chain before 2026-12-02), with every PIV FFT on the
+device (``PIVSettings(fft="device")``, the route a GPU measures: no volume comes back)
+and asked for its vectors alone (``volumes=False``, as a batch that keeps no volumes,
+the FFT route as measured on this device); with ``--bit-depth``, also with the camera's
+counts given as float32 (every PIV FFT on the device), which the host prepares as it
+prepared every image before 2026-12-02 evening, where the counts themselves are prepared
+on the device (:mod:`plenocl.reconstruction.deviceimage`). The last one's table gives
+per stage the wall seconds, the seconds inside OpenCL calls, the host's own work outside
+them, the kernels' device seconds (profiling events), the launches, the calls in which
+the host waited for the queue (waits and blocking copies) and the megabytes moved each
+way; then, for every one, the host's work in the stages (beside their wall and kernel
+seconds) and the bytes moved each way
 (every copy, the volumes' after the stages too) against the two raw images; then the 15
 kernels of most device time (launches, seconds, share).
 ``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
@@ -71,6 +75,7 @@ from plenocl.bench.clprofile import (  # noqa: E402
     total_profile,
 )
 from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.opencl.pool import use_pool  # noqa: E402
 from plenocl.pipeline import process_pair  # noqa: E402
 from plenocl.piv import PIVSettings  # noqa: E402
 from plenocl.reconstruction import SUPERSAMPLE, ReconstructionSettings  # noqa: E402
@@ -161,13 +166,16 @@ def main() -> None:
         host_profile(scene, proj, SETTINGS[args.settings[0]], args.host_profile)
 
 
-#: The profiled ways of the pair: the label, ``volumes=``, PIV's FFT route and whether a
+#: The profiled ways of the pair: the label, ``volumes=``, PIV's FFT route, whether a
 #: camera's integer counts are given as float32 (prepared on the host, as every image
-#: was before 2026-12-02 evening; rows only with ``--bit-depth``).
-PROFILED = (("with the volumes", True, None, False),
-            ("counts as floats", False, "device", True),
-            ("the device's FFT", False, "device", False),
-            ("the vectors alone", False, None, False))
+#: was before 2026-12-02 evening; rows only with ``--bit-depth``) and whether the queue's
+#: memory pool is on (off: every array made and released by the driver, as before
+#: 2026-12-03; :mod:`plenocl.opencl.pool`).
+PROFILED = (("no memory pool", False, "device", False, False),
+            ("with the volumes", True, None, False, True),
+            ("counts as floats", False, "device", True, True),
+            ("the device's FFT", False, "device", False, True),
+            ("the vectors alone", False, None, False, True))
 
 
 def profile_pair(scene, proj, rec) -> None:
@@ -178,9 +186,10 @@ def profile_pair(scene, proj, rec) -> None:
     moved = {}
     counts = scene.raw_a.dtype.kind in "ui"
     profiled = [row for row in PROFILED if counts or not row[3]]
-    for label, volumes, fft, as_floats in profiled:
+    for label, volumes, fft, as_floats, pooled in profiled:
         raws = ((scene.raw_a, scene.raw_b) if not as_floats else
                 (scene.raw_a.astype(np.float32), scene.raw_b.astype(np.float32)))
+        use_pool(proj.queue, pooled)
         with OpenCLProfile() as prof:
             pair = process_pair(*raws, proj, volumes=volumes,
                                 **({} if fft is None else {"piv": PIVSettings(fft=fft)}),
@@ -189,12 +198,13 @@ def profile_pair(scene, proj, rec) -> None:
         split = prof.split(pair.spans)
         total = total_profile(split)
         back = sum(call.nbytes for call in prof.calls if call.kind == "d2h")
-        moved[label] = (total.host, total.h2d_bytes, back)
+        moved[label] = (total.host, total.h2d_bytes, back, total.wall, total.kernel)
     print("\n".join(split_lines(split)))
     raws = scene.raw_a.nbytes + scene.raw_b.nbytes
     for label, *_ in profiled[::-1]:
-        host, moved_in, moved_out = moved[label]
-        print(f"{label:17s}: host work {host:.3f} s in the stages; {moved_in / 1e6:.1f} MB "
+        host, moved_in, moved_out, wall, kernel = moved[label]
+        print(f"{label:17s}: host work {host:.3f} s in the stages ({wall:.2f} s wall, "
+              f"{kernel or 0.0:.2f} s of kernels); {moved_in / 1e6:.1f} MB "
               f"to the device ({moved_in / raws:.1f}x the two raw images' {raws / 1e6:.1f} "
               f"MB), {moved_out / 1e6:.1f} MB back (every copy)")
     print("\n".join(kernel_lines(prof.kernel_seconds())))

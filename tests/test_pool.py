@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.tools  # noqa: F401  (cl.tools)
 import pytest
 
 import plenocl
@@ -60,6 +61,19 @@ def test_held_memory_is_given_back_on_request_and_arrays_in_use_keep_theirs(queu
     np.testing.assert_array_equal(kept.get(), np.arange(2000, dtype=np.float32))
     assert pool.release_held(q) == 0
     assert pool.release_held(_fresh(queue)) == 0  # a queue without a pool yet
+
+
+def test_a_queue_whose_pool_is_switched_off_makes_its_arrays_directly(queue):
+    q = _fresh(queue)
+    dropped = pool.empty(q, (1000,))
+    del dropped
+    pool.use_pool(q, False)
+    assert pool.pool_of(q) is None and pool.release_held(q) == 0
+    assert not isinstance(pool.empty(q, (1000,)).data, cl.tools.PooledBuffer)
+    pool.use_pool(q)
+    again = pool.empty(q, (1000,))
+    assert isinstance(again.data, cl.tools.PooledBuffer)
+    assert pool.pool_of(q).held_blocks == 0  # the held block went back when switched off
 
 
 def test_empty_sizes_and_types(queue):

@@ -17,7 +17,8 @@ and used on another queue must have its commands there finished before it is dro
 at once, and the pool then frees what it holds and tries again, so held memory never
 makes an allocation fail that would have fitted. A request whose pooled size (rounded up
 by at most 1/16) would pass the device's largest buffer is made directly, as before.
-:func:`release_held` gives the held memory back to the driver.
+:func:`release_held` gives the held memory back to the driver; :func:`use_pool` switches a
+queue's pool off (or on again).
 
 Contents are undefined, as for any new OpenCL buffer: a block may hold an earlier
 array's values.
@@ -30,7 +31,7 @@ import pyopencl as cl
 import pyopencl.array as cl_array
 import pyopencl.tools as cl_tools
 
-__all__ = ["empty", "fits_pooled", "pool_of", "release_held"]
+__all__ = ["empty", "fits_pooled", "pool_of", "release_held", "use_pool"]
 
 #: The queue attribute holding its pool (it lives and goes with the queue object).
 ATTRIBUTE = "plenocl_pool"
@@ -38,8 +39,11 @@ ATTRIBUTE = "plenocl_pool"
 
 def pool_of(queue: cl.CommandQueue) -> cl_tools.MemoryPool | None:
     """``queue``'s memory pool, made at the first call; ``None`` where the queue object
-    cannot hold one (then arrays are made directly)."""
+    cannot hold one or its pool is switched off (:func:`use_pool`): then arrays are made
+    directly."""
     pool = getattr(queue, ATTRIBUTE, None)
+    if pool is False:
+        return None
     if pool is None:
         pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(queue))
         try:
@@ -65,11 +69,23 @@ def fits_pooled(pool: cl_tools.MemoryPool, nbytes: int, largest: int) -> bool:
     return 0 < nbytes and pool.alloc_size(pool.bin_number(nbytes)) <= largest
 
 
+def use_pool(queue: cl.CommandQueue, on: bool = True) -> None:
+    """Switch ``queue``'s pool on (the default) or off: off, its held memory is given
+    back (:func:`release_held`) and every later array is made directly, as before the
+    pool (a benchmark's baseline; a device shared with other programs)."""
+    if on:
+        if getattr(queue, ATTRIBUTE, None) is False:
+            setattr(queue, ATTRIBUTE, None)
+        return
+    release_held(queue)
+    setattr(queue, ATTRIBUTE, False)
+
+
 def release_held(queue: cl.CommandQueue) -> int:
     """Give the memory ``queue``'s pool holds (dropped arrays kept for reuse) back to
     the driver; returns the bytes it held. Arrays still in use keep theirs."""
     pool = getattr(queue, ATTRIBUTE, None)
-    if pool is None:
+    if not pool:
         return 0
     before = int(pool.managed_bytes)
     pool.free_held()
