@@ -359,6 +359,14 @@ def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted)
         _, status = device.gradients(dev, lists, np.full((1, 3), 15.0), (99.0,) * 3,
                                      None, (0.1, 0.1, 0.3), 12, 1e-4)
         assert status[0] == ILL_POSED
+        # the host's fit of it written into the device copy the estimates read
+        centres = device.device_centres(np.full((1, 3), 15.0))
+        host, status, on_device = device.device_gradients(
+            dev, lists, centres, (99.0,) * 3, None, (0.1, 0.1, 0.3), 12, 1e-4)
+        np.testing.assert_array_equal(on_device.get().reshape(1, 3, 3), host)
+        fitted = rng.normal(size=(1, 3, 3))
+        device.set_gradients(on_device, np.array([0]), fitted)
+        np.testing.assert_array_equal(on_device.get().reshape(1, 3, 3), fitted)
 
 
 def test_window_means_on_the_device_take_the_hosts_scalars_and_zero_spread(queue):

@@ -87,6 +87,11 @@ def row_buckets(z: tuple[np.ndarray, np.ndarray], y: tuple[np.ndarray, np.ndarra
     return start.astype(i32), pair[order].astype(i32)
 
 
+def _window_count(centres: np.ndarray | cl_array.Array) -> int:
+    """Windows of ``centres``: ``(W, 3)`` on the host, or ``W * 3`` on the device."""
+    return len(centres) if isinstance(centres, np.ndarray) else centres.size // 3
+
+
 def _scale(spread: float | None) -> np.float64:
     """The kernels' ``spread``: the robust rule's standard deviations times
     :data:`plenocl.piv.pairoutliers.MAD_SIGMA` (-1: none, the search range alone; 0 is
@@ -169,32 +174,57 @@ class DeviceWindowMeans:
         """Each window's gradient ``(W, 3, 3)`` (0 where it has no pairs listed or keeps
         fewer than ``min_keep``) and status ``(W,)`` (:data:`FITTED`,
         :data:`ILL_POSED`: the host fits it; 0 otherwise); ``centres`` ``(W, 3)``."""
-        size = len(centres)
-        grad, status = self._k.array(9 * size, f64), fill(self._k.array(size, i32), 0)
+        grad, status, _ = self.device_gradients(pairs, lists, centres, search, spread,
+                                                floor, min_keep, well_posed)
+        return grad, status
+
+    def device_gradients(self, pairs: PairsOnDevice, lists: WindowLists,
+                         centres: np.ndarray | cl_array.Array,
+                         search, spread: float | None, floor, min_keep: int,
+                         well_posed: float) -> tuple[np.ndarray, np.ndarray, cl_array.Array]:
+        """:meth:`gradients`, and their device copy (``W * 9`` float64, 0 where no pairs
+        are listed) for :meth:`estimates`, so that they need not be uploaded again; after
+        the host fits the ill-posed ones, :meth:`set_gradients` writes them there.
+        ``centres``: ``(W, 3)`` on the host, or :meth:`device_centres`."""
+        size = _window_count(centres)
+        grad, status = fill(self._k.array(9 * size, f64), 0.0), fill(self._k.array(size, i32), 0)
         if len(lists.win):
             self._launch("window_gradients", pairs, False, lists, centres,
                          _triple(search), _scale(spread), _triple(floor), i32(min_keep),
                          f64(well_posed), self._k.array(lists.member.size, f64), grad,
                          status)
-        out = np.zeros((size, 3, 3))
-        listed = lists.win
-        grad, status = read(grad, status)
-        out.reshape(size, 9)[listed] = grad.reshape(size, 9)[listed]
-        return out, status
+        host, status = read(grad, status)
+        return host.reshape(size, 3, 3), status, grad
 
-    def estimates(self, pairs: PairsOnDevice, lists: WindowLists, centres: np.ndarray,
-                  grad: np.ndarray, search, spread: float | None, floor, min_count: int,
+    @staticmethod
+    def set_gradients(device: cl_array.Array, windows: np.ndarray, grad: np.ndarray) -> None:
+        """Write the gradients ``grad`` ``(k, 3, 3)`` of ``windows`` ``(k,)`` into
+        :meth:`device_gradients`' device copy ``device``."""
+        for w, g in zip(np.asarray(windows, int), np.asarray(grad, f64), strict=True):
+            device[9 * w:9 * w + 9].set(np.ascontiguousarray(g.reshape(9)))
+
+    def device_centres(self, centres: np.ndarray) -> cl_array.Array:
+        """The window centres ``(W, 3)`` on the device (float64), for both
+        :meth:`device_gradients` and :meth:`estimates` of one call."""
+        return self._upload(np.asarray(centres, f64).reshape(-1))
+
+    def estimates(self, pairs: PairsOnDevice, lists: WindowLists,
+                  centres: np.ndarray | cl_array.Array, grad: np.ndarray | cl_array.Array,
+                  search, spread: float | None, floor, min_count: int,
                   t: np.ndarray, position_sigma
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per window ``(W,)``: the pairs kept, and where at least ``min_count``, their
         mean and its uncertainty ``(W, 3)`` (NaN elsewhere); ``t[n]``: Student's quantile
-        for ``n`` kept pairs (``len(t)`` above the most pairs a window lists)."""
-        size = len(centres)
+        for ``n`` kept pairs (``len(t)`` above the most pairs a window lists). ``grad``
+        ``(W, 3, 3)`` on the host or :meth:`device_gradients`' device copy; ``centres``
+        ``(W, 3)`` on the host or :meth:`device_centres`."""
+        size = _window_count(centres)
         count = fill(self._k.array(size, i32), 0)
         mean, error = (fill(self._k.array(3 * size, f64), np.nan) for _ in range(2))
         if len(lists.win):
             self._launch("window_estimates", pairs, True, lists, centres,
-                         self._upload(grad.reshape(-1)), _triple(search), _scale(spread),
+                         grad if isinstance(grad, cl_array.Array)
+                         else self._upload(grad.reshape(-1)), _triple(search), _scale(spread),
                          _triple(floor), i32(min_count), self._upload(t),
                          _triple(position_sigma), self._k.array(lists.member.size, f64),
                          count, mean, error)
@@ -202,7 +232,7 @@ class DeviceWindowMeans:
         return count.astype(int), mean.reshape(size, 3), error.reshape(size, 3)
 
     def _launch(self, name: str, pairs: PairsOnDevice, with_amb: bool, lists: WindowLists,
-                centres: np.ndarray, *rest) -> None:
+                centres: np.ndarray | cl_array.Array, *rest) -> None:
         """Launch ``name`` over the listed windows: the pairs' and lists' arguments, then
         the listed count, then the rest of the kernel's."""
         dummy = pairs.mid  # stands for an unused buffer (the flag says so)
@@ -211,7 +241,8 @@ class DeviceWindowMeans:
         if with_amb:
             head += [dummy if pairs.amb is None else pairs.amb, i32(pairs.amb is not None)]
         tables = [self._k.to_device(a) for a in (lists.win, lists.start, lists.stop)]
-        head += [*tables, lists.member, self._upload(centres.reshape(-1))]
+        head += [*tables, lists.member, centres if isinstance(centres, cl_array.Array)
+                 else self._upload(centres.reshape(-1))]
         self._k.launch(name, (len(lists.win),), *head, i32(len(lists.win)), *rest)
 
     def _upload(self, host: np.ndarray) -> cl_array.Array:

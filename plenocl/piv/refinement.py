@@ -674,13 +674,16 @@ def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: Wind
     every = np.arange(len(pairs.midpoints))
     amb = None if focus is None else focus.ambiguity(pairs.midpoints[:, 2])
     dev = means.pairs(pairs.midpoints, pairs.displacements, pair_weights(pairs, every), amb)
-    grad, status = means.gradients(dev, near, centres, search, spread, KEEP_FLOOR,
-                                   GRADIENT_PAIRS, WELL_POSED)
-    for k in np.flatnonzero(status[near.win] == ILL_POSED):
+    on_device = means.device_centres(centres)
+    grad, status, device_grad = means.device_gradients(
+        dev, near, on_device, search, spread, KEEP_FLOOR, GRADIENT_PAIRS, WELL_POSED)
+    flat = np.flatnonzero(status[near.win] == ILL_POSED)
+    for k in flat:
         w = near.win[k]
         grad[w] = local_gradient(pairs, near.members(k), centres[w], search, spread)
+    means.set_gradients(device_grad, near.win[flat], grad[near.win[flat]])
     t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, inside.largest() + 1)])
-    return means.estimates(dev, inside, centres, grad, search, spread, KEEP_FLOOR,
+    return means.estimates(dev, inside, on_device, device_grad, search, spread, KEEP_FLOOR,
                            max(min_pairs, 1), t, position_sigma)
 
 
