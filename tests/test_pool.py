@@ -14,6 +14,7 @@ import pytest
 import plenocl
 from plenocl.opencl import pool
 from plenocl.pipeline import process_pair
+from plenocl.piv import PIVSettings
 from plenocl.reconstruction import ReconstructionSettings
 
 REC = ReconstructionSettings(iterations=3, coarse_iterations=2)
@@ -107,16 +108,20 @@ def scene(queue):
     return cam, raws
 
 
-def _pair(cam, raws, q):
-    res = process_pair(*raws, plenocl.Projector(cam, GRID, q), reconstruction=REC)
+def _pair(cam, raws, q, fft: str = "fftw"):
+    res = process_pair(*raws, plenocl.Projector(cam, GRID, q), reconstruction=REC,
+                       piv=PIVSettings(fft=fft))
     return np.stack([res.piv.u, res.piv.v, res.piv.w]), res.vol_a
 
 
-def test_a_pair_does_not_depend_on_what_its_reused_memory_held(scene, queue, monkeypatch):
-    """Every pooled array handed out full of NaN (as a block an earlier array left):
-    the same vectors and volume, bit for bit, as from a fresh queue."""
+@pytest.mark.parametrize("fft", ["fftw", "device"])
+def test_a_pair_does_not_depend_on_what_its_reused_memory_held(scene, queue, monkeypatch,
+                                                                fft):
+    """Every pooled array handed out full of NaN (complex too) or the largest integer (as
+    a block an earlier array left): the same vectors and volume, bit for bit, as from a
+    fresh queue; PIV's FFTs on the host and on the device."""
     cam, raws = scene
-    want_field, want_vol = _pair(cam, raws, _fresh(queue))
+    want_field, want_vol = _pair(cam, raws, _fresh(queue), fft)
     assert np.isfinite(want_field).any() and want_vol.max() > 0
     made = pool.empty
 
@@ -124,13 +129,13 @@ def test_a_pair_does_not_depend_on_what_its_reused_memory_held(scene, queue, mon
         out = made(q, shape, dtype)
         if out.size:
             dtype = np.dtype(dtype)
-            value = np.nan if dtype.kind == "f" else np.iinfo(dtype).max
+            value = np.nan if dtype.kind in "fc" else np.iinfo(dtype).max
             cl.enqueue_fill_buffer(q, out.base_data, np.asarray(value, dtype), out.offset,
                                    out.nbytes)
         return out
 
     monkeypatch.setattr(pool, "empty", stale)
-    got_field, got_vol = _pair(cam, raws, _fresh(queue))
+    got_field, got_vol = _pair(cam, raws, _fresh(queue), fft)
     np.testing.assert_array_equal(got_field, want_field)
     np.testing.assert_array_equal(got_vol, want_vol)
 
