@@ -359,14 +359,23 @@ def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted)
         _, status = device.gradients(dev, lists, np.full((1, 3), 15.0), (99.0,) * 3,
                                      None, (0.1, 0.1, 0.3), 12, 1e-4)
         assert status[0] == ILL_POSED
-        # the host's fit of it written into the device copy the estimates read
+        # the host's fit written into the device copy: the estimates read it as they
+        # read the same gradient uploaded from the host
         centres = device.device_centres(np.full((1, 3), 15.0))
-        host, status, on_device = device.device_gradients(
+        _, _, on_device = device.device_gradients(
             dev, lists, centres, (99.0,) * 3, None, (0.1, 0.1, 0.3), 12, 1e-4)
-        np.testing.assert_array_equal(on_device.get().reshape(1, 3, 3), host)
-        fitted = rng.normal(size=(1, 3, 3))
-        device.set_gradients(on_device, np.array([0]), fitted)
-        np.testing.assert_array_equal(on_device.get().reshape(1, 3, 3), fitted)
+        fitted = rng.normal(scale=0.05, size=(1, 3, 3))
+        device.set_gradients(on_device, fitted)
+        t = np.array([np.nan] + [2.0] * every)
+        est = [device.estimates(dev, lists, c, g, (99.0,) * 3, None, (0.1, 0.1, 0.3), 1,
+                                t, 0.1) for c, g in ((centres, on_device),
+                                                     (np.full((1, 3), 15.0), fitted))]
+        for got, want in zip(*est, strict=True):
+            np.testing.assert_array_equal(got, want)
+        assert np.isfinite(est[0][1]).all()
+        zero = device.estimates(dev, lists, centres, np.zeros((1, 3, 3)), (99.0,) * 3,
+                                None, (0.1, 0.1, 0.3), 1, t, 0.1)
+        assert not np.array_equal(zero[1], est[0][1])  # the gradient moved the mean
 
 
 def test_window_means_on_the_device_take_the_hosts_scalars_and_zero_spread(queue):

@@ -44,7 +44,9 @@ def test_another_queue_never_takes_a_queues_held_memory(queue):
     address = a.data.int_ptr
     del a
     assert pool.pool_of(q1) is not pool.pool_of(q2)
-    assert pool.empty(q2, (1000,)).data.int_ptr != address
+    other = pool.empty(q2, (1000,))
+    del other  # into q2's pool: q1 still hands out its own block
+    assert pool.pool_of(q2).held_blocks == 1
     assert pool.empty(q1, (1000,)).data.int_ptr == address
 
 
@@ -68,13 +70,49 @@ def test_a_queue_whose_pool_is_switched_off_makes_its_arrays_directly(queue):
     q = _fresh(queue)
     dropped = pool.empty(q, (1000,))
     del dropped
+    old = pool.pool_of(q)
+    assert old.held_blocks == 1
     pool.use_pool(q, False)
+    assert old.held_blocks == 0  # given back when switched off
     assert pool.pool_of(q) is None and pool.release_held(q) == 0
     assert not isinstance(pool.empty(q, (1000,)).data, cl.tools.PooledBuffer)
     pool.use_pool(q)
     again = pool.empty(q, (1000,))
     assert isinstance(again.data, cl.tools.PooledBuffer)
-    assert pool.pool_of(q).held_blocks == 0  # the held block went back when switched off
+
+
+def test_held_memory_settles_past_its_share_of_the_device(queue):
+    """Arrays whose sizes vary leave a block per size class: after a pair, held memory
+    beyond the share is given back; below it, kept for the next pair."""
+    q = _fresh(queue)
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        dropped = pool.empty(q, (int(1e5 * rng.uniform(0.7, 1.3)),))
+        del dropped
+    held = pool.pool_of(q).managed_bytes
+    assert pool.pool_of(q).held_blocks > 1
+    assert pool.settle(q) == 0 and pool.pool_of(q).managed_bytes == held  # a small share
+    assert pool.settle(q, share=held / q.device.global_mem_size / 2) == held
+    assert pool.pool_of(q).held_blocks == 0
+
+
+def test_an_allocation_refused_for_memory_is_made_again_after_the_held_is_given_back(
+        queue):
+    q = _fresh(queue)
+    dropped = pool.empty(q, (5000,))
+    del dropped
+    calls = []
+
+    def make():
+        calls.append(pool.pool_of(q).held_blocks)
+        if len(calls) == 1:
+            raise cl.MemoryError("clCreateBuffer", -4, "out of device memory")
+        return "made"
+
+    assert pool.made(q, make) == "made"
+    assert calls == [1, 0]  # the second try after the held block went back
+    with pytest.raises(cl.MemoryError):  # nothing held: refused as the driver said
+        pool.made(q, lambda: (_ for _ in ()).throw(cl.MemoryError("clCreateBuffer")))
 
 
 def test_empty_sizes_and_types(queue):

@@ -31,8 +31,9 @@ def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
     host = np.asarray(host)
     if not host.nbytes:
         return cl_array.to_device(queue, host)
-    return cl_array.Array(queue, host.shape, host.dtype,
-                          data=buffer_from_host(queue.context, np.ascontiguousarray(host)))
+    host = np.ascontiguousarray(host)
+    data = pool.made(queue, lambda: buffer_from_host(queue.context, host))
+    return cl_array.Array(queue, host.shape, host.dtype, data=data)
 
 
 def read(*arrays: cl_array.Array) -> list[np.ndarray]:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..opencl.device import is_cpu
+from ..opencl.pool import settle
 from ..opencl.threads import thread_count
 from ..opencl.volume import host_volume
 from ..options import with_keywords
@@ -130,7 +131,8 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     """
     settings = with_keywords(PairSettings, settings, parts, "process_pair")
     if isinstance(projector, (list, tuple)):  # several cameras (docs/design.md §6.7)
-        return _asked(_several_cameras(raw_a, raw_b, list(projector), settings), volumes)
+        return _asked(_several_cameras(raw_a, raw_b, list(projector), settings), volumes,
+                      getattr(projector[0], "queue", None))
     rec = settings.reconstruction
     clock = StageClock()
     (vol_a, info_a), (vol_b, info_b) = _reconstructions(raw_a, raw_b, projector, rec,
@@ -146,7 +148,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
             for info in (info_a, info_b):
                 info.release_kept()
         return _asked(PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds,
-                                 clock.spans), volumes)
+                                 clock.spans), volumes, getattr(projector, "queue", None))
 
     def correlate(a, b) -> PIVResult:
         return piv3d(a, b, settings.piv, queue=projector.queue)
@@ -161,16 +163,18 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
                            camera=projector.camera, raws=(raw_a, raw_b),
                            backgrounds=known_backgrounds(info_a, info_b), clock=clock)
     return _asked(PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans),
-                  volumes)
+                  volumes, getattr(projector, "queue", None))
 
 
-def _asked(result: PairResult, volumes: bool) -> PairResult:
+def _asked(result: PairResult, volumes: bool, queue) -> PairResult:
     """``result`` with its volumes on the host (``volumes``) or without them; either way
-    it holds no device memory."""
+    it holds no device memory. ``queue``'s pool then settles (:func:`.pool.settle`)."""
     if volumes:
         result.vol_a, result.vol_b = host_volume(result.vol_a), host_volume(result.vol_b)
     else:
         result.vol_a = result.vol_b = None
+    if queue is not None:
+        settle(queue)
     return result
 
 

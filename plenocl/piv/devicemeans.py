@@ -197,11 +197,11 @@ class DeviceWindowMeans:
         return host.reshape(size, 3, 3), status, grad
 
     @staticmethod
-    def set_gradients(device: cl_array.Array, windows: np.ndarray, grad: np.ndarray) -> None:
-        """Write the gradients ``grad`` ``(k, 3, 3)`` of ``windows`` ``(k,)`` into
-        :meth:`device_gradients`' device copy ``device``."""
-        for w, g in zip(np.asarray(windows, int), np.asarray(grad, f64), strict=True):
-            device[9 * w:9 * w + 9].set(np.ascontiguousarray(g.reshape(9)))
+    def set_gradients(device: cl_array.Array, grad: np.ndarray) -> None:
+        """Write every window's gradient ``grad`` ``(W, 3, 3)`` into
+        :meth:`device_gradients`' device copy ``device`` (one copy; after the host
+        fitted ill-posed ones, which are rare)."""
+        device.set(np.ascontiguousarray(grad, f64).reshape(-1))
 
     def device_centres(self, centres: np.ndarray) -> cl_array.Array:
         """The window centres ``(W, 3)`` on the device (float64), for both

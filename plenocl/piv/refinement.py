@@ -681,7 +681,8 @@ def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: Wind
     for k in flat:
         w = near.win[k]
         grad[w] = local_gradient(pairs, near.members(k), centres[w], search, spread)
-    means.set_gradients(device_grad, near.win[flat], grad[near.win[flat]])
+    if len(flat):
+        means.set_gradients(device_grad, grad)
     t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, inside.largest() + 1)])
     return means.estimates(dev, inside, on_device, device_grad, search, spread, KEEP_FLOOR,
                            max(min_pairs, 1), t, position_sigma)

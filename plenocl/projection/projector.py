@@ -437,7 +437,8 @@ class Projector(FactorisedStages):
         """A scratch buffer of at least ``n`` floats, kept between calls."""
         buf = self._scratch.get(name)
         if buf is None or buf.size < n:
-            buf = self._scratch[name] = cl_array.empty(self.queue, max(n, 1), np.float32)
+            buf = self._scratch[name] = pool.made(
+                self.queue, lambda: cl_array.empty(self.queue, max(n, 1), np.float32))
         return buf
 
     @property
