@@ -31,8 +31,8 @@ def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
     host = np.asarray(host)
     if not host.nbytes:
         return cl_array.to_device(queue, host)
-    host = np.ascontiguousarray(host)
-    data = pool.made(queue, lambda: buffer_from_host(queue.context, host))
+    packed = np.ascontiguousarray(host)  # (a 0-d array comes out 1-d: the shape is host's)
+    data = pool.made(queue, lambda: buffer_from_host(queue.context, packed))
     return cl_array.Array(queue, host.shape, host.dtype, data=data)
 
 
