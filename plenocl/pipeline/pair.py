@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +32,9 @@ from ..reconstruction import (
 from .mte import motion_tracking_enhancement
 from .settings import PairSettings
 from .velocity import StageClock, refine_particles, refined_field
+
+if TYPE_CHECKING:
+    import pyopencl as cl
 
 
 @dataclass
@@ -132,7 +136,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
     settings = with_keywords(PairSettings, settings, parts, "process_pair")
     if isinstance(projector, (list, tuple)):  # several cameras (docs/design.md §6.7)
         return _asked(_several_cameras(raw_a, raw_b, list(projector), settings), volumes,
-                      getattr(projector[0], "queue", None))
+                      projector[0].queue)
     rec = settings.reconstruction
     clock = StageClock()
     (vol_a, info_a), (vol_b, info_b) = _reconstructions(raw_a, raw_b, projector, rec,
@@ -148,7 +152,7 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
             for info in (info_a, info_b):
                 info.release_kept()
         return _asked(PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds,
-                                 clock.spans), volumes, getattr(projector, "queue", None))
+                                 clock.spans), volumes, projector.queue)
 
     def correlate(a, b) -> PIVResult:
         return piv3d(a, b, settings.piv, queue=projector.queue)
@@ -163,18 +167,17 @@ def process_pair(raw_a, raw_b, projector: ProjectionOperator,
                            camera=projector.camera, raws=(raw_a, raw_b),
                            backgrounds=known_backgrounds(info_a, info_b), clock=clock)
     return _asked(PairResult(vol_a, vol_b, res, info_a, info_b, clock.seconds, clock.spans),
-                  volumes, getattr(projector, "queue", None))
+                  volumes, projector.queue)
 
 
-def _asked(result: PairResult, volumes: bool, queue) -> PairResult:
+def _asked(result: PairResult, volumes: bool, queue: cl.CommandQueue) -> PairResult:
     """``result`` with its volumes on the host (``volumes``) or without them; either way
     it holds no device memory. ``queue``'s pool then settles (:func:`.pool.settle`)."""
     if volumes:
         result.vol_a, result.vol_b = host_volume(result.vol_a), host_volume(result.vol_b)
     else:
         result.vol_a = result.vol_b = None
-    if queue is not None:
-        settle(queue)
+    settle(queue)
     return result
 
 

@@ -206,7 +206,7 @@ class DeviceWindowMeans:
     def device_centres(self, centres: np.ndarray) -> cl_array.Array:
         """The window centres ``(W, 3)`` on the device (float64), for both
         :meth:`device_gradients` and :meth:`estimates` of one call."""
-        return self._upload(np.asarray(centres, f64).reshape(-1))
+        return self._upload(centres)
 
     def estimates(self, pairs: PairsOnDevice, lists: WindowLists,
                   centres: np.ndarray | cl_array.Array, grad: np.ndarray | cl_array.Array,
@@ -223,8 +223,7 @@ class DeviceWindowMeans:
         mean, error = (fill(self._k.array(3 * size, f64), np.nan) for _ in range(2))
         if len(lists.win):
             self._launch("window_estimates", pairs, True, lists, centres,
-                         grad if isinstance(grad, cl_array.Array)
-                         else self._upload(grad.reshape(-1)), _triple(search), _scale(spread),
+                         self._k.on_device(grad, f64), _triple(search), _scale(spread),
                          _triple(floor), i32(min_count), self._upload(t),
                          _triple(position_sigma), self._k.array(lists.member.size, f64),
                          count, mean, error)
@@ -241,8 +240,7 @@ class DeviceWindowMeans:
         if with_amb:
             head += [dummy if pairs.amb is None else pairs.amb, i32(pairs.amb is not None)]
         tables = [self._k.to_device(a) for a in (lists.win, lists.start, lists.stop)]
-        head += [*tables, lists.member, centres if isinstance(centres, cl_array.Array)
-                 else self._upload(centres.reshape(-1))]
+        head += [*tables, lists.member, self._k.on_device(centres, f64)]
         self._k.launch(name, (len(lists.win),), *head, i32(len(lists.win)), *rest)
 
     def _upload(self, host: np.ndarray) -> cl_array.Array:
