@@ -1,6 +1,6 @@
 """Two or more ways of the chain timed alternately in one process (the benchmarks that
 put code before a change back beside it: ``benchmarks/uploads.py``,
-``benchmarks/device_overheads.py``).
+``benchmarks/device_overheads.py``, ``benchmarks/memory_pool.py``).
 
 Scene: ``benchmarks/paper_pair.py``'s (the paper's optics, 0.05 particles per
 microlens, ray traced with blur and noise), default chain. Kernels are built and one
@@ -27,12 +27,16 @@ COMPARED = ("u", "v", "w", "valid", "sigma_u")
 
 
 def alternate_ways(ways: dict[str, Callable[[], None]], lenses: tuple[int, int],
-                   rounds: int) -> dict[str, dict[str, float]]:
+                   rounds: int, *, queue=None, warm: bool = False
+                   ) -> dict[str, dict[str, float]]:
     """Each way (a label and the call that sets the chain up that way) profiled once a
     round, ``rounds`` rounds, on the scene at ``lenses``; prints each row, the medians
     and whether the vectors agree; returns the medians by label. The last way's setting
-    is left in place."""
-    queue = get_queue(profiling=True)
+    is left in place. ``queue``: the profiling queue the chain runs on (``None``: a new
+    one), for ways that set it up; ``warm``: each round, one pair unprofiled after a
+    way is set up and before its profiled one (a way whose state a pair builds, as a
+    batch's later pairs find it)."""
+    queue = queue or get_queue(profiling=True)
     cam, grid, proj = paper_setup(tuple(lenses), queue)
     scene = budget_scene(cam, grid, 0.05, 3, queue, motion=UNIFORM)
     for way in ways.values():
@@ -44,6 +48,8 @@ def alternate_ways(ways: dict[str, Callable[[], None]], lenses: tuple[int, int],
     for k in range(rounds):
         for label, way in ways.items():
             way()
+            if warm:
+                profiled_pair(scene.raw_a, scene.raw_b, proj)
             row, fields[label] = profiled_pair(scene.raw_a, scene.raw_b, proj)
             rows[label].append(row)
             print(f"{k + 1:5d} {label:{width}s} {row['waits']:6d} {row['host']:7.3f} "

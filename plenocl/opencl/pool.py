@@ -6,8 +6,9 @@ device, a page fault per 4 KiB at its first touch inside a kernel; dropped, it c
 host the release (a 50 MB buffer: 6 ms to free, 76 ms for its first fill against 3 ms
 for the next, PoCL). :func:`empty` takes its arrays from a
 :class:`pyopencl.tools.MemoryPool` attached to the queue, which keeps a dropped array's
-memory and hands it to the next array of about its size: the 116 x 78 pair 4-8 % faster
-on both CPU runtimes (docs/design.md §7.5, "Device memory kept for reuse").
+memory and hands it to the next array of about its size: the 116 x 78 pair 4 % faster
+on both CPU runtimes (``benchmarks/memory_pool.py``; docs/design.md §7.5, "Device memory
+kept for reuse").
 
 Safety: a pool belongs to one in-order queue, so a block handed out again is written
 only by commands enqueued after every command that used it before. An array made here
