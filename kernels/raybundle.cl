@@ -142,18 +142,21 @@ inline float pl_spread(float x, float delta, float4 gauss, __global float *g,
     return near;
 }
 
-/* lattice: [x, y, 1] @ lattice (3 x 2, row-major) = (kx, ky); lenses: (rows, cols) of
+/* points: the image points (x', y', s') of every particle, this launch's from `first`
+ * (slot p of the launch is particle first + p); lattice: [x, y, 1] @ lattice (3 x 2,
+ * row-major) = (kx, ky); lenses: (rows, cols) of
  * (col, row) sensor pixels of a lens's landing point for a ray along the axis (NaN:
  * missing); optics: d_p (exit pupil to array; a thin lens: s_i), f_ml / pixel pitch,
  * ramp spacing, delta = 1 / (sqrt2 blur sigma)
  * (px) and gauss = (c_1, c_3, c_5) of pl_spread (c_1 = -1: an exp per edge). */
-__kernel void ray_spots(__global const float *points, __global const float *aperture,
-                        int rays, __global const float *lenses, int rows, int cols,
+__kernel void ray_spots(__global const float *points, int first,
+                        __global const float *aperture, int rays, __global const float *lenses, int rows, int cols,
                         float l00, float l01, float l10, float l11, float l20, float l21,
                         float d_p, float f_px, float spacing, float delta, float4 gauss,
                         __global float *slots, __global int *keys)
 {
     int ray = get_global_id(0), p = get_global_id(1);
+    points += 3 * (long)first; /* this launch's particles */
     float s = points[3 * p + 2], rho = d_p / s;
     float ux = aperture[2 * ray], uy = aperture[2 * ray + 1];
     float ex = points[3 * p] - ux, ey = points[3 * p + 1] - uy;
@@ -205,18 +208,28 @@ __kernel void ray_spots(__global const float *points, __global const float *aper
     }
 }
 
-/* patches: per particle offset (long), col0, row0, width, height; item_pid, item_row: the
- * particle and first patch row of each work-item, which renders `band` rows from there
+/* points, intensity, patches (per particle offset (long), col0, row0, width, height): of
+ * every particle, this launch's from `first`; slots, keys: this launch's (ray_spots with
+ * the same `first`); item_pid, item_row: the
+ * particle (within the launch) and first patch row of each work-item, which renders `band` rows from there
  * (fewer at the patch's end); out: PL_DERIVATIVES ? 5 : 1 rows of `total` elements
  * (value, d / d X', Y', d', d / d intensity). */
 __kernel void render_rows(__global const float *slots, __global const int *keys, int rays,
                           __global const float *points, __global const float *intensity,
                           __global const long *offset, __global const int *col0,
                           __global const int *row0, __global const int *width,
-                          __global const int *height, __global const int *item_pid,
-                          __global const int *item_row, int band, float f_px, long total,
-                          __global float *out)
+                          __global const int *height, int first,
+                          __global const int *item_pid, __global const int *item_row,
+                          int band, float f_px, long total, __global float *out)
 {
+    /* this launch's particles: the tables from `first`, the slots its own */
+    points += 3 * (long)first;
+    intensity += first;
+    offset += first;
+    col0 += first;
+    row0 += first;
+    width += first;
+    height += first;
     int item = get_global_id(0), p = item_pid[item], r0 = item_row[item];
     int wd = width[p], c0 = col0[p], srow = row0[p] + r0;
     int nr = height[p] - r0 < band ? height[p] - r0 : band;
@@ -303,8 +316,8 @@ inline void pl_hex_nearest(float fq, float fr, float4 gram, int *q, int *r)
  * bisector with the nearest lens (v: the point's offset from it, axial units). A
  * neighbour with delta < ramp gets the weight (ramp - delta) / (ramp + delta) against
  * the nearest lens's 1; the shares are the weights over their sum. */
-__kernel void ray_spots_hex(__global const float *points, __global const float *aperture,
-                            int rays, __global const float *lenses, int rows, int cols,
+__kernel void ray_spots_hex(__global const float *points, int first,
+                            __global const float *aperture, int rays, __global const float *lenses, int rows, int cols,
                             float l00, float l01, float l10, float l11, float l20,
                             float l21, float d_p, float f_px, float spacing, float delta,
                             float4 gauss, float4 gram, __global const int *steps,
@@ -312,6 +325,7 @@ __kernel void ray_spots_hex(__global const float *points, __global const float *
                             __global int *keys)
 {
     int ray = get_global_id(0), p = get_global_id(1);
+    points += 3 * (long)first; /* this launch's particles */
     float s = points[3 * p + 2], rho = d_p / s;
     float ux = aperture[2 * ray], uy = aperture[2 * ray + 1];
     float ex = points[3 * p] - ux, ey = points[3 * p + 1] - uy;

@@ -40,8 +40,9 @@
  *
  * box_counts, box_fill: the pairs within a box about each listed window's centre: the
  * host gives, per pair, the windows whose box holds it along each axis as index ranges
- * [x0, x1) (and the same in y and z), and buckets the pairs by the (z, y) row of
- * windows they cover (bucket_start over nz * ny rows, bucket_pts in pair order); a window
+ * [x0, x1) (and the same in y and z); the pairs are bucketed by the (z, y) row of
+ * windows they cover (bucket_start over nz * ny rows, bucket_pts in pair order: from
+ * their z and y ranges on the device, kernels/rowlists.cl boxes_fill); a window
  * (kz, ky, kx) scans its row's bucket for the pairs with x0 <= kx < x1. box_counts counts
  * them, the host sums the counts into each window's start, box_fill writes them (in pair
  * order, as the host's box search lists them).

@@ -394,6 +394,24 @@ def test_window_means_on_the_device_take_the_hosts_scalars_and_zero_spread(queue
     assert (floor < window_means(pairs, field, 3, spread=None)[2]).any()
 
 
+def test_window_means_on_the_device_follow_the_field_they_are_given(queue):
+    """One device object over fields whose window centres differ (the grid moved, then
+    back): each call's means are the host's, not those of the centres it keeps from the
+    call before (:meth:`DeviceWindowMeans.device_centres`)."""
+    pairs = awkward_pairs("outliers", np.random.default_rng(22))
+    device = DeviceWindowMeans(queue)
+    field = grid_field()
+    for shift in (0.0, 1.5, 0.0):
+        moved = dataclasses.replace(field, x=field.x + shift, z=field.z - shift)
+        want = window_means(pairs, moved, 3)
+        got = window_means(pairs, moved, 3, device_means=device)
+        np.testing.assert_array_equal(got[2], want[2])
+        np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
+    kept = device.device_centres(np.arange(6.0).reshape(2, 3))
+    assert device.device_centres(np.arange(6.0).reshape(2, 3)) is kept
+    assert device.device_centres(np.arange(6.0).reshape(3, 2)).shape == (3, 2)
+
+
 @pytest.mark.parametrize("count, radius", [(0, 1.0), (1, 1.0), (57, 1.0), (400, 2.0)])
 def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius):
     """Each wanted window's pairs from the device's box search (the host's per-axis index

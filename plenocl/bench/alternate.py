@@ -6,7 +6,8 @@ Scene: ``benchmarks/paper_pair.py``'s (the paper's optics, 0.05 particles per
 microlens, ray traced with blur and noise), default chain. Kernels are built and one
 pair run each way before the rounds; each round profiles one pair each way
 (:func:`plenocl.bench.clprofile.profiled_pair`): the calls in which the host waited for
-the queue, its work outside OpenCL calls and the pair's wall time. Then the medians, and
+the queue, its work outside OpenCL calls, the pair's wall time and the megabytes it sent
+to the device. Then the medians, and
 whether every way gave the first way's vectors to the bit.
 """
 
@@ -44,7 +45,8 @@ def alternate_ways(ways: dict[str, Callable[[], None]], lenses: tuple[int, int],
         profiled_pair(scene.raw_a, scene.raw_b, proj)  # kernels, plans and routes made
     width = max(len(label) for label in ways) + 2
     rows, fields = {label: [] for label in ways}, {}
-    print(f"{'round':>5s} {'way':{width}s} {'waits':>6s} {'host s':>7s} {'wall s':>7s}")
+    print(f"{'round':>5s} {'way':{width}s} {'waits':>6s} {'host s':>7s} {'wall s':>7s} "
+          f"{'MB in':>6s}")
     for k in range(rounds):
         for label, way in ways.items():
             way()
@@ -53,13 +55,13 @@ def alternate_ways(ways: dict[str, Callable[[], None]], lenses: tuple[int, int],
             row, fields[label] = profiled_pair(scene.raw_a, scene.raw_b, proj)
             rows[label].append(row)
             print(f"{k + 1:5d} {label:{width}s} {row['waits']:6d} {row['host']:7.3f} "
-                  f"{row['wall']:7.2f}", flush=True)
+                  f"{row['wall']:7.2f} {row['mb_in']:6.1f}", flush=True)
     print("medians")
     medians = {label: {key: float(np.median([r[key] for r in got])) for key in got[0]}
                for label, got in rows.items()}
     for label, med in medians.items():
         print(f"{'':5s} {label:{width}s} {med['waits']:6.0f} {med['host']:7.3f} "
-              f"{med['wall']:7.2f}")
+              f"{med['wall']:7.2f} {med['mb_in']:6.1f}")
     first = next(iter(fields.values()))
     same = all(np.array_equal(getattr(f, c), getattr(first, c), equal_nan=True)
                for f in fields.values() for c in COMPARED)

@@ -242,10 +242,12 @@ def kernel_lines(seconds: dict[str, tuple[int, float]], count: int = 15) -> list
 def profiled_pair(raw_a, raw_b, projector) -> tuple[dict[str, float], object]:
     """One :func:`plenocl.process_pair` of the default chain (its vectors alone) under the
     profile: its ``waits``, ``host`` work outside OpenCL calls and ``wall`` seconds (the
-    queue finished), and its field (:class:`plenocl.PIVResult`): what the benchmarks that
-    alternate two ways of the chain in one process compare."""
+    queue finished), the megabytes it sent to the device (``mb_in``), and its field
+    (:class:`plenocl.PIVResult`): what the benchmarks that alternate two ways of the chain
+    in one process compare."""
     with OpenCLProfile() as prof:
         pair = process_pair(raw_a, raw_b, projector, volumes=False)
         projector.queue.finish()
     total = total_profile(prof.split(pair.spans))
-    return {"waits": total.waits, "host": total.host, "wall": total.wall}, pair.piv
+    return {"waits": total.waits, "host": total.host, "wall": total.wall,
+            "mb_in": total.h2d_bytes / 1e6}, pair.piv

@@ -134,49 +134,67 @@ class DeviceRayBundle:
         total = int(patches.offset[-1])
         if len(points) == 0 or total == 0:
             return np.zeros((5 if derivatives else 1, total), f32)
-        out = self._kernels(derivatives).array((5 if derivatives else 1) * total)
-        self._launch(points, intensity, patches, derivatives, out, total)
+        k = self._kernels(derivatives)
+        out = k.array((5 if derivatives else 1) * total)
+        every = [k.to_device(points), k.to_device(intensity), *self.patch_tables(patches)]
+        self._launch(k, every, patches.height, 0, out, total)
         return out.get().reshape(-1, total)
 
     def render_into(self, image_points: np.ndarray, intensity: np.ndarray,
-                    patches: Patches, derivatives: bool, out, total: int
+                    patches: Patches, derivatives: bool, out, total: int,
+                    chunk: int | None = None, tables: list | None = None
                     ) -> list[cl.Event]:
         """Render into the device array ``out`` and leave the rows there.
 
         ``out`` holds the rows (5 with ``derivatives``, else 1) of ``total`` elements each;
-        ``patches.offset`` places each particle's patch in them (so that chunks of
-        particles fill one buffer). Every element of every patch is written. Returns the
-        events of ``ray_spots`` and ``render_rows`` (none without particles), for a
-        profiling queue's timings (``benchmarks/raybundle_kernels.py``).
+        ``patches.offset`` places each particle's patch in them. Every element of every
+        patch is written. ``chunk``: particles traced at a time (bounds the rays' scratch
+        memory; all at once by default); the points, intensities and ``tables`` (the
+        patches' :meth:`patch_tables`, made here when ``None``) go up once for all
+        chunks. Returns the events of ``ray_spots`` and ``render_rows``, per chunk (none
+        without particles), for a profiling queue's timings
+        (``benchmarks/raybundle_kernels.py``).
         """
-        if len(image_points) == 0:
+        n = len(image_points)
+        if n == 0:
             return []
         with self._lock:
-            return self._launch(np.asarray(image_points, f32), np.asarray(intensity, f32),
-                                patches, bool(derivatives), out, total)
+            k = self._kernels(bool(derivatives))
+            every = [k.to_device(np.asarray(image_points, f32)),
+                     k.to_device(np.asarray(intensity, f32)),
+                     *(tables or self.patch_tables(patches))]
+            step = n if chunk is None else max(int(chunk), 1)
+            return [event for first in range(0, n, step) for event in self._launch(
+                k, every, patches.height[first:first + step], first, out, total)]
 
-    def _launch(self, points: np.ndarray, intensity: np.ndarray, patches: Patches,
-                derivatives: bool, out, total: int) -> list[cl.Event]:
-        """Enqueue both kernels for one set of particles, rows into ``out``; their
-        events."""
-        k = self._kernels(derivatives)
-        n, rays = len(points), self.bundle.rays
-        pts = k.to_device(points)
+    def patch_tables(self, patches: Patches) -> list:
+        """The patches' offset (long), col0, row0, width and height (int) on the device,
+        as :meth:`render_into` and the fit's sums (:mod:`plenocl.piv.fitsums`) read them."""
+        k = self._kernels(True)
+        return [k.to_device(patches.offset.astype(i64))] + [
+            k.to_device(a.astype(i32))
+            for a in (patches.col0, patches.row0, patches.width, patches.height)]
+
+    def _launch(self, k: KernelSet, every: list, heights: np.ndarray, first: int, out,
+                total: int) -> list[cl.Event]:
+        """Enqueue both kernels for the particles from ``first`` (``heights``: their
+        patches' heights) of ``every`` (points, intensities and patch tables on the
+        device), rows into ``out``; their events."""
+        n, rays = len(heights), self.bundle.rays
         slots, keys = self._slots(k, n)
         rows, cols = self.bundle.lenses.shape[:2]
-        spots = k.launch(self._spots, (rays, n), pts, self._aperture, i32(rays),
-                         self._lenses, i32(rows), i32(cols), *self._optics, slots, keys)
-        band = self.rows_per_item or max(int(patches.height.max()), 1)
-        per = -(-patches.height // band)  # work-items per particle
+        spots = k.launch(self._spots, (rays, n), every[0], i32(first), self._aperture,
+                         i32(rays), self._lenses, i32(rows), i32(cols), *self._optics,
+                         slots, keys)
+        band = self.rows_per_item or max(int(heights.max()), 1)
+        per = -(-heights // band)  # work-items per particle
         item_pid = np.repeat(np.arange(n, dtype=i32), per)
-        first = np.cumsum(per) - per  # each particle's first item
-        item_row = ((np.arange(len(item_pid)) - np.repeat(first, per)) * band).astype(i32)
-        arrays = [k.to_device(a) for a in (
-            intensity, patches.offset.astype(i64), patches.col0.astype(i32),
-            patches.row0.astype(i32), patches.width.astype(i32), patches.height.astype(i32),
-            item_pid, item_row)]
-        return [spots, k.launch("render_rows", (len(item_pid),), slots, keys, i32(rays), pts,
-                                *arrays, i32(band), self._f_px, i64(total), out)]
+        start = np.cumsum(per) - per  # each particle's first item
+        item_row = ((np.arange(len(item_pid)) - np.repeat(start, per)) * band).astype(i32)
+        return [spots, k.launch("render_rows", (len(item_pid),), slots, keys, i32(rays),
+                                *every, i32(first), k.to_device(item_pid),
+                                k.to_device(item_row), i32(band), self._f_px, i64(total),
+                                out)]
 
     def _slots(self, k: KernelSet, n: int) -> tuple:
         """The slots and keys of ``n`` particles' rays: the kept buffers, grown as needed

@@ -7,8 +7,9 @@ of its doubled box, then the mean of its own pairs moved to its centre along it,
 mean's uncertainty) with one work-item per window, in double precision, so that the pairs
 each window keeps and its results are the host's to rounding; and the search for the
 pairs each window's box holds (:meth:`DeviceWindowMeans.box_lists`), so that their lists
-stay on the device. The host gives each pair's window index ranges per axis and buckets
-the pairs by row of windows (:func:`row_buckets`), and fits the rare gradients whose pairs
+stay on the device. The host gives each pair's window index ranges per axis; the pairs
+are listed by row of windows on the device
+(:class:`plenocl.opencl.rowlists.DeviceRowLists`); the host fits the rare gradients whose pairs
 scatter too flatly for the normal equations (``np.linalg.lstsq``, as its own path does).
 Devices without ``cl_khr_fp64`` keep the host path (:meth:`DeviceWindowMeans.supports`).
 """
@@ -24,10 +25,10 @@ import pyopencl.array as cl_array
 from ..opencl.arrays import fill, read
 from ..opencl.device import DeviceInfo
 from ..opencl.program import KernelSet
-from ..sorting import stable_order
+from ..opencl.rowlists import DeviceRowLists
 from .pairoutliers import MAD_SIGMA
 
-__all__ = ["DeviceWindowMeans", "PairsOnDevice", "WindowLists", "row_buckets"]
+__all__ = ["DeviceWindowMeans", "PairsOnDevice", "WindowLists"]
 
 i32, f64 = np.int32, np.float64
 #: Status of a window's gradient (``window_gradients``): fitted; too flat for the normal
@@ -70,23 +71,6 @@ class WindowLists:
         return int((self.stop - self.start).max(initial=0))
 
 
-def row_buckets(z: tuple[np.ndarray, np.ndarray], y: tuple[np.ndarray, np.ndarray],
-                nz: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
-    """The pairs by the ``(z, y)`` rows of windows whose boxes hold them: each pair's
-    window index ranges ``[z0, z1)`` and ``[y0, y1)``; a CSR table over the ``nz * ny``
-    rows, ``start`` ``(nz * ny + 1,)`` and the pairs (ascending within a row), int32."""
-    (z0, z1), (y0, y1) = z, y
-    zr, yr = np.maximum(z1 - z0, 0), np.maximum(y1 - y0, 0)
-    per = zr * yr
-    pair = np.repeat(np.arange(len(per)), per)
-    k = np.arange(len(pair)) - np.repeat(np.cumsum(per) - per, per)
-    rows = np.maximum(yr, 1)[pair]
-    key = (z0[pair] + k // rows) * ny + y0[pair] + k % rows
-    order = stable_order(key)
-    start = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=nz * ny))])
-    return start.astype(i32), pair[order].astype(i32)
-
-
 def _window_count(centres: np.ndarray | cl_array.Array) -> int:
     """Windows of ``centres``: ``(W, 3)`` on the host, or ``W * 3`` on the device."""
     return len(centres) if isinstance(centres, np.ndarray) else centres.size // 3
@@ -122,6 +106,8 @@ class DeviceWindowMeans:
                              "(device_means=None)")
         names = ["window_gradients", "window_estimates", "box_counts", "box_fill"]
         self._k = KernelSet(queue, "windowmeans.cl", names, looping=names)
+        self._rows = DeviceRowLists(queue)
+        self._centres: tuple[np.ndarray, cl_array.Array] | None = None
 
     @staticmethod
     def supports(queue: cl.CommandQueue) -> bool:
@@ -141,12 +127,12 @@ class DeviceWindowMeans:
         count of every window ``(W,)`` (0 where not wanted)."""
         nz, ny, nx = shape
         (x0, x1), y, z = ranges
-        start, pts = row_buckets(z, y, nz, ny)
-        pts = pts if len(pts) else np.zeros(1, i32)  # a buffer of one: nothing listed reads it
-        tables = [self._k.to_device(np.asarray(a, i32)) for a in (start, pts, x0, x1)]
+        rows = self._rows.boxes(z, y, nz, ny)  # the pairs by (z, y) row of windows
+        tables = [rows.start_device, rows.items] + [self._k.to_device(np.asarray(a, i32))
+                                                    for a in (x0, x1)]
         listed = np.flatnonzero(wanted).astype(i32)
         count = np.zeros(nz * ny * nx, int)
-        if len(listed) and start[-1]:
+        if len(listed) and rows.total:
             counts = self._k.array(len(listed), i32)
             win = self._k.to_device(listed)
             self._k.launch("box_counts", (len(listed),), *tables, win, i32(len(listed)),
@@ -205,8 +191,15 @@ class DeviceWindowMeans:
 
     def device_centres(self, centres: np.ndarray) -> cl_array.Array:
         """The window centres ``(W, 3)`` on the device (float64), for both
-        :meth:`device_gradients` and :meth:`estimates` of one call."""
-        return self._upload(centres)
+        :meth:`device_gradients` and :meth:`estimates` of one call. The last centres
+        stay there: a pair's refinement asks for the same field's centres at each of
+        its calls, and they go up once (the kernels only read them)."""
+        centres = np.asarray(centres, f64)
+        kept = self._centres
+        if kept is None or kept[0].shape != centres.shape or not np.array_equal(
+                kept[0], centres):
+            kept = self._centres = (centres.copy(), self._upload(centres))
+        return kept[1]
 
     def estimates(self, pairs: PairsOnDevice, lists: WindowLists,
                   centres: np.ndarray | cl_array.Array, grad: np.ndarray | cl_array.Array,

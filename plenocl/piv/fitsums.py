@@ -18,8 +18,8 @@ import pyopencl.array as cl_array
 
 from ..opencl.device import is_cpu
 from ..opencl.program import KernelSet, group_size
+from ..opencl.rowlists import DeviceRowLists
 from ..optics.raybundle import Patches
-from ..sorting import stable_order
 from .devicebundle import SLOT, DeviceRayBundle
 
 i32, i64, f32 = np.int32, np.int64, np.float32
@@ -89,6 +89,7 @@ class DeviceFitSums:
         self._block = MODEL_BLOCK[cpu]
         self._lock = threading.Lock()
         self._kept: dict[str, cl_array.Array] = {}
+        self._lists = DeviceRowLists(renderer.queue)
 
     def upload(self, image: np.ndarray) -> cl_array.Array:
         """A device copy (float32) of a sensor-shaped ``(rows, cols)`` image."""
@@ -108,8 +109,9 @@ class DeviceFitSums:
         if n == 0:
             return np.zeros((0, 2))
         with self._lock:
-            unit = self._render(image_points, np.ones(n), patches, False)
-            return self.reduce_units(unit, data, patches, data_scale)
+            geometry = self._geometry(patches)  # once for both kernels
+            unit = self._render(image_points, np.ones(n), patches, geometry, False)
+            return self._reduce_units(unit, data, geometry, data_scale)
 
     def normal_sums(self, data: cl_array.Array, image_points: np.ndarray,
                     intensity: np.ndarray, patches: Patches, jac: np.ndarray,
@@ -123,20 +125,25 @@ class DeviceFitSums:
         if n == 0:
             return np.zeros((0, 16))
         with self._lock:
-            rows = self._render(image_points, intensity, patches, True)
-            model = self.model(rows, patches, data.shape)
-            return self.reduce_normals(rows, data, model, patches, jac, data_scale)
+            geometry = self._geometry(patches)  # once for the three kernels
+            rows = self._render(image_points, intensity, patches, geometry, True)
+            model = self._model(rows, patches, geometry, data.shape)
+            return self._reduce_normals(rows, data, model, geometry, jac, data_scale)
 
     def reduce_units(self, unit: cl_array.Array, data: cl_array.Array,
                      patches: Patches, data_scale: float = 1.0) -> np.ndarray:
         """The ``unit_sums`` kernel on rendered value rows ``unit`` (device, float32) and
         the image ``data * data_scale``: :func:`plenocl.reference.imagefit.unit_sums`,
         ``(n, 2)`` float64."""
-        n = len(patches.width)
+        return self._reduce_units(unit, data, self._geometry(patches), data_scale)
+
+    def _reduce_units(self, unit: cl_array.Array, data: cl_array.Array,
+                      geometry: list[cl_array.Array], data_scale: float) -> np.ndarray:
+        """:meth:`reduce_units` with the patches' :meth:`_geometry` on the device."""
+        n = geometry[1].size
         out = self._k.array(2 * n)
         self._k.launch("unit_sums", (n * self.group,), unit, data, f32(data_scale),
-                       *self._geometry(patches),
-                       *_sensor(data), out, local_size=(self.group,))
+                       *geometry, *_sensor(data), out, local_size=(self.group,))
         return out.get().reshape(n, 2).astype(np.float64)
 
     def reduce_normals(self, rows: cl_array.Array, data: cl_array.Array,
@@ -145,24 +152,28 @@ class DeviceFitSums:
         """The ``normal_sums`` kernel on rendered ``rows`` (device, 5 rows of the patches'
         elements) and the image ``data * data_scale``:
         :func:`plenocl.reference.imagefit.normal_sums`, ``(n, 16)`` float64."""
-        n = len(patches.width)
+        return self._reduce_normals(rows, data, model, self._geometry(patches), jac,
+                                    data_scale)
+
+    def _reduce_normals(self, rows: cl_array.Array, data: cl_array.Array,
+                        model: cl_array.Array, geometry: list[cl_array.Array],
+                        jac: np.ndarray, data_scale: float) -> np.ndarray:
+        """:meth:`reduce_normals` with the patches' :meth:`_geometry` on the device."""
+        n = len(jac)
         out = self._k.array(16 * n)
-        self._k.launch("normal_sums", (n * self.group,), rows, i64(patches.offset[-1]),
-                       data, f32(data_scale), model, *self._geometry(patches), *_sensor(data),
+        self._k.launch("normal_sums", (n * self.group,), rows, i64(rows.size // 5), data,
+                       f32(data_scale), model, *geometry, *_sensor(data),
                        self._k.to_device(np.asarray(jac, f32)), out, local_size=(self.group,))
         return out.get().reshape(n, 16).astype(np.float64)
 
     def _render(self, image_points: np.ndarray, intensity: np.ndarray, patches: Patches,
-                derivatives: bool) -> cl_array.Array:
-        """Every particle's rows into one device buffer, ``chunk`` particles at a time."""
+                geometry: list[cl_array.Array], derivatives: bool) -> cl_array.Array:
+        """Every particle's rows into one device buffer, ``chunk`` particles at a time
+        (the points and ``geometry`` uploaded once for all)."""
         total = int(patches.offset[-1])
         rows = self._kept_array("rows", (5 if derivatives else 1) * total, KEPT_HEADROOM)
-        for start in range(0, len(image_points), self.chunk):
-            part = slice(start, start + self.chunk)
-            sub = Patches(patches.offset[start:part.stop + 1], patches.col0[part],
-                          patches.row0[part], patches.width[part], patches.height[part])
-            self.renderer.render_into(image_points[part], intensity[part], sub,
-                                      derivatives, rows, total)
+        self.renderer.render_into(image_points, intensity, patches, derivatives, rows,
+                                  total, chunk=self.chunk, tables=geometry)
         return rows
 
     def model(self, values: cl_array.Array, patches: Patches,
@@ -170,12 +181,19 @@ class DeviceFitSums:
         """The sum of every particle's value patch (the first row of ``values``) on the
         sensor ``shape`` ``(rows, cols)``: the ``patch_model`` kernel,
         :func:`plenocl.reference.imagefit.patch_model`."""
-        row_start, row_list = _rows_covered(patches, shape[0])
+        return self._model(values, patches, self._geometry(patches), shape)
+
+    def _model(self, values: cl_array.Array, patches: Patches,
+               geometry: list[cl_array.Array], shape: tuple[int, int]) -> cl_array.Array:
+        """:meth:`model` with the patches' :meth:`_geometry` on the device; each sensor
+        row's particles listed there (:class:`plenocl.opencl.rowlists.DeviceRowLists`:
+        only the patches' rows cross, not the lists)."""
+        lists = self._lists.rows(patches.row0, patches.row0 + patches.height, shape[0])
         model = self._kept_array("model", shape[0] * shape[1]).reshape(shape)
         blocks = -(-shape[1] // self._block)
-        self._k.launch("patch_model", (blocks, shape[0]), values,
-                       *self._geometry(patches)[:4], self._k.to_device(row_start),
-                       self._k.to_device(row_list), i32(shape[1]), i32(self._block), model)
+        self._k.launch("patch_model", (blocks, shape[0]), values, *geometry[:4],
+                       lists.start_device, lists.items, i32(shape[1]), i32(self._block),
+                       model)
         return model
 
     def _kept_array(self, name: str, size: int, headroom: float = 1.0) -> cl_array.Array:
@@ -189,10 +207,9 @@ class DeviceFitSums:
         return kept[:size]
 
     def _geometry(self, patches: Patches) -> list[cl_array.Array]:
-        """The patches' offset (long), col0, row0, width and height (int) on the device."""
-        return [self._k.to_device(patches.offset.astype(i64))] + [
-            self._k.to_device(a.astype(i32))
-            for a in (patches.col0, patches.row0, patches.width, patches.height)]
+        """The patches' offset (long), col0, row0, width and height (int) on the device
+        (:meth:`plenocl.piv.devicebundle.DeviceRayBundle.patch_tables`)."""
+        return self.renderer.patch_tables(patches)
 
 
 def kept_size(size: int, largest: int, headroom: float) -> int:
@@ -205,15 +222,3 @@ def kept_size(size: int, largest: int, headroom: float) -> int:
 def _sensor(image: cl_array.Array) -> tuple[np.int32, np.int32]:
     """``(cols, rows)`` of a sensor-shaped device image, as kernel arguments."""
     return i32(image.shape[1]), i32(image.shape[0])
-
-
-def _rows_covered(patches: Patches, rows: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR table of the particles whose patch covers each sensor row (in particle order):
-    ``row_start`` ``(rows + 1,)`` and ``row_list`` (int32)."""
-    on = np.clip(rows - patches.row0, 0, patches.height)
-    pid = np.repeat(np.arange(len(on), dtype=i32), on)
-    first = np.cumsum(on) - on
-    sensor_row = patches.row0[pid] + np.arange(len(pid)) - np.repeat(first, on)
-    order = stable_order(sensor_row)
-    counts = np.bincount(sensor_row, minlength=rows)
-    return np.concatenate([[0], np.cumsum(counts)]).astype(i32), pid[order]
