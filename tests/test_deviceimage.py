@@ -21,7 +21,7 @@ from plenocl.reconstruction import (
 )
 from plenocl.reconstruction.deviceimage import COUNT_TYPES, DeviceCounts
 from plenocl.reconstruction.images import prepare_image
-from plenocl.reference.rawcounts import scaled_counts
+from plenocl.reference.rawcounts import level_counts, scaled_counts
 
 REC = ReconstructionSettings(iterations=3, coarse_iterations=2)
 GRID = plenocl.Grid((16, 24, 24), x=(-1.2, 1.2), y=(-1.2, 1.2), z=(-1.5, 1.5))
@@ -62,6 +62,33 @@ def test_scaled_counts_match_their_twin_bit_for_bit(queue, dtype, shape):
         want = scaled_counts(raw, median, scale)
         assert same_bits(got, want), (median, scale)
         assert got.min() >= 0  # counts below the median clipped
+
+
+@pytest.mark.parametrize("group", [None, 64], ids=["device-group", "group64"])
+@pytest.mark.parametrize("dtype", sorted(COUNT_TYPES, key=str))
+@pytest.mark.parametrize("shape", [(1, 1), (7, 13), (129, 67), (600, 701)])
+def test_level_counts_on_the_device_are_the_hosts(queue, dtype, shape, group):
+    """Every type, awkward sizes (one pixel; sizes no multiple of the groups), both
+    extreme levels and a background level most pixels share (the atomics' hot spot with
+    groups of 64): the device's histogram is the host's bincount, to the count, its
+    lowest and highest levels the frame's."""
+    info = np.iinfo(dtype)
+    rng = np.random.default_rng(shape[0] + shape[1])
+    raw = rng.integers(info.min, info.max, shape, endpoint=True).astype(dtype)
+    raw[rng.random(shape) < 0.7] = 100
+    if raw.size > 2:
+        raw.flat[0], raw.flat[-1] = info.max, info.min
+    counts = DeviceCounts(queue, dtype, group=group)
+    hist = counts.histogram(raw)
+    assert (hist.low, hist.high, hist.size) == (raw.min(), raw.max(), raw.size)
+    want = level_counts(raw, counts.low, counts.levels)
+    np.testing.assert_array_equal(hist.counts, want[hist.low - counts.low:
+                                                    hist.high - counts.low + 1])
+    if info.min == 0:  # the host's own histogram of the frame
+        host = count_histogram(raw)
+        assert host.low == hist.low
+        np.testing.assert_array_equal(host.counts, hist.counts)
+    assert counts.histogram(raw[:0]) is None
 
 
 def test_scaled_counts_refuse_what_float32_cannot_hold(queue):

@@ -28,18 +28,19 @@ COMPARED = ("u", "v", "w", "valid", "sigma_u")
 
 
 def alternate_ways(ways: dict[str, Callable[[], None]], lenses: tuple[int, int],
-                   rounds: int, *, queue=None, warm: bool = False
-                   ) -> dict[str, dict[str, float]]:
+                   rounds: int, *, queue=None, warm: bool = False,
+                   bit_depth: int | None = None) -> dict[str, dict[str, float]]:
     """Each way (a label and the call that sets the chain up that way) profiled once a
     round, ``rounds`` rounds, on the scene at ``lenses``; prints each row, the medians
     and whether the vectors agree; returns the medians by label. The last way's setting
     is left in place. ``queue``: the profiling queue the chain runs on (``None``: a new
     one), for ways that set it up; ``warm``: each round, one pair unprofiled after a
     way is set up and before its profiled one (a way whose state a pair builds, as a
-    batch's later pairs find it)."""
+    batch's later pairs find it); ``bit_depth``: the raw images as a camera's integers of
+    that depth (e.g. 16) instead of float counts."""
     queue = queue or get_queue(profiling=True)
     cam, grid, proj = paper_setup(tuple(lenses), queue)
-    scene = budget_scene(cam, grid, 0.05, 3, queue, motion=UNIFORM)
+    scene = budget_scene(cam, grid, 0.05, 3, queue, motion=UNIFORM, bit_depth=bit_depth)
     for way in ways.values():
         way()
         profiled_pair(scene.raw_a, scene.raw_b, proj)  # kernels, plans and routes made

@@ -2,14 +2,15 @@
 (issue 46: the host sends the raw images; docs/design.md §7.5, "A camera's counts
 prepared on the device").
 
-The host counts the frame's levels once (:class:`plenocl.optics.rawimage.CountHistogram`:
-a bincount, a few kilobytes for 16-bit counts), which give the exposure checks, the
-median background, the noise and the scale exactly as the host's preparation finds
-them; the frame goes to the device as its own integers (2 bytes a pixel for 16-bit
-counts, against 4 for the float32 image) and ``kernels/rawcounts.cl`` writes the
-float32 image there, to the bit the host's (:func:`plenocl.reconstruction.images.preprocess`).
-The host makes no float copy of the frame. :func:`plenocl.reconstruction.images.prepare_image`
-decides where an image is prepared (:func:`prepares_on_device`).
+The frame goes to the device as its own integers (2 bytes a pixel for 16-bit counts,
+against 4 for the float32 image); the device counts its levels
+(:class:`plenocl.optics.rawimage.CountHistogram`, read back: 256 KB at most), which give
+the exposure checks, the median background, the noise and the scale exactly as the
+host's preparation finds them, and ``kernels/rawcounts.cl`` writes the float32 image
+there, to the bit the host's (:func:`plenocl.reconstruction.images.preprocess`). The host
+makes no float copy of the frame and does not count it (a 16 MP frame's ``np.bincount``
+took it 35-180 ms). :func:`plenocl.reconstruction.images.prepare_image` decides where an
+image is prepared (:func:`prepares_on_device`).
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from ..opencl.arrays import upload
-from ..opencl.program import KernelSet
+from ..opencl.arrays import fill
+from ..opencl.program import KernelSet, group_size
+from ..optics.rawimage import CountHistogram
 
 __all__ = ["COUNT_TYPES", "DeviceCounts", "prepares_on_device"]
 
@@ -27,6 +29,14 @@ __all__ = ["COUNT_TYPES", "DeviceCounts", "prepares_on_device"]
 #: so a count less a median (a whole or half count) is exact in float32.
 COUNT_TYPES = {np.dtype(np.uint8): "uchar", np.dtype(np.uint16): "ushort",
                np.dtype(np.int16): "short"}
+#: Each count type's levels: the lowest and how many (every value the type holds).
+LEVELS = {np.dtype(np.uint8): (0, 256), np.dtype(np.uint16): (0, 65536),
+          np.dtype(np.int16): (-32768, 65536)}
+#: Work-groups counting the levels, each into its own histogram: with groups of several
+#: items (a GPU) many (they add with atomics; the copies spread the few background levels
+#: that every item hits), with one item a group (a CPU) a few per compute unit (plain
+#: increments).
+GPU_GROUPS, CPU_GROUPS_PER_UNIT = 64, 2
 
 
 def prepares_on_device(image, background: str | None, smooth_px: float | None,
@@ -41,29 +51,66 @@ def prepares_on_device(image, background: str | None, smooth_px: float | None,
 
 class DeviceCounts:
     """``kernels/rawcounts.cl`` on ``queue`` for counts of ``dtype`` (one of
-    :data:`COUNT_TYPES`): built once per context and option, its kernel fetched once
-    (:class:`plenocl.opencl.program.KernelSet`'s caches), so one is made per image."""
+    :data:`COUNT_TYPES`): built once per context and option, its kernels fetched once
+    (:class:`plenocl.opencl.program.KernelSet`'s caches), so one is made per image.
+    ``group``: ``count_levels``' work-items per group (a power of two); ``None``: 1 on a
+    CPU, :data:`plenocl.opencl.program.GPU_GROUP` elsewhere."""
 
-    def __init__(self, queue: cl.CommandQueue, dtype) -> None:
+    def __init__(self, queue: cl.CommandQueue, dtype, group: int | None = None) -> None:
         self.dtype = np.dtype(dtype)
         if self.dtype not in COUNT_TYPES:
             raise ValueError(f"counts of {self.dtype} are prepared on the host; the device "
                              f"takes {', '.join(str(t) for t in COUNT_TYPES)}")
         self.queue = queue
-        self._k = KernelSet(queue, "rawcounts.cl", ("scaled_counts",),
-                            [f"-DPL_COUNT={COUNT_TYPES[self.dtype]}"])
+        self.low, self.levels = LEVELS[self.dtype]
+        self.group = group_size(queue, group)
+        self._k = KernelSet(queue, "rawcounts.cl",
+                            ("scaled_counts", "count_levels", "sum_levels"),
+                            [f"-DPL_COUNT={COUNT_TYPES[self.dtype]}", f"-DPL_LOW={self.low}",
+                             f"-DPL_LEVELS={self.levels}", f"-DPL_GROUP={self.group}"],
+                            looping=["count_levels"])
 
-    def scaled(self, raw: np.ndarray, median: float, scale: float) -> cl_array.Array:
+    def upload(self, raw: np.ndarray) -> cl_array.Array:
+        """A device copy of the counts ``raw`` as they are (for :meth:`histogram` and
+        :meth:`scaled`: the frame goes up once)."""
+        return self._k.to_device(np.asarray(raw, self.dtype))
+
+    def histogram(self, raw: np.ndarray, on_device: cl_array.Array | None = None
+                  ) -> CountHistogram | None:
+        """The :class:`CountHistogram` of the counts ``raw``, counted on the device
+        (``count_levels``, ``sum_levels``; the host's ``np.bincount`` the twin, the same
+        integers) from ``on_device``, their copy from :meth:`upload` (uploaded here when
+        ``None``); ``None`` for an empty frame."""
+        raw = self._k.on_device(raw if on_device is None else on_device, self.dtype)
+        if not raw.size:
+            return None
+        if raw.size >= 2**32:
+            raise ValueError(f"a frame of {raw.size:,} pixels is beyond the device's level "
+                             "counts (32 bits): prepare it on the host (a float image)")
+        units = self.queue.device.max_compute_units
+        groups = GPU_GROUPS if self.group > 1 else CPU_GROUPS_PER_UNIT * units
+        partial = fill(self._k.array((groups, self.levels), np.uint32), 0)
+        self._k.launch("count_levels", (groups * self.group,), raw, np.int64(raw.size),
+                       np.int64(-(-raw.size // groups)), partial, local_size=(self.group,))
+        total = self._k.array(self.levels, np.uint32)
+        self._k.launch("sum_levels", (self.levels,), partial, np.int32(groups), total)
+        counts = total.get()
+        seen = np.flatnonzero(counts)
+        return CountHistogram(self.low + int(seen[0]),
+                              counts[seen[0]:seen[-1] + 1].astype(np.int64))
+
+    def scaled(self, raw, median: float, scale: float) -> cl_array.Array:
         """``max(raw - median, 0) / scale`` as a float32 device image of ``raw``'s shape
-        (:func:`plenocl.reference.rawcounts.scaled_counts`); ``raw`` is uploaded as it is.
-        ``median`` a whole or half count, ``scale`` positive."""
-        raw = np.ascontiguousarray(raw, self.dtype)
+        (:func:`plenocl.reference.rawcounts.scaled_counts`); ``raw`` on the host (uploaded
+        as it is) or from :meth:`upload`. ``median`` a whole or half count, ``scale``
+        positive."""
         if float(np.float32(median)) != median or float(np.float32(scale)) != scale \
                 or not scale > 0:
             raise ValueError(f"scaled counts need a median and a positive scale exact in "
                              f"float32 (whole or half counts), got {median!r}, {scale!r}")
+        raw = self._k.on_device(raw, self.dtype)
         out = self._k.array(raw.shape)
         if raw.size:
-            self._k.launch("scaled_counts", (raw.size,), upload(self.queue, raw),
-                           np.float32(median), np.float32(scale), out)
+            self._k.launch("scaled_counts", (raw.size,), raw, np.float32(median),
+                           np.float32(scale), out)
         return out

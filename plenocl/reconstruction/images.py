@@ -17,7 +17,6 @@ from ..optics.rawimage import (
     background_and_noise,
     check_exposure,
     check_image,
-    count_histogram,
     counted,
     dark_noise,
     divided_to_float32,
@@ -186,11 +185,14 @@ def _prepared_counts(image: np.ndarray, camera, queue, settings: ReconstructionS
                      ) -> PreparedImage | None:
     """:func:`prepare_on_host` of a camera's counts with the image made on ``queue``'s
     device (:class:`plenocl.reconstruction.deviceimage.DeviceCounts`): the checks, median,
-    noise, scale and the image's norm from the counts' histogram, the same values and
-    image bits. ``None`` where the host prepares it instead (counts below zero, whose
-    background is found otherwise, or a frame without light, which it refuses)."""
+    noise, scale and the image's norm from the counts' histogram (counted there too), the
+    same values and image bits. ``None`` where the host prepares it instead (counts below
+    zero, whose background is found otherwise, or a frame without light, which it
+    refuses)."""
     raw = check_image(image, camera, image.dtype, copy=False)
-    hist = count_histogram(raw)
+    counts = DeviceCounts(queue, raw.dtype)
+    on_device = counts.upload(raw)  # once, for the histogram and the image
+    hist = counts.histogram(raw, on_device)
     if hist is None or hist.low < 0:
         return None
     try:
@@ -202,7 +204,7 @@ def _prepared_counts(image: np.ndarray, camera, queue, settings: ReconstructionS
     scale = _checked_scale(float(max(hist.high - (med or 0.0), 0.0)))
     if scale == 0:
         return None
-    device = DeviceCounts(queue, raw.dtype).scaled(raw, med or 0.0, scale)
+    device = counts.scaled(on_device, med or 0.0, scale)
     prepared = PreparedImage(None, scale, _threshold(settings.threshold, noise, 1.0, scale),
                              None, None, med, noise, made_with=_preparation(settings, None),
                              norm_value=_counts_norm(hist, med or 0.0, scale))

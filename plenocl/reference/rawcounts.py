@@ -6,10 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["scaled_counts"]
+__all__ = ["level_counts", "scaled_counts"]
 
 
 def scaled_counts(raw: np.ndarray, median: float, scale: float) -> np.ndarray:
     """``max(raw - median, 0) / scale`` computed in float64 and rounded once to float32."""
     difference = np.maximum(np.asarray(raw, np.float64) - median, 0.0)
     return (difference / scale).astype(np.float32)
+
+
+def level_counts(raw: np.ndarray, low: int, levels: int) -> np.ndarray:
+    """The pixels at each level ``low .. low + levels - 1`` of ``raw`` ``(levels,)``."""
+    return np.bincount(np.asarray(raw, np.int64).ravel() - low, minlength=levels)
