@@ -175,6 +175,31 @@ def test_lens_set_groups_colour_classes(projectors):
         proj.lit_lenses(np.zeros((3, 3)))
 
 
+def test_a_lens_set_goes_up_once_per_queue(projectors, queue):
+    """Two projectors of one camera on one queue asking for the same lit lenses share
+    one upload; other lenses, or the same flags changed in the caller's array afterwards,
+    make their own; a queue keeps the last few only."""
+    from plenocl.projection.lenses import KEPT_SETS
+
+    a = projectors["ideal"]
+    b = Projector(a.camera, Grid((4, 10, 10), x=(-0.5, 0.5), y=(-0.5, 0.5), z=(-1, 1)),
+                  queue)
+    cols, rows = a.camera.ml_count
+    lit = np.random.default_rng(1).random(cols * rows) < 0.4
+    first = a.lens_set(lit)
+    assert b.colour_stride == a.colour_stride
+    assert b.lens_set(lit.copy()) is first
+    lit[0] = not lit[0]  # the caller's array changed: the kept set is not
+    other = a.lens_set(lit)
+    assert other is not first and other.count == first.count + (1 if lit[0] else -1)
+    assert first.lit[0] != lit[0]
+    for k in range(KEPT_SETS):  # pushed out by newer sets
+        a.lens_set(np.roll(lit, k + 1))
+    assert a.lens_set(lit) is not other
+    np.testing.assert_array_equal(np.sort(a.lens_set(lit).ids.get()[:other.count]),
+                                  np.flatnonzero(lit))
+
+
 @pytest.mark.parametrize("method", ["mlem", "smart", "mart"])
 def test_reconstruction_unchanged_by_skipping(method, small_camera, queue):
     grid = Grid((6, 12, 12), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1.5, 1.5))

@@ -18,6 +18,7 @@ any image that is zero at the dark pixels.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,9 +119,18 @@ class LensSet:
         return self.count / max(self.lit.size, 1)
 
 
+#: The queue attribute keeping its last lens sets (they live and go with the queue).
+KEPT_ATTRIBUTE = "plenocl_lens_sets"
+#: Lens sets a queue keeps: an image's coarse, early and fine projectors (one camera) ask
+#: for the same lit lenses, the pair's other image for its own.
+KEPT_SETS = 4
+
+
 def lens_set(queue: cl.CommandQueue, lit: np.ndarray, ml_count: tuple[int, int],
              stride: int) -> LensSet:
-    """Upload the lenses flagged in ``lit`` as a :class:`LensSet` (colour stride ``stride``).
+    """The lenses flagged in ``lit`` as a :class:`LensSet` (colour stride ``stride``) on
+    ``queue``: uploaded once, then kept with the queue for the next ask (the last
+    :data:`KEPT_SETS`; the tables are only read).
 
     ``lit`` is a bool per lens (flat, row-major ``(rows, cols)``); missing lenses must be
     ``False``.
@@ -130,6 +140,33 @@ def lens_set(queue: cl.CommandQueue, lit: np.ndarray, ml_count: tuple[int, int],
     if lit.size != cols * rows:
         raise ValueError(f"lit must hold one flag per microlens ({rows} x {cols}), "
                          f"got {lit.size}")
+    key = (cols, rows, int(stride), lit.tobytes())
+    lock, kept = _kept_sets(queue)
+    with lock:
+        made = kept.get(key)
+        if made is None:
+            made = kept[key] = _uploaded_set(queue, lit.copy(), cols, rows, stride)
+            while len(kept) > KEPT_SETS:
+                kept.pop(next(iter(kept)))
+        return made
+
+
+def _kept_sets(queue: cl.CommandQueue) -> tuple[threading.Lock, dict]:
+    """``queue``'s lock and kept lens sets (oldest first), made at the first call; a
+    fresh pair each call where the queue object cannot hold them."""
+    kept = getattr(queue, KEPT_ATTRIBUTE, None)
+    if kept is None:
+        kept = (threading.Lock(), {})
+        try:
+            setattr(queue, KEPT_ATTRIBUTE, kept)
+        except AttributeError:
+            pass
+    return kept
+
+
+def _uploaded_set(queue: cl.CommandQueue, lit: np.ndarray, cols: int, rows: int,
+                  stride: int) -> LensSet:
+    """The :class:`LensSet` of ``lit``, made and uploaded."""
     ky, kx = np.divmod(np.arange(cols * rows), cols)
     colour = (ky % stride) * stride + kx % stride
     ids = np.flatnonzero(lit)
