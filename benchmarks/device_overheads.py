@@ -31,8 +31,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-from plenocl.bench.alternate import alternate_ways  # noqa: E402
-from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.alternate import alternation_script  # noqa: E402
 from plenocl.opencl.device import is_cpu  # noqa: E402
 from plenocl.pipeline import pair as pair_module  # noqa: E402
 from plenocl.piv import fitsums  # noqa: E402
@@ -64,13 +63,9 @@ WAYS = {"all three undone": ("kept buffers", "one launch", "ahead"),
 
 
 def main() -> None:
-    parser = script_parser(__doc__)
-    parser.add_argument("--lenses", type=int, nargs=2, default=[289, 193])
-    parser.add_argument("--rounds", type=int, default=3)
-    args = parser.parse_args()
-    ways = {label: functools.partial(undo, *changes) for label, changes in WAYS.items()}
-    alternate_ways(ways, args.lenses, args.rounds)
-
+    alternation_script(__doc__, lambda queue: {
+        label: functools.partial(undo, *changes) for label, changes in WAYS.items()},
+        lenses=(289, 193), rounds=3)
 
 if __name__ == "__main__":
     main()

@@ -20,9 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import get_queue  # noqa: E402
-from plenocl.bench.alternate import alternate_ways  # noqa: E402
-from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.alternate import alternation_script  # noqa: E402
 from plenocl.optics.rawimage import count_histogram  # noqa: E402
 from plenocl.reconstruction.deviceimage import DeviceCounts  # noqa: E402
 
@@ -40,16 +38,10 @@ def counted_by(histogram) -> None:
 
 
 def main() -> None:
-    parser = script_parser(__doc__)
-    parser.add_argument("--lenses", type=int, nargs=2, default=[116, 78])
-    parser.add_argument("--rounds", type=int, default=4)
-    args = parser.parse_args()
-    queue = get_queue(profiling=True)
-    print(f"device: {queue.device.name.strip()} ({queue.device.platform.name.strip()})")
-    alternate_ways({"levels counted on the host (before)": lambda: counted_by(host_histogram),
-                    "levels counted on the device": lambda: counted_by(ON_DEVICE)},
-                   args.lenses, args.rounds, queue=queue, warm=True, bit_depth=16)
-
+    alternation_script(__doc__, lambda queue: {
+        "levels counted on the host (before)": lambda: counted_by(host_histogram),
+        "levels counted on the device": lambda: counted_by(ON_DEVICE)},
+        warm=True, bit_depth=16)
 
 if __name__ == "__main__":
     main()

@@ -18,23 +18,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenocl import get_queue  # noqa: E402
-from plenocl.bench.alternate import alternate_ways  # noqa: E402
-from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.alternate import alternation_script  # noqa: E402
 from plenocl.opencl.pool import use_pool  # noqa: E402
 
 
 def main() -> None:
-    parser = script_parser(__doc__)
-    parser.add_argument("--lenses", type=int, nargs=2, default=[116, 78])
-    parser.add_argument("--rounds", type=int, default=4)
-    args = parser.parse_args()
-    queue = get_queue(profiling=True)
-    print(f"device: {queue.device.name.strip()} ({queue.device.platform.name.strip()})")
-    alternate_ways({"no memory pool (before)": lambda: use_pool(queue, False),
-                    "memory pool": lambda: use_pool(queue, True)},
-                   args.lenses, args.rounds, queue=queue, warm=True)
-
+    alternation_script(__doc__, lambda queue: {
+        "no memory pool (before)": lambda: use_pool(queue, False),
+        "memory pool": lambda: use_pool(queue, True)}, warm=True)
 
 if __name__ == "__main__":
     main()

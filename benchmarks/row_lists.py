@@ -23,9 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from plenocl import get_queue  # noqa: E402
-from plenocl.bench.alternate import alternate_ways  # noqa: E402
-from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.alternate import alternation_script  # noqa: E402
 from plenocl.opencl.arrays import upload  # noqa: E402
 from plenocl.opencl.rowlists import DeviceRowLists, RowLists, clipped  # noqa: E402
 from plenocl.sorting import stable_order  # noqa: E402
@@ -72,16 +70,9 @@ def lists_by(rows, boxes) -> None:
 
 
 def main() -> None:
-    parser = script_parser(__doc__)
-    parser.add_argument("--lenses", type=int, nargs=2, default=[116, 78])
-    parser.add_argument("--rounds", type=int, default=4)
-    args = parser.parse_args()
-    queue = get_queue(profiling=True)
-    print(f"device: {queue.device.name.strip()} ({queue.device.platform.name.strip()})")
-    alternate_ways({"lists from the host (before)": lambda: lists_by(host_rows, host_boxes),
-                    "lists on the device": lambda: lists_by(**ON_DEVICE)},
-                   args.lenses, args.rounds, queue=queue, warm=True)
-
+    alternation_script(__doc__, lambda queue: {
+        "lists from the host (before)": lambda: lists_by(host_rows, host_boxes),
+        "lists on the device": lambda: lists_by(**ON_DEVICE)}, warm=True)
 
 if __name__ == "__main__":
     main()

@@ -23,8 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import pyopencl.array as cl_array  # noqa: E402
 
-from plenocl.bench.alternate import alternate_ways  # noqa: E402
-from plenocl.bench.scripts import script_parser  # noqa: E402
+from plenocl.bench.alternate import alternation_script  # noqa: E402
 from plenocl.opencl import arrays  # noqa: E402
 
 
@@ -43,14 +42,9 @@ def uploads_by(upload) -> None:
 
 
 def main() -> None:
-    parser = script_parser(__doc__)
-    parser.add_argument("--lenses", type=int, nargs=2, default=[116, 78])
-    parser.add_argument("--rounds", type=int, default=3)
-    args = parser.parse_args()
-    alternate_ways({"blocking to_device (before)": lambda: uploads_by(blocking_upload),
-                    "arrays.upload": lambda: uploads_by(arrays.upload)},
-                   args.lenses, args.rounds)
-
+    alternation_script(__doc__, lambda queue: {
+        "blocking to_device (before)": lambda: uploads_by(blocking_upload),
+        "arrays.upload": lambda: uploads_by(arrays.upload)}, rounds=3)
 
 if __name__ == "__main__":
     main()

@@ -20,8 +20,9 @@ import numpy as np
 from ..opencl.device import get_queue
 from .accuracy_section import UNIFORM, budget_scene, paper_setup
 from .clprofile import profiled_pair
+from .scripts import script_parser
 
-__all__ = ["alternate_ways"]
+__all__ = ["alternate_ways", "alternation_script"]
 
 #: The field's columns compared across ways.
 COMPARED = ("u", "v", "w", "valid", "sigma_u")
@@ -68,3 +69,19 @@ def alternate_ways(ways: dict[str, Callable[[], None]], lenses: tuple[int, int],
                for f in fields.values() for c in COMPARED)
     print(f"the vectors the same to the bit every way: {same}")
     return medians
+
+
+def alternation_script(doc: str, ways: Callable[[object], dict[str, Callable[[], None]]],
+                       lenses: tuple[int, int] = (116, 78), rounds: int = 4,
+                       **options) -> dict[str, dict[str, float]]:
+    """A benchmark script's ``main``: its ``--lenses`` and ``--rounds`` (defaults
+    ``lenses``, ``rounds``) read, a profiling queue made (``PYOPENCL_CTX``'s device or the
+    default) and named, and :func:`alternate_ways` run on it with ``ways(queue)`` and
+    ``options`` (``warm``, ``bit_depth``)."""
+    parser = script_parser(doc)
+    parser.add_argument("--lenses", type=int, nargs=2, default=list(lenses))
+    parser.add_argument("--rounds", type=int, default=rounds)
+    args = parser.parse_args()
+    queue = get_queue(profiling=True)
+    print(f"device: {queue.device.name.strip()} ({queue.device.platform.name.strip()})")
+    return alternate_ways(ways(queue), args.lenses, args.rounds, queue=queue, **options)
