@@ -16,5 +16,5 @@ def scaled_counts(raw: np.ndarray, median: float, scale: float) -> np.ndarray:
 
 
 def level_counts(raw: np.ndarray, low: int, levels: int) -> np.ndarray:
-    """The pixels at each level ``low .. low + levels - 1`` of ``raw`` ``(levels,)``."""
+    """The pixels of ``raw`` at each of ``levels`` levels from ``low`` up, ``(levels,)``."""
     return np.bincount(np.asarray(raw, np.int64).ravel() - low, minlength=levels)
