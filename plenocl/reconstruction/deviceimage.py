@@ -29,9 +29,6 @@ __all__ = ["COUNT_TYPES", "DeviceCounts", "prepares_on_device"]
 #: so a count less a median (a whole or half count) is exact in float32.
 COUNT_TYPES = {np.dtype(np.uint8): "uchar", np.dtype(np.uint16): "ushort",
                np.dtype(np.int16): "short"}
-#: Each count type's levels: the lowest and how many (every value the type holds).
-LEVELS = {np.dtype(np.uint8): (0, 256), np.dtype(np.uint16): (0, 65536),
-          np.dtype(np.int16): (-32768, 65536)}
 #: Work-groups counting the levels, each into its own histogram: with groups of several
 #: items (a GPU) many (they add with atomics; the copies spread the few background levels
 #: that every item hits), with one item a group (a CPU) a few per compute unit (plain
@@ -62,7 +59,8 @@ class DeviceCounts:
             raise ValueError(f"counts of {self.dtype} are prepared on the host; the device "
                              f"takes {', '.join(str(t) for t in COUNT_TYPES)}")
         self.queue = queue
-        self.low, self.levels = LEVELS[self.dtype]
+        info = np.iinfo(self.dtype)  # the levels counted: every value the type holds
+        self.low, self.levels = int(info.min), int(info.max) - int(info.min) + 1
         self.group = group_size(queue, group)
         self._k = KernelSet(queue, "rawcounts.cl",
                             ("scaled_counts", "count_levels", "sum_levels"),
