@@ -15,6 +15,8 @@ the weighting function's voxel footprint against a point particle's image.
    particles (rendered as Gaussians): the image the weighting function expects. MART
    and SMART also with a ratio floor of 0.1 and 0.3 (``ratio_floor``, docs/design.md
    §6.2) against their literal form; MLEM on each image is the baseline of the same run.
+   Every method on the image as it is (``smooth_px=0``: MART and SMART smooth it by 1 px
+   by default, docs/design.md §6.2, which ``benchmarks/paper_mart.py`` measures).
 """
 
 from __future__ import annotations
@@ -65,7 +67,8 @@ def solvers(proj: Projector, count: int) -> None:
     for name, img in images.items():
         for method, floor in VARIANTS:
             it, mu = DEFAULTS[method]
-            vol = reconstruct(img, proj, method, it, mu, ratio_floor=floor, supersample=1)
+            vol = reconstruct(img, proj, method, it, mu, ratio_floor=floor, supersample=1,
+                              smooth_px=0)
             rep = recovery(vol, GRID, pos)
             label = method if floor is None else f"{method} floor {floor:g}"
             print(f"{count:9d} {name:24s} {label:16s} {it:4d} {rep.fraction:6.2f} "

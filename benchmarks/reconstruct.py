@@ -36,7 +36,7 @@ from plenocl.simulate import simulate_image
 CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 CUBIC = Grid((40, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 SETTINGS = [  # label, method, iterations, relax, options
-    ("MART (paper)", "mart", 15, 0.7, {}),
+    ("MART (paper)", "mart", 15, 0.7, dict(smooth_px=0)),
     ("SMART", "smart", 30, 1.0, {}),
     ("SMART mlos+mask", "smart", 30, 1.0, dict(start="mlos", mask_fraction=0.5)),
     ("MLEM", "mlem", 10, 1.0, {}),
@@ -127,8 +127,8 @@ def seed_study(queue, seeds: int = 20, counts=(20, 60)) -> None:
     for n in counts:
         scenes = [particle_scene(cam, n, seed=5000 + k) for k in range(seeds)]
         for name, proj in projs.items():
-            rec = {m: [recovery(reconstruct(img, proj, m, it, mu, supersample=1), proj.grid,
-                                pos).fraction for pos, _, img in scenes]
+            rec = {m: [recovery(reconstruct(img, proj, m, it, mu, supersample=1, smooth_px=0),
+                                proj.grid, pos).fraction for pos, _, img in scenes]
                    for m, it, mu in (("mlem", 30, 1.0), ("mart", 15, 0.7))}
             cells = [f"{np.mean(v):.2f} / {min(v):.2f}" for v in rec.values()]
             print(f"{n:9d} {name:12s} {cells[0]:>14s} {cells[1]:>14s}", flush=True)
@@ -204,7 +204,8 @@ def paper_experiment(queue) -> None:
     for label, method, mu in (("MART, mu = 1 (paper)", "mart", 1.0), ("MLEM (default)", "mlem",
                                                                        1.0)):
         t0 = time.perf_counter()
-        _, info = reconstruct(img, proj, method, 5, mu, return_info=True, supersample=1)
+        _, info = reconstruct(img, proj, method, 5, mu, return_info=True, supersample=1,
+                              smooth_px=0)
         print(f"  {label:22s} 5 iterations: {time.perf_counter() - t0:7.1f} s "
               f"(residual {info.residuals[-1]:.3f})", flush=True)
 

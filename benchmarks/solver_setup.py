@@ -46,7 +46,7 @@ def timed_first(cam, grid, image, queue, method: str, iterations: int, repeats: 
     for _ in range(repeats):
         proj = Projector(cam, grid, queue)
         t0 = time.perf_counter()
-        reconstruct(image, proj, method, iterations=iterations, supersample=1)
+        reconstruct(image, proj, method, iterations=iterations, supersample=1, smooth_px=0)
         times.append(time.perf_counter() - t0)
     return statistics.median(times), proj
 
@@ -68,7 +68,7 @@ def main() -> None:
         first[method], proj = timed_first(cam, grid, image, queue, method, 1, args.repeats)
         # the same (warm) projector: the cost of each further iteration
         t3, t1 = (median_time(lambda n=n, p=proj, m=method: reconstruct(
-                                  image, p, m, iterations=n, supersample=1),
+                                  image, p, m, iterations=n, supersample=1, smooth_px=0),
                               args.repeats, warmup=False) for n in (3, 1))
         warm[method] = (t3 - t1) / 2
         print(f"  {method.upper():4s} ({proj.path} path): 1 iteration with set-up "

@@ -70,7 +70,7 @@ def test_sub_voxels_recover_the_synthetic_particles_on_cubic_voxels(queue, count
 
 def test_papers_mart_runs_finite_and_worse_than_default(paper_case):
     _, proj, pos, _, img = paper_case
-    vol = reconstruct(img, proj, "mart", 15, 0.7, supersample=1)  # the paper's, on voxels
+    vol = reconstruct(img, proj, "mart", 15, 0.7, supersample=1, smooth_px=0)  # the paper's
     assert np.all(np.isfinite(vol)) and vol.min() >= 0 and vol.max() > 0
     assert recovery(vol, CUBE, pos).fraction < recovery(reconstruct(img, proj), CUBE, pos).fraction
 
@@ -80,7 +80,7 @@ def test_a_ratio_floor_keeps_the_particles_the_literal_mart_loses(paper_case):
     literal MART; floored at 0.3 the ratio costs it at most 0.3^(mu w): far more of the
     particles survive (benchmarks/mart_footprint.py: 0.25 -> 0.95 on this image)."""
     _, proj, pos, _, img = paper_case
-    kw = dict(supersample=1)  # the paper's MART, on the voxels
+    kw = dict(supersample=1, smooth_px=0)  # the paper's MART, on the voxels, unsmoothed
     literal = recovery(reconstruct(img, proj, "mart", 15, 0.7, **kw), CUBE, pos).fraction
     floored = recovery(reconstruct(img, proj, "mart", 15, 0.7, ratio_floor=0.3, **kw), CUBE,
                        pos).fraction
@@ -297,10 +297,20 @@ def test_device_extent_gives_the_numpy_box(small_camera, queue):
 
 
 def test_settings_are_validated_once_and_resolve_method_defaults():
-    from plenocl.reconstruction import DEFAULTS, ReconstructionSettings
+    from plenocl.reconstruction import (
+        COARSE_ITERATIONS,
+        DEFAULTS,
+        SUPERSAMPLE,
+        ReconstructionSettings,
+    )
 
     mart = ReconstructionSettings(method="mart")
     assert (mart.iterations, mart.relax) == DEFAULTS["mart"]
+    # the geometric-mean methods on the sub-voxels from the start, MLEM coarse-to-fine
+    assert (mart.supersample, mart.coarse_iterations) == (SUPERSAMPLE, 0)
+    assert ReconstructionSettings("smart").coarse_iterations == 0
+    assert ReconstructionSettings().coarse_iterations == COARSE_ITERATIONS > 0
+    assert ReconstructionSettings("mart", coarse_iterations=2).coarse_iterations == 2
     assert mart.n_blocks == mart.mart_blocks**2
     assert ReconstructionSettings().n_blocks == 1
     assert ReconstructionSettings(iterations=3).iterations == 3

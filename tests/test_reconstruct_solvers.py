@@ -18,7 +18,9 @@ from plenocl.reference import reconstruct as ref
 def reconstruct_voxels(image, projector, *args, **keywords):
     """:func:`plenocl.reconstruction.reconstruct` on the voxels themselves
     (``supersample=1``): the kernels are checked voxel by voxel against the references,
-    and a matrix operator has no sub-voxels."""
+    and a matrix operator has no sub-voxels; on the image as given (``smooth_px=0`` unless
+    said: the references take no smoothing, which tests/test_smoothing.py checks)."""
+    keywords.setdefault("smooth_px", 0)
     return reconstruct(image, projector, *args, supersample=1, **keywords)
 
 

@@ -198,14 +198,18 @@ def test_defaults_agree():
     assert (rec.coarse_iterations, rec.support, rec.iterations, rec.relax) == (
         COARSE_ITERATIONS, SUPPORT, *FINE_DEFAULTS) == (4, 0.01, 7, 1.5)
     assert _cli_settings() == rec
-    # the voxels themselves, or another method, keep the method's own iterations
+    # the voxels themselves, or another method, keep the method's own iterations; SMART
+    # and MART on the sub-voxels from the start (no coarse support), smoothed by 1 px
     one = PairSettings.from_dict({"reconstruction": {"supersample": 1}}).reconstruction
     assert (one.iterations, one.relax) == DEFAULTS["mlem"] and one.coarse_iterations == 0
     for method in ("mart", "smart"):
         other = PairSettings.from_dict({"reconstruction": {"method": method}}).reconstruction
         assert other == ReconstructionSettings(method=method)
         assert (other.iterations, other.relax) == DEFAULTS[method]
-        assert (other.supersample, other.coarse_iterations) == (3, 4)
+        assert (other.supersample, other.coarse_iterations, other.smooth_px) == (3, 0, 1.0)
+        assert _cli_settings("--method", method) == other
+        assert _cli_settings("--method", method, "--smooth-px", "0").smooth_px == 0
+    assert rec.smooth_px is None  # MLEM: no smoothing, its record as before
     given = PairSettings.from_dict({"reconstruction": {"relax": 1.0}}).reconstruction
     assert (given.relax, given.iterations) == (1.0, 7)
     assert ReconstructionSettings(relax=1.0) == given

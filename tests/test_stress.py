@@ -47,6 +47,7 @@ from plenocl.plot import PlotOptions, plot_file
 from plenocl.reconstruction import (
     FLOAT32_LIMIT,
     METHODS,
+    SMOOTH_DEFAULTS,
     UnusableImageError,
     preprocess,
     view_blocks,
@@ -383,10 +384,11 @@ def test_reconstruct_is_finite_and_non_negative(tiny, tiny_perturbed, kind, dtyp
     image = _make_image(proj.image_shape, kind, dtype, exponent, seed)
     peak = float(np.asarray(image, np.float64).max())
     sens = proj.back(np.ones(proj.image_shape, np.float32)).astype(np.float64)
-    _, scale, thr = preprocess(image, proj.camera, "median", threshold * peak)
-    unusable = np.mean(image == image.max()) > 0.5 or scale == 0 or thr >= 1  # one value,
-    # saturated (SATURATED_FRACTION), no light above the background or the threshold
-    for method in METHODS:
+    for method in METHODS:  # each with its own smoothing (SMOOTH_DEFAULTS)
+        _, scale, thr = preprocess(image, proj.camera, "median", threshold * peak,
+                                   smooth_px=SMOOTH_DEFAULTS[method])
+        unusable = np.mean(image == image.max()) > 0.5 or scale == 0 or thr >= 1  # one
+        # value, saturated (SATURATED_FRACTION), no light above the background or threshold
         try:
             vol = reconstruct(image, proj, method, iterations, relax, start=start,
                               threshold=threshold * peak, mask_fraction=mask_fraction,

@@ -24,14 +24,15 @@ ReconSetting = tuple[str, str, int, float, dict]
 #: on sub-voxels, docs/design.md §6.5).
 VOXELS = {"supersample": 1}
 #: The paper's method's rows name the paper's lens weights (the projector's default are
-#: the extent weights, docs/design.md §6.4).
-PAPER_WEIGHTS = {"lens_weights": "paper"}
+#: the extent weights, docs/design.md §6.4) and its image as it is (MART smooths it by
+#: 1 px by default, docs/design.md §6.2).
+PAPER_METHOD = {"lens_weights": "paper", "smooth_px": 0}
 
 
 # ---- configuration ----------------------------------------------------------------------
 BENCH_CUBE = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 _RECON_CI: tuple[ReconSetting, ...] = (
-    ("MART (paper)", "mart", 15, 0.7, PAPER_WEIGHTS),
+    ("MART (paper)", "mart", 15, 0.7, PAPER_METHOD),
     ("SMART", "smart", 30, 1.0, {}),
     ("MLEM", "mlem", 5, 1.0, {}),
     ("MLEM", "mlem", 10, 1.0, {}),

@@ -15,7 +15,7 @@ from ..reconstruction import reconstruct
 from ..reference.simulate import trace_particles
 from ..simulate import Simulator
 from .core import (
-    PAPER_WEIGHTS,
+    PAPER_METHOD,
     VOXELS,
     BenchRun,
     Box,
@@ -249,7 +249,7 @@ def _paper_reconstruction(run: BenchRun) -> str:
     img = Simulator(cam, run.queue).trace(pos, inten, 2000, seed=3)
     proj = Projector(cam, grid, run.queue)
     rows = []
-    for label, method, mu, opts in (("MART μ = 1 (paper)", "mart", 1.0, PAPER_WEIGHTS),
+    for label, method, mu, opts in (("MART μ = 1 (paper)", "mart", 1.0, PAPER_METHOD),
                                     ("MLEM (voxels' default)", "mlem", 1.0, {}),
                                     ("MLEM, no skipping", "mlem", 1.0, _OFF)):
         (vol, info), t = timed(lambda m=method, u=mu, o=opts: reconstruct(

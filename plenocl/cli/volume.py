@@ -64,7 +64,8 @@ def reconstruction_settings(args: argparse.Namespace):
                  start=args.start, threshold=args.threshold, mask_fraction=args.mask_fraction,
                  min_sensitivity=args.min_sensitivity, tol=args.tol,
                  supersample=args.supersample, coarse_iterations=args.coarse_iterations,
-                 support=args.support, coarse_oversample=args.coarse_oversample)
+                 support=args.support, coarse_oversample=args.coarse_oversample,
+                 smooth_px=args.smooth_px)
     table = {k: v for k, v in given.items() if v is not None}
     table["background"] = "median" if args.background == "median" else None
     return ReconstructionSettings(**table)
@@ -188,6 +189,10 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
                    help="dark-pixel threshold (default: 4x the estimated noise)")
     p.add_argument("--mask-fraction", type=float, default=None,
                    help="zero voxels sending more than this fraction of light to dark pixels")
+    p.add_argument("--smooth-px", type=float, default=None,
+                   help="smooth the image by a Gaussian of this many pixels before the "
+                        "dark threshold (default: 1 for smart and mart, which keeps a noisy "
+                        "image's particles, none for mlem; 0: none)")
     p.add_argument("--min-sensitivity", type=float, default=0.5,
                    help="skip voxels sending no more than this fraction of light to the sensor")
     p.add_argument("--tol", type=float, default=None, help="early-stop tolerance")
@@ -203,9 +208,10 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--coarse-iterations", type=int, default=None,
                    help="with sub-voxels: iterations on the voxels first, whose support "
                         "the sub-voxel iterations keep to (default "
-                        f"{COARSE_ITERATIONS}, as plenocl.reconstruct and process_pair, and "
-                        f"then {FINE_DEFAULTS[0]} mlem iterations on the sub-voxels; 0: "
-                        "the sub-voxels from the start)")
+                        f"{COARSE_ITERATIONS} for mlem, as plenocl.reconstruct and "
+                        f"process_pair, and then {FINE_DEFAULTS[0]} mlem iterations on the "
+                        "sub-voxels; 0 for smart and mart, and 0: the sub-voxels from the "
+                        "start)")
     p.add_argument("--support", type=float, default=None,
                    help="support threshold of the coarse volume, a fraction of its "
                         f"brightest voxel (default {SUPPORT:g})")

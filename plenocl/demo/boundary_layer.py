@@ -246,12 +246,13 @@ def _stage_reconstruction(run, sc, cam, settings: ReconstructionSettings, queue)
 
 def _stage_mart(run, sc, cam, queue) -> None:
     """The paper's method for comparison: 5 MART iterations at μ = 1 on the voxels
-    themselves, with the paper's lens weights (first exposure)."""
+    themselves, with the paper's lens weights, on the image as it is (no smoothing; first
+    exposure)."""
     from ..projection.projector import Projector
 
     _reconstruct_file(run, sc, Projector(cam, sc.grid, queue), "a",
                       ReconstructionSettings("mart", 5, 1.0, supersample=1,
-                                             lens_weights="paper"), "_mart")
+                                             lens_weights="paper", smooth_px=0), "_mart")
 
 
 def _stage_piv(run: StageRunner, sc: Scenario, cam: Camera, settings: PairSettings,

@@ -32,6 +32,7 @@ from .settings import (
     MAX_MART_BLOCKS,
     METHOD,
     METHODS,
+    SMOOTH_DEFAULTS,
     SUPERSAMPLE,
     SUPPORT,
     ReconstructionInfo,
@@ -41,8 +42,9 @@ from .solver import CROP_BELOW, UPDATES, Solver, extent_box, nonzero_box
 from .supersample import MAX_SUPERSAMPLE, bin_lateral, spread_lateral
 
 __all__ = ["COARSE_ITERATIONS", "CROP_BELOW", "DEFAULTS", "FINE_DEFAULTS", "FLOAT32_LIMIT",
-           "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHOD", "METHODS", "NOISE_SIGMAS", "SUPERSAMPLE",
-           "SUPPORT", "UPDATES", "UnusableImageError", "bin_lateral",
+           "MAX_MART_BLOCKS", "MAX_SUPERSAMPLE", "METHOD", "METHODS", "NOISE_SIGMAS",
+           "SMOOTH_DEFAULTS", "SUPERSAMPLE", "SUPPORT", "UPDATES", "UnusableImageError",
+           "bin_lateral",
            "prepare_on_host", "prepares_on_device", "preprocess", "spread_lateral",
            "ProjectionOperator", "ReconstructionInfo", "ReconstructionSettings",
            "RefinableOperator", "Solver",

@@ -42,7 +42,7 @@ def prepares_on_device(image, background: str | None, smooth_px: float | None,
     (:data:`COUNT_TYPES`) prepared the default way (the median background or none, no
     smoothing, no pixel mask). Other images (floats, wider integers, a mask, smoothing)
     are prepared on the host."""
-    return (observed is None and smooth_px is None and background in ("median", None)
+    return (observed is None and not smooth_px and background in ("median", None)
             and isinstance(image, np.ndarray) and image.dtype in COUNT_TYPES)
 
 

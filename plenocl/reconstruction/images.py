@@ -76,7 +76,7 @@ def preprocess(image, camera, background: str | None = "median",
         background is removed and before it is clipped and thresholded
         (:func:`smooth_image`; docs/design.md §6.2). The background and noise are the
         raw image's; the default threshold follows the noise the smoothing leaves
-        (:func:`smoothing_gain`). ``None``: no smoothing.
+        (:func:`smoothing_gain`). ``None`` or 0: no smoothing.
 
     Returns
     -------
@@ -151,7 +151,7 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     # in place on check_image's own float64 copy: no 16 MP temporaries
     np.subtract(img, med or 0.0, out=img)
     gain = 1.0
-    if smooth_px is not None:  # noise averaged before clipping: no bias from the clip
+    if smooth_px:  # noise averaged before clipping: no bias from the clip
         img, gain = smooth_image(img, smooth_px, observed), smoothing_gain(smooth_px)
     np.maximum(img, 0.0, out=img)
     if observed is not None:  # 0 - a negative median would give them light
@@ -160,7 +160,7 @@ def _preprocessed(image, camera, background: str | None, threshold: float | None
     thr = _threshold(threshold, noise, gain, scale)
     # the image fit's image where nothing but the background was removed: the same
     # division as plenocl.optics.rawimage.scaled_background_free (PreparedImage.fit_image)
-    out, smoothed = divided_to_float32(img, scale), smooth_px is not None
+    out, smoothed = divided_to_float32(img, scale), bool(smooth_px)
     return PreparedImage(out, scale, thr, observed, None, med, noise, smoothed)
 
 

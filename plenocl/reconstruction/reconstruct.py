@@ -226,7 +226,9 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         against a reference; a ``start`` volume iterated on the voxels themselves.
     coarse_iterations, support
         Coarse-to-fine (``supersample > 1`` only; docs/design.md §6.5): first
-        ``coarse_iterations`` (default 4) on the voxels themselves; the voxels brighter
+        ``coarse_iterations`` (default 4 for MLEM, 0 for SMART and MART, whose geometric
+        mean on whole voxels loses particles the support needs: docs/design.md §6.2) on
+        the voxels themselves; the voxels brighter
         than ``support`` (default 0.01) times the brightest, grown by one voxel, are the
         support, and the ``iterations`` on the sub-voxels start flat on it and never
         leave it (the back projection skips the zero voxels). ``0``: the sub-voxels start
@@ -255,9 +257,10 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         ``settings.MAX_SMOOTH_PX``) after its median is removed and before it is
         thresholded (:func:`plenocl.reconstruction.images.smooth_image`); the default
         threshold follows the noise the smoothing leaves, and ``info.background`` and
-        ``info.noise`` stay the raw image's. ``None`` (default): no smoothing. 1 px keeps
-        the paper's MART from losing a noisy image's dim particle pixels to its dark
-        threshold (docs/design.md §6.2).
+        ``info.noise`` stay the raw image's; 0: no smoothing. ``None`` (default): the
+        method's own (``settings.SMOOTH_DEFAULTS``): 1 px for SMART and MART, which
+        keeps them from losing a noisy image's dim particle pixels to the dark threshold
+        (docs/design.md §6.2), none for MLEM.
     callback
         Called as ``callback(iteration, residual)`` after each iteration; returning
         ``False`` stops the reconstruction. Coarse-to-fine: the coarse iterations come

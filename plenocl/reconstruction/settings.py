@@ -33,7 +33,11 @@ DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
 #: Lateral sub-voxels per voxel and axis by default (docs/design.md §6.4).
 SUPERSAMPLE = 3
 #: Coarse-to-fine by default on sub-voxels (docs/design.md §6.5): iterations on the
-#: voxels first, and the support threshold (a fraction of their brightest voxel).
+#: voxels first, and the support threshold (a fraction of their brightest voxel). MLEM's
+#: alone: the geometric-mean methods' iterations on whole voxels lose particles (the
+#: footprint a voxel a lens wide spreads, docs/design.md §6.2), and their support then
+#: drops them (the paper's MART on noisy images: 44-54 % recovered after 4 such
+#: iterations, 96-99 % on the sub-voxels from the start; ``benchmarks/paper_mart.py``).
 COARSE_ITERATIONS = 4
 SUPPORT = 0.01
 #: MLEM's defaults on sub-voxels after coarse iterations: (iterations, relaxation), both
@@ -50,6 +54,13 @@ LENS_WEIGHTS = ("paper", "extent")
 #: Largest image smoothing accepted (``smooth_px``, pixels): a particle image's size; wider
 #: smoothing would carry light across a microlens image (17 px at the paper's camera).
 MAX_SMOOTH_PX = 4.0
+#: The image smoothing of each method by default (``smooth_px=None``; pixels, 0: none).
+#: The geometric-mean methods smooth by 1 px: their log ratio of a pixel left below the
+#: dark threshold (-13.8) removes a noisy image's dim particle pixels, and so its
+#: particles, where the smoothed image keeps them (the paper's MART on noisy ray-traced
+#: images: 17-21 % recovered unsmoothed, 96-99 % smoothed; docs/design.md §6.2). MLEM
+#: averages the ratios and is left as it is (``None``, no smoothing, is its record).
+SMOOTH_DEFAULTS = {"mlem": None, "smart": 1.0, "mart": 1.0}
 
 
 @dataclass
@@ -111,12 +122,14 @@ class ReconstructionSettings:
     x :data:`SUPERSAMPLE` lateral sub-voxels per voxel, :data:`COARSE_ITERATIONS` on the
     voxels first, :data:`SUPPORT`; for MLEM then :data:`FINE_DEFAULTS` (7 iterations on
     the sub-voxels at μ = 1.5). Options left at ``None`` resolve from those given:
-    ``coarse_iterations`` is 0 on the voxels (``supersample=1``); ``iterations`` and
-    ``relax`` are :data:`FINE_DEFAULTS` for MLEM on sub-voxels after coarse iterations,
-    else the method's own (:data:`DEFAULTS`: ``supersample=1`` is MLEM's 30 at μ = 1).
-    Values given always win, each on its own. The stored object holds the resolved
-    values (so ``dataclasses.replace(settings, supersample=1)`` keeps the sub-voxels'
-    iterations; ``ReconstructionSettings(supersample=1)`` takes the voxels' own)."""
+    ``coarse_iterations`` is 0 on the voxels (``supersample=1``) and for SMART and MART
+    (:data:`COARSE_ITERATIONS`); ``iterations`` and ``relax`` are :data:`FINE_DEFAULTS`
+    for MLEM on sub-voxels after coarse iterations, else the method's own
+    (:data:`DEFAULTS`: ``supersample=1`` is MLEM's 30 at μ = 1); ``smooth_px`` the
+    method's (:data:`SMOOTH_DEFAULTS`). Values given always win, each on its own. The
+    stored object holds the resolved values (so ``dataclasses.replace(settings,
+    supersample=1)`` keeps the sub-voxels' iterations; ``ReconstructionSettings(
+    supersample=1)`` takes the voxels' own)."""
 
     method: str = "mlem"
     iterations: int | None = None
@@ -144,8 +157,9 @@ class ReconstructionSettings:
     def __post_init__(self) -> None:
         whole_counts(self, (*COUNTS, "supersample"))  # 3.0, as a file may write it: 3
         fine = is_integer(self.supersample) and self.supersample > 1
-        if self.coarse_iterations is None:
-            object.__setattr__(self, "coarse_iterations", COARSE_ITERATIONS if fine else 0)
+        if self.coarse_iterations is None:  # MLEM's alone (COARSE_ITERATIONS' note)
+            object.__setattr__(self, "coarse_iterations",
+                               COARSE_ITERATIONS if fine and self.method == "mlem" else 0)
         if fine and self.coarse_iterations and self.method == "mlem":
             it_default, mu_default = FINE_DEFAULTS
         else:
@@ -154,6 +168,8 @@ class ReconstructionSettings:
             object.__setattr__(self, "iterations", it_default)
         if self.relax is None:
             object.__setattr__(self, "relax", mu_default)
+        if self.smooth_px is None:
+            object.__setattr__(self, "smooth_px", SMOOTH_DEFAULTS.get(self.method))
         _check_types(self)
         _check_options(self)
 
@@ -247,10 +263,11 @@ def _check_options(s: ReconstructionSettings) -> None:
                          f"projector's own), got {s.lens_weights!r}")
     if s.smooth_px is not None and not (
             isinstance(s.smooth_px, numbers.Real) and not isinstance(s.smooth_px, bool)
-            and np.isfinite(s.smooth_px) and 0 < s.smooth_px <= MAX_SMOOTH_PX):
+            and np.isfinite(s.smooth_px) and 0 <= s.smooth_px <= MAX_SMOOTH_PX):
         raise ValueError(f"smooth_px must be a Gaussian's standard deviation in pixels, "
-                         f"0 < smooth_px <= {MAX_SMOOTH_PX:g} (about the particle images' "
-                         f"size), or None (no smoothing), got {s.smooth_px!r}")
+                         f"0 <= smooth_px <= {MAX_SMOOTH_PX:g} (about the particle images' "
+                         f"size; 0: no smoothing), or None (the method's default), got "
+                         f"{s.smooth_px!r}")
     if not 0 <= s.min_sensitivity < 1:
         raise ValueError(f"min_sensitivity must be in [0, 1), got {s.min_sensitivity!r}")
 
