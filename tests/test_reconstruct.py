@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pyopencl.array as cla
 import pytest
@@ -300,17 +302,25 @@ def test_settings_are_validated_once_and_resolve_method_defaults():
     from plenocl.reconstruction import (
         COARSE_ITERATIONS,
         DEFAULTS,
+        FINE_DEFAULTS,
         SUPERSAMPLE,
         ReconstructionSettings,
     )
 
     mart = ReconstructionSettings(method="mart")
     assert (mart.iterations, mart.relax) == DEFAULTS["mart"]
-    # the geometric-mean methods on the sub-voxels from the start, MLEM coarse-to-fine
-    assert (mart.supersample, mart.coarse_iterations) == (SUPERSAMPLE, 0)
-    assert ReconstructionSettings("smart").coarse_iterations == 0
-    assert ReconstructionSettings().coarse_iterations == COARSE_ITERATIONS > 0
-    assert ReconstructionSettings("mart", coarse_iterations=2).coarse_iterations == 2
+    # coarse-to-fine for every method, the coarse run MLEM's whatever the method: at the
+    # settings' relaxation for MLEM, else MLEM's over-relaxed one, without a ratio floor
+    assert (mart.supersample, mart.coarse_iterations) == (SUPERSAMPLE, COARSE_ITERATIONS)
+    default = ReconstructionSettings()
+    assert default.coarse_run() == dataclasses.replace(
+        default, supersample=1, coarse_iterations=0, iterations=COARSE_ITERATIONS)
+    for method in ("smart", "mart"):
+        given = ReconstructionSettings(method, coarse_iterations=2, ratio_floor=0.3)
+        run = given.coarse_run()
+        assert (run.method, run.iterations, run.relax, run.ratio_floor, run.supersample) == (
+            "mlem", 2, FINE_DEFAULTS[1], None, 1)
+        assert run.smooth_px == given.smooth_px == 1.0  # the same image as the fine run
     assert mart.n_blocks == mart.mart_blocks**2
     assert ReconstructionSettings().n_blocks == 1
     assert ReconstructionSettings(iterations=3).iterations == 3

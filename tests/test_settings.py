@@ -199,14 +199,14 @@ def test_defaults_agree():
         COARSE_ITERATIONS, SUPPORT, *FINE_DEFAULTS) == (4, 0.01, 7, 1.5)
     assert _cli_settings() == rec
     # the voxels themselves, or another method, keep the method's own iterations; SMART
-    # and MART on the sub-voxels from the start (no coarse support), smoothed by 1 px
+    # and MART smooth the image by 1 px
     one = PairSettings.from_dict({"reconstruction": {"supersample": 1}}).reconstruction
     assert (one.iterations, one.relax) == DEFAULTS["mlem"] and one.coarse_iterations == 0
     for method in ("mart", "smart"):
         other = PairSettings.from_dict({"reconstruction": {"method": method}}).reconstruction
         assert other == ReconstructionSettings(method=method)
         assert (other.iterations, other.relax) == DEFAULTS[method]
-        assert (other.supersample, other.coarse_iterations, other.smooth_px) == (3, 0, 1.0)
+        assert (other.supersample, other.coarse_iterations, other.smooth_px) == (3, 4, 1.0)
         assert _cli_settings("--method", method) == other
         assert _cli_settings("--method", method, "--smooth-px", "0").smooth_px == 0
     assert rec.smooth_px is None  # MLEM: no smoothing, its record as before

@@ -221,10 +221,11 @@ MANIFEST: tuple[Entry, ...] = (
         "cube on 40 x 40 x 20 voxels), 20 and 60 particles ray traced with a 1 px blur, and "
         "again with photon noise, a dark level and read noise, 6 unseen scenes each: with "
         "the paper's weights on its voxels and the image as it is (the baseline); with lens "
-        "weights that integrate each 3 x 3 sub-voxel's extent, on the image as it is, with "
-        "MART's default smoothing of the image (a 1 px Gaussian, `smooth_px`: what "
-        "`reconstruct(method=\"mart\")` does), and after 4 coarse iterations on the voxels "
-        "(MLEM's coarse-to-fine); `reconstruct()`'s default beside them, with the paper's "
+        "weights that integrate each 3 x 3 sub-voxel's extent, on the image as it is and "
+        "with MART's default smoothing of the image (a 1 px Gaussian, `smooth_px`), from "
+        "the sub-voxels' start, and within the support of the coarse MLEM run (what "
+        "`reconstruct(method=\"mart\")` does); `reconstruct()`'s default beside them, with "
+        "the paper's "
         "weights and on the smoothed image. Particles recovered (mean and worst scene), "
         "ghost intensity, Q and seconds per reconstruction.",
         ("benchmarks/paper_mart.py",), 4.0),

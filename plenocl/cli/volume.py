@@ -208,10 +208,10 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--coarse-iterations", type=int, default=None,
                    help="with sub-voxels: iterations on the voxels first, whose support "
                         "the sub-voxel iterations keep to (default "
-                        f"{COARSE_ITERATIONS} for mlem, as plenocl.reconstruct and "
-                        f"process_pair, and then {FINE_DEFAULTS[0]} mlem iterations on the "
-                        "sub-voxels; 0 for smart and mart, and 0: the sub-voxels from the "
-                        "start)")
+                        f"{COARSE_ITERATIONS}, as plenocl.reconstruct and process_pair, "
+                        "mlem's whatever the method, and then "
+                        f"{FINE_DEFAULTS[0]} mlem iterations on the sub-voxels; 0: the "
+                        "sub-voxels from the start)")
     p.add_argument("--support", type=float, default=None,
                    help="support threshold of the coarse volume, a fraction of its "
                         f"brightest voxel (default {SUPPORT:g})")

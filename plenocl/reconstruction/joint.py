@@ -166,8 +166,9 @@ def run_joint(images: Sequence, projectors: Sequence, settings: ReconstructionSe
         warn_partial_views(solver, projectors)
         out = solver.proj.volume_to_host(vol)
     else:
+        coarse_run = settings.coarse_run()  # MLEM whatever the method
         solver, coarse = run.iterate(_sampled(projectors, settings.coarse_oversample),
-                                     settings.coarse_iterations)
+                                     coarse_run.iterations, settings=coarse_run)
         warn_partial_views(solver, projectors)
         host = solver.proj.volume_to_host(coarse)
         start, support = coarse_support(host, settings)
@@ -249,10 +250,12 @@ class _Run:
         self.norm = max(float(np.sqrt(sum((f * im.norm()) ** 2 for im, f in
                                           zip(prepared, factors, strict=True)))), 1e-30)
 
-    def iterate(self, projectors, iterations: int, spread=None, device=None):
+    def iterate(self, projectors, iterations: int, spread=None, device=None,
+                settings: ReconstructionSettings | None = None):
         """``iterations`` joint updates from a uniform start, ``spread`` (a coarser
         volume's support shared over the sub-voxels) or a ``device`` volume of the same
-        slabs; returns the solver and its volume."""
+        slabs, by ``settings``' method (the run's by default); returns the solver and its
+        volume."""
         solver = JointSolver(projectors, self.prepared, self.factors,
                              self.settings.min_sensitivity)
         if device is not None:
@@ -261,11 +264,11 @@ class _Run:
             vol = solver.solvers[0].spread_start(*spread)
         else:
             vol = solver.uniform_start()
-        st = self.settings
+        st = settings or self.settings
         blocks = [device_view_blocks(p, st.mart_blocks) if st.n_blocks > 1 else None
                   for p in projectors] if st.method == "mart" else None
         for _ in range(iterations if not self.info.stopped else 0):
-            resid = self._step(solver, vol, blocks) / self.norm
+            resid = self._step(solver, vol, blocks, st) / self.norm
             self.info.residuals.append(resid)
             self.info.iterations += 1
             if self.callback is not None and self.callback(self.info.iterations,
@@ -274,10 +277,11 @@ class _Run:
                 break
         return solver, vol
 
-    def _step(self, solver: JointSolver, vol: list, blocks: list | None) -> float:
-        """One iteration of the settings' method (``blocks``: each camera's view blocks,
-        block MART's; ``None`` for MLEM and SMART); returns ``‖P - I‖``."""
-        st = self.settings
+    @staticmethod
+    def _step(solver: JointSolver, vol: list, blocks: list | None,
+              st: ReconstructionSettings) -> float:
+        """One iteration of ``st``'s method (``blocks``: each camera's view blocks, block
+        MART's; ``None`` for MLEM and SMART); returns ``‖P - I‖``."""
         floor = RATIO_MIN if st.ratio_floor is None else st.ratio_floor
         if blocks is not None:
             return solver.update_mart(vol, st.relax, floor, blocks, st.n_blocks)

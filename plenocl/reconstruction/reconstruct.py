@@ -226,9 +226,9 @@ def reconstruct(image, projector: ProjectionOperator, method: str | None = None,
         against a reference; a ``start`` volume iterated on the voxels themselves.
     coarse_iterations, support
         Coarse-to-fine (``supersample > 1`` only; docs/design.md §6.5): first
-        ``coarse_iterations`` (default 4 for MLEM, 0 for SMART and MART, whose geometric
-        mean on whole voxels loses particles the support needs: docs/design.md §6.2) on
-        the voxels themselves; the voxels brighter
+        ``coarse_iterations`` (default 4) of MLEM, whatever the method (SMART's and
+        MART's geometric mean on whole voxels loses particles the support needs:
+        docs/design.md §6.2), on the voxels themselves; the voxels brighter
         than ``support`` (default 0.01) times the brightest, grown by one voxel, are the
         support, and the ``iterations`` on the sub-voxels start flat on it and never
         leave it (the back projection skips the zero voxels). ``0``: the sub-voxels start
@@ -347,8 +347,7 @@ def _supersampled(prepared: PreparedImage, projector, refined,
     f = settings.supersample
     start, support, done = _coarse_start(settings.start, projector.grid), None, 0
     if settings.coarse_iterations and start is None:
-        coarse_settings = dataclasses.replace(settings, supersample=1, coarse_iterations=0,
-                                              iterations=settings.coarse_iterations)
+        coarse_settings = settings.coarse_run()
         sampled = sampled_operator(projector, settings.coarse_oversample)
         solver, vol, coarse_info = _iterations(
             prepared, projector if sampled is None else sampled, coarse_settings, callback)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -33,11 +33,12 @@ DEFAULTS = {"mlem": (30, 1.0), "smart": (30, 1.0), "mart": (15, 0.7)}
 #: Lateral sub-voxels per voxel and axis by default (docs/design.md §6.4).
 SUPERSAMPLE = 3
 #: Coarse-to-fine by default on sub-voxels (docs/design.md §6.5): iterations on the
-#: voxels first, and the support threshold (a fraction of their brightest voxel). MLEM's
-#: alone: the geometric-mean methods' iterations on whole voxels lose particles (the
+#: voxels first, and the support threshold (a fraction of their brightest voxel). The
+#: coarse iterations are MLEM's whatever the method (:meth:`ReconstructionSettings.
+#: coarse_run`): the geometric-mean methods' on whole voxels lose particles (the
 #: footprint a voxel a lens wide spreads, docs/design.md §6.2), and their support then
-#: drops them (the paper's MART on noisy images: 44-54 % recovered after 4 such
-#: iterations, 96-99 % on the sub-voxels from the start; ``benchmarks/paper_mart.py``).
+#: drops them (the paper's MART on noisy images: 44-54 % recovered after 4 MART coarse
+#: iterations, 96 % after 4 MLEM ones; ``benchmarks/paper_mart.py``).
 COARSE_ITERATIONS = 4
 SUPPORT = 0.01
 #: MLEM's defaults on sub-voxels after coarse iterations: (iterations, relaxation), both
@@ -122,8 +123,9 @@ class ReconstructionSettings:
     x :data:`SUPERSAMPLE` lateral sub-voxels per voxel, :data:`COARSE_ITERATIONS` on the
     voxels first, :data:`SUPPORT`; for MLEM then :data:`FINE_DEFAULTS` (7 iterations on
     the sub-voxels at μ = 1.5). Options left at ``None`` resolve from those given:
-    ``coarse_iterations`` is 0 on the voxels (``supersample=1``) and for SMART and MART
-    (:data:`COARSE_ITERATIONS`); ``iterations`` and ``relax`` are :data:`FINE_DEFAULTS`
+    ``coarse_iterations`` is 0 on the voxels (``supersample=1``), and the coarse
+    iterations are MLEM's whatever the method (:meth:`coarse_run`); ``iterations`` and
+    ``relax`` are :data:`FINE_DEFAULTS`
     for MLEM on sub-voxels after coarse iterations, else the method's own
     (:data:`DEFAULTS`: ``supersample=1`` is MLEM's 30 at μ = 1); ``smooth_px`` the
     method's (:data:`SMOOTH_DEFAULTS`). Values given always win, each on its own. The
@@ -157,9 +159,8 @@ class ReconstructionSettings:
     def __post_init__(self) -> None:
         whole_counts(self, (*COUNTS, "supersample"))  # 3.0, as a file may write it: 3
         fine = is_integer(self.supersample) and self.supersample > 1
-        if self.coarse_iterations is None:  # MLEM's alone (COARSE_ITERATIONS' note)
-            object.__setattr__(self, "coarse_iterations",
-                               COARSE_ITERATIONS if fine and self.method == "mlem" else 0)
+        if self.coarse_iterations is None:
+            object.__setattr__(self, "coarse_iterations", COARSE_ITERATIONS if fine else 0)
         if fine and self.coarse_iterations and self.method == "mlem":
             it_default, mu_default = FINE_DEFAULTS
         else:
@@ -180,6 +181,17 @@ class ReconstructionSettings:
         start) and then the others (a progress bar's total)."""
         coarse = self.supersample > 1 and isinstance(self.start, str)
         return self.iterations + (self.coarse_iterations if coarse else 0)
+
+    def coarse_run(self) -> ReconstructionSettings:
+        """The coarse run's settings (docs/design.md §6.5): ``coarse_iterations`` of MLEM
+        on the voxels whatever the method. They only find the support the sub-voxels keep
+        to, and the geometric-mean methods on whole voxels lose particles it needs
+        (docs/design.md §6.2). At these settings' relaxation for MLEM, else MLEM's
+        over-relaxed one (:data:`FINE_DEFAULTS`)."""
+        mlem = self.method == "mlem"
+        return replace(self, method="mlem", supersample=1, coarse_iterations=0,
+                       iterations=self.coarse_iterations, ratio_floor=None,
+                       relax=self.relax if mlem else FINE_DEFAULTS[1])
 
     @property
     def n_blocks(self) -> int:
