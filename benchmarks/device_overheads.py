@@ -67,5 +67,6 @@ def main() -> None:
         label: functools.partial(undo, *changes) for label, changes in WAYS.items()},
         lenses=(289, 193), rounds=3)
 
+
 if __name__ == "__main__":
     main()

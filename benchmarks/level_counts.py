@@ -43,5 +43,6 @@ def main() -> None:
         "levels counted on the device": lambda: counted_by(ON_DEVICE)},
         warm=True, bit_depth=16)
 
+
 if __name__ == "__main__":
     main()

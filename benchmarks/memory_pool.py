@@ -27,5 +27,6 @@ def main() -> None:
         "no memory pool (before)": lambda: use_pool(queue, False),
         "memory pool": lambda: use_pool(queue, True)}, warm=True)
 
+
 if __name__ == "__main__":
     main()

@@ -74,5 +74,6 @@ def main() -> None:
         "lists from the host (before)": lambda: lists_by(host_rows, host_boxes),
         "lists on the device": lambda: lists_by(**ON_DEVICE)}, warm=True)
 
+
 if __name__ == "__main__":
     main()

@@ -46,5 +46,6 @@ def main() -> None:
         "blocking to_device (before)": lambda: uploads_by(blocking_upload),
         "arrays.upload": lambda: uploads_by(arrays.upload)}, rounds=3)
 
+
 if __name__ == "__main__":
     main()

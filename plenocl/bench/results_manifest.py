@@ -225,9 +225,8 @@ MANIFEST: tuple[Entry, ...] = (
         "with MART's default smoothing of the image (a 1 px Gaussian, `smooth_px`), from "
         "the sub-voxels' start, and within the support of the coarse MLEM run (what "
         "`reconstruct(method=\"mart\")` does); `reconstruct()`'s default beside them, with "
-        "the paper's "
-        "weights and on the smoothed image. Particles recovered (mean and worst scene), "
-        "ghost intensity, Q and seconds per reconstruction.",
+        "the paper's weights and on the smoothed image. Particles recovered (mean and "
+        "worst scene), ghost intensity, Q and seconds per reconstruction.",
         ("benchmarks/paper_mart.py",), 4.0),
     Entry(
         "paper-pair", "Performance",

@@ -125,13 +125,12 @@ class ReconstructionSettings:
     the sub-voxels at μ = 1.5). Options left at ``None`` resolve from those given:
     ``coarse_iterations`` is 0 on the voxels (``supersample=1``), and the coarse
     iterations are MLEM's whatever the method (:meth:`coarse_run`); ``iterations`` and
-    ``relax`` are :data:`FINE_DEFAULTS`
-    for MLEM on sub-voxels after coarse iterations, else the method's own
-    (:data:`DEFAULTS`: ``supersample=1`` is MLEM's 30 at μ = 1); ``smooth_px`` the
-    method's (:data:`SMOOTH_DEFAULTS`). Values given always win, each on its own. The
-    stored object holds the resolved values (so ``dataclasses.replace(settings,
-    supersample=1)`` keeps the sub-voxels' iterations; ``ReconstructionSettings(
-    supersample=1)`` takes the voxels' own)."""
+    ``relax`` are :data:`FINE_DEFAULTS` for MLEM on sub-voxels after coarse iterations,
+    else the method's own (:data:`DEFAULTS`: ``supersample=1`` is MLEM's 30 at μ = 1);
+    ``smooth_px`` the method's (:data:`SMOOTH_DEFAULTS`). Values given always win, each
+    on its own. The stored object holds the resolved values (so
+    ``dataclasses.replace(settings, supersample=1)`` keeps the sub-voxels' iterations;
+    ``ReconstructionSettings(supersample=1)`` takes the voxels' own)."""
 
     method: str = "mlem"
     iterations: int | None = None
