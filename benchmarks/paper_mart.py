@@ -6,7 +6,7 @@ the sub-voxels' start and after the coarse MLEM run that ``reconstruct(method="m
 takes by default; the default reconstruction beside them; on the same unseen scenes in the
 same run.
 
-    python benchmarks/paper_mart.py [--scenes 6] [--counts 20 60] [--smooth 1.0]
+    python benchmarks/paper_mart.py [--scenes 6] [--counts 20 60] [--smooth 1.0] [--smart]
 
 Camera: the 850 x 850 px synthetic camera (50 x 50 microlenses, M = 1, f/2); grid: the
 5 mm cube of ``benchmarks/mart_footprint.py`` (40 x 40 voxels of 0.125 mm, one microlens,
@@ -28,7 +28,9 @@ and 3 counts of read noise to the same scene. Rows:
   within the support of 4 MLEM iterations on the voxels (docs/design.md §6.5);
 - ``default``, ``default, paper's weights`` and ``default, smoothed``: ``reconstruct()``'s
   defaults, with the paper's lens weights, and on the image smoothed by ``--smooth``
-  pixels.
+  pixels;
+- ``--smart``: also SMART (30 iterations, μ = 1) with its defaults (the image smoothed by
+  1 px, after MLEM's coarse run) and on the image as it is.
 
 Recovery: a peak above 0.1 of the volume's maximum within 1 voxel laterally and 2 in
 depth of a true particle, one to one; ghosts: the share of intensity farther than
@@ -58,8 +60,8 @@ GRID = Grid((20, 40, 40), x=(-2.5, 2.5), y=(-2.5, 2.5), z=(-2.5, 2.5))
 PAPER_MART = dict(method="mart", iterations=15, relax=0.7)
 
 
-def rows(smooth: float) -> dict[str, tuple[str, ReconstructionSettings]]:
-    """Each row's lens weights and settings."""
+def rows(smooth: float, smart: bool = False) -> dict[str, tuple[str, ReconstructionSettings]]:
+    """Each row's lens weights and settings (``smart``: SMART's rows too)."""
     sub = dict(PAPER_MART, supersample=3, coarse_iterations=0)
     return {
         "paper's MART (its weights, voxels)":
@@ -71,6 +73,9 @@ def rows(smooth: float) -> dict[str, tuple[str, ReconstructionSettings]]:
         "default": ("extent", ReconstructionSettings()),
         "default, paper's weights": ("paper", ReconstructionSettings()),
         f"default, smoothed {smooth:g} px": ("extent", ReconstructionSettings(smooth_px=smooth)),
+        **({"SMART, its defaults": ("extent", ReconstructionSettings("smart")),
+            "SMART, unsmoothed": ("extent", ReconstructionSettings("smart", smooth_px=0))}
+           if smart else {}),
     }
 
 
@@ -90,11 +95,12 @@ def main() -> None:
     parser.add_argument("--counts", type=int, nargs="+", default=[20, 60])
     parser.add_argument("--smooth", type=float, default=1.0,
                         help="the smoothing's standard deviation (pixels)")
+    parser.add_argument("--smart", action="store_true", help="SMART's rows too")
     args = parser.parse_args()
     queue = get_queue()
     cam = Camera.synthetic_850()
     projectors = {w: Projector(cam, GRID, queue, lens_weights=w) for w in ("paper", "extent")}
-    table = rows(args.smooth)
+    table = rows(args.smooth, args.smart)
     print(f"device: {queue.device.name.strip()}; grid {GRID.shape} (z, y, x), voxel "
           f"{GRID.spacing[0]:.3f} x {GRID.spacing[1]:.3f} x {GRID.spacing[2]:.3f} mm; "
           f"{args.scenes} scenes per count")

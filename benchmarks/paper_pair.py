@@ -101,6 +101,8 @@ SETTINGS = {  # before: 30 MLEM iterations on the sub-voxels from a uniform volu
     # the default with the paper's bilinear lens weights (the default until 2026-11-29)
     "paperweights": ReconstructionSettings(lens_weights="paper"),
     "voxels": ReconstructionSettings(supersample=1),
+    # the paper's method with its defaults (smoothed by 1 px, after MLEM's coarse run)
+    "mart": ReconstructionSettings("mart"),
 }
 
 
