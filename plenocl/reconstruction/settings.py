@@ -23,7 +23,8 @@ METHODS = ("mlem", "smart", "mart")
 METHOD = ("coarse-to-fine: the coarse support's peak, floor and level found on the "
           "device, the level from float32 row sums added in float64 (2026-12-01, issue 46); "
           "a hexagonal array's axial view leaning one way whatever its numbering "
-          "(2026-12-01 evening)")
+          "(2026-12-01 evening); the coarse run MLEM's whatever the method (2026-12-03: "
+          "SMART's and MART's volumes from the same settings differ)")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
 MAX_MART_BLOCKS = 32
 #: Defaults per method on one grid: (iterations, relaxation). MART's are the paper's
