@@ -178,7 +178,7 @@ def test_lens_set_groups_colour_classes(projectors):
 def test_a_lens_set_goes_up_once_per_queue(projectors, queue):
     """Two projectors of one camera on one queue asking for the same lit lenses share
     one upload; other lenses, or the same flags changed in the caller's array afterwards,
-    make their own; a queue keeps the last few only."""
+    make their own; a queue keeps the few asked for last."""
     from plenocl.projection.lenses import KEPT_SETS
 
     a = projectors["ideal"]
@@ -193,8 +193,13 @@ def test_a_lens_set_goes_up_once_per_queue(projectors, queue):
     other = a.lens_set(lit)
     assert other is not first and other.count == first.count + (1 if lit[0] else -1)
     assert first.lit[0] != lit[0]
-    for k in range(KEPT_SETS):  # pushed out by newer sets
+    for k in range(KEPT_SETS - 1):  # newer sets; the first one asked for again each time
         a.lens_set(np.roll(lit, k + 1))
+        assert a.lens_set(lit) is other
+    a.lens_set(np.roll(lit, KEPT_SETS))
+    assert a.lens_set(lit) is other  # kept: among the last asked for
+    for k in range(KEPT_SETS):  # pushed out by newer sets
+        a.lens_set(np.roll(lit, -k - 1))
     assert a.lens_set(lit) is not other
     np.testing.assert_array_equal(np.sort(a.lens_set(lit).ids.get()[:other.count]),
                                   np.flatnonzero(lit))

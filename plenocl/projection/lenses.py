@@ -129,8 +129,8 @@ KEPT_SETS = 4
 def lens_set(queue: cl.CommandQueue, lit: np.ndarray, ml_count: tuple[int, int],
              stride: int) -> LensSet:
     """The lenses flagged in ``lit`` as a :class:`LensSet` (colour stride ``stride``) on
-    ``queue``: uploaded once, then kept with the queue for the next ask (the last
-    :data:`KEPT_SETS`; the tables are only read).
+    ``queue``: uploaded once, then kept with the queue for the next ask (the
+    :data:`KEPT_SETS` asked for last; the tables are only read).
 
     ``lit`` is a bool per lens (flat, row-major ``(rows, cols)``); missing lenses must be
     ``False``.
@@ -143,8 +143,10 @@ def lens_set(queue: cl.CommandQueue, lit: np.ndarray, ml_count: tuple[int, int],
     key = (cols, rows, int(stride), lit.tobytes())
     lock, kept = _kept_sets(queue)
     with lock:
-        made = kept.get(key)
-        if made is None:
+        made = kept.pop(key, None)
+        if made is not None:  # asked again: the newest
+            kept[key] = made
+        else:
             made = kept[key] = _uploaded_set(queue, lit.copy(), cols, rows, stride)
             while len(kept) > KEPT_SETS:
                 kept.pop(next(iter(kept)))
@@ -152,8 +154,8 @@ def lens_set(queue: cl.CommandQueue, lit: np.ndarray, ml_count: tuple[int, int],
 
 
 def _kept_sets(queue: cl.CommandQueue) -> tuple[threading.Lock, dict]:
-    """``queue``'s lock and kept lens sets (oldest first), made at the first call; a
-    fresh pair each call where the queue object cannot hold them."""
+    """``queue``'s lock and kept lens sets (the least recently asked for first), made at
+    the first call; a fresh pair each call where the queue object cannot hold them."""
     kept = getattr(queue, KEPT_ATTRIBUTE, None)
     if kept is None:
         kept = (threading.Lock(), {})
