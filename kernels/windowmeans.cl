@@ -12,7 +12,8 @@
  * Data. Pairs p: midpoints mid[3p..] and displacements disp[3p..] (x, y, z voxels), the
  * weights weight[3p..] (per component; used where `weighted`), and the focal zone's
  * systematic depth uncertainty amb[p] (used where `focus`). Windows are listed: listed
- * window k is the grid window win[k] (flat index into centres, 3 doubles each), and its
+ * window k is the grid window win[k] (flat over (nz, ny, nx), x fastest: centred at
+ * (axes[kx], axes[nx + ky], axes[nx + ny + kz]), pl_centre), and its
  * pairs (at least one) are member[start[k] .. stop[k]), in pair order; the lists come from
  * box_counts and box_fill below.
  *
@@ -54,6 +55,14 @@
  * kernels take milliseconds. Sizes are arguments. */
 
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
+
+/* Window w's centre (x, y, z) from the field's axes (x: nx, then y: ny, then z). */
+inline void pl_centre(__global const double *axes, int nx, int ny, int w, double *cen)
+{
+    cen[0] = axes[w % nx];
+    cen[1] = axes[nx + (w / nx) % ny];
+    cen[2] = axes[nx + ny + w / (nx * ny)];
+}
 
 /* Exchange a[i] and a[j]. */
 inline void pl_swap(__global double *a, int i, int j)
@@ -228,7 +237,8 @@ __kernel void window_gradients(__global const double *mid, __global const double
                                __global const double *weight, int weighted,
                                __global const int *win, __global const int *start,
                                __global const int *stop, __global const int *member,
-                               __global const double *centres, int listed, double3 search,
+                               __global const double *axes, int nx, int ny, int listed,
+                               double3 search,
                                double spread, double3 floor_,
                                int min_keep, double well_posed, __global double *scratch,
                                __global double *grad, __global int *status)
@@ -237,7 +247,8 @@ __kernel void window_gradients(__global const double *mid, __global const double
     if (k >= listed)
         return;
     const int w = win[k], s = start[k], n = stop[k] - s;
-    const double cen[3] = {centres[3 * w], centres[3 * w + 1], centres[3 * w + 2]};
+    double cen[3];
+    pl_centre(axes, nx, ny, w, cen);
     const double zero[9] = {0};
     double median[3], reach[3], g[9] = {0};
     pl_near_median(mid, disp, member + s, n, cen, zero, 0, scratch + s, search, spread,
@@ -263,7 +274,7 @@ __kernel void window_estimates(__global const double *mid, __global const double
                                __global const double *amb, int focus,
                                __global const int *win, __global const int *start,
                                __global const int *stop, __global const int *member,
-                               __global const double *centres, int listed,
+                               __global const double *axes, int nx, int ny, int listed,
                                __global const double *grad, double3 search, double spread,
                                double3 floor_, int min_count,
                                __global const double *t, double3 position_sigma,
@@ -275,7 +286,8 @@ __kernel void window_estimates(__global const double *mid, __global const double
         return;
     const int w = win[k], s = start[k], n = stop[k] - s;
     __global const int *mem = member + s;
-    const double cen[3] = {centres[3 * w], centres[3 * w + 1], centres[3 * w + 2]};
+    double cen[3];
+    pl_centre(axes, nx, ny, w, cen);
     double g[9];
     for (int e = 0; e < 9; ++e)
         g[e] = grad[9 * w + e];

@@ -356,12 +356,13 @@ def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted)
         one = (np.zeros(every, int), np.ones(every, int))
         lists, _ = device.box_lists([one, one, one], (1, 1, 1), np.ones(1, bool))
         dev = device.pairs(pairs.midpoints, pairs.displacements, None, None)
-        _, status = device.gradients(dev, lists, np.full((1, 3), 15.0), (99.0,) * 3,
+        one_window = ([15.0], [15.0], [15.0])  # the axes of a field of one window
+        _, status = device.gradients(dev, lists, one_window, (99.0,) * 3,
                                      None, (0.1, 0.1, 0.3), 12, 1e-4)
         assert status[0] == ILL_POSED
         # the host's fit written into the device copy: the estimates read it as they
         # read the same gradient uploaded from the host
-        centres = device.device_centres(np.full((1, 3), 15.0))
+        centres = device.device_centres(one_window)
         _, _, on_device = device.device_gradients(
             dev, lists, centres, (99.0,) * 3, None, (0.1, 0.1, 0.3), 12, 1e-4)
         fitted = rng.normal(scale=0.05, size=(1, 3, 3))
@@ -369,7 +370,7 @@ def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted)
         t = np.array([np.nan] + [2.0] * every)
         est = [device.estimates(dev, lists, c, g, (99.0,) * 3, None, (0.1, 0.1, 0.3), 1,
                                 t, 0.1) for c, g in ((centres, on_device),
-                                                     (np.full((1, 3), 15.0), fitted))]
+                                                     (one_window, fitted))]
         for got, want in zip(*est, strict=True):
             np.testing.assert_array_equal(got, want)
         assert np.isfinite(est[0][1]).all()
@@ -407,9 +408,13 @@ def test_window_means_on_the_device_follow_the_field_they_are_given(queue):
         got = window_means(pairs, moved, 3, device_means=device)
         np.testing.assert_array_equal(got[2], want[2])
         np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
-    kept = device.device_centres(np.arange(6.0).reshape(2, 3))
-    assert device.device_centres(np.arange(6.0).reshape(2, 3)) is kept
-    assert device.device_centres(np.arange(6.0).reshape(3, 2)).shape == (3, 2)
+    axes = (np.arange(2.0), np.arange(3.0), np.arange(4.0))
+    kept = device.device_centres(axes)
+    assert device.device_centres(tuple(a.copy() for a in axes)) is kept
+    assert device.device_centres(kept) is kept
+    other = device.device_centres(axes[::-1])  # the same numbers, another field
+    assert other is not kept and other.count == kept.count == 24
+    assert other.axes.size == kept.axes.size == 9  # the axes went up, not 24 x 3 centres
 
 
 @pytest.mark.parametrize("count, radius", [(0, 1.0), (1, 1.0), (57, 1.0), (400, 2.0)])

@@ -28,7 +28,7 @@ from ..opencl.program import KernelSet
 from ..opencl.rowlists import DeviceRowLists
 from .pairoutliers import MAD_SIGMA
 
-__all__ = ["DeviceWindowMeans", "PairsOnDevice", "WindowLists"]
+__all__ = ["DeviceWindowMeans", "PairsOnDevice", "WindowCentres", "WindowLists"]
 
 i32, f64 = np.int32, np.float64
 #: Status of a window's gradient (``window_gradients``): fitted; too flat for the normal
@@ -71,9 +71,31 @@ class WindowLists:
         return int((self.stop - self.start).max(initial=0))
 
 
-def _window_count(centres: np.ndarray | cl_array.Array) -> int:
-    """Windows of ``centres``: ``(W, 3)`` on the host, or ``W * 3`` on the device."""
-    return len(centres) if isinstance(centres, np.ndarray) else centres.size // 3
+@dataclass(frozen=True)
+class WindowCentres:
+    """A field's window centres on the device as its three axes: window ``w = (kz ny +
+    ky) nx + kx`` (``np.ndindex`` order over ``(nz, ny, nx)``) is centred at ``(x[kx],
+    y[ky], z[kz])``, which the kernels read from ``axes`` (``x``, ``y`` and ``z`` one
+    after the other, float64): ``nx + ny + nz`` numbers go up, not ``3 W``."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    axes: cl_array.Array
+
+    @property
+    def count(self) -> int:
+        """The windows ``W``."""
+        return len(self.x) * len(self.y) * len(self.z)
+
+    def same(self, x, y, z) -> bool:
+        """Whether these are the axes ``x``, ``y``, ``z``."""
+        return all(np.array_equal(a, np.asarray(b, f64))
+                   for a, b in zip((self.x, self.y, self.z), (x, y, z)))
+
+    def arguments(self) -> tuple:
+        """The kernels' arguments: the axes, ``nx`` and ``ny``."""
+        return self.axes, i32(len(self.x)), i32(len(self.y))
 
 
 def _scale(spread: float | None) -> np.float64:
@@ -107,7 +129,7 @@ class DeviceWindowMeans:
         names = ["window_gradients", "window_estimates", "box_counts", "box_fill"]
         self._k = KernelSet(queue, "windowmeans.cl", names, looping=names)
         self._rows = DeviceRowLists(queue)
-        self._centres: tuple[np.ndarray, cl_array.Array] | None = None
+        self._centres: WindowCentres | None = None
 
     @staticmethod
     def supports(queue: cl.CommandQueue) -> bool:
@@ -154,25 +176,27 @@ class DeviceWindowMeans:
         return PairsOnDevice(up(mid), up(disp), None if weight is None else up(weight),
                              None if amb is None else up(amb))
 
-    def gradients(self, pairs: PairsOnDevice, lists: WindowLists, centres: np.ndarray,
-                  search, spread: float | None, floor, min_keep: int, well_posed: float
-                  ) -> tuple[np.ndarray, np.ndarray]:
+    def gradients(self, pairs: PairsOnDevice, lists: WindowLists,
+                  centres: WindowCentres | tuple, search, spread: float | None, floor,
+                  min_keep: int, well_posed: float) -> tuple[np.ndarray, np.ndarray]:
         """Each window's gradient ``(W, 3, 3)`` (0 where it has no pairs listed or keeps
         fewer than ``min_keep``) and status ``(W,)`` (:data:`FITTED`,
-        :data:`ILL_POSED`: the host fits it; 0 otherwise); ``centres`` ``(W, 3)``."""
+        :data:`ILL_POSED`: the host fits it; 0 otherwise); ``centres``: the field's axes
+        ``(x, y, z)`` or :meth:`device_centres`."""
         grad, status, _ = self.device_gradients(pairs, lists, centres, search, spread,
                                                 floor, min_keep, well_posed)
         return grad, status
 
     def device_gradients(self, pairs: PairsOnDevice, lists: WindowLists,
-                         centres: np.ndarray | cl_array.Array,
+                         centres: WindowCentres | tuple,
                          search, spread: float | None, floor, min_keep: int,
                          well_posed: float) -> tuple[np.ndarray, np.ndarray, cl_array.Array]:
         """:meth:`gradients`, and their device copy (``W * 9`` float64, 0 where no pairs
         are listed) for :meth:`estimates`, so that they need not be uploaded again; after
         the host fits the ill-posed ones, :meth:`set_gradients` writes them there.
-        ``centres``: ``(W, 3)`` on the host, or :meth:`device_centres`."""
-        size = _window_count(centres)
+        ``centres``: the field's axes ``(x, y, z)``, or :meth:`device_centres`."""
+        centres = self.device_centres(centres)
+        size = centres.count
         grad, status = fill(self._k.array(9 * size, f64), 0.0), fill(self._k.array(size, i32), 0)
         if len(lists.win):
             self._launch("window_gradients", pairs, False, lists, centres,
@@ -189,28 +213,33 @@ class DeviceWindowMeans:
         fitted ill-posed ones, which are rare)."""
         device.set(np.ascontiguousarray(grad, f64).reshape(-1))
 
-    def device_centres(self, centres: np.ndarray) -> cl_array.Array:
-        """The window centres ``(W, 3)`` on the device (float64), for both
-        :meth:`device_gradients` and :meth:`estimates` of one call. The last centres
-        stay there: a pair's refinement asks for the same field's centres at each of
-        its calls, and they go up once (the kernels only read them)."""
-        centres = np.asarray(centres, f64)
+    def device_centres(self, centres: WindowCentres | tuple) -> WindowCentres:
+        """The window centres of a field with axes ``(x, y, z)`` on the device, for both
+        :meth:`device_gradients` and :meth:`estimates` of one call (``centres`` itself
+        when already there). The last ones stay there: a pair's refinement asks for the
+        same field's centres at each of its calls, and they go up once (the kernels only
+        read them)."""
+        if isinstance(centres, WindowCentres):
+            return centres
+        x, y, z = (np.array(a, f64).reshape(-1) for a in centres)
         kept = self._centres
-        if kept is None or not np.array_equal(kept[0], centres):  # (shapes compared too)
-            kept = self._centres = (centres.copy(), self._upload(centres))
-        return kept[1]
+        if kept is None or not kept.same(x, y, z):
+            kept = self._centres = WindowCentres(x, y, z,
+                                                 self._upload(np.concatenate([x, y, z])))
+        return kept
 
     def estimates(self, pairs: PairsOnDevice, lists: WindowLists,
-                  centres: np.ndarray | cl_array.Array, grad: np.ndarray | cl_array.Array,
+                  centres: WindowCentres | tuple, grad: np.ndarray | cl_array.Array,
                   search, spread: float | None, floor, min_count: int,
                   t: np.ndarray, position_sigma
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per window ``(W,)``: the pairs kept, and where at least ``min_count``, their
         mean and its uncertainty ``(W, 3)`` (NaN elsewhere); ``t[n]``: Student's quantile
         for ``n`` kept pairs (``len(t)`` above the most pairs a window lists). ``grad``
-        ``(W, 3, 3)`` on the host or :meth:`device_gradients`' device copy; ``centres``
-        ``(W, 3)`` on the host or :meth:`device_centres`."""
-        size = _window_count(centres)
+        ``(W, 3, 3)`` on the host or :meth:`device_gradients`' device copy; ``centres``:
+        the field's axes ``(x, y, z)`` or :meth:`device_centres`."""
+        centres = self.device_centres(centres)
+        size = centres.count
         count = fill(self._k.array(size, i32), 0)
         mean, error = (fill(self._k.array(3 * size, f64), np.nan) for _ in range(2))
         if len(lists.win):
@@ -223,7 +252,7 @@ class DeviceWindowMeans:
         return count.astype(int), mean.reshape(size, 3), error.reshape(size, 3)
 
     def _launch(self, name: str, pairs: PairsOnDevice, with_amb: bool, lists: WindowLists,
-                centres: np.ndarray | cl_array.Array, *rest) -> None:
+                centres: WindowCentres, *rest) -> None:
         """Launch ``name`` over the listed windows: the pairs' and lists' arguments, then
         the listed count, then the rest of the kernel's."""
         dummy = pairs.mid  # stands for an unused buffer (the flag says so)
@@ -232,7 +261,7 @@ class DeviceWindowMeans:
         if with_amb:
             head += [dummy if pairs.amb is None else pairs.amb, i32(pairs.amb is not None)]
         tables = [self._k.to_device(a) for a in (lists.win, lists.start, lists.stop)]
-        head += [*tables, lists.member, self._k.on_device(centres, f64)]
+        head += [*tables, lists.member, *centres.arguments()]
         self._k.launch(name, (len(lists.win),), *head, i32(len(lists.win)), *rest)
 
     def _upload(self, host: np.ndarray) -> cl_array.Array:

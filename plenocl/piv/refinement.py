@@ -638,10 +638,10 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
     box = half * support
     points = pairs.midpoints / box
     centre_axes = (field.x, field.y, field.z)
-    centres = _grid_centres(field)
     axes = [c / b for c, b in zip(centre_axes, box)]
     wanted = None if windows is None else windows.reshape(-1)
     if device_means is None:
+        centres = _grid_centres(field)
         win, member = _box_members(points, axes, 1.0, wanted)
         busy = np.bincount(win, minlength=count.size) >= min_pairs
         near_win, near = _box_members(points, axes, 2.0, busy)
@@ -656,7 +656,7 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
         busy = held >= min_pairs
         near, _ = device_means.box_lists(ranges[1], shape, busy)
         n, m, e = _device_estimates(device_means, pairs, near, own.where(busy[own.win]),
-                                    centres, min_pairs, search, focus, position_sigma,
+                                    centre_axes, min_pairs, search, focus, position_sigma,
                                     spread)
     count.reshape(-1)[busy] = n[busy]
     use = busy & (n >= max(min_pairs, 1))
@@ -665,22 +665,25 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
 
 
 def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: WindowLists,
-                      inside: WindowLists, centres: np.ndarray, min_pairs: int, search,
+                      inside: WindowLists, centre_axes: tuple, min_pairs: int, search,
                       focus: FocalZone | None, position_sigma, spread: float | None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_local_gradients` over the doubled boxes' pairs ``near``, then
     :func:`_window_estimates` over the boxes' pairs ``inside``, on ``means``' device;
-    the gradients too flat for its normal equations fitted here (:func:`local_gradient`)."""
+    the gradients too flat for its normal equations fitted here (:func:`local_gradient`);
+    ``centre_axes``: the field's ``(x, y, z)``, whose grid the window centres are."""
     every = np.arange(len(pairs.midpoints))
     amb = None if focus is None else focus.ambiguity(pairs.midpoints[:, 2])
     dev = means.pairs(pairs.midpoints, pairs.displacements, pair_weights(pairs, every), amb)
-    on_device = means.device_centres(centres)
+    on_device = means.device_centres(centre_axes)
     grad, status, device_grad = means.device_gradients(
         dev, near, on_device, search, spread, KEEP_FLOOR, GRADIENT_PAIRS, WELL_POSED)
     flat = np.flatnonzero(status[near.win] == ILL_POSED)
     for k in flat:
         w = near.win[k]
-        grad[w] = local_gradient(pairs, near.members(k), centres[w], search, spread)
+        kz, ky, kx = np.unravel_index(w, [len(a) for a in centre_axes[::-1]])
+        centre = np.array([centre_axes[0][kx], centre_axes[1][ky], centre_axes[2][kz]])
+        grad[w] = local_gradient(pairs, near.members(k), centre, search, spread)
     if len(flat):
         means.set_gradients(device_grad, grad)
     t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, inside.largest() + 1)])
