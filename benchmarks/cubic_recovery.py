@@ -47,8 +47,12 @@ from plenocl import Camera, Grid, Projector, get_queue  # noqa: E402
 from plenocl.bench.core import particle_scene  # noqa: E402
 from plenocl.bench.scripts import script_parser  # noqa: E402
 from plenocl.bench.timing import timed  # noqa: E402
-from plenocl.metrics import match_particles, quality_q, recovery, render_particles  # noqa: E402
-from plenocl.peaks import find_particles  # noqa: E402
+from plenocl.metrics import (  # noqa: E402
+    quality_q,
+    recovered_particles,
+    recovery,
+    render_particles,
+)
 from plenocl.projection.projector import DEFAULT_LENS_WEIGHTS, LENS_WEIGHTS  # noqa: E402
 from plenocl.reconstruction import ReconstructionSettings, reconstruct  # noqa: E402
 
@@ -74,11 +78,8 @@ def miss_classes(vol: np.ndarray, pos: np.ndarray, depth_resolution_mm: float
                  ) -> np.ndarray:
     """The particles a reconstruction missed (matched as :func:`plenocl.metrics.recovery`
     matches), counted per class of :data:`MISS_CLASSES`: ``(3,)`` int."""
-    found, _ = find_particles(vol, 0.1)
-    idx = CUBIC.to_index(pos)
-    hit = np.zeros(len(pos), bool)
-    hit[[t for t, _ in match_particles(found, idx)]] = True
-    scaled = idx / np.array([1.0, 1.0, 2.0])
+    hit = recovered_particles(vol, CUBIC, pos)
+    scaled = CUBIC.to_index(pos) / np.array([1.0, 1.0, 2.0])
     dist = np.linalg.norm(scaled[:, None] - scaled[None], axis=-1)
     np.fill_diagonal(dist, np.inf)
     pair = dist.min(axis=1) < PAIR_DISTANCE

@@ -108,6 +108,16 @@ def matched_errors(vol: np.ndarray, grid: Grid, true_positions, threshold: float
     return np.array([found[f] - true_idx[t] for t, f in pairs]).reshape(-1, 3)
 
 
+def recovered_particles(vol: np.ndarray, grid: Grid, true_positions, threshold: float = 0.1,
+                        lateral: float = 1.0, depth: float = 2.0) -> np.ndarray:
+    """A bool per true particle: whether a peak recovers it, matched as :func:`recovery`
+    matches (so its mean is :attr:`RecoveryReport.fraction`)."""
+    _, true_idx, pairs = _matches(vol, grid, true_positions, threshold, lateral, depth)
+    hit = np.zeros(len(true_idx), bool)
+    hit[[t for t, _ in pairs]] = True
+    return hit
+
+
 def _matches(vol, grid: Grid, true_positions, threshold: float, lateral: float,
              depth: float):
     """The volume's peaks, the true particles' indices and their one-to-one matches."""

@@ -12,6 +12,7 @@ from plenocl.metrics import (
     match_particles,
     matched_errors,
     quality_q,
+    recovered_particles,
     recovery,
     render_particles,
 )
@@ -121,6 +122,18 @@ def test_matched_errors_are_each_recovered_particle_s_offset():
     assert d.shape == (len(pos), 3)
     np.testing.assert_allclose(np.median(d, axis=0), [0.3, -0.2, 0.5], atol=0.05)
     assert matched_errors(np.zeros(GRID.shape, np.float32), GRID, pos).shape == (0, 3)
+
+
+def test_recovered_particles_names_the_ones_a_peak_matches():
+    """Only the rendered particles are marked recovered, the one left out of the volume
+    not; their mean is recovery()'s fraction."""
+    pos = _particles()
+    vol = render_particles(GRID, pos[1:], sigma_vox=0.4)
+    hit = recovered_particles(vol, GRID, pos)
+    assert hit.dtype == bool and hit.shape == (len(pos),)
+    assert not hit[0] and hit[1:].all()
+    assert hit.mean() == recovery(vol, GRID, pos).fraction
+    assert not recovered_particles(np.zeros(GRID.shape, np.float32), GRID, pos).any()
 
 
 def test_ghost_fraction_extremes():

@@ -93,6 +93,11 @@ class WindowCentres:
         return all(np.array_equal(a, np.asarray(b, f64))
                    for a, b in zip((self.x, self.y, self.z), (x, y, z)))
 
+    def centre(self, w: int) -> np.ndarray:
+        """Window ``w``'s centre ``(x, y, z)`` on the host (``pl_centre``'s)."""
+        kz, ky, kx = np.unravel_index(w, (len(self.z), len(self.y), len(self.x)))
+        return np.array([self.x[kx], self.y[ky], self.z[kz]])
+
     def arguments(self) -> tuple:
         """The kernels' arguments: the axes, ``nx`` and ``ny``."""
         return self.axes, i32(len(self.x)), i32(len(self.y))

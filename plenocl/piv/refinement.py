@@ -681,9 +681,7 @@ def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: Wind
     flat = np.flatnonzero(status[near.win] == ILL_POSED)
     for k in flat:
         w = near.win[k]
-        kz, ky, kx = np.unravel_index(w, [len(a) for a in centre_axes[::-1]])
-        centre = np.array([centre_axes[0][kx], centre_axes[1][ky], centre_axes[2][kz]])
-        grad[w] = local_gradient(pairs, near.members(k), centre, search, spread)
+        grad[w] = local_gradient(pairs, near.members(k), on_device.centre(w), search, spread)
     if len(flat):
         means.set_gradients(device_grad, grad)
     t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, inside.largest() + 1)])
