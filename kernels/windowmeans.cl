@@ -31,13 +31,17 @@
  * its weights (or alike), from the normal equations of both centred on their weighted
  * means. Status 0: fewer than `min_keep` kept, gradient 0; 1: fitted; 2: a scatter
  * flatter than `well_posed` (least eigenvalue over largest) in some component: the host
- * fits it (np.linalg.lstsq, minimum norm).
+ * fits it (np.linalg.lstsq, minimum norm). The gradient is written per grid window
+ * (grad[9w..], which window_estimates reads), the status per listed window (status[k]:
+ * only the listed windows' statuses go back to the host).
  *
  * window_estimates: each pair's displacement moved to the centre, d - G (mid - centre);
  * the kept count; where at least `min_count` are kept, per component the weighted mean,
  * and its uncertainty: the random part sqrt(spread / n_eff) t[n] (t: Student's quantile
  * for n kept pairs, from the host), the focal zone's mean ambiguity (depth), and the
- * position sigma carried through the gradient, added in quadrature; NaN elsewhere.
+ * position sigma carried through the gradient, added in quadrature; NaN elsewhere. Written
+ * per listed window (count[k], mean[3k..], error[3k..]): only the listed windows' results go
+ * back to the host, which places them in the grid.
  *
  * box_counts, box_fill: the pairs within a box about each listed window's centre: the
  * host gives, per pair, the windows whose box holds it along each axis as index ranges
@@ -266,7 +270,7 @@ __kernel void window_gradients(__global const double *mid, __global const double
             state = 2;
     for (int e = 0; e < 9; ++e)
         grad[9 * w + e] = state == 1 ? g[e] : 0.0;
-    status[w] = state;
+    status[k] = state;
 }
 
 __kernel void window_estimates(__global const double *mid, __global const double *disp,
@@ -304,7 +308,7 @@ __kernel void window_estimates(__global const double *mid, __global const double
             ambiguity += focus ? amb[mem[i]] : 0.0;
         }
     }
-    count[w] = kept;
+    count[k] = kept;
     const double ps[3] = {position_sigma.x, position_sigma.y, position_sigma.z};
     for (int c = 0; c < 3; ++c) {
         double total = 0.0, total2 = 0.0, sum = 0.0;
@@ -332,8 +336,8 @@ __kernel void window_estimates(__global const double *mid, __global const double
             position += (g[3 * c + a] * ps[a]) * (g[3 * c + a] * ps[a]);
         position = sqrt(position);
         const int use = kept >= min_count;
-        mean[3 * w + c] = use ? mu : NAN;
-        error[3 * w + c] = use ? sqrt(random * random + systematic * systematic
+        mean[3 * k + c] = use ? mu : NAN;
+        error[3 * k + c] = use ? sqrt(random * random + systematic * systematic
                                       + position * position) : NAN;
     }
 }

@@ -135,6 +135,30 @@ def test_device_correlation_matches_the_host(engine, shape, size, overlap, pad, 
     assert want.signal.any()
 
 
+def test_the_window_weight_goes_up_once_and_follows_a_change(queue):
+    """A pair's passes correlate with one window weight, which the device keeps: given
+    again, it is not uploaded again (its bytes fewer to the device); a different weight,
+    or none, is used from the call that gives it (each result the host's)."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    a, b = _pair((30, 33, 41), seed=5)
+    size = (12, 10, 15)
+    grid = window_grid(a.shape, size, 0.5)
+    engine = DeviceCorrelation(queue)
+    vols = engine.upload(a), engine.upload(b)
+    gauss = gaussian_weight(size, 0.35)
+    moved = []
+    for weight in (gauss, gaussian_weight(size, 0.5), None, gauss, gauss):
+        with OpenCLProfile() as prof:
+            got = engine.correlate(*vols, grid, weight=weight)
+        moved.append(sum(c.nbytes for c in prof.calls if c.kind == "h2d"))
+        want = correlate(a, b, grid, weight=weight, backend="scipy")
+        np.testing.assert_allclose(got.displacement, want.displacement,
+                                   atol=tol.DISPLACEMENT)
+        np.testing.assert_allclose(got.peak, want.peak, atol=tol.FFT_PLANE)
+    assert moved[4] + 4 * gauss.size == moved[3]
+
+
 def test_a_shift_is_found_by_the_padded_first_pass(engine):
     """Physics, not only agreement: a uniform shift up to a fifth of the window, found by
     the padded device correlation, not aliased (an undeformed window loses pairs, which

@@ -326,6 +326,27 @@ def test_window_means_of_some_windows_are_theirs_among_all(case, support):
         assert np.isfinite(every[0][:, ~wanted]).any()  # the others had means to leave out
 
 
+def test_window_means_on_the_device_send_back_only_the_windows_with_pairs(queue):
+    """A large field whose pairs fill a corner: the device's window means equal the
+    host's, and what comes back is the listed windows' results, less than one double per
+    window of the field (the gradients stay on the device; issue 46)."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    pairs = awkward_pairs("outliers", np.random.default_rng(11))
+    field = grid_field(shape=(20, 30, 40))
+    device = DeviceWindowMeans(queue)
+    want = window_means(pairs, field, 3)
+    with OpenCLProfile() as prof:
+        got = window_means(pairs, field, 3, device_means=device)
+    back = sum(c.nbytes for c in prof.calls if c.kind == "d2h")
+    np.testing.assert_array_equal(got[2], want[2])
+    for a, b in zip(got[:2], want[:2]):
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    assert 0 < np.count_nonzero(want[2]) < field.u.size / 10
+    assert back < 8 * field.u.size
+
+
 @pytest.mark.parametrize("case", ["sparse", "outliers", "plane", "line", "faces", "empty"])
 @pytest.mark.parametrize("spread, weighted", [(None, True), (ROBUST_SPREAD, False)])
 def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted):
@@ -363,7 +384,7 @@ def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted)
         # the host's fit written into the device copy: the estimates read it as they
         # read the same gradient uploaded from the host
         centres = device.device_centres(one_window)
-        _, _, on_device = device.device_gradients(
+        _, on_device = device.device_gradients(
             dev, lists, centres, (99.0,) * 3, None, (0.1, 0.1, 0.3), 12, 1e-4)
         fitted = rng.normal(scale=0.05, size=(1, 3, 3))
         device.set_gradients(on_device, fitted)

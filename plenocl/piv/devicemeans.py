@@ -51,15 +51,21 @@ class PairsOnDevice:
 @dataclass(frozen=True)
 class WindowLists:
     """Windows' pairs, the pair indices on the device: listed window ``k`` is grid window
-    ``win[k]``, its pairs ``member[start[k]:stop[k]]`` (at least one), in pair order."""
+    ``win[k]``, its pairs ``member[start[k]:stop[k]]`` (at least one), in pair order;
+    ``tables``: ``win``, ``start`` and ``stop`` on the device where they are already there
+    (``None``: the kernels' launch uploads them)."""
 
     win: np.ndarray
     start: np.ndarray
     stop: np.ndarray
     member: cl_array.Array
+    tables: tuple[cl_array.Array, cl_array.Array, cl_array.Array] | None = None
 
     def where(self, keep: np.ndarray) -> WindowLists:
-        """The listed windows ``keep`` (a boolean per listed window) alone."""
+        """The listed windows ``keep`` (a boolean per listed window) alone (all: these
+        lists, their device tables kept)."""
+        if np.all(keep):
+            return self
         return WindowLists(self.win[keep], self.start[keep], self.stop[keep], self.member)
 
     def members(self, k: int) -> np.ndarray:
@@ -169,10 +175,12 @@ class DeviceWindowMeans:
         stop = np.cumsum(count[win]).astype(i32)
         first = (stop - count[win]).astype(i32)
         member = self._k.array(max(int(stop[-1]) if len(stop) else 0, 1), i32)
-        if len(win):
-            self._k.launch("box_fill", (len(win),), *tables, self._k.to_device(win),
-                           i32(len(win)), i32(nx), self._k.to_device(first), member)
-        return WindowLists(win, first, stop, member), count
+        if not len(win):
+            return WindowLists(win, first, stop, member), count
+        listed = tuple(self._k.to_device(a) for a in (win, first, stop))  # kept for _launch
+        self._k.launch("box_fill", (len(win),), *tables, listed[0], i32(len(win)), i32(nx),
+                       listed[1], member)
+        return WindowLists(win, first, stop, member, listed), count
 
     def pairs(self, mid: np.ndarray, disp: np.ndarray, weight: np.ndarray | None,
               amb: np.ndarray | None) -> PairsOnDevice:
@@ -188,28 +196,31 @@ class DeviceWindowMeans:
         fewer than ``min_keep``) and status ``(W,)`` (:data:`FITTED`,
         :data:`ILL_POSED`: the host fits it; 0 otherwise); ``centres``: the field's axes
         ``(x, y, z)`` or :meth:`device_centres`."""
-        grad, status, _ = self.device_gradients(pairs, lists, centres, search, spread,
-                                                floor, min_keep, well_posed)
-        return grad, status
+        status, grad = self.device_gradients(pairs, lists, centres, search, spread, floor,
+                                             min_keep, well_posed)
+        return grad.get().reshape(len(status), 3, 3), status
 
     def device_gradients(self, pairs: PairsOnDevice, lists: WindowLists,
                          centres: WindowCentres | tuple,
                          search, spread: float | None, floor, min_keep: int,
-                         well_posed: float) -> tuple[np.ndarray, np.ndarray, cl_array.Array]:
-        """:meth:`gradients`, and their device copy (``W * 9`` float64, 0 where no pairs
-        are listed) for :meth:`estimates`, so that they need not be uploaded again; after
-        the host fits the ill-posed ones, :meth:`set_gradients` writes them there.
-        ``centres``: the field's axes ``(x, y, z)``, or :meth:`device_centres`."""
+                         well_posed: float) -> tuple[np.ndarray, cl_array.Array]:
+        """:meth:`gradients`' status ``(W,)`` on the host, the gradients on the device
+        alone (``W * 9`` float64, 0 where no pairs are listed) for :meth:`estimates`:
+        only the status comes back (at the paper's size the gradients were 7 MB a pair).
+        Where the host fits ill-posed ones, it reads them (``.get()``) and
+        :meth:`set_gradients` writes them back. ``centres``: the field's axes ``(x, y,
+        z)``, or :meth:`device_centres`."""
         centres = self.device_centres(centres)
-        size = centres.count
-        grad, status = fill(self._k.array(9 * size, f64), 0.0), fill(self._k.array(size, i32), 0)
-        if len(lists.win):
+        size, listed = centres.count, len(lists.win)
+        grad, status = fill(self._k.array(9 * size, f64), 0.0), np.zeros(size, i32)
+        if listed:
+            own = self._k.array(listed, i32)  # per listed window: only these come back
             self._launch("window_gradients", pairs, False, lists, centres,
                          _triple(search), _scale(spread), _triple(floor), i32(min_keep),
                          f64(well_posed), self._k.array(lists.member.size, f64), grad,
-                         status)
-        host, status = read(grad, status)
-        return host.reshape(size, 3, 3), status, grad
+                         own)
+            status[lists.win] = own.get()
+        return status, grad
 
     @staticmethod
     def set_gradients(device: cl_array.Array, grad: np.ndarray) -> None:
@@ -244,17 +255,20 @@ class DeviceWindowMeans:
         ``(W, 3, 3)`` on the host or :meth:`device_gradients`' device copy; ``centres``:
         the field's axes ``(x, y, z)`` or :meth:`device_centres`."""
         centres = self.device_centres(centres)
-        size = centres.count
-        count = fill(self._k.array(size, i32), 0)
-        mean, error = (fill(self._k.array(3 * size, f64), np.nan) for _ in range(2))
-        if len(lists.win):
+        size, listed = centres.count, len(lists.win)
+        count, (mean, error) = np.zeros(size, int), np.full((2, size, 3), np.nan)
+        if listed:  # written per listed window: only these come back
+            out = [self._k.array(listed, i32), *(self._k.array(3 * listed, f64)
+                                                 for _ in range(2))]
             self._launch("window_estimates", pairs, True, lists, centres,
                          self._k.on_device(grad, f64), _triple(search), _scale(spread),
                          _triple(floor), i32(min_count), self._upload(t),
                          _triple(position_sigma), self._k.array(lists.member.size, f64),
-                         count, mean, error)
-        count, mean, error = read(count, mean, error)
-        return count.astype(int), mean.reshape(size, 3), error.reshape(size, 3)
+                         *out)
+            n, m, e = read(*out)
+            count[lists.win], mean[lists.win], error[lists.win] = (
+                n, m.reshape(listed, 3), e.reshape(listed, 3))
+        return count, mean, error
 
     def _launch(self, name: str, pairs: PairsOnDevice, with_amb: bool, lists: WindowLists,
                 centres: WindowCentres, *rest) -> None:
@@ -265,7 +279,8 @@ class DeviceWindowMeans:
                 i32(pairs.weight is not None)]
         if with_amb:
             head += [dummy if pairs.amb is None else pairs.amb, i32(pairs.amb is not None)]
-        tables = [self._k.to_device(a) for a in (lists.win, lists.start, lists.stop)]
+        tables = lists.tables or [self._k.to_device(a)
+                                  for a in (lists.win, lists.start, lists.stop)]
         head += [*tables, lists.member, *centres.arguments()]
         self._k.launch(name, (len(lists.win),), *head, i32(len(lists.win)), *rest)
 

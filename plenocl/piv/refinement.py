@@ -676,13 +676,15 @@ def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: Wind
     amb = None if focus is None else focus.ambiguity(pairs.midpoints[:, 2])
     dev = means.pairs(pairs.midpoints, pairs.displacements, pair_weights(pairs, every), amb)
     on_device = means.device_centres(centre_axes)
-    grad, status, device_grad = means.device_gradients(
+    status, device_grad = means.device_gradients(
         dev, near, on_device, search, spread, KEEP_FLOOR, GRADIENT_PAIRS, WELL_POSED)
     flat = np.flatnonzero(status[near.win] == ILL_POSED)
-    for k in flat:
-        w = near.win[k]
-        grad[w] = local_gradient(pairs, near.members(k), on_device.centre(w), search, spread)
-    if len(flat):
+    if len(flat):  # rare: the gradients come to the host only then
+        grad = device_grad.get().reshape(-1, 3, 3)
+        for k in flat:
+            w = near.win[k]
+            grad[w] = local_gradient(pairs, near.members(k), on_device.centre(w), search,
+                                     spread)
         means.set_gradients(device_grad, grad)
     t = np.array([np.nan] + [t_quantile(k - 1) for k in range(1, inside.largest() + 1)])
     return means.estimates(dev, inside, on_device, device_grad, search, spread, KEEP_FLOOR,
