@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from plenocl.io.kept import CACHE_VARIABLE, FORMAT, KeptChoices, cache_dir
+from plenocl.opencl import build
+from plenocl.opencl.build import source_digest
 from plenocl.piv import devicefft
 from plenocl.piv.correlation import correlate, window_grid
 
@@ -153,6 +155,7 @@ def test_a_kept_route_is_taken_by_a_new_process(queue, folder):
     (key, entry), = json.loads(path.read_text())["choices"].items()
     assert entry["route"] == route and entry["host_s"] > 0 and entry["device_s"] > 0
     assert queue.device.driver_version.strip() in key and '"unpadded"' in key
+    assert source_digest(devicefft.PROGRAM) in key  # a changed FFT kernel measures again
 
     def kept_as(value):
         doc = json.loads(path.read_text())
@@ -216,3 +219,26 @@ def test_new_processes_measuring_at_once_take_one_route(queue, folder):
         p.join(timeout=60)
     assert len({tuple(used) for used, _ in got}) == 1 and len(got[0][0]) == 1
     assert sum(calls for _, calls in got) == 1
+
+
+def test_a_programs_digest_follows_its_source_and_its_headers(tmp_path, monkeypatch):
+    """The digest a measured route is kept under changes with the program's text and with
+    each header it includes, at any depth, and not with a file it does not include."""
+    texts = {"a.cl": '#include "b.h"\n  # include "c.h" /* two */\nkernel void k() {}\n',
+             "b.h": '#include "d.h"\n#define B 1\n', "c.h": "#define C 2\n",
+             "d.h": "#define D 3\n", "e.h": "#define E 4\n"}
+    for name, text in texts.items():
+        (tmp_path / name).write_text(text)
+    monkeypatch.setattr(build, "kernel_dir", lambda: tmp_path)
+
+    def digest():
+        source_digest.cache_clear()
+        return source_digest("a.cl")
+
+    seen = [digest()]
+    for name in ("e.h", "a.cl", "b.h", "c.h", "d.h"):
+        (tmp_path / name).write_text(texts[name] + "/* changed */\n")
+        seen.append(digest())
+    source_digest.cache_clear()
+    assert seen[1] == seen[0]  # e.h is not included
+    assert len(set(seen[1:])) == 5

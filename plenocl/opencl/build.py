@@ -9,6 +9,9 @@ choice, so :mod:`plenocl.opencl.device` can use it to check that a device builds
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import re
 import warnings
 import weakref
 from collections.abc import Sequence
@@ -42,6 +45,25 @@ def kernel_dir() -> Path:
     raise FileNotFoundError(
         f"plenocl's OpenCL sources were not found next to {here}; reinstall plenocl"
     )
+
+
+@functools.cache
+def source_digest(filename: str) -> str:
+    """A digest (16 hex digits) of ``kernels/<filename>`` and every header it includes,
+    however deep: what a choice measured on that program's kernels is kept under, so
+    that a changed kernel is measured again (:mod:`plenocl.io.kept`). Read once per
+    process, as the programs are built once."""
+    folder, digest = kernel_dir(), hashlib.sha256()
+    todo, seen = [filename], set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        text = (folder / name).read_text()
+        digest.update(f"{name}\0{text}\0".encode())
+        todo += re.findall(r'^\s*#\s*include\s+"([^"]+)"', text, re.MULTILINE)
+    return digest.hexdigest()[:16]
 
 
 # Programs per context; an entry goes when its context is garbage collected.

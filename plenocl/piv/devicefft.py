@@ -18,6 +18,7 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..io.kept import KeptChoices
+from ..opencl.build import source_digest
 from ..opencl.device import check_fits, is_cpu
 from ..opencl.program import GPU_GROUP, KernelSet
 from ..opencl.volume import host_volume
@@ -38,6 +39,8 @@ __all__ = ["CPU_GROUP", "KEPT_ROUTES", "MAX_LINE", "DeviceCorrelation", "FFTRout
            "forget_measured_routes", "is_route", "measured_routes"]
 
 i32, f32 = np.int32, np.float32
+#: The FFT correlation's program (``kernels/``).
+PROGRAM = "fftcorr.cl"
 _KERNELS = ("window_moments", "fill_windows", "fft_lines", "cross_spectrum", "peak_fit",
             "gather_windows")
 #: The longest FFT line the kernel holds in local memory (``PL_MAXN``).
@@ -72,7 +75,7 @@ class DeviceCorrelation:
         self.group = int(group or (CPU_GROUP if cpu else GPU_GROUP))
         if self.group < 1 or self.group & (self.group - 1):
             raise ValueError(f"group must be a power of two, got {group!r}")
-        self._k = KernelSet(queue, "fftcorr.cl", _KERNELS,
+        self._k = KernelSet(queue, PROGRAM, _KERNELS,
                             [f"-DPL_GROUP={self.group}", f"-DPL_MAXN={MAX_LINE}"])
         self._buffers: dict[str, cl_array.Array] = {}
         self._twiddles: dict[tuple[int, bool], cl_array.Array] = {}
@@ -329,13 +332,14 @@ class FFTRoute:
 
     def _kept_key(self, key: tuple) -> tuple:
         """The kept file's key of a measurement's ``key``: the device's platform and
-        driver, plenocl's version and the host's FFT backend beside it (another of any
-        of them measures again)."""
+        driver, plenocl's version, the FFT kernels' source digest and the host's FFT
+        backend beside it (another of any of them measures again: a checkout whose FFT
+        kernels changed without a new version too)."""
         device = self.device.queue.device
         name, box, resident, pad = key
         return (device.platform.name.strip(), name, device.driver_version.strip(),
-                __version__, self.backend or default_backend(), *box, resident,
-                "padded" if pad else "unpadded")
+                __version__, source_digest(PROGRAM), self.backend or default_backend(),
+                *box, resident, "padded" if pad else "unpadded")
 
     @staticmethod
     def _kept(key: tuple, value: dict | None) -> tuple[str, float, float] | None:
