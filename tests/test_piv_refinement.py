@@ -347,6 +347,28 @@ def test_window_means_on_the_device_send_back_only_the_windows_with_pairs(queue)
     assert back < 8 * field.u.size
 
 
+def test_window_means_on_the_device_upload_the_same_pairs_once(queue):
+    """Calls on the same pairs (a refinement's sparse windows after its lateral means)
+    send them to the device once; other pairs go up, and the first again after them;
+    each call's means are the host's."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    pairs = awkward_pairs("outliers", np.random.default_rng(12))
+    fewer = pairs.subset(np.arange(len(pairs.midpoints)) % 3 > 0)
+    field, device = grid_field(), DeviceWindowMeans(queue)
+    moved = []
+    for given in (pairs, pairs, fewer, pairs):
+        with OpenCLProfile() as prof:
+            got = window_means(given, field, 3, device_means=device)
+        moved.append(sum(c.nbytes for c in prof.calls if c.kind == "h2d"))
+        want = window_means(given, field, 3)
+        np.testing.assert_array_equal(got[2], want[2])
+        np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
+    sent = 2 * pairs.midpoints.nbytes  # midpoints and displacements, float64
+    assert moved[1] + sent <= moved[0]
+    assert moved[3] >= moved[1] + sent
+
+
 @pytest.mark.parametrize("case", ["sparse", "outliers", "plane", "line", "faces", "empty"])
 @pytest.mark.parametrize("spread, weighted", [(None, True), (ROBUST_SPREAD, False)])
 def test_window_means_on_the_device_are_the_hosts(queue, case, spread, weighted):
@@ -442,7 +464,8 @@ def test_window_means_on_the_device_follow_the_field_they_are_given(queue):
 def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius):
     """Each wanted window's pairs from the device's box search (the host's per-axis index
     ranges, the pairs bucketed by row of windows) are the pairs a k-d tree finds within
-    ``radius`` of its centre per axis, in pair order; the windows not wanted list none."""
+    ``radius`` of its centre per axis, in pair order; the windows not wanted list none;
+    asked for those holding at least 3, those alone, with the same pairs."""
     rng = np.random.default_rng(count)
     field = grid_field()
     half = np.asarray(field.window[::-1], float) / 2
@@ -467,6 +490,10 @@ def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius):
         assert held[w] == len(want)
         np.testing.assert_array_equal(got.get(w, []), want)
     assert held[wanted].sum() == lists.stop[-1] if len(lists.win) else not held.any()
+    busy, _ = DeviceWindowMeans(queue).box_lists(ranges, field.u.shape, wanted, least=3)
+    np.testing.assert_array_equal(busy.win, np.flatnonzero(held >= 3))  # those alone
+    for k, w in enumerate(busy.win):
+        np.testing.assert_array_equal(busy.members(k), got[w])
 
 
 @pytest.mark.parametrize("wrong", ["transposed", "flat", "integers"])

@@ -61,13 +61,6 @@ class WindowLists:
     member: cl_array.Array
     tables: tuple[cl_array.Array, cl_array.Array, cl_array.Array] | None = None
 
-    def where(self, keep: np.ndarray) -> WindowLists:
-        """The listed windows ``keep`` (a boolean per listed window) alone (all: these
-        lists, their device tables kept)."""
-        if np.all(keep):
-            return self
-        return WindowLists(self.win[keep], self.start[keep], self.stop[keep], self.member)
-
     def members(self, k: int) -> np.ndarray:
         """Listed window ``k``'s pairs, on the host."""
         return self.member[int(self.start[k]):int(self.stop[k])].get()
@@ -116,6 +109,11 @@ def _scale(spread: float | None) -> np.float64:
     return f64(-1.0 if spread is None else spread * MAD_SIGMA)
 
 
+def _same(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    """Whether two optional arrays are both ``None`` or equal (shape and values)."""
+    return a is b if a is None or b is None else np.array_equal(a, b)
+
+
 def _triple(values) -> np.ndarray:
     """Three numbers (or one for all three, as NumPy broadcasts it) as an OpenCL
     ``double3`` argument."""
@@ -141,6 +139,7 @@ class DeviceWindowMeans:
         self._k = KernelSet(queue, "windowmeans.cl", names, looping=names)
         self._rows = DeviceRowLists(queue)
         self._centres: WindowCentres | None = None
+        self._pairs: tuple[tuple, PairsOnDevice] | None = None
 
     @staticmethod
     def supports(queue: cl.CommandQueue) -> bool:
@@ -152,12 +151,13 @@ class DeviceWindowMeans:
         """The device's queue."""
         return self._k.queue
 
-    def box_lists(self, ranges, shape: tuple[int, int, int], wanted: np.ndarray
-                  ) -> tuple[WindowLists, np.ndarray]:
+    def box_lists(self, ranges, shape: tuple[int, int, int], wanted: np.ndarray,
+                  least: int = 1) -> tuple[WindowLists, np.ndarray]:
         """The pairs each ``wanted`` window's box holds (a boolean per window of the
         ``(nz, ny, nx)`` grid, flat), from each pair's window index ranges ``ranges``
-        (``[(x0, x1), (y0, y1), (z0, z1)]``, each ``(P,)``): the windows with any, and the
-        count of every window ``(W,)`` (0 where not wanted)."""
+        (``[(x0, x1), (y0, y1), (z0, z1)]``, each ``(P,)``): the windows with at least
+        ``least`` (at least 1), listed with their tables on the device, and the count of
+        every window ``(W,)`` (0 where not wanted)."""
         nz, ny, nx = shape
         (x0, x1), y, z = ranges
         rows = self._rows.boxes(z, y, nz, ny)  # the pairs by (z, y) row of windows
@@ -171,7 +171,7 @@ class DeviceWindowMeans:
             self._k.launch("box_counts", (len(listed),), *tables, win, i32(len(listed)),
                            i32(nx), counts)
             count[listed] = counts.get()
-        win = np.flatnonzero(count).astype(i32)
+        win = np.flatnonzero(count >= max(least, 1)).astype(i32)
         stop = np.cumsum(count[win]).astype(i32)
         first = (stop - count[win]).astype(i32)
         member = self._k.array(max(int(stop[-1]) if len(stop) else 0, 1), i32)
@@ -184,10 +184,17 @@ class DeviceWindowMeans:
 
     def pairs(self, mid: np.ndarray, disp: np.ndarray, weight: np.ndarray | None,
               amb: np.ndarray | None) -> PairsOnDevice:
-        """Upload one call's pairs (see :class:`PairsOnDevice`)."""
-        up = self._upload
-        return PairsOnDevice(up(mid), up(disp), None if weight is None else up(weight),
-                             None if amb is None else up(amb))
+        """One call's pairs on the device (see :class:`PairsOnDevice`). The last ones
+        stay there: a refinement's next call often takes the same pairs (the sparse
+        windows' wider boxes after the lateral means, the seeing pairs again for a blind
+        column), which then go up once (the kernels only read them)."""
+        host = tuple(None if a is None else np.array(a, f64) for a in (mid, disp, weight, amb))
+        kept = self._pairs
+        if kept is None or not all(_same(a, b) for a, b in zip(kept[0], host)):
+            up = self._upload
+            kept = self._pairs = (host, PairsOnDevice(*(None if a is None else up(a)
+                                                        for a in host)))
+        return kept[1]
 
     def gradients(self, pairs: PairsOnDevice, lists: WindowLists,
                   centres: WindowCentres | tuple, search, spread: float | None, floor,

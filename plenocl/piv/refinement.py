@@ -651,13 +651,13 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
                                     min_pairs, search, focus, position_sigma, spread)
     else:
         ranges = [[_axis_range(points[:, a], axes[a], r) for a in range(3)] for r in (1, 2)]
-        own, held = device_means.box_lists(
-            ranges[0], shape, np.ones(count.size, bool) if wanted is None else wanted)
+        inside, held = device_means.box_lists(  # the busy windows' own pairs
+            ranges[0], shape, np.ones(count.size, bool) if wanted is None else wanted,
+            least=min_pairs)
         busy = held >= min_pairs
         near, _ = device_means.box_lists(ranges[1], shape, busy)
-        n, m, e = _device_estimates(device_means, pairs, near, own.where(busy[own.win]),
-                                    centre_axes, min_pairs, search, focus, position_sigma,
-                                    spread)
+        n, m, e = _device_estimates(device_means, pairs, near, inside, centre_axes,
+                                    min_pairs, search, focus, position_sigma, spread)
     count.reshape(-1)[busy] = n[busy]
     use = busy & (n >= max(min_pairs, 1))
     mean.reshape(3, -1)[:, use], error.reshape(3, -1)[:, use] = m[use].T, e[use].T
