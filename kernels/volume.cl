@@ -34,6 +34,33 @@ __kernel void row_summary(__global const float *v, int nx, __global float *lo,
     nonzero[r] = lit;
 }
 
+/* summary_parts: the rows' summaries (lo, hi, nonfinite, nonzero of `rows` rows, from
+ * row_summary) combined into `parts` partial ones, part p taking rows p, p + parts,
+ * p + 2 parts, ...: what the host reads instead of one per row (a paper-size volume's
+ * 30,000 rows: 480 kB back, against 4 kB for 256 parts). Extremes and integer sums, so
+ * exact in any order; the counts summed in long. Parallel structure: one work-item per
+ * part, a loop striding over the rows (consecutive items read consecutive rows);
+ * no atomics, no local memory. */
+__kernel void summary_parts(__global const float *lo, __global const float *hi,
+                            __global const int *nonfinite, __global const int *nonzero,
+                            int rows, __global float *part_lo, __global float *part_hi,
+                            __global long *part_nonfinite, __global long *part_nonzero)
+{
+    const int p = get_global_id(0), parts = get_global_size(0);
+    float low = INFINITY, high = -INFINITY;
+    long bad = 0, lit = 0;
+    for (int r = p; r < rows; r += parts) {
+        low = fmin(low, lo[r]);
+        high = fmax(high, hi[r]);
+        bad += nonfinite[r];
+        lit += nonzero[r];
+    }
+    part_lo[p] = low;
+    part_hi[p] = high;
+    part_nonfinite[p] = bad;
+    part_nonzero[p] = lit;
+}
+
 /* neighbourhoods: for each of n voxels (flat indices `index`, C order of nz x ny x nx),
  * its value and its six face neighbours' (out[7 k ...]: the voxel, then x - 1, x + 1,
  * y - 1, y + 1, z - 1, z + 1), 0 beyond the volume's faces: what a peak's three-point

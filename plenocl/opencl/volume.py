@@ -20,7 +20,11 @@ import pyopencl.array as cl_array
 from .arrays import read
 from .program import KernelSet
 
-__all__ = ["DeviceVolume", "VolumeSummary", "host_volume", "resident"]
+__all__ = ["SUMMARY_PARTS", "DeviceVolume", "VolumeSummary", "host_volume", "resident"]
+
+#: The partial summaries a volume's rows are combined into on the device before the host
+#: reads them: enough work-items to spread the rows (a few hundred), few bytes back.
+SUMMARY_PARTS = 256
 
 
 @dataclass(frozen=True)
@@ -88,8 +92,9 @@ class DeviceVolume:
         return host.copy() if copy and host is self._host else host
 
     def summary(self) -> VolumeSummary:
-        """The volume's :class:`VolumeSummary`, found on the device (by rows; the rows'
-        extremes and counts combined on the host: exact), once."""
+        """The volume's :class:`VolumeSummary`, found on the device (by rows, the rows
+        combined there into at most :data:`SUMMARY_PARTS` parts, and those on the host:
+        exact), once."""
         if self._summary is None and not self.size:
             self._summary = VolumeSummary(np.inf, -np.inf, 0, 0)
         if self._summary is None:
@@ -99,7 +104,11 @@ class DeviceVolume:
             lo, hi = k.array(rows), k.array(rows)
             bad, lit = k.array(rows, np.int32), k.array(rows, np.int32)
             k.launch("row_summary", (rows,), self.array, np.int32(nx), lo, hi, bad, lit)
-            lo, hi, bad, lit = read(lo, hi, bad, lit)
+            parts = min(rows, SUMMARY_PARTS)
+            out = [k.array(parts), k.array(parts), k.array(parts, np.int64),
+                   k.array(parts, np.int64)]
+            k.launch("summary_parts", (parts,), lo, hi, bad, lit, np.int32(rows), *out)
+            lo, hi, bad, lit = read(*out)
             self._summary = VolumeSummary(float(lo.min()), float(hi.max()),
                                           int(bad.sum(dtype=np.int64)),
                                           int(lit.sum(dtype=np.int64)))
@@ -132,8 +141,8 @@ class DeviceVolume:
         context)."""
         if self._kernels is None:
             self._kernels = KernelSet(self.array.queue, "volume.cl",
-                                      ["row_summary", "neighbourhoods"],
-                                      looping=["row_summary"])
+                                      ["row_summary", "summary_parts", "neighbourhoods"],
+                                      looping=["row_summary", "summary_parts"])
         return self._kernels
 
 
