@@ -158,6 +158,32 @@ def test_an_upload_copies_now_and_does_not_wait_for_the_queue(queue):
         assert np.array_equal(dev.get(), other)
 
 
+def test_kept_uploads_go_up_again_only_when_an_array_changes(queue):
+    """``KeptUpload`` returns device copies of what it is given, converted to its type;
+    given equal arrays again (a new object, another type) it returns the kept copies
+    without an upload; a changed value, shape, ``None`` or count of arrays uploads anew."""
+    from plenocl.bench.clprofile import OpenCLProfile
+    from plenocl.opencl.arrays import KeptUpload
+
+    kept = KeptUpload(queue, np.float64)
+    a, b = np.arange(6, dtype=np.float32).reshape(2, 3), np.array([0.5, -2.0])
+    first = kept(a, None, b)
+    assert first[1] is None and first[0].dtype == np.float64
+    assert np.array_equal(first[0].get(), a) and np.array_equal(first[2].get(), b)
+    with OpenCLProfile() as prof:
+        again = kept(a.astype(np.int64), None, b.copy())
+    assert all(x is y for x, y in zip(again, first)) and not prof.calls
+    changed_b = b.copy()
+    changed_b[1] = 3.0
+    for given in [(a, None, changed_b), (a.reshape(3, 2), None, b), (a, b, b), (a, None),
+                  (a, None, b)]:
+        got = kept(*given)
+        assert got[0] is not first[0]  # uploaded anew
+        for g, h in zip(got, given, strict=True):
+            assert (g is None) == (h is None)
+            assert h is None or np.array_equal(g.get(), h)
+
+
 def test_reading_several_arrays_waits_once_and_gives_what_get_gives(queue):
     """``arrays.read`` returns each device array's ``.get()`` (any dtype and shape, an
     empty one and a leading slice included), waiting for the queue once for all of them

@@ -17,8 +17,8 @@ import pyopencl.array as cl_array
 
 from . import pool
 
-__all__ = ["buffer_from_host", "copy_inside", "device_copies", "fill", "inside_zeros",
-           "read", "upload"]
+__all__ = ["KeptUpload", "buffer_from_host", "copy_inside", "device_copies", "fill",
+           "inside_zeros", "read", "upload"]
 
 
 def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
@@ -34,6 +34,44 @@ def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
     packed = np.ascontiguousarray(host)  # (a 0-d array comes out 1-d: the shape is host's)
     data = pool.made(queue, lambda: buffer_from_host(queue.context, packed))
     return cl_array.Array(queue, host.shape, host.dtype, data=data)
+
+
+class KeptUpload:
+    """Device copies of the host arrays last given, uploaded again only when one of them
+    changes: for tables that kernels only read and that a run gives again and again (a
+    pair's PIV passes, its refinement's calls).
+
+    Parameters
+    ----------
+    queue
+        The device's queue.
+    dtype
+        The copies' type (each array is converted to it, as the comparison is made).
+
+    Replacing the kept copies is one assignment, so threads sharing the object each get
+    copies of what they gave.
+    """
+
+    def __init__(self, queue: cl.CommandQueue, dtype) -> None:
+        self.queue, self.dtype = queue, np.dtype(dtype)
+        self._kept: tuple[tuple, tuple] | None = None
+
+    def __call__(self, *arrays) -> tuple[cl_array.Array | None, ...]:
+        """Device copies of ``arrays`` (``None`` stays ``None``), the kept ones where
+        every array equals the last call's (shape and values)."""
+        host = tuple(None if a is None else np.array(a, self.dtype) for a in arrays)
+        kept = self._kept
+        if kept is None or not _all_same(kept[0], host):
+            kept = self._kept = (host, tuple(None if a is None else upload(self.queue, a)
+                                             for a in host))
+        return kept[1]
+
+
+def _all_same(kept: tuple, given: tuple) -> bool:
+    """Whether two tuples of optional arrays hold the same ``None`` s and equal arrays."""
+    return len(kept) == len(given) and all(
+        a is b if a is None or b is None else np.array_equal(a, b)
+        for a, b in zip(kept, given))
 
 
 def read(*arrays: cl_array.Array) -> list[np.ndarray]:

@@ -18,6 +18,7 @@ import numpy as np
 import pyopencl.array as cl_array
 
 from ..io.kept import KeptChoices
+from ..opencl.arrays import KeptUpload
 from ..opencl.build import source_digest
 from ..opencl.device import check_fits, is_cpu
 from ..opencl.program import GPU_GROUP, KernelSet
@@ -79,7 +80,7 @@ class DeviceCorrelation:
                             [f"-DPL_GROUP={self.group}", f"-DPL_MAXN={MAX_LINE}"])
         self._buffers: dict[str, cl_array.Array] = {}
         self._twiddles: dict[tuple[int, bool], cl_array.Array] = {}
-        self._weight: tuple[np.ndarray, cl_array.Array] | None = None
+        self._weight = KeptUpload(queue, f32)  # a pair's passes give one weight
 
     @property
     def queue(self):
@@ -117,7 +118,7 @@ class DeviceCorrelation:
         todo = np.arange(n) if select is None else np.flatnonzero(select)
         batch = max(1, min(max(len(todo), 1), BATCH_BYTES // (8 * int(np.prod(box)))))
         check_fits(self.queue, 2 * 8 * batch * int(np.prod(box)), "the FFT correlation")
-        wt = self._device_weight(weight)
+        (wt,) = self._weight(np.ones(1, f32) if weight is None else weight)
         result = np.zeros((n, 6))
         for start in range(0, len(todo), batch):
             sel = todo[start:start + batch]
@@ -182,16 +183,6 @@ class DeviceCorrelation:
                         np.int64(pz * plane), f32(sign), self._twiddle_table(n, sign))
                 self._k.launch("fft_lines", (lines * self.group,), *args,
                                local_size=(self.group,))
-
-    def _device_weight(self, weight: np.ndarray | None) -> cl_array.Array:
-        """The windows' weight on the device (a single 1 for none). The last one stays
-        there: a pair's passes correlate windows of one size with one weight, which goes
-        up once, not at every call (at the 116 x 78 pair, 0.4 MB a pair; issue 46)."""
-        host = np.ones(1, f32) if weight is None else np.ascontiguousarray(weight, f32)
-        kept = self._weight
-        if kept is None or not np.array_equal(kept[0], host):
-            kept = self._weight = (host.copy(), self._k.to_device(host))
-        return kept[1]
 
     def _kept(self, name: str, shape: tuple[int, int]) -> cl_array.Array:
         """A complex buffer of ``shape`` from the kept one ``name``, grown as needed: on a

@@ -22,7 +22,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from ..opencl.arrays import fill, read
+from ..opencl.arrays import KeptUpload, fill, read
 from ..opencl.device import DeviceInfo
 from ..opencl.program import KernelSet
 from ..opencl.rowlists import DeviceRowLists
@@ -52,14 +52,13 @@ class PairsOnDevice:
 class WindowLists:
     """Windows' pairs, the pair indices on the device: listed window ``k`` is grid window
     ``win[k]``, its pairs ``member[start[k]:stop[k]]`` (at least one), in pair order;
-    ``tables``: ``win``, ``start`` and ``stop`` on the device where they are already there
-    (``None``: the kernels' launch uploads them)."""
+    ``tables``: ``win``, ``start`` and ``stop`` on the device, for the kernels."""
 
     win: np.ndarray
     start: np.ndarray
     stop: np.ndarray
     member: cl_array.Array
-    tables: tuple[cl_array.Array, cl_array.Array, cl_array.Array] | None = None
+    tables: tuple[cl_array.Array, cl_array.Array, cl_array.Array]
 
     def members(self, k: int) -> np.ndarray:
         """Listed window ``k``'s pairs, on the host."""
@@ -109,11 +108,6 @@ def _scale(spread: float | None) -> np.float64:
     return f64(-1.0 if spread is None else spread * MAD_SIGMA)
 
 
-def _same(a: np.ndarray | None, b: np.ndarray | None) -> bool:
-    """Whether two optional arrays are both ``None`` or equal (shape and values)."""
-    return a is b if a is None or b is None else np.array_equal(a, b)
-
-
 def _triple(values) -> np.ndarray:
     """Three numbers (or one for all three, as NumPy broadcasts it) as an OpenCL
     ``double3`` argument."""
@@ -139,7 +133,7 @@ class DeviceWindowMeans:
         self._k = KernelSet(queue, "windowmeans.cl", names, looping=names)
         self._rows = DeviceRowLists(queue)
         self._centres: WindowCentres | None = None
-        self._pairs: tuple[tuple, PairsOnDevice] | None = None
+        self._pairs = KeptUpload(queue, f64)  # a refinement's calls repeat some pairs
 
     @staticmethod
     def supports(queue: cl.CommandQueue) -> bool:
@@ -175,11 +169,10 @@ class DeviceWindowMeans:
         stop = np.cumsum(count[win]).astype(i32)
         first = (stop - count[win]).astype(i32)
         member = self._k.array(max(int(stop[-1]) if len(stop) else 0, 1), i32)
-        if not len(win):
-            return WindowLists(win, first, stop, member), count
         listed = tuple(self._k.to_device(a) for a in (win, first, stop))  # kept for _launch
-        self._k.launch("box_fill", (len(win),), *tables, listed[0], i32(len(win)), i32(nx),
-                       listed[1], member)
+        if len(win):
+            self._k.launch("box_fill", (len(win),), *tables, listed[0], i32(len(win)),
+                           i32(nx), listed[1], member)
         return WindowLists(win, first, stop, member, listed), count
 
     def pairs(self, mid: np.ndarray, disp: np.ndarray, weight: np.ndarray | None,
@@ -188,13 +181,7 @@ class DeviceWindowMeans:
         stay there: a refinement's next call often takes the same pairs (the sparse
         windows' wider boxes after the lateral means, the seeing pairs again for a blind
         column), which then go up once (the kernels only read them)."""
-        host = tuple(None if a is None else np.array(a, f64) for a in (mid, disp, weight, amb))
-        kept = self._pairs
-        if kept is None or not all(_same(a, b) for a, b in zip(kept[0], host)):
-            up = self._upload
-            kept = self._pairs = (host, PairsOnDevice(*(None if a is None else up(a)
-                                                        for a in host)))
-        return kept[1]
+        return PairsOnDevice(*self._pairs(mid, disp, weight, amb))
 
     def gradients(self, pairs: PairsOnDevice, lists: WindowLists,
                   centres: WindowCentres | tuple, search, spread: float | None, floor,
@@ -286,9 +273,7 @@ class DeviceWindowMeans:
                 i32(pairs.weight is not None)]
         if with_amb:
             head += [dummy if pairs.amb is None else pairs.amb, i32(pairs.amb is not None)]
-        tables = lists.tables or [self._k.to_device(a)
-                                  for a in (lists.win, lists.start, lists.stop)]
-        head += [*tables, lists.member, *centres.arguments()]
+        head += [*lists.tables, lists.member, *centres.arguments()]
         self._k.launch(name, (len(lists.win),), *head, i32(len(lists.win)), *rest)
 
     def _upload(self, host: np.ndarray) -> cl_array.Array:
