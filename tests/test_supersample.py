@@ -13,6 +13,7 @@ from plenocl import Grid, Projector, random_particles, reconstruct
 from plenocl.bench.accuracy_section import paper_optics
 from plenocl.metrics import recovery
 from plenocl.opencl import arrays
+from plenocl.opencl.device import DeviceInfo
 from plenocl.opencl.volume import DeviceVolume
 from plenocl.reconstruction import (
     ReconstructionSettings,
@@ -282,12 +283,16 @@ def test_the_support_found_on_the_device_is_the_hosts_spread(queue, factor, shap
         binning.spread_support(start.on_device, floor, start.level, factor + 1, got)
 
 
-@pytest.mark.parametrize("shape", [(5, 7, 11), (4, 1, 5), (3, 2, 3), (9, 6, 1), (1, 1, 1)])
-def test_the_support_found_from_the_device_volume_is_the_hosts(queue, shape):
-    """``support_on_device`` (the rows' peaks, the grown support's row sums and counts
-    read back, not the volume) gives the host's ``support_of`` floor, level and fraction
-    bit for bit, with voxels at and beside the floor; the level is the support's mean
-    within float32 rounding; no support for a volume without light."""
+@pytest.mark.parametrize("fp64", [True, False])
+@pytest.mark.parametrize("shape", [(5, 7, 11), (4, 1, 5), (3, 2, 3), (9, 6, 1), (1, 1, 1),
+                                   (3, 100, 2)])
+def test_the_support_found_from_the_device_volume_is_the_hosts(queue, shape, fp64):
+    """``support_on_device`` (the peak, the grown support's sums in parts and count read
+    back, not the volume; the parts made on the device in double precision, or from the
+    rows on the host) gives the host's ``support_of`` floor, level and fraction bit for
+    bit, with voxels at and beside the floor, on fewer and more rows than parts; the
+    level is the support's mean within float32 rounding; no support for a volume without
+    light."""
     import pyopencl.array as cla
 
     from plenocl.reconstruction.schedule import support_of, support_on_device
@@ -301,7 +306,9 @@ def test_the_support_found_from_the_device_volume_is_the_hosts(queue, shape):
                         replace=False)
     flat[chosen] = [floor, np.nextafter(floor, np.float32(np.inf)),
                     np.nextafter(floor, np.float32(0))][:len(chosen)]
-    binning = LateralBinning(queue)
+    if fp64 and not DeviceInfo.probe(queue.device).fp64:
+        pytest.skip("the device has no cl_khr_fp64: its parts are made on the host")
+    binning = LateralBinning(queue, fp64)
     host = support_of(coarse, settings)
     device = support_on_device(cla.to_device(queue, coarse), settings, binning)
     assert (device.floor, device.level, device.fraction) == (floor, host.level,
@@ -315,6 +322,47 @@ def test_the_support_found_from_the_device_volume_is_the_hosts(queue, shape):
     dark = np.zeros(shape, np.float32)
     assert support_of(dark, settings) is None
     assert support_on_device(cla.to_device(queue, dark), settings, binning) is None
+
+
+def test_row_parts_add_each_part_in_row_order():
+    """The twin of ``support_parts``: part ``p`` is rows ``p, p + parts, ...`` added one
+    by one in float64, 0 where a part has no row; the parts hold every row's sum."""
+    from plenocl.reconstruction.supersample import row_parts
+
+    rows = np.random.default_rng(3).random(11).astype(np.float32) * 1e3
+    got = row_parts(rows, 4)
+    want = [float(rows[0]) + float(rows[4]) + float(rows[8]),
+            float(rows[1]) + float(rows[5]) + float(rows[9]),
+            float(rows[2]) + float(rows[6]) + float(rows[10]),
+            float(rows[3]) + float(rows[7])]
+    assert got.tolist() == want
+    assert row_parts(rows[:2], 4).tolist() == [float(rows[0]), float(rows[1]), 0.0, 0.0]
+    assert got.sum() == pytest.approx(rows.astype(np.float64).sum(), rel=1e-15)
+
+
+def test_the_support_of_a_paper_size_volume_reads_back_its_parts_not_its_rows(queue):
+    """A coarse volume of 30,000 rows (a paper-size reconstruction's) gives its support
+    with a few kilobytes back, not a peak, a sum and a count per row (360 kB)."""
+    import pyopencl.array as cla
+
+    from plenocl.bench.clprofile import OpenCLProfile
+    from plenocl.opencl.volume import SUMMARY_PARTS
+    from plenocl.reconstruction.schedule import support_of, support_on_device
+    from plenocl.reconstruction.supersample import SUPPORT_PARTS
+
+    coarse = (np.random.default_rng(4).random((150, 200, 7)) ** 8).astype(np.float32)
+    binning = LateralBinning(queue)
+    on_device = cla.to_device(queue, coarse)
+    settings = ReconstructionSettings(support=0.3)
+    with OpenCLProfile() as prof:
+        got = support_on_device(on_device, settings, binning)
+    back = sum(c.nbytes for c in prof.calls if c.kind == "d2h")
+    parts = SUPPORT_PARTS if binning.fp64 else 150 * 200
+    assert back <= 24 * SUMMARY_PARTS + 16 * parts
+    if binning.fp64:
+        assert back < 12 * 150 * 200 / 10
+    host = support_of(coarse, settings)
+    assert (got.floor, got.level, got.fraction) == (host.floor, host.level, host.fraction)
 
 
 def test_a_cropped_solver_bins_its_slabs_into_the_full_grid(optics, queue):

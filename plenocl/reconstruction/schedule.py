@@ -9,7 +9,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..opencl.volume import DeviceVolume
 from .settings import ReconstructionSettings
+from .supersample import row_parts
 
 
 def sampled_operator(projector, oversample: float | None):
@@ -61,11 +63,13 @@ class SupportStart:
         return np.where(self.mask, self.level, np.float32(0))
 
 
-def support_level(row_sums: np.ndarray, count: int) -> np.float32:
-    """The support's flat level, its mean: the float32 row sums (each row's values in
-    the support added along x in order, as the device adds them) added in float64, over
-    the support's voxels; the same bits from the host's volume and the device's."""
-    return np.float32(np.sum(np.asarray(row_sums, np.float64)) / count)
+def support_level(parts: np.ndarray, count: int) -> np.float32:
+    """The support's flat level, its mean: its sums in parts (the float32 row sums, each
+    row's values in the support added along x in order, combined into float64 parts as
+    the device combines them: :func:`plenocl.reconstruction.supersample.row_parts`)
+    added in float64, over the support's voxels; the same bits from the host's volume
+    and the device's."""
+    return np.float32(np.sum(np.asarray(parts, np.float64)) / count)
 
 
 def support_of(coarse: np.ndarray, settings: ReconstructionSettings, on_device=None
@@ -89,24 +93,24 @@ def support_of(coarse: np.ndarray, settings: ReconstructionSettings, on_device=N
     kept = np.where(keep, np.asarray(coarse, np.float32), np.float32(0))
     rows = np.cumsum(kept, axis=-1, dtype=np.float32)[..., -1]  # in order along x
     count = int(np.count_nonzero(keep))
-    return SupportStart(floor, support_level(rows, count), count / keep.size, keep,
+    return SupportStart(floor, support_level(row_parts(rows), count), count / keep.size, keep,
                         on_device)
 
 
 def support_on_device(coarse, settings: ReconstructionSettings, binning
                       ) -> SupportStart | None:
     """:func:`support_of` of the device volume ``coarse`` (float32 ``(nz, ny, nx)``),
-    found there: its rows' peaks and the support's row sums and counts cross to the
-    host, not the volume (``binning``: a
+    found there: its peak (:meth:`plenocl.opencl.volume.DeviceVolume.maximum`) and the
+    support's sums in parts and count cross to the host, not the volume (``binning``: a
     :class:`plenocl.reconstruction.supersample.LateralBinning` on its queue); the same
     floor, level and fraction to the bit."""
-    peak = float(binning.row_peaks(coarse).max()) if coarse.size else 0.0
+    peak = DeviceVolume(coarse).maximum() if coarse.size else 0.0
     if peak <= 0:
         return None
     floor = np.float32(settings.support * peak)
-    rows, counts = binning.support_rows(coarse, floor)
-    count = int(counts.sum(dtype=np.int64))
-    return SupportStart(floor, support_level(rows, count), count / coarse.size, None, coarse)
+    parts, count = binning.support_sums(coarse, floor)
+    return SupportStart(floor, support_level(parts, count), count / coarse.size, None,
+                        coarse)
 
 
 def coarse_support(coarse: np.ndarray, settings: ReconstructionSettings

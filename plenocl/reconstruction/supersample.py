@@ -18,10 +18,28 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..opencl.arrays import read
+from ..opencl.device import DeviceInfo
 from ..opencl.program import KernelSet
 
 #: Largest accepted factor (memory and time grow as its square).
 MAX_SUPERSAMPLE = 4
+#: The parts a coarse volume's support sums come in (:func:`row_parts`): what
+#: :meth:`LateralBinning.support_sums` reads back instead of one sum per row.
+SUPPORT_PARTS = 256
+
+
+def row_parts(row_sums: np.ndarray, parts: int = SUPPORT_PARTS) -> np.ndarray:
+    """``(parts,)`` float64: the float32 ``row_sums`` combined into ``parts`` parts, part
+    ``p`` the rows ``p, p + parts, p + 2 parts, ...`` added in that order in float64
+    (0 for a part without rows): the order of the device's ``support_parts``, so the
+    same bits from either."""
+    rows = np.asarray(row_sums, np.float32).reshape(-1)
+    padded = np.zeros(-(-rows.size // parts) * parts)
+    padded[:rows.size] = rows
+    out = np.zeros(parts)
+    for block in padded.reshape(-1, parts):  # row by row: the kernel's order
+        out += block
+    return out
 
 
 def bin_lateral(vol: np.ndarray, factor: int) -> np.ndarray:
@@ -52,13 +70,19 @@ class LateralBinning:
     ----------
     queue
         The queue of the slabs to bin.
+    fp64
+        Whether :meth:`support_sums` combines the rows into parts on the device
+        (``support_parts``, double precision); ``None``: where the device has
+        ``cl_khr_fp64``.
     """
 
-    def __init__(self, queue: cl.CommandQueue) -> None:
-        self._k = KernelSet(queue, "supersample.cl", ("bin_lateral", "spread_lateral",
-                                                      "grown_support", "spread_support",
-                                                      "row_peaks", "support_rows"),
-                            looping=["row_peaks", "support_rows"])
+    def __init__(self, queue: cl.CommandQueue, fp64: bool | None = None) -> None:
+        self.fp64 = DeviceInfo.probe(queue.device).fp64 if fp64 is None else bool(fp64)
+        names = ["bin_lateral", "spread_lateral", "grown_support", "spread_support",
+                 "support_rows"] + (["support_parts"] if self.fp64 else [])
+        self._k = KernelSet(queue, "supersample.cl", names,
+                            ["-DPL_DOUBLE"] if self.fp64 else [],
+                            looping=["support_rows", "support_parts"][:1 + self.fp64])
 
     def to_host(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
                 scale: float = 1.0) -> np.ndarray:
@@ -110,23 +134,27 @@ class LateralBinning:
                                i32(factor), np.float32(scale / factor**2), slab,
                                i32(ny * factor), i32(nx * factor))
 
-    def row_peaks(self, coarse: cla.Array) -> np.ndarray:
-        """The largest value of each ``(z, y)`` row of the device volume ``coarse``
-        ``(nz, ny, nx)``, ``(nz * ny,)`` float32 (a row of at least one voxel)."""
-        rows = coarse.size // coarse.shape[-1]
-        out = self._k.array(rows)
-        self._k.launch("row_peaks", (rows,), coarse, np.int32(coarse.shape[-1]), out)
-        return out.get()
-
-    def support_rows(self, coarse: cla.Array, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    def support_sums(self, coarse: cla.Array, floor: float) -> tuple[np.ndarray, int]:
         """The support of the device volume ``coarse`` above ``floor`` (the 3 x 3 x 3 box
-        grown, as :meth:`spread_support` finds it) by ``(z, y)`` row: its values' float32
-        sums along x, in x order, and its voxel counts (``(nz * ny,)`` each)."""
+        grown, as :meth:`spread_support` finds it): its values' sums as
+        :data:`SUPPORT_PARTS` float64 parts (:func:`row_parts` of its ``(z, y)`` rows'
+        float32 sums along x, in x order; the parts made on the device with
+        :attr:`fp64`, else the rows read and combined here: the same bits) and its voxel
+        count."""
         nz, ny, nx = coarse.shape
+        rows = nz * ny
         keep = self._grown_support(coarse, floor)
-        sums, counts = self._k.array(nz * ny), self._k.array(nz * ny, np.int32)
-        self._k.launch("support_rows", (nz * ny,), coarse, keep, np.int32(nx), sums, counts)
-        return tuple(read(sums, counts))
+        sums, counts = self._k.array(rows), self._k.array(rows, np.int32)
+        self._k.launch("support_rows", (rows,), coarse, keep, np.int32(nx), sums, counts)
+        if not self.fp64:
+            sums, counts = read(sums, counts)
+            return row_parts(sums), int(counts.sum(dtype=np.int64))
+        parts = self._k.array(SUPPORT_PARTS, np.float64), self._k.array(SUPPORT_PARTS,
+                                                                        np.int64)
+        self._k.launch("support_parts", (SUPPORT_PARTS,), sums, counts, np.int32(rows),
+                       *parts)
+        sums, counts = read(*parts)
+        return sums, int(counts.sum(dtype=np.int64))
 
     def _grown_support(self, coarse: cla.Array, floor: float) -> cla.Array:
         """The voxels of ``coarse`` ``(nz, ny, nx)`` whose 3 x 3 x 3 box holds one above
