@@ -17,15 +17,22 @@
  * plenocl.reference.rawcounts.level_counts): the pixels at each level PL_LOW ..
  * PL_LOW + PL_LEVELS - 1, every value of PL_COUNT.
  *
+ * level_blocks: the pixels in each block of PL_BLOCK consecutive levels (twin:
+ * plenocl.reference.rawcounts.level_blocks): the host reads these first, then the levels
+ * of the occupied blocks alone (a camera's 16-bit frame often fills a few hundred of its
+ * 65,536 levels: 1-2 kB back instead of 256 kB).
+ *
  * PL_COUNT: the counts' OpenCL type (uchar, ushort or short); PL_LOW, PL_LEVELS its
- * levels; PL_GROUP: count_levels' work-group size. Sizes are arguments.
+ * levels; PL_GROUP: count_levels' work-group size; PL_BLOCK: level_blocks' levels a
+ * block. Sizes are arguments.
  * Parallel structure: scaled_counts one work-item per pixel, no atomics, no local
  * memory. count_levels: each work-group counts its own slice of the pixels into its own
  * histogram (`partial`, zeroed by the host's fill), its items reading the slice in
  * strides of the group (coalesced); with PL_GROUP > 1 (a GPU) they add with atomic_inc,
  * the groups' copies spreading the few background levels every item hits (65,536 levels
  * do not fit local memory); with PL_GROUP 1 (a CPU: one item a group) a plain increment.
- * sum_levels: one work-item per level adds the groups' counts (no atomics). */
+ * sum_levels: one work-item per level adds the groups' counts (no atomics).
+ * level_blocks: one work-item per block, a loop over its levels (no atomics). */
 #pragma OPENCL FP_CONTRACT OFF
 
 __kernel void scaled_counts(__global const PL_COUNT *raw, float median, float scale,
@@ -58,4 +65,14 @@ __kernel void sum_levels(__global const uint *partial, int groups, __global uint
     for (int g = 0; g < groups; ++g)
         n += partial[(long)g * PL_LEVELS + level];
     total[level] = n;
+}
+
+__kernel void level_blocks(__global const uint *total, __global uint *blocks)
+{
+    const int b = get_global_id(0);
+    const int end = (b + 1) * PL_BLOCK < PL_LEVELS ? (b + 1) * PL_BLOCK : PL_LEVELS;
+    uint n = 0;
+    for (int level = b * PL_BLOCK; level < end; ++level)
+        n += total[level];
+    blocks[b] = n;
 }

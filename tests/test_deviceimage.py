@@ -9,6 +9,7 @@ import pytest
 
 import plenocl
 from plenocl.bench.clprofile import OpenCLProfile
+from plenocl.opencl.arrays import upload
 from plenocl.optics.rawimage import CountHistogram, check_exposure, count_histogram
 from plenocl.pipeline import process_pair
 from plenocl.piv import PIVSettings
@@ -19,9 +20,9 @@ from plenocl.reconstruction import (
     prepares_on_device,
     run_reconstruction,
 )
-from plenocl.reconstruction.deviceimage import COUNT_TYPES, DeviceCounts
+from plenocl.reconstruction.deviceimage import COUNT_TYPES, LEVEL_BLOCK, DeviceCounts
 from plenocl.reconstruction.images import prepare_image
-from plenocl.reference.rawcounts import level_counts, scaled_counts
+from plenocl.reference.rawcounts import level_blocks, level_counts, scaled_counts
 
 REC = ReconstructionSettings(iterations=3, coarse_iterations=2)
 GRID = plenocl.Grid((16, 24, 24), x=(-1.2, 1.2), y=(-1.2, 1.2), z=(-1.5, 1.5))
@@ -89,6 +90,40 @@ def test_level_counts_on_the_device_are_the_hosts(queue, dtype, shape, group):
         assert host.low == hist.low
         np.testing.assert_array_equal(host.counts, hist.counts)
     assert counts.histogram(raw[:0]) is None
+
+
+@pytest.mark.parametrize("dtype", sorted(COUNT_TYPES, key=str))
+def test_level_blocks_are_their_twins(queue, dtype):
+    """``level_blocks`` over a device histogram with pixels at scattered levels (the
+    first and last level, a block's edges, the last block partial where the levels are no
+    multiple of the block) is its twin's, to the count."""
+    counts = DeviceCounts(queue, dtype)
+    rng = np.random.default_rng(counts.levels)
+    levels = np.zeros(counts.levels, np.uint32)
+    picked = rng.choice(counts.levels, min(40, counts.levels), replace=False)
+    levels[picked] = rng.integers(1, 10**6, len(picked))
+    levels[[0, -1, min(255, counts.levels - 1)]] = (7, 9, 11)
+    np.testing.assert_array_equal(counts.level_blocks(upload(queue, levels)),
+                                  level_blocks(levels, LEVEL_BLOCK))
+    some = np.arange(300)
+    assert level_blocks(some, 256).tolist() == [some[:256].sum(), some[256:].sum()]
+
+
+def test_a_frame_of_few_levels_reads_back_its_blocks_not_every_level(queue):
+    """A 16-bit frame whose counts fill 300 of its 65,536 levels (a camera's dark level
+    and particles) reads back its blocks and the few occupied ones, not 256 kB; the
+    histogram is the frame's."""
+    rng = np.random.default_rng(8)
+    raw = (1000 + rng.integers(0, 300, (64, 96))).astype(np.uint16)
+    counts = DeviceCounts(queue, np.uint16)
+    on_device = counts.upload(raw)
+    with OpenCLProfile() as prof:
+        hist = counts.histogram(raw, on_device)
+    back = sum(c.nbytes for c in prof.calls if c.kind == "d2h")
+    assert back <= 4 * (65536 // LEVEL_BLOCK + 3 * LEVEL_BLOCK) < 4 * 65536 / 50
+    host = count_histogram(raw)
+    assert (hist.low, hist.high) == (host.low, host.high) == (raw.min(), raw.max())
+    np.testing.assert_array_equal(hist.counts, host.counts)
 
 
 def test_scaled_counts_refuse_what_float32_cannot_hold(queue):

@@ -4,7 +4,8 @@ prepared on the device").
 
 The frame goes to the device as its own integers (2 bytes a pixel for 16-bit counts,
 against 4 for the float32 image); the device counts its levels
-(:class:`plenocl.optics.rawimage.CountHistogram`, read back: 256 KB at most), which give
+(:class:`plenocl.optics.rawimage.CountHistogram`, read back: its blocks of
+:data:`LEVEL_BLOCK` levels, then the levels of those that hold pixels), which give
 the exposure checks, the median background, the noise and the scale exactly as the
 host's preparation finds them, and ``kernels/rawcounts.cl`` writes the float32 image
 there, to the bit the host's (:func:`plenocl.reconstruction.images.preprocess`). The host
@@ -19,7 +20,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from ..opencl.arrays import fill
+from ..opencl.arrays import fill, read
 from ..opencl.program import KernelSet, group_size
 from ..optics.rawimage import CountHistogram
 
@@ -34,6 +35,9 @@ COUNT_TYPES = {np.dtype(np.uint8): "uchar", np.dtype(np.uint16): "ushort",
 #: that every item hits), with one item a group (a CPU) a few per compute unit (plain
 #: increments).
 GPU_GROUPS, CPU_GROUPS_PER_UNIT = 64, 2
+#: Levels a block of the histogram's first read (``level_blocks``): the host then reads
+#: the levels from the first block that holds pixels to the last.
+LEVEL_BLOCK = 256
 
 
 def prepares_on_device(image, background: str | None, smooth_px: float | None,
@@ -63,10 +67,12 @@ class DeviceCounts:
         self.low, self.levels = int(info.min), int(info.max) - int(info.min) + 1
         self.group = group_size(queue, group)
         self._k = KernelSet(queue, "rawcounts.cl",
-                            ("scaled_counts", "count_levels", "sum_levels"),
+                            ("scaled_counts", "count_levels", "sum_levels",
+                             "level_blocks"),
                             [f"-DPL_COUNT={COUNT_TYPES[self.dtype]}", f"-DPL_LOW={self.low}",
-                             f"-DPL_LEVELS={self.levels}", f"-DPL_GROUP={self.group}"],
-                            looping=["count_levels"])
+                             f"-DPL_LEVELS={self.levels}", f"-DPL_GROUP={self.group}",
+                             f"-DPL_BLOCK={LEVEL_BLOCK}"],
+                            looping=["count_levels", "level_blocks"])
 
     def upload(self, raw: np.ndarray) -> cl_array.Array:
         """A device copy of the counts ``raw`` as they are (for :meth:`histogram` and
@@ -78,7 +84,9 @@ class DeviceCounts:
         """The :class:`CountHistogram` of the counts ``raw``, counted on the device
         (``count_levels``, ``sum_levels``; the host's ``np.bincount`` the twin, the same
         integers) from ``on_device``, their copy from :meth:`upload` (uploaded here when
-        ``None``); ``None`` for an empty frame."""
+        ``None``); ``None`` for an empty frame. Only the levels from the first to the
+        last block of :data:`LEVEL_BLOCK` that holds pixels come back
+        (:meth:`level_blocks` first)."""
         raw = self._k.on_device(raw if on_device is None else on_device, self.dtype)
         if not raw.size:
             return None
@@ -92,10 +100,20 @@ class DeviceCounts:
                        np.int64(-(-raw.size // groups)), partial, local_size=(self.group,))
         total = self._k.array(self.levels, np.uint32)
         self._k.launch("sum_levels", (self.levels,), partial, np.int32(groups), total)
-        counts = total.get()
+        held = np.flatnonzero(self.level_blocks(total))
+        start = int(held[0]) * LEVEL_BLOCK
+        counts = read(total[start:min((int(held[-1]) + 1) * LEVEL_BLOCK, self.levels)])[0]
         seen = np.flatnonzero(counts)
-        return CountHistogram(self.low + int(seen[0]),
+        return CountHistogram(self.low + start + int(seen[0]),
                               counts[seen[0]:seen[-1] + 1].astype(np.int64))
+
+    def level_blocks(self, total: cl_array.Array) -> np.ndarray:
+        """The pixels in each block of :data:`LEVEL_BLOCK` levels of the device histogram
+        ``total`` (``level_blocks``; twin
+        :func:`plenocl.reference.rawcounts.level_blocks`), read back."""
+        blocks = self._k.array(-(-self.levels // LEVEL_BLOCK), np.uint32)
+        self._k.launch("level_blocks", blocks.shape, total, blocks)
+        return read(blocks)[0]
 
     def scaled(self, raw, median: float, scale: float) -> cl_array.Array:
         """``max(raw - median, 0) / scale`` as a float32 device image of ``raw``'s shape

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["level_counts", "scaled_counts"]
+__all__ = ["level_blocks", "level_counts", "scaled_counts"]
 
 
 def scaled_counts(raw: np.ndarray, median: float, scale: float) -> np.ndarray:
@@ -18,3 +18,10 @@ def scaled_counts(raw: np.ndarray, median: float, scale: float) -> np.ndarray:
 def level_counts(raw: np.ndarray, low: int, levels: int) -> np.ndarray:
     """The pixels of ``raw`` at each of ``levels`` levels from ``low`` up, ``(levels,)``."""
     return np.bincount(np.asarray(raw, np.int64).ravel() - low, minlength=levels)
+
+
+def level_blocks(counts: np.ndarray, block: int) -> np.ndarray:
+    """The pixels in each block of ``block`` consecutive levels of the histogram
+    ``counts`` (the last block holding what remains), ``(ceil(len(counts) / block),)``."""
+    counts = np.asarray(counts, np.int64)
+    return np.add.reduceat(counts, np.arange(0, len(counts), block))
