@@ -97,6 +97,33 @@ def test_lit_lenses_on_the_device_are_the_hosts(name, projectors, queue):
         proj.lit_lenses(cla.to_device(queue, np.zeros((3, 4), np.float32)))
 
 
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 1001])
+def test_packed_flags_are_numpys_packbits(queue, n):
+    """``pack_flags`` (what the device's lit flags come back as) holds bit ``i`` of byte
+    ``j`` for flag ``8 j + i``, as ``numpy.packbits(..., bitorder="little")``, the last
+    byte's spare bits zero, any non-zero flag set."""
+    from plenocl.opencl.arrays import upload
+    from plenocl.opencl.program import KernelSet
+
+    k = KernelSet(queue, "lenses.cl", ["lit_patches", "pack_flags"])
+    flags = (np.random.default_rng(n).integers(0, 3, n)).astype(np.uint8)
+    packed = k.array(-(-n // 8), np.uint8)
+    k.launch("pack_flags", packed.shape, upload(queue, flags), np.int32(n), packed)
+    np.testing.assert_array_equal(packed.get(), np.packbits(flags > 0, bitorder="little"))
+
+
+def test_lit_flags_come_back_eight_to_a_byte(projectors, queue):
+    """The device's lit flags cross as one bit per lens, not a byte."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    proj = projectors["missing"]
+    img = cla.to_device(queue, _sparse_image(proj.image_shape, 6, 1))
+    with OpenCLProfile() as prof:
+        lit = proj.lit_lenses(img)
+    back = sum(c.nbytes for c in prof.calls if c.kind == "d2h")
+    assert back == -(-lit.size // 8) and lit.any()
+
+
 def test_one_pixel_lights_few_lenses(projectors):
     proj = projectors["ideal"]
     cols, rows = proj.camera.ml_count

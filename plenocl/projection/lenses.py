@@ -25,7 +25,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
-from ..opencl.arrays import upload
+from ..opencl.arrays import read, upload
 
 
 def lens_reach(max_offset_px: float) -> int:
@@ -80,12 +80,15 @@ def lit_lenses_on_device(kernels, image: cl_array.Array, centres: cl_array.Array
     (``kernels``: its :class:`plenocl.opencl.program.KernelSet`), the centres an int32
     device array ``(n_lenses, 2)``: the same flags, only one byte per lens back. The
     threshold is taken to float32 as NumPy takes a Python float compared with a float32
-    image (:func:`lit_lenses` on the host)."""
+    image (:func:`lit_lenses` on the host). The flags come back eight to a byte
+    (``pack_flags``)."""
     height, width = image.shape
-    out = kernels.array(centres.shape[0], np.uint8)
-    kernels.launch("lit_patches", (centres.shape[0],), image, np.int32(width),
-                   np.int32(height), centres, np.int32(reach), np.float32(threshold), out)
-    return out.get().astype(bool)
+    n = centres.shape[0]
+    out, packed = kernels.array(n, np.uint8), kernels.array(-(-n // 8), np.uint8)
+    kernels.launch("lit_patches", (n,), image, np.int32(width), np.int32(height), centres,
+                   np.int32(reach), np.float32(threshold), out)
+    kernels.launch("pack_flags", packed.shape, out, np.int32(n), packed)
+    return np.unpackbits(read(packed)[0], count=n, bitorder="little").astype(bool)
 
 
 @dataclass(frozen=True)

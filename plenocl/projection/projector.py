@@ -533,7 +533,7 @@ class Projector(FactorisedStages):
     def _lens_kernels(self) -> KernelSet:
         """``kernels/lenses.cl`` on this queue, built at the first device image."""
         if self._lit_kernels is None:
-            self._lit_kernels = KernelSet(self.queue, "lenses.cl", ["lit_patches"])
+            self._lit_kernels = KernelSet(self.queue, "lenses.cl", ["lit_patches", "pack_flags"])
         return self._lit_kernels
 
     def _lens_centres(self) -> cl_array.Array:
