@@ -32,8 +32,8 @@
  * means. Status 0: fewer than `min_keep` kept, gradient 0; 1: fitted; 2: a scatter
  * flatter than `well_posed` (least eigenvalue over largest) in some component: the host
  * fits it (np.linalg.lstsq, minimum norm). The gradient is written per grid window
- * (grad[9w..], which window_estimates reads), the status per listed window (status[k]:
- * only the listed windows' statuses go back to the host).
+ * (grad[9w..], which window_estimates reads), the status per listed window (status[k],
+ * a byte: only the listed windows' statuses go back to the host).
  *
  * window_estimates: each pair's displacement moved to the centre, d - G (mid - centre);
  * the kept count; where at least `min_count` are kept, per component the weighted mean,
@@ -245,7 +245,7 @@ __kernel void window_gradients(__global const double *mid, __global const double
                                double3 search,
                                double spread, double3 floor_,
                                int min_keep, double well_posed, __global double *scratch,
-                               __global double *grad, __global int *status)
+                               __global double *grad, __global uchar *status)
 {
     const int k = get_global_id(0);
     if (k >= listed)
@@ -270,7 +270,7 @@ __kernel void window_gradients(__global const double *mid, __global const double
             state = 2;
     for (int e = 0; e < 9; ++e)
         grad[9 * w + e] = state == 1 ? g[e] : 0.0;
-    status[k] = state;
+    status[k] = (uchar)state;
 }
 
 __kernel void window_estimates(__global const double *mid, __global const double *disp,

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from plenocl import Camera, Grid, piv3d
 from plenocl.metrics import render_particles
 from plenocl.piv import PIVResult
-from plenocl.piv.devicemeans import ILL_POSED, DeviceWindowMeans
+from plenocl.piv.devicemeans import FITTED, ILL_POSED, DeviceWindowMeans
 from plenocl.piv.refinement import (
     FITTED_POSITION_SIGMA,
     FOCAL_SYSTEMATIC,
@@ -345,6 +345,27 @@ def test_window_means_on_the_device_send_back_only_the_windows_with_pairs(queue)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
     assert 0 < np.count_nonzero(want[2]) < field.u.size / 10
     assert back < 8 * field.u.size
+
+
+def test_window_gradients_send_back_one_byte_per_listed_window(queue):
+    """The gradients' status crosses as a byte per listed window (the gradients stay on
+    the device), and is the same status the host reads either way."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    pairs = awkward_pairs("outliers", np.random.default_rng(13))
+    every = len(pairs.midpoints)
+    zero, one, two = (np.full(every, v, int) for v in (0, 1, 2))
+    device = DeviceWindowMeans(queue)
+    lists, _ = device.box_lists([(zero, two), (zero, one), (zero, one)], (1, 1, 2),
+                                np.ones(2, bool))
+    dev = device.pairs(pairs.midpoints, pairs.displacements, None, None)
+    centres = device.device_centres(([14.0, 16.0], [15.0], [15.0]))
+    args = (99.0,) * 3, None, (0.1, 0.1, 0.3), 3, 1e-4
+    with OpenCLProfile() as prof:
+        status, _ = device.device_gradients(dev, lists, centres, *args)
+    assert sum(c.nbytes for c in prof.calls if c.kind == "d2h") == len(lists.win) == 2
+    assert set(status) <= {FITTED, ILL_POSED} and FITTED in status
+    np.testing.assert_array_equal(device.gradients(dev, lists, centres, *args)[1], status)
 
 
 def test_window_means_on_the_device_upload_the_same_pairs_once(queue):

@@ -208,7 +208,7 @@ class DeviceWindowMeans:
         size, listed = centres.count, len(lists.win)
         grad, status = fill(self._k.array(9 * size, f64), 0.0), np.zeros(size, i32)
         if listed:
-            own = self._k.array(listed, i32)  # per listed window: only these come back
+            own = self._k.array(listed, np.uint8)  # per listed window: these come back
             self._launch("window_gradients", pairs, False, lists, centres,
                          _triple(search), _scale(spread), _triple(floor), i32(min_keep),
                          f64(well_posed), self._k.array(lists.member.size, f64), grad,
