@@ -323,7 +323,7 @@ def main() -> None:
     old = timed(lambda: summed_area_lit_lenses(img, centres, LENS_REACH, 100.0), n)
     row("lit lenses, 16 MP (row counts / summed-area)", new, old,
         float(np.count_nonzero(new[0] != old[0])), "lenses")
-    kernels = KernelSet(queue, "lenses.cl", ["lit_patches"])
+    kernels = KernelSet(queue, "lenses.cl", ["lit_patches", "pack_flags"])
     on_device = kernels.to_device(img.astype(np.float32))  # the solver's copy, uploaded anyway
     table = kernels.to_device(centres.astype(np.int32))
     new = timed(lambda: lit_lenses_on_device(kernels, on_device, table, LENS_REACH, 100.0), n)

@@ -18,9 +18,10 @@
  * PL_LOW + PL_LEVELS - 1, every value of PL_COUNT.
  *
  * level_blocks: the pixels in each block of PL_BLOCK consecutive levels (twin:
- * plenocl.reference.rawcounts.level_blocks): the host reads these first, then the levels
- * of the occupied blocks alone (a camera's 16-bit frame often fills a few hundred of its
- * 65,536 levels: 1-2 kB back instead of 256 kB).
+ * plenocl.reference.rawcounts.level_blocks): the host reads these first (1 kB for
+ * 16-bit counts), then the levels of the blocks that hold pixels alone (a camera's
+ * 16-bit frame often fills a few hundred of its 65,536 levels: 2-3 kB of them instead of
+ * 256 kB).
  *
  * PL_COUNT: the counts' OpenCL type (uchar, ushort or short); PL_LOW, PL_LEVELS its
  * levels; PL_GROUP: count_levels' work-group size; PL_BLOCK: level_blocks' levels a

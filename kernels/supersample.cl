@@ -108,7 +108,7 @@ __kernel void support_rows(__global const float *coarse, __global const uchar *k
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 /* support_parts: the rows' support sums and counts (support_rows, `rows` rows) combined
  * into parts, part p taking rows p, p + parts, p + 2 parts, ... in that order, the sums
- * added in double (schedule.row_parts, its NumPy twin, adds them alike: the same bits)
+ * added in double (supersample.row_parts, its NumPy twin, adds them alike: the same bits)
  * and the counts in long: what the host reads instead of one pair per row (a
  * paper-size coarse volume's 30,000 rows: 240 kB back, against 4 kB for 256 parts).
  * Devices without cl_khr_fp64 read the rows and combine them on the host. Parallel

@@ -20,7 +20,12 @@ from plenocl.reconstruction import (
     prepares_on_device,
     run_reconstruction,
 )
-from plenocl.reconstruction.deviceimage import COUNT_TYPES, LEVEL_BLOCK, DeviceCounts
+from plenocl.reconstruction.deviceimage import (
+    COUNT_TYPES,
+    LEVEL_BLOCK,
+    DeviceCounts,
+    occupied_runs,
+)
 from plenocl.reconstruction.images import prepare_image
 from plenocl.reference.rawcounts import level_blocks, level_counts, scaled_counts
 
@@ -124,6 +129,31 @@ def test_a_frame_of_few_levels_reads_back_its_blocks_not_every_level(queue):
     host = count_histogram(raw)
     assert (hist.low, hist.high) == (host.low, host.high) == (raw.min(), raw.max())
     np.testing.assert_array_equal(hist.counts, host.counts)
+
+
+def test_a_dark_frame_with_saturated_pixels_reads_two_runs_not_the_levels_between(queue):
+    """A 16-bit frame at a dark level of about 100 with a few pixels at 65,535 reads its
+    two occupied runs of levels (the 256 levels of each block), not the 65,000 empty
+    ones between; the histogram is the frame's, its highest level the saturated one."""
+    rng = np.random.default_rng(9)
+    raw = (90 + rng.integers(0, 20, (50, 70))).astype(np.uint16)
+    raw.flat[[5, 77, 3000]] = 65535
+    counts = DeviceCounts(queue, np.uint16)
+    on_device = counts.upload(raw)
+    with OpenCLProfile() as prof:
+        hist = counts.histogram(raw, on_device)
+    back = sum(c.nbytes for c in prof.calls if c.kind == "d2h")
+    assert back == 4 * (65536 // LEVEL_BLOCK + 2 * LEVEL_BLOCK)
+    host = count_histogram(raw)
+    assert (hist.low, hist.high, hist.counts[-1]) == (host.low, 65535, 3)
+    np.testing.assert_array_equal(hist.counts, host.counts)
+
+
+def test_occupied_runs_join_neighbouring_blocks():
+    """Runs of consecutive occupied blocks, each as its levels ``[start, stop)``."""
+    blocks = np.array([0, 3, 1, 0, 0, 7, 0, 2])
+    assert occupied_runs(blocks) == [(256, 768), (1280, 1536), (1792, 2048)]
+    assert occupied_runs(np.array([5])) == [(0, 256)]
 
 
 def test_scaled_counts_refuse_what_float32_cannot_hold(queue):

@@ -365,7 +365,6 @@ def test_window_gradients_send_back_one_byte_per_listed_window(queue):
         status, _ = device.device_gradients(dev, lists, centres, *args)
     assert sum(c.nbytes for c in prof.calls if c.kind == "d2h") == len(lists.win) == 2
     assert set(status) <= {FITTED, ILL_POSED} and FITTED in status
-    np.testing.assert_array_equal(device.gradients(dev, lists, centres, *args)[1], status)
 
 
 def test_window_means_on_the_device_upload_the_same_pairs_once(queue):

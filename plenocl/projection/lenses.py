@@ -78,7 +78,7 @@ def lit_lenses_on_device(kernels, image: cl_array.Array, centres: cl_array.Array
                          reach: int, threshold: float = 0.0) -> np.ndarray:
     """:func:`lit_lenses` of a float32 device image ``(H, W)`` by ``kernels/lenses.cl``
     (``kernels``: its :class:`plenocl.opencl.program.KernelSet`), the centres an int32
-    device array ``(n_lenses, 2)``: the same flags, only one byte per lens back. The
+    device array ``(n_lenses, 2)``: the same flags, only they come back. The
     threshold is taken to float32 as NumPy takes a Python float compared with a float32
     image (:func:`lit_lenses` on the host). The flags come back eight to a byte
     (``pack_flags``)."""

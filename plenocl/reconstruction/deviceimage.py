@@ -5,7 +5,7 @@ prepared on the device").
 The frame goes to the device as its own integers (2 bytes a pixel for 16-bit counts,
 against 4 for the float32 image); the device counts its levels
 (:class:`plenocl.optics.rawimage.CountHistogram`, read back: its blocks of
-:data:`LEVEL_BLOCK` levels, then the levels of those that hold pixels), which give
+:data:`LEVEL_BLOCK` levels, then the levels of the blocks that hold pixels), which give
 the exposure checks, the median background, the noise and the scale exactly as the
 host's preparation finds them, and ``kernels/rawcounts.cl`` writes the float32 image
 there, to the bit the host's (:func:`plenocl.reconstruction.images.preprocess`). The host
@@ -24,7 +24,7 @@ from ..opencl.arrays import fill, read
 from ..opencl.program import KernelSet, group_size
 from ..optics.rawimage import CountHistogram
 
-__all__ = ["COUNT_TYPES", "DeviceCounts", "prepares_on_device"]
+__all__ = ["COUNT_TYPES", "DeviceCounts", "occupied_runs", "prepares_on_device"]
 
 #: The counts' types prepared on the device, with their OpenCL types: at most 16 bits,
 #: so a count less a median (a whole or half count) is exact in float32.
@@ -38,6 +38,17 @@ GPU_GROUPS, CPU_GROUPS_PER_UNIT = 64, 2
 #: Levels a block of the histogram's first read (``level_blocks``): the host then reads
 #: the levels from the first block that holds pixels to the last.
 LEVEL_BLOCK = 256
+
+
+def occupied_runs(blocks: np.ndarray) -> list[tuple[int, int]]:
+    """The levels ``[start, stop)`` of each run of consecutive blocks of
+    :data:`LEVEL_BLOCK` levels that hold pixels (``blocks``: the pixels per block), in
+    order; what :meth:`DeviceCounts.histogram` reads (the empty blocks between them stay
+    on the device: a dark level and a few saturated pixels are two short runs)."""
+    held = np.flatnonzero(np.asarray(blocks) > 0)
+    cuts = np.flatnonzero(np.diff(held) > 1) + 1
+    return [(int(run[0]) * LEVEL_BLOCK, (int(run[-1]) + 1) * LEVEL_BLOCK)
+            for run in np.split(held, cuts)]
 
 
 def prepares_on_device(image, background: str | None, smooth_px: float | None,
@@ -84,9 +95,9 @@ class DeviceCounts:
         """The :class:`CountHistogram` of the counts ``raw``, counted on the device
         (``count_levels``, ``sum_levels``; the host's ``np.bincount`` the twin, the same
         integers) from ``on_device``, their copy from :meth:`upload` (uploaded here when
-        ``None``); ``None`` for an empty frame. Only the levels from the first to the
-        last block of :data:`LEVEL_BLOCK` that holds pixels come back
-        (:meth:`level_blocks` first)."""
+        ``None``); ``None`` for an empty frame. Only the levels of the blocks of
+        :data:`LEVEL_BLOCK` that hold pixels come back (:meth:`level_blocks` first,
+        then :func:`occupied_runs`)."""
         raw = self._k.on_device(raw if on_device is None else on_device, self.dtype)
         if not raw.size:
             return None
@@ -100,9 +111,12 @@ class DeviceCounts:
                        np.int64(-(-raw.size // groups)), partial, local_size=(self.group,))
         total = self._k.array(self.levels, np.uint32)
         self._k.launch("sum_levels", (self.levels,), partial, np.int32(groups), total)
-        held = np.flatnonzero(self.level_blocks(total))
-        start = int(held[0]) * LEVEL_BLOCK
-        counts = read(total[start:min((int(held[-1]) + 1) * LEVEL_BLOCK, self.levels)])[0]
+        runs = occupied_runs(self.level_blocks(total))
+        start, stop = runs[0][0], min(runs[-1][1], self.levels)
+        counts = np.zeros(stop - start, np.uint32)
+        parts = read(*(total[a:min(b, self.levels)] for a, b in runs))  # one wait
+        for (a, _), part in zip(runs, parts):
+            counts[a - start:a - start + len(part)] = part
         seen = np.flatnonzero(counts)
         return CountHistogram(self.low + start + int(seen[0]),
                               counts[seen[0]:seen[-1] + 1].astype(np.int64))

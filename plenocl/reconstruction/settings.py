@@ -22,7 +22,7 @@ METHODS = ("mlem", "smart", "mart")
 #: ``general``, which no record names).
 METHOD = ("coarse-to-fine: the coarse support's peak, floor and level found on the "
           "device, the level from float32 row sums added in float64 (2026-12-01, issue 46), "
-          "in 256 parts of rows added in order (2026-12-03 evening); "
+          "in 256 parts of rows added in order (2026-12-03 night); "
           "a hexagonal array's axial view leaning one way whatever its numbering "
           "(2026-12-01 evening); the coarse run MLEM's whatever the method (2026-12-03: "
           "SMART's and MART's volumes from the same settings differ)")
