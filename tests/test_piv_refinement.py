@@ -367,6 +367,32 @@ def test_window_gradients_send_back_one_byte_per_listed_window(queue):
     assert set(status) <= {FITTED, ILL_POSED} and FITTED in status
 
 
+def test_box_lists_of_every_window_send_the_window_list_once(queue):
+    """Box lists asked for every window of the same grid again (each of a pair's
+    refinement calls) send the list of windows once, also after a subset's call (which
+    sends its own); the lists are the same either way."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    rng = np.random.default_rng(14)
+    n, shape = 500, (6, 7, 9)
+    x0 = rng.integers(0, 9, n)
+    ranges = [(x0, x0 + 2), (rng.integers(0, 6, n),) * 2, (rng.integers(0, 5, n),) * 2]
+    ranges[1] = (ranges[1][0], ranges[1][0] + 1)
+    ranges[2] = (ranges[2][0], ranges[2][0] + 2)
+    every, some = np.ones(6 * 7 * 9, bool), rng.random(6 * 7 * 9) < 0.5
+    device = DeviceWindowMeans(queue)
+    sent, got = [], []
+    for wanted in (every, every, some, every):
+        with OpenCLProfile() as prof:
+            lists, count = device.box_lists(ranges, shape, wanted)
+        sent.append(sum(c.nbytes for c in prof.calls if c.kind == "h2d"))
+        got.append((lists.win.tolist(), lists.member.get().tolist(), count.tolist()))
+    assert sent[1] + 4 * every.size == sent[0]
+    assert sent[3] == sent[1]  # kept across a subset's call
+    assert got[0] == got[1] == got[3]
+    assert got[2][2] == np.where(some, got[0][2], 0).tolist()
+
+
 def test_window_means_on_the_device_upload_the_same_pairs_once(queue):
     """Calls on the same pairs (a refinement's sparse windows after its lateral means)
     send them to the device once; other pairs go up, and the first again after them;

@@ -134,6 +134,7 @@ class DeviceWindowMeans:
         self._rows = DeviceRowLists(queue)
         self._centres: WindowCentres | None = None
         self._pairs = KeptUpload(queue, f64)  # a refinement's calls repeat some pairs
+        self._every = KeptUpload(queue, i32)  # every window listed: the same each call
 
     @staticmethod
     def supports(queue: cl.CommandQueue) -> bool:
@@ -161,7 +162,8 @@ class DeviceWindowMeans:
         count = np.zeros(nz * ny * nx, int)
         if len(listed) and rows.total:
             counts = self._k.array(len(listed), i32)
-            win = self._k.to_device(listed)
+            win = (self._every(listed)[0] if len(listed) == nz * ny * nx
+                   else self._k.to_device(listed))
             self._k.launch("box_counts", (len(listed),), *tables, win, i32(len(listed)),
                            i32(nx), counts)
             count[listed] = counts.get()
