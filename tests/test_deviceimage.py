@@ -150,10 +150,12 @@ def test_a_dark_frame_with_saturated_pixels_reads_two_runs_not_the_levels_betwee
 
 
 def test_occupied_runs_join_neighbouring_blocks():
-    """Runs of consecutive occupied blocks, each as its levels ``[start, stop)``."""
+    """Runs of consecutive occupied blocks, each as its levels ``[start, stop)``, the
+    last block's ending at the histogram's last level."""
     blocks = np.array([0, 3, 1, 0, 0, 7, 0, 2])
-    assert occupied_runs(blocks) == [(256, 768), (1280, 1536), (1792, 2048)]
-    assert occupied_runs(np.array([5])) == [(0, 256)]
+    assert occupied_runs(blocks, 2048) == [(256, 768), (1280, 1536), (1792, 2048)]
+    assert occupied_runs(blocks, 1900) == [(256, 768), (1280, 1536), (1792, 1900)]
+    assert occupied_runs(np.array([5]), 256) == [(0, 256)]
 
 
 def test_scaled_counts_refuse_what_float32_cannot_hold(queue):

@@ -36,18 +36,19 @@ COUNT_TYPES = {np.dtype(np.uint8): "uchar", np.dtype(np.uint16): "ushort",
 #: increments).
 GPU_GROUPS, CPU_GROUPS_PER_UNIT = 64, 2
 #: Levels a block of the histogram's first read (``level_blocks``): the host then reads
-#: the levels from the first block that holds pixels to the last.
+#: the levels of the blocks that hold pixels (:func:`occupied_runs`).
 LEVEL_BLOCK = 256
 
 
-def occupied_runs(blocks: np.ndarray) -> list[tuple[int, int]]:
+def occupied_runs(blocks: np.ndarray, levels: int) -> list[tuple[int, int]]:
     """The levels ``[start, stop)`` of each run of consecutive blocks of
-    :data:`LEVEL_BLOCK` levels that hold pixels (``blocks``: the pixels per block), in
+    :data:`LEVEL_BLOCK` levels that hold pixels (``blocks``: the pixels per block of a
+    histogram of ``levels`` levels, the last block's run ending at ``levels``), in
     order; what :meth:`DeviceCounts.histogram` reads (the empty blocks between them stay
     on the device: a dark level and a few saturated pixels are two short runs)."""
     held = np.flatnonzero(np.asarray(blocks) > 0)
     cuts = np.flatnonzero(np.diff(held) > 1) + 1
-    return [(int(run[0]) * LEVEL_BLOCK, (int(run[-1]) + 1) * LEVEL_BLOCK)
+    return [(int(run[0]) * LEVEL_BLOCK, min((int(run[-1]) + 1) * LEVEL_BLOCK, levels))
             for run in np.split(held, cuts)]
 
 
@@ -111,12 +112,12 @@ class DeviceCounts:
                        np.int64(-(-raw.size // groups)), partial, local_size=(self.group,))
         total = self._k.array(self.levels, np.uint32)
         self._k.launch("sum_levels", (self.levels,), partial, np.int32(groups), total)
-        runs = occupied_runs(self.level_blocks(total))
-        start, stop = runs[0][0], min(runs[-1][1], self.levels)
-        counts = np.zeros(stop - start, np.uint32)
-        parts = read(*(total[a:min(b, self.levels)] for a, b in runs))  # one wait
-        for (a, _), part in zip(runs, parts):
-            counts[a - start:a - start + len(part)] = part
+        runs = occupied_runs(self.level_blocks(total), self.levels)
+        start = runs[0][0]
+        counts = np.zeros(runs[-1][1] - start, np.uint32)
+        parts = read(*(total[a:b] for a, b in runs))  # one wait
+        for (a, b), part in zip(runs, parts):
+            counts[a - start:b - start] = part
         seen = np.flatnonzero(counts)
         return CountHistogram(self.low + start + int(seen[0]),
                               counts[seen[0]:seen[-1] + 1].astype(np.int64))

@@ -78,11 +78,11 @@ class LateralBinning:
 
     def __init__(self, queue: cl.CommandQueue, fp64: bool | None = None) -> None:
         self.fp64 = DeviceInfo.probe(queue.device).fp64 if fp64 is None else bool(fp64)
-        names = ["bin_lateral", "spread_lateral", "grown_support", "spread_support",
-                 "support_rows"] + (["support_parts"] if self.fp64 else [])
-        self._k = KernelSet(queue, "supersample.cl", names,
-                            ["-DPL_DOUBLE"] if self.fp64 else [],
-                            looping=["support_rows", "support_parts"][:1 + self.fp64])
+        looping = ["support_rows"] + (["support_parts"] if self.fp64 else [])
+        self._k = KernelSet(queue, "supersample.cl",
+                            ["bin_lateral", "spread_lateral", "grown_support",
+                             "spread_support", *looping],
+                            ["-DPL_DOUBLE"] if self.fp64 else [], looping=looping)
 
     def to_host(self, slabs: list[cla.Array], factor: int, offset: tuple[int, int] = (0, 0),
                 scale: float = 1.0) -> np.ndarray:
