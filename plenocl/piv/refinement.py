@@ -90,6 +90,8 @@ METHOD = ("lines of sight, seen depth in the predictor and over twice the window
           "(2026-11-29 night); the local gradients weighted as the means (2026-11-30); "
           "a blind window without a seeing one in its column from its seeing pairs "
           "(2026-12-01); "
+          "a particle's peaks merged within the whole cylinder around its line, their "
+          "centre summed in index order (2026-12-04); "
           f"the fit: {FIT_METHOD}")
 #: Match tolerance (x, y, z voxels): depth is about three times less certain.
 SEARCH = (1.0, 1.0, 3.0)
