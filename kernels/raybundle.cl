@@ -15,8 +15,9 @@
  *   (NaN centre) gets weight 0 and no key (PL_NO_KEY) and costs no spread. Each item
  *   writes its own 4 slots and keys. A lit slot's spread costs 2 x 2 exps and 12
  *   divisions (pl_spread: the edges' exps from two, erf from the edge's exp), no erf.
- * - render_rows: one work-item per band of `band` rows of one particle's patch (the
- *   host's table names the particle and the band's first row). It zeroes its band, then
+ * - render_rows: one work-item per band of `band` rows of one particle's patch, range
+ *   (bands, particles), the bands of the tallest patch (an item past its own patch's
+ *   end returns: patches differ by a few rows). It zeroes its band, then
  *   gathers over its particle's 4 x rays slots in ray order, adding the 5 x 5 pixels of
  *   each slot whose spread reaches the band: every patch element is written by one item
  *   only, in a fixed order (slot by slot, whatever the band), so the result is
@@ -210,17 +211,16 @@ __kernel void ray_spots(__global const float *points, int first,
 
 /* points, intensity, patches (per particle offset (long), col0, row0, width, height): of
  * every particle, this launch's from `first`; slots, keys: this launch's (ray_spots with
- * the same `first`); item_pid, item_row: the
- * particle (within the launch) and first patch row of each work-item, which renders `band` rows from there
- * (fewer at the patch's end); out: PL_DERIVATIVES ? 5 : 1 rows of `total` elements
+ * the same `first`); range (bands, particles): item (b, p) renders `band` rows of
+ * particle p (within the launch) from row b * band (fewer at the patch's end; none past
+ * it); out: PL_DERIVATIVES ? 5 : 1 rows of `total` elements
  * (value, d / d X', Y', d', d / d intensity). */
 __kernel void render_rows(__global const float *slots, __global const int *keys, int rays,
                           __global const float *points, __global const float *intensity,
                           __global const long *offset, __global const int *col0,
                           __global const int *row0, __global const int *width,
-                          __global const int *height, int first,
-                          __global const int *item_pid, __global const int *item_row,
-                          int band, float f_px, long total, __global float *out)
+                          __global const int *height, int first, int band,
+                          float f_px, long total, __global float *out)
 {
     /* this launch's particles: the tables from `first`, the slots its own */
     points += 3 * (long)first;
@@ -230,7 +230,9 @@ __kernel void render_rows(__global const float *slots, __global const int *keys,
     row0 += first;
     width += first;
     height += first;
-    int item = get_global_id(0), p = item_pid[item], r0 = item_row[item];
+    int p = get_global_id(1), r0 = (int)get_global_id(0) * band;
+    if (r0 >= height[p])
+        return; /* a band past this particle's patch (a taller patch set the range) */
     int wd = width[p], c0 = col0[p], srow = row0[p] + r0;
     int nr = height[p] - r0 < band ? height[p] - r0 : band;
     long base = offset[p] + (long)r0 * wd;

@@ -118,10 +118,12 @@ def test_kernel_matches_numpy_on_awkward_bundles(queue, rays, blur):
 def test_rows_per_item_renders_the_same(queue):
     """render_rows' work-items of one row (the GPU form), of 3 rows (bands cut by the
     patch's end) and of a whole patch (the CPU form) add the same terms in the same
-    order: the same rows bit for bit."""
+    order: the same rows bit for bit. The patches differ in height: the range's bands
+    are the tallest patch's, and an item past its own patch's end writes nothing."""
     bundle = RayBundle.of(CAM, rays=53)
     pts = awkward_points(11, bundle)
     patches = bundle.patches(pts)
+    assert len(np.unique(patches.height)) > 1
     renderer = DeviceRayBundle(bundle, queue)
     got = []
     for rows in (1, 3, 0):

@@ -32,6 +32,7 @@ from plenocl.piv.refinement import (
     window_means,
 )
 from plenocl.piv.tube import DeviceTubeSums, host_tube_sums
+from plenocl.reference.peaks import merge_along_lines_reference
 
 #: The paper's optics on a small array (the lines of sight do not depend on its size).
 CAMERA = Camera(50.0, 2.42, 0.66, 0.125, 0.5, (40, 30), 0.0074, (700, 530))
@@ -94,30 +95,13 @@ def test_peaks_along_one_line_merge_at_their_weighted_centre_and_others_stay():
 
 
 
-def greedy_line_merge(pts, vals, dirs, along, across):
-    """The merge written plainly: greedy from the brightest, each kept peak's test
-    against every other kept peak, one peak at a time."""
-    keep, out = np.ones(len(pts), bool), pts.astype(float).copy()
-    for i in np.argsort(-vals, kind="stable"):
-        if not keep[i]:
-            continue
-        d = pts - pts[i]
-        t = d @ dirs[i]
-        off = np.linalg.norm(d - t[:, None] * dirs[i], axis=1)
-        near = keep & (np.abs(t) <= along) & (off <= across)
-        near[i] = False
-        if near.any():
-            group = np.append(np.flatnonzero(near), i)
-            out[i] = np.average(pts[group], axis=0, weights=vals[group])
-            keep[near] = False
-    return keep, out
-
-
 @pytest.mark.parametrize("count, seed", [(2, 0), (37, 1), (400, 2), (1500, 3)])
 def test_merge_along_lines_matches_the_plain_greedy_merge_in_dense_clouds(count, seed):
     """Clouds dense enough that most peaks have several others in reach, some none, and
-    the reach is not symmetric (each peak's own line): the vectorised neighbour table
-    and the loop over the peaks with neighbours give the plain merge's result."""
+    the reach is not symmetric (each peak's own line): the tree's neighbour table and
+    the loop over the peaks with neighbours give the plain merge's result (the table
+    from a ball of the larger half-axis missed peaks in the cylinder's rims: two of
+    these clouds failed)."""
     rng = np.random.default_rng(seed)
     pts = rng.uniform(0.0, [12.0, 12.0, 30.0], (count, 3))
     pts[count // 2:] = pts[:count - count // 2] + rng.normal(0, 0.3, (count - count // 2, 3))
@@ -125,7 +109,7 @@ def test_merge_along_lines_matches_the_plain_greedy_merge_in_dense_clouds(count,
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     vals = rng.choice([1.0, 2.0, 3.0], count)  # ties: the order must be stable
     keep, out = merge_along_lines(pts, vals, dirs, along=3.0, across=0.6)
-    want_keep, want = greedy_line_merge(pts, vals, dirs, 3.0, 0.6)
+    want_keep, want = merge_along_lines_reference(pts, vals, dirs, 3.0, 0.6)
     np.testing.assert_array_equal(keep, want_keep)
     np.testing.assert_allclose(out[keep], want[keep], rtol=0, atol=1e-12)
     if count > 100:  # the clouds merge some peaks and keep many

@@ -186,15 +186,11 @@ class DeviceRayBundle:
         spots = k.launch(self._spots, (rays, n), every[0], i32(first), self._aperture,
                          i32(rays), self._lenses, i32(rows), i32(cols), *self._optics,
                          slots, keys)
-        band = self.rows_per_item or max(int(heights.max()), 1)
-        per = -(-heights // band)  # work-items per particle
-        item_pid = np.repeat(np.arange(n, dtype=i32), per)
-        start = np.cumsum(per) - per  # each particle's first item
-        item_row = ((np.arange(len(item_pid)) - np.repeat(start, per)) * band).astype(i32)
-        return [spots, k.launch("render_rows", (len(item_pid),), slots, keys, i32(rays),
-                                *every, i32(first), k.to_device(item_pid),
-                                k.to_device(item_row), i32(band), self._f_px, i64(total),
-                                out)]
+        tallest = max(int(heights.max()), 1)
+        band = self.rows_per_item or tallest
+        return [spots, k.launch("render_rows", (-(-tallest // band), n), slots, keys,
+                                i32(rays), *every, i32(first), i32(band), self._f_px,
+                                i64(total), out)]
 
     def _slots(self, k: KernelSet, n: int) -> tuple:
         """The slots and keys of ``n`` particles' rays: the kept buffers, grown as needed

@@ -206,12 +206,10 @@ def predicted(field: PIVResult, points: np.ndarray, extrapolate: bool = False
     zyx = np.asarray(points, float)[:, ::-1]
     if not extrapolate:
         zyx = np.clip(zyx, [a[0] for a in axes], [a[-1] for a in axes])
-    comps = []
-    for c in (field.u, field.v, field.w):
-        look = RegularGridInterpolator(axes, np.nan_to_num(c), bounds_error=False,
-                                       fill_value=None)
-        comps.append(look(zyx))
-    return np.column_stack(comps)
+    values = np.stack([np.nan_to_num(c) for c in (field.u, field.v, field.w)], axis=-1)
+    # one interpolator for the three components: the cells found once, the same bits
+    look = RegularGridInterpolator(axes, values, bounds_error=False, fill_value=None)
+    return look(zyx)
 
 
 def pair_particles(vol_a: np.ndarray, vol_b: np.ndarray, field: PIVResult,
