@@ -73,6 +73,16 @@ from a float64 computation of the same factors (7.4e-4 against the device's 1.3e
   average 1.3-2.0), 1.034 against 1.234 s in a second run of 6 each; with other work
   beside it (load average 2.3) 1.100 against 1.018 s: a gain of about a tenth, within the
   stage's scatter under load; the same vectors to the bit.
+* a particle's peaks merged along its line of sight (``peaks.merge_along_lines``:
+  the k-d tree's pairs within the cylinder's enclosing ball, the greedy loop on Python
+  lists over the peaks that reach another, the centres by ``bincount``, 2026-12-04)
+  against its plain twin (``reference.peaks``, one peak's test against every other at a
+  time), on ``--particles`` particles of the paper's grid seen as ridges of two or three
+  peaks along their lines (6,160 peaks). Measured (Intel's runtime machine, 2026-12-04,
+  medians of 5): 0.008 against 0.910 s, the same peaks kept, within 1.1e-14 mm; the code
+  it replaced (a ball query per peak, NumPy calls per peak in the loop) took 0.047 s on
+  the same peaks and kept the same ones, but placed some 0.23 mm off: its ball, of the
+  larger half-axis, missed peaks in the cylinder's rims, which a later peak then took.
 """
 
 from __future__ import annotations
