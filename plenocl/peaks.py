@@ -209,8 +209,9 @@ def merge_along_lines(points: np.ndarray, values: np.ndarray, directions: np.nda
     Returns
     -------
     keep, positions
-        Which peaks remain ``(N,)`` and every peak's position ``(N, 3)``, merged where
-        kept.
+        Which peaks remain ``(N,)`` and every peak's position ``(N, 3)``: merged where
+        kept, as given where not (a peak that took others and was taken later too
+        included).
     """
     pts = np.asarray(points, float).reshape(-1, 3)
     w = np.asarray(values, float)
@@ -259,7 +260,8 @@ def _line_neighbours(pts: np.ndarray, directions: np.ndarray, along: float, acro
     cylinder's enclosing ball (radius ``hypot(along, across)``: the ball of the larger
     of the two missed the cylinder's rims), both ways, then one vectorised test
     (each pair twice, once on each peak's line)."""
-    close = cKDTree(pts).query_pairs(np.hypot(along, across), output_type="ndarray")
+    ball = np.hypot(along, across) * (1.0 + 1e-9)  # a peak on the rim: not lost to rounding
+    close = cKDTree(pts).query_pairs(ball, output_type="ndarray")
     owner = np.concatenate([close[:, 0], close[:, 1]])
     other = np.concatenate([close[:, 1], close[:, 0]])
     d = pts[other] - pts[owner]

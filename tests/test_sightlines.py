@@ -94,7 +94,6 @@ def test_peaks_along_one_line_merge_at_their_weighted_centre_and_others_stay():
     np.testing.assert_allclose(out[2:], pts[2:])
 
 
-
 @pytest.mark.parametrize("count, seed", [(2, 0), (37, 1), (400, 2), (1500, 3)])
 def test_merge_along_lines_matches_the_plain_greedy_merge_in_dense_clouds(count, seed):
     """Clouds dense enough that most peaks have several others in reach, some none, and
