@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# Issue 46's GPU checks as one prepared command for a lent machine (the `device` tool):
+# the device's kernels against their NumPy twins, the paper-size pair's profile and a
+# 20-pair batch, each printed and kept under $OUT.
+#
+#     bash benchmarks/device_check.sh [tests] [pair] [batch]     (all three by default)
+#
+# Prepare here first: `bash benchmarks/device_wheels.sh` (the wheels the machine lacks,
+# in .whl/), then run there with `carry: [".whl"]` and a timeout that leaves time to
+# rerun (the pair about 3 minutes on an H200, the batch about 4, the tests 1-2, plus the
+# machine's start). The device is plenocl's choice (a GPU first) unless PYOPENCL_CTX
+# names one. PY: the Python to use (default python3); LENSES: the camera's microlenses
+# (default the whole sensor, "289 193"); PAIRS: the batch's counts (default "4 20", with
+# 12 Dask workers sharing the device, as on 2026-11-30); WHEELS: the wheels' folder
+# (default .whl; empty: install none).
+# Not yet run on a GPU (prepared 2026-12-04, checked on a CPU device here).
+set -uo pipefail
+cd "$(dirname "$0")/.."
+out=${OUT:-/tmp/plenocl-device-check}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+py=${PY:-python3}
+wheels=${WHEELS-.whl}  # WHEELS= (empty): none installed, the Python's own packages
+if [ -n "$wheels" ] && [ -d "$wheels" ]; then
+    "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site "$wheels"/*.whl || exit 1
+    export PYTHONPATH=$PWD:/tmp/site
+fi
+lenses=${LENSES:-289 193}
+sections=("$@")
+[ ${#sections[@]} -gt 0 ] || sections=(tests pair batch)
+status=0
+run() {  # name, then the command; its output printed and kept as $out/name.txt
+    local name=$1
+    shift
+    echo "== $name: $* ($(date -u +%T))"
+    "$@" 2>&1 | tee "$out/$name.txt"
+    local rc=${PIPESTATUS[0]}
+    echo "== $name: exit $rc ($(date -u +%T))"
+    [ "$rc" -eq 0 ] || status=1
+}
+run devices "$py" -m plenocl devices
+for section in "${sections[@]}"; do
+    case $section in
+        tests) run tests "$py" -m pytest -q -p no:cacheprovider -x -n 4 \
+                   tests/test_devicebundle.py tests/test_fitsums.py tests/test_sightlines.py \
+                   tests/test_device_peaks.py tests/test_device_volume.py \
+                   tests/test_deviceimage.py tests/test_piv_devicefft.py \
+                   tests/test_rowlists.py tests/test_projector.py ;;
+        pair) run pair "$py" benchmarks/paper_pair.py --lenses $lenses --bit-depth 16 \
+                  --settings default --profile --host-profile 40 ;;
+        batch) run batch "$py" benchmarks/throughput.py --lenses $lenses \
+                   --pairs ${PAIRS:-4 20} --workers 12 ;;
+        *) echo "unknown section $section (tests, pair, batch)"; exit 2 ;;
+    esac
+done
+exit $status
