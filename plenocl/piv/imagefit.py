@@ -487,7 +487,7 @@ def sight_steps(normal: np.ndarray, rhs: np.ndarray, offset: np.ndarray,
             covs[rows], steps[rows] = _solve_each(normal[rows], rhs[rows], damping)
     limit = np.asarray(MAX_STEP_VOXELS) * prior / np.asarray(PRIOR_VOXELS)
     local = np.clip(steps[:, :3], -limit, limit)
-    covs = frames @ covs @ np.swapaxes(frames, 1, 2)  # batched: einsum's 3 operands 4x slower
+    covs = frames @ covs @ np.swapaxes(frames, 1, 2)  # batched, as in in_sight_frames
     return np.einsum("nij,nj->ni", frames, local), steps[:, 3], covs
 
 
@@ -506,7 +506,7 @@ def in_sight_frames(normal: np.ndarray, rhs: np.ndarray, frames: np.ndarray
     turn = np.zeros((len(frames), 4, 4))
     turn[:, :3, :3] = frames
     turn[:, 3, 3] = 1.0
-    # batched products (einsum's three operands took 6x as long: 10 ms a fit step)
+    # batched products: 8.7x faster than a three-operand einsum (host_work.py)
     return (np.swapaxes(turn, 1, 2) @ normal @ turn, np.einsum("nji,nj->ni", turn, rhs))
 
 
