@@ -7,13 +7,16 @@
 #
 # Prepare here first: `bash benchmarks/device_wheels.sh` (the wheels the machine lacks,
 # in .whl/), then run there with `carry: [".whl"]` and a timeout that leaves time to
-# rerun (the pair about 3 minutes on an H200, the batch about 4, the tests 1-2, plus the
-# machine's start). The device is plenocl's choice (a GPU first) unless PYOPENCL_CTX
+# rerun (on an H200 on 2026-12-04: the pair 32 s, the batch 74 s, the tests 46 s, each
+# about 10 s more for the install and the device list, plus about 30 s for the
+# machine's start; docs/design.md §7.5). The device is plenocl's choice (a GPU first) unless PYOPENCL_CTX
 # names one. PY: the Python to use (default python3); LENSES: the camera's microlenses
 # (default the whole sensor, "289 193"); PAIRS: the batch's counts (default "4 20", with
 # 12 Dask workers sharing the device, as on 2026-11-30); WHEELS: the wheels' folder
 # (default .whl; empty: install none).
-# Not yet run on a GPU (prepared 2026-12-04, checked on a CPU device here).
+# NVIDIA's OpenCL library is registered with the loader when the image has no .icd for
+# it (the image lists only PoCL's), and the run stops if the default device is then not
+# NVIDIA's, rather than measure a CPU on the GPU's time.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${OUT:-/tmp/plenocl-device-check}
@@ -26,6 +29,12 @@ if [ -n "$wheels" ] && [ -d "$wheels" ]; then
     "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
         --target /tmp/site "$wheels"/*.whl || exit 1
     export PYTHONPATH=$PWD:/tmp/site
+fi
+# NVIDIA's OpenCL library registered with the loader where the image has no .icd for it
+lib=$(ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so/{print $NF; exit}')
+[ -n "$lib" ] || lib=$(ls /usr/local/nvidia/lib64/libnvidia-opencl.so* 2>/dev/null | head -1)
+if [ -n "$lib" ] && ! grep -qs nvidia-opencl /etc/OpenCL/vendors/*.icd; then
+    mkdir -p /etc/OpenCL/vendors && echo "$lib" > /etc/OpenCL/vendors/nvidia.icd
 fi
 lenses=${LENSES:-289 193}
 sections=("$@")
@@ -41,6 +50,11 @@ run() {  # name, then the command; its output printed and kept as $out/name.txt
     [ "$rc" -eq 0 ] || status=1
 }
 run devices "$py" -m plenocl devices
+if [ -n "$lib" ] && ! grep -q "^default: .*NVIDIA" "$out/devices.txt"; then
+    echo "NVIDIA's OpenCL library ($lib) is here but the default device is not NVIDIA's:"
+    echo "check /etc/OpenCL/vendors and PYOPENCL_CTX before measuring"
+    exit 3
+fi
 for section in "${sections[@]}"; do
     case $section in
         tests) run tests "$py" -m pytest -q -p no:cacheprovider -x -n 4 \
