@@ -14,9 +14,10 @@
 # (default the whole sensor, "289 193"); PAIRS: the batch's counts (default "4 20", with
 # 12 Dask workers sharing the device, as on 2026-11-30); WHEELS: the wheels' folder
 # (default .whl; empty: install none).
-# NVIDIA's OpenCL library is registered with the loader when the image has no .icd for
-# it (the image lists only PoCL's), and the run stops if the default device is then not
-# NVIDIA's, rather than measure a CPU on the GPU's time.
+# The image's loader lists only PoCL: plenocl registers NVIDIA's OpenCL library itself
+# (plenocl.opencl.icd, since 2026-12-04); if the default device is still not NVIDIA's,
+# this script writes /etc/OpenCL/vendors/nvidia.icd, as the 2026-11-30 run did, and
+# stops if even then it is not, rather than measure a CPU on the GPU's time.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${OUT:-/tmp/plenocl-device-check}
@@ -30,12 +31,9 @@ if [ -n "$wheels" ] && [ -d "$wheels" ]; then
         --target /tmp/site "$wheels"/*.whl || exit 1
     export PYTHONPATH=$PWD:/tmp/site
 fi
-# NVIDIA's OpenCL library registered with the loader where the image has no .icd for it
+# NVIDIA's OpenCL library, where the machine has one
 lib=$(ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so/{print $NF; exit}')
 [ -n "$lib" ] || lib=$(ls /usr/local/nvidia/lib64/libnvidia-opencl.so* 2>/dev/null | head -1)
-if [ -n "$lib" ] && ! grep -qs nvidia-opencl /etc/OpenCL/vendors/*.icd; then
-    mkdir -p /etc/OpenCL/vendors && echo "$lib" > /etc/OpenCL/vendors/nvidia.icd
-fi
 lenses=${LENSES:-289 193}
 sections=("$@")
 [ ${#sections[@]} -gt 0 ] || sections=(tests pair batch)
@@ -50,7 +48,14 @@ run() {  # name, then the command; its output printed and kept as $out/name.txt
     [ "$rc" -eq 0 ] || status=1
 }
 run devices "$py" -m plenocl devices
-if [ -n "$lib" ] && ! grep -q "^default: .*NVIDIA" "$out/devices.txt"; then
+nvidia_default() { grep -q "^default: .*NVIDIA" "$out/devices.txt"; }
+if [ -n "$lib" ] && [ -z "${PYOPENCL_CTX:-}" ] && ! nvidia_default && ! grep -qs nvidia-opencl /etc/OpenCL/vendors/*.icd
+then
+    echo "== plenocl did not make NVIDIA's library ($lib) a platform: writing its .icd"
+    mkdir -p /etc/OpenCL/vendors && echo "$lib" > /etc/OpenCL/vendors/nvidia.icd
+    run devices "$py" -m plenocl devices
+fi
+if [ -n "$lib" ] && [ -z "${PYOPENCL_CTX:-}" ] && ! nvidia_default; then
     echo "NVIDIA's OpenCL library ($lib) is here but the default device is not NVIDIA's:"
     echo "check /etc/OpenCL/vendors and PYOPENCL_CTX before measuring"
     exit 3

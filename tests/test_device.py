@@ -353,6 +353,15 @@ def test_every_device_is_probed_and_the_default_is_named():
     assert device.build_problem(default) is None
 
 
+def test_a_gpu_library_plenocl_registered_is_named_in_the_listing(monkeypatch):
+    lib = Path("/usr/local/nvidia/lib64/libnvidia-opencl.so.1")
+    listed = plenocl.describe_devices().count("registered by plenocl: ")
+    assert listed == len(device.registered_gpu_libraries())
+    monkeypatch.setattr(device, "registered_gpu_libraries", lambda: [lib])
+    line = [t for t in plenocl.describe_devices().splitlines() if str(lib) in t]
+    assert len(line) == 1 and line[0].startswith("registered by plenocl: ")
+
+
 def test_queue_keeps_its_context_alive():
     """Intel's CPU runtime invalidates a context whose last handle is released although
     a queue still uses it: the queue plenocl makes holds its context."""

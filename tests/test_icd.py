@@ -79,3 +79,42 @@ def test_the_environments_own_vendors_are_kept_and_dangling_ones_dropped(tmp_pat
     (env / "pocl.icd").write_text("libpocl.so.2\n")  # the same driver: once
     files = icd.vendor_files([], (system, env))
     assert sorted(files.values()) == sorted(["libpocl.so.2\n", f"{real}\n"])
+
+
+def _library(folder: Path, name: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / name).write_bytes(b"")
+    return folder / name
+
+
+def test_gpu_libraries_are_found_in_the_first_folder_holding_each(tmp_path):
+    first, second = tmp_path / "first", tmp_path / "second"
+    nvidia = _library(first, "libnvidia-opencl.so.1")
+    _library(second, "libnvidia-opencl.so.1")
+    amd = _library(second, "libamdocl64.so")
+    _library(second, "libnvidia-opencl.so.580.1")  # another version's file: not asked for
+    assert icd.gpu_libraries([first, second]) == [nvidia, amd]
+    assert icd.gpu_libraries([tmp_path / "absent"]) == []
+
+
+def test_a_gpu_library_is_registered_only_where_no_icd_file_names_it(tmp_path):
+    """An ICD file naming the library by file name, by another folder's path or by
+    another version keeps it out; a file naming another library does not."""
+    lib = _library(tmp_path / "lib64", "libnvidia-opencl.so.1")
+    assert icd.unregistered([lib], {"pocl.icd": "libpocl.so.2\n"}) == [lib]
+    for named in ("libnvidia-opencl.so.1\n", "/usr/lib/libnvidia-opencl.so.1\n",
+                  "libnvidia-opencl.so.580.159.04\n"):
+        assert icd.unregistered([lib], {"nvidia.icd": named}) == []
+
+
+def test_a_gpu_library_no_icd_names_is_registered_and_listing_survives_it(tmp_path):
+    """A driver library found on LD_LIBRARY_PATH but named by no ICD file (here a file
+    that cannot load, as a driver without its GPU would be) is put in plenocl's vendors
+    folder; the loader skips what it cannot load, so the platforms listed are the same."""
+    lib = _library(tmp_path / "driver", "libnvidia-opencl.so.1")
+    plain = _platforms_in_child(PLENOCL_PIP_RUNTIMES="0")
+    given = _platforms_in_child(LD_LIBRARY_PATH=str(lib.parent))
+    assert str(lib) in given["libs"]
+    names = {p.name: p.read_text() for p in Path(given["vendors"]).glob("*.icd")}
+    assert names["plenocl-gpu-libnvidia-opencl.icd"] == f"{lib}\n"
+    assert sorted(set(given["platforms"]) - {"Intel(R) OpenCL"}) == sorted(plain["platforms"])

@@ -10,8 +10,9 @@ unless the fallback is the documented one between CPU runtimes
 (:func:`expected_fallback`; :func:`fallback_note` keeps it). There is no global
 "current device": every object that runs kernels takes a queue or builds one here.
 
-CPU runtimes installed by pip (Intel's, the ``intel`` extra) are registered with the
-OpenCL loader before platforms are first listed (:mod:`plenocl.opencl.icd`).
+CPU runtimes installed by pip (Intel's, the ``intel`` extra), and GPU drivers' OpenCL
+libraries that no ICD file names, are registered with the OpenCL loader before platforms
+are first listed (:mod:`plenocl.opencl.icd`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 import pyopencl as cl
 
 from .build import probe_build
-from .icd import register_pip_runtimes
+from .icd import register_pip_runtimes, registered_gpu_libraries
 
 DeviceLike = None | str | cl.Device | cl.Context | cl.CommandQueue
 
@@ -128,6 +129,9 @@ def describe_devices() -> str:
                 f"64-bit atomics {'yes' if info.int64_atomics else 'no'}\n"
                 f"        builds plenocl's kernels: {_build_status(dev)}"
             )
+    for lib in registered_gpu_libraries():
+        lines.append(f"registered by plenocl: {lib} (a GPU driver's OpenCL library that no "
+                     "ICD file in /etc/OpenCL/vendors named)")
     lines.append(f"default: {_describe(_default_device())}")
     lines.append("choose one with PYOPENCL_CTX='<platform>:<device>' or device='<name or type>'")
     return "\n".join(lines)

@@ -1,4 +1,5 @@
-"""Make OpenCL CPU runtimes that pip installed visible to the OpenCL loader.
+"""Make OpenCL CPU runtimes that pip installed, and GPU drivers installed without their
+ICD file, visible to the OpenCL loader.
 
 pyopencl's wheels carry their own ICD loader (ocl-icd). It reads the ICD files of
 ``/etc/OpenCL/vendors`` (or of the folder ``OCL_ICD_VENDORS`` names) and those next to
@@ -7,8 +8,11 @@ itself, which is how the PoCL wheel registers. Intel's CPU runtime from PyPI
 its ICD file names the path of the machine it was built on, so the loader never finds it.
 
 :func:`register_pip_runtimes` writes a vendors folder that holds the ICD files the
-loader would have read (the system's and the environment's own) and one naming each
-pip-installed runtime by its real path, and points
+loader would have read (the system's and the environment's own), one naming each
+pip-installed runtime by its real path and one naming each GPU vendor's OpenCL library
+found on the machine that no ICD file names (:func:`gpu_libraries`: a container given
+NVIDIA's driver libraries without ``/etc/OpenCL/vendors/nvidia.icd``, as the lent H200
+of 2026-12-04 was, would otherwise run every kernel on a CPU), and points
 ``OCL_ICD_VENDORS`` at it. It must run before the process first lists OpenCL platforms
 (the loader reads its configuration once); :mod:`plenocl.opencl.device` calls it before every
 listing, so plenocl's own entry points need nothing else. A user's own
@@ -32,10 +36,20 @@ SYSTEM_VENDORS = (Path("/etc/OpenCL/vendors"), Path(sys.prefix) / "etc" / "OpenC
 #: pip distributions that carry an OpenCL runtime library, and that library's file name.
 PIP_RUNTIMES = {"intel-opencl-rt": "libintelocl.so"}
 
-#: Set to ``0`` to keep plenocl from registering pip-installed runtimes.
+#: GPU vendors' OpenCL libraries by the file name their drivers install.
+GPU_LIBRARIES = {"NVIDIA": "libnvidia-opencl.so.1", "AMD": "libamdocl64.so",
+                 "Intel GPU": "libigdrcl.so"}
+
+#: Folders searched for :data:`GPU_LIBRARIES` after ``LD_LIBRARY_PATH``'s: the NVIDIA
+#: container toolkit's and the distributions' library folders.
+GPU_LIBRARY_FOLDERS = (Path("/usr/local/nvidia/lib64"), Path("/usr/lib/x86_64-linux-gnu"),
+                       Path("/usr/lib64"), Path("/usr/lib"))
+
+#: Set to ``0`` to keep plenocl from registering any runtime or driver.
 SWITCH = "PLENOCL_PIP_RUNTIMES"
 
 _registered: list[Path] | None = None
+_registered_gpus: list[Path] = []
 
 
 def pip_runtime_libraries() -> list[Path]:
@@ -82,6 +96,40 @@ def vendor_files(libraries: list[Path], folders=SYSTEM_VENDORS) -> dict[str, str
     return files
 
 
+def gpu_libraries(folders=None) -> list[Path]:
+    """The GPU vendors' OpenCL libraries (:data:`GPU_LIBRARIES`) in ``folders`` (default:
+    ``LD_LIBRARY_PATH``'s, then :data:`GPU_LIBRARY_FOLDERS`), the first found of each."""
+    if folders is None:
+        paths = os.environ.get("LD_LIBRARY_PATH", "").split(os.pathsep)
+        folders = [Path(p) for p in paths if p] + list(GPU_LIBRARY_FOLDERS)
+    found = []
+    for name in GPU_LIBRARIES.values():
+        hits = (Path(folder) / name for folder in folders)
+        first = next((hit for hit in hits if hit.is_file()), None)
+        if first is not None:
+            found.append(first)
+    return found
+
+
+def _library_key(text: str) -> str:
+    """A library's name without folder and version (``libnvidia-opencl``), whether an ICD
+    file names it by path or by file name."""
+    return Path(text.strip()).name.split(".so")[0]
+
+
+def unregistered(libraries: list[Path], files: dict[str, str]) -> list[Path]:
+    """Those of ``libraries`` that no ICD file of ``files`` (``{name: content}``) names,
+    in any folder or version."""
+    named = {_library_key(content) for content in files.values()}
+    return [lib for lib in libraries if _library_key(str(lib)) not in named]
+
+
+def registered_gpu_libraries() -> list[Path]:
+    """The GPU libraries :func:`register_pip_runtimes` registered because no ICD file
+    named them (empty before it ran)."""
+    return list(_registered_gpus)
+
+
 def write_vendors(files: dict[str, str], root: Path | None = None) -> Path:
     """A vendors folder holding ``files``, named by their content (written once, atomically).
 
@@ -107,10 +155,11 @@ def write_vendors(files: dict[str, str], root: Path | None = None) -> Path:
 
 
 def register_pip_runtimes() -> list[Path]:
-    """Point the OpenCL loader at pip-installed runtimes; return the libraries registered.
+    """Point the OpenCL loader at pip-installed runtimes and at GPU libraries no ICD
+    file names; return the libraries registered.
 
     Does nothing (returns ``[]``) when ``OCL_ICD_VENDORS`` is already set, when
-    ``PLENOCL_PIP_RUNTIMES=0``, or when no such runtime is installed. Idempotent.
+    ``PLENOCL_PIP_RUNTIMES=0``, or when there is nothing to add. Idempotent.
     """
     global _registered
     if _registered is not None:
@@ -119,7 +168,12 @@ def register_pip_runtimes() -> list[Path]:
     if os.environ.get("OCL_ICD_VENDORS") or os.environ.get(SWITCH, "1") == "0":
         return _registered
     libraries = pip_runtime_libraries()
-    if libraries:
-        os.environ["OCL_ICD_VENDORS"] = str(write_vendors(vendor_files(libraries)))
-        _registered = libraries
+    files = vendor_files(libraries)
+    gpus = unregistered(gpu_libraries(), files)
+    if libraries or gpus:
+        files.update({f"plenocl-gpu-{_library_key(str(lib))}.icd": f"{lib}\n"
+                      for lib in gpus})
+        os.environ["OCL_ICD_VENDORS"] = str(write_vendors(files))
+        _registered = libraries + gpus
+        _registered_gpus[:] = gpus
     return _registered
