@@ -68,7 +68,7 @@ for section in "${sections[@]}"; do
                    tests/test_deviceimage.py tests/test_piv_devicefft.py \
                    tests/test_rowlists.py tests/test_projector.py ;;
         pair) run pair "$py" benchmarks/paper_pair.py --lenses $lenses --bit-depth 16 \
-                  --settings default --profile --host-profile 40 ;;
+                  --settings default --profile --host-profile 40 --bytes-by-site 15 ;;
         batch) run batch "$py" benchmarks/throughput.py --lenses $lenses \
                    --pairs ${PAIRS:-4 20} --workers 12 ;;
         *) echo "unknown section $section (tests, pair, batch)"; exit 2 ;;

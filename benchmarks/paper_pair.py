@@ -3,7 +3,8 @@ each reconstruction setting, every setting on the same scene in the same run.
 
     python benchmarks/paper_pair.py [--settings previous fullaperture default] [--lenses 289 193]
                                     [--seeding 0.05] [--motion uniform] [--bit-depth 16]
-                                    [--profile] [--host-profile N] [--scratch-mb M]
+                                    [--profile] [--host-profile N] [--bytes-by-site N]
+                                    [--scratch-mb M]
 
 Camera: the paper's optics on the whole 16 MP sensor (289 x 193 microlenses,
 4914 x 3282 px); grid: the paper's 300 x 200 x 150 voxels (``paper_optics``, as in
@@ -41,6 +42,10 @@ seconds) and the bytes moved each way
 kernels of most device time (launches, seconds, share).
 ``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
 functions of most own time (on a GPU, where the host's work goes; docs/design.md §7.5).
+``--bytes-by-site N``: the first setting's pair once more, its vectors alone, each copy
+to or from the host told by the plenocl function that made it
+(``OpenCLProfile(sites=True)``): each way's ``N`` largest sites, what moves beyond the raw
+images and the vectors (issue 46).
 ``--scratch-mb M``: the projector's scratch bound (``Projector(scratch_bytes=)``); the
 sub-voxel projector's plan (chunks, depths a launch) is printed either way. On this
 CPU one chunk of every depth halved the launches (1,077 → 541 a 116 x 78 pair) and the
@@ -71,6 +76,7 @@ from plenocl.bench.accuracy_section import (  # noqa: E402
 from plenocl.bench.clprofile import (  # noqa: E402
     OpenCLProfile,
     kernel_lines,
+    site_lines,
     split_lines,
     total_profile,
 )
@@ -121,6 +127,9 @@ def main() -> None:
     parser.add_argument("--host-profile", type=int, default=0, metavar="N",
                         help="then the first setting's pair once more under cProfile: its "
                              "N functions of most own time (where the host's work goes)")
+    parser.add_argument("--bytes-by-site", type=int, default=0, metavar="N",
+                        help="then the first setting's pair once more, its copies by the "
+                             "plenocl function that made them: each way's N largest")
     parser.add_argument("--scratch-mb", type=float, default=None,
                         help="the projector's scratch bound (MiB; default: the device's "
                              "rule): a larger one takes more depths per launch")
@@ -166,6 +175,8 @@ def main() -> None:
         profile_pair(scene, proj, SETTINGS[args.settings[0]])
     if args.host_profile:
         host_profile(scene, proj, SETTINGS[args.settings[0]], args.host_profile)
+    if args.bytes_by_site:
+        bytes_by_site(scene, proj, SETTINGS[args.settings[0]], args.bytes_by_site)
 
 
 #: The profiled ways of the pair: the label, ``volumes=``, PIV's FFT route, whether a
@@ -227,6 +238,19 @@ def host_profile(scene, proj, rec, count: int) -> None:
     text = io.StringIO()
     pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(count)
     print(text.getvalue())
+
+
+def bytes_by_site(scene, proj, rec, count: int) -> None:
+    """One pair of ``scene``, its vectors alone, with each copy told by the plenocl
+    function that made it: each way's ``count`` largest, against the raw images."""
+    with OpenCLProfile(sites=True) as prof:
+        process_pair(scene.raw_a, scene.raw_b, proj, volumes=False,
+                     **({} if rec is None else {"reconstruction": rec}))
+        proj.queue.finish()
+    raw = (scene.raw_a.nbytes + scene.raw_b.nbytes) / 1e6
+    print(f"copies by the plenocl function that made them (the two raw images: {raw:.1f} "
+          "MB)")
+    print("\n".join(site_lines(prof.bytes_by_site(), count)))
 
 
 if __name__ == "__main__":

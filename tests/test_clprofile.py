@@ -281,3 +281,43 @@ def test_a_pair_with_one_background_known_fits_as_before(queue, small_camera):
                           camera=small_camera, raws=raws)
     for name in ("u", "v", "w", "valid"):
         assert np.array_equal(getattr(again, name), getattr(pair.piv, name)), name
+
+
+def _package_function(source: str, module: str, **names):
+    """A function compiled as if it were in plenocl's package at ``module`` (the frames
+    :func:`copy_site` names), its globals ``names``."""
+    from plenocl.bench import clprofile
+
+    namespace = dict(names)
+    exec(compile(source, str(clprofile.PACKAGE / module), "exec"), namespace)
+    return namespace
+
+
+def test_copies_are_told_by_the_plenocl_function_that_made_them(queue):
+    """With ``sites=True`` each copy's bytes go to the innermost plenocl function outside
+    its OpenCL layer (and that function's caller); a copy made outside plenocl goes to
+    ''; without ``sites`` nothing is recorded."""
+    from plenocl.bench.clprofile import copy_site, site_lines
+    from plenocl.opencl import arrays
+
+    ns = _package_function(
+        "def fetch(dev):\n    return dev.get()\n"
+        "def upload(queue, host):\n    return arrays.upload(queue, host)\n"
+        "def both(queue, host):\n    return fetch(upload(queue, host))\n",
+        "piv/madeup.py", arrays=arrays)
+    host = np.arange(1000, dtype=np.float32)
+    with OpenCLProfile(sites=True) as prof:
+        back = ns["both"](queue, host)
+        cl_array.to_device(queue, host[:10])
+    assert np.array_equal(back, host)
+    by_site = prof.bytes_by_site()
+    assert by_site["h2d"] == {"piv/madeup.py:upload < piv/madeup.py:both": host.nbytes,
+                              "": 40}
+    assert by_site["d2h"] == {"piv/madeup.py:fetch < piv/madeup.py:both": host.nbytes}
+    lines = site_lines(by_site)
+    assert lines[0] == f"to the device: {(host.nbytes + 40) / 1e6:.2f} MB"
+    assert "(outside plenocl)" in lines[2]
+    assert copy_site() == ""  # this test is not in the package
+    with OpenCLProfile() as plain:
+        ns["both"](queue, host)
+    assert plain.bytes_by_site()["h2d"] == {"": host.nbytes}

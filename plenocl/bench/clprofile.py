@@ -13,7 +13,9 @@ several threads, the time any of them was inside one), the host's own work outsi
 (the stage's wall time less that: NumPy, SciPy and
 Python, what a faster device cannot shorten), the kernels' device seconds from their
 profiling events (on a queue made with profiling enabled; ``None`` otherwise) and the
-bytes moved each way.
+bytes moved each way. With ``sites=True`` it also keeps, for each copy to or from the
+host, the plenocl function that made it (:meth:`OpenCLProfile.bytes_by_site`): where the
+bytes beyond the raw images and the vectors come from.
 
 It wraps pyopencl's module functions for the duration of a ``with`` block only and puts
 them back after, so nothing outside a benchmark sees it.
@@ -21,9 +23,12 @@ them back after, so nothing outside a benchmark sees it.
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
@@ -32,8 +37,14 @@ from pyopencl import _cl
 from ..opencl import arrays
 from ..pipeline import process_pair
 
-__all__ = ["OpenCLProfile", "StageProfile", "covered", "kernel_lines", "profiled_pair",
-           "split_lines", "total_profile"]
+__all__ = ["OpenCLProfile", "StageProfile", "copy_site", "covered", "kernel_lines",
+           "profiled_pair", "site_lines", "split_lines", "total_profile"]
+
+#: plenocl's package folder, and the folders of its OpenCL layer and of this profile,
+#: whose frames :func:`copy_site` passes over.
+PACKAGE = Path(__file__).resolve().parents[1]
+_INSIDE = str(PACKAGE) + os.sep
+_PASSED = (str(PACKAGE / "opencl") + os.sep, str(PACKAGE / "bench") + os.sep)
 
 
 @dataclass
@@ -48,6 +59,7 @@ class _Call:
     event: object = None
     waits: bool = False
     kernel: object = None  # the launched cl.Kernel (its name read when reported)
+    site: str = ""  # the plenocl function that made a copy (with ``sites=True``)
 
 
 @dataclass
@@ -87,12 +99,16 @@ def _host_bytes(obj) -> int:
 class OpenCLProfile:
     """Record the process's OpenCL calls inside a ``with`` block (module docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(self, sites: bool = False) -> None:
+        """``sites``: also record which plenocl function made each copy to or from the
+        host (:meth:`bytes_by_site`; a walk up the stack per copy, so leave it off when
+        timing)."""
+        self.sites = sites
         self.calls: list[_Call] = []
         self._saved: list[tuple[object, str, object]] = []
 
     def _record(self, kind: str, fn: Callable, nbytes: Callable | None = None) -> Callable:
-        calls = self.calls
+        calls, sites = self.calls, self.sites
 
         def wrapped(*args, **kwargs):
             t0 = time.perf_counter()
@@ -103,6 +119,8 @@ class OpenCLProfile:
                 call.kind, call.nbytes = nbytes(*args, **kwargs)
             if kind == "kernel":
                 call.kernel = args[1]  # enqueue_nd_range_kernel(queue, kernel, ...)
+            if sites and call.kind in ("h2d", "d2h"):
+                call.site = copy_site()
             call.waits = kind == "wait" or (kind == "copy" and call.kind != "d2d"
                                             and kwargs.get("is_blocking", True))
             calls.append(call)
@@ -166,6 +184,18 @@ class OpenCLProfile:
         return {name: (n, t) for name, (n, t) in
                 sorted(out.items(), key=lambda item: -item[1][1])}
 
+    def bytes_by_site(self) -> dict[str, dict[str, int]]:
+        """The bytes copied each way (``"h2d"``, ``"d2h"``) by the plenocl function
+        that made the copies (:func:`copy_site`; recorded with ``sites=True``), the most
+        first."""
+        out: dict[str, dict[str, int]] = {"h2d": {}, "d2h": {}}
+        for call in self.calls:
+            if call.kind in out and call.nbytes:
+                way = out[call.kind]
+                way[call.site] = way.get(call.site, 0) + call.nbytes
+        return {k: dict(sorted(v.items(), key=lambda item: -item[1]))
+                for k, v in out.items()}
+
     @staticmethod
     def _add(stage: StageProfile, call: _Call) -> None:
         stage.calls[call.kind] = stage.calls.get(call.kind, 0) + 1
@@ -179,6 +209,34 @@ class OpenCLProfile:
             seconds = _event_seconds(call.event)
             if seconds is not None:
                 stage.kernel = (stage.kernel or 0.0) + seconds
+
+
+def copy_site(frame=None) -> str:
+    """The plenocl function that made a copy, as ``module.py:function < its caller``:
+    the innermost two frames of plenocl's package outside its OpenCL layer
+    (``plenocl/opencl``) and the benchmarks' (``plenocl/bench``), from ``frame`` (default:
+    the caller's) outwards; ``""`` where there is none (a copy made outside plenocl)."""
+    frame = sys._getframe(1) if frame is None else frame
+    names: list[str] = []
+    while frame is not None and len(names) < 2:
+        path = str(Path(frame.f_code.co_filename))
+        if path.startswith(_INSIDE) and not path.startswith(_PASSED):
+            module = Path(path).relative_to(PACKAGE).as_posix()
+            names.append(f"{module}:{frame.f_code.co_name}")
+        frame = frame.f_back
+    return " < ".join(names)
+
+
+def site_lines(by_site: dict[str, dict[str, int]], count: int = 12) -> list[str]:
+    """:meth:`OpenCLProfile.bytes_by_site` as text lines: each way's total, then its
+    ``count`` largest sites in MB."""
+    rows = []
+    for way, label in (("h2d", "to the device"), ("d2h", "back")):
+        sites = by_site[way]
+        rows.append(f"{label}: {sum(sites.values()) / 1e6:.2f} MB")
+        rows += [f"  {b / 1e6:8.3f}  {site or '(outside plenocl)'}"
+                 for site, b in list(sites.items())[:count]]
+    return rows
 
 
 def covered(intervals: list[tuple[float, float]]) -> float:
