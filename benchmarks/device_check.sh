@@ -7,13 +7,14 @@
 #
 # Prepare here first: `bash benchmarks/device_wheels.sh` (the wheels the machine lacks,
 # in .whl/), then run there with `carry: [".whl"]` and a timeout that leaves time to
-# rerun (on an H200 on 2026-12-04: the pair 32 s, the batch 74 s, the tests 46 s, each
-# about 10 s more for the install and the device list, plus about 30 s for the
-# machine's start; docs/design.md §7.5). The device is plenocl's choice (a GPU first) unless PYOPENCL_CTX
-# names one. PY: the Python to use (default python3); LENSES: the camera's microlenses
-# (default the whole sensor, "289 193"); PAIRS: the batch's counts (default "4 20", with
-# 12 Dask workers sharing the device, as on 2026-11-30); WHEELS: the wheels' folder
-# (default .whl; empty: install none).
+# rerun (on an H200 on 2026-12-04, from each section's start and exit lines: the pair
+# 32 s, the batch 74 s, the tests 46 s; each call about 10 s more for the install and
+# the device list, and about 30 s for the machine's start; docs/design.md §7.5). Each
+# section's start and exit lines are kept in its file too. The device is plenocl's
+# choice (a GPU first) unless PYOPENCL_CTX names one. PY: the Python to use (default
+# python3); LENSES: the camera's microlenses (default the whole sensor, "289 193");
+# PAIRS: the batch's counts (default "4 20", with 12 Dask workers sharing the device, as
+# on 2026-11-30); WHEELS: the wheels' folder (default .whl; empty: install none).
 # The image's loader lists only PoCL: plenocl registers NVIDIA's OpenCL library itself
 # (plenocl.opencl.icd, since 2026-12-04); if the default device is still not NVIDIA's,
 # this script writes /etc/OpenCL/vendors/nvidia.icd, as the 2026-11-30 run did, and
@@ -32,7 +33,7 @@ if [ -n "$wheels" ] && [ -d "$wheels" ]; then
     export PYTHONPATH=$PWD:/tmp/site
 fi
 # NVIDIA's OpenCL library, where the machine has one
-lib=$(ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so/{print $NF; exit}')
+lib=$(ldconfig -p 2>/dev/null | awk '/libnvidia-opencl\.so.*x86-64/{print $NF; exit}')
 [ -n "$lib" ] || lib=$(ls /usr/local/nvidia/lib64/libnvidia-opencl.so* 2>/dev/null | head -1)
 lenses=${LENSES:-289 193}
 sections=("$@")
@@ -41,16 +42,17 @@ status=0
 run() {  # name, then the command; its output printed and kept as $out/name.txt
     local name=$1
     shift
-    echo "== $name: $* ($(date -u +%T))"
-    "$@" 2>&1 | tee "$out/$name.txt"
+    echo "== $name: $* ($(date -u +%T))" | tee "$out/$name.txt"
+    "$@" 2>&1 | tee -a "$out/$name.txt"
     local rc=${PIPESTATUS[0]}
-    echo "== $name: exit $rc ($(date -u +%T))"
+    echo "== $name: exit $rc ($(date -u +%T))" | tee -a "$out/$name.txt"
     [ "$rc" -eq 0 ] || status=1
 }
 run devices "$py" -m plenocl devices
 nvidia_default() { grep -q "^default: .*NVIDIA" "$out/devices.txt"; }
-if [ -n "$lib" ] && [ -z "${PYOPENCL_CTX:-}" ] && ! nvidia_default && ! grep -qs nvidia-opencl /etc/OpenCL/vendors/*.icd
-then
+# plenocl registers the library it finds itself; this helps where it sits elsewhere
+if [ -n "$lib" ] && [ -z "${PYOPENCL_CTX:-}" ] && ! nvidia_default &&
+   ! grep -qs nvidia-opencl /etc/OpenCL/vendors/*.icd; then
     echo "== plenocl did not make NVIDIA's library ($lib) a platform: writing its .icd"
     mkdir -p /etc/OpenCL/vendors && echo "$lib" > /etc/OpenCL/vendors/nvidia.icd
     run devices "$py" -m plenocl devices

@@ -4,6 +4,9 @@ pair it attributes calls to, and the one composition of volumes to a refined fie
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -303,16 +306,18 @@ def test_copies_are_told_by_the_plenocl_function_that_made_them(queue):
     ns = _package_function(
         "def fetch(dev):\n    return dev.get()\n"
         "def upload(queue, host):\n    return arrays.upload(queue, host)\n"
-        "def both(queue, host):\n    return fetch(upload(queue, host))\n",
+        "def both(queue, host):\n    return fetch(upload(queue, host))\n"
+        "def listed(queue, host):\n    return [arrays.upload(queue, h) for h in [host]]\n",
         "piv/madeup.py", arrays=arrays)
     host = np.arange(1000, dtype=np.float32)
     with OpenCLProfile(sites=True) as prof:
         back = ns["both"](queue, host)
         cl_array.to_device(queue, host[:10])
+        ns["listed"](queue, host[:5])  # the comprehension counts as its function
     assert np.array_equal(back, host)
     by_site = prof.bytes_by_site()
     assert by_site["h2d"] == {"piv/madeup.py:upload < piv/madeup.py:both": host.nbytes,
-                              "": 40}
+                              "": 40, "piv/madeup.py:listed": 20}
     assert by_site["d2h"] == {"piv/madeup.py:fetch < piv/madeup.py:both": host.nbytes}
     lines = site_lines(by_site)
     assert lines[0] == f"to the device: {(host.nbytes + 40) / 1e6:.2f} MB"
@@ -321,3 +326,23 @@ def test_copies_are_told_by_the_plenocl_function_that_made_them(queue):
     with OpenCLProfile() as plain:
         ns["both"](queue, host)
     assert plain.bytes_by_site()["h2d"] == {"": host.nbytes}
+
+
+def test_a_copy_site_is_found_when_plenocl_is_imported_through_a_link(tmp_path):
+    """The package imported through a linked folder (its modules' frames name the linked
+    path, as the function compiled here does) is still the package: its functions are
+    named, not taken for code outside it."""
+    from plenocl.bench import clprofile
+
+    link = tmp_path / "linked"
+    link.symlink_to(clprofile.PACKAGE.resolve().parent, target_is_directory=True)
+    code = ("from plenocl.bench import clprofile\n"
+            "ns = {'copy_site': clprofile.copy_site}\n"
+            "exec(compile('def f():\\n    return copy_site()\\n', "
+            f"{str(link / 'plenocl' / 'piv' / 'madeup.py')!r}, 'exec'), ns)\n"
+            "print(clprofile.PACKAGE, ns['f']())")
+    env = {**os.environ, "PYTHONPATH": str(link)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120, check=True, cwd=tmp_path)
+    package, site = out.stdout.split()
+    assert package.startswith(str(link)) and site == "piv/madeup.py:f"

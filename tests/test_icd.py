@@ -38,7 +38,9 @@ def test_vendors_folder_is_written_once_per_content_and_reused(tmp_path):
 def _platforms_in_child(**env) -> dict:
     code = ("import json, os, pyopencl as cl\nfrom plenocl.opencl import icd\n"
             "libs = [str(p) for p in icd.register_pip_runtimes()]\n"
-            "print(json.dumps({'libs': libs, 'vendors': os.environ.get('OCL_ICD_VENDORS'), "
+            "gpus = [str(p) for p in icd.registered_gpu_libraries()]\n"
+            "print(json.dumps({'libs': libs, 'gpus': gpus, "
+            "'vendors': os.environ.get('OCL_ICD_VENDORS'), "
             "'platforms': [p.name.strip() for p in cl.get_platforms()]}))")
     # this process registered already (OCL_ICD_VENDORS set by plenocl): start clean
     full = {k: v for k, v in os.environ.items() if k not in ("OCL_ICD_VENDORS", "PYOPENCL_CTX")}
@@ -57,7 +59,7 @@ def test_pip_runtimes_become_platforms_and_a_users_folder_is_respected(tmp_path)
     off = _platforms_in_child(PLENOCL_PIP_RUNTIMES="0")
     assert off["libs"] == [] and off["vendors"] is None
     auto = _platforms_in_child()
-    assert auto["libs"] == expected
+    assert auto["libs"] == expected + auto["gpus"]  # a GPU library no ICD file names too
     if expected:  # the cpu extra installs Intel's runtime: it must become a platform
         assert "Intel(R) OpenCL" in auto["platforms"]
         folder = Path(auto["vendors"])
@@ -81,20 +83,31 @@ def test_the_environments_own_vendors_are_kept_and_dangling_ones_dropped(tmp_pat
     assert sorted(files.values()) == sorted(["libpocl.so.2\n", f"{real}\n"])
 
 
-def _library(folder: Path, name: str) -> Path:
+def _library(folder: Path, name: str, bits: int = 0) -> Path:
+    """A file named like a library whose ELF header is this Python's (``bits`` 32: a
+    32-bit one's): taken for one it could load, which the loader cannot."""
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / name).write_bytes(b"")
+    head = bytearray(Path(sys.executable).read_bytes()[:20])
+    if bits == 32:
+        head[4] = 1
+    (folder / name).write_bytes(bytes(head) + bytes(44))
     return folder / name
 
 
 def test_gpu_libraries_are_found_in_the_first_folder_holding_each(tmp_path):
-    first, second = tmp_path / "first", tmp_path / "second"
+    """... of this interpreter's word size (the NVIDIA container toolkit's 32-bit folder
+    comes first on its images' LD_LIBRARY_PATH) and not a file that is no library."""
+    lib32, first, second = tmp_path / "lib", tmp_path / "first", tmp_path / "second"
+    _library(lib32, "libnvidia-opencl.so.1", bits=32)
+    (first / "libamdocl64.so").parent.mkdir()
+    (first / "libamdocl64.so").write_text("not a library")
     nvidia = _library(first, "libnvidia-opencl.so.1")
     _library(second, "libnvidia-opencl.so.1")
     amd = _library(second, "libamdocl64.so")
     _library(second, "libnvidia-opencl.so.580.1")  # another version's file: not asked for
-    assert icd.gpu_libraries([first, second]) == [nvidia, amd]
+    assert icd.gpu_libraries([lib32, first, second]) == [nvidia, amd]
     assert icd.gpu_libraries([tmp_path / "absent"]) == []
+    assert not icd.same_machine(lib32 / "libnvidia-opencl.so.1")
 
 
 def test_a_gpu_library_is_registered_only_where_no_icd_file_names_it(tmp_path):
@@ -109,12 +122,17 @@ def test_a_gpu_library_is_registered_only_where_no_icd_file_names_it(tmp_path):
 
 def test_a_gpu_library_no_icd_names_is_registered_and_listing_survives_it(tmp_path):
     """A driver library found on LD_LIBRARY_PATH but named by no ICD file (here a file
-    that cannot load, as a driver without its GPU would be) is put in plenocl's vendors
-    folder; the loader skips what it cannot load, so the platforms listed are the same."""
+    the loader cannot load) is put in plenocl's vendors folder and reported; the loader
+    skips it, so the platforms listed are the same, none twice. PLENOCL_GPU_LIBRARIES=0
+    leaves it out."""
     lib = _library(tmp_path / "driver", "libnvidia-opencl.so.1")
+    path = os.pathsep.join([str(lib.parent)] + [p for p in
+                                                [os.environ.get("LD_LIBRARY_PATH")] if p])
     plain = _platforms_in_child(PLENOCL_PIP_RUNTIMES="0")
-    given = _platforms_in_child(LD_LIBRARY_PATH=str(lib.parent))
-    assert str(lib) in given["libs"]
+    given = _platforms_in_child(LD_LIBRARY_PATH=path)
+    assert given["gpus"][0] == str(lib) and str(lib) in given["libs"]
     names = {p.name: p.read_text() for p in Path(given["vendors"]).glob("*.icd")}
     assert names["plenocl-gpu-libnvidia-opencl.icd"] == f"{lib}\n"
-    assert sorted(set(given["platforms"]) - {"Intel(R) OpenCL"}) == sorted(plain["platforms"])
+    assert [p for p in given["platforms"] if p != "Intel(R) OpenCL"] == plain["platforms"]
+    off = _platforms_in_child(LD_LIBRARY_PATH=path, PLENOCL_GPU_LIBRARIES="0")
+    assert off["gpus"] == [] and str(lib) not in off["libs"]

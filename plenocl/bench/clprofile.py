@@ -40,11 +40,12 @@ from ..pipeline import process_pair
 __all__ = ["OpenCLProfile", "StageProfile", "copy_site", "covered", "kernel_lines",
            "profiled_pair", "site_lines", "split_lines", "total_profile"]
 
-#: plenocl's package folder, and the folders of its OpenCL layer and of this profile,
-#: whose frames :func:`copy_site` passes over.
-PACKAGE = Path(__file__).resolve().parents[1]
-_INSIDE = str(PACKAGE) + os.sep
-_PASSED = (str(PACKAGE / "opencl") + os.sep, str(PACKAGE / "bench") + os.sep)
+#: plenocl's package folder (as imported, and with links resolved: a frame's file name
+#: may be either), and the folders of its OpenCL layer and of this profile, whose frames
+#: :func:`copy_site` passes over.
+PACKAGE = Path(__file__).parents[1]
+_ROOTS = tuple({str(PACKAGE) + os.sep, str(PACKAGE.resolve()) + os.sep})
+_PASSED = tuple(root + sub + os.sep for root in _ROOTS for sub in ("opencl", "bench"))
 
 
 @dataclass
@@ -212,17 +213,21 @@ class OpenCLProfile:
 
 
 def copy_site(frame=None) -> str:
-    """The plenocl function that made a copy, as ``module.py:function < its caller``:
-    the innermost two frames of plenocl's package outside its OpenCL layer
+    """The plenocl function that made a copy, as ``module.py:Class.function < its
+    caller``: the innermost two functions of plenocl's package outside its OpenCL layer
     (``plenocl/opencl``) and the benchmarks' (``plenocl/bench``), from ``frame`` (default:
-    the caller's) outwards; ``""`` where there is none (a copy made outside plenocl)."""
+    the caller's) outwards, comprehensions and generator expressions counted as the
+    function holding them (so Python versions that inline them agree); ``""`` where there
+    is none (a copy made outside plenocl)."""
     frame = sys._getframe(1) if frame is None else frame
     names: list[str] = []
     while frame is not None and len(names) < 2:
-        path = str(Path(frame.f_code.co_filename))
-        if path.startswith(_INSIDE) and not path.startswith(_PASSED):
-            module = Path(path).relative_to(PACKAGE).as_posix()
-            names.append(f"{module}:{frame.f_code.co_name}")
+        code = frame.f_code
+        path = str(Path(code.co_filename))
+        root = next((r for r in _ROOTS if path.startswith(r)), None)
+        if root and not path.startswith(_PASSED) and not code.co_name.startswith("<"):
+            module = Path(path[len(root):]).as_posix()
+            names.append(f"{module}:{getattr(code, 'co_qualname', code.co_name)}")
         frame = frame.f_back
     return " < ".join(names)
 

@@ -131,7 +131,9 @@ def describe_devices() -> str:
             )
     for lib in registered_gpu_libraries():
         lines.append(f"registered by plenocl: {lib} (a GPU driver's OpenCL library that no "
-                     "ICD file in /etc/OpenCL/vendors named)")
+                     "ICD file named; if no platform above comes from it, the loader "
+                     "could not use it: OCL_ICD_DEBUG=7 shows why, "
+                     "PLENOCL_GPU_LIBRARIES=0 leaves it out)")
     lines.append(f"default: {_describe(_default_device())}")
     lines.append("choose one with PYOPENCL_CTX='<platform>:<device>' or device='<name or type>'")
     return "\n".join(lines)

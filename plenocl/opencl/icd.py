@@ -17,7 +17,14 @@ of 2026-12-04 was, would otherwise run every kernel on a CPU), and points
 (the loader reads its configuration once); :mod:`plenocl.opencl.device` calls it before every
 listing, so plenocl's own entry points need nothing else. A user's own
 ``OCL_ICD_VENDORS`` is respected and left alone; ``PLENOCL_PIP_RUNTIMES=0`` turns the
-registration off.
+registration off (the name is older than the GPU libraries: it turns both off), and
+``PLENOCL_GPU_LIBRARIES=0`` the GPU libraries' alone.
+
+A GPU library counts as registered when any ICD file of those folders names a library of
+its name (in any folder or version, or by bare file name, which the loader then looks
+up itself); the ICD files the loader may read elsewhere (one beside the loader itself,
+``OCL_ICD_FILENAMES``) are not looked at, so a library named only there could be listed
+twice.
 """
 
 from __future__ import annotations
@@ -41,12 +48,18 @@ GPU_LIBRARIES = {"NVIDIA": "libnvidia-opencl.so.1", "AMD": "libamdocl64.so",
                  "Intel GPU": "libigdrcl.so"}
 
 #: Folders searched for :data:`GPU_LIBRARIES` after ``LD_LIBRARY_PATH``'s: the NVIDIA
-#: container toolkit's and the distributions' library folders.
-GPU_LIBRARY_FOLDERS = (Path("/usr/local/nvidia/lib64"), Path("/usr/lib/x86_64-linux-gnu"),
+#: container toolkit's, ROCm's and the distributions' library folders. Only a library
+#: built for this interpreter's word size and processor is taken (the toolkit's
+#: ``/usr/local/nvidia/lib`` holds 32-bit ones).
+GPU_LIBRARY_FOLDERS = (Path("/usr/local/nvidia/lib64"), Path("/opt/rocm/lib"),
+                       Path("/usr/lib/x86_64-linux-gnu"), Path("/usr/lib/aarch64-linux-gnu"),
                        Path("/usr/lib64"), Path("/usr/lib"))
 
 #: Set to ``0`` to keep plenocl from registering any runtime or driver.
 SWITCH = "PLENOCL_PIP_RUNTIMES"
+
+#: Set to ``0`` to keep plenocl from registering GPU libraries (pip's runtimes still are).
+GPU_SWITCH = "PLENOCL_GPU_LIBRARIES"
 
 _registered: list[Path] | None = None
 _registered_gpus: list[Path] = []
@@ -98,17 +111,34 @@ def vendor_files(libraries: list[Path], folders=SYSTEM_VENDORS) -> dict[str, str
 
 def gpu_libraries(folders=None) -> list[Path]:
     """The GPU vendors' OpenCL libraries (:data:`GPU_LIBRARIES`) in ``folders`` (default:
-    ``LD_LIBRARY_PATH``'s, then :data:`GPU_LIBRARY_FOLDERS`), the first found of each."""
+    ``LD_LIBRARY_PATH``'s, then :data:`GPU_LIBRARY_FOLDERS`), each the first found that
+    this interpreter could load (:func:`same_machine`), as an absolute path."""
     if folders is None:
         paths = os.environ.get("LD_LIBRARY_PATH", "").split(os.pathsep)
         folders = [Path(p) for p in paths if p] + list(GPU_LIBRARY_FOLDERS)
     found = []
     for name in GPU_LIBRARIES.values():
-        hits = (Path(folder) / name for folder in folders)
-        first = next((hit for hit in hits if hit.is_file()), None)
+        hits = (Path(os.path.abspath(Path(folder) / name)) for folder in folders)
+        first = next((hit for hit in hits if hit.is_file() and same_machine(hit)), None)
         if first is not None:
             found.append(first)
     return found
+
+
+def same_machine(library: Path, reference: Path | None = None) -> bool:
+    """Whether ``library`` is an ELF file of the word size and processor of
+    ``reference`` (default: this Python's executable), which its process could load."""
+    def header(path: Path) -> bytes:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(20)
+        except OSError:
+            return b""
+        return head if head[:4] == b"\x7fELF" and len(head) == 20 else b""
+
+    ours, theirs = header(Path(reference or sys.executable)), header(library)
+    # byte 4: 32 or 64 bit, byte 5: byte order, bytes 18-19: the processor
+    return bool(ours and theirs) and (ours[4:6], ours[18:20]) == (theirs[4:6], theirs[18:20])
 
 
 def _library_key(text: str) -> str:
@@ -169,7 +199,8 @@ def register_pip_runtimes() -> list[Path]:
         return _registered
     libraries = pip_runtime_libraries()
     files = vendor_files(libraries)
-    gpus = unregistered(gpu_libraries(), files)
+    gpus = ([] if os.environ.get(GPU_SWITCH, "1") == "0"
+            else unregistered(gpu_libraries(), files))
     if libraries or gpus:
         files.update({f"plenocl-gpu-{_library_key(str(lib))}.icd": f"{lib}\n"
                       for lib in gpus})
