@@ -223,6 +223,14 @@ def profile_pair(scene, proj, rec) -> None:
     print("\n".join(kernel_lines(prof.kernel_seconds())))
 
 
+def vectors_alone(scene, proj, rec) -> None:
+    """One pair of ``scene`` asked for its vectors alone, with reconstruction settings
+    ``rec`` (``None``: the default), the queue finished."""
+    process_pair(scene.raw_a, scene.raw_b, proj, volumes=False,
+                 **({} if rec is None else {"reconstruction": rec}))
+    proj.queue.finish()
+
+
 def host_profile(scene, proj, rec, count: int) -> None:
     """One pair of ``scene`` under cProfile: the ``count`` functions of most own time."""
     import cProfile
@@ -231,9 +239,7 @@ def host_profile(scene, proj, rec, count: int) -> None:
 
     profiler = cProfile.Profile()
     profiler.enable()
-    process_pair(scene.raw_a, scene.raw_b, proj, volumes=False,
-                 **({} if rec is None else {"reconstruction": rec}))
-    proj.queue.finish()
+    vectors_alone(scene, proj, rec)
     profiler.disable()
     text = io.StringIO()
     pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(count)
@@ -244,9 +250,7 @@ def bytes_by_site(scene, proj, rec, count: int) -> None:
     """One pair of ``scene``, its vectors alone, with each copy told by the plenocl
     function that made it: each way's ``count`` largest, against the raw images."""
     with OpenCLProfile(sites=True) as prof:
-        process_pair(scene.raw_a, scene.raw_b, proj, volumes=False,
-                     **({} if rec is None else {"reconstruction": rec}))
-        proj.queue.finish()
+        vectors_alone(scene, proj, rec)
     raw = (scene.raw_a.nbytes + scene.raw_b.nbytes) / 1e6
     print(f"copies by the plenocl function that made them (the two raw images: {raw:.1f} "
           "MB)")

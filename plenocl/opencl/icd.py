@@ -62,7 +62,6 @@ SWITCH = "PLENOCL_PIP_RUNTIMES"
 GPU_SWITCH = "PLENOCL_GPU_LIBRARIES"
 
 _registered: list[Path] | None = None
-_registered_gpus: list[Path] = []
 
 
 def pip_runtime_libraries() -> list[Path]:
@@ -157,7 +156,7 @@ def unregistered(libraries: list[Path], files: dict[str, str]) -> list[Path]:
 def registered_gpu_libraries() -> list[Path]:
     """The GPU libraries :func:`register_pip_runtimes` registered because no ICD file
     named them (empty before it ran)."""
-    return list(_registered_gpus)
+    return [lib for lib in _registered or [] if lib.name in GPU_LIBRARIES.values()]
 
 
 def write_vendors(files: dict[str, str], root: Path | None = None) -> Path:
@@ -206,5 +205,4 @@ def register_pip_runtimes() -> list[Path]:
                       for lib in gpus})
         os.environ["OCL_ICD_VENDORS"] = str(write_vendors(files))
         _registered = libraries + gpus
-        _registered_gpus[:] = gpus
     return _registered
