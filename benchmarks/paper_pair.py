@@ -42,10 +42,10 @@ seconds) and the bytes moved each way
 kernels of most device time (launches, seconds, share).
 ``--host-profile N``: the first setting's pair once more under cProfile, its ``N``
 functions of most own time (on a GPU, where the host's work goes; docs/design.md §7.5).
-``--bytes-by-site N``: the first setting's pair once more, its vectors alone, each copy
-to or from the host told by the plenocl function that made it
-(``OpenCLProfile(sites=True)``): each way's ``N`` largest sites, what moves beyond the raw
-images and the vectors (issue 46).
+``--bytes-by-site N``: the first setting's pair once more, its vectors alone with every
+PIV FFT on the device (a GPU's route), each copy to or from the host told by the plenocl
+function that made it (``OpenCLProfile(sites=True)``): each way's ``N`` largest sites,
+what moves beyond the raw images and the vectors (issue 46).
 ``--scratch-mb M``: the projector's scratch bound (``Projector(scratch_bytes=)``); the
 sub-voxel projector's plan (chunks, depths a launch) is printed either way. On this
 CPU one chunk of every depth halved the launches (1,077 → 541 a 116 x 78 pair) and the
@@ -223,12 +223,15 @@ def profile_pair(scene, proj, rec) -> None:
     print("\n".join(kernel_lines(prof.kernel_seconds())))
 
 
-def vectors_alone(scene, proj, rec) -> None:
+def vectors_alone(scene, proj, rec, fft: str | None = None):
     """One pair of ``scene`` asked for its vectors alone, with reconstruction settings
-    ``rec`` (``None``: the default), the queue finished."""
-    process_pair(scene.raw_a, scene.raw_b, proj, volumes=False,
-                 **({} if rec is None else {"reconstruction": rec}))
+    ``rec`` (``None``: the default) and PIV's FFT route ``fft`` (``None``: the default's
+    measured one), the queue finished; its :class:`PairResult`."""
+    pair = process_pair(scene.raw_a, scene.raw_b, proj, volumes=False,
+                        **({} if fft is None else {"piv": PIVSettings(fft=fft)}),
+                        **({} if rec is None else {"reconstruction": rec}))
     proj.queue.finish()
+    return pair
 
 
 def host_profile(scene, proj, rec, count: int) -> None:
@@ -247,13 +250,16 @@ def host_profile(scene, proj, rec, count: int) -> None:
 
 
 def bytes_by_site(scene, proj, rec, count: int) -> None:
-    """One pair of ``scene``, its vectors alone, with each copy told by the plenocl
-    function that made it: each way's ``count`` largest, against the raw images."""
+    """One pair of ``scene``, its vectors alone, with every PIV FFT on the device (a
+    GPU's route: the host's FFT brings its windows back, which would hide the rest),
+    each copy told by the plenocl function that made it: each way's ``count`` largest,
+    against the raw images and the vectors."""
     with OpenCLProfile(sites=True) as prof:
-        vectors_alone(scene, proj, rec)
+        pair = vectors_alone(scene, proj, rec, fft="device")
     raw = (scene.raw_a.nbytes + scene.raw_b.nbytes) / 1e6
-    print(f"copies by the plenocl function that made them (the two raw images: {raw:.1f} "
-          "MB)")
+    vectors = sum(a.nbytes for a in vars(pair.piv).values() if isinstance(a, np.ndarray))
+    print(f"copies by the plenocl function that made them, every PIV FFT on the device "
+          f"(the two raw images: {raw:.2f} MB; the vectors: {vectors / 1e6:.2f} MB)")
     print("\n".join(site_lines(prof.bytes_by_site(), count)))
 
 

@@ -15,7 +15,7 @@
  * window k is the grid window win[k] (flat over (nz, ny, nx), x fastest: centred at
  * (axes[kx], axes[nx + ky], axes[nx + ny + kz]), pl_centre), and its
  * pairs (at least one) are member[start[k] .. stop[k]), in pair order; the lists come from
- * box_counts and box_fill below.
+ * box_tally, box_compact and box_fill below.
  *
  * A window's pairs near their median (near_median): per component c the median m_c of
  * its displacements d, and with spread >= 0 the reach min(search_c, max(spread x
@@ -43,17 +43,34 @@
  * per listed window (count[k], mean[3k..], error[3k..]): only the listed windows' results go
  * back to the host, which places them in the grid.
  *
+ * box_range: per pair, along one axis, the windows whose box holds it as an index range
+ * [lo, hi): the run of centres c with |m / box - c / box| <= radius (m: the pair's
+ * midpoint on that axis; the same doubles and test as the host's _axis_range, whose
+ * k-d tree twin is cKDTree.query_ball_point with p = inf), found by a binary search for
+ * the first centre at or past m / box - radius, less one to spare, then a scan; an empty
+ * run gives lo == hi. Made from the pairs already on the device, so no range crosses.
+ *
  * box_counts, box_fill: the pairs within a box about each listed window's centre: the
- * host gives, per pair, the windows whose box holds it along each axis as index ranges
- * [x0, x1) (and the same in y and z); the pairs are bucketed by the (z, y) row of
- * windows they cover (bucket_start over nz * ny rows, bucket_pts in pair order: from
- * their z and y ranges on the device, kernels/rowlists.cl boxes_fill); a window
- * (kz, ky, kx) scans its row's bucket for the pairs with x0 <= kx < x1. box_counts counts
- * them, the host sums the counts into each window's start, box_fill writes them (in pair
- * order, as the host's box search lists them).
+ * host or box_range gives, per pair, the windows whose box holds it along each axis as
+ * index ranges [x0, x1) (and the same in y and z); the pairs are bucketed by the (z, y)
+ * row of windows they cover (bucket_start over nz * ny rows, bucket_pts in pair order:
+ * from their z and y ranges on the device, kernels/rowlists.cl boxes_fill); a window
+ * (kz, ky, kx) scans its row's bucket for the pairs with x0 <= kx < x1: box_tally counts
+ * them, box_fill writes them (in pair order, as the host's box search lists them).
+ *
+ * box_tally, box_compact: the listed windows and their tables, made without the host.
+ * box_tally counts every window of the grid (count[w]: 0 where not wanted, a byte per
+ * window, wanted[w]), flags the windows listed (at least `least` pairs: listed[w], a
+ * byte, which the next call may take as its wanted, and flag[w], an int to scan) and
+ * their pair counts (held[w], 0 where not listed); the rows' scan
+ * (kernels/rowlists.cl scan_starts) turns the flags into each listed window's slot and
+ * the held counts into its first member; box_compact writes win, start and stop per
+ * slot, for box_fill and the kernels above. Only the listed windows' indices go back.
  *
  * Parallel structure: one work-item per listed window (thousands per call), each looping
- * over its own pairs; no atomics, no shared writes (each item writes its window's outputs
+ * over its own pairs (box_range: one per pair, a search over one axis's centres;
+ * box_tally and box_compact: one per grid window, each writing its own slot); no
+ * atomics, no shared writes (each item writes its window's outputs, or its pair's range,
  * and its own scratch slice). Items read the pairs they list from global memory, so on a
  * GPU the reads are gathers; the work is a few hundred operations per pair and the
  * kernels take milliseconds. Sizes are arguments. */
@@ -342,20 +359,30 @@ __kernel void window_estimates(__global const double *mid, __global const double
     }
 }
 
-__kernel void box_counts(__global const int *bucket_start, __global const int *bucket_pts,
-                         __global const int *x0, __global const int *x1,
-                         __global const int *win, int listed, int nx, __global int *count)
+__kernel void box_range(__global const double *mid, int pairs, int axis, double box,
+                        __global const double *axes, int first, int n, double radius,
+                        __global int *lo, __global int *hi)
 {
-    const int k = get_global_id(0);
-    if (k >= listed)
+    const int p = get_global_id(0);
+    if (p >= pairs)
         return;
-    const int kx = win[k] % nx, row = win[k] / nx;
-    int n = 0;
-    for (int i = bucket_start[row]; i < bucket_start[row + 1]; ++i) {
-        const int p = bucket_pts[i];
-        n += x0[p] <= kx && kx < x1[p];
+    __global const double *c = axes + first;
+    const double m = mid[3 * p + axis] / box;
+    int a = 0, b = n;  /* the first centre with c / box >= m - radius */
+    while (a < b) {
+        const int h = (a + b) / 2;
+        if (c[h] / box < m - radius)
+            a = h + 1;
+        else
+            b = h;
     }
-    count[k] = n;
+    int i = max(a - 1, 0);
+    while (i < n && !(fabs(m - c[i] / box) <= radius) && c[i] / box < m)
+        ++i;
+    lo[p] = i;
+    while (i < n && fabs(m - c[i] / box) <= radius)
+        ++i;
+    hi[p] = i;
 }
 
 __kernel void box_fill(__global const int *bucket_start, __global const int *bucket_pts,
@@ -373,4 +400,41 @@ __kernel void box_fill(__global const int *bucket_start, __global const int *buc
         if (x0[p] <= kx && kx < x1[p])
             member[j++] = p;
     }
+}
+
+__kernel void box_tally(__global const int *bucket_start, __global const int *bucket_pts,
+                        __global const int *x0, __global const int *x1,
+                        __global const uchar *wanted, int windows, int nx, int least,
+                        __global uchar *listed, __global int *flag, __global int *count,
+                        __global int *held)
+{
+    const int w = get_global_id(0);
+    if (w >= windows)
+        return;
+    int n = 0;
+    if (wanted[w]) {
+        const int kx = w % nx, row = w / nx;
+        for (int i = bucket_start[row]; i < bucket_start[row + 1]; ++i) {
+            const int p = bucket_pts[i];
+            n += x0[p] <= kx && kx < x1[p];
+        }
+    }
+    const int use = wanted[w] && n >= least;
+    listed[w] = (uchar)use;
+    flag[w] = use;
+    count[w] = n;
+    held[w] = use ? n : 0;
+}
+
+__kernel void box_compact(__global const uchar *listed, __global const int *slot,
+                          __global const int *first, __global const int *held, int windows,
+                          __global int *win, __global int *start, __global int *stop)
+{
+    const int w = get_global_id(0);
+    if (w >= windows || !listed[w])
+        return;
+    const int k = slot[w];
+    win[k] = w;
+    start[k] = first[w];
+    stop[k] = first[w] + held[w];
 }

@@ -184,6 +184,30 @@ def test_kept_uploads_go_up_again_only_when_an_array_changes(queue):
             assert h is None or np.array_equal(g.get(), h)
 
 
+def test_queue_kept_tables_go_up_once_per_queue_and_name(queue):
+    """``queue_kept`` gives every caller of one name the same device copy while the values
+    are equal (NaN equal to NaN: a missing lens), without an upload; changed values, a
+    new type or another name upload anew, and the name's copy is then the new one."""
+    from plenocl.bench.clprofile import OpenCLProfile
+    from plenocl.opencl.arrays import queue_kept
+
+    lenses = np.arange(12, dtype=np.float32).reshape(2, 3, 2)
+    lenses[1, 2] = np.nan
+    first = queue_kept(queue, "test.lenses", lenses)
+    np.testing.assert_array_equal(first.get(), lenses)
+    with OpenCLProfile() as prof:
+        again = queue_kept(queue, "test.lenses", lenses.copy())
+    assert again is first and not prof.calls
+    changed = lenses.copy()
+    changed[0, 0, 0] = -1.0
+    for name, given in [("test.lenses", changed), ("test.lenses", changed.astype(np.float64)),
+                        ("test.other", changed.astype(np.float64))]:
+        got = queue_kept(queue, name, given)
+        assert got is not first and got.dtype == given.dtype
+        np.testing.assert_array_equal(got.get(), given)
+        assert queue_kept(queue, name, given) is got
+
+
 def test_reading_several_arrays_waits_once_and_gives_what_get_gives(queue):
     """``arrays.read`` returns each device array's ``.get()`` (any dtype and shape, an
     empty one and a leading slice included), waiting for the queue once for all of them
@@ -461,6 +485,49 @@ def test_fill_sets_whole_arrays_and_leading_slices_only(queue):
     fill(vol[3:3], 2.0)  # empty: nothing enqueued
     with pytest.raises(ValueError, match="contiguous device array"):
         fill(vol[:, 1], 0.0)
+
+
+def test_copy_region_cuts_numpys_box_on_the_device(queue):
+    """``copy_region``: a box of one device volume written into another at a corner is
+    NumPy's slice assignment, bit for bit; a box past either volume is refused by name."""
+    import pyopencl.array as cla
+
+    from plenocl.opencl.arrays import copy_region
+
+    rng = np.random.default_rng(8)
+    src = rng.random((6, 9, 11)).astype(np.float32)
+    out = rng.random((4, 5, 13)).astype(np.float32)
+    want = out.copy()
+    want[1:4, 0:5, 6:13] = src[2:5, 3:8, 1:8]
+    dev = cla.to_device(queue, out)
+    copy_region(dev, (1, 0, 6), cla.to_device(queue, src), (2, 3, 1), (3, 5, 7))
+    assert np.array_equal(dev.get(), want)
+    with pytest.raises(ValueError, match="does not fit in the source"):
+        copy_region(dev, (0, 0, 0), cla.to_device(queue, src), (4, 0, 0), (3, 5, 7))
+    with pytest.raises(ValueError, match="does not fit in the target"):
+        copy_region(dev, (2, 0, 0), cla.to_device(queue, src), (0, 0, 0), (3, 5, 7))
+
+
+@pytest.mark.parametrize("out_depth, vol_depth", [(2, 3), (5, 1), (9, 9)])
+def test_copy_slabbed_is_numpys_box_whatever_the_slabs(queue, out_depth, vol_depth):
+    """``copy_slabbed``: a box of a volume held in depth slabs of one size, written into
+    a volume held in slabs of another at a corner, is NumPy's slice assignment on the
+    whole volumes, bit for bit, where the box crosses slab edges on both sides."""
+    import pyopencl.array as cla
+
+    from plenocl.opencl.arrays import copy_slabbed
+
+    def slabbed(vol, depth):
+        slabs = [(z, min(z + depth, len(vol))) for z in range(0, len(vol), depth)]
+        return slabs, [cla.to_device(queue, np.ascontiguousarray(vol[a:b])) for a, b in slabs]
+
+    rng = np.random.default_rng(out_depth + vol_depth)
+    src, out = (rng.random((9, 6, 8)).astype(np.float32) for _ in range(2))
+    want = out.copy()
+    want[3:8, 1:5, 0:6] = src[1:6, 2:6, 2:8]
+    (vol_slabs, vol), (out_slabs, dev) = slabbed(src, vol_depth), slabbed(out, out_depth)
+    copy_slabbed(dev, out_slabs, (3, 1, 0), vol, vol_slabs, (1, 2, 2), (5, 4, 6))
+    assert np.array_equal(np.concatenate([d.get() for d in dev]), want)
 
 
 @pytest.mark.parametrize("shape,corner", [((6, 7, 9), (1, 2, 3)), ((3, 4, 5), (0, 0, 0)),

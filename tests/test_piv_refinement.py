@@ -367,10 +367,10 @@ def test_window_gradients_send_back_one_byte_per_listed_window(queue):
     assert set(status) <= {FITTED, ILL_POSED} and FITTED in status
 
 
-def test_box_lists_of_every_window_send_the_window_list_once(queue):
+def test_box_lists_of_every_window_send_the_window_mask_once(queue):
     """Box lists asked for every window of the same grid again (each of a pair's
-    refinement calls) send the list of windows once, also after a subset's call (which
-    sends its own); the lists are the same either way."""
+    refinement calls) send the mask of every window (a byte each) once, also after a
+    subset's call (which sends its own); the lists are the same either way."""
     from plenocl.bench.clprofile import OpenCLProfile
 
     rng = np.random.default_rng(14)
@@ -387,7 +387,7 @@ def test_box_lists_of_every_window_send_the_window_list_once(queue):
             lists, count = device.box_lists(ranges, shape, wanted)
         sent.append(sum(c.nbytes for c in prof.calls if c.kind == "h2d"))
         got.append((lists.win.tolist(), lists.member.get().tolist(), count.tolist()))
-    assert sent[1] + 4 * every.size == sent[0]
+    assert sent[1] + every.size == sent[0]
     assert sent[3] == sent[1]  # kept across a subset's call
     assert got[0] == got[1] == got[3]
     assert got[2][2] == np.where(some, got[0][2], 0).tolist()
@@ -395,8 +395,8 @@ def test_box_lists_of_every_window_send_the_window_list_once(queue):
 
 def test_window_means_on_the_device_upload_the_same_pairs_once(queue):
     """Calls on the same pairs (a refinement's sparse windows after its lateral means)
-    send them to the device once; other pairs go up, and the first again after them;
-    each call's means are the host's."""
+    send them to the device once, and no per-pair range or window list; other pairs go
+    up, and the first again after them; each call's means are the host's."""
     from plenocl.bench.clprofile import OpenCLProfile
 
     pairs = awkward_pairs("outliers", np.random.default_rng(12))
@@ -413,6 +413,10 @@ def test_window_means_on_the_device_upload_the_same_pairs_once(queue):
     sent = 2 * pairs.midpoints.nbytes  # midpoints and displacements, float64
     assert moved[1] + sent <= moved[0]
     assert moved[3] >= moved[1] + sent
+    # the boxes' index ranges and the windows' lists are made on the device (the ranges
+    # were 48 bytes a pair, the lists 24 a window): the kept pairs' call sends less than
+    # an int per window (the rows' starts, Student's quantiles)
+    assert moved[1] < 4 * field.u.size
 
 
 @pytest.mark.parametrize("case", ["sparse", "outliers", "plane", "line", "faces", "empty"])
@@ -506,26 +510,39 @@ def test_window_means_on_the_device_follow_the_field_they_are_given(queue):
     assert other.axes.size == kept.axes.size == 9  # the axes went up, not 24 x 3 centres
 
 
+@pytest.mark.parametrize("made", ["host", "device"])
 @pytest.mark.parametrize("count, radius", [(0, 1.0), (1, 1.0), (57, 1.0), (400, 2.0)])
-def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius):
-    """Each wanted window's pairs from the device's box search (the host's per-axis index
-    ranges, the pairs bucketed by row of windows) are the pairs a k-d tree finds within
-    ``radius`` of its centre per axis, in pair order; the windows not wanted list none;
-    asked for those holding at least 3, those alone, with the same pairs."""
+def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius, made):
+    """Each wanted window's pairs from the device's box search (per-axis index ranges,
+    given by the host or made on the device from the pairs there, ``box_ranges``; the
+    pairs bucketed by row of windows) are the pairs a k-d tree finds within ``radius`` of
+    its centre per axis, in pair order; the windows not wanted list none; asked for those
+    holding at least 3, those alone, with the same pairs."""
     rng = np.random.default_rng(count)
-    field = grid_field()
+    field, device = grid_field(), DeviceWindowMeans(queue)
     half = np.asarray(field.window[::-1], float) / 2
-    points = rng.uniform(-2.0, [32.0, 28.0, 24.0], (count, 3)) / half
-    if count:
-        points[0] = np.array([field.x[2], field.y[1], field.z[0]]) / half + radius  # a face
+    mid = rng.uniform(-2.0, [32.0, 28.0, 24.0], (count, 3))
+    if count:  # on a box's face, and just past another's
+        mid[0] = np.array([field.x[2], field.y[1], field.z[0]]) + radius * half
+        mid[-1] = np.array([field.x[0], field.y[0], field.z[0]]) - radius * half * 1.01
+    points = mid / half
     axes = [c / h for c, h in zip((field.x, field.y, field.z), half)]
     ranges = []  # per axis, each point's run of centres within the radius
     for a in range(3):
         near = np.abs(points[:, a, None] - axes[a][None]) <= radius
         first = near.argmax(axis=1)
         ranges.append((first, first + np.count_nonzero(near, axis=1)))
+    if made == "device" and count:
+        dev = device.pairs(mid, np.zeros_like(mid), None, None)
+        centres = device.device_centres((field.x, field.y, field.z))
+        on_device = device.box_ranges(dev, half, centres, radius)
+        for (lo, hi), (want_lo, want_hi) in zip(on_device, ranges):
+            lo, hi, full = lo.get(), hi.get(), want_hi > want_lo
+            np.testing.assert_array_equal(hi - lo, want_hi - want_lo)
+            np.testing.assert_array_equal(lo[full], want_lo[full])
+        ranges = on_device
     wanted = rng.random(field.u.size) < 0.6
-    lists, held = DeviceWindowMeans(queue).box_lists(ranges, field.u.shape, wanted)
+    lists, held = device.box_lists(ranges, field.u.shape, wanted)
     z, y, x = np.meshgrid(*axes[::-1], indexing="ij")
     centres = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
     truth = (cKDTree(points).query_ball_point(centres, radius, p=np.inf) if count
@@ -536,10 +553,19 @@ def test_box_lists_on_the_device_are_the_k_d_trees(queue, count, radius):
         assert held[w] == len(want)
         np.testing.assert_array_equal(got.get(w, []), want)
     assert held[wanted].sum() == lists.stop[-1] if len(lists.win) else not held.any()
-    busy, _ = DeviceWindowMeans(queue).box_lists(ranges, field.u.shape, wanted, least=3)
+    assert lists.largest() == held.max(initial=0)
+    busy, none = device.box_lists(ranges, field.u.shape, wanted, least=3, counted=False)
+    assert none is None  # the counts not read back
     np.testing.assert_array_equal(busy.win, np.flatnonzero(held >= 3))  # those alone
+    np.testing.assert_array_equal(busy.mask.get(), held >= 3)
     for k, w in enumerate(busy.win):
         np.testing.assert_array_equal(busy.members(k), got[w])
+    # the busy windows' device mask as the next call's wanted: the host's booleans' lists
+    by_mask, _ = device.box_lists(ranges, field.u.shape, busy.mask)
+    by_host, _ = device.box_lists(ranges, field.u.shape, held >= 3)
+    np.testing.assert_array_equal(by_mask.win, by_host.win)
+    for k in range(len(by_host.win)):
+        np.testing.assert_array_equal(by_mask.members(k), by_host.members(k))
 
 
 @pytest.mark.parametrize("wrong", ["transposed", "flat", "integers"])

@@ -463,3 +463,41 @@ def test_a_rotated_array_under_a_sensor_axis_grid_is_not_said_to_be_outside(queu
     wide = Grid((9, 20, 24), x=(-1.5, 1.5), y=(-1.2, 1.2), z=(-1.5, 1.5))
     with pytest.warns(UserWarning, match="beyond the camera's field of view"):
         reconstruct(img, Projector(cam, wide, queue))
+
+
+def test_a_crop_cuts_the_box_on_the_device(small_camera, queue):
+    """A crop cuts the volume's box and the kept sensitivity out of several depth slabs
+    into the cropped projector's own slabs on the device: the same voxels to the bit,
+    and no volume crosses to the host or back (only the new box's slice extents)."""
+    from plenocl.bench.clprofile import OpenCLProfile
+
+    grid = Grid((7, 150, 251), x=(-0.7, 0.7), y=(-0.6, 0.6), z=(-1.5, 1.5))
+    proj = Projector(small_camera, grid, queue, max_alloc_bytes=2 * 4 * 150 * 251)
+    assert len(proj.plan.slabs) == 4
+    rng = np.random.default_rng(5)
+    vol = np.zeros(grid.shape, np.float32)
+    vol[1:6, 20:140, 30:230] = rng.random((5, 120, 200)) + 0.5  # a box over three slabs
+    full = proj.volume_to_host(proj.sensitivity())
+    solver = Solver(proj)
+    dev = proj.volume_to_device(vol)
+    extent = solver.slice_extent(dev)
+    with OpenCLProfile() as prof:
+        sub, cut, sub_extent = solver.crop(dev, extent)
+        queue.finish()
+    box = (slice(1, 6), slice(20, 140), slice(30, 230))
+    assert sub.box == box and len(sub.proj.plan.slabs) > 1
+    np.testing.assert_array_equal(sub.proj.volume_to_host(cut), vol[box])
+    np.testing.assert_array_equal(sub.proj.volume_to_host(sub.proj.sensitivity()),
+                                  full[box])
+    assert extent_box(sub_extent) == tuple(slice(0, n) for n in cut_shape(box))
+    moved = {kind: sum(c.nbytes for c in prof.calls if c.kind == kind)
+             for kind in ("h2d", "d2h")}
+    assert moved["d2h"] <= sub_extent.nbytes  # the new box's extents alone come back
+    assert moved["h2d"] < vol[box].nbytes / 4  # the sub-projector's tables, no volume
+    with pytest.raises(ValueError, match="give this projector's cropped"):
+        proj.volume_box(dev, box, proj)
+
+
+def cut_shape(box: tuple[slice, ...]) -> tuple[int, ...]:
+    """The shape of ``vol[box]``."""
+    return tuple(s.stop - s.start for s in box)

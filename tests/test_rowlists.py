@@ -6,6 +6,7 @@ with only the ranges and the starts crossing to the device."""
 from __future__ import annotations
 
 import numpy as np
+import pyopencl.array as cla
 import pytest
 
 from plenocl.bench.clprofile import OpenCLProfile
@@ -44,6 +45,49 @@ def test_box_lists_match_the_twin(queue, n, na, nb):
     want_start, want_items = ref.box_lists(clipped(*a, na), clipped(*b, nb), na, nb)
     np.testing.assert_array_equal(start, want_start)
     np.testing.assert_array_equal(items, want_items)
+
+
+@pytest.mark.parametrize("n, na, nb", [(1, 1, 1), (9, 3, 7), (250, 11, 13)])
+def test_box_lists_of_device_ranges_are_counted_there(queue, n, na, nb):
+    """Ranges already on the device (the window means make theirs there): the device
+    counts each row's items (``boxes_count``) and the lists are the twin's; what crosses
+    is each row's count back and its start up, not the ranges."""
+    rng = np.random.default_rng(200 + n)
+    a, b = clipped(*_ranges(rng, n, na), na), clipped(*_ranges(rng, n, nb), nb)
+    lists = DeviceRowLists(queue)
+    dev = [tuple(cla.to_device(queue, r) for r in pair) for pair in (a, b)]
+    lists.boxes(*dev, na, nb)  # kernels built before the profile
+    with OpenCLProfile() as prof:
+        made = lists.boxes(*dev, na, nb)
+        queue.finish()
+    start, items = _device_lists(made)
+    want_start, want_items = ref.box_lists(a, b, na, nb)
+    np.testing.assert_array_equal(start, want_start)
+    np.testing.assert_array_equal(items, want_items)
+    moved = {kind: sum(c.nbytes for c in prof.calls if c.kind == kind)
+             for kind in ("h2d", "d2h")}
+    assert moved == {"h2d": 4 * (na * nb + 1), "d2h": 4 * na * nb}
+
+
+@pytest.mark.parametrize("n", [0, 1, 63, 64, 65, 257, 1000, 12345])
+def test_starts_scanned_on_the_device_are_numpys_cumsum(queue, n):
+    """``scan_starts``: the starts of device counts are NumPy's exclusive prefix sum, the
+    total last, with the largest count, on sizes around and across the work-group's
+    (runs of unequal length, an empty table); only the total and the largest cross, for
+    several tables at once."""
+    rng = np.random.default_rng(n)
+    counts = rng.integers(0, 40, n).astype(np.int32)
+    if n > 3:
+        counts[n // 3] = 977  # the largest, inside a run
+    lists = DeviceRowLists(queue)
+    dev = cla.to_device(queue, counts)
+    with OpenCLProfile() as prof:
+        (start, total, largest), (again, twice, _) = lists.starts(dev, 2 * dev)
+    assert sum(c.nbytes for c in prof.calls if c.kind == "d2h") == 16
+    np.testing.assert_array_equal(start.get(), np.concatenate([[0], np.cumsum(counts)]))
+    assert total == counts.sum() and largest == counts.max(initial=0)
+    np.testing.assert_array_equal(again.get(), 2 * start.get())  # two tables, one wait
+    assert twice == 2 * total
 
 
 def test_the_host_counts_are_each_rows_items():

@@ -1,6 +1,7 @@
 """Device arrays filled with one value by the driver's own fill (``clEnqueueFillBuffer``),
 host arrays uploaded without waiting for the queue, volumes placed inside zeros or inside
-another volume on the device (one rectangular copy), and the check of two volumes'
+another volume on the device and a box cut out of one there (one rectangular copy each),
+and the check of two volumes'
 device copies handed from one stage to the next.
 
 pyopencl's ``Array.fill`` runs an element-wise kernel whose work-items each loop over a
@@ -11,14 +12,16 @@ reconstruction fills an image and a light buffer every iteration (docs/design.md
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
 from . import pool
 
-__all__ = ["KeptUpload", "buffer_from_host", "copy_inside", "device_copies", "fill",
-           "inside_zeros", "read", "upload"]
+__all__ = ["KeptUpload", "buffer_from_host", "copy_inside", "copy_region", "copy_slabbed",
+           "device_copies", "fill", "inside_zeros", "queue_kept", "read", "upload"]
 
 
 def upload(queue: cl.CommandQueue, host) -> cl_array.Array:
@@ -65,6 +68,27 @@ class KeptUpload:
             kept = self._kept = (host, tuple(None if a is None else upload(self.queue, a)
                                              for a in host))
         return kept[1]
+
+
+# Per context, the last array kept under each name (queue_kept): the buffers are the
+# context's, so every queue on it reads them. A kept array holds its queue and so its
+# context: the entries stay for the process's life, one array per name and context.
+_QUEUE_KEPT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def queue_kept(queue: cl.CommandQueue, name: str, host: np.ndarray) -> cl_array.Array:
+    """A device copy of ``host`` on ``queue``, the same one for every caller that gives
+    ``name`` and equal values (the last array given under each name is kept, per
+    context, for the process's life): a camera's tables that each pair's objects would
+    upload again (the image fit's lens table, 0.45 MB a paper-size pair; a missing
+    lens's NaN equals NaN). Callers only read it."""
+    host = np.ascontiguousarray(host)
+    kept = _QUEUE_KEPT.setdefault(queue.context, {})  # a queue is not weakly referable
+    last = kept.get(name)
+    if (last is None or last[0].dtype != host.dtype
+            or not np.array_equal(last[0], host, equal_nan=host.dtype.kind in "fc")):
+        last = kept[name] = (host.copy(), upload(queue, host))
+    return last[1]
 
 
 def _all_same(kept: tuple, given: tuple) -> bool:
@@ -135,19 +159,56 @@ def copy_inside(out: cl_array.Array, vol, corner: tuple[int, int, int]) -> cl_ar
                          f"{tuple(shape)}")
     if not vol.size:
         return out
-    region = (4 * nx, ny, nz)
-    inside = {"origin": (4 * corner[2], corner[1], corner[0]),
-              "pitches": (4 * shape[2], 4 * shape[2] * shape[1])}
-    packed = {"origin": (0, 0, 0), "pitches": (4 * nx, 4 * nx * ny)}
     if isinstance(vol, cl_array.Array):
-        cl.enqueue_copy(out.queue, out.data, vol.data, region=region,
-                        **{f"dst_{k}": v for k, v in inside.items()},
-                        **{f"src_{k}": v for k, v in packed.items()})
-    else:
-        cl.enqueue_copy(out.queue, out.data, np.ascontiguousarray(vol, np.float32),
-                        region=region, **{f"buffer_{k}": v for k, v in inside.items()},
-                        **{f"host_{k}": v for k, v in packed.items()})
+        return copy_region(out, corner, vol, (0, 0, 0), vol.shape)
+    cl.enqueue_copy(out.queue, out.data, np.ascontiguousarray(vol, np.float32),
+                    region=(4 * nx, ny, nz),
+                    **{f"buffer_{k}": v for k, v in _pitched(shape, corner).items()},
+                    **{f"host_{k}": v for k, v in _pitched(vol.shape, (0, 0, 0)).items()})
     return out
+
+
+def copy_region(out: cl_array.Array, out_corner: tuple[int, int, int], vol: cl_array.Array,
+                vol_corner: tuple[int, int, int], size: tuple[int, int, int]
+                ) -> cl_array.Array:
+    """The box of ``size`` ``(z, y, x)`` at ``vol_corner`` in the whole float32 device
+    array ``vol`` copied into the whole float32 device array ``out`` at ``out_corner``
+    (one rectangular copy on ``out``'s queue, device to device: nothing crosses to the
+    host); returns ``out``."""
+    for name, arr, corner in (("source", vol, vol_corner), ("target", out, out_corner)):
+        if any(c < 0 or c + n > s for c, n, s in zip(corner, size, arr.shape, strict=True)):
+            raise ValueError(f"a {tuple(size)} box at {tuple(corner)} does not fit in the "
+                             f"{name} {tuple(arr.shape)}")
+    if all(size):
+        cl.enqueue_copy(out.queue, out.data, vol.data, region=(4 * size[2], *size[1::-1]),
+                        **{f"dst_{k}": v for k, v in _pitched(out.shape, out_corner).items()},
+                        **{f"src_{k}": v for k, v in _pitched(vol.shape, vol_corner).items()})
+    return out
+
+
+def copy_slabbed(out: list, out_slabs, out_corner: tuple[int, int, int], vol: list,
+                 vol_slabs, vol_corner: tuple[int, int, int], size: tuple[int, int, int]
+                 ) -> list:
+    """:func:`copy_region` between volumes held as depth slabs (a projector's plan: slab
+    ``k`` holds depths ``[z0, z1)`` of ``*_slabs``, its arrays ``(z1 - z0, ny, nx)``): the
+    box of ``size`` at ``vol_corner`` of ``vol`` into ``out`` at ``out_corner``, one
+    rectangular copy per pair of slabs the box crosses; returns ``out``."""
+    shift = out_corner[0] - vol_corner[0]  # a depth of vol, plus shift, is one of out
+    for (a, b), part in zip(out_slabs, out, strict=True):
+        for (c, d), slab in zip(vol_slabs, vol, strict=True):
+            lo = max(a - shift, c, vol_corner[0])
+            hi = min(b - shift, d, vol_corner[0] + size[0])
+            if lo < hi:
+                copy_region(part, (lo + shift - a, *out_corner[1:]), slab,
+                            (lo - c, *vol_corner[1:]), (hi - lo, *size[1:]))
+    return out
+
+
+def _pitched(shape: tuple[int, int, int], corner: tuple[int, int, int]) -> dict:
+    """A rectangular copy's origin (bytes, rows, slices) and pitches in a packed float32
+    array of ``shape`` ``(z, y, x)``, its box starting at ``corner``."""
+    return {"origin": (4 * corner[2], corner[1], corner[0]),
+            "pitches": (4 * shape[2], 4 * shape[2] * shape[1])}
 
 
 def device_copies(on_device, shape: tuple[int, ...], context: cl.Context | None = None,

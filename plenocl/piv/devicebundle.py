@@ -17,6 +17,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.cltypes
 
+from ..opencl.arrays import queue_kept
 from ..opencl.device import is_cpu
 from ..opencl.program import KernelSet
 from ..optics.raybundle import Patches, RayBundle
@@ -71,8 +72,9 @@ class DeviceRayBundle:
         self._scratch: tuple | None = None
         cam = bundle.camera
         k = self._kernels(True)
-        self._aperture = k.to_device(bundle.aperture.astype(f32))
-        self._lenses = k.to_device(self._lens_pixels().astype(f32))
+        # the camera's tables go up once per queue, not once per pair's fit
+        self._aperture = queue_kept(queue, "raybundle.aperture", bundle.aperture.astype(f32))
+        self._lenses = queue_kept(queue, "raybundle.lenses", self._lens_pixels().astype(f32))
         lattice = tuple(f32(v) for v in bundle.to_lattice.ravel())
         spacing = cam.exit_pupil_diameter_mm / 2 * np.sqrt(np.pi / bundle.rays) / cam.ml_pitch_mm
         self._f_px = f32(cam.ml_focal_length_mm / cam.pixel_pitch_mm)

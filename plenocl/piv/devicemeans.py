@@ -7,8 +7,9 @@ of its doubled box, then the mean of its own pairs moved to its centre along it,
 mean's uncertainty) with one work-item per window, in double precision, so that the pairs
 each window keeps and its results are the host's to rounding; and the search for the
 pairs each window's box holds (:meth:`DeviceWindowMeans.box_lists`), so that their lists
-stay on the device. The host gives each pair's window index ranges per axis; the pairs
-are listed by row of windows on the device
+stay on the device. Each pair's window index ranges per axis are found on the device
+from the pairs there (:meth:`DeviceWindowMeans.box_ranges`; a caller may give its own);
+the pairs are listed by row of windows on the device
 (:class:`plenocl.opencl.rowlists.DeviceRowLists`); the host fits the rare gradients whose pairs
 scatter too flatly for the normal equations (``np.linalg.lstsq``, as its own path does).
 Devices without ``cl_khr_fp64`` keep the host path (:meth:`DeviceWindowMeans.supports`).
@@ -16,6 +17,7 @@ Devices without ``cl_khr_fp64`` keep the host path (:meth:`DeviceWindowMeans.sup
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,14 +53,27 @@ class PairsOnDevice:
 @dataclass(frozen=True)
 class WindowLists:
     """Windows' pairs, the pair indices on the device: listed window ``k`` is grid window
-    ``win[k]``, its pairs ``member[start[k]:stop[k]]`` (at least one), in pair order;
-    ``tables``: ``win``, ``start`` and ``stop`` on the device, for the kernels."""
+    ``win[k]`` (on the host), its pairs ``member[start[k]:stop[k]]`` (at least one), in
+    pair order; ``tables``: ``win``, ``start`` and ``stop`` on the device, for the
+    kernels, made there (:meth:`start` and :meth:`stop` read on the host when asked);
+    ``mask``: a byte per grid window on the device, 1 where listed (the next call's
+    ``wanted``); ``most``: the most pairs a listed window holds."""
 
     win: np.ndarray
-    start: np.ndarray
-    stop: np.ndarray
     member: cl_array.Array
     tables: tuple[cl_array.Array, cl_array.Array, cl_array.Array]
+    mask: cl_array.Array
+    most: int
+
+    @functools.cached_property
+    def start(self) -> np.ndarray:
+        """Each listed window's first member, read from the device."""
+        return self.tables[1][:len(self.win)].get()
+
+    @functools.cached_property
+    def stop(self) -> np.ndarray:
+        """Each listed window's end of members, read from the device."""
+        return self.tables[2][:len(self.win)].get()
 
     def members(self, k: int) -> np.ndarray:
         """Listed window ``k``'s pairs, on the host."""
@@ -66,7 +81,7 @@ class WindowLists:
 
     def largest(self) -> int:
         """The most pairs a listed window holds (0: none listed)."""
-        return int((self.stop - self.start).max(initial=0))
+        return self.most
 
 
 @dataclass(frozen=True)
@@ -129,12 +144,13 @@ class DeviceWindowMeans:
             raise ValueError(f"{queue.device.name.strip()} has no double precision "
                              "(cl_khr_fp64): keep the window means on the host "
                              "(device_means=None)")
-        names = ["window_gradients", "window_estimates", "box_counts", "box_fill"]
+        names = ["window_gradients", "window_estimates", "box_tally", "box_compact",
+                 "box_fill", "box_range"]
         self._k = KernelSet(queue, "windowmeans.cl", names, looping=names)
         self._rows = DeviceRowLists(queue)
         self._centres: WindowCentres | None = None
         self._pairs = KeptUpload(queue, f64)  # a refinement's calls repeat some pairs
-        self._every = KeptUpload(queue, i32)  # every window listed: the same each call
+        self._every = KeptUpload(queue, np.uint8)  # every window wanted: the same each call
 
     @staticmethod
     def supports(queue: cl.CommandQueue) -> bool:
@@ -146,36 +162,72 @@ class DeviceWindowMeans:
         """The device's queue."""
         return self._k.queue
 
-    def box_lists(self, ranges, shape: tuple[int, int, int], wanted: np.ndarray,
-                  least: int = 1) -> tuple[WindowLists, np.ndarray]:
+    def box_ranges(self, pairs: PairsOnDevice, box, centres: WindowCentres,
+                   radius: float) -> list[tuple[cl_array.Array, cl_array.Array]]:
+        """Each pair's window index ranges ``[(x0, x1), (y0, y1), (z0, z1)]`` (int32
+        device arrays ``(P,)``) for :meth:`box_lists`, made on the device from the pairs
+        there: the windows whose centre lies within ``radius`` per axis of the pair's
+        midpoint, both divided by ``box`` ``(x, y, z)`` (``kernels/windowmeans.cl``
+        ``box_range``: the host's ``_axis_range``, the same doubles and test)."""
+        count = pairs.mid.shape[0]
+        first = np.cumsum([0, len(centres.x), len(centres.y)])
+        ranges = []
+        for axis, size in enumerate((len(centres.x), len(centres.y), len(centres.z))):
+            lo, hi = self._k.array(max(count, 1), i32), self._k.array(max(count, 1), i32)
+            if count:
+                self._k.launch("box_range", (count,), pairs.mid, i32(count), i32(axis),
+                               f64(np.broadcast_to(box, 3)[axis]), centres.axes,
+                               i32(first[axis]), i32(size), f64(radius), lo, hi)
+            ranges.append((lo[:count], hi[:count]))
+        return ranges
+
+    def box_lists(self, ranges, shape: tuple[int, int, int], wanted,
+                  least: int = 1, counted: bool = True
+                  ) -> tuple[WindowLists, np.ndarray | None]:
         """The pairs each ``wanted`` window's box holds (a boolean per window of the
-        ``(nz, ny, nx)`` grid, flat), from each pair's window index ranges ``ranges``
-        (``[(x0, x1), (y0, y1), (z0, z1)]``, each ``(P,)``): the windows with at least
-        ``least`` (at least 1), listed with their tables on the device, and the count of
-        every window ``(W,)`` (0 where not wanted)."""
+        ``(nz, ny, nx)`` grid, flat, on the host; or an earlier call's
+        :attr:`WindowLists.mask` on the device), from each pair's window index ranges
+        ``ranges`` (``[(x0, x1), (y0, y1), (z0, z1)]``, each ``(P,)``: host arrays, or
+        :meth:`box_ranges`' device arrays, which never cross): the windows with at least
+        ``least`` (at least 1), listed with their tables made on the device (only the
+        listed windows' indices come back), and with ``counted`` the count of every
+        window ``(W,)`` (0 where not wanted; ``None`` without: not read back)."""
         nz, ny, nx = shape
+        size = nz * ny * nx
         (x0, x1), y, z = ranges
         rows = self._rows.boxes(z, y, nz, ny)  # the pairs by (z, y) row of windows
-        tables = [rows.start_device, rows.items] + [self._k.to_device(np.asarray(a, i32))
+        tables = [rows.start_device, rows.items] + [self._k.on_device(a, i32)
                                                     for a in (x0, x1)]
-        listed = np.flatnonzero(wanted).astype(i32)
-        count = np.zeros(nz * ny * nx, int)
-        if len(listed) and rows.total:
-            counts = self._k.array(len(listed), i32)
-            win = (self._every(listed)[0] if len(listed) == nz * ny * nx
-                   else self._k.to_device(listed))
-            self._k.launch("box_counts", (len(listed),), *tables, win, i32(len(listed)),
-                           i32(nx), counts)
-            count[listed] = counts.get()
-        win = np.flatnonzero(count >= max(least, 1)).astype(i32)
-        stop = np.cumsum(count[win]).astype(i32)
-        first = (stop - count[win]).astype(i32)
-        member = self._k.array(max(int(stop[-1]) if len(stop) else 0, 1), i32)
-        listed = tuple(self._k.to_device(a) for a in (win, first, stop))  # kept for _launch
-        if len(win):
-            self._k.launch("box_fill", (len(win),), *tables, listed[0], i32(len(win)),
-                           i32(nx), listed[1], member)
-        return WindowLists(win, first, stop, member, listed), count
+        mask, flag = self._k.array(size, np.uint8), self._k.array(size, i32)
+        count, held = self._k.array(size, i32), self._k.array(size, i32)
+        self._k.launch("box_tally", (size,), *tables, self._wanted(wanted, size), i32(size),
+                       i32(nx), i32(max(least, 1)), mask, flag, count, held)
+        (slot, listed, _), (first, members, most) = self._rows.starts(flag, held)
+        lists = [self._k.array(max(listed, 1), i32) for _ in range(3)]  # win, start, stop
+        self._k.launch("box_compact", (size,), mask, slot, first, held, i32(size), *lists)
+        member = self._k.array(max(members, 1), i32)
+        if listed:
+            self._k.launch("box_fill", (listed,), *tables, lists[0], i32(listed), i32(nx),
+                           lists[1], member)
+        win = lists[0][:listed].get().astype(i32)
+        return (WindowLists(win, member, tuple(lists), mask, most),
+                count.get().astype(int) if counted else None)
+
+    def _wanted(self, wanted, size: int) -> cl_array.Array:
+        """The windows wanted as a byte per window on the device: a device mask as it
+        is, every window's kept (the same each call), or the host's booleans uploaded."""
+        if isinstance(wanted, cl_array.Array):
+            if wanted.size != size or wanted.dtype != np.uint8:
+                raise ValueError(f"a device mask of wanted windows must hold a byte per "
+                                 f"window ({size}), got {wanted.dtype} {wanted.shape}")
+            return wanted
+        wanted = np.asarray(wanted, bool).reshape(-1)
+        if wanted.size != size:
+            raise ValueError(f"wanted must hold a boolean per window ({size}), got "
+                             f"{wanted.size}")
+        if wanted.all():
+            return self._every(np.ones(size, np.uint8))[0]
+        return self._k.to_device(wanted.astype(np.uint8))
 
     def pairs(self, mid: np.ndarray, disp: np.ndarray, weight: np.ndarray | None,
               amb: np.ndarray | None) -> PairsOnDevice:

@@ -62,7 +62,13 @@ from ..opencl.volume import DeviceVolume, host_volume
 from ..optics.sightline import line_of_sight, sight_frames
 from ..peaks import find_particles, merge_along_lines
 from ..vectorfield import PIVResult
-from .devicemeans import ILL_POSED, DeviceWindowMeans, WindowLists
+from .devicemeans import (
+    ILL_POSED,
+    DeviceWindowMeans,
+    PairsOnDevice,
+    WindowCentres,
+    WindowLists,
+)
 from .imagefit import METHOD as FIT_METHOD
 from .imagefit import PRIOR_VOXELS, standard_deviations
 from .pairoutliers import FLOOR as PAIR_SCATTER
@@ -636,11 +642,10 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
         return mean, error, count
     half = np.asarray(field.window[::-1], float) / 2  # (x, y, z)
     box = half * support
-    points = pairs.midpoints / box
     centre_axes = (field.x, field.y, field.z)
-    axes = [c / b for c, b in zip(centre_axes, box)]
     wanted = None if windows is None else windows.reshape(-1)
     if device_means is None:
+        points, axes = pairs.midpoints / box, [c / b for c, b in zip(centre_axes, box)]
         centres = _grid_centres(field)
         win, member = _box_members(points, axes, 1.0, wanted)
         busy = np.bincount(win, minlength=count.size) >= min_pairs
@@ -650,32 +655,40 @@ def window_means(pairs: ParticlePairs, field: PIVResult, min_pairs: int = 3, sea
         n, m, e = _window_estimates(pairs, win[inside], member[inside], centres, grad,
                                     min_pairs, search, focus, position_sigma, spread)
     else:
-        ranges = [[_axis_range(points[:, a], axes[a], r) for a in range(3)] for r in (1, 2)]
-        inside, held = device_means.box_lists(  # the busy windows' own pairs
+        dev = _device_pairs(device_means, pairs, focus)
+        on_device = device_means.device_centres(centre_axes)
+        ranges = [device_means.box_ranges(dev, box, on_device, r) for r in (1.0, 2.0)]
+        inside, _ = device_means.box_lists(  # the busy windows' own pairs
             ranges[0], shape, np.ones(count.size, bool) if wanted is None else wanted,
-            least=min_pairs)
-        busy = held >= min_pairs
-        near, _ = device_means.box_lists(ranges[1], shape, busy)
-        n, m, e = _device_estimates(device_means, pairs, near, inside, centre_axes,
-                                    min_pairs, search, focus, position_sigma, spread)
+            least=min_pairs, counted=False)
+        near, _ = device_means.box_lists(ranges[1], shape, inside.mask, counted=False)
+        busy = np.zeros(count.size, bool)
+        busy[inside.win] = True
+        n, m, e = _device_estimates(device_means, dev, pairs, near, inside, on_device,
+                                    min_pairs, search, position_sigma, spread)
     count.reshape(-1)[busy] = n[busy]
     use = busy & (n >= max(min_pairs, 1))
     mean.reshape(3, -1)[:, use], error.reshape(3, -1)[:, use] = m[use].T, e[use].T
     return mean, error, count
 
 
-def _device_estimates(means: DeviceWindowMeans, pairs: ParticlePairs, near: WindowLists,
-                      inside: WindowLists, centre_axes: tuple, min_pairs: int, search,
-                      focus: FocalZone | None, position_sigma, spread: float | None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_local_gradients` over the doubled boxes' pairs ``near``, then
-    :func:`_window_estimates` over the boxes' pairs ``inside``, on ``means``' device;
-    the gradients too flat for its normal equations fitted here (:func:`local_gradient`);
-    ``centre_axes``: the field's ``(x, y, z)``, whose grid the window centres are."""
+def _device_pairs(means: DeviceWindowMeans, pairs: ParticlePairs,
+                  focus: FocalZone | None) -> PairsOnDevice:
+    """``pairs`` on ``means``' device: midpoints, displacements, weights and the focal
+    zone's depth ambiguity (``None`` without one)."""
     every = np.arange(len(pairs.midpoints))
     amb = None if focus is None else focus.ambiguity(pairs.midpoints[:, 2])
-    dev = means.pairs(pairs.midpoints, pairs.displacements, pair_weights(pairs, every), amb)
-    on_device = means.device_centres(centre_axes)
+    return means.pairs(pairs.midpoints, pairs.displacements, pair_weights(pairs, every), amb)
+
+
+def _device_estimates(means: DeviceWindowMeans, dev: PairsOnDevice, pairs: ParticlePairs,
+                      near: WindowLists, inside: WindowLists, on_device: WindowCentres,
+                      min_pairs: int, search, position_sigma, spread: float | None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_local_gradients` over the doubled boxes' pairs ``near``, then
+    :func:`_window_estimates` over the boxes' pairs ``inside``, on ``means``' device
+    (``pairs`` there as ``dev``); the gradients too flat for its normal equations fitted
+    here (:func:`local_gradient`); ``on_device``: the field's window centres there."""
     status, device_grad = means.device_gradients(
         dev, near, on_device, search, spread, KEEP_FLOOR, GRADIENT_PAIRS, WELL_POSED)
     flat = np.flatnonzero(status[near.win] == ILL_POSED)

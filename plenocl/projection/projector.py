@@ -38,7 +38,7 @@ from ..camera import Camera
 from ..camera.lattice import separable_rotation_deg
 from ..grid import Grid
 from ..opencl import pool
-from ..opencl.arrays import fill, upload
+from ..opencl.arrays import copy_slabbed, fill, upload
 from ..opencl.device import DeviceLike, check_fits, device_info, get_queue, is_cpu
 from ..opencl.program import KernelSet
 from ..optics.depthrange import check_grid
@@ -505,10 +505,13 @@ class Projector(FactorisedStages):
             self._sensitivity = self.back_device(ones)
         return self._sensitivity
 
-    def use_sensitivity(self, sensitivity: np.ndarray) -> None:
-        """Keep a known ``Aᵀ 1`` (a host volume of this grid, e.g. a larger projector's,
-        cropped) instead of back-projecting it on the first :meth:`sensitivity` call."""
-        self._sensitivity = self.volume_to_device(sensitivity)
+    def use_sensitivity(self, sensitivity: VolumeLike | np.ndarray) -> None:
+        """Keep a known ``Aᵀ 1`` (a host volume of this grid, or its device slabs, e.g. a
+        larger projector's, cropped: :meth:`volume_box`) instead of back-projecting it on
+        the first :meth:`sensitivity` call."""
+        self._sensitivity = (self.volume_to_device(sensitivity)
+                             if isinstance(sensitivity, np.ndarray)
+                             else self._as_slabs(sensitivity))
 
     # ---- dark-microlens skipping ------------------------------------------------------
     def lit_lenses(self, image, threshold: float = 0.0) -> np.ndarray:
@@ -835,8 +838,21 @@ class Projector(FactorisedStages):
                    z=(g.z[0] + z.start * dz, g.z[0] + z.stop * dz), rotation_deg=g.rotation_deg)
         out = Projector(self.camera, sub, self.queue, **self._options)
         if self._sensitivity is not None:
-            out.use_sensitivity(np.ascontiguousarray(self.volume_to_host(self._sensitivity)[box]))
+            out.use_sensitivity(self.volume_box(self._sensitivity, box, out))
         return out
+
+    def volume_box(self, vol: VolumeLike, box: tuple[slice, slice, slice],
+                   into: Projector) -> list[cl_array.Array]:
+        """``vol[box]`` of this projector's device volume as device slabs of ``into``
+        (this projector :meth:`cropped` to ``box``), copied on the device: one
+        rectangular copy per pair of slabs that overlap, nothing through the host."""
+        size = tuple(s.stop - s.start for s in box)
+        if size != tuple(into.shape):
+            raise ValueError(f"box {box} holds {size} voxels, the projector it goes to "
+                             f"{tuple(into.shape)}: give this projector's cropped(box)")
+        return copy_slabbed(into.empty_volume(), into.plan.slabs, (0, 0, 0),
+                            self._as_slabs(vol), self.plan.slabs,
+                            tuple(s.start for s in box), size)
 
     def voxel_weights(self, iz: int, iy: int, ix: int) -> tuple[np.ndarray, np.ndarray]:
         """One voxel's column of the weight matrix, computed by a kernel.

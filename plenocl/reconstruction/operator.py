@@ -84,6 +84,11 @@ class ProjectionOperator(Protocol):
         """The same operator restricted to the sub-grid ``vol[box]`` (keeps a computed
         sensitivity, cropped)."""
 
+    def volume_box(self, vol: Slabs, box: tuple[slice, slice, slice],
+                   into: ProjectionOperator) -> Slabs:
+        """``vol[box]`` of this operator's device volume as ``into``'s device volume
+        (``into``: this operator :meth:`cropped` to ``box``), copied on the device."""
+
 
 @runtime_checkable
 class RefinableOperator(ProjectionOperator, Protocol):

@@ -384,8 +384,9 @@ def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings
     ``early_iterations`` (leaving at least one) on the aperture sampled
     ``early_oversample`` times per pixel footprint when
     :func:`.schedule.sampled_operator` gives that projector, the rest on the refined
-    projector from their volume (handed over on the device when both keep it in the same
-    slabs and the early run did not crop it); ``keep``: :func:`_to_host`'s."""
+    projector from their volume, handed over on the device (as it is when both keep it
+    in the same slabs and the early run did not crop it, else placed on the refined
+    grid's slabs there: :meth:`Solver.placed_on`); ``keep``: :func:`_to_host`'s."""
     early = min(settings.early_iterations, fine.iterations - 1)
     sampled = sampled_operator(refined, settings.early_oversample) if early > 0 else None
     if sampled is None:
@@ -396,13 +397,16 @@ def _from_support(prepared: PreparedImage, refined, fine: ReconstructionSettings
     if info.stopped:  # the callback ended the reconstruction
         return _to_host(solver, vol, prepared, info, factor, refined.grid.shape, keep), info
     rest = dataclasses.replace(fine, iterations=fine.iterations - early)
-    if solver.box is not None or not _same_slabs(sampled, refined):
-        host = _to_host(solver, vol, prepared, info, 1, refined.grid.shape, keep=False)
-        out, late = _solve(prepared, refined, dataclasses.replace(rest, start=host),
-                           _numbered(callback, early), factor=factor, keep=keep)
+    handed = {}
+    if solver.box is None and _same_slabs(sampled, refined):
+        handed["device"] = vol
+    elif isinstance(sampled, PlannedOperator) and isinstance(refined, PlannedOperator):
+        handed["device"] = solver.placed_on(vol, refined)  # a cropped box, placed there
     else:
-        out, late = _solve(prepared, refined, rest, _numbered(callback, early),
-                           factor=factor, device=vol, keep=keep)
+        rest = dataclasses.replace(rest, start=_to_host(
+            solver, vol, prepared, info, 1, refined.grid.shape, keep=False))
+    out, late = _solve(prepared, refined, rest, _numbered(callback, early), factor=factor,
+                       keep=keep, **handed)
     late.iterations += info.iterations
     late.residuals[:0] = info.residuals
     return out, late

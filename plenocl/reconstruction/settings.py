@@ -25,7 +25,9 @@ METHOD = ("coarse-to-fine: the coarse support's peak, floor and level found on t
           "in 256 parts of rows added in order (2026-12-03 night); "
           "a hexagonal array's axial view leaning one way whatever its numbering "
           "(2026-12-01 evening); the coarse run MLEM's whatever the method (2026-12-03: "
-          "SMART's and MART's volumes from the same settings differ)")
+          "SMART's and MART's volumes from the same settings differ); a cropped early "
+          "sub-voxel run's volume handed to the rest on the device, not through the "
+          "host's image units (2026-12-04, issue 46: rounding)")
 #: n per axis of MART's view blocks (n² blocks; 32 covers one block per view of 32 px lenses)
 MAX_MART_BLOCKS = 32
 #: Defaults per method on one grid: (iterations, relaxation). MART's are the paper's

@@ -14,9 +14,9 @@ from typing import TypeVar
 import numpy as np
 import pyopencl.array as cla
 
-from ..opencl.arrays import copy_inside, fill, upload
+from ..opencl.arrays import copy_inside, copy_slabbed, fill, upload
 from ..opencl.program import KernelSet
-from .operator import ProjectionOperator
+from .operator import PlannedOperator, ProjectionOperator
 from .schedule import SupportStart
 from .supersample import LateralBinning
 
@@ -282,14 +282,26 @@ class Solver:
         size = int(np.prod(self.proj.grid.shape))
         if local is None or np.prod([s.stop - s.start for s in local]) > below * size:
             return self, vol, extent
-        host = np.ascontiguousarray(self.proj.volume_to_host(vol)[local])
         box = local if self.box is None else tuple(
             slice(b.start + s.start, b.start + s.stop) for b, s in zip(self.box, local))
         self.release_kept()  # the iterations go on with the cropped solver's
         sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box,
                      self.observed)
-        new_vol = sub.proj.volume_to_device(host)
+        new_vol = self.proj.volume_box(vol, local, sub.proj)  # on the device
         return sub, new_vol, sub.slice_extent(new_vol)
+
+    def placed_on(self, vol, proj: PlannedOperator) -> list[cla.Array]:
+        """This solver's device volume on the full grid of ``proj`` (the grid it was
+        cropped from, or the same grid held in other slabs), in ``proj``'s slabs: zeros
+        outside :attr:`box`, copied on the device (nothing crosses to the host)."""
+        if not isinstance(self.proj, PlannedOperator):
+            raise TypeError(f"{type(self.proj).__name__} keeps no plan of its slabs: "
+                            "bring the volume through the host (volume_to_host)")
+        out = [fill(v, 0.0) for v in proj.empty_volume()]
+        corner = (0, 0, 0) if self.box is None else tuple(s.start for s in self.box)
+        slabs = [vol] if isinstance(vol, cla.Array) else list(vol)
+        return copy_slabbed(out, proj.plan.slabs, corner, slabs, self.proj.plan.slabs,
+                            (0, 0, 0), tuple(self.proj.grid.shape))
 
     def volume_to_host(self, vol, full_shape: tuple[int, int, int]) -> np.ndarray:
         """The host volume on the full grid of shape ``full_shape`` (0 outside :attr:`box`)."""
