@@ -84,11 +84,6 @@ class ProjectionOperator(Protocol):
         """The same operator restricted to the sub-grid ``vol[box]`` (keeps a computed
         sensitivity, cropped)."""
 
-    def volume_box(self, vol: Slabs, box: tuple[slice, slice, slice],
-                   into: ProjectionOperator) -> Slabs:
-        """``vol[box]`` of this operator's device volume as ``into``'s device volume
-        (``into``: this operator :meth:`cropped` to ``box``), copied on the device."""
-
 
 @runtime_checkable
 class RefinableOperator(ProjectionOperator, Protocol):
@@ -123,6 +118,11 @@ class PlannedOperator(ProjectionOperator, Protocol):
     with the same slabs share volumes."""
 
     plan: Any
+
+    def volume_box(self, vol: Slabs, box: tuple[slice, slice, slice],
+                   into: ProjectionOperator) -> Slabs:
+        """``vol[box]`` of this operator's device volume as ``into``'s device volume
+        (``into``: this operator :meth:`cropped` to ``box``), copied on the device."""
 
 
 class SampledOperator(ProjectionOperator, Protocol):

@@ -287,7 +287,11 @@ class Solver:
         self.release_kept()  # the iterations go on with the cropped solver's
         sub = Solver(self.proj.cropped(local), float(self.smin), self.lit, box,
                      self.observed)
-        new_vol = self.proj.volume_box(vol, local, sub.proj)  # on the device
+        if isinstance(self.proj, PlannedOperator):
+            new_vol = self.proj.volume_box(vol, local, sub.proj)  # on the device
+        else:  # an operator without a plan of its slabs: through the host
+            new_vol = sub.proj.volume_to_device(
+                np.ascontiguousarray(self.proj.volume_to_host(vol)[local]))
         return sub, new_vol, sub.slice_extent(new_vol)
 
     def placed_on(self, vol, proj: PlannedOperator) -> list[cla.Array]:
